@@ -1,0 +1,78 @@
+"""B-spline prefilter and sampling: exact interpolation, analytic gradients, polynomials."""
+
+import pytest
+import torch
+
+from torch_stsdic.interpolation import BSplineImage, bspline_prefilter
+
+
+def _smooth(h=40, w=50, dtype=torch.float64):
+    yy, xx = torch.meshgrid(
+        torch.arange(h, dtype=dtype), torch.arange(w, dtype=dtype), indexing="ij"
+    )
+    return torch.sin(0.3 * xx) * torch.cos(0.2 * yy) * 50 + 100, xx, yy
+
+
+@pytest.mark.parametrize("order", [3, 5])
+def test_interpolates_pixels_exactly(order):
+    img, xx, yy = _smooth()
+    b = BSplineImage(img, order)
+    assert torch.allclose(b.sample(xx, yy), img, atol=1e-10)
+
+
+@pytest.mark.parametrize("order", [3, 5])
+def test_gradient_matches_finite_differences(order):
+    img, _, _ = _smooth()
+    b = BSplineImage(img, order)
+    g = torch.Generator().manual_seed(1)
+    x = torch.rand(500, generator=g, dtype=torch.float64) * 40 + 3
+    y = torch.rand(500, generator=g, dtype=torch.float64) * 30 + 3
+    _, gx, gy = b.sample(x, y, grad=True)
+    e = 1e-6
+    fdx = (b.sample(x + e, y) - b.sample(x - e, y)) / (2 * e)
+    fdy = (b.sample(x, y + e) - b.sample(x, y - e)) / (2 * e)
+    assert torch.allclose(gx, fdx, atol=1e-6)
+    assert torch.allclose(gy, fdy, atol=1e-6)
+
+
+@pytest.mark.parametrize("order", [3, 5])
+def test_reproduces_linear_ramps_inside(order):
+    # B-splines reproduce polynomials up to their order away from the boundary
+    h, w = 80, 80  # the mirror boundary bends the ramp; its effect decays inside
+    yy, xx = torch.meshgrid(
+        torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij"
+    )
+    img = 2.0 * xx - 0.5 * yy + 7.0
+    b = BSplineImage(img, order)
+    x = torch.tensor([40.25, 42.5, 35.75], dtype=torch.float64)
+    y = torch.tensor([41.1, 33.9, 44.5], dtype=torch.float64)
+    v, gx, gy = b.sample(x, y, grad=True)
+    assert torch.allclose(v, 2.0 * x - 0.5 * y + 7.0, atol=1e-6)
+    assert torch.allclose(gx, torch.full_like(gx, 2.0), atol=1e-6)
+    assert torch.allclose(gy, torch.full_like(gy, -0.5), atol=1e-6)
+
+
+def test_frames_are_independent_and_stackable():
+    img, xx, yy = _smooth()
+    b = BSplineImage(torch.stack([img, 2 * img, 3 * img]))
+    f = torch.arange(3).view(3, 1, 1)
+    v = b.sample(xx.expand(3, -1, -1), yy.expand(3, -1, -1), frame=f)
+    assert torch.allclose(v, torch.stack([img, 2 * img, 3 * img]), atol=1e-9)
+    s = BSplineImage.stack([b.frame(2), b.frame(0)])
+    assert torch.allclose(s.sample(xx, yy, frame=1), img, atol=1e-9)
+
+
+def test_float32_close_to_float64():
+    img, _, _ = _smooth()
+    b64 = BSplineImage(img)
+    b32 = BSplineImage(img.float())
+    x = torch.linspace(5, 40, 100, dtype=torch.float64)
+    y = torch.linspace(5, 30, 100, dtype=torch.float64)
+    assert torch.allclose(b32.sample(x.float(), y.float()).double(), b64.sample(x, y), atol=1e-3)
+
+
+def test_prefilter_rejects_integers_and_bad_order():
+    with pytest.raises(TypeError):
+        bspline_prefilter(torch.zeros(5, 5, dtype=torch.int32))
+    with pytest.raises(ValueError):
+        BSplineImage(torch.zeros(5, 5), order=4)

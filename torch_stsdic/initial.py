@@ -1,0 +1,142 @@
+"""Initial guesses: batched FFT cross-correlation (integer + parabolic sub-pixel peak).
+
+For every POI the reference subset is correlated with a search area of half-width
+``search_radius`` around the same position in the deformed image, all POIs (and all frames)
+at once with ``torch.fft``. The correlation is zero-normalised (ZNCC), so intensity offset
+and scale between images do not matter.
+"""
+
+from __future__ import annotations
+
+import torch
+
+__all__ = ["fft_cross_correlation", "linear_fit_in_time"]
+
+
+def _regions(img: torch.Tensor, cx: torch.Tensor, cy: torch.Tensor, size: int) -> torch.Tensor:
+    """Square regions (N, T, size, size) of img (T, H, W), top-left at (cx, cy) (N,) ints,
+    zero outside the image."""
+    t, h, w = img.shape
+    r = torch.arange(size, device=img.device)
+    rows = cy.view(-1, 1) + r  # (N, size)
+    cols = cx.view(-1, 1) + r
+    valid = ((rows >= 0) & (rows < h)).unsqueeze(-1) & ((cols >= 0) & (cols < w)).unsqueeze(-2)
+    rows = rows.clamp(0, h - 1)
+    cols = cols.clamp(0, w - 1)
+    flat = rows.unsqueeze(-1) * w + cols.unsqueeze(-2)  # (N, size, size)
+    out = img.reshape(t, -1)[:, flat.reshape(-1)].reshape(t, -1, size, size).transpose(0, 1)
+    return out * valid.unsqueeze(1).to(out.dtype)
+
+
+def _box_sum(a: torch.Tensor, k: int) -> torch.Tensor:
+    """Sums over all k x k windows of a (..., L, L) -> (..., L-k+1, L-k+1)."""
+    c = torch.nn.functional.pad(a.cumsum(-1).cumsum(-2), (1, 0, 1, 0))
+    return c[..., k:, k:] - c[..., :-k, k:] - c[..., k:, :-k] + c[..., :-k, :-k]
+
+
+def _at(flat, iy, ix, di: int, dj: int, k: int) -> torch.Tensor:
+    """Correlation at the integer peak moved by (di, dj), clamped to the search grid."""
+    yy = (iy + di).clamp(0, k - 1)
+    xx = (ix + dj).clamp(0, k - 1)
+    return flat.gather(-1, (yy * k + xx).unsqueeze(-1))[..., 0]
+
+
+def _parabola(lo, mid, hi, i, k: int) -> torch.Tensor:
+    """Sub-pixel offset of a 3-point parabola peak (0 at the search border)."""
+    den = lo - 2.0 * mid + hi
+    off = torch.where(den < -1e-12, 0.5 * (lo - hi) / den.clamp(max=-1e-12), 0.0 * den)
+    edge = (i == 0) | (i == k - 1) | (lo < -1.5) | (hi < -1.5)
+    return torch.where(edge, torch.zeros_like(off), off.clamp(-0.5, 0.5))
+
+
+@torch.no_grad()
+def fft_cross_correlation(
+    ref: torch.Tensor,
+    images: torch.Tensor,
+    points: torch.Tensor,
+    subset_size: int,
+    search_radius: int,
+    batch: int = 4096,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Displacement of each POI from ``ref`` (H, W) to each of ``images`` (T, H, W).
+
+    Args:
+        points: (N, 2) POI positions (x, y) in px (rounded to the nearest pixel here).
+        subset_size: odd subset width in px.
+        search_radius: largest |u|, |v| searched, px.
+
+    Returns:
+        disp: (N, T, 2) displacement (u, v) in px, integer peak refined by a parabola fit.
+        zncc: (N, T) ZNCC at the integer peak (-1 where nothing valid was found).
+    """
+    if images.dim() == 2:
+        images = images.unsqueeze(0)
+    dtype = torch.float32 if images.dtype != torch.float64 else torch.float64
+    ref = ref.to(dtype)
+    images = images.to(dtype)
+    n = points.shape[0]
+    t_count, h, w = images.shape
+    half = subset_size // 2
+    rad = int(search_radius)
+    size = subset_size + 2 * rad
+    npix = subset_size * subset_size
+    cx = torch.round(points[:, 0]).long()
+    cy = torch.round(points[:, 1]).long()
+    disp = torch.zeros(n, t_count, 2, dtype=dtype, device=images.device)
+    score = torch.full((n, t_count), -1.0, dtype=dtype, device=images.device)
+    shifts = torch.arange(-rad, rad + 1, device=images.device)
+    per_batch = max(1, batch // max(1, t_count))
+    for s0 in range(0, n, per_batch):
+        sl = slice(s0, min(n, s0 + per_batch))
+        bx, by = cx[sl], cy[sl]
+        f = _regions(ref.unsqueeze(0), bx - half, by - half, subset_size)[:, 0]  # (B, s, s)
+        f = f - f.mean(dim=(-1, -2), keepdim=True)
+        fnorm = f.square().sum(dim=(-1, -2)).sqrt()  # (B,)
+        g = _regions(images, bx - half - rad, by - half - rad, size)  # (B, T, L, L)
+        ff = torch.fft.rfft2(f, s=(size, size))
+        gg = torch.fft.rfft2(g)
+        corr = torch.fft.irfft2(torch.conj(ff).unsqueeze(1) * gg, s=(size, size))
+        corr = corr[..., : 2 * rad + 1, : 2 * rad + 1]
+        s1 = _box_sum(g, subset_size)
+        s2 = _box_sum(g * g, subset_size)
+        var = (s2 - s1 * s1 / npix).clamp(min=0.0)
+        denom = fnorm.view(-1, 1, 1, 1) * var.sqrt()
+        zn = torch.where(denom > 1e-12, corr / denom.clamp(min=1e-30), torch.full_like(corr, -1.0))
+        # shifts whose subset leaves the image are invalid
+        okx = ((bx.view(-1, 1) + shifts - half) >= 0) & ((bx.view(-1, 1) + shifts + half) < w)
+        oky = ((by.view(-1, 1) + shifts - half) >= 0) & ((by.view(-1, 1) + shifts + half) < h)
+        ok = oky.unsqueeze(-1) & okx.unsqueeze(-2)  # (B, 2R+1 rows, 2R+1 cols)
+        zn = torch.where(ok.unsqueeze(1), zn, torch.full_like(zn, -2.0))
+        k = 2 * rad + 1
+        best = zn.reshape(zn.shape[0], t_count, -1).argmax(-1)  # (B, T)
+        iy = best // k
+        ix = best % k
+        peak = zn.reshape(zn.shape[0], t_count, -1).gather(-1, best.unsqueeze(-1)).squeeze(-1)
+
+        flat = zn.reshape(zn.shape[0], t_count, -1)
+        sub_x = _parabola(_at(flat, iy, ix, 0, -1, k), peak, _at(flat, iy, ix, 0, 1, k), ix, k)
+        sub_y = _parabola(_at(flat, iy, ix, -1, 0, k), peak, _at(flat, iy, ix, 1, 0, k), iy, k)
+        disp[sl, :, 0] = (ix - rad).to(dtype) + sub_x
+        disp[sl, :, 1] = (iy - rad).to(dtype) + sub_y
+        score[sl] = torch.where(peak > -1.5, peak, torch.full_like(peak, -1.0))
+    return disp, score
+
+
+def linear_fit_in_time(
+    disp: torch.Tensor, dt: torch.Tensor, weights: torch.Tensor | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Least-squares line through per-frame displacements.
+
+    disp (N, T, 2), dt (T,) frame times relative to the expansion time. Returns the
+    displacement at dt = 0 (N, 2) and the velocity (N, 2) in px per time unit."""
+    if disp.shape[1] == 1 or float(dt.max() - dt.min()) == 0.0:
+        return disp[:, 0], torch.zeros_like(disp[:, 0])
+    w = torch.ones_like(disp[..., 0]) if weights is None else weights.clamp(min=1e-6)
+    sw = w.sum(1)
+    tm = (w * dt).sum(1) / sw  # (N,)
+    dm = (w.unsqueeze(-1) * disp).sum(1) / sw.unsqueeze(-1)  # (N, 2)
+    dtc = dt.view(1, -1) - tm.view(-1, 1)  # (N, T)
+    slope = (w.unsqueeze(-1) * dtc.unsqueeze(-1) * (disp - dm.unsqueeze(1))).sum(1) / (
+        (w * dtc * dtc).sum(1).unsqueeze(-1)
+    )
+    return dm - slope * tm.unsqueeze(-1), slope
