@@ -13,10 +13,12 @@ import torch
 __all__ = ["fft_cross_correlation", "linear_fit_in_time"]
 
 
-def _regions(img: torch.Tensor, cx: torch.Tensor, cy: torch.Tensor, size: int) -> torch.Tensor:
-    """Square regions (N, T, size, size) of img (T, H, W), top-left at (cx, cy) (N,) ints,
-    zero outside the image."""
-    t, h, w = img.shape
+def _regions(
+    img: torch.Tensor, index: torch.Tensor, cx: torch.Tensor, cy: torch.Tensor, size: int
+) -> torch.Tensor:
+    """Square regions (N, T, size, size) of images ``img[index]`` (img (F, H, W), index
+    (N, T)), top-left at (cx, cy) (N,) ints, zero outside the image."""
+    _, h, w = img.shape
     r = torch.arange(size, device=img.device)
     rows = cy.view(-1, 1) + r  # (N, size)
     cols = cx.view(-1, 1) + r
@@ -24,7 +26,8 @@ def _regions(img: torch.Tensor, cx: torch.Tensor, cy: torch.Tensor, size: int) -
     rows = rows.clamp(0, h - 1)
     cols = cols.clamp(0, w - 1)
     flat = rows.unsqueeze(-1) * w + cols.unsqueeze(-2)  # (N, size, size)
-    out = img.reshape(t, -1)[:, flat.reshape(-1)].reshape(t, -1, size, size).transpose(0, 1)
+    flat = flat.unsqueeze(1) + (index * (h * w)).view(*index.shape, 1, 1)  # (N, T, size, size)
+    out = img.reshape(-1).take(flat)
     return out * valid.unsqueeze(1).to(out.dtype)
 
 
@@ -56,6 +59,9 @@ def fft_cross_correlation(
     points: torch.Tensor,
     subset_size: int,
     search_radius: int,
+    *,
+    frame_index: torch.Tensor | None = None,
+    ref_index: torch.Tensor | None = None,
     batch: int = 4096,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Displacement of each POI from ``ref`` (H, W) to each of ``images`` (T, H, W).
@@ -64,6 +70,8 @@ def fft_cross_correlation(
         points: (N, 2) POI positions (x, y) in px (rounded to the nearest pixel here).
         subset_size: odd subset width in px.
         search_radius: largest |u|, |v| searched, px.
+        frame_index: optional (N, T) indices into ``images`` per POI (default: all frames).
+        ref_index: optional (N,) index into ``ref`` given as (R, H, W) per POI.
 
     Returns:
         disp: (N, T, 2) displacement (u, v) in px, integer peak refined by a parabola fit.
@@ -71,11 +79,19 @@ def fft_cross_correlation(
     """
     if images.dim() == 2:
         images = images.unsqueeze(0)
+    if ref.dim() == 2:
+        ref = ref.unsqueeze(0)
+    n = points.shape[0]
+    dev = images.device
+    if frame_index is None:
+        frame_index = torch.arange(images.shape[0], device=dev).expand(n, -1)
+    if ref_index is None:
+        ref_index = torch.zeros(n, dtype=torch.long, device=dev)
     dtype = torch.float32 if images.dtype != torch.float64 else torch.float64
     ref = ref.to(dtype)
     images = images.to(dtype)
-    n = points.shape[0]
-    t_count, h, w = images.shape
+    t_count = frame_index.shape[1]
+    _, h, w = images.shape
     half = subset_size // 2
     rad = int(search_radius)
     size = subset_size + 2 * rad
@@ -89,10 +105,10 @@ def fft_cross_correlation(
     for s0 in range(0, n, per_batch):
         sl = slice(s0, min(n, s0 + per_batch))
         bx, by = cx[sl], cy[sl]
-        f = _regions(ref.unsqueeze(0), bx - half, by - half, subset_size)[:, 0]  # (B, s, s)
+        f = _regions(ref, ref_index[sl].view(-1, 1), bx - half, by - half, subset_size)[:, 0]
         f = f - f.mean(dim=(-1, -2), keepdim=True)
         fnorm = f.square().sum(dim=(-1, -2)).sqrt()  # (B,)
-        g = _regions(images, bx - half - rad, by - half - rad, size)  # (B, T, L, L)
+        g = _regions(images, frame_index[sl], bx - half - rad, by - half - rad, size)
         ff = torch.fft.rfft2(f, s=(size, size))
         gg = torch.fft.rfft2(g)
         corr = torch.fft.irfft2(torch.conj(ff).unsqueeze(1) * gg, s=(size, size))
@@ -127,15 +143,16 @@ def linear_fit_in_time(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Least-squares line through per-frame displacements.
 
-    disp (N, T, 2), dt (T,) frame times relative to the expansion time. Returns the
-    displacement at dt = 0 (N, 2) and the velocity (N, 2) in px per time unit."""
-    if disp.shape[1] == 1 or float(dt.max() - dt.min()) == 0.0:
+    disp (N, T, 2), dt (T,) or (N, T) frame times relative to the expansion time. Returns
+    the displacement at dt = 0 (N, 2) and the velocity (N, 2) in px per time unit."""
+    dt = dt.expand(disp.shape[0], -1) if dt.dim() == 1 else dt
+    if disp.shape[1] == 1 or float((dt.amax(1) - dt.amin(1)).min()) == 0.0:
         return disp[:, 0], torch.zeros_like(disp[:, 0])
     w = torch.ones_like(disp[..., 0]) if weights is None else weights.clamp(min=1e-6)
     sw = w.sum(1)
     tm = (w * dt).sum(1) / sw  # (N,)
     dm = (w.unsqueeze(-1) * disp).sum(1) / sw.unsqueeze(-1)  # (N, 2)
-    dtc = dt.view(1, -1) - tm.view(-1, 1)  # (N, T)
+    dtc = dt - tm.view(-1, 1)  # (N, T)
     slope = (w.unsqueeze(-1) * dtc.unsqueeze(-1) * (disp - dm.unsqueeze(1))).sum(1) / (
         (w * dtc * dtc).sum(1).unsqueeze(-1)
     )

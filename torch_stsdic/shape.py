@@ -74,6 +74,18 @@ class ShapeFunction(nn.Module):
         """Basis values (T, S, K) for offsets dx, dy (S,) and frame times dt (T,)."""
         raise NotImplementedError
 
+    def spatial_basis(self, dx: torch.Tensor, dy: torch.Tensor) -> torch.Tensor:
+        """Spatial basis values (S, Ks) (the basis without its temporal term ``t``, which is
+        always the last term and enters as p_t * dt)."""
+        z = torch.zeros(1, dtype=dx.dtype, device=dx.device)
+        b = type(self)(temporal=False).basis(dx, dy, z)
+        return b[0]
+
+    @property
+    def has_time(self) -> bool:
+        """True if the last basis term is the linear-in-time term ``t``."""
+        return self.terms[-1] == "t"
+
     def displacement(self, params: torch.Tensor, basis: torch.Tensor):
         """(u, v), each (N, T, S), of every subset pixel at every frame (Eq. 9).
 

@@ -62,7 +62,7 @@ class WindowSolution:
     zncc: torch.Tensor
     status: torch.Tensor
     iterations: torch.Tensor
-    time: float = 0.0
+    time: float | torch.Tensor = 0.0
     info: dict = field(default_factory=dict)
 
     def _get(self, name: str) -> torch.Tensor:
@@ -103,7 +103,10 @@ class SubsetSolver:
     """The solver with its configuration resolved into modules (shape, window).
 
     ``prepare`` does the per-image work (B-spline prefilter) once; ``solve`` does the
-    per-point work for one window. :func:`solve_window` wraps both.
+    per-point work. :func:`solve_window` wraps both for one window. ``solve`` is general:
+    every POI can use its own reference (``ref_index``), its own frames (``frame_index``)
+    and its own frame times (``dt``), so several windows of a movie, or a batch of
+    sequences, are solved as one set of tensor operations.
     """
 
     def __init__(self, config: DICConfig | None = None) -> None:
@@ -116,42 +119,57 @@ class SubsetSolver:
         """Prefilter (T, H, W) or (H, W) images into B-spline coefficients."""
         return BSplineImage(images, order=self.config.interpolation_order)
 
+    def shape_for(self, dt: torch.Tensor) -> ShapeFunction:
+        """The shape function used for frame offsets ``dt``: without temporal terms when all
+        frames are at the same time (one frame, m = 0: classical DIC)."""
+        if dt.shape[-1] > 1 and float(dt.abs().max()) > 0:
+            return self.shape
+        return self.shape.spatial()
+
     # ------------------------------------------------------------------------------------
     def solve(
         self,
         ref: BSplineImage,
         frames: BSplineImage,
         points: torch.Tensor,
-        times: torch.Tensor,
+        dt: torch.Tensor,
         *,
-        center: int,
+        frame_index: torch.Tensor | None = None,
+        ref_index: torch.Tensor | None = None,
         init: torch.Tensor | None = None,
         ref_pixels: torch.Tensor | None = None,
         frame_pixels: torch.Tensor | None = None,
-        frame_index: torch.Tensor | None = None,
+        time: float | torch.Tensor = 0.0,
     ) -> WindowSolution:
-        """Solve one window.
+        """Solve many POIs, each against its own window of frames.
 
         Args:
-            ref: prepared reference (1 frame).
-            frames: prepared frames; the window uses ``frame_index`` (T,) of them (default all).
-            points: (N, 2) POIs (x, y) in px, dtype of the computation.
-            times: (T,) frame times; the results refer to ``times[center]``.
-            init: (N, P) initial parameters, or None for FFT cross-correlation (which then
-                needs ``ref_pixels`` (H, W) and ``frame_pixels`` (T, H, W)).
+            ref: prepared reference image(s) (R frames).
+            frames: prepared deformed frames (F frames).
+            points: (N, 2) POIs (x, y) in px; its dtype is the computation's.
+            dt: (T,) or (N, T) frame times minus the time the results refer to.
+            frame_index: (T,) or (N, T) indices into ``frames`` (default 0..T-1).
+            ref_index: (N,) indices into ``ref`` (default 0).
+            init: (N, P) initial parameters, or None for FFT cross-correlation (which needs
+                ``ref_pixels`` (R, H, W) and ``frame_pixels`` (F, H, W)).
+            time: reported as ``WindowSolution.time``.
         """
         cfg = self.config
         device, dtype = points.device, points.dtype
         n = points.shape[0]
-        t_count = times.shape[0]
+        dt = dt.to(device=device, dtype=dtype)
+        t_count = dt.shape[-1]
+        dt = dt.expand(n, t_count) if dt.dim() == 1 else dt
         if frame_index is None:
             frame_index = torch.arange(t_count, device=device)
-        dt = times - times[center]
-        shape = self.shape if t_count > 1 and float(dt.abs().max()) > 0 else self.shape.spatial()
+        frame_index = frame_index.to(device).long().expand(n, t_count)
+        ref_index = (
+            torch.zeros(n, dtype=torch.long, device=device)
+            if ref_index is None else ref_index.to(device).long().expand(n)
+        )
+        shape = self.shape_for(dt)
         p_count = shape.n_params
         offsets, weights = self.window.offsets_and_weights(dtype, device)
-        dx, dy = offsets[:, 0], offsets[:, 1]
-        basis = shape.basis(dx, dy, dt)  # (T, S, K)
         half = float(self.window.half)
         h, w = ref.height, ref.width
         status = torch.full((n,), int(Status.NOT_COMPUTED), dtype=torch.int8, device=device)
@@ -159,45 +177,39 @@ class SubsetSolver:
         zncc = torch.full((n,), float("nan"), dtype=dtype, device=device)
         iters = torch.zeros(n, dtype=torch.int32, device=device)
 
-        # reference subsets inside the image?
         inside = (
             (points[:, 0] - half >= 0) & (points[:, 0] + half <= w - 1)
             & (points[:, 1] - half >= 0) & (points[:, 1] + half <= h - 1)
         )
         status[~inside] = int(Status.OUTSIDE)
 
-        # initial guess
         if init is None:
             if ref_pixels is None or frame_pixels is None:
                 raise ValueError("solve needs init or the raw images for the FFT initial guess")
             p0 = torch.zeros(n, p_count, dtype=dtype, device=device)
             if inside.any():
-                d, score = fft_cross_correlation(
-                    ref_pixels, frame_pixels, points[inside], cfg.subset_size, cfg.search_radius
+                p0[inside] = self.initial_guess(
+                    shape, ref_pixels, frame_pixels, points[inside], dt[inside],
+                    frame_index[inside], ref_index[inside],
                 )
-                d = d.to(dtype)
-                d0, vel = linear_fit_in_time(d, dt, weights=(score.to(dtype) + 1.0))
-                k = shape.n_basis
-                p0[inside, 0] = d0[:, 0]
-                p0[inside, k] = d0[:, 1]
-                if "ut" in shape.param_names:
-                    p0[inside, shape.index("ut")] = vel[:, 0]
-                    p0[inside, shape.index("vt")] = vel[:, 1]
         else:
             p0 = init.to(device=device, dtype=dtype)
             if p0.shape[1] != p_count:
                 p0 = _expand_init(p0, shape, self.shape)
 
         todo = torch.nonzero(inside).flatten()
+        grey = ref_pixels if ref_pixels is not None else ref.coeffs
         ctx = _Context(
-            shape=shape, basis=basis, dx=dx, dy=dy, w=weights, dt=dt, half=half, h=h, w_img=w,
-            ref=ref, frames=frames, frame_index=frame_index, cfg=cfg,
-            grey_range=_grey_range(ref_pixels if ref_pixels is not None else ref.coeffs),
+            shape=shape, spatial=shape.spatial_basis(offsets[:, 0], offsets[:, 1]),
+            dx=offsets[:, 0], dy=offsets[:, 1], w=weights, half=half, h=h, w_img=w,
+            ref=ref, frames=frames, cfg=cfg, grey_range=_grey_range(grey),
         )
-        batch = cfg.batch_points or ctx.batch_size()
+        batch = cfg.batch_points or ctx.batch_size(t_count)
         for s0 in range(0, todo.numel(), batch):
             idx = todo[s0 : s0 + batch]
-            pr, zr, sr, ir = _solve_batch(ctx, points[idx], p0[idx])
+            pr, zr, sr, ir = _solve_batch(
+                ctx, points[idx], p0[idx], dt[idx], frame_index[idx], ref_index[idx]
+            )
             params[idx], zncc[idx], status[idx], iters[idx] = pr, zr, sr, ir
 
         bad = status > int(Status.MAX_ITER)
@@ -205,9 +217,33 @@ class SubsetSolver:
         zncc[bad] = float("nan")
         return WindowSolution(
             points=points, params=params, param_names=shape.param_names, zncc=zncc,
-            status=status, iterations=iters, time=float(times[center]),
+            status=status, iterations=iters, time=time,
             info={"formulation": cfg.formulation, "n_frames": t_count},
         )
+
+    def initial_guess(
+        self, shape, ref_pixels, frame_pixels, points, dt, frame_index, ref_index
+    ) -> torch.Tensor:
+        """FFT cross-correlation on every frame of each POI's window, then a line in time:
+        (N, P) parameters (displacement at dt = 0 and velocity; gradients zero)."""
+        cfg = self.config
+        d, score = fft_cross_correlation(
+            ref_pixels, frame_pixels, points, cfg.subset_size, cfg.search_radius,
+            frame_index=frame_index, ref_index=ref_index,
+        )
+        d = d.to(points.dtype)
+        p0 = torch.zeros(points.shape[0], shape.n_params, dtype=points.dtype,
+                         device=points.device)
+        k = shape.n_basis
+        if shape.has_time:
+            d0, vel = linear_fit_in_time(d, dt, weights=score.to(points.dtype) + 1.0)
+            p0[:, k - 1] = vel[:, 0]
+            p0[:, 2 * k - 1] = vel[:, 1]
+        else:
+            d0 = (d * (score.unsqueeze(-1) + 1.0)).sum(1) / (score + 1.0).sum(1, keepdim=True)
+        p0[:, 0] = d0[:, 0]
+        p0[:, k] = d0[:, 1]
+        return p0
 
 
 def _grey_range(img: torch.Tensor) -> float:
@@ -245,109 +281,135 @@ def _expand_init(p0: torch.Tensor, shape: ShapeFunction, full: ShapeFunction) ->
 @dataclass
 class _Context:
     shape: ShapeFunction
-    basis: torch.Tensor  # (T, S, K)
-    dx: torch.Tensor
+    spatial: torch.Tensor  # (S, Ks) spatial basis
+    dx: torch.Tensor  # (S,)
     dy: torch.Tensor
-    w: torch.Tensor  # (S,)
-    dt: torch.Tensor  # (T,)
+    w: torch.Tensor  # (S,) window weights
     half: float
     h: int
     w_img: int
     ref: BSplineImage
     frames: BSplineImage
-    frame_index: torch.Tensor
     cfg: DICConfig
     grey_range: float
 
-    def batch_size(self) -> int:
-        t, s, k = self.basis.shape
-        elem = self.basis.element_size()
-        per_point = t * s * elem * (48 + 2 * k) + s * elem * (16 + 4 * k)
+    @property
+    def ks(self) -> int:
+        return self.spatial.shape[1]
+
+    @property
+    def k(self) -> int:
+        return self.shape.n_basis
+
+    def batch_size(self, t: int) -> int:
+        s, ks = self.spatial.shape
+        elem = self.spatial.element_size()
+        jac = t * 2 * (ks + 1) if self.shape.compose_inverse(
+            torch.zeros(1, self.shape.n_params), torch.zeros(1, self.shape.n_params)
+        ) is None else 0
+        per_point = s * elem * (t * 40 + jac + 8 * ks + 24)
         return max(16, int(self.cfg.memory_mb * 2**20 / per_point))
+
+
+@dataclass
+class _Batch:
+    """Per-point data of one batch (rows can be dropped as points finish)."""
+
+    px: torch.Tensor  # (N, 1)
+    py: torch.Tensor
+    dt: torch.Tensor  # (N, T)
+    fidx: torch.Tensor  # (N, T) frame indices
+    f: torch.Tensor  # (N, S) reference subset
+    ft: torch.Tensor  # (N, S) zero-mean (ZNSSD) or raw (SSD) reference subset
+    fnorm: torch.Tensor  # (N,)
+    gx: torch.Tensor  # (N, S) reference gradient
+    gy: torch.Tensor
+    chol: torch.Tensor | None = None  # (N, P, P) Cholesky factor of the IC Hessian
+
+    def take(self, idx: torch.Tensor) -> _Batch:
+        return _Batch(**{
+            k: (v[idx] if isinstance(v, torch.Tensor) else v) for k, v in self.__dict__.items()
+        })
 
 
 def _wsum(x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     return (x * w).sum(-1)
 
 
-def _solve_batch(ctx: _Context, pts: torch.Tensor, p0: torch.Tensor):
+def _solve_batch(ctx, pts, p0, dt, fidx, ridx):
     """Solve one batch of POIs (all inside the image). Returns params, zncc, status, iters."""
     cfg = ctx.cfg
     n = pts.shape[0]
     device, dtype = pts.device, pts.dtype
     w = ctx.w
     wsum = w.sum()
-    znssd = cfg.criterion == "znssd"
-    px = pts[:, 0:1]
-    py = pts[:, 1:2]
-    # reference subsets: values and gradients (the per-point "prepare" work)
-    f, fgx, fgy = ctx.ref.sample(px + ctx.dx, py + ctx.dy, grad=True)  # (N, S)
+    px, py = pts[:, 0:1], pts[:, 1:2]
+    f, fgx, fgy = ctx.ref.sample(px + ctx.dx, py + ctx.dy, frame=ridx.view(-1, 1), grad=True)
     status = torch.full((n,), int(Status.NOT_COMPUTED), dtype=torch.int8, device=device)
-    grey_range = ctx.grey_range
     texture = _wsum(fgx * fgx + fgy * fgy, w) / wsum
-    low = texture < cfg.texture_threshold * grey_range**2
-    if znssd:
-        fm = _wsum(f, w) / wsum
-        ft = f - fm.unsqueeze(-1)
+    low = texture < cfg.texture_threshold * ctx.grey_range**2
+    if cfg.criterion == "znssd":
+        ft = f - (_wsum(f, w) / wsum).unsqueeze(-1)
     else:
         ft = f
     fnorm = _wsum(ft * ft, w).sqrt()
-    low |= fnorm < 1e-8 * grey_range * math.sqrt(float(wsum))
+    low |= fnorm < 1e-6 * ctx.grey_range * math.sqrt(float(wsum))
     status[low] = int(Status.LOW_TEXTURE)
+    data = _Batch(px=px, py=py, dt=dt, fidx=fidx, f=f, ft=ft, fnorm=fnorm, gx=fgx, gy=fgy)
     params = p0.clone()
     zncc = torch.full((n,), float("nan"), dtype=dtype, device=device)
     iters = torch.zeros(n, dtype=torch.int32, device=device)
     live = ~low
-    ref_data = {"f": f, "ft": ft, "fnorm": fnorm, "gx": fgx, "gy": fgy, "px": px, "py": py}
-
-    stages = _stages(ctx)
+    stages = _stages(ctx, dt.shape[1])
     for stage_i, (kind, free) in enumerate(stages):
-        last = stage_i == len(stages) - 1
-        params, zncc, st, used = _run_stage(ctx, kind, free, params, ref_data, live)
+        params, zn, st, used = _run_stage(ctx, kind, free, params, data, live)
+        zncc = torch.where(live, zn, zncc)
         iters += used
-        if last:
+        if stage_i == len(stages) - 1:
             status = torch.where(live, st, status)
         else:
             # a stage that failed ends the point; MAX_ITER in an early stage is not fatal
             failed = live & (st > int(Status.MAX_ITER))
             status = torch.where(failed, st, status)
             live = live & ~failed
-    # divergence from the initial guess
     maxd = cfg.max_displacement if cfg.max_displacement is not None else float(cfg.subset_size)
-    k = ctx.shape.n_basis
+    k = ctx.k
     jump = torch.maximum((params[:, 0] - p0[:, 0]).abs(), (params[:, k] - p0[:, k]).abs())
     far = (status <= int(Status.MAX_ITER)) & ~(jump <= maxd)
     status[far] = int(Status.DIVERGED)
     return params, zncc, status, iters
 
 
-def _stages(ctx: _Context) -> list[tuple[str, torch.Tensor | None]]:
+def _stages(ctx: _Context, t_count: int) -> list[tuple[str, torch.Tensor | None]]:
     """(kind, free-parameter mask) per stage for the configured formulation."""
     shape = ctx.shape
-    single = ctx.basis.shape[0] == 1
+    has_ic = shape.compose_inverse(
+        torch.zeros(1, shape.n_params), torch.zeros(1, shape.n_params)
+    ) is not None
+    joint = "joint_ic" if has_ic else "joint_fa"
     form = ctx.cfg.formulation
-    ic = shape.compose_inverse is not None and type(shape).compose_inverse is not (
-        ShapeFunction.compose_inverse
-    )
-    joint = "joint_ic" if ic else "joint_fa"
-    if single:
-        return [(joint, None)]  # classical DIC: joint == average with one frame
-    if form == "joint":
-        return [(joint, None)]
+    if not shape.has_time or form == "joint":
+        return [(joint, None)]  # one frame: joint == average == classical DIC
     if form == "average":
         return [("average", None)]
-    spatial = ~shape.temporal_mask().to(ctx.basis.device)
+    spatial = ~shape.temporal_mask().to(ctx.spatial.device)
     return [(joint, None), ("average", spatial)]
 
 
-def _take(d: dict, idx: torch.Tensor) -> dict:
-    return {k: v[idx] for k, v in d.items()}
+def _increment_scale(ctx: _Context, data: _Batch) -> torch.Tensor:
+    """(N, P): |dp * scale| bounds each parameter's displacement change over the window."""
+    s = ctx.spatial.abs().amax(0)  # (Ks,)
+    n = data.dt.shape[0]
+    block = s.expand(n, -1)
+    if ctx.shape.has_time:
+        block = torch.cat([block, data.dt.abs().amax(1, keepdim=True)], 1)
+    return torch.cat([block, block], 1)
 
 
-def _run_stage(ctx, kind, free, params, ref_data, live):
-    """Iterate one Gauss-Newton stage over the live points with an active set.
+def _run_stage(ctx, kind, free, params, data: _Batch, live):
+    """Iterate one Gauss-Newton stage over the live points, dropping finished points.
 
-    Returns params, zncc (N,), status (N,) for the live points, iterations used (N,)."""
+    Returns params, zncc (N,), status (N,), iterations used (N,)."""
     cfg = ctx.cfg
     n = params.shape[0]
     device, dtype = params.device, params.dtype
@@ -356,34 +418,28 @@ def _run_stage(ctx, kind, free, params, ref_data, live):
     used = torch.zeros(n, dtype=torch.int32, device=device)
     p_count = params.shape[1]
     free_idx = torch.arange(p_count, device=device) if free is None else torch.nonzero(free)[:, 0]
-    scale = ctx.shape.increment_scale(
-        ctx.half, float(ctx.dt.abs().max()), dtype, device
-    ) if ctx.basis.shape[0] > 1 else ctx.shape.increment_scale(ctx.half, 0.0, dtype, device)
-    scale = scale[: p_count]
     rows = torch.nonzero(live).flatten()
     if rows.numel() == 0:
         return params, zncc, status, used
     params = params.clone()
-    state = _take(ref_data, rows)
+    data = data.take(rows)
     if kind == "joint_ic":
-        hess = _ic_hessian(ctx, state)
-        chol, info = torch.linalg.cholesky_ex(hess.double())
-        state["chol"] = chol
+        chol, info = torch.linalg.cholesky_ex(_ic_hessian(ctx, data).double())
+        data.chol = chol
         sing = info > 0
         if sing.any():
-            status[rows[sing]] = int(Status.DIVERGED)
-            keep = ~sing
-            rows = rows[keep]
-            state = _take(state, keep)
+            status[rows[sing]] = int(Status.LOW_TEXTURE)
+            rows, data = rows[~sing], data.take(~sing)
+    scale = _increment_scale(ctx, data)
     p = params[rows]
     for _ in range(cfg.max_iter):
         if rows.numel() == 0:
             break
         if kind == "joint_ic":
-            dp, zn, outside = _step_joint_ic(ctx, state, p)
+            dp, zn, outside = _step_joint_ic(ctx, data, p)
             p_new = ctx.shape.compose_inverse(p, dp)
         else:
-            dp_free, zn, outside = _step_fa(ctx, state, p, free_idx, average=(kind == "average"))
+            dp_free, zn, outside = _step_fa(ctx, data, p, free_idx, average=(kind == "average"))
             dp = torch.zeros_like(p)
             dp[:, free_idx] = dp_free
             p_new = p + dp
@@ -403,107 +459,124 @@ def _run_stage(ctx, kind, free, params, ref_data, live):
             st = torch.where(bad[done], torch.full_like(st, int(Status.DIVERGED)), st)
             status[r] = st
             keep = ~done
-            rows = rows[keep]
-            p = p[keep]
-            state = _take(state, keep)
+            rows, p, scale, data = rows[keep], p[keep], scale[keep], data.take(keep)
     if rows.numel():
-        params[rows] = p  # MAX_ITER: last iterate
+        params[rows] = p  # MAX_ITER: the last iterate
     return params, zncc, status, used
 
 
-def _warp_coords(ctx, state, p):
-    """Warped sample positions (N, T, S) of every subset pixel in every frame."""
-    u, v = ctx.shape.displacement(p, ctx.basis)
-    xs = state["px"].unsqueeze(-1) + ctx.dx + u
-    ys = state["py"].unsqueeze(-1) + ctx.dy + v
-    return xs, ys
+def _displacement(ctx, p, dt):
+    """(u, v), each (N, T, S): Eq. 9 with the spatial basis and the linear time term."""
+    ks, k = ctx.ks, ctx.k
+    us = p[:, :ks] @ ctx.spatial.T  # (N, S)
+    vs = p[:, k : k + ks] @ ctx.spatial.T
+    if ctx.shape.has_time:
+        u = us.unsqueeze(1) + (p[:, k - 1 : k] * dt).unsqueeze(-1)
+        v = vs.unsqueeze(1) + (p[:, 2 * k - 1 :] * dt).unsqueeze(-1)
+    else:
+        u, v = us.unsqueeze(1), vs.unsqueeze(1)
+    return u, v
 
 
-def _outside(ctx, xs, ys) -> torch.Tensor:
-    lo_x = xs.amin(dim=(1, 2))
-    hi_x = xs.amax(dim=(1, 2))
-    lo_y = ys.amin(dim=(1, 2))
-    hi_y = ys.amax(dim=(1, 2))
-    return (lo_x < 0) | (hi_x > ctx.w_img - 1) | (lo_y < 0) | (hi_y > ctx.h - 1)
+def _sample_frames(ctx, data: _Batch, p, grad: bool):
+    u, v = _displacement(ctx, p, data.dt)
+    xs = data.px.unsqueeze(-1) + ctx.dx + u
+    ys = data.py.unsqueeze(-1) + ctx.dy + v
+    if xs.shape[1] != data.dt.shape[1]:
+        xs = xs.expand(-1, data.dt.shape[1], -1)
+        ys = ys.expand(-1, data.dt.shape[1], -1)
+    outside = (
+        (xs.amin(dim=(1, 2)) < 0) | (xs.amax(dim=(1, 2)) > ctx.w_img - 1)
+        | (ys.amin(dim=(1, 2)) < 0) | (ys.amax(dim=(1, 2)) > ctx.h - 1)
+    )
+    out = ctx.frames.sample(xs, ys, frame=data.fidx.unsqueeze(-1), grad=grad)
+    return out, outside
 
 
-def _ic_hessian(ctx, state) -> torch.Tensor:
-    """Gauss-Newton Hessian of the joint IC problem, sum over frames (N, P, P).
+def _ic_hessian(ctx, data: _Batch) -> torch.Tensor:
+    """Gauss-Newton Hessian of the joint IC problem summed over frames, (N, P, P).
 
-    J_t = [f_x B_t, f_y B_t] (reference gradient times the basis); with ZNSSD the
-    subset mean of J_t is removed (the mean of f(W(x; dp)) moves with dp too)."""
-    w = ctx.w
-    g = torch.stack([state["gx"], state["gy"]], -1)  # (N, S, 2)
-    wg = g * w.view(1, -1, 1)
-    bb = torch.einsum("tsk,tsl->skl", ctx.basis, ctx.basis)  # (S, K, K)
-    n = g.shape[0]
-    k = ctx.basis.shape[-1]
-    hess = torch.einsum("nsc,nsd,skl->nckdl", wg, g, bb).reshape(n, 2 * k, 2 * k)
-    if ctx.cfg.criterion == "znssd":
-        wsum = w.sum()
-        mj = torch.einsum("nsc,tsk->ntck", wg, ctx.basis).reshape(n, -1, 2 * k) / wsum
-        hess = hess - wsum * torch.einsum("ntp,ntq->npq", mj, mj)
-    return hess
-
-
-def _frame_stats(ctx, state, g):
-    """Zero-mean frames, scale of f~ against each frame, and per-frame ZNCC."""
+    J_t = [f_x b_t, f_y b_t] with b_t = (spatial basis, dt_t): the reference gradient
+    times the basis; with ZNSSD the subset mean of J_t is removed."""
     w = ctx.w
     wsum = w.sum()
-    ft = state["ft"].unsqueeze(1)  # (N, 1, S)
+    g = torch.stack([data.gx, data.gy], -1)  # (N, S, 2)
+    wg = g * w.view(1, -1, 1)
+    bs = ctx.spatial
+    n, t = data.dt.shape
+    ks, k = ctx.ks, ctx.k
+    hess = torch.zeros(n, 2, k, 2, k, dtype=g.dtype, device=g.device)
+    hess[:, :, :ks, :, :ks] = t * torch.einsum("nsc,nsd,sk,sl->nckdl", wg, g, bs, bs)
+    if ctx.shape.has_time:
+        d1 = data.dt.sum(1).view(n, 1, 1, 1)
+        d2 = (data.dt * data.dt).sum(1).view(n, 1, 1)
+        cross = torch.einsum("nsc,nsd,sk->ncdk", wg, g, bs) * d1  # (N, 2, 2, Ks)
+        hess[:, :, :ks, :, ks] = cross.permute(0, 1, 3, 2)
+        hess[:, :, ks, :, :ks] = cross
+        hess[:, :, ks, :, ks] = torch.einsum("nsc,nsd->ncd", wg, g) * d2
     if ctx.cfg.criterion == "znssd":
-        gt = g - (_wsum(g, w) / wsum).unsqueeze(-1)
-    else:
-        gt = g
-    gg = _wsum(gt * gt, w)
-    fg = _wsum(ft * gt, w)
-    gn = gg.clamp(min=1e-30).sqrt()
-    zn = fg / (state["fnorm"].unsqueeze(1) * gn)
-    return gt, gg, fg, zn
+        q = torch.einsum("nsc,sk->nck", wg, bs) / wsum  # (N, 2, Ks) subset means of J
+        mj = q.unsqueeze(1).expand(n, t, 2, ks)
+        if ctx.shape.has_time:
+            q0 = wg.sum(1) / wsum  # (N, 2)
+            mt = q0.unsqueeze(1) * data.dt.unsqueeze(-1)  # (N, T, 2)
+            mj = torch.cat([mj, mt.unsqueeze(-1)], -1)
+        mj = mj.reshape(n, t, 2 * k)
+        hess = hess.reshape(n, 2 * k, 2 * k) - wsum * torch.einsum("ntp,ntq->npq", mj, mj)
+    return hess.reshape(n, 2 * k, 2 * k)
 
 
-def _step_joint_ic(ctx, state, p):
-    """One IC-GN step of the joint formulation: dp solves H dp = -sum_t J_t^T e_t."""
-    xs, ys = _warp_coords(ctx, state, p)
-    outside = _outside(ctx, xs, ys)
-    g = ctx.frames.sample(xs, ys, frame=ctx.frame_index.view(1, -1, 1))
-    gt, gg, fg, zn = _frame_stats(ctx, state, g)
-    ft = state["ft"].unsqueeze(1)
+def _frame_stats(ctx, data: _Batch, g):
+    """Zero-mean frames (N, T, S), their squared norms and per-frame ZNCC (N, T)."""
+    w = ctx.w
     if ctx.cfg.criterion == "znssd":
-        s = state["fnorm"].unsqueeze(1) / gg.clamp(min=1e-30).sqrt()  # Pan et al. ZNSSD scale
-        e = ft - s.unsqueeze(-1) * gt
+        g = g - (_wsum(g, w) / w.sum()).unsqueeze(-1)
+    gg = _wsum(g * g, w)
+    fg = _wsum(data.ft.unsqueeze(1) * g, w)
+    zn = fg / (data.fnorm.unsqueeze(1) * gg.clamp(min=1e-30).sqrt())
+    return g, gg, zn
+
+
+def _step_joint_ic(ctx, data: _Batch, p):
+    """One IC-GN step of the joint formulation: H dp = -sum_t J_t^T e_t."""
+    g, outside = _sample_frames(ctx, data, p, grad=False)
+    gt, gg, zn = _frame_stats(ctx, data, g)
+    if ctx.cfg.criterion == "znssd":
+        s = data.fnorm.unsqueeze(1) / gg.clamp(min=1e-30).sqrt()  # Pan et al.'s ZNSSD scale
+        e = data.ft.unsqueeze(1) - s.unsqueeze(-1) * gt
     else:
-        e = ft - gt
+        e = data.ft.unsqueeze(1) - gt
     e = e * ctx.w
-    eb = torch.einsum("nts,tsk->nsk", e, ctx.basis)
-    b = torch.cat(
-        [(state["gx"].unsqueeze(-1) * eb).sum(1), (state["gy"].unsqueeze(-1) * eb).sum(1)], -1
-    )
-    dp = -torch.cholesky_solve(b.double().unsqueeze(-1), state["chol"]).squeeze(-1)
+    e1 = e.sum(1)  # (N, S)
+    b = [torch.stack([data.gx, data.gy], 1) * e1.unsqueeze(1) @ ctx.spatial]  # (N, 2, Ks)
+    if ctx.shape.has_time:
+        e2 = torch.einsum("nts,nt->ns", e, data.dt)
+        b.append(torch.stack([(data.gx * e2).sum(1), (data.gy * e2).sum(1)], 1).unsqueeze(-1))
+    b = torch.cat(b, -1).reshape(p.shape[0], -1)
+    dp = -torch.cholesky_solve(b.double().unsqueeze(-1), data.chol).squeeze(-1)
     return dp.to(p.dtype), zn.mean(1), outside
 
 
-def _step_fa(ctx, state, p, free_idx, average: bool):
-    """One forward-additive GN step on the averaged image (Eqs. 14-18) or on the sum of
+def _step_fa(ctx, data: _Batch, p, free_idx, average: bool):
+    """One forward-additive GN step on the averaged image (Eqs. 14-18), or on the sum of
     per-frame residuals (joint, for shape functions without an inverse composition)."""
     w = ctx.w
     wsum = w.sum()
-    xs, ys = _warp_coords(ctx, state, p)
-    outside = _outside(ctx, xs, ys)
-    g, gx, gy = ctx.frames.sample(xs, ys, frame=ctx.frame_index.view(1, -1, 1), grad=True)
-    _, _, _, zn = _frame_stats(ctx, state, g)
+    (g, gx, gy), outside = _sample_frames(ctx, data, p, grad=True)
+    _, _, zn = _frame_stats(ctx, data, g)
     znssd = ctx.cfg.criterion == "znssd"
-    ft = state["ft"]
-    basis = ctx.basis
-    k = basis.shape[-1]
+    ft = data.ft
+    bs = ctx.spatial
+    has_t = ctx.shape.has_time
+    dt = data.dt.unsqueeze(-1)  # (N, T, 1)
     if average:
-        t = g.shape[1]
         big_g = g.mean(1)  # (N, S): G of Eq. 3
-        jac = torch.cat(
-            [torch.einsum("nts,tsk->nsk", gx, basis), torch.einsum("nts,tsk->nsk", gy, basis)],
-            -1,
-        ) / t  # Eq. 16
-        jac = jac[..., free_idx]
+        parts = []
+        for gc in (gx, gy):  # Eq. 16: dG/dp = mean_t grad g_t * dU/dp
+            parts.append(gc.mean(1).unsqueeze(-1) * bs)
+            if has_t:
+                parts.append((gc * dt).mean(1).unsqueeze(-1))
+        jac = torch.cat(parts, -1)[..., free_idx]  # (N, S, P)
         if znssd:
             gt = big_g - (_wsum(big_g, w) / wsum).unsqueeze(-1)
             jac = jac - ((jac * w.view(1, -1, 1)).sum(1) / wsum).unsqueeze(1)
@@ -514,12 +587,14 @@ def _step_fa(ctx, state, p, free_idx, average: bool):
             r = ft - big_g
         wj = jac * w.view(1, -1, 1)
         hess = wj.transpose(1, 2) @ jac  # Eq. 18
-        rhs = (wj * r.unsqueeze(-1)).sum(1)  # Eq. 15
-        rhs = rhs / a.clamp(min=1e-12).unsqueeze(-1)
+        rhs = (wj * r.unsqueeze(-1)).sum(1) / a.clamp(min=1e-12).unsqueeze(-1)  # Eq. 15
     else:
-        jac = torch.cat(
-            [gx.unsqueeze(-1) * basis, gy.unsqueeze(-1) * basis], -1
-        )[..., free_idx]  # (N, T, S, P)
+        parts = []
+        for gc in (gx, gy):
+            parts.append(gc.unsqueeze(-1) * bs)
+            if has_t:
+                parts.append((gc * dt).unsqueeze(-1))
+        jac = torch.cat(parts, -1)[..., free_idx]  # (N, T, S, P)
         if znssd:
             gt = g - (_wsum(g, w) / wsum).unsqueeze(-1)
             jac = jac - ((jac * w.view(1, 1, -1, 1)).sum(2) / wsum).unsqueeze(2)
@@ -528,13 +603,12 @@ def _step_fa(ctx, state, p, free_idx, average: bool):
         else:
             a = torch.ones_like(g[..., 0])
             r = ft.unsqueeze(1) - g
-        wj = jac * w.view(1, 1, -1, 1) * a.view(*a.shape, 1, 1)
+        wj = jac * (w.view(1, 1, -1, 1) * a.view(*a.shape, 1, 1))
         hess = torch.einsum("ntsp,ntsq->npq", wj * a.view(*a.shape, 1, 1), jac)
         rhs = torch.einsum("ntsp,nts->np", wj, r)
     chol, info = torch.linalg.cholesky_ex(hess.double())
     dp = torch.cholesky_solve(rhs.double().unsqueeze(-1), chol).squeeze(-1)
     dp = torch.where((info > 0).unsqueeze(-1), torch.full_like(dp, float("nan")), dp)
-    del k
     return dp.to(p.dtype), zn.mean(1), outside
 
 
@@ -593,6 +667,6 @@ def solve_window(
     ref_img = solver.prepare(ref_t)
     frames_img = solver.prepare(frames_t)
     return solver.solve(
-        ref_img, frames_img, pts, t, center=c, init=init_t, ref_pixels=ref_t,
-        frame_pixels=frames_t,
+        ref_img, frames_img, pts, t - t[c], init=init_t, ref_pixels=ref_t.unsqueeze(0),
+        frame_pixels=frames_t, time=float(t[c]),
     )
