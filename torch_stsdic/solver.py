@@ -54,6 +54,8 @@ class WindowSolution:
         status: (N,) int8 :class:`Status` codes.
         iterations: (N,) Gauss-Newton iterations used (all stages).
         time: the time the displacement refers to (frame units unless times were given).
+        info: extras: "stages" (the Gauss-Newton stages run), "first_stage_params" (N, P)
+            (the joint solution before the "auto" refinement), "initial_params" (N, P).
     """
 
     points: torch.Tensor
@@ -198,6 +200,7 @@ class SubsetSolver:
                 p0 = _expand_init(p0, shape, self.shape)
 
         todo = torch.nonzero(inside).flatten()
+        first_stage = torch.full_like(params, float("nan"))
         grey = ref_pixels if ref_pixels is not None else ref.coeffs
         ctx = _Context(
             shape=shape, spatial=shape.spatial_basis(offsets[:, 0], offsets[:, 1]),
@@ -207,10 +210,11 @@ class SubsetSolver:
         batch = cfg.batch_points or ctx.batch_size(t_count)
         for s0 in range(0, todo.numel(), batch):
             idx = todo[s0 : s0 + batch]
-            pr, zr, sr, ir = _solve_batch(
+            pr, zr, sr, ir, p1 = _solve_batch(
                 ctx, points[idx], p0[idx], dt[idx], frame_index[idx], ref_index[idx]
             )
             params[idx], zncc[idx], status[idx], iters[idx] = pr, zr, sr, ir
+            first_stage[idx] = p1
 
         bad = status > int(Status.MAX_ITER)
         params[bad] = float("nan")
@@ -218,7 +222,13 @@ class SubsetSolver:
         return WindowSolution(
             points=points, params=params, param_names=shape.param_names, zncc=zncc,
             status=status, iterations=iters, time=time,
-            info={"formulation": cfg.formulation, "n_frames": t_count},
+            info={
+                "formulation": cfg.formulation,
+                "n_frames": t_count,
+                "stages": [k for k, _ in _stages(ctx, t_count)],
+                "first_stage_params": first_stage,
+                "initial_params": p0,
+            },
         )
 
     def initial_guess(
@@ -361,8 +371,10 @@ def _solve_batch(ctx, pts, p0, dt, fidx, ridx):
     iters = torch.zeros(n, dtype=torch.int32, device=device)
     live = ~low
     stages = _stages(ctx, dt.shape[1])
+    stage_params = []
     for stage_i, (kind, free) in enumerate(stages):
         params, zn, st, used = _run_stage(ctx, kind, free, params, data, live)
+        stage_params.append(params)
         zncc = torch.where(live, zn, zncc)
         iters += used
         if stage_i == len(stages) - 1:
@@ -377,7 +389,7 @@ def _solve_batch(ctx, pts, p0, dt, fidx, ridx):
     jump = torch.maximum((params[:, 0] - p0[:, 0]).abs(), (params[:, k] - p0[:, k]).abs())
     far = (status <= int(Status.MAX_ITER)) & ~(jump <= maxd)
     status[far] = int(Status.DIVERGED)
-    return params, zncc, status, iters
+    return params, zncc, status, iters, stage_params[0]
 
 
 def _stages(ctx: _Context, t_count: int) -> list[tuple[str, torch.Tensor | None]]:
