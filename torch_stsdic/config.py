@@ -11,7 +11,7 @@ from .window import SubsetWindow
 
 __all__ = ["DICConfig", "FORMULATIONS", "CRITERIA"]
 
-FORMULATIONS = ("auto", "joint", "average")
+FORMULATIONS = ("auto", "joint", "average", "joint+average")
 CRITERIA = ("znssd", "ssd")
 
 
@@ -27,10 +27,11 @@ class DICConfig:
         window: "square", "circular", "gaussian" or a SubsetWindow module.
         criterion: "znssd" (zero-normalised SSD, insensitive to intensity offset and scale)
             or "ssd" (the paper's Eq. 14).
-        formulation: "joint" (sum over frames of each frame's residual, inverse compositional),
-            "average" (the paper's averaged image, Eqs. 2 and 11, forward additive) or "auto"
-            (joint, then the spatial unknowns refined on the averaged image at the joint
-            velocity; the most accurate, see README).
+        formulation: "joint" (sum over frames of each frame's residual against the reference,
+            inverse compositional), "average" (the paper's averaged image, Eqs. 2 and 11,
+            forward additive), "joint+average" (joint, then the spatial unknowns refined on
+            the averaged image at the joint velocity) or "auto" (the default: currently
+            "joint", which measured the most accurate and the fastest; see the README).
         interpolation: "cubic" or "quintic" B-spline.
         max_iter: Gauss-Newton iteration cap per stage.
         tol: convergence threshold in px: the largest displacement change of any subset pixel

@@ -1,0 +1,333 @@
+"""Tests for torch_stsdic.series: tracking a movie with sliding STS-DIC windows."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import textwrap
+import warnings
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from torch_stsdic import DICConfig
+from torch_stsdic.io import load_series, read_results
+from torch_stsdic.series import (
+    _resolve_reference,
+    grid_points,
+    smooth_in_time,
+    temporal_smoothing,
+    track,
+)
+from torch_stsdic.status import Status
+from torch_stsdic.synth import (
+    HomogeneousStrain,
+    Jump,
+    Translation,
+    ground_truth,
+    make_speckle,
+    render_series,
+    synthetic_movie,
+)
+
+REPO = Path(__file__).resolve().parents[1]
+UT, VT = 0.3, -0.2
+ROI = (22, 22, 58, 58)  # 3 x 3 points with step 18 on an 81 x 81 image
+CFG = DICConfig(subset_size=21, m=2, tol=1e-6)
+BATCH = 3
+
+
+class Crash(RuntimeError):
+    pass
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    """Small tensors: intra-op threads only add spin-waiting on a shared machine."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module")
+def movie():
+    """9 noise-free frames at t = 0..8 (frame 0 = the undeformed reference), u = 0.3 t,
+    v = -0.2 t."""
+    mv = synthetic_movie((81, 81), 8, Translation(ut=UT, vt=VT))
+    return torch.cat([mv.ref[None], mv.frames]), mv.motion
+
+
+@pytest.fixture(scope="module")
+def sts_run(movie, tmp_path_factory):
+    """STS-DIC (m = 2) in blocks of 3 target frames, written to a file, reads counted."""
+    frames, _ = movie
+    ser = load_series(frames)
+    reads: list[int] = []
+    get = ser.get
+
+    def counting_get(i, *args, **kwargs):
+        reads.append(int(i))
+        return get(i, *args, **kwargs)
+
+    ser.get = counting_get  # type: ignore[method-assign]
+    reads_at_callback: list[int] = []
+    out = tmp_path_factory.mktemp("sts") / "full.h5"
+    res = track(ser, config=CFG, roi=ROI, step=18, progress=False, batch_frames=BATCH, out=out,
+                callback=lambda done, total: reads_at_callback.append(len(reads)))
+    return res, out, reads, reads_at_callback
+
+
+def test_linear_motion_all_frames_including_shifted_ends(movie, sts_run):
+    res, _, _, _ = sts_run
+    _, motion = movie
+    assert res.n_points == 9 and res.frames.tolist() == list(range(9))
+    assert bool((res.status == int(Status.CONVERGED)).all())
+    truth = ground_truth(motion, res.points, res.times)
+    # every row, the shifted windows of frames 0, 1, 7, 8 included (frame 0 = the reference)
+    assert float((res.u - truth["u"]).abs().max()) < 0.01
+    assert float((res.v - truth["v"]).abs().max()) < 0.01
+    assert float((res.ut - UT).abs().max()) < 1e-3
+    assert float((res.vt - VT).abs().max()) < 1e-3
+    assert float(res.u[0].abs().max()) < 0.01  # the reference frame itself: ~0
+    assert float((res.gradients["ux"]).abs().max()) < 1e-3
+    s = res.strain(window=3)
+    assert float(np.nanmax(np.abs(s["exx"].numpy()))) < 1e-3
+    assert "exx_rate" in s
+
+
+def test_batched_centres_equal_one_at_a_time(movie, sts_run):
+    res, _, _, _ = sts_run
+    seq = track(movie[0], config=CFG, roi=ROI, step=18, progress=False, batch_frames=1)
+    assert res.info["blocks"] == 4 and seq.info["blocks"] == 9
+    for name in ("u", "v", "ut", "vt"):
+        diff = (getattr(res, name) - getattr(seq, name)).abs().max()
+        assert float(diff) < 1e-6, name
+    assert torch.equal(res.status, seq.status)
+
+
+def test_lazy_reading_bounded_cache(sts_run):
+    res, _, reads, reads_at_callback = sts_run
+    n = 9
+    # every frame read once, plus the reference once
+    assert sorted(reads) == sorted([*range(n), 0])
+    assert res.info["prefiltered"] == n
+    assert res.info["max_cached_frames"] <= BATCH + 2 * CFG.m
+    # the first block (frame 0: window 0..4) reads only its own frames and the reference
+    assert reads_at_callback[0] == 2 * CFG.m + 2
+    assert reads_at_callback == sorted(reads_at_callback)
+
+
+def test_sparse_targets_read_only_their_windows(movie):
+    frames, motion = movie
+    res = track(frames, frames=[8, 0], config=CFG.replace(m=1), roi=ROI, step=18,
+                progress=False)
+    assert res.frames.tolist() == [0, 8]
+    # windows 0..2 and 6..8 (shifted at both ends), plus the reference read once
+    assert res.info["prefiltered"] == 6 and res.info["frames_read"] == 7
+    truth = ground_truth(motion, res.points, res.times)
+    assert float((res.u - truth["u"]).abs().max()) < 0.01
+
+
+def test_killed_run_resumes_to_identical_result(movie, sts_run, tmp_path):
+    full, full_path, _, _ = sts_run
+    out = tmp_path / "killed.h5"
+
+    def crash(done, total):
+        if done >= 4:  # after the blocks [0] and [1, 2, 3]
+            raise Crash
+
+    with pytest.raises(Crash):
+        track(movie[0], config=CFG, roi=ROI, step=18, progress=False, batch_frames=BATCH,
+              out=out, callback=crash)
+    part = read_results(out)
+    assert part.completed.tolist() == [True] * 4 + [False] * 5
+    assert np.isnan(part.u[5:]).all()
+    res = track(movie[0], config=CFG, roi=ROI, step=18, progress=False, batch_frames=BATCH,
+                out=out, resume=True)
+    assert res.info["frames_read"] < 9  # the finished blocks were not recomputed
+    for name in ("u", "v", "ut", "vt", "zncc", "status", "iterations"):
+        assert torch.equal(getattr(res, name), getattr(full, name)), name
+    a, b = read_results(full_path), read_results(out)
+    assert b.completed.all()
+    for name in a.fields:
+        assert np.array_equal(a.fields[name], b.fields[name], equal_nan=True), name
+
+
+def test_sigkilled_process_resumes_to_identical_result(movie, sts_run, tmp_path):
+    """A real hard kill (SIGKILL, no cleanup) in the middle of a run, then resume."""
+    full, _, _, _ = sts_run
+    np.save(tmp_path / "movie.npy", movie[0].numpy())
+    out = tmp_path / "killed.h5"
+    script = textwrap.dedent(f"""
+        import os, signal
+        import numpy as np, torch
+        from torch_stsdic import DICConfig
+        from torch_stsdic.series import track
+        torch.set_num_threads(1)
+
+        def kill(done, total):
+            if done >= 4:
+                os.kill(os.getpid(), signal.SIGKILL)
+
+        track(np.load({str(tmp_path / "movie.npy")!r}), config=DICConfig(**{CFG.to_dict()!r}),
+              roi={ROI!r}, step=18, progress=False, batch_frames={BATCH}, out={str(out)!r},
+              callback=kill)
+    """)
+    proc = subprocess.run([sys.executable, "-c", script], cwd=REPO, capture_output=True,
+                          text=True, timeout=120)
+    assert proc.returncode == -signal.SIGKILL, proc.stderr
+    assert read_results(out).completed.tolist() == [True] * 4 + [False] * 5
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the recorded input name differs (array vs tensor)
+        res = track(movie[0], config=CFG, roi=ROI, step=18, progress=False,
+                    batch_frames=BATCH, out=out, resume=True)
+    for name in ("u", "v", "ut", "vt", "zncc", "status", "iterations"):
+        assert torch.equal(getattr(res, name), getattr(full, name)), name
+
+
+def test_classical_m0_and_progress_bar(movie, capsys):
+    frames, motion = movie
+    res = track(frames, config=CFG.replace(m=0), roi=ROI, step=18, batch_frames=4,
+                progress=True)
+    assert "frame" in capsys.readouterr().err  # tqdm on stderr
+    truth = ground_truth(motion, res.points, res.times)
+    assert bool(torch.isnan(res.ut).all()) and bool(torch.isnan(res.vt).all())
+    assert bool((res.status == int(Status.CONVERGED)).all())
+    assert float((res.u - truth["u"]).abs().max()) < 0.01
+    assert float((res.v - truth["v"]).abs().max()) < 0.01
+
+
+def test_lost_points_after_a_jump_are_recovered_by_fft():
+    # at t = 4 everything jumps by (6, -5) px: the carried guess is far off, the FFT redo
+    # (search radius 10 px) finds the points again
+    motion = Translation(ut=UT) + Jump(-1e9, du=6.0, dv=-5.0, t_jump=4.0)
+    mv = synthetic_movie((81, 81), 7, motion)
+    frames = torch.cat([mv.ref[None], mv.frames])
+    res = track(frames, config=CFG.replace(m=0), roi=ROI, step=18, progress=False,
+                batch_frames=1)
+    assert res.info["redone_rows"] >= 9
+    truth = ground_truth(motion, res.points, res.times)
+    assert bool((res.status == int(Status.CONVERGED)).all())
+    assert float((res.u - truth["u"]).abs().max()) < 0.01
+    assert float((res.v - truth["v"]).abs().max()) < 0.01
+
+
+def test_smoothing_baseline_unbiased_on_linear_motion(movie):
+    frames, motion = movie
+    res = track(frames, config=CFG, roi=ROI, step=18, progress=False, batch_frames=4,
+                smoothing=5)
+    assert res.config.m == 0 and res.info["smoothing"] == 5
+    truth = ground_truth(motion, res.points, res.times)
+    assert float((res.u - truth["u"]).abs().max()) < 0.01
+    assert float((res.v - truth["v"]).abs().max()) < 0.01
+    assert float((res.ut - UT).abs().max()) < 2e-3  # the slope of the local line fit
+    nan = torch.full_like(res.u, float("nan"))
+    raw = replace(res, u=res.info["raw"]["u"], v=res.info["raw"]["v"], ut=nan, vt=nan)
+    again = temporal_smoothing(raw, 5)
+    assert torch.allclose(again.u, res.u, atol=1e-12)
+    assert torch.allclose(again.ut, res.ut, atol=1e-12)
+
+
+def test_smooth_in_time_linear_exact_and_ends_shifted():
+    t = np.array([0.0, 1.0, 2.5, 3.0, 4.5, 6.0, 7.0])  # uneven frame times
+    vals = np.stack([1.5 + 0.7 * t, -2.0 * t], 1)  # (F, 2) linear in time
+    sm, rate = smooth_in_time(vals, 5, t, return_rate=True)
+    assert np.allclose(sm, vals, atol=1e-12) and np.allclose(rate, [0.7, -2.0], atol=1e-12)
+    mean = smooth_in_time(vals, 5, t, fit="mean")
+    assert abs(mean[0, 0] - vals[:5, 0].mean()) < 1e-12  # shifted window: rows 0..4
+    assert abs(mean[0, 0] - vals[0, 0]) > 0.5  # a moving mean is biased at the ends
+    noisy = torch.tensor(vals) + torch.tensor([[0.0, 0.0], [np.nan, 0.0]] + [[0.0, 0.0]] * 5)
+    out = smooth_in_time(noisy, 3, torch.tensor(t))
+    assert isinstance(out, torch.Tensor) and bool(torch.isfinite(out).all())
+    assert torch.allclose(out, torch.tensor(vals), atol=1e-12)  # NaN left out of the fit
+    with pytest.raises(ValueError, match="span"):
+        smooth_in_time(vals, 4)
+
+
+def test_reference_is_mean_of_still_frames():
+    pattern = make_speckle((81, 81), seed=3)
+    # 3 still frames (own noise each), then motion: u = 0.3 per frame
+    times = torch.tensor([0.0, 0.0, 0.0, 1.0, 2.0, 3.0, 4.0, 5.0])
+    _, frames = render_series(pattern, (81, 81), Translation(ut=UT), times, noise_sigma=2.0,
+                              seed=5)
+    ser = load_series(frames)
+    raw, frame, desc = _resolve_reference("0:3", ser, torch.float64, torch.device("cpu"))
+    assert frame == -1 and desc == "mean:0,1,2"
+    assert torch.allclose(raw, frames[:3].mean(0))
+    res = track(ser, reference="0:3", frames="4:", config=CFG.replace(m=1), roi=ROI, step=18,
+                progress=False)
+    assert res.info["reference"] == "mean:0,1,2"
+    assert bool((res.reference_frames == -1).all())
+    expected = UT * (res.frames.double() - 2.0)
+    assert float((res.u - expected[:, None]).abs().max()) < 0.05
+    assert float(res.v.abs().max()) < 0.05
+
+
+def test_reference_update_accumulates_and_resumes(tmp_path):
+    motion = Translation(ut=1.2, vt=0.4) + HomogeneousStrain(exx=0.004, center=(50, 50),
+                                                              rate=1.0)
+    mv = synthetic_movie((101, 101), 9, motion, noise_sigma=1.0, seed=2)
+    frames = torch.cat([mv.ref[None], mv.frames])  # t = 0..9, 10.8 px of motion at the end
+    kw = dict(config=DICConfig(subset_size=21, m=1), roi=(16, 30, 40, 70), step=12,
+              progress=False, batch_frames=3, reference_update=0.99999)
+    full = track(frames, out=tmp_path / "a.h5", **kw)
+    assert [u["frame"] for u in full.info["reference_updates"]] == [3, 6, 9]
+    assert full.reference_frames.tolist() == [0, 0, 0, 0, 3, 3, 3, 6, 6, 6]
+    truth = ground_truth(motion, full.points, full.times)  # to the FIRST reference
+    assert bool((full.status == int(Status.CONVERGED)).all())
+    assert float((full.u - truth["u"]).abs().max()) < 0.03
+    assert float((full.v - truth["v"]).abs().max()) < 0.03
+    assert float((full.ut - truth["ut"]).abs().max()) < 0.02
+    assert float((full.gradients["ux"] - truth["dudx"]).abs().max()) < 0.01
+
+    def crash(done, total):
+        if done >= 7:  # after the update at frame 6
+            raise Crash
+
+    with pytest.raises(Crash):
+        track(frames, out=tmp_path / "b.h5", callback=crash, **kw)
+    res = track(frames, out=tmp_path / "b.h5", resume=True, **kw)
+    assert res.reference_frames.tolist() == full.reference_frames.tolist()
+    for name in ("u", "v", "ut", "vt", "zncc", "status"):
+        assert torch.equal(getattr(res, name), getattr(full, name)), name
+
+
+def test_grid_points_roi_mask():
+    pts = grid_points((81, 81), 10, subset_size=21)
+    assert float(pts.min()) >= 10 and float(pts.max()) <= 70
+    mask = np.zeros((81, 81), bool)
+    mask[:, :40] = True
+    masked = grid_points((81, 81), 10, mask=mask, subset_size=21)
+    assert 0 < len(masked) < len(pts) and float(masked[:, 0].max()) < 40
+    roi = grid_points((81, 81), 5, roi=(30, 30, 50, 40), subset_size=21)
+    assert float(roi[:, 0].min()) >= 30 and float(roi[:, 1].max()) <= 40
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(roi=(200, 200, 300, 300)), "roi"),
+        (dict(config=DICConfig(subset_size=51)), "subset_size"),
+        (dict(config=DICConfig(m=3)), r"2m\+1"),
+        (dict(mask=np.ones((10, 10), bool)), "mask"),
+        (dict(mask=np.zeros((40, 40), bool)), "no points"),
+        (dict(roi=(0, 0, 5, 5)), "no points"),
+        (dict(reference=7), "reference"),
+        (dict(reference="0:2,9"), "reference"),
+        (dict(frames=[0, 9]), "frames"),
+        (dict(times=[0.0, 1.0]), "times"),
+        (dict(points=[[np.nan, 3.0]]), "points"),
+        (dict(batch_frames=0), "batch_frames"),
+        (dict(reference_update=1.5), "reference_update"),
+        (dict(smoothing=4), "smoothing"),
+    ],
+)
+def test_bad_inputs_name_the_argument(kwargs, match):
+    frames = torch.rand(6, 40, 40, dtype=torch.float64)
+    with pytest.raises(ValueError, match=match):
+        track(frames, progress=False, **kwargs)
