@@ -37,6 +37,19 @@ def _box_sum(a: torch.Tensor, k: int) -> torch.Tensor:
     return c[..., k:, k:] - c[..., :-k, k:] - c[..., k:, :-k] + c[..., :-k, :-k]
 
 
+def _fast_size(n: int) -> int:
+    """Smallest m >= n whose prime factors are 2, 3 and 5 (fast FFT lengths)."""
+    m = n
+    while True:
+        k = m
+        for p in (2, 3, 5):
+            while k % p == 0:
+                k //= p
+        if k == 1:
+            return m
+        m += 1
+
+
 def _at(flat, iy, ix, di: int, dj: int, k: int) -> torch.Tensor:
     """Correlation at the integer peak moved by (di, dj), clamped to the search grid."""
     yy = (iy + di).clamp(0, k - 1)
@@ -95,6 +108,7 @@ def fft_cross_correlation(
     half = subset_size // 2
     rad = int(search_radius)
     size = subset_size + 2 * rad
+    fast = _fast_size(size)  # zero padding beyond `size` leaves shifts 0..2R unwrapped
     npix = subset_size * subset_size
     cx = torch.round(points[:, 0]).long()
     cy = torch.round(points[:, 1]).long()
@@ -109,9 +123,9 @@ def fft_cross_correlation(
         f = f - f.mean(dim=(-1, -2), keepdim=True)
         fnorm = f.square().sum(dim=(-1, -2)).sqrt()  # (B,)
         g = _regions(images, frame_index[sl], bx - half - rad, by - half - rad, size)
-        ff = torch.fft.rfft2(f, s=(size, size))
-        gg = torch.fft.rfft2(g)
-        corr = torch.fft.irfft2(torch.conj(ff).unsqueeze(1) * gg, s=(size, size))
+        ff = torch.fft.rfft2(f, s=(fast, fast))
+        gg = torch.fft.rfft2(g, s=(fast, fast))
+        corr = torch.fft.irfft2(torch.conj(ff).unsqueeze(1) * gg, s=(fast, fast))
         corr = corr[..., : 2 * rad + 1, : 2 * rad + 1]
         s1 = _box_sum(g, subset_size)
         s2 = _box_sum(g * g, subset_size)

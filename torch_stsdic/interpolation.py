@@ -15,10 +15,12 @@ B-spline and leaves a systematic error of order 1e-2 px in DIC.
 from __future__ import annotations
 
 import math
+import os
+import warnings
 
 import torch
 
-__all__ = ["BSplineImage", "bspline_prefilter"]
+__all__ = ["BSplineImage", "bspline_prefilter", "set_compile"]
 
 
 def _transfer(order: int, n: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
@@ -57,22 +59,6 @@ def bspline_prefilter(images: torch.Tensor, order: int = 3) -> torch.Tensor:
     return _prefilter_axis(c, order, images.dim() - 2)
 
 
-def _cubic_weights(f: torch.Tensor, grad: bool):
-    """Cubic B-spline weights for taps at offsets -1, 0, 1, 2 of floor(x); f = x - floor(x)."""
-    f2 = f * f
-    f3 = f2 * f
-    g = 1.0 - f
-    w = torch.stack(
-        [g * g * g / 6.0, (3.0 * f3 - 6.0 * f2 + 4.0) / 6.0,
-         (-3.0 * f3 + 3.0 * f2 + 3.0 * f + 1.0) / 6.0, f3 / 6.0],
-        dim=-1,
-    )
-    if not grad:
-        return w, None
-    dw = torch.stack([-0.5 * g * g, 1.5 * f2 - 2.0 * f, -1.5 * f2 + f + 0.5, 0.5 * f2], dim=-1)
-    return w, dw
-
-
 def _quintic_kernel(d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Centred quintic B-spline B5(d) and its derivative."""
     a = d.abs()
@@ -90,12 +76,105 @@ def _quintic_kernel(d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return b, db
 
 
-def _quintic_weights(f: torch.Tensor, grad: bool):
-    """Quintic weights for taps at offsets -2 .. 3 of floor(x)."""
-    k = torch.arange(-2, 4, dtype=f.dtype, device=f.device)
-    b, db = _quintic_kernel(f.unsqueeze(-1) - k)
-    # d/dx B(x - k) = B'(x - k)
-    return b, (db if grad else None)
+def _weights_list(f: torch.Tensor, order: int, grad: bool):
+    """B-spline tap weights (and derivatives) as lists of tensors shaped like f."""
+    if order == 3:
+        f2 = f * f
+        f3 = f2 * f
+        g = 1.0 - f
+        w = [g * g * g / 6.0, (3.0 * f3 - 6.0 * f2 + 4.0) / 6.0,
+             (-3.0 * f3 + 3.0 * f2 + 3.0 * f + 1.0) / 6.0, f3 / 6.0]
+        dw = [-0.5 * g * g, 1.5 * f2 - 2.0 * f, -1.5 * f2 + f + 0.5, 0.5 * f2] if grad else None
+        return w, dw
+    w, dw = [], []
+    for k in range(-2, 4):
+        b, db = _quintic_kernel(f - k)
+        w.append(b)
+        dw.append(db)
+    return w, (dw if grad else None)
+
+
+def _sample_kernel(flat, x, y, frame_off, wp: int, x_lo: float, x_hi: float, y_lo: float,
+                   y_hi: float, shift: int, order: int, grad: bool):
+    """Value (and gradient) of the B-spline at (x, y): (order+1)^2 gathers from the flat
+    padded coefficients. Written as plain element-wise code so torch.compile can fuse it
+    into one loop (no per-tap temporaries in memory)."""
+    xc = x.clamp(x_lo, x_hi)
+    yc = y.clamp(y_lo, y_hi)
+    x0 = torch.floor(xc)
+    y0 = torch.floor(yc)
+    fx = xc - x0
+    fy = yc - y0
+    base = (y0.long() + shift) * wp + (x0.long() + shift) + frame_off
+    wx, dwx = _weights_list(fx, order, grad)
+    wy, dwy = _weights_list(fy, order, grad)
+    taps = order + 1
+    val = gx = gy = None
+    for j in range(taps):
+        row = rowd = None
+        for i in range(taps):
+            c = flat[base + (j * wp + i)]
+            row = c * wx[i] if row is None else row + c * wx[i]
+            if grad:
+                rowd = c * dwx[i] if rowd is None else rowd + c * dwx[i]
+        val = row * wy[j] if val is None else val + row * wy[j]
+        if grad:
+            gx = rowd * wy[j] if gx is None else gx + rowd * wy[j]
+            gy = row * dwy[j] if gy is None else gy + row * dwy[j]
+    if not grad:
+        return val
+    return val, gx, gy
+
+
+# ---- optional torch.compile of the sampling kernel -------------------------------------
+# "auto": compile for large calls (>= _COMPILE_MIN samples), where the one-off compile time
+# (~10-30 s, cached on disk by torch) pays back; "1"/"0": always / never. The environment
+# variable TORCH_STSDIC_COMPILE sets the initial mode; see set_compile().
+_COMPILE_MODE = os.environ.get("TORCH_STSDIC_COMPILE", "auto").lower()
+_COMPILE_MIN = 2_000_000
+_COMPILED: dict = {}
+_COMPILE_FAILED = False
+
+
+def set_compile(mode: str | bool) -> None:
+    """Use torch.compile for B-spline sampling: "auto" (large calls), True/"1", False/"0"."""
+    global _COMPILE_MODE
+    _COMPILE_MODE = {True: "1", False: "0"}.get(mode, str(mode).lower())  # type: ignore[arg-type]
+    if _COMPILE_MODE not in ("auto", "1", "0"):
+        raise ValueError(f"compile mode must be 'auto', True or False, got {mode!r}")
+
+
+def _eager(order: int, grad: bool):
+    def run(*args):
+        return _sample_kernel(*args, order, grad)
+
+    return run
+
+
+def _kernel(order: int, grad: bool, numel: int, needs_autograd: bool):
+    global _COMPILE_FAILED
+    use = _COMPILE_MODE == "1" or (_COMPILE_MODE == "auto" and numel >= _COMPILE_MIN)
+    if not use or _COMPILE_FAILED or needs_autograd:
+        return _eager(order, grad)
+    key = (order, grad)
+    if key not in _COMPILED:
+        fn = torch.compile(_sample_kernel, dynamic=True)
+
+        def run(*args, _fn=fn):
+            global _COMPILE_FAILED
+            try:
+                return _fn(*args, order, grad)
+            except Exception as exc:  # no compiler, unsupported platform ...
+                _COMPILE_FAILED = True
+                warnings.warn(
+                    f"torch.compile of the B-spline sampler failed ({type(exc).__name__}: "
+                    f"{str(exc).splitlines()[0] if str(exc) else ''}); using eager mode",
+                    RuntimeWarning, stacklevel=3,
+                )
+                return _sample_kernel(*args, order, grad)
+
+        _COMPILED[key] = run
+    return _COMPILED[key]
 
 
 class BSplineImage:
@@ -129,7 +208,6 @@ class BSplineImage:
         self.padded_width = self.coeffs.shape[-1]
         self.padded_height = self.coeffs.shape[-2]
         self._flat = self.coeffs.reshape(-1)
-        self._tap_cols = torch.arange(self.taps, device=images.device)
 
     @property
     def device(self) -> torch.device:
@@ -156,37 +234,19 @@ class BSplineImage:
         x = x.to(self.dtype)
         y = y.to(self.dtype)
         pad = self.margin
-        lim_x = float(self.width - 1 + pad - self.taps + self.lo)
-        lim_y = float(self.height - 1 + pad - self.taps + self.lo)
-        xc = x.clamp(-pad + self.lo, lim_x)
-        yc = y.clamp(-pad + self.lo, lim_y)
-        x0 = torch.floor(xc)
-        y0 = torch.floor(yc)
-        fx = xc - x0
-        fy = yc - y0
-        ix = x0.long() + (pad - self.lo)
-        iy = y0.long() + (pad - self.lo)
-        base = iy * self.padded_width + ix
-        if not isinstance(frame, int) or frame != 0:
-            frame_t = torch.as_tensor(frame, device=self.device)
-            base = base + frame_t * (self.padded_height * self.padded_width)
-        weights = _cubic_weights if self.order == 3 else _quintic_weights
-        wx, dwx = weights(fx, grad)
-        wy, dwy = weights(fy, grad)
-        # one gather per tap row keeps the peak memory at `taps` values per sample
-        cols = self._tap_cols
-        val = gx = gy = None
-        for j in range(self.taps):
-            c = self._flat.take((base + j * self.padded_width).unsqueeze(-1) + cols)
-            row = (c * wx).sum(-1)  # the row interpolated along x
-            val = row * wy[..., j] if val is None else val + row * wy[..., j]
-            if grad:
-                rowd = (c * dwx).sum(-1)
-                gx = rowd * wy[..., j] if gx is None else gx + rowd * wy[..., j]
-                gy = row * dwy[..., j] if gy is None else gy + row * dwy[..., j]
-        if not grad:
-            return val
-        return val, gx, gy
+        plane = self.padded_height * self.padded_width
+        if isinstance(frame, int):
+            frame_t = torch.tensor(frame * plane, device=self.device)
+        else:
+            frame_t = torch.as_tensor(frame, device=self.device).long() * plane
+        args = (
+            self._flat, x, y, frame_t, self.padded_width,
+            float(-pad + self.lo), float(self.width - 1 + pad - self.taps + self.lo),
+            float(-pad + self.lo), float(self.height - 1 + pad - self.taps + self.lo),
+            pad - self.lo,
+        )
+        kernel = _kernel(self.order, grad, x.numel(), x.requires_grad or self._flat.requires_grad)
+        return kernel(*args)
 
     @classmethod
     def stack(cls, images: list[BSplineImage]) -> BSplineImage:
@@ -214,5 +274,4 @@ class BSplineImage:
         out.__dict__.update(self.__dict__)
         out.coeffs = self.coeffs.to(device=device, dtype=dtype)
         out._flat = out.coeffs.reshape(-1)
-        out._tap_cols = self._tap_cols.to(device=device)
         return out
