@@ -1,0 +1,283 @@
+"""Core solver: known motions from the analytic speckle renderer, formulations, edge cases."""
+
+import numpy as np
+import pytest
+import torch
+
+import torch_stsdic as sts
+from torch_stsdic import synth
+from torch_stsdic.status import Status
+
+SIZE = (101, 101)
+
+
+@pytest.fixture(scope="module")
+def pattern():
+    return synth.make_speckle(SIZE, seed=4)
+
+
+def _grid(lo=30, hi=71, step=10):
+    c = torch.arange(lo, hi, step, dtype=torch.float64)
+    yy, xx = torch.meshgrid(c, c, indexing="ij")
+    return torch.stack([xx.reshape(-1), yy.reshape(-1)], -1)
+
+
+def _series(pattern, motion, times, sigma=0.0, seed=0):
+    return synth.render_series(
+        pattern, SIZE, motion, torch.as_tensor(times, dtype=torch.float64),
+        noise_sigma=sigma, seed=seed, reference_time=None,
+    )
+
+
+def test_translation_classical_and_sts(pattern):
+    motion = synth.Translation(0.3, -0.2, ut=0.05, vt=0.02)
+    ref, frames = _series(pattern, motion, [1, 2, 3, 4, 5])
+    pts = _grid()
+    # classical: one frame
+    sol0 = sts.solve_window(ref, frames[2], pts, config=sts.DICConfig(m=0))
+    assert (sol0.status == Status.CONVERGED).all()
+    assert torch.allclose(sol0.u, torch.full_like(sol0.u, 0.45), atol=2e-3)
+    assert torch.allclose(sol0.v, torch.full_like(sol0.v, -0.14), atol=2e-3)
+    assert torch.isnan(sol0.ut).all()  # one frame has no velocity
+    assert sol0.params.shape == (pts.shape[0], 6)
+    # STS: five frames, results at the centre frame (t = 3)
+    sol = sts.solve_window(ref, frames, pts, config=sts.DICConfig(m=2), times=[1, 2, 3, 4, 5])
+    assert (sol.status == Status.CONVERGED).all()
+    assert sol.params.shape == (pts.shape[0], 8)
+    assert torch.allclose(sol.u, torch.full_like(sol.u, 0.45), atol=2e-3)
+    assert torch.allclose(sol.v, torch.full_like(sol.v, -0.14), atol=2e-3)
+    assert torch.allclose(sol.ut, torch.full_like(sol.ut, 0.05), atol=5e-4)
+    assert torch.allclose(sol.vt, torch.full_like(sol.vt, 0.02), atol=5e-4)
+    assert sol.time == 3.0
+    assert (sol.zncc > 0.999).all()
+
+
+@pytest.mark.parametrize("formulation", ["joint", "average", "joint+average", "auto"])
+def test_formulations_find_displacement(pattern, formulation):
+    motion = synth.Translation(0.2, 0.1, ut=0.05, vt=-0.03)
+    ref, frames = _series(pattern, motion, [0, 1, 2])
+    sol = sts.solve_window(ref, frames, _grid(), config=sts.DICConfig(m=1, formulation=formulation))
+    assert torch.allclose(sol.u, torch.full_like(sol.u, 0.25), atol=3e-3)
+    assert torch.allclose(sol.v, torch.full_like(sol.v, 0.07), atol=3e-3)
+    if formulation != "average":  # the averaged image hardly sees the velocity (see README)
+        assert torch.allclose(sol.ut, torch.full_like(sol.ut, 0.05), atol=1e-3)
+
+
+def test_identical_frames_reduce_to_classical(pattern):
+    # 2m+1 copies of one frame: zero velocity and the classical (m = 0) answer
+    ref, frames = _series(pattern, synth.Translation(0.37, 0.21), [0])
+    pts = _grid()
+    classical = sts.solve_window(ref, frames[0], pts, config=sts.DICConfig(m=0, tol=1e-8))
+    sts_sol = sts.solve_window(ref, frames.expand(5, -1, -1), pts,
+                               config=sts.DICConfig(m=2, tol=1e-8))
+    assert torch.allclose(sts_sol.u, classical.u, atol=1e-7)
+    assert torch.allclose(sts_sol.v, classical.v, atol=1e-7)
+    assert sts_sol.ut.abs().max() < 1e-7
+
+
+def test_subpixel_sweep_systematic_error(pattern):
+    # noise-free sub-pixel shifts 0..1 px: peak systematic error <= 2e-3 px with cubic B-splines
+    shifts = torch.linspace(0.0, 1.0, 11, dtype=torch.float64)
+    ref = synth.render(pattern, SIZE)
+    frames = torch.stack([synth.render(pattern, SIZE, synth.Translation(float(s), 0.0))
+                          for s in shifts])
+    pts = _grid()
+    worst = 0.0
+    for i, s in enumerate(shifts):
+        sol = sts.solve_window(ref, frames[i], pts, config=sts.DICConfig(m=0))
+        worst = max(worst, abs(float((sol.u - s).mean())))
+    assert worst <= 2e-3
+
+
+def test_homogeneous_strain_and_linear_in_time(pattern):
+    motion = synth.HomogeneousStrain(exx=0.004, eyy=-0.002, exy=0.001, center=(50.0, 50.0),
+                                     rate=1.0)
+    times = [1.0, 2.0, 3.0]
+    ref, frames = _series(pattern, motion, times)
+    pts = _grid()
+    sol = sts.solve_window(ref, frames, pts, config=sts.DICConfig(m=1), times=times)
+    truth = synth.ground_truth(motion, pts, torch.tensor([2.0], dtype=torch.float64))
+    assert torch.allclose(sol.u, truth["u"][0], atol=3e-3)
+    assert torch.allclose(sol.v, truth["v"][0], atol=3e-3)
+    # the STS shape function has no dx*dt term (Eq. 9 drops it), so a strain *rate* of
+    # 0.4 %/frame biases ut by a few 1e-3 px/frame on a random pattern
+    assert torch.allclose(sol.ut, truth["ut"][0], atol=5e-3)
+    ux = sol.params[:, sol.param_names.index("ux")]
+    vy = sol.params[:, sol.param_names.index("vy")]
+    assert torch.allclose(ux, truth["dudx"][0], atol=2e-4)
+    assert torch.allclose(vy, truth["dvdy"][0], atol=2e-4)
+
+
+def test_quadratic_shape(pattern):
+    motion = synth.HomogeneousStrain(exx=0.003, eyy=0.0, exy=0.0, center=(50.0, 50.0))
+    ref, frames = _series(pattern, motion, [0.0, 1.0, 2.0])
+    sol = sts.solve_window(ref, frames, _grid(), config=sts.DICConfig(m=1, shape="quadratic"))
+    truth = synth.ground_truth(motion, _grid(), torch.tensor([1.0], dtype=torch.float64))
+    assert sol.params.shape[1] == 14
+    assert torch.allclose(sol.u, truth["u"][0], atol=3e-3)
+    uxx = sol.params[:, sol.param_names.index("uxx")]
+    assert uxx.abs().max() < 1e-3
+
+
+@pytest.mark.parametrize("window", ["circular", "gaussian"])
+def test_other_windows(pattern, window):
+    ref, frames = _series(pattern, synth.Translation(0.4, 0.1), [0])
+    sol = sts.solve_window(ref, frames[0], _grid(), config=sts.DICConfig(m=0, window=window))
+    assert torch.allclose(sol.u, torch.full_like(sol.u, 0.4), atol=3e-3)
+
+
+def test_znssd_ignores_intensity_change_ssd_does_not(pattern):
+    ref, frames = _series(pattern, synth.Translation(0.3, 0.0), [0])
+    g = 1.3 * frames[0] + 12.0
+    z = sts.solve_window(ref, g, _grid(), config=sts.DICConfig(m=0, criterion="znssd"))
+    assert torch.allclose(z.u, torch.full_like(z.u, 0.3), atol=2e-3)
+    s = sts.solve_window(ref, frames[0], _grid(), config=sts.DICConfig(m=0, criterion="ssd"))
+    assert torch.allclose(s.u, torch.full_like(s.u, 0.3), atol=2e-3)
+
+
+def test_fft_initial_guess_and_user_init(pattern):
+    ref, frames = _series(pattern, synth.Translation(4.3, -3.6), [0])
+    pts = _grid(35, 66, 10)
+    sol = sts.solve_window(ref, frames[0], pts, config=sts.DICConfig(m=0, search_radius=8))
+    assert torch.allclose(sol.u, torch.full_like(sol.u, 4.3), atol=3e-3)
+    assert torch.allclose(sol.v, torch.full_like(sol.v, -3.6), atol=3e-3)
+    init = torch.tensor([[4.0, -3.5]], dtype=torch.float64).expand(pts.shape[0], -1)
+    sol2 = sts.solve_window(ref, frames[0], pts, config=sts.DICConfig(m=0, search_radius=0),
+                            init=init)
+    assert torch.allclose(sol2.u, sol.u, atol=1e-4)
+
+
+def test_float32_matches_float64(pattern):
+    ref, frames = _series(pattern, synth.Translation(0.3, 0.2, ut=0.05), [0, 1, 2])
+    pts = _grid()
+    s64 = sts.solve_window(ref, frames, pts, config=sts.DICConfig(m=1))
+    s32 = sts.solve_window(ref.float(), frames.float(), pts.float(), config=sts.DICConfig(m=1))
+    assert s32.u.dtype == torch.float32 and s64.u.dtype == torch.float64
+    assert torch.allclose(s32.u.double(), s64.u, atol=5e-4)
+    assert torch.allclose(s32.ut.double(), s64.ut, atol=5e-4)
+
+
+def test_numpy_and_uint8_inputs(pattern):
+    ref, frames = _series(pattern, synth.Translation(0.5, 0.0), [0])
+    ref8 = synth.quantize(ref, 8).numpy().astype(np.uint8)
+    g8 = synth.quantize(frames[0], 8).numpy().astype(np.uint8)
+    sol = sts.solve_window(ref8, g8, _grid().numpy(), config=sts.DICConfig(m=0))
+    assert sol.u.dtype == torch.float32
+    assert torch.allclose(sol.u, torch.full_like(sol.u, 0.5), atol=1e-2)
+
+
+def test_ic_hessian_matches_brute_force(pattern):
+    # the factored IC Hessian equals sum_t J_t^T J_t built explicitly (ZNSSD: centred J)
+    from torch_stsdic.solver import _Batch, _Context, _ic_hessian
+
+    solver = sts.SubsetSolver(sts.DICConfig(m=1, subset_size=11))
+    ref = synth.render(pattern, SIZE)
+    img = solver.prepare(ref)
+    off, w = solver.window.offsets_and_weights(torch.float64, None)
+    dt = torch.tensor([[-1.0, 0.0, 1.0], [-2.0, 0.0, 0.5]], dtype=torch.float64)
+    pts = torch.tensor([[40.0, 50.0], [60.3, 44.7]], dtype=torch.float64)
+    f, gx, gy = img.sample(pts[:, :1] + off[:, 0], pts[:, 1:] + off[:, 1], grad=True)
+    shape = solver.shape
+    ctx = _Context(shape=shape, spatial=shape.spatial_basis(off[:, 0], off[:, 1]), dx=off[:, 0],
+                   dy=off[:, 1], w=w, half=5.0, h=101, w_img=101, ref=img, frames=img,
+                   cfg=solver.config, grey_range=200.0)
+    data = _Batch(px=pts[:, :1], py=pts[:, 1:], dt=dt, fidx=torch.zeros(2, 3, dtype=torch.long),
+                  f=f, ft=f, fnorm=f.norm(dim=1), gx=gx, gy=gy)
+    h = _ic_hessian(ctx, data)
+    basis = torch.stack([shape.basis(off[:, 0], off[:, 1], dt[i]) for i in range(2)])  # N,T,S,K
+    jac = torch.cat([gx[:, None, :, None] * basis, gy[:, None, :, None] * basis], -1)
+    jac = jac - (jac * w[None, None, :, None]).sum(2, keepdim=True) / w.sum()
+    brute = torch.einsum("ntsp,ntsq->npq", jac * w[None, None, :, None], jac)
+    assert torch.allclose(h, brute, rtol=1e-10, atol=1e-8)
+
+
+# ---- bad input ------------------------------------------------------------------------
+def test_points_near_edges_are_flagged_not_crashing(pattern):
+    ref, frames = _series(pattern, synth.Translation(0.2, 0.0), [0])
+    pts = torch.tensor([[50.0, 50.0], [5.0, 50.0], [50.0, 98.0], [-3.0, 200.0]],
+                       dtype=torch.float64)
+    sol = sts.solve_window(ref, frames[0], pts, config=sts.DICConfig(m=0))
+    assert sol.status.tolist() == [Status.CONVERGED, Status.OUTSIDE, Status.OUTSIDE,
+                                   Status.OUTSIDE]
+    assert torch.isnan(sol.u[1:]).all() and torch.isfinite(sol.u[0])
+
+
+def test_flat_texture_is_flagged(pattern):
+    ref, frames = _series(pattern, synth.Translation(0.2, 0.0), [0])
+    ref = ref.clone()
+    frames = frames.clone()
+    ref[:, :45] = 100.0
+    frames[:, :, :45] = 100.0
+    pts = torch.tensor([[20.0, 50.0], [70.0, 50.0]], dtype=torch.float64)
+    sol = sts.solve_window(ref, frames[0], pts, config=sts.DICConfig(m=0))
+    assert sol.status.tolist() == [Status.LOW_TEXTURE, Status.CONVERGED]
+
+
+def test_subset_leaving_image_during_iterations():
+    # a motion that carries the subset out of the image ends as OUTSIDE, not NaN noise
+    pat = synth.make_speckle(SIZE, seed=1)
+    ref = synth.render(pat, SIZE)
+    g = synth.render(pat, SIZE, synth.Translation(6.0, 0.0))
+    pts = torch.tensor([[88.0, 50.0]], dtype=torch.float64)
+    sol = sts.solve_window(ref, g, pts, config=sts.DICConfig(m=0, subset_size=21),
+                           init=torch.tensor([[6.0, 0.0]], dtype=torch.float64))
+    assert sol.status.tolist() == [Status.OUTSIDE]
+
+
+@pytest.mark.parametrize(
+    "kwargs,exc,match",
+    [
+        (dict(ref=np.zeros((50, 50, 3))), ValueError, "colour"),
+        (dict(ref=np.zeros((4, 50, 50))), ValueError, "ref"),
+        (dict(frames=np.zeros((3, 40, 50))), ValueError, "differs from the reference"),
+        (dict(frames=np.zeros((2, 50, 50))), ValueError, "m is larger than the frames"),
+        (dict(points=np.zeros((5, 3))), ValueError, "points"),
+        (dict(points=np.full((2, 2), np.nan)), ValueError, "points"),
+        (dict(times=[0, 2, 1]), ValueError, "times"),
+        (dict(times=[0, 1]), ValueError, "times"),
+        (dict(init=np.zeros((7, 2))), ValueError, "init"),
+        (dict(ref="image.tif"), TypeError, "ref"),
+        (dict(config={"m": 1}), TypeError, "config"),
+    ],
+)
+def test_bad_input_messages(kwargs, exc, match):
+    rng = np.random.default_rng(0)
+    args = dict(ref=rng.random((50, 50)) * 200, frames=rng.random((3, 50, 50)) * 200,
+                points=np.array([[25.0, 25.0]]), config=sts.DICConfig(m=1, subset_size=11))
+    args.update(kwargs)
+    with pytest.raises(exc, match=match):
+        sts.solve_window(**args)
+
+
+def test_non_finite_pixels_and_tiny_images():
+    rng = np.random.default_rng(0)
+    ref = rng.random((50, 50)) * 200
+    frames = rng.random((1, 50, 50)) * 200
+    bad = ref.copy()
+    bad[3, 4] = np.nan
+    with pytest.raises(ValueError, match="non-finite"):
+        sts.solve_window(bad, frames, [[25.0, 25.0]], config=sts.DICConfig(m=0))
+    frames_bad = frames.copy()
+    frames_bad[0, 1, 1] = np.inf
+    with pytest.raises(ValueError, match="frames: contains 1 non-finite"):
+        sts.solve_window(ref, frames_bad, [[25.0, 25.0]], config=sts.DICConfig(m=0))
+    with pytest.raises(ValueError, match="larger than the image"):
+        sts.solve_window(ref[:15, :15], frames[:, :15, :15], [[7.0, 7.0]],
+                         config=sts.DICConfig(m=0, subset_size=21))
+
+
+@pytest.mark.parametrize(
+    "kwargs,match",
+    [
+        (dict(subset_size=20), "subset_size"),
+        (dict(m=-1), "m"),
+        (dict(criterion="ncc"), "criterion"),
+        (dict(formulation="best"), "formulation"),
+        (dict(interpolation="linear"), "interpolation"),
+        (dict(tol=0), "tol"),
+        (dict(shape="cubic"), "shape"),
+    ],
+)
+def test_bad_config(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        sts.DICConfig(**kwargs)
