@@ -76,3 +76,26 @@ def test_prefilter_rejects_integers_and_bad_order():
         bspline_prefilter(torch.zeros(5, 5, dtype=torch.int32))
     with pytest.raises(ValueError):
         BSplineImage(torch.zeros(5, 5), order=4)
+
+
+def test_compiled_sampler_matches_eager():
+    # the fused (torch.compile) kernel used for large calls gives the eager kernel's numbers
+    from torch_stsdic import interpolation
+
+    img, _, _ = _smooth()
+    b = BSplineImage(torch.stack([img, img.flip(0)]).float())
+    g = torch.Generator().manual_seed(3)
+    x = (torch.rand(7, 2, 30, generator=g) * 40 + 3).float()
+    y = (torch.rand(7, 2, 30, generator=g) * 30 + 3).float()
+    frame = torch.arange(2).view(1, 2, 1)
+    interpolation.set_compile(False)
+    try:
+        ref = b.sample(x, y, frame=frame, grad=True)
+        interpolation.set_compile(True)
+        out = b.sample(x, y, frame=frame, grad=True)
+    finally:
+        interpolation.set_compile("auto")
+    if interpolation._COMPILE_FAILED:
+        pytest.skip("torch.compile is not available on this machine (eager fallback used)")
+    for a, e in zip(out, ref):
+        assert torch.allclose(a, e, atol=1e-3)

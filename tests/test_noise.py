@@ -1,0 +1,151 @@
+"""Tests of the noise-floor prediction and the noise estimators (torch_stsdic.noise)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+import torch_stsdic as sts
+from torch_stsdic.noise import (
+    estimate_noise_sigma,
+    gradient_noise_factor,
+    interpolated_noise_autocorrelation,
+    interpolation_variance_factor,
+    predicted_std,
+)
+from torch_stsdic.synth import Translation, add_noise, make_speckle, render, render_series
+
+SHAPE = (130, 130)
+
+
+@pytest.fixture(scope="module")
+def clean_series():
+    """A clean reference and 3 frames moving by u = 0.05 t (t = 1, 2, 3), and 25 POIs
+    spaced by a subset width (independent subsets)."""
+    pattern = make_speckle(SHAPE, seed=11)
+    times = torch.tensor([1.0, 2.0, 3.0], dtype=torch.float64)
+    ref, frames = render_series(pattern, SHAPE, Translation(ut=0.05), times)
+    g = torch.arange(23.0, 108.0, 21.0)
+    ys, xs = torch.meshgrid(g, g, indexing="ij")
+    pts = torch.stack([xs.reshape(-1), ys.reshape(-1)], 1)
+    return ref, frames, times, pts
+
+
+def _monte_carlo(ref, frames, times, pts, cfg, sigma_ref, sigma_def, reps):
+    clean = sts.solve_window(ref, frames, pts, config=cfg, times=times)
+    du, dut = [], []
+    gen = torch.Generator().manual_seed(1234)
+    for _ in range(reps):
+        r = ref + sigma_ref * torch.randn(ref.shape, generator=gen, dtype=torch.float64)
+        f = frames + sigma_def * torch.randn(frames.shape, generator=gen, dtype=torch.float64)
+        sol = sts.solve_window(r, f, pts, config=cfg, times=times, init=clean.params)
+        assert bool(sol.ok.all())
+        du.append(sol.u - clean.u)
+        dut.append(sol.ut - clean.ut)
+    rms = lambda x: float(torch.cat(x).pow(2).mean().sqrt())  # noqa: E731
+    return rms(du), rms(dut)
+
+
+def _rms(x: torch.Tensor) -> float:
+    return float(x.pow(2).mean().sqrt())
+
+
+def test_prediction_matches_monte_carlo_classical(clean_series):
+    ref, frames, times, pts = clean_series
+    cfg = sts.DICConfig(subset_size=21, m=0, tol=1e-6)
+    mu, _ = _monte_carlo(ref, frames[1:2], times[1:2], pts, cfg, 0.0, 4.0, reps=6)
+    pred = predicted_std(ref, pts, cfg, sigma_ref=0.0, sigma_def=4.0, displacement=0.1)
+    assert math.isnan(float(pred["ut"][0]))
+    ratio = mu / _rms(pred["u"])
+    assert 0.85 < ratio < 1.2, ratio
+
+
+def test_prediction_matches_monte_carlo_sts_noisy_reference(clean_series):
+    ref, frames, times, pts = clean_series
+    cfg = sts.DICConfig(subset_size=21, m=1, tol=1e-6)
+    mu, mut = _monte_carlo(ref, frames, times, pts, cfg, 4.0, 4.0, reps=4)
+    disp = torch.tensor([0.1, 0.0, 0.05, 0.0]).expand(pts.shape[0], 4)
+    pred = predicted_std(ref, pts, cfg, sigma_ref=4.0, sigma_def=4.0, displacement=disp)
+    assert 0.85 < mu / _rms(pred["u"]) < 1.2, mu / _rms(pred["u"])
+    assert 0.8 < mut / _rms(pred["ut"]) < 1.25, mut / _rms(pred["ut"])
+    # the reference noise is not averaged away: the floor with a noisy reference is well
+    # above the one with a clean reference
+    clean_ref = predicted_std(ref, pts, cfg, sigma_ref=0.0, sigma_def=4.0, displacement=disp)
+    assert _rms(pred["u"]) > 1.6 * _rms(clean_ref["u"])
+
+
+def test_textbook_formula_symmetric_window(clean_series):
+    ref, _, _, pts = clean_series
+    cfg = sts.DICConfig(subset_size=21, m=2)
+    kw = dict(interp=1.0, second_order=False)
+    sts5 = predicted_std(ref, pts, cfg, sigma_ref=3.0, sigma_def=5.0, **kw)
+    # var(u) = (sigma_ref^2 + sigma_def^2 / T) [H_s^-1]_uu: the classical floor with
+    # the same total variance
+    equiv = math.sqrt(3.0**2 + 5.0**2 / 5)
+    cl = predicted_std(ref, pts, cfg, sigma_ref=equiv, sigma_def=0.0, n_frames=1, **kw)
+    assert torch.allclose(sts5["u"], cl["u"], rtol=1e-9)
+    assert torch.allclose(sts5["v"], cl["v"], rtol=1e-9)
+    # the velocity: sigma_def^2 / sum(dt^2), independent of the reference noise
+    sts3 = predicted_std(ref, pts, cfg, sigma_ref=0.0, sigma_def=5.0, n_frames=3, **kw)
+    assert torch.allclose(sts5["ut"] / sts3["ut"], torch.tensor(math.sqrt(2.0 / 10.0),
+                                                                dtype=torch.float64))
+    # a shifted window (dt = 0..4) couples u and ut: larger error of u
+    shifted = predicted_std(ref, pts, cfg, sigma_ref=3.0, sigma_def=5.0,
+                            dt=[0.0, 1.0, 2.0, 3.0, 4.0], **kw)
+    assert bool((shifted["u"] > sts5["u"]).all())
+
+
+def test_interpolated_noise_factors():
+    assert float(interpolation_variance_factor(0.0)) == pytest.approx(1.0, abs=1e-9)
+    assert float(interpolation_variance_factor(0.5)) == pytest.approx(0.7561, abs=1e-3)
+    assert float(interpolation_variance_factor(0.5, 0.5)) == pytest.approx(0.7561**2, abs=1e-3)
+    r = interpolated_noise_autocorrelation(torch.tensor([0.0, 0.3]), order=5, max_lag=3)
+    assert r.shape == (2, 7)
+    assert torch.allclose(r[0], torch.tensor([0, 0, 0, 1.0, 0, 0, 0], dtype=torch.float64),
+                          atol=1e-9)
+    assert torch.allclose(r[1], r[1].flip(-1), atol=1e-12)  # symmetric in the lag
+    # Monte Carlo: interpolated white noise at a half-pixel shift
+    from torch_stsdic.interpolation import BSplineImage
+
+    gen = torch.Generator().manual_seed(0)
+    n = torch.randn(1, 120, 120, generator=gen, dtype=torch.float64)
+    y, x = torch.meshgrid(torch.arange(10.0, 110.0), torch.arange(10.0, 110.0), indexing="ij")
+    vals = BSplineImage(n, 3).sample(x + 0.5, y)
+    assert float(vals.var()) == pytest.approx(0.7561, rel=0.05)
+    _, gx, _ = BSplineImage(n, 3).sample(x, y, grad=True)
+    assert float(gx.var()) == pytest.approx(gradient_noise_factor(3), rel=0.05)
+
+
+def test_predicted_std_errors(clean_series):
+    ref, _, _, pts = clean_series
+    with pytest.raises(ValueError, match="displacement"):
+        predicted_std(ref, pts, sts.DICConfig(m=1), displacement=torch.zeros(3, 3))
+    with pytest.raises(ValueError, match="interp"):
+        predicted_std(ref, pts, sts.DICConfig(m=1), interp="bogus")
+    with pytest.raises(ValueError, match="ref"):
+        predicted_std(torch.zeros(3, 4, 5), pts, sts.DICConfig(m=1))
+
+
+@pytest.mark.parametrize("sigma", [2.0, 5.0, 10.0])
+def test_estimate_noise_sigma(sigma):
+    img = render(make_speckle((160, 160), seed=2), (160, 160))
+    a = add_noise(img, sigma, seed=1)
+    b = add_noise(img, sigma, seed=2)
+    c = add_noise(img, sigma, seed=3)
+    assert estimate_noise_sigma(a, b) == pytest.approx(sigma, rel=0.03)
+    assert estimate_noise_sigma(a, b, robust=True) == pytest.approx(sigma, rel=0.05)
+    assert estimate_noise_sigma(torch.stack([a, b, c])) == pytest.approx(sigma, rel=0.03)
+    assert estimate_noise_sigma(a) == pytest.approx(sigma, rel=0.05)  # Immerkaer
+    assert estimate_noise_sigma(a.numpy(), flat_fraction=None) == pytest.approx(sigma, rel=0.05)
+
+
+def test_estimate_noise_sigma_errors():
+    img = torch.zeros(20, 20)
+    with pytest.raises(ValueError, match="other"):
+        estimate_noise_sigma(img, torch.zeros(10, 10))
+    with pytest.raises(ValueError, match="method"):
+        estimate_noise_sigma(img, method="nope")
+    with pytest.raises(ValueError, match="stack"):
+        estimate_noise_sigma(img, method="stack")

@@ -1,0 +1,492 @@
+"""Beyond one machine: a movie split into frame chunks, each tracked by a Dask worker.
+
+:func:`track_distributed` splits the target frames of a movie into consecutive *chunks* of
+``chunk_frames`` targets. Each chunk is one task: :func:`~torch_stsdic.series.track` with
+``frames=<the chunk's targets>`` and the same points, reference and settings, on a Dask
+worker. Target frames never overlap between chunks; the frames *read* do: the windows of a
+chunk's first and last targets reach ``m`` frames beyond its edges (``2m`` extra reads and
+prefilters per chunk, shifted windows at the ends of the movie exactly as in ``track``). The
+driver (the calling process) writes every finished chunk's rows into one HDF5 result file,
+the same layout as ``track(out=...)`` (:class:`~torch_stsdic.io.ResultWriter`), so
+``read_results``/``export_csv``/``stsdic plot`` work unchanged; ``resume=True`` skips the
+chunks whose rows are all completed in the file.
+
+Guesses are not carried across chunks: each chunk starts, like a single run, with FFT cross-
+correlation on its first target and carries its own guesses from there. A point that
+converges lands on the same minimum from either guess, so the results equal the single-process
+run to within the Gauss-Newton stopping tolerance (``config.tol``, the last increment in px):
+measured differences are ~1e-6 px or less with ``tol = 1e-8`` (noise-free or noisy), and a
+fraction of ``tol`` with the default ``tol = 1e-4`` (see docs/benchmarks.md, "Beyond one
+machine"). Points that do not converge (MAX_ITER, lost, DIVERGED) can differ, as between any
+two initialisations. Not supported, because they chain state along the whole movie:
+``reference_update`` (incremental reference) and ``smoothing`` (run ``m = 0`` here, then
+:func:`~torch_stsdic.series.temporal_smoothing` on the result).
+
+Why Dask distributed rather than Ray: it is pure pip (``pip install torch_stsdic[dist]``),
+``LocalCluster`` runs the workers as ordinary local processes (or threads) started and
+stopped by the call itself - no daemon, no object store, no ``ray start`` - and the same code
+runs on a cluster by passing a scheduler address (``dask scheduler`` / ``dask worker``,
+dask-jobqueue on SLURM/PBS, dask-kubernetes, dask-mpi). Tasks here are coarse (seconds to
+minutes each) and exchange only small numpy arrays, which is Dask's sweet spot; Ray's
+shared-memory object store, actors and GPU scheduling bring a heavier install and runtime
+that this workload does not need.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import sys
+import uuid
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from .config import DICConfig
+from .io import DEFAULT_FIELDS, ImageSeries, InputError, ResultWriter, load_series
+from .series import (
+    TrackResult,
+    _default_batch,
+    _filter_points,
+    _resolve_frames,
+    _resolve_reference,
+    _resolve_times,
+    _stored,
+    grid_points,
+    track,
+)
+from .solver import SubsetSolver
+from .status import Status
+
+__all__ = ["track_distributed", "track_distributed_many", "chunk_plan", "DASK_HINT"]
+
+DASK_HINT = "pip install torch_stsdic[dist]  (or: pip install \"dask[distributed]\")"
+_BASE = ("u", "v", "ut", "vt")
+_UNSUPPORTED = {
+    "reference_update": "the incremental reference chains every frame to the previous ones",
+    "smoothing": "smoothing spans chunk edges: run with config.m = 0, then "
+                 "temporal_smoothing(result)",
+}
+
+
+def _import_distributed():
+    try:
+        import distributed
+    except ImportError as exc:
+        raise ImportError(
+            f"track_distributed needs Dask distributed, which is not installed: {DASK_HINT}"
+        ) from exc
+    return distributed
+
+
+def chunk_plan(targets: Sequence[int], chunk_frames: int, n_series: int, m: int
+               ) -> list[dict[str, Any]]:
+    """Chunks of consecutive targets: ``targets`` (the chunk's result rows, disjoint) and
+    ``reads`` (first, last) series frames its windows need (overlapping with neighbours).
+
+    >>> [c["reads"] for c in chunk_plan(range(10), 4, 10, 1)]
+    [(0, 4), (3, 8), (7, 9)]
+    """
+    if not isinstance(chunk_frames, (int, np.integer)) or chunk_frames < 1:
+        raise ValueError(f"chunk_frames: must be an integer >= 1, got {chunk_frames!r}")
+    tg = [int(t) for t in targets]
+    n_win = 2 * m + 1
+    out = []
+    for i in range(0, len(tg), int(chunk_frames)):
+        part = tg[i : i + int(chunk_frames)]
+        lo = min(max(part[0] - m, 0), n_series - n_win)
+        hi = max(min(part[-1] + m, n_series - 1), n_win - 1)
+        out.append({"index": len(out), "targets": part, "reads": (lo, hi)})
+    return out
+
+
+def _run_chunk(series: Any, targets: list[int], kwargs: dict[str, Any], torch_threads: int | None,
+               fields: tuple[str, ...]) -> dict[str, Any]:
+    """Worker side: ``track`` one chunk; (F_chunk, N) numpy rows per field + counters."""
+    if torch_threads is None:
+        try:
+            from distributed import get_worker
+
+            per = get_worker().state.nthreads
+        except (ImportError, ValueError, AttributeError):
+            per = 1
+        try:
+            cores = len(os.sched_getaffinity(0))
+        except AttributeError:
+            cores = os.cpu_count() or 1
+        torch_threads = max(1, cores // max(1, per))
+    if torch_threads > 0:
+        torch.set_num_threads(int(torch_threads))
+    res = track(series, frames=targets, progress=False, **kwargs)
+    rows: dict[str, np.ndarray] = {}
+    for nm in fields:
+        if nm in ("u", "v", "ut", "vt", "zncc"):
+            a = getattr(res, nm)
+        elif nm == "status":
+            a = res.status
+        elif nm == "iterations":
+            a = res.iterations
+        else:
+            a = res.gradients[nm]
+        rows[nm] = a.detach().cpu().numpy()
+    info = {k: v for k, v in res.info.items() if isinstance(v, (int, float))}
+    return {"targets": list(targets), "rows": rows, "info": info, "pid": os.getpid()}
+
+
+@dataclass
+class _Job:
+    """One movie: its writer, merged arrays and pending chunks."""
+
+    series: ImageSeries
+    source: Any  # what the workers get (the ImageSeries, scattered)
+    targets: list[int]
+    times: np.ndarray  # (F,) row times
+    points: torch.Tensor  # (N, 2) float64
+    fields: tuple[str, ...]
+    grads: tuple[str, ...]
+    chunks: list[dict[str, Any]]
+    kwargs: dict[str, Any]
+    cfg: DICConfig
+    dtype: torch.dtype
+    ref_frame: int
+    ref_desc: Any
+    writer: ResultWriter | None
+    out: Any
+    res: dict[str, np.ndarray] = field(default_factory=dict)
+    info: dict[str, Any] = field(default_factory=dict)
+    rows_done: int = 0
+
+
+def _plan_job(series: Any, *, reference, frames, points, roi, mask, step, config, times,
+              batch_frames, chunk_frames, out, resume, overwrite, extra: dict[str, Any]
+              ) -> _Job:
+    cfg = config if config is not None else DICConfig()
+    if not isinstance(cfg, DICConfig):
+        raise TypeError(f"config: expected a DICConfig, got {type(cfg).__name__}")
+    if resume and out is None:
+        raise ValueError("resume: needs out (the result file to continue)")
+    if isinstance(series, ImageSeries):
+        ser = series
+    else:
+        try:
+            ser = load_series(series)
+        except InputError as exc:
+            raise InputError(f"series: {exc}") from exc
+    h, w = ser.shape
+    n_series = len(ser)
+    n_win = cfg.n_frames
+    if cfg.subset_size > min(h, w):
+        raise ValueError(f"config.subset_size: {cfg.subset_size} px is larger than the image "
+                         f"({h}x{w} HxW)")
+    if n_series < n_win:
+        raise ValueError(f"series: {n_series} frames, fewer than the 2m+1 = {n_win} frames of "
+                         f"one window (config.m = {cfg.m})")
+    ts_np = _resolve_times(times, ser)
+    targets = _resolve_frames(frames, n_series)
+    if cfg.dtype is not None:
+        dtype = torch.float64 if cfg.dtype == "float64" else torch.float32
+    else:
+        dtype = torch.float64 if ser.dtype_name == "float64" else torch.float32
+    ref_raw, ref_frame, ref_desc = _resolve_reference(reference, ser, dtype, torch.device("cpu"))
+    if points is None:
+        pts0 = grid_points((h, w), step, roi, mask, cfg.subset_size)
+    else:
+        pts0 = _filter_points(points, (h, w), roi, mask)
+    elem = torch.finfo(dtype).bits // 8
+    n_batch = int(batch_frames) if batch_frames is not None else _default_batch(cfg, (h, w),
+                                                                                elem)
+    chunks = chunk_plan(targets, chunk_frames, n_series, cfg.m)
+    solver = SubsetSolver(cfg)
+    names = solver.shape_for(torch.ones(1, n_win) if n_win > 1 else torch.zeros(1, 1)
+                             ).param_names
+    grads = tuple(nm for nm in names if nm not in _BASE)
+    fields = (*DEFAULT_FIELDS, "iterations", *grads)
+    kwargs = dict(
+        reference=ref_frame if ref_raw is None else ref_raw.numpy(),
+        points=pts0.numpy(), step=step, config=cfg, times=ts_np, batch_frames=n_batch,
+        **extra,
+    )
+    n_pts = pts0.shape[0]
+    writer = None
+    if out is not None:
+        track_cfg = {
+            "reference": ref_desc, "step": int(step), "roi": None if roi is None else list(roi),
+            "batch_frames": n_batch, "reference_update": None,
+            "lost_zncc": float(extra.get("lost_zncc", 0.8)), "smoothing": None,
+            "points": n_pts,
+        }
+        dist = {"chunk_frames": int(chunk_frames), "chunks": len(chunks)}
+        writer = ResultWriter(
+            out, points=pts0.double(), frames=np.asarray(targets, dtype=np.int64),
+            times=ts_np[targets], config={**cfg.to_dict(), "track": track_cfg},
+            inputs=ser.sources, fields=fields, resume=resume, overwrite=overwrite,
+            attrs={"distributed": json.dumps(dist)},
+        )
+    n_rows = len(targets)
+    res = {nm: np.full((n_rows, n_pts), np.nan) for nm in fields}
+    res["status"] = np.full((n_rows, n_pts), int(Status.NOT_COMPUTED), dtype=np.int8)
+    res["iterations"] = np.zeros((n_rows, n_pts), dtype=np.int64)
+    job = _Job(series=ser, source=ser, targets=targets, times=ts_np[targets], points=pts0,
+               fields=fields, grads=grads, chunks=chunks, kwargs=kwargs, cfg=cfg, dtype=dtype,
+               ref_frame=ref_frame, ref_desc=ref_desc, writer=writer, out=out, res=res)
+    if writer is not None and resume:
+        done = set(writer.completed_rows().tolist())
+        f = writer._h5()
+        pending = []
+        for ch in chunks:
+            rows = [targets.index(t) for t in ch["targets"]]
+            if all(r in done for r in rows):
+                for nm in fields:
+                    res[nm][rows[0] : rows[-1] + 1] = f[nm][rows[0] : rows[-1] + 1]
+                job.rows_done += len(rows)
+            else:
+                pending.append(ch)
+        job.info["chunks_resumed"] = len(chunks) - len(pending)
+        job.chunks = pending
+    return job
+
+
+def _accept(job: _Job, result: dict[str, Any]) -> int:
+    """Merge one chunk's rows into the job (and its file). Returns the rows added."""
+    row0 = job.targets.index(result["targets"][0])
+    rows = np.arange(row0, row0 + len(result["targets"]))
+    full = result["rows"]
+    stored = _stored(full)
+    if job.writer is not None:
+        job.writer.write_rows(rows, stored)
+    keep = stored if job.writer is not None else full
+    for nm in job.fields:
+        job.res[nm][rows] = keep[nm]
+    for k, v in result["info"].items():
+        if k in ("frames_read", "prefiltered", "fft_rows", "redone_rows", "blocks"):
+            job.info[k] = job.info.get(k, 0) + v
+        elif k == "max_cached_frames":
+            job.info[k] = max(job.info.get(k, 0), v)
+    job.info.setdefault("worker_pids", set()).add(result["pid"])
+    job.rows_done += len(rows)
+    return len(rows)
+
+
+def _result(job: _Job, n_chunks: int, chunk_frames: int, workers: int) -> TrackResult:
+    def ft(a: np.ndarray) -> torch.Tensor:
+        return torch.from_numpy(np.asarray(a, dtype=np.float64)).to(job.dtype)
+
+    r = job.res
+    info = {
+        "batch_frames": job.kwargs["batch_frames"], "reference": job.ref_desc,
+        "reference_updates": [], "chunk_frames": chunk_frames, "chunks": n_chunks,
+        "chunks_run": len(job.chunks), "workers": workers,
+        **{k: v for k, v in job.info.items() if k != "worker_pids"},
+        "worker_processes": len(job.info.get("worker_pids", ())),
+    }
+    if job.out is not None:
+        info["out"] = str(job.out)
+    return TrackResult(
+        points=job.points.to(job.dtype), frames=torch.tensor(job.targets, dtype=torch.long),
+        times=torch.from_numpy(job.times.copy()),
+        u=ft(r["u"]), v=ft(r["v"]), ut=ft(r["ut"]), vt=ft(r["vt"]), zncc=ft(r["zncc"]),
+        status=torch.from_numpy(r["status"].astype(np.int8)),
+        iterations=torch.from_numpy(r["iterations"].astype(np.int32)),
+        gradients={nm: ft(r[nm]) for nm in job.grads},
+        reference_frames=torch.full((len(job.targets),), job.ref_frame, dtype=torch.long),
+        config=job.cfg, info=info,
+    )
+
+
+def _open_client(client: Any, n_workers: int, threads_per_worker: int, processes: bool):
+    """(client, cluster-or-None, owns_client) from a Client, an address, a scheduler file
+    or None (a LocalCluster started here)."""
+    distributed = _import_distributed()
+    if isinstance(client, distributed.Client):
+        return client, None, False
+    if client is None:
+        cluster = distributed.LocalCluster(
+            n_workers=int(n_workers), threads_per_worker=int(threads_per_worker),
+            processes=bool(processes), dashboard_address=None, silence_logs=logging.ERROR,
+        )
+        return distributed.Client(cluster), cluster, True
+    if isinstance(client, (str, os.PathLike)):
+        s = os.fspath(client)
+        if s.endswith(".json") and os.path.exists(s):
+            return distributed.Client(scheduler_file=s), None, True
+        return distributed.Client(s), None, True
+    raise TypeError(f"client: expected a dask.distributed Client, a scheduler address, a "
+                    f"scheduler file or None, got {type(client).__name__}")
+
+
+def track_distributed_many(
+    movies: Sequence[Any],
+    outs: Sequence[Any] | None = None,
+    *,
+    reference: Any = 0,
+    frames: Any = None,
+    points: Any = None,
+    roi: Sequence[float] | None = None,
+    mask: Any = None,
+    step: int = 10,
+    config: DICConfig | None = None,
+    times: Any = None,
+    chunk_frames: int = 50,
+    client: Any = None,
+    n_workers: int = 2,
+    threads_per_worker: int = 1,
+    processes: bool = True,
+    torch_threads: int | None = None,
+    resume: bool = False,
+    overwrite: bool = False,
+    batch_frames: int | None = None,
+    progress: bool = True,
+    callback: Callable[[int, int], None] | None = None,
+    **track_kwargs: Any,
+) -> list[TrackResult]:
+    """:func:`track_distributed` for several movies at once (one result and one ``outs``
+    file each); the chunks of all movies share the workers. Settings apply to every movie."""
+    for k in track_kwargs:
+        if k in _UNSUPPORTED:
+            raise ValueError(f"{k}: not supported by track_distributed ({_UNSUPPORTED[k]})")
+    if k_bad := {"series", "out", "progress"} & set(track_kwargs):
+        raise TypeError(f"unexpected argument(s) {sorted(k_bad)}")
+    movies = list(movies)
+    if outs is not None and len(list(outs)) != len(movies):
+        raise ValueError(f"outs: {len(list(outs))} paths for {len(movies)} movies")
+    outs_l = list(outs) if outs is not None else [None] * len(movies)
+    distributed = _import_distributed()
+    if client is None and torch_threads is None:
+        try:
+            cores = len(os.sched_getaffinity(0))
+        except AttributeError:
+            cores = os.cpu_count() or 1
+        # threads share this process' torch thread pool: leave it alone (0)
+        torch_threads = max(1, cores // (n_workers * threads_per_worker)) if processes else 0
+    jobs: list[_Job] = []
+    try:
+        for mv, o in zip(movies, outs_l):
+            jobs.append(_plan_job(
+                mv, reference=reference, frames=frames, points=points, roi=roi, mask=mask,
+                step=step, config=config, times=times, batch_frames=batch_frames,
+                chunk_frames=chunk_frames, out=o, resume=resume, overwrite=overwrite,
+                extra=track_kwargs,
+            ))
+    except BaseException:
+        for j in jobs:
+            if j.writer is not None:
+                j.writer.close(commit=False)
+        raise
+    n_chunks = {id(j): len(chunk_plan(j.targets, chunk_frames, len(j.series), j.cfg.m))
+                for j in jobs}
+    total = sum(len(j.targets) for j in jobs)
+    done = sum(j.rows_done for j in jobs)
+    bar = tqdm(total=total, initial=done, unit="frame", file=sys.stderr, disable=not progress,
+               desc="STS-DIC (dask)", dynamic_ncols=True)
+    cl, cluster, owns = (None, None, False)
+    futures: list[Any] = []
+    try:
+        if any(j.chunks for j in jobs):
+            cl, cluster, owns = _open_client(client, n_workers, threads_per_worker, processes)
+            run_id = uuid.uuid4().hex[:8]
+            where: dict[str, _Job] = {}
+            for ji, job in enumerate(jobs):
+                src = cl.scatter(job.series, broadcast=True, hash=False)
+                for ch in job.chunks:
+                    fut = cl.submit(_run_chunk, src, ch["targets"], job.kwargs, torch_threads,
+                                    job.fields, key=f"stsdic-{run_id}-{ji}-{ch['index']}",
+                                    pure=False)
+                    where[fut.key] = job
+                    futures.append(fut)
+            for fut in distributed.as_completed(futures):
+                added = _accept(where[fut.key], fut.result())
+                done += added
+                bar.update(added)
+                if callback is not None:
+                    callback(done, total)
+    except BaseException:
+        for fut in futures:
+            fut.cancel()
+        bar.close()
+        for j in jobs:
+            if j.writer is not None:
+                j.writer.close(commit=False)
+        if owns and cl is not None:
+            cl.close()
+        if cluster is not None:
+            cluster.close()
+        raise
+    bar.close()
+    workers = 0
+    if cl is not None:
+        try:
+            workers = len(cl.scheduler_info().get("workers", {}))
+        except Exception:
+            workers = 0
+        if owns:
+            cl.close()
+        if cluster is not None:
+            cluster.close()
+    for j in jobs:
+        if j.writer is not None:
+            j.writer.close()
+    return [_result(j, n_chunks[id(j)], int(chunk_frames), workers) for j in jobs]
+
+
+def track_distributed(
+    series: Any,
+    *,
+    chunk_frames: int = 50,
+    client: Any = None,
+    n_workers: int = 2,
+    threads_per_worker: int = 1,
+    processes: bool = True,
+    torch_threads: int | None = None,
+    out: Any = None,
+    resume: bool = False,
+    overwrite: bool = False,
+    progress: bool = True,
+    callback: Callable[[int, int], None] | None = None,
+    **track_kwargs: Any,
+) -> TrackResult:
+    """Track a movie on several processes or machines: frame chunks on Dask workers.
+
+    Args:
+        series: as for :func:`~torch_stsdic.series.track` (TIFF stack, directory, glob, list
+            of files, array, ImageSeries). Workers read the frames themselves: on a cluster
+            the paths must be visible to every worker (shared filesystem); an in-memory
+            array is sent to each worker once (``Client.scatter``).
+        chunk_frames: target frames per task. Each chunk costs ``2m`` extra frame reads and
+            one FFT-initialised block, so keep it well above ``m`` (default 50).
+        client: None (a ``LocalCluster`` of ``n_workers`` is started and stopped here), a
+            ``dask.distributed.Client``, a scheduler address (``"tcp://host:8786"``) or a
+            scheduler file (``scheduler.json``, e.g. from dask-mpi / dask-jobqueue).
+        n_workers, threads_per_worker, processes: the LocalCluster (``processes=False``:
+            threads in this process, for small jobs and tests).
+        torch_threads: torch intra-op threads per task; default: cores / (workers x threads)
+            locally, cores / (the worker's threads) on a cluster; 0 leaves torch alone.
+        out: HDF5 result file (same layout as ``track``), written by this process as
+            chunks finish. resume: skip the chunks already completed in ``out``.
+            overwrite: replace an existing ``out``.
+        progress: progress bar (rows). callback: ``callback(rows_done, n_rows)``.
+        **track_kwargs: passed to ``track`` (reference, frames, points, roi, mask, step,
+            config, times, device, batch_frames, lost_zncc). ``reference_update`` and
+            ``smoothing`` are not supported (ValueError).
+
+    Returns:
+        :class:`~torch_stsdic.series.TrackResult` over all targets; ``info["chunks"]``,
+        ``info["chunks_run"]``, ``info["workers"]`` describe the run. With ``out`` the
+        values are those stored in the file (float32).
+
+    Raises:
+        ImportError (with the pip command) when Dask distributed is not installed.
+    """
+    known = {k: track_kwargs.pop(k) for k in list(track_kwargs)
+             if k in ("reference", "frames", "points", "roi", "mask", "step", "config",
+                      "times", "batch_frames")}
+    return track_distributed_many(
+        [series], None if out is None else [out], chunk_frames=chunk_frames, client=client,
+        n_workers=n_workers, threads_per_worker=threads_per_worker, processes=processes,
+        torch_threads=torch_threads, resume=resume, overwrite=overwrite, progress=progress,
+        callback=callback, **known, **track_kwargs,
+    )[0]
