@@ -452,7 +452,10 @@ def _run_stage(ctx, kind, free, params, data: _Batch, live):
     scale = _increment_scale(ctx, data)
     p = params[rows]
     active = torch.ones(rows.numel(), dtype=torch.bool, device=device)
-    for _ in range(cfg.max_iter):
+    # On CUDA every boolean test or compaction waits for the GPU: look every few iterations.
+    check_every = 1 if device.type == "cpu" else 4
+    conv_code = torch.tensor(int(Status.CONVERGED), dtype=torch.int8, device=device)
+    for it in range(cfg.max_iter):
         if rows.numel() == 0:
             break
         if kind == "joint_ic":
@@ -463,27 +466,31 @@ def _run_stage(ctx, kind, free, params, data: _Batch, live):
             dp = torch.zeros_like(p)
             dp[:, free_idx] = dp_free
             p_new = p + dp
-        used[rows[active]] += 1
+        used[rows] += active.to(used.dtype)
         norm = (dp * scale).norm(dim=1)
         finite = torch.isfinite(norm) & torch.isfinite(p_new).all(1)
         bad = ~finite | (norm > 4.0 * ctx.half)
         conv = finite & (norm < cfg.tol) & ~outside
         p = torch.where((finite & active).unsqueeze(1), p_new, p)
-        zncc[rows[active]] = zn[active].to(dtype)
+        zncc[rows] = torch.where(active, zn.to(dtype), zncc[rows])
         done = (conv | bad | outside) & active
-        if done.any():
-            r = rows[done]
-            params[r] = p[done]
-            st = torch.full_like(r, int(Status.CONVERGED), dtype=torch.int8)
-            st = torch.where(outside[done], torch.full_like(st, int(Status.OUTSIDE)), st)
-            st = torch.where(bad[done], torch.full_like(st, int(Status.DIVERGED)), st)
-            status[r] = st
-            active = active & ~done
+        # record finished points without boolean indexing (no host synchronisation)
+        st = torch.where(bad, int(Status.DIVERGED), torch.where(outside, int(Status.OUTSIDE),
+                                                                 conv_code)).to(torch.int8)
+        params[rows] = torch.where(done.unsqueeze(1), p, params[rows])
+        status[rows] = torch.where(done, st, status[rows])
+        active = active & ~done
+        if (it + 1) % check_every == 0 or it + 1 == cfg.max_iter:
+            n_active = int(active.sum())
+            if n_active == 0:
+                rows = rows[:0]
+                break
             # drop finished rows once enough of them have piled up (copying costs too)
-            if int(active.sum()) < 0.7 * active.numel():
+            if n_active < 0.7 * active.numel():
                 rows, p, scale, data = rows[active], p[active], scale[active], data.take(active)
                 active = active[active]
-    rows, p = rows[active], p[active]
+    if rows.numel():
+        rows, p = rows[active], p[active]
     if rows.numel():
         params[rows] = p  # MAX_ITER: the last iterate
     return params, zncc, status, used
