@@ -127,12 +127,13 @@ def _sample_kernel(flat, x, y, frame_off, wp: int, x_lo: float, x_hi: float, y_l
 
 
 # ---- optional torch.compile of the sampling kernel -------------------------------------
-# "auto": compile for large calls (>= _COMPILE_MIN samples, >= ~4 s each in eager mode on one
-# core), where the one-off compile time (~10-30 s; cached on disk by torch, ~7 s in a new
-# process) pays back; "1"/"0": always / never. The environment variable TORCH_STSDIC_COMPILE
-# sets the initial mode; see set_compile(). Fused, the sampler runs ~25x faster on a CPU.
+# "auto": compile for large jobs: >= _COMPILE_MIN samples per call, or per Gauss-Newton
+# iteration over all batches of a solve (>= ~10 s per iteration in eager mode on one core).
+# There the one-off compile time (~10-30 s; cached on disk by torch, ~7 s in a new process)
+# pays back. "1"/"0": always / never. The environment variable TORCH_STSDIC_COMPILE sets the
+# initial mode; see set_compile(). Fused, the sampler runs ~25x faster on a CPU.
 _COMPILE_MODE = os.environ.get("TORCH_STSDIC_COMPILE", "auto").lower()
-_COMPILE_MIN = 8_000_000
+_COMPILE_MIN = 20_000_000
 _COMPILED: dict = {}
 _COMPILE_FAILED = False
 
@@ -152,9 +153,15 @@ def _eager(order: int, grad: bool):
     return run
 
 
-def _kernel(order: int, grad: bool, numel: int, needs_autograd: bool):
+def compile_wanted(work: int) -> bool:
+    """Whether "auto" mode compiles for a job of ``work`` samples in all (e.g. all POIs x
+    frames x subset pixels of one Gauss-Newton iteration, over all batches)."""
+    return _COMPILE_MODE == "1" or (_COMPILE_MODE == "auto" and work >= _COMPILE_MIN)
+
+
+def _kernel(order: int, grad: bool, work: int, needs_autograd: bool):
     global _COMPILE_FAILED
-    use = _COMPILE_MODE == "1" or (_COMPILE_MODE == "auto" and numel >= _COMPILE_MIN)
+    use = compile_wanted(work)
     if not use or _COMPILE_FAILED or needs_autograd:
         return _eager(order, grad)
     key = (order, grad)
@@ -224,6 +231,7 @@ class BSplineImage:
         y: torch.Tensor,
         frame: torch.Tensor | int = 0,
         grad: bool = False,
+        work: int | None = None,
     ):
         """Sample the spline at (x, y) (same shape, pixels) in frame ``frame``.
 
@@ -246,7 +254,8 @@ class BSplineImage:
             float(-pad + self.lo), float(self.height - 1 + pad - self.taps + self.lo),
             pad - self.lo,
         )
-        kernel = _kernel(self.order, grad, x.numel(), x.requires_grad or self._flat.requires_grad)
+        kernel = _kernel(self.order, grad, x.numel() if work is None else work,
+                         x.requires_grad or self._flat.requires_grad)
         return kernel(*args)
 
     @classmethod

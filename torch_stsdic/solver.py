@@ -209,6 +209,7 @@ class SubsetSolver:
             shape=shape, spatial=shape.spatial_basis(offsets[:, 0], offsets[:, 1]),
             dx=offsets[:, 0], dy=offsets[:, 1], w=weights, half=half, h=h, w_img=w,
             ref=ref, frames=frames, cfg=cfg, grey_range=_grey_range(grey),
+            work=int(todo.numel()) * t_count * int(offsets.shape[0]),
         )
         batch = cfg.batch_points or ctx.batch_size(t_count)
         for s0 in range(0, todo.numel(), batch):
@@ -309,6 +310,7 @@ class _Context:
     frames: BSplineImage
     cfg: DICConfig
     grey_range: float
+    work: int = 0  # samples per iteration over all batches (decides torch.compile)
 
     @property
     def ks(self) -> int:
@@ -520,7 +522,7 @@ def _sample_frames(ctx, data: _Batch, p, grad: bool):
         (xs.amin(dim=(1, 2)) < 0) | (xs.amax(dim=(1, 2)) > ctx.w_img - 1)
         | (ys.amin(dim=(1, 2)) < 0) | (ys.amax(dim=(1, 2)) > ctx.h - 1)
     )
-    out = ctx.frames.sample(xs, ys, frame=data.fidx.unsqueeze(-1), grad=grad)
+    out = ctx.frames.sample(xs, ys, frame=data.fidx.unsqueeze(-1), grad=grad, work=ctx.work)
     return out, outside
 
 
