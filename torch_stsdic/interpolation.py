@@ -128,12 +128,14 @@ def _sample_kernel(flat, x, y, frame_off, wp: int, x_lo: float, x_hi: float, y_l
 
 # ---- optional torch.compile of the sampling kernel -------------------------------------
 # "auto": compile for large jobs: >= _COMPILE_MIN samples per call, or per Gauss-Newton
-# iteration over all batches of a solve (>= ~10 s per iteration in eager mode on one core).
+# iteration over all batches of a solve (>= ~3 s per iteration in eager mode on one core);
+# once compiled, the kernel serves every job of >= _COMPILED_MIN samples in the process.
 # There the one-off compile time (~10-30 s; cached on disk by torch, ~7 s in a new process)
 # pays back. "1"/"0": always / never. The environment variable TORCH_STSDIC_COMPILE sets the
 # initial mode; see set_compile(). Fused, the sampler runs ~25x faster on a CPU.
 _COMPILE_MODE = os.environ.get("TORCH_STSDIC_COMPILE", "auto").lower()
-_COMPILE_MIN = 20_000_000
+_COMPILE_MIN = 8_000_000
+_COMPILED_MIN = 200_000
 _COMPILED: dict = {}
 _COMPILE_FAILED = False
 
@@ -161,10 +163,13 @@ def compile_wanted(work: int) -> bool:
 
 def _kernel(order: int, grad: bool, work: int, needs_autograd: bool):
     global _COMPILE_FAILED
-    use = compile_wanted(work)
+    key = (order, grad)
+    # once compiled in this process, the kernel also serves medium-sized jobs
+    use = compile_wanted(work) or (
+        _COMPILE_MODE == "auto" and key in _COMPILED and work >= _COMPILED_MIN
+    )
     if not use or _COMPILE_FAILED or needs_autograd:
         return _eager(order, grad)
-    key = (order, grad)
     if key not in _COMPILED:
         fn = torch.compile(_sample_kernel, dynamic=True)
 
