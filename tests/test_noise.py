@@ -14,6 +14,7 @@ from torch_stsdic.noise import (
     interpolated_noise_autocorrelation,
     interpolation_variance_factor,
     predicted_std,
+    residual_noise_sigma,
 )
 from torch_stsdic.synth import Translation, add_noise, make_speckle, render, render_series
 
@@ -139,6 +140,24 @@ def test_estimate_noise_sigma(sigma):
     assert estimate_noise_sigma(torch.stack([a, b, c])) == pytest.approx(sigma, rel=0.03)
     assert estimate_noise_sigma(a) == pytest.approx(sigma, rel=0.05)  # Immerkaer
     assert estimate_noise_sigma(a.numpy(), flat_fraction=None) == pytest.approx(sigma, rel=0.05)
+
+
+def test_residual_noise_sigma():
+    shape = (120, 120)
+    pattern = make_speckle(shape, seed=4)
+    ref, frames = render_series(pattern, shape, Translation(ut=1.0), [1.0])  # integer shift
+    g = torch.arange(20.0, 101.0, 20.0)
+    ys, xs = torch.meshgrid(g, g, indexing="ij")
+    pts = torch.stack([xs.reshape(-1), ys.reshape(-1)], 1)
+    cfg = sts.DICConfig(m=0)
+    for s_ref, s_def in ((3.0, 0.0), (0.0, 4.0), (3.0, 4.0)):
+        r = add_noise(ref, s_ref, seed=1) if s_ref else ref
+        f = add_noise(frames[0], s_def, seed=2) if s_def else frames[0]
+        sol = sts.solve_window(r, f, pts, config=cfg)
+        est = residual_noise_sigma(r, f, pts, sol.params, cfg)
+        assert est == pytest.approx(math.hypot(s_ref, s_def), rel=0.06)
+    with pytest.raises(ValueError, match="params"):
+        residual_noise_sigma(ref, frames[0], pts, torch.zeros(len(pts), 3), cfg)
 
 
 def test_estimate_noise_sigma_errors():

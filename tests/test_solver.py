@@ -281,3 +281,23 @@ def test_non_finite_pixels_and_tiny_images():
 def test_bad_config(kwargs, match):
     with pytest.raises(ValueError, match=match):
         sts.DICConfig(**kwargs)
+
+
+def test_compiled_ic_step_matches_eager(pattern):
+    # large jobs run the fused (torch.compile) IC step: same answer as the eager code
+    from torch_stsdic import interpolation
+
+    ref, frames = _series(pattern, synth.Translation(0.3, -0.2, ut=0.05), [0, 1, 2])
+    cfg = sts.DICConfig(m=1)
+    interpolation.set_compile(False)
+    try:
+        eager = sts.solve_window(ref.float(), frames.float(), _grid().float(), config=cfg)
+        interpolation.set_compile(True)
+        fused = sts.solve_window(ref.float(), frames.float(), _grid().float(), config=cfg)
+    finally:
+        interpolation.set_compile("auto")
+    if interpolation._COMPILE_FAILED:
+        pytest.skip("torch.compile is not available on this machine (eager fallback used)")
+    assert torch.allclose(fused.u, eager.u, atol=1e-4)
+    assert torch.allclose(fused.ut, eager.ut, atol=1e-4)
+    assert (fused.status == eager.status).all()

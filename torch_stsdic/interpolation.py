@@ -148,46 +148,50 @@ def set_compile(mode: str | bool) -> None:
         raise ValueError(f"compile mode must be 'auto', True or False, got {mode!r}")
 
 
-def _eager(order: int, grad: bool):
-    def run(*args):
-        return _sample_kernel(*args, order, grad)
-
-    return run
-
-
 def compile_wanted(work: int) -> bool:
     """Whether "auto" mode compiles for a job of ``work`` samples in all (e.g. all POIs x
     frames x subset pixels of one Gauss-Newton iteration, over all batches)."""
     return _COMPILE_MODE == "1" or (_COMPILE_MODE == "auto" and work >= _COMPILE_MIN)
 
 
-def _kernel(order: int, grad: bool, work: int, needs_autograd: bool):
-    global _COMPILE_FAILED
-    key = (order, grad)
-    # once compiled in this process, the kernel also serves medium-sized jobs
+def maybe_compiled(fn, key, work: int, needs_autograd: bool = False):
+    """``fn`` itself, or its torch.compile'd version (made once per ``key`` and process) when
+    the compile policy wants it for a job of ``work`` samples. A compile failure (no C++
+    compiler, unsupported platform) warns once and falls back to ``fn`` for good."""
     use = compile_wanted(work) or (
         _COMPILE_MODE == "auto" and key in _COMPILED and work >= _COMPILED_MIN
     )
     if not use or _COMPILE_FAILED or needs_autograd:
-        return _eager(order, grad)
+        return fn
     if key not in _COMPILED:
-        fn = torch.compile(_sample_kernel, dynamic=True)
+        compiled = torch.compile(fn, dynamic=True)
 
-        def run(*args, _fn=fn):
+        def run(*args, _fn=compiled):
             global _COMPILE_FAILED
             try:
-                return _fn(*args, order, grad)
+                return _fn(*args)
             except Exception as exc:  # no compiler, unsupported platform ...
                 _COMPILE_FAILED = True
+                first = str(exc).splitlines()[0] if str(exc) else ""
                 warnings.warn(
-                    f"torch.compile of the B-spline sampler failed ({type(exc).__name__}: "
-                    f"{str(exc).splitlines()[0] if str(exc) else ''}); using eager mode",
+                    f"torch.compile failed ({type(exc).__name__}: {first}); using eager mode",
                     RuntimeWarning, stacklevel=3,
                 )
-                return _sample_kernel(*args, order, grad)
+                return fn(*args)
 
         _COMPILED[key] = run
     return _COMPILED[key]
+
+
+def _kernel(order: int, grad: bool, work: int, needs_autograd: bool):
+    def eager(*args):
+        return _sample_kernel(*args, order, grad)
+
+    def kernel(*args):
+        return _sample_kernel(*args, order, grad)
+
+    run = maybe_compiled(kernel, ("sample", order, grad), work, needs_autograd)
+    return eager if run is kernel else run
 
 
 class BSplineImage:
@@ -247,21 +251,26 @@ class BSplineImage:
         """
         x = x.to(self.dtype)
         y = y.to(self.dtype)
-        pad = self.margin
-        plane = self.padded_height * self.padded_width
+        flat, wp, x_lo, x_hi, y_lo, y_hi, shift, plane = self.kernel_args()
         if isinstance(frame, int):
             frame_t = torch.tensor(frame * plane, device=self.device)
         else:
             frame_t = torch.as_tensor(frame, device=self.device).long() * plane
-        args = (
-            self._flat, x, y, frame_t, self.padded_width,
-            float(-pad + self.lo), float(self.width - 1 + pad - self.taps + self.lo),
-            float(-pad + self.lo), float(self.height - 1 + pad - self.taps + self.lo),
-            pad - self.lo,
-        )
+        args = (flat, x, y, frame_t, wp, x_lo, x_hi, y_lo, y_hi, shift)
         kernel = _kernel(self.order, grad, x.numel() if work is None else work,
                          x.requires_grad or self._flat.requires_grad)
         return kernel(*args)
+
+    def kernel_args(self) -> tuple:
+        """(flat coefficients, padded width, x_lo, x_hi, y_lo, y_hi, index shift, plane size):
+        what :func:`_sample_kernel` needs besides the coordinates and frame offsets."""
+        pad = self.margin
+        return (
+            self._flat, self.padded_width,
+            float(-pad + self.lo), float(self.width - 1 + pad - self.taps + self.lo),
+            float(-pad + self.lo), float(self.height - 1 + pad - self.taps + self.lo),
+            pad - self.lo, self.padded_height * self.padded_width,
+        )
 
     @classmethod
     def stack(cls, images: list[BSplineImage]) -> BSplineImage:

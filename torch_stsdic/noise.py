@@ -26,7 +26,8 @@ position of frame ``t`` (``C = I`` at integer positions). For a symmetric window
     var(u) = (sigma_ref^2 + c_interp sigma_def^2 / (2m+1)) [H_s^-1]_uu,
     var(ut) = c_interp sigma_def^2 / sum(dt^2) [H_0^-1]_uu,
 
-with ``H_s = J_s^T W J_s`` the classical (spatial) Hessian and ``H_0`` its translation block.
+with ``H_s = J_s^T W J_s`` the classical (spatial) Hessian and ``H_0`` its translation block
+(``c_interp`` is 1 at integer positions and, in effect, also at sub-pixel ones: see below).
 The reference noise is never averaged away by the window (and does not enter the velocity of
 a symmetric window); only the deformed frames' noise is divided by the number of frames.
 A reference that is the mean of K still frames has ``sigma_ref = sigma / sqrt(K)``.

@@ -36,7 +36,7 @@ import torch
 
 from .config import DICConfig
 from .initial import fft_cross_correlation, linear_fit_in_time
-from .interpolation import BSplineImage
+from .interpolation import BSplineImage, _sample_kernel, maybe_compiled
 from .shape import ShapeFunction, make_shape
 from .status import Status
 from .validation import as_image, as_points, as_series, as_times, check_init
@@ -574,24 +574,64 @@ def _frame_stats(ctx, data: _Batch, g):
     return g, gg, zn
 
 
+def _ic_rhs_kernel(flat, p, px, py, dx, dy, spatial_t, dt, frame_off, ft, fnorm, gx, gy, w,
+                   wp: int, x_lo: float, x_hi: float, y_lo: float, y_hi: float, shift: int,
+                   w_img: int, h: int, ks: int, k: int, has_time: bool, znssd: bool,
+                   order: int):
+    """Right-hand side sum_t J_t^T e_t of one joint IC-GN step, per-frame ZNCC (N, T) and the
+    outside flag (N,): warp (Eq. 9), sample, criterion and reduction in one function, so
+    torch.compile can fuse it into a few loops over (N, T, S) without temporaries."""
+    us = p[:, :ks] @ spatial_t  # (N, S)
+    vs = p[:, k : k + ks] @ spatial_t
+    if has_time:
+        u = us.unsqueeze(1) + (p[:, k - 1 : k] * dt).unsqueeze(-1)
+        v = vs.unsqueeze(1) + (p[:, 2 * k - 1 :] * dt).unsqueeze(-1)
+    else:
+        u, v = us.unsqueeze(1), vs.unsqueeze(1)
+    xs = (px.unsqueeze(-1) + dx + u).expand(-1, dt.shape[1], -1)
+    ys = (py.unsqueeze(-1) + dy + v).expand(-1, dt.shape[1], -1)
+    outside = (
+        (xs.amin(dim=(1, 2)) < 0) | (xs.amax(dim=(1, 2)) > w_img - 1)
+        | (ys.amin(dim=(1, 2)) < 0) | (ys.amax(dim=(1, 2)) > h - 1)
+    )
+    g = _sample_kernel(flat, xs, ys, frame_off.unsqueeze(-1), wp, x_lo, x_hi, y_lo, y_hi,
+                       shift, order, False)
+    if znssd:
+        g = g - ((g * w).sum(-1) / w.sum()).unsqueeze(-1)
+    gg = (g * g * w).sum(-1).clamp(min=1e-30)
+    zn = (ft.unsqueeze(1) * g * w).sum(-1) / (fnorm.unsqueeze(1) * gg.sqrt())
+    if znssd:
+        e = ft.unsqueeze(1) - (fnorm.unsqueeze(1) / gg.sqrt()).unsqueeze(-1) * g  # Pan's scale
+    else:
+        e = ft.unsqueeze(1) - g
+    e = e * w
+    e1 = e.sum(1)  # (N, S)
+    bx = (gx * e1) @ spatial_t.T
+    by = (gy * e1) @ spatial_t.T
+    if has_time:
+        e2 = (e * dt.unsqueeze(-1)).sum(1)
+        b = torch.cat([bx, (gx * e2).sum(1, keepdim=True), by, (gy * e2).sum(1, keepdim=True)], 1)
+    else:
+        b = torch.cat([bx, by], 1)
+    return b, zn.mean(1), outside
+
+
+def _ic_rhs(*args):
+    return _ic_rhs_kernel(*args)
+
+
 def _step_joint_ic(ctx, data: _Batch, p):
     """One IC-GN step of the joint formulation: H dp = -sum_t J_t^T e_t."""
-    g, outside = _sample_frames(ctx, data, p, grad=False)
-    gt, gg, zn = _frame_stats(ctx, data, g)
-    if ctx.cfg.criterion == "znssd":
-        s = data.fnorm.unsqueeze(1) / gg.clamp(min=1e-30).sqrt()  # Pan et al.'s ZNSSD scale
-        e = data.ft.unsqueeze(1) - s.unsqueeze(-1) * gt
-    else:
-        e = data.ft.unsqueeze(1) - gt
-    e = e * ctx.w
-    e1 = e.sum(1)  # (N, S)
-    b = [torch.stack([data.gx, data.gy], 1) * e1.unsqueeze(1) @ ctx.spatial]  # (N, 2, Ks)
-    if ctx.shape.has_time:
-        e2 = torch.einsum("nts,nt->ns", e, data.dt)
-        b.append(torch.stack([(data.gx * e2).sum(1), (data.gy * e2).sum(1)], 1).unsqueeze(-1))
-    b = torch.cat(b, -1).reshape(p.shape[0], -1)
+    flat, wp, x_lo, x_hi, y_lo, y_hi, shift, plane = ctx.frames.kernel_args()
+    fn = maybe_compiled(_ic_rhs, ("ic_rhs",), ctx.work)
+    b, zn, outside = fn(
+        flat, p, data.px, data.py, ctx.dx, ctx.dy, ctx.spatial.T.contiguous(), data.dt,
+        data.fidx * plane, data.ft, data.fnorm, data.gx, data.gy, ctx.w, wp, x_lo, x_hi, y_lo,
+        y_hi, shift, ctx.w_img, ctx.h, ctx.ks, ctx.k, ctx.shape.has_time,
+        ctx.cfg.criterion == "znssd", ctx.frames.order,
+    )
     dp = -torch.cholesky_solve(b.double().unsqueeze(-1), data.chol).squeeze(-1)
-    return dp.to(p.dtype), zn.mean(1), outside
+    return dp.to(p.dtype), zn, outside
 
 
 def _step_fa(ctx, data: _Batch, p, free_idx, average: bool):

@@ -1,0 +1,79 @@
+"""scripts/benchmark.py: the --quick preset runs and records; the doc tables regenerate."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "benchmark.py"
+
+
+def _load():
+    spec = importlib.util.spec_from_file_location("stsdic_benchmark", SCRIPT)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_quick_preset_runs_and_records(tmp_path):
+    out = tmp_path / "quick.json"
+    env_cache = {"STSDIC_BENCH_CACHE": str(tmp_path / "cache")}
+    import os
+
+    p = subprocess.run([sys.executable, str(SCRIPT), "--quick", "--out", str(out)],
+                       capture_output=True, text=True, timeout=300,
+                       env={**os.environ, **env_cache})
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
+    rec = json.loads(out.read_text())
+    assert rec["preset"] == "quick"
+    for key in ("cpu_model", "cores", "torch", "torch_threads", "date", "command",
+                "load_average"):
+        assert key in rec["machine"], key
+    kinds = [r["spec"]["kind"] for r in rec["results"]]
+    assert kinds.count("solve") == 2 and "track" in kinds
+    for r in rec["results"]:
+        assert r["ok"], r
+        assert r["poi_per_s"] > 0 and r["converged_frac"] > 0.9
+        if r["spec"]["kind"] == "solve":
+            md = r["median_s"]
+            assert set(md) >= {"prefilter", "initial_guess", "iterations", "total"}
+            parts = md["prefilter"] + md["initial_guess"] + md["iterations"]
+            assert abs(parts - md["total"]) < 1e-6 + 1e-3 * md["total"]
+            assert r["median_err_px"] < 0.05
+    assert "| case |" in p.stdout and "POI/s" in p.stdout
+
+
+def test_doc_tables_regenerate_between_markers(tmp_path):
+    bench = _load()
+    rec = {
+        "preset": "targets", "_file": "targets-cpu.json",
+        "machine": {"cpu_model": "X", "cores": 2, "torch": "2", "torch_threads": [2],
+                    "date": "2026-01-01T00:00:00", "command": "benchmark.py --targets",
+                    "load_average": [1.0, 1.0, 1.0], "git_commit": "abc", "device": "cpu"},
+        "results": [
+            {"name": "t0", "ok": True, "spec": {"kind": "track", "label": "table1", "m": 0,
+                                               "dtype": "float32", "threads": 2},
+             "median_s": {"total": 0.2}, "times_s": {"total": {"median": 0.2, "min": 0.2}},
+             "n_points": 361, "n_frames": 9, "poi_per_s": 16245.0, "mean_iterations": 3.0,
+             "converged_frac": 1.0, "u_rmse_px": 0.01, "peak_mem_mb": 10.0,
+             "cpu_over_wall": 1.0, "load_after": 1.0},
+            {"name": "t2", "ok": True, "spec": {"kind": "track", "label": "table1", "m": 2,
+                                               "dtype": "float32", "threads": 2},
+             "median_s": {"total": 0.5}, "times_s": {"total": {"median": 0.5, "min": 0.5}},
+             "n_points": 361, "n_frames": 9, "poi_per_s": 6498.0, "mean_iterations": 3.0,
+             "converged_frac": 1.0, "u_rmse_px": 0.01, "peak_mem_mb": 10.0,
+             "cpu_over_wall": 1.0, "load_after": 1.0},
+        ],
+    }
+    rows = bench.target_rows([rec])
+    assert rows[0][3] == "PASS" and "0.50 s" in rows[0][2]
+    assert rows[1][3] == "PASS" and "2.50x" in rows[1][2]
+    doc = tmp_path / "b.md"
+    doc.write_text("head\n<!-- BEGIN AUTOGEN targets -->\nold\n<!-- END AUTOGEN targets -->\n"
+                   "tail\n")
+    assert bench.update_doc([rec], doc)
+    text = doc.read_text()
+    assert "old" not in text and "Table 1 via sts.track" in text and text.endswith("tail\n")
