@@ -283,6 +283,7 @@ def test_bad_config(kwargs, match):
         sts.DICConfig(**kwargs)
 
 
+@pytest.mark.slow  # compiles three kernels: 1-3 min on 2 cores
 def test_compiled_ic_step_matches_eager(pattern):
     # large jobs run the fused (torch.compile) IC step: same answer as the eager code
     from torch_stsdic import interpolation
