@@ -7,6 +7,7 @@ command. See the README for the conventions (x = column, y = row, g_t(x + U) = f
 
 from .config import DICConfig
 from .interpolation import BSplineImage, bspline_prefilter
+from .noise import estimate_noise_sigma, predicted_std
 from .io import ImageSeries, InputError, ResultWriter, export_csv, load_series, read_results
 from .series import (
     TrackResult,
@@ -54,4 +55,6 @@ __all__ = [
     "read_results",
     "export_csv",
     "compute_strain",
+    "predicted_std",
+    "estimate_noise_sigma",
 ]
