@@ -629,6 +629,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--dpi", type=_int_min(20), default=120, help="PNG resolution (default: %(default)s)"
     )
+    p.add_argument(
+        "--min-zncc", type=float, default=0.8, metavar="Z",
+        help="hide points whose ZNCC is below Z in the maps, e.g. holes, edges, background "
+        "(default: %(default)s; -1 shows every converged point)",
+    )
     _add_common(p)
     p.set_defaults(func=cmd_plot)
 
@@ -1410,6 +1415,9 @@ def cmd_plot(args: argparse.Namespace) -> int:
         if status is not None
         else np.isfinite(res.fields.get("u", np.zeros((res.n_frames, res.n_points))))
     )
+    zn = res.fields.get("zncc")
+    if zn is not None and args.min_zncc > -1.0:
+        valid = valid & (np.nan_to_num(np.asarray(zn), nan=-1.0) >= args.min_zncc)
     image = _background(args, res)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -69,10 +69,11 @@ def _norm(values: np.ndarray, vmin: float | None, vmax: float | None, symmetric:
     if fin.size == 0:
         lo, hi = 0.0, 1.0
     elif symmetric:
-        m = float(np.max(np.abs(fin))) or 1.0
+        # robust limits: a few wild points (specimen edges, holes) must not wash out the map
+        m = float(np.percentile(np.abs(fin), 99.0)) or float(np.max(np.abs(fin))) or 1.0
         lo, hi = -m, m
     else:
-        lo, hi = float(fin.min()), float(fin.max())
+        lo, hi = (float(v) for v in np.percentile(fin, [0.5, 99.5]))
         if lo == hi:
             lo, hi = lo - 0.5, hi + 0.5
     return Normalize(vmin=lo if vmin is None else vmin, vmax=hi if vmax is None else vmax)
@@ -171,7 +172,9 @@ def plot_field(
         values: (N,) field values (NaN = transparent, e.g. invalid points).
         title: axes title; ``label``: colour-bar label (put the units here, e.g. ``"u (px)"``).
         cmap, alpha, vmin, vmax: colour map, opacity over the image and colour limits.
-        symmetric: colour limits ``[-max|v|, max|v|]`` (good for strains with a diverging cmap).
+        symmetric: colour limits ``[-a, a]`` with a the 99th percentile of |v| (good for
+            strains with a diverging cmap); otherwise the 0.5 .. 99.5 percentiles (robust to a
+            few wild points) unless vmin / vmax are given.
         marker_size: scatter marker size (scattered points only).
         ax: draw into this axes (its figure is returned, not saved unless ``path``).
         path: save the figure there (PNG by suffix).
