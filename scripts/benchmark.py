@@ -41,6 +41,7 @@ from __future__ import annotations
 import argparse
 import datetime as _dt
 import hashlib
+import importlib
 import json
 import math
 import os
@@ -355,10 +356,9 @@ def run_solve_case(spec: dict[str, Any]) -> dict[str, Any]:
         torch.cuda.reset_peak_memory_stats()
         base_cuda = torch.cuda.memory_allocated()
     load0 = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
-    # warm-up (allocator, threads, torch.compile): on the CPU the batches (memory_mb) are
-    # smaller than 8192 POIs, so a partial warm-up sees the same shapes; on CUDA all of them
-    warm = n if dev.startswith("cuda") else min(n, spec.get("warmup_points", 8192))
-    once(pts[:warm])
+    # warm-up with the same N (allocator, threads, and torch.compile, whose use can depend
+    # on the whole solve's size): a smaller warm-up let the compile land in the timed run
+    once(pts[: spec.get("warmup_points") or n])
     rec: dict[str, list[float]] = {k: [] for k in ("prefilter", "initial_guess", "iterations",
                                                    "total", "cpu_total")}
     sol = None
@@ -505,6 +505,7 @@ def child_main(spec_json: str) -> None:
     spec = json.loads(spec_json)
     if spec.get("compile"):
         os.environ["TORCH_STSDIC_COMPILE"] = spec["compile"]
+    importlib.import_module("torch_stsdic")  # first: its OpenMP defaults precede torch's load
     import torch
 
     torch.set_num_threads(spec["threads"])
@@ -514,6 +515,7 @@ def child_main(spec_json: str) -> None:
     except Exception as exc:
         res = {"ok": False, "error": f"{type(exc).__name__}: {exc}",
                "traceback": traceback.format_exc()[-2000:]}
+    res["omp_wait_policy"] = os.environ.get("OMP_WAIT_POLICY")
     print(CHILD_TAG + json.dumps(res, default=float), flush=True)
 
 
@@ -575,6 +577,8 @@ def run_case(spec: dict[str, Any], isolate: bool, timeout: float) -> dict[str, A
             res = {"ok": False, "error": f"timeout after {timeout:.0f} s"}
         res["isolated"] = True
     res["case_wall_s"] = time.perf_counter() - t0
+    res["date"] = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+    res["code_sha1"] = _code_hash()
     return {"name": case_name(spec), "spec": spec, **res}
 
 
@@ -660,7 +664,6 @@ def run_solver_preset(args, device: str) -> list[dict[str, Any]]:
             est = rate[key] * spec["n"]
             if est * (spec["repeats"] + 1) > args.max_case_seconds:
                 spec["repeats"] = 1
-                spec["warmup_points"] = 1000
             if est * 1.2 > args.max_case_seconds:
                 results.append({"name": case_name(spec), "spec": spec, "ok": False,
                                 "skipped": True,
@@ -1062,6 +1065,7 @@ def main(argv: list[str] | None = None) -> int:
         for rec in recs:
             print(f"\n## {rec['_file']}\n\n" + render_record(rec))
         return 0
+    importlib.import_module("torch_stsdic")  # first: its OpenMP defaults precede torch's load
     import torch
 
     device = args.device
@@ -1083,6 +1087,15 @@ def main(argv: list[str] | None = None) -> int:
     out = args.out
     if out is None and args.preset != "quick":
         out = BENCH_DIR / f"{args.preset}-{device.split(':')[0]}.json"
+    if out is not None and args.only and Path(out).exists():
+        # a partial re-run (--only) replaces its cases in the existing record
+        old = json.loads(Path(out).read_text())
+        names = {r["name"] for r in results}
+        merged = [r for r in old.get("results", []) if r["name"] not in names]
+        order = {r["name"]: i for i, r in enumerate(old.get("results", []))}
+        rec["results"] = sorted(merged + results, key=lambda r: order.get(r["name"], 1e9))
+        rec["machine"]["merged_into"] = [*old["machine"].get("merged_into", []),
+                                         old["machine"]["date"]]
     if out is not None:
         Path(out).parent.mkdir(parents=True, exist_ok=True)
         Path(out).write_text(json.dumps(rec, indent=1, default=float) + "\n")

@@ -128,13 +128,13 @@ def _sample_kernel(flat, x, y, frame_off, wp: int, x_lo: float, x_hi: float, y_l
 
 # ---- optional torch.compile of the sampling kernel -------------------------------------
 # "auto": compile for large jobs: >= _COMPILE_MIN samples per call, or per Gauss-Newton
-# iteration over all batches of a solve (>= ~2 s per iteration in eager mode on one core);
+# iteration over all batches of a solve (>= ~4 s per iteration in eager mode on one core);
 # once compiled, the kernel serves every job of >= _COMPILED_MIN samples in the process.
 # There the one-off compile time (~10-30 s; cached on disk by torch, ~7 s in a new process)
 # pays back. "1"/"0": always / never. The environment variable TORCH_STSDIC_COMPILE sets the
 # initial mode; see set_compile(). Fused, the sampler runs ~25x faster on a CPU.
 _COMPILE_MODE = os.environ.get("TORCH_STSDIC_COMPILE", "auto").lower()
-_COMPILE_MIN = 2_000_000
+_COMPILE_MIN = 8_000_000
 _COMPILED_MIN = 200_000
 _COMPILED: dict = {}
 _COMPILE_FAILED = False
