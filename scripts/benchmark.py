@@ -242,6 +242,20 @@ def _maxrss_mb() -> float:
         return psutil.Process().memory_info().rss / 2**20
 
 
+def _rss_now_mb() -> float:
+    """Current resident set size (Linux /proc; psutil elsewhere)."""
+    try:
+        with open("/proc/self/statm") as fh:
+            return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+    except (OSError, ValueError, AttributeError):
+        try:
+            import psutil
+
+            return psutil.Process().memory_info().rss / 2**20
+        except ImportError:
+            return float("nan")
+
+
 class _Clock:
     def __init__(self, device: str) -> None:
         import torch
@@ -469,12 +483,20 @@ def run_memory_case(spec: dict[str, Any]) -> dict[str, Any]:
     import torch_stsdic as sts
 
     rss_import = _maxrss_mb()
-    cfg = sts.DICConfig(subset_size=spec["subset"], m=spec["m"], dtype="float32")
+    cfg = sts.DICConfig(subset_size=spec["subset"], m=spec["m"], dtype="float32",
+                        memory_mb=spec.get("memory_mb") or 512.0)
     out_h5 = Path(spec["workdir"]) / "memory_result.h5"
     w0, c0 = time.perf_counter(), time.process_time()
     load0 = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
+    trace: list[tuple[int, float, float]] = []  # rows done, current RSS, peak RSS (MB)
+
+    def sample(done: int, total: int) -> None:
+        if not trace or done - trace[-1][0] >= total / 20 or done == total:
+            trace.append((done, round(_rss_now_mb(), 1), round(_maxrss_mb(), 1)))
+
     res = sts.track(spec["tiff"], reference=0, step=spec["step"], config=cfg,
-                    device=spec["device"], progress=False, out=out_h5, overwrite=True)
+                    device=spec["device"], progress=False, out=out_h5, overwrite=True,
+                    callback=sample)
     wall, cpu = time.perf_counter() - w0, time.process_time() - c0
     load1 = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
     out = {
@@ -490,6 +512,8 @@ def run_memory_case(spec: dict[str, Any]) -> dict[str, Any]:
         "converged_frac": float(res.ok.float().mean()),
         "info": {k: v for k, v in res.info.items() if isinstance(v, (int, float, str))},
         "tiff_mb": os.path.getsize(spec["tiff"]) / 2**20,
+        "memory_mb_budget": cfg.memory_mb,
+        "rss_trace": trace,
         "load_before": load0,
         "load_after": load1,
     }
@@ -538,7 +562,8 @@ def _case_name(spec: dict[str, Any]) -> str:
     if k == "track":
         return (f"track {spec.get('label', '')} {stsname} {spec['dtype']} {spec['device']}"
                 + comp)
-    return f"memory track {stsname} {spec['device']}"
+    return (f"memory track {stsname} {spec['device']} memory_mb="
+            f"{spec.get('memory_mb') or 512:g}")
 
 
 def run_case(spec: dict[str, Any], isolate: bool, timeout: float) -> dict[str, Any]:
@@ -642,7 +667,7 @@ def _preset_cases(args, device: str, th: int) -> list[dict[str, Any]]:
     raise ValueError(args.preset)
 
 
-def run_solver_preset(args, device: str) -> list[dict[str, Any]]:
+def run_solver_preset(args, device: str, checkpoint=None) -> list[dict[str, Any]]:
     cases = preset_cases(args, device)
     if args.only:
         cases = [c for c in cases if re.search(args.only, case_name(c))]
@@ -676,6 +701,8 @@ def run_solver_preset(args, device: str) -> list[dict[str, Any]]:
         if res.get("ok") and spec["kind"] == "solve":
             rate[key] = res["median_s"]["total"] / res["n_points"]
         print(_one_line(res), file=sys.stderr, flush=True)
+        if checkpoint is not None:
+            checkpoint(results)
     return results
 
 
@@ -734,10 +761,11 @@ def run_memory_preset(args, device: str) -> list[dict[str, Any]]:
             write_tiff_movie(tiff, n_frames, size)
             print(f"# wrote {tiff} ({tiff.stat().st_size / 2**20:.0f} MiB, "
                   f"{time.perf_counter() - t0:.0f} s)", file=sys.stderr)
-        for m in (2,):
-            spec = {"kind": "memory", "m": m, "subset": 21, "step": args.memory_step,
+        for mem in (args.memory_mb, 256.0):  # the default budget (512), then a smaller one
+            spec = {"kind": "memory", "m": 2, "subset": 21, "step": args.memory_step,
                     "dtype": "float32", "device": device, "threads": args.thread_list[0],
-                    "tiff": str(tiff), "workdir": str(workdir), "frames": n_frames}
+                    "tiff": str(tiff), "workdir": str(workdir), "frames": n_frames,
+                    "memory_mb": mem}
             res = run_case(spec, True, args.case_timeout)
             results.append(res)
             print(_one_line(res), file=sys.stderr, flush=True)
@@ -805,18 +833,24 @@ def track_table(results: list[dict[str, Any]]) -> str:
 
 def memory_table(results: list[dict[str, Any]]) -> str:
     head = ("| case | frames x POIs | TIFF MiB | wall s | frames/s | RSS after import MB | "
-            "peak RSS MB | conv. | load |\n|---|---:|---:|---:|---:|---:|---:|---:|---:|\n")
+            "RSS at 10 / 50 / 100 % of frames MB | peak RSS MB | conv. | load |\n"
+            "|---|---:|---:|---:|---:|---:|---|---:|---:|---:|\n")
     rows = []
     for r in results:
         if r["spec"]["kind"] != "memory":
             continue
         if not r.get("ok"):
-            rows.append(f"| {r['name']} | {r.get('error', 'failed')[:60]} | | | | | | | |")
+            rows.append(f"| {r['name']} | {r.get('error', 'failed')[:60]} | | | | | | | | |")
             continue
+        tr = r.get("rss_trace") or []
+        at = []
+        for frac in (0.1, 0.5, 1.0):
+            hit = next((t for t in tr if t[0] >= frac * r["n_frames"]), None)
+            at.append(f"{hit[1]:.0f}" if hit else "-")
         rows.append(
             f"| {r['name']} | {r['n_frames']} x {r['n_points']} | {r['tiff_mb']:.0f} | "
             f"{r['median_s']['total']:.0f} | {r['frames_per_s']:.1f} | "
-            f"{r['rss_after_import_mb']:.0f} | {r['rss_peak_mb']:.0f} | "
+            f"{r['rss_after_import_mb']:.0f} | {' / '.join(at)} | {r['rss_peak_mb']:.0f} | "
             f"{100 * r['converged_frac']:.1f}% | {r['load_after']:.1f} |")
     return head + "\n".join(rows) + "\n" if rows else ""
 
@@ -844,12 +878,12 @@ def target_rows(records: list[dict[str, Any]]) -> list[tuple[str, str, str, str,
             if rec["preset"] == "targets":
                 rows += _track_targets(res, where, src)
                 rows += _solve_targets(res, where, src, dev.startswith("cuda"))
-            if rec["preset"] == "memory":
-                r = _find(res, kind="memory")
-                if r:
+            for r in (res if rec["preset"] == "memory" else []):
+                if r.get("ok") and r["spec"]["kind"] == "memory":
                     goal, ref = TARGETS["memory_rss_mb"]
+                    mem = r["spec"].get("memory_mb") or 512
                     rows.append((f"{r['n_frames']}-frame 1024x1024 TIFF via sts.track, "
-                                 f"{r['n_points']} POIs, STS(5), {where}",
+                                 f"{r['n_points']} POIs, STS(5), memory_mb={mem:g}, {where}",
                                  f"<= {goal:.0f} MB RAM ({ref})",
                                  f"{r['rss_peak_mb']:.0f} MB peak RSS, "
                                  f"{r['median_s']['total']:.0f} s",
@@ -985,7 +1019,8 @@ def autogen_sections(records: list[dict[str, Any]]) -> dict[str, str]:
     sections = {"targets": "\n".join(tgt) + "\n"}
     details = []
     for rec in records:
-        details.append(f"\n#### `docs/bench/{rec['_file']}` ({rec['preset']})\n")
+        part = ", partial: still running or interrupted" if rec.get("partial") else ""
+        details.append(f"\n#### `docs/bench/{rec['_file']}` ({rec['preset']}{part})\n")
         details.append(render_record(rec))
     sections["details"] = "\n".join(details)
     prof = [profile_text(rec["results"]) for rec in records if rec["preset"] == "targets"]
@@ -1077,28 +1112,39 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.thread_list[0])
     machine = machine_info(args.thread_list, device)
     t0 = time.perf_counter()
-    if args.preset == "memory":
-        results = run_memory_preset(args, device)
-    else:
-        results = run_solver_preset(args, device)
-    machine["load_average_end"] = list(os.getloadavg()) if hasattr(os, "getloadavg") else None
-    rec = {"preset": args.preset, "machine": machine, "wall_s": time.perf_counter() - t0,
-           "results": results}
     out = args.out
     if out is None and args.preset != "quick":
         out = BENCH_DIR / f"{args.preset}-{device.split(':')[0]}.json"
-    if out is not None and args.only and Path(out).exists():
-        # a partial re-run (--only) replaces its cases in the existing record
-        old = json.loads(Path(out).read_text())
-        names = {r["name"] for r in results}
-        merged = [r for r in old.get("results", []) if r["name"] not in names]
-        order = {r["name"]: i for i, r in enumerate(old.get("results", []))}
-        rec["results"] = sorted(merged + results, key=lambda r: order.get(r["name"], 1e9))
-        rec["machine"]["merged_into"] = [*old["machine"].get("merged_into", []),
-                                         old["machine"]["date"]]
+
+    def save(results: list[dict[str, Any]], partial: bool) -> dict[str, Any]:
+        rec = {"preset": args.preset, "machine": dict(machine), "partial": partial,
+               "wall_s": time.perf_counter() - t0, "results": list(results)}
+        if not partial:
+            rec["machine"]["load_average_end"] = (list(os.getloadavg())
+                                                  if hasattr(os, "getloadavg") else None)
+        if out is not None and args.only and Path(out).exists():
+            # a partial re-run (--only) replaces its cases in the existing record
+            old = json.loads(Path(out).read_text())
+            names = {r["name"] for r in results}
+            merged = [r for r in old.get("results", []) if r["name"] not in names]
+            order = {r["name"]: i for i, r in enumerate(old.get("results", []))}
+            rec["results"] = sorted(merged + rec["results"],
+                                    key=lambda r: order.get(r["name"], 1e9))
+            before = old["machine"].get("merged_into", [])
+            if old["machine"]["date"] != machine["date"]:
+                before = [*before, old["machine"]["date"]]
+            rec["machine"]["merged_into"] = before
+        if out is not None:
+            Path(out).parent.mkdir(parents=True, exist_ok=True)
+            Path(out).write_text(json.dumps(rec, indent=1, default=float) + "\n")
+        return rec
+
+    if args.preset == "memory":
+        results = run_memory_preset(args, device)
+    else:
+        results = run_solver_preset(args, device, checkpoint=lambda r: save(r, True))
+    rec = save(results, False)
     if out is not None:
-        Path(out).parent.mkdir(parents=True, exist_ok=True)
-        Path(out).write_text(json.dumps(rec, indent=1, default=float) + "\n")
         print(f"# wrote {out}", file=sys.stderr)
     rec["_file"] = Path(out).name if out else "(not saved)"
     print(render_record(rec))
