@@ -504,7 +504,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument(
         "--memory-mb",
         type=_float_pos,
-        default=512.0,
+        default=256.0,
         metavar="MB",
         help="working-memory budget per batch in MiB (default: %(default)s)",
     )

@@ -42,7 +42,7 @@ class DICConfig:
         max_displacement: a point whose displacement moves more than this (px) away from its
             initial guess is flagged DIVERGED (default: subset_size).
         batch_points: POIs solved together per batch (None: sized from ``memory_mb``).
-        memory_mb: working-memory budget per batch in MiB (default 512).
+        memory_mb: working-memory budget per batch in MiB (default 256).
         dtype: "float32", "float64" or None (None: the input's float dtype; float32 for integers).
     """
 
@@ -59,7 +59,7 @@ class DICConfig:
     texture_threshold: float = 1e-5
     max_displacement: float | None = None
     batch_points: int | None = None
-    memory_mb: float = 512.0
+    memory_mb: float = 256.0
     dtype: str | None = None
     extra: dict[str, Any] = field(default_factory=dict)
 
