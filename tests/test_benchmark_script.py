@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -21,8 +22,6 @@ def _load():
 def test_quick_preset_runs_and_records(tmp_path):
     out = tmp_path / "quick.json"
     env_cache = {"STSDIC_BENCH_CACHE": str(tmp_path / "cache")}
-    import os
-
     p = subprocess.run([sys.executable, str(SCRIPT), "--quick", "--out", str(out)],
                        capture_output=True, text=True, timeout=300,
                        env={**os.environ, **env_cache})
