@@ -480,6 +480,22 @@ def build_parser() -> argparse.ArgumentParser:
         "the largest motion between neighbouring output frames (default: %(default)s)",
     )
     g.add_argument(
+        "--initial-guess",
+        choices=("auto", "fft", "seeded"),
+        default="auto",
+        help="where POIs without a previous result start: 'fft' = FFT cross-correlation at "
+        "every POI; 'seeded' = FFT at one seed POI per cell of --seed-spacing px, the others "
+        "start from their seed's solution (FFT again where that fails); 'auto' = seeded for "
+        "dense POIs (default: %(default)s)",
+    )
+    g.add_argument(
+        "--seed-spacing",
+        type=_float_pos,
+        default=None,
+        metavar="PX",
+        help="cell width for --initial-guess seeded, px (default: the subset size)",
+    )
+    g.add_argument(
         "--tol",
         type=_float_pos,
         default=1e-4,
@@ -1188,6 +1204,8 @@ def cmd_run(args: argparse.Namespace) -> int:
             max_iter=args.max_iter,
             tol=args.tol,
             search_radius=args.search_radius,
+            initial_guess=args.initial_guess,
+            seed_spacing=args.seed_spacing,
             batch_points=args.batch_points,
             memory_mb=args.memory_mb,
             dtype=args.dtype,

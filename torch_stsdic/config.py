@@ -9,10 +9,11 @@ from typing import Any
 from .shape import ShapeFunction
 from .window import SubsetWindow
 
-__all__ = ["DICConfig", "FORMULATIONS", "CRITERIA"]
+__all__ = ["DICConfig", "FORMULATIONS", "CRITERIA", "INITIAL_GUESSES"]
 
 FORMULATIONS = ("auto", "joint", "average", "joint+average")
 CRITERIA = ("znssd", "ssd")
+INITIAL_GUESSES = ("auto", "fft", "seeded")
 
 
 @dataclass
@@ -37,6 +38,12 @@ class DICConfig:
         tol: convergence threshold in px: the largest displacement change of any subset pixel
             in any frame of the window caused by the last increment.
         search_radius: FFT cross-correlation search radius in px for the initial guess.
+        initial_guess: how points without an initial guess start: "fft" (FFT
+            cross-correlation at every POI), "seeded" (FFT only at one seed POI per
+            ``seed_spacing`` cell; the others start from their seed's solution carried over
+            by its displacement gradient, and fall back to FFT where that fails) or "auto"
+            (the default: "seeded" when the POIs are dense, >= 4 per cell on average).
+        seed_spacing: cell width in px for "seeded" (default: the subset size).
         texture_threshold: a subset whose mean squared intensity gradient is below
             ``texture_threshold * (image grey range)^2`` is flagged LOW_TEXTURE.
         max_displacement: a point whose displacement moves more than this (px) away from its
@@ -56,6 +63,8 @@ class DICConfig:
     max_iter: int = 50
     tol: float = 1e-4
     search_radius: int = 10
+    initial_guess: str = "auto"
+    seed_spacing: float | None = None
     texture_threshold: float = 1e-5
     max_displacement: float | None = None
     batch_points: int | None = None
@@ -89,6 +98,10 @@ class DICConfig:
             bad("tol", "must be > 0")
         if not isinstance(self.search_radius, int) or self.search_radius < 0:
             bad("search_radius", "must be an integer >= 0")
+        if self.initial_guess not in INITIAL_GUESSES:
+            bad("initial_guess", f"must be one of {INITIAL_GUESSES}")
+        if self.seed_spacing is not None and not (self.seed_spacing >= 1):
+            bad("seed_spacing", "must be >= 1 px or None")
         if self.memory_mb <= 0:
             bad("memory_mb", "must be > 0")
         if self.batch_points is not None and self.batch_points < 1:

@@ -1,4 +1,5 @@
-"""Initial guesses: batched FFT cross-correlation (integer + parabolic sub-pixel peak).
+"""Initial guesses: batched FFT cross-correlation (integer + parabolic sub-pixel peak), and
+seeds: one POI per cell whose solution starts its neighbours.
 
 For every POI the reference subset is correlated with a search area of half-width
 ``search_radius`` around the same position in the deformed image, all POIs (and all frames)
@@ -10,7 +11,7 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["fft_cross_correlation", "linear_fit_in_time"]
+__all__ = ["fft_cross_correlation", "linear_fit_in_time", "seed_cells", "carry_from_seed"]
 
 
 def _regions(
@@ -171,3 +172,46 @@ def linear_fit_in_time(
         (w * dtc * dtc).sum(1).unsqueeze(-1)
     )
     return dm - slope * tm.unsqueeze(-1), slope
+
+
+def seed_cells(
+    points: torch.Tensor, group: torch.Tensor, spacing: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Split POIs into square cells of ``spacing`` px (separately per ``group``) and pick
+    each cell's seed: the POI nearest the cell centre.
+
+    Args:
+        points: (N, 2) POIs (x, y), px.
+        group: (N,) int64 group label (POIs of different groups never share a seed, e.g.
+            different frames or references).
+
+    Returns:
+        cell: (N,) cell number of every POI, 0 .. C-1.
+        seeds: (C,) index of each cell's seed POI.
+    """
+    cxy = torch.floor(points.double() / spacing).long()
+    cxy = cxy - cxy.amin(0)
+    span = cxy.amax(0) + 1
+    key = (group.long() * span[1] + cxy[:, 1]) * span[0] + cxy[:, 0]
+    _, cell = torch.unique(key, return_inverse=True)
+    centre = (cxy.double() + 0.5) * spacing
+    dist = (points.double() - centre).square().sum(1)
+    order = torch.argsort(dist, stable=True)
+    cell_sorted, order2 = torch.sort(cell[order], stable=True)
+    perm = order[order2]
+    first = torch.ones_like(cell_sorted, dtype=torch.bool)
+    first[1:] = cell_sorted[1:] != cell_sorted[:-1]
+    return cell, perm[first]
+
+
+def carry_from_seed(shape, params: torch.Tensor, offset: torch.Tensor) -> torch.Tensor:
+    """Initial parameters (N, P) at POIs ``offset`` (N, 2) px away from seeds with solved
+    ``params`` (N, P): the seed's displacement polynomial evaluated at the offset; gradients
+    and velocities are the seed's."""
+    ks = shape.spatial_basis(offset[:1, 0], offset[:1, 1]).shape[1]
+    k = shape.n_basis
+    b = shape.spatial_basis(offset[:, 0], offset[:, 1]).to(params.dtype)  # (N, Ks)
+    out = params.clone()
+    out[:, 0] = (params[:, :ks] * b).sum(1)
+    out[:, k] = (params[:, k : k + ks] * b).sum(1)
+    return out

@@ -20,6 +20,8 @@ import warnings
 
 import torch
 
+from . import native
+
 __all__ = ["BSplineImage", "bspline_prefilter", "set_compile"]
 
 
@@ -256,10 +258,24 @@ class BSplineImage:
             frame_t = torch.tensor(frame * plane, device=self.device)
         else:
             frame_t = torch.as_tensor(frame, device=self.device).long() * plane
+        if native.usable_image(self.kernel_args(), x, y):
+            return native.sample(self.kernel_args(), self.order, x, y, frame_t, grad)
         args = (flat, x, y, frame_t, wp, x_lo, x_hi, y_lo, y_hi, shift)
         kernel = _kernel(self.order, grad, x.numel() if work is None else work,
                          x.requires_grad or self._flat.requires_grad)
         return kernel(*args)
+
+    def sample_subsets(self, px: torch.Tensor, py: torch.Tensor, dx: torch.Tensor,
+                       dy: torch.Tensor, frame: torch.Tensor | int = 0):
+        """Values and gradients (each (N, S)) of whole subsets: the points
+        (px[i] + dx[s], py[i] + dy[s]) of frame[i]; px, py (N,) or (N, 1), dx, dy (S,),
+        frame an int or (N,) integer tensor."""
+        px, py = px.reshape(-1, 1).to(self.dtype), py.reshape(-1, 1).to(self.dtype)
+        frame_t = torch.as_tensor(frame, device=self.device).long().reshape(-1, 1)
+        args = self.kernel_args()
+        if native.usable_image(args, px, py, dx, dy):
+            return native.subsets(args, self.order, px, py, dx, dy, frame_t * args[-1], True)
+        return self.sample(px + dx, py + dy, frame=frame_t, grad=True)
 
     def kernel_args(self) -> tuple:
         """(flat coefficients, padded width, x_lo, x_hi, y_lo, y_hi, index shift, plane size):

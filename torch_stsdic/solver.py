@@ -30,12 +30,14 @@ fixed point exactly the ZNCC maximum.
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, field
 
 import torch
 
+from . import native
 from .config import DICConfig
-from .initial import fft_cross_correlation, linear_fit_in_time
+from .initial import carry_from_seed, fft_cross_correlation, linear_fit_in_time, seed_cells
 from .interpolation import BSplineImage, _sample_kernel, maybe_compiled
 from .shape import ShapeFunction, make_shape
 from .status import Status
@@ -58,7 +60,9 @@ class WindowSolution:
         iterations: (N,) Gauss-Newton iterations used (all stages).
         time: the time the displacement refers to (frame units unless times were given).
         info: extras: "stages" (the Gauss-Newton stages run), "first_stage_params" (N, P)
-            (the joint solution before the "auto" refinement), "initial_params" (N, P).
+            (the joint solution before the "auto" refinement), "initial_params" (N, P),
+            "initial_guess" (how the POIs started: "method" fft / seeded / given, with the
+            number of seeds and FFT points and "fft_s", the seconds spent in FFT).
     """
 
     points: torch.Tensor
@@ -191,13 +195,22 @@ class SubsetSolver:
         if init is None:
             if ref_pixels is None or frame_pixels is None:
                 raise ValueError("solve needs init or the raw images for the FFT initial guess")
+            plan = self._seed_plan(points, inside, dt, frame_index, ref_index)
+            if plan is not None:
+                return self._solve_seeded(
+                    plan, ref, frames, points, dt, frame_index, ref_index, ref_pixels,
+                    frame_pixels, time, inside,
+                )
             p0 = torch.zeros(n, p_count, dtype=dtype, device=device)
+            t_fft = _clock(device)
             if inside.any():
                 p0[inside] = self.initial_guess(
                     shape, ref_pixels, frame_pixels, points[inside], dt[inside],
                     frame_index[inside], ref_index[inside],
                 )
+            t_fft = _clock(device) - t_fft
         else:
+            t_fft = 0.0
             p0 = init.to(device=device, dtype=dtype)
             if p0.shape[1] != p_count:
                 p0 = _expand_init(p0, shape, self.shape)
@@ -232,6 +245,126 @@ class SubsetSolver:
                 "stages": [k for k, _ in _stages(ctx, t_count)],
                 "first_stage_params": first_stage,
                 "initial_params": p0,
+                "initial_guess": {"method": "fft" if init is None else "given",
+                                  "fft_s": t_fft},
+            },
+        )
+
+    # ---- seeded initial guess --------------------------------------------------------------
+    def _seed_plan(self, points, inside, dt, frame_index, ref_index):
+        """(inside indices, cell of each, seed positions) for the seeded initial guess, or None
+        when FFT cross-correlation at every POI is wanted (config, or sparse POIs)."""
+        cfg = self.config
+        n_in = int(inside.sum())
+        if cfg.initial_guess == "fft" or n_in < 2:
+            return None
+        idx = torch.nonzero(inside).flatten()
+        # POIs share a seed only when they see the same reference, frames and frame times
+        key = torch.cat([ref_index[idx].unsqueeze(1).double(), frame_index[idx].double(),
+                         dt[idx].double()], 1)
+        if bool((key == key[:1]).all()):  # one window for all (the common case): no sort
+            group = torch.zeros(idx.numel(), dtype=torch.long, device=idx.device)
+        else:
+            _, group = torch.unique(key, dim=0, return_inverse=True)
+        spacing = float(cfg.seed_spacing or cfg.subset_size)
+        cell, seeds = seed_cells(points[idx], group, spacing)
+        if cfg.initial_guess == "auto" and seeds.numel() * 4 > n_in:
+            return None
+        return idx, cell, seeds
+
+    def _solve_seeded(self, plan, ref, frames, points, dt, frame_index, ref_index, ref_pixels,
+                      frame_pixels, time, inside) -> WindowSolution:
+        """Seeds by FFT cross-correlation and Gauss-Newton; every other POI starts from its
+        cell's seed solution (:func:`carry_from_seed`); POIs that then fail (not converged, or
+        ZNCC more than 0.1 below the best of their cell) are solved again from FFT cross-correlation
+        and keep the better of the two results."""
+        idx, cell, seeds_local = plan
+        n = points.shape[0]
+        shape = self.shape_for(dt)
+
+        def sub(rows, init):
+            return self.solve(ref, frames, points[rows], dt[rows], frame_index=frame_index[rows],
+                              ref_index=ref_index[rows], init=init, ref_pixels=ref_pixels,
+                              frame_pixels=frame_pixels, time=time)
+
+        fft_s = [0.0]
+
+        def fft(rows):
+            t0 = _clock(points.device)
+            p0 = self.initial_guess(shape, ref_pixels, frame_pixels, points[rows], dt[rows],
+                                    frame_index[rows], ref_index[rows])
+            fft_s[0] += _clock(points.device) - t0
+            return p0
+
+        seeds = idx[seeds_local]
+        sol_s = sub(seeds, fft(seeds))
+        is_seed = torch.zeros(idx.numel(), dtype=torch.bool, device=idx.device)
+        is_seed[seeds_local] = True
+        others = idx[~is_seed]
+        pos = cell[~is_seed]  # cell number == position of the cell's seed in `seeds`
+        seed_ok = sol_s.ok[pos]
+        init = carry_from_seed(shape, torch.nan_to_num(sol_s.params[pos]),
+                               points[others] - points[seeds[pos]])
+        orphans = ~seed_ok  # cells whose seed failed: FFT for their POIs
+        if orphans.any():
+            init[orphans] = fft(others[orphans])
+        sol_o = sub(others, init)
+        # a POI is suspect when its ZNCC is 0.1 below the best of its cell (its seed included):
+        # it may have started from a seed across a discontinuity
+        best = torch.nan_to_num(sol_s.zncc, nan=-1.0).clone()
+        best = best.scatter_reduce(0, pos, torch.nan_to_num(sol_o.zncc, nan=-1.0), "amax")
+        lost = ~sol_o.ok | (sol_o.status == int(Status.MAX_ITER)) | ~(
+            sol_o.zncc >= best[pos] - 0.1
+        )
+        lost &= seed_ok  # orphans already started from FFT
+        redo = others[lost]
+        sol_r = sub(redo, fft(redo)) if redo.numel() else None
+
+        p_count = shape.n_params
+        dev, dtype = points.device, points.dtype
+        out = {
+            "params": torch.full((n, p_count), float("nan"), dtype=dtype, device=dev),
+            "first": torch.full((n, p_count), float("nan"), dtype=dtype, device=dev),
+            "init": torch.zeros(n, p_count, dtype=dtype, device=dev),
+            "zncc": torch.full((n,), float("nan"), dtype=dtype, device=dev),
+            "status": torch.full((n,), int(Status.OUTSIDE), dtype=torch.int8, device=dev),
+            "iters": torch.zeros(n, dtype=torch.int32, device=dev),
+        }
+
+        def put(rows, sol, mask=None):
+            if mask is not None:
+                rows, pick = rows[mask], mask
+            else:
+                pick = slice(None)
+            out["params"][rows] = sol.params[pick]
+            out["first"][rows] = sol.info["first_stage_params"][pick]
+            out["init"][rows] = sol.info["initial_params"][pick]
+            out["zncc"][rows] = sol.zncc[pick]
+            out["status"][rows] = sol.status[pick]
+
+        put(seeds, sol_s)
+        out["iters"][seeds] = sol_s.iterations
+        put(others, sol_o)
+        out["iters"][others] = sol_o.iterations
+        if sol_r is not None:
+            old_ok = sol_o.ok[lost]
+            better = sol_r.ok & (~old_ok | (sol_r.zncc > sol_o.zncc[lost]))
+            put(redo, sol_r, better)
+            out["iters"][redo] += sol_r.iterations
+        return WindowSolution(
+            points=points, params=out["params"], param_names=shape.param_names,
+            zncc=out["zncc"], status=out["status"], iterations=out["iters"], time=time,
+            info={
+                **{k: v for k, v in sol_s.info.items()
+                   if k not in ("first_stage_params", "initial_params")},
+                "first_stage_params": out["first"],
+                "initial_params": out["init"],
+                "initial_guess": {
+                    "method": "seeded", "seeds": int(seeds.numel()),
+                    "fft_points": int(seeds.numel() + orphans.sum() + redo.numel()),
+                    "redone": int(redo.numel()), "points": int(idx.numel()),
+                    "fft_s": fft_s[0],
+                },
             },
         )
 
@@ -258,6 +391,13 @@ class SubsetSolver:
         p0[:, 0] = d0[:, 0]
         p0[:, k] = d0[:, 1]
         return p0
+
+
+def _clock(device: torch.device) -> float:
+    """Wall-clock seconds, after the device's queued work (CUDA) has finished."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    return time.perf_counter()
 
 
 def _grey_range(img: torch.Tensor) -> float:
@@ -326,7 +466,11 @@ class _Context:
         jac = t * 2 * (ks + 1) if self.shape.compose_inverse(
             torch.zeros(1, self.shape.n_params), torch.zeros(1, self.shape.n_params)
         ) is None else 0
-        per_point = s * elem * (t * 40 + jac + 8 * ks + 24)
+        if jac == 0 and native.usable(self.spatial):
+            # fused kernels: no (N, T, S) temporaries, only the per-point reference data
+            per_point = s * elem * 12
+        else:
+            per_point = s * elem * (t * 40 + jac + 8 * ks + 24)
         return max(16, int(self.cfg.memory_mb * 2**20 / per_point))
 
 
@@ -363,7 +507,7 @@ def _solve_batch(ctx, pts, p0, dt, fidx, ridx):
     w = ctx.w
     wsum = w.sum()
     px, py = pts[:, 0:1], pts[:, 1:2]
-    f, fgx, fgy = ctx.ref.sample(px + ctx.dx, py + ctx.dy, frame=ridx.view(-1, 1), grad=True)
+    f, fgx, fgy = ctx.ref.sample_subsets(px, py, ctx.dx, ctx.dy, frame=ridx)
     status = torch.full((n,), int(Status.NOT_COMPUTED), dtype=torch.int8, device=device)
     texture = _wsum(fgx * fgx + fgy * fgy, w) / wsum
     low = texture < cfg.texture_threshold * ctx.grey_range**2
@@ -443,9 +587,10 @@ def _run_stage(ctx, kind, free, params, data: _Batch, live):
     if rows.numel() == 0:
         return params, zncc, status, used
     params = params.clone()
-    data = data.take(rows)
+    if rows.numel() < n:
+        data = data.take(rows)
     if kind == "joint_ic":
-        chol, info = torch.linalg.cholesky_ex(_ic_hessian(ctx, data).double())
+        chol, info = torch.linalg.cholesky_ex(_ic_hessian(ctx, data))
         data.chol = chol
         sing = info > 0
         if sing.any():
@@ -453,6 +598,10 @@ def _run_stage(ctx, kind, free, params, data: _Batch, live):
             rows, data = rows[~sing], data.take(~sing)
     scale = _increment_scale(ctx, data)
     p = params[rows]
+    # fused kernel: finished rows are skipped through an index (`sel`) instead of copying
+    # the per-point data of the remaining rows
+    sel = (torch.arange(rows.numel(), device=device)
+           if kind == "joint_ic" and _native_ic(ctx, data, p) else None)
     active = torch.ones(rows.numel(), dtype=torch.bool, device=device)
     # On CUDA every boolean test or compaction waits for the GPU: look every few iterations.
     check_every = 1 if device.type == "cpu" else 4
@@ -461,7 +610,7 @@ def _run_stage(ctx, kind, free, params, data: _Batch, live):
         if rows.numel() == 0:
             break
         if kind == "joint_ic":
-            dp, zn, outside = _step_joint_ic(ctx, data, p)
+            dp, zn, outside = _step_joint_ic(ctx, data, p, sel)
             p_new = ctx.shape.compose_inverse(p, dp)
         else:
             dp_free, zn, outside = _step_fa(ctx, data, p, free_idx, average=(kind == "average"))
@@ -489,7 +638,11 @@ def _run_stage(ctx, kind, free, params, data: _Batch, live):
                 break
             # drop finished rows once enough of them have piled up (copying costs too)
             if n_active < 0.7 * active.numel():
-                rows, p, scale, data = rows[active], p[active], scale[active], data.take(active)
+                rows, p, scale = rows[active], p[active], scale[active]
+                if sel is None:
+                    data = data.take(active)
+                else:
+                    sel = sel[active]
                 active = active[active]
     if rows.numel():
         rows, p = rows[active], p[active]
@@ -526,41 +679,38 @@ def _sample_frames(ctx, data: _Batch, p, grad: bool):
     return out, outside
 
 
+def _gram(ctx, data: _Batch) -> tuple[torch.Tensor, torch.Tensor]:
+    """Weighted moments of the augmented steepest-descent images J_s = [gx B, gx, gy B, gy]
+    (B the spatial basis, P' = 2 (Ks + 1) columns): G = sum_s w J_s J_s^T (N, P', P') and
+    m = sum_s w J_s (N, P'), float64."""
+    if native.usable(data.gx, ctx.spatial):
+        return native.gram(data.gx, data.gy, ctx.spatial, ctx.w)
+    baug = torch.cat([ctx.spatial, torch.ones_like(ctx.spatial[:, :1])], 1)  # (S, Ks + 1)
+    j = torch.cat([data.gx.unsqueeze(-1) * baug, data.gy.unsqueeze(-1) * baug], -1)
+    wj = j * ctx.w.view(1, -1, 1)
+    return (wj.transpose(1, 2) @ j).double(), wj.sum(1).double()
+
+
 def _ic_hessian(ctx, data: _Batch) -> torch.Tensor:
-    """Gauss-Newton Hessian of the joint IC problem summed over frames, (N, P, P).
+    """Gauss-Newton Hessian of the joint IC problem summed over frames, (N, P, P) float64.
 
     J_t = [f_x b_t, f_y b_t] with b_t = (spatial basis, dt_t): the reference gradient
-    times the basis; with ZNSSD the subset mean of J_t is removed."""
-    w = ctx.w
-    wsum = w.sum()
-    g = torch.stack([data.gx, data.gy], -1)  # (N, S, 2)
-    wg = g * w.view(1, -1, 1)
-    bs = ctx.spatial
-    n, t = data.dt.shape
-    s_count = bs.shape[0]
-    ks, k = ctx.ks, ctx.k
-    hess = torch.zeros(n, 2, k, 2, k, dtype=g.dtype, device=g.device)
-    gg = (wg.unsqueeze(-1) * g.unsqueeze(-2)).reshape(n, s_count, 4)  # (N, S, 2x2)
-    bb = (bs.unsqueeze(-1) * bs.unsqueeze(-2)).reshape(s_count, ks * ks)  # (S, Ks x Ks)
-    spatial = (gg.transpose(1, 2) @ bb).reshape(n, 2, 2, ks, ks)  # one matmul
-    hess[:, :, :ks, :, :ks] = t * spatial.permute(0, 1, 3, 2, 4)
-    if ctx.shape.has_time:
-        d1 = data.dt.sum(1).view(n, 1, 1, 1)
-        d2 = (data.dt * data.dt).sum(1).view(n, 1, 1)
-        cross = (gg.transpose(1, 2) @ bs).reshape(n, 2, 2, ks) * d1  # (N, 2, 2, Ks)
-        hess[:, :, :ks, :, ks] = cross.permute(0, 1, 3, 2)
-        hess[:, :, ks, :, :ks] = cross
-        hess[:, :, ks, :, ks] = gg.sum(1).reshape(n, 2, 2) * d2
+    times the basis; with ZNSSD the subset mean of J_t is removed. With the moments of
+    :func:`_gram` this is H = (G - m m^T / sum w) o sum_t z_t z_t^T, z_t = (1 .. 1, dt_t)
+    per component (o: element-wise product)."""
+    g, m = _gram(ctx, data)
     if ctx.cfg.criterion == "znssd":
-        q = torch.einsum("nsc,sk->nck", wg, bs) / wsum  # (N, 2, Ks) subset means of J
-        mj = q.unsqueeze(1).expand(n, t, 2, ks)
-        if ctx.shape.has_time:
-            q0 = wg.sum(1) / wsum  # (N, 2)
-            mt = q0.unsqueeze(1) * data.dt.unsqueeze(-1)  # (N, T, 2)
-            mj = torch.cat([mj, mt.unsqueeze(-1)], -1)
-        mj = mj.reshape(n, t, 2 * k)
-        hess = hess.reshape(n, 2 * k, 2 * k) - wsum * torch.einsum("ntp,ntq->npq", mj, mj)
-    return hess.reshape(n, 2 * k, 2 * k)
+        g = g - m.unsqueeze(-1) * m.unsqueeze(-2) / float(ctx.w.sum())
+    n, t = data.dt.shape
+    ks = ctx.ks
+    if not ctx.shape.has_time:  # drop the augmented constant columns; sum over T frames
+        keep = [*range(ks), *range(ks + 1, 2 * ks + 1)]
+        return g[:, keep][:, :, keep] * t
+    z = torch.ones(n, t, 2 * (ks + 1), dtype=torch.float64, device=g.device)
+    dt = data.dt.double()
+    z[..., ks] = dt
+    z[..., 2 * ks + 1] = dt
+    return g * torch.einsum("ntp,ntq->npq", z, z)
 
 
 def _frame_stats(ctx, data: _Batch, g):
@@ -620,9 +770,24 @@ def _ic_rhs(*args):
     return _ic_rhs_kernel(*args)
 
 
-def _step_joint_ic(ctx, data: _Batch, p):
-    """One IC-GN step of the joint formulation: H dp = -sum_t J_t^T e_t."""
+def _native_ic(ctx, data: _Batch, p) -> bool:
+    """Whether the joint IC steps of this batch run in the fused C++ kernel."""
+    return native.usable_image(ctx.frames.kernel_args(), p, data.ft)
+
+
+def _step_joint_ic(ctx, data: _Batch, p, sel: torch.Tensor | None = None):
+    """One IC-GN step of the joint formulation: H dp = -sum_t J_t^T e_t. ``sel`` (native
+    kernel only): the rows of ``data`` that p's rows belong to."""
     flat, wp, x_lo, x_hi, y_lo, y_hi, shift, plane = ctx.frames.kernel_args()
+    if sel is not None:
+        b, zn, outside = native.ic_rhs(
+            ctx.frames.kernel_args(), ctx.frames.order, p, data.px, data.py, ctx.dx, ctx.dy,
+            ctx.spatial, data.dt, data.fidx * plane, data.ft, data.fnorm, data.gx, data.gy,
+            ctx.w, ctx.w_img, ctx.h, ctx.k, ctx.shape.has_time, ctx.cfg.criterion == "znssd",
+            rows=sel,
+        )
+        dp = -torch.cholesky_solve(b.unsqueeze(-1), data.chol[sel]).squeeze(-1)
+        return dp.to(p.dtype), zn, outside
     fn = maybe_compiled(_ic_rhs, ("ic_rhs",), ctx.work)
     b, zn, outside = fn(
         flat, p, data.px, data.py, ctx.dx, ctx.dy, ctx.spatial.T.contiguous(), data.dt,

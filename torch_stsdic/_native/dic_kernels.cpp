@@ -1,0 +1,576 @@
+// Fused CPU kernels of torch_stsdic: B-spline sampling and the joint IC-GN right-hand side.
+//
+// Built on first use by torch_stsdic/native.py with the system C++ compiler (the same one
+// torch.compile needs) and loaded with ctypes; plain C ABI, no torch headers, so the build
+// takes about a second. Every function works on a range [i0, i1) of its rows so that Python
+// threads (ctypes releases the GIL) split the work without an OpenMP runtime of our own.
+//
+// Conventions are those of torch_stsdic/interpolation.py (_sample_kernel) and
+// torch_stsdic/solver.py (_ic_rhs_kernel); the tests compare both paths.
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <vector>
+
+#if defined(__AVX2__) && defined(__FMA__)
+#include <immintrin.h>
+#endif
+
+namespace {
+
+struct Geo {
+  int64_t wp;      // padded width of one coefficient plane
+  double x_lo, x_hi, y_lo, y_hi;  // clamp range of the tap origin
+  int64_t shift;   // index shift of the first tap
+};
+
+template <typename T>
+inline void cubic_weights(T f, T* w) {
+  constexpr T sixth = T(1) / T(6);
+  const T f2 = f * f, f3 = f2 * f, g = T(1) - f;
+  w[0] = g * g * g * sixth;
+  w[1] = (T(0.5) * f3 - f2) + T(2) / T(3);
+  w[2] = ((T(-0.5) * f3 + T(0.5) * f2) + T(0.5) * f) + sixth;
+  w[3] = f3 * sixth;
+}
+
+template <typename T>
+inline void cubic_dweights(T f, T* d) {
+  const T f2 = f * f, g = T(1) - f;
+  d[0] = T(-0.5) * g * g;
+  d[1] = T(1.5) * f2 - T(2) * f;
+  d[2] = T(-1.5) * f2 + f + T(0.5);
+  d[3] = T(0.5) * f2;
+}
+
+// centred quintic B-spline and its derivative at d
+template <typename T>
+inline void quintic(T d, T* b, T* db) {
+  const T a = std::fabs(d);
+  const T s = d > T(0) ? T(1) : (d < T(0) ? T(-1) : T(0));
+  const T a2 = a * a, a3 = a2 * a, a4 = a3 * a, a5 = a4 * a;
+  if (a < T(1)) {
+    *b = (T(66) - T(60) * a2 + T(30) * a4 - T(10) * a5) / T(120);
+    *db = s * (T(-120) * a + T(120) * a3 - T(50) * a4) / T(120);
+  } else if (a < T(2)) {
+    *b = (T(51) + T(75) * a - T(210) * a2 + T(150) * a3 - T(45) * a4 + T(5) * a5) / T(120);
+    *db = s * (T(75) - T(420) * a + T(450) * a2 - T(180) * a3 + T(25) * a4) / T(120);
+  } else {
+    const T r = std::max(T(3) - a, T(0));
+    const T r2 = r * r, r4 = r2 * r2;
+    *b = r4 * r / T(120);
+    *db = s * T(-5) * r4 / T(120);
+  }
+}
+
+template <typename T, int ORDER>
+inline void weights(T f, T* w, T* dw, bool grad) {
+  if constexpr (ORDER == 3) {
+    cubic_weights(f, w);
+    if (grad) cubic_dweights(f, dw);
+  } else {
+    T dummy;
+    for (int i = 0; i < 6; ++i) quintic(f - T(i - 2), &w[i], grad ? &dw[i] : &dummy);
+  }
+}
+
+// Tap origin (32-bit index in the plane) and fractions of the points
+// (ox + dxu[s], oy + dyv[s]) after clamping to the coefficient grid.
+template <typename T>
+inline void tap_origins(const Geo& g, T ox, T oy, const T* dxu, const T* dyv, int64_t ns,
+                        int32_t* idx, T* fxs, T* fys) {
+  const T xlo = T(g.x_lo), xhi = T(g.x_hi), ylo = T(g.y_lo), yhi = T(g.y_hi);
+  const int32_t wp = int32_t(g.wp), sh = int32_t(g.shift);
+  int64_t s = 0;
+#if defined(__AVX2__) && defined(__FMA__)
+  if constexpr (sizeof(T) == 4) {
+    const __m256 vox = _mm256_set1_ps(ox), voy = _mm256_set1_ps(oy);
+    const __m256 vxlo = _mm256_set1_ps(xlo), vxhi = _mm256_set1_ps(xhi);
+    const __m256 vylo = _mm256_set1_ps(ylo), vyhi = _mm256_set1_ps(yhi);
+    const __m256i vwp = _mm256_set1_epi32(wp), vsh = _mm256_set1_epi32(sh);
+    for (; s + 8 <= ns; s += 8) {
+      __m256 x = _mm256_add_ps(vox, _mm256_loadu_ps(dxu + s));
+      __m256 y = _mm256_add_ps(voy, _mm256_loadu_ps(dyv + s));
+      x = _mm256_min_ps(_mm256_max_ps(x, vxlo), vxhi);
+      y = _mm256_min_ps(_mm256_max_ps(y, vylo), vyhi);
+      const __m256 x0 = _mm256_floor_ps(x), y0 = _mm256_floor_ps(y);
+      _mm256_storeu_ps(fxs + s, _mm256_sub_ps(x, x0));
+      _mm256_storeu_ps(fys + s, _mm256_sub_ps(y, y0));
+      const __m256i iy = _mm256_add_epi32(_mm256_cvttps_epi32(y0), vsh);
+      const __m256i ix = _mm256_add_epi32(_mm256_cvttps_epi32(x0), vsh);
+      _mm256_storeu_si256(reinterpret_cast<__m256i*>(idx + s),
+                          _mm256_add_epi32(_mm256_mullo_epi32(iy, vwp), ix));
+    }
+  }
+#endif
+  for (; s < ns; ++s) {
+    T x = ox + dxu[s], y = oy + dyv[s];
+    x = x < xlo ? xlo : (x > xhi ? xhi : x);
+    y = y < ylo ? ylo : (y > yhi ? yhi : y);
+    const T x0 = std::floor(x), y0 = std::floor(y);
+    fxs[s] = x - x0;
+    fys[s] = y - y0;
+    idx[s] = (int32_t(y0) + sh) * wp + int32_t(x0) + sh;
+  }
+}
+
+// Values of one frame at the points (ox + dxu[s], oy + dyv[s]), s < ns, into out[s].
+// Pass 1 (vectorised by the compiler): clamp, floor, 32-bit tap index within the plane and
+// the fractions; pass 2: the taps.
+template <typename T, int ORDER>
+inline void sample_points(const T* plane, const Geo& g, T ox, T oy, const T* dxu,
+                          const T* dyv, int64_t ns, int32_t* idx, T* fxs, T* fys, T* out) {
+  tap_origins<T>(g, ox, oy, dxu, dyv, ns, idx, fxs, fys);
+  const int64_t wpl = g.wp;
+#if defined(__AVX2__) && defined(__FMA__)
+  if constexpr (ORDER == 3 && sizeof(T) == 4) {
+    // cubic B-spline weights as one cubic polynomial per lane (Horner), x in the low and
+    // y in the high 128 bits; two rows of 4 taps per 256-bit load
+    const __m256 c3 = _mm256_setr_ps(-1.f / 6, 0.5f, -0.5f, 1.f / 6, -1.f / 6, 0.5f, -0.5f, 1.f / 6);
+    const __m256 c2 = _mm256_setr_ps(0.5f, -1.f, 0.5f, 0.f, 0.5f, -1.f, 0.5f, 0.f);
+    const __m256 c1 = _mm256_setr_ps(-0.5f, 0.f, 0.5f, 0.f, -0.5f, 0.f, 0.5f, 0.f);
+    const __m256 c0 = _mm256_setr_ps(1.f / 6, 2.f / 3, 1.f / 6, 0.f, 1.f / 6, 2.f / 3, 1.f / 6, 0.f);
+    for (int64_t s = 0; s < ns; ++s) {
+      const __m256 f = _mm256_set_m128(_mm_set1_ps(fys[s]), _mm_set1_ps(fxs[s]));
+      __m256 wv = _mm256_fmadd_ps(c3, f, c2);
+      wv = _mm256_fmadd_ps(wv, f, c1);
+      wv = _mm256_fmadd_ps(wv, f, c0);
+      const __m128 wx = _mm256_castps256_ps128(wv);
+      const __m128 wy = _mm256_extractf128_ps(wv, 1);
+      const __m256 wxx = _mm256_set_m128(wx, wx);
+      const __m256 w01 = _mm256_mul_ps(
+          wxx, _mm256_set_m128(_mm_permute_ps(wy, 0x55), _mm_permute_ps(wy, 0x00)));
+      const __m256 w23 = _mm256_mul_ps(
+          wxx, _mm256_set_m128(_mm_permute_ps(wy, 0xFF), _mm_permute_ps(wy, 0xAA)));
+      const float* r = plane + idx[s];
+      const __m256 r01 = _mm256_loadu2_m128(r + wpl, r);
+      const __m256 r23 = _mm256_loadu2_m128(r + 3 * wpl, r + 2 * wpl);
+      const __m256 acc = _mm256_fmadd_ps(r23, w23, _mm256_mul_ps(r01, w01));
+      __m128 q = _mm_add_ps(_mm256_castps256_ps128(acc), _mm256_extractf128_ps(acc, 1));
+      q = _mm_add_ps(q, _mm_movehl_ps(q, q));
+      q = _mm_add_ss(q, _mm_shuffle_ps(q, q, 0x55));
+      out[s] = _mm_cvtss_f32(q);
+    }
+    return;
+  }
+#endif
+  constexpr int N = ORDER + 1;
+  for (int64_t s = 0; s < ns; ++s) {
+    T wx[N], wy[N], dummy[N];
+    weights<T, ORDER>(fxs[s], wx, dummy, false);
+    weights<T, ORDER>(fys[s], wy, dummy, false);
+    const T* r = plane + idx[s];
+    T val = 0;
+    for (int j = 0; j < N; ++j) {
+      T acc = 0;
+      for (int i = 0; i < N; ++i) acc += r[j * wpl + i] * wx[i];
+      val += acc * wy[j];
+    }
+    out[s] = val;
+  }
+}
+
+// Values and gradients at (ox + dxu[s], oy + dyv[s]) (see sample_points).
+template <typename T, int ORDER>
+inline void sample_points_grad(const T* plane, const Geo& g, T ox, T oy, const T* dxu,
+                               const T* dyv, int64_t ns, int32_t* idx, T* fxs, T* fys,
+                               T* out, T* gx, T* gy) {
+  tap_origins<T>(g, ox, oy, dxu, dyv, ns, idx, fxs, fys);
+  const int64_t wpl = g.wp;
+#if defined(__AVX2__) && defined(__FMA__)
+  if constexpr (ORDER == 3 && sizeof(T) == 4) {
+    const __m256 c3 = _mm256_setr_ps(-1.f / 6, 0.5f, -0.5f, 1.f / 6, -1.f / 6, 0.5f, -0.5f, 1.f / 6);
+    const __m256 c2 = _mm256_setr_ps(0.5f, -1.f, 0.5f, 0.f, 0.5f, -1.f, 0.5f, 0.f);
+    const __m256 c1 = _mm256_setr_ps(-0.5f, 0.f, 0.5f, 0.f, -0.5f, 0.f, 0.5f, 0.f);
+    const __m256 c0 = _mm256_setr_ps(1.f / 6, 2.f / 3, 1.f / 6, 0.f, 1.f / 6, 2.f / 3, 1.f / 6, 0.f);
+    const __m256 d2 = _mm256_setr_ps(-0.5f, 1.5f, -1.5f, 0.5f, -0.5f, 1.5f, -1.5f, 0.5f);
+    const __m256 d1 = _mm256_setr_ps(1.f, -2.f, 1.f, 0.f, 1.f, -2.f, 1.f, 0.f);
+    const __m256 d0 = _mm256_setr_ps(-0.5f, 0.f, 0.5f, 0.f, -0.5f, 0.f, 0.5f, 0.f);
+    auto hsum = [](__m256 acc) {
+      __m128 q = _mm_add_ps(_mm256_castps256_ps128(acc), _mm256_extractf128_ps(acc, 1));
+      q = _mm_add_ps(q, _mm_movehl_ps(q, q));
+      q = _mm_add_ss(q, _mm_shuffle_ps(q, q, 0x55));
+      return _mm_cvtss_f32(q);
+    };
+    for (int64_t s = 0; s < ns; ++s) {
+      const __m256 f = _mm256_set_m128(_mm_set1_ps(fys[s]), _mm_set1_ps(fxs[s]));
+      __m256 wv = _mm256_fmadd_ps(c3, f, c2);
+      wv = _mm256_fmadd_ps(wv, f, c1);
+      wv = _mm256_fmadd_ps(wv, f, c0);
+      __m256 dv = _mm256_fmadd_ps(d2, f, d1);
+      dv = _mm256_fmadd_ps(dv, f, d0);
+      const __m128 wx = _mm256_castps256_ps128(wv), wy = _mm256_extractf128_ps(wv, 1);
+      const __m128 dx = _mm256_castps256_ps128(dv), dy = _mm256_extractf128_ps(dv, 1);
+      const __m256 wxx = _mm256_set_m128(wx, wx), dxx = _mm256_set_m128(dx, dx);
+      const __m256 wy01 = _mm256_set_m128(_mm_permute_ps(wy, 0x55), _mm_permute_ps(wy, 0x00));
+      const __m256 wy23 = _mm256_set_m128(_mm_permute_ps(wy, 0xFF), _mm_permute_ps(wy, 0xAA));
+      const __m256 dy01 = _mm256_set_m128(_mm_permute_ps(dy, 0x55), _mm_permute_ps(dy, 0x00));
+      const __m256 dy23 = _mm256_set_m128(_mm_permute_ps(dy, 0xFF), _mm_permute_ps(dy, 0xAA));
+      const float* r = plane + idx[s];
+      const __m256 r01 = _mm256_loadu2_m128(r + wpl, r);
+      const __m256 r23 = _mm256_loadu2_m128(r + 3 * wpl, r + 2 * wpl);
+      const __m256 a01 = _mm256_mul_ps(r01, wxx), a23 = _mm256_mul_ps(r23, wxx);
+      out[s] = hsum(_mm256_fmadd_ps(a23, wy23, _mm256_mul_ps(a01, wy01)));
+      gy[s] = hsum(_mm256_fmadd_ps(a23, dy23, _mm256_mul_ps(a01, dy01)));
+      const __m256 b01 = _mm256_mul_ps(r01, dxx), b23 = _mm256_mul_ps(r23, dxx);
+      gx[s] = hsum(_mm256_fmadd_ps(b23, wy23, _mm256_mul_ps(b01, wy01)));
+    }
+    return;
+  }
+#endif
+  constexpr int N = ORDER + 1;
+  for (int64_t s = 0; s < ns; ++s) {
+    T wx[N], wy[N], dwx[N], dwy[N];
+    weights<T, ORDER>(fxs[s], wx, dwx, true);
+    weights<T, ORDER>(fys[s], wy, dwy, true);
+    const T* r = plane + idx[s];
+    T val = 0, vx = 0, vy = 0;
+    for (int j = 0; j < N; ++j) {
+      T acc = 0, accd = 0;
+      for (int i = 0; i < N; ++i) {
+        acc += r[j * wpl + i] * wx[i];
+        accd += r[j * wpl + i] * dwx[i];
+      }
+      val += acc * wy[j];
+      vx += accd * wy[j];
+      vy += acc * dwy[j];
+    }
+    out[s] = val;
+    gx[s] = vx;
+    gy[s] = vy;
+  }
+}
+
+// Generic sampling of points x[i], y[i], i in [i0, i1), in the plane at off[i / period]
+// (period 0: off[0] for all; off null: plane 0), in blocks of constant plane.
+template <typename T, int ORDER>
+void sample_range(const T* flat, const Geo& g, const T* x, const T* y, const int64_t* off,
+                  int64_t off_period, int64_t i0, int64_t i1, T* val, T* gx, T* gy) {
+  const int64_t chunk = 1024;
+  std::vector<int32_t> idx(chunk);
+  std::vector<T> fxs(chunk), fys(chunk);
+  const bool grad = gx != nullptr && gy != nullptr;
+  int64_t i = i0;
+  while (i < i1) {
+    int64_t end = std::min(i1, i + chunk);
+    int64_t o = 0;
+    if (off) {
+      const int64_t j = off_period > 0 ? i / off_period : 0;
+      o = off[j];
+      if (off_period > 0) end = std::min(end, (j + 1) * off_period);
+    }
+    if (grad) {
+      sample_points_grad<T, ORDER>(flat + o, g, T(0), T(0), x + i, y + i, end - i, idx.data(),
+                                   fxs.data(), fys.data(), val + i, gx + i, gy + i);
+    } else {
+      sample_points<T, ORDER>(flat + o, g, T(0), T(0), x + i, y + i, end - i, idx.data(),
+                              fxs.data(), fys.data(), val + i);
+    }
+    i = end;
+  }
+}
+
+template <typename T>
+int sample_dispatch(const T* flat, int64_t wp, double x_lo, double x_hi, double y_lo,
+                    double y_hi, int64_t shift, int order, const T* x, const T* y,
+                    const int64_t* off, int64_t off_period, int64_t i0, int64_t i1, T* val,
+                    T* gx, T* gy) {
+  const Geo g{wp, x_lo, x_hi, y_lo, y_hi, shift};
+  if (order == 3) {
+    sample_range<T, 3>(flat, g, x, y, off, off_period, i0, i1, val, gx, gy);
+  } else if (order == 5) {
+    sample_range<T, 5>(flat, g, x, y, off, off_period, i0, i1, val, gx, gy);
+  } else {
+    return 1;
+  }
+  return 0;
+}
+
+// Subsets: rows i in [i0, i1), samples (px[i] + dx[s], py[i] + dy[s]) in the plane at
+// off[i]; val, gx, gy are (N, ns) (gx, gy null: values only).
+template <typename T>
+int subsets_dispatch(const T* flat, int64_t wp, double x_lo, double x_hi, double y_lo,
+                     double y_hi, int64_t shift, int order, int64_t i0, int64_t i1, int64_t ns,
+                     const T* px, const T* py, const T* dx, const T* dy, const int64_t* off,
+                     T* val, T* gx, T* gy) {
+  const Geo g{wp, x_lo, x_hi, y_lo, y_hi, shift};
+  std::vector<int32_t> idx(ns);
+  std::vector<T> fxs(ns), fys(ns);
+  const bool grad = gx != nullptr && gy != nullptr;
+  if (order != 3 && order != 5) return 1;
+  for (int64_t i = i0; i < i1; ++i) {
+    const T* plane = flat + (off ? off[i] : 0);
+    T* v = val + i * ns;
+    if (order == 3 && grad)
+      sample_points_grad<T, 3>(plane, g, px[i], py[i], dx, dy, ns, idx.data(), fxs.data(),
+                               fys.data(), v, gx + i * ns, gy + i * ns);
+    else if (order == 3)
+      sample_points<T, 3>(plane, g, px[i], py[i], dx, dy, ns, idx.data(), fxs.data(),
+                          fys.data(), v);
+    else if (grad)
+      sample_points_grad<T, 5>(plane, g, px[i], py[i], dx, dy, ns, idx.data(), fxs.data(),
+                               fys.data(), v, gx + i * ns, gy + i * ns);
+    else
+      sample_points<T, 5>(plane, g, px[i], py[i], dx, dy, ns, idx.data(), fxs.data(),
+                          fys.data(), v);
+  }
+  return 0;
+}
+
+template <typename T>
+inline T dot(const T* a, const T* b, int64_t n) {
+  T acc = 0;
+#pragma omp simd reduction(+ : acc)
+  for (int64_t s = 0; s < n; ++s) acc += a[s] * b[s];
+  return acc;
+}
+
+// One joint IC-GN right-hand side per POI (see solver._ic_rhs_kernel):
+//   b = sum_t J_t^T e_t,  J_t = [gx B, gx dt_t, gy B, gy dt_t],
+//   e_t = w (ft - a_t (g_t - mean g_t))   (ZNSSD, a_t = |ft| / |g_t - mean g_t|)
+//   e_t = w (ft - g_t)                    (SSD)
+// Per frame: sample the subset, its weighted mean and norm, the residual, then
+// 2 (Ks + 1) dot products; frame sums in double.
+template <typename T, int ORDER>
+void ic_rhs_range(const T* flat, const Geo& g, int64_t i0, int64_t i1, int64_t nt, int64_t ns,
+                  int64_t ks, int64_t k, bool has_time, bool znssd, const T* p, const T* px,
+                  const T* py, const T* dx, const T* dy, const T* basis, const T* dt,
+                  const int64_t* frame_off, const T* ft, const T* fnorm, const T* fgx,
+                  const T* fgy, const T* w, const int64_t* rows, double w_img, double h,
+                  double* b, T* zn, uint8_t* outside) {
+  const int64_t np = 2 * k;
+  std::vector<T> dxu(ns), dyv(ns), gv(ns), ex(ns), ey(ns), fxs(ns), fys(ns), bt(ks * ns);
+  std::vector<int32_t> idx(ns);
+  std::vector<double> bb(np);
+  for (int64_t s = 0; s < ns; ++s)
+    for (int64_t q = 0; q < ks; ++q) bt[q * ns + s] = basis[s * ks + q];
+  double wsum = 0;
+  for (int64_t s = 0; s < ns; ++s) wsum += w[s];
+  const T inv_wsum = T(1.0 / wsum);
+  for (int64_t j = i0; j < i1; ++j) {
+    // j: position in p and the outputs; i: row of the per-point data
+    const int64_t i = rows ? rows[j] : j;
+    const T* pi = p + j * np;
+    const T* fti = ft + i * ns;
+    const T* gxi = fgx + i * ns;
+    const T* gyi = fgy + i * ns;
+    std::fill(dxu.begin(), dxu.end(), T(0));
+    std::fill(dyv.begin(), dyv.end(), T(0));
+    for (int64_t q = 0; q < ks; ++q) {
+      const T pu = pi[q], pv = pi[k + q];
+      const T* bq = bt.data() + q * ns;
+#pragma omp simd
+      for (int64_t s = 0; s < ns; ++s) {
+        dxu[s] += pu * bq[s];
+        dyv[s] += pv * bq[s];
+      }
+    }
+    T xmn = dx[0] + dxu[0], xmx = xmn, ymn = dy[0] + dyv[0], ymx = ymn;
+    for (int64_t s = 0; s < ns; ++s) {
+      dxu[s] += dx[s];
+      dyv[s] += dy[s];
+      xmn = std::min(xmn, dxu[s]);
+      xmx = std::max(xmx, dxu[s]);
+      ymn = std::min(ymn, dyv[s]);
+      ymx = std::max(ymx, dyv[s]);
+    }
+    std::fill(bb.begin(), bb.end(), 0.0);
+    const double ut = has_time ? double(pi[k - 1]) : 0.0;
+    const double vt = has_time ? double(pi[2 * k - 1]) : 0.0;
+    bool out_i = false;
+    double zsum = 0;
+    const double fn = double(fnorm[i]);
+    for (int64_t t = 0; t < nt; ++t) {
+      const double dti = double(dt[i * nt + t]);
+      const double ox = double(px[i]) + ut * dti, oy = double(py[i]) + vt * dti;
+      out_i = out_i || ox + xmn < 0 || ox + xmx > w_img - 1 || oy + ymn < 0 ||
+              oy + ymx > h - 1;
+      sample_points<T, ORDER>(flat + frame_off[i * nt + t], g, T(ox), T(oy), dxu.data(),
+                              dyv.data(), ns, idx.data(), fxs.data(), fys.data(), gv.data());
+      T gm = 0;
+      if (znssd) {
+        gm = dot(w, gv.data(), ns) * inv_wsum;
+        T* gc = gv.data();
+#pragma omp simd
+        for (int64_t s = 0; s < ns; ++s) gc[s] -= gm;
+      }
+      // g is now centred (ZNSSD) or raw (SSD)
+      T sgg = 0, sfg = 0;
+      const T* gc = gv.data();
+#pragma omp simd reduction(+ : sgg, sfg)
+      for (int64_t s = 0; s < ns; ++s) {
+        sgg += w[s] * gc[s] * gc[s];
+        sfg += w[s] * fti[s] * gc[s];
+      }
+      const double gn2 = std::max(double(sgg), 1e-30);
+      zsum += double(sfg) / (fn * std::sqrt(gn2));
+      const T a = znssd ? T(fn / std::sqrt(gn2)) : T(1);
+      T* exp_ = ex.data();
+      T* eyp = ey.data();
+#pragma omp simd
+      for (int64_t s = 0; s < ns; ++s) {
+        const T e = w[s] * (fti[s] - a * gc[s]);
+        exp_[s] = gxi[s] * e;
+        eyp[s] = gyi[s] * e;
+      }
+      for (int64_t q = 0; q < ks; ++q) {
+        bb[q] += double(dot(exp_, bt.data() + q * ns, ns));
+        bb[k + q] += double(dot(eyp, bt.data() + q * ns, ns));
+      }
+      if (has_time) {
+        T sx = 0, sy = 0;
+#pragma omp simd reduction(+ : sx, sy)
+        for (int64_t s = 0; s < ns; ++s) {
+          sx += exp_[s];
+          sy += eyp[s];
+        }
+        bb[k - 1] += dti * double(sx);
+        bb[2 * k - 1] += dti * double(sy);
+      }
+    }
+    for (int64_t q = 0; q < np; ++q) b[j * np + q] = bb[q];
+    zn[j] = T(zsum / double(nt));
+    outside[j] = out_i ? 1 : 0;
+  }
+}
+
+// Weighted Gram matrix of the augmented steepest-descent images of each POI:
+//   J_s = [gx B_0 .. gx B_{ks-1}, gx, gy B_0 .. gy B_{ks-1}, gy]   (P' = 2 (ks + 1))
+//   G = sum_s w J_s J_s^T  (N, P', P'),  m = sum_s w J_s  (N, P')   in double.
+template <typename T>
+void gram_range(int64_t i0, int64_t i1, int64_t ns, int64_t ks, const T* fgx, const T* fgy,
+                const T* basis, const T* w, double* G, double* mom) {
+  const int64_t na = ks + 1, np = 2 * na;
+  std::vector<T> cols(np * ns);
+  for (int64_t i = i0; i < i1; ++i) {
+    const T* gx = fgx + i * ns;
+    const T* gy = fgy + i * ns;
+    for (int64_t s = 0; s < ns; ++s) {
+      for (int64_t q = 0; q < ks; ++q) {
+        cols[q * ns + s] = gx[s] * basis[s * ks + q];
+        cols[(na + q) * ns + s] = gy[s] * basis[s * ks + q];
+      }
+      cols[ks * ns + s] = gx[s];
+      cols[(na + ks) * ns + s] = gy[s];
+    }
+    double* Gi = G + i * np * np;
+    for (int64_t a = 0; a < np; ++a) {
+      const T* ca = cols.data() + a * ns;
+      T m = 0;
+#pragma omp simd reduction(+ : m)
+      for (int64_t s = 0; s < ns; ++s) m += w[s] * ca[s];
+      mom[i * np + a] = double(m);
+      for (int64_t c = a; c < np; ++c) {
+        const T* cc = cols.data() + c * ns;
+        T acc = 0;
+#pragma omp simd reduction(+ : acc)
+        for (int64_t s = 0; s < ns; ++s) acc += w[s] * ca[s] * cc[s];
+        Gi[a * np + c] = Gi[c * np + a] = double(acc);
+      }
+    }
+  }
+}
+
+template <typename T>
+int ic_rhs_dispatch(const T* flat, int64_t wp, double x_lo, double x_hi, double y_lo,
+                    double y_hi, int64_t shift, int order, int64_t i0, int64_t i1, int64_t nt,
+                    int64_t ns, int64_t ks, int64_t k, int has_time, int znssd, const T* p,
+                    const T* px, const T* py, const T* dx, const T* dy, const T* basis,
+                    const T* dt, const int64_t* frame_off, const T* ft, const T* fnorm,
+                    const T* fgx, const T* fgy, const T* w, const int64_t* rows, double w_img,
+                    double h, double* b, T* zn, uint8_t* outside) {
+  const Geo g{wp, x_lo, x_hi, y_lo, y_hi, shift};
+  if (order == 3) {
+    ic_rhs_range<T, 3>(flat, g, i0, i1, nt, ns, ks, k, has_time, znssd, p, px, py, dx, dy,
+                       basis, dt, frame_off, ft, fnorm, fgx, fgy, w, rows, w_img, h, b, zn,
+                       outside);
+  } else if (order == 5) {
+    ic_rhs_range<T, 5>(flat, g, i0, i1, nt, ns, ks, k, has_time, znssd, p, px, py, dx, dy,
+                       basis, dt, frame_off, ft, fnorm, fgx, fgy, w, rows, w_img, h, b, zn,
+                       outside);
+  } else {
+    return 1;
+  }
+  return 0;
+}
+
+}  // namespace
+
+extern "C" {
+
+int sts_abi_version() { return 3; }
+
+int sts_sample_f32(const float* flat, int64_t wp, double x_lo, double x_hi, double y_lo,
+                   double y_hi, int64_t shift, int order, const float* x, const float* y,
+                   const int64_t* off, int64_t off_period, int64_t i0, int64_t i1, float* val,
+                   float* gx, float* gy) {
+  return sample_dispatch<float>(flat, wp, x_lo, x_hi, y_lo, y_hi, shift, order, x, y, off,
+                                off_period, i0, i1, val, gx, gy);
+}
+
+int sts_sample_f64(const double* flat, int64_t wp, double x_lo, double x_hi, double y_lo,
+                   double y_hi, int64_t shift, int order, const double* x, const double* y,
+                   const int64_t* off, int64_t off_period, int64_t i0, int64_t i1, double* val,
+                   double* gx, double* gy) {
+  return sample_dispatch<double>(flat, wp, x_lo, x_hi, y_lo, y_hi, shift, order, x, y, off,
+                                 off_period, i0, i1, val, gx, gy);
+}
+
+int sts_subsets_f32(const float* flat, int64_t wp, double x_lo, double x_hi, double y_lo,
+                    double y_hi, int64_t shift, int order, int64_t i0, int64_t i1, int64_t ns,
+                    const float* px, const float* py, const float* dx, const float* dy,
+                    const int64_t* off, float* val, float* gx, float* gy) {
+  return subsets_dispatch<float>(flat, wp, x_lo, x_hi, y_lo, y_hi, shift, order, i0, i1, ns,
+                                 px, py, dx, dy, off, val, gx, gy);
+}
+
+int sts_subsets_f64(const double* flat, int64_t wp, double x_lo, double x_hi, double y_lo,
+                    double y_hi, int64_t shift, int order, int64_t i0, int64_t i1, int64_t ns,
+                    const double* px, const double* py, const double* dx, const double* dy,
+                    const int64_t* off, double* val, double* gx, double* gy) {
+  return subsets_dispatch<double>(flat, wp, x_lo, x_hi, y_lo, y_hi, shift, order, i0, i1, ns,
+                                  px, py, dx, dy, off, val, gx, gy);
+}
+
+int sts_gram_f32(int64_t i0, int64_t i1, int64_t ns, int64_t ks, const float* gx,
+                 const float* gy, const float* basis, const float* w, double* G, double* m) {
+  gram_range<float>(i0, i1, ns, ks, gx, gy, basis, w, G, m);
+  return 0;
+}
+
+int sts_gram_f64(int64_t i0, int64_t i1, int64_t ns, int64_t ks, const double* gx,
+                 const double* gy, const double* basis, const double* w, double* G,
+                 double* m) {
+  gram_range<double>(i0, i1, ns, ks, gx, gy, basis, w, G, m);
+  return 0;
+}
+
+int sts_ic_rhs_f32(const float* flat, int64_t wp, double x_lo, double x_hi, double y_lo,
+                   double y_hi, int64_t shift, int order, int64_t i0, int64_t i1, int64_t nt,
+                   int64_t ns, int64_t ks, int64_t k, int has_time, int znssd, const float* p,
+                   const float* px, const float* py, const float* dx, const float* dy,
+                   const float* basis, const float* dt, const int64_t* frame_off,
+                   const float* ft, const float* fnorm, const float* fgx, const float* fgy,
+                   const float* w, const int64_t* rows, double w_img, double h, double* b,
+                   float* zn, uint8_t* outside) {
+  return ic_rhs_dispatch<float>(flat, wp, x_lo, x_hi, y_lo, y_hi, shift, order, i0, i1, nt, ns,
+                                ks, k, has_time, znssd, p, px, py, dx, dy, basis, dt, frame_off,
+                                ft, fnorm, fgx, fgy, w, rows, w_img, h, b, zn, outside);
+}
+
+int sts_ic_rhs_f64(const double* flat, int64_t wp, double x_lo, double x_hi, double y_lo,
+                   double y_hi, int64_t shift, int order, int64_t i0, int64_t i1, int64_t nt,
+                   int64_t ns, int64_t ks, int64_t k, int has_time, int znssd, const double* p,
+                   const double* px, const double* py, const double* dx, const double* dy,
+                   const double* basis, const double* dt, const int64_t* frame_off,
+                   const double* ft, const double* fnorm, const double* fgx, const double* fgy,
+                   const double* w, const int64_t* rows, double w_img, double h, double* b,
+                   double* zn, uint8_t* outside) {
+  return ic_rhs_dispatch<double>(flat, wp, x_lo, x_hi, y_lo, y_hi, shift, order, i0, i1, nt,
+                                 ns, ks, k, has_time, znssd, p, px, py, dx, dy, basis, dt,
+                                 frame_off, ft, fnorm, fgx, fgy, w, rows, w_img, h, b, zn,
+                                 outside);
+}
+
+}  // extern "C"
