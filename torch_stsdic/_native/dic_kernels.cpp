@@ -442,18 +442,24 @@ template <typename T>
 void gram_range(int64_t i0, int64_t i1, int64_t ns, int64_t ks, const T* fgx, const T* fgy,
                 const T* basis, const T* w, double* G, double* mom) {
   const int64_t na = ks + 1, np = 2 * na;
-  std::vector<T> cols(np * ns);
+  std::vector<T> cols(np * ns), bt(ks * ns);
+  for (int64_t s = 0; s < ns; ++s)
+    for (int64_t q = 0; q < ks; ++q) bt[q * ns + s] = basis[s * ks + q];
   for (int64_t i = i0; i < i1; ++i) {
     const T* gx = fgx + i * ns;
     const T* gy = fgy + i * ns;
-    for (int64_t s = 0; s < ns; ++s) {
-      for (int64_t q = 0; q < ks; ++q) {
-        cols[q * ns + s] = gx[s] * basis[s * ks + q];
-        cols[(na + q) * ns + s] = gy[s] * basis[s * ks + q];
+    for (int64_t q = 0; q < ks; ++q) {
+      T* cx = cols.data() + q * ns;
+      T* cy = cols.data() + (na + q) * ns;
+      const T* b = bt.data() + q * ns;
+#pragma omp simd
+      for (int64_t s = 0; s < ns; ++s) {
+        cx[s] = gx[s] * b[s];
+        cy[s] = gy[s] * b[s];
       }
-      cols[ks * ns + s] = gx[s];
-      cols[(na + ks) * ns + s] = gy[s];
     }
+    std::copy(gx, gx + ns, cols.data() + ks * ns);
+    std::copy(gy, gy + ns, cols.data() + (na + ks) * ns);
     double* Gi = G + i * np * np;
     for (int64_t a = 0; a < np; ++a) {
       const T* ca = cols.data() + a * ns;
