@@ -137,6 +137,7 @@ def machine_info(threads: list[int], device: str) -> dict[str, Any]:
                             if ln[3:].startswith("torch_stsdic/")],
         "code_sha1": _code_hash(),
         "compile_mode": os.environ.get("TORCH_STSDIC_COMPILE", "default"),
+        "native_mode": os.environ.get("TORCH_STSDIC_NATIVE", "default"),
         "omp_env": {k: v for k, v in os.environ.items()
                     if k.startswith(("OMP_", "MKL_", "GOMP_", "KMP_"))},
         "device": device,
@@ -539,6 +540,8 @@ def child_main(spec_json: str) -> None:
     spec = json.loads(spec_json)
     if spec.get("compile"):
         os.environ["TORCH_STSDIC_COMPILE"] = spec["compile"]
+    if spec.get("native"):
+        os.environ["TORCH_STSDIC_NATIVE"] = spec["native"]
     importlib.import_module("torch_stsdic")  # first: its OpenMP defaults precede torch's load
     import torch
 
@@ -568,8 +571,10 @@ def _case_name(spec: dict[str, Any]) -> str:
         return (f"solve {stsname} {spec['subset']}px N~{n} {spec['dtype']} {spec['device']}"
                 + (f" step{spec['step']}" if spec.get("step") else "")
                 + (f" compile={spec['compile']}" if spec.get("compile") else "")
-                + (f" init={spec['initial_guess']}" if spec.get("initial_guess") else ""))
-    comp = f" compile={spec['compile']}" if spec.get("compile") else ""
+                + (f" init={spec['initial_guess']}" if spec.get("initial_guess") else "")
+                + (f" native={spec['native']}" if spec.get("native") else ""))
+    comp = (f" compile={spec['compile']}" if spec.get("compile") else "") + (
+        f" native={spec['native']}" if spec.get("native") else "")
     if k == "track":
         return (f"track {spec.get('label', '')} {stsname} {spec['dtype']} {spec['device']}"
                 + comp)
@@ -589,6 +594,10 @@ def run_case(spec: dict[str, Any], isolate: bool, timeout: float) -> dict[str, A
 
             if hasattr(interpolation, "set_compile"):
                 interpolation.set_compile(spec["compile"])
+        if spec.get("native"):
+            from torch_stsdic import native
+
+            native.set_native(spec["native"])
         try:
             res = CASE_RUNNERS[spec["kind"]](spec)
             res["ok"] = True
@@ -652,8 +661,8 @@ def _preset_cases(args, device: str, th: int) -> list[dict[str, Any]]:
               "step": 15, "movie": str(table1_path(301, 9)), "compile": args.compile}
         for m in (0, 2):
             cases.append({**t1, "m": m, "profile": args.profile})
-        if not args.compile:  # the same with the sampler always compiled, for comparison
-            cases.append({**t1, "m": 2, "compile": "1", "compare": True})
+        for m in (0, 2):  # for comparison: without the fused C++ kernels (torch code)
+            cases.append({**t1, "m": m, "native": "0", "compare": True})
         rb = args.repeats or r
         for m in (0, 2):
             cases.append(_solve(m, 21, 197, "float32", dev, th, rb, step=5,
@@ -1085,7 +1094,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                         "(e.g. 2,1; default: all cores)")
     p.add_argument("--repeats", type=int, default=None, help="timed repeats per case")
     p.add_argument("--memory-mb", type=float, default=None,
-                   help="cfg.memory_mb (default 512 on CPU, 35%% of free GPU memory on CUDA)")
+                   help="cfg.memory_mb (default: DICConfig's on CPU, 35%% of free GPU memory "
+                   "on CUDA)")
     p.add_argument("--out", default=None, help="JSON record path (default docs/bench/"
                    "<preset>-<device>.json; --quick writes none unless given)")
     p.add_argument("--no-update-doc", dest="update_doc", action="store_false")
