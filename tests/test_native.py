@@ -186,3 +186,31 @@ def test_no_compiler_falls_back_with_one_warning(tmp_path):
                          env=env, timeout=300)
     assert out.returncode == 0, out.stderr
     assert out.stdout.split() == ["1", "True", "True"]
+
+
+def test_kernels_work_in_a_forked_child():
+    """A child forked after the worker threads exist (e.g. a DataLoader worker) must not
+    wait for threads that did not survive the fork."""
+    import multiprocessing as mp
+
+    torch.set_num_threads(2)
+    try:
+        img = _image(torch.float32, 3)
+        a = img.kernel_args()
+        x = torch.rand(200, 441) * 40 + 5
+        y = torch.rand(200, 441) * 30 + 5
+        off = torch.zeros(200, 1, dtype=torch.long)
+        want = native.sample(a, 3, x, y, off, False)  # starts the worker threads
+        ctx = mp.get_context("fork")
+        with ctx.Pool(1) as pool:
+            got = pool.apply_async(_sample_in_child, (img.coeffs, a, x, y, off)).get(timeout=30)
+        assert torch.allclose(torch.from_numpy(got), want)
+    finally:
+        torch.set_num_threads(1)
+
+
+def _sample_in_child(coeffs, a, x, y, off):
+    # no torch op with intra-op threads here: GNU OpenMP itself is not fork-safe
+    assert torch.get_num_threads() == 2  # inherited: the kernels split over 2 threads
+    val = native.sample((coeffs.reshape(-1), *a[1:]), 3, x, y, off, False)
+    return val.numpy()  # numpy: torch's shared-memory tensor transfer is not needed here

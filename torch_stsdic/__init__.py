@@ -17,6 +17,7 @@ _os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 from .config import DICConfig  # noqa: E402
 from .interpolation import BSplineImage, bspline_prefilter
 from .io import ImageSeries, InputError, ResultWriter, export_csv, load_series, read_results
+from .native import set_native
 from .noise import estimate_noise_sigma, predicted_std
 from .series import (
     TrackResult,
@@ -66,4 +67,5 @@ __all__ = [
     "compute_strain",
     "predicted_std",
     "estimate_noise_sigma",
+    "set_native",
 ]

@@ -44,6 +44,7 @@ _FAILED: str | None = None
 _LOCK = threading.Lock()
 _POOL: ThreadPoolExecutor | None = None
 _POOL_SIZE = 0
+_POOL_PID = 0
 # below this many samples a call runs on the calling thread (thread hand-off costs ~50 us)
 _PARALLEL_MIN = 20_000
 
@@ -183,11 +184,13 @@ def available() -> bool:
 
 def usable(*tensors: torch.Tensor) -> bool:
     """Whether a call with these tensors can take the native path: switched on, built, CPU,
-    float32/float64, nothing requiring gradients."""
+    float32/float64, and no autograd graph wanted through them (nothing requiring gradients
+    while grad mode is on)."""
     if _MODE == "0":
         return False
+    grad_on = torch.is_grad_enabled()
     for t in tensors:
-        if t.device.type != "cpu" or t.requires_grad:
+        if t.device.type != "cpu" or (grad_on and t.requires_grad):
             return False
         if t.is_floating_point() and t.dtype not in (torch.float32, torch.float64):
             return False
@@ -200,12 +203,13 @@ def usable_image(img_args: tuple, *tensors: torch.Tensor) -> bool:
 
 
 def _pool(n: int) -> ThreadPoolExecutor:
-    global _POOL, _POOL_SIZE
-    if _POOL is None or _POOL_SIZE != n:
-        if _POOL is not None:
+    """The worker threads (made again after a fork: a forked child has none of them)."""
+    global _POOL, _POOL_SIZE, _POOL_PID
+    if _POOL is None or _POOL_SIZE != n or _POOL_PID != os.getpid():
+        if _POOL is not None and _POOL_PID == os.getpid():
             _POOL.shutdown(wait=False)
         _POOL = ThreadPoolExecutor(max_workers=n, thread_name_prefix="stsdic")
-        _POOL_SIZE = n
+        _POOL_SIZE, _POOL_PID = n, os.getpid()
     return _POOL
 
 
