@@ -1032,7 +1032,7 @@ def load_records(directory: Path = BENCH_DIR) -> list[dict[str, Any]]:
             rec = json.loads(p.read_text())
         except (OSError, json.JSONDecodeError):
             continue
-        if isinstance(rec, dict) and "results" in rec and "machine" in rec:
+        if isinstance(rec, dict) and "results" in rec and "machine" in rec and "preset" in rec:
             rec["_file"] = p.name
             recs.append(rec)
     return recs

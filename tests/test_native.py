@@ -214,3 +214,46 @@ def _sample_in_child(coeffs, a, x, y, off):
     assert torch.get_num_threads() == 2  # inherited: the kernels split over 2 threads
     val = native.sample((coeffs.reshape(-1), *a[1:]), 3, x, y, off, False)
     return val.numpy()  # numpy: torch's shared-memory tensor transfer is not needed here
+
+
+def test_portable_build_matches_torch(tmp_path):
+    """The scalar code path (no AVX2: what other CPUs run) built and checked in float32."""
+    code = textwrap.dedent("""
+        import torch
+        from torch_stsdic import native
+        from torch_stsdic.interpolation import BSplineImage, _sample_kernel
+        from torch_stsdic.solver import _ic_rhs_kernel
+        from torch_stsdic.shape import AffineShape
+        g = torch.Generator().manual_seed(0)
+        img = BSplineImage(torch.rand(2, 40, 50, generator=g) * 255, 3)
+        a = img.kernel_args()
+        x = torch.rand(30, 49, generator=g) * 40 + 3
+        y = torch.rand(30, 49, generator=g) * 30 + 3
+        off = torch.randint(0, 2, (30, 1), generator=g) * a[-1]
+        e1 = max(float((p - q).abs().max()) for p, q in zip(
+            native.sample(a, 3, x, y, off, True), _sample_kernel(a[0], x, y, off, *a[1:7], 3,
+                                                                 True)))
+        d = torch.arange(-3.0, 4.0)
+        dx, dy = d.repeat(7), d.repeat_interleave(7)
+        basis = AffineShape(temporal=False).spatial_basis(dx, dy)
+        p = torch.randn(30, 6, generator=g) * 0.02
+        px, py = x[:, :1] + 2, y[:, :1] + 2
+        dt = torch.zeros(30, 1)
+        ft = torch.randn(30, 49, generator=g)
+        ft = ft - ft.mean(1, keepdim=True)
+        args = (p, px, py, dx, dy)
+        b, zn, _ = native.ic_rhs(a, 3, *args, basis, dt, off, ft, ft.norm(dim=1), ft, -ft,
+                                 torch.ones(49), 50, 40, 3, False, True)
+        bt, znt, _ = _ic_rhs_kernel(a[0], *args, basis.T.contiguous(), dt, off, ft,
+                                    ft.norm(dim=1), ft, -ft, torch.ones(49), *a[1:7], 50, 40,
+                                    3, 3, False, True, 3)
+        e2 = float(((b - bt.double()).abs() / (1 + bt.double().abs())).max())
+        print(e1, e2, float((zn - znt).abs().max()))
+    """)
+    env = {**os.environ, "TORCH_STSDIC_NATIVE_MARCH": "", "TORCH_STSDIC_CACHE": str(tmp_path)}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         env=env, timeout=300)
+    assert out.returncode == 0, out.stderr
+    e_sample, e_rhs, e_zn = map(float, out.stdout.split())
+    assert e_sample < 1e-3 and e_rhs < 1e-3 and e_zn < 1e-5
+    assert len(list(tmp_path.glob("dic_kernels-*"))) == 1  # built into the given cache

@@ -8,7 +8,10 @@ one pass per point, with double accumulators, at about 10 ns per sample and thre
 
 * Built with the system C++ compiler (``$CXX``, else ``c++``/``g++``/``clang++``; the same
   one torch.compile needs on a CPU) into ``$TORCH_STSDIC_CACHE`` (default
-  ``~/.cache/torch_stsdic``), keyed by source, compiler and CPU; about a second, once.
+  ``~/.cache/torch_stsdic``), keyed by source, compiler and CPU; about 3 s, once. The build
+  targets the CPU it runs on (``-march=native``: AVX2 where present);
+  ``TORCH_STSDIC_NATIVE_MARCH`` names another target (e.g. ``x86-64-v2``) or, empty, the
+  compiler's portable default.
 * Plain C ABI, no torch headers; tensors are passed as pointers. ctypes releases the GIL, so
   the rows are split over ``torch.get_num_threads()`` Python threads.
 * Used for CPU tensors of float32/float64 that do not require gradients. Everything else
@@ -107,7 +110,9 @@ def build(verbose: bool = False) -> Path:
                              timeout=30).stdout
     except (OSError, subprocess.SubprocessError) as exc:
         raise RuntimeError(f"{cxx} --version failed: {exc}") from exc
-    key = hashlib.sha256(src + ver.encode() + _cpu_key().encode()).hexdigest()[:16]
+    march = os.environ.get("TORCH_STSDIC_NATIVE_MARCH", "native")
+    key = hashlib.sha256(src + ver.encode() + _cpu_key().encode() + march.encode()
+                         ).hexdigest()[:16]
     suffix = ".dll" if os.name == "nt" else ".so"
     out = _cache_dir() / f"dic_kernels-{key}{suffix}"
     if out.exists():
@@ -116,7 +121,7 @@ def build(verbose: bool = False) -> Path:
     errors = []
     base = [cxx, "-O3", "-std=c++17", "-shared", "-fPIC", "-fno-math-errno",
             "-ffp-contract=fast", "-fopenmp-simd"]
-    for extra in (["-march=native"], []):
+    for extra in ([f"-march={march}"] if march else [], []):
         fd, tmp = tempfile.mkstemp(suffix=suffix, dir=out.parent)
         os.close(fd)
         cmd = base + extra + ["-o", tmp, str(_SOURCE)]

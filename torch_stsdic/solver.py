@@ -30,7 +30,7 @@ fixed point exactly the ZNCC maximum.
 from __future__ import annotations
 
 import math
-import time
+import time as _time
 from dataclasses import dataclass, field
 
 import torch
@@ -397,7 +397,7 @@ def _clock(device: torch.device) -> float:
     """Wall-clock seconds, after the device's queued work (CUDA) has finished."""
     if device.type == "cuda":
         torch.cuda.synchronize(device)
-    return time.perf_counter()
+    return _time.perf_counter()
 
 
 def _grey_range(img: torch.Tensor) -> float:
