@@ -257,3 +257,26 @@ def test_portable_build_matches_torch(tmp_path):
     e_sample, e_rhs, e_zn = map(float, out.stdout.split())
     assert e_sample < 1e-3 and e_rhs < 1e-3 and e_zn < 1e-5
     assert len(list(tmp_path.glob("dic_kernels-*"))) == 1  # built into the given cache
+
+
+@pytest.mark.parametrize("order", [3, 5])
+@pytest.mark.parametrize("shape", [(3, 40, 50), (2, 7), (5, 3), (1, 9), (9, 1), (1, 1), (30, 200)])
+def test_prefilter_matches_fft(order, shape):
+    from torch_stsdic.interpolation import _prefilter_axis
+
+    g = torch.Generator().manual_seed(2)
+    x = torch.rand(*shape, generator=g, dtype=torch.float64) * 255
+    want = _prefilter_axis(_prefilter_axis(x, order, x.dim() - 1), order, x.dim() - 2)
+    got = native.prefilter(x, order)
+    assert got.shape == x.shape and got.dtype == x.dtype
+    assert (got - want).abs().max() < 1e-8
+    assert torch.equal(x, x.clone())  # input untouched
+    got32 = native.prefilter(x.float(), order)
+    assert (got32.double() - want).abs().max() < 1e-5 * (1 + float(want.abs().max()))
+    # the spline through the coefficients interpolates the pixels
+    if min(shape[-2:]) >= 8:  # (smaller images have too few pixels for the tap margin)
+        img = BSplineImage(x.reshape(-1, *shape[-2:]), order)
+        yy, xx = torch.meshgrid(torch.arange(shape[-2]).double(),
+                                torch.arange(shape[-1]).double(), indexing="ij")
+        vals = img.sample(xx, yy, frame=0)
+        assert torch.allclose(vals, x.reshape(-1, *shape[-2:])[0], atol=1e-8)

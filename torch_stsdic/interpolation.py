@@ -57,6 +57,10 @@ def bspline_prefilter(images: torch.Tensor, order: int = 3) -> torch.Tensor:
     """
     if not images.is_floating_point():
         raise TypeError("bspline_prefilter needs a floating-point tensor")
+    if order not in (3, 5):
+        raise ValueError(f"interpolation order must be 3 (cubic) or 5 (quintic), got {order}")
+    if images.dim() >= 2 and native.usable(images):
+        return native.prefilter(images, order)  # recursive filter, same result
     c = _prefilter_axis(images, order, images.dim() - 1)
     return _prefilter_axis(c, order, images.dim() - 2)
 

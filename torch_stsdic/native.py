@@ -38,7 +38,8 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["available", "set_native", "native_enabled", "sample", "ic_rhs", "gram", "build"]
+__all__ = ["available", "set_native", "native_enabled", "sample", "ic_rhs", "gram", "prefilter",
+           "build"]
 
 _SOURCE = Path(__file__).with_name("_native") / "dic_kernels.cpp"
 _MODE = os.environ.get("TORCH_STSDIC_NATIVE", "auto").lower()
@@ -155,6 +156,10 @@ def _declare(lib: ctypes.CDLL) -> None:
         fn = getattr(lib, name)
         fn.restype = _int
         fn.argtypes = geo + [_i64] * 3 + [_ptr] * 8
+    for name in ("sts_prefilter_f32", "sts_prefilter_f64"):
+        fn = getattr(lib, name)
+        fn.restype = _int
+        fn.argtypes = [_ptr, _i64, _i64, _i64, _int, _int, _i64, _i64]
     for name in ("sts_gram_f32", "sts_gram_f64"):
         fn = getattr(lib, name)
         fn.restype = _int
@@ -172,7 +177,7 @@ def _load() -> ctypes.CDLL | None:
         try:
             lib = ctypes.CDLL(str(build()))
             _declare(lib)
-            if lib.sts_abi_version() != 3:
+            if lib.sts_abi_version() != 4:
                 raise RuntimeError("stale kernel library")
             _LIB = lib
         except (RuntimeError, OSError, AttributeError) as exc:
@@ -349,3 +354,20 @@ def gram(gx: torch.Tensor, gy: torch.Tensor, basis: torch.Tensor, w: torch.Tenso
     _run_rows(fn, n, ns * npa, (), (ns, ks, *[t.data_ptr() for t in tens], g.data_ptr(),
                                     m.data_ptr()))
     return g, m
+
+
+def prefilter(images: torch.Tensor, order: int) -> torch.Tensor:
+    """Native twin of interpolation.bspline_prefilter for (..., H, W) float32/float64 CPU
+    tensors: the recursive filter (two passes per pole and axis), mirror boundary. Returns a
+    new tensor."""
+    lib = _load()
+    h, w = images.shape[-2:]
+    out = images.contiguous().clone()
+    planes = out.numel() // max(1, h * w)
+    fn = lib.sts_prefilter_f32 if out.dtype == torch.float32 else lib.sts_prefilter_f64
+    if w >= 2:
+        _run_rows(fn, planes * h, w * 4, (out.data_ptr(), planes, h, w, order, 1), ())
+    if h >= 2:
+        blocks = planes * ((w + 63) // 64)
+        _run_rows(fn, blocks, h * 64 * 4, (out.data_ptr(), planes, h, w, order, 0), ())
+    return out

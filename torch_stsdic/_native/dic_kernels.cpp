@@ -501,11 +501,107 @@ int ic_rhs_dispatch(const T* flat, int64_t wp, double x_lo, double x_hi, double 
   return 0;
 }
 
+// ---- B-spline prefilter: recursive (Unser 1991; Thevenaz's initialisation) -----------------
+// Mirror (whole-sample symmetric) boundary, the same as interpolation.bspline_prefilter's
+// FFT version, to ~1e-12 relative in double.
+
+inline int poles(int order, double* z) {
+  if (order == 3) {
+    z[0] = std::sqrt(3.0) - 2.0;
+    return 1;
+  }
+  z[0] = std::sqrt(135.0 / 2.0 - std::sqrt(17745.0 / 4.0)) + std::sqrt(105.0 / 4.0) - 6.5;
+  z[1] = std::sqrt(135.0 / 2.0 + std::sqrt(17745.0 / 4.0)) - std::sqrt(105.0 / 4.0) - 6.5;
+  return 2;
+}
+
+// Filter `m` interleaved lines at once: element k of line j is at c[k * stride + j]
+// (stride = m for columns of a plane, a single line with m = 1 otherwise); n samples each.
+template <typename T>
+void recursive_lines(T* c, int64_t n, int64_t m, int64_t stride, int order) {
+  if (n < 2) return;
+  double z[2];
+  const int np = poles(order, z);
+  double gain = 1.0;
+  for (int q = 0; q < np; ++q) gain *= (1.0 - z[q]) * (1.0 - 1.0 / z[q]);
+  std::vector<double> acc(m);
+  for (int64_t k = 0; k < n; ++k)
+    for (int64_t j = 0; j < m; ++j) c[k * stride + j] = T(c[k * stride + j] * gain);
+  for (int q = 0; q < np; ++q) {
+    const double zq = z[q];
+    // causal initial value: sum_k z^k c[k] over the mirrored signal
+    const int64_t horizon = int64_t(std::ceil(std::log(1e-13) / std::log(std::fabs(zq))));
+    if (horizon < n) {
+      for (int64_t j = 0; j < m; ++j) acc[j] = c[j];
+      double zn = zq;
+      for (int64_t k = 1; k < horizon; ++k) {
+        for (int64_t j = 0; j < m; ++j) acc[j] += zn * c[k * stride + j];
+        zn *= zq;
+      }
+    } else {
+      double zn = zq;
+      const double iz = 1.0 / zq;
+      double z2n = std::pow(zq, double(n - 1));
+      for (int64_t j = 0; j < m; ++j) acc[j] = c[j] + z2n * c[(n - 1) * stride + j];
+      z2n *= z2n * iz;
+      for (int64_t k = 1; k <= n - 2; ++k) {
+        for (int64_t j = 0; j < m; ++j) acc[j] += (zn + z2n) * c[k * stride + j];
+        zn *= zq;
+        z2n *= iz;
+      }
+      for (int64_t j = 0; j < m; ++j) acc[j] /= (1.0 - zn * zn);
+    }
+    for (int64_t j = 0; j < m; ++j) c[j] = T(acc[j]);
+    for (int64_t k = 1; k < n; ++k) {
+      T* ck = c + k * stride;
+      const T* cp = c + (k - 1) * stride;
+      const T zt = T(zq);
+#pragma omp simd
+      for (int64_t j = 0; j < m; ++j) ck[j] += zt * cp[j];
+    }
+    // anti-causal initial value
+    {
+      T* cl = c + (n - 1) * stride;
+      const T* cm = c + (n - 2) * stride;
+      const double f = zq / (zq * zq - 1.0);
+      for (int64_t j = 0; j < m; ++j) cl[j] = T(f * (zq * cm[j] + cl[j]));
+    }
+    for (int64_t k = n - 2; k >= 0; --k) {
+      T* ck = c + k * stride;
+      const T* cn = c + (k + 1) * stride;
+      const T zt = T(zq);
+#pragma omp simd
+      for (int64_t j = 0; j < m; ++j) ck[j] = zt * (cn[j] - ck[j]);
+    }
+  }
+}
+
+// rows [i0, i1) of a (P*H, W) stack along W (axis 1), or column blocks [i0, i1) of the
+// P planes along H (axis 0: block b covers columns [b*64, b*64+64) of plane b / nb)
+template <typename T>
+int prefilter_range(T* data, int64_t planes, int64_t h, int64_t w, int order, int axis,
+                    int64_t i0, int64_t i1) {
+  if (order != 3 && order != 5) return 1;
+  if (axis == 1) {
+    for (int64_t r = i0; r < i1; ++r) recursive_lines(data + r * w, w, int64_t(1), int64_t(1),
+                                                      order);
+    return 0;
+  }
+  const int64_t bw = 64, nb = (w + bw - 1) / bw;
+  for (int64_t b = i0; b < i1; ++b) {
+    const int64_t plane = b / nb, c0 = (b % nb) * bw;
+    const int64_t m = std::min(bw, w - c0);
+    recursive_lines(data + plane * h * w + c0, h, m, w, order);
+  }
+  (void)planes;
+  return 0;
+}
+
 }  // namespace
 
 extern "C" {
 
-int sts_abi_version() { return 3; }
+int sts_abi_version() { return 4; }
 
 int sts_sample_f32(const float* flat, int64_t wp, double x_lo, double x_hi, double y_lo,
                    double y_hi, int64_t shift, int order, const float* x, const float* y,
@@ -537,6 +633,16 @@ int sts_subsets_f64(const double* flat, int64_t wp, double x_lo, double x_hi, do
                     const int64_t* off, double* val, double* gx, double* gy) {
   return subsets_dispatch<double>(flat, wp, x_lo, x_hi, y_lo, y_hi, shift, order, i0, i1, ns,
                                   px, py, dx, dy, off, val, gx, gy);
+}
+
+int sts_prefilter_f32(float* data, int64_t planes, int64_t h, int64_t w, int order, int axis,
+                      int64_t i0, int64_t i1) {
+  return prefilter_range<float>(data, planes, h, w, order, axis, i0, i1);
+}
+
+int sts_prefilter_f64(double* data, int64_t planes, int64_t h, int64_t w, int order, int axis,
+                      int64_t i0, int64_t i1) {
+  return prefilter_range<double>(data, planes, h, w, order, axis, i0, i1);
 }
 
 int sts_gram_f32(int64_t i0, int64_t i1, int64_t ns, int64_t ks, const float* gx,
