@@ -628,10 +628,11 @@ def _resolve_times(times: Any, series: ImageSeries) -> np.ndarray:
 
 def _default_batch(cfg: DICConfig, shape: tuple[int, int], elem: int) -> int:
     """Target frames per block: the frames of a block (raw + padded coefficients, ~3 copies)
-    within a quarter of ``memory_mb``, at most 8 (the carried guess is extrapolated over
-    the block, so very long blocks start further from the solution)."""
+    within half of ``memory_mb`` (the other half bounds the solver's batches), at most 8
+    (the carried guess is extrapolated over the block, so very long blocks start further
+    from the solution)."""
     frame_bytes = 3.0 * shape[0] * shape[1] * elem
-    fit = int(cfg.memory_mb * 2**20 / (4.0 * frame_bytes)) - 2 * cfg.m
+    fit = int(cfg.memory_mb * 2**20 / (2.0 * frame_bytes)) - 2 * cfg.m
     return max(1, min(_MAX_DEFAULT_BATCH, fit))
 
 
