@@ -899,8 +899,14 @@ def target_rows(records: list[dict[str, Any]]) -> list[tuple[str, str, str, str,
             res = [r for r in all_res if r["spec"].get("threads") == th]
             where = f"{dev}, {th} thread{'s' if th != 1 else ''}"
             if rec["preset"] == "targets":
-                rows += _track_targets(res, where, src)
-                rows += _solve_targets(res, where, src, dev.startswith("cuda"))
+                got = (_track_targets(res, where, src)
+                       + _solve_targets(res, where, src, dev.startswith("cuda")))
+                if not dev.startswith("cuda") and isinstance(th, int) and th < mach.get(
+                        "cores", th):
+                    # the CPU targets are for the whole machine: fewer threads are a reference
+                    got = [(a, b, c, f"({d}: reference, {th} of {mach['cores']} cores)", e)
+                           for a, b, c, d, e in got]
+                rows += got
             for r in (res if rec["preset"] == "memory" else []):
                 if r.get("ok") and r["spec"]["kind"] == "memory":
                     goal, ref = TARGETS["memory_rss_mb"]
