@@ -280,3 +280,19 @@ def test_prefilter_matches_fft(order, shape):
                                 torch.arange(shape[-1]).double(), indexing="ij")
         vals = img.sample(xx, yy, frame=0)
         assert torch.allclose(vals, x.reshape(-1, *shape[-2:])[0], atol=1e-8)
+
+
+def test_read_only_cache_falls_back_to_temp(tmp_path, monkeypatch):
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    ro.chmod(0o500)
+    monkeypatch.setenv("TORCH_STSDIC_CACHE", str(ro / "cache"))
+    monkeypatch.setattr("tempfile.tempdir", str(tmp_path / "tmp"))
+    (tmp_path / "tmp").mkdir()
+    try:
+        if os.access(ro, os.W_OK):  # root ignores the mode bits
+            monkeypatch.setattr(os, "access", lambda p, m: not str(p).startswith(str(ro)))
+        path = native.build()
+        assert str(path).startswith(str(tmp_path / "tmp")) and path.exists()
+    finally:
+        ro.chmod(0o700)

@@ -8,7 +8,8 @@ one pass per point, with double accumulators, at about 10 ns per sample and thre
 
 * Built with the system C++ compiler (``$CXX``, else ``c++``/``g++``/``clang++``; the same
   one torch.compile needs on a CPU) into ``$TORCH_STSDIC_CACHE`` (default
-  ``~/.cache/torch_stsdic``), keyed by source, compiler and CPU; about 3 s, once. The build
+  ``~/.cache/torch_stsdic``; a temp directory if that is not writable), keyed by source,
+  compiler and CPU; about 3 s, once. The build
   targets the CPU it runs on (``-march=native``: AVX2 where present);
   ``TORCH_STSDIC_NATIVE_MARCH`` names another target (e.g. ``x86-64-v2``) or, empty, the
   compiler's portable default.
@@ -77,6 +78,13 @@ def _cache_dir() -> Path:
     return Path(root) if root else Path.home() / ".cache" / "torch_stsdic"
 
 
+def _user() -> str:
+    try:
+        return str(os.getuid())
+    except AttributeError:  # Windows
+        return os.environ.get("USERNAME", "user")
+
+
 def _compiler() -> str | None:
     """$CXX if set (and only it), else the first of c++, g++, clang++ on the PATH."""
     if os.environ.get("CXX"):
@@ -115,10 +123,19 @@ def build(verbose: bool = False) -> Path:
     key = hashlib.sha256(src + ver.encode() + _cpu_key().encode() + march.encode()
                          ).hexdigest()[:16]
     suffix = ".dll" if os.name == "nt" else ".so"
-    out = _cache_dir() / f"dic_kernels-{key}{suffix}"
+    name = f"dic_kernels-{key}{suffix}"
+    out = _cache_dir() / name
     if out.exists():
         return out
-    out.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        if not os.access(out.parent, os.W_OK):
+            raise PermissionError(str(out.parent))
+    except OSError:  # read-only home (clusters, containers): a per-user temp directory
+        out = Path(tempfile.gettempdir()) / f"torch_stsdic-{_user()}" / name
+        if out.exists():
+            return out
+        out.parent.mkdir(parents=True, exist_ok=True)
     errors = []
     base = [cxx, "-O3", "-std=c++17", "-shared", "-fPIC", "-fno-math-errno",
             "-ffp-contract=fast", "-fopenmp-simd"]
