@@ -1272,9 +1272,17 @@ def _finish_run(res: Any, out: Path, args: argparse.Namespace, elapsed: float, t
         f"(diverged {st['diverged']:.1f}, outside {st['outside']:.1f}, "
         f"low texture {st['low_texture']:.1f}, not computed {st['not_computed']:.1f})"
     )
+    import torch
+
+    from . import native
+
+    device = args.device
+    on_cpu = str(device).startswith("cpu")
+    kernels = "fused C++ kernels" if on_cpu and native.available() else "torch kernels"
+    threads = f", {torch.get_num_threads()} threads" if on_cpu else ""
     print(
         f"time: {_fmt_time(elapsed)} (strain included: {_fmt_time(elapsed_total)})   "
-        f"{poi / max(elapsed, 1e-9):.0f} POI/s"
+        f"{poi / max(elapsed, 1e-9):.0f} POI/s   ({device}, {kernels}{threads})"
     )
     print(f"results: {out} (fields u, v, ut, vt, zncc, status, {', '.join(fields)})")
     return 0

@@ -4,20 +4,22 @@ On a CPU the Gauss-Newton iteration is bound by B-spline sampling: every subset 
 every frame is 16 (cubic) or 36 (quintic) gathered coefficients, and a chain of torch
 operations writes each intermediate (N, T, S) tensor to memory. The kernels in
 ``_native/dic_kernels.cpp`` do warp + sample + criterion + reduction of one IC-GN step in
-one pass per point, with double accumulators, at about 10 ns per sample and thread.
+one pass per point (double accumulators across frames), about 7-9 ns per sample and thread
+(``scripts/bench_kernels.py``); also the reference subsets with gradients, the IC Hessian's
+moments and the recursive B-spline prefilter.
 
 * Built with the system C++ compiler (``$CXX``, else ``c++``/``g++``/``clang++``; the same
   one torch.compile needs on a CPU) into ``$TORCH_STSDIC_CACHE`` (default
   ``~/.cache/torch_stsdic``; a temp directory if that is not writable), keyed by source,
-  compiler and CPU; about 3 s, once. The build
-  targets the CPU it runs on (``-march=native``: AVX2 where present);
-  ``TORCH_STSDIC_NATIVE_MARCH`` names another target (e.g. ``x86-64-v2``) or, empty, the
-  compiler's portable default.
+  compiler and CPU; about 3 s, once. The build targets the CPU it runs on
+  (``-march=native``: AVX2 where present); ``TORCH_STSDIC_NATIVE_MARCH`` names another
+  target (e.g. ``x86-64-v2``) or, empty, the compiler's portable default.
 * Plain C ABI, no torch headers; tensors are passed as pointers. ctypes releases the GIL, so
   the rows are split over ``torch.get_num_threads()`` Python threads.
-* Used for CPU tensors of float32/float64 that do not require gradients. Everything else
-  (CUDA, autograd through the sampler) uses the torch code, which the tests compare with
-  these kernels. Without a compiler the torch code is used, with one warning.
+* Used for CPU tensors of float32/float64 outside autograd (nothing requiring gradients
+  while grad mode is on). Everything else (CUDA, autograd through the sampler) uses the
+  torch code, which the tests compare with these kernels. Without a compiler the torch code
+  is used, with one warning.
 
 Control: the environment variable ``TORCH_STSDIC_NATIVE`` ("auto" default, "0" off) or
 :func:`set_native`.
