@@ -23,6 +23,7 @@ from pathlib import Path
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as torch_stsdic does, before torch loads
 
 import torch  # noqa: E402
+from benchmark import _cpu_model  # noqa: E402  (scripts/benchmark.py, beside this file)
 
 from torch_stsdic import native  # noqa: E402
 from torch_stsdic.interpolation import BSplineImage, _sample_kernel  # noqa: E402
@@ -137,16 +138,6 @@ def main(argv=None) -> None:
     Path(args.out).write_text(json.dumps(rec, indent=1))
     print()
     print(table(rows))
-
-
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.lower().startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.machine()
 
 
 def table(rows) -> str:

@@ -208,9 +208,8 @@ def carry_from_seed(shape, params: torch.Tensor, offset: torch.Tensor) -> torch.
     """Initial parameters (N, P) at POIs ``offset`` (N, 2) px away from seeds with solved
     ``params`` (N, P): the seed's displacement polynomial evaluated at the offset; gradients
     and velocities are the seed's."""
-    ks = shape.spatial_basis(offset[:1, 0], offset[:1, 1]).shape[1]
-    k = shape.n_basis
     b = shape.spatial_basis(offset[:, 0], offset[:, 1]).to(params.dtype)  # (N, Ks)
+    ks, k = b.shape[1], shape.n_basis
     out = params.clone()
     out[:, 0] = (params[:, :ks] * b).sum(1)
     out[:, k] = (params[:, k : k + ks] * b).sum(1)

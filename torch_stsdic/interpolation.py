@@ -257,13 +257,14 @@ class BSplineImage:
         """
         x = x.to(self.dtype)
         y = y.to(self.dtype)
-        flat, wp, x_lo, x_hi, y_lo, y_hi, shift, plane = self.kernel_args()
+        ka = self.kernel_args()
+        flat, wp, x_lo, x_hi, y_lo, y_hi, shift, plane = ka
         if isinstance(frame, int):
             frame_t = torch.tensor(frame * plane, device=self.device)
         else:
             frame_t = torch.as_tensor(frame, device=self.device).long() * plane
-        if native.usable_image(self.kernel_args(), x, y):
-            return native.sample(self.kernel_args(), self.order, x, y, frame_t, grad)
+        if native.usable_image(ka, x, y):
+            return native.sample(ka, self.order, x, y, frame_t, grad)
         args = (flat, x, y, frame_t, wp, x_lo, x_hi, y_lo, y_hi, shift)
         kernel = _kernel(self.order, grad, x.numel() if work is None else work,
                          x.requires_grad or self._flat.requires_grad)

@@ -779,10 +779,11 @@ def _native_ic(ctx, data: _Batch, p) -> bool:
 def _step_joint_ic(ctx, data: _Batch, p, sel: torch.Tensor | None = None):
     """One IC-GN step of the joint formulation: H dp = -sum_t J_t^T e_t. ``sel`` (native
     kernel only): the rows of ``data`` that p's rows belong to."""
-    flat, wp, x_lo, x_hi, y_lo, y_hi, shift, plane = ctx.frames.kernel_args()
+    ka = ctx.frames.kernel_args()
+    flat, wp, x_lo, x_hi, y_lo, y_hi, shift, plane = ka
     if sel is not None:
         b, zn, outside = native.ic_rhs(
-            ctx.frames.kernel_args(), ctx.frames.order, p, data.px, data.py, ctx.dx, ctx.dy,
+            ka, ctx.frames.order, p, data.px, data.py, ctx.dx, ctx.dy,
             ctx.spatial, data.dt, data.fidx * plane, data.ft, data.fnorm, data.gx, data.gy,
             ctx.w, ctx.w_img, ctx.h, ctx.k, ctx.shape.has_time, ctx.cfg.criterion == "znssd",
             rows=sel,

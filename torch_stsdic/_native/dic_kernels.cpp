@@ -115,6 +115,41 @@ inline void tap_origins(const Geo& g, T ox, T oy, const T* dxu, const T* dyv, in
   }
 }
 
+#if defined(__AVX2__) && defined(__FMA__)
+// AVX2 helpers of the float cubic path: the 4 tap weights of x (low 128 bits) and of y (high
+// 128 bits) as one cubic polynomial per lane (Horner); value = sum of rows r_j * (wx * wy_j)
+// with two rows of 4 taps per 256-bit register.
+struct CubicAvx {
+  __m256 c3 = _mm256_setr_ps(-1.f / 6, 0.5f, -0.5f, 1.f / 6, -1.f / 6, 0.5f, -0.5f, 1.f / 6);
+  __m256 c2 = _mm256_setr_ps(0.5f, -1.f, 0.5f, 0.f, 0.5f, -1.f, 0.5f, 0.f);
+  __m256 c1 = _mm256_setr_ps(-0.5f, 0.f, 0.5f, 0.f, -0.5f, 0.f, 0.5f, 0.f);
+  __m256 c0 = _mm256_setr_ps(1.f / 6, 2.f / 3, 1.f / 6, 0.f, 1.f / 6, 2.f / 3, 1.f / 6, 0.f);
+  // derivative weights (quadratic)
+  __m256 d2 = _mm256_setr_ps(-0.5f, 1.5f, -1.5f, 0.5f, -0.5f, 1.5f, -1.5f, 0.5f);
+  __m256 d1 = _mm256_setr_ps(1.f, -2.f, 1.f, 0.f, 1.f, -2.f, 1.f, 0.f);
+  __m256 d0 = _mm256_setr_ps(-0.5f, 0.f, 0.5f, 0.f, -0.5f, 0.f, 0.5f, 0.f);
+
+  static __m256 frac(float fx, float fy) {
+    return _mm256_set_m128(_mm_set1_ps(fy), _mm_set1_ps(fx));
+  }
+  __m256 weights(__m256 f) const {
+    return _mm256_fmadd_ps(_mm256_fmadd_ps(_mm256_fmadd_ps(c3, f, c2), f, c1), f, c0);
+  }
+  __m256 dweights(__m256 f) const { return _mm256_fmadd_ps(_mm256_fmadd_ps(d2, f, d1), f, d0); }
+  // (w_y[0] | w_y[1]) and (w_y[2] | w_y[3]) broadcast over the 4 x taps of a row
+  static void rows_of(__m128 wy, __m256* w01, __m256* w23) {
+    *w01 = _mm256_set_m128(_mm_permute_ps(wy, 0x55), _mm_permute_ps(wy, 0x00));
+    *w23 = _mm256_set_m128(_mm_permute_ps(wy, 0xFF), _mm_permute_ps(wy, 0xAA));
+  }
+  static float hsum(__m256 acc) {
+    __m128 q = _mm_add_ps(_mm256_castps256_ps128(acc), _mm256_extractf128_ps(acc, 1));
+    q = _mm_add_ps(q, _mm_movehl_ps(q, q));
+    q = _mm_add_ss(q, _mm_shuffle_ps(q, q, 0x55));
+    return _mm_cvtss_f32(q);
+  }
+};
+#endif
+
 // Values of one frame at the points (ox + dxu[s], oy + dyv[s]), s < ns, into out[s].
 // Pass 1 (vectorised by the compiler): clamp, floor, 32-bit tap index within the plane and
 // the fractions; pass 2: the taps.
@@ -125,32 +160,18 @@ inline void sample_points(const T* plane, const Geo& g, T ox, T oy, const T* dxu
   const int64_t wpl = g.wp;
 #if defined(__AVX2__) && defined(__FMA__)
   if constexpr (ORDER == 3 && sizeof(T) == 4) {
-    // cubic B-spline weights as one cubic polynomial per lane (Horner), x in the low and
-    // y in the high 128 bits; two rows of 4 taps per 256-bit load
-    const __m256 c3 = _mm256_setr_ps(-1.f / 6, 0.5f, -0.5f, 1.f / 6, -1.f / 6, 0.5f, -0.5f, 1.f / 6);
-    const __m256 c2 = _mm256_setr_ps(0.5f, -1.f, 0.5f, 0.f, 0.5f, -1.f, 0.5f, 0.f);
-    const __m256 c1 = _mm256_setr_ps(-0.5f, 0.f, 0.5f, 0.f, -0.5f, 0.f, 0.5f, 0.f);
-    const __m256 c0 = _mm256_setr_ps(1.f / 6, 2.f / 3, 1.f / 6, 0.f, 1.f / 6, 2.f / 3, 1.f / 6, 0.f);
+    const CubicAvx k;
     for (int64_t s = 0; s < ns; ++s) {
-      const __m256 f = _mm256_set_m128(_mm_set1_ps(fys[s]), _mm_set1_ps(fxs[s]));
-      __m256 wv = _mm256_fmadd_ps(c3, f, c2);
-      wv = _mm256_fmadd_ps(wv, f, c1);
-      wv = _mm256_fmadd_ps(wv, f, c0);
+      const __m256 wv = k.weights(CubicAvx::frac(fxs[s], fys[s]));
       const __m128 wx = _mm256_castps256_ps128(wv);
-      const __m128 wy = _mm256_extractf128_ps(wv, 1);
       const __m256 wxx = _mm256_set_m128(wx, wx);
-      const __m256 w01 = _mm256_mul_ps(
-          wxx, _mm256_set_m128(_mm_permute_ps(wy, 0x55), _mm_permute_ps(wy, 0x00)));
-      const __m256 w23 = _mm256_mul_ps(
-          wxx, _mm256_set_m128(_mm_permute_ps(wy, 0xFF), _mm_permute_ps(wy, 0xAA)));
+      __m256 wy01, wy23;
+      CubicAvx::rows_of(_mm256_extractf128_ps(wv, 1), &wy01, &wy23);
       const float* r = plane + idx[s];
       const __m256 r01 = _mm256_loadu2_m128(r + wpl, r);
       const __m256 r23 = _mm256_loadu2_m128(r + 3 * wpl, r + 2 * wpl);
-      const __m256 acc = _mm256_fmadd_ps(r23, w23, _mm256_mul_ps(r01, w01));
-      __m128 q = _mm_add_ps(_mm256_castps256_ps128(acc), _mm256_extractf128_ps(acc, 1));
-      q = _mm_add_ps(q, _mm_movehl_ps(q, q));
-      q = _mm_add_ss(q, _mm_shuffle_ps(q, q, 0x55));
-      out[s] = _mm_cvtss_f32(q);
+      out[s] = CubicAvx::hsum(_mm256_fmadd_ps(r23, _mm256_mul_ps(wxx, wy23),
+                                              _mm256_mul_ps(r01, _mm256_mul_ps(wxx, wy01))));
     }
     return;
   }
@@ -180,41 +201,23 @@ inline void sample_points_grad(const T* plane, const Geo& g, T ox, T oy, const T
   const int64_t wpl = g.wp;
 #if defined(__AVX2__) && defined(__FMA__)
   if constexpr (ORDER == 3 && sizeof(T) == 4) {
-    const __m256 c3 = _mm256_setr_ps(-1.f / 6, 0.5f, -0.5f, 1.f / 6, -1.f / 6, 0.5f, -0.5f, 1.f / 6);
-    const __m256 c2 = _mm256_setr_ps(0.5f, -1.f, 0.5f, 0.f, 0.5f, -1.f, 0.5f, 0.f);
-    const __m256 c1 = _mm256_setr_ps(-0.5f, 0.f, 0.5f, 0.f, -0.5f, 0.f, 0.5f, 0.f);
-    const __m256 c0 = _mm256_setr_ps(1.f / 6, 2.f / 3, 1.f / 6, 0.f, 1.f / 6, 2.f / 3, 1.f / 6, 0.f);
-    const __m256 d2 = _mm256_setr_ps(-0.5f, 1.5f, -1.5f, 0.5f, -0.5f, 1.5f, -1.5f, 0.5f);
-    const __m256 d1 = _mm256_setr_ps(1.f, -2.f, 1.f, 0.f, 1.f, -2.f, 1.f, 0.f);
-    const __m256 d0 = _mm256_setr_ps(-0.5f, 0.f, 0.5f, 0.f, -0.5f, 0.f, 0.5f, 0.f);
-    auto hsum = [](__m256 acc) {
-      __m128 q = _mm_add_ps(_mm256_castps256_ps128(acc), _mm256_extractf128_ps(acc, 1));
-      q = _mm_add_ps(q, _mm_movehl_ps(q, q));
-      q = _mm_add_ss(q, _mm_shuffle_ps(q, q, 0x55));
-      return _mm_cvtss_f32(q);
-    };
+    const CubicAvx k;
     for (int64_t s = 0; s < ns; ++s) {
-      const __m256 f = _mm256_set_m128(_mm_set1_ps(fys[s]), _mm_set1_ps(fxs[s]));
-      __m256 wv = _mm256_fmadd_ps(c3, f, c2);
-      wv = _mm256_fmadd_ps(wv, f, c1);
-      wv = _mm256_fmadd_ps(wv, f, c0);
-      __m256 dv = _mm256_fmadd_ps(d2, f, d1);
-      dv = _mm256_fmadd_ps(dv, f, d0);
-      const __m128 wx = _mm256_castps256_ps128(wv), wy = _mm256_extractf128_ps(wv, 1);
-      const __m128 dx = _mm256_castps256_ps128(dv), dy = _mm256_extractf128_ps(dv, 1);
+      const __m256 f = CubicAvx::frac(fxs[s], fys[s]);
+      const __m256 wv = k.weights(f), dv = k.dweights(f);
+      const __m128 wx = _mm256_castps256_ps128(wv), dx = _mm256_castps256_ps128(dv);
       const __m256 wxx = _mm256_set_m128(wx, wx), dxx = _mm256_set_m128(dx, dx);
-      const __m256 wy01 = _mm256_set_m128(_mm_permute_ps(wy, 0x55), _mm_permute_ps(wy, 0x00));
-      const __m256 wy23 = _mm256_set_m128(_mm_permute_ps(wy, 0xFF), _mm_permute_ps(wy, 0xAA));
-      const __m256 dy01 = _mm256_set_m128(_mm_permute_ps(dy, 0x55), _mm_permute_ps(dy, 0x00));
-      const __m256 dy23 = _mm256_set_m128(_mm_permute_ps(dy, 0xFF), _mm_permute_ps(dy, 0xAA));
+      __m256 wy01, wy23, dy01, dy23;
+      CubicAvx::rows_of(_mm256_extractf128_ps(wv, 1), &wy01, &wy23);
+      CubicAvx::rows_of(_mm256_extractf128_ps(dv, 1), &dy01, &dy23);
       const float* r = plane + idx[s];
       const __m256 r01 = _mm256_loadu2_m128(r + wpl, r);
       const __m256 r23 = _mm256_loadu2_m128(r + 3 * wpl, r + 2 * wpl);
       const __m256 a01 = _mm256_mul_ps(r01, wxx), a23 = _mm256_mul_ps(r23, wxx);
-      out[s] = hsum(_mm256_fmadd_ps(a23, wy23, _mm256_mul_ps(a01, wy01)));
-      gy[s] = hsum(_mm256_fmadd_ps(a23, dy23, _mm256_mul_ps(a01, dy01)));
+      out[s] = CubicAvx::hsum(_mm256_fmadd_ps(a23, wy23, _mm256_mul_ps(a01, wy01)));
+      gy[s] = CubicAvx::hsum(_mm256_fmadd_ps(a23, dy23, _mm256_mul_ps(a01, dy01)));
       const __m256 b01 = _mm256_mul_ps(r01, dxx), b23 = _mm256_mul_ps(r23, dxx);
-      gx[s] = hsum(_mm256_fmadd_ps(b23, wy23, _mm256_mul_ps(b01, wy01)));
+      gx[s] = CubicAvx::hsum(_mm256_fmadd_ps(b23, wy23, _mm256_mul_ps(b01, wy01)));
     }
     return;
   }
