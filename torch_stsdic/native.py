@@ -161,29 +161,36 @@ def build(verbose: bool = False) -> Path:
     raise RuntimeError(f"compiling {_SOURCE.name} failed: {'; '.join(errors)}")
 
 
+_ABI = 4  # sts_abi_version() of the matching dic_kernels.cpp
+_GEO = [_ptr, _i64, _dbl, _dbl, _dbl, _dbl, _i64, _int]  # coefficients, geometry, order
+_SIGNATURES = {  # kernel -> argument types (each exists as <kernel>_f32 and <kernel>_f64)
+    "sts_sample": _GEO + [_ptr, _ptr, _ptr, _i64, _i64, _i64, _ptr, _ptr, _ptr],
+    "sts_subsets": _GEO + [_i64] * 3 + [_ptr] * 8,
+    "sts_ic_rhs": _GEO + [_i64] * 6 + [_int, _int] + [_ptr] * 14 + [_dbl, _dbl] + [_ptr] * 3,
+    "sts_prefilter": [_ptr, _i64, _i64, _i64, _int, _int, _i64, _i64],
+    "sts_gram": [_i64] * 4 + [_ptr] * 6,
+}
+
+
 def _declare(lib: ctypes.CDLL) -> None:
-    geo = [_ptr, _i64, _dbl, _dbl, _dbl, _dbl, _i64, _int]
-    for name in ("sts_sample_f32", "sts_sample_f64"):
-        fn = getattr(lib, name)
-        fn.restype = _int
-        fn.argtypes = geo + [_ptr, _ptr, _ptr, _i64, _i64, _i64, _ptr, _ptr, _ptr]
-    for name in ("sts_ic_rhs_f32", "sts_ic_rhs_f64"):
-        fn = getattr(lib, name)
-        fn.restype = _int
-        fn.argtypes = geo + [_i64] * 6 + [_int, _int] + [_ptr] * 14 + [_dbl, _dbl] + [_ptr] * 3
-    for name in ("sts_subsets_f32", "sts_subsets_f64"):
-        fn = getattr(lib, name)
-        fn.restype = _int
-        fn.argtypes = geo + [_i64] * 3 + [_ptr] * 8
-    for name in ("sts_prefilter_f32", "sts_prefilter_f64"):
-        fn = getattr(lib, name)
-        fn.restype = _int
-        fn.argtypes = [_ptr, _i64, _i64, _i64, _int, _int, _i64, _i64]
-    for name in ("sts_gram_f32", "sts_gram_f64"):
-        fn = getattr(lib, name)
-        fn.restype = _int
-        fn.argtypes = [_i64] * 4 + [_ptr] * 6
+    for base, argtypes in _SIGNATURES.items():
+        for suffix in ("_f32", "_f64"):
+            fn = getattr(lib, base + suffix)
+            fn.restype = _int
+            fn.argtypes = argtypes
     lib.sts_abi_version.restype = _int
+
+
+def _kernel(base: str, dtype: torch.dtype):
+    """The float32 or float64 variant of a kernel."""
+    return getattr(_load(), base + ("_f32" if dtype == torch.float32 else "_f64"))
+
+
+def _geo(img_args: tuple, order: int, flat: torch.Tensor) -> tuple:
+    """The leading arguments shared by the sampling kernels: coefficients pointer (``flat``,
+    contiguous, kept alive by the caller), padded width, clamp range, tap shift, order."""
+    _, wp, x_lo, x_hi, y_lo, y_hi, shift, _plane = img_args
+    return (flat.data_ptr(), wp, x_lo, x_hi, y_lo, y_hi, shift, order)
 
 
 def _load() -> ctypes.CDLL | None:
@@ -196,7 +203,7 @@ def _load() -> ctypes.CDLL | None:
         try:
             lib = ctypes.CDLL(str(build()))
             _declare(lib)
-            if lib.sts_abi_version() != 4:
+            if lib.sts_abi_version() != _ABI:
                 raise RuntimeError("stale kernel library")
             _LIB = lib
         except (RuntimeError, OSError, AttributeError) as exc:
@@ -268,8 +275,7 @@ def sample(img_args: tuple, order: int, x: torch.Tensor, y: torch.Tensor,
     """Native twin of interpolation._sample_kernel: values (shape of x) and, with grad, d/dx
     and d/dy. ``frame_off`` (int64 plane offsets) broadcasts against x (e.g. (N, 1) for
     (N, S) points)."""
-    lib = _load()
-    flat, wp, x_lo, x_hi, y_lo, y_hi, shift, _plane = img_args
+    flat = img_args[0].contiguous()
     dtype = flat.dtype
     shape = torch.broadcast_shapes(x.shape, y.shape, frame_off.shape)
     xc = x.to(dtype).expand(shape).contiguous()
@@ -293,11 +299,9 @@ def sample(img_args: tuple, order: int, x: torch.Tensor, y: torch.Tensor,
     val = torch.empty(shape, dtype=dtype)
     gx = torch.empty(shape, dtype=dtype) if grad else None
     gy = torch.empty(shape, dtype=dtype) if grad else None
-    fn = lib.sts_sample_f32 if dtype == torch.float32 else lib.sts_sample_f64
-    flat_c = flat.contiguous()
-    _run_rows(fn, n, 1,
-              (flat_c.data_ptr(), wp, x_lo, x_hi, y_lo, y_hi, shift, order,
-               xc.data_ptr(), yc.data_ptr(), off_c.data_ptr(), period),
+    _run_rows(_kernel("sts_sample", dtype), n, 1,
+              (*_geo(img_args, order, flat), xc.data_ptr(), yc.data_ptr(), off_c.data_ptr(),
+               period),
               (val.data_ptr(), _p(gx), _p(gy)))
     return (val, gx, gy) if grad else val
 
@@ -305,8 +309,7 @@ def sample(img_args: tuple, order: int, x: torch.Tensor, y: torch.Tensor,
 def subsets(img_args: tuple, order: int, px, py, dx, dy, frame_off, grad: bool):
     """Samples of whole subsets: (px[i] + dx[s], py[i] + dy[s]) in the plane at frame_off[i];
     px, py, frame_off (N,) (or (N, 1)), dx, dy (S,). Returns values (N, S) (and d/dx, d/dy)."""
-    lib = _load()
-    flat = img_args[0]
+    flat = img_args[0].contiguous()
     dtype = flat.dtype
     n, ns = px.numel(), dx.numel()
     tens = [t.to(dtype).reshape(-1).contiguous() for t in (px, py, dx, dy)]
@@ -314,10 +317,7 @@ def subsets(img_args: tuple, order: int, px, py, dx, dy, frame_off, grad: bool):
     val = torch.empty(n, ns, dtype=dtype)
     gx = torch.empty(n, ns, dtype=dtype) if grad else None
     gy = torch.empty(n, ns, dtype=dtype) if grad else None
-    fn = lib.sts_subsets_f32 if dtype == torch.float32 else lib.sts_subsets_f64
-    _, wp, x_lo, x_hi, y_lo, y_hi, shift, _plane = img_args
-    flat_c = flat.contiguous()
-    _run_rows(fn, n, ns, (flat_c.data_ptr(), wp, x_lo, x_hi, y_lo, y_hi, shift, order),
+    _run_rows(_kernel("sts_subsets", dtype), n, ns, _geo(img_args, order, flat),
               (ns, *[t.data_ptr() for t in tens], off.data_ptr(), val.data_ptr(), _p(gx),
                _p(gy)))
     return (val, gx, gy) if grad else val
@@ -330,29 +330,22 @@ def ic_rhs(img_args: tuple, order: int, p, px, py, dx, dy, basis, dt, frame_off,
     dx/dy/w (S,), basis (S, Ks), dt and frame_off (N, T), ft/gx/gy (N, S), fnorm (N,);
     ``rows`` (M,) picks the per-point data rows of p's rows (default: M = N, row j = j).
     Returns b (M, 2k) float64, per-POI mean ZNCC (M,) and the outside flag (M,) bool."""
-    lib = _load()
-    flat = img_args[0]
+    flat = img_args[0].contiguous()
     dtype = flat.dtype
     nt = dt.shape[1]
     n = p.shape[0]
     ns, ks = basis.shape
-    rows_c = None if rows is None else rows.to(torch.int64).contiguous()
 
     def c(t):
         return t.to(dtype).contiguous()
 
     tens = [c(p), c(px.reshape(-1)), c(py.reshape(-1)), c(dx), c(dy), c(basis), c(dt),
             frame_off.to(torch.int64).contiguous(), c(ft), c(fnorm.reshape(-1)), c(gx), c(gy),
-            c(w)]
-    tens.append(rows_c)
+            c(w), None if rows is None else rows.to(torch.int64).contiguous()]
     b = torch.empty(n, 2 * k, dtype=torch.float64)
     zn = torch.empty(n, dtype=dtype)
     out = torch.empty(n, dtype=torch.uint8)
-    fn = lib.sts_ic_rhs_f32 if dtype == torch.float32 else lib.sts_ic_rhs_f64
-    _, wp, x_lo, x_hi, y_lo, y_hi, shift, _plane = img_args
-    flat_c = flat.contiguous()
-    _run_rows(fn, n, nt * ns,
-              (flat_c.data_ptr(), wp, x_lo, x_hi, y_lo, y_hi, shift, order),
+    _run_rows(_kernel("sts_ic_rhs", dtype), n, nt * ns, _geo(img_args, order, flat),
               (nt, ns, ks, k, int(has_time), int(znssd), *[_p(t) for t in tens],
                float(w_img), float(h), b.data_ptr(), zn.data_ptr(), out.data_ptr()))
     return b, zn, out.bool()
@@ -361,7 +354,6 @@ def ic_rhs(img_args: tuple, order: int, p, px, py, dx, dy, basis, dt, frame_off,
 def gram(gx: torch.Tensor, gy: torch.Tensor, basis: torch.Tensor, w: torch.Tensor):
     """Native twin of solver._gram: G (N, P', P') and m (N, P') in float64 for the augmented
     steepest-descent images [gx B, gx, gy B, gy] (P' = 2 (Ks + 1)) weighted by w (S,)."""
-    lib = _load()
     dtype = gx.dtype
     n, ns = gx.shape
     ks = basis.shape[1]
@@ -369,9 +361,8 @@ def gram(gx: torch.Tensor, gy: torch.Tensor, basis: torch.Tensor, w: torch.Tenso
     tens = [t.to(dtype).contiguous() for t in (gx, gy, basis, w)]
     g = torch.empty(n, npa, npa, dtype=torch.float64)
     m = torch.empty(n, npa, dtype=torch.float64)
-    fn = lib.sts_gram_f32 if dtype == torch.float32 else lib.sts_gram_f64
-    _run_rows(fn, n, ns * npa, (), (ns, ks, *[t.data_ptr() for t in tens], g.data_ptr(),
-                                    m.data_ptr()))
+    _run_rows(_kernel("sts_gram", dtype), n, ns * npa, (),
+              (ns, ks, *[t.data_ptr() for t in tens], g.data_ptr(), m.data_ptr()))
     return g, m
 
 
@@ -379,11 +370,10 @@ def prefilter(images: torch.Tensor, order: int) -> torch.Tensor:
     """Native twin of interpolation.bspline_prefilter for (..., H, W) float32/float64 CPU
     tensors: the recursive filter (two passes per pole and axis), mirror boundary. Returns a
     new tensor."""
-    lib = _load()
     h, w = images.shape[-2:]
-    out = images.contiguous().clone()
+    out = images.clone(memory_format=torch.contiguous_format)  # filtered in place
     planes = out.numel() // max(1, h * w)
-    fn = lib.sts_prefilter_f32 if out.dtype == torch.float32 else lib.sts_prefilter_f64
+    fn = _kernel("sts_prefilter", out.dtype)
     if w >= 2:
         _run_rows(fn, planes * h, w * 4, (out.data_ptr(), planes, h, w, order, 1), ())
     if h >= 2:
