@@ -958,105 +958,22 @@ def main(argv: Sequence[str] | None = None) -> int:
 # ----------------------------------------------------------------------------------------
 
 
-def _read_table(path: str, option: str) -> tuple[list[str] | None, np.ndarray]:
-    """A small numeric text table (CSV, or whitespace separated; '#' comments; optional
-    header line). Returns (header or None, (rows, cols) float array)."""
-    p = Path(path)
-    if not p.is_file():
-        raise CommandError(f"{option} {path}: file not found")
-    try:
-        text = p.read_text(encoding="utf-8-sig")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise CommandError(f"{option} {path}: cannot read: {exc}") from exc
-    header: list[str] | None = None
-    rows: list[list[float]] = []
-    ncol = None
-    for lineno, raw in enumerate(text.splitlines(), start=1):
-        line = raw.strip()
-        if not line or line.startswith("#"):
-            continue
-        cells = [c.strip() for c in (line.split(",") if "," in line else line.split())]
-        try:
-            vals = [float(c) for c in cells]
-        except ValueError:
-            if header is None and not rows:
-                header = [c.strip().strip('"').lower() for c in cells]
-                continue
-            raise CommandError(f"{option} {path}, line {lineno}: not numbers: {line!r}") from None
-        if ncol is None:
-            ncol = len(vals)
-        elif len(vals) != ncol:
-            raise CommandError(
-                f"{option} {path}, line {lineno}: {len(vals)} values, expected {ncol}"
-            )
-        rows.append(vals)
-    if not rows:
-        raise CommandError(f"{option} {path}: no numbers in the file")
-    arr = np.asarray(rows, dtype=np.float64)
-    if not np.isfinite(arr).all():
-        raise CommandError(f"{option} {path}: contains non-finite values")
-    return header, arr
-
-
 def _read_timestamps(path: str) -> np.ndarray:
-    header, arr = _read_table(path, "--timestamps")
-    col = arr.shape[1] - 1
-    if header is not None:
-        for name in ("time", "t", "times", "timestamp", "timestamps"):
-            if name in header:
-                col = header.index(name)
-                break
-        if col >= arr.shape[1]:
-            raise CommandError(f"--timestamps {path}: header and data columns do not match")
-    return arr[:, col]
+    from .io import read_timestamps
+
+    return read_timestamps(path, "--timestamps")
 
 
 def _read_points(path: str, shape: tuple[int, int]) -> np.ndarray:
-    header, arr = _read_table(path, "--points")
-    cx, cy = 0, 1
-    if header is not None and "x" in header and "y" in header:
-        cx, cy = header.index("x"), header.index("y")
-    if arr.shape[1] <= max(cx, cy):
-        raise CommandError(f"--points {path}: needs two columns x, y (px)")
-    pts = arr[:, [cx, cy]]
-    h, w = shape
-    bad = (pts[:, 0] < 0) | (pts[:, 0] > w - 1) | (pts[:, 1] < 0) | (pts[:, 1] > h - 1)
-    if bad.any():
-        k = int(np.flatnonzero(bad)[0])
-        raise CommandError(
-            f"--points {path}: point {k} ({pts[k, 0]:g}, {pts[k, 1]:g}) is outside the "
-            f"{w}x{h} (WxH) image ({int(bad.sum())} point(s) outside)"
-        )
-    return pts
+    from .io import read_points
+
+    return read_points(path, shape, "--points")
 
 
 def _read_mask(path: str, shape: tuple[int, int]) -> np.ndarray:
-    from .io import load_series
+    from .io import read_mask
 
-    p = Path(path)
-    if not p.exists():
-        raise CommandError(f"--mask {path}: file not found")
-    if p.suffix.lower() == ".npy":
-        try:
-            arr = np.load(p, allow_pickle=False)
-        except (OSError, ValueError) as exc:
-            raise CommandError(f"--mask {path}: cannot read: {exc}") from exc
-    else:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            m = load_series(p)
-        arr = m.numpy(0)
-    arr = np.squeeze(arr)
-    if arr.shape != tuple(shape):
-        h, w = shape
-        raise CommandError(
-            f"--mask {path}: mask is {arr.shape[0] if arr.ndim else 0}x"
-            f"{arr.shape[1] if arr.ndim > 1 else 0} (HxW) but the images are {h}x{w}"
-        )
-    mask = arr > 0 if arr.dtype != bool else arr
-    if not mask.any():
-        raise CommandError(f"--mask {path}: no non-zero pixel, no point to measure")
-    return mask
+    return read_mask(path, shape, "--mask")
 
 
 def _open_series(inputs: Sequence[str], timestamps: np.ndarray | None) -> Any:
@@ -1094,30 +1011,6 @@ def _check_device(device: str) -> Any:
 # ----------------------------------------------------------------------------------------
 # result-file helpers
 # ----------------------------------------------------------------------------------------
-
-
-def _add_fields(path: Path, values: dict[str, np.ndarray], attrs: dict[str, Any]) -> None:
-    """Add (F, N) float fields (e.g. strains) to a finished result file."""
-    import h5py
-
-    with h5py.File(path, "r+") as f:
-        names = json.loads(f.attrs.get("fields", "[]"))
-        n_f, n_p = len(f["frames"]), len(f["points"])
-        for name, a in values.items():
-            a = np.asarray(a, dtype=np.float32)
-            if a.shape != (n_f, n_p):
-                raise ValueError(f"field {name}: shape {a.shape}, expected ({n_f}, {n_p})")
-            if name in f:
-                f[name][...] = a
-            else:
-                rows = max(1, min(n_f, (64 << 10) // max(1, 4 * n_p)))
-                chunks = (rows, n_p) if n_f and n_p else None
-                f.create_dataset(name, data=a, chunks=chunks, fillvalue=np.nan)
-            if name not in names:
-                names.append(name)
-        f.attrs["fields"] = json.dumps(names)
-        for k, v in attrs.items():
-            f.attrs[k] = v
 
 
 def _status_summary(status: np.ndarray) -> dict[str, float]:
@@ -1251,10 +1144,12 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def _finish_run(res: Any, out: Path, args: argparse.Namespace, elapsed: float, t0: float) -> int:
+    from .io import add_fields
+
     # strains, added to the finished file
     strain = res.strain(window=args.strain_window, kind=args.strain_kind)
     fields = {k: _np(v) for k, v in strain.items() if _np(v).shape == _np(res.u).shape}
-    _add_fields(
+    add_fields(
         out,
         fields,
         {"strain": json.dumps({"window": args.strain_window, "kind": args.strain_kind})},

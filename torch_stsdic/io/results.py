@@ -1,0 +1,565 @@
+"""HDF5 result files: written row by row as a run goes, read back, and extended (strains).
+
+:class:`ResultWriter` writes an HDF5 file row by row (one row = one output frame) and flushes
+after every :meth:`ResultWriter.write_rows`, so a killed run leaves a readable file holding
+every finished row (``completed`` flags). ``resume=True`` continues such a file.
+:func:`read_results` loads one; :func:`add_fields` adds (F, N) fields (e.g. strains) to a
+finished one. This module is the only one that knows the file layout.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import os
+import warnings
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+import torch
+
+from ..status import Status
+
+__all__ = [
+    "CSV_COLUMNS",
+    "DEFAULT_FIELDS",
+    "RESULTS_FORMAT",
+    "RESULTS_FORMAT_VERSION",
+    "STRAIN_FIELDS",
+    "ResultFileError",
+    "ResultWriter",
+    "Results",
+    "add_fields",
+    "field_names",
+    "open_results",
+    "read_results",
+]
+
+
+class ResultFileError(ValueError):
+    """A result file is not a torch_stsdic file, or does not match the run that resumes it."""
+
+
+# ----------------------------------------------------------------------------------------
+# HDF5 results
+# ----------------------------------------------------------------------------------------
+
+RESULTS_FORMAT = "torch_stsdic-results"
+RESULTS_FORMAT_VERSION = 1
+DEFAULT_FIELDS: tuple[str, ...] = ("u", "v", "ut", "vt", "zncc", "status")
+STRAIN_FIELDS: tuple[str, ...] = ("exx", "eyy", "exy")
+CSV_COLUMNS: tuple[str, ...] = (
+    "x", "y", "u", "v", "ut", "vt", "exx", "eyy", "exy", "zncc", "status",
+)  # fmt: skip
+_RESERVED = {"points", "frames", "times", "completed"}
+_INT_FIELDS: dict[str, tuple[type, int]] = {
+    "status": (np.int8, int(Status.NOT_COMPUTED)),
+    "iterations": (np.int16, -1),
+}
+
+
+def _field_dtype(name: str) -> tuple[type, float | int]:
+    return _INT_FIELDS.get(name, (np.float32, np.nan))
+
+
+def _software_version() -> str:
+    try:
+        from importlib.metadata import version
+
+        return version("torch_stsdic")
+    except Exception:
+        return "unknown"
+
+
+def _now() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, torch.Tensor):
+        return o.detach().cpu().tolist()
+    if isinstance(o, (Path, torch.dtype, torch.device)):
+        return str(o)
+    if isinstance(o, (set, frozenset)):
+        return sorted(o)
+    raise TypeError(f"config value of type {type(o).__name__} is not JSON serialisable")
+
+
+def _config_json(config: Mapping[str, Any]) -> str:
+    return json.dumps(dict(config), sort_keys=True, default=_json_default, allow_nan=True)
+
+
+def _as_numpy(x: Any) -> np.ndarray:
+    if isinstance(x, torch.Tensor):
+        return x.detach().cpu().numpy()
+    return np.asarray(x)
+
+
+def _chunks(n_rows: int, n_cols: int, itemsize: int) -> tuple[int, int] | None:
+    if n_rows == 0 or n_cols == 0:
+        return None
+    cols = min(n_cols, max(1, (4 << 20) // itemsize))  # <= 4 MiB per row chunk
+    rows = max(1, min(n_rows, (64 << 10) // (cols * itemsize)))  # >= ~64 KiB when N small
+    return rows, cols
+
+
+def _diff_config(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[str]:
+    out = []
+    for k in sorted(set(old) | set(new)):
+        if k not in old:
+            out.append(f"{k}: (absent) -> {new[k]!r}")
+        elif k not in new:
+            out.append(f"{k}: {old[k]!r} -> (absent)")
+        elif old[k] != new[k]:
+            out.append(f"{k}: {old[k]!r} -> {new[k]!r}")
+    return [s if len(s) < 200 else s[:197] + "..." for s in out]
+
+
+class ResultWriter:
+    """Write DIC results to HDF5, one row (= one output frame) at a time.
+
+    Layout: ``points`` (N, 2) float64 (x, y), ``frames`` (F,) int64 image indices,
+    ``times`` (F,) float64, one (F, N) dataset per field (float32 filled with NaN;
+    ``status`` int8 filled with ``Status.NOT_COMPUTED``; ``iterations`` int16 filled with -1),
+    ``completed`` (F,) bool. Root attributes: ``format``, ``version``, ``software_version``,
+    ``created``, ``config`` (JSON), ``inputs`` (JSON list), ``fields`` (JSON list).
+
+    Every :meth:`write_rows` flushes the file, so a killed process leaves a readable file
+    with all rows written so far flagged in ``completed``.
+
+    Safety: a new ``path`` is written in place (a killed run keeps its rows). An existing
+    ``path`` is an error unless ``overwrite=True`` - then the new results go to
+    ``<path>.partial``, atomically renamed over ``path`` by :meth:`close` (the old file stays
+    intact until then; after a kill or an exception inside ``with`` the ``.partial`` remains
+    and can be resumed) - or ``resume=True``: the file (or its ``.partial``, preferred) is
+    reopened after checking that points, frames, times, fields and config match
+    (:class:`ResultFileError` otherwise; top-level config keys in ``resume_ignore`` are not
+    compared); finished rows are kept, see :meth:`pending_rows`. ``resume=True`` on a
+    missing file starts a new one.
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike[str],
+        *,
+        points: Any,
+        frames: Any,
+        times: Any,
+        config: Mapping[str, Any],
+        inputs: Sequence[str],
+        fields: Sequence[str] = DEFAULT_FIELDS,
+        extra_fields: Sequence[str] = (),
+        resume: bool = False,
+        overwrite: bool = False,
+        resume_ignore: Sequence[str] = (),
+        attrs: Mapping[str, Any] | None = None,
+    ) -> None:
+        if resume and overwrite:
+            raise ValueError("ResultWriter: choose either resume=True or overwrite=True")
+        self.path = Path(path)
+        self._partial = self.path.with_name(self.path.name + ".partial")
+        self._rename_on_close = False
+        self._file: h5py.File | None = None
+
+        pts = np.asarray(_as_numpy(points), dtype=np.float64)
+        if pts.ndim != 2 or pts.shape[1] != 2:
+            raise ValueError(f"points must have shape (N, 2), got {pts.shape}")
+        if not np.isfinite(pts).all():
+            raise ValueError("points must be finite")
+        fr = np.asarray(_as_numpy(frames))
+        if fr.ndim != 1 or (fr.size and fr.dtype.kind not in "iu"):
+            raise ValueError(f"frames must be a 1-D integer array, got {fr.dtype} {fr.shape}")
+        fr = fr.astype(np.int64)
+        if len(np.unique(fr)) != len(fr):
+            raise ValueError("frames must not contain duplicates")
+        tm = np.asarray(_as_numpy(times), dtype=np.float64)
+        if tm.shape != fr.shape:
+            raise ValueError(f"times must have shape {fr.shape} like frames, got {tm.shape}")
+        names = list(fields) + list(extra_fields)
+        for nme in names:
+            if not isinstance(nme, str) or not nme.isidentifier() or nme in _RESERVED:
+                raise ValueError(f"invalid field name {nme!r}")
+        if len(set(names)) != len(names):
+            raise ValueError(f"duplicate field names in {names}")
+        self.points, self.frames, self.times = pts, fr, tm
+        self.fields: tuple[str, ...] = tuple(fields)
+        self.extra_fields: tuple[str, ...] = tuple(extra_fields)
+        self.config: dict[str, Any] = json.loads(_config_json(config))
+        self.inputs = [str(s) for s in inputs]
+        self._resume_ignore = set(resume_ignore)
+        self._attrs = dict(attrs or {})
+
+        if self.path.is_dir():
+            raise IsADirectoryError(f"result path is a directory: {self.path}")
+        if resume:
+            self._open_resume()
+        elif self.path.exists():
+            if not overwrite:
+                raise FileExistsError(
+                    f"result file {self.path} exists: pass overwrite=True to replace it "
+                    "(atomically, at close) or resume=True to continue it"
+                )
+            self._create(self._partial, mode="w")
+            self._rename_on_close = True
+        else:
+            if self._partial.exists():  # left by a killed overwrite of a since-deleted file
+                warnings.warn(f"removing stale {self._partial}", stacklevel=2)
+                self._partial.unlink()
+            self._create(self.path, mode="x")
+
+    # -- opening --------------------------------------------------------------------------
+    def _create(self, target: Path, mode: str) -> None:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        f = h5py.File(target, mode)
+        try:
+            f.attrs["format"] = RESULTS_FORMAT
+            f.attrs["version"] = RESULTS_FORMAT_VERSION
+            f.attrs["software_version"] = _software_version()
+            f.attrs["created"] = _now()
+            f.attrs["config"] = _config_json(self.config)
+            f.attrs["inputs"] = json.dumps(self.inputs)
+            f.attrs["fields"] = json.dumps(list(self.fields + self.extra_fields))
+            f.attrs["status_codes"] = Status.describe()
+            for k, v in self._attrs.items():
+                f.attrs[k] = v
+            n_f, n_p = len(self.frames), len(self.points)
+            f.create_dataset("points", data=self.points)
+            f.create_dataset("frames", data=self.frames)
+            f.create_dataset("times", data=self.times)
+            for name in self.fields + self.extra_fields:
+                dt, fill = _field_dtype(name)
+                f.create_dataset(
+                    name,
+                    shape=(n_f, n_p),
+                    dtype=dt,
+                    fillvalue=fill,
+                    chunks=_chunks(n_f, n_p, np.dtype(dt).itemsize),
+                )
+            f.create_dataset("completed", data=np.zeros(n_f, dtype=bool))
+            f.flush()
+        except BaseException:
+            f.close()
+            target.unlink(missing_ok=True)
+            raise
+        self._file = f
+        self._target = target
+
+    def _check_match(self, f: h5py.File, where: Path) -> list[str]:
+        problems: list[str] = []
+        if f.attrs.get("format") != RESULTS_FORMAT:
+            return [f"{where} is not a {RESULTS_FORMAT} file"]
+        for name in ("points", "frames", "times", "completed", *self.fields, *self.extra_fields):
+            if name not in f:
+                problems.append(f"dataset {name!r} missing")
+        if problems:
+            return problems
+        pts = f["points"][()]
+        if pts.shape != self.points.shape:
+            problems.append(f"points: {pts.shape[0]} in file, {len(self.points)} now")
+        elif not np.array_equal(pts, self.points):
+            problems.append("points: same count but different coordinates")
+        fr = f["frames"][()]
+        if not np.array_equal(fr, self.frames):
+            problems.append(f"frames differ ({len(fr)} in file, {len(self.frames)} now)")
+        elif not np.allclose(f["times"][()], self.times, rtol=1e-12, atol=0, equal_nan=True):
+            problems.append("times differ")
+        try:
+            old = json.loads(f.attrs.get("config", "{}"))
+        except json.JSONDecodeError:
+            old = {}
+        new = self.config
+        ign = self._resume_ignore
+        diff = _diff_config(
+            {k: v for k, v in old.items() if k not in ign},
+            {k: v for k, v in new.items() if k not in ign},
+        )
+        if diff:
+            problems.append("config differs: " + "; ".join(diff))
+        return problems
+
+    def _open_resume(self) -> None:
+        candidates = [p for p in (self._partial, self.path) if p.exists()]
+        if not candidates:
+            self._create(self.path, mode="x")
+            return
+        first_problems: list[str] | None = None
+        for cand in candidates:
+            try:
+                f = h5py.File(cand, "r+")
+            except OSError as exc:
+                probs = [f"cannot open {cand}: {exc}"]
+            else:
+                probs = self._check_match(f, cand)
+                if not probs:
+                    self._file = f
+                    self._target = cand
+                    self._rename_on_close = cand == self._partial
+                    old_inputs = json.loads(f.attrs.get("inputs", "[]"))
+                    if old_inputs != self.inputs:
+                        warnings.warn(
+                            f"resuming {cand}: input files differ from the recorded ones",
+                            stacklevel=3,
+                        )
+                    hist = json.loads(f.attrs.get("resumed", "[]"))
+                    f.attrs["resumed"] = json.dumps([*hist, _now()])
+                    f.flush()
+                    return
+                f.close()
+            if first_problems is None:
+                first_problems = [f"{cand}: {p}" for p in probs]
+        raise ResultFileError(
+            "cannot resume: "
+            + " | ".join(first_problems or [])
+            + " (use overwrite=True to start again)"
+        )
+
+    # -- writing --------------------------------------------------------------------------
+    @property
+    def n_rows(self) -> int:
+        """F, the number of output frames (rows)."""
+        return len(self.frames)
+
+    @property
+    def n_points(self) -> int:
+        """N, the number of points."""
+        return len(self.points)
+
+    @property
+    def file_path(self) -> Path:
+        """File being written now (``path`` or ``<path>.partial``)."""
+        return self._target
+
+    def _h5(self) -> h5py.File:
+        if self._file is None:
+            raise ValueError(f"ResultWriter for {self.path} is closed")
+        return self._file
+
+    def write_rows(
+        self,
+        row_indices: Any,
+        values: Mapping[str, Any],
+        *,
+        mark_completed: bool = True,
+    ) -> None:
+        """Write rows ``row_indices`` (k,) (positions in ``frames``, not image indices).
+
+        ``values`` maps field names to ``(k, N)`` arrays/tensors (``(N,)`` if k == 1). All
+        of ``fields`` are required when ``mark_completed``; ``extra_fields`` are optional.
+        The rows are then flagged completed and the file is flushed.
+        """
+        f = self._h5()
+        rows = np.atleast_1d(np.asarray(_as_numpy(row_indices)))
+        if rows.ndim != 1 or (rows.size and rows.dtype.kind not in "iu"):
+            raise ValueError(f"row_indices must be integers, got {row_indices!r}")
+        rows = rows.astype(np.int64)
+        nf, n_p = self.n_rows, self.n_points
+        if rows.size and (rows.min() < -nf or rows.max() >= nf):
+            raise IndexError(f"row index out of range for {nf} rows: {rows.tolist()}")
+        rows = rows % max(nf, 1)
+        if len(np.unique(rows)) != len(rows):
+            raise ValueError("row_indices contain duplicates")
+        known = set(self.fields + self.extra_fields)
+        unknown = set(values) - known
+        if unknown:
+            raise KeyError(f"unknown field(s) {sorted(unknown)}; file has {sorted(known)}")
+        if mark_completed:
+            missing = [n for n in self.fields if n not in values]
+            if missing:
+                raise ValueError(f"write_rows: missing field(s) {missing}")
+        k = len(rows)
+        data: dict[str, np.ndarray] = {}
+        for name, val in values.items():
+            a = _as_numpy(val)
+            if a.ndim == 1 and k == 1:
+                a = a[None]
+            if a.shape != (k, n_p):
+                raise ValueError(f"field {name!r}: expected shape ({k}, {n_p}), got {a.shape}")
+            data[name] = a.astype(_field_dtype(name)[0], copy=False)
+        if k == 0:
+            return
+        order = np.argsort(rows)
+        srows = rows[order]
+        contiguous = bool(np.all(np.diff(srows) == 1))
+        for name, a in data.items():
+            a = a[order]
+            ds = f[name]
+            if contiguous:
+                ds[int(srows[0]) : int(srows[-1]) + 1] = a
+            else:
+                for j, r in enumerate(srows):
+                    ds[int(r)] = a[j]
+        f.flush()
+        if mark_completed:
+            f["completed"][srows] = True
+            f.flush()
+
+    def completed_rows(self) -> np.ndarray:
+        """Row indices (sorted int64) already completed."""
+        return np.flatnonzero(self._h5()["completed"][()]).astype(np.int64)
+
+    def pending_rows(self) -> np.ndarray:
+        """Row indices (sorted int64) still to compute."""
+        return np.flatnonzero(~self._h5()["completed"][()]).astype(np.int64)
+
+    @property
+    def is_complete(self) -> bool:
+        """True when every row is completed."""
+        return bool(self._h5()["completed"][()].all())
+
+    def close(self, commit: bool = True) -> None:
+        """Close the file; for an overwrite, rename ``<path>.partial`` over ``path`` if
+        ``commit`` (otherwise the ``.partial`` is left for ``resume``). Idempotent."""
+        if self._file is None:
+            return
+        f, self._file = self._file, None
+        try:
+            f.flush()
+        finally:
+            f.close()
+        if self._rename_on_close and commit:
+            os.replace(self._target, self.path)
+            self._target = self.path
+            self._rename_on_close = False
+
+    def __enter__(self) -> ResultWriter:
+        return self
+
+    def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
+        self.close(commit=exc_type is None)
+
+    def __repr__(self) -> str:
+        state = "closed" if self._file is None else f"open on {self._target}"
+        return f"<ResultWriter {self.path} ({self.n_rows} rows x {self.n_points} points, {state})>"
+
+
+@dataclass
+class Results:
+    """Contents of a result file. Fields are attributes: ``res.u`` is ``(F, N)``."""
+
+    path: Path
+    points: np.ndarray  # (N, 2) float64, columns x, y
+    frames: np.ndarray  # (F,) int64 image indices
+    times: np.ndarray  # (F,) float64
+    completed: np.ndarray  # (F,) bool
+    fields: dict[str, np.ndarray]  # name -> (F, N)
+    config: dict[str, Any]
+    inputs: list[str]
+    attrs: dict[str, Any] = field(default_factory=dict)
+
+    def __getattr__(self, name: str) -> np.ndarray:
+        fields = self.__dict__.get("fields")
+        if fields is not None and name in fields:
+            return fields[name]
+        raise AttributeError(
+            f"{type(self).__name__} has no attribute or field {name!r}"
+            + (f" (fields: {sorted(fields)})" if fields is not None else "")
+        )
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.frames)
+
+    @property
+    def n_points(self) -> int:
+        return len(self.points)
+
+    @property
+    def x(self) -> np.ndarray:
+        """(N,) point x (column) coordinates."""
+        return self.points[:, 0]
+
+    @property
+    def y(self) -> np.ndarray:
+        """(N,) point y (row) coordinates."""
+        return self.points[:, 1]
+
+    def row_of(self, frame: int) -> int:
+        """Row index holding image frame ``frame``."""
+        hits = np.flatnonzero(self.frames == int(frame))
+        if not hits.size:
+            raise KeyError(f"frame {frame} is not in {self.path}")
+        return int(hits[0])
+
+
+def open_results(path: Path) -> h5py.File:
+    """Open a result file read-only; clear errors for a missing, unreadable or foreign file."""
+    if not path.exists():
+        partial = path.with_name(path.name + ".partial")
+        hint = f" ({partial} exists: an unfinished overwrite run)" if partial.exists() else ""
+        raise FileNotFoundError(f"result file not found: {path}{hint}")
+    try:
+        f = h5py.File(path, "r", locking=False)
+    except OSError as exc:
+        raise ResultFileError(f"{path} is not a readable HDF5 result file: {exc}") from exc
+    if f.attrs.get("format") != RESULTS_FORMAT:
+        f.close()
+        raise ResultFileError(f"{path} is not a {RESULTS_FORMAT} file")
+    return f
+
+
+def _py(v: Any) -> Any:
+    return v.item() if isinstance(v, np.generic) else v
+
+
+def field_names(f: h5py.File) -> list[str]:
+    """The (F, N) field names of an open result file, in their stored order."""
+    try:
+        return list(json.loads(f.attrs["fields"]))
+    except (KeyError, json.JSONDecodeError):
+        skip = _RESERVED
+        return [k for k in f if k not in skip and f[k].ndim == 2]
+
+
+def read_results(path: str | os.PathLike[str], fields: Sequence[str] | None = None) -> Results:
+    """Load a result file (all fields, or only ``fields``). Works on a file still being
+    written or left by a killed run: rows with ``completed`` False hold NaN / NOT_COMPUTED."""
+    p = Path(path)
+    with open_results(p) as f:
+        names = field_names(f)
+        if fields is not None:
+            bad = [n for n in fields if n not in names]
+            if bad:
+                raise KeyError(f"field(s) {bad} not in {p} (has {names})")
+            names = list(fields)
+        attrs = {k: _py(f.attrs[k]) for k in f.attrs}
+        return Results(
+            path=p,
+            points=f["points"][()],
+            frames=f["frames"][()],
+            times=f["times"][()],
+            completed=f["completed"][()].astype(bool),
+            fields={n: f[n][()] for n in names},
+            config=json.loads(attrs.pop("config", "{}")),
+            inputs=list(json.loads(attrs.pop("inputs", "[]"))),
+            attrs=attrs,
+        )
+
+
+def add_fields(path: str | os.PathLike[str], values: Mapping[str, Any],
+               attrs: Mapping[str, Any] | None = None) -> None:
+    """Add or replace (F, N) float fields (e.g. strains) in a result file, and set root
+    attributes ``attrs``. Raises ValueError naming a field of the wrong shape."""
+    with h5py.File(path, "r+") as f:
+        names = json.loads(f.attrs.get("fields", "[]"))
+        n_f, n_p = len(f["frames"]), len(f["points"])
+        for name, val in values.items():
+            a = np.asarray(_as_numpy(val), dtype=np.float32)
+            if a.shape != (n_f, n_p):
+                raise ValueError(f"field {name}: shape {a.shape}, expected ({n_f}, {n_p})")
+            if name in f:
+                f[name][...] = a
+            else:
+                f.create_dataset(name, data=a, chunks=_chunks(n_f, n_p, 4), fillvalue=np.nan)
+            if name not in names:
+                names.append(name)
+        f.attrs["fields"] = json.dumps(names)
+        for k, v in (attrs or {}).items():
+            f.attrs[k] = v
