@@ -26,9 +26,9 @@ import torch  # noqa: E402
 from benchmark import _cpu_model  # noqa: E402  (scripts/benchmark.py, beside this file)
 
 from torch_stsdic import native  # noqa: E402
-from torch_stsdic.interpolation import BSplineImage, _sample_kernel  # noqa: E402
+from torch_stsdic.formulations import ic_rhs_kernel  # noqa: E402
+from torch_stsdic.interpolation import BSplineImage, sample_kernel  # noqa: E402
 from torch_stsdic.shape import AffineShape  # noqa: E402
-from torch_stsdic.solver import _ic_rhs_kernel  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -85,7 +85,7 @@ def _cases(n_native: int, n_torch: int):
                     return native.sample(a, 3, x, y, off, g)
             else:
                 def fn(x=x, y=y, g=grad, a=a, off=off):
-                    return _sample_kernel(a[0], x, y, off, *a[1:7], 3, g)
+                    return sample_kernel(a[0], x, y, off, *a[1:7], 3, g)
             out.append((name, impl, x.numel(), fn))
         for t in (1, 5):
             c = _problem(n, t)
@@ -99,7 +99,7 @@ def _cases(n_native: int, n_torch: int):
                                          True)
             else:
                 def fn(c=c, a=a, t=t):
-                    return _ic_rhs_kernel(a[0], c["p"], c["px"], c["py"], c["dx"], c["dy"],
+                    return ic_rhs_kernel(a[0], c["p"], c["px"], c["py"], c["dx"], c["dy"],
                                           c["basis"].T.contiguous(), c["dt"], c["fidx"],
                                           c["ft"], c["fnorm"], c["gx"], c["gy"], c["w"],
                                           *a[1:7], 1024, 1024, c["basis"].shape[1], c["k"],

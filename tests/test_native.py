@@ -10,8 +10,8 @@ import torch
 
 import torch_stsdic as sts
 from torch_stsdic import native, synth
-from torch_stsdic.interpolation import BSplineImage, _sample_kernel
-from torch_stsdic.solver import _ic_rhs_kernel
+from torch_stsdic.formulations import ic_rhs_kernel
+from torch_stsdic.interpolation import BSplineImage, sample_kernel
 
 pytestmark = pytest.mark.skipif(not native.available(),
                                 reason="fused CPU kernels did not build (no C++ compiler?)")
@@ -40,7 +40,7 @@ def test_sample_matches_torch(order, dtype):
     for off in (torch.randint(0, 3, (40, 1), generator=g) * a[-1],  # per row
                 torch.tensor(2 * a[-1]),  # one plane
                 torch.randint(0, 3, (40, 25), generator=g) * a[-1]):  # per sample
-        ref = _sample_kernel(a[0], x, y, off, *a[1:7], order, True)
+        ref = sample_kernel(a[0], x, y, off, *a[1:7], order, True)
         got = native.sample(a, order, x, y, off, True)
         for r, n_ in zip(ref, got):
             assert n_.shape == r.shape
@@ -59,7 +59,7 @@ def test_subsets_match_points(order):
     frame = torch.tensor([0, 2, 1])
     v, gx, gy = img.sample_subsets(px, py, dx, dy, frame=frame)
     a = img.kernel_args()
-    r = _sample_kernel(a[0], px.double().view(-1, 1) + dx, py.double().view(-1, 1) + dy,
+    r = sample_kernel(a[0], px.double().view(-1, 1) + dx, py.double().view(-1, 1) + dy,
                        frame.view(-1, 1) * a[-1], *a[1:7], order, True)
     for got, want in zip((v, gx, gy), r):
         assert torch.allclose(got, want, atol=1e-9)
@@ -95,7 +95,7 @@ def test_ic_rhs_matches_torch(has_time, znssd):
     img, shape, c = _rhs_case(has_time)
     a = img.kernel_args()
     ks = c["basis"].shape[1]
-    want_b, want_zn, want_out = _ic_rhs_kernel(
+    want_b, want_zn, want_out = ic_rhs_kernel(
         a[0], c["p"], c["px"], c["py"], c["dx"], c["dy"], c["basis"].T.contiguous(), c["dt"],
         c["fidx"], c["ft"], c["fnorm"], c["gx"], c["gy"], c["w"], *a[1:7], 64, 48, ks,
         c["k"], has_time, znssd, 3)
@@ -125,20 +125,12 @@ def test_ic_rhs_flags_outside():
 
 
 def test_gram_matches_torch():
-    from torch_stsdic.solver import _gram
+    from torch_stsdic.formulations import gram
 
     img, shape, c = _rhs_case(True, n=5)
-
-    class Ctx:
-        spatial = c["basis"]
-        w = c["w"]
-
-    class Data:
-        gx, gy = c["gx"], c["gy"]
-
-    g_nat, m_nat = _gram(Ctx, Data)
+    g_nat, m_nat = gram(c["gx"], c["gy"], c["basis"], c["w"])
     native.set_native(False)
-    g_t, m_t = _gram(Ctx, Data)
+    g_t, m_t = gram(c["gx"], c["gy"], c["basis"], c["w"])
     assert torch.allclose(g_nat, g_t, rtol=1e-12, atol=1e-9)
     assert torch.allclose(m_nat, m_t, rtol=1e-12, atol=1e-9)
 
@@ -221,8 +213,8 @@ def test_portable_build_matches_torch(tmp_path):
     code = textwrap.dedent("""
         import torch
         from torch_stsdic import native
-        from torch_stsdic.interpolation import BSplineImage, _sample_kernel
-        from torch_stsdic.solver import _ic_rhs_kernel
+        from torch_stsdic.interpolation import BSplineImage, sample_kernel
+        from torch_stsdic.formulations import ic_rhs_kernel
         from torch_stsdic.shape import AffineShape
         g = torch.Generator().manual_seed(0)
         img = BSplineImage(torch.rand(2, 40, 50, generator=g) * 255, 3)
@@ -231,7 +223,7 @@ def test_portable_build_matches_torch(tmp_path):
         y = torch.rand(30, 49, generator=g) * 30 + 3
         off = torch.randint(0, 2, (30, 1), generator=g) * a[-1]
         e1 = max(float((p - q).abs().max()) for p, q in zip(
-            native.sample(a, 3, x, y, off, True), _sample_kernel(a[0], x, y, off, *a[1:7], 3,
+            native.sample(a, 3, x, y, off, True), sample_kernel(a[0], x, y, off, *a[1:7], 3,
                                                                  True)))
         d = torch.arange(-3.0, 4.0)
         dx, dy = d.repeat(7), d.repeat_interleave(7)
@@ -244,7 +236,7 @@ def test_portable_build_matches_torch(tmp_path):
         args = (p, px, py, dx, dy)
         b, zn, _ = native.ic_rhs(a, 3, *args, basis, dt, off, ft, ft.norm(dim=1), ft, -ft,
                                  torch.ones(49), 50, 40, 3, False, True)
-        bt, znt, _ = _ic_rhs_kernel(a[0], *args, basis.T.contiguous(), dt, off, ft,
+        bt, znt, _ = ic_rhs_kernel(a[0], *args, basis.T.contiguous(), dt, off, ft,
                                     ft.norm(dim=1), ft, -ft, torch.ones(49), *a[1:7], 50, 40,
                                     3, 3, False, True, 3)
         e2 = float(((b - bt.double()).abs() / (1 + bt.double().abs())).max())

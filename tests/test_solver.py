@@ -168,7 +168,7 @@ def test_numpy_and_uint8_inputs(pattern):
 
 def test_ic_hessian_matches_brute_force(pattern):
     # the factored IC Hessian equals sum_t J_t^T J_t built explicitly (ZNSSD: centred J)
-    from torch_stsdic.solver import _Batch, _Context, _ic_hessian
+    from torch_stsdic.formulations import Geometry, ic_hessian, ic_jacobian
 
     solver = sts.SubsetSolver(sts.DICConfig(m=1, subset_size=11))
     ref = synth.render(pattern, SIZE)
@@ -178,17 +178,15 @@ def test_ic_hessian_matches_brute_force(pattern):
     pts = torch.tensor([[40.0, 50.0], [60.3, 44.7]], dtype=torch.float64)
     f, gx, gy = img.sample(pts[:, :1] + off[:, 0], pts[:, 1:] + off[:, 1], grad=True)
     shape = solver.shape
-    ctx = _Context(shape=shape, spatial=shape.spatial_basis(off[:, 0], off[:, 1]), dx=off[:, 0],
-                   dy=off[:, 1], w=w, half=5.0, h=101, w_img=101, ref=img, frames=img,
-                   cfg=solver.config, grey_range=200.0)
-    data = _Batch(px=pts[:, :1], py=pts[:, 1:], dt=dt, fidx=torch.zeros(2, 3, dtype=torch.long),
-                  f=f, ft=f, fnorm=f.norm(dim=1), gx=gx, gy=gy)
-    h = _ic_hessian(ctx, data)
+    geo = Geometry.make(shape, solver.window, "znssd", torch.float64, None)
+    h = ic_hessian(geo, gx, gy, dt)
     basis = torch.stack([shape.basis(off[:, 0], off[:, 1], dt[i]) for i in range(2)])  # N,T,S,K
     jac = torch.cat([gx[:, None, :, None] * basis, gy[:, None, :, None] * basis], -1)
     jac = jac - (jac * w[None, None, :, None]).sum(2, keepdim=True) / w.sum()
     brute = torch.einsum("ntsp,ntsq->npq", jac * w[None, None, :, None], jac)
     assert torch.allclose(h, brute, rtol=1e-10, atol=1e-8)
+    # the Jacobian the noise model and the Hessian come from is that same J
+    assert torch.allclose(ic_jacobian(geo, gx, gy, dt), jac, rtol=1e-12, atol=1e-9)
 
 
 # ---- bad input ------------------------------------------------------------------------

@@ -100,7 +100,7 @@ def _weights_list(f: torch.Tensor, order: int, grad: bool):
     return w, (dw if grad else None)
 
 
-def _sample_kernel(flat, x, y, frame_off, wp: int, x_lo: float, x_hi: float, y_lo: float,
+def sample_kernel(flat, x, y, frame_off, wp: int, x_lo: float, x_hi: float, y_lo: float,
                    y_hi: float, shift: int, order: int, grad: bool):
     """Value (and gradient) of the B-spline at (x, y): (order+1)^2 gathers from the flat
     padded coefficients. Written as plain element-wise code so torch.compile can fuse it
@@ -191,10 +191,10 @@ def maybe_compiled(fn, key, work: int, needs_autograd: bool = False):
 
 def _kernel(order: int, grad: bool, work: int, needs_autograd: bool):
     def eager(*args):
-        return _sample_kernel(*args, order, grad)
+        return sample_kernel(*args, order, grad)
 
     def kernel(*args):
-        return _sample_kernel(*args, order, grad)
+        return sample_kernel(*args, order, grad)
 
     run = maybe_compiled(kernel, ("sample", order, grad), work, needs_autograd)
     return eager if run is kernel else run
@@ -284,7 +284,7 @@ class BSplineImage:
 
     def kernel_args(self) -> tuple:
         """(flat coefficients, padded width, x_lo, x_hi, y_lo, y_hi, index shift, plane size):
-        what :func:`_sample_kernel` needs besides the coordinates and frame offsets."""
+        what :func:`sample_kernel` needs besides the coordinates and frame offsets."""
         pad = self.margin
         return (
             self._flat, self.padded_width,

@@ -272,7 +272,7 @@ def _p(t: torch.Tensor | None):
 
 def sample(img_args: tuple, order: int, x: torch.Tensor, y: torch.Tensor,
            frame_off: torch.Tensor, grad: bool):
-    """Native twin of interpolation._sample_kernel: values (shape of x) and, with grad, d/dx
+    """Native twin of interpolation.sample_kernel: values (shape of x) and, with grad, d/dx
     and d/dy. ``frame_off`` (int64 plane offsets) broadcasts against x (e.g. (N, 1) for
     (N, S) points)."""
     flat = img_args[0].contiguous()

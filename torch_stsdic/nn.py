@@ -54,8 +54,8 @@ import torch
 from torch import Tensor, nn
 
 from .config import DICConfig
+from .formulations import Geometry, reference_subsets
 from .interpolation import BSplineImage
-from .shape import ShapeFunction
 from .solver import SubsetSolver, WindowSolution
 from .status import Status
 
@@ -128,129 +128,6 @@ class _Problem:
     solution: WindowSolution | None = None
 
 
-@dataclass
-class _Geometry:
-    shape: ShapeFunction
-    spatial: Tensor  # (S, Ks)
-    dx: Tensor  # (S,)
-    dy: Tensor
-    w: Tensor  # (S,)
-    znssd: bool
-
-    @property
-    def ks(self) -> int:
-        return self.spatial.shape[1]
-
-    @property
-    def k(self) -> int:
-        return self.shape.n_basis
-
-
-def _wsum(x: Tensor, w: Tensor) -> Tensor:
-    return (x * w).sum(-1)
-
-
-def _displacement(geo: _Geometry, p: Tensor, dt: Tensor) -> tuple[Tensor, Tensor]:
-    """(u, v), each (N, T, S) or (N, 1, S): the shape function at every subset pixel."""
-    ks, k = geo.ks, geo.k
-    us = p[:, :ks] @ geo.spatial.T
-    vs = p[:, k : k + ks] @ geo.spatial.T
-    if geo.shape.has_time:
-        u = us.unsqueeze(1) + (p[:, k - 1 : k] * dt).unsqueeze(-1)
-        v = vs.unsqueeze(1) + (p[:, 2 * k - 1 :] * dt).unsqueeze(-1)
-    else:
-        u, v = us.unsqueeze(1), vs.unsqueeze(1)
-    return u, v
-
-
-def _stationarity(
-    kind: str,
-    geo: _Geometry,
-    ref: BSplineImage,
-    frames: BSplineImage,
-    pts: Tensor,
-    dt: Tensor,
-    fidx: Tensor,
-    ridx: Tensor,
-    p: Tensor,
-) -> Tensor:
-    """The solver's stationarity condition F(p, theta), (N, P), differentiable in p, the
-    images' pixels (through ``ref``/``frames`` built from pixels that require grad) and the
-    POI positions ``pts`` (N, 2). Mirrors solver._step_joint_ic / solver._step_fa: each
-    stage's Gauss-Newton increment is zero exactly where F = 0."""
-    w = geo.w
-    wsum = w.sum()
-    px, py = pts[:, 0:1], pts[:, 1:2]
-    f, fgx, fgy = ref.sample(px + geo.dx, py + geo.dy, frame=ridx.view(-1, 1), grad=True)
-    ft = f - (_wsum(f, w) / wsum).unsqueeze(-1) if geo.znssd else f
-    u, v = _displacement(geo, p, dt)
-    xs = px.unsqueeze(-1) + geo.dx + u
-    ys = py.unsqueeze(-1) + geo.dy + v
-    t_count = dt.shape[1]
-    if xs.shape[1] != t_count:
-        xs = xs.expand(-1, t_count, -1)
-        ys = ys.expand(-1, t_count, -1)
-    frame = fidx.unsqueeze(-1)
-    bs = geo.spatial
-    has_t = geo.shape.has_time
-    n = p.shape[0]
-    if kind == "joint_ic":
-        g = frames.sample(xs, ys, frame=frame)
-        if geo.znssd:
-            gt = g - (_wsum(g, w) / wsum).unsqueeze(-1)
-            fnorm = _wsum(ft * ft, w).sqrt()
-            gg = _wsum(gt * gt, w)
-            s = fnorm.unsqueeze(1) / gg.clamp(min=1e-30).sqrt()  # Pan et al.'s scale
-            e = ft.unsqueeze(1) - s.unsqueeze(-1) * gt
-        else:
-            e = ft.unsqueeze(1) - g
-        e = e * w
-        e1 = e.sum(1)  # (N, S)
-        b = [torch.stack([fgx, fgy], 1) * e1.unsqueeze(1) @ bs]  # (N, 2, Ks)
-        if has_t:
-            e2 = torch.einsum("nts,nt->ns", e, dt)
-            b.append(torch.stack([(fgx * e2).sum(1), (fgy * e2).sum(1)], 1).unsqueeze(-1))
-        return torch.cat(b, -1).reshape(n, -1)
-    g, gx, gy = frames.sample(xs, ys, frame=frame, grad=True)
-    dtu = dt.unsqueeze(-1)
-    if kind == "average":
-        big_g = g.mean(1)
-        parts = []
-        for gc in (gx, gy):
-            parts.append(gc.mean(1).unsqueeze(-1) * bs)
-            if has_t:
-                parts.append((gc * dtu).mean(1).unsqueeze(-1))
-        jac = torch.cat(parts, -1)  # (N, S, P)
-        if geo.znssd:
-            gt = big_g - (_wsum(big_g, w) / wsum).unsqueeze(-1)
-            jac = jac - ((jac * w.view(1, -1, 1)).sum(1) / wsum).unsqueeze(1)
-            a = _wsum(ft * gt, w) / _wsum(gt * gt, w).clamp(min=1e-30)
-            r = ft - a.unsqueeze(-1) * gt
-        else:
-            a = torch.ones_like(ft[:, 0])
-            r = ft - big_g
-        wj = jac * w.view(1, -1, 1)
-        return (wj * r.unsqueeze(-1)).sum(1) / a.clamp(min=1e-12).unsqueeze(-1)
-    if kind != "joint_fa":
-        raise ValueError(f"unknown stage kind {kind!r}")
-    parts = []
-    for gc in (gx, gy):
-        parts.append(gc.unsqueeze(-1) * bs)
-        if has_t:
-            parts.append((gc * dtu).unsqueeze(-1))
-    jac = torch.cat(parts, -1)  # (N, T, S, P)
-    if geo.znssd:
-        gt = g - (_wsum(g, w) / wsum).unsqueeze(-1)
-        jac = jac - ((jac * w.view(1, 1, -1, 1)).sum(2) / wsum).unsqueeze(2)
-        a = _wsum(ft.unsqueeze(1) * gt, w) / _wsum(gt * gt, w).clamp(min=1e-30)
-        r = ft.unsqueeze(1) - a.unsqueeze(-1) * gt
-    else:
-        a = torch.ones_like(g[..., 0])
-        r = ft.unsqueeze(1) - g
-    wj = jac * (w.view(1, 1, -1, 1) * a.view(*a.shape, 1, 1))
-    return torch.einsum("ntsp,nts->np", wj, r)
-
-
 def _jacobian(f: Tensor, p: Tensor) -> Tensor:
     """(N, P, P) per-row Jacobian dF_n/dp_n (rows are independent), by reverse mode."""
     n, q = f.shape
@@ -260,15 +137,6 @@ def _jacobian(f: Tensor, p: Tensor) -> Tensor:
         (gi,) = torch.autograd.grad(f, p, grad_outputs=eye[i].expand(n, q), retain_graph=True)
         cols.append(gi)
     return torch.stack(cols, 1)  # [n, i, j] = dF_i / dp_j
-
-
-def _increment_scale(geo: _Geometry, dt: Tensor) -> Tensor:
-    """(N, P) like solver._increment_scale: |dp * scale| bounds the pixel change."""
-    s = geo.spatial.abs().amax(0)
-    block = s.expand(dt.shape[0], -1)
-    if geo.shape.has_time:
-        block = torch.cat([block, dt.abs().amax(1, keepdim=True)], 1)
-    return torch.cat([block, block], 1)
 
 
 def _solve(a: Tensor, b: Tensor) -> Tensor:
@@ -316,24 +184,20 @@ def _implicit_vjp(
         return tuple(zero)  # type: ignore[return-value]
     dt = prob.dt[rows].to(dtype)
     fidx, ridx = prob.fidx[rows], prob.ridx[rows]
-    p_pts = pts_l[rows]
     shape = solver.shape_for(prob.dt)
-    offsets, weights = solver.window.offsets_and_weights(dtype, device)
-    geo = _Geometry(
-        shape=shape, spatial=shape.spatial_basis(offsets[:, 0], offsets[:, 1]),
-        dx=offsets[:, 0], dy=offsets[:, 1], w=weights,
-        znssd=solver.config.criterion == "znssd",
-    )
+    geo = Geometry.make(shape, solver.window, solver.config.criterion, dtype, device)
     order = solver.config.interpolation_order
     ref_img = BSplineImage(ref_l, order=order)
     frm_img = BSplineImage(frm_l, order=order)
+    data = reference_subsets(geo, ref_img, pts_l[rows], ridx, dt, fidx)
+    forms = {f.name: f for f in solver.stages_for(shape)}
     v = torch.nan_to_num(grad_out[rows].to(dtype), nan=0.0, posinf=0.0, neginf=0.0)
-    scale = _increment_scale(geo, dt)
+    scale = shape.increment_scale(geo.spatial, dt)
     tol = prob.residual_tol
 
     def evaluate(kind: str, p_val: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         p = p_val[rows].detach().to(dtype).requires_grad_(True)
-        f = _stationarity(kind, geo, ref_img, frm_img, p_pts, dt, fidx, ridx, p)
+        f = forms[kind].stationarity(geo, frm_img, data, p)
         return f, _jacobian(f, p), p
 
     if len(stages) == 1:

@@ -89,6 +89,7 @@ import numpy as np
 import torch
 
 from .config import DICConfig
+from .formulations import Geometry, ic_hessian, ic_jacobian
 from .interpolation import BSplineImage
 from .shape import make_shape
 from .window import make_window
@@ -259,29 +260,22 @@ def predicted_covariance(
     if not use_t:
         shape = shape.spatial()
     window = make_window(cfg.window, cfg.subset_size)
-    off, w = window.offsets_and_weights(torch.float64)
+    geo = Geometry.make(shape, window, cfg.criterion, torch.float64, None)
+    off, w = torch.stack([geo.dx, geo.dy], 1), geo.w
     half = window.half
     size = 2 * half + 1
     sq_index = ((off[:, 1] + half) * size + (off[:, 0] + half)).long()
     spline = BSplineImage(img, order=cfg.interpolation_order)
-    xs = pts[:, :1] + off[:, 0]
-    ys = pts[:, 1:] + off[:, 1]
-    _, gx, gy = spline.sample(xs, ys, grad=True)  # (N, S)
-    bs = shape.spatial_basis(off[:, 0], off[:, 1])  # (S, Ks)
+    _, gx, gy = spline.sample(pts[:, :1] + geo.dx, pts[:, 1:] + geo.dy, grad=True)  # (N, S)
+    bs = geo.spatial  # (S, Ks)
     n = pts.shape[0]
     ks = bs.shape[1]
     k = shape.n_basis
     p_count = 2 * k
-    jac = torch.zeros(t_count, n, bs.shape[0], p_count, dtype=torch.float64)
-    for i in range(t_count):
-        for comp, g in ((0, gx), (1, gy)):
-            jac[i, :, :, comp * k: comp * k + ks] = g.unsqueeze(-1) * bs
-            if use_t:
-                jac[i, :, :, comp * k + k - 1] = g * dtt[i]
-    if cfg.criterion == "znssd":
-        jac = jac - (jac * w.view(1, 1, -1, 1)).sum(2, keepdim=True) / w.sum()
+    # the joint formulation's Jacobian of every frame, (T, N, S, P), and its Hessian
+    jac = ic_jacobian(geo, gx, gy, dtt.expand(n, t_count)).transpose(0, 1)
     wj = jac * w.view(1, 1, -1, 1)
-    hess = torch.einsum("tnsp,tnsq->npq", wj, jac)
+    hess = ic_hessian(geo, gx, gy, dtt.expand(n, t_count))
     order = cfg.interpolation_order
     kap = gradient_noise_factor(order)
     bt = torch.zeros(t_count, bs.shape[0], k, dtype=torch.float64)

@@ -19,7 +19,25 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-__all__ = ["ShapeFunction", "AffineShape", "QuadraticShape", "make_shape"]
+__all__ = ["ShapeFunction", "AffineShape", "QuadraticShape", "make_shape", "linear_displacement"]
+
+
+def linear_displacement(p: torch.Tensor, spatial_t: torch.Tensor, dt: torch.Tensor, ks: int,
+                        k: int, has_time: bool) -> tuple[torch.Tensor, torch.Tensor]:
+    """(u, v), each (N, T, S) (or (N, 1, S) without time): Eq. 9 for a shape function whose
+    parameters are (spatial terms, then the time term) per component.
+
+    p (N, 2k); spatial_t (Ks, S) the transposed spatial basis; dt (N, T). Plain tensor code
+    (no module state) so that compiled kernels can inline it; :meth:`ShapeFunction.
+    displacement` is the entry point for everything else."""
+    us = p[:, :ks] @ spatial_t  # (N, S)
+    vs = p[:, k : k + ks] @ spatial_t
+    if has_time:
+        u = us.unsqueeze(1) + (p[:, k - 1 : k] * dt).unsqueeze(-1)
+        v = vs.unsqueeze(1) + (p[:, 2 * k - 1 :] * dt).unsqueeze(-1)
+    else:
+        u, v = us.unsqueeze(1), vs.unsqueeze(1)
+    return u, v
 
 
 class ShapeFunction(nn.Module):
@@ -86,24 +104,41 @@ class ShapeFunction(nn.Module):
         """True if the last basis term is the linear-in-time term ``t``."""
         return self.terms[-1] == "t"
 
-    def displacement(self, params: torch.Tensor, basis: torch.Tensor):
-        """(u, v), each (N, T, S), of every subset pixel at every frame (Eq. 9).
+    def displacement(self, params: torch.Tensor, spatial: torch.Tensor, dt: torch.Tensor):
+        """(u, v) of every subset pixel at every frame time (Eq. 9): each (N, T, S), or
+        (N, 1, S) without temporal terms.
 
-        params (N, P); basis (T, S, K) from :meth:`basis`."""
-        k = self.n_basis
-        u = torch.einsum("nk,tsk->nts", params[:, :k], basis)
-        v = torch.einsum("nk,tsk->nts", params[:, k:], basis)
-        return u, v
+        params (N, P); spatial (S, Ks) from :meth:`spatial_basis`; dt (N, T) or (T,) frame
+        times minus the time the results refer to."""
+        dt = dt.expand(params.shape[0], -1) if dt.dim() == 1 else dt
+        return linear_displacement(params, spatial.T, dt, spatial.shape[1], self.n_basis,
+                                   self.has_time)
 
-    def increment_scale(self, half: float, dt_max: float, dtype, device) -> torch.Tensor:
-        """(P,) largest |basis| over the subset and window: |dp * scale| bounds the pixel
-        displacement change, used for the convergence test."""
-        b = self.basis(
-            torch.tensor([half], dtype=dtype, device=device),
-            torch.tensor([half], dtype=dtype, device=device),
-            torch.tensor([dt_max], dtype=dtype, device=device),
-        ).reshape(-1).abs()
-        return torch.cat([b, b])
+    def warp(self, params: torch.Tensor, px: torch.Tensor, py: torch.Tensor,
+             dx: torch.Tensor, dy: torch.Tensor, spatial: torch.Tensor, dt: torch.Tensor):
+        """Warped subset coordinates (x, y), each (N, T, S) px: the POI (px, py) (N, 1) plus
+        the offsets (dx, dy) (S,) plus the displacement at every frame time dt (N, T)."""
+        u, v = self.displacement(params, spatial, dt)
+        t_count = dt.shape[-1]
+        xs = (px.unsqueeze(-1) + dx + u).expand(-1, t_count, -1)
+        ys = (py.unsqueeze(-1) + dy + v).expand(-1, t_count, -1)
+        return xs, ys
+
+    def increment_scale(self, spatial: torch.Tensor, dt: torch.Tensor) -> torch.Tensor:
+        """(N, P) bound of each parameter's effect: |dp * scale| bounds the displacement
+        change of any subset pixel in any frame (the convergence test). spatial (S, Ks),
+        dt (N, T)."""
+        s = spatial.abs().amax(0)  # (Ks,)
+        block = s.expand(dt.shape[0], -1)
+        if self.has_time:
+            block = torch.cat([block, dt.abs().amax(1, keepdim=True)], 1)
+        return torch.cat([block, block], 1)
+
+    @property
+    def inverse_compositional(self) -> bool:
+        """True if the family is closed under composition (:meth:`compose_inverse` exists),
+        so the inverse-compositional Gauss-Newton applies."""
+        return type(self).compose_inverse is not ShapeFunction.compose_inverse
 
     def compose_inverse(self, params: torch.Tensor, dp: torch.Tensor) -> torch.Tensor | None:
         """Inverse-compositional update W(p) o W(dp)^-1 in parameter form, or None if the

@@ -35,10 +35,11 @@ from dataclasses import dataclass, field
 
 import torch
 
-from . import native
+from . import formulations, native
 from .config import DICConfig
+from .formulations import Formulation, Geometry, SubsetData, reference_subsets, wsum
 from .initial import carry_from_seed, fft_cross_correlation, linear_fit_in_time, seed_cells
-from .interpolation import BSplineImage, _sample_kernel, maybe_compiled
+from .interpolation import BSplineImage
 from .shape import ShapeFunction, make_shape
 from .status import Status
 from .validation import as_image, as_points, as_series, as_times, check_init
@@ -128,6 +129,10 @@ class SubsetSolver:
         """Prefilter (T, H, W) or (H, W) images into B-spline coefficients."""
         return BSplineImage(images, order=self.config.interpolation_order)
 
+    def stages_for(self, shape: ShapeFunction) -> list[Formulation]:
+        """The Gauss-Newton stages (formulations) run for ``shape`` (see :func:`shape_for`)."""
+        return formulations.stages(self.config.formulation, shape)
+
     def shape_for(self, dt: torch.Tensor) -> ShapeFunction:
         """The shape function used for frame offsets ``dt``: without temporal terms when all
         frames are at the same time (one frame, m = 0: classical DIC)."""
@@ -178,7 +183,6 @@ class SubsetSolver:
         )
         shape = self.shape_for(dt)
         p_count = shape.n_params
-        offsets, weights = self.window.offsets_and_weights(dtype, device)
         half = float(self.window.half)
         h, w = ref.height, ref.width
         status = torch.full((n,), int(Status.NOT_COMPUTED), dtype=torch.int8, device=device)
@@ -218,11 +222,10 @@ class SubsetSolver:
         todo = torch.nonzero(inside).flatten()
         first_stage = torch.full_like(params, float("nan"))
         grey = ref_pixels if ref_pixels is not None else ref.coeffs
+        geo = Geometry.make(shape, self.window, cfg.criterion, dtype, device)
         ctx = _Context(
-            shape=shape, spatial=shape.spatial_basis(offsets[:, 0], offsets[:, 1]),
-            dx=offsets[:, 0], dy=offsets[:, 1], w=weights, half=half, h=h, w_img=w,
-            ref=ref, frames=frames, cfg=cfg, grey_range=_grey_range(grey),
-            work=int(todo.numel()) * t_count * int(offsets.shape[0]),
+            geo=geo, ref=ref, frames=frames, cfg=cfg, stages=self.stages_for(shape),
+            grey_range=_grey_range(grey), work=int(todo.numel()) * t_count * int(geo.w.numel()),
         )
         batch = cfg.batch_points or ctx.batch_size(t_count)
         for s0 in range(0, todo.numel(), batch):
@@ -242,7 +245,7 @@ class SubsetSolver:
             info={
                 "formulation": cfg.formulation,
                 "n_frames": t_count,
-                "stages": [k for k, _ in _stages(ctx, t_count)],
+                "stages": [f.name for f in ctx.stages],
                 "first_stage_params": first_stage,
                 "initial_params": p0,
                 "initial_guess": {"method": "fft" if init is None else "given",
@@ -438,100 +441,55 @@ def _expand_init(p0: torch.Tensor, shape: ShapeFunction, full: ShapeFunction) ->
 
 @dataclass
 class _Context:
-    shape: ShapeFunction
-    spatial: torch.Tensor  # (S, Ks) spatial basis
-    dx: torch.Tensor  # (S,)
-    dy: torch.Tensor
-    w: torch.Tensor  # (S,) window weights
-    half: float
-    h: int
-    w_img: int
+    """What every batch of one solve shares: geometry, images, settings."""
+
+    geo: Geometry
     ref: BSplineImage
     frames: BSplineImage
     cfg: DICConfig
+    stages: list[Formulation]
     grey_range: float
     work: int = 0  # samples per iteration over all batches (decides torch.compile)
 
-    @property
-    def ks(self) -> int:
-        return self.spatial.shape[1]
-
-    @property
-    def k(self) -> int:
-        return self.shape.n_basis
-
     def batch_size(self, t: int) -> int:
-        s, ks = self.spatial.shape
-        elem = self.spatial.element_size()
-        jac = t * 2 * (ks + 1) if self.shape.compose_inverse(
-            torch.zeros(1, self.shape.n_params), torch.zeros(1, self.shape.n_params)
-        ) is None else 0
-        if jac == 0 and native.usable(self.spatial):
+        """POIs per batch within ``cfg.memory_mb``."""
+        s, ks = self.geo.spatial.shape
+        elem = self.geo.spatial.element_size()
+        ic_only = all(f.inverse_compositional for f in self.stages)
+        if ic_only and native.usable(self.geo.spatial):
             # fused kernels: no (N, T, S) temporaries, only the per-point reference data
             per_point = s * elem * 12
         else:
+            jac = 0 if ic_only else t * 2 * (ks + 1)
             per_point = s * elem * (t * 40 + jac + 8 * ks + 24)
         return max(16, int(self.cfg.memory_mb * 2**20 / per_point))
 
 
-@dataclass
-class _Batch:
-    """Per-point data of one batch (rows can be dropped as points finish)."""
-
-    px: torch.Tensor  # (N, 1)
-    py: torch.Tensor
-    dt: torch.Tensor  # (N, T)
-    fidx: torch.Tensor  # (N, T) frame indices
-    f: torch.Tensor  # (N, S) reference subset
-    ft: torch.Tensor  # (N, S) zero-mean (ZNSSD) or raw (SSD) reference subset
-    fnorm: torch.Tensor  # (N,)
-    gx: torch.Tensor  # (N, S) reference gradient
-    gy: torch.Tensor
-    chol: torch.Tensor | None = None  # (N, P, P) Cholesky factor of the IC Hessian
-
-    def take(self, idx: torch.Tensor) -> _Batch:
-        return _Batch(**{
-            k: (v[idx] if isinstance(v, torch.Tensor) else v) for k, v in self.__dict__.items()
-        })
-
-
-def _wsum(x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
-    """Window-weighted sum over the last (subset) dimension: one matrix-vector product."""
-    return x @ w
-
-
-def _solve_batch(ctx, pts, p0, dt, fidx, ridx):
-    """Solve one batch of POIs (all inside the image). Returns params, zncc, status, iters."""
-    cfg = ctx.cfg
+def _solve_batch(ctx: _Context, pts, p0, dt, fidx, ridx):
+    """Solve one batch of POIs (all inside the image). Returns params, zncc, status, iters
+    and the first stage's params."""
+    cfg, geo = ctx.cfg, ctx.geo
     n = pts.shape[0]
     device, dtype = pts.device, pts.dtype
-    w = ctx.w
-    wsum = w.sum()
-    px, py = pts[:, 0:1], pts[:, 1:2]
-    f, fgx, fgy = ctx.ref.sample_subsets(px, py, ctx.dx, ctx.dy, frame=ridx)
+    w = geo.w
+    wsum_w = w.sum()
+    data = reference_subsets(geo, ctx.ref, pts, ridx, dt, fidx)
     status = torch.full((n,), int(Status.NOT_COMPUTED), dtype=torch.int8, device=device)
-    texture = _wsum(fgx * fgx + fgy * fgy, w) / wsum
+    texture = wsum(data.gx * data.gx + data.gy * data.gy, w) / wsum_w
     low = texture < cfg.texture_threshold * ctx.grey_range**2
-    if cfg.criterion == "znssd":
-        ft = f - (_wsum(f, w) / wsum).unsqueeze(-1)
-    else:
-        ft = f
-    fnorm = _wsum(ft * ft, w).sqrt()
-    low |= fnorm < 1e-6 * ctx.grey_range * math.sqrt(float(wsum))
+    low |= data.fnorm < 1e-6 * ctx.grey_range * math.sqrt(float(wsum_w))
     status[low] = int(Status.LOW_TEXTURE)
-    data = _Batch(px=px, py=py, dt=dt, fidx=fidx, f=f, ft=ft, fnorm=fnorm, gx=fgx, gy=fgy)
     params = p0.clone()
     zncc = torch.full((n,), float("nan"), dtype=dtype, device=device)
     iters = torch.zeros(n, dtype=torch.int32, device=device)
     live = ~low
-    stages = _stages(ctx, dt.shape[1])
     stage_params = []
-    for stage_i, (kind, free) in enumerate(stages):
-        params, zn, st, used = _run_stage(ctx, kind, free, params, data, live)
+    for stage_i, form in enumerate(ctx.stages):
+        params, zn, st, used = _run_stage(ctx, form, params, data, live)
         stage_params.append(params)
         zncc = torch.where(live, zn, zncc)
         iters += used
-        if stage_i == len(stages) - 1:
+        if stage_i == len(ctx.stages) - 1:
             status = torch.where(live, st, status)
         else:
             # a stage that failed ends the point; MAX_ITER in an early stage is not fatal
@@ -539,70 +497,39 @@ def _solve_batch(ctx, pts, p0, dt, fidx, ridx):
             status = torch.where(failed, st, status)
             live = live & ~failed
     maxd = cfg.max_displacement if cfg.max_displacement is not None else float(cfg.subset_size)
-    k = ctx.k
+    k = geo.k
     jump = torch.maximum((params[:, 0] - p0[:, 0]).abs(), (params[:, k] - p0[:, k]).abs())
     far = (status <= int(Status.MAX_ITER)) & ~(jump <= maxd)
     status[far] = int(Status.DIVERGED)
     return params, zncc, status, iters, stage_params[0]
 
 
-def _stages(ctx: _Context, t_count: int) -> list[tuple[str, torch.Tensor | None]]:
-    """(kind, free-parameter mask) per stage for the configured formulation."""
-    shape = ctx.shape
-    has_ic = shape.compose_inverse(
-        torch.zeros(1, shape.n_params), torch.zeros(1, shape.n_params)
-    ) is not None
-    joint = "joint_ic" if has_ic else "joint_fa"
-    form = ctx.cfg.formulation
-    if not shape.has_time or form in ("joint", "auto"):
-        return [(joint, None)]  # one frame: joint == average == classical DIC
-    if form == "average":
-        return [("average", None)]
-    spatial = ~shape.temporal_mask().to(ctx.spatial.device)
-    return [(joint, None), ("average", spatial)]
-
-
-def _increment_scale(ctx: _Context, data: _Batch) -> torch.Tensor:
-    """(N, P): |dp * scale| bounds each parameter's displacement change over the window."""
-    s = ctx.spatial.abs().amax(0)  # (Ks,)
-    n = data.dt.shape[0]
-    block = s.expand(n, -1)
-    if ctx.shape.has_time:
-        block = torch.cat([block, data.dt.abs().amax(1, keepdim=True)], 1)
-    return torch.cat([block, block], 1)
-
-
-def _run_stage(ctx, kind, free, params, data: _Batch, live):
+def _run_stage(ctx: _Context, form: Formulation, params, data: SubsetData, live):
     """Iterate one Gauss-Newton stage over the live points, dropping finished points.
 
     Returns params, zncc (N,), status (N,), iterations used (N,)."""
-    cfg = ctx.cfg
+    cfg, geo = ctx.cfg, ctx.geo
     n = params.shape[0]
     device, dtype = params.device, params.dtype
     status = torch.full((n,), int(Status.MAX_ITER), dtype=torch.int8, device=device)
     zncc = torch.full((n,), float("nan"), dtype=dtype, device=device)
     used = torch.zeros(n, dtype=torch.int32, device=device)
-    p_count = params.shape[1]
-    free_idx = torch.arange(p_count, device=device) if free is None else torch.nonzero(free)[:, 0]
     rows = torch.nonzero(live).flatten()
     if rows.numel() == 0:
         return params, zncc, status, used
     params = params.clone()
     if rows.numel() < n:
         data = data.take(rows)
-    if kind == "joint_ic":
-        chol, info = torch.linalg.cholesky_ex(_ic_hessian(ctx, data))
-        data.chol = chol
-        sing = info > 0
-        if sing.any():
-            status[rows[sing]] = int(Status.LOW_TEXTURE)
-            rows, data = rows[~sing], data.take(~sing)
-    scale = _increment_scale(ctx, data)
+    sing = form.prepare(geo, data)
+    if sing.any():
+        status[rows[sing]] = int(Status.LOW_TEXTURE)
+        rows, data = rows[~sing], data.take(~sing)
+    scale = geo.shape.increment_scale(geo.spatial, data.dt)
     p = params[rows]
     # fused kernel: finished rows are skipped through an index (`sel`) instead of copying
     # the per-point data of the remaining rows
     sel = (torch.arange(rows.numel(), device=device)
-           if kind == "joint_ic" and _native_ic(ctx, data, p) else None)
+           if form.uses_fused_kernel(ctx.frames, data, p) else None)
     active = torch.ones(rows.numel(), dtype=torch.bool, device=device)
     # On CUDA every boolean test or compaction waits for the GPU: look every few iterations.
     check_every = 1 if device.type == "cpu" else 4
@@ -610,18 +537,12 @@ def _run_stage(ctx, kind, free, params, data: _Batch, live):
     for it in range(cfg.max_iter):
         if rows.numel() == 0:
             break
-        if kind == "joint_ic":
-            dp, zn, outside = _step_joint_ic(ctx, data, p, sel)
-            p_new = ctx.shape.compose_inverse(p, dp)
-        else:
-            dp_free, zn, outside = _step_fa(ctx, data, p, free_idx, average=(kind == "average"))
-            dp = torch.zeros_like(p)
-            dp[:, free_idx] = dp_free
-            p_new = p + dp
+        dp, zn, outside = form.step(geo, ctx.frames, data, p, ctx.work, sel)
+        p_new = form.update(geo, p, dp)
         used[rows] += active.to(used.dtype)
         norm = (dp * scale).norm(dim=1)
         finite = torch.isfinite(norm) & torch.isfinite(p_new).all(1)
-        bad = ~finite | (norm > 4.0 * ctx.half)
+        bad = ~finite | (norm > 4.0 * geo.half)
         conv = finite & (norm < cfg.tol) & ~outside
         p = torch.where((finite & active).unsqueeze(1), p_new, p)
         zncc[rows] = torch.where(active, zn.to(dtype), zncc[rows])
@@ -650,210 +571,6 @@ def _run_stage(ctx, kind, free, params, data: _Batch, live):
     if rows.numel():
         params[rows] = p  # MAX_ITER: the last iterate
     return params, zncc, status, used
-
-
-def _displacement(ctx, p, dt):
-    """(u, v), each (N, T, S): Eq. 9 with the spatial basis and the linear time term."""
-    ks, k = ctx.ks, ctx.k
-    us = p[:, :ks] @ ctx.spatial.T  # (N, S)
-    vs = p[:, k : k + ks] @ ctx.spatial.T
-    if ctx.shape.has_time:
-        u = us.unsqueeze(1) + (p[:, k - 1 : k] * dt).unsqueeze(-1)
-        v = vs.unsqueeze(1) + (p[:, 2 * k - 1 :] * dt).unsqueeze(-1)
-    else:
-        u, v = us.unsqueeze(1), vs.unsqueeze(1)
-    return u, v
-
-
-def _sample_frames(ctx, data: _Batch, p, grad: bool):
-    u, v = _displacement(ctx, p, data.dt)
-    xs = data.px.unsqueeze(-1) + ctx.dx + u
-    ys = data.py.unsqueeze(-1) + ctx.dy + v
-    if xs.shape[1] != data.dt.shape[1]:
-        xs = xs.expand(-1, data.dt.shape[1], -1)
-        ys = ys.expand(-1, data.dt.shape[1], -1)
-    outside = (
-        (xs.amin(dim=(1, 2)) < 0) | (xs.amax(dim=(1, 2)) > ctx.w_img - 1)
-        | (ys.amin(dim=(1, 2)) < 0) | (ys.amax(dim=(1, 2)) > ctx.h - 1)
-    )
-    out = ctx.frames.sample(xs, ys, frame=data.fidx.unsqueeze(-1), grad=grad, work=ctx.work)
-    return out, outside
-
-
-def _gram(ctx, data: _Batch) -> tuple[torch.Tensor, torch.Tensor]:
-    """Weighted moments of the augmented steepest-descent images J_s = [gx B, gx, gy B, gy]
-    (B the spatial basis, P' = 2 (Ks + 1) columns): G = sum_s w J_s J_s^T (N, P', P') and
-    m = sum_s w J_s (N, P'), float64."""
-    if native.usable(data.gx, ctx.spatial):
-        return native.gram(data.gx, data.gy, ctx.spatial, ctx.w)
-    baug = torch.cat([ctx.spatial, torch.ones_like(ctx.spatial[:, :1])], 1)  # (S, Ks + 1)
-    j = torch.cat([data.gx.unsqueeze(-1) * baug, data.gy.unsqueeze(-1) * baug], -1)
-    wj = j * ctx.w.view(1, -1, 1)
-    return (wj.transpose(1, 2) @ j).double(), wj.sum(1).double()
-
-
-def _ic_hessian(ctx, data: _Batch) -> torch.Tensor:
-    """Gauss-Newton Hessian of the joint IC problem summed over frames, (N, P, P) float64.
-
-    J_t = [f_x b_t, f_y b_t] with b_t = (spatial basis, dt_t): the reference gradient
-    times the basis; with ZNSSD the subset mean of J_t is removed. With the moments of
-    :func:`_gram` this is H = (G - m m^T / sum w) o sum_t z_t z_t^T, z_t = (1 .. 1, dt_t)
-    per component (o: element-wise product)."""
-    g, m = _gram(ctx, data)
-    if ctx.cfg.criterion == "znssd":
-        g = g - m.unsqueeze(-1) * m.unsqueeze(-2) / float(ctx.w.sum())
-    n, t = data.dt.shape
-    ks = ctx.ks
-    if not ctx.shape.has_time:  # drop the augmented constant columns; sum over T frames
-        keep = [*range(ks), *range(ks + 1, 2 * ks + 1)]
-        return g[:, keep][:, :, keep] * t
-    z = torch.ones(n, t, 2 * (ks + 1), dtype=torch.float64, device=g.device)
-    dt = data.dt.double()
-    z[..., ks] = dt
-    z[..., 2 * ks + 1] = dt
-    return g * torch.einsum("ntp,ntq->npq", z, z)
-
-
-def _frame_stats(ctx, data: _Batch, g):
-    """Zero-mean frames (N, T, S), their squared norms and per-frame ZNCC (N, T)."""
-    w = ctx.w
-    if ctx.cfg.criterion == "znssd":
-        g = g - (_wsum(g, w) / w.sum()).unsqueeze(-1)
-    gg = _wsum(g * g, w)
-    fg = _wsum(data.ft.unsqueeze(1) * g, w)
-    zn = fg / (data.fnorm.unsqueeze(1) * gg.clamp(min=1e-30).sqrt())
-    return g, gg, zn
-
-
-def _ic_rhs_kernel(flat, p, px, py, dx, dy, spatial_t, dt, frame_off, ft, fnorm, gx, gy, w,
-                   wp: int, x_lo: float, x_hi: float, y_lo: float, y_hi: float, shift: int,
-                   w_img: int, h: int, ks: int, k: int, has_time: bool, znssd: bool,
-                   order: int):
-    """Right-hand side sum_t J_t^T e_t of one joint IC-GN step, per-frame ZNCC (N, T) and the
-    outside flag (N,): warp (Eq. 9), sample, criterion and reduction in one function, so
-    torch.compile can fuse it into a few loops over (N, T, S) without temporaries."""
-    us = p[:, :ks] @ spatial_t  # (N, S)
-    vs = p[:, k : k + ks] @ spatial_t
-    if has_time:
-        u = us.unsqueeze(1) + (p[:, k - 1 : k] * dt).unsqueeze(-1)
-        v = vs.unsqueeze(1) + (p[:, 2 * k - 1 :] * dt).unsqueeze(-1)
-    else:
-        u, v = us.unsqueeze(1), vs.unsqueeze(1)
-    xs = (px.unsqueeze(-1) + dx + u).expand(-1, dt.shape[1], -1)
-    ys = (py.unsqueeze(-1) + dy + v).expand(-1, dt.shape[1], -1)
-    outside = (
-        (xs.amin(dim=(1, 2)) < 0) | (xs.amax(dim=(1, 2)) > w_img - 1)
-        | (ys.amin(dim=(1, 2)) < 0) | (ys.amax(dim=(1, 2)) > h - 1)
-    )
-    g = _sample_kernel(flat, xs, ys, frame_off.unsqueeze(-1), wp, x_lo, x_hi, y_lo, y_hi,
-                       shift, order, False)
-    if znssd:
-        g = g - ((g * w).sum(-1) / w.sum()).unsqueeze(-1)
-    gg = (g * g * w).sum(-1).clamp(min=1e-30)
-    zn = (ft.unsqueeze(1) * g * w).sum(-1) / (fnorm.unsqueeze(1) * gg.sqrt())
-    if znssd:
-        e = ft.unsqueeze(1) - (fnorm.unsqueeze(1) / gg.sqrt()).unsqueeze(-1) * g  # Pan's scale
-    else:
-        e = ft.unsqueeze(1) - g
-    e = e * w
-    e1 = e.sum(1)  # (N, S)
-    bx = (gx * e1) @ spatial_t.T
-    by = (gy * e1) @ spatial_t.T
-    if has_time:
-        e2 = (e * dt.unsqueeze(-1)).sum(1)
-        b = torch.cat([bx, (gx * e2).sum(1, keepdim=True), by, (gy * e2).sum(1, keepdim=True)], 1)
-    else:
-        b = torch.cat([bx, by], 1)
-    return b, zn.mean(1), outside
-
-
-def _ic_rhs(*args):
-    return _ic_rhs_kernel(*args)
-
-
-def _native_ic(ctx, data: _Batch, p) -> bool:
-    """Whether the joint IC steps of this batch run in the fused C++ kernel."""
-    return native.usable_image(ctx.frames.kernel_args(), p, data.ft)
-
-
-def _step_joint_ic(ctx, data: _Batch, p, sel: torch.Tensor | None = None):
-    """One IC-GN step of the joint formulation: H dp = -sum_t J_t^T e_t. ``sel`` (native
-    kernel only): the rows of ``data`` that p's rows belong to."""
-    ka = ctx.frames.kernel_args()
-    flat, wp, x_lo, x_hi, y_lo, y_hi, shift, plane = ka
-    if sel is not None:
-        b, zn, outside = native.ic_rhs(
-            ka, ctx.frames.order, p, data.px, data.py, ctx.dx, ctx.dy,
-            ctx.spatial, data.dt, data.fidx * plane, data.ft, data.fnorm, data.gx, data.gy,
-            ctx.w, ctx.w_img, ctx.h, ctx.k, ctx.shape.has_time, ctx.cfg.criterion == "znssd",
-            rows=sel,
-        )
-        dp = -torch.cholesky_solve(b.unsqueeze(-1), data.chol[sel]).squeeze(-1)
-        return dp.to(p.dtype), zn, outside
-    fn = maybe_compiled(_ic_rhs, ("ic_rhs",), ctx.work)
-    b, zn, outside = fn(
-        flat, p, data.px, data.py, ctx.dx, ctx.dy, ctx.spatial.T.contiguous(), data.dt,
-        data.fidx * plane, data.ft, data.fnorm, data.gx, data.gy, ctx.w, wp, x_lo, x_hi, y_lo,
-        y_hi, shift, ctx.w_img, ctx.h, ctx.ks, ctx.k, ctx.shape.has_time,
-        ctx.cfg.criterion == "znssd", ctx.frames.order,
-    )
-    dp = -torch.cholesky_solve(b.double().unsqueeze(-1), data.chol).squeeze(-1)
-    return dp.to(p.dtype), zn, outside
-
-
-def _step_fa(ctx, data: _Batch, p, free_idx, average: bool):
-    """One forward-additive GN step on the averaged image (Eqs. 14-18), or on the sum of
-    per-frame residuals (joint, for shape functions without an inverse composition)."""
-    w = ctx.w
-    wsum = w.sum()
-    (g, gx, gy), outside = _sample_frames(ctx, data, p, grad=True)
-    _, _, zn = _frame_stats(ctx, data, g)
-    znssd = ctx.cfg.criterion == "znssd"
-    ft = data.ft
-    bs = ctx.spatial
-    has_t = ctx.shape.has_time
-    dt = data.dt.unsqueeze(-1)  # (N, T, 1)
-    if average:
-        big_g = g.mean(1)  # (N, S): G of Eq. 3
-        parts = []
-        for gc in (gx, gy):  # Eq. 16: dG/dp = mean_t grad g_t * dU/dp
-            parts.append(gc.mean(1).unsqueeze(-1) * bs)
-            if has_t:
-                parts.append((gc * dt).mean(1).unsqueeze(-1))
-        jac = torch.cat(parts, -1)[..., free_idx]  # (N, S, P)
-        if znssd:
-            gt = big_g - (_wsum(big_g, w) / wsum).unsqueeze(-1)
-            jac = jac - ((jac * w.view(1, -1, 1)).sum(1) / wsum).unsqueeze(1)
-            a = _wsum(ft * gt, w) / _wsum(gt * gt, w).clamp(min=1e-30)
-            r = ft - a.unsqueeze(-1) * gt
-        else:
-            a = torch.ones_like(ft[:, 0])
-            r = ft - big_g
-        wj = jac * w.view(1, -1, 1)
-        hess = wj.transpose(1, 2) @ jac  # Eq. 18
-        rhs = (wj * r.unsqueeze(-1)).sum(1) / a.clamp(min=1e-12).unsqueeze(-1)  # Eq. 15
-    else:
-        parts = []
-        for gc in (gx, gy):
-            parts.append(gc.unsqueeze(-1) * bs)
-            if has_t:
-                parts.append((gc * dt).unsqueeze(-1))
-        jac = torch.cat(parts, -1)[..., free_idx]  # (N, T, S, P)
-        if znssd:
-            gt = g - (_wsum(g, w) / wsum).unsqueeze(-1)
-            jac = jac - ((jac * w.view(1, 1, -1, 1)).sum(2) / wsum).unsqueeze(2)
-            a = _wsum(ft.unsqueeze(1) * gt, w) / _wsum(gt * gt, w).clamp(min=1e-30)  # (N, T)
-            r = ft.unsqueeze(1) - a.unsqueeze(-1) * gt
-        else:
-            a = torch.ones_like(g[..., 0])
-            r = ft.unsqueeze(1) - g
-        wj = jac * (w.view(1, 1, -1, 1) * a.view(*a.shape, 1, 1))
-        hess = torch.einsum("ntsp,ntsq->npq", wj * a.view(*a.shape, 1, 1), jac)
-        rhs = torch.einsum("ntsp,nts->np", wj, r)
-    chol, info = torch.linalg.cholesky_ex(hess.double())
-    dp = torch.cholesky_solve(rhs.double().unsqueeze(-1), chol).squeeze(-1)
-    dp = torch.where((info > 0).unsqueeze(-1), torch.full_like(dp, float("nan")), dp)
-    return dp.to(p.dtype), zn.mean(1), outside
 
 
 # ---------------------------------------------------------------------------------------

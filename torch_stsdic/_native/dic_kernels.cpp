@@ -5,7 +5,7 @@
 // takes about a second. Every function works on a range [i0, i1) of its rows so that Python
 // threads (ctypes releases the GIL) split the work without an OpenMP runtime of our own.
 //
-// Conventions are those of torch_stsdic/interpolation.py (_sample_kernel) and
+// Conventions are those of torch_stsdic/interpolation.py (sample_kernel) and
 // torch_stsdic/solver.py (_ic_rhs_kernel); the tests compare both paths.
 
 #include <algorithm>

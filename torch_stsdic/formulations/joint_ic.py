@@ -1,0 +1,164 @@
+"""Joint inverse-compositional formulation (the default): sum over frames of each frame's
+residual against the reference.
+
+Criterion: ``C(p) = sum_t sum_s w_s e_t,s(p)^2`` with, for ZNSSD, ``e_t = f~ - (|f~| / |g~_t|)
+g~_t`` (f~, g~_t the zero-mean reference subset and frame ``t`` sampled at the warped subset
+``W(x; p, t)``, Pan's normalisation) or ``e_t = f - g_t`` for SSD. Inverse compositional
+Gauss-Newton (IC-GN): the Jacobian of frame ``t`` is the *reference* gradient times the shape
+basis, ``J_t = [f_x b_t, f_y b_t]`` with ``b_t = (spatial basis, dt_t)`` (the paper's Eq. 16
+evaluated on the reference), so the Hessian ``H = sum_t J_t^T W J_t`` (Eq. 18) is formed and
+Cholesky-factored once per point, and every iteration only samples the frames' values:
+
+    H dp = -F(p),   F(p) = sum_t J_t^T W e_t(p),   p <- p o dp^-1.
+
+``F = 0`` is the stationarity condition (:meth:`JointIC.stationarity`); for a shape family
+closed under composition (the affine spatio-temporal warp) the update is exact.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from .. import native
+from ..interpolation import BSplineImage, maybe_compiled, sample_kernel
+from ..shape import linear_displacement
+from .base import Formulation, Geometry, SubsetData
+
+__all__ = ["JointIC", "ic_rhs_kernel", "gram", "ic_hessian", "ic_jacobian"]
+
+
+def ic_rhs_kernel(flat, p, px, py, dx, dy, spatial_t, dt, frame_off, ft, fnorm, gx, gy, w,
+                  wp: int, x_lo: float, x_hi: float, y_lo: float, y_hi: float, shift: int,
+                  w_img: int, h: int, ks: int, k: int, has_time: bool, znssd: bool,
+                  order: int):
+    """F(p) = sum_t J_t^T W e_t (N, P), per-frame-mean ZNCC (N,) and the outside flag (N,):
+    warp (Eq. 9), sample, criterion and reduction in one function of plain tensor code, so
+    torch.compile can fuse it into a few loops over (N, T, S) without temporaries. The fused
+    C++ kernel (``native.ic_rhs``) computes the same; the tests compare the two."""
+    u, v = linear_displacement(p, spatial_t, dt, ks, k, has_time)
+    xs = (px.unsqueeze(-1) + dx + u).expand(-1, dt.shape[1], -1)
+    ys = (py.unsqueeze(-1) + dy + v).expand(-1, dt.shape[1], -1)
+    outside = (
+        (xs.amin(dim=(1, 2)) < 0) | (xs.amax(dim=(1, 2)) > w_img - 1)
+        | (ys.amin(dim=(1, 2)) < 0) | (ys.amax(dim=(1, 2)) > h - 1)
+    )
+    g = sample_kernel(flat, xs, ys, frame_off.unsqueeze(-1), wp, x_lo, x_hi, y_lo, y_hi,
+                       shift, order, False)
+    if znssd:
+        g = g - ((g * w).sum(-1) / w.sum()).unsqueeze(-1)
+    gg = (g * g * w).sum(-1).clamp(min=1e-30)
+    zn = (ft.unsqueeze(1) * g * w).sum(-1) / (fnorm.unsqueeze(1) * gg.sqrt())
+    if znssd:
+        e = ft.unsqueeze(1) - (fnorm.unsqueeze(1) / gg.sqrt()).unsqueeze(-1) * g  # Pan's scale
+    else:
+        e = ft.unsqueeze(1) - g
+    e = e * w
+    e1 = e.sum(1)  # (N, S)
+    bx = (gx * e1) @ spatial_t.T
+    by = (gy * e1) @ spatial_t.T
+    if has_time:
+        e2 = (e * dt.unsqueeze(-1)).sum(1)
+        b = torch.cat([bx, (gx * e2).sum(1, keepdim=True), by, (gy * e2).sum(1, keepdim=True)], 1)
+    else:
+        b = torch.cat([bx, by], 1)
+    return b, zn.mean(1), outside
+
+
+def _ic_rhs(*args):
+    return ic_rhs_kernel(*args)
+
+
+def gram(gx: Tensor, gy: Tensor, spatial: Tensor, w: Tensor) -> tuple[Tensor, Tensor]:
+    """Weighted moments of the augmented steepest-descent images J_s = [gx B, gx, gy B, gy]
+    (B the spatial basis (S, Ks), P' = 2 (Ks + 1) columns): G = sum_s w J_s J_s^T
+    (N, P', P') and m = sum_s w J_s (N, P'), float64."""
+    if native.usable(gx, spatial):
+        return native.gram(gx, gy, spatial, w)
+    baug = torch.cat([spatial, torch.ones_like(spatial[:, :1])], 1)  # (S, Ks + 1)
+    j = torch.cat([gx.unsqueeze(-1) * baug, gy.unsqueeze(-1) * baug], -1)
+    wj = j * w.view(1, -1, 1)
+    return (wj.transpose(1, 2) @ j).double(), wj.sum(1).double()
+
+
+def ic_jacobian(geo: Geometry, gx: Tensor, gy: Tensor, dt: Tensor) -> Tensor:
+    """J_t (N, T, S, P) of every frame: the reference gradient (gx, gy (N, S)) times the shape
+    basis at frame times ``dt`` (N, T) (Eq. 16 on the reference); subset-mean removed for
+    ZNSSD. The definition :func:`ic_hessian` computes ``sum_t J_t^T W J_t`` from, faster."""
+    n, t = dt.shape
+    ks, k = geo.ks, geo.k
+    jac = gx.new_zeros(n, t, gx.shape[1], 2 * k)
+    for comp, g in ((0, gx), (1, gy)):
+        jac[..., comp * k : comp * k + ks] = (g.unsqueeze(-1) * geo.spatial).unsqueeze(1)
+        if geo.shape.has_time:
+            jac[..., comp * k + k - 1] = g.unsqueeze(1) * dt.unsqueeze(-1)
+    if geo.znssd:
+        jac = jac - (jac * geo.w.view(1, 1, -1, 1)).sum(2, keepdim=True) / geo.w.sum()
+    return jac
+
+
+def ic_hessian(geo: Geometry, gx: Tensor, gy: Tensor, dt: Tensor) -> Tensor:
+    """Gauss-Newton Hessian ``sum_t J_t^T W J_t`` of the joint IC problem, (N, P, P) float64.
+
+    With the moments of :func:`gram` this is H = (G - m m^T / sum w) o sum_t z_t z_t^T,
+    z_t = (1 .. 1, dt_t) per component (o: element-wise product), so no (N, T, S, P) Jacobian
+    is formed (equal to the brute-force sum over :func:`ic_jacobian`; tested)."""
+    g, m = gram(gx, gy, geo.spatial, geo.w)
+    if geo.znssd:
+        g = g - m.unsqueeze(-1) * m.unsqueeze(-2) / float(geo.w.sum())
+    n, t = dt.shape
+    ks = geo.ks
+    if not geo.shape.has_time:  # drop the augmented constant columns; sum over T frames
+        keep = [*range(ks), *range(ks + 1, 2 * ks + 1)]
+        return g[:, keep][:, :, keep] * t
+    z = torch.ones(n, t, 2 * (ks + 1), dtype=torch.float64, device=g.device)
+    dtd = dt.double()
+    z[..., ks] = dtd
+    z[..., 2 * ks + 1] = dtd
+    return g * torch.einsum("ntp,ntq->npq", z, z)
+
+
+class JointIC(Formulation):
+    """Joint inverse-compositional Gauss-Newton (see the module docstring). Needs a shape
+    function closed under composition (``shape.inverse_compositional``)."""
+
+    name = "joint_ic"
+    inverse_compositional = True
+
+    def prepare(self, geo: Geometry, data: SubsetData) -> Tensor:
+        chol, info = torch.linalg.cholesky_ex(ic_hessian(geo, data.gx, data.gy, data.dt))
+        data.chol = chol
+        return info > 0
+
+    def uses_fused_kernel(self, frames: BSplineImage, data: SubsetData, p: Tensor) -> bool:
+        return native.usable_image(frames.kernel_args(), p, data.ft)
+
+    def _args(self, geo: Geometry, frames: BSplineImage, data: SubsetData, p: Tensor) -> tuple:
+        flat, wp, x_lo, x_hi, y_lo, y_hi, shift, plane = frames.kernel_args()
+        return (flat, p, data.px, data.py, geo.dx, geo.dy, geo.spatial.T.contiguous(), data.dt,
+                data.fidx * plane, data.ft, data.fnorm, data.gx, data.gy, geo.w, wp, x_lo,
+                x_hi, y_lo, y_hi, shift, frames.width, frames.height, geo.ks, geo.k,
+                geo.shape.has_time, geo.znssd, frames.order)
+
+    def step(self, geo: Geometry, frames: BSplineImage, data: SubsetData, p: Tensor,
+             work: int, sel: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+        if sel is not None:
+            ka = frames.kernel_args()
+            b, zn, outside = native.ic_rhs(
+                ka, frames.order, p, data.px, data.py, geo.dx, geo.dy, geo.spatial, data.dt,
+                data.fidx * ka[-1], data.ft, data.fnorm, data.gx, data.gy, geo.w, frames.width,
+                frames.height, geo.k, geo.shape.has_time, geo.znssd, rows=sel,
+            )
+            dp = -torch.cholesky_solve(b.unsqueeze(-1), data.chol[sel]).squeeze(-1)
+            return dp.to(p.dtype), zn, outside
+        fn = maybe_compiled(_ic_rhs, ("ic_rhs",), work)
+        b, zn, outside = fn(*self._args(geo, frames, data, p))
+        dp = -torch.cholesky_solve(b.double().unsqueeze(-1), data.chol).squeeze(-1)
+        return dp.to(p.dtype), zn, outside
+
+    def update(self, geo: Geometry, p: Tensor, dp: Tensor) -> Tensor:
+        return geo.shape.compose_inverse(p, dp)
+
+    def stationarity(self, geo: Geometry, frames: BSplineImage, data: SubsetData,
+                     p: Tensor) -> Tensor:
+        return ic_rhs_kernel(*self._args(geo, frames, data, p))[0]
