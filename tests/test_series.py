@@ -16,13 +16,10 @@ import torch
 
 from torch_stsdic import DICConfig
 from torch_stsdic.io import load_series, read_results
-from torch_stsdic.series import (
-    _resolve_reference,
-    grid_points,
-    smooth_in_time,
-    temporal_smoothing,
-    track,
-)
+from torch_stsdic.plan import resolve_reference
+from torch_stsdic.points import grid_points
+from torch_stsdic.series import track
+from torch_stsdic.smoothing import smooth_in_time, temporal_smoothing
 from torch_stsdic.status import Status
 from torch_stsdic.synth import (
     HomogeneousStrain,
@@ -256,7 +253,7 @@ def test_reference_is_mean_of_still_frames():
     _, frames = render_series(pattern, (81, 81), Translation(ut=UT), times, noise_sigma=2.0,
                               seed=5)
     ser = load_series(frames)
-    raw, frame, desc = _resolve_reference("0:3", ser, torch.float64, torch.device("cpu"))
+    raw, frame, desc = resolve_reference("0:3", ser, torch.float64, torch.device("cpu"))
     assert frame == -1 and desc == "mean:0,1,2"
     assert torch.allclose(raw, frames[:3].mean(0))
     res = track(ser, reference="0:3", frames="4:", config=CFG.replace(m=1), roi=ROI, step=18,
@@ -331,3 +328,30 @@ def test_bad_inputs_name_the_argument(kwargs, match):
     frames = torch.rand(6, 40, 40, dtype=torch.float64)
     with pytest.raises(ValueError, match=match):
         track(frames, progress=False, **kwargs)
+
+
+def test_plan_then_run_equals_track_and_file_has_strains(movie, tmp_path):
+    """A plan can be made and inspected first, then run into a sink; track(out=...) writes
+    the same file as the CLI, strains included."""
+    from torch_stsdic import HDF5Sink, plan_run, run_plan
+
+    frames, _ = movie
+    plan = plan_run(frames, config=CFG, roi=ROI, step=18, batch_frames=BATCH)
+    assert plan.n_rows == 9 and plan.n_points == 9
+    assert plan.blocks == [[0], [1, 2, 3], [4, 5, 6], [7, 8]]
+    assert plan.fields[:6] == ("u", "v", "ut", "vt", "zncc", "status")
+    direct = track(frames, config=CFG, roi=ROI, step=18, batch_frames=BATCH, progress=False,
+                   out=tmp_path / "a.h5")
+    planned = run_plan(plan, HDF5Sink(plan, tmp_path / "b.h5"), progress=False)
+    assert torch.equal(direct.u, planned.u) and torch.equal(direct.vt, planned.vt)
+    stored = read_results(tmp_path / "a.h5")
+    strain = direct.strain(window=5, kind="green")
+    for name in ("exx", "eyy", "exy", "exx_rate"):
+        assert name in stored.fields
+        np.testing.assert_allclose(stored.fields[name], np.asarray(strain[name]), atol=1e-6,
+                                   equal_nan=True)
+    # uniform translation: zero strain where measured
+    assert np.nanmax(np.abs(stored.exx)) < 1e-4
+    nostrain = track(frames, config=CFG, roi=ROI, step=18, progress=False,
+                     out=tmp_path / "c.h5", strain_window=None)
+    assert "exx" not in read_results(tmp_path / "c.h5").fields and nostrain.n_frames == 9

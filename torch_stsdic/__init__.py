@@ -19,15 +19,13 @@ from .interpolation import BSplineImage, bspline_prefilter
 from .io import ImageSeries, InputError, ResultWriter, export_csv, load_series, read_results
 from .native import set_native
 from .noise import estimate_noise_sigma, predicted_std
-from .series import (
-    TrackResult,
-    classical_smoothed,
-    grid_points,
-    smooth_in_time,
-    temporal_smoothing,
-    track,
-)
+from .plan import RunPlan, plan_run
+from .points import grid_points
+from .result import TrackResult
+from .series import classical_smoothed, run_plan, track
 from .shape import AffineShape, QuadraticShape, ShapeFunction, make_shape
+from .sinks import HDF5Sink, MemorySink
+from .smoothing import smooth_in_time, temporal_smoothing
 from .solver import SubsetSolver, WindowSolution, solve_window
 from .status import Status
 from .strain import compute_strain
@@ -53,6 +51,11 @@ __all__ = [
     "solve_window",
     "Status",
     "track",
+    "run_plan",
+    "plan_run",
+    "RunPlan",
+    "MemorySink",
+    "HDF5Sink",
     "TrackResult",
     "grid_points",
     "smooth_in_time",

@@ -48,20 +48,10 @@ import torch
 from tqdm import tqdm
 
 from .config import DICConfig
-from .io import DEFAULT_FIELDS, ImageSeries, InputError, ResultWriter, load_series
-from .series import (
-    TrackResult,
-    _default_batch,
-    _filter_points,
-    _resolve_frames,
-    _resolve_reference,
-    _resolve_times,
-    _stored,
-    grid_points,
-    track,
-)
-from .solver import SubsetSolver
-from .status import Status
+from .plan import RunPlan, plan_run
+from .result import TrackResult
+from .series import track
+from .sinks import MemorySink, open_sink
 
 __all__ = ["track_distributed", "track_distributed_many", "chunk_plan", "DASK_HINT"]
 
@@ -140,24 +130,13 @@ def _run_chunk(series: Any, targets: list[int], kwargs: dict[str, Any], torch_th
 
 @dataclass
 class _Job:
-    """One movie: its writer, merged arrays and pending chunks."""
+    """One movie: its plan, its sink (memory or HDF5) and the chunks still to run."""
 
-    series: ImageSeries
-    source: Any  # what the workers get (the ImageSeries, scattered)
-    targets: list[int]
-    times: np.ndarray  # (F,) row times
-    points: torch.Tensor  # (N, 2) float64
-    fields: tuple[str, ...]
-    grads: tuple[str, ...]
+    plan: RunPlan
+    sink: MemorySink
     chunks: list[dict[str, Any]]
+    n_chunks: int
     kwargs: dict[str, Any]
-    cfg: DICConfig
-    dtype: torch.dtype
-    ref_frame: int
-    ref_desc: Any
-    writer: ResultWriter | None
-    out: Any
-    res: dict[str, np.ndarray] = field(default_factory=dict)
     info: dict[str, Any] = field(default_factory=dict)
     rows_done: int = 0
 
@@ -165,84 +144,29 @@ class _Job:
 def _plan_job(series: Any, *, reference, frames, points, roi, mask, step, config, times,
               batch_frames, chunk_frames, out, resume, overwrite, extra: dict[str, Any]
               ) -> _Job:
-    cfg = config if config is not None else DICConfig()
-    if not isinstance(cfg, DICConfig):
-        raise TypeError(f"config: expected a DICConfig, got {type(cfg).__name__}")
     if resume and out is None:
         raise ValueError("resume: needs out (the result file to continue)")
-    if isinstance(series, ImageSeries):
-        ser = series
-    else:
-        try:
-            ser = load_series(series)
-        except InputError as exc:
-            raise InputError(f"series: {exc}") from exc
-    h, w = ser.shape
-    n_series = len(ser)
-    n_win = cfg.n_frames
-    if cfg.subset_size > min(h, w):
-        raise ValueError(f"config.subset_size: {cfg.subset_size} px is larger than the image "
-                         f"({h}x{w} HxW)")
-    if n_series < n_win:
-        raise ValueError(f"series: {n_series} frames, fewer than the 2m+1 = {n_win} frames of "
-                         f"one window (config.m = {cfg.m})")
-    ts_np = _resolve_times(times, ser)
-    targets = _resolve_frames(frames, n_series)
-    if cfg.dtype is not None:
-        dtype = torch.float64 if cfg.dtype == "float64" else torch.float32
-    else:
-        dtype = torch.float64 if ser.dtype_name == "float64" else torch.float32
-    ref_raw, ref_frame, ref_desc = _resolve_reference(reference, ser, dtype, torch.device("cpu"))
-    if points is None:
-        pts0 = grid_points((h, w), step, roi, mask, cfg.subset_size)
-    else:
-        pts0 = _filter_points(points, (h, w), roi, mask)
-    elem = torch.finfo(dtype).bits // 8
-    n_batch = int(batch_frames) if batch_frames is not None else _default_batch(cfg, (h, w),
-                                                                                elem)
-    chunks = chunk_plan(targets, chunk_frames, n_series, cfg.m)
-    solver = SubsetSolver(cfg)
-    names = solver.shape_for(torch.ones(1, n_win) if n_win > 1 else torch.zeros(1, 1)
-                             ).param_names
-    grads = tuple(nm for nm in names if nm not in _BASE)
-    fields = (*DEFAULT_FIELDS, "iterations", *grads)
+    plan = plan_run(series, reference, frames, points, roi, mask, step, config, "cpu", times,
+                    batch_frames, lost_zncc=float(extra.get("lost_zncc", 0.8)))
+    chunks = chunk_plan(plan.targets, chunk_frames, len(plan.series), plan.config.m)
+    ref = plan.reference_image
     kwargs = dict(
-        reference=ref_frame if ref_raw is None else ref_raw.numpy(),
-        points=pts0.numpy(), step=step, config=cfg, times=ts_np, batch_frames=n_batch,
-        **extra,
+        reference=plan.reference_frame if ref is None else ref.numpy(),
+        points=plan.points.numpy(), step=step, config=plan.config, times=plan.times,
+        batch_frames=plan.batch_frames, **extra,
     )
-    n_pts = pts0.shape[0]
-    writer = None
-    if out is not None:
-        track_cfg = {
-            "reference": ref_desc, "step": int(step), "roi": None if roi is None else list(roi),
-            "batch_frames": n_batch, "reference_update": None,
-            "lost_zncc": float(extra.get("lost_zncc", 0.8)), "smoothing": None,
-            "points": n_pts,
-        }
-        dist = {"chunk_frames": int(chunk_frames), "chunks": len(chunks)}
-        writer = ResultWriter(
-            out, points=pts0.double(), frames=np.asarray(targets, dtype=np.int64),
-            times=ts_np[targets], config={**cfg.to_dict(), "track": track_cfg},
-            inputs=ser.sources, fields=fields, resume=resume, overwrite=overwrite,
-            attrs={"distributed": json.dumps(dist)},
-        )
-    n_rows = len(targets)
-    res = {nm: np.full((n_rows, n_pts), np.nan) for nm in fields}
-    res["status"] = np.full((n_rows, n_pts), int(Status.NOT_COMPUTED), dtype=np.int8)
-    res["iterations"] = np.zeros((n_rows, n_pts), dtype=np.int64)
-    job = _Job(series=ser, source=ser, targets=targets, times=ts_np[targets], points=pts0,
-               fields=fields, grads=grads, chunks=chunks, kwargs=kwargs, cfg=cfg, dtype=dtype,
-               ref_frame=ref_frame, ref_desc=ref_desc, writer=writer, out=out, res=res)
-    if writer is not None and resume:
-        done = set(writer.completed_rows().tolist())
-        f = writer._h5()
+    dist = {"chunk_frames": int(chunk_frames), "chunks": len(chunks)}
+    sink = open_sink(plan, out, resume=resume, overwrite=overwrite,
+                     attrs={"distributed": json.dumps(dist)})
+    job = _Job(plan=plan, sink=sink, chunks=chunks, n_chunks=len(chunks), kwargs=kwargs)
+    done = sink.completed_rows()
+    if done:
+        row_of = plan.row_of()
         pending = []
         for ch in chunks:
-            rows = [targets.index(t) for t in ch["targets"]]
+            rows = [row_of[t] for t in ch["targets"]]
             if all(r in done for r in rows):
-                for nm in fields:
-                    res[nm][rows[0] : rows[-1] + 1] = f[nm][rows[0] : rows[-1] + 1]
+                sink.read_rows(rows)
                 job.rows_done += len(rows)
             else:
                 pending.append(ch)
@@ -252,16 +176,10 @@ def _plan_job(series: Any, *, reference, frames, points, roi, mask, step, config
 
 
 def _accept(job: _Job, result: dict[str, Any]) -> int:
-    """Merge one chunk's rows into the job (and its file). Returns the rows added."""
-    row0 = job.targets.index(result["targets"][0])
-    rows = np.arange(row0, row0 + len(result["targets"]))
-    full = result["rows"]
-    stored = _stored(full)
-    if job.writer is not None:
-        job.writer.write_rows(rows, stored)
-    keep = stored if job.writer is not None else full
-    for nm in job.fields:
-        job.res[nm][rows] = keep[nm]
+    """Merge one chunk's rows into the job's sink. Returns the rows added."""
+    row0 = job.plan.row_of()[result["targets"][0]]
+    rows = list(range(row0, row0 + len(result["targets"])))
+    job.sink.write_rows(rows, result["rows"])
     for k, v in result["info"].items():
         if k in ("frames_read", "prefiltered", "fft_rows", "redone_rows", "blocks"):
             job.info[k] = job.info.get(k, 0) + v
@@ -272,30 +190,18 @@ def _accept(job: _Job, result: dict[str, Any]) -> int:
     return len(rows)
 
 
-def _result(job: _Job, n_chunks: int, chunk_frames: int, workers: int) -> TrackResult:
-    def ft(a: np.ndarray) -> torch.Tensor:
-        return torch.from_numpy(np.asarray(a, dtype=np.float64)).to(job.dtype)
-
-    r = job.res
+def _finish(job: _Job, chunk_frames: int, workers: int) -> TrackResult:
     info = {
-        "batch_frames": job.kwargs["batch_frames"], "reference": job.ref_desc,
-        "reference_updates": [], "chunk_frames": chunk_frames, "chunks": n_chunks,
+        "batch_frames": job.plan.batch_frames, "reference": job.plan.reference_desc,
+        "reference_updates": [], "chunk_frames": chunk_frames, "chunks": job.n_chunks,
         "chunks_run": len(job.chunks), "workers": workers,
         **{k: v for k, v in job.info.items() if k != "worker_pids"},
         "worker_processes": len(job.info.get("worker_pids", ())),
     }
-    if job.out is not None:
-        info["out"] = str(job.out)
-    return TrackResult(
-        points=job.points.to(job.dtype), frames=torch.tensor(job.targets, dtype=torch.long),
-        times=torch.from_numpy(job.times.copy()),
-        u=ft(r["u"]), v=ft(r["v"]), ut=ft(r["ut"]), vt=ft(r["vt"]), zncc=ft(r["zncc"]),
-        status=torch.from_numpy(r["status"].astype(np.int8)),
-        iterations=torch.from_numpy(r["iterations"].astype(np.int32)),
-        gradients={nm: ft(r[nm]) for nm in job.grads},
-        reference_frames=torch.full((len(job.targets),), job.ref_frame, dtype=torch.long),
-        config=job.cfg, info=info,
-    )
+    result = job.sink.result(info)
+    job.sink.finish(result)
+    job.sink.close()
+    return result
 
 
 def _open_client(client: Any, n_workers: int, threads_per_worker: int, processes: bool):
@@ -374,12 +280,9 @@ def track_distributed_many(
             ))
     except BaseException:
         for j in jobs:
-            if j.writer is not None:
-                j.writer.close(commit=False)
+            j.sink.close(commit=False)
         raise
-    n_chunks = {id(j): len(chunk_plan(j.targets, chunk_frames, len(j.series), j.cfg.m))
-                for j in jobs}
-    total = sum(len(j.targets) for j in jobs)
+    total = sum(j.plan.n_rows for j in jobs)
     done = sum(j.rows_done for j in jobs)
     bar = tqdm(total=total, initial=done, unit="frame", file=sys.stderr, disable=not progress,
                desc="STS-DIC (dask)", dynamic_ncols=True)
@@ -391,10 +294,10 @@ def track_distributed_many(
             run_id = uuid.uuid4().hex[:8]
             where: dict[str, _Job] = {}
             for ji, job in enumerate(jobs):
-                src = cl.scatter(job.series, broadcast=True, hash=False)
+                src = cl.scatter(job.plan.series, broadcast=True, hash=False)
                 for ch in job.chunks:
                     fut = cl.submit(_run_chunk, src, ch["targets"], job.kwargs, torch_threads,
-                                    job.fields, key=f"stsdic-{run_id}-{ji}-{ch['index']}",
+                                    job.plan.fields, key=f"stsdic-{run_id}-{ji}-{ch['index']}",
                                     pure=False)
                     where[fut.key] = job
                     futures.append(fut)
@@ -409,8 +312,7 @@ def track_distributed_many(
             fut.cancel()
         bar.close()
         for j in jobs:
-            if j.writer is not None:
-                j.writer.close(commit=False)
+            j.sink.close(commit=False)
         if owns and cl is not None:
             cl.close()
         if cluster is not None:
@@ -427,10 +329,7 @@ def track_distributed_many(
             cl.close()
         if cluster is not None:
             cluster.close()
-    for j in jobs:
-        if j.writer is not None:
-            j.writer.close()
-    return [_result(j, n_chunks[id(j)], int(chunk_frames), workers) for j in jobs]
+    return [_finish(j, int(chunk_frames), workers) for j in jobs]
 
 
 def track_distributed(

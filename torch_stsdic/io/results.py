@@ -34,6 +34,7 @@ __all__ = [
     "ResultWriter",
     "Results",
     "add_fields",
+    "as_stored",
     "field_names",
     "open_results",
     "read_results",
@@ -64,6 +65,20 @@ _INT_FIELDS: dict[str, tuple[type, int]] = {
 
 def _field_dtype(name: str) -> tuple[type, float | int]:
     return _INT_FIELDS.get(name, (np.float32, np.nan))
+
+
+def as_stored(values: Mapping[str, Any]) -> dict[str, np.ndarray]:
+    """Values rounded exactly as a result file stores them (float32; status int8;
+    iterations int16, clipped): what a resumed run reads back."""
+    out = {}
+    for name, val in values.items():
+        a = np.asarray(_as_numpy(val))
+        dt = _field_dtype(name)[0]
+        if np.issubdtype(dt, np.integer):
+            info = np.iinfo(dt)
+            a = np.clip(a, info.min, info.max)
+        out[name] = a.astype(dt)
+    return out
 
 
 def _software_version() -> str:
@@ -401,6 +416,19 @@ class ResultWriter:
             f["completed"][srows] = True
             f.flush()
 
+    def read_rows(self, first: int, last: int,
+                  fields: Sequence[str] | None = None) -> dict[str, np.ndarray]:
+        """Rows ``first..last`` (inclusive) of ``fields`` (default the required fields) as
+        stored, e.g. to replay finished rows when resuming."""
+        f = self._h5()
+        return {nm: f[nm][first : last + 1] for nm in (fields or self.fields)}
+
+    def add_fields(self, values: Mapping[str, Any], attrs: Mapping[str, Any] | None = None
+                   ) -> None:
+        """Add or replace (F, N) float fields (e.g. strains) and root attributes."""
+        _add_fields(self._h5(), values, attrs)
+        self._h5().flush()
+
     def completed_rows(self) -> np.ndarray:
         """Row indices (sorted int64) already completed."""
         return np.flatnonzero(self._h5()["completed"][()]).astype(np.int64)
@@ -548,18 +576,23 @@ def add_fields(path: str | os.PathLike[str], values: Mapping[str, Any],
     """Add or replace (F, N) float fields (e.g. strains) in a result file, and set root
     attributes ``attrs``. Raises ValueError naming a field of the wrong shape."""
     with h5py.File(path, "r+") as f:
-        names = json.loads(f.attrs.get("fields", "[]"))
-        n_f, n_p = len(f["frames"]), len(f["points"])
-        for name, val in values.items():
-            a = np.asarray(_as_numpy(val), dtype=np.float32)
-            if a.shape != (n_f, n_p):
-                raise ValueError(f"field {name}: shape {a.shape}, expected ({n_f}, {n_p})")
-            if name in f:
-                f[name][...] = a
-            else:
-                f.create_dataset(name, data=a, chunks=_chunks(n_f, n_p, 4), fillvalue=np.nan)
-            if name not in names:
-                names.append(name)
-        f.attrs["fields"] = json.dumps(names)
-        for k, v in (attrs or {}).items():
-            f.attrs[k] = v
+        _add_fields(f, values, attrs)
+
+
+def _add_fields(f: h5py.File, values: Mapping[str, Any],
+                attrs: Mapping[str, Any] | None) -> None:
+    names = json.loads(f.attrs.get("fields", "[]"))
+    n_f, n_p = len(f["frames"]), len(f["points"])
+    for name, val in values.items():
+        a = np.asarray(_as_numpy(val), dtype=np.float32)
+        if a.shape != (n_f, n_p):
+            raise ValueError(f"field {name}: shape {a.shape}, expected ({n_f}, {n_p})")
+        if name in f:
+            f[name][...] = a
+        else:
+            f.create_dataset(name, data=a, chunks=_chunks(n_f, n_p, 4), fillvalue=np.nan)
+        if name not in names:
+            names.append(name)
+    f.attrs["fields"] = json.dumps(names)
+    for k, v in (attrs or {}).items():
+        f.attrs[k] = v

@@ -1,0 +1,269 @@
+"""The plan of a run: validated inputs, points, reference, target frames and frame blocks.
+
+:func:`plan_run` checks every argument of :func:`~torch_stsdic.track` once (errors name the
+argument) and returns a :class:`RunPlan`; :func:`~torch_stsdic.series.run_plan` executes it
+block by block into a result sink, and the distributed runner splits the same plan into
+chunks. A plan holds no solver state, so it can be inspected before anything is computed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+
+from .config import DICConfig
+from .io import DEFAULT_FIELDS, ImageSeries, InputError, load_series, parse_frame_spec
+from .points import filter_points, grid_points
+from .shape import make_shape
+
+__all__ = ["RunPlan", "plan_run", "resolve_reference", "resolve_frames", "resolve_times",
+           "default_batch_frames", "MAX_DEFAULT_BATCH"]
+
+MAX_DEFAULT_BATCH = 8
+_BASE = ("u", "v", "ut", "vt")
+
+
+@dataclass
+class RunPlan:
+    """A validated run of :func:`~torch_stsdic.track` (see :func:`plan_run`).
+
+    Attributes:
+        series: the image series (read lazily).
+        config: solver settings; ``config.m`` sets the window of 2m+1 frames.
+        points: (N, 2) float64 POIs (x, y) px in the reference, on the CPU.
+        targets: ascending series indices of the frames with a result row each.
+        times: (T_series,) float64 time of every series frame.
+        reference_image: (H, W) reference pixels when it is not a single series frame
+            (a mean of frames, or an array), else None.
+        reference_frame: series index of the reference, -1 for a mean/array.
+        reference_desc: how the reference is recorded (frame index, "mean:0,1,2",
+            "array:<digest>").
+        dtype, device: of the computation.
+        batch_frames: target frames solved together per block.
+        param_names: the shape function's parameter names for a window of 2m+1 frames.
+        options: run options recorded with the results (step, roi, reference_update,
+            lost_zncc, smoothing, strain settings).
+    """
+
+    series: ImageSeries
+    config: DICConfig
+    points: torch.Tensor
+    targets: list[int]
+    times: np.ndarray
+    reference_image: torch.Tensor | None
+    reference_frame: int
+    reference_desc: Any
+    dtype: torch.dtype
+    device: torch.device
+    batch_frames: int
+    param_names: tuple[str, ...]
+    options: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def n_rows(self) -> int:
+        """F, the number of result rows (target frames)."""
+        return len(self.targets)
+
+    @property
+    def n_points(self) -> int:
+        """N, the number of POIs."""
+        return int(self.points.shape[0])
+
+    @property
+    def row_times(self) -> np.ndarray:
+        """(F,) times of the target frames."""
+        return self.times[self.targets]
+
+    @property
+    def gradients(self) -> tuple[str, ...]:
+        """Parameter names other than u, v, ut, vt (displacement gradients ...)."""
+        return tuple(nm for nm in self.param_names if nm not in _BASE)
+
+    @property
+    def fields(self) -> tuple[str, ...]:
+        """(F, N) result fields: u, v, ut, vt, zncc, status, iterations, gradients."""
+        return (*DEFAULT_FIELDS, "iterations", *self.gradients)
+
+    @property
+    def blocks(self) -> list[list[int]]:
+        """Target frames per block: the first target alone (FFT start), then ``batch_frames``
+        at a time."""
+        tg, n = self.targets, self.batch_frames
+        return [b for b in [tg[:1]] + [tg[i : i + n] for i in range(1, len(tg), n)] if b]
+
+    def row_of(self) -> dict[int, int]:
+        """Result row of every target frame."""
+        return {k: r for r, k in enumerate(self.targets)}
+
+    def record(self) -> dict[str, Any]:
+        """The settings recorded with the results (and compared on resume)."""
+        track_cfg = {"reference": self.reference_desc, "batch_frames": self.batch_frames,
+                     "points": self.n_points, **self.options}
+        return {**self.config.to_dict(), "track": track_cfg}
+
+
+def plan_run(
+    series: Any,
+    reference: Any = 0,
+    frames: Any = None,
+    points: Any = None,
+    roi: Sequence[float] | None = None,
+    mask: Any = None,
+    step: int = 10,
+    config: DICConfig | None = None,
+    device: str | torch.device = "cpu",
+    times: Any = None,
+    batch_frames: int | None = None,
+    *,
+    reference_update: float | None = None,
+    smoothing: int | None = None,
+    lost_zncc: float = 0.8,
+) -> RunPlan:
+    """Validate the arguments of :func:`~torch_stsdic.track` (same meaning) into a plan.
+
+    Raises:
+        ValueError / InputError naming the argument: ROI off the image, subset larger than
+        the image, fewer frames than 2m+1, mask of the wrong shape, no points inside
+        ROI/mask, reference index out of range, bad times/frames/batch_frames/
+        reference_update/smoothing.
+    """
+    cfg = config if config is not None else DICConfig()
+    if not isinstance(cfg, DICConfig):
+        raise TypeError(f"config: expected a DICConfig, got {type(cfg).__name__}")
+    if smoothing is not None:
+        if not isinstance(smoothing, (int, np.integer)) or smoothing < 1 or smoothing % 2 == 0:
+            raise ValueError(f"smoothing: span must be an odd integer >= 1, got {smoothing!r}")
+        cfg = cfg.replace(m=0)
+    if reference_update is not None and not 0.0 < float(reference_update) < 1.0:
+        raise ValueError(f"reference_update: ZNCC threshold must be in (0, 1), got "
+                         f"{reference_update!r}")
+    if batch_frames is not None and (not isinstance(batch_frames, (int, np.integer))
+                                     or batch_frames < 1):
+        raise ValueError(f"batch_frames: must be an integer >= 1, got {batch_frames!r}")
+    ser = _open(series)
+    h, w = ser.shape
+    n_series = len(ser)
+    if cfg.subset_size > min(h, w):
+        raise ValueError(f"config.subset_size: {cfg.subset_size} px is larger than the image "
+                         f"({h}x{w} HxW)")
+    n_win = cfg.n_frames
+    if n_series < n_win:
+        raise ValueError(f"series: {n_series} frames, fewer than the 2m+1 = {n_win} frames of "
+                         f"one window (config.m = {cfg.m})")
+    ts_np = resolve_times(times, ser)
+    targets = resolve_frames(frames, n_series)
+    if smoothing is not None and smoothing > len(targets):
+        raise ValueError(f"smoothing: span {smoothing} is longer than the {len(targets)} "
+                         "target frames")
+    dev = torch.device(device)
+    if cfg.dtype is not None:
+        dtype = torch.float64 if cfg.dtype == "float64" else torch.float32
+    else:
+        dtype = torch.float64 if ser.dtype_name == "float64" else torch.float32
+    ref_raw, ref_frame, ref_desc = resolve_reference(reference, ser, dtype, torch.device("cpu"))
+    if points is None:
+        pts0 = grid_points((h, w), step, roi, mask, cfg.subset_size)
+    else:
+        pts0 = filter_points(points, (h, w), roi, mask)
+    elem = torch.finfo(dtype).bits // 8
+    n_batch = int(batch_frames) if batch_frames is not None else default_batch_frames(
+        cfg, (h, w), elem)
+    shape = make_shape(cfg.shape)
+    names = shape.param_names if n_win > 1 else shape.spatial().param_names
+    options = {"step": int(step), "roi": None if roi is None else list(roi),
+               "reference_update": reference_update, "lost_zncc": float(lost_zncc),
+               "smoothing": smoothing}
+    return RunPlan(series=ser, config=cfg, points=pts0.double(), targets=targets, times=ts_np,
+                   reference_image=ref_raw, reference_frame=ref_frame, reference_desc=ref_desc,
+                   dtype=dtype, device=dev, batch_frames=n_batch, param_names=names,
+                   options=options)
+
+
+def _open(series: Any) -> ImageSeries:
+    if isinstance(series, ImageSeries):
+        return series
+    try:
+        return load_series(series)
+    except InputError as exc:
+        raise InputError(f"series: {exc}") from exc
+
+
+def resolve_reference(reference: Any, series: ImageSeries, dtype, device):
+    """(raw (H, W), frame index or -1, description for the config)."""
+    n = len(series)
+    if isinstance(reference, (np.ndarray, torch.Tensor)) and np.ndim(reference) >= 2:
+        arr = torch.as_tensor(np.asarray(reference.detach().cpu() if isinstance(
+            reference, torch.Tensor) else reference)).to(dtype)
+        if arr.dim() == 3 and arr.shape[0] == 1:
+            arr = arr[0]
+        if tuple(arr.shape) != tuple(series.shape):
+            raise ValueError(f"reference: image shape {tuple(arr.shape)} differs from the "
+                             f"series {tuple(series.shape)} (H, W)")
+        if not bool(torch.isfinite(arr).all()):
+            raise ValueError("reference: contains non-finite pixels")
+        digest = hashlib.sha1(arr.to(torch.float64).numpy().tobytes()).hexdigest()[:16]
+        return arr.to(device), -1, f"array:{digest}"
+    if isinstance(reference, (int, np.integer)) and not isinstance(reference, bool):
+        i = int(reference)
+        if not -n <= i < n:
+            raise ValueError(f"reference: frame index {i} out of range for {n} frames")
+        return None, i % n, i % n
+    try:
+        if isinstance(reference, str):
+            idx = parse_frame_spec(reference, n)
+        else:
+            idx = series.resolve(list(reference))
+    except (InputError, IndexError, TypeError, ValueError) as exc:
+        raise ValueError(f"reference: {exc}") from None
+    if len(idx) == 1:
+        return None, idx[0], idx[0]
+    raw = series.mean_of(idx, dtype=torch.float64).to(device=device, dtype=dtype)
+    return raw, -1, f"mean:{','.join(map(str, idx))}"
+
+
+def resolve_frames(frames: Any, n: int) -> list[int]:
+    if frames is None:
+        return list(range(n))
+    try:
+        if isinstance(frames, (str, int, np.integer)):
+            idx = parse_frame_spec(frames, n)
+        else:
+            vals = np.asarray(frames.detach().cpu() if isinstance(frames, torch.Tensor)
+                              else list(frames))
+            if vals.ndim != 1 or vals.size == 0 or vals.dtype.kind not in "iu":
+                raise ValueError(f"expected a non-empty list of frame indices, got {frames!r}")
+            bad = [int(i) for i in vals if not -n <= int(i) < n]
+            if bad:
+                raise ValueError(f"indices {bad} out of range for {n} frames")
+            idx = [int(i) % n for i in vals]
+    except (InputError, ValueError, TypeError) as exc:
+        raise ValueError(f"frames: {exc}") from None
+    return sorted(set(idx))
+
+
+def resolve_times(times: Any, series: ImageSeries) -> np.ndarray:
+    n = len(series)
+    if times is None:
+        return series.times.astype(np.float64)
+    t = np.asarray(times.detach().cpu() if isinstance(times, torch.Tensor) else times,
+                   dtype=np.float64).reshape(-1)
+    if t.shape[0] != n:
+        raise ValueError(f"times: expected {n} values (one per series frame), got {t.shape[0]}")
+    if not np.isfinite(t).all() or (n > 1 and not (np.diff(t) > 0).all()):
+        raise ValueError("times: must be finite and strictly increasing")
+    return t
+
+
+def default_batch_frames(cfg: DICConfig, shape: tuple[int, int], elem: int) -> int:
+    """Target frames per block: the frames of a block (raw + padded coefficients, ~3 copies)
+    within half of ``memory_mb`` (the other half bounds the solver's batches), at most 8
+    (the carried guess is extrapolated over the block, so very long blocks start further
+    from the solution)."""
+    frame_bytes = 3.0 * shape[0] * shape[1] * elem
+    fit = int(cfg.memory_mb * 2**20 / (2.0 * frame_bytes)) - 2 * cfg.m
+    return max(1, min(MAX_DEFAULT_BATCH, fit))

@@ -1,0 +1,121 @@
+"""Points of interest (POIs): a regular grid inside a region of interest and a mask, or the
+user's own points filtered by them. Coordinates (x, y) px, x = column, y = row, 0-based."""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import torch
+
+from .io import InputError, load_series
+
+__all__ = ["grid_points", "filter_points", "check_roi", "load_mask"]
+
+
+def check_roi(roi: Any, shape: tuple[int, int]) -> tuple[float, float, float, float]:
+    """(x0, y0, x1, y1) px of a region of interest, validated against an (H, W) image."""
+    h, w = shape
+    try:
+        x0, y0, x1, y1 = (float(c) for c in roi)
+    except (TypeError, ValueError):
+        raise ValueError(f"roi: expected (x0, y0, x1, y1) in px, got {roi!r}") from None
+    if not all(math.isfinite(c) for c in (x0, y0, x1, y1)) or x1 < x0 or y1 < y0:
+        raise ValueError(f"roi: expected finite (x0, y0, x1, y1) with x0 <= x1, y0 <= y1, "
+                         f"got {roi!r}")
+    if x1 < 0 or y1 < 0 or x0 > w - 1 or y0 > h - 1:
+        raise ValueError(
+            f"roi {tuple(roi)} is off the image (x 0..{w - 1}, y 0..{h - 1} for {h}x{w} HxW)"
+        )
+    return x0, y0, x1, y1
+
+
+def load_mask(mask: Any, shape: tuple[int, int]) -> torch.Tensor:
+    """(H, W) bool tensor from a mask array/tensor or image path (non-zero = measure)."""
+    if isinstance(mask, (str, os.PathLike)):
+        try:
+            m = load_series(mask).numpy(0, np.float64)
+        except (InputError, OSError) as exc:
+            raise ValueError(f"mask: cannot read {mask}: {exc}") from exc
+        arr = torch.from_numpy(m != 0)
+    else:
+        arr = torch.as_tensor(np.asarray(mask.detach().cpu() if isinstance(mask, torch.Tensor)
+                                         else mask))
+        if arr.dim() == 3 and arr.shape[0] == 1:
+            arr = arr[0]
+        arr = arr != 0
+    if tuple(arr.shape) != tuple(shape):
+        raise ValueError(
+            f"mask: shape {tuple(arr.shape)} does not match the images {tuple(shape)} (H, W)"
+        )
+    return arr
+
+
+def grid_points(
+    shape: tuple[int, int],
+    step: int = 10,
+    roi: Sequence[float] | None = None,
+    mask: Any = None,
+    subset_size: int = 21,
+) -> torch.Tensor:
+    """A regular grid of POIs (N, 2) float64 as (x, y) px.
+
+    The grid has spacing ``step`` px, lies inside ``roi = (x0, y0, x1, y1)`` (inclusive,
+    default the whole image) and keeps a margin of ``subset_size // 2`` px from the image
+    border so that every subset fits; it is centred in the available range. ``mask``: (H, W)
+    bool/number array or an image path; points where the mask is zero are dropped (only the
+    POI itself is tested). Raises ValueError naming ``roi``, ``mask`` or ``step``.
+    """
+    h, w = int(shape[0]), int(shape[1])
+    if not isinstance(step, (int, np.integer)) or step < 1:
+        raise ValueError(f"step: must be an integer >= 1 (px), got {step!r}")
+    half = subset_size // 2
+    x0, y0, x1, y1 = (0.0, 0.0, w - 1.0, h - 1.0) if roi is None else check_roi(roi, (h, w))
+    lo_x, hi_x = math.ceil(max(x0, half)), math.floor(min(x1, w - 1 - half))
+    lo_y, hi_y = math.ceil(max(y0, half)), math.floor(min(y1, h - 1 - half))
+    if lo_x > hi_x or lo_y > hi_y:
+        where = "the image" if roi is None else f"roi {tuple(roi)}"
+        raise ValueError(
+            f"no points inside {where}: a subset of {subset_size} px needs a margin of {half} "
+            f"px from the {h}x{w} image border"
+        )
+    xs = torch.arange(lo_x + ((hi_x - lo_x) % step) // 2, hi_x + 1, step, dtype=torch.float64)
+    ys = torch.arange(lo_y + ((hi_y - lo_y) % step) // 2, hi_y + 1, step, dtype=torch.float64)
+    gy, gx = torch.meshgrid(ys, xs, indexing="ij")
+    pts = torch.stack([gx.reshape(-1), gy.reshape(-1)], 1)
+    if mask is not None:
+        m = load_mask(mask, (h, w))
+        pts = pts[m[pts[:, 1].long(), pts[:, 0].long()]]
+        if pts.shape[0] == 0:
+            raise ValueError(f"no points inside roi/mask: the mask is zero at every grid point "
+                             f"(step {step} px)")
+    return pts
+
+
+def filter_points(points: Any, shape, roi, mask) -> torch.Tensor:
+    """User POIs (N, 2), kept where inside ``roi`` and ``mask``."""
+    pts = torch.as_tensor(np.asarray(points.detach().cpu() if isinstance(points, torch.Tensor)
+                                     else points, dtype=np.float64))
+    if pts.dim() == 1 and pts.shape[0] == 2:
+        pts = pts.unsqueeze(0)
+    if pts.dim() != 2 or pts.shape[1] != 2 or pts.shape[0] == 0:
+        raise ValueError(f"points: expected a non-empty (N, 2) array of (x, y), got shape "
+                         f"{tuple(pts.shape)}")
+    if not bool(torch.isfinite(pts).all()):
+        raise ValueError("points: contains non-finite coordinates")
+    h, w = shape
+    keep = torch.ones(pts.shape[0], dtype=torch.bool)
+    if roi is not None:
+        x0, y0, x1, y1 = check_roi(roi, shape)
+        keep &= (pts[:, 0] >= x0) & (pts[:, 0] <= x1) & (pts[:, 1] >= y0) & (pts[:, 1] <= y1)
+    if mask is not None:
+        m = load_mask(mask, shape)
+        ix = pts[:, 0].round().long().clamp(0, w - 1)
+        iy = pts[:, 1].round().long().clamp(0, h - 1)
+        keep &= m[iy, ix]
+    if not bool(keep.any()):
+        raise ValueError("points: no point inside roi/mask")
+    return pts[keep]
