@@ -47,7 +47,6 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from .config import DICConfig
 from .plan import RunPlan, plan_run
 from .result import TrackResult
 from .series import track
@@ -105,11 +104,7 @@ def _run_chunk(series: Any, targets: list[int], kwargs: dict[str, Any], torch_th
             per = get_worker().state.nthreads
         except (ImportError, ValueError, AttributeError):
             per = 1
-        try:
-            cores = len(os.sched_getaffinity(0))
-        except AttributeError:
-            cores = os.cpu_count() or 1
-        torch_threads = max(1, cores // max(1, per))
+        torch_threads = max(1, _cores() // max(1, per))
     if torch_threads > 0:
         torch.set_num_threads(int(torch_threads))
     res = track(series, frames=targets, progress=False, **kwargs)
@@ -141,18 +136,16 @@ class _Job:
     rows_done: int = 0
 
 
-def _plan_job(series: Any, *, reference, frames, points, roi, mask, step, config, times,
-              batch_frames, chunk_frames, out, resume, overwrite, extra: dict[str, Any]
-              ) -> _Job:
+def _plan_job(series: Any, plan_args: dict[str, Any], *, chunk_frames: int, out: Any,
+              resume: bool, overwrite: bool, extra: dict[str, Any]) -> _Job:
     if resume and out is None:
         raise ValueError("resume: needs out (the result file to continue)")
-    plan = plan_run(series, reference, frames, points, roi, mask, step, config, "cpu", times,
-                    batch_frames, lost_zncc=float(extra.get("lost_zncc", 0.8)))
+    plan = plan_run(series, **plan_args, lost_zncc=float(extra.get("lost_zncc", 0.8)))
     chunks = chunk_plan(plan.targets, chunk_frames, len(plan.series), plan.config.m)
     ref = plan.reference_image
     kwargs = dict(
         reference=plan.reference_frame if ref is None else ref.numpy(),
-        points=plan.points.numpy(), step=step, config=plan.config, times=plan.times,
+        points=plan.points.numpy(), config=plan.config, times=plan.times,
         batch_frames=plan.batch_frames, **extra,
     )
     dist = {"chunk_frames": int(chunk_frames), "chunks": len(chunks)}
@@ -225,18 +218,21 @@ def _open_client(client: Any, n_workers: int, threads_per_worker: int, processes
                     f"scheduler file or None, got {type(client).__name__}")
 
 
+_PLAN_ARGS = ("reference", "frames", "points", "roi", "mask", "step", "config", "times",
+              "batch_frames")
+
+
+def _cores() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:
+        return os.cpu_count() or 1
+
+
 def track_distributed_many(
     movies: Sequence[Any],
     outs: Sequence[Any] | None = None,
     *,
-    reference: Any = 0,
-    frames: Any = None,
-    points: Any = None,
-    roi: Sequence[float] | None = None,
-    mask: Any = None,
-    step: int = 10,
-    config: DICConfig | None = None,
-    times: Any = None,
     chunk_frames: int = 50,
     client: Any = None,
     n_workers: int = 2,
@@ -245,7 +241,6 @@ def track_distributed_many(
     torch_threads: int | None = None,
     resume: bool = False,
     overwrite: bool = False,
-    batch_frames: int | None = None,
     progress: bool = True,
     callback: Callable[[int, int], None] | None = None,
     **track_kwargs: Any,
@@ -261,23 +256,15 @@ def track_distributed_many(
     if outs is not None and len(list(outs)) != len(movies):
         raise ValueError(f"outs: {len(list(outs))} paths for {len(movies)} movies")
     outs_l = list(outs) if outs is not None else [None] * len(movies)
-    distributed = _import_distributed()
     if client is None and torch_threads is None:
-        try:
-            cores = len(os.sched_getaffinity(0))
-        except AttributeError:
-            cores = os.cpu_count() or 1
         # threads share this process' torch thread pool: leave it alone (0)
-        torch_threads = max(1, cores // (n_workers * threads_per_worker)) if processes else 0
+        torch_threads = max(1, _cores() // (n_workers * threads_per_worker)) if processes else 0
+    plan_args = {k: track_kwargs.pop(k) for k in _PLAN_ARGS if k in track_kwargs}
     jobs: list[_Job] = []
     try:
         for mv, o in zip(movies, outs_l):
-            jobs.append(_plan_job(
-                mv, reference=reference, frames=frames, points=points, roi=roi, mask=mask,
-                step=step, config=config, times=times, batch_frames=batch_frames,
-                chunk_frames=chunk_frames, out=o, resume=resume, overwrite=overwrite,
-                extra=track_kwargs,
-            ))
+            jobs.append(_plan_job(mv, plan_args, chunk_frames=chunk_frames, out=o,
+                                  resume=resume, overwrite=overwrite, extra=track_kwargs))
     except BaseException:
         for j in jobs:
             j.sink.close(commit=False)
@@ -291,16 +278,8 @@ def track_distributed_many(
     try:
         if any(j.chunks for j in jobs):
             cl, cluster, owns = _open_client(client, n_workers, threads_per_worker, processes)
-            run_id = uuid.uuid4().hex[:8]
-            where: dict[str, _Job] = {}
-            for ji, job in enumerate(jobs):
-                src = cl.scatter(job.plan.series, broadcast=True, hash=False)
-                for ch in job.chunks:
-                    fut = cl.submit(_run_chunk, src, ch["targets"], job.kwargs, torch_threads,
-                                    job.plan.fields, key=f"stsdic-{run_id}-{ji}-{ch['index']}",
-                                    pure=False)
-                    where[fut.key] = job
-                    futures.append(fut)
+            futures, where = _submit(cl, jobs, torch_threads)
+            distributed = _import_distributed()
             for fut in distributed.as_completed(futures):
                 added = _accept(where[fut.key], fut.result())
                 done += added
@@ -313,10 +292,7 @@ def track_distributed_many(
         bar.close()
         for j in jobs:
             j.sink.close(commit=False)
-        if owns and cl is not None:
-            cl.close()
-        if cluster is not None:
-            cluster.close()
+        _close_client(cl, cluster, owns)
         raise
     bar.close()
     workers = 0
@@ -325,11 +301,32 @@ def track_distributed_many(
             workers = len(cl.scheduler_info().get("workers", {}))
         except Exception:
             workers = 0
-        if owns:
-            cl.close()
-        if cluster is not None:
-            cluster.close()
+    _close_client(cl, cluster, owns)
     return [_finish(j, int(chunk_frames), workers) for j in jobs]
+
+
+def _submit(cl: Any, jobs: list[_Job], torch_threads: int | None
+            ) -> tuple[list[Any], dict[str, _Job]]:
+    """One task per pending chunk of every job (the series scattered once per job): the
+    futures, and the job of every future's key."""
+    run_id = uuid.uuid4().hex[:8]
+    futures, where = [], {}
+    for ji, job in enumerate(jobs):
+        src = cl.scatter(job.plan.series, broadcast=True, hash=False)
+        for ch in job.chunks:
+            fut = cl.submit(_run_chunk, src, ch["targets"], job.kwargs, torch_threads,
+                            job.plan.fields, key=f"stsdic-{run_id}-{ji}-{ch['index']}",
+                            pure=False)
+            where[fut.key] = job
+            futures.append(fut)
+    return futures, where
+
+
+def _close_client(cl: Any, cluster: Any, owns: bool) -> None:
+    if owns and cl is not None:
+        cl.close()
+    if cluster is not None:
+        cluster.close()
 
 
 def track_distributed(
@@ -380,12 +377,9 @@ def track_distributed(
     Raises:
         ImportError (with the pip command) when Dask distributed is not installed.
     """
-    known = {k: track_kwargs.pop(k) for k in list(track_kwargs)
-             if k in ("reference", "frames", "points", "roi", "mask", "step", "config",
-                      "times", "batch_frames")}
     return track_distributed_many(
         [series], None if out is None else [out], chunk_frames=chunk_frames, client=client,
         n_workers=n_workers, threads_per_worker=threads_per_worker, processes=processes,
         torch_threads=torch_threads, resume=resume, overwrite=overwrite, progress=progress,
-        callback=callback, **known, **track_kwargs,
+        callback=callback, **track_kwargs,
     )[0]
