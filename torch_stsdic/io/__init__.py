@@ -1,15 +1,9 @@
-"""Files in and out: image series (:mod:`.images`), users' small tables (:mod:`.tables`),
+"""Files in and out: image series (:mod:`.images`), frame specifications (:mod:`.specs`),
+users' small tables (:mod:`.tables`),
 HDF5 result files (:mod:`.results`) and exports for other tools (:mod:`.export`)."""
 
 from .export import export_csv
-from .images import (
-    IMAGE_EXTENSIONS,
-    ImageSeries,
-    InputError,
-    load_series,
-    natural_sort_key,
-    parse_frame_spec,
-)
+from .images import IMAGE_EXTENSIONS, ImageSeries, load_series
 from .results import (
     CSV_COLUMNS,
     DEFAULT_FIELDS,
@@ -22,6 +16,7 @@ from .results import (
     add_fields,
     read_results,
 )
+from .specs import InputError, natural_sort_key, parse_frame_spec
 from .tables import read_mask, read_points, read_table, read_timestamps
 
 __all__ = [
