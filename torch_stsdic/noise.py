@@ -381,17 +381,15 @@ def predicted_std(
 
 
 def _immerkaer(img: torch.Tensor, flat_fraction: float | None) -> float:
-    k = torch.tensor([[1.0, -2.0, 1.0], [-2.0, 4.0, -2.0], [1.0, -2.0, 1.0]],
-                     dtype=torch.float64)
-    lap = torch.nn.functional.conv2d(img.view(1, 1, *img.shape), k.view(1, 1, 3, 3))[0, 0]
-    a = lap.abs()
+    from kornia.filters import filter2d, get_sobel_kernel2d
+
+    x = img.view(1, 1, *img.shape)
+    k = torch.tensor([[[1.0, -2.0, 1.0], [-2.0, 4.0, -2.0], [1.0, -2.0, 1.0]]],
+                     dtype=img.dtype)
+    a = filter2d(x, k, padding="valid")[0, 0].abs()  # Immerkaer's Laplacian difference
     if flat_fraction is not None:
-        sob = torch.tensor([[-1.0, 0.0, 1.0], [-2.0, 0.0, 2.0], [-1.0, 0.0, 1.0]],
-                           dtype=torch.float64)
-        x = img.view(1, 1, *img.shape)
-        gx = torch.nn.functional.conv2d(x, sob.view(1, 1, 3, 3))[0, 0]
-        gy = torch.nn.functional.conv2d(x, sob.T.contiguous().view(1, 1, 3, 3))[0, 0]
-        g = gx.abs() + gy.abs()
+        sob = get_sobel_kernel2d(dtype=img.dtype)  # (2, 3, 3): d/dx, d/dy
+        g = sum(filter2d(x, sob[i : i + 1], padding="valid").abs() for i in range(2))[0, 0]
         keep = g <= torch.quantile(g.reshape(-1)[:: max(1, g.numel() // 2_000_000)],
                                    float(flat_fraction))
         a = a[keep]
