@@ -113,9 +113,10 @@ def test_help(capsys, cmd):
             assert motion in out
 
 
-def test_python_m_help():
+@pytest.mark.parametrize("module", ["torch_stsdic", "torch_stsdic.cli"])
+def test_python_m_help(module):
     proc = subprocess.run(
-        [sys.executable, "-m", "torch_stsdic", "--help"],
+        [sys.executable, "-m", module, "--help"],
         capture_output=True,
         text=True,
         timeout=120,
@@ -123,6 +124,15 @@ def test_python_m_help():
     assert proc.returncode == 0, proc.stderr
     for cmd in SUBCOMMANDS:
         assert cmd in proc.stdout
+
+
+def test_help_lists_each_command_once(capsys):
+    code, out, _ = _run(capsys, "--help")
+    assert code == 0
+    listed = [ln.split()[0] for ln in out.splitlines() if ln.startswith("  ") and ln.split()]
+    for cmd in SUBCOMMANDS:
+        assert listed.count(cmd) == 1, (cmd, out)
+    assert "COMMAND\n" not in out  # no bare metavar line above the list
 
 
 def test_no_command(capsys):
@@ -288,6 +298,27 @@ def test_demo_quick(capsys, tmp_path):
     summary = json.loads((tmp_path / "demo.json").read_text())
     for row in summary["results"]:
         assert row["rms_u"] < 0.1
+    # the printed table holds the file's numbers
+    for row in summary["results"]:
+        assert f"{row['rms_u']:.4f}" in out and f"{row['rms_ut']:.4f}" in out
+    assert f"plots and numbers in {tmp_path}/: error_per_frame.png" in out
+
+
+def test_demo_no_plots_and_bad_settings(capsys, tmp_path):
+    out_dir = tmp_path / "d"
+    code, out, err = _run(
+        capsys, "demo", "--quick", "--no-plots", "--noise", "0", "--out", out_dir,
+        "--no-progress", *FAST,
+    )  # fmt: skip
+    assert code == 0, err
+    assert "noise sigma 0," in out and "plots and numbers" not in out
+    assert not out_dir.exists()
+    code, _, err = _run(capsys, "demo", "--quick", "--frames", "3", "--out", out_dir)
+    assert code == 2
+    _assert_one_line_error(code, err, "--frames 3", "--m 2", "at least 5 frames")
+    code, _, err = _run(capsys, "demo", "--quick", "--subset", "121", "--out", out_dir)
+    _assert_one_line_error(code, err, "--subset 121")
+    assert code == 2 and not out_dir.exists()
 
 
 # ----------------------------------------------------------------------------------------

@@ -1,0 +1,144 @@
+"""The demo experiment as a library function: its numbers against the exactly known motion."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from torch_stsdic.demo import UT_TRUE, DemoSettings, check_settings, run_demo
+
+
+@pytest.fixture(scope="module")
+def quick():
+    """The quick demo at the paper's noise (sigma 5): 101 px, 7 frames, 9 points."""
+    return run_demo(quick=True)
+
+
+@pytest.fixture(scope="module")
+def quick_stills():
+    """The quick demo with the reference also averaged from 4 still frames."""
+    return run_demo(quick=True, still_frames=4)
+
+
+def test_settings_quick_and_defaults():
+    assert DemoSettings.create() == DemoSettings()
+    assert (DemoSettings().size, DemoSettings().frames, DemoSettings().noise) == (301, 9, 5.0)
+    q = DemoSettings.create(True)
+    assert (q.size, q.frames, q.step, q.still_frames) == (101, 7, 25, 0)
+    # None keeps the (quick) default, a value replaces it
+    assert DemoSettings.create(True, size=None, still_frames=3) == DemoSettings(
+        size=101, frames=7, step=25, still_frames=3
+    )
+
+
+def test_truth_is_the_papers_translation(quick):
+    s = quick.settings
+    assert quick.times.tolist() == list(range(1, s.frames + 1))
+    assert quick.points.shape == (9, 2)
+    np.testing.assert_allclose(quick.u_true, UT_TRUE * quick.times[:, None] * np.ones((1, 9)))
+    np.testing.assert_allclose(quick.v_true, 0.0)
+    for r in quick.methods:
+        np.testing.assert_allclose(r.error_u, r.u - quick.u_true)
+
+
+def test_sts_beats_classical_at_noise_5(quick):
+    c, s = quick.classical, quick.sts
+    assert [r.method for r in quick.methods] == ["classical DIC", "STS-DIC"]
+    assert (c.m, s.m) == (0, 2)
+    assert c.valid_percent == s.valid_percent == 100.0
+    # noise 5 gives errors of a few hundredths of a pixel, not zero and not gross
+    for r in (c, s):
+        assert 0.005 < r.rms_u < 0.05 and 0.005 < r.rms_v < 0.05
+    assert s.rms_u < c.rms_u and s.rms_v < c.rms_v
+    # the velocity: STS-DIC measures it; finite differences of classical u are >2x worse
+    assert c.ut_from_finite_differences and not s.ut_from_finite_differences
+    assert s.rms_ut < 0.5 * c.rms_ut
+    # one noisy reference bounds the gain in u near 1 / sqrt((1 + 1/5) / 2) = 1.29
+    ratios = quick.ratios()
+    assert 1.0 < ratios["u"] < 1.6
+    assert ratios["ut"] == pytest.approx(c.rms_ut / s.rms_ut)
+
+
+def test_per_frame_numbers_are_consistent(quick):
+    for r in quick.methods:
+        per_frame = np.asarray(r.rms_u_per_frame)
+        assert per_frame.shape == (quick.settings.frames,)
+        assert math.sqrt(np.mean(per_frame**2)) == pytest.approx(r.rms_u, rel=1e-12)
+        assert r.bias_u == pytest.approx(float(np.mean(r.error_u)))
+        np.testing.assert_allclose(r.mean_u_per_frame, r.u.mean(axis=1))
+        assert r.time_s > 0 and r.poi_per_s == pytest.approx(r.u.size / r.time_s)
+
+
+def test_noise_free_movie_is_measured_exactly():
+    d = run_demo(quick=True, noise=0.0)
+    for r in d.methods:
+        assert r.rms_u < 2e-3 and r.rms_v < 2e-3 and r.rms_ut < 2e-3, r.summary()
+
+
+def test_averaged_reference_lowers_the_error(quick_stills):
+    rows = quick_stills.methods
+    assert [r.method for r in rows[2:]] == [
+        "classical DIC, ref=mean of 4",
+        "STS-DIC, ref=mean of 4",
+    ]
+    assert rows[2].rms_u < rows[0].rms_u  # classical: averaged vs single reference
+    assert rows[3].rms_u < rows[1].rms_u  # STS-DIC
+    assert rows[3].rms_u < 0.6 * rows[0].rms_u  # STS + averaged reference vs classical
+    table = quick_stills.table()
+    assert "averaged ref" in table and "sqrt((1 + 1/5) / 2) = 0.77" in table
+
+
+def test_table_and_header(quick):
+    lines = quick.table().splitlines()
+    assert "RMS u err" in lines[1] and "POI/s" in lines[1]
+    row = lines[4].split()
+    assert row[:3] == ["classical", "DIC", "0"]
+    assert float(row[3]) == pytest.approx(quick.classical.rms_u, abs=5e-5)
+    assert row[5] == f"{quick.classical.rms_ut:.4f}*"  # finite differences are starred
+    assert lines[-1].startswith("* classical DIC measures no velocity")
+    assert "9 points" in quick.header() and "101x101 px" in quick.header()
+
+
+def test_files_and_json(tmp_path):
+    said = []
+    d = run_demo(tmp_path / "out", quick=True, log=said.append)
+    assert said == [d.header()]
+    names = [p.name for p in d.files]
+    assert names == ["error_per_frame.png", "fields.png", "history.png", "demo.json"]
+    for p in d.files[:3]:
+        assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and p.stat().st_size > 5000
+    saved = json.loads(d.files[3].read_text())
+    assert saved["settings"]["points"] == 9 and saved["settings"]["still_frames"] == 0
+    assert [r["rms_u"] for r in saved["results"]] == [r.rms_u for r in d.methods]
+    assert saved["ratio_classical_over_sts"]["u"] == d.ratios()["u"]
+    assert "u" not in saved["results"][0]  # numbers only, no arrays
+
+
+def test_no_folder_writes_nothing(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    d = run_demo(quick=True)
+    assert d.files == [] and not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize(
+    ("changes", "words"),
+    [
+        ({"frames": 4}, ["frames 4", "m 2", "at least 5 frames"]),
+        ({"subset": 121}, ["subset 121", "101 px"]),
+        ({"size": 41, "subset": 41}, ["size 41", "too small"]),
+        ({"m": 0}, ["m 0", ">= 1"]),
+    ],
+)
+def test_bad_settings(changes, words):
+    s = DemoSettings.create(True, **changes)
+    with pytest.raises(ValueError) as exc:
+        check_settings(s)
+    for w in words:
+        assert w in str(exc.value)
+    with pytest.raises(ValueError, match=words[0].split()[0]):
+        run_demo(quick=True, **changes)
+    with pytest.raises(ValueError, match="--" + words[0].split()[0]):
+        check_settings(s, name=lambda k: "--" + k)

@@ -1,0 +1,260 @@
+"""Options shared by several sub-commands, each defined once, and the argument types.
+
+Every ``add_*`` function adds a group of options to a parser or argument group; a
+sub-command calls the ones it needs. The argument types name the rule a value breaks, and
+argparse puts the option's name in front (``argument --subset: must be an odd ...``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from collections.abc import Callable
+from typing import Any
+
+from ..config import CRITERIA, FORMULATIONS, INITIAL_GUESSES
+
+#: an ArgumentParser or one of its argument groups
+Group = Any
+
+# ----------------------------------------------------------------------------------------
+# argument types
+# ----------------------------------------------------------------------------------------
+
+
+def _checked(
+    cast: Callable[[str], Any], expected: str, test: Callable[[Any], bool], rule: str
+) -> Callable[[str], Any]:
+    """Argument type: ``cast`` the text, then require ``test`` (else 'rule, got TEXT')."""
+
+    def conv(s: str) -> Any:
+        try:
+            v = cast(s)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {expected}, got {s!r}") from None
+        if not test(v):
+            raise argparse.ArgumentTypeError(f"{rule}, got {s}")
+        return v
+
+    return conv
+
+
+def odd_int(lo: int) -> Callable[[str], int]:
+    """Argument type: an odd integer >= ``lo``."""
+    return _checked(int, "an odd integer", lambda v: v >= lo and v % 2 == 1,
+                    f"must be an odd integer >= {lo}")  # fmt: skip
+
+
+def int_min(lo: int) -> Callable[[str], int]:
+    """Argument type: an integer >= ``lo``."""
+    return _checked(int, "an integer", lambda v: v >= lo, f"must be >= {lo}")
+
+
+float_pos = _checked(float, "a number", lambda v: math.isfinite(v) and v > 0,
+                     "must be a finite number > 0")  # fmt: skip
+float_nonneg = _checked(float, "a number", lambda v: math.isfinite(v) and v >= 0,
+                        "must be a finite number >= 0")  # fmt: skip
+unit_open = _checked(float, "a number", lambda v: 0.0 < v < 1.0,
+                     "must be a ZNCC threshold in (0, 1)")  # fmt: skip
+finite = _checked(float, "a number", math.isfinite, "must be finite")
+
+# ----------------------------------------------------------------------------------------
+# option groups
+# ----------------------------------------------------------------------------------------
+
+
+def add_debug(p: Group) -> None:
+    """``--debug`` (every sub-command; also accepted before the sub-command)."""
+    p.add_argument(
+        "--debug",
+        action="store_true",
+        default=argparse.SUPPRESS,
+        help="show the Python traceback of an error",
+    )
+
+
+def add_threads(g: Group) -> None:
+    """``--threads N``: torch's CPU threads."""
+    g.add_argument(
+        "--threads",
+        type=int_min(1),
+        default=None,
+        metavar="N",
+        help="CPU threads for torch (default: torch's choice; use 1 on a busy machine, "
+        "where competing threads slow torch down badly)",
+    )
+
+
+def add_compute(g: Group) -> None:
+    """``--device``, ``--no-progress``, ``--threads``: where and how a tracking run computes."""
+    g.add_argument(
+        "--device",
+        default="cpu",
+        metavar="DEV",
+        help="torch device: cpu, cuda, cuda:1, mps ... (default: %(default)s)",
+    )
+    g.add_argument("--no-progress", action="store_true", help="no progress bar (it goes to stderr)")
+    add_threads(g)
+
+
+def add_dic(g: Group, *, min_m: int = 0) -> None:
+    """``--subset``, ``--m``, ``--formulation``: the settings every (STS-)DIC run has."""
+    g.add_argument(
+        "--subset", type=odd_int(5), default=21, metavar="PX",
+        help="subset width in px, odd (default: %(default)s)",
+    )  # fmt: skip
+    classical = "; 0 = classical DIC" if min_m == 0 else ""
+    g.add_argument(
+        "--m",
+        type=int_min(min_m),
+        default=2,
+        help=f"half window: each solve uses 2m+1 frames{classical} (default: %(default)s)",
+    )
+    g.add_argument(
+        "--formulation",
+        choices=FORMULATIONS,
+        default="auto",
+        help="joint: sum of per-frame residuals; average: the paper's averaged image; "
+        "joint+average: joint, then refined on the average; auto: joint "
+        "(default: %(default)s)",
+    )
+
+
+def add_step(g: Group, default: int | None = 10, default_text: str = "%(default)s") -> None:
+    """``--step PX``: grid spacing of the points of interest."""
+    g.add_argument(
+        "--step", type=int_min(1), default=default, metavar="PX",
+        help=f"grid spacing in px (default: {default_text})",
+    )  # fmt: skip
+
+
+def add_solver(p: argparse.ArgumentParser) -> None:
+    """The 'solver' group: subset, window, formulation, criterion, shape ... batch size."""
+    g = p.add_argument_group("solver")
+    add_dic(g)
+    g.add_argument(
+        "--criterion",
+        choices=CRITERIA,
+        default="znssd",
+        help="znssd: insensitive to brightness/contrast changes; ssd: plain sum of squared "
+        "differences (default: %(default)s)",
+    )
+    g.add_argument(
+        "--shape",
+        choices=("affine", "quadratic"),
+        default="affine",
+        help="spatial shape function (both linear in time) (default: %(default)s)",
+    )
+    g.add_argument(
+        "--window",
+        choices=("square", "circular", "gaussian"),
+        default="square",
+        help="subset window (default: %(default)s)",
+    )
+    g.add_argument(
+        "--interpolation",
+        choices=("cubic", "quintic"),
+        default="cubic",
+        help="B-spline interpolation order (default: %(default)s)",
+    )
+    _add_initial_guess(g)
+    g.add_argument(
+        "--tol",
+        type=float_pos,
+        default=1e-4,
+        metavar="PX",
+        help="convergence: largest subset-pixel motion of the last increment, px "
+        "(default: %(default)s)",
+    )
+    g.add_argument(
+        "--max-iter",
+        type=int_min(1),
+        default=50,
+        metavar="N",
+        help="Gauss-Newton iterations per stage (default: %(default)s)",
+    )
+    g.add_argument(
+        "--batch-points",
+        type=int_min(1),
+        default=None,
+        metavar="N",
+        help="points solved together (default: from --memory-mb)",
+    )
+    g.add_argument(
+        "--memory-mb",
+        type=float_pos,
+        default=256.0,
+        metavar="MB",
+        help="working-memory budget per batch in MiB (default: %(default)s)",
+    )
+
+
+def _add_initial_guess(g: Group) -> None:
+    """``--search-radius``, ``--initial-guess``, ``--seed-spacing``."""
+    g.add_argument(
+        "--search-radius",
+        type=int_min(0),
+        default=10,
+        metavar="PX",
+        help="initial-guess search radius (FFT cross-correlation) in px; make it larger than "
+        "the largest motion between neighbouring output frames (default: %(default)s)",
+    )
+    g.add_argument(
+        "--initial-guess",
+        choices=INITIAL_GUESSES,
+        default="auto",
+        help="where POIs without a previous result start: 'fft' = FFT cross-correlation at "
+        "every POI; 'seeded' = FFT at one seed POI per cell of --seed-spacing px, the others "
+        "start from their seed's solution (FFT again where that fails); 'auto' = seeded for "
+        "dense POIs (default: %(default)s)",
+    )
+    g.add_argument(
+        "--seed-spacing",
+        type=float_pos,
+        default=None,
+        metavar="PX",
+        help="cell width for --initial-guess seeded, px (default: the subset size)",
+    )
+
+
+def add_points(p: argparse.ArgumentParser) -> None:
+    """The 'points of interest' group: a grid (--step, --roi, --mask) or --points."""
+    g = p.add_argument_group("points of interest")
+    add_step(g)
+    g.add_argument(
+        "--roi",
+        type=int,
+        nargs=4,
+        default=None,
+        metavar=("X0", "Y0", "X1", "Y1"),
+        help="region of interest in px: columns X0..X1, rows Y0..Y1 (default: whole image)",
+    )
+    g.add_argument(
+        "--mask",
+        default=None,
+        metavar="FILE",
+        help="image (or .npy) of the image size; points on zero pixels are skipped",
+    )
+    g.add_argument(
+        "--points",
+        default=None,
+        metavar="FILE.csv",
+        help="explicit points: CSV with columns x, y in px (header optional); replaces the grid",
+    )
+
+
+def add_speckle(g: Group) -> None:
+    """``--noise``, ``--seed``: the synthetic speckle movie's noise and random seed."""
+    g.add_argument(
+        "--noise",
+        type=float_nonneg,
+        default=5.0,
+        metavar="SIGMA",
+        help="Gaussian noise std in 8-bit grey levels (default: %(default)s)",
+    )
+    g.add_argument("--seed", type=int, default=0, help="speckle and noise seed (default: 0)")
+
+
+def add_result(p: argparse.ArgumentParser) -> None:
+    """The positional ``RESULT.h5``: a file written by ``stsdic run``."""
+    p.add_argument("result", metavar="RESULT.h5", help="result file written by 'stsdic run'")

@@ -1,0 +1,274 @@
+"""``stsdic plot``: field maps at one frame and time histories of a result file, as PNG."""
+
+from __future__ import annotations
+
+import argparse
+import warnings
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from . import options
+from .common import span
+from .errors import CommandError, UsageError, one_line
+
+NAME = "plot"
+HELP = "draw fields over the image and time histories as PNG files"
+
+DESCRIPTION = """\
+Draw a result file as PNG files in DIR:
+  fields_frameNNNNN.png    maps of the chosen fields at one frame over the image
+  history_mean.png         time history of u, v averaged over the valid points
+  history_xX_yY.png        ... or of the point nearest to (X, Y) with --point
+  velocity_history_*.png   the same for ut, vt (STS-DIC results, m >= 1)
+  strain_history_*.png     the same for exx, eyy, exy (when the file has strains)
+Displacements use a sequential colour map, strains a diverging one centred on 0;
+failed points are transparent.
+"""
+
+EPILOG = """\
+examples:
+  stsdic plot result.h5 --out plots/                        # last frame, mean history
+  stsdic plot result.h5 --frame 5 --fields u,exx --out plots/
+  stsdic plot result.h5 --point 150 150 --image movie.tif --out plots/
+"""
+
+#: (fields, y-axis label, file name prefix) of the time-history figures
+HISTORIES = (
+    (("u", "v"), "displacement (px)", "history"),
+    (("ut", "vt"), "velocity (px / time unit)", "velocity_history"),
+    (("exx", "eyy", "exy"), "strain (-)", "strain_history"),
+)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The options of ``stsdic plot``."""
+    options.add_result(p)
+    p.add_argument("--out", "-o", required=True, metavar="DIR", help="output directory")
+    p.add_argument(
+        "--frame",
+        default="last",
+        metavar="N|last",
+        help="image frame number of the maps, or 'last' finished frame (default: %(default)s)",
+    )
+    p.add_argument(
+        "--fields",
+        default=None,
+        metavar="LIST",
+        help="comma-separated fields to map, e.g. u,v,exx,eyy,exy,ut,vt,zncc,status "
+        "(default: u,v,exx,eyy,exy, those in the file)",
+    )
+    p.add_argument(
+        "--image",
+        default=None,
+        metavar="INPUT",
+        help="image series for the background (default: the inputs recorded in the file, "
+        "if they still exist)",
+    )
+    p.add_argument(
+        "--image-frame",
+        default=None,
+        metavar="N",
+        help="frame of the background series (default: the run's reference frame)",
+    )
+    p.add_argument("--no-image", action="store_true", help="no background image")
+    ex = p.add_mutually_exclusive_group()
+    ex.add_argument(
+        "--point",
+        type=options.finite,
+        nargs=2,
+        default=None,
+        metavar=("X", "Y"),
+        help="time history of the point nearest to (X, Y) px",
+    )
+    ex.add_argument(
+        "--mean",
+        action="store_true",
+        help="time history of the mean over the valid points (the default)",
+    )
+    p.add_argument(
+        "--dpi", type=options.int_min(20), default=120, help="PNG resolution (default: %(default)s)"
+    )
+    p.add_argument(
+        "--min-zncc", type=float, default=0.8, metavar="Z",
+        help="hide points whose ZNCC is below Z in the maps, e.g. holes, edges, background "
+        "(default: %(default)s; -1 shows every converged point)",
+    )  # fmt: skip
+
+
+# ----------------------------------------------------------------------------------------
+# what to draw: frame, fields, valid points, background
+# ----------------------------------------------------------------------------------------
+
+
+def _row(args: argparse.Namespace, res: Any) -> int:
+    """Row of the result file that ``--frame`` names."""
+    if args.frame == "last":
+        done = np.flatnonzero(res.completed)
+        if not done.size:
+            raise CommandError(f"{args.result}: no finished frame to plot")
+        return int(done[-1])
+    try:
+        fr = int(args.frame)
+    except ValueError:
+        raise UsageError(f"--frame {args.frame}: expected a frame number or 'last'") from None
+    hits = np.flatnonzero(res.frames == fr)
+    if fr < 0 and not hits.size and -len(res.frames) <= fr:
+        hits = np.array([len(res.frames) + fr])
+    if not hits.size:
+        raise UsageError(
+            f"--frame {args.frame}: no such frame in {args.result} "
+            f"(frames {span(res.frames.tolist())})"
+        )
+    return int(hits[0])
+
+
+def _field_names(args: argparse.Namespace, res: Any) -> list[str]:
+    """The fields to map: ``--fields``, checked against the file, or the default ones."""
+    if args.fields is None:
+        return [f for f in ("u", "v", "exx", "eyy", "exy") if f in res.fields]
+    names = [s.strip() for s in args.fields.split(",") if s.strip()]
+    bad = [s for s in names if s not in res.fields]
+    if bad or not names:
+        raise UsageError(
+            f"--fields {args.fields}: unknown field(s) {', '.join(bad) or '(none)'} "
+            f"(the file has {', '.join(res.fields)})"
+        )
+    return names
+
+
+def _valid(args: argparse.Namespace, res: Any) -> np.ndarray:
+    """(F, N) bool: converged (or max-iter) points with ZNCC >= ``--min-zncc``."""
+    from ..status import Status
+
+    status = res.fields.get("status")
+    valid = (
+        np.asarray(status) <= int(Status.MAX_ITER)
+        if status is not None
+        else np.isfinite(res.fields.get("u", np.zeros((res.n_frames, res.n_points))))
+    )
+    zn = res.fields.get("zncc")
+    if zn is not None and args.min_zncc > -1.0:
+        valid = valid & (np.nan_to_num(np.asarray(zn), nan=-1.0) >= args.min_zncc)
+    return valid
+
+
+def _reference_frame(res: Any, n: int) -> int:
+    """The run's reference frame (the first one of an averaged reference), else 0."""
+    ref = (res.config.get("track") or {}).get("reference", 0)
+    try:
+        k = int(ref)
+    except (TypeError, ValueError):  # "mean:0,1,2" or "array:..."
+        k = int(str(ref).split(":")[-1].split(",")[0]) if "mean:" in str(ref) else 0
+    return k if 0 <= k < n else 0
+
+
+def _background(args: argparse.Namespace, res: Any) -> np.ndarray | None:
+    """Background image for the maps, or None."""
+    from ..io import load_series, parse_frame_spec
+
+    if args.no_image:
+        return None
+    explicit = args.image is not None
+    inputs = [args.image] if explicit else list(res.inputs)
+    if not inputs or (not explicit and not all(Path(s).exists() for s in inputs)):
+        return None
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            series = load_series(inputs[0] if len(inputs) == 1 else inputs)
+        if args.image_frame is not None:
+            k = parse_frame_spec(args.image_frame, len(series))[0]
+        else:
+            k = _reference_frame(res, len(series))
+        return series.numpy(k)
+    except Exception as exc:
+        if explicit:
+            raise CommandError(f"--image {args.image}: {one_line(exc)}") from exc
+        warnings.warn(f"no background image ({one_line(exc)})", stacklevel=2)
+        return None
+
+
+# ----------------------------------------------------------------------------------------
+# figures
+# ----------------------------------------------------------------------------------------
+
+
+def _history_pick(
+    args: argparse.Namespace, res: Any, valid: np.ndarray
+) -> tuple[Callable[[np.ndarray], np.ndarray], str, str]:
+    """(F, N) values -> (F,) history of ``--point`` or of the mean; its title and file tag."""
+    if args.point is None:
+
+        def mean(a: np.ndarray) -> np.ndarray:
+            vals = np.where(valid, np.asarray(a, dtype=np.float64), np.nan)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
+                return np.nanmean(vals, axis=1)
+
+        return mean, "mean over valid points", "mean"
+    x, y = args.point
+    k = int(np.argmin((res.points[:, 0] - x) ** 2 + (res.points[:, 1] - y) ** 2))
+    px, py = res.points[k]
+
+    def point(a: np.ndarray) -> np.ndarray:
+        return np.where(valid[:, k], np.asarray(a[:, k], dtype=np.float64), np.nan)
+
+    return point, f"point {k} at ({px:g}, {py:g})", f"x{px:g}_y{py:g}"
+
+
+def _plot_histories(args: argparse.Namespace, res: Any, valid: np.ndarray, out: Path) -> list[Path]:
+    """The time-history PNGs that have data; their paths."""
+    from ..plot import plot_history
+
+    pick, what, tag = _history_pick(args, res, valid)
+    done = res.completed.astype(bool)
+    written = []
+    for keys, ylabel, prefix in HISTORIES:
+        curves = {}
+        for key in (k for k in keys if k in res.fields):
+            vals = np.where(done, pick(res.fields[key]), np.nan)
+            if np.isfinite(vals).any():
+                curves[key] = vals
+        if curves:
+            path = out / f"{prefix}_{tag}.png"
+            plot_history(res.times, curves, ylabel=ylabel, title=f"{Path(args.result).name}: "
+                         f"{what}", path=path, dpi=args.dpi)  # fmt: skip
+            written.append(path)
+    return written
+
+
+def execute(args: argparse.Namespace) -> int:
+    """``stsdic plot``: field maps at one frame and time histories as PNG."""
+    from ..io import read_results
+    from ..plot import plot_fields
+
+    p = Path(args.result)
+    if not p.exists():
+        raise CommandError(f"result file not found: {args.result}")
+    res = read_results(p)
+    if res.n_frames == 0 or res.n_points == 0:
+        raise CommandError(f"{args.result}: the result file holds no frame or no point")
+    row = _row(args, res)
+    frame = int(res.frames[row])
+    names = _field_names(args, res)
+    valid = _valid(args, res)
+    image = _background(args, res)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    written: list[Path] = []
+    if names:
+        maps = {}
+        for nm in names:
+            vals = np.asarray(res.fields[nm][row], dtype=np.float64)
+            maps[nm] = vals if nm == "status" else np.where(valid[row], vals, np.nan)
+        path = out / f"fields_frame{frame:05d}.png"
+        plot_fields(image, res.points, maps, path, dpi=args.dpi,
+                    suptitle=f"{p.name}: frame {frame} (t = {res.times[row]:g})")  # fmt: skip
+        written.append(path)
+    written += _plot_histories(args, res, valid, out)
+    for path in written:
+        print(f"wrote {path}")
+    return 0

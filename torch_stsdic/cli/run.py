@@ -1,0 +1,320 @@
+"""``stsdic run``: track points through an image series, write HDF5, add strains, summarise."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from . import options
+from .common import check_device, fmt_time, to_numpy
+from .errors import PROG, CommandError, UsageError
+
+NAME = "run"
+HELP = "measure displacement, velocity and strain in an image series -> HDF5"
+
+DESCRIPTION = """\
+Track points through an image series with (STS-)DIC and write the results to an HDF5
+file as the run goes (a killed run keeps every finished frame; --resume continues it).
+
+INPUT is a multi-page TIFF, a directory of images (natural order: img2 before img10),
+a glob pattern ('frames/*.tif', quoted) or several image files in order. 8/16-bit and
+float images are read in their native grey scale; colour is converted to grey.
+
+Points: a regular grid every --step px inside --roi (default: the whole image, at least
+half a subset from the border), minus the pixels outside --mask; or the points listed
+in --points. For every output frame the window of 2m+1 frames around it is solved
+(shifted at the ends of the series). At the end the strains exx, eyy, exy (and their
+rates) are computed by local plane fits and added to the file.
+
+The file holds points (N, 2), frames (F,), times (F,), and (F, N) datasets u, v [px],
+ut, vt [px per time unit], zncc, status (0 converged, 1 max-iter, 2 diverged,
+3 outside, 4 low texture, 5 not computed), exx, eyy, exy [-]; see 'stsdic export'.
+"""
+
+EPILOG = """\
+examples:
+  stsdic run movie.tif --out result.h5                      # defaults: subset 21, m 2, step 10
+  stsdic run frames/ --m 0 --out classical.h5               # classical DIC, frame by frame
+  stsdic run 'img_*.tif' --roi 50 50 450 300 --step 5 --out r.h5
+  stsdic run movie.tif --reference 0:5 --frames 5: --out r.h5   # averaged reference
+  stsdic run movie.tif --points poi.csv --timestamps times.csv --out r.h5
+  stsdic run movie.tif --out r.h5 --resume                  # continue a killed run
+  stsdic run movie.tif --device cuda --dtype float32 --out r.h5
+"""
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The options of ``stsdic run``."""
+    p.add_argument("inputs", nargs="+", metavar="INPUT", help="image series (see above)")
+    p.add_argument(
+        "--out", "-o", required=True, metavar="FILE.h5", help="result file (HDF5), required"
+    )
+    _add_frames(p)
+    options.add_points(p)
+    options.add_solver(p)
+    g = p.add_argument_group("strain")
+    g.add_argument(
+        "--strain-window", type=options.odd_int(3), default=5, metavar="N",
+        help="plane fit over N x N grid points (odd) (default: %(default)s)",
+    )  # fmt: skip
+    g.add_argument(
+        "--strain-kind", choices=("green", "small"), default="green",
+        help="green: Green-Lagrange; small: infinitesimal strain (default: %(default)s)",
+    )  # fmt: skip
+    g = p.add_argument_group("computation and output")
+    g.add_argument(
+        "--dtype",
+        choices=("float32", "float64"),
+        default=None,
+        help="computation precision (default: float32 for integer images, else the image's)",
+    )
+    ex = g.add_mutually_exclusive_group()
+    ex.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue the run that wrote --out (same inputs and options); finished frames "
+        "are kept",
+    )
+    ex.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace an existing --out (the old file stays intact until the new run ends)",
+    )
+    options.add_compute(g)
+
+
+def _add_frames(p: argparse.ArgumentParser) -> None:
+    """The 'frames and reference' group."""
+    g = p.add_argument_group("frames and reference")
+    g.add_argument(
+        "--reference",
+        default="0",
+        metavar="SPEC",
+        help="reference frame, or several frames averaged into the reference, e.g. 0:5 "
+        "(frame numbers of the series, 0-based; default: %(default)s)",
+    )
+    g.add_argument(
+        "--frames",
+        default=None,
+        metavar="SPEC",
+        help="output frames: an index, slices and lists such as 5, -1, 10:100:2, 0:5,9, all "
+        "(default: every frame)",
+    )
+    g.add_argument(
+        "--timestamps",
+        default=None,
+        metavar="FILE",
+        help="frame times, one per frame (text/CSV: one number a line, or a column named "
+        "'time'); velocities are then per this time unit (default: 0, 1, 2, ...)",
+    )
+    g.add_argument(
+        "--reference-update",
+        type=options.unit_open,
+        default=None,
+        metavar="THRESH",
+        help="take a new reference (incremental DIC) when the mean ZNCC falls below THRESH, "
+        "e.g. 0.9 (default: never, one fixed reference)",
+    )
+
+
+# ----------------------------------------------------------------------------------------
+# inputs: every check before any output file is opened
+# ----------------------------------------------------------------------------------------
+
+
+def _open_series(inputs: Sequence[str], timestamps: np.ndarray | None) -> Any:
+    from ..io import InputError, load_series
+
+    src: Any = inputs[0] if len(inputs) == 1 else list(inputs)
+    try:
+        return load_series(src, timestamps=timestamps)
+    except InputError as exc:
+        if timestamps is not None and "timestamps" in str(exc):
+            raise CommandError(f"--timestamps: {exc}") from exc
+        raise
+
+
+def _frame_spec(option: str, spec: str, n: int) -> list[int]:
+    """Frame numbers of ``spec`` in a series of ``n`` frames; UsageError naming ``option``."""
+    from ..io import InputError, parse_frame_spec
+
+    try:
+        return parse_frame_spec(spec, n)
+    except InputError as exc:
+        raise UsageError(f"{option} {spec}: {exc}") from None
+
+
+def _roi(args: argparse.Namespace, w: int, h: int, name: str) -> tuple[int, int, int, int] | None:
+    if args.roi is None:
+        return None
+    x0, y0, x1, y1 = args.roi
+    if not (0 <= x0 < x1 <= w - 1 and 0 <= y0 < y1 <= h - 1):
+        raise UsageError(
+            f"--roi {x0} {y0} {x1} {y1} is not inside the {w}x{h} (WxH) image of {name}: "
+            f"need 0 <= X0 < X1 <= {w - 1} and 0 <= Y0 < Y1 <= {h - 1}"
+        )
+    return (x0, y0, x1, y1)
+
+
+def _config(args: argparse.Namespace) -> Any:
+    from ..config import DICConfig
+
+    try:
+        return DICConfig(
+            subset_size=args.subset,
+            m=args.m,
+            shape=args.shape,
+            window=args.window,
+            criterion=args.criterion,
+            formulation=args.formulation,
+            interpolation=args.interpolation,
+            max_iter=args.max_iter,
+            tol=args.tol,
+            search_radius=args.search_radius,
+            initial_guess=args.initial_guess,
+            seed_spacing=args.seed_spacing,
+            batch_points=args.batch_points,
+            memory_mb=args.memory_mb,
+            dtype=args.dtype,
+        )
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+
+
+def _track_arguments(args: argparse.Namespace) -> dict[str, Any]:
+    """Open and check every input; the keyword arguments of ``track`` (output excluded)."""
+    from ..io import read_mask, read_points, read_timestamps
+
+    times = read_timestamps(args.timestamps, "--timestamps") if args.timestamps else None
+    series = _open_series(args.inputs, times)
+    name = args.inputs[0] if len(args.inputs) == 1 else f"{args.inputs[0]} .. {args.inputs[-1]}"
+    h, w = series.shape
+    n = len(series)
+    if args.subset > min(h, w):
+        raise UsageError(
+            f"--subset {args.subset} is larger than the images of {name} ({w}x{h} px, WxH)"
+        )
+    if n < 2 * args.m + 1:
+        raise UsageError(
+            f"--m {args.m} needs at least 2m+1 = {2 * args.m + 1} frames, but {name} has "
+            f"{n} frame(s)"
+        )
+    frames = None if args.frames is None else _frame_spec("--frames", args.frames, n)
+    refs = _frame_spec("--reference", args.reference, n)
+    kwargs = {
+        "series": series,
+        "reference": refs[0] if len(refs) == 1 else args.reference,
+        "frames": frames,
+        "roi": _roi(args, w, h, name),
+        "mask": read_mask(args.mask, (h, w), "--mask") if args.mask else None,
+        "points": read_points(args.points, (h, w), "--points") if args.points else None,
+        "config": _config(args),
+    }
+    # float images: NaN/inf anywhere is found now, before any output file is written
+    if series.dtype_name.startswith("float"):
+        for i in range(n):
+            series.numpy(i)
+    return kwargs
+
+
+# ----------------------------------------------------------------------------------------
+# the command
+# ----------------------------------------------------------------------------------------
+
+
+def execute(args: argparse.Namespace) -> int:
+    """``stsdic run``: track points through a series, write HDF5, add strains, summarise."""
+    out = Path(args.out)
+    if out.is_dir():
+        raise UsageError(f"--out {out}: is a directory; give a file name such as result.h5")
+    if out.exists() and not (args.overwrite or args.resume):
+        raise CommandError(
+            f"output file {out} exists: use --overwrite to replace it or --resume to continue it"
+        )
+    device = check_device(args.device)
+    kwargs = _track_arguments(args)
+
+    from ..series import track
+
+    print(kwargs["series"].describe(), flush=True)
+    t0 = time.perf_counter()
+    try:
+        res = track(
+            **kwargs,
+            step=args.step,
+            device=str(device),
+            progress=not args.no_progress,
+            out=str(out),
+            resume=args.resume,
+            overwrite=args.overwrite,
+            reference_update=args.reference_update,
+        )
+    except KeyboardInterrupt:
+        print(
+            f"{PROG}: interrupted: the finished frames are kept in {out} (or {out}.partial); "
+            "continue with the same command and --resume",
+            file=sys.stderr,
+        )
+        raise
+    elapsed = time.perf_counter() - t0
+    fields = _add_strain(res, out, args)
+    _print_summary(res, args, elapsed, time.perf_counter() - t0)
+    print(f"results: {out} (fields u, v, ut, vt, zncc, status, {', '.join(fields)})")
+    return 0
+
+
+def _add_strain(res: Any, out: Path, args: argparse.Namespace) -> list[str]:
+    """Compute the strains and add them to the finished file; their names."""
+    from ..io import add_fields
+
+    strain = res.strain(window=args.strain_window, kind=args.strain_kind)
+    shape = to_numpy(res.u).shape
+    fields = {k: to_numpy(v) for k, v in strain.items() if to_numpy(v).shape == shape}
+    add_fields(
+        out,
+        fields,
+        {"strain": json.dumps({"window": args.strain_window, "kind": args.strain_kind})},
+    )
+    return list(fields)
+
+
+def _status_summary(status: np.ndarray) -> dict[str, float]:
+    """Percent of the (frame, point) results with each status, by lower-case status name."""
+    from ..status import Status
+
+    s = np.asarray(status).astype(np.int64)
+    total = max(1, s.size)
+    return {st.name.lower(): 100.0 * float((s == int(st)).sum()) / total for st in Status}
+
+
+def _print_summary(res: Any, args: argparse.Namespace, elapsed: float, total: float) -> None:
+    """Points, frames, status percentages, time and throughput of a finished run."""
+    import torch
+
+    from .. import native
+
+    status = to_numpy(res.status)
+    n_f, n_p = status.shape
+    st = _status_summary(status)
+    print(f"points: {n_p}   frames: {n_f}   reference: {args.reference}   m: {args.m}")
+    print(
+        f"converged: {st['converged']:.1f} %   max-iter: {st['max_iter']:.1f} %   "
+        f"failed: {100.0 - st['converged'] - st['max_iter']:.1f} % "
+        f"(diverged {st['diverged']:.1f}, outside {st['outside']:.1f}, "
+        f"low texture {st['low_texture']:.1f}, not computed {st['not_computed']:.1f})"
+    )
+    device = args.device
+    on_cpu = str(device).startswith("cpu")
+    kernels = "fused C++ kernels" if on_cpu and native.available() else "torch kernels"
+    threads = f", {torch.get_num_threads()} threads" if on_cpu else ""
+    print(
+        f"time: {fmt_time(elapsed)} (strain included: {fmt_time(total)})   "
+        f"{n_f * n_p / max(elapsed, 1e-9):.0f} POI/s   ({device}, {kernels}{threads})"
+    )
