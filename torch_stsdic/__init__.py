@@ -27,7 +27,7 @@ from .shape import AffineShape, QuadraticShape, ShapeFunction, make_shape
 from .sinks import HDF5Sink, MemorySink
 from .smoothing import smooth_in_time, temporal_smoothing
 from .solver import SubsetSolver, WindowSolution, solve_window
-from .status import Status
+from .status import Status, usable
 from .strain import compute_strain
 from .window import CircularWindow, GaussianWindow, SquareWindow, SubsetWindow, make_window
 
@@ -50,6 +50,7 @@ __all__ = [
     "WindowSolution",
     "solve_window",
     "Status",
+    "usable",
     "track",
     "run_plan",
     "plan_run",
