@@ -11,25 +11,28 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["fft_cross_correlation", "linear_fit_in_time", "seed_cells", "carry_from_seed"]
+__all__ = ["fft_cross_correlation", "coarse_to_fine", "linear_fit_in_time", "seed_cells",
+           "carry_from_seed"]
 
 
 def _regions(
     img: torch.Tensor, index: torch.Tensor, cx: torch.Tensor, cy: torch.Tensor, size: int
 ) -> torch.Tensor:
     """Square regions (N, T, size, size) of images ``img[index]`` (img (F, H, W), index
-    (N, T)), top-left at (cx, cy) (N,) ints, zero outside the image."""
+    (N, T)), top-left at (cx, cy) ints, (N,) or (N, T), zero outside the image."""
     _, h, w = img.shape
     r = torch.arange(size, device=img.device)
-    rows = cy.view(-1, 1) + r  # (N, size)
-    cols = cx.view(-1, 1) + r
+    cy = cy.reshape(cy.shape[0], -1).expand(-1, index.shape[1])
+    cx = cx.reshape(cx.shape[0], -1).expand(-1, index.shape[1])
+    rows = cy.unsqueeze(-1) + r  # (N, T, size)
+    cols = cx.unsqueeze(-1) + r
     valid = ((rows >= 0) & (rows < h)).unsqueeze(-1) & ((cols >= 0) & (cols < w)).unsqueeze(-2)
     rows = rows.clamp(0, h - 1)
     cols = cols.clamp(0, w - 1)
-    flat = rows.unsqueeze(-1) * w + cols.unsqueeze(-2)  # (N, size, size)
-    flat = flat.unsqueeze(1) + (index * (h * w)).view(*index.shape, 1, 1)  # (N, T, size, size)
+    flat = rows.unsqueeze(-1) * w + cols.unsqueeze(-2)  # (N, T, size, size)
+    flat = flat + (index * (h * w)).view(*index.shape, 1, 1)
     out = img.reshape(-1).take(flat)
-    return out * valid.unsqueeze(1).to(out.dtype)
+    return out * valid.to(out.dtype)
 
 
 def _box_sum(a: torch.Tensor, k: int) -> torch.Tensor:
@@ -76,6 +79,7 @@ def fft_cross_correlation(
     *,
     frame_index: torch.Tensor | None = None,
     ref_index: torch.Tensor | None = None,
+    prior: torch.Tensor | None = None,
     batch: int = 4096,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Displacement of each POI from ``ref`` (H, W) to each of ``images`` (T, H, W).
@@ -86,6 +90,7 @@ def fft_cross_correlation(
         search_radius: largest |u|, |v| searched, px.
         frame_index: optional (N, T) indices into ``images`` per POI (default: all frames).
         ref_index: optional (N,) index into ``ref`` given as (R, H, W) per POI.
+        prior: optional (N, T, 2) displacement (px, rounded) around which to search.
 
     Returns:
         disp: (N, T, 2) displacement (u, v) in px, integer peak refined by a parabola fit.
@@ -113,6 +118,9 @@ def fft_cross_correlation(
     npix = subset_size * subset_size
     cx = torch.round(points[:, 0]).long()
     cy = torch.round(points[:, 1]).long()
+    if prior is None:
+        prior = torch.zeros(n, t_count, 2, dtype=torch.long, device=dev)
+    prior = torch.round(prior).long().expand(n, t_count, 2)
     disp = torch.zeros(n, t_count, 2, dtype=dtype, device=images.device)
     score = torch.full((n, t_count), -1.0, dtype=dtype, device=images.device)
     shifts = torch.arange(-rad, rad + 1, device=images.device)
@@ -123,7 +131,9 @@ def fft_cross_correlation(
         f = _regions(ref, ref_index[sl].view(-1, 1), bx - half, by - half, subset_size)[:, 0]
         f = f - f.mean(dim=(-1, -2), keepdim=True)
         fnorm = f.square().sum(dim=(-1, -2)).sqrt()  # (B,)
-        g = _regions(images, frame_index[sl], bx - half - rad, by - half - rad, size)
+        px_, py_ = prior[sl, :, 0], prior[sl, :, 1]  # (B, T)
+        g = _regions(images, frame_index[sl], bx.view(-1, 1) + px_ - half - rad,
+                     by.view(-1, 1) + py_ - half - rad, size)
         ff = torch.fft.rfft2(f, s=(fast, fast))
         gg = torch.fft.rfft2(g, s=(fast, fast))
         corr = torch.fft.irfft2(torch.conj(ff).unsqueeze(1) * gg, s=(fast, fast))
@@ -134,10 +144,12 @@ def fft_cross_correlation(
         denom = fnorm.view(-1, 1, 1, 1) * var.sqrt()
         zn = torch.where(denom > 1e-12, corr / denom.clamp(min=1e-30), torch.full_like(corr, -1.0))
         # shifts whose subset leaves the image are invalid
-        okx = ((bx.view(-1, 1) + shifts - half) >= 0) & ((bx.view(-1, 1) + shifts + half) < w)
-        oky = ((by.view(-1, 1) + shifts - half) >= 0) & ((by.view(-1, 1) + shifts + half) < h)
-        ok = oky.unsqueeze(-1) & okx.unsqueeze(-2)  # (B, 2R+1 rows, 2R+1 cols)
-        zn = torch.where(ok.unsqueeze(1), zn, torch.full_like(zn, -2.0))
+        sx = (bx.view(-1, 1) + px_).unsqueeze(-1) + shifts  # (B, T, 2R+1)
+        sy = (by.view(-1, 1) + py_).unsqueeze(-1) + shifts
+        okx = ((sx - half) >= 0) & ((sx + half) < w)
+        oky = ((sy - half) >= 0) & ((sy + half) < h)
+        ok = oky.unsqueeze(-1) & okx.unsqueeze(-2)  # (B, T, 2R+1 rows, 2R+1 cols)
+        zn = torch.where(ok, zn, torch.full_like(zn, -2.0))
         k = 2 * rad + 1
         best = zn.reshape(zn.shape[0], t_count, -1).argmax(-1)  # (B, T)
         iy = best // k
@@ -147,9 +159,59 @@ def fft_cross_correlation(
         flat = zn.reshape(zn.shape[0], t_count, -1)
         sub_x = _parabola(_at(flat, iy, ix, 0, -1, k), peak, _at(flat, iy, ix, 0, 1, k), ix, k)
         sub_y = _parabola(_at(flat, iy, ix, -1, 0, k), peak, _at(flat, iy, ix, 1, 0, k), iy, k)
-        disp[sl, :, 0] = (ix - rad).to(dtype) + sub_x
-        disp[sl, :, 1] = (iy - rad).to(dtype) + sub_y
+        disp[sl, :, 0] = (ix - rad + px_).to(dtype) + sub_x
+        disp[sl, :, 1] = (iy - rad + py_).to(dtype) + sub_y
         score[sl] = torch.where(peak > -1.5, peak, torch.full_like(peak, -1.0))
+    return disp, score
+
+
+def _pyramid(img: torch.Tensor, levels: int) -> list[torch.Tensor]:
+    """[img, img / 2, img / 4, ...] (each (F, H_l, W_l)) by Gaussian blur + decimation
+    (kornia's ``pyrdown``)."""
+    from kornia.geometry.transform import pyrdown
+
+    out = [img]
+    for _ in range(levels):
+        out.append(pyrdown(out[-1].unsqueeze(1)).squeeze(1))
+    return out
+
+
+@torch.no_grad()
+def coarse_to_fine(
+    ref: torch.Tensor,
+    images: torch.Tensor,
+    points: torch.Tensor,
+    subset_size: int,
+    search_radius: int,
+    levels: int,
+    *,
+    frame_index: torch.Tensor | None = None,
+    ref_index: torch.Tensor | None = None,
+    refine_radius: int = 3,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`fft_cross_correlation` over an image pyramid, for large motions.
+
+    At the coarsest of ``levels`` halvings the subsets (``subset_size`` px there, i.e. a
+    region 2^levels times wider) are searched within ``search_radius`` px, reaching
+    ``search_radius * 2^levels`` px at full resolution; every finer level searches
+    ``refine_radius`` px around the doubled estimate of the level above. Returns
+    (disp (N, T, 2) px, zncc (N, T)) at full resolution, as :func:`fft_cross_correlation`.
+    """
+    if images.dim() == 2:
+        images = images.unsqueeze(0)
+    if ref.dim() == 2:
+        ref = ref.unsqueeze(0)
+    dtype = torch.float32 if images.dtype != torch.float64 else torch.float64
+    refs, imgs = _pyramid(ref.to(dtype), levels), _pyramid(images.to(dtype), levels)
+    disp = None
+    score = None
+    for lev in range(levels, -1, -1):
+        scale = 2.0**lev
+        pts = (points + 0.5) / scale - 0.5  # pixel centres under pyrdown (align_corners off)
+        prior = None if disp is None else torch.round(2.0 * disp)
+        disp, score = fft_cross_correlation(
+            refs[lev], imgs[lev], pts, subset_size, search_radius if disp is None else
+            refine_radius, frame_index=frame_index, ref_index=ref_index, prior=prior)
     return disp, score
 
 

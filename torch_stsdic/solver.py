@@ -38,7 +38,13 @@ import torch
 from . import formulations, native
 from .config import DICConfig
 from .formulations import Formulation, Geometry, SubsetData, reference_subsets, wsum
-from .initial import carry_from_seed, fft_cross_correlation, linear_fit_in_time, seed_cells
+from .initial import (
+    carry_from_seed,
+    coarse_to_fine,
+    fft_cross_correlation,
+    linear_fit_in_time,
+    seed_cells,
+)
 from .interpolation import BSplineImage
 from .shape import ShapeFunction, make_shape
 from .status import Status
@@ -381,6 +387,8 @@ class SubsetSolver:
             ref_pixels, frame_pixels, points, cfg.subset_size, cfg.search_radius,
             frame_index=frame_index, ref_index=ref_index,
         )
+        d, score = self._coarse_to_fine(d, score, ref_pixels, frame_pixels, points,
+                                        frame_index, ref_index)
         d = d.to(points.dtype)
         p0 = torch.zeros(points.shape[0], shape.n_params, dtype=points.dtype,
                          device=points.device)
@@ -394,6 +402,32 @@ class SubsetSolver:
         p0[:, 0] = d0[:, 0]
         p0[:, k] = d0[:, 1]
         return p0
+
+
+    def _coarse_to_fine(self, d, score, ref_pixels, frame_pixels, points, frame_index,
+                        ref_index):
+        """Where the full-resolution search found no clear peak (ZNCC < 0.8, or the peak on
+        the border of the search area: the motion may be larger than ``search_radius``),
+        search again over an image pyramid (:func:`~torch_stsdic.initial.coarse_to_fine`)
+        and keep the better peak of the two."""
+        cfg = self.config
+        rad = cfg.search_radius
+        weak = (score < 0.8) | (d.abs() >= rad - 0.5).any(-1)
+        h, w = frame_pixels.shape[-2:]
+        levels = 0
+        while levels < 3 and min(h, w) / 2 ** (levels + 1) >= 2 * (cfg.subset_size + 2 * rad):
+            levels += 1
+        rows = torch.nonzero(weak.any(1)).flatten()
+        if levels == 0 or rows.numel() == 0 or rad == 0:
+            return d, score
+        d2, s2 = coarse_to_fine(ref_pixels, frame_pixels, points[rows], cfg.subset_size, rad,
+                                levels, frame_index=frame_index[rows],
+                                ref_index=ref_index[rows])
+        better = s2 > score[rows]
+        d, score = d.clone(), score.clone()
+        d[rows] = torch.where(better.unsqueeze(-1), d2.to(d.dtype), d[rows])
+        score[rows] = torch.where(better, s2.to(score.dtype), score[rows])
+        return d, score
 
 
 def _clock(device: torch.device) -> float:
