@@ -17,20 +17,22 @@ import json
 import os
 import platform
 import statistics
+import sys
 import time
 from pathlib import Path
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as torch_stsdic does, before torch loads
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))  # the checkout this script is in, not an installed torch_stsdic
 
 import torch  # noqa: E402
 from benchmark import _cpu_model  # noqa: E402  (scripts/benchmark.py, beside this file)
 
+import torch_stsdic  # noqa: E402
 from torch_stsdic import native  # noqa: E402
 from torch_stsdic.formulations import ic_rhs_kernel  # noqa: E402
 from torch_stsdic.interpolation import BSplineImage, sample_kernel  # noqa: E402
 from torch_stsdic.shape import AffineShape  # noqa: E402
-
-REPO = Path(__file__).resolve().parents[1]
 
 
 def _median_time(fn, repeats: int) -> float:
@@ -130,7 +132,9 @@ def main(argv=None) -> None:
         "arch": platform.machine(),
         "cpu": _cpu_model(),
         "torch": torch.__version__,
-        "command": "python scripts/bench_kernels.py " + " ".join(argv or []),
+        "command": " ".join(["python scripts/bench_kernels.py",
+                             *(sys.argv[1:] if argv is None else argv)]),
+        "package": str(Path(torch_stsdic.__file__).parent),
         "native_library": str(native.build()) if native.available() else None,
         "results": rows,
     }

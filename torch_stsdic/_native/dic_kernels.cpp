@@ -2,15 +2,23 @@
 //
 // Built on first use by torch_stsdic/native.py with the system C++ compiler (the same one
 // torch.compile needs) and loaded with ctypes; plain C ABI, no torch headers, so the build
-// takes about a second. Every function works on a range [i0, i1) of its rows so that Python
+// takes about a second. Every kernel works on a range [i0, i1) of its rows so that Python
 // threads (ctypes releases the GIL) split the work without an OpenMP runtime of our own.
 //
+// Each kernel's parameter list is written once, in its STS_KERNEL definition below; the
+// library hands that declaration (names as written, types as the compiler sees them) and the
+// kernel's address to native.py through the sts_kernel_* functions at the end of this file.
+// native.py has no copy of any signature: it builds the ctypes prototypes from these
+// declarations and calls every kernel by parameter name, checked.
+//
 // Conventions are those of torch_stsdic/interpolation.py (sample_kernel) and
-// torch_stsdic/solver.py (_ic_rhs_kernel); the tests compare both paths.
+// torch_stsdic/formulations/joint_ic.py (ic_rhs_kernel); the tests compare both paths.
 
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <string>
+#include <type_traits>
 #include <vector>
 
 #if defined(__AVX2__) && defined(__FMA__)
@@ -18,6 +26,81 @@
 #endif
 
 namespace {
+
+// ---- kernel declarations -------------------------------------------------------------------
+// STS_KERNEL(name, (parameters)) { body } defines `template <typename T> int name(parameters)`
+// and registers its float and double instances ("name_f32", "name_f64") with
+//   - the parameter list as written (stringified by the preprocessor from the same tokens the
+//     compiler compiles): parameter names, and `nullable<...>` on pointers that may be null;
+//   - the parameter kinds as the compiler sees the instance's type: "i32", "i64", "f32",
+//     "f64", or "*" + the element kind for a pointer ("*f64", "*u8"); a parameter type
+//     without a kind is a compile error;
+//   - the instance's address.
+// native.py reads them through sts_kernel_count/name/params/kinds/address (extern "C", at the
+// end of this file), checks that the written list parses to the compiled kinds, and builds
+// each ctypes prototype from the kinds. Kernels return 0, or non-zero for arguments they
+// reject (e.g. an unsupported spline order).
+
+template <typename P>
+using nullable = P*;  // a pointer parameter that may be null (say what null means)
+
+template <typename A>
+inline constexpr bool no_kind = false;
+
+template <typename A>
+std::string kind_of() {
+  using B = std::remove_cv_t<A>;
+  if constexpr (std::is_pointer_v<B>) {
+    return "*" + kind_of<std::remove_pointer_t<B>>();
+  } else if constexpr (std::is_same_v<B, int32_t>) {
+    return "i32";
+  } else if constexpr (std::is_same_v<B, int64_t>) {
+    return "i64";
+  } else if constexpr (std::is_same_v<B, uint8_t>) {
+    return "u8";
+  } else if constexpr (std::is_same_v<B, float>) {
+    return "f32";
+  } else if constexpr (std::is_same_v<B, double>) {
+    return "f64";
+  } else {
+    static_assert(no_kind<B>, "kernel parameter type without a ctypes kind");
+    return "";
+  }
+}
+
+template <typename... A>
+std::string kinds_of(int (*)(A...)) {  // only kernels returning int register
+  std::string s;
+  ((s += (s.empty() ? "" : ","), s += kind_of<A>()), ...);
+  return s;
+}
+
+struct Declaration {
+  const char* name;
+  const char* params;
+  std::string kinds[2];  // float, double instance
+  void* address[2];
+};
+
+std::vector<Declaration>& declarations() {
+  static std::vector<Declaration> all;
+  return all;
+}
+
+struct Declare {
+  template <typename F32, typename F64>
+  Declare(const char* name, const char* params, F32* f32, F64* f64) {
+    declarations().push_back({name, params, {kinds_of(f32), kinds_of(f64)},
+                              {reinterpret_cast<void*>(f32), reinterpret_cast<void*>(f64)}});
+  }
+};
+
+#define STS_KERNEL(name, params)                                                        \
+  template <typename T>                                                                 \
+  int name params;                                                                      \
+  const Declare name##_declared(#name, #params, &name<float>, &name<double>);           \
+  template <typename T>                                                                 \
+  int name params
 
 struct Geo {
   int64_t wp;      // padded width of one coefficient plane
@@ -274,11 +357,15 @@ void sample_range(const T* flat, const Geo& g, const T* x, const T* y, const int
   }
 }
 
-template <typename T>
-int sample_dispatch(const T* flat, int64_t wp, double x_lo, double x_hi, double y_lo,
-                    double y_hi, int64_t shift, int order, const T* x, const T* y,
-                    const int64_t* off, int64_t off_period, int64_t i0, int64_t i1, T* val,
-                    T* gx, T* gy) {
+// ---- the kernels (see STS_KERNEL) --------------------------------------------------------
+
+// Points: values (and, with gx and gy, d/dx and d/dy) at (x[i], y[i]), i in [i0, i1), in the
+// plane at off[i / off_period] (off_period 0: off[0] for all points; off null: plane 0).
+// flat: the coefficient planes; wp, clamp range, shift, order: see interpolation.kernel_args.
+STS_KERNEL(sts_sample, (const T* flat, int64_t wp, double x_lo, double x_hi, double y_lo,
+                        double y_hi, int64_t shift, int order, const T* x, const T* y,
+                        nullable<const int64_t> off, int64_t off_period, int64_t i0,
+                        int64_t i1, T* val, nullable<T> gx, nullable<T> gy)) {
   const Geo g{wp, x_lo, x_hi, y_lo, y_hi, shift};
   if (order == 3) {
     sample_range<T, 3>(flat, g, x, y, off, off_period, i0, i1, val, gx, gy);
@@ -291,12 +378,12 @@ int sample_dispatch(const T* flat, int64_t wp, double x_lo, double x_hi, double 
 }
 
 // Subsets: rows i in [i0, i1), samples (px[i] + dx[s], py[i] + dy[s]) in the plane at
-// off[i]; val, gx, gy are (N, ns) (gx, gy null: values only).
-template <typename T>
-int subsets_dispatch(const T* flat, int64_t wp, double x_lo, double x_hi, double y_lo,
-                     double y_hi, int64_t shift, int order, int64_t i0, int64_t i1, int64_t ns,
-                     const T* px, const T* py, const T* dx, const T* dy, const int64_t* off,
-                     T* val, T* gx, T* gy) {
+// off[i] (off null: plane 0); val, gx, gy are (N, ns) (gx, gy null: values only).
+STS_KERNEL(sts_subsets, (const T* flat, int64_t wp, double x_lo, double x_hi, double y_lo,
+                         double y_hi, int64_t shift, int order, int64_t i0, int64_t i1,
+                         int64_t ns, const T* px, const T* py, const T* dx, const T* dy,
+                         nullable<const int64_t> off, T* val, nullable<T> gx,
+                         nullable<T> gy)) {
   const Geo g{wp, x_lo, x_hi, y_lo, y_hi, shift};
   std::vector<int32_t> idx(ns);
   std::vector<T> fxs(ns), fys(ns);
@@ -329,7 +416,7 @@ inline T dot(const T* a, const T* b, int64_t n) {
   return acc;
 }
 
-// One joint IC-GN right-hand side per POI (see solver._ic_rhs_kernel):
+// One joint IC-GN right-hand side per POI (see formulations/joint_ic.py, ic_rhs_kernel):
 //   b = sum_t J_t^T e_t,  J_t = [gx B, gx dt_t, gy B, gy dt_t],
 //   e_t = w (ft - a_t (g_t - mean g_t))   (ZNSSD, a_t = |ft| / |g_t - mean g_t|)
 //   e_t = w (ft - g_t)                    (SSD)
@@ -441,35 +528,34 @@ void ic_rhs_range(const T* flat, const Geo& g, int64_t i0, int64_t i1, int64_t n
 // Weighted Gram matrix of the augmented steepest-descent images of each POI:
 //   J_s = [gx B_0 .. gx B_{ks-1}, gx, gy B_0 .. gy B_{ks-1}, gy]   (P' = 2 (ks + 1))
 //   G = sum_s w J_s J_s^T  (N, P', P'),  m = sum_s w J_s  (N, P')   in double.
-template <typename T>
-void gram_range(int64_t i0, int64_t i1, int64_t ns, int64_t ks, const T* fgx, const T* fgy,
-                const T* basis, const T* w, double* G, double* mom) {
+STS_KERNEL(sts_gram, (int64_t i0, int64_t i1, int64_t ns, int64_t ks, const T* gx,
+                      const T* gy, const T* basis, const T* w, double* G, double* m)) {
   const int64_t na = ks + 1, np = 2 * na;
   std::vector<T> cols(np * ns), bt(ks * ns);
   for (int64_t s = 0; s < ns; ++s)
     for (int64_t q = 0; q < ks; ++q) bt[q * ns + s] = basis[s * ks + q];
   for (int64_t i = i0; i < i1; ++i) {
-    const T* gx = fgx + i * ns;
-    const T* gy = fgy + i * ns;
+    const T* gxi = gx + i * ns;
+    const T* gyi = gy + i * ns;
     for (int64_t q = 0; q < ks; ++q) {
       T* cx = cols.data() + q * ns;
       T* cy = cols.data() + (na + q) * ns;
       const T* b = bt.data() + q * ns;
 #pragma omp simd
       for (int64_t s = 0; s < ns; ++s) {
-        cx[s] = gx[s] * b[s];
-        cy[s] = gy[s] * b[s];
+        cx[s] = gxi[s] * b[s];
+        cy[s] = gyi[s] * b[s];
       }
     }
-    std::copy(gx, gx + ns, cols.data() + ks * ns);
-    std::copy(gy, gy + ns, cols.data() + (na + ks) * ns);
+    std::copy(gxi, gxi + ns, cols.data() + ks * ns);
+    std::copy(gyi, gyi + ns, cols.data() + (na + ks) * ns);
     double* Gi = G + i * np * np;
     for (int64_t a = 0; a < np; ++a) {
       const T* ca = cols.data() + a * ns;
-      T m = 0;
-#pragma omp simd reduction(+ : m)
-      for (int64_t s = 0; s < ns; ++s) m += w[s] * ca[s];
-      mom[i * np + a] = double(m);
+      T ma = 0;
+#pragma omp simd reduction(+ : ma)
+      for (int64_t s = 0; s < ns; ++s) ma += w[s] * ca[s];
+      m[i * np + a] = double(ma);
       for (int64_t c = a; c < np; ++c) {
         const T* cc = cols.data() + c * ns;
         T acc = 0;
@@ -479,24 +565,28 @@ void gram_range(int64_t i0, int64_t i1, int64_t ns, int64_t ks, const T* fgx, co
       }
     }
   }
+  return 0;
 }
 
-template <typename T>
-int ic_rhs_dispatch(const T* flat, int64_t wp, double x_lo, double x_hi, double y_lo,
-                    double y_hi, int64_t shift, int order, int64_t i0, int64_t i1, int64_t nt,
-                    int64_t ns, int64_t ks, int64_t k, int has_time, int znssd, const T* p,
-                    const T* px, const T* py, const T* dx, const T* dy, const T* basis,
-                    const T* dt, const int64_t* frame_off, const T* ft, const T* fnorm,
-                    const T* fgx, const T* fgy, const T* w, const int64_t* rows, double w_img,
-                    double h, double* b, T* zn, uint8_t* outside) {
+// The joint IC-GN right-hand side b (M, 2k) in double, the mean ZNCC zn and the outside flag
+// of the rows j in [i0, i1) of p (see ic_rhs_range); rows[j] is row j's per-point data row
+// (rows null: row j).
+STS_KERNEL(sts_ic_rhs, (const T* flat, int64_t wp, double x_lo, double x_hi, double y_lo,
+                        double y_hi, int64_t shift, int order, int64_t i0, int64_t i1,
+                        int64_t nt, int64_t ns, int64_t ks, int64_t k, int has_time, int znssd,
+                        const T* p, const T* px, const T* py, const T* dx, const T* dy,
+                        const T* basis, const T* dt, const int64_t* frame_off, const T* ft,
+                        const T* fnorm, const T* gx, const T* gy, const T* w,
+                        nullable<const int64_t> rows, double w_img, double h, double* b, T* zn,
+                        uint8_t* outside)) {
   const Geo g{wp, x_lo, x_hi, y_lo, y_hi, shift};
   if (order == 3) {
     ic_rhs_range<T, 3>(flat, g, i0, i1, nt, ns, ks, k, has_time, znssd, p, px, py, dx, dy,
-                       basis, dt, frame_off, ft, fnorm, fgx, fgy, w, rows, w_img, h, b, zn,
+                       basis, dt, frame_off, ft, fnorm, gx, gy, w, rows, w_img, h, b, zn,
                        outside);
   } else if (order == 5) {
     ic_rhs_range<T, 5>(flat, g, i0, i1, nt, ns, ks, k, has_time, znssd, p, px, py, dx, dy,
-                       basis, dt, frame_off, ft, fnorm, fgx, fgy, w, rows, w_img, h, b, zn,
+                       basis, dt, frame_off, ft, fnorm, gx, gy, w, rows, w_img, h, b, zn,
                        outside);
   } else {
     return 1;
@@ -581,9 +671,8 @@ void recursive_lines(T* c, int64_t n, int64_t m, int64_t stride, int order) {
 
 // rows [i0, i1) of a (P*H, W) stack along W (axis 1), or column blocks [i0, i1) of the
 // P planes along H (axis 0: block b covers columns [b*64, b*64+64) of plane b / nb)
-template <typename T>
-int prefilter_range(T* data, int64_t planes, int64_t h, int64_t w, int order, int axis,
-                    int64_t i0, int64_t i1) {
+STS_KERNEL(sts_prefilter, (T* data, int64_t planes, int64_t h, int64_t w, int order, int axis,
+                           int64_t i0, int64_t i1)) {
   if (order != 3 && order != 5) return 1;
   if (axis == 1) {
     for (int64_t r = i0; r < i1; ++r) recursive_lines(data + r * w, w, int64_t(1), int64_t(1),
@@ -602,90 +691,35 @@ int prefilter_range(T* data, int64_t planes, int64_t h, int64_t w, int order, in
 
 }  // namespace
 
+// ---- the library's interface: the ABI version and the kernel declarations ------------------
 extern "C" {
 
-int sts_abi_version() { return 4; }
+// Version of this interface (the sts_kernel_* functions and what the kernels' parameters
+// mean); native.py refuses a library of another version.
+int sts_abi_version() { return 5; }
 
-int sts_sample_f32(const float* flat, int64_t wp, double x_lo, double x_hi, double y_lo,
-                   double y_hi, int64_t shift, int order, const float* x, const float* y,
-                   const int64_t* off, int64_t off_period, int64_t i0, int64_t i1, float* val,
-                   float* gx, float* gy) {
-  return sample_dispatch<float>(flat, wp, x_lo, x_hi, y_lo, y_hi, shift, order, x, y, off,
-                                off_period, i0, i1, val, gx, gy);
+int sts_kernel_count() { return int(declarations().size()); }
+
+// Kernel i's name (without the _f32/_f64 suffix), null past the end.
+const char* sts_kernel_name(int i) {
+  return i >= 0 && i < sts_kernel_count() ? declarations()[i].name : nullptr;
 }
 
-int sts_sample_f64(const double* flat, int64_t wp, double x_lo, double x_hi, double y_lo,
-                   double y_hi, int64_t shift, int order, const double* x, const double* y,
-                   const int64_t* off, int64_t off_period, int64_t i0, int64_t i1, double* val,
-                   double* gx, double* gy) {
-  return sample_dispatch<double>(flat, wp, x_lo, x_hi, y_lo, y_hi, shift, order, x, y, off,
-                                 off_period, i0, i1, val, gx, gy);
+// Kernel i's parameter list as written, e.g. "(const T* flat, int64_t wp, ...)".
+const char* sts_kernel_params(int i) {
+  return i >= 0 && i < sts_kernel_count() ? declarations()[i].params : nullptr;
 }
 
-int sts_subsets_f32(const float* flat, int64_t wp, double x_lo, double x_hi, double y_lo,
-                    double y_hi, int64_t shift, int order, int64_t i0, int64_t i1, int64_t ns,
-                    const float* px, const float* py, const float* dx, const float* dy,
-                    const int64_t* off, float* val, float* gx, float* gy) {
-  return subsets_dispatch<float>(flat, wp, x_lo, x_hi, y_lo, y_hi, shift, order, i0, i1, ns,
-                                 px, py, dx, dy, off, val, gx, gy);
+// Kinds of the parameters of kernel i's float (f64 = 0) or double (f64 = 1) instance, as
+// compiled: e.g. "*f32,i64,f64,...".
+const char* sts_kernel_kinds(int i, int f64) {
+  return i >= 0 && i < sts_kernel_count() ? declarations()[i].kinds[f64 ? 1 : 0].c_str()
+                                          : nullptr;
 }
 
-int sts_subsets_f64(const double* flat, int64_t wp, double x_lo, double x_hi, double y_lo,
-                    double y_hi, int64_t shift, int order, int64_t i0, int64_t i1, int64_t ns,
-                    const double* px, const double* py, const double* dx, const double* dy,
-                    const int64_t* off, double* val, double* gx, double* gy) {
-  return subsets_dispatch<double>(flat, wp, x_lo, x_hi, y_lo, y_hi, shift, order, i0, i1, ns,
-                                  px, py, dx, dy, off, val, gx, gy);
-}
-
-int sts_prefilter_f32(float* data, int64_t planes, int64_t h, int64_t w, int order, int axis,
-                      int64_t i0, int64_t i1) {
-  return prefilter_range<float>(data, planes, h, w, order, axis, i0, i1);
-}
-
-int sts_prefilter_f64(double* data, int64_t planes, int64_t h, int64_t w, int order, int axis,
-                      int64_t i0, int64_t i1) {
-  return prefilter_range<double>(data, planes, h, w, order, axis, i0, i1);
-}
-
-int sts_gram_f32(int64_t i0, int64_t i1, int64_t ns, int64_t ks, const float* gx,
-                 const float* gy, const float* basis, const float* w, double* G, double* m) {
-  gram_range<float>(i0, i1, ns, ks, gx, gy, basis, w, G, m);
-  return 0;
-}
-
-int sts_gram_f64(int64_t i0, int64_t i1, int64_t ns, int64_t ks, const double* gx,
-                 const double* gy, const double* basis, const double* w, double* G,
-                 double* m) {
-  gram_range<double>(i0, i1, ns, ks, gx, gy, basis, w, G, m);
-  return 0;
-}
-
-int sts_ic_rhs_f32(const float* flat, int64_t wp, double x_lo, double x_hi, double y_lo,
-                   double y_hi, int64_t shift, int order, int64_t i0, int64_t i1, int64_t nt,
-                   int64_t ns, int64_t ks, int64_t k, int has_time, int znssd, const float* p,
-                   const float* px, const float* py, const float* dx, const float* dy,
-                   const float* basis, const float* dt, const int64_t* frame_off,
-                   const float* ft, const float* fnorm, const float* fgx, const float* fgy,
-                   const float* w, const int64_t* rows, double w_img, double h, double* b,
-                   float* zn, uint8_t* outside) {
-  return ic_rhs_dispatch<float>(flat, wp, x_lo, x_hi, y_lo, y_hi, shift, order, i0, i1, nt, ns,
-                                ks, k, has_time, znssd, p, px, py, dx, dy, basis, dt, frame_off,
-                                ft, fnorm, fgx, fgy, w, rows, w_img, h, b, zn, outside);
-}
-
-int sts_ic_rhs_f64(const double* flat, int64_t wp, double x_lo, double x_hi, double y_lo,
-                   double y_hi, int64_t shift, int order, int64_t i0, int64_t i1, int64_t nt,
-                   int64_t ns, int64_t ks, int64_t k, int has_time, int znssd, const double* p,
-                   const double* px, const double* py, const double* dx, const double* dy,
-                   const double* basis, const double* dt, const int64_t* frame_off,
-                   const double* ft, const double* fnorm, const double* fgx, const double* fgy,
-                   const double* w, const int64_t* rows, double w_img, double h, double* b,
-                   double* zn, uint8_t* outside) {
-  return ic_rhs_dispatch<double>(flat, wp, x_lo, x_hi, y_lo, y_hi, shift, order, i0, i1, nt,
-                                 ns, ks, k, has_time, znssd, p, px, py, dx, dy, basis, dt,
-                                 frame_off, ft, fnorm, fgx, fgy, w, rows, w_img, h, b, zn,
-                                 outside);
+// Address of that instance (an int function of those parameters, C calling convention).
+void* sts_kernel_address(int i, int f64) {
+  return i >= 0 && i < sts_kernel_count() ? declarations()[i].address[f64 ? 1 : 0] : nullptr;
 }
 
 }  // extern "C"
