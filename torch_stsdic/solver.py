@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from . import formulations, native
+from . import formulations, native, uncertainty
 from .config import DICConfig
 from .formulations import Formulation, Geometry, SubsetData, reference_subsets, wsum
 from .initial import (
@@ -66,6 +66,10 @@ class WindowSolution:
         status: (N,) int8 :class:`Status` codes.
         iterations: (N,) Gauss-Newton iterations used (all stages).
         time: the time the displacement refers to (frame units unless times were given).
+        std: (N, P) predicted standard deviation of every parameter (same units), from the
+            image noise estimated from the point's own residual and its subset's gradients
+            (:mod:`torch_stsdic.uncertainty`); NaN where the point failed.
+        sigma: (N,) that noise, grey levels: the std of one reference/frame difference.
         info: extras: "stages" (the Gauss-Newton stages run), "first_stage_params" (N, P)
             (the joint solution before the "auto" refinement), "initial_params" (N, P),
             "initial_guess" (how the POIs started: "method" fft / seeded / given, with the
@@ -80,6 +84,8 @@ class WindowSolution:
     iterations: torch.Tensor
     time: float | torch.Tensor = 0.0
     info: dict = field(default_factory=dict)
+    std: torch.Tensor | None = None
+    sigma: torch.Tensor | None = None
 
     def _get(self, name: str) -> torch.Tensor:
         if name in self.param_names:
@@ -105,6 +111,12 @@ class WindowSolution:
     def vt(self) -> torch.Tensor:
         """(N,) velocity dv/dt, px per frame (NaN for m = 0)."""
         return self._get("vt")
+
+    def std_of(self, name: str) -> torch.Tensor:
+        """(N,) predicted standard deviation of parameter ``name`` (NaN if not estimated)."""
+        if self.std is None or name not in self.param_names:
+            return torch.full_like(self.params[:, 0], float("nan"))
+        return self.std[:, self.param_names.index(name)]
 
     @property
     def ok(self) -> torch.Tensor:
@@ -160,6 +172,7 @@ class SubsetSolver:
         ref_pixels: torch.Tensor | None = None,
         frame_pixels: torch.Tensor | None = None,
         time: float | torch.Tensor = 0.0,
+        noise_ratio: float = 1.0,
     ) -> WindowSolution:
         """Solve many POIs, each against its own window of frames.
 
@@ -173,6 +186,8 @@ class SubsetSolver:
             init: (N, P) initial parameters, or None for FFT cross-correlation (which needs
                 ``ref_pixels`` (R, H, W) and ``frame_pixels`` (F, H, W)).
             time: reported as ``WindowSolution.time``.
+            noise_ratio: the reference's noise variance over one frame's (1 for a single
+                frame, 1/K for a mean of K frames), for the predicted uncertainty.
         """
         cfg = self.config
         device, dtype = points.device, points.dtype
@@ -209,7 +224,7 @@ class SubsetSolver:
             if plan is not None:
                 return self._solve_seeded(
                     plan, ref, frames, points, dt, frame_index, ref_index, ref_pixels,
-                    frame_pixels, time, inside,
+                    frame_pixels, time, inside, noise_ratio,
                 )
             p0 = torch.zeros(n, p_count, dtype=dtype, device=device)
             t_fft = _clock(device)
@@ -232,22 +247,25 @@ class SubsetSolver:
         ctx = _Context(
             geo=geo, ref=ref, frames=frames, cfg=cfg, stages=self.stages_for(shape),
             grey_range=_grey_range(grey), work=int(todo.numel()) * t_count * int(geo.w.numel()),
+            noise_ratio=float(noise_ratio),
         )
+        std = torch.full_like(params, float("nan"))
+        sigma = torch.full_like(zncc, float("nan"))
         batch = cfg.batch_points or ctx.batch_size(t_count)
         for s0 in range(0, todo.numel(), batch):
             idx = todo[s0 : s0 + batch]
-            pr, zr, sr, ir, p1 = _solve_batch(
+            pr, zr, sr, ir, p1, sd, sg = _solve_batch(
                 ctx, points[idx], p0[idx], dt[idx], frame_index[idx], ref_index[idx]
             )
             params[idx], zncc[idx], status[idx], iters[idx] = pr, zr, sr, ir
-            first_stage[idx] = p1
+            first_stage[idx], std[idx], sigma[idx] = p1, sd, sg
 
         bad = status > int(Status.MAX_ITER)
         params[bad] = float("nan")
         zncc[bad] = float("nan")
         return WindowSolution(
             points=points, params=params, param_names=shape.param_names, zncc=zncc,
-            status=status, iterations=iters, time=time,
+            status=status, iterations=iters, time=time, std=std, sigma=sigma,
             info={
                 "formulation": cfg.formulation,
                 "n_frames": t_count,
@@ -282,7 +300,7 @@ class SubsetSolver:
         return idx, cell, seeds
 
     def _solve_seeded(self, plan, ref, frames, points, dt, frame_index, ref_index, ref_pixels,
-                      frame_pixels, time, inside) -> WindowSolution:
+                      frame_pixels, time, inside, noise_ratio) -> WindowSolution:
         """Seeds by FFT cross-correlation and Gauss-Newton; every other POI starts from its
         cell's seed solution (:func:`carry_from_seed`); POIs that then fail (not converged, or
         ZNCC more than 0.1 below the best of their cell) are solved again from FFT cross-correlation
@@ -294,7 +312,7 @@ class SubsetSolver:
         def sub(rows, init):
             return self.solve(ref, frames, points[rows], dt[rows], frame_index=frame_index[rows],
                               ref_index=ref_index[rows], init=init, ref_pixels=ref_pixels,
-                              frame_pixels=frame_pixels, time=time)
+                              frame_pixels=frame_pixels, time=time, noise_ratio=noise_ratio)
 
         fft_s = [0.0]
 
@@ -338,6 +356,8 @@ class SubsetSolver:
             "zncc": torch.full((n,), float("nan"), dtype=dtype, device=dev),
             "status": torch.full((n,), int(Status.OUTSIDE), dtype=torch.int8, device=dev),
             "iters": torch.zeros(n, dtype=torch.int32, device=dev),
+            "std": torch.full((n, p_count), float("nan"), dtype=dtype, device=dev),
+            "sigma": torch.full((n,), float("nan"), dtype=dtype, device=dev),
         }
 
         def put(rows, sol, mask=None):
@@ -350,6 +370,8 @@ class SubsetSolver:
             out["init"][rows] = sol.info["initial_params"][pick]
             out["zncc"][rows] = sol.zncc[pick]
             out["status"][rows] = sol.status[pick]
+            out["std"][rows] = sol.std[pick]
+            out["sigma"][rows] = sol.sigma[pick]
 
         put(seeds, sol_s)
         out["iters"][seeds] = sol_s.iterations
@@ -363,6 +385,7 @@ class SubsetSolver:
         return WindowSolution(
             points=points, params=out["params"], param_names=shape.param_names,
             zncc=out["zncc"], status=out["status"], iterations=out["iters"], time=time,
+            std=out["std"], sigma=out["sigma"],
             info={
                 **{k: v for k, v in sol_s.info.items()
                    if k not in ("first_stage_params", "initial_params")},
@@ -389,6 +412,9 @@ class SubsetSolver:
         )
         d, score = self._coarse_to_fine(d, score, ref_pixels, frame_pixels, points,
                                         frame_index, ref_index)
+        if d.shape[1] > 1:
+            d, score = self._walk_in_time(d, score, dt, ref_pixels, frame_pixels, points,
+                                          frame_index, ref_index)
         d = d.to(points.dtype)
         p0 = torch.zeros(points.shape[0], shape.n_params, dtype=points.dtype,
                          device=points.device)
@@ -427,6 +453,41 @@ class SubsetSolver:
         d, score = d.clone(), score.clone()
         d[rows] = torch.where(better.unsqueeze(-1), d2.to(d.dtype), d[rows])
         score[rows] = torch.where(better, s2.to(score.dtype), score[rows])
+        return d, score
+
+
+    def _walk_in_time(self, d, score, dt, ref_pixels, frame_pixels, points, frame_index,
+                      ref_index):
+        """Frames of a window whose peak is still weak (ZNCC < 0.8) are searched again around
+        the displacement extrapolated from the frames before them in time (the window's
+        motion carried along it), in time order; the better peak is kept."""
+        cfg = self.config
+        order = torch.argsort(dt, dim=1)  # (N, T) frames in time order per POI
+        d, score = d.clone(), score.clone()
+        ar = torch.arange(d.shape[0], device=d.device)
+        for j in range(1, d.shape[1]):
+            cur, p1 = order[:, j], order[:, j - 1]
+            weak = (score[ar, cur] < 0.8) & (score[ar, p1] >= 0.8)
+            if not bool(weak.any()):
+                continue
+            rows = torch.nonzero(weak).flatten()
+            prior = d[rows, p1[rows]]
+            if j >= 2:
+                p2 = order[rows, j - 2]
+                step = (dt[rows, cur[rows]] - dt[rows, p1[rows]]) / (
+                    dt[rows, p1[rows]] - dt[rows, p2]).clamp(min=1e-9)
+                good2 = score[rows, p2] >= 0.8
+                prior = prior + torch.where(good2.unsqueeze(-1), (prior - d[rows, p2])
+                                            * step.unsqueeze(-1).to(d.dtype), 0.0 * prior)
+            d2, s2 = fft_cross_correlation(
+                ref_pixels, frame_pixels, points[rows], cfg.subset_size,
+                max(3, cfg.search_radius // 2), frame_index=frame_index[rows, cur[rows]
+                                                                     ].unsqueeze(1),
+                ref_index=ref_index[rows], prior=prior.unsqueeze(1))
+            better = s2[:, 0] > score[rows, cur[rows]]
+            rb = rows[better]
+            d[rb, cur[rb]] = d2[better, 0].to(d.dtype)
+            score[rb, cur[rb]] = s2[better, 0].to(score.dtype)
         return d, score
 
 
@@ -484,6 +545,7 @@ class _Context:
     stages: list[Formulation]
     grey_range: float
     work: int = 0  # samples per iteration over all batches (decides torch.compile)
+    noise_ratio: float = 1.0  # reference noise variance / one frame's
 
     def batch_size(self, t: int) -> int:
         """POIs per batch within ``cfg.memory_mb``."""
@@ -535,7 +597,15 @@ def _solve_batch(ctx: _Context, pts, p0, dt, fidx, ridx):
     jump = torch.maximum((params[:, 0] - p0[:, 0]).abs(), (params[:, k] - p0[:, k]).abs())
     far = (status <= int(Status.MAX_ITER)) & ~(jump <= maxd)
     status[far] = int(Status.DIVERGED)
-    return params, zncc, status, iters, stage_params[0]
+    std = torch.full_like(params, float("nan"))
+    sigma = torch.full_like(zncc, float("nan"))
+    ok = torch.nonzero(status <= int(Status.MAX_ITER)).flatten()
+    if ok.numel():
+        resp, _ = uncertainty.solution_response(geo, ctx.frames, data.take(ok), params[ok],
+                                                ctx.noise_ratio, ctx.frames.order)
+        std[ok] = uncertainty.std_of(resp).to(dtype)
+        sigma[ok] = resp.noise.total.sqrt().to(dtype)
+    return params, zncc, status, iters, stage_params[0], std, sigma
 
 
 def _run_stage(ctx: _Context, form: Formulation, params, data: SubsetData, live):

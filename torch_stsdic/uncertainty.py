@@ -1,0 +1,206 @@
+"""Per-point uncertainty of a solution: the image noise from its residual, the predicted
+standard deviation of every parameter, and the covariance between two solutions of the same
+point (for the model check of :mod:`torch_stsdic.quality`).
+
+Linear error propagation through the joint formulation (see :mod:`torch_stsdic.noise` for the
+derivation and its Monte-Carlo checks): near the solution ``H dp = sum_t J_t^T W (n_f - n_t)``
+with ``J_t = J_aug z_t`` (``J_aug`` the (S, P') augmented steepest-descent images
+``[f_x B, f_x, f_y B, f_y]`` of the reference, ``z_t = (1 .. 1, dt_t)`` per component), so a
+solution responds to the reference noise with ``C_ref = (sum_t z_t) o H^-1`` and to frame
+``t``'s noise with ``C_t = -z_t o H^-1`` (rows in the augmented basis), and
+
+    cov(p) = sigma_f^2 C_ref^T G2 C_ref + sigma_g^2 sum_t C_t^T G2 C_t
+             + kappa sigma_f^2 sigma_g^2 sum_t C_t^T B2 C_t,
+
+``G2 = sum_s w_s^2 (J_aug,s - mean) (J_aug,s - mean)^T`` (ZNSSD: centred), ``B2`` the same
+moments of the bare basis (the second-order term of the noisy reference gradient), and ``H``
+the Hessian built from the noisy reference minus its expected noise-gradient energy
+``kappa sigma_f^2 sum_t w b_t b_t^T``. Two solutions of one point that share the reference or
+a frame are correlated through those sources; :func:`cross_covariance` gives that.
+
+The noise comes from the solution itself: the weighted residual variance of frame ``t``,
+``r_t = sum_s w e_t,s^2 / sum_s w``, estimates ``(sigma_f^2 + c_t sigma_g^2) (1 - dof)``
+(``c_t`` the variance factor of the B-spline-interpolated frame noise at the frame's sub-pixel
+position, ``dof`` the fitted share of the pixels); the split between reference and frame noise
+is the reference protocol's ``rho = sigma_f^2 / sigma_g^2`` (1 for one frame, 1/K for a mean
+of K frames).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from .formulations import Geometry, SubsetData, gram
+from .interpolation import BSplineImage
+from .noise import gradient_noise_factor, interpolation_variance_factor
+
+__all__ = ["NoiseModel", "Response", "frame_residuals", "noise_model", "response",
+           "covariance", "cross_covariance", "solution_response", "std_of"]
+
+
+def frame_residuals(geo: Geometry, frames: BSplineImage, data: SubsetData, p: Tensor
+                    ) -> Tensor:
+    """(N, T) weighted residual variance of every frame of the joint criterion at ``p``:
+    ``sum_s w e_t,s^2 / sum_s w`` with ``e_t = f~ - (|f~| / |g~_t|) g~_t`` (ZNSSD) or
+    ``f - g_t`` (SSD), grey levels^2."""
+    xs, ys = geo.shape.warp(p, data.px, data.py, geo.dx, geo.dy, geo.spatial, data.dt)
+    g = frames.sample(xs, ys, frame=data.fidx.unsqueeze(-1))
+    w = geo.w
+    if geo.znssd:
+        g = geo.centred(g)
+        gg = (g * g) @ w
+        g = g * (data.fnorm.unsqueeze(1) / gg.clamp(min=1e-30).sqrt()).unsqueeze(-1)
+    e = data.ft.unsqueeze(1) - g
+    return (e * e) @ w / w.sum()
+
+
+@dataclass
+class NoiseModel:
+    """Noise variances per point (grey levels^2): ``ref`` of the reference, ``frame`` of one
+    deformed frame, each (N,)."""
+
+    ref: Tensor
+    frame: Tensor
+
+    @property
+    def total(self) -> Tensor:
+        """(N,) ``ref + frame``: the noise variance of one reference/frame pair."""
+        return self.ref + self.frame
+
+
+def noise_model(geo: Geometry, residual: Tensor, p: Tensor, data: SubsetData, rho: float,
+                order: int) -> NoiseModel:
+    """Noise variances from a solution's per-frame residual variance ``residual`` (N, T) at
+    parameters ``p`` (N, P) (see the module docstring); ``rho`` = sigma_f^2 / sigma_g^2."""
+    w = geo.w
+    s_eff = float(w.sum() ** 2 / (w * w).sum())
+    t = residual.shape[1]
+    dof = 1.0 - (2.0 + p.shape[1] / t) / s_eff  # mean, scale and a share of P per frame
+    zero = torch.zeros(1, dtype=geo.dx.dtype, device=geo.dx.device)
+    u, v = geo.shape.displacement(p, geo.shape.spatial_basis(zero, zero), data.dt)
+    x = (data.px + u[..., 0]).double().cpu()  # the POI centre in every frame, px
+    y = (data.py + v[..., 0]).double().cpu()
+    c = interpolation_variance_factor(x, y, order).to(residual)
+    sig_g = residual.mean(1) / dof / (rho + c.mean(1))
+    return NoiseModel(ref=rho * sig_g, frame=sig_g)
+
+
+def _aug_columns(geo: Geometry) -> Tensor:
+    """Positions of the P parameters among the P' = 2 (Ks + 1) augmented columns."""
+    ks = geo.ks
+    if geo.shape.has_time:
+        return torch.arange(2 * (ks + 1), device=geo.spatial.device)
+    return torch.tensor([*range(ks), *range(ks + 1, 2 * ks + 1)], device=geo.spatial.device)
+
+
+def _z(geo: Geometry, dt: Tensor) -> Tensor:
+    """(N, T, P') column factors z_t = (1 .. 1, dt_t) per component (0 for the time columns
+    of a shape without time)."""
+    ks = geo.ks
+    n, t = dt.shape
+    z = torch.ones(n, t, 2 * (ks + 1), dtype=torch.float64, device=dt.device)
+    d = dt.double() if geo.shape.has_time else torch.zeros_like(dt, dtype=torch.float64)
+    z[..., ks] = d
+    z[..., 2 * ks + 1] = d
+    return z
+
+
+def _centred_gram(geo: Geometry, gx: Tensor, gy: Tensor, weights: Tensor) -> Tensor:
+    """sum_s weights_s (J_s - Jbar)(J_s - Jbar)^T (N, P', P') of the augmented columns, Jbar
+    the window-weighted (``geo.w``) mean for ZNSSD (no centring for SSD)."""
+    g, m = gram(gx, gy, geo.spatial, weights)
+    if not geo.znssd:
+        return g
+    _, m1 = gram(gx, gy, geo.spatial, geo.w) if weights is not geo.w else (g, m)
+    jbar = m1 / float(geo.w.sum())
+    return (g - m.unsqueeze(-1) * jbar.unsqueeze(-2) - jbar.unsqueeze(-1) * m.unsqueeze(-2)
+            + float(weights.sum()) * jbar.unsqueeze(-1) * jbar.unsqueeze(-2))
+
+
+def _basis_moments(geo: Geometry, weights: Tensor) -> Tensor:
+    """(P', P') sum_s weights_s b_s b_s^T of the augmented bare basis (B, 1) in both
+    components (no gradient): the noise-gradient moments."""
+    baug = torch.cat([geo.spatial, torch.ones_like(geo.spatial[:, :1])], 1).double()
+    m = (baug * weights.double().unsqueeze(1)).T @ baug
+    return torch.block_diag(m, m)
+
+
+@dataclass
+class Response:
+    """Linear response of the solutions of N points to the images' noise.
+
+    Attributes:
+        coef: (N, P', P) H^-1 in the augmented basis (rows), per parameter (columns).
+        z: (N, T, P') column factors of the frames.
+        g2: (N, P', P') the centred w^2-moments of the reference's augmented columns.
+        b2: (P', P') the w^2-moments of the bare basis.
+        noise: the noise variances.
+        kappa: gradient noise factor of the interpolation.
+    """
+
+    coef: Tensor
+    z: Tensor
+    g2: Tensor
+    b2: Tensor
+    noise: NoiseModel
+    kappa: float
+
+
+def response(geo: Geometry, data: SubsetData, noise: NoiseModel, order: int) -> Response:
+    """The noise response of solutions with geometry ``geo`` at the points and frame times of
+    ``data`` (reference gradients ``gx, gy`` (N, S), ``dt`` (N, T))."""
+    kappa = gradient_noise_factor(order)
+    w = geo.w
+    z = _z(geo, data.dt)
+    zz = torch.einsum("ntp,ntq->npq", z, z)
+    g1 = _centred_gram(geo, data.gx, data.gy, w)
+    g2 = _centred_gram(geo, data.gx, data.gy, w * w)
+    bw = _basis_moments(geo, w)
+    cols = _aug_columns(geo)
+    h = (g1 * zz - kappa * noise.ref.double().view(-1, 1, 1) * bw * zz)[:, cols][:, :, cols]
+    hinv = torch.linalg.inv(h)
+    coef = torch.zeros(h.shape[0], z.shape[-1], len(cols), dtype=torch.float64,
+                       device=h.device)
+    coef[:, cols] = hinv
+    return Response(coef=coef, z=z, g2=g2, b2=_basis_moments(geo, w * w), noise=noise,
+                    kappa=kappa)
+
+
+def covariance(r: Response) -> Tensor:
+    """(N, P, P) predicted covariance of the parameters (module docstring)."""
+    zs = r.z.sum(1)
+    zz = torch.einsum("ntp,ntq->npq", r.z, r.z)
+    f2 = r.noise.ref.double().view(-1, 1, 1)
+    g2n = r.noise.frame.double().view(-1, 1, 1)
+    mid = (f2 * r.g2 * zs.unsqueeze(-1) * zs.unsqueeze(-2) + g2n * r.g2 * zz
+           + r.kappa * f2 * g2n * r.b2 * zz)
+    return r.coef.transpose(1, 2) @ mid @ r.coef
+
+
+def cross_covariance(a: Response, b: Response, shared: Tensor) -> Tensor:
+    """(N, Pa, Pb) covariance between two solutions of the same points against the same
+    reference: through the reference noise, and through the frames they share: ``shared``
+    (N, Ta, Tb) bool, True where frame ``i`` of ``a`` is frame ``j`` of ``b``."""
+    za, zb = a.z.sum(1), b.z.sum(1)
+    f2 = a.noise.ref.double().view(-1, 1, 1)
+    g2n = a.noise.frame.double().view(-1, 1, 1)
+    zab = torch.einsum("nip,nij,njq->npq", a.z, shared.double(), b.z)
+    mid = f2 * a.g2 * za.unsqueeze(-1) * zb.unsqueeze(-2) + g2n * a.g2 * zab
+    return a.coef.transpose(1, 2) @ mid @ b.coef
+
+
+def solution_response(geo: Geometry, frames: BSplineImage, data: SubsetData, p: Tensor,
+                      rho: float, order: int) -> tuple[Response, Tensor]:
+    """The noise response of the solutions ``p`` (N, P) of the points in ``data``, with the
+    noise estimated from their own residuals, and those residuals (N, T)."""
+    res = frame_residuals(geo, frames, data, p)
+    noise = noise_model(geo, res, p, data, rho, order)
+    return response(geo, data, noise, order), res
+
+
+def std_of(r: Response) -> Tensor:
+    """(N, P) predicted standard deviation of every parameter."""
+    return torch.diagonal(covariance(r), dim1=-2, dim2=-1).clamp(min=0).sqrt()
