@@ -47,6 +47,7 @@ from .frames import FrameCache
 from .io.results import as_stored
 from .plan import RunPlan, plan_run
 from .reference import Reference, maybe_update
+from .refine import ReferenceOffsets, apply_offsets, measure_offsets, set_refinement
 from .result import TrackResult
 from .sinks import MemorySink, open_sink
 from .smoothing import smooth_in_time
@@ -80,10 +81,13 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
     ref = Reference(frame=plan.reference_frame, raw=ref_raw, img=solver.prepare(ref_raw),
                     points=plan.points.to(device=plan.device, dtype=plan.dtype))
     updates: list[dict[str, Any]] = []
+    offsets = None
+    if plan.options.get("refine_reference"):
+        offsets = measure_offsets(plan, int(plan.options["refine_reference"]))
     bar = tqdm(total=plan.n_rows, unit="frame", file=sys.stderr, disable=not progress,
                desc="STS-DIC" if cfg.m else "DIC", dynamic_ncols=True)
     try:
-        _run_blocks(plan, sink, run, ref, updates, bar, callback)
+        _run_blocks(plan, sink, run, ref, updates, bar, callback, offsets)
         if plan.options.get("smoothing"):
             _smooth(plan, sink)
         info: dict[str, Any] = {
@@ -92,6 +96,8 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
             "max_cached_frames": cache.max_cached, "reference": plan.reference_desc,
             "reference_updates": updates, **run.stats,
         }
+        if offsets is not None:
+            info["refine_reference"] = offsets.summary()
         if plan.options.get("smoothing"):
             info["smoothing"] = plan.options["smoothing"]
         result = sink.result(info)
@@ -106,8 +112,10 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
 
 
 def _run_blocks(plan: RunPlan, sink: MemorySink, run: BlockContext, ref: Reference,
-                updates: list, bar: tqdm, callback) -> None:
-    """Solve (or replay) every block, carrying guesses and reference updates along."""
+                updates: list, bar: tqdm, callback,
+                offsets: ReferenceOffsets | None = None) -> None:
+    """Solve (or replay) every block, carrying guesses and reference updates along
+    (``offsets``: the refined reference's per-point offsets, subtracted before storing)."""
     row_of = plan.row_of()
     done = sink.completed_rows()
     carry: Carry | None = None
@@ -121,6 +129,8 @@ def _run_blocks(plan: RunPlan, sink: MemorySink, run: BlockContext, ref: Referen
             sink.reference_frames[rs] = ref.frame
         else:
             full = rows_numpy(solve_block(run, block, ref, carry), plan.fields)
+            if offsets is not None:
+                full = apply_offsets(full, offsets)
             stored = as_stored(full)
             sink.write_rows(rs, full, reference_frame=ref.frame)
         carry = make_carry(stored, plan.times[block], plan.param_names, carry, plan.dtype,
@@ -167,6 +177,8 @@ def track(
     lost_zncc: float = 0.8,
     overwrite: bool = False,
     callback: Callable[[int, int], None] | None = None,
+    refine_reference: bool = False,
+    refine_frames: int | None = None,
     strain_window: int | None = 5,
     strain_kind: str = "green",
 ) -> TrackResult:
@@ -203,6 +215,11 @@ def track(
             smoothing" baseline).
         lost_zncc: points whose ZNCC falls below this are re-solved with an FFT guess.
         callback: called as ``callback(rows_done, n_rows)`` after each block.
+        refine_reference: remove the noisy reference's constant per-point offset: classical
+            DIC of up to ``refine_frames`` frames around the reference (default 41), a
+            polynomial fit in time per point, its value at the reference time subtracted from
+            every row (:mod:`torch_stsdic.refine`, ``docs/accuracy.md``). Needs a reference
+            that is one series frame and no ``reference_update``.
         strain_window, strain_kind: strains written to ``out`` (grid points per side of the
             plane fit; "green" or "small"); ``strain_window=None``: none.
 
@@ -218,6 +235,10 @@ def track(
     plan = plan_run(series, reference, frames, points, roi, mask, step, config, device, times,
                     batch_frames, reference_update=reference_update, smoothing=smoothing,
                     lost_zncc=lost_zncc)
+    if refine_reference:
+        set_refinement(plan, refine_frames)
+    elif refine_frames is not None:
+        raise ValueError("refine_frames: only with refine_reference=True")
     sink = open_sink(plan, out, resume=resume, overwrite=overwrite,
                      strain_window=strain_window, strain_kind=strain_kind)
     return run_plan(plan, sink, progress=progress, callback=callback)

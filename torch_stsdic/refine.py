@@ -1,0 +1,222 @@
+"""Refined reference: lift the single-reference noise floor by re-zeroing every trajectory.
+
+With a noisy reference ``f = f0 + n_ref`` every Gauss-Newton solve of a point sees the same
+reference subset, so to first order its error is ``P (n_t - n_ref)``: a part ``-P n_ref``
+that is the *same* for every frame and window of the point (a constant offset in time), and
+the frames' part ``P n_t`` that the STS window averages. The window cannot remove the offset;
+averaging warped frames into a new reference does not either (such a template inherits the
+offset it was warped with). What removes it is the definition of zero displacement: the
+truth is 0 at the reference time, so the offset is the value a *fit over many frames* of the
+point's own trajectory takes at the reference time. Subtracting that intercept leaves the
+window's noise plus the intercept's (``docs/accuracy.md`` has the variances).
+
+:func:`measure_offsets` runs classical DIC (every frame alone against the reference) on up to
+``max_frames`` frames around the reference, then per point fits polynomials in time to the
+per-frame values over nested windows and keeps the fit with the smallest predicted intercept
+variance among those whose next-higher term is not significant (|t| < 3, noise from the
+trajectory's own third differences): long linear fits where the motion is smooth, short or
+quadratic ones where it is not. :func:`apply_offsets` subtracts the intercepts (u, v and the
+displacement gradients; velocities have no offset) from result rows.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from .plan import RunPlan
+from .result import USABLE
+
+__all__ = ["ReferenceOffsets", "check_refinable", "fit_frames", "measure_offsets",
+           "fit_intercepts", "apply_offsets", "set_refinement", "DEFAULT_MAX_FRAMES"]
+
+DEFAULT_MAX_FRAMES = 41
+_T_LIMIT = 3.0  # |t| of the next polynomial term above which a fit is rejected
+_RATES = ("ut", "vt")
+
+
+@dataclass
+class ReferenceOffsets:
+    """Per-point offsets of a noisy reference (subtract them from every row).
+
+    Attributes:
+        values: name -> (N,) float64 intercepts at the reference time (u, v px; gradients).
+        frames: (N,) frames of the fit kept per point (0: not refined, no usable fit).
+        degree: (N,) polynomial degree of that fit (1 linear, 2 quadratic; 0 none).
+        sigma: (N,) per-frame scatter of u (px) estimated from the trajectory.
+        seconds: wall time of the measurement.
+    """
+
+    values: dict[str, np.ndarray]
+    frames: np.ndarray
+    degree: np.ndarray
+    sigma: np.ndarray
+    seconds: float
+
+    def summary(self) -> dict[str, float | int]:
+        """JSON-friendly summary for ``TrackResult.info["refine_reference"]``."""
+        ok = self.frames > 0
+        return {"points": int(ok.size), "refined": int(ok.sum()),
+                "frames_median": float(np.median(self.frames[ok])) if ok.any() else 0.0,
+                "linear_fraction": float((self.degree[ok] == 1).mean()) if ok.any() else 0.0,
+                "seconds": round(self.seconds, 3)}
+
+
+def check_refinable(plan: RunPlan) -> None:
+    """Raise ValueError where the refined reference cannot apply: the reference must be one
+    frame of the series (its time is where displacement is zero), without reference updates,
+    and the series needs at least 5 frames."""
+    if plan.reference_image is not None or plan.reference_frame < 0:
+        raise ValueError(
+            f"refine_reference: needs a reference that is one frame of the series (its time "
+            f"defines zero displacement); got {plan.reference_desc!r}. Pass reference=<frame "
+            "index>, or refine_reference=False")
+    if plan.options.get("reference_update") is not None:
+        raise ValueError("refine_reference: cannot be combined with reference_update (each "
+                         "updated reference would carry its own noise offset)")
+    if len(plan.series) < 5:
+        raise ValueError(f"refine_reference: needs >= 5 frames in the series, got "
+                         f"{len(plan.series)}")
+
+
+def fit_frames(plan: RunPlan, max_frames: int) -> list[int]:
+    """The (up to) ``max_frames`` series frames nearest the reference in time, contiguous
+    (centred on it, shifted at the ends of the series)."""
+    n = len(plan.series)
+    count = min(int(max_frames), n)
+    start = min(max(plan.reference_frame - count // 2, 0), n - count)
+    return list(range(start, start + count))
+
+
+def measure_offsets(plan: RunPlan, max_frames: int = DEFAULT_MAX_FRAMES) -> ReferenceOffsets:
+    """Classical DIC of the frames around the reference, then :func:`fit_intercepts`."""
+    from .series import run_plan  # local: series imports this module
+
+    check_refinable(plan)
+    if int(max_frames) < 5:
+        raise ValueError(f"refine_frames: must be >= 5, got {max_frames!r}")
+    t0 = time.perf_counter()
+    frames = fit_frames(plan, max_frames)
+    cfg = plan.config.replace(m=0)
+    opts = {**plan.options, "smoothing": None, "reference_update": None}
+    opts.pop("refine_reference", None)
+    names = tuple(nm for nm in plan.param_names if nm not in _RATES)
+    sub = dataclasses.replace(plan, config=cfg, targets=frames, options=opts,
+                              param_names=names)
+    res = run_plan(sub, progress=False)
+    vals = {"u": res.u, "v": res.v, **res.gradients}
+    ys = {k: np.asarray(v.detach().cpu().numpy(), dtype=np.float64) for k, v in vals.items()}
+    usable = (res.status <= USABLE).cpu().numpy()
+    for k in ys:
+        ys[k] = np.where(usable, ys[k], np.nan)
+    t = plan.times[frames] - plan.times[plan.reference_frame]
+    out = fit_intercepts(t, ys, min_frames=max(5, plan.config.n_frames))
+    out.seconds = time.perf_counter() - t0
+    return out
+
+
+def _candidates(t: np.ndarray, min_frames: int) -> list[np.ndarray]:
+    """Nested windows (index arrays into ``t``) around t = 0: all, then halves ... down to
+    ``min_frames`` frames."""
+    order = np.argsort(np.abs(t), kind="stable")
+    out, count = [], len(t)
+    while True:
+        idx = np.sort(order[:count])
+        out.append(idx)
+        if count <= min_frames:
+            break
+        count = max(min_frames, count // 2)
+    return out
+
+
+def fit_intercepts(t: np.ndarray, ys: dict[str, np.ndarray], *, min_frames: int = 5,
+                   t_limit: float = _T_LIMIT) -> ReferenceOffsets:
+    """Per point, the intercept at t = 0 of the best polynomial fit of its trajectory.
+
+    Args:
+        t: (L,) frame times minus the reference time.
+        ys: name -> (L, N) per-frame values (NaN where not usable); "u" and "v" decide.
+        min_frames: the shortest window tried.
+        t_limit: a fit of degree d over a window is accepted where the added term of degree
+            d + 1 has |coefficient / standard error| < t_limit in both u and v.
+
+    Returns:
+        :class:`ReferenceOffsets` (offset 0 and frames 0 where no window is usable).
+    """
+    t = np.asarray(t, dtype=np.float64)
+    n = next(iter(ys.values())).shape[1]
+    scale = max(float(np.abs(t).max()), 1.0)
+    sig2 = {k: _noise_var(ys[k]) for k in ("u", "v")}
+    best_var = np.full(n, np.inf)
+    best = {k: np.zeros(n) for k in ys}
+    frames = np.zeros(n, dtype=np.int64)
+    degree = np.zeros(n, dtype=np.int64)
+    fallback = None
+    for idx in _candidates(t, min_frames):
+        ts = t[idx] / scale
+        for d in (1, 2):
+            if len(idx) < d + 3:
+                continue
+            x_fit = np.vander(ts, d + 1, increasing=True)
+            x_test = np.vander(ts, d + 2, increasing=True)
+            cov_fit = np.linalg.inv(x_fit.T @ x_fit)
+            cov_test = np.linalg.inv(x_test.T @ x_test)
+            fin = np.ones(n, dtype=bool)
+            ok = np.ones(n, dtype=bool)
+            for k in ("u", "v"):
+                y = ys[k][idx]
+                fin &= np.isfinite(y).all(0)
+                top = (cov_test @ x_test.T @ np.nan_to_num(y))[-1]
+                ok &= np.abs(top) < t_limit * np.sqrt(sig2[k] * cov_test[-1, -1])
+            var = sig2["u"] * cov_fit[0, 0]
+            coef = {k: (cov_fit @ x_fit.T @ np.nan_to_num(ys[k][idx]))[0] for k in ys}
+            if fallback is None or len(idx) <= len(fallback[0]):
+                fallback = (idx, d, coef, fin)  # the shortest quadratic fit, if none passes
+            take = fin & ok & np.isfinite(var) & (var < best_var)
+            best_var = np.where(take, var, best_var)
+            for k in ys:
+                best[k] = np.where(take, coef[k], best[k])
+            frames = np.where(take, len(idx), frames)
+            degree = np.where(take, d, degree)
+    if fallback is not None:
+        idx, d, coef, fin = fallback
+        take = (frames == 0) & fin
+        for k in ys:
+            best[k] = np.where(take, coef[k], best[k])
+        frames = np.where(take, len(idx), frames)
+        degree = np.where(take, d, degree)
+    return ReferenceOffsets(values=best, frames=frames, degree=degree,
+                            sigma=np.sqrt(sig2["u"]), seconds=0.0)
+
+
+def _noise_var(y: np.ndarray) -> np.ndarray:
+    """(N,) per-frame noise variance of (L, N) trajectories from third differences (var of
+    a third difference of white noise is 20 sigma^2; smooth motion drops out)."""
+    if y.shape[0] < 4:
+        return np.full(y.shape[1], np.nan)
+    d3 = np.diff(y, n=3, axis=0)
+    with np.errstate(all="ignore"):
+        v = np.nanmean(d3 * d3, axis=0) / 20.0
+    return np.where(np.isfinite(v) & (v > 0), v, np.nan)
+
+
+def apply_offsets(rows: dict[str, np.ndarray], offsets: ReferenceOffsets) -> dict[str, np.ndarray]:
+    """Rows (name -> (B, N)) with the offsets subtracted (names without an offset, and the
+    velocities, unchanged)."""
+    out = dict(rows)
+    for k, off in offsets.values.items():
+        if k in out and k not in _RATES:
+            out[k] = out[k] - off[None, :]
+    return out
+
+
+def set_refinement(plan: RunPlan, max_frames: int | None = None) -> None:
+    """Switch a plan to the refined reference (checked; recorded in ``plan.options``)."""
+    check_refinable(plan)
+    count = DEFAULT_MAX_FRAMES if max_frames is None else max_frames
+    if not isinstance(count, (int, np.integer)) or count < 5:
+        raise ValueError(f"refine_frames: must be an integer >= 5, got {max_frames!r}")
+    plan.options["refine_reference"] = int(count)
