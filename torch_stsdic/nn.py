@@ -56,6 +56,7 @@ from torch import Tensor, nn
 from .config import DICConfig
 from .formulations import Geometry, reference_subsets
 from .interpolation import BSplineImage
+from .offgrid import carry_params, carry_solution, snap_points
 from .solver import SubsetSolver, WindowSolution
 from .status import Status
 
@@ -401,12 +402,16 @@ class STSDIC(nn.Module):
         prob = _Problem(solver=self.solver, dt=dt, fidx=fidx, ridx=seq, residual_tol=tol,
                         grad_dtype=self.grad_dtype, report=report)
         self.last_report = report
+        grid, offset = snap_points(flat_pts)  # solved at pixel centres, carried to the POIs
         params = _ImplicitSTSDIC.apply(
-            ref, frames.reshape(b * t_count, h, w), flat_pts, init_flat, prob
+            ref, frames.reshape(b * t_count, h, w), grid, init_flat, prob
         )
         sol = prob.solution
         assert sol is not None
         names = sol.param_names
+        params = carry_params(params, names, offset)  # also at 0 offset: d/dpoints
+        if bool((offset != 0).any()):
+            sol = carry_solution(sol, flat_pts.detach(), offset.detach())
         p = params.reshape(b, n, -1)
         disp = torch.stack([p[..., names.index("u")], p[..., names.index("v")]], -1)
         if "ut" in names:

@@ -46,6 +46,7 @@ from .initial import (
     seed_cells,
 )
 from .interpolation import BSplineImage
+from .offgrid import carry_solution, snap_points
 from .shape import ShapeFunction, make_shape
 from .status import Status
 from .validation import as_image, as_points, as_series, as_times, check_init
@@ -189,6 +190,12 @@ class SubsetSolver:
             noise_ratio: the reference's noise variance over one frame's (1 for a single
                 frame, 1/K for a mean of K frames), for the predicted uncertainty.
         """
+        grid, offset = snap_points(points)
+        if bool((offset != 0).any()):  # off the pixel grid: solve on it, carry the result
+            sol = self.solve(ref, frames, grid, dt, frame_index=frame_index,
+                             ref_index=ref_index, init=init, ref_pixels=ref_pixels,
+                             frame_pixels=frame_pixels, time=time, noise_ratio=noise_ratio)
+            return carry_solution(sol, points, offset)
         cfg = self.config
         device, dtype = points.device, points.dtype
         n = points.shape[0]
