@@ -198,8 +198,10 @@ def _noise_var(y: np.ndarray) -> np.ndarray:
     if y.shape[0] < 4:
         return np.full(y.shape[1], np.nan)
     d3 = np.diff(y, n=3, axis=0)
-    with np.errstate(all="ignore"):
-        v = np.nanmean(d3 * d3, axis=0) / 20.0
+    fin = np.isfinite(d3)
+    count = fin.sum(0)
+    v = np.where(fin, d3 * d3, 0.0).sum(0) / np.maximum(count, 1) / 20.0
+    v = np.where(count > 0, v, np.nan)
     return np.where(np.isfinite(v) & (v > 0), v, np.nan)
 
 

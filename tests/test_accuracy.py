@@ -1,0 +1,138 @@
+"""Accuracy beyond the single-reference floor: refined reference, off-grid points."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+import torch_stsdic as sts
+from torch_stsdic.offgrid import carry_params
+from torch_stsdic.refine import fit_intercepts
+from torch_stsdic.synth import (
+    HomogeneousStrain,
+    Translation,
+    ground_truth,
+    make_speckle,
+    render_series,
+)
+
+SIZE = (121, 121)
+
+
+def _movie(n_frames: int, motion, seed: int = 1, sigma: float = 5.0) -> torch.Tensor:
+    """(n_frames, H, W) float32: frame 0 is the reference, noise on every image."""
+    pat = make_speckle(SIZE, radius=2.0, seed=seed)
+    ref, frames = render_series(pat, SIZE, motion, torch.arange(1, n_frames),
+                                noise_sigma=sigma, seed=seed + 10)
+    return torch.cat([ref[None], frames]).float()
+
+
+def _grid(offset: float = 0.0) -> np.ndarray:
+    g = np.arange(25.0, 97.0, 8.0) + offset
+    x, y = np.meshgrid(g, g)
+    return np.stack([x.ravel(), y.ravel()], 1)
+
+
+def _rms(res, motion, pts, rows=slice(3, -3)) -> float:
+    truth = ground_truth(motion, pts, res.times.numpy())
+    eu = (res.u.numpy() - truth["u"].numpy())[rows]
+    ev = (res.v.numpy() - truth["v"].numpy())[rows]
+    return float(np.sqrt(np.mean(eu**2 + ev**2) / 2))
+
+
+# ---- refined reference ----------------------------------------------------------------
+def test_fit_intercepts_linear_and_quadratic():
+    rng = np.random.default_rng(0)
+    t = np.arange(41.0)
+    n, sig = 400, 0.02
+    off = rng.normal(0, 0.02, n)
+    lin = off + 0.05 * t[:, None] + rng.normal(0, sig, (41, n))
+    quad = off + 0.003 * t[:, None] ** 2 + rng.normal(0, sig, (41, n))
+    for y, deg in ((lin, 1), (quad, 2)):
+        res = fit_intercepts(t, {"u": y, "v": y.copy()})
+        err = res.values["u"] - off
+        # predicted intercept std of the chosen fit: linear 41 frames ~ sig * 0.31,
+        # quadratic ~ sig * 0.46; a 5-frame fit would give ~ sig * 0.9
+        assert np.sqrt(np.mean(err**2)) < sig * (0.4 if deg == 1 else 0.6)
+        assert abs(err.mean()) < 3 * sig / np.sqrt(n)
+        assert np.mean(res.degree == deg) > 0.9
+        assert np.median(res.frames) == 41
+        np.testing.assert_allclose(np.median(res.sigma), sig, rtol=0.2)
+
+
+def test_fit_intercepts_unusable_points_get_no_offset():
+    t = np.arange(9.0)
+    y = np.full((9, 2), np.nan)
+    y[:, 0] = 0.1 * t + 0.01
+    res = fit_intercepts(t, {"u": y, "v": y})
+    assert res.frames[1] == 0 and res.values["u"][1] == 0.0
+
+
+def test_refined_reference_lifts_the_floor():
+    """STS m=2 with the refined reference below 0.6x classical (0.77x is the single-reference
+    floor, ~0.35x predicted), no bias; without refinement the test fails (> 0.7x)."""
+    motion = Translation(ut=0.05)
+    movie = _movie(41, motion)
+    pts = _grid()
+    cfg0, cfg2 = sts.DICConfig(m=0, dtype="float32"), sts.DICConfig(m=2, dtype="float32")
+    classical = sts.track(movie, points=pts, config=cfg0, progress=False)
+    plain = sts.track(movie, points=pts, config=cfg2, progress=False)
+    refined = sts.track(movie, points=pts, config=cfg2, progress=False, refine_reference=True)
+    e0, e_plain, e_ref = (_rms(r, motion, pts) for r in (classical, plain, refined))
+    assert e_plain > 0.7 * e0  # the single-reference floor
+    assert e_ref < 0.6 * e0
+    truth = ground_truth(motion, pts, refined.times.numpy())["u"].numpy()
+    assert abs(float(np.mean(refined.u.numpy() - truth))) < 2e-3
+    info = refined.info["refine_reference"]
+    assert info["refined"] == len(pts) and info["frames_median"] == 41
+    # velocities have no reference offset: unchanged
+    np.testing.assert_allclose(refined.ut.numpy(), plain.ut.numpy(), atol=5e-5)  # solver tol
+
+
+def test_refine_reference_refuses_what_it_cannot_do():
+    movie = _movie(6, Translation(ut=0.05))
+    with pytest.raises(ValueError, match="refine_reference"):
+        sts.track(movie, reference=movie[0].numpy(), progress=False, refine_reference=True)
+    with pytest.raises(ValueError, match="refine_reference"):
+        sts.track(movie, reference="0:3", progress=False, refine_reference=True)
+    with pytest.raises(ValueError, match="refine_reference"):
+        sts.track(movie, progress=False, refine_reference=True, reference_update=0.9)
+    with pytest.raises(ValueError, match="refine_frames"):
+        sts.track(movie, progress=False, refine_frames=9)
+
+
+# ---- off-grid points ---------------------------------------------------------------------
+def test_carry_params_is_exact_for_polynomials():
+    names = ("u", "ux", "uy", "uxx", "uxy", "uyy", "ut", "v", "vx", "vy", "vxx", "vxy", "vyy",
+             "vt")
+    g = torch.Generator().manual_seed(0)
+    p = torch.randn(5, len(names), dtype=torch.float64, generator=g) * 0.1
+    d = torch.rand(5, 2, dtype=torch.float64, generator=g) - 0.5
+    q = carry_params(p, names, d)
+    i = {nm: k for k, nm in enumerate(names)}
+
+    def field(par, c, x, y):
+        return (par[:, i[c]] + par[:, i[c + "x"]] * x + par[:, i[c + "y"]] * y
+                + 0.5 * par[:, i[c + "xx"]] * x * x + par[:, i[c + "xy"]] * x * y
+                + 0.5 * par[:, i[c + "yy"]] * y * y)
+
+    x, y = torch.tensor(0.3, dtype=torch.float64), torch.tensor(-0.2, dtype=torch.float64)
+    for c in ("u", "v"):  # the same field, expanded about the old and the new centre
+        torch.testing.assert_close(field(q, c, x, y), field(p, c, x + d[:, 0], y + d[:, 1]))
+    torch.testing.assert_close(q[:, i["ut"]], p[:, i["ut"]])
+
+
+def test_off_grid_points_at_the_grid_floor():
+    """Classical DIC at points between pixels within 10 % of the same points on the grid
+    (without the snap the reference noise's share grows by ~1/3)."""
+    motion = Translation(ut=0.05) + HomogeneousStrain(exx=2e-3, eyy=-1e-3, exy=5e-4,
+                                                         center=(60.0, 60.0), rate=1.0)
+    movie = _movie(12, motion, seed=4)
+    cfg = sts.DICConfig(m=0, dtype="float32")
+    on, off = _grid(), _grid() + np.array([0.37, -0.41])
+    r_on = sts.track(movie, points=on, config=cfg, progress=False)
+    r_off = sts.track(movie, points=off, config=cfg, progress=False)
+    e_on, e_off = _rms(r_on, motion, on, slice(1, None)), _rms(r_off, motion, off, slice(1, None))
+    assert e_off < 1.1 * e_on
+    assert e_off > 0.9 * e_on
