@@ -136,3 +136,9 @@ def test_off_grid_points_at_the_grid_floor():
     e_on, e_off = _rms(r_on, motion, on, slice(1, None)), _rms(r_off, motion, off, slice(1, None))
     assert e_off < 1.1 * e_on
     assert e_off > 0.9 * e_on
+
+
+def test_average_formulation_is_retired_into_joint_average():
+    with pytest.warns(DeprecationWarning, match="joint\\+average"):
+        cfg = sts.DICConfig(formulation="average")
+    assert cfg.formulation == "joint+average"

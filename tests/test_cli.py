@@ -441,3 +441,15 @@ def test_debug_shows_traceback(capsys, tmp_path):
                         "--debug")  # fmt: skip
     assert code == 1
     assert "Traceback" in err and "stsdic: error:" in err
+
+
+def test_run_refine_reference(capsys, movie, tmp_path):
+    out = tmp_path / "rr.h5"
+    base = ["run", movie / "movie.tif", "--subset", "17", "--step", "25", "--m", "1",
+            "--out", out, "--no-progress", *FAST]  # fmt: skip
+    code, _, err = _run(capsys, *base, "--refine-reference", "--refine-frames", "6")
+    assert code == 0, err
+    with h5py.File(out, "r") as f:
+        assert np.isfinite(f["u"][()]).all()
+    code, _, err = _run(capsys, *base, "--overwrite", "--refine-reference", "--reference", "0:2")
+    _assert_one_line_error(code, err, "refine_reference")

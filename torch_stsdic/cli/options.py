@@ -12,7 +12,7 @@ import math
 from collections.abc import Callable
 from typing import Any
 
-from ..config import CRITERIA, FORMULATIONS, INITIAL_GUESSES
+from ..config import CRITERIA, FORMULATION_HELP, FORMULATIONS, INITIAL_GUESSES
 
 #: an ArgumentParser or one of its argument groups
 Group = Any
@@ -114,9 +114,7 @@ def add_dic(g: Group, *, min_m: int = 0) -> None:
         "--formulation",
         choices=FORMULATIONS,
         default="auto",
-        help="joint: sum of per-frame residuals; average: the paper's averaged image; "
-        "joint+average: joint, then refined on the average; auto: joint "
-        "(default: %(default)s)",
+        help=FORMULATION_HELP + " (default: %(default)s)",
     )
 
 

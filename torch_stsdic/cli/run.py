@@ -121,6 +121,20 @@ def _add_frames(p: argparse.ArgumentParser) -> None:
         help="take a new reference (incremental DIC) when the mean ZNCC falls below THRESH, "
         "e.g. 0.9 (default: never, one fixed reference)",
     )
+    g.add_argument(
+        "--refine-reference",
+        action="store_true",
+        help="remove the noisy reference's constant per-point offset: classical DIC of the "
+        "frames around the reference, a polynomial fit in time per point, its value at the "
+        "reference time subtracted (needs --reference to be one frame; docs/accuracy.md)",
+    )
+    g.add_argument(
+        "--refine-frames",
+        type=options.int_min(5),
+        default=None,
+        metavar="N",
+        help="most frames of that fit (default: 41; fewer where the motion is not smooth)",
+    )
 
 
 # ----------------------------------------------------------------------------------------
@@ -254,6 +268,8 @@ def execute(args: argparse.Namespace) -> int:
             resume=args.resume,
             overwrite=args.overwrite,
             reference_update=args.reference_update,
+            refine_reference=args.refine_reference,
+            refine_frames=args.refine_frames if args.refine_reference else None,
             strain_window=args.strain_window,
             strain_kind=args.strain_kind,
         )
