@@ -136,9 +136,15 @@ def fit_intercepts(t: np.ndarray, ys: dict[str, np.ndarray], *, min_frames: int 
                    t_limit: float = _T_LIMIT) -> ReferenceOffsets:
     """Per point, the intercept at t = 0 of the best polynomial fit of its trajectory.
 
+    Where a component moves by >= 1 px over a window, its fit also has the terms
+    sin(2 pi u), sin(4 pi u) of the measured displacement u: the interpolation bias of
+    sub-pixel shifts is odd and 1-px periodic, so these absorb it (it would otherwise leak
+    into the intercept of a line through a few periods) without touching the value at u = 0.
+
     Args:
         t: (L,) frame times minus the reference time.
-        ys: name -> (L, N) per-frame values (NaN where not usable); "u" and "v" decide.
+        ys: name -> (L, N) per-frame values (NaN where not usable); "u" and "v" decide; the
+            names starting with "v" use the v component's bias terms, the others u's.
         min_frames: the shortest window tried.
         t_limit: a fit of degree d over a window is accepted where the added term of degree
             d + 1 has |coefficient / standard error| < t_limit in both u and v.
@@ -160,19 +166,22 @@ def fit_intercepts(t: np.ndarray, ys: dict[str, np.ndarray], *, min_frames: int 
         for d in (1, 2):
             if len(idx) < d + 3:
                 continue
-            x_fit = np.vander(ts, d + 1, increasing=True)
-            x_test = np.vander(ts, d + 2, increasing=True)
-            cov_fit = np.linalg.inv(x_fit.T @ x_fit)
-            cov_test = np.linalg.inv(x_test.T @ x_test)
             fin = np.ones(n, dtype=bool)
             ok = np.ones(n, dtype=bool)
-            for k in ("u", "v"):
-                y = ys[k][idx]
-                fin &= np.isfinite(y).all(0)
-                top = (cov_test @ x_test.T @ np.nan_to_num(y))[-1]
-                ok &= np.abs(top) < t_limit * np.sqrt(sig2[k] * cov_test[-1, -1])
-            var = sig2["u"] * cov_fit[0, 0]
-            coef = {k: (cov_fit @ x_fit.T @ np.nan_to_num(ys[k][idx]))[0] for k in ys}
+            coef: dict[str, np.ndarray] = {}
+            var = np.zeros(n)
+            for comp in ("u", "v"):
+                y_c = np.nan_to_num(ys[comp][idx])
+                fin &= np.isfinite(ys[comp][idx]).all(0)
+                c_fit, cov_fit = _fit(ts, d + 1, y_c)
+                c_test, cov_test = _fit(ts, d + 2, y_c)
+                top = d + 1  # the added polynomial term (the bias terms follow it)
+                ok &= np.abs(c_test[top]) < t_limit * np.sqrt(sig2[comp] * cov_test[:, top, top])
+                if comp == "u":
+                    var = sig2["u"] * cov_fit[:, 0, 0]
+                for k in ys:
+                    if (k[0] == "v") == (comp == "v"):
+                        coef[k] = _fit(ts, d + 1, y_c, np.nan_to_num(ys[k][idx]))[0][0]
             if fallback is None or len(idx) <= len(fallback[0]):
                 fallback = (idx, d, coef, fin)  # the shortest quadratic fit, if none passes
             take = fin & ok & np.isfinite(var) & (var < best_var)
@@ -190,6 +199,24 @@ def fit_intercepts(t: np.ndarray, ys: dict[str, np.ndarray], *, min_frames: int 
         degree = np.where(take, d, degree)
     return ReferenceOffsets(values=best, frames=frames, degree=degree,
                             sigma=np.sqrt(sig2["u"]), seconds=0.0)
+
+
+def _fit(ts: np.ndarray, n_poly: int, disp: np.ndarray, y: np.ndarray | None = None):
+    """Per-point least squares of y (L, N) (default ``disp``) on ``n_poly`` powers of ``ts``
+    plus, where ``disp`` (L, N) spans >= 1 px, sin(2 pi disp) and sin(4 pi disp).
+    Returns (coefficients (n_poly + 2, N), (X^T X)^-1 (N, n_poly + 2, n_poly + 2))."""
+    y = disp if y is None else y
+    length, n = disp.shape
+    poly = np.broadcast_to(np.vander(ts, n_poly, increasing=True)[None], (n, length, n_poly))
+    use = (disp.max(0) - disp.min(0)) >= 1.0  # (N,)
+    harm = np.stack([np.sin(2 * np.pi * disp.T), np.sin(4 * np.pi * disp.T)], -1)
+    harm = harm * use[:, None, None]
+    x = np.concatenate([poly, harm], -1)  # (N, L, K)
+    xtx = np.einsum("nlk,nlj->nkj", x, x)
+    xtx[:, n_poly:, n_poly:] += np.where(use, 0.0, 1.0)[:, None, None] * np.eye(2)
+    cov = np.linalg.inv(xtx)
+    coef = np.einsum("nkj,nlj,ln->kn", cov, x, y)
+    return coef, cov
 
 
 def _noise_var(y: np.ndarray) -> np.ndarray:
