@@ -35,6 +35,8 @@ __all__ = ["ReferenceOffsets", "check_refinable", "fit_frames", "measure_offsets
 
 DEFAULT_MAX_FRAMES = 41
 _T_LIMIT = 3.0  # |t| of the next polynomial term above which a fit is rejected
+_BIAS_SPAN = 0.5  # px a component must move over a window for the sub-pixel bias terms
+_BIAS_CHI2 = 2.0  # mean (coefficient / std)^2 of the bias terms above which they are used
 _RATES = ("ut", "vt")
 
 
@@ -48,6 +50,7 @@ class ReferenceOffsets:
         degree: (N,) polynomial degree of that fit (1 linear, 2 quadratic; 0 none).
         sigma: (N,) per-frame scatter of u (px) estimated from the trajectory.
         seconds: wall time of the measurement.
+        bias_terms: whether the sub-pixel interpolation-bias terms were fitted.
     """
 
     values: dict[str, np.ndarray]
@@ -55,6 +58,7 @@ class ReferenceOffsets:
     degree: np.ndarray
     sigma: np.ndarray
     seconds: float
+    bias_terms: bool = False
 
     def summary(self) -> dict[str, float | int]:
         """JSON-friendly summary for ``TrackResult.info["refine_reference"]``."""
@@ -62,7 +66,7 @@ class ReferenceOffsets:
         return {"points": int(ok.size), "refined": int(ok.sum()),
                 "frames_median": float(np.median(self.frames[ok])) if ok.any() else 0.0,
                 "linear_fraction": float((self.degree[ok] == 1).mean()) if ok.any() else 0.0,
-                "seconds": round(self.seconds, 3)}
+                "bias_terms": bool(self.bias_terms), "seconds": round(self.seconds, 3)}
 
 
 def check_refinable(plan: RunPlan) -> None:
@@ -136,10 +140,11 @@ def fit_intercepts(t: np.ndarray, ys: dict[str, np.ndarray], *, min_frames: int 
                    t_limit: float = _T_LIMIT) -> ReferenceOffsets:
     """Per point, the intercept at t = 0 of the best polynomial fit of its trajectory.
 
-    Where a component moves by >= 1 px over a window, its fit also has the terms
-    sin(2 pi u), sin(4 pi u) of the measured displacement u: the interpolation bias of
-    sub-pixel shifts is odd and 1-px periodic, so these absorb it (it would otherwise leak
-    into the intercept of a line through a few periods) without touching the value at u = 0.
+    Where the images show a sub-pixel interpolation bias (:func:`_bias_significant`) and a
+    component moves by >= 0.5 px over a window, its fit also has the terms sin(2 pi w),
+    sin(4 pi w) of the (polynomially smoothed) measured displacement w: that bias is odd and
+    1-px periodic, so these absorb it (it would otherwise leak into the intercept of a line
+    through a few periods) without touching the value at w = 0.
 
     Args:
         t: (L,) frame times minus the reference time.
@@ -156,6 +161,7 @@ def fit_intercepts(t: np.ndarray, ys: dict[str, np.ndarray], *, min_frames: int 
     n = next(iter(ys.values())).shape[1]
     scale = max(float(np.abs(t).max()), 1.0)
     sig2 = {k: _noise_var(ys[k]) for k in ("u", "v")}
+    bias = _bias_significant(t / scale, ys, sig2)
     best_var = np.full(n, np.inf)
     best = {k: np.zeros(n) for k in ys}
     frames = np.zeros(n, dtype=np.int64)
@@ -173,15 +179,15 @@ def fit_intercepts(t: np.ndarray, ys: dict[str, np.ndarray], *, min_frames: int 
             for comp in ("u", "v"):
                 y_c = np.nan_to_num(ys[comp][idx])
                 fin &= np.isfinite(ys[comp][idx]).all(0)
-                c_fit, cov_fit = _fit(ts, d + 1, y_c)
-                c_test, cov_test = _fit(ts, d + 2, y_c)
+                c_fit, cov_fit = _fit(ts, d + 1, y_c, bias=bias)
+                c_test, cov_test = _fit(ts, d + 2, y_c, bias=bias)
                 top = d + 1  # the added polynomial term (the bias terms follow it)
                 ok &= np.abs(c_test[top]) < t_limit * np.sqrt(sig2[comp] * cov_test[:, top, top])
                 if comp == "u":
                     var = sig2["u"] * cov_fit[:, 0, 0]
                 for k in ys:
                     if (k[0] == "v") == (comp == "v"):
-                        coef[k] = _fit(ts, d + 1, y_c, np.nan_to_num(ys[k][idx]))[0][0]
+                        coef[k] = _fit(ts, d + 1, y_c, np.nan_to_num(ys[k][idx]), bias=bias)[0][0]
             if fallback is None or len(idx) <= len(fallback[0]):
                 fallback = (idx, d, coef, fin)  # the shortest quadratic fit, if none passes
             take = fin & ok & np.isfinite(var) & (var < best_var)
@@ -198,25 +204,52 @@ def fit_intercepts(t: np.ndarray, ys: dict[str, np.ndarray], *, min_frames: int 
         frames = np.where(take, len(idx), frames)
         degree = np.where(take, d, degree)
     return ReferenceOffsets(values=best, frames=frames, degree=degree,
-                            sigma=np.sqrt(sig2["u"]), seconds=0.0)
+                            sigma=np.sqrt(sig2["u"]), seconds=0.0, bias_terms=bias)
 
 
-def _fit(ts: np.ndarray, n_poly: int, disp: np.ndarray, y: np.ndarray | None = None):
+def _bias_significant(ts: np.ndarray, ys: dict[str, np.ndarray],
+                      sig2: dict[str, np.ndarray]) -> bool:
+    """Whether the images show a sub-pixel interpolation bias worth fitting: over all points
+    that move >= _BIAS_SPAN px, the mean squared t-statistic of the bias terms of a quadratic
+    fit of the whole trajectory exceeds _BIAS_CHI2 (1 expected without a bias). Fitting them
+    where there is no bias only adds variance to the intercepts."""
+    stats = []
+    for comp in ("u", "v"):
+        y = ys[comp]
+        fin = np.isfinite(y).all(0) & np.isfinite(sig2[comp])
+        if not fin.any():
+            continue
+        coef, cov, use = _fit(ts, 3, y[:, fin], bias=True, with_use=True)
+        se2 = sig2[comp][fin][:, None] * np.diagonal(cov, axis1=1, axis2=2)[:, 3:]
+        stats.append((coef[3:].T ** 2 / se2)[use])
+    if not stats:
+        return False
+    chi2 = np.concatenate(stats)
+    return bool(chi2.size) and float(np.mean(chi2)) > _BIAS_CHI2
+
+
+def _fit(ts: np.ndarray, n_poly: int, disp: np.ndarray, y: np.ndarray | None = None, *,
+         bias: bool = True, with_use: bool = False):
     """Per-point least squares of y (L, N) (default ``disp``) on ``n_poly`` powers of ``ts``
-    plus, where ``disp`` (L, N) spans >= 1 px, sin(2 pi disp) and sin(4 pi disp).
+    plus, with ``bias`` and where ``disp`` (L, N) spans >= _BIAS_SPAN px, sin(2 pi w) and
+    sin(4 pi w), w the polynomial fit of ``disp``.
     Returns (coefficients (n_poly + 2, N), (X^T X)^-1 (N, n_poly + 2, n_poly + 2))."""
     y = disp if y is None else y
     length, n = disp.shape
-    poly = np.broadcast_to(np.vander(ts, n_poly, increasing=True)[None], (n, length, n_poly))
-    use = (disp.max(0) - disp.min(0)) >= 1.0  # (N,)
-    harm = np.stack([np.sin(2 * np.pi * disp.T), np.sin(4 * np.pi * disp.T)], -1)
+    vand = np.vander(ts, n_poly, increasing=True)
+    poly = np.broadcast_to(vand[None], (n, length, n_poly))
+    # the phase from the polynomial fit of disp, not from disp itself: a regressor holding
+    # the response's own noise would bias the fit
+    smooth = vand @ np.linalg.lstsq(vand, disp, rcond=None)[0]
+    use = bias & ((smooth.max(0) - smooth.min(0)) >= _BIAS_SPAN)  # (N,)
+    harm = np.stack([np.sin(2 * np.pi * smooth.T), np.sin(4 * np.pi * smooth.T)], -1)
     harm = harm * use[:, None, None]
     x = np.concatenate([poly, harm], -1)  # (N, L, K)
     xtx = np.einsum("nlk,nlj->nkj", x, x)
     xtx[:, n_poly:, n_poly:] += np.where(use, 0.0, 1.0)[:, None, None] * np.eye(2)
     cov = np.linalg.inv(xtx)
     coef = np.einsum("nkj,nlj,ln->kn", cov, x, y)
-    return coef, cov
+    return (coef, cov, use) if with_use else (coef, cov)
 
 
 def _noise_var(y: np.ndarray) -> np.ndarray:
