@@ -27,10 +27,10 @@ def test_settings_quick_and_defaults():
     assert DemoSettings.create() == DemoSettings()
     assert (DemoSettings().size, DemoSettings().frames, DemoSettings().noise) == (301, 9, 5.0)
     q = DemoSettings.create(True)
-    assert (q.size, q.frames, q.step, q.still_frames) == (101, 7, 25, 0)
+    assert (q.size, q.frames, q.step, q.still_frames, q.refined) == (101, 7, 25, 0, False)
     # None keeps the (quick) default, a value replaces it
     assert DemoSettings.create(True, size=None, still_frames=3) == DemoSettings(
-        size=101, frames=7, step=25, still_frames=3
+        size=101, frames=7, step=25, still_frames=3, refined=False
     )
 
 
@@ -142,3 +142,12 @@ def test_bad_settings(changes, words):
         run_demo(quick=True, **changes)
     with pytest.raises(ValueError, match="--" + words[0].split()[0]):
         check_settings(s, name=lambda k: "--" + k)
+
+
+def test_refined_reference_row():
+    d = run_demo(quick=True, refined=True, frames=9)
+    assert [r.method for r in d.methods] == ["classical DIC", "STS-DIC", "STS-DIC, refined ref"]
+    refined = d.methods[2]
+    assert refined.valid_percent == 100.0
+    assert refined.rms_u < d.methods[1].rms_u  # the reference's offset fitted away
+    assert "STS-DIC refined ref" in d.table()
