@@ -453,3 +453,13 @@ def test_run_refine_reference(capsys, movie, tmp_path):
         assert np.isfinite(f["u"][()]).all()
     code, _, err = _run(capsys, *base, "--overwrite", "--refine-reference", "--reference", "0:2")
     _assert_one_line_error(code, err, "refine_reference")
+
+
+def test_run_formulation_average_is_deprecated(capsys, movie, tmp_path):
+    code, _, err = _run(capsys, "run", movie / "movie.tif", "--subset", "17", "--step", "25",
+                        "--m", "1", "--frames", "0:3", "--formulation", "average",
+                        "--out", tmp_path / "a.h5", "--no-progress", *FAST)  # fmt: skip
+    assert code == 0, err
+    assert "stsdic: warning:" in err and "deprecated" in err and "joint+average" in err
+    with h5py.File(tmp_path / "a.h5", "r") as f:
+        assert np.isfinite(f["ut"][()]).all()  # the velocity converges (joint first)
