@@ -158,3 +158,24 @@ def test_average_converges_on_a_real_series():
         cfg = sts.DICConfig(m=2, formulation="average", dtype="float32")
     res = sts.track([str(f) for f in files], step=60, config=cfg, progress=False)
     assert float((res.status == 0).float().mean()) > 0.9
+
+
+def test_nn_off_grid_points_are_carried_differentiably():
+    from torch_stsdic.nn import STSDIC
+
+    motion = Translation(ut=0.05) + HomogeneousStrain(exx=2e-3, center=(60.0, 60.0), rate=1.0)
+    movie = _movie(5, motion, seed=5, sigma=2.0).double()
+    cfg = sts.DICConfig(m=1, subset_size=17, tol=1e-8)
+    on = torch.tensor(_grid()[:6])
+    off = (on + torch.tensor([0.3, -0.2], dtype=torch.float64)).requires_grad_(True)
+    mod = STSDIC(cfg)
+    out_on = mod.forward_full(movie[:1], movie[1:4][None], on)
+    out_off = mod.forward_full(movie[:1], movie[1:4][None], off)
+    names = out_on.param_names
+    expect = carry_params(out_on.params[0], names, (off - on).detach())
+    torch.testing.assert_close(out_off.params[0], expect)
+    truth = ground_truth(motion, off.detach().numpy(), [2.0])["u"][0]
+    assert (out_off.disp[0, :, 0] - truth).abs().max() < 0.05
+    out_off.disp[..., 0].sum().backward()  # d u / d x = the measured ux
+    torch.testing.assert_close(off.grad[:, 0], out_off.params[0, :, names.index("ux")],
+                               atol=1e-6, rtol=1e-4)
