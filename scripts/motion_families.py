@@ -171,7 +171,8 @@ def _markdown(rows, path: Path, size, n_frames, subset, step, noise) -> None:
         f"image, subset {subset} px, grid step {step} px, float32, `sts.track` defaults "
         "otherwise. Counted over point-frames whose subset stays inside the image.",
         "",
-        "| family | m | point-frames | trusted | trusted off by > 0.1 px | RMS (px) | mean m used |",
+        "| family | m | point-frames | trusted | trusted off by > 0.1 px | RMS (px) "
+        "| mean m used |",
         "|---|---|---|---|---|---|---|",
     ]
     for r in rows:

@@ -17,9 +17,6 @@ import numpy as np
 import torch
 
 from .frames import FrameCache
-from .reference import Reference, to_relative, to_total
-from .result import USABLE
-from .solver import SubsetSolver, WindowSolution
 from .quality import (
     MEDIAN_EPS_MIN,
     MEDIAN_EPS_STD,
@@ -28,6 +25,9 @@ from .quality import (
     neighbours,
     poor_fit,
 )
+from .reference import Reference, to_relative, to_total
+from .result import USABLE
+from .solver import SubsetSolver, WindowSolution
 from .status import Status
 
 __all__ = ["BlockContext", "Carry", "solve_block", "rows_numpy", "make_carry", "STD_OF"]
