@@ -69,6 +69,7 @@ class BlockContext:
     names: tuple[str, ...]  # parameter names of the run's shape
     stats: dict[str, int]
     checks: bool = True  # model, fit and neighbour checks (:mod:`torch_stsdic.quality`)
+    noise_ratio: float = 1.0  # reference noise variance / a frame's (reference.noise_ratio)
     neighbours: torch.Tensor | None = None  # (N, k) grid neighbours, made on first use
 
 
@@ -127,6 +128,7 @@ class _Block:
         return self.run.solver.solve(
             ref.img, self.img, self.pts[idx], dt, frame_index=fidx,
             init=init, ref_pixels=ref.raw.unsqueeze(0), frame_pixels=self.raw,
+            noise_ratio=run.noise_ratio,
         )
 
     def keep(self, idx: torch.Tensor, sol: WindowSolution, only_better: bool,

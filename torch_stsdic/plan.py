@@ -47,7 +47,7 @@ class RunPlan:
         batch_frames: target frames solved together per block.
         param_names: the shape function's parameter names for a window of 2m+1 frames.
         options: run options recorded with the results (step, roi, reference_update,
-            lost_zncc, smoothing, strain settings).
+            lost_zncc, smoothing, checks, strain settings).
     """
 
     series: ImageSeries
@@ -126,6 +126,7 @@ def plan_run(
     reference_update: float | None = None,
     smoothing: int | None = None,
     lost_zncc: float = 0.8,
+    checks: bool = True,
 ) -> RunPlan:
     """Validate the arguments of :func:`~torch_stsdic.track` (same meaning) into a plan.
 
@@ -180,7 +181,7 @@ def plan_run(
     names = shape.param_names if n_win > 1 else shape.spatial().param_names
     options = {"step": int(step), "roi": None if roi is None else list(roi),
                "reference_update": reference_update, "lost_zncc": float(lost_zncc),
-               "smoothing": smoothing}
+               "smoothing": smoothing, "checks": bool(checks)}
     return RunPlan(series=ser, config=cfg, points=pts0.double(), targets=targets, times=ts_np,
                    reference_image=ref_raw, reference_frame=ref_frame, reference_desc=ref_desc,
                    dtype=dtype, device=dev, batch_frames=n_batch, param_names=names,

@@ -46,7 +46,7 @@ from .config import DICConfig
 from .frames import FrameCache
 from .io.results import as_stored
 from .plan import RunPlan, plan_run
-from .reference import Reference, maybe_update
+from .reference import Reference, maybe_update, noise_ratio
 from .result import TrackResult
 from .sinks import MemorySink, open_sink
 from .smoothing import smooth_in_time
@@ -73,12 +73,16 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
                ts=torch.from_numpy(plan.times).to(device=plan.device, dtype=torch.float64),
                n_series=len(plan.series), m=cfg.m, dtype=plan.dtype, device=plan.device,
                lost_zncc=float(plan.options.get("lost_zncc", 0.8)), names=plan.param_names,
+               checks=bool(plan.options.get("checks", True)),
                stats={"fft_rows": 0, "redone_rows": 0})
     ref_raw = plan.reference_image
     ref_raw = cache.read(plan.reference_frame) if ref_raw is None else ref_raw.to(
         device=plan.device, dtype=plan.dtype)
     ref = Reference(frame=plan.reference_frame, raw=ref_raw, img=solver.prepare(ref_raw),
                     points=plan.points.to(device=plan.device, dtype=plan.dtype))
+    run.noise_ratio = noise_ratio(plan.reference_desc, ref_raw,
+                                  ref_raw if plan.reference_frame >= 0
+                                  else cache.read(plan.targets[0]))
     updates: list[dict[str, Any]] = []
     bar = tqdm(total=plan.n_rows, unit="frame", file=sys.stderr, disable=not progress,
                desc="STS-DIC" if cfg.m else "DIC", dynamic_ncols=True)
@@ -90,7 +94,8 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
             "batch_frames": plan.batch_frames, "blocks": len(plan.blocks),
             "frames_read": cache.reads, "prefiltered": cache.prefiltered,
             "max_cached_frames": cache.max_cached, "reference": plan.reference_desc,
-            "reference_updates": updates, **run.stats,
+            "reference_updates": updates, "reference_noise_ratio": run.noise_ratio,
+            **run.stats,
         }
         if plan.options.get("smoothing"):
             info["smoothing"] = plan.options["smoothing"]
@@ -128,6 +133,8 @@ def _run_blocks(plan: RunPlan, sink: MemorySink, run: BlockContext, ref: Referen
         if thr is not None:
             ref = maybe_update(ref, stored, block[-1], float(thr), pts0, plan.param_names,
                                run.cache, plan.dtype, plan.device, updates, rs[-1])
+            if updates:  # the reference is now a frame of the series
+                run.noise_ratio = 1.0
         rows_done += len(block)
         bar.update(len(block))
         if callback is not None:
@@ -165,6 +172,7 @@ def track(
     smoothing: int | None = None,
     *,
     lost_zncc: float = 0.8,
+    checks: bool = True,
     overwrite: bool = False,
     callback: Callable[[int, int], None] | None = None,
     strain_window: int | None = 5,
@@ -201,7 +209,12 @@ def track(
         smoothing: odd span (frames): run classical DIC (config.m = 0) and smooth u, v in
             time with :func:`~torch_stsdic.smoothing.smooth_in_time` (the paper's "direct
             smoothing" baseline).
-        lost_zncc: points whose ZNCC falls below this are re-solved with an FFT guess.
+        lost_zncc: points whose ZNCC falls below this are re-solved with an FFT guess, and a
+            solved point still below it is POOR_FIT.
+        checks: the trust checks of :mod:`torch_stsdic.quality` (model check of every window
+            against the classical solution with shorter windows where the motion is not
+            affine in time, fit and neighbour checks; default True). False: every converged
+            point is reported as such (faster, and as before these checks existed).
         callback: called as ``callback(rows_done, n_rows)`` after each block.
         strain_window, strain_kind: strains written to ``out`` (grid points per side of the
             plane fit; "green" or "small"); ``strain_window=None``: none.
@@ -217,7 +230,7 @@ def track(
         raise ValueError("resume: needs out (the result file to continue)")
     plan = plan_run(series, reference, frames, points, roi, mask, step, config, device, times,
                     batch_frames, reference_update=reference_update, smoothing=smoothing,
-                    lost_zncc=lost_zncc)
+                    lost_zncc=lost_zncc, checks=checks)
     sink = open_sink(plan, out, resume=resume, overwrite=overwrite,
                      strain_window=strain_window, strain_kind=strain_kind)
     return run_plan(plan, sink, progress=progress, callback=callback)
