@@ -126,3 +126,16 @@ def test_track_equal_with_and_without_read_ahead(monkeypatch):
     assert want.info["frame_times_s"]["ahead_read_s"] == 0
     err = (want.u - 0.1 * mv.times.view(-1, 1))[want.ok]
     assert want.ok.float().mean() > 0.5 and float(err.abs().max()) < 0.05
+
+
+def test_read_ahead_is_bounded():
+    """The reader stays at most ``ahead`` frames (+ the one it holds) ahead of the caller."""
+    import time
+
+    series = _Counting(_frames(n=12))
+    cache = FrameCache(series, SubsetSolver(sts.DICConfig(m=1)), torch.float32, "cpu", ahead=2)
+    cache.schedule(list(range(12)))
+    cache.load([0, 1, 2])
+    time.sleep(0.3)  # let the reader run as far as it may
+    assert 3 + 2 <= len(series.count) <= 3 + 2 + 1
+    cache.close()
