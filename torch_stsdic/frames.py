@@ -86,7 +86,7 @@ class _Reader(threading.Thread):
                 t1 = time.perf_counter()
                 ev = None
                 if self.stream is not None:
-                    with torch.cuda.stream(self.stream):
+                    with torch.cuda.device(self.stream.device), torch.cuda.stream(self.stream):
                         raw = cpu.pin_memory().to(c.device, non_blocking=True)
                         prep = c.solver.prepare(raw)
                         ev = torch.cuda.Event()
