@@ -5,10 +5,11 @@ from __future__ import annotations
 
 import os
 
-os.environ.setdefault("TRITON_INTERPRET", "1")  # before Triton is first imported
-
 import pytest
 import torch
+
+if not torch.cuda.is_available():  # no GPU: Triton's interpreter, before Triton is imported
+    os.environ.setdefault("TRITON_INTERPRET", "1")
 
 import torch_stsdic as sts
 from torch_stsdic import kernels, native, synth
