@@ -1123,7 +1123,8 @@ def target_rows(records: list[dict[str, Any]]) -> list[tuple[str, str, str, str,
                                  f"{r['median_s']['total']:.0f} s",
                                  "PASS" if r["rss_peak_mb"] <= goal else "MISS", src))
             for r in (res if rec["preset"] == "movie" else []):
-                if r.get("ok") and r["spec"].get("read_ahead") != 0:
+                if r.get("ok") and r["spec"].get("read_ahead") != 0 \
+                        and r["n_points"] >= 10_000:  # the size
                     rows += _movie_targets(r, where, src, dev.startswith("cuda"))
     return rows
 

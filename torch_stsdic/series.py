@@ -21,7 +21,8 @@ Lost points (not converged, or ZNCC below ``lost_zncc``) are solved again with a
 initial guess, and the better of the two results is kept.
 
 Frames are read lazily (:class:`~torch_stsdic.frames.FrameCache`): only the frames of the
-current block's windows are held, so memory is bounded by ``batch_frames + 2m`` frames, not by
+current block's windows are held, so memory is bounded by ``batch_frames + 2m`` frames (plus
+the few read ahead by a background thread: :func:`~torch_stsdic.frames.default_ahead`), not by
 the movie length.
 
 Determinism and resume: the carried state is always taken from the rows *as stored*
