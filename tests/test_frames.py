@@ -140,6 +140,9 @@ def test_read_ahead_is_bounded():
     cache = FrameCache(series, SubsetSolver(sts.DICConfig(m=1)), torch.float32, "cpu", ahead=2)
     cache.schedule(list(range(12)))
     cache.load([0, 1, 2])
-    time.sleep(0.3)  # let the reader run as far as it may
+    deadline = time.monotonic() + 20.0
+    while len(series.count) < 3 + 2 and time.monotonic() < deadline:  # the queue fills up
+        time.sleep(0.01)
+    time.sleep(0.2)  # and the reader would go on if it were not bounded
     assert 3 + 2 <= len(series.count) <= 3 + 2 + 1
     cache.close()
