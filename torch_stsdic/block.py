@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .frames import FrameCache
+from .frames import FrameCache, window_frames
 from .quality import (
     MEDIAN_EPS_MIN,
     MEDIAN_EPS_STD,
@@ -101,9 +101,7 @@ class _Block:
     def windows(self, m: int) -> torch.Tensor:
         """(B, 2m+1) series frames of every target's window, shifted (not shrunk) at the
         ends of the series."""
-        n_win = 2 * m + 1
-        start = (self.k - m).clamp(0, self.run.n_series - n_win)
-        return start.unsqueeze(1) + torch.arange(n_win, device=self.run.device)
+        return window_frames(self.k, m, self.run.n_series)
 
     def frames_of(self, win: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Per row: indices into the loaded frames (B*N, T) and dt (B*N, T)."""

@@ -21,7 +21,8 @@ Lost points (not converged, or ZNCC below ``lost_zncc``) are solved again with a
 initial guess, and the better of the two results is kept.
 
 Frames are read lazily (:class:`~torch_stsdic.frames.FrameCache`): only the frames of the
-current block's windows are held, so memory is bounded by ``batch_frames + 2m`` frames, not by
+current block's windows are held, so memory is bounded by ``batch_frames + 2m`` frames (plus
+the few read ahead by a background thread: :func:`~torch_stsdic.frames.default_ahead`), not by
 the movie length.
 
 Determinism and resume: the carried state is always taken from the rows *as stored*
@@ -43,7 +44,7 @@ from tqdm import tqdm
 
 from .block import BlockContext, Carry, make_carry, rows_numpy, solve_block
 from .config import DICConfig
-from .frames import FrameCache
+from .frames import FrameCache, default_ahead, frames_in_order
 from .io.results import as_stored
 from .plan import RunPlan, plan_run
 from .reference import Reference, maybe_update, noise_ratio
@@ -68,7 +69,8 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
     sink = sink if sink is not None else MemorySink(plan)
     cfg = plan.config
     solver = SubsetSolver(cfg)
-    cache = FrameCache(plan.series, solver, plan.dtype, plan.device)
+    cache = FrameCache(plan.series, solver, plan.dtype, plan.device,
+                       ahead=default_ahead(plan.batch_frames, cfg.m))
     run = BlockContext(solver=solver, cache=cache,
                ts=torch.from_numpy(plan.times).to(device=plan.device, dtype=torch.float64),
                n_series=len(plan.series), m=cfg.m, dtype=plan.dtype, device=plan.device,
@@ -87,13 +89,17 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
     bar = tqdm(total=plan.n_rows, unit="frame", file=sys.stderr, disable=not progress,
                desc="STS-DIC" if cfg.m else "DIC", dynamic_ncols=True)
     try:
-        _run_blocks(plan, sink, run, ref, updates, bar, callback)
+        try:
+            _run_blocks(plan, sink, run, ref, updates, bar, callback)
+        finally:
+            cache.close()
         if plan.options.get("smoothing"):
             _smooth(plan, sink)
         info: dict[str, Any] = {
             "batch_frames": plan.batch_frames, "blocks": len(plan.blocks),
             "frames_read": cache.reads, "prefiltered": cache.prefiltered,
             "max_cached_frames": cache.max_cached, "reference": plan.reference_desc,
+            "frame_times_s": cache.times(),
             "reference_updates": updates, "reference_noise_ratio": run.noise_ratio,
             **run.stats,
         }
@@ -115,6 +121,9 @@ def _run_blocks(plan: RunPlan, sink: MemorySink, run: BlockContext, ref: Referen
     """Solve (or replay) every block, carrying guesses and reference updates along."""
     row_of = plan.row_of()
     done = sink.completed_rows()
+    run.cache.schedule(frames_in_order(  # read ahead the frames of the blocks to solve
+        [b for b in plan.blocks if not all(row_of[k] in done for k in b)], plan.config.m,
+        len(plan.series)))
     carry: Carry | None = None
     rows_done = 0
     thr = plan.options.get("reference_update")

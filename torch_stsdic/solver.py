@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from . import formulations, native, uncertainty
+from . import formulations, kernels, native, uncertainty
 from .config import DICConfig
 from .formulations import Formulation, Geometry, SubsetData, reference_subsets, wsum
 from .formulations.joint_ic import centred_gram
@@ -553,7 +553,8 @@ class _Context:
         s, ks = self.geo.spatial.shape
         elem = self.geo.spatial.element_size()
         ic_only = all(f.inverse_compositional for f in self.stages)
-        if ic_only and native.usable(self.geo.spatial):
+        if ic_only and (native.usable(self.geo.spatial) or kernels.usable(
+                self.frames.kernel_args()[0], self.frames.order, s)):
             # fused kernels: no (N, T, S) temporaries, only the per-point reference data
             per_point = s * elem * 12
         else:

@@ -20,7 +20,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .. import native
+from .. import kernels, native
 from ..interpolation import BSplineImage, maybe_compiled, sample_kernel
 from ..shape import linear_displacement
 from .base import Formulation, Geometry, SubsetData
@@ -142,7 +142,14 @@ class JointIC(Formulation):
         return info > 0
 
     def uses_fused_kernel(self, frames: BSplineImage, data: SubsetData, p: Tensor) -> bool:
-        return native.usable_image(frames.kernel_args(), p, data.ft)
+        return native.usable_image(frames.kernel_args(), p, data.ft) or self._triton(
+            frames, data, p)
+
+    @staticmethod
+    def _triton(frames: BSplineImage, data: SubsetData, p: Tensor) -> bool:
+        """The fused Triton step (:mod:`torch_stsdic.kernels`) serves this call (CUDA)."""
+        return kernels.usable(frames.kernel_args()[0], frames.order, data.ft.shape[1], p,
+                              data.ft, data.gx, data.gy)
 
     def _args(self, geo: Geometry, frames: BSplineImage, data: SubsetData, p: Tensor) -> tuple:
         flat, wp, x_lo, x_hi, y_lo, y_hi, shift, plane = frames.kernel_args()
@@ -155,7 +162,8 @@ class JointIC(Formulation):
              work: int, sel: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
         if sel is not None:
             ka = frames.kernel_args()
-            b, zn, outside = native.ic_rhs(
+            fused = native.ic_rhs if native.usable_image(ka, p, data.ft) else kernels.ic_rhs
+            b, zn, outside = fused(
                 ka, frames.order, p, data.px, data.py, geo.dx, geo.dy, geo.spatial, data.dt,
                 data.fidx * ka[-1], data.ft, data.fnorm, data.gx, data.gy, geo.w, frames.width,
                 frames.height, geo.k, geo.shape.has_time, geo.znssd, rows=sel,
