@@ -49,7 +49,8 @@ def check_calibration(scale: Any, unit: Any, time_unit: Any = None) -> dict[str,
         try:
             s = float(scale)
         except (TypeError, ValueError):
-            raise ValueError(f"scale: expected a number (length units per px), got {scale!r}") from None
+            raise ValueError(f"scale: expected a number (length units per px), got "
+                             f"{scale!r}") from None
         if not math.isfinite(s) or s <= 0:
             raise ValueError(f"scale: must be a finite number > 0 (length units per px), "
                              f"got {scale!r}")
