@@ -239,7 +239,7 @@ def colorbar(fig: Figure, ax: Axes, mappable: Any, **kwargs: Any) -> Any:
     return fig.colorbar(mappable, cax=cax, **kwargs)
 
 
-def _extent(image: Any, points: np.ndarray) -> tuple[float, float]:
+def panel_extent(image: Any, points: np.ndarray) -> tuple[float, float]:
     """(width, height) in px of what a panel shows: the image, else the points' box."""
     if image is not None:
         h, w = _np(image).shape[-2:]
@@ -303,7 +303,7 @@ def plot_fields(
         raise ValueError("fields is empty")
     pts = _np(points).astype(np.float64)
     n = len(fields)
-    w, h = _extent(image, pts)
+    w, h = panel_extent(image, pts)
     nrows, ncols, size = panel_layout(n, w / h, ncols, height=panel_height)
     fig = Figure(figsize=size, layout="constrained")
     axes = fig.subplots(nrows, ncols, squeeze=False).ravel()
@@ -362,7 +362,7 @@ def plot_status(
     st = _np(status).astype(np.int64)
     codes = list(Status)
     if ax is None:
-        w, h = _extent(image, p)
+        w, h = panel_extent(image, p)
         _, _, size = panel_layout(1, w / h, 1, height=4.2)
         fig = Figure(figsize=(size[0] + 1.2, size[1]), layout="constrained")
         ax = fig.add_subplot()
@@ -403,7 +403,8 @@ def plot_xy(
     """
     xs = _np(x).astype(np.float64)
     if ax is None:
-        fig = Figure(figsize=(6.0, 4.0), layout="constrained")
+        tall = 4.0 + (0.3 * (-(-len(series) // 2)) + 0.3 if len(series) > 2 else 0.0)
+        fig = Figure(figsize=(6.4, tall), layout="constrained")
         ax = fig.add_subplot()
     else:
         fig = ax.get_figure()
@@ -421,8 +422,9 @@ def plot_xy(
     if title:
         ax.set_title(title)
     ax.grid(True, alpha=0.3)
-    if len(series) > 2:  # beside the axes: a legend inside would hide curves
-        ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0)
+    if len(series) > 2:  # under the axes: a legend inside would hide curves
+        ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2, fontsize=8,
+                  frameon=False)  # fmt: skip
     elif len(series) > 1 or any(series):
         ax.legend()
     return save_figure(fig, path, dpi=dpi)
@@ -517,7 +519,7 @@ def animate_field(
     norm = _norm(vals, None, None, symmetric)
     cmap = cmap or ("RdBu_r" if symmetric else "viridis")
     first = None if frame_image is None else _np(frame_image(0))
-    w, h = _extent(first, p)
+    w, h = panel_extent(first, p)
     _, _, size = panel_layout(1, w / h, 1, height=4.5)
     fig = Figure(figsize=size, layout="constrained")
     ax = fig.add_subplot()

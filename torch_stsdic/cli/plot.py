@@ -313,10 +313,12 @@ def _plot_frame(args: argparse.Namespace, res: Any, row: int, valid: np.ndarray,
     if "status" in res.fields:
         from matplotlib.figure import Figure
 
-        from ..plot import plot_field, save_figure
+        from ..plot import panel_extent, panel_layout, plot_field, save_figure
 
         zn = res.fields.get("zncc")
-        fig = Figure(figsize=(4.0 * (2 if zn is not None else 1) + 2.5, 4.6), layout="constrained")
+        w, h = panel_extent(image, res.points)
+        _, _, (fw, fh) = panel_layout(2 if zn is not None else 1, w / h, height=4.2)
+        fig = Figure(figsize=(fw + 1.3, fh), layout="constrained")  # + the status names
         axes = fig.subplots(1, 2 if zn is not None else 1, squeeze=False).ravel()
         plot_status(image, res.points, res.fields["status"][row], ax=axes[0],
                     title="status (usable: converged, max_iter)")  # fmt: skip
