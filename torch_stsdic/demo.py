@@ -336,7 +336,7 @@ def _write_files(d: DemoResult, ref_image: np.ndarray, out: Path) -> list[Path]:
     return paths
 
 
-def _fields_figure(d: DemoResult, ref_image: np.ndarray, path: Path) -> None:
+def _fields_figure(d: DemoResult, ref_image: np.ndarray, path: Path | None) -> Any:
     """Error maps at the middle frame over the reference: u (top) and ut (bottom), classical
     DIC (left) and STS-DIC (right); each row on one diverging scale centred on 0."""
     from .plot import plot_fields
@@ -354,13 +354,13 @@ def _fields_figure(d: DemoResult, ref_image: np.ndarray, path: Path) -> None:
     names = list(maps)
     labels = {nm: ("u error (px)" if nm.startswith("u ") else "ut error (px/frame)")
               for nm in names}  # fmt: skip
-    plot_fields(ref_image, d.points, maps, path, ncols=2, labels=labels,
+    return plot_fields(ref_image, d.points, maps, path, ncols=2, labels=labels,
                 share=(names[:2], names[2:]), diverging=names,
                 suptitle=f"measured minus exact at t = {t:g} frames (exact u = {t * UT_TRUE:g} "
                 f"px, ut = {UT_TRUE:g} px/frame), {s.noise:g} grey levels noise")  # fmt: skip
 
 
-def _history_figure(d: DemoResult, path: Path) -> None:
+def _history_figure(d: DemoResult, path: Path | None) -> Any:
     """Error of u (top) and ut (bottom) against time, one column per method on shared axes:
     mean over the points (line) and +-1 standard deviation (band)."""
     from matplotlib.figure import Figure
@@ -390,7 +390,7 @@ def _history_figure(d: DemoResult, path: Path) -> None:
     fig.suptitle("measured minus exact u and ut against time: line = mean over the points, "
                  f"band = +-1 std over the points; noise sigma {d.settings.noise:g} grey levels",
                  fontsize=11)  # fmt: skip
-    save_figure(fig, path)
+    return save_figure(fig, path)
 
 
 def _np(a: Any) -> np.ndarray:
