@@ -310,7 +310,7 @@ def test_demo_no_plots_and_bad_settings(capsys, tmp_path):
         "--no-progress", *FAST,
     )  # fmt: skip
     assert code == 0, err
-    assert "noise sigma 0," in out and "plots and numbers" not in out
+    assert "noise sigma 0 grey levels," in out and "plots and numbers" not in out
     assert not out_dir.exists()
     code, _, err = _run(capsys, "demo", "--quick", "--frames", "3", "--out", out_dir)
     assert code == 2

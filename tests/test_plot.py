@@ -208,3 +208,45 @@ def test_legend_of_many_curves_does_not_cover_the_axes():
     ax = fig.axes[0]
     leg = ax.get_legend().get_window_extent()
     assert leg.y1 <= ax.get_window_extent().y0  # under the axes
+
+
+def test_stsdic_plot_in_the_recorded_units(tmp_path, monkeypatch):
+    """``stsdic plot`` on a file calibrated 0.5 um/px with times in s: colour bars and axes
+    say um, um/s and s; a quality map and the --animate GIF are written."""
+    import torch_stsdic.plot as tplot
+    from torch_stsdic.cli import main
+    from torch_stsdic.io import ResultWriter
+
+    pts = grid_points(nx=5, ny=4)
+    names = ("u", "v", "ut", "vt", "zncc", "status", "exx", "eyy", "exy")
+    path = tmp_path / "c.h5"
+    with ResultWriter(path, points=pts, frames=[0, 1, 2], times=[0.0, 0.5, 1.0], config={},
+                      inputs=[], fields=names,
+                      attrs={"scale": 0.5, "unit": "um", "time_unit": "s"}) as w:  # fmt: skip
+        for r in range(3):
+            vals = {nm: np.linspace(-1, 1, len(pts)) * (r + 1) for nm in names}
+            vals["zncc"] = np.full(len(pts), 0.99)
+            vals["status"] = np.zeros(len(pts), dtype=np.int8)
+            w.write_rows([r], vals)
+    figs = {}
+    for name in ("plot_fields", "plot_history"):
+        real = getattr(tplot, name)
+
+        def spy(*a, _real=real, _name=name, **k):
+            fig = _real(*a, **k)
+            figs.setdefault(_name, []).append(fig)
+            return fig
+
+        monkeypatch.setattr(tplot, name, spy)
+    out = tmp_path / "plots"
+    assert main(["plot", str(path), "--out", str(out), "--animate", "u", "--dpi", "40"]) == 0
+    names_out = {p.name for p in out.iterdir()}
+    assert {"fields_frame00002.png", "quality_frame00002.png", "u_movie.gif",
+            "history_mean.png", "velocity_history_mean.png"} <= names_out  # fmt: skip
+    labels = [c.get_ylabel() for c in colorbars(figs["plot_fields"][0])]
+    assert labels == ["u (um)", "v (um)", "exx (-)", "eyy (-)", "exy (-)"]
+    u_map = figs["plot_fields"][0].axes[0].images[-1].get_array()
+    assert float(u_map.max()) == pytest.approx(3.0 * 0.5)  # last frame: 3 px = 1.5 um
+    hist = {f.axes[0].get_ylabel(): f.axes[0].get_xlabel() for f in figs["plot_history"]}
+    assert hist["displacement (um)"] == "time (s)" and "velocity (um/s)" in hist
+    assert main(["plot", str(path), "--out", str(out), "--animate", "nope"]) == 2
