@@ -181,3 +181,32 @@ def test_bad_settings(changes, words):
         run_demo(quick=True, **changes)
     with pytest.raises(ValueError, match="--" + words[0].split()[0]):
         check_settings(s, name=lambda k: "--" + k)
+
+
+def _docs_script():
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "regenerate_docs.py"
+    spec = importlib.util.spec_from_file_location("regenerate_docs", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_docs_quote_the_program():
+    """docs/cli.md pastes 'stsdic --help' as it is now, and the README, docs/cli.md and
+    'stsdic --help' all quote the same demo time (scripts/regenerate_docs.py --check)."""
+    docs = _docs_script()
+    text = docs.CLI_DOC.read_text(encoding="utf-8")
+    assert docs.stale(text, demo=False) == []
+    # a stale paste is reported
+    i, j = docs._block(text, "help")
+    assert docs.stale(text[:i] + "```\nold help\n```\n" + text[j:], demo=False)
+
+
+@pytest.mark.slow
+def test_docs_paste_a_real_demo_run():
+    """The demo block of docs/cli.md has the numbers a run gives now (times excepted)."""
+    docs = _docs_script()
+    assert docs.stale(docs.CLI_DOC.read_text(encoding="utf-8")) == []
