@@ -278,9 +278,9 @@ def _plot_histories(args: argparse.Namespace, res: Any, valid: np.ndarray, out: 
 
 
 def _calibration(res: Any) -> str:
-    """'scale 0.02 mm/px' or 'px' for the figures' titles."""
+    """'lengths in mm (0.02 mm/px)' or 'lengths in px' for the figures' titles."""
     u = res.units
-    return "px" if u.scale is None else f"scale {u.scale:g} {u.unit}/px"
+    return "lengths in px" if u.scale is None else f"lengths in {u.unit} ({u.scale:g} {u.unit}/px)"
 
 
 def _when(res: Any, row: int) -> str:
