@@ -123,6 +123,7 @@ def execute(args: argparse.Namespace) -> int:
         print(f"no finished frame in {args.result}: nothing written")
         return 0
     where = Path(written[0]).parent
+    _say_units(args.result)
     what = {"csv": "CSV", "vtk": "VTK"}.get(args.format)
     if what:
         extra = f"; open {written[-1].name} in ParaView" if args.format == "vtk" else ""
@@ -131,3 +132,15 @@ def execute(args: argparse.Namespace) -> int:
     else:
         print(f"wrote {written[0]}")
     return 0
+
+
+def _say_units(path: str) -> None:
+    """One line: the units of the export (the calibration the run recorded)."""
+    from ..io.results import open_results
+    from ..io.units import units_of
+
+    with open_results(Path(path)) as f:
+        u = units_of(f.attrs)
+    scale = f" ({u.scale:g} {u.unit}/px)" if u.scale is not None else " (no --scale in the run)"
+    print(f"units: lengths in {u.unit}{scale}, velocities in {u.unit}/{u.time_unit}, "
+          "strains dimensionless")

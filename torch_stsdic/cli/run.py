@@ -35,6 +35,9 @@ rates) are computed by local plane fits and added to the file.
 The file holds points (N, 2), frames (F,), times (F,), and (F, N) datasets u, v [px],
 ut, vt [px per time unit], zncc, status (0 converged, 1 max-iter, 2 diverged,
 3 outside, 4 low texture, 5 not computed), exx, eyy, exy [-]; see 'stsdic export'.
+--scale 0.02 --unit mm records a calibration with them (the datasets stay in px):
+'stsdic export' and 'stsdic plot' then give lengths in mm and velocities in mm per
+time unit (--time-unit, e.g. s with --timestamps).
 """
 
 EPILOG = """\
