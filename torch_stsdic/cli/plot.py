@@ -317,7 +317,8 @@ def _plot_frame(args: argparse.Namespace, res: Any, row: int, valid: np.ndarray,
 
         zn = res.fields.get("zncc")
         w, h = panel_extent(image, res.points)
-        _, _, (fw, fh) = panel_layout(2 if zn is not None else 1, w / h, height=4.2)
+        n = 2 if zn is not None else 1
+        _, _, (fw, fh) = panel_layout(n, w / h, n, height=4.2 if w <= h else 3.2)
         fig = Figure(figsize=(fw + 1.3, fh), layout="constrained")  # + the status names
         axes = fig.subplots(1, 2 if zn is not None else 1, squeeze=False).ravel()
         plot_status(image, res.points, res.fields["status"][row], ax=axes[0],
