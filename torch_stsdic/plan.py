@@ -91,8 +91,11 @@ class RunPlan:
 
     @property
     def fields(self) -> tuple[str, ...]:
-        """(F, N) result fields: u, v, ut, vt, zncc, status, iterations, gradients."""
-        return (*DEFAULT_FIELDS, "iterations", *self.gradients)
+        """(F, N) result fields: u, v, ut, vt, zncc, status, iterations, gradients, the
+        window half-width used ``m`` and the predicted standard deviations ``u_std``,
+        ``v_std`` (and ``ut_std``, ``vt_std`` for STS shapes)."""
+        stds = tuple(f"{nm}_std" for nm in _BASE if nm in self.param_names)
+        return (*DEFAULT_FIELDS, "iterations", *self.gradients, "m", *stds)
 
     @property
     def blocks(self) -> list[list[int]]:

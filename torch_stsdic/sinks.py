@@ -41,6 +41,7 @@ class MemorySink:
         self.values: dict[str, np.ndarray] = {nm: np.full((f, n), np.nan) for nm in plan.fields}
         self.values["status"] = np.full((f, n), int(Status.NOT_COMPUTED), dtype=np.int8)
         self.values["iterations"] = np.zeros((f, n), dtype=np.int64)
+        self.values["m"] = np.full((f, n), -1, dtype=np.int8)
         self.reference_frames = np.full(f, plan.reference_frame, dtype=np.int64)
         self.raw: dict[str, np.ndarray] = {}
 
@@ -97,6 +98,8 @@ class MemorySink:
             status=torch.from_numpy(v["status"].astype(np.int8)),
             iterations=torch.from_numpy(v["iterations"].astype(np.int32)),
             gradients={nm: ft(v[nm]) for nm in plan.gradients},
+            m=torch.from_numpy(np.nan_to_num(v["m"], nan=-1).astype(np.int8)),
+            std={nm[:-4]: ft(v[nm]) for nm in plan.fields if nm.endswith("_std")},
             reference_frames=torch.from_numpy(self.reference_frames.copy()),
             config=plan.config, info=info,
         )

@@ -61,6 +61,7 @@ _RESERVED = {"points", "frames", "times", "completed"}
 _INT_FIELDS: dict[str, tuple[type, int]] = {
     "status": (np.int8, int(Status.NOT_COMPUTED)),
     "iterations": (np.int16, -1),
+    "m": (np.int8, -1),
 }
 
 
