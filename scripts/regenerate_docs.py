@@ -6,7 +6,9 @@ docs/cli.md are program output:
 - ``help``: ``stsdic --help``;
 - ``demo``: ``stsdic demo`` (run in a temporary folder), with the wall-clock and CPU time the
   run took and the machine's load; the demo's figures are copied, scaled down, to
-  ``docs/demo/``.
+  ``docs/demo/``;
+
+and in README.md the block ``demo-table``: the same run's error table and ratios.
 
 Usage::
 
@@ -21,6 +23,7 @@ The demo time quoted in the README, in docs/cli.md and in ``stsdic --help`` is o
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import re
 import resource
@@ -51,9 +54,9 @@ def help_text() -> str:
     return "```\n$ stsdic --help\n" + _stsdic(["--help"], ROOT).rstrip() + "\n```\n"
 
 
-def demo_text(figures_to: Path | None = None) -> str:
-    """``stsdic demo`` run now, as a docs block with its measured time; its figures scaled to
-    900 px wide into ``figures_to``."""
+def demo_run(figures_to: Path | None = None) -> dict:
+    """Run ``stsdic demo`` now (in a temporary folder): its output, wall-clock and CPU time,
+    the load average, and demo.json; its figures scaled to 900 px wide into ``figures_to``."""
     with tempfile.TemporaryDirectory() as tmp:
         before = resource.getrusage(resource.RUSAGE_CHILDREN)
         t0 = time.perf_counter()
@@ -61,16 +64,51 @@ def demo_text(figures_to: Path | None = None) -> str:
         wall = time.perf_counter() - t0
         after = resource.getrusage(resource.RUSAGE_CHILDREN)
         cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+        summary = json.loads((Path(tmp) / "stsdic-demo" / "demo.json").read_text())
         if figures_to is not None:
             _copy_figures(Path(tmp) / "stsdic-demo", figures_to)
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-    cores = os.cpu_count() or 0
-    block = "```\n$ stsdic demo\n" + "\n".join(ln.rstrip() for ln in out.splitlines()) + "\n```\n"
-    note = (f"\nThis run took {wall:.1f} s of wall-clock time and {cpu:.1f} s of CPU time "
-            f"(Python start-up, plots and files included) on a {cores}-core machine with a "
-            f"load average of {load:.1f} when it ended (other jobs running; "
-            f"`python scripts/regenerate_docs.py` reran it and pasted this block).\n")  # fmt: skip
+    return {"out": out, "wall": wall, "cpu": cpu, "load": load, "summary": summary}
+
+
+def demo_text(run: dict) -> str:
+    """The docs/cli.md block of a demo run: its output and its measured time."""
+    lines = [ln.rstrip() for ln in run["out"].splitlines()]
+    block = "```\n$ stsdic demo\n" + "\n".join(lines) + "\n```\n"
+    note = (f"\nThis run took {run['wall']:.1f} s of wall-clock time and {run['cpu']:.1f} s of "
+            f"CPU time (Python start-up, plots and files included) on a {os.cpu_count()}-core "
+            f"machine with a load average of {run['load']:.1f} when it ended (other jobs "
+            "running; `python scripts/regenerate_docs.py` reran it and pasted this block).\n")
     return block + note
+
+
+def readme_text(run: dict) -> str:
+    """The README block of a demo run: its error table up to the 'valid' column, and the
+    ratios the README's text discusses (no times: the block is the same on every machine)."""
+    lines = [ln.rstrip() for ln in run["out"].splitlines()]
+    head = next(i for i, ln in enumerate(lines) if ln.startswith("method"))
+    cut = lines[head].index("valid") + len("valid")
+    table = []
+    for ln in lines[head:]:
+        if not ln.strip() or ln.startswith("ratio"):
+            break
+        table.append(ln[:cut].rstrip())
+    res = {r["method"]: r for r in run["summary"]["results"]}
+    c, s = res["classical DIC"], res["STS-DIC"]
+    m = run["summary"]["settings"]["m"]
+    bound = ((1 + 1 / (2 * m + 1)) / 2) ** 0.5
+    text = ("```\n" + "\n".join(table) + "\n```\n\n"
+            f"Measured here: STS-DIC's u error is {s['rms_u'] / c['rms_u']:.2f} of classical "
+            f"DIC's (the single-reference bound is sqrt((1 + 1/{2 * m + 1}) / 2) = {bound:.2f})")
+    averaged = [r for k, r in res.items() if k.startswith("STS-DIC, ref=mean")]
+    if averaged:
+        a = averaged[0]
+        text += (f"; with an averaged reference STS-DIC has {a['rms_u'] / c['rms_u']:.2f}x the "
+                 f"error of classical DIC with a single reference "
+                 f"({c['rms_u'] / a['rms_u']:.1f}x better)")
+    text += (f"; its velocity error is {c['rms_ut'] / s['rms_ut']:.1f}x smaller than that of "
+             "finite differences of classical results.\n")
+    return text
 
 
 def _copy_figures(src: Path, dst: Path) -> None:
@@ -86,12 +124,12 @@ def _copy_figures(src: Path, dst: Path) -> None:
         shutil.copystat(src / name, dst / name)
 
 
-def _block(text: str, name: str) -> tuple[int, int]:
+def _block(text: str, name: str, doc: Path = CLI_DOC) -> tuple[int, int]:
     """(start, end) offsets of the generated block ``name`` (its contents only)."""
     begin, end = f"<!-- generated: {name} -->\n", f"<!-- end generated: {name} -->"
     i, j = text.find(begin), text.find(end)
     if i < 0 or j < i:
-        raise SystemExit(f"{CLI_DOC}: no block {begin.strip()} .. {end}")
+        raise SystemExit(f"{doc}: no block {begin.strip()} .. {end}")
     return i + len(begin), j
 
 
@@ -107,8 +145,8 @@ def _stable(block: str) -> list[str]:
     return out
 
 
-def replace_block(text: str, name: str, new: str) -> str:
-    i, j = _block(text, name)
+def replace_block(text: str, name: str, new: str, doc: Path = CLI_DOC) -> str:
+    i, j = _block(text, name, doc)
     return text[:i] + new + text[j:]
 
 
@@ -121,12 +159,18 @@ def stale(text: str, demo: bool = True) -> list[str]:
     i, j = _block(text, "help")
     if text[i:j] != help_text():
         problems.append("the 'stsdic --help' block differs from the program's output")
-    i, j = _block(text, "demo")
-    pasted, fresh = _stable(text[i:j]), (_stable(demo_text()) if demo else None)
-    if demo and pasted != fresh:
-        diff = [f"{a!r} -> {b!r}" for a, b in zip(pasted, fresh) if a != b]
-        problems.append(f"the demo's output differs ({len(pasted)} vs {len(fresh)} lines): "
-                        + "; ".join(diff[:3]))
+    if demo:
+        run = demo_run()
+        i, j = _block(text, "demo")
+        pasted, fresh = _stable(text[i:j]), _stable(demo_text(run))
+        if pasted != fresh:
+            diff = [f"{a!r} -> {b!r}" for a, b in zip(pasted, fresh) if a != b]
+            problems.append(f"the demo's output differs ({len(pasted)} vs {len(fresh)} "
+                            "lines): " + "; ".join(diff[:3]))
+        readme = README.read_text(encoding="utf-8")
+        i, j = _block(readme, "demo-table", README)
+        if readme[i:j] != readme_text(run):
+            problems.append("the README's demo table differs from a run now")
     for doc in (CLI_DOC, README):
         if DEMO_TIME not in doc.read_text(encoding="utf-8"):
             problems.append(f"{doc.name} does not quote the demo time {DEMO_TIME!r}")
@@ -146,10 +190,14 @@ def main(argv: list[str] | None = None) -> int:
         for p in problems:
             print(f"stale: {p}")
         return 1 if problems else 0
+    run = demo_run(ROOT / "docs" / "demo")
     text = replace_block(text, "help", help_text())
-    text = replace_block(text, "demo", demo_text(ROOT / "docs" / "demo"))
+    text = replace_block(text, "demo", demo_text(run))
     CLI_DOC.write_text(text, encoding="utf-8")
-    print(f"rewrote the generated blocks of {CLI_DOC} and docs/demo/*.png")
+    readme = README.read_text(encoding="utf-8")
+    README.write_text(replace_block(readme, "demo-table", readme_text(run), README),
+                      encoding="utf-8")
+    print(f"rewrote the generated blocks of {CLI_DOC}, {README} and docs/demo/*.png")
     return 0
 
 
