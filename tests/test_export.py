@@ -180,3 +180,26 @@ def test_calibration_checks(capsys, calibrated, tmp_path):
     err = capsys.readouterr().err
     assert code == 2 and "--unit" in err and "needs a scale" in err
     assert not (tmp_path / "x.h5").exists()
+
+
+def test_track_records_the_calibration(tmp_path):
+    """``track(..., scale=, unit=, time_unit=)``: attributes of ``out``, ``info["units"]``;
+    the values stay in px; timestamps without a time unit say 'time unit'."""
+    import torch
+
+    from torch_stsdic import DICConfig, synth, track
+
+    movie = synth.synthetic_movie((61, 61), 4, synth.Translation(ut=0.1), seed=1)
+    frames = torch.cat([movie.ref[None], movie.frames]).float()
+    pts = [[30.0, 30.0], [40.0, 30.0]]
+    cfg = DICConfig(subset_size=15, m=1, search_radius=2)
+    res = track(frames, points=pts, config=cfg, progress=False, out=tmp_path / "a.h5",
+                scale=0.5, unit="um", time_unit="ms")  # fmt: skip
+    assert res.info["units"] == {"scale": 0.5, "unit": "um", "time_unit": "ms"}
+    assert read_results(tmp_path / "a.h5").units == Units(0.5, "um", "ms")
+    np.testing.assert_allclose(res.u[-1].numpy(), 0.4, atol=0.02)  # px, not um
+    plain = track(frames, points=pts, config=cfg, progress=False,
+                  times=[0.0, 0.5, 1.0, 1.5, 2.0])  # fmt: skip
+    assert plain.info["units"] == {"unit": "px", "time_unit": "time unit"}
+    with pytest.raises(ValueError, match="unit"):
+        track(frames, points=pts, config=cfg, progress=False, scale=0.5)
