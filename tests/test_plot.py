@@ -158,6 +158,7 @@ def test_colour_bars_are_as_tall_as_their_panels_on_a_tall_specimen(tmp_path):
     labels = [cax.get_ylabel() for _, cax in panels(fig)]
     assert labels == ["u (mm)", "v (mm)", "exx (-)", "eyy (-)", "exy (-)"]
     assert panel_layout(5, 400 / 1040)[:2] == (1, 5) and panel_layout(5, 1.0)[:2] == (2, 3)
+    assert panel_layout(4, 1.0)[:2] == (2, 2)  # balanced rows, no empty half row
 
 
 def test_shared_and_diverging_limits(image):

@@ -258,8 +258,9 @@ def panel_layout(n: int, aspect: float, ncols: int | None = None, *, height: flo
     height) so that the page is filled: tall specimens side by side, wide ones stacked;
     every panel ``height`` inches tall plus room for its colour bar and labels."""
     panel_w = height * aspect + 1.9  # + axis labels, colour bar and its label
-    if ncols is None:
-        ncols = max(1, min(n, int(max_width // panel_w)))
+    if ncols is None:  # as many as fit, then balanced rows (4 panels: 2 x 2, not 3 + 1)
+        fit = max(1, min(n, int(max_width // panel_w)))
+        ncols = -(-n // -(-n // fit))
     ncols = max(1, min(ncols, n))
     nrows = -(-n // ncols)
     return nrows, ncols, (panel_w * ncols, (height + 0.7) * nrows + 0.5)
