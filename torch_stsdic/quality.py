@@ -30,6 +30,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from .points import nearest_points
+
 __all__ = [
     "MODEL_Z", "MODEL_TOL", "FIT_RATIO", "MEDIAN_THRESHOLD", "MEDIAN_EPS_STD", "MEDIAN_EPS_MIN",
     "model_mismatch", "poor_fit", "neighbours", "median_test",
@@ -86,14 +88,8 @@ def neighbours(points: Tensor, k: int = 8, reach: float = 2.5, chunk: int = 2048
     k_eff = min(k, n - 1)
     if k_eff <= 0:
         return torch.full((n, k), -1, dtype=torch.long, device=points.device)
-    dist, idx = [], []
-    for s in range(0, n, chunk):
-        d = torch.cdist(p[s : s + chunk], p)
-        d[torch.arange(d.shape[0]), torch.arange(s, s + d.shape[0])] = float("inf")
-        dk, ik = d.topk(k_eff, dim=1, largest=False)
-        dist.append(dk)
-        idx.append(ik)
-    dist_t, idx_t = torch.cat(dist), torch.cat(idx)
+    dist_t, idx_t = nearest_points(p, k_eff + 1, chunk)
+    dist_t, idx_t = dist_t[:, 1:], idx_t[:, 1:]  # not itself
     limit = reach * dist_t[:, 0].median()
     idx_t = torch.where(dist_t <= limit, idx_t, torch.full_like(idx_t, -1))
     if k_eff < k:

@@ -38,6 +38,7 @@ import torch
 from . import formulations, native, uncertainty
 from .config import DICConfig
 from .formulations import Formulation, Geometry, SubsetData, reference_subsets, wsum
+from .formulations.joint_ic import centred_gram
 from .initial import (
     carry_from_seed,
     coarse_to_fine,
@@ -570,6 +571,7 @@ def _solve_batch(ctx: _Context, pts, p0, dt, fidx, ridx):
     w = geo.w
     wsum_w = w.sum()
     data = reference_subsets(geo, ctx.ref, pts, ridx, dt, fidx)
+    data.gram = centred_gram(geo, data.gx, data.gy)  # for the Hessian and the uncertainty
     status = torch.full((n,), int(Status.NOT_COMPUTED), dtype=torch.int8, device=device)
     texture = wsum(data.gx * data.gx + data.gy * data.gy, w) / wsum_w
     low = texture < cfg.texture_threshold * ctx.grey_range**2
@@ -602,7 +604,8 @@ def _solve_batch(ctx: _Context, pts, p0, dt, fidx, ridx):
     ok = torch.nonzero(status <= int(Status.MAX_ITER)).flatten()
     if ok.numel():
         resp, _ = uncertainty.solution_response(geo, ctx.frames, data.take(ok), params[ok],
-                                                ctx.noise_ratio, ctx.frames.order)
+                                                ctx.noise_ratio, ctx.frames.order,
+                                                zncc=zncc[ok])
         std[ok] = uncertainty.std_of(resp).to(dtype)
         sigma[ok] = resp.noise.total.sqrt().to(dtype)
     return params, zncc, status, iters, stage_params[0], std, sigma

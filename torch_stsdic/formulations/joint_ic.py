@@ -25,7 +25,7 @@ from ..interpolation import BSplineImage, maybe_compiled, sample_kernel
 from ..shape import linear_displacement
 from .base import Formulation, Geometry, SubsetData
 
-__all__ = ["JointIC", "ic_rhs_kernel", "gram", "ic_hessian", "ic_jacobian"]
+__all__ = ["JointIC", "ic_rhs_kernel", "gram", "centred_gram", "ic_hessian", "ic_jacobian"]
 
 
 def ic_rhs_kernel(flat, p, px, py, dx, dy, spatial_t, dt, frame_off, ft, fnorm, gx, gy, w,
@@ -97,15 +97,25 @@ def ic_jacobian(geo: Geometry, gx: Tensor, gy: Tensor, dt: Tensor) -> Tensor:
     return jac
 
 
-def ic_hessian(geo: Geometry, gx: Tensor, gy: Tensor, dt: Tensor) -> Tensor:
+def centred_gram(geo: Geometry, gx: Tensor, gy: Tensor) -> Tensor:
+    """(N, P', P') float64 ``sum_s w (J_s - Jbar)(J_s - Jbar)^T`` of the augmented columns
+    (:func:`gram`), Jbar their window mean for ZNSSD (``G - m m^T / sum w``; SSD: G)."""
+    g, m = gram(gx, gy, geo.spatial, geo.w)
+    if geo.znssd:
+        g = g - m.unsqueeze(-1) * m.unsqueeze(-2) / float(geo.w.sum())
+    return g
+
+
+def ic_hessian(geo: Geometry, gx: Tensor, gy: Tensor, dt: Tensor,
+               g: Tensor | None = None) -> Tensor:
     """Gauss-Newton Hessian ``sum_t J_t^T W J_t`` of the joint IC problem, (N, P, P) float64.
 
     With the moments of :func:`gram` this is H = (G - m m^T / sum w) o sum_t z_t z_t^T,
     z_t = (1 .. 1, dt_t) per component (o: element-wise product), so no (N, T, S, P) Jacobian
-    is formed (equal to the brute-force sum over :func:`ic_jacobian`; tested)."""
-    g, m = gram(gx, gy, geo.spatial, geo.w)
-    if geo.znssd:
-        g = g - m.unsqueeze(-1) * m.unsqueeze(-2) / float(geo.w.sum())
+    is formed (equal to the brute-force sum over :func:`ic_jacobian`; tested). ``g``: the
+    :func:`centred_gram` when already computed."""
+    if g is None:
+        g = centred_gram(geo, gx, gy)
     n, t = dt.shape
     ks = geo.ks
     if not geo.shape.has_time:  # drop the augmented constant columns; sum over T frames
@@ -126,7 +136,8 @@ class JointIC(Formulation):
     inverse_compositional = True
 
     def prepare(self, geo: Geometry, data: SubsetData) -> Tensor:
-        chol, info = torch.linalg.cholesky_ex(ic_hessian(geo, data.gx, data.gy, data.dt))
+        chol, info = torch.linalg.cholesky_ex(
+            ic_hessian(geo, data.gx, data.gy, data.dt, g=data.gram))
         data.chol = chol
         return info > 0
 
