@@ -186,6 +186,9 @@ def track(
     callback: Callable[[int, int], None] | None = None,
     strain_window: int | None = 5,
     strain_kind: str = "green",
+    scale: float | None = None,
+    unit: str | None = None,
+    time_unit: str | None = None,
 ) -> TrackResult:
     """Track POIs through a movie with STS-DIC (sliding windows of 2m+1 frames).
 
@@ -227,6 +230,10 @@ def track(
         callback: called as ``callback(rows_done, n_rows)`` after each block.
         strain_window, strain_kind: strains written to ``out`` (grid points per side of the
             plane fit; "green" or "small"); ``strain_window=None``: none.
+        scale, unit, time_unit: calibration recorded with the results (``out`` attributes,
+            ``result.info["units"]``): ``scale`` length ``unit``s per px (e.g. 0.02, "mm"),
+            ``time_unit`` of ``times`` (default "frame", "time unit" with timestamps). The
+            values stay in px; exports and figures convert (:mod:`torch_stsdic.io.units`).
 
     Returns:
         :class:`TrackResult` with (F, N) fields. With ``out`` the values are those stored in
@@ -239,7 +246,8 @@ def track(
         raise ValueError("resume: needs out (the result file to continue)")
     plan = plan_run(series, reference, frames, points, roi, mask, step, config, device, times,
                     batch_frames, reference_update=reference_update, smoothing=smoothing,
-                    lost_zncc=lost_zncc, checks=checks)
+                    lost_zncc=lost_zncc, checks=checks, scale=scale, unit=unit,
+                    time_unit=time_unit)
     sink = open_sink(plan, out, resume=resume, overwrite=overwrite,
                      strain_window=strain_window, strain_kind=strain_kind)
     return run_plan(plan, sink, progress=progress, callback=callback)

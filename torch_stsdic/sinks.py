@@ -85,7 +85,7 @@ class MemorySink:
             return torch.from_numpy(np.asarray(a, dtype=np.float64)).to(device=plan.device,
                                                                           dtype=plan.dtype)
 
-        info = dict(info)
+        info = {**info, "units": dict(plan.units)}
         if self.raw:
             info["raw"] = {k: ft(a) for k, a in self.raw.items()}
         if self.path is not None:
@@ -125,6 +125,8 @@ class HDF5Sink(MemorySink):
             fields=plan.fields, extra_fields=extra, resume=resume, overwrite=overwrite,
             attrs=attrs,
         )
+        # the calibration is recorded, not compared on resume (values stay in px)
+        self.writer.add_fields({}, dict(plan.units))
 
     def completed_rows(self) -> set[int]:
         return set(self.writer.completed_rows().tolist())

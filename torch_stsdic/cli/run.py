@@ -38,6 +38,9 @@ ut, vt [px per time unit], zncc, status (0 converged, 1 max-iter, 2 diverged,
 used), m (the window half-width each result used: shorter where the motion is not
 affine in time, 0 = classical), u_std, v_std, ut_std, vt_std (predicted standard
 deviations), exx, eyy, exy [-]; see 'stsdic export'.
+--scale 0.02 --unit mm records a calibration with them (the datasets stay in px):
+'stsdic export' and 'stsdic plot' then give lengths in mm and velocities in mm per
+time unit (--time-unit, e.g. s with --timestamps).
 """
 
 EPILOG = """\
@@ -49,6 +52,7 @@ examples:
   stsdic run movie.tif --points poi.csv --timestamps times.csv --out r.h5
   stsdic run movie.tif --out r.h5 --resume                  # continue a killed run
   stsdic run movie.tif --device cuda --dtype float32 --out r.h5
+  stsdic run movie.tif --scale 0.02 --unit mm --timestamps t.csv --time-unit s --out r.h5
 """
 
 
@@ -70,6 +74,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--strain-kind", choices=("green", "small"), default="green",
         help="green: Green-Lagrange; small: infinitesimal strain (default: %(default)s)",
     )  # fmt: skip
+    options.add_calibration(p.add_argument_group("calibration"))
     g = p.add_argument_group("computation and output")
     g.add_argument(
         "--dtype",
@@ -241,6 +246,7 @@ def execute(args: argparse.Namespace) -> int:
             f"output file {out} exists: use --overwrite to replace it or --resume to continue it"
         )
     device = check_device(args.device)
+    calibration = options.check_calibration(args)
     kwargs = _track_arguments(args)
 
     from ..series import track
@@ -259,6 +265,9 @@ def execute(args: argparse.Namespace) -> int:
             reference_update=args.reference_update,
             strain_window=args.strain_window,
             strain_kind=args.strain_kind,
+            scale=calibration.get("scale"),
+            unit=calibration["unit"],
+            time_unit=calibration.get("time_unit"),
         )
     except KeyboardInterrupt:
         print(

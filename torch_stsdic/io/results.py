@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from ..status import Status
+from .units import Units, units_of
 
 __all__ = [
     "CSV_COLUMNS",
@@ -495,6 +496,11 @@ class Results:
     @property
     def n_frames(self) -> int:
         return len(self.frames)
+
+    @property
+    def units(self) -> Units:
+        """The calibration recorded in the file (pixels and frames when none)."""
+        return units_of(self.attrs)
 
     @property
     def n_points(self) -> int:
