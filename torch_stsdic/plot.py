@@ -9,7 +9,8 @@ Conventions: axes in pixels, ``x`` = column to the right, ``y`` = row **down** (
 orientation); NaN values are drawn transparent (the image shows through: the quality mask).
 Every colour bar is labelled with its quantity and unit; displacement-like fields use a
 sequential map with robust limits (0.5 .. 99.5 percentiles of the drawn points), errors,
-strains and gradients a diverging map centred on 0 (99th percentile of |value|); panels
+strains and gradients a diverging map centred on 0 (99th percentile of |value|, within
+Tukey's far-out fence Q3 + 3 IQR of |value|); panels
 that are compared share their limits (``share``). Colour bars are as tall as their panel.
 """
 
@@ -88,8 +89,13 @@ def _norm(values: np.ndarray, vmin: float | None, vmax: float | None, symmetric:
     if fin.size == 0:
         lo, hi = 0.0, 1.0
     elif symmetric:
-        # robust limits: a few wild points (specimen edges, holes) must not wash out the map
-        m = float(np.percentile(np.abs(fin), 99.0)) or float(np.max(np.abs(fin))) or 1.0
+        # robust limits: a few wild points (specimen edges, holes) must not wash out the map:
+        # the 99th percentile of |v|, but not beyond Tukey's far-out fence (Q3 + 3 IQR) of
+        # |v| unless the 95th percentile is (a cluster of edge points is often > 1 %)
+        a = np.abs(fin)
+        q1, q3, p95, p99 = np.percentile(a, [25.0, 75.0, 95.0, 99.0])
+        m = max(float(p95), min(float(p99), float(q3 + 3.0 * (q3 - q1))))
+        m = m or float(np.max(a)) or 1.0
         lo, hi = -m, m
     else:
         lo, hi = (float(v) for v in np.percentile(fin, [0.5, 99.5]))
