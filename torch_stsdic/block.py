@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
@@ -25,7 +26,7 @@ from .quality import (
     neighbours,
     poor_fit,
 )
-from .reference import Reference, to_relative, to_total
+from .reference import Reference, noise_ratio, to_relative, to_total
 from .result import USABLE
 from .solver import SubsetSolver, WindowSolution
 from .status import Status
@@ -69,7 +70,8 @@ class BlockContext:
     names: tuple[str, ...]  # parameter names of the run's shape
     stats: dict[str, int]
     checks: bool = True  # model, fit and neighbour checks (:mod:`torch_stsdic.quality`)
-    noise_ratio: float = 1.0  # reference noise variance / a frame's (reference.noise_ratio)
+    noise_ratio: float | None = None  # reference noise variance / a frame's (None: measure
+    reference_desc: Any = 0  # on the first block, reference.noise_ratio; the plan's desc)
     neighbours: torch.Tensor | None = None  # (N, k) grid neighbours, made on first use
 
 
@@ -85,6 +87,8 @@ class _Block:
         self.needed = torch.unique(win)  # sorted; only the windows' frames
         self.raw, self.img = run.cache.load(self.needed.tolist())
         ref.ensure(run.cache)
+        if run.noise_ratio is None:
+            run.noise_ratio = noise_ratio(run.reference_desc, ref.raw, self.raw[0])
         self.b, self.n = len(ks), ref.points.shape[0]
         self.pts = ref.points.repeat(self.b, 1)  # (B*N, 2)
         self.fidx, self.dt = self.frames_of(win)

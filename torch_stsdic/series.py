@@ -47,7 +47,7 @@ from .config import DICConfig
 from .frames import FrameCache, default_ahead, frames_in_order
 from .io.results import as_stored
 from .plan import RunPlan, plan_run
-from .reference import Reference, maybe_update, noise_ratio
+from .reference import Reference, maybe_update
 from .result import TrackResult
 from .sinks import MemorySink, open_sink
 from .smoothing import smooth_in_time
@@ -82,9 +82,7 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
         device=plan.device, dtype=plan.dtype)
     ref = Reference(frame=plan.reference_frame, raw=ref_raw, img=solver.prepare(ref_raw),
                     points=plan.points.to(device=plan.device, dtype=plan.dtype))
-    run.noise_ratio = noise_ratio(plan.reference_desc, ref_raw,
-                                  ref_raw if plan.reference_frame >= 0
-                                  else cache.read(plan.targets[0]))
+    run.reference_desc = plan.reference_desc  # its noise ratio is measured on the 1st block
     updates: list[dict[str, Any]] = []
     bar = tqdm(total=plan.n_rows, unit="frame", file=sys.stderr, disable=not progress,
                desc="STS-DIC" if cfg.m else "DIC", dynamic_ncols=True)
