@@ -1,11 +1,14 @@
 """Solving one block of target frames: all POIs of several windows in one batched solve,
-started from the carried guesses, with rescue of lost points.
+started from the carried guesses, with rescue of lost points and the trust checks.
 
 A block is a few consecutive target frames of a movie. Every row (target frame x POI) starts
 from the :class:`Carry` of the block before (the last stored row moved on by its velocity).
 Rows that get lost (not converged, or ZNCC below ``lost_zncc``) are rescued in time order
 from the solution of the previous target of the same block, then by FFT cross-correlation;
-the better of the attempts is kept.
+the better of the attempts is kept. Then (``BlockContext.checks``) every row is checked
+(:mod:`torch_stsdic.quality`): its window against the classical solution (shorter windows
+where the motion is not affine in time, the classical solution where none fits), rows still
+lost are solved classically, and poor fits and outliers among neighbours are flagged.
 """
 
 from __future__ import annotations
