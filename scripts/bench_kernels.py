@@ -1,4 +1,5 @@
-"""Per-sample cost of the solver's inner kernels: fused C++ (torch_stsdic.native) vs torch.
+"""Per-sample cost of the solver's inner kernels: fused C++ (torch_stsdic.native) vs torch on
+a CPU; fused Triton (torch_stsdic.kernels, ``--device cuda``) vs torch on a GPU.
 
 Times, in ns per sample and per thread count, on a 1024x1024 float32 image with POIs on a
 grid (the solver's access pattern): B-spline value sampling, value + gradient, and one joint
@@ -7,6 +8,8 @@ the same functions the solver falls back to (eager; torch.compile is left out: m
 compile time). Writes docs/bench/kernels-cpu.json and prints a markdown table.
 
     python scripts/bench_kernels.py [--threads 1,2] [--out PATH]
+    python scripts/bench_kernels.py --device cuda    # IC-GN step: Triton vs torch, ->
+                                                     # docs/bench/kernels-cuda.json
 """
 
 from __future__ import annotations
@@ -29,20 +32,53 @@ import torch  # noqa: E402
 from benchmark import _cpu_model  # noqa: E402  (scripts/benchmark.py, beside this file)
 
 import torch_stsdic  # noqa: E402
-from torch_stsdic import native  # noqa: E402
+from torch_stsdic import kernels, native  # noqa: E402
 from torch_stsdic.formulations import ic_rhs_kernel  # noqa: E402
 from torch_stsdic.interpolation import BSplineImage, sample_kernel  # noqa: E402
 from torch_stsdic.shape import AffineShape  # noqa: E402
 
 
-def _median_time(fn, repeats: int) -> float:
-    fn()  # warm-up
+def _median_time(fn, repeats: int, device: str = "cpu") -> float:
+    def sync():
+        if device.startswith("cuda"):
+            torch.cuda.synchronize()
+
+    fn()  # warm-up (and the Triton compile)
+    sync()
     ts = []
     for _ in range(repeats):
         t0 = time.perf_counter()
         fn()
+        sync()
         ts.append(time.perf_counter() - t0)
     return statistics.median(ts)
+
+
+def _gpu_cases(n: int, device: str):
+    """IC-GN step right-hand side on the GPU: the Triton op and the torch code."""
+    out = []
+    for t in (1, 5):
+        c = {k: (v.to(device) if isinstance(v, torch.Tensor) else v)
+             for k, v in _problem(n, t).items() if k != "img"}
+        img = _problem(1, t)["img"].to(device=device)
+        a = img.kernel_args()
+        name = f"IC-GN step right-hand side, {t} frame{'s' if t > 1 else ''}"
+
+        def fused(c=c, a=a, t=t):
+            return kernels.ic_rhs(a, 3, c["p"], c["px"], c["py"], c["dx"], c["dy"], c["basis"],
+                                  c["dt"], c["fidx"], c["ft"], c["fnorm"], c["gx"], c["gy"],
+                                  c["w"], 1024, 1024, c["k"], t > 1, True)
+
+        def plain(c=c, a=a, t=t):
+            return ic_rhs_kernel(a[0], c["p"], c["px"], c["py"], c["dx"], c["dy"],
+                                 c["basis"].T.contiguous(), c["dt"], c["fidx"], c["ft"],
+                                 c["fnorm"], c["gx"], c["gy"], c["w"], *a[1:7], 1024, 1024,
+                                 c["basis"].shape[1], c["k"], t > 1, True, 3)
+
+        if kernels.usable(a[0], 3, c["dx"].numel(), c["p"]):
+            out.append((name, "triton", n * t * c["dx"].numel(), fused))
+        out.append((name, "torch", n * t * c["dx"].numel(), plain))
+    return out
 
 
 def _problem(n: int, t: int, subset: int = 21):
@@ -116,14 +152,22 @@ def main(argv=None) -> None:
     ap.add_argument("--points", type=int, default=10_000, help="POIs for the native kernels")
     ap.add_argument("--torch-points", type=int, default=1_000, help="POIs for the torch code")
     ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--out", default=str(REPO / "docs" / "bench" / "kernels-cpu.json"))
+    ap.add_argument("--device", default="cpu", help="cpu or cuda (Triton vs torch)")
+    ap.add_argument("--out", default=None,
+                    help="JSON record (default docs/bench/kernels-<device>.json)")
     args = ap.parse_args(argv)
-    threads = [int(x) for x in args.threads.split(",")]
+    dev = args.device
+    if dev.startswith("cuda") and not torch.cuda.is_available():
+        raise SystemExit("--device cuda: CUDA is not available")
+    args.out = args.out or str(REPO / "docs" / "bench" / f"kernels-{dev.split(':')[0]}.json")
+    threads = [int(x) for x in args.threads.split(",")] if dev == "cpu" else [1]
     rows = []
     for th in threads:
         torch.set_num_threads(th)
-        for name, impl, samples, fn in _cases(args.points, args.torch_points):
-            sec = _median_time(fn, args.repeats)
+        cases = (_cases(args.points, args.torch_points) if dev == "cpu"
+                 else _gpu_cases(args.points * 10, dev))
+        for name, impl, samples, fn in cases:
+            sec = _median_time(fn, args.repeats, dev)
             rows.append({"kernel": name, "impl": impl, "threads": th, "samples": samples,
                          "median_s": sec, "ns_per_sample": sec / samples * 1e9})
             print(f"{th}t {impl:6s} {name}: {sec / samples * 1e9:.1f} ns/sample", flush=True)
@@ -132,6 +176,7 @@ def main(argv=None) -> None:
         "arch": platform.machine(),
         "cpu": _cpu_model(),
         "torch": torch.__version__,
+        "device": dev if dev == "cpu" else torch.cuda.get_device_name(),
         "command": " ".join(["python scripts/bench_kernels.py",
                              *(sys.argv[1:] if argv is None else argv)]),
         "package": str(Path(torch_stsdic.__file__).parent),
@@ -146,7 +191,8 @@ def main(argv=None) -> None:
 
 def table(rows) -> str:
     """Markdown: kernel x (impl, threads) in ns per sample."""
-    cols = sorted({(r["impl"], r["threads"]) for r in rows}, key=lambda c: (c[0] != "native", c[1]))
+    cols = sorted({(r["impl"], r["threads"]) for r in rows},
+                  key=lambda c: (c[0] == "torch", c[1]))
     kernels = list(dict.fromkeys(r["kernel"] for r in rows))
     head = "| kernel | " + " | ".join(f"{i}, {t} thread{'s' if t > 1 else ''}" for i, t in cols)
     lines = [head + " |", "|---|" + "---:|" * len(cols)]

@@ -7,6 +7,8 @@ Presets (one command each; every preset writes a JSON record and prints a table)
     python scripts/benchmark.py --targets    # the target cases  -> docs/bench/targets-<dev>.json
     python scripts/benchmark.py --full       # m x subset x N x dtype -> docs/bench/full-<dev>.json
     python scripts/benchmark.py --memory     # 1000-frame 1024x1024 TIFF through sts.track
+    python scripts/benchmark.py --movie      # 500-frame 1024x1024 TIFF, 10,000 POIs, STS(5):
+                                             # frames/s, time split -> docs/bench/movie-<dev>.json
     python scripts/benchmark.py --report     # only rewrite docs/benchmarks.md from docs/bench/
 
 ``--device cuda`` (or ``auto``) runs on the GPU; ``--threads N`` sets torch's intra-op threads
@@ -32,6 +34,17 @@ Measurements
     inputs (the working set of the solve), "RSS peak" the process' absolute high-water mark.
     CUDA - ``torch.cuda.max_memory_allocated`` minus the memory allocated before the run, and
     ``cfg.memory_mb`` is sized from ``torch.cuda.mem_get_info`` (free memory).
+
+    Movie (``--movie``): a synthetic 1024x1024 uint8 TIFF movie of ``--movie-frames`` frames
+    (default 500; written once by torch_stsdic.synth into the bench cache) through the steps
+    of ``sts.track`` (plan_run, an HDF5 sink, run_plan) at ``--movie-points`` POIs (default
+    10,000, a regular square grid, 9 px apart), STS(5), 21x21, float32. Reported: frames/s
+    and POI-frames/s over the whole run (planning and the final strains included), and the
+    time split - read and
+    prefilter (in the calling thread, and in the read-ahead thread, overlapped), waiting for
+    frames, solve (``solve_block`` minus its wait for frames), write (sink rows + finish) and
+    the rest - and "overhead" = everything but the solve, as a share of the wall time.
+    ``--movie-read-ahead 0`` switches the read-ahead thread off (the comparison case).
 
     Timing on CUDA brackets every stage with ``torch.cuda.synchronize()``.
 """
@@ -76,6 +89,8 @@ TARGETS = {
     "gpu_classical_poi_s": (1e6, ""),
     "gpu_sts5_poi_s": (2e5, ""),
     "memory_rss_mb": (1024.0, "1000 frames x 1024x1024 uint8 = 1000 MiB on disk"),
+    "movie_overhead_share": (0.20, "issue 16: everything but the solve"),
+    "gpu_movie_frames_s": (100.0, "issue 16: one H100, from TIFF files"),
 }
 
 
@@ -533,7 +548,114 @@ def run_memory_case(spec: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-CASE_RUNNERS = {"solve": run_solve_case, "track": run_track_case, "memory": run_memory_case}
+def movie_tiff_path(n_frames: int, size: int = 1024) -> Path:
+    return cache_dir() / f"movie_{n_frames}x{size}_v{MOVIE_VERSION}.tif"
+
+
+def run_movie_case(spec: dict[str, Any]) -> dict[str, Any]:
+    """A TIFF movie from disk through plan_run + HDF5 sink + run_plan (what ``sts.track``
+    does), with every stage timed (see the module docstring)."""
+    import torch
+
+    import torch_stsdic as sts
+    from torch_stsdic import series as series_mod
+    from torch_stsdic.frames import default_ahead
+    from torch_stsdic.plan import plan_run
+    from torch_stsdic.sinks import open_sink
+
+    dev = spec["device"]
+    clock = _Clock(dev)
+    size = spec["size"]
+    side = max(2, round(math.sqrt(spec["points"])))  # a regular grid, like track's own
+    step = min(10, (size - 1 - 2 * (spec["subset"] // 2 + 8)) // (side - 1))
+    pts = poi_grid(size, side, spec["subset"], step=step)
+    mem = spec.get("memory_mb") or (_cuda_budget_mb() if dev.startswith("cuda") else 512.0)
+    cfg = sts.DICConfig(subset_size=spec["subset"], m=spec["m"], dtype="float32",
+                        memory_mb=mem)
+    t_solve = [0.0]
+    t_write = [0.0]
+    orig = series_mod.solve_block
+
+    def timed_solve(*a, **kw):
+        t0 = time.perf_counter()
+        out = orig(*a, **kw)
+        clock.sync()
+        t_solve[0] += time.perf_counter() - t0
+        return out
+
+    t_finish = [0.0]
+
+    def timed(fn, acc):
+        def run(*a, **kw):
+            clock.sync()
+            t0 = time.perf_counter()
+            try:
+                return fn(*a, **kw)
+            finally:
+                acc[0] += time.perf_counter() - t0
+        return run
+
+    series_mod.solve_block = timed_solve
+    out_h5 = Path(spec["workdir"]) / "movie_result.h5"
+    base_rss = _maxrss_mb()
+    if dev.startswith("cuda"):
+        torch.cuda.reset_peak_memory_stats()
+    load0 = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
+    try:
+        w0, c0 = clock.now()
+        plan = plan_run(spec["tiff"], 0, None, pts, None, None, 10, cfg, dev, None,
+                        spec.get("batch_frames"))
+        sink = open_sink(plan, out_h5, overwrite=True)
+        sink.write_rows = timed(sink.write_rows, t_write)
+        sink.finish = timed(sink.finish, t_finish)
+        res = series_mod.run_plan(plan, sink, progress=False)
+        w1, c1 = clock.now()
+    finally:
+        series_mod.solve_block = orig
+    load1 = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
+    wall, cpu = w1 - w0, c1 - c0
+    ft = res.info["frame_times_s"]
+    solve = t_solve[0] - ft["wait_s"]
+    split = {
+        "read_s": ft["read_s"], "prefilter_s": ft["prefilter_s"],
+        "ahead_read_s": ft["ahead_read_s"], "ahead_prefilter_s": ft["ahead_prefilter_s"],
+        "wait_frames_s": ft["wait_s"], "solve_s": solve, "write_s": t_write[0] + t_finish[0],
+        "write_rows_s": t_write[0], "finish_s": t_finish[0],
+    }
+    # the rest: planning, the reference, carry, rows to numpy, everything else in the loop
+    split["other_s"] = wall - t_solve[0] - split["write_s"]  # the reference's read included
+    truth_u = 0.01 * res.times.view(-1, 1)  # the TIFF moves by u = 0.01 t, v = -0.005 t px
+    ok = res.ok
+    out = {
+        "n_points": res.n_points,
+        "n_frames": res.n_frames,
+        "median_s": {"total": wall, "cpu_total": cpu},
+        "frames_per_s": res.n_frames / wall,
+        "poi_per_s": res.n_frames * res.n_points / wall,
+        "split_s": split,
+        "overhead_share": (wall - solve) / wall,
+        "cpu_over_wall": cpu / wall,
+        "batch_frames": plan.batch_frames,
+        "read_ahead": default_ahead(plan.batch_frames, cfg.m),
+        "peak_mem_mb": _maxrss_mb() - base_rss,
+        "rss_peak_mb": _maxrss_mb(),
+        "mem_kind": "ru_maxrss rise" if not dev.startswith("cuda") else "cuda max allocated",
+        "converged_frac": float(ok.float().mean()),
+        "u_rmse_px": float(((res.u - truth_u)[ok] ** 2).mean().sqrt()),
+        "mean_iterations": float(res.iterations.float().mean()),
+        "info": {k: v for k, v in res.info.items() if isinstance(v, (int, float, str))},
+        "tiff_mb": os.path.getsize(spec["tiff"]) / 2**20,
+        "load_before": load0,
+        "load_after": load1,
+    }
+    if dev.startswith("cuda"):
+        out["cuda_peak_mb"] = torch.cuda.max_memory_allocated() / 2**20
+        out["peak_mem_mb"] = out["cuda_peak_mb"]
+    return out
+
+
+CASE_RUNNERS = {"solve": run_solve_case, "track": run_track_case, "memory": run_memory_case,
+                "movie": run_movie_case}
 
 
 def child_main(spec_json: str) -> None:
@@ -542,6 +664,8 @@ def child_main(spec_json: str) -> None:
         os.environ["TORCH_STSDIC_COMPILE"] = spec["compile"]
     if spec.get("native"):
         os.environ["TORCH_STSDIC_NATIVE"] = spec["native"]
+    if spec.get("read_ahead") is not None:
+        os.environ["TORCH_STSDIC_READ_AHEAD"] = str(spec["read_ahead"])
     importlib.import_module("torch_stsdic")  # first: its OpenMP defaults precede torch's load
     import torch
 
@@ -578,6 +702,12 @@ def _case_name(spec: dict[str, Any]) -> str:
     if k == "track":
         return (f"track {spec.get('label', '')} {stsname} {spec['dtype']} {spec['device']}"
                 + comp)
+    if k == "movie":
+        ra = spec.get("read_ahead")
+        return (f"movie {spec['frames']}x{spec['size']} {spec['points']} POIs {stsname} "
+                f"{spec['device']}" + (f" batch_frames={spec['batch_frames']}"
+                                       if spec.get("batch_frames") else "")
+                + (f" read_ahead={ra}" if ra is not None else ""))
     return (f"memory track {stsname} {spec['device']} memory_mb="
             f"{spec.get('memory_mb') or 512:g}")
 
@@ -798,6 +928,52 @@ def run_memory_preset(args, device: str) -> list[dict[str, Any]]:
     return results
 
 
+def run_movie_preset(args, device: str) -> list[dict[str, Any]]:
+    """The movie cases: with the read-ahead thread (default), and without it
+    (``--movie-compare``) for the before/after comparison."""
+    n_frames, size = args.movie_frames, 1024
+    tiff = movie_tiff_path(n_frames, size)
+    need = n_frames * size * size * 1.05
+    if not tiff.exists():
+        free = shutil.disk_usage(tiff.parent).free
+        if free < need * 1.5:
+            raise SystemExit(f"--movie: {free / 2**30:.1f} GiB free in {tiff.parent}, need "
+                             f"{need * 1.5 / 2**30:.1f} GiB (set STSDIC_BENCH_CACHE)")
+        t0 = time.perf_counter()
+        write_tiff_movie(tiff, n_frames, size)
+        print(f"# wrote {tiff} ({tiff.stat().st_size / 2**20:.0f} MiB, "
+              f"{time.perf_counter() - t0:.0f} s)", file=sys.stderr)
+    workdir = Path(tempfile.mkdtemp(prefix="stsmovie"))
+    results = []
+    try:
+        aheads = [args.movie_read_ahead]
+        if args.movie_compare:
+            aheads.append(0)
+        runs: dict[str, list[dict[str, Any]]] = {}
+        for _ in range(max(1, args.repeats or 1)):  # interleaved: load drifts alike
+            for ra in aheads:
+                spec = {"kind": "movie", "m": 2, "subset": 21, "size": size,
+                        "points": args.movie_points, "frames": n_frames, "dtype": "float32",
+                        "device": device, "threads": args.thread_list[0], "tiff": str(tiff),
+                        "workdir": str(workdir), "batch_frames": args.movie_batch_frames,
+                        "read_ahead": ra, "memory_mb": args.memory_mb}
+                res = run_case(spec, args.isolate, args.case_timeout)
+                runs.setdefault(res["name"], []).append(res)
+                print(_one_line(res), file=sys.stderr, flush=True)
+    finally:
+        shutil.rmtree(workdir, ignore_errors=True)
+    for same in runs.values():  # per case: the run of median wall time, all walls listed
+        ok = sorted((r for r in same if r.get("ok")), key=lambda r: r["median_s"]["total"])
+        if not ok:
+            results.append(same[0])
+            continue
+        med = dict(ok[(len(ok) - 1) // 2])
+        med["repeat_walls_s"] = [r["median_s"]["total"] for r in same if r.get("ok")]
+        med["repeat_overhead_shares"] = [r["overhead_share"] for r in same if r.get("ok")]
+        results.append(med)
+    return results
+
+
 # ---------------------------------------------------------------------------------------
 # tables
 # ---------------------------------------------------------------------------------------
@@ -878,6 +1054,35 @@ def memory_table(results: list[dict[str, Any]]) -> str:
     return head + "\n".join(rows) + "\n" if rows else ""
 
 
+def movie_table(results: list[dict[str, Any]]) -> str:
+    head = ("| case | frames x POIs | wall s (median) | frames/s | POI-frames/s | read ms/frame "
+            "(ahead) | prefilter ms/frame (ahead) | wait for frames s | solve s | write s | "
+            "other s | overhead | peak MB | conv. | u RMSE px | load |\n"
+            "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n")
+    rows = []
+    for r in results:
+        if r["spec"]["kind"] != "movie":
+            continue
+        if not r.get("ok"):
+            rows.append(f"| {r['name']} | {r.get('error', 'failed')[:60]} |" + " |" * 15)
+            continue
+        sp, nf = r["split_s"], r["n_frames"]
+        rd = (f"{1000 * sp['read_s'] / nf:.1f} ({1000 * sp['ahead_read_s'] / nf:.1f})")
+        pf = (f"{1000 * sp['prefilter_s'] / nf:.1f} "
+              f"({1000 * sp['ahead_prefilter_s'] / nf:.1f})")
+        walls = r.get("repeat_walls_s") or [r["median_s"]["total"]]
+        wall = f"{r['median_s']['total']:.1f}" + (
+            f" (runs: {', '.join(f'{w:.1f}' for w in walls)})" if len(walls) > 1 else "")
+        rows.append(
+            f"| {r['name']} | {nf} x {r['n_points']:,} | {wall} | "
+            f"{r['frames_per_s']:.2f} | {_fmt_rate(r['poi_per_s'])} | {rd} | {pf} | "
+            f"{sp['wait_frames_s']:.2f} | {sp['solve_s']:.1f} | {sp['write_s']:.2f} | "
+            f"{sp['other_s']:.2f} | {100 * r['overhead_share']:.1f}% | "
+            f"{r['peak_mem_mb']:.0f} | {100 * r['converged_frac']:.1f}% | "
+            f"{r['u_rmse_px']:.4f} | {r['load_after']:.1f} |")
+    return head + "\n".join(rows) + "\n" if rows else ""
+
+
 def _find(results, **want):
     for r in results:
         s = r["spec"]
@@ -917,6 +1122,26 @@ def target_rows(records: list[dict[str, Any]]) -> list[tuple[str, str, str, str,
                                  f"{r['rss_peak_mb']:.0f} MB peak RSS, "
                                  f"{r['median_s']['total']:.0f} s",
                                  "PASS" if r["rss_peak_mb"] <= goal else "MISS", src))
+            for r in (res if rec["preset"] == "movie" else []):
+                if r.get("ok") and r["spec"].get("read_ahead") != 0 \
+                        and r["n_points"] >= 10_000:  # the issue's size
+                    rows += _movie_targets(r, where, src, dev.startswith("cuda"))
+    return rows
+
+
+def _movie_targets(r, where: str, src: str, gpu: bool) -> list[tuple[str, str, str, str, str]]:
+    what = (f"{r['n_frames']}-frame 1024x1024 TIFF via sts.track, {r['n_points']:,} POIs, "
+            f"STS(5), {where}")
+    goal, ref = TARGETS["movie_overhead_share"]
+    share = r["overhead_share"]
+    rows = [(f"{what}: per-frame overhead (all but the solve)", f"<= {100 * goal:.0f} % of "
+             f"the run ({ref})", f"{100 * share:.1f} % of {r['median_s']['total']:.0f} s "
+             f"({r['frames_per_s']:.2f} frames/s)", "PASS" if share <= goal else "MISS", src)]
+    if gpu:
+        goal, ref = TARGETS["gpu_movie_frames_s"]
+        fps = r["frames_per_s"]
+        rows.append((f"{what}: throughput", f">= {goal:.0f} frames/s ({ref})",
+                     f"{fps:.1f} frames/s", "PASS" if fps >= goal else "MISS", src))
     return rows
 
 
@@ -1019,7 +1244,7 @@ def machine_line(rec: dict[str, Any]) -> str:
 
 def render_record(rec: dict[str, Any]) -> str:
     parts = [f"Machine: {machine_line(rec)}\n"]
-    for fn in (track_table, solve_table, memory_table):
+    for fn in (track_table, solve_table, memory_table, movie_table):
         t = fn(rec["results"])
         if t:
             parts.append(t)
@@ -1044,7 +1269,7 @@ def load_records(directory: Path = BENCH_DIR) -> list[dict[str, Any]]:
     return recs
 
 
-_PRESET_ORDER = {"targets": 0, "memory": 1, "full": 2}
+_PRESET_ORDER = {"targets": 0, "memory": 1, "movie": 2, "full": 3}
 
 
 def autogen_sections(records: list[dict[str, Any]]) -> dict[str, str]:
@@ -1056,6 +1281,14 @@ def autogen_sections(records: list[dict[str, Any]]) -> dict[str, str]:
             rows.append((f"GPU (one H100), {label}, 21x21", f">= {_fmt_rate(TARGETS[k][0])} "
                          "POI/s", "not measured (no CUDA record: run --targets --device "
                          "cuda)", "-", "-"))
+    if not any(r["machine"]["device"].startswith("cuda") and r["preset"] == "movie"
+               for r in records):
+        rows.append(("GPU (one H100), 500-frame 1024x1024 TIFF via sts.track, 10,000 POIs, "
+                     "STS(5)", f">= {TARGETS['gpu_movie_frames_s'][0]:.0f} frames/s",
+                     "GPU not measured (no CUDA record: run --movie --device cuda)", "-", "-"))
+        rows.append(("GPU (one H100), fused Triton IC-GN step vs the torch step", ">= 3x",
+                     "GPU not measured (run scripts/bench_kernels.py --device cuda)", "-",
+                     "-"))
     tgt = ["| target | goal | measured | verdict | record |", "|---|---|---|---|---|"]
     tgt += [f"| {a} | {b} | {c} | **{d}** | {e} |" for a, b, c, d, e in rows]
     sections = {"targets": "\n".join(tgt) + "\n"}
@@ -1092,7 +1325,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     g = p.add_mutually_exclusive_group()
-    for name in ("quick", "targets", "full", "memory", "report"):
+    for name in ("quick", "targets", "full", "memory", "movie", "report"):
         g.add_argument(f"--{name}", dest="preset", action="store_const", const=name)
     p.add_argument("--device", default="cpu", help="cpu, cuda or auto (default cpu)")
     p.add_argument("--threads", default=None,
@@ -1121,6 +1354,16 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--memory-step", type=int, default=64, help="--memory: POI grid step, px")
     p.add_argument("--tiff-dir", default=None, help="--memory: where the TIFF is written/kept")
     p.add_argument("--keep-tiff", action="store_true")
+    p.add_argument("--movie-frames", type=int, default=500,
+                   help="--movie: frames of the TIFF movie, all tracked (default 500)")
+    p.add_argument("--movie-points", type=int, default=10_000,
+                   help="--movie: POIs (a regular square grid; default 10,000)")
+    p.add_argument("--movie-batch-frames", type=int, default=None,
+                   help="--movie: target frames per block (default: track's)")
+    p.add_argument("--movie-read-ahead", type=int, default=None,
+                   help="--movie: frames read ahead (default: track's; 0 = off)")
+    p.add_argument("--movie-compare", action="store_true",
+                   help="--movie: also run without read-ahead (before/after)")
     p.add_argument("--_child", default=None, help=argparse.SUPPRESS)
     a = p.parse_args(argv)
     a.preset = a.preset or "quick"
@@ -1184,6 +1427,8 @@ def main(argv: list[str] | None = None) -> int:
 
     if args.preset == "memory":
         results = run_memory_preset(args, device)
+    elif args.preset == "movie":
+        results = run_movie_preset(args, device)
     else:
         results = run_solver_preset(args, device, checkpoint=lambda r: save(r, True))
     rec = save(results, False)

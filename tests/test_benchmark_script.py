@@ -76,3 +76,24 @@ def test_doc_tables_regenerate_between_markers(tmp_path):
     assert bench.update_doc([rec], doc)
     text = doc.read_text()
     assert "old" not in text and "Table 1 via sts.track" in text and text.endswith("tail\n")
+
+
+def test_movie_preset_runs_and_splits_time(tmp_path):
+    """--movie at a toy size (6 frames, 16 POIs): a TIFF from disk, the time split adds up."""
+    out = tmp_path / "movie.json"
+    env_cache = {"STSDIC_BENCH_CACHE": str(tmp_path / "cache")}
+    p = subprocess.run([sys.executable, str(SCRIPT), "--movie", "--movie-frames", "6",
+                        "--movie-points", "16", "--threads", "1", "--no-isolate", "--out",
+                        str(out), "--no-update-doc"], capture_output=True, text=True,
+                       timeout=300, env={**os.environ, **env_cache})
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
+    (r,) = json.loads(out.read_text())["results"]
+    assert r["ok"] and r["n_frames"] == 6 and r["n_points"] == 16
+    assert r["converged_frac"] > 0.9 and r["u_rmse_px"] < 0.05
+    sp = r["split_s"]
+    wall = r["median_s"]["total"]
+    assert abs(sp["solve_s"] + sp["wait_frames_s"] + sp["write_s"] + sp["other_s"] - wall) \
+        < 1e-6 + 1e-3 * wall
+    assert sp["ahead_read_s"] > 0 and sp["ahead_prefilter_s"] > 0  # read ahead in the thread
+    assert 0 < r["overhead_share"] < 1 and r["frames_per_s"] > 0
+    assert "| movie 6x1024 16 POIs STS(5) cpu" in p.stdout

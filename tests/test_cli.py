@@ -266,10 +266,9 @@ def test_export_csv(capsys, result, tmp_path):
     files = sorted(tmp_path.glob("*.csv"))
     assert [f.name for f in files] == ["r_frame00001.csv", "r_frame00002.csv"]
     lines = files[0].read_text().splitlines()
-    assert lines[0].startswith("# torch_stsdic")
-    cols = lines[1].split(",")
+    cols = lines[0].split(",")  # the header first; units in the sidecar r_csv.json
     assert cols[:11] == ["x", "y", "u", "v", "ut", "vt", "exx", "eyy", "exy", "zncc", "status"]
-    assert len(lines) == 2 + 25
+    assert len(lines) == 1 + 25 and (tmp_path / "r_csv.json").exists()
     code, out, err = _run(capsys, "export", result, "--out", tmp_path / "all")
     assert code == 0 and len(list((tmp_path / "all").glob("*.csv"))) == 8
 
@@ -311,7 +310,7 @@ def test_demo_no_plots_and_bad_settings(capsys, tmp_path):
         "--no-progress", *FAST,
     )  # fmt: skip
     assert code == 0, err
-    assert "noise sigma 0," in out and "plots and numbers" not in out
+    assert "noise sigma 0 grey levels," in out and "plots and numbers" not in out
     assert not out_dir.exists()
     code, _, err = _run(capsys, "demo", "--quick", "--frames", "3", "--out", out_dir)
     assert code == 2

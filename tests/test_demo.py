@@ -88,7 +88,22 @@ def test_averaged_reference_lowers_the_error(quick_stills):
     assert rows[3].rms_u < rows[1].rms_u  # STS-DIC
     assert rows[3].rms_u < 0.6 * rows[0].rms_u  # STS + averaged reference vs classical
     table = quick_stills.table()
-    assert "averaged ref" in table and "sqrt((1 + 1/5) / 2) = 0.77" in table
+    assert "ref=mean of 4" in table and "1 / sqrt((1 + 1/5) / 2) = 1.29x" in table
+    _assert_ratios_under_their_columns(table)
+
+
+def _assert_ratios_under_their_columns(table: str) -> None:
+    """Every ratio line puts its u, v, ut ratios so that each 'x' stands where the last digit
+    of the u, v and ut error columns is (the issue: 'ratio lines stand under no column')."""
+    lines = table.splitlines()
+    row = lines[4]  # the first method's row
+    ends = [row.index(tok) + len(tok.rstrip("*")) for tok in row.split()[-6:-3]]  # u, v, ut
+    ratios = [ln for ln in lines if ln.rstrip().endswith("x") and "ratio" in ln or
+              ln.startswith("classical / STS-DIC ref")]  # fmt: skip
+    assert ratios
+    for ln in ratios:
+        xs = [i + 1 for i, ch in enumerate(ln) if ch == "x" and ln[i - 1].isdigit()]
+        assert xs == ends, (ln, row)
 
 
 def test_table_and_header(quick):
@@ -100,6 +115,30 @@ def test_table_and_header(quick):
     assert row[5] == f"{quick.classical.rms_ut:.4f}*"  # finite differences are starred
     assert lines[-1].startswith("* classical DIC measures no velocity")
     assert "9 points" in quick.header() and "101x101 px" in quick.header()
+    assert "noise sigma 5 grey levels" in quick.header()
+    _assert_ratios_under_their_columns(quick.table())
+
+
+def test_figures_show_errors_on_shared_diverging_scales(quick):
+    """fields.png: error maps of u and ut (no repeated row), each row on one colour scale
+    centred on 0 with the unit in the colour bar; history.png: errors, one column per method."""
+    from torch_stsdic.demo import _fields_figure, _history_figure
+
+    fig = _fields_figure(quick, np.zeros((101, 101)), None)
+    panels = [ax for ax in fig.axes if ax.child_axes]
+    titles = [ax.get_title() for ax in panels]
+    assert titles == ["u error, classical DIC", "u error, STS-DIC m=2",
+                      "ut error, classical DIC (finite diff.)", "ut error, STS-DIC m=2"]
+    norms = [ax.images[-1].norm for ax in panels]
+    assert (norms[0].vmin, norms[0].vmax) == (norms[1].vmin, norms[1].vmax)
+    assert (norms[2].vmin, norms[2].vmax) == (norms[3].vmin, norms[3].vmax)
+    for n in norms:
+        assert n.vmin == pytest.approx(-n.vmax) and n.vmax > 0
+    labels = [ax.child_axes[0].get_ylabel() for ax in panels]
+    assert labels == ["u error (px)"] * 2 + ["ut error (px/frame)"] * 2
+    hist = _history_figure(quick, None)
+    assert len(hist.axes) == 2 * len(quick.methods)
+    assert hist.axes[0].get_ylabel() == "u error (px)"
 
 
 def test_files_and_json(tmp_path):
@@ -151,3 +190,32 @@ def test_refined_reference_row():
     assert refined.valid_percent == 100.0
     assert refined.rms_u < d.methods[1].rms_u  # the reference's offset fitted away
     assert "STS-DIC refined ref" in d.table()
+
+
+def _docs_script():
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "regenerate_docs.py"
+    spec = importlib.util.spec_from_file_location("regenerate_docs", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_docs_quote_the_program():
+    """docs/cli.md pastes 'stsdic --help' as it is now, and the README, docs/cli.md and
+    'stsdic --help' all quote the same demo time (scripts/regenerate_docs.py --check)."""
+    docs = _docs_script()
+    text = docs.CLI_DOC.read_text(encoding="utf-8")
+    assert docs.stale(text, demo=False) == []
+    # a stale paste is reported
+    i, j = docs._block(text, "help")
+    assert docs.stale(text[:i] + "```\nold help\n```\n" + text[j:], demo=False)
+
+
+@pytest.mark.slow
+def test_docs_paste_a_real_demo_run():
+    """The demo block of docs/cli.md has the numbers a run gives now (times excepted)."""
+    docs = _docs_script()
+    assert docs.stale(docs.CLI_DOC.read_text(encoding="utf-8")) == []

@@ -490,7 +490,7 @@ def test_export_csv(tmp_path: Path) -> None:
     with ResultWriter(p, **_writer_args(), extra_fields=("exx", "eyy", "exy")) as w:
         w.write_rows([0], _row(0, strain=True))
         w.write_rows([2], {k: v for k, v in _row(2).items()})  # strain left NaN
-    files = export_csv(p, tmp_path / "csv")
+    files = export_csv(p, tmp_path / "csv", comment=True)
     assert [f.name for f in files] == ["res_frame00002.csv", "res_frame00006.csv"]
     res = read_results(p)
     for f, row in zip(files, (0, 2)):

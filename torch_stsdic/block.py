@@ -1,28 +1,43 @@
 """Solving one block of target frames: all POIs of several windows in one batched solve,
-started from the carried guesses, with rescue of lost points.
+started from the carried guesses, with rescue of lost points and the trust checks.
 
 A block is a few consecutive target frames of a movie. Every row (target frame x POI) starts
 from the :class:`Carry` of the block before (the last stored row moved on by its velocity).
 Rows that get lost (not converged, or ZNCC below ``lost_zncc``) are rescued in time order
 from the solution of the previous target of the same block, then by FFT cross-correlation;
-the better of the attempts is kept.
+the better of the attempts is kept. Then (``BlockContext.checks``) every row is checked
+(:mod:`torch_stsdic.quality`): its window against the classical solution (shorter windows
+where the motion is not affine in time, the classical solution where none fits), rows still
+lost are solved classically, and poor fits and outliers among neighbours are flagged.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
 
-from .frames import FrameCache
-from .reference import Reference, to_relative, to_total
+from .frames import FrameCache, window_frames
+from .quality import (
+    MEDIAN_EPS_MIN,
+    MEDIAN_EPS_STD,
+    median_test,
+    model_mismatch,
+    neighbours,
+    poor_fit,
+)
+from .reference import Reference, noise_ratio, to_relative, to_total
 from .result import USABLE
 from .solver import SubsetSolver, WindowSolution
 from .status import Status
 
-__all__ = ["BlockContext", "Carry", "solve_block", "rows_numpy", "make_carry"]
+__all__ = ["BlockContext", "Carry", "solve_block", "rows_numpy", "make_carry", "STD_OF"]
+
+#: the predicted-std field of each parameter stored with the results (px, px per time unit)
+STD_OF = {"u": "u_std", "v": "v_std", "ut": "ut_std", "vt": "vt_std"}
 
 
 @dataclass
@@ -57,6 +72,10 @@ class BlockContext:
     lost_zncc: float
     names: tuple[str, ...]  # parameter names of the run's shape
     stats: dict[str, int]
+    checks: bool = True  # model, fit and neighbour checks (:mod:`torch_stsdic.quality`)
+    noise_ratio: float | None = None  # reference noise variance / a frame's (None: measure
+    reference_desc: Any = 0  # on the first block, reference.noise_ratio; the plan's desc)
+    neighbours: torch.Tensor | None = None  # (N, k) grid neighbours, made on first use
 
 
 class _Block:
@@ -71,6 +90,8 @@ class _Block:
         self.needed = torch.unique(win)  # sorted; only the windows' frames
         self.raw, self.img = run.cache.load(self.needed.tolist())
         ref.ensure(run.cache)
+        if run.noise_ratio is None:
+            run.noise_ratio = noise_ratio(run.reference_desc, ref.raw, self.raw[0])
         self.b, self.n = len(ks), ref.points.shape[0]
         self.pts = ref.points.repeat(self.b, 1)  # (B*N, 2)
         self.fidx, self.dt = self.frames_of(win)
@@ -80,13 +101,14 @@ class _Block:
         self.status = torch.full((rows,), int(Status.NOT_COMPUTED), dtype=torch.int8,
                                  device=dev)
         self.iters = torch.zeros(rows, dtype=torch.int32, device=dev)
+        self.std = torch.full((rows, p_count), float("nan"), dtype=run.dtype, device=dev)
+        self.sigma = torch.full((rows,), float("nan"), dtype=run.dtype, device=dev)
+        self.m_used = torch.full((rows,), -1, dtype=torch.int8, device=dev)
 
     def windows(self, m: int) -> torch.Tensor:
         """(B, 2m+1) series frames of every target's window, shifted (not shrunk) at the
         ends of the series."""
-        n_win = 2 * m + 1
-        start = (self.k - m).clamp(0, self.run.n_series - n_win)
-        return start.unsqueeze(1) + torch.arange(n_win, device=self.run.device)
+        return window_frames(self.k, m, self.run.n_series)
 
     def frames_of(self, win: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Per row: indices into the loaded frames (B*N, T) and dt (B*N, T)."""
@@ -95,16 +117,31 @@ class _Block:
         dt = (run.ts[win] - run.ts[self.k].unsqueeze(1)).to(run.dtype)
         return fidx, dt.repeat_interleave(self.n, 0)
 
-    def solve(self, idx: torch.Tensor, init: torch.Tensor | None) -> WindowSolution:
-        ref = self.ref
+    def solve(self, idx: torch.Tensor, init: torch.Tensor | None, m: int | None = None
+              ) -> WindowSolution:
+        """Solve rows ``idx`` from ``init`` (None: FFT) with windows of half-width ``m``
+        (default the run's; m = 0: the target frame alone, classical shape)."""
+        ref, run = self.ref, self.run
+        if m is None or m == run.m:
+            fidx, dt = self.fidx[idx], self.dt[idx]
+        else:
+            fidx, dt = self.frames_of(self.windows(m))
+            fidx, dt = fidx[idx], dt[idx]
+        if m == 0 and run.m > 0 and init is not None and init.shape[1] == len(run.names):
+            spatial = run.solver.shape.spatial().param_names
+            init = init[:, [run.names.index(nm) for nm in spatial]]
         return self.run.solver.solve(
-            ref.img, self.img, self.pts[idx], self.dt[idx], frame_index=self.fidx[idx],
+            ref.img, self.img, self.pts[idx], dt, frame_index=fidx,
             init=init, ref_pixels=ref.raw.unsqueeze(0), frame_pixels=self.raw,
+            noise_ratio=run.noise_ratio,
         )
 
-    def keep(self, idx: torch.Tensor, sol: WindowSolution, only_better: bool) -> None:
-        """Store ``sol`` at rows ``idx`` (with ``only_better``: where it is usable and the
-        stored result is not, or its ZNCC is higher)."""
+    def keep(self, idx: torch.Tensor, sol: WindowSolution, only_better: bool,
+             m: int | None = None) -> None:
+        """Store ``sol`` (solved with half-window ``m``, default the run's) at rows ``idx``
+        (with ``only_better``: where it is usable and the stored result is not, or its ZNCC
+        is higher). Parameters missing from ``sol`` (a classical solution has no ut, vt)
+        are stored as NaN."""
         self.iters[idx] += sol.iterations
         take = torch.ones_like(idx, dtype=torch.bool)
         if only_better:
@@ -113,18 +150,37 @@ class _Block:
             take = new_ok & (~old_ok | (sol.zncc.to(self.run.dtype) > self.zncc[idx]))
             take |= self.status[idx] == int(Status.NOT_COMPUTED)  # a reason beats none
         r = idx[take]
-        self.params[r] = sol.params[take].to(self.run.dtype)
+        cols = [sol.param_names.index(nm) if nm in sol.param_names else -1
+                for nm in self.run.names]
+        p, sd = self._columns(sol.params[take], cols), self._columns(
+            sol.std[take] if sol.std is not None else None, cols, rows=int(take.sum()))
+        self.params[r], self.std[r] = p, sd
         self.zncc[r] = sol.zncc[take].to(self.run.dtype)
         self.status[r] = sol.status[take]
+        if sol.sigma is not None:
+            self.sigma[r] = sol.sigma[take].to(self.run.dtype)
+        self.m_used[r] = self.run.m if m is None else m
+
+    def _columns(self, a: torch.Tensor | None, cols: list[int], rows: int = 0) -> torch.Tensor:
+        """(R, P) the run's parameter columns taken from ``a`` (R, P') (NaN where ``cols``
+        is -1 or ``a`` is None)."""
+        dev, dt = self.run.device, self.run.dtype
+        if a is None:
+            return torch.full((rows, len(cols)), float("nan"), dtype=dt, device=dev)
+        if cols == list(range(a.shape[1])) and a.shape[1] == len(cols):
+            return a.to(dt)
+        pad = torch.cat([a.to(dt), torch.full_like(a[:, :1], float("nan"), dtype=dt)], 1)
+        return pad[:, torch.tensor([c if c >= 0 else a.shape[1] for c in cols], device=dev)]
 
     def lost(self) -> torch.Tensor:
-        """(B*N,) bool: rows without a trustworthy solution (not converged, or a ZNCC below
-        ``lost_zncc``), other than those that cannot be solved at all (LOW_TEXTURE)."""
+        """(B*N,) bool: rows without a trustworthy solution (not converged, a poor fit, or a
+        ZNCC below ``lost_zncc``), other than those that cannot be solved at all
+        (LOW_TEXTURE)."""
         st = self.status
         return (
             (st == int(Status.MAX_ITER)) | (st == int(Status.DIVERGED))
             | (st == int(Status.OUTSIDE)) | (st == int(Status.NOT_COMPUTED))
-            | ((st <= USABLE) & ~(self.zncc >= self.run.lost_zncc))
+            | (st == int(Status.POOR_FIT)) | ((st <= USABLE) & ~(self.zncc >= self.run.lost_zncc))
         )
 
     def init_rows(self, values: dict[str, torch.Tensor]) -> torch.Tensor:
@@ -133,12 +189,14 @@ class _Block:
         return torch.stack([values[nm] if nm in values else torch.zeros_like(some)
                             for nm in self.run.names], 1)
 
-    def rescue(self, carry: Carry | None, carried: torch.Tensor) -> tuple[int, int, int]:
+    def rescue(self, carry: Carry | None, carried: torch.Tensor, m: int | None = None
+               ) -> tuple[int, int, int]:
         """Lost rows, target by target in time order: start again from the solution of the
         previous target of the block (same point) moved on by its velocity, then, where
-        still lost, from FFT cross-correlation; keep the better result. ``carried``: rows
-        that started from the carried guess. Returns the rows restarted from a neighbour
-        target, by FFT, and by FFT after a carried start."""
+        still lost, from FFT cross-correlation; keep the better result (windows of
+        half-width ``m``, default the run's). ``carried``: rows that started from the
+        carried guess. Returns the rows restarted from a neighbour target, by FFT, and by
+        FFT after a carried start."""
         run, n = self.run, self.n
         names = run.names
         from_prev = by_fft = redone = 0
@@ -155,25 +213,119 @@ class _Block:
                     vals["u"] = vals["u"] + vel_u * d
                     vals["v"] = vals["v"] + vel_v * d
                     init = self.init_rows(vals)
+                    if m == 0:
+                        init = init.nan_to_num(0.0)  # a classical row has no ut, vt
                     ok = torch.isfinite(init).all(1)
                     if bool(ok.any()):
-                        self.keep(r[ok], self.solve(r[ok], init[ok]), only_better=True)
+                        self.keep(r[ok], self.solve(r[ok], init[ok], m=m), only_better=True,
+                                  m=m)
                         from_prev += int(ok.sum())
             r = rows[self.lost()[rows]]
             if r.numel():
-                self.keep(r, self.solve(r, None), only_better=True)
+                self.keep(r, self.solve(r, None, m=m), only_better=True, m=m)
                 by_fft += int(r.numel())
                 redone += int(carried[r].sum())
         return from_prev, by_fft, redone
 
+    def check_model(self) -> tuple[int, int]:
+        """Model check (:func:`~torch_stsdic.quality.model_mismatch`) of every usable row
+        against its classical solution at the target frame (started from the row's own
+        solution). Rows that fail are solved again with shorter windows (m - 1 .. 1) started
+        from the classical solution and, where none fits, keep the classical solution (ut, vt
+        NaN, ``m_used`` 0). A usable row whose classical solution fails is POOR_FIT. Returns
+        (rows shortened, rows left classical)."""
+        run = self.run
+        idx = torch.nonzero((self.status <= USABLE) & torch.isfinite(self.params).all(1)
+                            ).flatten()
+        if run.m == 0 or idx.numel() == 0:
+            return 0, 0
+        cls = self.solve(idx, self.params[idx], m=0)
+        ok_c = cls.status <= USABLE
+        self.status[idx[~ok_c]] = int(Status.POOR_FIT)
+        idx = idx[ok_c]
+        iu, iv = run.names.index("u"), run.names.index("v")
+        cu, cv = cls.param_names.index("u"), cls.param_names.index("v")
+        p_cls = cls.params[ok_c]
+        d_cls = p_cls[:, [cu, cv]].to(run.dtype)
+        s_cls = cls.std[ok_c][:, [cu, cv]].to(run.dtype)
+        fail = model_mismatch(self.params[idx][:, [iu, iv]], d_cls, self.std[idx][:, [iu, iv]],
+                              s_cls)
+        init = self.params[idx].clone()  # shorter windows start from the classical solution
+        for j, nm in enumerate(cls.param_names):
+            init[:, run.names.index(nm)] = p_cls[:, j].to(run.dtype)
+        shortened = 0
+        for m in range(run.m - 1, 0, -1):
+            if not bool(fail.any()):
+                break
+            sel = torch.nonzero(fail).flatten()
+            sol = self.solve(idx[sel], init[sel], m=m)
+            good = sol.status <= USABLE
+            d = sol.params[:, [iu, iv]].to(run.dtype)
+            good &= ~model_mismatch(d, d_cls[sel], sol.std[:, [iu, iv]], s_cls[sel])
+            self.keep(idx[sel][good], _rows(sol, good), only_better=False, m=m)
+            shortened += int(good.sum())
+            fail[sel[good]] = False
+        pick = torch.nonzero(ok_c).flatten()[fail]
+        self.keep(idx[fail], _rows(cls, pick), only_better=False, m=0)
+        return shortened, int(fail.sum())
+
+    def rescue_classical(self, guess: torch.Tensor | None, carry: Carry | None) -> int:
+        """Rows a window could not solve (still lost after :meth:`rescue`) are solved
+        classically (m = 0): from their carried ``guess`` (R, P) (NaN rows: none), then as
+        in :meth:`rescue`. Returns the rows that became usable."""
+        lost = self.lost()
+        if not bool(lost.any()):
+            return 0
+        if guess is not None:
+            r = torch.nonzero(lost & torch.isfinite(guess).all(1)).flatten()
+            if r.numel():
+                self.keep(r, self.solve(r, guess[r], m=0), only_better=True, m=0)
+        self.rescue(carry, torch.zeros_like(lost), m=0)
+        return int((lost & ~self.lost()).sum())
+
+    def check_fit(self) -> int:
+        """Usable rows whose residual is not the image noise, or whose ZNCC is below the
+        floor, become POOR_FIT (:func:`~torch_stsdic.quality.poor_fit`), target by target.
+        Returns their number."""
+        n, count = self.n, 0
+        for j in range(self.b):
+            sl = slice(j * n, (j + 1) * n)
+            bad = poor_fit(self.sigma[sl], self.zncc[sl], self.status[sl] <= USABLE,
+                           self.run.lost_zncc)
+            self.status[sl][bad] = int(Status.POOR_FIT)
+            count += int(bad.sum())
+        return count
+
+    def check_neighbours(self) -> int:
+        """Usable rows that are outliers among their grid neighbours become INCONSISTENT
+        (:func:`~torch_stsdic.quality.median_test` on u and v per target). Returns their
+        number."""
+        run = self.run
+        if run.neighbours is None:
+            run.neighbours = neighbours(self.ref.points)
+        b, n = self.b, self.n
+        iu, iv = run.names.index("u"), run.names.index("v")
+        uv = self.params[:, [iu, iv]].reshape(b, n, 2)
+        ok = (self.status <= USABLE).reshape(b, n)
+        sd = self.std[:, [iu, iv]].reshape(b, n, 2)
+        sd = torch.where(ok.unsqueeze(-1), sd, torch.nan).flatten(1)
+        eps = (MEDIAN_EPS_STD * torch.nanmedian(sd, dim=1).values).nan_to_num(0.0)
+        grads = None
+        if all(nm in run.names for nm in ("ux", "uy", "vx", "vy")):
+            gi = [run.names.index(nm) for nm in ("ux", "uy", "vx", "vy")]
+            grads = self.params[:, gi].reshape(b, n, 2, 2)
+        out = median_test(uv, ok, run.neighbours, eps.clamp(min=MEDIAN_EPS_MIN),
+                          points=self.ref.points, gradients=grads)
+        self.status[out.reshape(-1)] = int(Status.INCONSISTENT)
+        return int(out.sum())
+
     def _velocity(self, j: int, cand: torch.Tensor, carry: Carry | None):
         """Velocity (u, v) of target j-1 for the rows ``cand`` of a target: the measured
-        ut, vt, else the finite difference to target j-2 (or the carried row)."""
+        ut, vt where there is one, else the finite difference to target j-2 (or the carried
+        row)."""
         run, n = self.run, self.n
         names = run.names
         prev = torch.arange((j - 1) * n, j * n, device=run.device)[cand]
-        if "ut" in names:
-            return self.params[prev, names.index("ut")], self.params[prev, names.index("vt")]
         iu, iv = names.index("u"), names.index("v")
         if j >= 2:
             pp = prev - n
@@ -184,7 +336,21 @@ class _Block:
             du, dv = carry.vel_u[cand], carry.vel_v[cand]
         else:
             du = dv = torch.zeros_like(self.params[prev, iu])
+        if "ut" in names:
+            mu, mv = self.params[prev, names.index("ut")], self.params[prev, names.index("vt")]
+            du = torch.where(torch.isfinite(mu), mu, du)
+            dv = torch.where(torch.isfinite(mv), mv, dv)
         return torch.nan_to_num(du), torch.nan_to_num(dv)
+
+
+def _rows(sol: WindowSolution, pick: torch.Tensor) -> WindowSolution:
+    """The rows ``pick`` (bool mask or indices) of a solution."""
+    return WindowSolution(
+        points=sol.points[pick], params=sol.params[pick], param_names=sol.param_names,
+        zncc=sol.zncc[pick], status=sol.status[pick], iterations=sol.iterations[pick],
+        time=sol.time, std=None if sol.std is None else sol.std[pick],
+        sigma=None if sol.sigma is None else sol.sigma[pick],
+    )
 
 
 def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry | None):
@@ -203,17 +369,31 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
         init = blk.init_rows({nm: v.reshape(-1) for nm, v in pred.items()})
         carried = carry.valid.repeat(b) & torch.isfinite(init).all(1)
     idx_c = torch.nonzero(carried).flatten()
+    guess = None
     if idx_c.numel():
+        guess = torch.where(carried.unsqueeze(1), init, torch.full_like(init, float("nan")))
         blk.keep(idx_c, blk.solve(idx_c, init[idx_c]), only_better=False)
     from_prev, by_fft, redone = blk.rescue(carry, carried)
     run.stats["rescued_rows"] = run.stats.get("rescued_rows", 0) + from_prev
     run.stats["fft_rows"] += by_fft
     run.stats["redone_rows"] += redone
+    if run.checks:
+        shortened, classical = blk.check_model()
+        classical += blk.rescue_classical(guess, carry) if run.m > 0 else 0
+        stats = run.stats
+        stats["shortened_rows"] = stats.get("shortened_rows", 0) + shortened
+        stats["classical_rows"] = stats.get("classical_rows", 0) + classical
+        stats["poor_fit_rows"] = stats.get("poor_fit_rows", 0) + blk.check_fit()
+        stats["inconsistent_rows"] = stats.get("inconsistent_rows", 0) + blk.check_neighbours()
     rel = {nm: blk.params[:, j].reshape(b, n) for j, nm in enumerate(run.names)}
     out = to_total(rel, ref.acc)
     out["zncc"] = blk.zncc.reshape(b, n)
     out["status"] = blk.status.reshape(b, n)
     out["iterations"] = blk.iters.reshape(b, n)
+    out["m"] = blk.m_used.reshape(b, n)
+    for j, nm in enumerate(run.names):
+        if nm in STD_OF:
+            out[STD_OF[nm]] = blk.std[:, j].reshape(b, n)
     return out
 
 
@@ -227,6 +407,8 @@ def rows_numpy(block: dict[str, torch.Tensor], fields: Sequence[str]) -> dict[st
         else:
             out[nm] = np.full((b, n), np.nan)
     out["status"] = out["status"].astype(np.int8)
+    if "m" in out:
+        out["m"] = np.nan_to_num(out["m"], nan=-1).astype(np.int8)
     out["iterations"] = out["iterations"].astype(np.int64)
     return out
 
@@ -243,22 +425,22 @@ def make_carry(rows: dict[str, np.ndarray], times: np.ndarray, names, prev: Carr
     ok = torch.from_numpy(rows["status"][-1] <= USABLE).to(device)
     ok &= torch.isfinite(vals["u"]) & torch.isfinite(vals["v"])
     t_last = float(times[-1])
-    if "ut" in names:
-        vel_u, vel_v = vals["ut"], vals["vt"]
-        ok &= torch.isfinite(vel_u) & torch.isfinite(vel_v)
+    if len(times) >= 2:
+        t_prev, u_prev, v_prev = float(times[-2]), col("u", -2), col("v", -2)
+    elif prev is not None:
+        t_prev, u_prev, v_prev = prev.t, prev.vals["u"], prev.vals["v"]
     else:
-        if len(times) >= 2:
-            t_prev, u_prev, v_prev = float(times[-2]), col("u", -2), col("v", -2)
-        elif prev is not None:
-            t_prev, u_prev, v_prev = prev.t, prev.vals["u"], prev.vals["v"]
-        else:
-            t_prev, u_prev, v_prev = t_last, vals["u"], vals["v"]
-        span = t_last - t_prev
-        if span > 0:
-            vel_u, vel_v = (vals["u"] - u_prev) / span, (vals["v"] - v_prev) / span
-            fin = torch.isfinite(vel_u) & torch.isfinite(vel_v)
-            vel_u = torch.where(fin, vel_u, torch.zeros_like(vel_u))
-            vel_v = torch.where(fin, vel_v, torch.zeros_like(vel_v))
-        else:
-            vel_u, vel_v = torch.zeros_like(vals["u"]), torch.zeros_like(vals["v"])
+        t_prev, u_prev, v_prev = t_last, vals["u"], vals["v"]
+    span = t_last - t_prev
+    if span > 0:
+        vel_u, vel_v = (vals["u"] - u_prev) / span, (vals["v"] - v_prev) / span
+    else:
+        vel_u, vel_v = torch.zeros_like(vals["u"]), torch.zeros_like(vals["v"])
+    if "ut" in names:  # the measured velocity where the window had one (m > 0)
+        vel_u = torch.where(torch.isfinite(vals["ut"]), vals["ut"], vel_u)
+        vel_v = torch.where(torch.isfinite(vals["vt"]), vals["vt"], vel_v)
+    fin = torch.isfinite(vel_u) & torch.isfinite(vel_v)
+    vel_u = torch.where(fin, vel_u, torch.zeros_like(vel_u))
+    vel_v = torch.where(fin, vel_v, torch.zeros_like(vel_v))
+    vals = {nm: (torch.nan_to_num(a) if nm in ("ut", "vt") else a) for nm, a in vals.items()}
     return Carry(t=t_last, vals=vals, vel_u=vel_u, vel_v=vel_v, valid=ok)

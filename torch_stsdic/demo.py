@@ -90,10 +90,13 @@ class MethodResult:
     mean_u_per_frame: list[float]  #: mean u over the points in each frame, px
     u: np.ndarray = field(repr=False)  #: (F, N) measured u, px (NaN: failed)
     error_u: np.ndarray = field(repr=False)  #: (F, N) u minus the exact u, px
+    #: (F, N) ut minus the exact ut, px per frame (finite differences for classical DIC)
+    error_ut: np.ndarray = field(repr=False, default_factory=lambda: np.zeros((0, 0)))
 
     def summary(self) -> dict[str, Any]:
         """The numbers (no arrays), as in ``demo.json``."""
-        return {k: v for k, v in asdict(self).items() if k not in ("u", "error_u")}
+        arrays = ("u", "error_u", "error_ut")
+        return {k: v for k, v in asdict(self).items() if k not in arrays}
 
 
 @dataclass
@@ -118,9 +121,10 @@ class DemoResult:
     def sts(self) -> MethodResult:
         return self.methods[1]
 
-    def ratios(self) -> dict[str, float]:
-        """RMS error of classical DIC over that of STS-DIC, for u, v and ut (> 1: STS wins)."""
-        c, s = self.classical, self.sts
+    def ratios(self, a: int = 0, b: int = 1) -> dict[str, float]:
+        """RMS error of method ``a`` over that of method ``b`` (default classical DIC over
+        STS-DIC), for u, v and ut (> 1: ``b`` wins)."""
+        c, s = self.methods[a], self.methods[b]
         return {k: _ratio(getattr(c, f"rms_{k}"), getattr(s, f"rms_{k}")) for k in ("u", "v", "ut")}
 
     def header(self) -> str:
@@ -128,7 +132,8 @@ class DemoResult:
         s = self.settings
         return (
             f"STS-DIC demo: {s.size}x{s.size} px speckle, reference + {s.frames} frames, "
-            f"u = t/20 px, noise sigma {s.noise:g}, subset {s.subset}, {len(self.points)} points "
+            f"u = t/20 px, noise sigma {s.noise:g} grey levels, subset {s.subset}, "
+            f"{len(self.points)} points "
             f"(synthesised in {self.synth_time_s:.1f} s)"
         )
 
@@ -275,6 +280,7 @@ def _measure(
         mean_u_per_frame=np.nanmean(u, axis=1).tolist(),
         u=u,
         error_u=eu,
+        error_ut=ut - UT_TRUE,
     )
 
 
@@ -284,9 +290,17 @@ def _measure(
 
 
 def _table(d: DemoResult) -> str:
-    """The text of ``stsdic demo``: errors, validity, time, POI/s, ratios, notes."""
+    """The text of ``stsdic demo``: errors, validity, time, POI/s, ratios, notes. The ratio
+    lines put their u, v and ut ratios under the u, v and ut error columns."""
     rows = d.methods
-    width = max(16, max(len(r.method) for r in rows) + 1)
+    refined = [r for r in rows if r.method.endswith("refined ref")]
+    base = [r for r in rows if r not in refined]
+    ratio_rows = [("ratio classical / STS-DIC", d.ratios(0, 1))]
+    if len(base) == 4:
+        k = d.settings.still_frames
+        ratio_rows += [(f"ratio, both with ref=mean of {k}", d.ratios(2, 3)),
+                       (f"classical / STS-DIC ref=mean of {k}", d.ratios(0, 3))]  # fmt: skip
+    width = max(16, *(len(r.method) + 1 for r in rows), *(len(lab) - 2 for lab, _ in ratio_rows))
     hdr = (
         f"{'method':<{width}}{'m':>3}{'RMS u err':>12}{'RMS v err':>12}{'RMS ut err':>13}"
         f"{'valid':>8}{'time':>9}{'POI/s':>9}"
@@ -302,22 +316,17 @@ def _table(d: DemoResult) -> str:
             f"{r.valid_percent:>8.1f}{r.time_s:>9.2f}{r.poi_per_s:>9.0f}"
         )
     lines.append("-" * len(hdr))
-    rat = "".join(f"{x:.2f}x".rjust(12) for x in d.ratios().values())
-    lab = "ratio classical / STS-DIC"
-    lines.append(f"{lab:<{width + 3}}{rat}")
-    refined = [r for r in rows if r.method.endswith("refined ref")]
-    rows = [r for r in rows if r not in refined]
+    for lab, rat in ratio_rows:  # the x of each ratio where the column's last digit is
+        lines.append(f"{lab:<{width + 3}}" + "".join(f"{rat[k]:>11.2f}x" for k in ("u", "v", "ut")))
+    rows = base
     if len(rows) == 4:
         m = d.settings.m
-        averaged = _ratio(rows[2].rms_u, rows[3].rms_u)
-        lines.append(f"{lab + ', averaged ref':<{width + 3}}{averaged:>11.2f}x")
-        overall = _ratio(rows[0].rms_u, rows[3].rms_u)
-        lines.append(f"{'classical / STS-DIC averaged ref':<{width + 3}}{overall:>11.2f}x")
+        bound = 1.0 / math.sqrt((1 + 1 / (2 * m + 1)) / 2)
         lines.append(
             "STS-DIC averages the deformed frames' noise; the reference's noise is shared by "
             "every frame,\nso with one noisy reference the gain in u is bounded by "
-            f"sqrt((1 + 1/{2 * m + 1}) / 2) = {math.sqrt((1 + 1 / (2 * m + 1)) / 2):.2f}; "
-            "averaging still frames into the reference lifts that bound."
+            f"1 / sqrt((1 + 1/{2 * m + 1}) / 2) = {bound:.2f}x;\naveraging still frames into "
+            "the reference lifts that bound."
         )
     if refined:
         lines.append(f"{'classical / STS-DIC refined ref':<{width + 3}}"
@@ -332,28 +341,76 @@ def _table(d: DemoResult) -> str:
 
 def _write_files(d: DemoResult, ref_image: np.ndarray, out: Path) -> list[Path]:
     """The figures and ``demo.json`` in ``out``; their paths (in :data:`FILES` order)."""
-    from .plot import plot_fields, plot_history, plot_xy
+    from .plot import plot_xy
 
     out.mkdir(parents=True, exist_ok=True)
     paths = [out / name for name in FILES]
-    s, c, sts, tt = d.settings, d.classical, d.sts, d.times
-    plot_xy(tt, {f"{r.method} (m={r.m})": r.rms_u_per_frame for r in d.methods},
-            xlabel="time (frame)", ylabel="RMS error of u (px)",
-            title=f"error per frame, noise sigma {s.noise:g}", path=paths[0])  # fmt: skip
-    k = len(tt) // 2
-    maps = {
-        f"u classical, t={tt[k]:g}": c.u[k],
-        f"u STS-DIC m={s.m}, t={tt[k]:g}": sts.u[k],
-        "u error classical": c.error_u[k],
-        f"u error STS-DIC m={s.m}": sts.error_u[k],
-    }
-    plot_fields(ref_image, d.points, maps, paths[1], ncols=2,
-                suptitle=f"true u = {tt[k] * UT_TRUE:g} px")  # fmt: skip
-    curves = {"truth": d.u_true[:, 0], "classical DIC (mean)": c.mean_u_per_frame,
-              f"STS-DIC m={s.m} (mean)": sts.mean_u_per_frame}  # fmt: skip
-    plot_history(tt, curves, ylabel="u (px)", title="mean displacement", path=paths[2])
+    s = d.settings
+    noise = f"noise sigma {s.noise:g} grey levels"
+    plot_xy(d.times, {f"{r.method} (m={r.m})": r.rms_u_per_frame for r in d.methods},
+            xlabel="time (frame)", ylabel="RMS error of u over the points (px)",
+            title=f"error per frame, {noise}", path=paths[0])  # fmt: skip
+    _fields_figure(d, ref_image, paths[1])
+    _history_figure(d, paths[2])
     paths[3].write_text(json.dumps(d.to_json(), indent=2) + "\n", encoding="utf-8")
     return paths
+
+
+def _fields_figure(d: DemoResult, ref_image: np.ndarray, path: Path | None) -> Any:
+    """Error maps at the middle frame over the reference: u (top) and ut (bottom), classical
+    DIC (left) and STS-DIC (right); each row on one diverging scale centred on 0."""
+    from .plot import plot_fields
+
+    c, sts, s = d.classical, d.sts, d.settings
+    k = len(d.times) // 2
+    t = d.times[k]
+    fd = " (finite diff.)" if c.ut_from_finite_differences else ""
+    maps = {
+        "u error, classical DIC": c.error_u[k],
+        f"u error, STS-DIC m={s.m}": sts.error_u[k],
+        f"ut error, classical DIC{fd}": c.error_ut[k],
+        f"ut error, STS-DIC m={s.m}": sts.error_ut[k],
+    }
+    names = list(maps)
+    labels = {nm: ("u error (px)" if nm.startswith("u ") else "ut error (px/frame)")
+              for nm in names}  # fmt: skip
+    return plot_fields(ref_image, d.points, maps, path, ncols=2, labels=labels,
+                share=(names[:2], names[2:]), diverging=names,
+                suptitle=f"measured minus exact at t = {t:g} frames (exact u = {t * UT_TRUE:g} "
+                f"px, ut = {UT_TRUE:g} px/frame), {s.noise:g} grey levels noise")  # fmt: skip
+
+
+def _history_figure(d: DemoResult, path: Path | None) -> Any:
+    """Error of u (top) and ut (bottom) against time, one column per method on shared axes:
+    mean over the points (line) and +-1 standard deviation (band)."""
+    from matplotlib.figure import Figure
+
+    from .plot import save_figure
+
+    n = len(d.methods)
+    fig = Figure(figsize=(3.2 * n + 0.8, 5.6), layout="constrained")
+    axes = fig.subplots(2, n, sharex=True, sharey="row", squeeze=False)
+    colours = ("tab:blue", "tab:orange", "tab:green", "tab:red")
+    for j, (r, col) in enumerate(zip(d.methods, colours)):
+        for i, (attr, unit) in enumerate((("error_u", "px"), ("error_ut", "px/frame"))):
+            ax = axes[i, j]
+            e = getattr(r, attr)
+            with np.errstate(all="ignore"):
+                mean, std = np.nanmean(e, axis=1), np.nanstd(e, axis=1)
+            ax.fill_between(d.times, mean - std, mean + std, color=col, alpha=0.25, lw=0)
+            ax.plot(d.times, mean, color=col, marker="o", ms=3)
+            ax.axhline(0.0, color="k", lw=0.8)
+            ax.grid(True, alpha=0.3)
+            if j == 0:
+                ax.set_ylabel(f"{attr.split('_')[1]} error ({unit})")
+            if i == 1:
+                ax.set_xlabel("time (frame)")
+        fd = "\n(ut: finite differences)" if r.ut_from_finite_differences else "\n"
+        axes[0, j].set_title(f"{r.method} (m={r.m}){fd}", fontsize=9)
+    fig.suptitle("measured minus exact u and ut against time: line = mean over the points, "
+                 f"band = +-1 std over the points; noise sigma {d.settings.noise:g} grey levels",
+                 fontsize=11)  # fmt: skip
+    return save_figure(fig, path)
 
 
 def _np(a: Any) -> np.ndarray:

@@ -110,15 +110,7 @@ def _run_chunk(series: Any, targets: list[int], kwargs: dict[str, Any], torch_th
     res = track(series, frames=targets, progress=False, **kwargs)
     rows: dict[str, np.ndarray] = {}
     for nm in fields:
-        if nm in ("u", "v", "ut", "vt", "zncc"):
-            a = getattr(res, nm)
-        elif nm == "status":
-            a = res.status
-        elif nm == "iterations":
-            a = res.iterations
-        else:
-            a = res.gradients[nm]
-        rows[nm] = a.detach().cpu().numpy()
+        rows[nm] = res.field(nm).detach().cpu().numpy()
     info = {k: v for k, v in res.info.items() if isinstance(v, (int, float))}
     return {"targets": list(targets), "rows": rows, "info": info, "pid": os.getpid()}
 

@@ -18,6 +18,7 @@ import torch
 
 from .config import DICConfig
 from .io import DEFAULT_FIELDS, ImageSeries, InputError, load_series, parse_frame_spec
+from .io.units import check_calibration
 from .points import filter_points, grid_points
 from .shape import make_shape
 
@@ -47,7 +48,10 @@ class RunPlan:
         batch_frames: target frames solved together per block.
         param_names: the shape function's parameter names for a window of 2m+1 frames.
         options: run options recorded with the results (step, roi, reference_update,
-            lost_zncc, smoothing, strain settings).
+            lost_zncc, smoothing, checks, strain settings).
+        units: the calibration recorded as file attributes (:mod:`torch_stsdic.io.units`):
+            ``unit`` ("px" without ``scale``), ``scale`` (units per px, when given),
+            ``time_unit``. Results stay in px; exports and figures convert.
     """
 
     series: ImageSeries
@@ -63,6 +67,7 @@ class RunPlan:
     batch_frames: int
     param_names: tuple[str, ...]
     options: dict[str, Any] = field(default_factory=dict)
+    units: dict[str, Any] = field(default_factory=lambda: {"unit": "px", "time_unit": "frame"})
 
     @property
     def n_rows(self) -> int:
@@ -86,8 +91,11 @@ class RunPlan:
 
     @property
     def fields(self) -> tuple[str, ...]:
-        """(F, N) result fields: u, v, ut, vt, zncc, status, iterations, gradients."""
-        return (*DEFAULT_FIELDS, "iterations", *self.gradients)
+        """(F, N) result fields: u, v, ut, vt, zncc, status, iterations, gradients, the
+        window half-width used ``m`` and the predicted standard deviations ``u_std``,
+        ``v_std`` (and ``ut_std``, ``vt_std`` for STS shapes)."""
+        stds = tuple(f"{nm}_std" for nm in _BASE if nm in self.param_names)
+        return (*DEFAULT_FIELDS, "iterations", *self.gradients, "m", *stds)
 
     @property
     def blocks(self) -> list[list[int]]:
@@ -123,6 +131,10 @@ def plan_run(
     reference_update: float | None = None,
     smoothing: int | None = None,
     lost_zncc: float = 0.8,
+    checks: bool = True,
+    scale: float | None = None,
+    unit: str | None = None,
+    time_unit: str | None = None,
 ) -> RunPlan:
     """Validate the arguments of :func:`~torch_stsdic.track` (same meaning) into a plan.
 
@@ -130,7 +142,10 @@ def plan_run(
         ValueError / InputError naming the argument: ROI off the image, subset larger than
         the image, fewer frames than 2m+1, mask of the wrong shape, no points inside
         ROI/mask, reference index out of range, bad times/frames/batch_frames/
-        reference_update/smoothing.
+        reference_update/smoothing/scale/unit.
+
+    ``scale`` (length ``unit``s per px, e.g. 0.02 with ``unit="mm"``) and ``time_unit``
+    (default "frame", or "time unit" for timestamps) are recorded, not applied.
     """
     cfg = config if config is not None else DICConfig()
     if not isinstance(cfg, DICConfig):
@@ -145,6 +160,7 @@ def plan_run(
     if batch_frames is not None and (not isinstance(batch_frames, (int, np.integer))
                                      or batch_frames < 1):
         raise ValueError(f"batch_frames: must be an integer >= 1, got {batch_frames!r}")
+    units = check_calibration(scale, unit, time_unit)
     ser = _open(series)
     h, w = ser.shape
     n_series = len(ser)
@@ -156,6 +172,9 @@ def plan_run(
         raise ValueError(f"series: {n_series} frames, fewer than the 2m+1 = {n_win} frames of "
                          f"one window (config.m = {cfg.m})")
     ts_np = resolve_times(times, ser)
+    if "time_unit" not in units:
+        frames_as_time = np.array_equal(ts_np, np.arange(n_series, dtype=np.float64))
+        units["time_unit"] = "frame" if frames_as_time else "time unit"
     targets = resolve_frames(frames, n_series)
     if smoothing is not None and smoothing > len(targets):
         raise ValueError(f"smoothing: span {smoothing} is longer than the {len(targets)} "
@@ -177,11 +196,11 @@ def plan_run(
     names = shape.param_names if n_win > 1 else shape.spatial().param_names
     options = {"step": int(step), "roi": None if roi is None else list(roi),
                "reference_update": reference_update, "lost_zncc": float(lost_zncc),
-               "smoothing": smoothing}
+               "smoothing": smoothing, "checks": bool(checks)}
     return RunPlan(series=ser, config=cfg, points=pts0.double(), targets=targets, times=ts_np,
                    reference_image=ref_raw, reference_frame=ref_frame, reference_desc=ref_desc,
                    dtype=dtype, device=dev, batch_frames=n_batch, param_names=names,
-                   options=options)
+                   options=options, units=units)
 
 
 def _open(series: Any) -> ImageSeries:

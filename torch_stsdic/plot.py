@@ -6,27 +6,37 @@ matplotlib infers from the suffix) when ``path`` is given. In Jupyter the return
 itself.
 
 Conventions: axes in pixels, ``x`` = column to the right, ``y`` = row **down** (image
-orientation); NaN values are drawn transparent.
+orientation); NaN values are drawn transparent (the image shows through: the quality mask).
+Every colour bar is labelled with its quantity and unit; displacement-like fields use a
+sequential map with robust limits (0.5 .. 99.5 percentiles of the drawn points), errors,
+strains and gradients a diverging map centred on 0 (99th percentile of |value|, within
+Tukey's far-out fence Q3 + 3 IQR of |value|); panels
+that are compared share their limits (``share``). Colour bars are as tall as their panel.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Collection, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from matplotlib.axes import Axes
-from matplotlib.colors import Normalize
+from matplotlib.colors import BoundaryNorm, ListedColormap, Normalize
 from matplotlib.figure import Figure
 
+from .io.units import Units
+from .status import Status
 from .strain import detect_grid
 
 __all__ = [
+    "animate_field",
+    "is_diverging",
     "plot_error_vs_noise",
     "plot_field",
     "plot_fields",
     "plot_history",
+    "plot_status",
     "plot_xy",
     "save_figure",
 ]
@@ -49,6 +59,13 @@ FIELD_LABELS: dict[str, str] = {
 _SYMMETRIC = ("exx", "eyy", "exy", "exx_rate", "eyy_rate", "exy_rate", "ux", "uy", "vx", "vy")
 
 
+def is_diverging(name: str) -> bool:
+    """Whether field ``name`` is drawn on a diverging map centred on 0: strains, their rates,
+    displacement gradients and errors (names with "error" or "err")."""
+    low = name.lower()
+    return name in _SYMMETRIC or "error" in low or low.startswith("err") or low.endswith("_err")
+
+
 def _np(a: Any) -> np.ndarray:
     if hasattr(a, "detach"):  # torch tensor, without importing torch here
         a = a.detach().cpu().numpy()
@@ -65,12 +82,20 @@ def save_figure(fig: Figure, path: str | Path | None, *, dpi: int = 120) -> Figu
 
 
 def _norm(values: np.ndarray, vmin: float | None, vmax: float | None, symmetric: bool) -> Normalize:
+    """Colour limits: robust percentiles of the finite ``values`` (any shape: pass every panel
+    that shares the limits), symmetric about 0 when ``symmetric``."""
+    values = np.asarray(values, dtype=np.float64)
     fin = values[np.isfinite(values)]
     if fin.size == 0:
         lo, hi = 0.0, 1.0
     elif symmetric:
-        # robust limits: a few wild points (specimen edges, holes) must not wash out the map
-        m = float(np.percentile(np.abs(fin), 99.0)) or float(np.max(np.abs(fin))) or 1.0
+        # robust limits: a few wild points (specimen edges, holes) must not wash out the map:
+        # the 99th percentile of |v|, but not beyond Tukey's far-out fence (Q3 + 3 IQR) of
+        # |v| unless the 95th percentile is (a cluster of edge points is often > 1 %)
+        a = np.abs(fin)
+        q1, q3, p95, p99 = np.percentile(a, [25.0, 75.0, 95.0, 99.0])
+        m = max(float(p95), min(float(p99), float(q3 + 3.0 * (q3 - q1))))
+        m = m or float(np.max(a)) or 1.0
         lo, hi = -m, m
     else:
         lo, hi = (float(v) for v in np.percentile(fin, [0.5, 99.5]))
@@ -160,11 +185,13 @@ def plot_field(
     vmax: float | None = None,
     symmetric: bool = False,
     marker_size: float | None = None,
+    norm: Normalize | None = None,
     ax: Axes | None = None,
     path: str | Path | None = None,
     dpi: int = 120,
 ) -> Figure:
-    """One scalar field drawn over the reference image, with a colour bar.
+    """One scalar field drawn over the reference image, with a colour bar as tall as the
+    panel.
 
     Args:
         image: (H, W) grey image to draw underneath, or None.
@@ -176,6 +203,7 @@ def plot_field(
             strains with a diverging cmap); otherwise the 0.5 .. 99.5 percentiles (robust to a
             few wild points) unless vmin / vmax are given.
         marker_size: scatter marker size (scattered points only).
+        norm: colour limits to use as they are (e.g. shared by several panels).
         ax: draw into this axes (its figure is returned, not saved unless ``path``).
         path: save the figure there (PNG by suffix).
 
@@ -195,15 +223,53 @@ def plot_field(
         v,
         cmap=cmap,
         alpha=alpha,
-        norm=_norm(v, vmin, vmax, symmetric),
+            norm=norm if norm is not None else _norm(v, vmin, vmax, symmetric),
         marker_size=marker_size,
     )
-    cb = fig.colorbar(m, ax=ax)
+    cb = colorbar(fig, ax, m)
     if label:
         cb.set_label(label)
     if title:
         ax.set_title(title)
     return save_figure(fig, path, dpi=dpi)
+
+
+def colorbar(fig: Figure, ax: Axes, mappable: Any, **kwargs: Any) -> Any:
+    """A colour bar exactly as tall as the drawn panel (an inset beside the axes, which follows
+    the panel's aspect-ratio box, so a tall specimen gets no taller bar)."""
+    x0, x1 = ax.get_xlim()
+    y0, y1 = ax.get_ylim()
+    aspect = abs(x1 - x0) / max(abs(y1 - y0), 1e-12)  # panel width / height (equal aspect)
+    width = float(np.clip(0.05 / min(aspect, 1.0), 0.05, 0.2))
+    cax = ax.inset_axes((1.0 + 0.4 * width, 0.0, width, 1.0))
+    return fig.colorbar(mappable, cax=cax, **kwargs)
+
+
+def panel_extent(image: Any, points: np.ndarray) -> tuple[float, float]:
+    """(width, height) in px of what a panel shows: the image, else the points' box."""
+    if image is not None:
+        h, w = _np(image).shape[-2:]
+        return float(w), float(h)
+    if len(points) == 0:
+        return 1.0, 1.0
+    span = points.max(axis=0) - points.min(axis=0)
+    grid = detect_grid(points)
+    pad = (grid.sx, grid.sy) if grid is not None else (1.0, 1.0)
+    return float(span[0] + pad[0]), float(span[1] + pad[1])
+
+
+def panel_layout(n: int, aspect: float, ncols: int | None = None, *, height: float = 3.6,
+                 max_width: float = 17.5) -> tuple[int, int, tuple[float, float]]:
+    """(rows, columns, figure size in inches) for ``n`` panels of data ``aspect`` (width /
+    height) so that the page is filled: tall specimens side by side, wide ones stacked;
+    every panel ``height`` inches tall plus room for its colour bar and labels."""
+    panel_w = height * aspect + 1.9  # + axis labels, colour bar and its label
+    if ncols is None:  # as many as fit, then balanced rows (4 panels: 2 x 2, not 3 + 1)
+        fit = max(1, min(n, int(max_width // panel_w)))
+        ncols = -(-n // -(-n // fit))
+    ncols = max(1, min(ncols, n))
+    nrows = -(-n // ncols)
+    return nrows, ncols, (panel_w * ncols, (height + 0.7) * nrows + 0.5)
 
 
 def plot_fields(
@@ -212,51 +278,114 @@ def plot_fields(
     fields: Mapping[str, Any],
     path: str | Path | None = None,
     *,
-    ncols: int = 3,
+    ncols: int | None = None,
     labels: Mapping[str, str] | None = None,
+    units: Units | None = None,
     cmap: str = "viridis",
     diverging_cmap: str = "RdBu_r",
-    alpha: float = 0.7,
+    diverging: Collection[str] = (),
+    share: Sequence[Sequence[str]] = (),
+    alpha: float = 0.75,
     suptitle: str | None = None,
-    panel_size: tuple[float, float] = (4.2, 3.4),
+    panel_height: float = 3.6,
     dpi: int = 120,
 ) -> Figure:
-    """Multi-panel figure, one panel (with its colour bar) per field.
+    """Multi-panel figure, one panel (with a colour bar as tall as the panel) per field.
 
     Args:
         image: (H, W) grey image under every panel, or None.
         points: (N, 2) ``(x, y)`` pixels.
-        fields: ordered mapping name -> (N,) values, e.g. ``{"u": u[f], "v": v[f], "exx": ...}``.
+        fields: ordered mapping name -> (N,) values (NaN: not drawn, e.g. unusable points),
+            e.g. ``{"u": u[f], "v": v[f], "exx": ...}``, already in ``units``.
         path: save there if given.
-        labels: colour-bar labels by name (default: :data:`FIELD_LABELS`, else the name).
-        cmap: colour map of displacement-like fields; strain-like names (``exx``, ``exy_rate``...)
-            get ``diverging_cmap`` with symmetric limits.
+        labels: colour-bar labels by name (default: ``units.label(name)`` -- quantity and
+            unit, px without ``units`` -- else :data:`FIELD_LABELS`, else the name).
+        units: the calibration the values are in (:class:`~torch_stsdic.io.units.Units`).
+        cmap: colour map of displacement-like fields; :func:`is_diverging` names and those in
+            ``diverging`` get ``diverging_cmap`` with limits symmetric about 0.
+        share: groups of names whose panels share their colour limits (compared panels).
+        ncols: panels per row (default: as many as fill about 17 inches of width).
     """
     if not fields:
         raise ValueError("fields is empty")
+    pts = _np(points).astype(np.float64)
     n = len(fields)
-    ncols = max(1, min(ncols, n))
-    nrows = -(-n // ncols)
-    fig = Figure(figsize=(panel_size[0] * ncols, panel_size[1] * nrows), layout="constrained")
+    w, h = panel_extent(image, pts)
+    nrows, ncols, size = panel_layout(n, w / h, ncols, height=panel_height)
+    fig = Figure(figsize=size, layout="constrained")
     axes = fig.subplots(nrows, ncols, squeeze=False).ravel()
+    units = units or Units()
     labels = dict(labels or {})
+    sym = {nm: is_diverging(nm) or nm in diverging for nm in fields}
+    norms: dict[str, Normalize] = {}
+    for group in share:
+        names = [nm for nm in group if nm in fields]
+        if names:
+            both = np.concatenate([np.ravel(_np(fields[nm])) for nm in names])
+            norm = _norm(both, None, None, any(sym[nm] for nm in names))
+            norms.update({nm: norm for nm in names})
     for ax, (name, vals) in zip(axes, fields.items()):
-        sym = name in _SYMMETRIC
+        default = units.label(name) if units.dims(name) is not None else None
         plot_field(
             image,
-            points,
+            pts,
             vals,
             title=name,
             ax=ax,
             alpha=alpha,
-            symmetric=sym,
-            cmap=diverging_cmap if sym else cmap,
-            label=labels.get(name, FIELD_LABELS.get(name, name)),
+            symmetric=sym[name],
+            norm=norms.get(name),
+            cmap=diverging_cmap if sym[name] else cmap,
+            label=labels.get(name) or default or FIELD_LABELS.get(name, name),
         )
     for ax in axes[n:]:
         fig.delaxes(ax)
     if suptitle:
         fig.suptitle(suptitle)
+    return save_figure(fig, path, dpi=dpi)
+
+
+#: colours of the status codes (usable ones green/olive, failures warm, not computed grey)
+STATUS_COLOURS = {
+    Status.CONVERGED: "#1a9850", Status.MAX_ITER: "#a6d96a", Status.DIVERGED: "#d73027",
+    Status.OUTSIDE: "#7b3294", Status.LOW_TEXTURE: "#fdae61", Status.NOT_COMPUTED: "#bdbdbd",
+    Status.POOR_FIT: "#f46d43", Status.INCONSISTENT: "#4575b4",
+}  # fmt: skip
+
+
+def plot_status(
+    image: Any,
+    points: Any,
+    status: Any,
+    *,
+    title: str | None = "status",
+    ax: Axes | None = None,
+    path: str | Path | None = None,
+    dpi: int = 120,
+) -> Figure:
+    """The quality map: every point coloured by its :class:`~torch_stsdic.status.Status`
+    over the image, with a colour bar naming the codes and the share of points with each."""
+    p = _np(points).astype(np.float64)
+    st = _np(status).astype(np.int64)
+    codes = list(Status)
+    if ax is None:
+        w, h = panel_extent(image, p)
+        _, _, size = panel_layout(1, w / h, 1, height=4.2)
+        fig = Figure(figsize=(size[0] + 1.2, size[1]), layout="constrained")
+        ax = fig.add_subplot()
+    else:
+        fig = ax.get_figure()
+    cmap = ListedColormap([STATUS_COLOURS[c] for c in codes])
+    norm = BoundaryNorm(np.arange(len(codes) + 1) - 0.5, len(codes))
+    m = _draw_field(ax, image, p, st.astype(np.float64), cmap=cmap, alpha=0.85, norm=norm,
+                    marker_size=None)  # fmt: skip
+    cb = colorbar(fig, ax, m, ticks=np.arange(len(codes)))
+    total = max(1, st.size)
+    cb.ax.set_yticklabels([f"{c.name.lower()} {100.0 * (st == int(c)).sum() / total:.1f} %"
+                           for c in codes])  # fmt: skip
+    cb.ax.tick_params(labelsize=8)
+    if title:
+        ax.set_title(title)
     return save_figure(fig, path, dpi=dpi)
 
 
@@ -281,7 +410,8 @@ def plot_xy(
     """
     xs = _np(x).astype(np.float64)
     if ax is None:
-        fig = Figure(figsize=(6.0, 4.0), layout="constrained")
+        tall = 4.0 + (0.3 * (-(-len(series) // 2)) + 0.3 if len(series) > 2 else 0.0)
+        fig = Figure(figsize=(6.4, tall), layout="constrained")
         ax = fig.add_subplot()
     else:
         fig = ax.get_figure()
@@ -299,7 +429,10 @@ def plot_xy(
     if title:
         ax.set_title(title)
     ax.grid(True, alpha=0.3)
-    if len(series) > 1 or any(series):
+    if len(series) > 2:  # under the axes: a legend inside would hide curves
+        ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2, fontsize=8,
+                  frameon=False)  # fmt: skip
+    elif len(series) > 1 or any(series):
         ax.legend()
     return save_figure(fig, path, dpi=dpi)
 
@@ -351,3 +484,99 @@ def plot_error_vs_noise(
     return plot_xy(
         sigmas, errors, xlabel=xlabel, ylabel=ylabel, title=title, logy=logy, path=path, dpi=dpi
     )
+
+
+def animate_field(
+    frame_image: Callable[[int], Any] | None,
+    points: Any,
+    values: Any,
+    path: str | Path,
+    *,
+    stamps: Sequence[str] | None = None,
+    displacement: tuple[Any, Any] | None = None,
+    label: str = "",
+    symmetric: bool = False,
+    cmap: str | None = None,
+    title: str = "",
+    fps: float = 4.0,
+    dpi: int = 100,
+) -> Path:
+    """An animation of a field over the movie: GIF (matplotlib's PillowWriter), or MP4 when
+    ``path`` ends in ``.mp4`` and ffmpeg is installed (else a GIF beside it).
+
+    Args:
+        frame_image: row -> (H, W) image of that row's frame (the movie), or None.
+        points: (N, 2) reference positions (x, y) px.
+        values: (F, N) field per row (NaN: not drawn), already in the unit of ``label``.
+        displacement: (u, v), each (F, N) px: the points are drawn where they moved to
+            (so the field stays on the material over the moving images).
+        stamps: (F,) texts after the title, e.g. "frame 3" or "t = 0.5 s" (default: "row k").
+        symmetric: diverging map centred on 0. The colour limits are fixed over all frames.
+
+    Returns:
+        the path written.
+    """
+    from matplotlib import animation
+
+    p = _np(points).astype(np.float64)
+    vals = _np(values).astype(np.float64)
+    if vals.ndim != 2 or vals.shape[1] != len(p):
+        raise ValueError(f"values must have shape (F, N) = (F, {len(p)}), got {vals.shape}")
+    n_rows = vals.shape[0]
+    norm = _norm(vals, None, None, symmetric)
+    cmap = cmap or ("RdBu_r" if symmetric else "viridis")
+    first = None if frame_image is None else _np(frame_image(0))
+    w, h = panel_extent(first, p)
+    _, _, size = panel_layout(1, w / h, 1, height=4.5)
+    fig = Figure(figsize=size, layout="constrained")
+    ax = fig.add_subplot()
+    img_artist = None
+    if first is not None:
+        img_artist = ax.imshow(first, cmap="gray", extent=(-0.5, w - 0.5, h - 0.5, -0.5),
+                               interpolation="nearest")  # fmt: skip
+    grid = detect_grid(p)
+    size_pt = 12.0
+    if grid is not None:  # squares about one grid cell wide
+        ax_w_in = size[0] - 1.9
+        cell_in = grid.sx / max(w, 1.0) * ax_w_in
+        size_pt = float(np.clip((0.9 * cell_in * 72.0) ** 2, 4.0, 1e4))
+    scat = ax.scatter(p[:, 0], p[:, 1], c=vals[0], cmap=cmap, norm=norm, s=size_pt,
+                      marker="s", linewidths=0, alpha=0.8)  # fmt: skip
+    if first is not None:
+        ax.set_xlim(-0.5, w - 0.5)
+        ax.set_ylim(h - 0.5, -0.5)
+    else:
+        ax.set_xlim(p[:, 0].min() - 0.05 * w, p[:, 0].max() + 0.05 * w)
+        ax.set_ylim(p[:, 1].max() + 0.05 * h, p[:, 1].min() - 0.05 * h)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (px)")
+    ax.set_ylabel("y (px)")
+    cb = colorbar(fig, ax, scat)
+    cb.set_label(label)
+    stamps = list(stamps) if stamps is not None else [f"row {k}" for k in range(n_rows)]
+    heading = ax.set_title("")
+
+    def draw(k: int) -> tuple[Any, ...]:
+        v = vals[k]
+        xy = p.copy()
+        if displacement is not None:
+            du, dv = (np.nan_to_num(_np(d)[k].astype(np.float64)) for d in displacement)
+            xy = p + np.column_stack([du, dv])
+        ok = np.isfinite(v)
+        scat.set_offsets(xy[ok])
+        scat.set_array(v[ok])
+        if img_artist is not None and k > 0:
+            img_artist.set_data(_np(frame_image(k)))
+        heading.set_text(f"{title} {stamps[k]}".strip())
+        return (scat, heading) if img_artist is None else (scat, heading, img_artist)
+
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if out.suffix.lower() == ".mp4" and animation.FFMpegWriter.isAvailable():
+        writer: Any = animation.FFMpegWriter(fps=fps)
+    else:
+        out = out.with_suffix(".gif")
+        writer = animation.PillowWriter(fps=fps)
+    anim = animation.FuncAnimation(fig, draw, frames=n_rows, blit=False)
+    anim.save(out, writer=writer, dpi=dpi)
+    return out

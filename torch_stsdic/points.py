@@ -13,7 +13,7 @@ import torch
 
 from .io import InputError, load_series
 
-__all__ = ["grid_points", "filter_points", "check_roi", "load_mask"]
+__all__ = ["grid_points", "filter_points", "check_roi", "load_mask", "nearest_points"]
 
 
 def check_roi(roi: Any, shape: tuple[int, int]) -> tuple[float, float, float, float]:
@@ -119,3 +119,16 @@ def filter_points(points: Any, shape, roi, mask) -> torch.Tensor:
     if not bool(keep.any()):
         raise ValueError("points: no point inside roi/mask")
     return pts[keep]
+
+
+def nearest_points(points: torch.Tensor, k: int, chunk: int = 4096
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Distances and indices (N, k) of the ``k`` nearest points of every point of (N, 2)
+    ``points`` (itself first, at distance 0), computed by chunks of rows (memory O(chunk N))."""
+    dist, idx = [], []
+    for i in range(0, points.shape[0], chunk):
+        d = torch.cdist(points[i : i + chunk], points)
+        dk, ik = torch.topk(d, k, dim=1, largest=False)
+        dist.append(dk)
+        idx.append(ik)
+    return torch.cat(dist, 0), torch.cat(idx, 0)

@@ -15,6 +15,7 @@ import torch
 
 from .frames import FrameCache
 from .interpolation import BSplineImage
+from .noise import estimate_noise_sigma
 from .result import USABLE
 
 __all__ = ["Reference", "GRADIENTS", "compose_gradients", "to_relative", "to_total",
@@ -38,6 +39,26 @@ class Reference:
         if self.raw is None:
             self.raw = cache.read(self.frame)
             self.img = cache.solver.prepare(self.raw)
+
+
+def noise_ratio(desc, raw: torch.Tensor, frame: torch.Tensor) -> float:
+    """The reference's noise variance over one frame's (for the predicted uncertainty and the
+    model check): 1 for a frame of the series, 1/K for the mean of K frames, and for an image
+    given as an array the ratio of their Immerkaer noise estimates (a clean, e.g. synthetic,
+    reference reads near 0), clamped to [0, 4].
+
+    Args:
+        desc: the plan's reference description (an int, "mean:0,1,2" or "array:...").
+        raw: (H, W) the reference image; frame: (H, W) a frame of the series.
+    """
+    if isinstance(desc, (int, np.integer)):
+        return 1.0
+    text = str(desc)
+    if text.startswith("mean:"):
+        return 1.0 / max(1, len(text[5:].split(",")))
+    s_ref = estimate_noise_sigma(raw.detach().double().cpu())
+    s_frame = estimate_noise_sigma(frame.detach().double().cpu())
+    return float(min(4.0, (s_ref / max(s_frame, 1e-12)) ** 2))
 
 
 def compose_gradients(g: dict[str, torch.Tensor], a: dict[str, torch.Tensor], inverse: bool):

@@ -37,6 +37,12 @@ class TrackResult:
         reference_frames: (F,) int64 series index of the reference each row was measured
             against (-1: the initial reference was not a single frame).
         config: the :class:`DICConfig` used.
+        m: (F, N) int8 half-width of the window each result was measured with (the run's
+            ``config.m``, shorter where the model check found the motion not affine in time
+            over the window; 0: classical, ut/vt NaN; -1: not solved).
+        std: name -> (F, N) predicted standard deviation of "u", "v" (px) and "ut", "vt"
+            (px per time unit) from the image noise and the subset's gradients
+            (:mod:`torch_stsdic.uncertainty`); NaN where not solved.
         info: run details: "batch_frames", "blocks", "frames_read", "prefiltered",
             "max_cached_frames", "fft_rows", "redone_rows", "reference_updates", ...
     """
@@ -55,6 +61,8 @@ class TrackResult:
     reference_frames: torch.Tensor
     config: DICConfig
     info: dict[str, Any] = field(default_factory=dict)
+    m: torch.Tensor | None = None
+    std: dict[str, torch.Tensor] = field(default_factory=dict)
 
     @property
     def n_frames(self) -> int:
@@ -70,6 +78,20 @@ class TrackResult:
     def ok(self) -> torch.Tensor:
         """(F, N) bool: usable results (CONVERGED or MAX_ITER)."""
         return self.status <= USABLE
+
+    def field(self, name: str) -> torch.Tensor:
+        """(F, N) values of a result field by its stored name: "u", "v", "ut", "vt", "zncc",
+        "status", "iterations", "m", a gradient ("ux", ...) or a predicted std ("u_std",
+        ...)."""
+        if name in ("u", "v", "ut", "vt", "zncc", "status", "iterations"):
+            return getattr(self, name)
+        if name == "m" and self.m is not None:
+            return self.m
+        if name.endswith("_std") and name[:-4] in self.std:
+            return self.std[name[:-4]]
+        if name in self.gradients:
+            return self.gradients[name]
+        raise KeyError(f"no field {name!r} in this result")
 
     def row_of(self, frame: int) -> int:
         """Row holding series frame ``frame``."""

@@ -21,7 +21,8 @@ Lost points (not converged, or ZNCC below ``lost_zncc``) are solved again with a
 initial guess, and the better of the two results is kept.
 
 Frames are read lazily (:class:`~torch_stsdic.frames.FrameCache`): only the frames of the
-current block's windows are held, so memory is bounded by ``batch_frames + 2m`` frames, not by
+current block's windows are held, so memory is bounded by ``batch_frames + 2m`` frames (plus
+the few read ahead by a background thread: :func:`~torch_stsdic.frames.default_ahead`), not by
 the movie length.
 
 Determinism and resume: the carried state is always taken from the rows *as stored*
@@ -43,7 +44,7 @@ from tqdm import tqdm
 
 from .block import BlockContext, Carry, make_carry, rows_numpy, solve_block
 from .config import DICConfig
-from .frames import FrameCache
+from .frames import FrameCache, default_ahead, frames_in_order
 from .io.results import as_stored
 from .plan import RunPlan, plan_run
 from .reference import Reference, maybe_update
@@ -69,17 +70,20 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
     sink = sink if sink is not None else MemorySink(plan)
     cfg = plan.config
     solver = SubsetSolver(cfg)
-    cache = FrameCache(plan.series, solver, plan.dtype, plan.device)
+    cache = FrameCache(plan.series, solver, plan.dtype, plan.device,
+                       ahead=default_ahead(plan.batch_frames, cfg.m))
     run = BlockContext(solver=solver, cache=cache,
                ts=torch.from_numpy(plan.times).to(device=plan.device, dtype=torch.float64),
                n_series=len(plan.series), m=cfg.m, dtype=plan.dtype, device=plan.device,
                lost_zncc=float(plan.options.get("lost_zncc", 0.8)), names=plan.param_names,
+               checks=bool(plan.options.get("checks", True)),
                stats={"fft_rows": 0, "redone_rows": 0})
     ref_raw = plan.reference_image
     ref_raw = cache.read(plan.reference_frame) if ref_raw is None else ref_raw.to(
         device=plan.device, dtype=plan.dtype)
     ref = Reference(frame=plan.reference_frame, raw=ref_raw, img=solver.prepare(ref_raw),
                     points=plan.points.to(device=plan.device, dtype=plan.dtype))
+    run.reference_desc = plan.reference_desc  # its noise ratio is measured on the 1st block
     updates: list[dict[str, Any]] = []
     offsets = None
     if plan.options.get("refine_reference"):
@@ -87,14 +91,19 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
     bar = tqdm(total=plan.n_rows, unit="frame", file=sys.stderr, disable=not progress,
                desc="STS-DIC" if cfg.m else "DIC", dynamic_ncols=True)
     try:
-        _run_blocks(plan, sink, run, ref, updates, bar, callback, offsets)
+        try:
+            _run_blocks(plan, sink, run, ref, updates, bar, callback, offsets)
+        finally:
+            cache.close()
         if plan.options.get("smoothing"):
             _smooth(plan, sink)
         info: dict[str, Any] = {
             "batch_frames": plan.batch_frames, "blocks": len(plan.blocks),
             "frames_read": cache.reads, "prefiltered": cache.prefiltered,
             "max_cached_frames": cache.max_cached, "reference": plan.reference_desc,
-            "reference_updates": updates, **run.stats,
+            "frame_times_s": cache.times(),
+            "reference_updates": updates, "reference_noise_ratio": run.noise_ratio,
+            **run.stats,
         }
         if offsets is not None:
             info["refine_reference"] = offsets.summary()
@@ -118,6 +127,9 @@ def _run_blocks(plan: RunPlan, sink: MemorySink, run: BlockContext, ref: Referen
     (``offsets``: the refined reference's per-point offsets, subtracted before storing)."""
     row_of = plan.row_of()
     done = sink.completed_rows()
+    run.cache.schedule(frames_in_order(  # read ahead the frames of the blocks to solve
+        [b for b in plan.blocks if not all(row_of[k] in done for k in b)], plan.config.m,
+        len(plan.series)))
     carry: Carry | None = None
     rows_done = 0
     thr = plan.options.get("reference_update")
@@ -138,6 +150,8 @@ def _run_blocks(plan: RunPlan, sink: MemorySink, run: BlockContext, ref: Referen
         if thr is not None:
             ref = maybe_update(ref, stored, block[-1], float(thr), pts0, plan.param_names,
                                run.cache, plan.dtype, plan.device, updates, rs[-1])
+            if updates:  # the reference is now a frame of the series
+                run.noise_ratio = 1.0
         rows_done += len(block)
         bar.update(len(block))
         if callback is not None:
@@ -175,12 +189,16 @@ def track(
     smoothing: int | None = None,
     *,
     lost_zncc: float = 0.8,
+    checks: bool = True,
     overwrite: bool = False,
     callback: Callable[[int, int], None] | None = None,
     refine_reference: bool = False,
     refine_frames: int | None = None,
     strain_window: int | None = 5,
     strain_kind: str = "green",
+    scale: float | None = None,
+    unit: str | None = None,
+    time_unit: str | None = None,
 ) -> TrackResult:
     """Track POIs through a movie with STS-DIC (sliding windows of 2m+1 frames).
 
@@ -213,7 +231,12 @@ def track(
         smoothing: odd span (frames): run classical DIC (config.m = 0) and smooth u, v in
             time with :func:`~torch_stsdic.smoothing.smooth_in_time` (the paper's "direct
             smoothing" baseline).
-        lost_zncc: points whose ZNCC falls below this are re-solved with an FFT guess.
+        lost_zncc: points whose ZNCC falls below this are re-solved with an FFT guess, and a
+            solved point still below it is POOR_FIT.
+        checks: the trust checks of :mod:`torch_stsdic.quality` (model check of every window
+            against the classical solution with shorter windows where the motion is not
+            affine in time, fit and neighbour checks; default True). False: every converged
+            point is reported as such (faster, and as before these checks existed).
         callback: called as ``callback(rows_done, n_rows)`` after each block.
         refine_reference: remove the noisy reference's constant per-point offset: classical
             DIC of up to ``refine_frames`` frames around the reference (default 41), a
@@ -222,6 +245,10 @@ def track(
             that is one series frame and no ``reference_update``.
         strain_window, strain_kind: strains written to ``out`` (grid points per side of the
             plane fit; "green" or "small"); ``strain_window=None``: none.
+        scale, unit, time_unit: calibration recorded with the results (``out`` attributes,
+            ``result.info["units"]``): ``scale`` length ``unit``s per px (e.g. 0.02, "mm"),
+            ``time_unit`` of ``times`` (default "frame", "time unit" with timestamps). The
+            values stay in px; exports and figures convert (:mod:`torch_stsdic.io.units`).
 
     Returns:
         :class:`TrackResult` with (F, N) fields. With ``out`` the values are those stored in
@@ -234,7 +261,8 @@ def track(
         raise ValueError("resume: needs out (the result file to continue)")
     plan = plan_run(series, reference, frames, points, roi, mask, step, config, device, times,
                     batch_frames, reference_update=reference_update, smoothing=smoothing,
-                    lost_zncc=lost_zncc)
+                    lost_zncc=lost_zncc, checks=checks, scale=scale, unit=unit,
+                    time_unit=time_unit)
     if refine_reference:
         set_refinement(plan, refine_frames)
     elif refine_frames is not None:

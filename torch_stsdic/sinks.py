@@ -41,6 +41,7 @@ class MemorySink:
         self.values: dict[str, np.ndarray] = {nm: np.full((f, n), np.nan) for nm in plan.fields}
         self.values["status"] = np.full((f, n), int(Status.NOT_COMPUTED), dtype=np.int8)
         self.values["iterations"] = np.zeros((f, n), dtype=np.int64)
+        self.values["m"] = np.full((f, n), -1, dtype=np.int8)
         self.reference_frames = np.full(f, plan.reference_frame, dtype=np.int64)
         self.raw: dict[str, np.ndarray] = {}
 
@@ -84,7 +85,7 @@ class MemorySink:
             return torch.from_numpy(np.asarray(a, dtype=np.float64)).to(device=plan.device,
                                                                           dtype=plan.dtype)
 
-        info = dict(info)
+        info = {**info, "units": dict(plan.units)}
         if self.raw:
             info["raw"] = {k: ft(a) for k, a in self.raw.items()}
         if self.path is not None:
@@ -97,6 +98,8 @@ class MemorySink:
             status=torch.from_numpy(v["status"].astype(np.int8)),
             iterations=torch.from_numpy(v["iterations"].astype(np.int32)),
             gradients={nm: ft(v[nm]) for nm in plan.gradients},
+            m=torch.from_numpy(np.nan_to_num(v["m"], nan=-1).astype(np.int8)),
+            std={nm[:-4]: ft(v[nm]) for nm in plan.fields if nm.endswith("_std")},
             reference_frames=torch.from_numpy(self.reference_frames.copy()),
             config=plan.config, info=info,
         )
@@ -122,6 +125,8 @@ class HDF5Sink(MemorySink):
             fields=plan.fields, extra_fields=extra, resume=resume, overwrite=overwrite,
             attrs=attrs,
         )
+        # the calibration is recorded, not compared on resume (values stay in px)
+        self.writer.add_fields({}, dict(plan.units))
 
     def completed_rows(self) -> set[int]:
         return set(self.writer.completed_rows().tolist())

@@ -35,9 +35,10 @@ from dataclasses import dataclass, field
 
 import torch
 
-from . import formulations, native, uncertainty
+from . import formulations, kernels, native, uncertainty
 from .config import DICConfig
 from .formulations import Formulation, Geometry, SubsetData, reference_subsets, wsum
+from .formulations.joint_ic import centred_gram
 from .initial import (
     carry_from_seed,
     coarse_to_fine,
@@ -559,7 +560,8 @@ class _Context:
         s, ks = self.geo.spatial.shape
         elem = self.geo.spatial.element_size()
         ic_only = all(f.inverse_compositional for f in self.stages)
-        if ic_only and native.usable(self.geo.spatial):
+        if ic_only and (native.usable(self.geo.spatial) or kernels.usable(
+                self.frames.kernel_args()[0], self.frames.order, s)):
             # fused kernels: no (N, T, S) temporaries, only the per-point reference data
             per_point = s * elem * 12
         else:
@@ -577,6 +579,7 @@ def _solve_batch(ctx: _Context, pts, p0, dt, fidx, ridx):
     w = geo.w
     wsum_w = w.sum()
     data = reference_subsets(geo, ctx.ref, pts, ridx, dt, fidx)
+    data.gram = centred_gram(geo, data.gx, data.gy)  # for the Hessian and the uncertainty
     status = torch.full((n,), int(Status.NOT_COMPUTED), dtype=torch.int8, device=device)
     texture = wsum(data.gx * data.gx + data.gy * data.gy, w) / wsum_w
     low = texture < cfg.texture_threshold * ctx.grey_range**2
@@ -609,7 +612,8 @@ def _solve_batch(ctx: _Context, pts, p0, dt, fidx, ridx):
     ok = torch.nonzero(status <= int(Status.MAX_ITER)).flatten()
     if ok.numel():
         resp, _ = uncertainty.solution_response(geo, ctx.frames, data.take(ok), params[ok],
-                                                ctx.noise_ratio, ctx.frames.order)
+                                                ctx.noise_ratio, ctx.frames.order,
+                                                zncc=zncc[ok])
         std[ok] = uncertainty.std_of(resp).to(dtype)
         sigma[ok] = resp.noise.total.sqrt().to(dtype)
     return params, zncc, status, iters, stage_params[0], std, sigma

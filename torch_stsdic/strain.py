@@ -32,6 +32,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from .points import nearest_points
+
 __all__ = [
     "GridInfo",
     "compute_strain",
@@ -229,15 +231,6 @@ def _fit_grid(
     return b / grid.sx, c / grid.sy
 
 
-def _knn_index(pts: torch.Tensor, k: int, chunk: int = 4096) -> torch.Tensor:
-    """(N, k) indices of the k nearest points of every point (itself first), by chunks of rows."""
-    out = []
-    for i in range(0, pts.shape[0], chunk):
-        d = torch.cdist(pts[i : i + chunk], pts)
-        out.append(torch.topk(d, k, dim=1, largest=False).indices)
-    return torch.cat(out, dim=0)
-
-
 def _fit_knn(
     pts: torch.Tensor,
     vals: torch.Tensor,
@@ -249,7 +242,7 @@ def _fit_knn(
     """Plane-fit slopes over the ``window**2`` nearest neighbours. Shapes as :func:`_fit_grid`."""
     bsz, nch, n = vals.shape
     k = min(window * window, n)
-    idx = _knn_index(pts, k)  # (N, k)
+    idx = nearest_points(pts, k)[1]  # (N, k), itself first
     d = pts[idx] - pts.unsqueeze(1)  # (N, k, 2) offsets in pixels
     if n > 1:
         nn = torch.linalg.vector_norm(d[:, 1:2], dim=-1)

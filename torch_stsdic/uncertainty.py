@@ -37,7 +37,8 @@ from .formulations import Geometry, SubsetData, gram
 from .interpolation import BSplineImage
 from .noise import gradient_noise_factor, interpolation_variance_factor
 
-__all__ = ["NoiseModel", "Response", "frame_residuals", "noise_model", "response",
+__all__ = ["NoiseModel", "Response", "frame_residuals", "residual_from_zncc", "noise_model",
+           "response",
            "covariance", "cross_covariance", "solution_response", "std_of"]
 
 
@@ -71,13 +72,22 @@ class NoiseModel:
         return self.ref + self.frame
 
 
+def residual_from_zncc(geo: Geometry, data: SubsetData, zncc: Tensor) -> Tensor:
+    """(N, 1) the frame-mean weighted residual variance of the ZNSSD criterion from the
+    window's mean ZNCC, without sampling the frames again:
+    ``sum_s w e_t^2 = 2 |f~|^2 (1 - ZNCC_t)`` (``|f~|^2 = sum_s w f~^2``), grey levels^2."""
+    f2 = data.fnorm.double() ** 2
+    return (2.0 * f2 * (1.0 - zncc.double()).clamp(min=0.0) / float(geo.w.sum())).unsqueeze(1)
+
+
 def noise_model(geo: Geometry, residual: Tensor, p: Tensor, data: SubsetData, rho: float,
                 order: int) -> NoiseModel:
-    """Noise variances from a solution's per-frame residual variance ``residual`` (N, T) at
-    parameters ``p`` (N, P) (see the module docstring); ``rho`` = sigma_f^2 / sigma_g^2."""
+    """Noise variances from a solution's weighted residual variance ``residual`` (N, T) per
+    frame, or (N, 1) its mean over the frames, at parameters ``p`` (N, P) (see the module
+    docstring); ``rho`` = sigma_f^2 / sigma_g^2."""
     w = geo.w
     s_eff = float(w.sum() ** 2 / (w * w).sum())
-    t = residual.shape[1]
+    t = data.dt.shape[1]
     dof = 1.0 - (2.0 + p.shape[1] / t) / s_eff  # mean, scale and a share of P per frame
     zero = torch.zeros(1, dtype=geo.dx.dtype, device=geo.dx.device)
     u, v = geo.shape.displacement(p, geo.shape.spatial_basis(zero, zero), data.dt)
@@ -108,13 +118,12 @@ def _z(geo: Geometry, dt: Tensor) -> Tensor:
     return z
 
 
-def _centred_gram(geo: Geometry, gx: Tensor, gy: Tensor, weights: Tensor) -> Tensor:
-    """sum_s weights_s (J_s - Jbar)(J_s - Jbar)^T (N, P', P') of the augmented columns, Jbar
-    the window-weighted (``geo.w``) mean for ZNSSD (no centring for SSD)."""
-    g, m = gram(gx, gy, geo.spatial, weights)
+def _centred_gram(geo: Geometry, g: Tensor, m: Tensor, m1: Tensor, weights: Tensor) -> Tensor:
+    """sum_s weights_s (J_s - Jbar)(J_s - Jbar)^T (N, P', P') of the augmented columns from
+    their moments ``g, m`` = :func:`gram` with ``weights``, Jbar = ``m1`` / sum w the
+    window-weighted (``geo.w``) mean for ZNSSD (no centring for SSD)."""
     if not geo.znssd:
         return g
-    _, m1 = gram(gx, gy, geo.spatial, geo.w) if weights is not geo.w else (g, m)
     jbar = m1 / float(geo.w.sum())
     return (g - m.unsqueeze(-1) * jbar.unsqueeze(-2) - jbar.unsqueeze(-1) * m.unsqueeze(-2)
             + float(weights.sum()) * jbar.unsqueeze(-1) * jbar.unsqueeze(-2))
@@ -156,8 +165,14 @@ def response(geo: Geometry, data: SubsetData, noise: NoiseModel, order: int) -> 
     w = geo.w
     z = _z(geo, data.dt)
     zz = torch.einsum("ntp,ntq->npq", z, z)
-    g1 = _centred_gram(geo, data.gx, data.gy, w)
-    g2 = _centred_gram(geo, data.gx, data.gy, w * w)
+    gw, mw = gram(data.gx, data.gy, geo.spatial, w) if data.gram is None else (None, None)
+    g1 = data.gram if data.gram is not None else _centred_gram(geo, gw, mw, mw, w)
+    g2 = g1  # a 0/1 window: the w^2-moments are the w-moments
+    if not bool(((w * w) == w).all()):
+        if mw is None:
+            _, mw = gram(data.gx, data.gy, geo.spatial, w)
+        gww, mww = gram(data.gx, data.gy, geo.spatial, w * w)
+        g2 = _centred_gram(geo, gww, mww, mw, w * w)
     bw = _basis_moments(geo, w)
     cols = _aug_columns(geo)
     h = (g1 * zz - kappa * noise.ref.double().view(-1, 1, 1) * bw * zz)[:, cols][:, :, cols]
@@ -193,10 +208,15 @@ def cross_covariance(a: Response, b: Response, shared: Tensor) -> Tensor:
 
 
 def solution_response(geo: Geometry, frames: BSplineImage, data: SubsetData, p: Tensor,
-                      rho: float, order: int) -> tuple[Response, Tensor]:
+                      rho: float, order: int, zncc: Tensor | None = None
+                      ) -> tuple[Response, Tensor]:
     """The noise response of the solutions ``p`` (N, P) of the points in ``data``, with the
-    noise estimated from their own residuals, and those residuals (N, T)."""
-    res = frame_residuals(geo, frames, data, p)
+    noise estimated from their own residuals, and those residuals ((N, T) per frame, or
+    (N, 1) from the window's mean ``zncc`` (N,) when given, for ZNSSD: no new sampling)."""
+    if zncc is not None and geo.znssd:
+        res = residual_from_zncc(geo, data, zncc)
+    else:
+        res = frame_residuals(geo, frames, data, p)
     noise = noise_model(geo, res, p, data, rho, order)
     return response(geo, data, noise, order), res
 

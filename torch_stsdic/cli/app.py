@@ -18,6 +18,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from . import demo, export, options, plot, run, synth
+from .demo import DEMO_TIME
 from .errors import PROG, CommandError, UsageError, one_line, print_error, warnings_on_stderr
 
 #: the sub-command modules, in the order of ``stsdic --help``
@@ -31,16 +32,18 @@ once, with a displacement that is linear in time (u + ut*dt, v + vt*dt): the fra
 noise is averaged, and the velocity comes out directly. m = 0 is classical subset DIC.
 """
 
-EPILOG = """\
+EPILOG = f"""\
 examples:
-  stsdic demo                                   # 4-second comparison, plots in ./stsdic-demo
+  stsdic demo                                   # {DEMO_TIME}; plots in ./stsdic-demo
   stsdic synth --out movie --motion strain      # synthetic test movie + ground truth
   stsdic run movie/movie.tif --m 2 --step 10 --out result.h5
-  stsdic export result.h5 --out csv/
+  stsdic run movie/movie.tif --scale 0.02 --unit mm --out result_mm.h5   # calibrated
+  stsdic export result.h5 --out csv/            # or --format vtk (ParaView) / mat (MATLAB)
   stsdic plot result.h5 --frame last --out plots/
 
 Run 'stsdic COMMAND --help' for the options of a command. Coordinates are pixels with
 x = column (right), y = row (down), 0-based; times are frame numbers unless --timestamps.
+A run with --scale and --unit keeps pixels in its file; export and plot convert to the unit.
 """
 
 #: errors whose message alone says what went wrong (others get their type and a hint)

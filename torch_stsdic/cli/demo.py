@@ -16,6 +16,9 @@ from .errors import UsageError
 NAME = "demo"
 HELP = "classical DIC vs STS-DIC on the paper's synthetic movie (start here)"
 DEMO_DIR = "stsdic-demo"
+#: how long ``stsdic demo`` takes, quoted by the README, docs/cli.md and ``stsdic --help``
+#: (scripts/regenerate_docs.py --check verifies that they all quote this text)
+DEMO_TIME = "under 10 s on 2 CPU cores"
 
 DESCRIPTION = """\
 Reproduce the paper's simulated test: a 301 x 301 px speckle movie (reference + 9
@@ -23,13 +26,17 @@ frames) translating by u = t/20 px with Gaussian noise sigma 5 on every image, m
 with classical DIC (m = 0) and with STS-DIC (m = 2, 5 frames per solve), both against
 the reference image (which is not part of any STS window). Prints the RMS errors of u, v
 and of the velocity ut against the exact motion, the run times and throughputs (POI/s),
-and the error ratio; saves plots (error per frame, fields, histories) and the numbers
-(demo.json) in DIR.
+and the error ratios; saves figures and the numbers (demo.json) in DIR:
+  error_per_frame.png  RMS error of u in every frame, per method
+  fields.png           error maps of u and ut at the middle frame, classical DIC vs
+                       STS-DIC on shared colour scales centred on 0
+  history.png          error of u and ut against time per method: mean over the points
+                       and +-1 std band
 """
 
-EPILOG = """\
+EPILOG = f"""\
 examples:
-  stsdic demo                         # about 4 s; writes ./stsdic-demo/*.png
+  stsdic demo                         # {DEMO_TIME}; writes ./stsdic-demo/*.png
   stsdic demo --noise 10 --m 3 --out demo10
   stsdic demo --quick                 # small and fast (a smoke test)
 """

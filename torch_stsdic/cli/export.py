@@ -1,4 +1,4 @@
-"""``stsdic export``: write the frames of a result file as CSV files, one per frame."""
+"""``stsdic export``: a result file as CSV files (one per frame), VTK for ParaView or MATLAB."""
 
 from __future__ import annotations
 
@@ -12,14 +12,24 @@ from .common import span
 from .errors import CommandError, UsageError
 
 NAME = "export"
-HELP = "write a result file as CSV files, one per frame"
+HELP = "write a result file as CSV (one file per frame), VTK (ParaView) or MATLAB .mat"
 
 DESCRIPTION = """\
-Write the frames of a result file as CSV files, one per frame, named
-<result stem>_frame<NNNNN>.csv in DIR (or give a pattern with {frame}, e.g.
-'csv/f{frame:04d}.csv'). Columns: x, y, u, v, ut, vt, exx, eyy, exy, zncc, status, then
-any other stored field; NaN (failed points) are empty cells. A first comment line
-'# torch_stsdic results ... frame=F time=T' precedes the header.
+Write the frames of a result file for other tools, in the units the run recorded
+('stsdic run --scale 0.02 --unit mm': lengths in mm, velocities in mm per time unit,
+strains dimensionless; px without a scale). Every field of the file is written.
+
+  --format csv  one CSV per frame, <result stem>_frame<NNNNN>.csv in DIR (or a pattern
+                with {frame}, e.g. 'csv/f{frame:04d}.csv'). The first line is the header:
+                x, y, u, v, ut, vt, exx, eyy, exy, zncc, status, then any other field;
+                NaN (failed points) are empty cells. Units, calibration and the frame and
+                time of every file are in <result stem>_csv.json (--comment adds a
+                '# torch_stsdic ...' line before the header instead).
+  --format vtk  ParaView: <stem>_frame<NNNNN>.vtu per frame (points joined into quads on a
+                grid; point data: every field, plus the vectors displacement and velocity)
+                and the time series <stem>.pvd (open this one).
+  --format mat  MATLAB: <stem>.mat with (frames, points) arrays u, v, ut, vt, ..., and x, y,
+                frames, times, completed, unit, scale, time_unit, units, status_codes.
 """
 
 EPILOG = """\
@@ -27,15 +37,25 @@ examples:
   stsdic export result.h5 --out csv/
   stsdic export result.h5 --out csv/ --frames 0:10
   stsdic export result.h5 --out 'csv/f{frame:04d}.csv' --frames -1
+  stsdic export result.h5 --format vtk --out vtk/        # then open vtk/result.pvd
+  stsdic export result.h5 --format mat --out mat/        # load('mat/result.mat')
 """
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The options of ``stsdic export``."""
+    from ..io.export import FORMATS
+
     options.add_result(p)
     p.add_argument(
-        "--out", "-o", required=True, metavar="DIR", help="output directory (or a {frame} pattern)"
-    )
+        "--out", "-o", required=True, metavar="DIR",
+        help="output directory (csv: or a {frame} pattern)",
+    )  # fmt: skip
+    p.add_argument(
+        "--format", "-f", choices=FORMATS, default="csv",
+        help="csv: one file per frame; vtk: ParaView .vtu per frame + .pvd; mat: MATLAB "
+        "(default: %(default)s)",
+    )  # fmt: skip
     p.add_argument(
         "--frames",
         default=None,
@@ -43,7 +63,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="image frame numbers to export, e.g. 5, -1 (last), 0:10, 3,7 "
         "(default: every finished frame)",
     )
-    p.add_argument("--no-comment", action="store_true", help="no '# torch_stsdic ...' first line")
+    ex = p.add_mutually_exclusive_group()
+    ex.add_argument(
+        "--comment", action="store_true",
+        help="csv: a '# torch_stsdic ... frame=F time=T unit=U' line before the header",
+    )  # fmt: skip
+    ex.add_argument("--no-comment", action="store_true", help=argparse.SUPPRESS)  # the default
 
 
 def _read_frames(path: str) -> np.ndarray:
@@ -81,17 +106,41 @@ def _select_frames(spec: str, frames: np.ndarray, path: str) -> list[int]:
 
 
 def execute(args: argparse.Namespace) -> int:
-    """``stsdic export``: one CSV per frame."""
-    from ..io import export_csv
+    """``stsdic export``: CSV per frame, VTK per frame + .pvd, or one .mat."""
+    from ..io import export_results
 
     frames = None
     stored = _read_frames(args.result)
     if args.frames is not None:
         frames = _select_frames(args.frames, stored, args.result)
-    written = export_csv(args.result, args.out, frames, comment=not args.no_comment)
-    if not written:
+    if args.format != "csv" and "{" in args.out:
+        raise UsageError(f"--out {args.out}: a {{frame}} pattern is for --format csv; give a "
+                         "directory")
+    kw = {"comment": args.comment} if args.format == "csv" else {}
+    written = export_results(args.result, args.out, args.format, frames, **kw)
+    frame_files = [w for w in written if w.suffix in (".csv", ".vtu")]
+    if args.format != "mat" and not frame_files:
         print(f"no finished frame in {args.result}: nothing written")
         return 0
     where = Path(written[0]).parent
-    print(f"wrote {len(written)} CSV file(s) to {where} ({written[0].name} ..)")
+    _say_units(args.result)
+    what = {"csv": "CSV", "vtk": "VTK"}.get(args.format)
+    if what:
+        extra = f"; open {written[-1].name} in ParaView" if args.format == "vtk" else ""
+        print(f"wrote {len(frame_files)} {what} file(s) to {where} ({frame_files[0].name} ..)"
+              f"{extra}")
+    else:
+        print(f"wrote {written[0]}")
     return 0
+
+
+def _say_units(path: str) -> None:
+    """One line: the units of the export (the calibration the run recorded)."""
+    from ..io.results import open_results
+    from ..io.units import units_of
+
+    with open_results(Path(path)) as f:
+        u = units_of(f.attrs)
+    scale = f" ({u.scale:g} {u.unit}/px)" if u.scale is not None else " (no --scale in the run)"
+    print(f"units: lengths in {u.unit}{scale}, velocities in {u.unit}/{u.time_unit}, "
+          "strains dimensionless")

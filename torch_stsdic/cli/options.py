@@ -253,6 +253,39 @@ def add_speckle(g: Group) -> None:
     g.add_argument("--seed", type=int, default=0, help="speckle and noise seed (default: 0)")
 
 
+def add_calibration(g: Group) -> None:
+    """``--scale``, ``--unit``, ``--time-unit``: the calibration a run records (values stay
+    in px; exports and plots convert)."""
+    g.add_argument(
+        "--scale", type=float_pos, default=None, metavar="UNIT_PER_PX",
+        help="length of one pixel in --unit, e.g. 0.02 (mm per px); recorded in the result "
+        "file, whose values stay in px; exports and plots are then in --unit "
+        "(default: none, everything in px)",
+    )  # fmt: skip
+    g.add_argument(
+        "--unit", default=None, metavar="NAME",
+        help="length unit of --scale, e.g. mm or um (required with --scale)",
+    )  # fmt: skip
+    g.add_argument(
+        "--time-unit", default=None, metavar="NAME",
+        help="unit of the times, e.g. s or ms (default: frame; 'time unit' with --timestamps)",
+    )  # fmt: skip
+
+
+def check_calibration(args: argparse.Namespace) -> dict[str, Any]:
+    """The calibration of ``--scale``, ``--unit``, ``--time-unit`` (UsageError naming them)."""
+    from ..io.units import check_calibration as check
+    from .errors import UsageError
+
+    try:
+        return check(args.scale, args.unit, args.time_unit)
+    except ValueError as exc:
+        msg = str(exc)
+        for name in ("time_unit", "scale", "unit"):
+            msg = msg.replace(f"{name}:", f"--{name.replace('_', '-')}:", 1)
+        raise UsageError(msg.replace("unit='mm'", "--unit mm")) from None
+
+
 def add_result(p: argparse.ArgumentParser) -> None:
     """The positional ``RESULT.h5``: a file written by ``stsdic run``."""
     p.add_argument("result", metavar="RESULT.h5", help="result file written by 'stsdic run'")

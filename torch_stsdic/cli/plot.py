@@ -18,14 +18,20 @@ NAME = "plot"
 HELP = "draw fields over the image and time histories as PNG files"
 
 DESCRIPTION = """\
-Draw a result file as PNG files in DIR:
+Draw a result file as PNG files in DIR, in the units the run recorded ('stsdic run
+--scale 0.02 --unit mm': lengths in mm; px without a scale):
   fields_frameNNNNN.png    maps of the chosen fields at one frame over the image
-  history_mean.png         time history of u, v averaged over the valid points
+  quality_frameNNNNN.png   status of every point and its ZNCC at that frame
+  history_mean.png         time history of u, v averaged over the usable points
   history_xX_yY.png        ... or of the point nearest to (X, Y) with --point
   velocity_history_*.png   the same for ut, vt (STS-DIC results, m >= 1)
   strain_history_*.png     the same for exx, eyy, exy (when the file has strains)
-Displacements use a sequential colour map, strains a diverging one centred on 0;
-failed points are transparent.
+  FIELD_movie.gif          with --animate FIELD: the field over the movie (MP4 with
+                           --animate-format mp4 when ffmpeg is installed)
+Every colour bar names its quantity and unit. Displacements use a sequential colour map
+with robust limits (0.5-99.5 percentiles of the usable points), strains, gradients and
+errors a diverging one centred on 0. Unusable points (status not converged/max-iter,
+or ZNCC below --min-zncc) are not drawn: the image shows through.
 """
 
 EPILOG = """\
@@ -33,14 +39,16 @@ examples:
   stsdic plot result.h5 --out plots/                        # last frame, mean history
   stsdic plot result.h5 --frame 5 --fields u,exx --out plots/
   stsdic plot result.h5 --point 150 150 --image movie.tif --out plots/
+  stsdic plot result.h5 --animate v --out plots/            # plots/v_movie.gif
 """
 
-#: (fields, y-axis label, file name prefix) of the time-history figures
+#: (fields, quantity, file name prefix) of the time-history figures
 HISTORIES = (
-    (("u", "v"), "displacement (px)", "history"),
-    (("ut", "vt"), "velocity (px / time unit)", "velocity_history"),
-    (("exx", "eyy", "exy"), "strain (-)", "strain_history"),
+    (("u", "v"), "displacement", "history"),
+    (("ut", "vt"), "velocity", "velocity_history"),
+    (("exx", "eyy", "exy"), "strain", "strain_history"),
 )
+
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -92,6 +100,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--dpi", type=options.int_min(20), default=120, help="PNG resolution (default: %(default)s)"
     )
     p.add_argument(
+        "--animate", default=None, metavar="FIELD",
+        help="also write FIELD_movie.gif: the field at every frame over the moving images",
+    )  # fmt: skip
+    p.add_argument(
+        "--animate-format", choices=("gif", "mp4"), default="gif",
+        help="mp4 needs ffmpeg (else a GIF is written) (default: %(default)s)",
+    )  # fmt: skip
+    p.add_argument(
+        "--fps", type=options.float_pos, default=4.0,
+        help="frames per second of --animate (default: %(default)s)",
+    )  # fmt: skip
+    p.add_argument(
         "--min-zncc", type=float, default=0.8, metavar="Z",
         help="hide points whose ZNCC is below Z in the maps, e.g. holes, edges, background "
         "(default: %(default)s; -1 shows every converged point)",
@@ -140,12 +160,12 @@ def _field_names(args: argparse.Namespace, res: Any) -> list[str]:
 
 
 def _valid(args: argparse.Namespace, res: Any) -> np.ndarray:
-    """(F, N) bool: converged (or max-iter) points with ZNCC >= ``--min-zncc``."""
-    from ..status import Status
+    """(F, N) bool: usable points (converged or max-iter) with ZNCC >= ``--min-zncc``."""
+    from ..status import usable
 
     status = res.fields.get("status")
     valid = (
-        np.asarray(status) <= int(Status.MAX_ITER)
+        usable(np.asarray(status))
         if status is not None
         else np.isfinite(res.fields.get("u", np.zeros((res.n_frames, res.n_points))))
     )
@@ -167,7 +187,27 @@ def _reference_frame(res: Any, n: int) -> int:
 
 def _background(args: argparse.Namespace, res: Any) -> np.ndarray | None:
     """Background image for the maps, or None."""
-    from ..io import load_series, parse_frame_spec
+    from ..io import parse_frame_spec
+
+    series = _series(args, res)
+    if series is None:
+        return None
+    try:
+        if args.image_frame is not None:
+            k = parse_frame_spec(args.image_frame, len(series))[0]
+        else:
+            k = _reference_frame(res, len(series))
+        return series.numpy(k)
+    except Exception as exc:
+        if args.image is not None or args.image_frame is not None:
+            raise CommandError(f"--image {args.image}: {one_line(exc)}") from exc
+        warnings.warn(f"no background image ({one_line(exc)})", stacklevel=2)
+        return None
+
+
+def _series(args: argparse.Namespace, res: Any) -> Any:
+    """The image series of ``--image`` or of the inputs the file records, or None."""
+    from ..io import load_series
 
     if args.no_image:
         return None
@@ -178,12 +218,7 @@ def _background(args: argparse.Namespace, res: Any) -> np.ndarray | None:
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            series = load_series(inputs[0] if len(inputs) == 1 else inputs)
-        if args.image_frame is not None:
-            k = parse_frame_spec(args.image_frame, len(series))[0]
-        else:
-            k = _reference_frame(res, len(series))
-        return series.numpy(k)
+            return load_series(inputs[0] if len(inputs) == 1 else inputs)
     except Exception as exc:
         if explicit:
             raise CommandError(f"--image {args.image}: {one_line(exc)}") from exc
@@ -208,7 +243,7 @@ def _history_pick(
                 warnings.simplefilter("ignore", RuntimeWarning)
                 return np.nanmean(vals, axis=1)
 
-        return mean, "mean over valid points", "mean"
+        return mean, "mean over usable points", "mean"
     x, y = args.point
     k = int(np.argmin((res.points[:, 0] - x) ** 2 + (res.points[:, 1] - y) ** 2))
     px, py = res.points[k]
@@ -225,25 +260,112 @@ def _plot_histories(args: argparse.Namespace, res: Any, valid: np.ndarray, out: 
 
     pick, what, tag = _history_pick(args, res, valid)
     done = res.completed.astype(bool)
+    units = res.units
     written = []
-    for keys, ylabel, prefix in HISTORIES:
+    for keys, quantity, prefix in HISTORIES:
         curves = {}
         for key in (k for k in keys if k in res.fields):
-            vals = np.where(done, pick(res.fields[key]), np.nan)
+            vals = np.where(done, pick(units.convert(key, res.fields[key])), np.nan)
             if np.isfinite(vals).any():
                 curves[key] = vals
         if curves:
             path = out / f"{prefix}_{tag}.png"
-            plot_history(res.times, curves, ylabel=ylabel, title=f"{Path(args.result).name}: "
-                         f"{what}", path=path, dpi=args.dpi)  # fmt: skip
+            plot_history(res.times, curves, ylabel=units.label(next(iter(curves)), quantity),
+                         xlabel=units.time_label, title=f"{Path(args.result).name}: {what}",
+                         path=path, dpi=args.dpi)  # fmt: skip
             written.append(path)
     return written
+
+
+def _calibration(res: Any) -> str:
+    """'lengths in mm (0.02 mm/px)' or 'lengths in px' for the figures' titles."""
+    u = res.units
+    return "lengths in px" if u.scale is None else f"lengths in {u.unit} ({u.scale:g} {u.unit}/px)"
+
+
+def _when(res: Any, row: int) -> str:
+    """'frame 7', or 'frame 7 (t = 0.35 s)' when the times are not frame numbers."""
+    units = res.units
+    text = f"frame {int(res.frames[row])}"
+    if units.time_unit != "frame":
+        text += f" (t = {res.times[row]:g} {units.time_unit})"
+    return text
+
+
+def _plot_frame(args: argparse.Namespace, res: Any, row: int, valid: np.ndarray,
+                image: np.ndarray | None, out: Path) -> list[Path]:
+    """The field maps and the quality map of one row; their paths."""
+    from ..plot import plot_fields, plot_status
+
+    frame, units, name = int(res.frames[row]), res.units, Path(args.result).name
+    when = _when(res, row)
+    written = []
+    names = _field_names(args, res)
+    if names:
+        maps = {}
+        for nm in names:
+            vals = units.convert(nm, np.asarray(res.fields[nm][row], dtype=np.float64))
+            maps[nm] = vals if nm == "status" else np.where(valid[row], vals, np.nan)
+        path = out / f"fields_frame{frame:05d}.png"
+        plot_fields(image, res.points, maps, path, dpi=args.dpi, units=units,
+                    suptitle=f"{name}: {when}, {_calibration(res)}; unusable points not drawn")
+        written.append(path)
+    if "status" in res.fields:
+        from matplotlib.figure import Figure
+
+        from ..plot import panel_extent, panel_layout, plot_field, save_figure
+
+        zn = res.fields.get("zncc")
+        w, h = panel_extent(image, res.points)
+        n = 2 if zn is not None else 1
+        _, _, (fw, fh) = panel_layout(n, w / h, n, height=4.2 if w <= h else 3.2)
+        fig = Figure(figsize=(fw + 1.3, fh), layout="constrained")  # + the status names
+        axes = fig.subplots(1, 2 if zn is not None else 1, squeeze=False).ravel()
+        plot_status(image, res.points, res.fields["status"][row], ax=axes[0],
+                    title="status (usable: converged, max_iter)")  # fmt: skip
+        if zn is not None:
+            z = np.where(np.isfinite(zn[row]), zn[row], np.nan)
+            plot_field(image, res.points, z, ax=axes[1], title="ZNCC", label="ZNCC (-)",
+                       vmax=1.0)  # fmt: skip
+        fig.suptitle(f"{name}: quality at {when}")
+        path = out / f"quality_frame{frame:05d}.png"
+        save_figure(fig, path, dpi=args.dpi)
+        written.append(path)
+    return written
+
+
+def _animate(args: argparse.Namespace, res: Any, valid: np.ndarray, out: Path) -> Path:
+    """``--animate FIELD``: the field over the movie."""
+    from ..plot import animate_field, is_diverging
+
+    nm = args.animate
+    if nm not in res.fields:
+        raise UsageError(f"--animate {nm}: no such field (the file has {', '.join(res.fields)})")
+    units = res.units
+    rows = np.flatnonzero(res.completed)
+    if not rows.size:
+        raise CommandError(f"{args.result}: no finished frame to animate")
+    series = _series(args, res)
+    frames = res.frames[rows]
+    if series is not None and int(frames.max()) >= len(series):
+        series = None
+    vals = np.where(valid[rows], units.convert(nm, res.fields[nm][rows].astype(np.float64)),
+                    np.nan)  # fmt: skip
+    disp = None
+    if "u" in res.fields and "v" in res.fields:
+        disp = (res.fields["u"][rows], res.fields["v"][rows])
+    return animate_field(
+        None if series is None else (lambda k: series.numpy(int(frames[k]))),
+        res.points, vals, out / f"{nm}_movie.{args.animate_format}",
+        stamps=[_when(res, r) for r in rows], displacement=disp, label=units.label(nm),
+        symmetric=is_diverging(nm), title=f"{Path(args.result).name}: {nm} at", fps=args.fps,
+        dpi=args.dpi,
+    )  # fmt: skip
 
 
 def execute(args: argparse.Namespace) -> int:
     """``stsdic plot``: field maps at one frame and time histories as PNG."""
     from ..io import read_results
-    from ..plot import plot_fields
 
     p = Path(args.result)
     if not p.exists():
@@ -252,23 +374,18 @@ def execute(args: argparse.Namespace) -> int:
     if res.n_frames == 0 or res.n_points == 0:
         raise CommandError(f"{args.result}: the result file holds no frame or no point")
     row = _row(args, res)
-    frame = int(res.frames[row])
-    names = _field_names(args, res)
+    _field_names(args, res)  # a bad --fields is a usage error before anything is written
+    if args.animate is not None and args.animate not in res.fields:
+        raise UsageError(f"--animate {args.animate}: no such field (the file has "
+                         f"{', '.join(res.fields)})")
     valid = _valid(args, res)
     image = _background(args, res)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    written: list[Path] = []
-    if names:
-        maps = {}
-        for nm in names:
-            vals = np.asarray(res.fields[nm][row], dtype=np.float64)
-            maps[nm] = vals if nm == "status" else np.where(valid[row], vals, np.nan)
-        path = out / f"fields_frame{frame:05d}.png"
-        plot_fields(image, res.points, maps, path, dpi=args.dpi,
-                    suptitle=f"{p.name}: frame {frame} (t = {res.times[row]:g})")  # fmt: skip
-        written.append(path)
+    written = _plot_frame(args, res, row, valid, image, out)
     written += _plot_histories(args, res, valid, out)
+    if args.animate is not None:
+        written.append(_animate(args, res, valid, out))
     for path in written:
         print(f"wrote {path}")
     return 0

@@ -34,7 +34,13 @@ rates) are computed by local plane fits and added to the file.
 
 The file holds points (N, 2), frames (F,), times (F,), and (F, N) datasets u, v [px],
 ut, vt [px per time unit], zncc, status (0 converged, 1 max-iter, 2 diverged,
-3 outside, 4 low texture, 5 not computed), exx, eyy, exy [-]; see 'stsdic export'.
+3 outside, 4 low texture, 5 not computed, 6 poor fit, 7 inconsistent: only 0 and 1 are
+used), m (the window half-width each result used: shorter where the motion is not
+affine in time, 0 = classical), u_std, v_std, ut_std, vt_std (predicted standard
+deviations), exx, eyy, exy [-]; see 'stsdic export'.
+--scale 0.02 --unit mm records a calibration with them (the datasets stay in px):
+'stsdic export' and 'stsdic plot' then give lengths in mm and velocities in mm per
+time unit (--time-unit, e.g. s with --timestamps).
 """
 
 EPILOG = """\
@@ -46,6 +52,7 @@ examples:
   stsdic run movie.tif --points poi.csv --timestamps times.csv --out r.h5
   stsdic run movie.tif --out r.h5 --resume                  # continue a killed run
   stsdic run movie.tif --device cuda --dtype float32 --out r.h5
+  stsdic run movie.tif --scale 0.02 --unit mm --timestamps t.csv --time-unit s --out r.h5
 """
 
 
@@ -67,6 +74,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--strain-kind", choices=("green", "small"), default="green",
         help="green: Green-Lagrange; small: infinitesimal strain (default: %(default)s)",
     )  # fmt: skip
+    options.add_calibration(p.add_argument_group("calibration"))
     g = p.add_argument_group("computation and output")
     g.add_argument(
         "--dtype",
@@ -252,6 +260,7 @@ def execute(args: argparse.Namespace) -> int:
             f"output file {out} exists: use --overwrite to replace it or --resume to continue it"
         )
     device = check_device(args.device)
+    calibration = options.check_calibration(args)
     kwargs = _track_arguments(args)
 
     from ..series import track
@@ -272,6 +281,9 @@ def execute(args: argparse.Namespace) -> int:
             refine_frames=args.refine_frames if args.refine_reference else None,
             strain_window=args.strain_window,
             strain_kind=args.strain_kind,
+            scale=calibration.get("scale"),
+            unit=calibration["unit"],
+            time_unit=calibration.get("time_unit"),
         )
     except KeyboardInterrupt:
         print(
@@ -312,10 +324,19 @@ def _print_summary(res: Any, args: argparse.Namespace, elapsed: float) -> None:
     print(f"points: {n_p}   frames: {n_f}   reference: {args.reference}   m: {args.m}")
     print(
         f"converged: {st['converged']:.1f} %   max-iter: {st['max_iter']:.1f} %   "
-        f"failed: {100.0 - st['converged'] - st['max_iter']:.1f} % "
+        f"not trusted: {100.0 - st['converged'] - st['max_iter']:.1f} % "
         f"(diverged {st['diverged']:.1f}, outside {st['outside']:.1f}, "
-        f"low texture {st['low_texture']:.1f}, not computed {st['not_computed']:.1f})"
+        f"low texture {st['low_texture']:.1f}, not computed {st['not_computed']:.1f}, "
+        f"poor fit {st['poor_fit']:.1f}, inconsistent {st['inconsistent']:.1f})"
     )
+    m_used = res.m
+    if args.m and m_used is not None:
+        mu = to_numpy(m_used)
+        ok = status <= 1
+        if ok.any():
+            print(f"window: m = {args.m} at {100.0 * (mu[ok] == args.m).mean():.1f} % of the "
+                  f"trusted results, shorter where the motion is not affine in time "
+                  f"(classical at {100.0 * (mu[ok] == 0).mean():.1f} %)")
     device = args.device
     on_cpu = str(device).startswith("cpu")
     kernels = "fused C++ kernels" if on_cpu and native.available() else "torch kernels"

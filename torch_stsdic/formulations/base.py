@@ -99,6 +99,9 @@ class SubsetData:
         fnorm: (N,) weighted norm of ``ft``.
         gx, gy: (N, S) reference gradient, grey levels per px.
         chol: (N, P, P) Cholesky factor of a Hessian prepared once (inverse compositional).
+        gram: (N, P', P') the centred moments of the reference gradients
+            (:func:`~torch_stsdic.formulations.joint_ic.centred_gram`) when computed once for
+            both the Hessian and the uncertainty.
     """
 
     px: Tensor
@@ -111,6 +114,7 @@ class SubsetData:
     gx: Tensor
     gy: Tensor
     chol: Tensor | None = None
+    gram: Tensor | None = None
 
     def take(self, idx: Tensor) -> SubsetData:
         """The rows ``idx`` (index or boolean mask)."""

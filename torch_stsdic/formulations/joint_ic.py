@@ -20,12 +20,12 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .. import native
+from .. import kernels, native
 from ..interpolation import BSplineImage, maybe_compiled, sample_kernel
 from ..shape import linear_displacement
 from .base import Formulation, Geometry, SubsetData
 
-__all__ = ["JointIC", "ic_rhs_kernel", "gram", "ic_hessian", "ic_jacobian"]
+__all__ = ["JointIC", "ic_rhs_kernel", "gram", "centred_gram", "ic_hessian", "ic_jacobian"]
 
 
 def ic_rhs_kernel(flat, p, px, py, dx, dy, spatial_t, dt, frame_off, ft, fnorm, gx, gy, w,
@@ -97,15 +97,25 @@ def ic_jacobian(geo: Geometry, gx: Tensor, gy: Tensor, dt: Tensor) -> Tensor:
     return jac
 
 
-def ic_hessian(geo: Geometry, gx: Tensor, gy: Tensor, dt: Tensor) -> Tensor:
+def centred_gram(geo: Geometry, gx: Tensor, gy: Tensor) -> Tensor:
+    """(N, P', P') float64 ``sum_s w (J_s - Jbar)(J_s - Jbar)^T`` of the augmented columns
+    (:func:`gram`), Jbar their window mean for ZNSSD (``G - m m^T / sum w``; SSD: G)."""
+    g, m = gram(gx, gy, geo.spatial, geo.w)
+    if geo.znssd:
+        g = g - m.unsqueeze(-1) * m.unsqueeze(-2) / float(geo.w.sum())
+    return g
+
+
+def ic_hessian(geo: Geometry, gx: Tensor, gy: Tensor, dt: Tensor,
+               g: Tensor | None = None) -> Tensor:
     """Gauss-Newton Hessian ``sum_t J_t^T W J_t`` of the joint IC problem, (N, P, P) float64.
 
     With the moments of :func:`gram` this is H = (G - m m^T / sum w) o sum_t z_t z_t^T,
     z_t = (1 .. 1, dt_t) per component (o: element-wise product), so no (N, T, S, P) Jacobian
-    is formed (equal to the brute-force sum over :func:`ic_jacobian`; tested)."""
-    g, m = gram(gx, gy, geo.spatial, geo.w)
-    if geo.znssd:
-        g = g - m.unsqueeze(-1) * m.unsqueeze(-2) / float(geo.w.sum())
+    is formed (equal to the brute-force sum over :func:`ic_jacobian`; tested). ``g``: the
+    :func:`centred_gram` when already computed."""
+    if g is None:
+        g = centred_gram(geo, gx, gy)
     n, t = dt.shape
     ks = geo.ks
     if not geo.shape.has_time:  # drop the augmented constant columns; sum over T frames
@@ -126,12 +136,20 @@ class JointIC(Formulation):
     inverse_compositional = True
 
     def prepare(self, geo: Geometry, data: SubsetData) -> Tensor:
-        chol, info = torch.linalg.cholesky_ex(ic_hessian(geo, data.gx, data.gy, data.dt))
+        chol, info = torch.linalg.cholesky_ex(
+            ic_hessian(geo, data.gx, data.gy, data.dt, g=data.gram))
         data.chol = chol
         return info > 0
 
     def uses_fused_kernel(self, frames: BSplineImage, data: SubsetData, p: Tensor) -> bool:
-        return native.usable_image(frames.kernel_args(), p, data.ft)
+        return native.usable_image(frames.kernel_args(), p, data.ft) or self._triton(
+            frames, data, p)
+
+    @staticmethod
+    def _triton(frames: BSplineImage, data: SubsetData, p: Tensor) -> bool:
+        """The fused Triton step (:mod:`torch_stsdic.kernels`) serves this call (CUDA)."""
+        return kernels.usable(frames.kernel_args()[0], frames.order, data.ft.shape[1], p,
+                              data.ft, data.gx, data.gy)
 
     def _args(self, geo: Geometry, frames: BSplineImage, data: SubsetData, p: Tensor) -> tuple:
         flat, wp, x_lo, x_hi, y_lo, y_hi, shift, plane = frames.kernel_args()
@@ -144,7 +162,8 @@ class JointIC(Formulation):
              work: int, sel: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
         if sel is not None:
             ka = frames.kernel_args()
-            b, zn, outside = native.ic_rhs(
+            fused = native.ic_rhs if native.usable_image(ka, p, data.ft) else kernels.ic_rhs
+            b, zn, outside = fused(
                 ka, frames.order, p, data.px, data.py, geo.dx, geo.dy, geo.spatial, data.dt,
                 data.fidx * ka[-1], data.ft, data.fnorm, data.gx, data.gy, geo.w, frames.width,
                 frames.height, geo.k, geo.shape.has_time, geo.znssd, rows=sel,

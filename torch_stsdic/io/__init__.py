@@ -2,7 +2,7 @@
 users' small tables (:mod:`.tables`),
 HDF5 result files (:mod:`.results`) and exports for other tools (:mod:`.export`)."""
 
-from .export import export_csv
+from .export import FORMATS, export_csv, export_mat, export_results, export_vtk
 from .images import IMAGE_EXTENSIONS, ImageSeries, load_series
 from .results import (
     CSV_COLUMNS,
@@ -18,10 +18,12 @@ from .results import (
 )
 from .specs import InputError, natural_sort_key, parse_frame_spec
 from .tables import read_mask, read_points, read_table, read_timestamps
+from .units import Units, units_of
 
 __all__ = [
     "CSV_COLUMNS",
     "DEFAULT_FIELDS",
+    "FORMATS",
     "IMAGE_EXTENSIONS",
     "RESULTS_FORMAT",
     "RESULTS_FORMAT_VERSION",
@@ -31,8 +33,12 @@ __all__ = [
     "ResultFileError",
     "ResultWriter",
     "Results",
+    "Units",
     "add_fields",
     "export_csv",
+    "export_mat",
+    "export_results",
+    "export_vtk",
     "load_series",
     "natural_sort_key",
     "parse_frame_spec",
@@ -41,4 +47,5 @@ __all__ = [
     "read_results",
     "read_table",
     "read_timestamps",
+    "units_of",
 ]

@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from ..status import Status
+from .units import Units, units_of
 
 __all__ = [
     "CSV_COLUMNS",
@@ -60,6 +61,7 @@ _RESERVED = {"points", "frames", "times", "completed"}
 _INT_FIELDS: dict[str, tuple[type, int]] = {
     "status": (np.int8, int(Status.NOT_COMPUTED)),
     "iterations": (np.int16, -1),
+    "m": (np.int8, -1),
 }
 
 
@@ -494,6 +496,11 @@ class Results:
     @property
     def n_frames(self) -> int:
         return len(self.frames)
+
+    @property
+    def units(self) -> Units:
+        """The calibration recorded in the file (pixels and frames when none)."""
+        return units_of(self.attrs)
 
     @property
     def n_points(self) -> int:

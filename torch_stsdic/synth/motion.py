@@ -145,6 +145,49 @@ class HomogeneousStrain(Motion):
                 f"center={self.center}, rate={self.rate}, omega={self.omega})")
 
 
+class Rotation(Motion):
+    """Rigid rotation about ``center = (x0, y0)`` at ``rate`` degrees per time unit (finite,
+    not small-angle: an exact arc), positive = clockwise on screen (x right, y down).
+
+    With ``theta = rate * t`` (radians), ``d = X - center``:
+    ``u = (cos theta - 1) dx - sin theta dy``, ``v = sin theta dx + (cos theta - 1) dy``;
+    gradient ``(cos - 1, -sin, sin, cos - 1)``; velocity ``theta' (-sin dx - cos dy,
+    cos dx - sin dy)``. Breaks the affine-in-time model of STS-DIC (the subset turns along
+    an arc); used by the motion-family validation.
+    """
+
+    def __init__(self, rate: float, center: tuple[float, float] = (0.0, 0.0)):
+        self.rate = float(rate)
+        self.center = (float(center[0]), float(center[1]))
+
+    def _angle(self, t: Tensor) -> Tensor:
+        return t * (self.rate * math.pi / 180.0)
+
+    def displacement(self, x, y, t):
+        x, y, t = self._shape(x, y, t)
+        th = self._angle(t)
+        dx, dy = x - self.center[0], y - self.center[1]
+        c, s = torch.cos(th), torch.sin(th)
+        return (c - 1) * dx - s * dy, s * dx + (c - 1) * dy
+
+    def gradient(self, x, y, t):
+        x, y, t = self._shape(x, y, t)
+        th = self._angle(t)
+        c, s = torch.cos(th), torch.sin(th)
+        return c - 1, -s, s.clone(), c - 1
+
+    def velocity(self, x, y, t):
+        x, y, t = self._shape(x, y, t)
+        th = self._angle(t)
+        w = self.rate * math.pi / 180.0
+        dx, dy = x - self.center[0], y - self.center[1]
+        c, s = torch.cos(th), torch.sin(th)
+        return w * (-s * dx - c * dy), w * (c * dx - s * dy)
+
+    def __repr__(self) -> str:
+        return f"Rotation(rate={self.rate}, center={self.center})"
+
+
 class QuadraticInTime(Motion):
     """Uniform motion, quadratic in time (constant acceleration).
 

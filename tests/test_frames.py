@@ -1,0 +1,148 @@
+"""FrameCache: window frames, read-ahead in a background thread (same frames, each read once,
+errors raised in the caller, the thread stopped), and track() equal with and without it."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+import torch
+
+import torch_stsdic as sts
+from torch_stsdic import synth
+from torch_stsdic.frames import FrameCache, default_ahead, frames_in_order, window_frames
+from torch_stsdic.io import load_series
+from torch_stsdic.solver import SubsetSolver
+
+
+def test_window_frames_shift_at_the_ends():
+    w = window_frames(torch.tensor([0, 1, 5, 9]), 2, 10)
+    assert w.tolist() == [[0, 1, 2, 3, 4], [0, 1, 2, 3, 4], [3, 4, 5, 6, 7], [5, 6, 7, 8, 9]]
+    assert frames_in_order([[0], [1, 2], [7, 8, 9]], 1, 10) == [0, 1, 2, 3, 6, 7, 8, 9]
+    assert frames_in_order([], 2, 10) == []
+
+
+def test_default_ahead(monkeypatch):
+    monkeypatch.delenv("TORCH_STSDIC_READ_AHEAD", raising=False)
+    assert default_ahead(8, 2) == 12 and default_ahead(1, 0) == 4
+    monkeypatch.setenv("TORCH_STSDIC_READ_AHEAD", "0")
+    assert default_ahead(8, 2) == 0
+
+
+class _Counting:
+    """An ImageSeries that counts reads per frame (and can fail on one frame)."""
+
+    def __init__(self, frames: np.ndarray, fail_at: int | None = None) -> None:
+        self.inner = load_series(frames)
+        self.count: dict[int, int] = {}
+        self.threads: set[str] = set()
+        self.fail_at = fail_at
+
+    def __len__(self) -> int:
+        return len(self.inner)
+
+    def get(self, i, dtype=torch.float32, device=None):
+        if i == self.fail_at:
+            raise OSError(f"cannot decode frame {i}")
+        self.count[i] = self.count.get(i, 0) + 1
+        self.threads.add(threading.current_thread().name)
+        return self.inner.get(i, dtype=dtype, device=device)
+
+
+def _frames(n=9, size=40):
+    g = torch.Generator().manual_seed(0)
+    return (torch.rand(n, size, size, generator=g) * 255).numpy()
+
+
+def _blocks(cache, blocks, m, n):
+    out = []
+    for b in blocks:
+        idx = torch.unique(window_frames(torch.tensor(b), m, n)).tolist()
+        raw, img = cache.load(idx)
+        out.append((idx, raw.clone(), img.coeffs.clone()))
+    return out
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
+    not torch.cuda.is_available(), reason="no CUDA device (pinned memory, side stream)"))])
+def test_read_ahead_gives_the_same_frames_each_read_once(device):
+    frames = _frames()
+    solver = SubsetSolver(sts.DICConfig(m=1))
+    blocks, m, n = [[0], [1, 2, 3], [4, 5, 6], [7, 8]], 1, len(frames)
+    plain = FrameCache(_Counting(frames), solver, torch.float32, "cpu")
+    want = _blocks(plain, blocks, m, n)
+    series = _Counting(frames)
+    cache = FrameCache(series, solver, torch.float32, device, ahead=2)
+    cache.schedule(frames_in_order(blocks, m, n))
+    got = _blocks(cache, blocks, m, n)
+    cache.close()
+    tol = 0 if device == "cpu" else 1e-3  # the FFT prefilter on CUDA, the C++ one on CPU
+    for (i1, r1, c1), (i2, r2, c2) in zip(want, got):
+        assert i1 == i2 and torch.equal(r1, r2.cpu())
+        torch.testing.assert_close(c2.cpu(), c1, rtol=0, atol=tol)
+    assert series.count == {i: 1 for i in range(n)}  # every frame read once
+    assert series.threads == {"stsdic-frames"}  # and in the background
+    t = cache.times()
+    assert t["ahead_read_s"] > 0 and t["ahead_prefilter_s"] > 0 and t["read_s"] == 0
+    assert cache.reads == n and cache.prefiltered == n
+    assert not any(th.name == "stsdic-frames" for th in threading.enumerate())
+
+
+def test_out_of_order_frames_are_read_on_the_spot():
+    frames = _frames()
+    solver = SubsetSolver(sts.DICConfig(m=1))
+    series = _Counting(frames)
+    cache = FrameCache(series, solver, torch.float32, "cpu", ahead=3)
+    cache.schedule([0, 1, 2, 3, 4])
+    raw, _ = cache.load([3, 4])  # 0..2 skipped (e.g. blocks replayed from a file)
+    assert torch.equal(raw[0], torch.from_numpy(frames[3]))
+    raw, _ = cache.load([1, 7])  # behind the reader / not scheduled: read directly
+    assert torch.equal(raw[1], torch.from_numpy(frames[7]))
+    assert torch.equal(cache.read(8), torch.from_numpy(frames[8]))
+    cache.close()
+    cache.close()  # idempotent
+
+
+def test_reader_errors_reach_the_caller():
+    solver = SubsetSolver(sts.DICConfig(m=1))
+    cache = FrameCache(_Counting(_frames(), fail_at=2), solver, torch.float32, "cpu", ahead=2)
+    cache.schedule([0, 1, 2, 3])
+    cache.load([0, 1])
+    with pytest.raises(OSError, match="cannot decode frame 2"):
+        cache.load([1, 2])
+    cache.close()
+
+
+def test_track_equal_with_and_without_read_ahead(monkeypatch):
+    mv = synth.synthetic_movie((64, 64), 8, synth.Translation(ut=0.1, vt=-0.05), seed=1,
+                               noise_sigma=1.0)
+    kw = dict(reference=mv.ref, step=16, config=sts.DICConfig(subset_size=15, m=1),
+              progress=False, batch_frames=3)
+    monkeypatch.setenv("TORCH_STSDIC_READ_AHEAD", "0")
+    want = sts.track(mv.frames, **kw)
+    monkeypatch.setenv("TORCH_STSDIC_READ_AHEAD", "3")
+    got = sts.track(mv.frames, **kw)
+    torch.testing.assert_close(got.u, want.u, rtol=0, atol=0, equal_nan=True)
+    assert torch.equal(got.status, want.status)
+    assert got.info["frames_read"] == want.info["frames_read"] == 8
+    assert got.info["frame_times_s"]["ahead_read_s"] > 0
+    assert want.info["frame_times_s"]["ahead_read_s"] == 0
+    err = (want.u - 0.1 * mv.times.view(-1, 1))[want.ok]
+    assert want.ok.float().mean() > 0.5 and float(err.abs().max()) < 0.05
+
+
+def test_read_ahead_is_bounded():
+    """The reader stays at most ``ahead`` frames (+ the one it holds) ahead of the caller."""
+    import time
+
+    series = _Counting(_frames(n=12))
+    cache = FrameCache(series, SubsetSolver(sts.DICConfig(m=1)), torch.float32, "cpu", ahead=2)
+    cache.schedule(list(range(12)))
+    cache.load([0, 1, 2])
+    deadline = time.monotonic() + 20.0
+    while len(series.count) < 3 + 2 and time.monotonic() < deadline:  # the queue fills up
+        time.sleep(0.01)
+    time.sleep(0.2)  # and the reader would go on if it were not bounded
+    assert 3 + 2 <= len(series.count) <= 3 + 2 + 1
+    cache.close()

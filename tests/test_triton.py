@@ -1,0 +1,163 @@
+"""The fused Triton step (torch_stsdic.kernels) against the torch code, on CPU through
+Triton's interpreter (TRITON_INTERPRET=1, small sizes), and on CUDA when there is a GPU."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+import torch
+
+if not torch.cuda.is_available():  # no GPU: Triton's interpreter, before Triton is imported
+    os.environ.setdefault("TRITON_INTERPRET", "1")
+
+import torch_stsdic as sts
+from torch_stsdic import kernels, native, synth
+from torch_stsdic.interpolation import BSplineImage
+
+pytestmark = pytest.mark.skipif(not kernels.available(),
+                                reason="triton is not importable (pip install triton)")
+INTERPRET = os.environ.get("TRITON_INTERPRET") == "1"
+
+
+@pytest.fixture(autouse=True)
+def _modes():
+    yield
+    kernels.set_triton("auto")
+    native.set_native("auto")
+
+
+def _case(has_time, dtype, n=6, t=3, half=4, seed=0, device="cpu"):
+    """A small random step problem: a 3-frame 40x52 image, affine shape, 9x9 subsets."""
+    g = torch.Generator().manual_seed(seed)
+    img = BSplineImage(torch.rand(t, 40, 52, generator=g, dtype=dtype) * 255, 3)
+    shape = sts.shape.AffineShape(temporal=has_time)
+    d = torch.arange(-half, half + 1.0, dtype=dtype)
+    dx, dy = d.repeat(d.numel()), d.repeat_interleave(d.numel())
+    k = shape.n_basis
+    p = torch.randn(n, 2 * k, generator=g, dtype=dtype) * 0.05
+    p[:, 0] += 0.7
+    c = dict(p=p, px=torch.rand(n, 1, generator=g, dtype=dtype) * 24 + 12,
+             py=torch.rand(n, 1, generator=g, dtype=dtype) * 14 + 12, dx=dx, dy=dy,
+             basis=shape.spatial_basis(dx, dy),
+             dt=(torch.arange(t, dtype=dtype) - t // 2).expand(n, t).contiguous(),
+             fidx=torch.randint(0, t, (n, t), generator=g) * img.kernel_args()[-1])
+    ft = torch.randn(n, dx.numel(), generator=g, dtype=dtype)
+    c["ft"] = ft - ft.mean(1, keepdim=True)
+    c["fnorm"] = c["ft"].norm(dim=1)
+    c["gx"] = torch.randn(n, dx.numel(), generator=g, dtype=dtype)
+    c["gy"] = torch.randn(n, dx.numel(), generator=g, dtype=dtype)
+    c["w"] = torch.rand(dx.numel(), generator=g, dtype=dtype) + 0.5
+    c = {key: v.to(device) for key, v in c.items()}
+    return img.to(device=device), k, c
+
+
+def _rhs(img, k, c, has_time, znssd, rows=None, p=None):
+    return kernels.ic_rhs(img.kernel_args(), 3, c["p"] if p is None else p, c["px"], c["py"],
+                          c["dx"], c["dy"], c["basis"], c["dt"], c["fidx"], c["ft"], c["fnorm"],
+                          c["gx"], c["gy"], c["w"], img.width, img.height, k, has_time, znssd,
+                          rows=rows)
+
+
+def _devices():
+    devs = ["cpu"] if INTERPRET else []
+    if torch.cuda.is_available() and not INTERPRET:
+        devs.append("cuda")
+    return devs or [pytest.param("cpu", marks=pytest.mark.skip(
+        reason="no CUDA and TRITON_INTERPRET is not 1"))]
+
+
+@pytest.mark.parametrize("device", _devices())
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("has_time,znssd", [(True, True), (False, True), (True, False)])
+def test_fused_step_matches_torch_code(device, dtype, has_time, znssd):
+    img, k, c = _case(has_time, dtype, device=device)
+    kernels.set_triton("0")
+    want = _rhs(img, k, c, has_time, znssd)  # the torch code (the op's fallback)
+    kernels.set_triton("1")
+    assert kernels.usable(img.kernel_args()[0], 3, c["dx"].numel(), c["p"])
+    got = _rhs(img, k, c, has_time, znssd)
+    tol = 1e-9 if dtype == torch.float64 else 2e-3
+    scale = float(want[0].abs().max())
+    assert got[0].dtype == torch.float64 and got[0].shape == want[0].shape
+    assert (got[0] - want[0]).abs().max() <= tol * scale
+    assert torch.allclose(got[1], want[1], atol=10 * tol)
+    assert torch.equal(got[2], want[2])
+    # rows: the step of a few points picked by index (finished points skipped)
+    rows = torch.tensor([4, 0, 2], device=device)
+    got_r = _rhs(img, k, c, has_time, znssd, rows=rows, p=c["p"][rows])
+    assert (got_r[0] - got[0][rows]).abs().max() <= tol * scale
+    assert torch.allclose(got_r[1], got[1][rows], atol=10 * tol)
+
+
+@pytest.mark.skipif(not INTERPRET, reason="CPU check through Triton's interpreter")
+def test_fused_step_flags_outside_and_uses_every_frame():
+    img, k, c = _case(True, torch.float64)
+    c["px"][2] = 3.0  # the 9x9 subset (half 4) leaves the image
+    kernels.set_triton("1")
+    b, zn, out = _rhs(img, k, c, True, True)
+    assert out[2] and int(out.sum()) == 1
+    # a frame's coefficients changed: the right-hand side changes (every frame is read)
+    img2 = BSplineImage.__new__(BSplineImage)
+    img2.__dict__.update(img.__dict__)
+    img2.coeffs = img.coeffs.clone()
+    img2.coeffs[1] += torch.rand_like(img2.coeffs[1])
+    img2._flat = img2.coeffs.reshape(-1)
+    b2, _, _ = _rhs(img2, k, c, True, True)
+    uses_1 = (c["fidx"] == img.kernel_args()[-1]).any(1)
+    assert ((b2 - b).abs().amax(1) > 1e-9).eq(uses_1).all()
+
+
+def test_selection():
+    img, k, c = _case(True, torch.float32)
+    flat = img.kernel_args()[0]
+    kernels.set_triton("auto")
+    assert not kernels.usable(flat, 3, 81, c["p"])  # CPU tensors: the CPU paths serve
+    kernels.set_triton("1")
+    assert kernels.usable(flat, 3, 81, c["p"]) == INTERPRET
+    assert not kernels.usable(flat, 5, 81, c["p"])  # quintic: torch code
+    assert not kernels.usable(flat.half(), 3, 81)
+    assert not kernels.usable(flat, 3, 10**6)  # subset too large for one program
+    kernels.set_triton("0")
+    assert not kernels.usable(flat, 3, 81, c["p"])
+    with pytest.raises(ValueError, match="triton mode"):
+        kernels.set_triton("sometimes")
+
+
+def test_op_is_a_torch_operator():
+    """Registered with torch.library: the op checks out under torch's own op tests (schema,
+    fake implementation) and runs the torch code where the kernel is not selected."""
+    img, k, c = _case(True, torch.float64, n=3)
+    kernels.set_triton("0")
+    a = img.kernel_args()
+    args = (a[0], c["p"], c["px"].reshape(-1), c["py"].reshape(-1), c["dx"], c["dy"],
+            c["basis"], c["dt"], c["fidx"], c["ft"], c["fnorm"], c["gx"], c["gy"], c["w"],
+            None, a[1], a[2], a[3], a[4], a[5], a[6], img.width, img.height, k, True, True, 3)
+    torch.library.opcheck(torch.ops.torch_stsdic.ic_rhs.default, args,
+                          test_utils=("test_schema", "test_faketensor"))
+
+
+@pytest.mark.skipif(not INTERPRET, reason="CPU check through Triton's interpreter")
+def test_solver_with_fused_step_matches_torch_code(monkeypatch):
+    """A whole STS(3) solve with the Triton step (interpreted) equals the torch code's."""
+    mv = synth.synthetic_movie((48, 48), 3, synth.Translation(ut=0.2, vt=-0.1), seed=2)
+    mod = kernels._module()
+    launches = []
+
+    def counted(*args, _fn=mod.ic_rhs_triton):
+        launches.append(args[1].shape[0])
+        return _fn(*args)
+
+    monkeypatch.setattr(mod, "ic_rhs_triton", counted)
+    cfg = sts.DICConfig(subset_size=11, m=1, dtype="float64")
+    pts = torch.tensor([[20.0, 20.0], [27.0, 24.0]], dtype=torch.float64)
+    native.set_native("0")
+    kernels.set_triton("0")
+    want = sts.solve_window(mv.ref, mv.frames, pts, cfg, times=mv.times)
+    kernels.set_triton("1")
+    assert not launches
+    got = sts.solve_window(mv.ref, mv.frames, pts, cfg, times=mv.times)
+    assert launches and launches[0] == 2  # the solver's steps went through the kernel
+    assert torch.equal(got.status, want.status)
+    assert torch.allclose(got.params, want.params, atol=1e-8)
+    assert (want.u - 0.4).abs().max() < 0.02  # and the solve is right (u at t = 2)

@@ -1,0 +1,134 @@
+"""Checks that decide whether a solved point is trusted: the model check of a window, the fit
+check against the image noise, and the neighbour (normalised median) test.
+
+A number marked CONVERGED is a promise. The Gauss-Newton iteration converging only says the
+criterion is at a minimum; these checks say whether that minimum is the motion:
+
+- **Model check** (:func:`model_mismatch`): a window of 2m+1 frames assumes the motion is
+  affine in time over the window. The classical (m = 0) solution at the window's target frame
+  needs no such assumption. Under the model both estimate the same displacement, and the STS one
+  is the more efficient, so their difference has variance ``var_classical - var_sts`` (the
+  Hausman test; both variances are predicted per point by :mod:`torch_stsdic.uncertainty` from
+  the point's own residual). A difference beyond ``MODEL_Z`` standard deviations (plus a
+  tolerance ``MODEL_TOL`` px for what the noise model leaves out: interpolation bias) means the
+  window does not fit; the tracker then shortens it (m - 1, ..., 0) for that point.
+- **Fit check** (:func:`poor_fit`): the residual of a right answer is the image noise. A point
+  whose noise estimate (residual std) is more than ``FIT_RATIO`` times the median of the points
+  solved with it, or whose ZNCC is below the run's floor, did not find its subset: POOR_FIT.
+- **Neighbour check** (:func:`median_test`): the normalised median test of PIV (Westerweel &
+  Scarano 2005, Exp. Fluids 39:1096) on u and v among the nearest grid neighbours, each
+  neighbour's value first carried to the point by its own measured gradient (so linear fields
+  pass at edges and beside holes): residual ``|u_i - med_j c_j| / (med_j |c_j - med| + eps)``
+  above ``MEDIAN_THRESHOLD`` is an outlier: INCONSISTENT. ``eps`` is ``MEDIAN_EPS_STD`` times
+  the median predicted std, at least ``MEDIAN_EPS_MIN`` px: the test catches gross outliers
+  (a wrong peak, off by more than ~0.1 px), never the noise or the noise of the gradients
+  used to carry the neighbours.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from .points import nearest_points
+
+__all__ = [
+    "MODEL_Z", "MODEL_TOL", "FIT_RATIO", "MEDIAN_THRESHOLD", "MEDIAN_EPS_STD", "MEDIAN_EPS_MIN",
+    "model_mismatch", "poor_fit", "neighbours", "median_test",
+]
+
+MODEL_Z = 3.0  #: model check: standard deviations of the STS - classical difference allowed
+MODEL_TOL = 0.005  #: model check: px added in quadrature to that standard deviation
+FIT_RATIO = 2.0  #: fit check: residual std above this times the median is POOR_FIT
+MEDIAN_THRESHOLD = 2.0  #: neighbour check: normalised median residual above this is an outlier
+MEDIAN_EPS_STD = 3.0  #: neighbour check: eps in units of the median predicted std
+MEDIAN_EPS_MIN = 0.05  #: neighbour check: smallest eps, px (half the 0.1 px a user notices)
+
+
+def model_mismatch(d_sts: Tensor, d_cls: Tensor, std_sts: Tensor, std_cls: Tensor) -> Tensor:
+    """(N,) bool: the window's displacement disagrees with the classical one.
+
+    Args:
+        d_sts, d_cls: (N, 2) displacement (u, v) at the target frame, px: the window's and
+            the classical solution's.
+        std_sts, std_cls: (N, 2) their predicted standard deviations, px (NaN: unknown, then
+            only ``MODEL_TOL`` is allowed beyond ``MODEL_Z`` times the classical std).
+    """
+    vs = torch.nan_to_num(std_sts.double(), nan=0.0) ** 2
+    vc = torch.nan_to_num(std_cls.double(), nan=0.0) ** 2
+    var = torch.maximum(vc - vs, 0.2 * vc) + MODEL_TOL**2
+    z = (d_sts.double() - d_cls.double()).abs() / var.sqrt()
+    return ~(z <= MODEL_Z).all(1)  # NaN differences fail
+
+
+def poor_fit(sigma: Tensor, zncc: Tensor, solved: Tensor, zncc_floor: float,
+             min_points: int = 16) -> Tensor:
+    """(N,) bool: solved points whose fit is not the image noise.
+
+    Args:
+        sigma: (N,) noise std estimated from each point's residual, grey levels.
+        zncc: (N,) ZNCC of each point.
+        solved: (N,) bool, the points to judge (the median is taken over them).
+        zncc_floor: ZNCC below this is a poor fit.
+        min_points: the residual test needs at least this many solved points (a median).
+    """
+    bad = solved & ~(zncc >= zncc_floor)
+    s = sigma[solved & torch.isfinite(sigma)]
+    if s.numel() >= min_points:
+        med = s.median()
+        bad |= solved & (sigma > FIT_RATIO * med)
+    return bad
+
+
+def neighbours(points: Tensor, k: int = 8, reach: float = 2.5, chunk: int = 2048) -> Tensor:
+    """(N, k) indices of the ``k`` nearest other points within ``reach`` times the median
+    nearest-neighbour distance (-1 where fewer), from (N, 2) positions px."""
+    p = points.double()
+    n = p.shape[0]
+    k_eff = min(k, n - 1)
+    if k_eff <= 0:
+        return torch.full((n, k), -1, dtype=torch.long, device=points.device)
+    dist_t, idx_t = nearest_points(p, k_eff + 1, chunk)
+    dist_t, idx_t = dist_t[:, 1:], idx_t[:, 1:]  # not itself
+    limit = reach * dist_t[:, 0].median()
+    idx_t = torch.where(dist_t <= limit, idx_t, torch.full_like(idx_t, -1))
+    if k_eff < k:
+        pad = torch.full((n, k - k_eff), -1, dtype=torch.long, device=idx_t.device)
+        idx_t = torch.cat([idx_t, pad], 1)
+    return idx_t.to(points.device)
+
+
+def _nanmedian(x: Tensor) -> Tensor:
+    return torch.nanmedian(x, dim=-1).values
+
+
+def median_test(values: Tensor, valid: Tensor, nb: Tensor, eps: float | Tensor,
+                points: Tensor | None = None, gradients: Tensor | None = None,
+                min_neighbours: int = 3) -> Tensor:
+    """Normalised median test (module docstring) of (B, N, C) ``values`` (C components, e.g.
+    u and v) over the neighbours ``nb`` (N, k); only ``valid`` (B, N) points count as
+    neighbours or are judged. With ``points`` (N, 2) px and ``gradients`` (B, N, C, 2) (d/dx,
+    d/dy of each component), each neighbour's value is carried to the point by its own
+    gradient first, so linear fields pass at edges and beside holes too. Returns (B, N) bool
+    outliers (never a point with fewer than ``min_neighbours`` valid neighbours)."""
+    b, n, c = values.shape
+    v = torch.where(valid.unsqueeze(-1), values.double(), torch.nan)
+    has = nb >= 0
+    safe = nb.clamp(min=0)
+    vn = v[:, safe]  # (B, N, k, C)
+    if points is not None and gradients is not None:
+        p = points.double()
+        d = (p.unsqueeze(1) - p[safe]).view(1, n, -1, 1, 2)  # (1, N, k, 1, 2) to the point
+        gn = gradients.double()[:, safe]  # (B, N, k, C, 2)
+        vn = vn + (torch.nan_to_num(gn) * d).sum(-1)
+    vn = torch.where(has.view(1, n, -1, 1), vn, torch.nan)
+    med = _nanmedian(vn.transpose(-1, -2))  # (B, N, C)
+    resid_n = (vn - med.unsqueeze(2)).abs()
+    rm = _nanmedian(resid_n.transpose(-1, -2))  # (B, N, C)
+    eps_t = torch.as_tensor(eps, dtype=torch.float64, device=values.device)
+    if eps_t.dim() == 1:
+        eps_t = eps_t.view(b, 1, 1)
+    r = (v - med).abs() / (rm + eps_t)
+    count = (~torch.isnan(vn[..., 0])).sum(-1)
+    out = (r > MEDIAN_THRESHOLD).any(-1) & valid & (count >= min_neighbours)
+    return out
