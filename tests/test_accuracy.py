@@ -88,7 +88,10 @@ def test_refined_reference_lifts_the_floor():
     assert e_plain > 0.7 * e0  # the single-reference floor
     assert e_ref < 0.6 * e0
     truth = ground_truth(motion, pts, refined.times.numpy())["u"].numpy()
-    assert abs(float(np.mean(refined.u.numpy() - truth))) < 2e-3
+    # no bias: the mean over 81 points of per-point offsets of ~10e-3 px has a std of ~1.1e-3
+    # px (one movie), so 4e-3 is a 3.5 sigma bound; the bias study over seeds and crops is
+    # scripts/refined_reference.py (docs/accuracy.md)
+    assert abs(float(np.mean(refined.u.numpy() - truth))) < 4e-3
     info = refined.info["refine_reference"]
     assert info["refined"] == len(pts) and info["frames_median"] == 41
     # velocities have no reference offset: unchanged
