@@ -14,7 +14,8 @@ criterion is at a minimum; these checks say whether that minimum is the motion:
   window does not fit; the tracker then shortens it (m - 1, ..., 0) for that point.
 - **Fit check** (:func:`poor_fit`): the residual of a right answer is the image noise. A point
   whose noise estimate (residual std) is more than ``FIT_RATIO`` times the median of the points
-  solved with it, or whose ZNCC is below the run's floor, did not find its subset: POOR_FIT.
+  solved with it (unless its ZNCC is at least ``FIT_ZNCC_GOOD``), or whose ZNCC is below the
+  run's floor, did not find its subset: POOR_FIT.
 - **Neighbour check** (:func:`median_test`): the normalised median test of PIV (Westerweel &
   Scarano 2005, Exp. Fluids 39:1096) on u and v among the nearest grid neighbours, each
   neighbour's value first carried to the point by its own measured gradient (so linear fields
@@ -33,13 +34,15 @@ from torch import Tensor
 from .points import nearest_points
 
 __all__ = [
-    "MODEL_Z", "MODEL_TOL", "FIT_RATIO", "MEDIAN_THRESHOLD", "MEDIAN_EPS_STD", "MEDIAN_EPS_MIN",
+    "MODEL_Z", "MODEL_TOL", "FIT_RATIO", "FIT_ZNCC_GOOD", "MEDIAN_THRESHOLD", "MEDIAN_EPS_STD",
+    "MEDIAN_EPS_MIN",
     "model_mismatch", "poor_fit", "neighbours", "median_test",
 ]
 
 MODEL_Z = 3.0  #: model check: standard deviations of the STS - classical difference allowed
 MODEL_TOL = 0.005  #: model check: px added in quadrature to that standard deviation
 FIT_RATIO = 2.0  #: fit check: residual std above this times the median is POOR_FIT
+FIT_ZNCC_GOOD = 0.999  #: fit check: a ZNCC at least this is a good fit whatever the median
 MEDIAN_THRESHOLD = 2.0  #: neighbour check: normalised median residual above this is an outlier
 MEDIAN_EPS_STD = 3.0  #: neighbour check: eps in units of the median predicted std
 MEDIAN_EPS_MIN = 0.05  #: neighbour check: smallest eps, px (half the 0.1 px a user notices)
@@ -76,7 +79,9 @@ def poor_fit(sigma: Tensor, zncc: Tensor, solved: Tensor, zncc_floor: float,
     s = sigma[solved & torch.isfinite(sigma)]
     if s.numel() >= min_points:
         med = s.median()
-        bad |= solved & (sigma > FIT_RATIO * med)
+        # a match at ZNCC >= FIT_ZNCC_GOOD is never poor (e.g. a frame against itself, where
+        # the "noise" is round-off and its median ~0)
+        bad |= solved & (sigma > FIT_RATIO * med) & ~(zncc >= FIT_ZNCC_GOOD)
     return bad
 
 
