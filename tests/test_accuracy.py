@@ -159,7 +159,9 @@ def test_average_converges_on_a_real_series():
     files = sorted(SAMPLE12.glob("*.tif*"))[:7]
     with pytest.warns(DeprecationWarning):
         cfg = sts.DICConfig(m=2, formulation="average", dtype="float32")
-    res = sts.track([str(f) for f in files], step=60, config=cfg, progress=False)
+    # checks=False: the solver's convergence itself (the checks mark the background and the
+    # specimen's edges POOR_FIT whatever the formulation)
+    res = sts.track([str(f) for f in files], step=60, config=cfg, progress=False, checks=False)
     assert float((res.status == 0).float().mean()) > 0.9
 
 
