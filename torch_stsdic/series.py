@@ -34,21 +34,20 @@ with the same numbers as an uninterrupted run.
 
 from __future__ import annotations
 
-import os
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from typing import Any
 
 import torch
 from tqdm import tqdm
 
 from .block import BlockContext, Carry, make_carry, rows_numpy, solve_block
-from .config import DICConfig
 from .frames import FrameCache, default_ahead, frames_in_order
 from .io.results import as_stored
 from .plan import RunPlan, plan_run
 from .reference import Reference, maybe_update
 from .result import TrackResult
+from .signatures import POSITIONAL, bind, param, signature_like
 from .sinks import MemorySink, open_sink
 from .smoothing import smooth_in_time
 from .solver import SubsetSolver
@@ -160,34 +159,7 @@ def _smooth(plan: RunPlan, sink: MemorySink) -> None:
 # ---------------------------------------------------------------------------------------
 # track
 # ---------------------------------------------------------------------------------------
-def track(
-    series: Any,
-    reference: Any = 0,
-    frames: Any = None,
-    points: Any = None,
-    roi: Sequence[float] | None = None,
-    mask: Any = None,
-    step: int = 10,
-    config: DICConfig | None = None,
-    device: str | torch.device = "cpu",
-    times: Any = None,
-    progress: bool = True,
-    out: str | os.PathLike[str] | None = None,
-    resume: bool = False,
-    batch_frames: int | None = None,
-    reference_update: float | None = None,
-    smoothing: int | None = None,
-    *,
-    lost_zncc: float = 0.8,
-    checks: bool = True,
-    overwrite: bool = False,
-    callback: Callable[[int, int], None] | None = None,
-    strain_window: int | None = 5,
-    strain_kind: str = "green",
-    scale: float | None = None,
-    unit: str | None = None,
-    time_unit: str | None = None,
-) -> TrackResult:
+def track(series: Any, *args: Any, **kwargs: Any) -> TrackResult:
     """Track POIs through a movie with STS-DIC (sliding windows of 2m+1 frames).
 
     Args:
@@ -240,15 +212,27 @@ def track(
     Raises:
         ValueError naming the argument (see :func:`~torch_stsdic.plan.plan_run`).
     """
-    if resume and out is None:
+    arg = bind(track.__signature__, series, *args, **kwargs)  # type: ignore[attr-defined]
+    own = {k: arg.pop(k) for k in ("progress", "out", "resume", "overwrite", "callback",
+                                   "strain_window", "strain_kind")}
+    if own["resume"] and own["out"] is None:
         raise ValueError("resume: needs out (the result file to continue)")
-    plan = plan_run(series, reference, frames, points, roi, mask, step, config, device, times,
-                    batch_frames, reference_update=reference_update, smoothing=smoothing,
-                    lost_zncc=lost_zncc, checks=checks, scale=scale, unit=unit,
-                    time_unit=time_unit)
-    sink = open_sink(plan, out, resume=resume, overwrite=overwrite,
-                     strain_window=strain_window, strain_kind=strain_kind)
-    return run_plan(plan, sink, progress=progress, callback=callback)
+    plan = plan_run(**arg)
+    sink = open_sink(plan, own["out"], resume=own["resume"], overwrite=own["overwrite"],
+                     strain_window=own["strain_window"], strain_kind=own["strain_kind"])
+    return run_plan(plan, sink, progress=own["progress"], callback=own["callback"])
+
+
+# the run's inputs are plan_run's parameters (written once there), plus the output's
+track.__signature__ = signature_like(  # type: ignore[attr-defined]
+    plan_run, positional=["reference_update", "smoothing"], returns="TrackResult",
+    insert={"batch_frames": [param(nm, dflt, ann, kind=POSITIONAL) for nm, dflt, ann in (
+                ("progress", True, "bool"), ("out", None, "str | os.PathLike[str] | None"),
+                ("resume", False, "bool"))],
+            "scale": [param("overwrite", False, "bool"),
+                      param("callback", None, "Callable[[int, int], None] | None"),
+                      param("strain_window", 5, "int | None"),
+                      param("strain_kind", "green", "str")]})
 
 
 def classical_smoothed(series: Any, span: int = 5, **kwargs: Any) -> TrackResult:

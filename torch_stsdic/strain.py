@@ -25,6 +25,7 @@ exist. A point gets NaN when it is itself invalid, has fewer than ``min_points``
 
 from __future__ import annotations
 
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -201,15 +202,27 @@ def _box_moments(img: torch.Tensor, h: int, order: int) -> torch.Tensor:
     return cols.view(bsz, order + 1, order + 1, ny, nx)
 
 
-def _fit_grid(
-    grid: GridInfo,
-    vals: torch.Tensor,
-    w: torch.Tensor,
-    window: int,
-    min_points: int,
-    rcond: float,
+def _fit_planes(
+    pts: torch.Tensor, grid: GridInfo | None, vals: torch.Tensor, w: torch.Tensor, window: int,
+    min_points: int, rcond: float,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Plane-fit slopes on a grid. vals (B, C, N), w (B, N) -> (d/dx, d/dy) each (B, C, N)."""
+    """Plane-fit slopes: vals (B, C, N), w (B, N) -> (d/dx, d/dy) each (B, C, N), on the
+    ``grid`` by box sums, else (grid None) over the ``window**2`` nearest neighbours."""
+    if grid is not None:
+        moments, sx, sy = _grid_moments(grid, vals, w, window), grid.sx, grid.sy
+    else:
+        moments, scale = _knn_moments(pts, vals, w, window)
+        sx = sy = scale
+    slopes = [_solve_moments(*mw, *mv, min_points=min_points, rcond=rcond) for mw, mv in moments]
+    return torch.cat([b for b, _ in slopes], -1) / sx, torch.cat([c for _, c in slopes], -1) / sy
+
+
+_Moments = Iterator[tuple[Sequence[torch.Tensor], Sequence[torch.Tensor]]]
+
+
+def _grid_moments(grid: GridInfo, vals: torch.Tensor, w: torch.Tensor, window: int) -> _Moments:
+    """The weighted position moments (6 of (B, N)) and value moments (3 of (B, C, N)) of every
+    grid point's window, in grid steps: one chunk."""
     bsz, nch, n = vals.shape
     dev, dt = vals.device, vals.dtype
     cells = grid.ny * grid.nx
@@ -227,19 +240,14 @@ def _fit_grid(
     mv = torch.stack([mv[:, 0, 0], mv[:, 1, 0], mv[:, 0, 1]], 1)
     mw = mw.reshape(bsz, 6, cells)[:, :, flat]  # (B, 6, N)
     mv = mv.reshape(bsz, nch, 3, cells)[:, :, :, flat]  # (B, C, 3, N)
-    b, c = _solve_moments(*mw.unbind(1), *mv.unbind(2), min_points=min_points, rcond=rcond)
-    return b / grid.sx, c / grid.sy
+    yield mw.unbind(1), mv.unbind(2)
 
 
-def _fit_knn(
-    pts: torch.Tensor,
-    vals: torch.Tensor,
-    w: torch.Tensor,
-    window: int,
-    min_points: int,
-    rcond: float,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Plane-fit slopes over the ``window**2`` nearest neighbours. Shapes as :func:`_fit_grid`."""
+def _knn_moments(
+    pts: torch.Tensor, vals: torch.Tensor, w: torch.Tensor, window: int
+) -> tuple[_Moments, float]:
+    """The moments of :func:`_grid_moments` over the ``window**2`` nearest neighbours, chunk by
+    chunk of points (bounded memory), with offsets in units of the returned scale (px)."""
     bsz, nch, n = vals.shape
     k = min(window * window, n)
     idx = nearest_points(pts, k)[1]  # (N, k), itself first
@@ -252,26 +260,25 @@ def _fit_knn(
     d = d / scale
     dx, dy = d[..., 0], d[..., 1]
     vals = torch.where(w.unsqueeze(1) > 0, vals, torch.zeros_like(vals))
-    bs, cs = [], []
     chunk = max(1, (1 << 24) // max(1, bsz * (nch + 6) * k))
-    for i in range(0, n, chunk):
-        sl = slice(i, i + chunk)
-        wk = w[:, idx[sl]]  # (B, n_c, k)
-        dxk, dyk = dx[sl], dy[sl]
-        mw = [
-            wk.sum(-1),
-            (wk * dxk).sum(-1),
-            (wk * dyk).sum(-1),
-            (wk * dxk * dxk).sum(-1),
-            (wk * dxk * dyk).sum(-1),
-            (wk * dyk * dyk).sum(-1),
-        ]
-        vk = vals[:, :, idx[sl]] * wk.unsqueeze(1)  # (B, C, n_c, k)
-        mv = [vk.sum(-1), (vk * dxk).sum(-1), (vk * dyk).sum(-1)]
-        b, c = _solve_moments(*mw, *mv, min_points=min_points, rcond=rcond)
-        bs.append(b)
-        cs.append(c)
-    return torch.cat(bs, dim=-1) / scale, torch.cat(cs, dim=-1) / scale
+
+    def chunks() -> _Moments:
+        for i in range(0, n, chunk):
+            sl = slice(i, i + chunk)
+            wk = w[:, idx[sl]]  # (B, n_c, k)
+            dxk, dyk = dx[sl], dy[sl]
+            mw = [
+                wk.sum(-1),
+                (wk * dxk).sum(-1),
+                (wk * dyk).sum(-1),
+                (wk * dxk * dxk).sum(-1),
+                (wk * dxk * dyk).sum(-1),
+                (wk * dyk * dyk).sum(-1),
+            ]
+            vk = vals[:, :, idx[sl]] * wk.unsqueeze(1)  # (B, C, n_c, k)
+            yield mw, [vk.sum(-1), (vk * dxk).sum(-1), (vk * dyk).sum(-1)]
+
+    return chunks(), scale
 
 
 # --------------------------------------------------------------------------------------------
@@ -338,10 +345,8 @@ def _gradients(
             raise ValueError("method='grid' but the points do not lie on a regular grid")
     if n == 0:
         gx = gy = v
-    elif grid is not None:
-        gx, gy = _fit_grid(grid, v, w, window, min_points, rcond)
     else:
-        gx, gy = _fit_knn(pts, v, w, window, min_points, rcond)
+        gx, gy = _fit_planes(pts, grid, v, w, window, min_points, rcond)
     if require_center:
         bad = ~ok.unsqueeze(1)
         gx = gx.masked_fill(bad, float("nan"))
