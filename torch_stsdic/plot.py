@@ -444,13 +444,14 @@ def plot_history(*args: Any, **kwargs: Any) -> Figure:
 
     ``times`` (F,); ``series`` label -> (F,) values (NaN = gap, e.g. failed frames).
     """
-    arg = bind(plot_history.__signature__, *args, **kwargs)  # type: ignore[attr-defined]
+    arg = bind(_HISTORY_SIGNATURE, *args, **kwargs)
     return plot_xy(arg.pop("times"), arg.pop("series"), marker=None, **arg)
 
 
-plot_history.__signature__ = signature_like(  # type: ignore[attr-defined]
+_HISTORY_SIGNATURE = signature_like(
     plot_xy, replace={"x": param("times", kind=POSITIONAL)}, drop=["logx", "logy", "marker"],
     defaults={"xlabel": "time (frame)"})
+plot_history.__signature__ = _HISTORY_SIGNATURE  # type: ignore[attr-defined]
 
 
 def plot_error_vs_noise(*args: Any, **kwargs: Any) -> Figure:
@@ -459,15 +460,16 @@ def plot_error_vs_noise(*args: Any, **kwargs: Any) -> Figure:
 
     ``sigmas`` (K,) noise standard deviations; ``errors`` label -> (K,) errors.
     """
-    arg = bind(plot_error_vs_noise.__signature__, *args, **kwargs)  # type: ignore[attr-defined]
+    arg = bind(_NOISE_PLOT_SIGNATURE, *args, **kwargs)
     return plot_xy(arg.pop("sigmas"), arg.pop("errors"), **arg)
 
 
-plot_error_vs_noise.__signature__ = signature_like(  # type: ignore[attr-defined]
+_NOISE_PLOT_SIGNATURE = signature_like(
     plot_xy, replace={"x": param("sigmas", kind=POSITIONAL),
                       "series": param("errors", annotation="Mapping[str, Any]", kind=POSITIONAL)},
     drop=["logx", "marker", "ax"],
     defaults={"ylabel": "RMS error (px)", "xlabel": "noise sigma (grey levels)"})
+plot_error_vs_noise.__signature__ = _NOISE_PLOT_SIGNATURE  # type: ignore[attr-defined]
 
 
 def animate_field(

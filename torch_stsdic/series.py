@@ -212,7 +212,7 @@ def track(series: Any, *args: Any, **kwargs: Any) -> TrackResult:
     Raises:
         ValueError naming the argument (see :func:`~torch_stsdic.plan.plan_run`).
     """
-    arg = bind(track.__signature__, series, *args, **kwargs)  # type: ignore[attr-defined]
+    arg = bind(_TRACK_SIGNATURE, series, *args, **kwargs)
     own = {k: arg.pop(k) for k in ("progress", "out", "resume", "overwrite", "callback",
                                    "strain_window", "strain_kind")}
     if own["resume"] and own["out"] is None:
@@ -224,7 +224,7 @@ def track(series: Any, *args: Any, **kwargs: Any) -> TrackResult:
 
 
 # the run's inputs are plan_run's parameters (written once there), plus the output's
-track.__signature__ = signature_like(  # type: ignore[attr-defined]
+_TRACK_SIGNATURE = signature_like(
     plan_run, positional=["reference_update", "smoothing"], returns="TrackResult",
     insert={"batch_frames": [param(nm, dflt, ann, kind=POSITIONAL) for nm, dflt, ann in (
                 ("progress", True, "bool"), ("out", None, "str | os.PathLike[str] | None"),
@@ -233,6 +233,7 @@ track.__signature__ = signature_like(  # type: ignore[attr-defined]
                       param("callback", None, "Callable[[int, int], None] | None"),
                       param("strain_window", 5, "int | None"),
                       param("strain_kind", "green", "str")]})
+track.__signature__ = _TRACK_SIGNATURE  # type: ignore[attr-defined]
 
 
 def classical_smoothed(series: Any, span: int = 5, **kwargs: Any) -> TrackResult:

@@ -284,30 +284,34 @@ def _knn_moments(
 # --------------------------------------------------------------------------------------------
 # public API
 # --------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class _PlaneFit:
+    """Settings of the local plane fits (see :func:`plane_fit_gradients`), checked once."""
+
+    window: int
+    method: str
+    min_points: int
+    require_center: bool
+    rcond: float | None
+
+    def __post_init__(self) -> None:
+        w = self.window
+        if not isinstance(w, (int, np.integer)) or w < 3 or w % 2 == 0:
+            raise ValueError(
+                f"window must be an odd integer >= 3 (grid points per side), got {w!r}")
+        if self.min_points < 3:
+            raise ValueError(f"min_points must be >= 3 for a plane fit, got {self.min_points}")
+        if self.method not in ("auto", "grid", "knn"):
+            raise ValueError(f"method must be 'auto', 'grid' or 'knn', got {self.method!r}")
+
+
 def _gradients(
-    points: Any,
-    values: Any,
-    *,
-    window: int,
-    valid: Any,
-    method: str,
-    min_points: int,
-    require_center: bool,
-    rcond: float | None,
-    stacked: bool = False,
+    points: Any, values: Any, valid: Any, fit: _PlaneFit, stacked: bool = False
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Core of :func:`plane_fit_gradients`.
 
     With ``stacked`` the values are (..., C, N) and share one validity (..., N) across C.
     """
-    if not isinstance(window, (int, np.integer)) or window < 3 or window % 2 == 0:
-        raise ValueError(
-            f"window must be an odd integer >= 3 (grid points per side), got {window!r}"
-        )
-    if min_points < 3:
-        raise ValueError(f"min_points must be >= 3 for a plane fit, got {min_points}")
-    if method not in ("auto", "grid", "knn"):
-        raise ValueError(f"method must be 'auto', 'grid' or 'knn', got {method!r}")
     vt = _as_tensor(values)
     dev = vt.device
     wdt = _work_dtype(dev)
@@ -336,18 +340,17 @@ def _gradients(
         / w.sum(-1).clamp_min(1.0)[:, None, None]
     )
     v = torch.where(ok.unsqueeze(1), v - mean, torch.zeros_like(v))
-    if rcond is None:
-        rcond = 1e3 * torch.finfo(wdt).eps
+    rcond = 1e3 * torch.finfo(wdt).eps if fit.rcond is None else fit.rcond
     grid = None
-    if method in ("auto", "grid") and n > 0:
+    if fit.method in ("auto", "grid") and n > 0:
         grid = detect_grid(pts)
-        if grid is None and method == "grid":
+        if grid is None and fit.method == "grid":
             raise ValueError("method='grid' but the points do not lie on a regular grid")
     if n == 0:
         gx = gy = v
     else:
-        gx, gy = _fit_planes(pts, grid, v, w, window, min_points, rcond)
-    if require_center:
+        gx, gy = _fit_planes(pts, grid, v, w, fit.window, fit.min_points, rcond)
+    if fit.require_center:
         bad = ~ok.unsqueeze(1)
         gx = gx.masked_fill(bad, float("nan"))
         gy = gy.masked_fill(bad, float("nan"))
@@ -385,16 +388,8 @@ def plane_fit_gradients(
         ``(d/dx, d/dy)`` torch tensors (..., N) in value units per pixel (on the device of
         ``values``), NaN where the fit is ill-posed.
     """
-    gx, gy = _gradients(
-        points,
-        values,
-        window=window,
-        valid=valid,
-        method=method,
-        min_points=min_points,
-        require_center=require_center,
-        rcond=rcond,
-    )
+    fit = _PlaneFit(window, method, min_points, require_center, rcond)
+    gx, gy = _gradients(points, values, valid, fit)
     if isinstance(values, torch.Tensor):
         return gx, gy
     return gx.numpy(), gy.numpy()
@@ -474,15 +469,8 @@ def compute_strain(
     vt_ = vt_.to(dev)
     shape = torch.broadcast_shapes(ut_.shape, vt_.shape)
     uv = torch.stack([ut_.expand(shape), vt_.expand(shape)], dim=-2)  # (..., 2, N)
-    opts = dict(
-        window=window,
-        method=method,
-        min_points=min_points,
-        require_center=require_center,
-        rcond=None,
-        stacked=True,
-    )
-    gx, gy = _gradients(points, uv, valid=valid, **opts)
+    fit = _PlaneFit(window, method, min_points, require_center, None)
+    gx, gy = _gradients(points, uv, valid, fit, stacked=True)
     ux, vx = gx[..., 0, :], gx[..., 1, :]
     uy, vy = gy[..., 0, :], gy[..., 1, :]
     out: dict[str, torch.Tensor] = {}
@@ -498,7 +486,7 @@ def compute_strain(
         a, b = _as_tensor(ut, device=dev), _as_tensor(vt, device=dev)
         rshape = torch.broadcast_shapes(a.shape, b.shape)
         uvt = torch.stack([a.expand(rshape), b.expand(rshape)], dim=-2)
-        tx, ty = _gradients(points, uvt, valid=valid, **opts)
+        tx, ty = _gradients(points, uvt, valid, fit, stacked=True)
         utx, vtx = tx[..., 0, :], tx[..., 1, :]
         uty, vty = ty[..., 0, :], ty[..., 1, :]
         if kind == "small":
