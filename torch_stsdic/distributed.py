@@ -50,6 +50,7 @@ from tqdm import tqdm
 from .plan import RunPlan, plan_run
 from .result import TrackResult
 from .series import track
+from .signatures import POSITIONAL, param, signature_like
 from .sinks import MemorySink, open_sink
 
 __all__ = ["track_distributed", "track_distributed_many", "chunk_plan", "DASK_HINT"]
@@ -321,22 +322,7 @@ def _close_client(cl: Any, cluster: Any, owns: bool) -> None:
         cluster.close()
 
 
-def track_distributed(
-    series: Any,
-    *,
-    chunk_frames: int = 50,
-    client: Any = None,
-    n_workers: int = 2,
-    threads_per_worker: int = 1,
-    processes: bool = True,
-    torch_threads: int | None = None,
-    out: Any = None,
-    resume: bool = False,
-    overwrite: bool = False,
-    progress: bool = True,
-    callback: Callable[[int, int], None] | None = None,
-    **track_kwargs: Any,
-) -> TrackResult:
+def track_distributed(series: Any, *, out: Any = None, **kwargs: Any) -> TrackResult:
     """Track a movie on several processes or machines: frame chunks on Dask workers.
 
     Args:
@@ -369,9 +355,10 @@ def track_distributed(
     Raises:
         ImportError (with the pip command) when Dask distributed is not installed.
     """
-    return track_distributed_many(
-        [series], None if out is None else [out], chunk_frames=chunk_frames, client=client,
-        n_workers=n_workers, threads_per_worker=threads_per_worker, processes=processes,
-        torch_threads=torch_threads, resume=resume, overwrite=overwrite, progress=progress,
-        callback=callback, **track_kwargs,
-    )[0]
+    return track_distributed_many([series], None if out is None else [out], **kwargs)[0]
+
+
+# the settings are those of track_distributed_many, written once there
+track_distributed.__signature__ = signature_like(  # type: ignore[attr-defined]
+    track_distributed_many, replace={"movies": param("series", kind=POSITIONAL)}, drop=["outs"],
+    insert={"resume": [param("out", None)]}, returns="TrackResult")

@@ -92,6 +92,7 @@ from .config import DICConfig
 from .formulations import Geometry, ic_hessian, ic_jacobian
 from .interpolation import BSplineImage
 from .shape import make_shape
+from .signatures import signature_like
 from .window import make_window
 
 __all__ = [
@@ -339,20 +340,7 @@ def predicted_covariance(
     return cov, shape.param_names
 
 
-def predicted_std(
-    ref: Any,
-    points: Any,
-    config: DICConfig | None = None,
-    sigma_ref: float = 1.0,
-    sigma_def: float | None = None,
-    n_frames: int | None = None,
-    dt: Any = None,
-    *,
-    displacement: Any = None,
-    interp: str | float = "exact",
-    second_order: bool = True,
-    ref_noise: float = 0.0,
-) -> dict[str, torch.Tensor]:
+def predicted_std(*args: Any, **kwargs: Any) -> dict[str, torch.Tensor]:
     """Predicted random error (standard deviation) of u, v, ut, vt at every POI.
 
     Args:
@@ -382,11 +370,7 @@ def predicted_std(
         dict of (N,) float64 tensors ``u, v, ut, vt`` (px, px per time unit of ``dt``; NaN
         velocities for one frame), plus ``cov`` (N, P, P) and ``names``.
     """
-    cov, names = predicted_covariance(
-        ref, points, config, sigma_ref, sigma_def, n_frames, dt,
-        displacement=displacement, interp=interp, second_order=second_order,
-        ref_noise=ref_noise,
-    )
+    cov, names = predicted_covariance(*args, **kwargs)
     std = torch.diagonal(cov, dim1=-2, dim2=-1).clamp(min=0).sqrt()
     out: dict[str, Any] = {}
     for nm in ("u", "v", "ut", "vt"):
@@ -395,6 +379,11 @@ def predicted_std(
     out["cov"] = cov
     out["names"] = names
     return out
+
+
+# the parameters are those of predicted_covariance, written once there
+predicted_std.__signature__ = signature_like(  # type: ignore[attr-defined]
+    predicted_covariance, returns="dict[str, torch.Tensor]")
 
 
 def _immerkaer(img: torch.Tensor, flat_fraction: float | None) -> float:

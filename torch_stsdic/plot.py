@@ -26,6 +26,7 @@ from matplotlib.colors import BoundaryNorm, ListedColormap, Normalize
 from matplotlib.figure import Figure
 
 from .io.units import Units
+from .signatures import POSITIONAL, bind, param, signature_like
 from .status import Status
 from .strain import detect_grid
 
@@ -437,53 +438,38 @@ def plot_xy(
     return save_figure(fig, path, dpi=dpi)
 
 
-def plot_history(
-    times: Any,
-    series: Mapping[str, Any],
-    *,
-    ylabel: str = "",
-    xlabel: str = "time (frame)",
-    title: str | None = None,
-    ax: Axes | None = None,
-    path: str | Path | None = None,
-    dpi: int = 120,
-) -> Figure:
+def plot_history(*args: Any, **kwargs: Any) -> Figure:
     """Time history of scalar quantities, e.g. ``u`` of one point or its mean over points,
-    classical DIC vs STS-DIC vs the true motion.
+    classical DIC vs STS-DIC vs the true motion: :func:`plot_xy` without markers.
 
     ``times`` (F,); ``series`` label -> (F,) values (NaN = gap, e.g. failed frames).
     """
-    return plot_xy(
-        times,
-        series,
-        xlabel=xlabel,
-        ylabel=ylabel,
-        title=title,
-        marker=None,
-        ax=ax,
-        path=path,
-        dpi=dpi,
-    )
+    arg = bind(_HISTORY_SIGNATURE, *args, **kwargs)
+    return plot_xy(arg.pop("times"), arg.pop("series"), marker=None, **arg)
 
 
-def plot_error_vs_noise(
-    sigmas: Any,
-    errors: Mapping[str, Any],
-    *,
-    ylabel: str = "RMS error (px)",
-    xlabel: str = "noise sigma (grey levels)",
-    title: str | None = None,
-    logy: bool = False,
-    path: str | Path | None = None,
-    dpi: int = 120,
-) -> Figure:
-    """Error against image-noise level, one curve per method (e.g. ``"DIC"``, ``"STS m=2"``).
+_HISTORY_SIGNATURE = signature_like(
+    plot_xy, replace={"x": param("times", kind=POSITIONAL)}, drop=["logx", "logy", "marker"],
+    defaults={"xlabel": "time (frame)"})
+plot_history.__signature__ = _HISTORY_SIGNATURE  # type: ignore[attr-defined]
+
+
+def plot_error_vs_noise(*args: Any, **kwargs: Any) -> Figure:
+    """Error against image-noise level, one curve per method (e.g. ``"DIC"``, ``"STS m=2"``):
+    :func:`plot_xy` with noise labels.
 
     ``sigmas`` (K,) noise standard deviations; ``errors`` label -> (K,) errors.
     """
-    return plot_xy(
-        sigmas, errors, xlabel=xlabel, ylabel=ylabel, title=title, logy=logy, path=path, dpi=dpi
-    )
+    arg = bind(_NOISE_PLOT_SIGNATURE, *args, **kwargs)
+    return plot_xy(arg.pop("sigmas"), arg.pop("errors"), **arg)
+
+
+_NOISE_PLOT_SIGNATURE = signature_like(
+    plot_xy, replace={"x": param("sigmas", kind=POSITIONAL),
+                      "series": param("errors", annotation="Mapping[str, Any]", kind=POSITIONAL)},
+    drop=["logx", "marker", "ax"],
+    defaults={"ylabel": "RMS error (px)", "xlabel": "noise sigma (grey levels)"})
+plot_error_vs_noise.__signature__ = _NOISE_PLOT_SIGNATURE  # type: ignore[attr-defined]
 
 
 def animate_field(

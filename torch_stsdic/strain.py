@@ -25,6 +25,7 @@ exist. A point gets NaN when it is itself invalid, has fewer than ``min_points``
 
 from __future__ import annotations
 
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -201,15 +202,27 @@ def _box_moments(img: torch.Tensor, h: int, order: int) -> torch.Tensor:
     return cols.view(bsz, order + 1, order + 1, ny, nx)
 
 
-def _fit_grid(
-    grid: GridInfo,
-    vals: torch.Tensor,
-    w: torch.Tensor,
-    window: int,
-    min_points: int,
-    rcond: float,
+def _fit_planes(
+    pts: torch.Tensor, grid: GridInfo | None, vals: torch.Tensor, w: torch.Tensor, window: int,
+    min_points: int, rcond: float,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Plane-fit slopes on a grid. vals (B, C, N), w (B, N) -> (d/dx, d/dy) each (B, C, N)."""
+    """Plane-fit slopes: vals (B, C, N), w (B, N) -> (d/dx, d/dy) each (B, C, N), on the
+    ``grid`` by box sums, else (grid None) over the ``window**2`` nearest neighbours."""
+    if grid is not None:
+        moments, sx, sy = _grid_moments(grid, vals, w, window), grid.sx, grid.sy
+    else:
+        moments, scale = _knn_moments(pts, vals, w, window)
+        sx = sy = scale
+    slopes = [_solve_moments(*mw, *mv, min_points=min_points, rcond=rcond) for mw, mv in moments]
+    return torch.cat([b for b, _ in slopes], -1) / sx, torch.cat([c for _, c in slopes], -1) / sy
+
+
+_Moments = Iterator[tuple[Sequence[torch.Tensor], Sequence[torch.Tensor]]]
+
+
+def _grid_moments(grid: GridInfo, vals: torch.Tensor, w: torch.Tensor, window: int) -> _Moments:
+    """The weighted position moments (6 of (B, N)) and value moments (3 of (B, C, N)) of every
+    grid point's window, in grid steps: one chunk."""
     bsz, nch, n = vals.shape
     dev, dt = vals.device, vals.dtype
     cells = grid.ny * grid.nx
@@ -227,19 +240,14 @@ def _fit_grid(
     mv = torch.stack([mv[:, 0, 0], mv[:, 1, 0], mv[:, 0, 1]], 1)
     mw = mw.reshape(bsz, 6, cells)[:, :, flat]  # (B, 6, N)
     mv = mv.reshape(bsz, nch, 3, cells)[:, :, :, flat]  # (B, C, 3, N)
-    b, c = _solve_moments(*mw.unbind(1), *mv.unbind(2), min_points=min_points, rcond=rcond)
-    return b / grid.sx, c / grid.sy
+    yield mw.unbind(1), mv.unbind(2)
 
 
-def _fit_knn(
-    pts: torch.Tensor,
-    vals: torch.Tensor,
-    w: torch.Tensor,
-    window: int,
-    min_points: int,
-    rcond: float,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Plane-fit slopes over the ``window**2`` nearest neighbours. Shapes as :func:`_fit_grid`."""
+def _knn_moments(
+    pts: torch.Tensor, vals: torch.Tensor, w: torch.Tensor, window: int
+) -> tuple[_Moments, float]:
+    """The moments of :func:`_grid_moments` over the ``window**2`` nearest neighbours, chunk by
+    chunk of points (bounded memory), with offsets in units of the returned scale (px)."""
     bsz, nch, n = vals.shape
     k = min(window * window, n)
     idx = nearest_points(pts, k)[1]  # (N, k), itself first
@@ -252,55 +260,58 @@ def _fit_knn(
     d = d / scale
     dx, dy = d[..., 0], d[..., 1]
     vals = torch.where(w.unsqueeze(1) > 0, vals, torch.zeros_like(vals))
-    bs, cs = [], []
     chunk = max(1, (1 << 24) // max(1, bsz * (nch + 6) * k))
-    for i in range(0, n, chunk):
-        sl = slice(i, i + chunk)
-        wk = w[:, idx[sl]]  # (B, n_c, k)
-        dxk, dyk = dx[sl], dy[sl]
-        mw = [
-            wk.sum(-1),
-            (wk * dxk).sum(-1),
-            (wk * dyk).sum(-1),
-            (wk * dxk * dxk).sum(-1),
-            (wk * dxk * dyk).sum(-1),
-            (wk * dyk * dyk).sum(-1),
-        ]
-        vk = vals[:, :, idx[sl]] * wk.unsqueeze(1)  # (B, C, n_c, k)
-        mv = [vk.sum(-1), (vk * dxk).sum(-1), (vk * dyk).sum(-1)]
-        b, c = _solve_moments(*mw, *mv, min_points=min_points, rcond=rcond)
-        bs.append(b)
-        cs.append(c)
-    return torch.cat(bs, dim=-1) / scale, torch.cat(cs, dim=-1) / scale
+
+    def chunks() -> _Moments:
+        for i in range(0, n, chunk):
+            sl = slice(i, i + chunk)
+            wk = w[:, idx[sl]]  # (B, n_c, k)
+            dxk, dyk = dx[sl], dy[sl]
+            mw = [
+                wk.sum(-1),
+                (wk * dxk).sum(-1),
+                (wk * dyk).sum(-1),
+                (wk * dxk * dxk).sum(-1),
+                (wk * dxk * dyk).sum(-1),
+                (wk * dyk * dyk).sum(-1),
+            ]
+            vk = vals[:, :, idx[sl]] * wk.unsqueeze(1)  # (B, C, n_c, k)
+            yield mw, [vk.sum(-1), (vk * dxk).sum(-1), (vk * dyk).sum(-1)]
+
+    return chunks(), scale
 
 
 # --------------------------------------------------------------------------------------------
 # public API
 # --------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class _PlaneFit:
+    """Settings of the local plane fits (see :func:`plane_fit_gradients`), checked once."""
+
+    window: int
+    method: str
+    min_points: int
+    require_center: bool
+    rcond: float | None
+
+    def __post_init__(self) -> None:
+        w = self.window
+        if not isinstance(w, (int, np.integer)) or w < 3 or w % 2 == 0:
+            raise ValueError(
+                f"window must be an odd integer >= 3 (grid points per side), got {w!r}")
+        if self.min_points < 3:
+            raise ValueError(f"min_points must be >= 3 for a plane fit, got {self.min_points}")
+        if self.method not in ("auto", "grid", "knn"):
+            raise ValueError(f"method must be 'auto', 'grid' or 'knn', got {self.method!r}")
+
+
 def _gradients(
-    points: Any,
-    values: Any,
-    *,
-    window: int,
-    valid: Any,
-    method: str,
-    min_points: int,
-    require_center: bool,
-    rcond: float | None,
-    stacked: bool = False,
+    points: Any, values: Any, valid: Any, fit: _PlaneFit, stacked: bool = False
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Core of :func:`plane_fit_gradients`.
 
     With ``stacked`` the values are (..., C, N) and share one validity (..., N) across C.
     """
-    if not isinstance(window, (int, np.integer)) or window < 3 or window % 2 == 0:
-        raise ValueError(
-            f"window must be an odd integer >= 3 (grid points per side), got {window!r}"
-        )
-    if min_points < 3:
-        raise ValueError(f"min_points must be >= 3 for a plane fit, got {min_points}")
-    if method not in ("auto", "grid", "knn"):
-        raise ValueError(f"method must be 'auto', 'grid' or 'knn', got {method!r}")
     vt = _as_tensor(values)
     dev = vt.device
     wdt = _work_dtype(dev)
@@ -329,20 +340,17 @@ def _gradients(
         / w.sum(-1).clamp_min(1.0)[:, None, None]
     )
     v = torch.where(ok.unsqueeze(1), v - mean, torch.zeros_like(v))
-    if rcond is None:
-        rcond = 1e3 * torch.finfo(wdt).eps
+    rcond = 1e3 * torch.finfo(wdt).eps if fit.rcond is None else fit.rcond
     grid = None
-    if method in ("auto", "grid") and n > 0:
+    if fit.method in ("auto", "grid") and n > 0:
         grid = detect_grid(pts)
-        if grid is None and method == "grid":
+        if grid is None and fit.method == "grid":
             raise ValueError("method='grid' but the points do not lie on a regular grid")
     if n == 0:
         gx = gy = v
-    elif grid is not None:
-        gx, gy = _fit_grid(grid, v, w, window, min_points, rcond)
     else:
-        gx, gy = _fit_knn(pts, v, w, window, min_points, rcond)
-    if require_center:
+        gx, gy = _fit_planes(pts, grid, v, w, fit.window, fit.min_points, rcond)
+    if fit.require_center:
         bad = ~ok.unsqueeze(1)
         gx = gx.masked_fill(bad, float("nan"))
         gy = gy.masked_fill(bad, float("nan"))
@@ -380,16 +388,8 @@ def plane_fit_gradients(
         ``(d/dx, d/dy)`` torch tensors (..., N) in value units per pixel (on the device of
         ``values``), NaN where the fit is ill-posed.
     """
-    gx, gy = _gradients(
-        points,
-        values,
-        window=window,
-        valid=valid,
-        method=method,
-        min_points=min_points,
-        require_center=require_center,
-        rcond=rcond,
-    )
+    fit = _PlaneFit(window, method, min_points, require_center, rcond)
+    gx, gy = _gradients(points, values, valid, fit)
     if isinstance(values, torch.Tensor):
         return gx, gy
     return gx.numpy(), gy.numpy()
@@ -469,15 +469,8 @@ def compute_strain(
     vt_ = vt_.to(dev)
     shape = torch.broadcast_shapes(ut_.shape, vt_.shape)
     uv = torch.stack([ut_.expand(shape), vt_.expand(shape)], dim=-2)  # (..., 2, N)
-    opts = dict(
-        window=window,
-        method=method,
-        min_points=min_points,
-        require_center=require_center,
-        rcond=None,
-        stacked=True,
-    )
-    gx, gy = _gradients(points, uv, valid=valid, **opts)
+    fit = _PlaneFit(window, method, min_points, require_center, None)
+    gx, gy = _gradients(points, uv, valid, fit, stacked=True)
     ux, vx = gx[..., 0, :], gx[..., 1, :]
     uy, vy = gy[..., 0, :], gy[..., 1, :]
     out: dict[str, torch.Tensor] = {}
@@ -493,7 +486,7 @@ def compute_strain(
         a, b = _as_tensor(ut, device=dev), _as_tensor(vt, device=dev)
         rshape = torch.broadcast_shapes(a.shape, b.shape)
         uvt = torch.stack([a.expand(rshape), b.expand(rshape)], dim=-2)
-        tx, ty = _gradients(points, uvt, valid=valid, **opts)
+        tx, ty = _gradients(points, uvt, valid, fit, stacked=True)
         utx, vtx = tx[..., 0, :], tx[..., 1, :]
         uty, vty = ty[..., 0, :], ty[..., 1, :]
         if kind == "small":

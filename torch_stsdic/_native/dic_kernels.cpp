@@ -233,53 +233,14 @@ struct CubicAvx {
 };
 #endif
 
-// Values of one frame at the points (ox + dxu[s], oy + dyv[s]), s < ns, into out[s].
+// Values of one frame at the points (ox + dxu[s], oy + dyv[s]), s < ns, into out[s]; with
+// GRAD also d/dx and d/dy into gx[s], gy[s] (else gx, gy are not touched).
 // Pass 1 (vectorised by the compiler): clamp, floor, 32-bit tap index within the plane and
 // the fractions; pass 2: the taps.
-template <typename T, int ORDER>
+template <typename T, int ORDER, bool GRAD = false>
 inline void sample_points(const T* plane, const Geo& g, T ox, T oy, const T* dxu,
-                          const T* dyv, int64_t ns, int32_t* idx, T* fxs, T* fys, T* out) {
-  tap_origins<T>(g, ox, oy, dxu, dyv, ns, idx, fxs, fys);
-  const int64_t wpl = g.wp;
-#if defined(__AVX2__) && defined(__FMA__)
-  if constexpr (ORDER == 3 && sizeof(T) == 4) {
-    const CubicAvx k;
-    for (int64_t s = 0; s < ns; ++s) {
-      const __m256 wv = k.weights(CubicAvx::frac(fxs[s], fys[s]));
-      const __m128 wx = _mm256_castps256_ps128(wv);
-      const __m256 wxx = _mm256_set_m128(wx, wx);
-      __m256 wy01, wy23;
-      CubicAvx::rows_of(_mm256_extractf128_ps(wv, 1), &wy01, &wy23);
-      const float* r = plane + idx[s];
-      const __m256 r01 = _mm256_loadu2_m128(r + wpl, r);
-      const __m256 r23 = _mm256_loadu2_m128(r + 3 * wpl, r + 2 * wpl);
-      out[s] = CubicAvx::hsum(_mm256_fmadd_ps(r23, _mm256_mul_ps(wxx, wy23),
-                                              _mm256_mul_ps(r01, _mm256_mul_ps(wxx, wy01))));
-    }
-    return;
-  }
-#endif
-  constexpr int N = ORDER + 1;
-  for (int64_t s = 0; s < ns; ++s) {
-    T wx[N], wy[N], dummy[N];
-    weights<T, ORDER>(fxs[s], wx, dummy, false);
-    weights<T, ORDER>(fys[s], wy, dummy, false);
-    const T* r = plane + idx[s];
-    T val = 0;
-    for (int j = 0; j < N; ++j) {
-      T acc = 0;
-      for (int i = 0; i < N; ++i) acc += r[j * wpl + i] * wx[i];
-      val += acc * wy[j];
-    }
-    out[s] = val;
-  }
-}
-
-// Values and gradients at (ox + dxu[s], oy + dyv[s]) (see sample_points).
-template <typename T, int ORDER>
-inline void sample_points_grad(const T* plane, const Geo& g, T ox, T oy, const T* dxu,
-                               const T* dyv, int64_t ns, int32_t* idx, T* fxs, T* fys,
-                               T* out, T* gx, T* gy) {
+                          const T* dyv, int64_t ns, int32_t* idx, T* fxs, T* fys, T* out,
+                          T* gx = nullptr, T* gy = nullptr) {
   tap_origins<T>(g, ox, oy, dxu, dyv, ns, idx, fxs, fys);
   const int64_t wpl = g.wp;
 #if defined(__AVX2__) && defined(__FMA__)
@@ -287,20 +248,29 @@ inline void sample_points_grad(const T* plane, const Geo& g, T ox, T oy, const T
     const CubicAvx k;
     for (int64_t s = 0; s < ns; ++s) {
       const __m256 f = CubicAvx::frac(fxs[s], fys[s]);
-      const __m256 wv = k.weights(f), dv = k.dweights(f);
-      const __m128 wx = _mm256_castps256_ps128(wv), dx = _mm256_castps256_ps128(dv);
-      const __m256 wxx = _mm256_set_m128(wx, wx), dxx = _mm256_set_m128(dx, dx);
-      __m256 wy01, wy23, dy01, dy23;
+      const __m256 wv = k.weights(f);
+      const __m128 wx = _mm256_castps256_ps128(wv);
+      const __m256 wxx = _mm256_set_m128(wx, wx);
+      __m256 wy01, wy23;
       CubicAvx::rows_of(_mm256_extractf128_ps(wv, 1), &wy01, &wy23);
-      CubicAvx::rows_of(_mm256_extractf128_ps(dv, 1), &dy01, &dy23);
       const float* r = plane + idx[s];
       const __m256 r01 = _mm256_loadu2_m128(r + wpl, r);
       const __m256 r23 = _mm256_loadu2_m128(r + 3 * wpl, r + 2 * wpl);
-      const __m256 a01 = _mm256_mul_ps(r01, wxx), a23 = _mm256_mul_ps(r23, wxx);
-      out[s] = CubicAvx::hsum(_mm256_fmadd_ps(a23, wy23, _mm256_mul_ps(a01, wy01)));
-      gy[s] = CubicAvx::hsum(_mm256_fmadd_ps(a23, dy23, _mm256_mul_ps(a01, dy01)));
-      const __m256 b01 = _mm256_mul_ps(r01, dxx), b23 = _mm256_mul_ps(r23, dxx);
-      gx[s] = CubicAvx::hsum(_mm256_fmadd_ps(b23, wy23, _mm256_mul_ps(b01, wy01)));
+      if constexpr (GRAD) {
+        const __m256 dv = k.dweights(f);
+        const __m128 dx = _mm256_castps256_ps128(dv);
+        const __m256 dxx = _mm256_set_m128(dx, dx);
+        __m256 dy01, dy23;
+        CubicAvx::rows_of(_mm256_extractf128_ps(dv, 1), &dy01, &dy23);
+        const __m256 a01 = _mm256_mul_ps(r01, wxx), a23 = _mm256_mul_ps(r23, wxx);
+        out[s] = CubicAvx::hsum(_mm256_fmadd_ps(a23, wy23, _mm256_mul_ps(a01, wy01)));
+        gy[s] = CubicAvx::hsum(_mm256_fmadd_ps(a23, dy23, _mm256_mul_ps(a01, dy01)));
+        const __m256 b01 = _mm256_mul_ps(r01, dxx), b23 = _mm256_mul_ps(r23, dxx);
+        gx[s] = CubicAvx::hsum(_mm256_fmadd_ps(b23, wy23, _mm256_mul_ps(b01, wy01)));
+      } else {
+        out[s] = CubicAvx::hsum(_mm256_fmadd_ps(r23, _mm256_mul_ps(wxx, wy23),
+                                                _mm256_mul_ps(r01, _mm256_mul_ps(wxx, wy01))));
+      }
     }
     return;
   }
@@ -308,23 +278,27 @@ inline void sample_points_grad(const T* plane, const Geo& g, T ox, T oy, const T
   constexpr int N = ORDER + 1;
   for (int64_t s = 0; s < ns; ++s) {
     T wx[N], wy[N], dwx[N], dwy[N];
-    weights<T, ORDER>(fxs[s], wx, dwx, true);
-    weights<T, ORDER>(fys[s], wy, dwy, true);
+    weights<T, ORDER>(fxs[s], wx, dwx, GRAD);
+    weights<T, ORDER>(fys[s], wy, dwy, GRAD);
     const T* r = plane + idx[s];
     T val = 0, vx = 0, vy = 0;
     for (int j = 0; j < N; ++j) {
       T acc = 0, accd = 0;
       for (int i = 0; i < N; ++i) {
         acc += r[j * wpl + i] * wx[i];
-        accd += r[j * wpl + i] * dwx[i];
+        if constexpr (GRAD) accd += r[j * wpl + i] * dwx[i];
       }
       val += acc * wy[j];
-      vx += accd * wy[j];
-      vy += acc * dwy[j];
+      if constexpr (GRAD) {
+        vx += accd * wy[j];
+        vy += acc * dwy[j];
+      }
     }
     out[s] = val;
-    gx[s] = vx;
-    gy[s] = vy;
+    if constexpr (GRAD) {
+      gx[s] = vx;
+      gy[s] = vy;
+    }
   }
 }
 
@@ -347,8 +321,8 @@ void sample_range(const T* flat, const Geo& g, const T* x, const T* y, const int
       if (off_period > 0) end = std::min(end, (j + 1) * off_period);
     }
     if (grad) {
-      sample_points_grad<T, ORDER>(flat + o, g, T(0), T(0), x + i, y + i, end - i, idx.data(),
-                                   fxs.data(), fys.data(), val + i, gx + i, gy + i);
+      sample_points<T, ORDER, true>(flat + o, g, T(0), T(0), x + i, y + i, end - i,
+                                    idx.data(), fxs.data(), fys.data(), val + i, gx + i, gy + i);
     } else {
       sample_points<T, ORDER>(flat + o, g, T(0), T(0), x + i, y + i, end - i, idx.data(),
                               fxs.data(), fys.data(), val + i);
@@ -393,14 +367,14 @@ STS_KERNEL(sts_subsets, (const T* flat, int64_t wp, double x_lo, double x_hi, do
     const T* plane = flat + (off ? off[i] : 0);
     T* v = val + i * ns;
     if (order == 3 && grad)
-      sample_points_grad<T, 3>(plane, g, px[i], py[i], dx, dy, ns, idx.data(), fxs.data(),
-                               fys.data(), v, gx + i * ns, gy + i * ns);
+      sample_points<T, 3, true>(plane, g, px[i], py[i], dx, dy, ns, idx.data(), fxs.data(),
+                                fys.data(), v, gx + i * ns, gy + i * ns);
     else if (order == 3)
       sample_points<T, 3>(plane, g, px[i], py[i], dx, dy, ns, idx.data(), fxs.data(),
                           fys.data(), v);
     else if (grad)
-      sample_points_grad<T, 5>(plane, g, px[i], py[i], dx, dy, ns, idx.data(), fxs.data(),
-                               fys.data(), v, gx + i * ns, gy + i * ns);
+      sample_points<T, 5, true>(plane, g, px[i], py[i], dx, dy, ns, idx.data(), fxs.data(),
+                                fys.data(), v, gx + i * ns, gy + i * ns);
     else
       sample_points<T, 5>(plane, g, px[i], py[i], dx, dy, ns, idx.data(), fxs.data(),
                           fys.data(), v);

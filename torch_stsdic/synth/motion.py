@@ -58,7 +58,30 @@ def _zeros_like(x: Tensor) -> Tensor:
     return torch.zeros_like(x, dtype=DTYPE)
 
 
-class Translation(Motion):
+class _Uniform(Motion):
+    """A motion the same at every point, ``(u(t), v(t))``: zero gradient. Subclasses give
+    :meth:`_at` and :meth:`_rate` of the (broadcast) times."""
+
+    def _at(self, t: Tensor) -> tuple[Tensor, Tensor]:
+        raise NotImplementedError
+
+    def _rate(self, t: Tensor) -> tuple[Tensor | float, Tensor | float]:
+        raise NotImplementedError
+
+    def displacement(self, x, y, t):
+        return self._at(self._shape(x, y, t)[2])
+
+    def gradient(self, x, y, t):
+        z = _zeros_like(self._shape(x, y, t)[0])
+        return z, z.clone(), z.clone(), z.clone()
+
+    def velocity(self, x, y, t):
+        t = self._shape(x, y, t)[2]
+        du, dv = self._rate(t)
+        return _zeros_like(t) + du, _zeros_like(t) + dv
+
+
+class Translation(_Uniform):
     """Rigid translation, optionally moving at constant speed.
 
     ``u = u0 + ut * t``, ``v = v0 + vt * t``; gradient 0; velocity ``(ut, vt)``.
@@ -68,18 +91,11 @@ class Translation(Motion):
     def __init__(self, u0: float = 0.0, v0: float = 0.0, ut: float = 0.0, vt: float = 0.0):
         self.u0, self.v0, self.ut, self.vt = float(u0), float(v0), float(ut), float(vt)
 
-    def displacement(self, x, y, t):
-        x, y, t = self._shape(x, y, t)
+    def _at(self, t):
         return self.u0 + self.ut * t, self.v0 + self.vt * t
 
-    def gradient(self, x, y, t):
-        x, y, t = self._shape(x, y, t)
-        z = _zeros_like(x)
-        return z, z.clone(), z.clone(), z.clone()
-
-    def velocity(self, x, y, t):
-        x, y, t = self._shape(x, y, t)
-        return _zeros_like(x) + self.ut, _zeros_like(x) + self.vt
+    def _rate(self, t):
+        return self.ut, self.vt
 
     def __repr__(self) -> str:
         return f"Translation(u0={self.u0}, v0={self.v0}, ut={self.ut}, vt={self.vt})"
@@ -188,7 +204,7 @@ class Rotation(Motion):
         return f"Rotation(rate={self.rate}, center={self.center})"
 
 
-class QuadraticInTime(Motion):
+class QuadraticInTime(_Uniform):
     """Uniform motion, quadratic in time (constant acceleration).
 
     ``u = au * t + bu * t^2``, ``v = av * t + bv * t^2``; gradient 0;
@@ -198,17 +214,10 @@ class QuadraticInTime(Motion):
     def __init__(self, au: float = 0.0, bu: float = 0.0, av: float = 0.0, bv: float = 0.0):
         self.au, self.bu, self.av, self.bv = float(au), float(bu), float(av), float(bv)
 
-    def displacement(self, x, y, t):
-        x, y, t = self._shape(x, y, t)
+    def _at(self, t):
         return self.au * t + self.bu * t * t, self.av * t + self.bv * t * t
 
-    def gradient(self, x, y, t):
-        x, y, t = self._shape(x, y, t)
-        z = _zeros_like(x)
-        return z, z.clone(), z.clone(), z.clone()
-
-    def velocity(self, x, y, t):
-        x, y, t = self._shape(x, y, t)
+    def _rate(self, t):
         return self.au + 2.0 * self.bu * t, self.av + 2.0 * self.bv * t
 
     def __repr__(self) -> str:
