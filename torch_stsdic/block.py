@@ -36,6 +36,8 @@ from .status import Status
 
 __all__ = ["BlockContext", "Carry", "solve_block", "rows_numpy", "make_carry", "STD_OF"]
 
+CHECK_ITER = 3  #: Gauss-Newton steps of the model check's classical solutions
+
 #: the predicted-std field of each parameter stored with the results (px, px per time unit)
 STD_OF = {"u": "u_std", "v": "v_std", "ut": "ut_std", "vt": "vt_std"}
 
@@ -76,6 +78,16 @@ class BlockContext:
     noise_ratio: float | None = None  # reference noise variance / a frame's (None: measure
     reference_desc: Any = 0  # on the first block, reference.noise_ratio; the plan's desc)
     neighbours: torch.Tensor | None = None  # (N, k) grid neighbours, made on first use
+    _checker: SubsetSolver | None = None
+
+    def check_solver(self) -> SubsetSolver:
+        """The solver of the model check's classical solutions: the run's, with at most
+        ``CHECK_ITER`` Gauss-Newton steps (they start from the window's solution, a noise's
+        width away: one or two steps reach the classical one; MAX_ITER stays usable)."""
+        if self._checker is None:
+            cfg = self.solver.config
+            self._checker = SubsetSolver(cfg.replace(max_iter=min(cfg.max_iter, CHECK_ITER)))
+        return self._checker
 
 
 class _Block:
@@ -117,10 +129,11 @@ class _Block:
         dt = (run.ts[win] - run.ts[self.k].unsqueeze(1)).to(run.dtype)
         return fidx, dt.repeat_interleave(self.n, 0)
 
-    def solve(self, idx: torch.Tensor, init: torch.Tensor | None, m: int | None = None
-              ) -> WindowSolution:
+    def solve(self, idx: torch.Tensor, init: torch.Tensor | None, m: int | None = None,
+              solver: SubsetSolver | None = None) -> WindowSolution:
         """Solve rows ``idx`` from ``init`` (None: FFT) with windows of half-width ``m``
-        (default the run's; m = 0: the target frame alone, classical shape)."""
+        (default the run's; m = 0: the target frame alone, classical shape), with ``solver``
+        (default the run's)."""
         ref, run = self.ref, self.run
         if m is None or m == run.m:
             fidx, dt = self.fidx[idx], self.dt[idx]
@@ -130,7 +143,7 @@ class _Block:
         if m == 0 and run.m > 0 and init is not None and init.shape[1] == len(run.names):
             spatial = run.solver.shape.spatial().param_names
             init = init[:, [run.names.index(nm) for nm in spatial]]
-        return self.run.solver.solve(
+        return (solver or run.solver).solve(
             ref.img, self.img, self.pts[idx], dt, frame_index=fidx,
             init=init, ref_pixels=ref.raw.unsqueeze(0), frame_pixels=self.raw,
             noise_ratio=run.noise_ratio,
@@ -230,7 +243,8 @@ class _Block:
     def check_model(self) -> tuple[int, int]:
         """Model check (:func:`~torch_stsdic.quality.model_mismatch`) of every usable row
         against its classical solution at the target frame (started from the row's own
-        solution). Rows that fail are solved again with shorter windows (m - 1 .. 1) started
+        solution: ``CHECK_ITER`` steps, in full where those do not converge or disagree).
+        Rows that fail are solved again with shorter windows (m - 1 .. 1) started
         from the classical solution and, where none fits, keep the classical solution (ut, vt
         NaN, ``m_used`` 0). A usable row whose classical solution fails is POOR_FIT. Returns
         (rows shortened, rows left classical)."""
@@ -239,12 +253,22 @@ class _Block:
                             ).flatten()
         if run.m == 0 or idx.numel() == 0:
             return 0, 0
-        cls = self.solve(idx, self.params[idx], m=0)
+        iu, iv = run.names.index("u"), run.names.index("v")
+        # a few classical steps from the window's solution; rows that do not converge in
+        # them, or disagree, are solved classically in full before they are judged
+        quick = self.solve(idx, self.params[idx], m=0, solver=run.check_solver())
+        cu, cv = quick.param_names.index("u"), quick.param_names.index("v")
+        suspect = (quick.status != int(Status.CONVERGED)) | model_mismatch(
+            self.params[idx][:, [iu, iv]], quick.params[:, [cu, cv]].to(run.dtype),
+            self.std[idx][:, [iu, iv]], quick.std[:, [cu, cv]].to(run.dtype))
+        idx = idx[suspect]
+        if idx.numel() == 0:
+            return 0, 0
+        start = quick.params[suspect].nan_to_num(0.0)
+        cls = self.solve(idx, start, m=0)
         ok_c = cls.status <= USABLE
         self.status[idx[~ok_c]] = int(Status.POOR_FIT)
         idx = idx[ok_c]
-        iu, iv = run.names.index("u"), run.names.index("v")
-        cu, cv = cls.param_names.index("u"), cls.param_names.index("v")
         p_cls = cls.params[ok_c]
         d_cls = p_cls[:, [cu, cv]].to(run.dtype)
         s_cls = cls.std[ok_c][:, [cu, cv]].to(run.dtype)
