@@ -155,6 +155,10 @@ def plan_run(
     if n_series < n_win:
         raise ValueError(f"series: {n_series} frames, fewer than the 2m+1 = {n_win} frames of "
                          f"one window (config.m = {cfg.m})")
+    if n_series < 2 and not (isinstance(reference, (np.ndarray, torch.Tensor))
+                             and np.ndim(reference) >= 2):
+        raise ValueError(f"series: {n_series} frame, nothing to match against itself: give "
+                         "at least 2 frames (or a reference image as an array)")
     ts_np = resolve_times(times, ser)
     targets = resolve_frames(frames, n_series)
     if smoothing is not None and smoothing > len(targets):

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import argparse
-import sys
+import os
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -13,7 +13,8 @@ import numpy as np
 
 from . import options
 from .common import check_device, fmt_time, to_numpy
-from .errors import PROG, CommandError, UsageError
+from .errors import CommandError, UsageError, one_line
+from .signals import Interrupted
 
 NAME = "run"
 HELP = "measure displacement, velocity and strain in an image series -> HDF5"
@@ -200,6 +201,11 @@ def _track_arguments(args: argparse.Namespace) -> dict[str, Any]:
         raise UsageError(
             f"--subset {args.subset} is larger than the images of {name} ({w}x{h} px, WxH)"
         )
+    if n < 2:
+        raise UsageError(
+            f"{name} holds {n} frame: a run needs a reference and at least one more frame "
+            "(give a folder, a glob, several files or a multi-page TIFF)"
+        )
     if n < 2 * args.m + 1:
         raise UsageError(
             f"--m {args.m} needs at least 2m+1 = {2 * args.m + 1} frames, but {name} has "
@@ -237,35 +243,32 @@ def execute(args: argparse.Namespace) -> int:
         raise CommandError(
             f"output file {out} exists: use --overwrite to replace it or --resume to continue it"
         )
+    _check_writable(out)
     device = check_device(args.device)
     kwargs = _track_arguments(args)
 
-    from ..series import track
+    from ..io import InputError
+    from ..plan import plan_run
+    from ..series import run_plan
 
-    print(kwargs["series"].describe(), flush=True)
+    series = kwargs.pop("series")
+    print(series.describe(), flush=True)
     t0 = time.perf_counter()
     try:
-        res = track(
-            **kwargs,
-            step=args.step,
-            device=str(device),
-            progress=not args.no_progress,
-            out=str(out),
-            resume=args.resume,
-            overwrite=args.overwrite,
-            reference_update=args.reference_update,
-            strain_window=args.strain_window,
-            strain_kind=args.strain_kind,
-        )
-    except KeyboardInterrupt:
-        print(
-            f"{PROG}: interrupted: the finished frames are kept in {out} (or {out}.partial); "
-            "continue with the same command and --resume",
-            file=sys.stderr,
-        )
-        raise
+        plan = plan_run(series, **kwargs, step=args.step, device=str(device),
+                        reference_update=args.reference_update)
+    except ValueError as exc:
+        raise CommandError(str(exc)) from None
+    sink = _open_sink(plan, args, out)
+    try:
+        res = run_plan(plan, sink, progress=not args.no_progress)
+    except KeyboardInterrupt as exc:
+        stop = exc if isinstance(exc, Interrupted) else Interrupted()
+        raise stop.with_detail(_kept(sink, plan)) from None
+    except (OSError, InputError) as exc:  # a full disk, a frame gone or changed mid-run
+        raise CommandError(f"{one_line(exc)}; {_kept(sink, plan)}") from exc
     elapsed = time.perf_counter() - t0
-    _print_summary(res, args, elapsed)
+    _print_summary(res, args, elapsed, _reference_name(series, plan))
     from ..io.results import field_names, open_results
 
     with open_results(out) as f:
@@ -273,6 +276,91 @@ def execute(args: argparse.Namespace) -> int:
                                                             "status")]
     print(f"results: {out} (fields u, v, ut, vt, zncc, status, {', '.join(fields)})")
     return 0
+
+
+def _reference_name(series: Any, plan: Any) -> str:
+    """The reference as the user knows it: its file name (and page), or how it was made."""
+    if plan.reference_frame < 0:
+        return str(plan.reference_desc)
+    path, sep, page = series.frame_name(plan.reference_frame).partition(" (page ")
+    return Path(path).name + (f", page {page.rstrip(')')}" if sep else "")
+
+
+def _check_writable(out: Path) -> None:
+    """--out's folder exists (or can be made) and takes files: checked before any work."""
+    parent = out.absolute().parent
+    existing = parent
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        raise CommandError(f"--out {out}: {existing} is not a folder")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise CommandError(f"--out {out}: the folder {existing} is not writable "
+                           "(read-only or no permission); choose another --out")
+
+
+def _open_sink(plan: Any, args: argparse.Namespace, out: Path) -> Any:
+    """The HDF5 result file of the run; its problems in the words of the command line."""
+    from ..io.results import ResultFileError
+    from ..sinks import open_sink
+
+    try:
+        return open_sink(plan, str(out), resume=args.resume, overwrite=args.overwrite,
+                         strain_window=args.strain_window, strain_kind=args.strain_kind)
+    except ResultFileError as exc:
+        raise CommandError(resume_problem(exc)) from None
+    except OSError as exc:  # read-only filesystem, no permission, full disk at creation
+        raise CommandError(f"--out {out}: cannot create the result file: {one_line(exc)}"
+                           ) from None
+
+
+#: result-file settings (dotted keys of the recorded config) -> the option that sets them
+CONFIG_FLAGS: dict[str, str] = {
+    "subset_size": "--subset", "m": "--m", "shape": "--shape", "window": "--window",
+    "criterion": "--criterion", "formulation": "--formulation",
+    "interpolation": "--interpolation", "max_iter": "--max-iter", "tol": "--tol",
+    "search_radius": "--search-radius", "initial_guess": "--initial-guess",
+    "seed_spacing": "--seed-spacing", "batch_points": "--batch-points",
+    "memory_mb": "--memory-mb", "dtype": "--dtype", "track.reference": "--reference",
+    "track.step": "--step", "track.roi": "--roi", "track.reference_update": "--reference-update",
+    "track.points": "--step/--roi/--mask/--points", "track.batch_frames": "--memory-mb",
+    "points": "--step/--roi/--mask/--points", "frames": "--frames", "times": "--timestamps",
+}
+
+
+def resume_problem(exc: Any) -> str:
+    """A :class:`~torch_stsdic.io.ResultFileError` met by ``--resume``, naming the options."""
+    path = exc.path
+    kinds = {what for what, _ in exc.problems}
+    if "open" in kinds:
+        return (f"--resume: {path} cannot be read as HDF5 (corrupt or truncated); nothing was "
+                "changed; give another --out, or --overwrite to replace it")
+    if "format" in kinds or "missing" in kinds:
+        return (f"--resume: {path} is not a result file of 'stsdic run' (a foreign or "
+                "incomplete HDF5 file); nothing was changed; give another --out, or "
+                "--overwrite to replace it")
+    parts = []
+    for what, text in exc.problems:
+        key = what.split(":", 1)[1] if what.startswith("config:") else what
+        flag = CONFIG_FLAGS.get(key, CONFIG_FLAGS.get(key.split(".")[-1], ""))
+        parts.append(f"{flag} ({text})" if flag else text)
+    return (f"--resume: {path} was written with other options: {'; '.join(parts)}; repeat "
+            "the first run's options to continue it, or use --overwrite to start again")
+
+
+def _kept(sink: Any, plan: Any) -> str:
+    """What an interrupted or failed run left: the finished frames and how to continue."""
+    from ..io.results import open_results
+
+    path = sink.writer.file_path
+    try:
+        with open_results(path) as f:
+            done = int(f["completed"][()].sum())
+    except Exception:  # noqa: BLE001 - only for the message
+        return f"the finished frames are kept in {path}; continue with the same command " \
+               "and --resume"
+    return (f"{done} of {plan.n_rows} frames finished, kept in {path}; continue with the "
+            "same command and --resume")
 
 
 def _status_summary(status: np.ndarray) -> dict[str, float]:
@@ -284,8 +372,9 @@ def _status_summary(status: np.ndarray) -> dict[str, float]:
     return {st.name.lower(): 100.0 * float((s == int(st)).sum()) / total for st in Status}
 
 
-def _print_summary(res: Any, args: argparse.Namespace, elapsed: float) -> None:
-    """Points, frames, status percentages, time and throughput of a finished run."""
+def _print_summary(res: Any, args: argparse.Namespace, elapsed: float, ref: str) -> None:
+    """Points, frames, status percentages, time and throughput of a finished run; ``ref``:
+    the reference's file (and page), or how it was made."""
     import torch
 
     from .. import native
@@ -293,7 +382,7 @@ def _print_summary(res: Any, args: argparse.Namespace, elapsed: float) -> None:
     status = to_numpy(res.status)
     n_f, n_p = status.shape
     st = _status_summary(status)
-    print(f"points: {n_p}   frames: {n_f}   reference: {args.reference}   m: {args.m}")
+    print(f"points: {n_p}   frames: {n_f}   reference: {args.reference} ({ref})   m: {args.m}")
     print(
         f"converged: {st['converged']:.1f} %   max-iter: {st['max_iter']:.1f} %   "
         f"failed: {100.0 - st['converged'] - st['max_iter']:.1f} % "

@@ -10,6 +10,7 @@ finished one. This module is the only one that knows the file layout.
 from __future__ import annotations
 
 import datetime as _dt
+import errno
 import json
 import os
 import warnings
@@ -42,7 +43,18 @@ __all__ = [
 
 
 class ResultFileError(ValueError):
-    """A result file is not a torch_stsdic file, or does not match the run that resumes it."""
+    """A result file is not a torch_stsdic file, or does not match the run that resumes it.
+
+    ``path``: the file; ``problems``: ``(what, text)`` pairs, ``what`` being "open" (not
+    readable as HDF5), "format" (not a result file), "missing" (a dataset), "points",
+    "frames", "times" or ``"config:<key>"`` (a setting, nested keys dotted:
+    ``config:track.step``), so that a command line can name its own options."""
+
+    def __init__(self, message: str, path: Any = None,
+                 problems: Sequence[tuple[str, str]] = ()) -> None:
+        super().__init__(message)
+        self.path = path
+        self.problems = list(problems)
 
 
 # ----------------------------------------------------------------------------------------
@@ -126,16 +138,41 @@ def _chunks(n_rows: int, n_cols: int, itemsize: int) -> tuple[int, int] | None:
     return rows, cols
 
 
-def _diff_config(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[str]:
+def _dcpl() -> Any:
+    """Dataset creation properties: storage allocated (and filled) when the dataset is
+    created, so writing rows later only overwrites data in place and never changes the
+    file's metadata (nothing for a killed process to leave half-written)."""
+    dcpl = h5py.h5p.create(h5py.h5p.DATASET_CREATE)
+    dcpl.set_alloc_time(h5py.h5d.ALLOC_TIME_EARLY)
+    return dcpl
+
+
+def _flat(d: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Nested settings as one level with dotted keys ({"track": {"step": 5}} -> track.step)."""
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        if isinstance(v, Mapping) and v:
+            out.update(_flat(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def _diff_config(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[tuple[str, str]]:
+    """(dotted key, "key: old -> new") for every setting that differs."""
+    old, new = _flat(old), _flat(new)
     out = []
     for k in sorted(set(old) | set(new)):
         if k not in old:
-            out.append(f"{k}: (absent) -> {new[k]!r}")
+            text = f"{k}: (absent) -> {new[k]!r}"
         elif k not in new:
-            out.append(f"{k}: {old[k]!r} -> (absent)")
+            text = f"{k}: {old[k]!r} -> (absent)"
         elif old[k] != new[k]:
-            out.append(f"{k}: {old[k]!r} -> {new[k]!r}")
-    return [s if len(s) < 200 else s[:197] + "..." for s in out]
+            text = f"{k}: {old[k]!r} -> {new[k]!r}"
+        else:
+            continue
+        out.append((k, text if len(text) < 200 else text[:197] + "..."))
+    return out
 
 
 class ResultWriter:
@@ -232,8 +269,15 @@ class ResultWriter:
 
     # -- opening --------------------------------------------------------------------------
     def _create(self, target: Path, mode: str) -> None:
+        """Write the file's skeleton (attributes, every dataset allocated and filled) under a
+        temporary name, then rename it to ``target``: a process killed meanwhile leaves no
+        half-made file. Writing rows later changes no HDF5 metadata (see :func:`_dcpl`), so
+        a SIGKILL at any moment leaves a file that opens and resumes."""
+        if mode == "x" and target.exists():
+            raise FileExistsError(f"result file {target} exists")
         target.parent.mkdir(parents=True, exist_ok=True)
-        f = h5py.File(target, mode)
+        tmp = target.with_name(target.name + ".creating")
+        f = h5py.File(tmp, "w")
         try:
             f.attrs["format"] = RESULTS_FORMAT
             f.attrs["version"] = RESULTS_FORMAT_VERSION
@@ -257,38 +301,42 @@ class ResultWriter:
                     dtype=dt,
                     fillvalue=fill,
                     chunks=_chunks(n_f, n_p, np.dtype(dt).itemsize),
+                    dcpl=_dcpl(),
                 )
             f.create_dataset("completed", data=np.zeros(n_f, dtype=bool))
-            f.flush()
+            f.close()
+            os.replace(tmp, target)
         except BaseException:
             f.close()
-            target.unlink(missing_ok=True)
+            tmp.unlink(missing_ok=True)
             raise
-        self._file = f
+        self._file = h5py.File(target, "r+")
         self._target = target
 
-    def _check_match(self, f: h5py.File, where: Path) -> list[str]:
-        problems: list[str] = []
+    def _check_match(self, f: h5py.File, where: Path) -> list[tuple[str, str]]:
+        """What keeps ``f`` from being continued by this writer: (what, text) pairs."""
+        problems: list[tuple[str, str]] = []
         if f.attrs.get("format") != RESULTS_FORMAT:
-            return [f"{where} is not a {RESULTS_FORMAT} file"]
+            return [("format", f"{where} is not a {RESULTS_FORMAT} file")]
         for name in ("points", "frames", "times", "completed", *self.fields, *self.extra_fields):
             if name not in f:
-                problems.append(f"dataset {name!r} missing")
+                problems.append(("missing", f"dataset {name!r} missing"))
         if problems:
             return problems
         pts = f["points"][()]
         if pts.shape != self.points.shape:
-            problems.append(f"points: {pts.shape[0]} in file, {len(self.points)} now")
+            problems.append(("points", f"points: {pts.shape[0]} in file, {len(self.points)} now"))
         elif not np.array_equal(pts, self.points):
-            problems.append("points: same count but different coordinates")
+            problems.append(("points", "points: same count but different coordinates"))
         fr = f["frames"][()]
         if not np.array_equal(fr, self.frames):
-            problems.append(f"frames differ ({len(fr)} in file, {len(self.frames)} now)")
+            problems.append(("frames", f"frames differ ({len(fr)} in file, {len(self.frames)} "
+                                       "now)"))
         elif not np.allclose(f["times"][()], self.times, rtol=1e-12, atol=0, equal_nan=True):
-            problems.append("times differ")
+            problems.append(("times", "times differ"))
         try:
             old = json.loads(f.attrs.get("config", "{}"))
-        except json.JSONDecodeError:
+        except (json.JSONDecodeError, TypeError):
             old = {}
         new = self.config
         ign = self._resume_ignore
@@ -296,8 +344,7 @@ class ResultWriter:
             {k: v for k, v in old.items() if k not in ign},
             {k: v for k, v in new.items() if k not in ign},
         )
-        if diff:
-            problems.append("config differs: " + "; ".join(diff))
+        problems.extend((f"config:{key}", f"config differs: {text}") for key, text in diff)
         return problems
 
     def _open_resume(self) -> None:
@@ -305,35 +352,34 @@ class ResultWriter:
         if not candidates:
             self._create(self.path, mode="x")
             return
-        first_problems: list[str] | None = None
+        first: tuple[Path, list[tuple[str, str]]] | None = None
         for cand in candidates:
-            try:
+            try:  # look read-only first: a file that does not match is never modified
+                with h5py.File(cand, "r") as f:
+                    probs = self._check_match(f, cand)
+            except (OSError, KeyError, ValueError, TypeError) as exc:
+                probs = [("open", f"cannot read {cand} as HDF5 (corrupt, truncated or not "
+                                  f"HDF5): {' '.join(str(exc).split())}")]
+            if not probs:
                 f = h5py.File(cand, "r+")
-            except OSError as exc:
-                probs = [f"cannot open {cand}: {exc}"]
-            else:
-                probs = self._check_match(f, cand)
-                if not probs:
-                    self._file = f
-                    self._target = cand
-                    self._rename_on_close = cand == self._partial
-                    old_inputs = json.loads(f.attrs.get("inputs", "[]"))
-                    if old_inputs != self.inputs:
-                        warnings.warn(
-                            f"resuming {cand}: input files differ from the recorded ones",
-                            stacklevel=3,
-                        )
-                    hist = json.loads(f.attrs.get("resumed", "[]"))
-                    f.attrs["resumed"] = json.dumps([*hist, _now()])
-                    f.flush()
-                    return
-                f.close()
-            if first_problems is None:
-                first_problems = [f"{cand}: {p}" for p in probs]
+                self._file = f
+                self._target = cand
+                self._rename_on_close = cand == self._partial
+                old_inputs = json.loads(f.attrs.get("inputs", "[]"))
+                if old_inputs != self.inputs:
+                    warnings.warn(
+                        f"resuming {cand}: input files differ from the recorded ones",
+                        stacklevel=3,
+                    )
+                return
+            if first is None:
+                first = (cand, probs)
+        assert first is not None
+        cand, probs = first
         raise ResultFileError(
-            "cannot resume: "
-            + " | ".join(first_problems or [])
-            + " (use overwrite=True to start again)"
+            "cannot resume: " + " | ".join(f"{cand}: {t}" for _, t in probs)
+            + " (use overwrite=True to start again)",
+            path=cand, problems=probs,
         )
 
     # -- writing --------------------------------------------------------------------------
@@ -403,18 +449,30 @@ class ResultWriter:
         order = np.argsort(rows)
         srows = rows[order]
         contiguous = bool(np.all(np.diff(srows) == 1))
-        for name, a in data.items():
-            a = a[order]
-            ds = f[name]
-            if contiguous:
-                ds[int(srows[0]) : int(srows[-1]) + 1] = a
-            else:
-                for j, r in enumerate(srows):
-                    ds[int(r)] = a[j]
-        f.flush()
-        if mark_completed:
-            f["completed"][srows] = True
+        try:
+            for name, a in data.items():
+                a = a[order]
+                ds = f[name]
+                if contiguous:
+                    ds[int(srows[0]) : int(srows[-1]) + 1] = a
+                else:
+                    for j, r in enumerate(srows):
+                        ds[int(r)] = a[j]
             f.flush()
+            if mark_completed:  # only once the rows' data are in the file
+                f["completed"][srows] = True
+                f.flush()
+        except OSError as exc:
+            raise self._write_error(exc) from exc
+
+    def _write_error(self, exc: OSError) -> OSError:
+        """``exc`` (from HDF5: a full disk, a lost device ...) as an OSError naming the file."""
+        text = " ".join(str(exc).split())
+        if exc.errno == errno.ENOSPC or "No space left" in text or "errno = 28" in text:
+            text = f"the disk is full ({text})"
+        err = OSError(exc.errno, f"cannot write the result file {self._target}: {text}")
+        err.filename = None
+        return err
 
     def read_rows(self, first: int, last: int,
                   fields: Sequence[str] | None = None) -> dict[str, np.ndarray]:
@@ -449,9 +507,15 @@ class ResultWriter:
             return
         f, self._file = self._file, None
         try:
-            f.flush()
-        finally:
-            f.close()
+            try:
+                f.flush()
+            finally:
+                f.close()
+        except OSError as exc:
+            if commit:
+                raise self._write_error(exc) from exc
+            # after an error: the rows flushed before it stay in the file; the first error
+            # is the one to report, not a second one from the same full disk
         if self._rename_on_close and commit:
             os.replace(self._target, self.path)
             self._target = self.path
