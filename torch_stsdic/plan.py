@@ -22,7 +22,7 @@ from .points import filter_points, grid_points
 from .shape import make_shape
 
 __all__ = ["RunPlan", "plan_run", "resolve_reference", "resolve_frames", "resolve_times",
-           "default_batch_frames", "MAX_DEFAULT_BATCH"]
+           "default_batch_frames", "grid_margin", "MAX_DEFAULT_BATCH"]
 
 MAX_DEFAULT_BATCH = 8
 _BASE = ("u", "v", "ut", "vt")
@@ -171,7 +171,9 @@ def plan_run(
         dtype = torch.float64 if ser.dtype_name == "float64" else torch.float32
     ref_raw, ref_frame, ref_desc = resolve_reference(reference, ser, dtype, torch.device("cpu"))
     if points is None:
-        pts0 = grid_points((h, w), step, roi, mask, cfg.subset_size)
+        # the whole image: keep room for motion; a roi is the user's choice (subset/2 only)
+        margin = grid_margin(cfg) if roi is None else 0
+        pts0 = grid_points((h, w), step, roi, mask, cfg.subset_size, margin=margin)
     else:
         pts0 = filter_points(points, (h, w), roi, mask)
     elem = torch.finfo(dtype).bits // 8
@@ -186,6 +188,16 @@ def plan_run(
                    reference_image=ref_raw, reference_frame=ref_frame, reference_desc=ref_desc,
                    dtype=dtype, device=dev, batch_frames=n_batch, param_names=names,
                    options=options)
+
+
+def grid_margin(cfg: DICConfig) -> int:
+    """Px the default grid keeps beyond half a subset from the image border: the B-spline's
+    support (2 px cubic, 3 px quintic) plus the expected motion, ``config.search_radius``
+    (the largest motion the initial guess looks for), so that subsets stay inside the image
+    over the first window, whose frames have already moved (sample 12 of the DIC Challenge:
+    the first row of a plain subset/2 margin was OUTSIDE on the reference frame)."""
+    support = (3 if cfg.interpolation == "quintic" else 2)
+    return support + int(cfg.search_radius)
 
 
 def _open(series: Any) -> ImageSeries:
