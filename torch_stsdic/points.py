@@ -68,8 +68,8 @@ def grid_points(
     default the whole image) and keeps ``subset_size // 2 + margin`` px from the image
     border so that every subset fits, also after moving by ``margin`` px (the run's
     :func:`~torch_stsdic.plan.grid_margin`: interpolation support + expected motion; less
-    where the image is too small to keep it all); it is centred in the available range. ``mask``: (H, W)
-    bool/number array or an image path; points where the mask is zero are dropped (only the
+    where the image is too small to keep it all); it is centred in the available range.
+    ``mask``: (H, W) bool/number array or an image path; points where the mask is zero are dropped (only the
     POI itself is tested). Raises ValueError naming ``roi``, ``mask`` or ``step``.
     """
     h, w = int(shape[0]), int(shape[1])
