@@ -69,8 +69,8 @@ def grid_points(
     border so that every subset fits, also after moving by ``margin`` px (the run's
     :func:`~torch_stsdic.plan.grid_margin`: interpolation support + expected motion; less
     where the image is too small to keep it all); it is centred in the available range.
-    ``mask``: (H, W) bool/number array or an image path; points where the mask is zero are dropped (only the
-    POI itself is tested). Raises ValueError naming ``roi``, ``mask`` or ``step``.
+    ``mask``: (H, W) bool/number array or an image path; points where the mask is zero are
+    dropped (only the POI itself is tested). Raises ValueError naming ``roi``, ``mask`` or ``step``.
     """
     h, w = int(shape[0]), int(shape[1])
     if not isinstance(step, (int, np.integer)) or step < 1:
