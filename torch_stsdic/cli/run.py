@@ -266,7 +266,7 @@ def execute(args: argparse.Namespace) -> int:
         stop = exc if isinstance(exc, Interrupted) else Interrupted()
         raise stop.with_detail(_kept(sink, plan)) from None
     except (OSError, InputError) as exc:  # a full disk, a frame gone or changed mid-run
-        raise CommandError(f"{one_line(exc)}; {_kept(sink, plan)}") from exc
+        raise CommandError(f"{_text(exc)}; {_kept(sink, plan)}") from exc
     elapsed = time.perf_counter() - t0
     _print_summary(res, args, elapsed, _reference_name(series, plan))
     from ..io.results import field_names, open_results
@@ -276,6 +276,13 @@ def execute(args: argparse.Namespace) -> int:
                                                             "status")]
     print(f"results: {out} (fields u, v, ut, vt, zncc, status, {', '.join(fields)})")
     return 0
+
+
+def _text(exc: BaseException) -> str:
+    """An error's message on one line, without the '[Errno N]' of an OSError."""
+    if isinstance(exc, OSError) and exc.strerror and not exc.filename:
+        return " ".join(exc.strerror.split())
+    return one_line(exc)
 
 
 def _reference_name(series: Any, plan: Any) -> str:
@@ -310,8 +317,7 @@ def _open_sink(plan: Any, args: argparse.Namespace, out: Path) -> Any:
     except ResultFileError as exc:
         raise CommandError(resume_problem(exc)) from None
     except OSError as exc:  # read-only filesystem, no permission, full disk at creation
-        raise CommandError(f"--out {out}: cannot create the result file: {one_line(exc)}"
-                           ) from None
+        raise CommandError(f"--out {out}: {_text(exc)}") from None
 
 
 #: result-file settings (dotted keys of the recorded config) -> the option that sets them

@@ -13,6 +13,7 @@ import datetime as _dt
 import errno
 import json
 import os
+import re
 import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -136,6 +137,25 @@ def _chunks(n_rows: int, n_cols: int, itemsize: int) -> tuple[int, int] | None:
     cols = min(n_cols, max(1, (4 << 20) // itemsize))  # <= 4 MiB per row chunk
     rows = max(1, min(n_rows, (64 << 10) // (cols * itemsize)))  # >= ~64 KiB when N small
     return rows, cols
+
+
+#: short reasons for the errors a result file meets (HDF5's own messages run to a paragraph)
+_REASONS = {errno.ENOSPC: "no space left on the device (the disk is full)",
+            errno.EDQUOT: "disk quota exceeded", errno.EROFS: "read-only file system",
+            errno.EACCES: "permission denied", errno.EPERM: "permission denied",
+            errno.EFBIG: "file too large (file-size limit of the system or file system)",
+            errno.EIO: "input/output error (device lost?)"}
+
+
+def os_reason(exc: BaseException) -> str:
+    """A short reason for an OSError, e.g. 'no space left on the device (the disk is full)';
+    HDF5's own text when the error number is unknown."""
+    text = " ".join(str(exc).split())
+    code = getattr(exc, "errno", None)
+    if code is None:  # HDF5 puts the number in the text: "errno = 28"
+        m = re.search(r"errno = (\d+)", text)
+        code = int(m.group(1)) if m else None
+    return _REASONS.get(code, text) if code is not None else text
 
 
 def _dcpl() -> Any:
@@ -306,9 +326,17 @@ class ResultWriter:
             f.create_dataset("completed", data=np.zeros(n_f, dtype=bool))
             f.close()
             os.replace(tmp, target)
-        except BaseException:
-            f.close()
+        except BaseException as exc:
+            try:
+                f.close()
+            except Exception:  # noqa: BLE001 - a full disk fails the close too
+                pass
             tmp.unlink(missing_ok=True)
+            if isinstance(exc, OSError) or (isinstance(exc, Exception)
+                                            and "errno =" in str(exc)):
+                code = getattr(exc, "errno", None)
+                raise OSError(code, f"cannot create the result file {target}: "
+                                    f"{os_reason(exc)}") from exc
             raise
         self._file = h5py.File(target, "r+")
         self._target = target
@@ -462,17 +490,15 @@ class ResultWriter:
             if mark_completed:  # only once the rows' data are in the file
                 f["completed"][srows] = True
                 f.flush()
-        except OSError as exc:
-            raise self._write_error(exc) from exc
+        except (OSError, ValueError, RuntimeError) as exc:
+            if isinstance(exc, OSError) or "errno =" in str(exc):  # HDF5's I/O failures
+                raise self._write_error(exc) from exc
+            raise
 
-    def _write_error(self, exc: OSError) -> OSError:
+    def _write_error(self, exc: BaseException) -> OSError:
         """``exc`` (from HDF5: a full disk, a lost device ...) as an OSError naming the file."""
-        text = " ".join(str(exc).split())
-        if exc.errno == errno.ENOSPC or "No space left" in text or "errno = 28" in text:
-            text = f"the disk is full ({text})"
-        err = OSError(exc.errno, f"cannot write the result file {self._target}: {text}")
-        err.filename = None
-        return err
+        return OSError(getattr(exc, "errno", None),
+                       f"cannot write the result file {self._target}: {os_reason(exc)}")
 
     def read_rows(self, first: int, last: int,
                   fields: Sequence[str] | None = None) -> dict[str, np.ndarray]:
