@@ -158,8 +158,11 @@ class HDF5Sink(MemorySink):
         known = {k: a for k, a in fields.items() if k in self.strain_fields}
         self.writer.write_rows(np.arange(self.plan.n_rows), known, mark_completed=False)
         new = {k: a for k, a in fields.items() if k not in self.strain_fields}
-        if new:  # not foreseen by strain_fields (kept working, but it changes metadata)
-            self.writer.add_fields(new)
+        settings = json.dumps({"window": self.strain_window, "kind": self.strain_kind})
+        if new or self.writer.attrs().get("strain") != settings:
+            # not foreseen when the file was made (a resume with other strain options):
+            # the only case where finishing changes the file's metadata
+            self.writer.add_fields(new, {"strain": settings})
 
     def close(self, commit: bool = True) -> None:
         self.writer.close(commit=commit)

@@ -341,10 +341,15 @@ def resume_problem(exc: Any) -> str:
     if "open" in kinds:
         return (f"--resume: {path} cannot be read as HDF5 (corrupt or truncated); nothing was "
                 "changed; give another --out, or --overwrite to replace it")
-    if "format" in kinds or "missing" in kinds:
-        return (f"--resume: {path} is not a result file of 'stsdic run' (a foreign or "
-                "incomplete HDF5 file); nothing was changed; give another --out, or "
-                "--overwrite to replace it")
+    if "format" in kinds:
+        return (f"--resume: {path} is not a result file of 'stsdic run' (an HDF5 file of "
+                "another program); nothing was changed; give another --out, or --overwrite "
+                "to replace it")
+    if "missing" in kinds:
+        what = "; ".join(t for k, t in exc.problems if k == "missing")
+        return (f"--resume: {path} lacks what this run writes ({what}: written by another "
+                "version, or with other --strain-window/--m options); nothing was changed; "
+                "use --overwrite to start again")
     parts = []
     for what, text in exc.problems:
         key = what.split(":", 1)[1] if what.startswith("config:") else what

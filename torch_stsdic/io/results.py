@@ -513,6 +513,10 @@ class ResultWriter:
         _add_fields(self._h5(), values, attrs)
         self._h5().flush()
 
+    def attrs(self) -> dict[str, Any]:
+        """The file's root attributes (a copy)."""
+        return {k: _py(v) for k, v in self._h5().attrs.items()}
+
     def completed_rows(self) -> np.ndarray:
         """Row indices (sorted int64) already completed."""
         return np.flatnonzero(self._h5()["completed"][()]).astype(np.int64)
