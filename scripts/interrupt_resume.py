@@ -2,7 +2,8 @@
 
 Campaign of issue 13: an uninterrupted reference run, then ``--sigint`` runs stopped by
 SIGINT and ``--sigkill`` runs killed by SIGKILL, each at a moment drawn uniformly over the
-reference run's duration (start-up included), while another process keeps a CPU busy. Each
+reference run's duration (start-up included), while another process keeps a CPU busy (a run
+that finishes before its moment is recorded apart and the moment drawn again). Each
 stopped run is continued with ``--resume`` and its u, v and status are compared with the
 reference (bit for bit). Recorded per try: the signal, the moment, the exit code, whether
 stderr held a traceback, the message line, the resume's exit code, identical or not.
@@ -100,12 +101,20 @@ def main(argv: list[str] | None = None) -> int:
         sigs = [signal.SIGINT] * args.sigint + [signal.SIGKILL] * args.sigkill
         rng.shuffle(sigs)
         tries = []
+        late = []  # runs that finished before their signal: drawn again, listed apart
         for k, sig in enumerate(sigs):
             out = args.work / f"try{k:02d}.h5"
-            for p in (out, out.with_name(out.name + ".partial")):
-                p.unlink(missing_ok=True)
-            at = rng.uniform(0.0, duration)
-            stop = _run(_cmd(args.folder, out, extra), sig, at)
+            while True:
+                for p in (out, out.with_name(out.name + ".partial")):
+                    p.unlink(missing_ok=True)
+                at = rng.uniform(0.0, duration)
+                stop = _run(_cmd(args.folder, out, extra), sig, at)
+                if stop["exit"] != 0:
+                    break
+                late.append({"signal": signal.Signals(sig).name, "at_s": round(at, 2),
+                             "seconds": stop["seconds"],
+                             "identical": _same(out, ref) if out.exists() else False})
+                print(f"finished before the signal at {at:.1f} s: drawn again", flush=True)
             done = int(_fields(out)["completed"].sum()) if out.exists() else 0
             resume = _run(_cmd(args.folder, out, [*extra, "--resume"]))
             same = resume["exit"] == 0 and _same(out, ref)
@@ -125,6 +134,7 @@ def main(argv: list[str] | None = None) -> int:
     ok = all(t["ok"] for t in tries)
     summary = {"folder": str(args.folder), "run_args": extra, "reference_seconds": duration,
                "cpu_load": not args.no_load, "seed": args.seed, "tries": tries,
+               "finished_before_signal": late,
                "all_ok": ok,
                "exit_codes": sorted({t["exit"] for t in tries}),
                "identical": sum(t["identical"] for t in tries)}

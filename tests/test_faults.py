@@ -138,7 +138,7 @@ def test_signal_at_a_random_moment_then_resume(capsys, movie, reference, tmp_pat
 def test_sigint_while_importing(tmp_path):
     """Ctrl-C during the seconds torch takes to import: one line, exit 130, no file."""
     proc = _launch(["run", tmp_path / "nothing.tif", "--out", tmp_path / "r.h5"])
-    time.sleep(0.15)
+    time.sleep(0.4)  # Python is up, torch (>= 1 s) is being imported
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 130, err
