@@ -254,27 +254,29 @@ def execute(args: argparse.Namespace) -> int:
     series = kwargs.pop("series")
     print(series.describe(), flush=True)
     t0 = time.perf_counter()
+    plan = None
     try:
-        plan = plan_run(series, **kwargs, step=args.step, device=str(device),
-                        reference_update=args.reference_update)
-    except ValueError as exc:
-        raise CommandError(str(exc)) from None
-    sink = _open_sink(plan, args, out)
-    try:
-        res = run_plan(plan, sink, progress=not args.no_progress)
-    except KeyboardInterrupt as exc:
-        stop = exc if isinstance(exc, Interrupted) else Interrupted()
-        raise stop.with_detail(_kept(sink, plan)) from None
-    except (OSError, InputError) as exc:  # a full disk, a frame gone or changed mid-run
-        raise CommandError(f"{_text(exc)}; {_kept(sink, plan)}") from exc
-    elapsed = time.perf_counter() - t0
-    _print_summary(res, args, elapsed, _reference_name(series, plan))
-    from ..io.results import field_names, open_results
+        try:
+            plan = plan_run(series, **kwargs, step=args.step, device=str(device),
+                            reference_update=args.reference_update)
+        except ValueError as exc:
+            raise CommandError(str(exc)) from None
+        sink = _open_sink(plan, args, out)
+        try:
+            res = run_plan(plan, sink, progress=not args.no_progress)
+        except (OSError, InputError) as exc:  # a full disk, a frame gone or changed mid-run
+            raise CommandError(f"{_text(exc)}; {_kept(out, args, plan)}") from exc
+        elapsed = time.perf_counter() - t0
+        _print_summary(res, args, elapsed, _reference_name(series, plan))
+        from ..io.results import field_names, open_results
 
-    with open_results(out) as f:
-        fields = [nm for nm in field_names(f) if nm not in ("u", "v", "ut", "vt", "zncc",
-                                                            "status")]
-    print(f"results: {out} (fields u, v, ut, vt, zncc, status, {', '.join(fields)})")
+        with open_results(out) as f:
+            fields = [nm for nm in field_names(f)
+                      if nm not in ("u", "v", "ut", "vt", "zncc", "status")]
+        print(f"results: {out} (fields u, v, ut, vt, zncc, status, {', '.join(fields)})")
+    except KeyboardInterrupt as exc:  # at any moment: say what is kept
+        stop = exc if isinstance(exc, Interrupted) else Interrupted()
+        raise stop.with_detail(_kept(out, args, plan)) from None
     return 0
 
 
@@ -359,19 +361,28 @@ def resume_problem(exc: Any) -> str:
             "the first run's options to continue it, or use --overwrite to start again")
 
 
-def _kept(sink: Any, plan: Any) -> str:
+def _kept(out: Path, args: argparse.Namespace, plan: Any) -> str:
     """What an interrupted or failed run left: the finished frames and how to continue."""
-    from ..io.results import open_results
+    from ..io.results import RESULTS_FORMAT, open_results
 
-    path = sink.writer.file_path
+    partial = out.with_name(out.name + ".partial")
+    path = partial if (args.overwrite or args.resume) and partial.exists() else out
+    if args.overwrite and path == out:  # the new file was not made yet: the old one stays
+        return f"{out} is unchanged" if out.exists() else "nothing was written yet"
     try:
         with open_results(path) as f:
-            done = int(f["completed"][()].sum())
+            done = f["completed"][()]
+            ours = f.attrs.get("format") == RESULTS_FORMAT
     except Exception:  # noqa: BLE001 - only for the message
-        return f"the finished frames are kept in {path}; continue with the same command " \
-               "and --resume"
-    return (f"{done} of {plan.n_rows} frames finished, kept in {path}; continue with the "
-            "same command and --resume")
+        return "nothing was written yet"
+    if not ours or (plan is not None and len(done) != plan.n_rows):
+        return f"{path} is unchanged"
+    n, k = len(done), int(done.sum())
+    if k == n:
+        return (f"all {n} frames are finished in {path}; run the same command with --resume "
+                "to complete what may be missing (strains)")
+    return (f"{k} of {n} frames finished, kept in {path}; continue with the same command "
+            "and --resume")
 
 
 def _status_summary(status: np.ndarray) -> dict[str, float]:
