@@ -57,8 +57,9 @@ def _read_all(path: Path | list[Path]) -> None:
                 a = s.numpy(i)
                 assert a.shape == s.shape and a.dtype == np.float32
             s.close()
-        except InputError as exc:
-            assert str(exc)  # a message
+        except InputError as exc:  # a message naming the file (or the folder) at fault
+            names = [q.name for q in (path if isinstance(path, list) else [path])]
+            assert any(n in str(exc) for n in names), (names, str(exc))
 
 
 # ----------------------------------------------------------------------------------------
@@ -269,3 +270,29 @@ def test_export_and_parsing_of_every_command(files, tmp_path, data):
         except (UsageError, SystemExit):
             pass
     assert "Traceback" not in err.getvalue()
+
+
+@FUZZ
+@given(which=st.sampled_from(["--points", "--timestamps", "--mask"]),
+       text=st.one_of(st.text(max_size=300), st.lists(
+           st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.integers(-99, 999)),
+           max_size=12).map(lambda v: "\n".join(map(str, v)))),
+       raw=st.binary(max_size=300), shape=st.sampled_from([(48, 48), (48,), (2, 48, 48),
+                                                          (47, 48), (0,), ()]),
+       kind=st.sampled_from(["text", "npy", "bytes"]))
+def test_side_file_contents(files, no_solve, tmp_path, which, text, raw, shape, kind):
+    """--points, --timestamps and --mask files with random contents."""
+    TRIED["cli side files"] += 1
+    p = tmp_path / ("side.npy" if kind == "npy" else "side.csv")
+    if kind == "text":
+        p.write_text(text, encoding="utf-8", errors="surrogatepass")
+    elif kind == "npy":
+        np.save(p, np.random.default_rng(0).normal(size=shape))
+    else:
+        p.write_bytes(raw)
+    argv = ["run", str(files["movie"]), "--subset", "11", which, str(p), "--out",
+            str(tmp_path / "o.h5"), "--overwrite", "--threads", "1"]
+    code, err = _call(argv)
+    _check(code, err, argv)
+    if code:  # the error names the option or the file at fault
+        assert which in err or p.name in err, (argv, err)
