@@ -354,6 +354,8 @@ def resume_problem(exc: Any) -> str:
                 "use --overwrite to start again")
     parts = []
     for what, text in exc.problems:
+        if what == "config:track.points" and "points" in kinds:
+            continue  # said once, by the points themselves
         key = what.split(":", 1)[1] if what.startswith("config:") else what
         flag = CONFIG_FLAGS.get(key, CONFIG_FLAGS.get(key.split(".")[-1], ""))
         parts.append(f"{flag} ({text})" if flag else text)
