@@ -169,7 +169,7 @@ def test_sigkill_never_leaves_a_broken_file(tmp_path):
         while not (out.exists() or out.with_name(out.name + ".creating").exists()) \
                 and proc.poll() is None:
             time.sleep(0.001)
-        time.sleep(random.uniform(0.0, 0.05))
+        time.sleep(0.0 if k == 0 else random.uniform(0.0, 0.05))  # try 0: while it is made
         proc.kill()
         proc.wait()
         if not out.exists():
