@@ -17,22 +17,30 @@ def _stop(signum: int, frame: object) -> None:  # noqa: ARG001
     raise KeyboardInterrupt(signum)
 
 
+def _ignore() -> None:
+    """The command is over: nothing is left to interrupt while the interpreter exits."""
+    for s in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(s, signal.SIG_IGN)
+
+
 def main() -> int:
     """Run ``stsdic`` with ``sys.argv``; the exit code."""
     for s in (signal.SIGINT, signal.SIGTERM):
         signal.signal(s, _stop)
+    started = False
     try:
         from torch_stsdic.cli import main as cli_main
 
-        code = cli_main()
-    except KeyboardInterrupt as exc:  # before or after the command (it handles its own)
+        started = True
+        code = cli_main()  # handles its own signals while the command runs
+        _ignore()
+    except KeyboardInterrupt as exc:  # before the command started, or just after it ended
+        _ignore()
         num = exc.args[0] if exc.args and isinstance(exc.args[0], int) else signal.SIGINT
-        name = signal.Signals(num).name
-        print(f"stsdic: interrupted by {name} (nothing was written)", file=sys.stderr,
+        when = "" if started else " (nothing was written)"
+        print(f"stsdic: interrupted by {signal.Signals(num).name}{when}", file=sys.stderr,
               flush=True)
         code = 128 + int(num)
-    for s in (signal.SIGINT, signal.SIGTERM):  # the process is ending: nothing to interrupt
-        signal.signal(s, signal.SIG_IGN)
     return code
 
 
