@@ -58,7 +58,7 @@ def result(movie, tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("run") / "r.h5"
     code = main(
         ["run", str(movie / "movie.tif"), "--subset", "17", "--step", "15", "--m", "2"]
-        + ["--out", str(out), "--no-progress"]
+        + ["--search-radius", "3", "--out", str(out), "--no-progress"]
         + FAST
     )
     assert code == 0
@@ -212,7 +212,7 @@ def test_run_result_file(result):
         u, v, ut = f["u"][()], f["v"][()], f["ut"][()]
         status = f["status"][()]
         exx = f["exx"][()]
-    assert u.shape == (8, 25)
+    assert u.shape == (8, 16)  # grid 13..67 px: subset/2 + 2 (cubic) + 3 (search radius)
     assert (status <= 1).mean() > 0.95
     ok = status <= 1
     err = (u - 0.05 * times[:, None])[ok]
@@ -225,6 +225,7 @@ def test_run_result_file(result):
 def test_run_summary_and_resume_overwrite(capsys, movie, tmp_path):
     out = tmp_path / "r.h5"
     base = ["run", movie / "movie.tif", "--subset", "17", "--step", "25", "--m", "1",
+            "--search-radius", "3",
             "--frames", "0:4", "--out", out, "--no-progress", *FAST]  # fmt: skip
     code, stdout, err = _run(capsys, *base)
     assert code == 0, err
@@ -268,7 +269,7 @@ def test_export_csv(capsys, result, tmp_path):
     lines = files[0].read_text().splitlines()
     cols = lines[0].split(",")  # the header first; units in the sidecar r_csv.json
     assert cols[:11] == ["x", "y", "u", "v", "ut", "vt", "exx", "eyy", "exy", "zncc", "status"]
-    assert len(lines) == 1 + 25 and (tmp_path / "r_csv.json").exists()
+    assert len(lines) == 1 + 16 and (tmp_path / "r_csv.json").exists()  # header + 4x4 points
     code, out, err = _run(capsys, "export", result, "--out", tmp_path / "all")
     assert code == 0 and len(list((tmp_path / "all").glob("*.csv"))) == 8
 

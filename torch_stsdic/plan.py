@@ -23,7 +23,7 @@ from .points import filter_points, grid_points
 from .shape import make_shape
 
 __all__ = ["RunPlan", "plan_run", "resolve_reference", "resolve_frames", "resolve_times",
-           "default_batch_frames", "MAX_DEFAULT_BATCH"]
+           "default_batch_frames", "grid_margin", "MAX_DEFAULT_BATCH"]
 
 MAX_DEFAULT_BATCH = 8
 _BASE = ("u", "v", "ut", "vt")
@@ -171,6 +171,10 @@ def plan_run(
     if n_series < n_win:
         raise ValueError(f"series: {n_series} frames, fewer than the 2m+1 = {n_win} frames of "
                          f"one window (config.m = {cfg.m})")
+    if n_series < 2 and not (isinstance(reference, (np.ndarray, torch.Tensor))
+                             and np.ndim(reference) >= 2):
+        raise ValueError(f"series: {n_series} frame, nothing to match against itself: give "
+                         "at least 2 frames (or a reference image as an array)")
     ts_np = resolve_times(times, ser)
     if "time_unit" not in units:
         frames_as_time = np.array_equal(ts_np, np.arange(n_series, dtype=np.float64))
@@ -186,7 +190,9 @@ def plan_run(
         dtype = torch.float64 if ser.dtype_name == "float64" else torch.float32
     ref_raw, ref_frame, ref_desc = resolve_reference(reference, ser, dtype, torch.device("cpu"))
     if points is None:
-        pts0 = grid_points((h, w), step, roi, mask, cfg.subset_size)
+        # the whole image: keep room for motion; a roi is the user's choice (subset/2 only)
+        margin = grid_margin(cfg) if roi is None else 0
+        pts0 = grid_points((h, w), step, roi, mask, cfg.subset_size, margin=margin)
     else:
         pts0 = filter_points(points, (h, w), roi, mask)
     elem = torch.finfo(dtype).bits // 8
@@ -201,6 +207,16 @@ def plan_run(
                    reference_image=ref_raw, reference_frame=ref_frame, reference_desc=ref_desc,
                    dtype=dtype, device=dev, batch_frames=n_batch, param_names=names,
                    options=options, units=units)
+
+
+def grid_margin(cfg: DICConfig) -> int:
+    """Px the default grid keeps beyond half a subset from the image border: the B-spline's
+    support (2 px cubic, 3 px quintic) plus the expected motion, ``config.search_radius``
+    (the largest motion the initial guess looks for), so that subsets stay inside the image
+    over the first window, whose frames have already moved (sample 12 of the DIC Challenge:
+    the first row of a plain subset/2 margin was OUTSIDE on the reference frame)."""
+    support = (3 if cfg.interpolation == "quintic" else 2)
+    return support + int(cfg.search_radius)
 
 
 def _open(series: Any) -> ImageSeries:

@@ -60,27 +60,35 @@ def grid_points(
     roi: Sequence[float] | None = None,
     mask: Any = None,
     subset_size: int = 21,
+    margin: float = 0.0,
 ) -> torch.Tensor:
     """A regular grid of POIs (N, 2) float64 as (x, y) px.
 
     The grid has spacing ``step`` px, lies inside ``roi = (x0, y0, x1, y1)`` (inclusive,
-    default the whole image) and keeps a margin of ``subset_size // 2`` px from the image
-    border so that every subset fits; it is centred in the available range. ``mask``: (H, W)
-    bool/number array or an image path; points where the mask is zero are dropped (only the
-    POI itself is tested). Raises ValueError naming ``roi``, ``mask`` or ``step``.
+    default the whole image) and keeps ``subset_size // 2 + margin`` px from the image
+    border so that every subset fits, also after moving by ``margin`` px (the run's
+    :func:`~torch_stsdic.plan.grid_margin`: interpolation support + expected motion; less
+    where the image is too small to keep it all); it is centred in the available range.
+    ``mask``: (H, W) bool/number array or an image path; points where the mask is zero are
+    dropped (only the POI itself is tested). Raises ValueError naming ``roi``, ``mask`` or ``step``.
     """
     h, w = int(shape[0]), int(shape[1])
     if not isinstance(step, (int, np.integer)) or step < 1:
         raise ValueError(f"step: must be an integer >= 1 (px), got {step!r}")
-    half = subset_size // 2
+    if not (isinstance(margin, (int, float, np.integer, np.floating)) and 0 <= margin < 1e9):
+        raise ValueError(f"margin: must be a number >= 0 (px), got {margin!r}")
+    # as much of the margin as leaves a point on a small image
+    margin = min(int(math.ceil(margin)), max(0, (min(h, w) - 1) // 2 - subset_size // 2))
+    half = subset_size // 2 + margin
     x0, y0, x1, y1 = (0.0, 0.0, w - 1.0, h - 1.0) if roi is None else check_roi(roi, (h, w))
     lo_x, hi_x = math.ceil(max(x0, half)), math.floor(min(x1, w - 1 - half))
     lo_y, hi_y = math.ceil(max(y0, half)), math.floor(min(y1, h - 1 - half))
     if lo_x > hi_x or lo_y > hi_y:
         where = "the image" if roi is None else f"roi {tuple(roi)}"
+        why = f" (subset/2 + {margin} px for motion)" if margin else ""
         raise ValueError(
             f"no points inside {where}: a subset of {subset_size} px needs a margin of {half} "
-            f"px from the {h}x{w} image border"
+            f"px{why} from the {h}x{w} image border"
         )
     xs = torch.arange(lo_x + ((hi_x - lo_x) % step) // 2, hi_x + 1, step, dtype=torch.float64)
     ys = torch.arange(lo_y + ((hi_y - lo_y) % step) // 2, hi_y + 1, step, dtype=torch.float64)

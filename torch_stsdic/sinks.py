@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from .io.results import ResultWriter, as_stored
+from .io.results import STRAIN_FIELDS, ResultWriter, as_stored
 from .plan import RunPlan
 from .result import TrackResult
 from .status import Status
@@ -119,6 +119,12 @@ class HDF5Sink(MemorySink):
         self.path = str(path)
         self.strain_window, self.strain_kind = strain_window, strain_kind
         extra = tuple(f"{nm}_smooth" for nm in SMOOTHED) if plan.options.get("smoothing") else ()
+        attrs = dict(attrs or {})
+        self.strain_fields: tuple[str, ...] = ()
+        if strain_window is not None:  # allocated now: finishing changes no file metadata
+            self.strain_fields = strain_fields(plan)
+            extra += self.strain_fields
+            attrs["strain"] = json.dumps({"window": strain_window, "kind": strain_kind})
         self.writer = ResultWriter(
             path, points=plan.points, frames=np.asarray(plan.targets, dtype=np.int64),
             times=plan.row_times, config=plan.record(), inputs=plan.series.sources,
@@ -154,11 +160,24 @@ class HDF5Sink(MemorySink):
         fields = {k: np.asarray(v.detach().cpu() if isinstance(v, torch.Tensor) else v)
                   for k, v in strain.items()}
         fields = {k: a for k, a in fields.items() if a.shape == shape}
-        self.writer.add_fields(fields, {"strain": json.dumps(
-            {"window": self.strain_window, "kind": self.strain_kind})})
+        known = {k: a for k, a in fields.items() if k in self.strain_fields}
+        self.writer.write_rows(np.arange(self.plan.n_rows), known, mark_completed=False)
+        new = {k: a for k, a in fields.items() if k not in self.strain_fields}
+        settings = json.dumps({"window": self.strain_window, "kind": self.strain_kind})
+        if new or self.writer.attrs().get("strain") != settings:
+            # not foreseen when the file was made (a resume with other strain options):
+            # the only case where finishing changes the file's metadata
+            self.writer.add_fields(new, {"strain": settings})
 
     def close(self, commit: bool = True) -> None:
         self.writer.close(commit=commit)
+
+
+def strain_fields(plan: RunPlan) -> tuple[str, ...]:
+    """The strain fields a finished run of ``plan`` adds: exx, eyy, exy, and their rates when
+    the run measures velocities (m > 0, or smoothing)."""
+    rates = "ut" in plan.param_names or bool(plan.options.get("smoothing"))
+    return STRAIN_FIELDS + (tuple(f"{nm}_rate" for nm in STRAIN_FIELDS) if rates else ())
 
 
 def open_sink(plan: RunPlan, out: str | os.PathLike[str] | None, *, resume: bool = False,

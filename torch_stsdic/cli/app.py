@@ -5,7 +5,8 @@ Each sub-command is a module (``run``, ``export``, ``plot``, ``synth``, ``demo``
 ``execute(args) -> int``. :func:`main` turns every error into one line on stderr
 (``stsdic: error: ...``) and an exit code: 2 for usage errors (a bad option value, an option
 that does not fit the images), 1 for everything else (missing or unreadable files, failed
-runs), 130 for Ctrl-C. ``--debug`` shows the Python traceback too.
+runs), 128 + the signal number when SIGINT (Ctrl-C, 130) or SIGTERM (143) stops it
+(:mod:`.signals`: one line saying what was kept). ``--debug`` shows the Python traceback too.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from typing import Any
 from . import demo, export, options, plot, run, synth
 from .demo import DEMO_TIME
 from .errors import PROG, CommandError, UsageError, one_line, print_error, warnings_on_stderr
+from .signals import Interrupted, stop_on_signals
 
 #: the sub-command modules, in the order of ``stsdic --help``
 COMMANDS = (run, export, plot, synth, demo)
@@ -105,8 +107,17 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run ``stsdic`` with ``argv`` (default ``sys.argv[1:]``); return the exit code."""
-    argv = list(sys.argv[1:] if argv is None else argv)
+    """Run ``stsdic`` with ``argv`` (default ``sys.argv[1:]``); return the exit code.
+
+    SIGINT/SIGTERM stop the command cleanly (:func:`~.signals.stop_on_signals`)."""
+    with stop_on_signals():
+        try:
+            return _main(list(sys.argv[1:] if argv is None else argv))
+        except KeyboardInterrupt as exc:  # stopped while parsing or reporting
+            return _report(exc)
+
+
+def _main(argv: list[str]) -> int:
     try:
         args = build_parser().parse_args(argv)
     except SystemExit as exc:  # --help, --version
@@ -145,8 +156,9 @@ def _report(exc: BaseException) -> int:
         print_error(one_line(exc))
         return 2
     if isinstance(exc, KeyboardInterrupt):
-        print_error("interrupted")
-        return 130
+        stop = exc if isinstance(exc, Interrupted) else Interrupted()
+        print(f"{PROG}: {stop}", file=sys.stderr, flush=True)
+        return stop.exit_code
     msg = one_line(exc)
     if not isinstance(exc, KNOWN_ERRORS):
         msg = f"{type(exc).__name__}: {msg} (run with --debug for the traceback)"

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import argparse
-import sys
+import os
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -13,7 +13,8 @@ import numpy as np
 
 from . import options
 from .common import check_device, fmt_time, to_numpy
-from .errors import PROG, CommandError, UsageError
+from .errors import CommandError, UsageError, one_line
+from .signals import Interrupted
 
 NAME = "run"
 HELP = "measure displacement, velocity and strain in an image series -> HDF5"
@@ -222,6 +223,11 @@ def _track_arguments(args: argparse.Namespace) -> dict[str, Any]:
         raise UsageError(
             f"--subset {args.subset} is larger than the images of {name} ({w}x{h} px, WxH)"
         )
+    if n < 2:
+        raise UsageError(
+            f"{name} holds {n} frame: a run needs a reference and at least one more frame "
+            "(give a folder, a glob, several files or a multi-page TIFF)"
+        )
     if n < 2 * args.m + 1:
         raise UsageError(
             f"--m {args.m} needs at least 2m+1 = {2 * args.m + 1} frames, but {name} has "
@@ -259,48 +265,154 @@ def execute(args: argparse.Namespace) -> int:
         raise CommandError(
             f"output file {out} exists: use --overwrite to replace it or --resume to continue it"
         )
+    _check_writable(out)
     device = check_device(args.device)
     calibration = options.check_calibration(args)
     kwargs = _track_arguments(args)
 
-    from ..series import track
+    from ..io import InputError
+    from ..plan import plan_run
+    from ..refine import set_refinement
+    from ..series import run_plan
 
-    print(kwargs["series"].describe(), flush=True)
+    series = kwargs.pop("series")
+    print(series.describe(), flush=True)
     t0 = time.perf_counter()
+    plan = None
     try:
-        res = track(
-            **kwargs,
-            step=args.step,
-            device=str(device),
-            progress=not args.no_progress,
-            out=str(out),
-            resume=args.resume,
-            overwrite=args.overwrite,
-            reference_update=args.reference_update,
-            refine_reference=args.refine_reference,
-            refine_frames=args.refine_frames if args.refine_reference else None,
-            strain_window=args.strain_window,
-            strain_kind=args.strain_kind,
-            scale=calibration.get("scale"),
-            unit=calibration["unit"],
-            time_unit=calibration.get("time_unit"),
-        )
-    except KeyboardInterrupt:
-        print(
-            f"{PROG}: interrupted: the finished frames are kept in {out} (or {out}.partial); "
-            "continue with the same command and --resume",
-            file=sys.stderr,
-        )
-        raise
-    elapsed = time.perf_counter() - t0
-    _print_summary(res, args, elapsed)
-    from ..io.results import field_names, open_results
+        try:
+            plan = plan_run(series, **kwargs, step=args.step, device=str(device),
+                            reference_update=args.reference_update,
+                            scale=calibration.get("scale"), unit=calibration["unit"],
+                            time_unit=calibration.get("time_unit"))
+            if args.refine_reference:
+                set_refinement(plan, args.refine_frames)
+        except ValueError as exc:
+            raise CommandError(str(exc)) from None
+        sink = _open_sink(plan, args, out)
+        try:
+            res = run_plan(plan, sink, progress=not args.no_progress)
+        except (OSError, InputError) as exc:  # a full disk, a frame gone or changed mid-run
+            raise CommandError(f"{_text(exc)}; {_kept(out, args, plan)}") from exc
+        elapsed = time.perf_counter() - t0
+        _print_summary(res, args, elapsed, _reference_name(series, plan))
+        from ..io.results import field_names, open_results
 
-    with open_results(out) as f:
-        fields = [nm for nm in field_names(f) if nm not in ("u", "v", "ut", "vt", "zncc",
-                                                            "status")]
-    print(f"results: {out} (fields u, v, ut, vt, zncc, status, {', '.join(fields)})")
+        with open_results(out) as f:
+            fields = [nm for nm in field_names(f)
+                      if nm not in ("u", "v", "ut", "vt", "zncc", "status")]
+        print(f"results: {out} (fields u, v, ut, vt, zncc, status, {', '.join(fields)})")
+    except KeyboardInterrupt as exc:  # at any moment: say what is kept
+        stop = exc if isinstance(exc, Interrupted) else Interrupted()
+        raise stop.with_detail(_kept(out, args, plan)) from None
     return 0
+
+
+def _text(exc: BaseException) -> str:
+    """An error's message on one line, without the '[Errno N]' of an OSError."""
+    if isinstance(exc, OSError) and exc.strerror and not exc.filename:
+        return " ".join(exc.strerror.split())
+    return one_line(exc)
+
+
+def _reference_name(series: Any, plan: Any) -> str:
+    """The reference as the user knows it: its file name (and page), or how it was made."""
+    if plan.reference_frame < 0:
+        return str(plan.reference_desc)
+    path, sep, page = series.frame_name(plan.reference_frame).partition(" (page ")
+    return Path(path).name + (f", page {page.rstrip(')')}" if sep else "")
+
+
+def _check_writable(out: Path) -> None:
+    """--out's folder exists (or can be made) and takes files: checked before any work."""
+    parent = out.absolute().parent
+    existing = parent
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        raise CommandError(f"--out {out}: {existing} is not a folder")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise CommandError(f"--out {out}: the folder {existing} is not writable "
+                           "(read-only or no permission); choose another --out")
+
+
+def _open_sink(plan: Any, args: argparse.Namespace, out: Path) -> Any:
+    """The HDF5 result file of the run; its problems in the words of the command line."""
+    from ..io.results import ResultFileError
+    from ..sinks import open_sink
+
+    try:
+        return open_sink(plan, str(out), resume=args.resume, overwrite=args.overwrite,
+                         strain_window=args.strain_window, strain_kind=args.strain_kind)
+    except ResultFileError as exc:
+        raise CommandError(resume_problem(exc)) from None
+    except OSError as exc:  # read-only filesystem, no permission, full disk at creation
+        raise CommandError(f"--out {out}: {_text(exc)}") from None
+
+
+#: result-file settings (dotted keys of the recorded config) -> the option that sets them
+CONFIG_FLAGS: dict[str, str] = {
+    "subset_size": "--subset", "m": "--m", "shape": "--shape", "window": "--window",
+    "criterion": "--criterion", "formulation": "--formulation",
+    "interpolation": "--interpolation", "max_iter": "--max-iter", "tol": "--tol",
+    "search_radius": "--search-radius", "initial_guess": "--initial-guess",
+    "seed_spacing": "--seed-spacing", "batch_points": "--batch-points",
+    "memory_mb": "--memory-mb", "dtype": "--dtype", "track.reference": "--reference",
+    "track.step": "--step", "track.roi": "--roi", "track.reference_update": "--reference-update",
+    "track.points": "--step/--roi/--mask/--points", "track.batch_frames": "--memory-mb",
+    "points": "--step/--roi/--mask/--points", "frames": "--frames", "times": "--timestamps",
+}
+
+
+def resume_problem(exc: Any) -> str:
+    """A :class:`~torch_stsdic.io.ResultFileError` met by ``--resume``, naming the options."""
+    path = exc.path
+    kinds = {what for what, _ in exc.problems}
+    if "open" in kinds:
+        return (f"--resume: {path} cannot be read as HDF5 (corrupt or truncated); nothing was "
+                "changed; give another --out, or --overwrite to replace it")
+    if "format" in kinds:
+        return (f"--resume: {path} is not a result file of 'stsdic run' (an HDF5 file of "
+                "another program); nothing was changed; give another --out, or --overwrite "
+                "to replace it")
+    if "missing" in kinds:
+        what = "; ".join(t for k, t in exc.problems if k == "missing")
+        return (f"--resume: {path} lacks what this run writes ({what}: written by another "
+                "version, or with other --strain-window/--m options); nothing was changed; "
+                "use --overwrite to start again")
+    parts = []
+    for what, text in exc.problems:
+        if what == "config:track.points" and "points" in kinds:
+            continue  # said once, by the points themselves
+        key = what.split(":", 1)[1] if what.startswith("config:") else what
+        flag = CONFIG_FLAGS.get(key, CONFIG_FLAGS.get(key.split(".")[-1], ""))
+        parts.append(f"{flag} ({text})" if flag else text)
+    return (f"--resume: {path} was written with other options: {'; '.join(parts)}; repeat "
+            "the first run's options to continue it, or use --overwrite to start again")
+
+
+def _kept(out: Path, args: argparse.Namespace, plan: Any) -> str:
+    """What an interrupted or failed run left: the finished frames and how to continue."""
+    from ..io.results import RESULTS_FORMAT, open_results
+
+    partial = out.with_name(out.name + ".partial")
+    path = partial if (args.overwrite or args.resume) and partial.exists() else out
+    if args.overwrite and path == out:  # the new file was not made yet: the old one stays
+        return f"{out} is unchanged" if out.exists() else "nothing was written yet"
+    try:
+        with open_results(path) as f:
+            done = f["completed"][()]
+            ours = f.attrs.get("format") == RESULTS_FORMAT
+    except Exception:  # noqa: BLE001 - only for the message
+        return "nothing was written yet"
+    if not ours or (plan is not None and len(done) != plan.n_rows):
+        return f"{path} is unchanged"
+    n, k = len(done), int(done.sum())
+    if k == n:
+        return (f"all {n} frames are finished in {path}; run the same command with --resume "
+                "to complete what may be missing (strains)")
+    return (f"{k} of {n} frames finished, kept in {path}; continue with the same command "
+            "and --resume")
 
 
 def _status_summary(status: np.ndarray) -> dict[str, float]:
@@ -312,8 +424,9 @@ def _status_summary(status: np.ndarray) -> dict[str, float]:
     return {st.name.lower(): 100.0 * float((s == int(st)).sum()) / total for st in Status}
 
 
-def _print_summary(res: Any, args: argparse.Namespace, elapsed: float) -> None:
-    """Points, frames, status percentages, time and throughput of a finished run."""
+def _print_summary(res: Any, args: argparse.Namespace, elapsed: float, ref: str) -> None:
+    """Points, frames, status percentages, time and throughput of a finished run; ``ref``:
+    the reference's file (and page), or how it was made."""
     import torch
 
     from .. import native
@@ -321,7 +434,7 @@ def _print_summary(res: Any, args: argparse.Namespace, elapsed: float) -> None:
     status = to_numpy(res.status)
     n_f, n_p = status.shape
     st = _status_summary(status)
-    print(f"points: {n_p}   frames: {n_f}   reference: {args.reference}   m: {args.m}")
+    print(f"points: {n_p}   frames: {n_f}   reference: {args.reference} ({ref})   m: {args.m}")
     print(
         f"converged: {st['converged']:.1f} %   max-iter: {st['max_iter']:.1f} %   "
         f"not trusted: {100.0 - st['converged'] - st['max_iter']:.1f} % "

@@ -13,6 +13,7 @@ from __future__ import annotations
 import copy
 import glob as _glob
 import os
+import re
 import threading
 import warnings
 from collections import OrderedDict
@@ -66,6 +67,7 @@ class _FileInfo:
     extra: bool = False  # 2 samples (grey + alpha): first sample
     planar: bool = False  # TIFF planar-separate samples (S, H, W)
     pil_mode: str = ""
+    planes: bool = False  # one planar RGB(A) page whose sample planes are the frames
 
 
 def _is_tiff(path: Path) -> bool:
@@ -147,6 +149,19 @@ def _probe_tiff(path: Path) -> _FileInfo:
                         f"{h}x{w}"
                     )
                 n += len(s)
+            planar = spp > 1 and int(page.planarconfig) == 2
+            if planar and spp in (3, 4):
+                if n > 1:
+                    raise InputError(
+                        f"TIFF file {path} holds {n} pages of {spp} separate sample planes: "
+                        f"that is either {n} colour frames or {n * spp} grey frames; rewrite "
+                        "it as grey pages (tifffile: photometric='minisblack') or as "
+                        "interleaved colour (photometric='rgb', planarconfig='contig')"
+                    )
+                # one page of separate planes: how tifffile stores a (3|4, H, W) stack written
+                # without photometric; DIC frames are grey, so the planes are the frames
+                return _FileInfo(path=path, kind="tiff", n_frames=spp, shape=(h, w),
+                                 dtype=dtype, bits=bits, planar=True, planes=True)
             return _FileInfo(
                 path=path,
                 kind="tiff",
@@ -156,7 +171,7 @@ def _probe_tiff(path: Path) -> _FileInfo:
                 bits=bits,
                 colour=spp >= 3,
                 extra=spp == 2,
-                planar=spp > 1 and int(page.planarconfig) == 2,
+                planar=planar,
             )
     except InputError:
         raise
@@ -397,6 +412,8 @@ class ImageSeries:
                 self._handles.move_to_end(info.path)
             try:
                 arr = None
+                if info.planes:  # the page's sample planes are the frames
+                    return np.asarray(tif.pages[0].asarray())[j]
                 for k, s in enumerate(tif.series):
                     if j < len(s):
                         page = s[j]
@@ -565,12 +582,42 @@ def _expand_source(source: str | os.PathLike[str]) -> list[Path]:
     raise InputError(f"image file or directory not found: {s}")
 
 
+#: a file name that says "reference" ("Sample5_Reference.tif", "ref_000.png", "REF.tif")
+_REFERENCE_NAME = re.compile(r"(?:^|[^a-z])ref(?:erence)?(?:[^a-z]|$)", re.IGNORECASE)
+
+
+def _reference_first(paths: list[Path], reorder: bool) -> list[Path]:
+    """Put the one file whose name says "reference" first (frame 0, the default reference)
+    when ``reorder`` (a folder or glob, whose order is ours); warn either way."""
+    hits = [p for p in paths if _REFERENCE_NAME.search(p.stem)]
+    if len(paths) < 2 or len(hits) != 1 or hits[0] == paths[0]:
+        return paths
+    ref = hits[0]
+    if not reorder:
+        warnings.warn(
+            f"{ref.name} is named as a reference but is frame {paths.index(ref)} of the files "
+            "given, which are kept in the given order (frame 0 is the default reference)",
+            stacklevel=3,
+        )
+        return paths
+    warnings.warn(
+        f"{ref.name} is named as a reference: it is taken as frame 0 (the default reference), "
+        f"the other {len(paths) - 1} files follow in natural order; list the files "
+        "explicitly to choose another order",
+        stacklevel=3,
+    )
+    return [ref] + [p for p in paths if p != ref]
+
+
 def load_series(source: Any, *, timestamps: Any = None) -> ImageSeries:
     """Open an image series lazily.
 
     ``source``: a (multi-page) TIFF or other image path, a directory (image files in
-    natural order), a glob pattern (``"frames/*.tif"``, natural order), a list of paths
-    (kept in the given order; multi-page TIFFs contribute all their pages), a ``(T, H, W)``
+    natural order), a glob pattern (``"frames/*.tif"``, natural order; in both, the one file
+    whose name says "reference", e.g. ``Sample5_Reference.tif``, comes first, with a
+    warning), a list of paths (kept in the given order; multi-page TIFFs contribute all their
+    pages; a single-page TIFF of 3 or 4 separate planes is read as that many grey frames,
+    with a warning), a ``(T, H, W)``
     or ``(T, H, W, 3|4)`` numpy array / torch tensor (a 2-D array is one frame), or an
     existing :class:`ImageSeries` (returned as is, with new timestamps if given).
     ``timestamps``: ``(T,)`` strictly increasing times, default ``0..T-1``.
@@ -587,7 +634,7 @@ def load_series(source: Any, *, timestamps: Any = None) -> ImageSeries:
     if isinstance(source, (np.ndarray, torch.Tensor)):
         return _series_from_array(source, timestamps)
     if isinstance(source, (str, os.PathLike)):
-        paths = _expand_source(source)
+        paths = _reference_first(_expand_source(source), reorder=True)
     elif isinstance(source, Iterable):
         paths = []
         for item in source:
@@ -596,6 +643,7 @@ def load_series(source: Any, *, timestamps: Any = None) -> ImageSeries:
             paths.append(Path(item).expanduser())
         if not paths:
             raise InputError("empty list of image files")
+        paths = _reference_first(paths, reorder=False)
     else:
         raise InputError(
             f"unsupported image source of type {type(source).__name__}: give a path, "
@@ -618,20 +666,24 @@ def load_series(source: Any, *, timestamps: Any = None) -> ImageSeries:
             )
             warned_dtype = True
         infos.append(info)
+    for f in infos:
+        if f.planes:
+            warnings.warn(
+                f"{f.path} is one TIFF page of {f.n_frames} separate planes (marked colour, "
+                f"as tifffile stores a ({f.n_frames}, H, W) array written without "
+                f"photometric): read as {f.n_frames} grey frames; save colour images "
+                "interleaved (photometric='rgb', planarconfig='contig') to have them "
+                "converted to grey instead",
+                stacklevel=2,
+            )
     label = os.fspath(source) if isinstance(source, (str, os.PathLike)) else ""
     series = ImageSeries(files=infos, timestamps=timestamps, label=label)
     if series.is_colour or any(f.extra for f in infos):
         which = next(f for f in infos if f.colour or f.extra)
-        hint = (
-            " (a 3- or 4-frame stack written by tifffile without photometric='minisblack' "
-            "is stored as RGB planes: rewrite it with photometric='minisblack')"
-            if which.planar
-            else ""
-        )
         warnings.warn(
             f"colour images (e.g. {which.path}) are converted to grey "
             f"(luminance {LUMA_WEIGHTS[0]}R + {LUMA_WEIGHTS[1]}G + {LUMA_WEIGHTS[2]}B, "
-            f"alpha dropped){hint}",
+            f"alpha dropped)",
             stacklevel=2,
         )
     return series

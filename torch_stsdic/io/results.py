@@ -10,8 +10,10 @@ finished one. This module is the only one that knows the file layout.
 from __future__ import annotations
 
 import datetime as _dt
+import errno
 import json
 import os
+import re
 import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -43,7 +45,18 @@ __all__ = [
 
 
 class ResultFileError(ValueError):
-    """A result file is not a torch_stsdic file, or does not match the run that resumes it."""
+    """A result file is not a torch_stsdic file, or does not match the run that resumes it.
+
+    ``path``: the file; ``problems``: ``(what, text)`` pairs, ``what`` being "open" (not
+    readable as HDF5), "format" (not a result file), "missing" (a dataset), "points",
+    "frames", "times" or ``"config:<key>"`` (a setting, nested keys dotted:
+    ``config:track.step``), so that a command line can name its own options."""
+
+    def __init__(self, message: str, path: Any = None,
+                 problems: Sequence[tuple[str, str]] = ()) -> None:
+        super().__init__(message)
+        self.path = path
+        self.problems = list(problems)
 
 
 # ----------------------------------------------------------------------------------------
@@ -128,16 +141,60 @@ def _chunks(n_rows: int, n_cols: int, itemsize: int) -> tuple[int, int] | None:
     return rows, cols
 
 
-def _diff_config(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[str]:
+#: short reasons for the errors a result file meets (HDF5's own messages run to a paragraph)
+_REASONS = {errno.ENOSPC: "no space left on the device (the disk is full)",
+            errno.EDQUOT: "disk quota exceeded", errno.EROFS: "read-only file system",
+            errno.EACCES: "permission denied", errno.EPERM: "permission denied",
+            errno.EFBIG: "file too large (file-size limit of the system or file system)",
+            errno.EIO: "input/output error (device lost?)"}
+
+
+def os_reason(exc: BaseException) -> str:
+    """A short reason for an OSError, e.g. 'no space left on the device (the disk is full)';
+    HDF5's own text when the error number is unknown."""
+    text = " ".join(str(exc).split())
+    code = getattr(exc, "errno", None)
+    if code is None:  # HDF5 puts the number in the text: "errno = 28"
+        m = re.search(r"errno = (\d+)", text)
+        code = int(m.group(1)) if m else None
+    return _REASONS.get(code, text) if code is not None else text
+
+
+def _dcpl() -> Any:
+    """Dataset creation properties: storage allocated (and filled) when the dataset is
+    created, so writing rows later only overwrites data in place and never changes the
+    file's metadata (nothing for a killed process to leave half-written)."""
+    dcpl = h5py.h5p.create(h5py.h5p.DATASET_CREATE)
+    dcpl.set_alloc_time(h5py.h5d.ALLOC_TIME_EARLY)
+    return dcpl
+
+
+def _flat(d: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Nested settings as one level with dotted keys ({"track": {"step": 5}} -> track.step)."""
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        if isinstance(v, Mapping) and v:
+            out.update(_flat(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def _diff_config(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[tuple[str, str]]:
+    """(dotted key, "key: old -> new") for every setting that differs."""
+    old, new = _flat(old), _flat(new)
     out = []
     for k in sorted(set(old) | set(new)):
         if k not in old:
-            out.append(f"{k}: (absent) -> {new[k]!r}")
+            text = f"{k}: (absent) -> {new[k]!r}"
         elif k not in new:
-            out.append(f"{k}: {old[k]!r} -> (absent)")
+            text = f"{k}: {old[k]!r} -> (absent)"
         elif old[k] != new[k]:
-            out.append(f"{k}: {old[k]!r} -> {new[k]!r}")
-    return [s if len(s) < 200 else s[:197] + "..." for s in out]
+            text = f"{k}: {old[k]!r} -> {new[k]!r}"
+        else:
+            continue
+        out.append((k, text if len(text) < 200 else text[:197] + "..."))
+    return out
 
 
 class ResultWriter:
@@ -234,8 +291,15 @@ class ResultWriter:
 
     # -- opening --------------------------------------------------------------------------
     def _create(self, target: Path, mode: str) -> None:
+        """Write the file's skeleton (attributes, every dataset allocated and filled) under a
+        temporary name, then rename it to ``target``: a process killed meanwhile leaves no
+        half-made file. Writing rows later changes no HDF5 metadata (see :func:`_dcpl`), so
+        a SIGKILL at any moment leaves a file that opens and resumes."""
+        if mode == "x" and target.exists():
+            raise FileExistsError(f"result file {target} exists")
         target.parent.mkdir(parents=True, exist_ok=True)
-        f = h5py.File(target, mode)
+        tmp = target.with_name(target.name + ".creating")
+        f = h5py.File(tmp, "w")
         try:
             f.attrs["format"] = RESULTS_FORMAT
             f.attrs["version"] = RESULTS_FORMAT_VERSION
@@ -259,38 +323,50 @@ class ResultWriter:
                     dtype=dt,
                     fillvalue=fill,
                     chunks=_chunks(n_f, n_p, np.dtype(dt).itemsize),
+                    dcpl=_dcpl(),
                 )
             f.create_dataset("completed", data=np.zeros(n_f, dtype=bool))
-            f.flush()
-        except BaseException:
             f.close()
-            target.unlink(missing_ok=True)
+            os.replace(tmp, target)
+        except BaseException as exc:
+            try:
+                f.close()
+            except Exception:  # noqa: BLE001 - a full disk fails the close too
+                pass
+            tmp.unlink(missing_ok=True)
+            if isinstance(exc, OSError) or (isinstance(exc, Exception)
+                                            and "errno =" in str(exc)):
+                code = getattr(exc, "errno", None)
+                raise OSError(code, f"cannot create the result file {target}: "
+                                    f"{os_reason(exc)}") from exc
             raise
-        self._file = f
+        self._file = h5py.File(target, "r+")
         self._target = target
 
-    def _check_match(self, f: h5py.File, where: Path) -> list[str]:
-        problems: list[str] = []
+    def _check_match(self, f: h5py.File, where: Path) -> list[tuple[str, str]]:
+        """What keeps ``f`` from being continued by this writer: (what, text) pairs."""
+        problems: list[tuple[str, str]] = []
         if f.attrs.get("format") != RESULTS_FORMAT:
-            return [f"{where} is not a {RESULTS_FORMAT} file"]
+            return [("format", f"{where} is not a {RESULTS_FORMAT} file")]
         for name in ("points", "frames", "times", "completed", *self.fields, *self.extra_fields):
             if name not in f:
-                problems.append(f"dataset {name!r} missing")
+                problems.append(("missing", f"dataset {name!r} missing"))
         if problems:
             return problems
         pts = f["points"][()]
         if pts.shape != self.points.shape:
-            problems.append(f"points: {pts.shape[0]} in file, {len(self.points)} now")
+            problems.append(("points", f"points: {pts.shape[0]} in file, {len(self.points)} now"))
         elif not np.array_equal(pts, self.points):
-            problems.append("points: same count but different coordinates")
+            problems.append(("points", "points: same count but different coordinates"))
         fr = f["frames"][()]
         if not np.array_equal(fr, self.frames):
-            problems.append(f"frames differ ({len(fr)} in file, {len(self.frames)} now)")
+            problems.append(("frames", f"frames differ ({len(fr)} in file, {len(self.frames)} "
+                                       "now)"))
         elif not np.allclose(f["times"][()], self.times, rtol=1e-12, atol=0, equal_nan=True):
-            problems.append("times differ")
+            problems.append(("times", "times differ"))
         try:
             old = json.loads(f.attrs.get("config", "{}"))
-        except json.JSONDecodeError:
+        except (json.JSONDecodeError, TypeError):
             old = {}
         new = self.config
         ign = self._resume_ignore
@@ -298,8 +374,7 @@ class ResultWriter:
             {k: v for k, v in old.items() if k not in ign},
             {k: v for k, v in new.items() if k not in ign},
         )
-        if diff:
-            problems.append("config differs: " + "; ".join(diff))
+        problems.extend((f"config:{key}", f"config differs: {text}") for key, text in diff)
         return problems
 
     def _open_resume(self) -> None:
@@ -307,35 +382,34 @@ class ResultWriter:
         if not candidates:
             self._create(self.path, mode="x")
             return
-        first_problems: list[str] | None = None
+        first: tuple[Path, list[tuple[str, str]]] | None = None
         for cand in candidates:
-            try:
+            try:  # look read-only first: a file that does not match is never modified
+                with h5py.File(cand, "r") as f:
+                    probs = self._check_match(f, cand)
+            except (OSError, KeyError, ValueError, TypeError) as exc:
+                probs = [("open", f"cannot read {cand} as HDF5 (corrupt, truncated or not "
+                                  f"HDF5): {' '.join(str(exc).split())}")]
+            if not probs:
                 f = h5py.File(cand, "r+")
-            except OSError as exc:
-                probs = [f"cannot open {cand}: {exc}"]
-            else:
-                probs = self._check_match(f, cand)
-                if not probs:
-                    self._file = f
-                    self._target = cand
-                    self._rename_on_close = cand == self._partial
-                    old_inputs = json.loads(f.attrs.get("inputs", "[]"))
-                    if old_inputs != self.inputs:
-                        warnings.warn(
-                            f"resuming {cand}: input files differ from the recorded ones",
-                            stacklevel=3,
-                        )
-                    hist = json.loads(f.attrs.get("resumed", "[]"))
-                    f.attrs["resumed"] = json.dumps([*hist, _now()])
-                    f.flush()
-                    return
-                f.close()
-            if first_problems is None:
-                first_problems = [f"{cand}: {p}" for p in probs]
+                self._file = f
+                self._target = cand
+                self._rename_on_close = cand == self._partial
+                old_inputs = json.loads(f.attrs.get("inputs", "[]"))
+                if old_inputs != self.inputs:
+                    warnings.warn(
+                        f"resuming {cand}: input files differ from the recorded ones",
+                        stacklevel=3,
+                    )
+                return
+            if first is None:
+                first = (cand, probs)
+        assert first is not None
+        cand, probs = first
         raise ResultFileError(
-            "cannot resume: "
-            + " | ".join(first_problems or [])
-            + " (use overwrite=True to start again)"
+            "cannot resume: " + " | ".join(f"{cand}: {t}" for _, t in probs)
+            + " (use overwrite=True to start again)",
+            path=cand, problems=probs,
         )
 
     # -- writing --------------------------------------------------------------------------
@@ -405,18 +479,28 @@ class ResultWriter:
         order = np.argsort(rows)
         srows = rows[order]
         contiguous = bool(np.all(np.diff(srows) == 1))
-        for name, a in data.items():
-            a = a[order]
-            ds = f[name]
-            if contiguous:
-                ds[int(srows[0]) : int(srows[-1]) + 1] = a
-            else:
-                for j, r in enumerate(srows):
-                    ds[int(r)] = a[j]
-        f.flush()
-        if mark_completed:
-            f["completed"][srows] = True
+        try:
+            for name, a in data.items():
+                a = a[order]
+                ds = f[name]
+                if contiguous:
+                    ds[int(srows[0]) : int(srows[-1]) + 1] = a
+                else:
+                    for j, r in enumerate(srows):
+                        ds[int(r)] = a[j]
             f.flush()
+            if mark_completed:  # only once the rows' data are in the file
+                f["completed"][srows] = True
+                f.flush()
+        except (OSError, ValueError, RuntimeError) as exc:
+            if isinstance(exc, OSError) or "errno =" in str(exc):  # HDF5's I/O failures
+                raise self._write_error(exc) from exc
+            raise
+
+    def _write_error(self, exc: BaseException) -> OSError:
+        """``exc`` (from HDF5: a full disk, a lost device ...) as an OSError naming the file."""
+        return OSError(getattr(exc, "errno", None),
+                       f"cannot write the result file {self._target}: {os_reason(exc)}")
 
     def read_rows(self, first: int, last: int,
                   fields: Sequence[str] | None = None) -> dict[str, np.ndarray]:
@@ -430,6 +514,10 @@ class ResultWriter:
         """Add or replace (F, N) float fields (e.g. strains) and root attributes."""
         _add_fields(self._h5(), values, attrs)
         self._h5().flush()
+
+    def attrs(self) -> dict[str, Any]:
+        """The file's root attributes (a copy)."""
+        return {k: _py(v) for k, v in self._h5().attrs.items()}
 
     def completed_rows(self) -> np.ndarray:
         """Row indices (sorted int64) already completed."""
@@ -451,9 +539,15 @@ class ResultWriter:
             return
         f, self._file = self._file, None
         try:
-            f.flush()
-        finally:
-            f.close()
+            try:
+                f.flush()
+            finally:
+                f.close()
+        except OSError as exc:
+            if commit:
+                raise self._write_error(exc) from exc
+            # after an error: the rows flushed before it stay in the file; the first error
+            # is the one to report, not a second one from the same full disk
         if self._rename_on_close and commit:
             os.replace(self._target, self.path)
             self._target = self.path
