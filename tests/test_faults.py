@@ -407,4 +407,6 @@ def test_default_grid_leaves_room_for_motion():
     plain = grid_points(shape, 6, subset_size=15)  # subset/2 only: the old default
     res0 = track(movie, config=cfg, points=plain, frames=[0], progress=False)
     first0 = res0.points[:, 1] == res0.points[:, 1].min()
-    assert (res0.status[0][first0] == int(Status.OUTSIDE)).all()
+    # the old default's first row: its 5-frame window leaves the image (OUTSIDE), or the
+    # tracker falls back to a shorter window / the classical solution for it (m < 2)
+    assert ((res0.status[0][first0] == int(Status.OUTSIDE)) | (res0.m[0][first0] < 2)).all()
