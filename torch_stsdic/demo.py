@@ -390,7 +390,7 @@ def _history_figure(d: DemoResult, path: Path | None) -> Any:
     n = len(d.methods)
     fig = Figure(figsize=(3.2 * n + 0.8, 5.6), layout="constrained")
     axes = fig.subplots(2, n, sharex=True, sharey="row", squeeze=False)
-    colours = ("tab:blue", "tab:orange", "tab:green", "tab:red")
+    colours = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown")
     for j, (r, col) in enumerate(zip(d.methods, colours)):
         for i, (attr, unit) in enumerate((("error_u", "px"), ("error_ut", "px/frame"))):
             ax = axes[i, j]
