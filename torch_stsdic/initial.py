@@ -12,7 +12,7 @@ from __future__ import annotations
 import torch
 
 __all__ = ["fft_cross_correlation", "coarse_to_fine", "linear_fit_in_time", "seed_cells",
-           "carry_from_seed"]
+           "carry_from_seed", "retry_weak_peaks", "walk_weak_frames"]
 
 
 def _regions(
@@ -276,3 +276,67 @@ def carry_from_seed(shape, params: torch.Tensor, offset: torch.Tensor) -> torch.
     out[:, 0] = (params[:, :ks] * b).sum(1)
     out[:, k] = (params[:, k : k + ks] * b).sum(1)
     return out
+
+
+def retry_weak_peaks(d: torch.Tensor, score: torch.Tensor, ref_pixels: torch.Tensor,
+                     frame_pixels: torch.Tensor, points: torch.Tensor,
+                     frame_index: torch.Tensor, ref_index: torch.Tensor, subset_size: int,
+                     search_radius: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Where the full-resolution search found no clear peak (ZNCC < 0.8, or the peak on
+    the border of the search area: the motion may be larger than ``search_radius``),
+    search again over an image pyramid (:func:`~torch_stsdic.initial.coarse_to_fine`)
+    and keep the better peak of the two. ``d`` (N, T, 2) displacements, ``score``
+    (N, T) their ZNCC; returns both updated."""
+    rad = search_radius
+    weak = (score < 0.8) | (d.abs() >= rad - 0.5).any(-1)
+    h, w = frame_pixels.shape[-2:]
+    levels = 0
+    while levels < 3 and min(h, w) / 2 ** (levels + 1) >= 2 * (subset_size + 2 * rad):
+        levels += 1
+    rows = torch.nonzero(weak.any(1)).flatten()
+    if levels == 0 or rows.numel() == 0 or rad == 0:
+        return d, score
+    d2, s2 = coarse_to_fine(ref_pixels, frame_pixels, points[rows], subset_size, rad,
+                            levels, frame_index=frame_index[rows],
+                            ref_index=ref_index[rows])
+    better = s2 > score[rows]
+    d, score = d.clone(), score.clone()
+    d[rows] = torch.where(better.unsqueeze(-1), d2.to(d.dtype), d[rows])
+    score[rows] = torch.where(better, s2.to(score.dtype), score[rows])
+    return d, score
+
+
+def walk_weak_frames(d: torch.Tensor, score: torch.Tensor, dt: torch.Tensor,
+                     ref_pixels: torch.Tensor, frame_pixels: torch.Tensor, points: torch.Tensor,
+                     frame_index: torch.Tensor, ref_index: torch.Tensor, subset_size: int,
+                     search_radius: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Frames of a window whose peak is still weak (ZNCC < 0.8) are searched again around
+    the displacement extrapolated from the frames before them in time (the window's
+    motion carried along it), in time order; the better peak is kept. ``dt`` (N, T) frame
+    times; other shapes as :func:`retry_weak_peaks`."""
+    order = torch.argsort(dt, dim=1)  # (N, T) frames in time order per POI
+    d, score = d.clone(), score.clone()
+    ar = torch.arange(d.shape[0], device=d.device)
+    for j in range(1, d.shape[1]):
+        cur, p1 = order[:, j], order[:, j - 1]
+        weak = (score[ar, cur] < 0.8) & (score[ar, p1] >= 0.8)
+        if not bool(weak.any()):
+            continue
+        rows = torch.nonzero(weak).flatten()
+        prior = d[rows, p1[rows]]
+        if j >= 2:
+            p2 = order[rows, j - 2]
+            step = (dt[rows, cur[rows]] - dt[rows, p1[rows]]) / (
+                dt[rows, p1[rows]] - dt[rows, p2]).clamp(min=1e-9)
+            good2 = score[rows, p2] >= 0.8
+            prior = prior + torch.where(good2.unsqueeze(-1), (prior - d[rows, p2])
+                                        * step.unsqueeze(-1).to(d.dtype), 0.0 * prior)
+        d2, s2 = fft_cross_correlation(
+            ref_pixels, frame_pixels, points[rows], subset_size,
+            max(3, search_radius // 2), frame_index=frame_index[rows, cur[rows]].unsqueeze(1),
+            ref_index=ref_index[rows], prior=prior.unsqueeze(1))
+        better = s2[:, 0] > score[rows, cur[rows]]
+        rb = rows[better]
+        d[rb, cur[rb]] = d2[better, 0].to(d.dtype)
+        score[rb, cur[rb]] = s2[better, 0].to(score.dtype)
+    return d, score

@@ -41,10 +41,11 @@ from .formulations import Formulation, Geometry, SubsetData, reference_subsets, 
 from .formulations.joint_ic import centred_gram
 from .initial import (
     carry_from_seed,
-    coarse_to_fine,
     fft_cross_correlation,
     linear_fit_in_time,
+    retry_weak_peaks,
     seed_cells,
+    walk_weak_frames,
 )
 from .interpolation import BSplineImage
 from .offgrid import carry_solution, snap_points
@@ -418,11 +419,13 @@ class SubsetSolver:
             ref_pixels, frame_pixels, points, cfg.subset_size, cfg.search_radius,
             frame_index=frame_index, ref_index=ref_index,
         )
-        d, score = self._coarse_to_fine(d, score, ref_pixels, frame_pixels, points,
-                                        frame_index, ref_index)
+        cfg = self.config
+        d, score = retry_weak_peaks(d, score, ref_pixels, frame_pixels, points, frame_index,
+                                    ref_index, cfg.subset_size, cfg.search_radius)
         if d.shape[1] > 1:
-            d, score = self._walk_in_time(d, score, dt, ref_pixels, frame_pixels, points,
-                                          frame_index, ref_index)
+            d, score = walk_weak_frames(d, score, dt, ref_pixels, frame_pixels, points,
+                                        frame_index, ref_index, cfg.subset_size,
+                                        cfg.search_radius)
         d = d.to(points.dtype)
         p0 = torch.zeros(points.shape[0], shape.n_params, dtype=points.dtype,
                          device=points.device)
@@ -436,67 +439,6 @@ class SubsetSolver:
         p0[:, 0] = d0[:, 0]
         p0[:, k] = d0[:, 1]
         return p0
-
-
-    def _coarse_to_fine(self, d, score, ref_pixels, frame_pixels, points, frame_index,
-                        ref_index):
-        """Where the full-resolution search found no clear peak (ZNCC < 0.8, or the peak on
-        the border of the search area: the motion may be larger than ``search_radius``),
-        search again over an image pyramid (:func:`~torch_stsdic.initial.coarse_to_fine`)
-        and keep the better peak of the two."""
-        cfg = self.config
-        rad = cfg.search_radius
-        weak = (score < 0.8) | (d.abs() >= rad - 0.5).any(-1)
-        h, w = frame_pixels.shape[-2:]
-        levels = 0
-        while levels < 3 and min(h, w) / 2 ** (levels + 1) >= 2 * (cfg.subset_size + 2 * rad):
-            levels += 1
-        rows = torch.nonzero(weak.any(1)).flatten()
-        if levels == 0 or rows.numel() == 0 or rad == 0:
-            return d, score
-        d2, s2 = coarse_to_fine(ref_pixels, frame_pixels, points[rows], cfg.subset_size, rad,
-                                levels, frame_index=frame_index[rows],
-                                ref_index=ref_index[rows])
-        better = s2 > score[rows]
-        d, score = d.clone(), score.clone()
-        d[rows] = torch.where(better.unsqueeze(-1), d2.to(d.dtype), d[rows])
-        score[rows] = torch.where(better, s2.to(score.dtype), score[rows])
-        return d, score
-
-
-    def _walk_in_time(self, d, score, dt, ref_pixels, frame_pixels, points, frame_index,
-                      ref_index):
-        """Frames of a window whose peak is still weak (ZNCC < 0.8) are searched again around
-        the displacement extrapolated from the frames before them in time (the window's
-        motion carried along it), in time order; the better peak is kept."""
-        cfg = self.config
-        order = torch.argsort(dt, dim=1)  # (N, T) frames in time order per POI
-        d, score = d.clone(), score.clone()
-        ar = torch.arange(d.shape[0], device=d.device)
-        for j in range(1, d.shape[1]):
-            cur, p1 = order[:, j], order[:, j - 1]
-            weak = (score[ar, cur] < 0.8) & (score[ar, p1] >= 0.8)
-            if not bool(weak.any()):
-                continue
-            rows = torch.nonzero(weak).flatten()
-            prior = d[rows, p1[rows]]
-            if j >= 2:
-                p2 = order[rows, j - 2]
-                step = (dt[rows, cur[rows]] - dt[rows, p1[rows]]) / (
-                    dt[rows, p1[rows]] - dt[rows, p2]).clamp(min=1e-9)
-                good2 = score[rows, p2] >= 0.8
-                prior = prior + torch.where(good2.unsqueeze(-1), (prior - d[rows, p2])
-                                            * step.unsqueeze(-1).to(d.dtype), 0.0 * prior)
-            d2, s2 = fft_cross_correlation(
-                ref_pixels, frame_pixels, points[rows], cfg.subset_size,
-                max(3, cfg.search_radius // 2), frame_index=frame_index[rows, cur[rows]
-                                                                     ].unsqueeze(1),
-                ref_index=ref_index[rows], prior=prior.unsqueeze(1))
-            better = s2[:, 0] > score[rows, cur[rows]]
-            rb = rows[better]
-            d[rb, cur[rb]] = d2[better, 0].to(d.dtype)
-            score[rb, cur[rb]] = s2[better, 0].to(score.dtype)
-        return d, score
 
 
 def _clock(device: torch.device) -> float:
