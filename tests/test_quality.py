@@ -14,7 +14,13 @@ import pytest
 import torch
 
 from torch_stsdic import DICConfig, track
-from torch_stsdic.quality import median_test, model_mismatch, neighbours, poor_fit
+from torch_stsdic.quality import (
+    median_test,
+    model_mismatch,
+    neighbours,
+    poor_fit,
+    residual_mismatch,
+)
 from torch_stsdic.status import Status, usable
 from torch_stsdic.synth import (
     Jump,
@@ -36,6 +42,16 @@ def test_model_mismatch_is_a_noise_scaled_test():
     d_s = torch.tensor([[0.03, 0.0], [0.0, -0.045], [0.06, 0.0], [float("nan"), 0.0]])
     # allowed: 3 * sqrt(0.016^2 + 0.005^2) = 0.050 px
     assert model_mismatch(d_s, d_c, std_s, std_c).tolist() == [False, False, True, True]
+
+
+def test_residual_mismatch_scales_with_the_subset_and_skips_noise_free_matches():
+    sig_c = torch.full((4,), 2.0)
+    sig_w = torch.tensor([2.1, 2.5, 3.0, 3.0])
+    zncc = torch.tensor([0.99, 0.99, 0.99, 0.99999])
+    # 21 x 21: limit 1 + 6/21 = 1.29 (2.57 grey levels); the last is a noise-free match
+    assert residual_mismatch(sig_w, sig_c, 441, zncc).tolist() == [False, False, True, False]
+    # 11 x 11: limit 1 + 6/11 = 1.55 (3.09): nothing flagged
+    assert not bool(residual_mismatch(sig_w, sig_c, 121, zncc).any())
 
 
 def test_poor_fit_residual_and_zncc():

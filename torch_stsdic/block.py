@@ -28,6 +28,7 @@ from .quality import (
     model_mismatch,
     neighbours,
     poor_fit,
+    residual_mismatch,
 )
 from .reference import Reference, noise_ratio, to_relative, to_total
 from .result import USABLE
@@ -258,22 +259,29 @@ class _Block:
         # them, or disagree, are solved classically in full before they are judged
         quick = self.solve(idx, self.params[idx], m=0, solver=run.check_solver())
         cu, cv = quick.param_names.index("u"), quick.param_names.index("v")
+        # the reference frame as target: its classical residual is round-off, no measure
+        not_ref = self.k.repeat_interleave(self.n)[idx] != self.ref.frame
+        pixels = run.solver.config.subset_size ** 2
         suspect = (quick.status != int(Status.CONVERGED)) | model_mismatch(
             self.params[idx][:, [iu, iv]], quick.params[:, [cu, cv]].to(run.dtype),
             self.std[idx][:, [iu, iv]], quick.std[:, [cu, cv]].to(run.dtype))
-        idx = idx[suspect]
+        suspect |= not_ref & residual_mismatch(self.sigma[idx], quick.sigma, pixels,
+                                               self.zncc[idx])
+        idx, not_ref = idx[suspect], not_ref[suspect]
         if idx.numel() == 0:
             return 0, 0
         start = quick.params[suspect].nan_to_num(0.0)
         cls = self.solve(idx, start, m=0)
         ok_c = cls.status <= USABLE
         self.status[idx[~ok_c]] = int(Status.POOR_FIT)
-        idx = idx[ok_c]
+        idx, not_ref = idx[ok_c], not_ref[ok_c]
         p_cls = cls.params[ok_c]
+        sig_cls = cls.sigma[ok_c]
         d_cls = p_cls[:, [cu, cv]].to(run.dtype)
         s_cls = cls.std[ok_c][:, [cu, cv]].to(run.dtype)
         fail = model_mismatch(self.params[idx][:, [iu, iv]], d_cls, self.std[idx][:, [iu, iv]],
                               s_cls)
+        fail |= not_ref & residual_mismatch(self.sigma[idx], sig_cls, pixels, self.zncc[idx])
         init = self.params[idx].clone()  # shorter windows start from the classical solution
         for j, nm in enumerate(cls.param_names):
             init[:, run.names.index(nm)] = p_cls[:, j].to(run.dtype)
@@ -286,6 +294,8 @@ class _Block:
             good = sol.status <= USABLE
             d = sol.params[:, [iu, iv]].to(run.dtype)
             good &= ~model_mismatch(d, d_cls[sel], sol.std[:, [iu, iv]], s_cls[sel])
+            good &= ~(not_ref[sel] & residual_mismatch(sol.sigma, sig_cls[sel], pixels,
+                                                       sol.zncc))
             self.keep(idx[sel][good], _rows(sol, good), only_better=False, m=m)
             shortened += int(good.sum())
             fail[sel[good]] = False
