@@ -104,7 +104,7 @@ class _Block:
         self.raw, self.img = run.cache.load(self.needed.tolist())
         ref.ensure(run.cache)
         if run.noise_ratio is None:
-            run.noise_ratio = noise_ratio(run.reference_desc, ref.raw, self.raw[0])
+            run.noise_ratio = noise_ratio(run.reference_desc, ref.raw, self.raw)
         self.b, self.n = len(ks), ref.points.shape[0]
         self.pts = ref.points.repeat(self.b, 1)  # (B*N, 2)
         self.fidx, self.dt = self.frames_of(win)

@@ -41,15 +41,16 @@ class Reference:
             self.img = cache.solver.prepare(self.raw)
 
 
-def noise_ratio(desc, raw: torch.Tensor, frame: torch.Tensor) -> float:
+def noise_ratio(desc, raw: torch.Tensor, frames: torch.Tensor) -> float:
     """The reference's noise variance over one frame's (for the predicted uncertainty and the
     model check): 1 for a frame of the series, 1/K for the mean of K frames, and for an image
-    given as an array the ratio of their Immerkaer noise estimates (a clean, e.g. synthetic,
-    reference reads near 0), clamped to [0, 4].
+    given as an array the ratio of its Immerkaer noise estimate to the median of the
+    frames' (a clean, e.g. synthetic, reference reads near 0; the median ignores the
+    reference itself when it is also one of the frames), clamped to [0, 4].
 
     Args:
         desc: the plan's reference description (an int, "mean:0,1,2" or "array:...").
-        raw: (H, W) the reference image; frame: (H, W) a frame of the series.
+        raw: (H, W) the reference image; frames: (k, H, W) frames of the series.
     """
     if isinstance(desc, (int, np.integer)):
         return 1.0
@@ -57,7 +58,9 @@ def noise_ratio(desc, raw: torch.Tensor, frame: torch.Tensor) -> float:
     if text.startswith("mean:"):
         return 1.0 / max(1, len(text[5:].split(",")))
     s_ref = estimate_noise_sigma(raw.detach().double().cpu())
-    s_frame = estimate_noise_sigma(frame.detach().double().cpu())
+    ests = [estimate_noise_sigma(f.detach().double().cpu()) for f in frames.reshape(
+        -1, *frames.shape[-2:])]
+    s_frame = float(np.median(ests))
     return float(min(4.0, (s_ref / max(s_frame, 1e-12)) ** 2))
 
 
