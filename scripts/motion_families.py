@@ -31,38 +31,20 @@ import torch
 import torch_stsdic as sts
 from torch_stsdic.status import usable
 from torch_stsdic.synth import (
-    Jump,
-    QuadraticInTime,
-    Rotation,
-    Translation,
+    MOTION_FAMILIES,
     ground_truth,
     make_speckle,
+    motion_family,
     render_series,
 )
 
-FAMILIES = ("rotation4", "rotation1", "acceleration", "crack", "large_translation")
-
-
-def family_motion(name: str, size: int):
-    """The motion of family ``name`` on a ``size`` x ``size`` image (frame units)."""
-    c = (size - 1) / 2
-    if name == "rotation4":
-        return Rotation(4.0, (c, c))
-    if name == "rotation1":
-        return Rotation(1.0, (c, c))
-    if name == "acceleration":
-        return QuadraticInTime(au=0.2, bu=0.05, av=-0.1, bv=0.03)
-    if name == "crack":
-        return Translation(ut=0.3) + Jump(c + 0.5, du=1.5, dv=0.8, t_jump=5.0)
-    if name == "large_translation":
-        return Translation(ut=12.0, vt=-7.0)
-    raise ValueError(f"unknown family {name!r}; one of {FAMILIES}")
+FAMILIES = MOTION_FAMILIES
 
 
 def render_family(name: str, size: int = 401, n_frames: int = 10, noise: float = 2.0,
                   seed: int = 0):
     """(series (T+1, H, W) float32 with the reference first, times (T,), motion)."""
-    motion = family_motion(name, size)
+    motion = motion_family(name, size)
     times = torch.arange(1.0, n_frames + 1.0)
     pattern = make_speckle((size, size), seed=seed, margin=size)
     ref, frames = render_series(pattern, (size, size), motion, times, noise_sigma=noise,

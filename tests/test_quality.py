@@ -23,12 +23,10 @@ from torch_stsdic.quality import (
 )
 from torch_stsdic.status import Status, usable
 from torch_stsdic.synth import (
-    Jump,
-    QuadraticInTime,
-    Rotation,
     Translation,
     ground_truth,
     make_speckle,
+    motion_family,
     render_series,
 )
 
@@ -115,12 +113,7 @@ def _scores(res, motion, times, subset):
 
 @pytest.mark.parametrize("family", ["rotation4", "acceleration", "crack"])
 def test_sts_is_trusted_only_where_right(family):
-    c = (SIZE - 1) / 2
-    motion = {
-        "rotation4": Rotation(4.0, (c, c)),
-        "acceleration": QuadraticInTime(au=0.2, bu=0.05, av=-0.1, bv=0.03),
-        "crack": Translation(ut=0.3) + Jump(c + 0.5, du=1.5, dv=0.8, t_jump=4.0),
-    }[family]
+    motion = motion_family(family, SIZE, t_jump=4.0)
     series, times = _family(motion)
     subset = 25
     res = track(series, config=DICConfig(m=2, subset_size=subset), step=16, progress=False)

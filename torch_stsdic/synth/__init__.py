@@ -34,6 +34,7 @@ Modules: :mod:`.pattern` (speckle), :mod:`.motion` (exact motions), :mod:`.rende
 """
 
 from .motion import (
+    MOTION_FAMILIES,
     Custom,
     HomogeneousStrain,
     Jump,
@@ -43,6 +44,7 @@ from .motion import (
     Sinusoidal,
     Sum,
     Translation,
+    motion_family,
 )
 from .pattern import SpecklePattern, make_speckle
 from .render import Movie, add_noise, ground_truth, quantize, render, render_series, synthetic_movie
@@ -51,6 +53,8 @@ __all__ = [
     "SpecklePattern",
     "make_speckle",
     "Motion",
+    "MOTION_FAMILIES",
+    "motion_family",
     "Translation",
     "HomogeneousStrain",
     "QuadraticInTime",

@@ -396,3 +396,27 @@ class Sum(Motion):
     def __repr__(self) -> str:
         return " + ".join(repr(m) for m in self.motions)
 
+
+
+#: motion families that break the affine-in-time window of STS-DIC (:func:`motion_family`)
+MOTION_FAMILIES = ("rotation4", "rotation1", "acceleration", "crack", "large_translation")
+
+
+def motion_family(name: str, size: int, t_jump: float = 5.0) -> Motion:
+    """A motion of one of the :data:`MOTION_FAMILIES` on a ``size`` x ``size`` image (frame
+    units), as used by ``scripts/motion_families.py`` and the tests of the trust checks:
+    rigid rotation about the image centre at 4 or 1 deg/frame; constant acceleration
+    (u = 0.2 t + 0.05 t^2, v = -0.1 t + 0.03 t^2); a crack (the right half jumps by (1.5,
+    0.8) px at ``t_jump`` on top of 0.3 px/frame); a large translation (12, -7) px/frame."""
+    c = (size - 1) / 2
+    if name == "rotation4":
+        return Rotation(4.0, (c, c))
+    if name == "rotation1":
+        return Rotation(1.0, (c, c))
+    if name == "acceleration":
+        return QuadraticInTime(au=0.2, bu=0.05, av=-0.1, bv=0.03)
+    if name == "crack":
+        return Translation(ut=0.3) + Jump(c + 0.5, du=1.5, dv=0.8, t_jump=t_jump)
+    if name == "large_translation":
+        return Translation(ut=12.0, vt=-7.0)
+    raise ValueError(f"unknown motion family {name!r}; one of {MOTION_FAMILIES}")
