@@ -502,6 +502,17 @@ def run_track_case(spec: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+
+def _movie_rates(res: Any, wall: float, cpu: float) -> dict[str, Any]:
+    """The size and rates of a whole-movie ``sts.track`` run (wall and process CPU s)."""
+    return {
+        "n_points": res.n_points,
+        "n_frames": res.n_frames,
+        "median_s": {"total": wall, "cpu_total": cpu},
+        "frames_per_s": res.n_frames / wall,
+        "poi_per_s": res.n_frames * res.n_points / wall,
+    }
+
 def run_memory_case(spec: dict[str, Any]) -> dict[str, Any]:
     """``sts.track`` over a TIFF stack on disk, read lazily; peak RSS of this process."""
     import torch
@@ -526,11 +537,7 @@ def run_memory_case(spec: dict[str, Any]) -> dict[str, Any]:
     wall, cpu = time.perf_counter() - w0, time.process_time() - c0
     load1 = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
     out = {
-        "n_points": res.n_points,
-        "n_frames": res.n_frames,
-        "median_s": {"total": wall, "cpu_total": cpu},
-        "frames_per_s": res.n_frames / wall,
-        "poi_per_s": res.n_frames * res.n_points / wall,
+        **_movie_rates(res, wall, cpu),
         "rss_after_import_mb": rss_import,
         "rss_peak_mb": _maxrss_mb(),
         "peak_mem_mb": _maxrss_mb(),
@@ -627,11 +634,7 @@ def run_movie_case(spec: dict[str, Any]) -> dict[str, Any]:
     truth_u = 0.01 * res.times.view(-1, 1)  # the TIFF moves by u = 0.01 t, v = -0.005 t px
     ok = res.ok
     out = {
-        "n_points": res.n_points,
-        "n_frames": res.n_frames,
-        "median_s": {"total": wall, "cpu_total": cpu},
-        "frames_per_s": res.n_frames / wall,
-        "poi_per_s": res.n_frames * res.n_points / wall,
+        **_movie_rates(res, wall, cpu),
         "split_s": split,
         "overhead_share": (wall - solve) / wall,
         "cpu_over_wall": cpu / wall,
