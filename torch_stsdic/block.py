@@ -261,7 +261,7 @@ class _Block:
         cu, cv = quick.param_names.index("u"), quick.param_names.index("v")
         # the reference frame as target: its classical residual is round-off, no measure
         not_ref = self.k.repeat_interleave(self.n)[idx] != self.ref.frame
-        pixels = run.solver.config.subset_size ** 2
+        pixels = run.solver.window.effective_pixels()
         suspect = (quick.status != int(Status.CONVERGED)) | model_mismatch(
             self.params[idx][:, [iu, iv]], quick.params[:, [cu, cv]].to(run.dtype),
             self.std[idx][:, [iu, iv]], quick.std[:, [cu, cv]].to(run.dtype))

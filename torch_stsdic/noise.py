@@ -93,7 +93,7 @@ from .formulations import Geometry, ic_hessian, ic_jacobian
 from .interpolation import BSplineImage
 from .shape import make_shape
 from .signatures import signature_like
-from .window import make_window
+from .window import effective_pixels, make_window
 
 __all__ = [
     "predicted_std",
@@ -510,7 +510,7 @@ def residual_noise_sigma(
     gc = gs - (gs * w).sum(1, keepdim=True) / wsum
     a = (fc * gc * w).sum(1, keepdim=True) / (gc * gc * w).sum(1, keepdim=True).clamp(min=1e-30)
     r = fc - a * gc
-    s_eff = float(wsum**2 / (w * w).sum())  # effective number of pixels
+    s_eff = effective_pixels(w)
     dof = max(s_eff - shape.n_params - 2.0, 1.0)
     var = (r * r * w).sum(1) / wsum * s_eff / dof
     return float(var.mean().sqrt())

@@ -70,7 +70,7 @@ def model_mismatch(d_sts: Tensor, d_cls: Tensor, std_sts: Tensor, std_cls: Tenso
     return ~(z <= MODEL_Z).all(1)  # NaN differences fail
 
 
-def residual_mismatch(sigma_window: Tensor, sigma_classical: Tensor, n_pixels: int,
+def residual_mismatch(sigma_window: Tensor, sigma_classical: Tensor, n_pixels: float,
                       zncc_window: Tensor) -> Tensor:
     """(N,) bool: the window's residual is not the image noise that the classical solution
     of the same point leaves: ``sigma_window > (1 + RESIDUAL_Z / sqrt(n_pixels)) *

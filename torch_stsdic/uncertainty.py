@@ -36,6 +36,7 @@ from torch import Tensor
 from .formulations import Geometry, SubsetData, gram
 from .interpolation import BSplineImage
 from .noise import gradient_noise_factor, interpolation_variance_factor
+from .window import effective_pixels
 
 __all__ = ["NoiseModel", "Response", "frame_residuals", "residual_from_zncc", "noise_model",
            "response",
@@ -86,7 +87,7 @@ def noise_model(geo: Geometry, residual: Tensor, p: Tensor, data: SubsetData, rh
     frame, or (N, 1) its mean over the frames, at parameters ``p`` (N, P) (see the module
     docstring); ``rho`` = sigma_f^2 / sigma_g^2."""
     w = geo.w
-    s_eff = float(w.sum() ** 2 / (w * w).sum())
+    s_eff = effective_pixels(w)
     t = data.dt.shape[1]
     dof = 1.0 - (2.0 + p.shape[1] / t) / s_eff  # mean, scale and a share of P per frame
     zero = torch.zeros(1, dtype=geo.dx.dtype, device=geo.dx.device)

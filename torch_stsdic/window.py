@@ -5,7 +5,15 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-__all__ = ["SubsetWindow", "SquareWindow", "CircularWindow", "GaussianWindow", "make_window"]
+__all__ = ["SubsetWindow", "SquareWindow", "CircularWindow", "GaussianWindow", "make_window",
+           "effective_pixels"]
+
+
+def effective_pixels(weights: torch.Tensor) -> float:
+    """``(sum w)^2 / sum w^2``: the number of equally weighted pixels that average noise as
+    much as the weights ``weights`` (S,) do (S for a square window)."""
+    w = weights.double()
+    return float(w.sum() ** 2 / (w * w).sum())
 
 
 class SubsetWindow(nn.Module):
@@ -28,6 +36,10 @@ class SubsetWindow(nn.Module):
     def offsets_and_weights(self, dtype=torch.float64, device=None):
         """(S, 2) offsets (dx, dy) in px and (S,) weights."""
         raise NotImplementedError
+
+    def effective_pixels(self) -> float:
+        """:func:`effective_pixels` of this window's weights."""
+        return effective_pixels(self.offsets_and_weights()[1])
 
     def extra_repr(self) -> str:
         return f"size={self.size}"
