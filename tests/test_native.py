@@ -20,6 +20,8 @@ import torch_stsdic as sts
 from torch_stsdic import native, synth
 from torch_stsdic.formulations import ic_rhs_kernel
 from torch_stsdic.interpolation import BSplineImage, sample_kernel
+from torch_stsdic.native import builder, declarations, loader, ops
+from torch_stsdic.native import rows as native_rows
 
 pytestmark = pytest.mark.skipif(not native.available(),
                                 reason="fused CPU kernels did not build (no C++ compiler?)")
@@ -338,10 +340,10 @@ def test_read_only_cache_falls_back_to_temp(tmp_path, monkeypatch):
 def test_library_declares_the_source_signatures():
     """What the loaded library reports is the parameter list written in dic_kernels.cpp (the
     same tokens, read here from the source file), for both instances of every kernel."""
-    src = native._SOURCE.read_text()
+    src = builder.SOURCE.read_text()
     written = {m[1]: " ".join(m[2].split())
                for m in re.finditer(r"STS_KERNEL\((sts_\w+),\s*(\((?:[^()]|\([^()]*\))*\))\)", src)}
-    assert set(written) == set(native._KERNELS)
+    assert set(written) == set(declarations.KERNELS)
     decl = native.kernels()
     assert set(decl) == {k + s for k in written for s in ("_f32", "_f64")}
     for name, text in written.items():
@@ -445,7 +447,7 @@ def test_wrong_kinds_of_scalars_and_nullable_pointers():
     a = img.kernel_args()
     x = torch.rand(6, dtype=torch.float64) * 40 + 5
     val = torch.zeros(6, dtype=torch.float64)
-    args = dict(flat=a[0], **native._geo(a, 3), x=x, y=x, off=None, off_period=0, i0=0, i1=6,
+    args = dict(flat=a[0], **ops._geo(a, 3), x=x, y=x, off=None, off_period=0, i0=0, i1=6,
                 val=val, gx=None, gy=None)
     k(**args)  # off, gx, gy may be null: plane 0, values only
     ref = sample_kernel(a[0], x, x, torch.tensor(0), *a[1:7], 3, False)
@@ -458,14 +460,14 @@ def test_wrong_kinds_of_scalars_and_nullable_pointers():
         k(**{**args, "order": 2**31})
     with pytest.raises(TypeError):
         k(a[0], 1, 2)  # positional: no
-    with pytest.raises(TypeError, match="rows i0, i1 are set by _run_rows"):
-        native._run_rows(k, 6, 1, args)
+    with pytest.raises(TypeError, match="rows i0, i1 are set by run_rows"):
+        native_rows.run_rows(k, 6, 1, args)
     with pytest.raises(RuntimeError, match=r"sts_sample_f64 returned 1"):
         k(**{**args, "order": 4})  # the kernel's own refusal
 
 
 def test_declaration_reader():
-    parse = native._parse_params
+    parse = declarations._parse_params
     assert parse("(const T* x, int64_t n, nullable<const int64_t> off, T* outT)", "f32") == [
         ("x", "*f32", False, "const float* x"), ("n", "i64", False, "int64_t n"),
         ("off", "*i64", True, "nullable<const int64_t> off"), ("outT", "*f32", False,
@@ -475,7 +477,7 @@ def test_declaration_reader():
         parse("(double a, size_t n)", "f64")
     with pytest.raises(ValueError, match="cannot read parameter 0"):
         parse("(const T** x)", "f64")
-    decl = native._declared_params
+    decl = declarations._declared_params
     assert [p.kind for p in decl("k", "(int a, double b)", "f32", ["i32", "f64"])] == \
         ["i32", "f64"]
     with pytest.raises(RuntimeError, match=r"k: parameter 1 'int64_t n' reads as i64, "
@@ -490,11 +492,11 @@ def test_declaration_reader():
 
 
 def test_stale_library_is_refused(monkeypatch):
-    monkeypatch.setattr(native, "_LIB", None)
-    monkeypatch.setattr(native, "_FAILED", None)
-    monkeypatch.setattr(native, "_ABI", native._ABI + 1)
+    monkeypatch.setattr(loader, "_LIB", None)
+    monkeypatch.setattr(loader, "_FAILED", None)
+    monkeypatch.setattr(declarations, "ABI", declarations.ABI + 1)
     with pytest.warns(RuntimeWarning, match=r"is ABI version \d+, this torch_stsdic needs"):
-        assert native._load() is None
+        assert loader._load() is None
     assert native.kernels() == {}
 
 
@@ -525,7 +527,7 @@ def test_interrupted_call_waits_for_its_helpers():
     from concurrent.futures import ThreadPoolExecutor
 
     with ThreadPoolExecutor(3) as pool:
-        rows = native._Rows(kernel, [None, None], [], list(range(17)))
+        rows = native_rows._Rows(kernel, [None, None], [], list(range(17)))
         with pytest.raises(KeyboardInterrupt):
             try:
                 rows.run(pool, 3)
@@ -541,7 +543,7 @@ def test_failing_chunk_raises_naming_its_rows():
 
     with ThreadPoolExecutor(2) as pool:
         with pytest.raises(RuntimeError, match=r"fake returned 7 for rows \[4, 6\)"):
-            native._Rows(kernel, [None, None], [], [0, 2, 4, 6, 8]).run(pool, 2)
+            native_rows._Rows(kernel, [None, None], [], [0, 2, 4, 6, 8]).run(pool, 2)
 
 
 _INTERRUPT_CHILD = """
@@ -609,7 +611,7 @@ def _interrupt_children(tmp_path, children: int, interrupts: int, seed: int) -> 
     SIGINTs at random moments; returns a description of every child that went wrong."""
     script = tmp_path / "interrupt_child.py"
     script.write_text(_INTERRUPT_CHILD)
-    root = str(Path(native.__file__).resolve().parents[1])
+    root = str(Path(sts.__file__).resolve().parents[1])
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([root, os.environ.get("PYTHONPATH", "")]),
            # glibc: every buffer of 64 KiB or more is its own mapping, unmapped when freed, so
            # a kernel still reading freed memory faults at once instead of reading stale data

@@ -1,14 +1,14 @@
 // Fused CPU kernels of torch_stsdic: B-spline sampling and the joint IC-GN right-hand side.
 //
-// Built on first use by torch_stsdic/native.py with the system C++ compiler (the same one
+// Built on first use by torch_stsdic/native/ with the system C++ compiler (the same one
 // torch.compile needs) and loaded with ctypes; plain C ABI, no torch headers, so the build
 // takes about a second. Every kernel works on a range [i0, i1) of its rows so that Python
 // threads (ctypes releases the GIL) split the work without an OpenMP runtime of our own.
 //
 // Each kernel's parameter list is written once, in its STS_KERNEL definition below; the
 // library hands that declaration (names as written, types as the compiler sees them) and the
-// kernel's address to native.py through the sts_kernel_* functions at the end of this file.
-// native.py has no copy of any signature: it builds the ctypes prototypes from these
+// kernel's address to native/ through the sts_kernel_* functions at the end of this file.
+// native/ has no copy of any signature: it builds the ctypes prototypes from these
 // declarations and calls every kernel by parameter name, checked.
 //
 // Conventions are those of torch_stsdic/interpolation.py (sample_kernel) and
@@ -36,10 +36,10 @@ namespace {
 //     "f64", or "*" + the element kind for a pointer ("*f64", "*u8"); a parameter type
 //     without a kind is a compile error;
 //   - the instance's address.
-// native.py reads them through sts_kernel_count/name/params/kinds/address (extern "C", at the
-// end of this file), checks that the written list parses to the compiled kinds, and builds
-// each ctypes prototype from the kinds. Kernels return 0, or non-zero for arguments they
-// reject (e.g. an unsupported spline order).
+// native/declarations.py reads them through sts_kernel_count/name/params/kinds/address
+// (extern "C", at the end of this file), checks that the written list parses to the compiled
+// kinds, and builds each ctypes prototype from the kinds. Kernels return 0, or non-zero for
+// arguments they reject (e.g. an unsupported spline order).
 
 template <typename P>
 using nullable = P*;  // a pointer parameter that may be null (say what null means)
@@ -669,7 +669,7 @@ STS_KERNEL(sts_prefilter, (T* data, int64_t planes, int64_t h, int64_t w, int or
 extern "C" {
 
 // Version of this interface (the sts_kernel_* functions and what the kernels' parameters
-// mean); native.py refuses a library of another version.
+// mean); native/declarations.py refuses a library of another version.
 int sts_abi_version() { return 5; }
 
 int sts_kernel_count() { return int(declarations().size()); }

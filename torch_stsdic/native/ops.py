@@ -1,0 +1,175 @@
+"""The native twins of the torch sampling and IC-GN kernels, called like the torch code.
+
+Each wrapper checks the sizes the C code indexes by (ValueError ``native.<fn>: ...``),
+makes the tensors contiguous in the image's dtype, allocates the outputs and runs the
+kernel over its rows (:func:`.rows.run_rows`). Callers decide with :func:`.loader.usable`
+whether to take this path.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from .loader import kernel
+from .rows import run_rows
+
+__all__ = ["sample", "subsets", "ic_rhs", "gram", "prefilter"]
+
+
+def _geo(img_args: tuple, order: int) -> dict:
+    """The geometry arguments shared by the sampling kernels: padded width, clamp range, tap
+    shift, spline order (the coefficients go as ``flat``)."""
+    _, wp, x_lo, x_hi, y_lo, y_hi, shift, _plane = img_args
+    return dict(wp=wp, x_lo=x_lo, x_hi=x_hi, y_lo=y_lo, y_hi=y_hi, shift=shift, order=order)
+
+
+def _require(fn: str, ok: bool, what: str) -> None:
+    """The wrappers' size checks: the kernels index their arrays by these sizes (the
+    declarations check kinds and dtypes, not sizes)."""
+    if not ok:
+        raise ValueError(f"native.{fn}: {what}")
+
+
+def _check_planes(fn: str, img_args: tuple, off: torch.Tensor) -> None:
+    """Plane offsets (int64) within the coefficient array."""
+    if off.numel():
+        lo, hi = (int(v) for v in torch.aminmax(off))
+        last = img_args[0].numel() - img_args[-1]
+        _require(fn, 0 <= lo and hi <= last,
+                 f"plane offsets [{lo}, {hi}] outside the image's [0, {last}]")
+
+
+def sample(img_args: tuple, order: int, x: torch.Tensor, y: torch.Tensor,
+           frame_off: torch.Tensor, grad: bool):
+    """Native twin of interpolation.sample_kernel: values (shape of x) and, with grad, d/dx
+    and d/dy. ``frame_off`` (int64 plane offsets) broadcasts against x (e.g. (N, 1) for
+    (N, S) points)."""
+    flat = img_args[0].contiguous()
+    dtype = flat.dtype
+    shape = torch.broadcast_shapes(x.shape, y.shape, frame_off.shape)
+    xc = x.to(dtype).expand(shape).contiguous()
+    yc = y.to(dtype).expand(shape).contiguous()
+    off = frame_off.to(torch.int64)
+    # the offset array is indexed as off[i // period]: possible when off's shape is shape's
+    # leading dims followed by ones; otherwise materialise it
+    lead = off.dim() - len(shape)
+    oshape = (1,) * max(0, -lead) + tuple(off.shape)
+    k = len(shape)
+    while k > 0 and oshape[k - 1] == 1:
+        k -= 1
+    if off.numel() == 1:
+        off_c, period = off.reshape(1).contiguous(), 0
+    elif tuple(oshape[:k]) == tuple(shape[:k]):
+        off_c = off.reshape(-1).contiguous()
+        period = int(torch.Size(shape[k:]).numel())
+    else:
+        off_c, period = off.expand(shape).contiguous().reshape(-1), 1
+    _check_planes("sample", img_args, off_c)
+    n = xc.numel()
+    val = torch.empty(shape, dtype=dtype)
+    gx = torch.empty(shape, dtype=dtype) if grad else None
+    gy = torch.empty(shape, dtype=dtype) if grad else None
+    run_rows(kernel("sts_sample", dtype), n, 1,
+              dict(flat=flat, **_geo(img_args, order), x=xc, y=yc, off=off_c,
+                   off_period=period, val=val, gx=gx, gy=gy))
+    return (val, gx, gy) if grad else val
+
+
+def subsets(img_args: tuple, order: int, px, py, dx, dy, frame_off, grad: bool):
+    """Samples of whole subsets: (px[i] + dx[s], py[i] + dy[s]) in the plane at frame_off[i];
+    px, py, frame_off (N,) (or (N, 1)), dx, dy (S,). Returns values (N, S) (and d/dx, d/dy)."""
+    flat = img_args[0].contiguous()
+    dtype = flat.dtype
+    n, ns = px.numel(), dx.numel()
+    tens = {k: t.to(dtype).reshape(-1).contiguous()
+            for k, t in dict(px=px, py=py, dx=dx, dy=dy).items()}
+    _require("subsets", tens["py"].numel() == n and tens["dy"].numel() == ns
+             and frame_off.numel() in (1, n), "px, py, frame_off (N,) and dx, dy (S,)")
+    off = frame_off.to(torch.int64).reshape(-1).expand(n).contiguous()
+    _check_planes("subsets", img_args, off)
+    val = torch.empty(n, ns, dtype=dtype)
+    gx = torch.empty(n, ns, dtype=dtype) if grad else None
+    gy = torch.empty(n, ns, dtype=dtype) if grad else None
+    run_rows(kernel("sts_subsets", dtype), n, ns,
+              dict(flat=flat, **_geo(img_args, order), ns=ns, **tens, off=off, val=val, gx=gx,
+                   gy=gy))
+    return (val, gx, gy) if grad else val
+
+
+def ic_rhs(img_args: tuple, order: int, p, px, py, dx, dy, basis, dt, frame_off, ft, fnorm,
+           gx, gy, w, w_img: int, h: int, k: int, has_time: bool, znssd: bool,
+           rows: torch.Tensor | None = None):
+    """Native twin of formulations.joint_ic.ic_rhs_kernel. Shapes: p (M, 2k), px/py (N, 1) or (N,),
+    dx/dy/w (S,), basis (S, Ks), dt and frame_off (N, T), ft/gx/gy (N, S), fnorm (N,);
+    ``rows`` (M,) picks the per-point data rows of p's rows (default: M = N, row j = j).
+    Returns b (M, 2k) float64, per-POI mean ZNCC (M,) and the outside flag (M,) bool."""
+    flat = img_args[0].contiguous()
+    dtype = flat.dtype
+    n, (big_n, nt), (ns, ks) = p.shape[0], dt.shape, basis.shape
+    _require("ic_rhs", tuple(p.shape) == (n, 2 * k) and k == ks + int(has_time),
+             f"p must be (M, 2k) with k = Ks (+ 1 with time), got {tuple(p.shape)}, k={k}, "
+             f"Ks={ks}")
+    _require("ic_rhs", all(tuple(t.shape) == (big_n, ns) for t in (ft, gx, gy))
+             and all(t.numel() == big_n for t in (px, py, fnorm))
+             and all(t.numel() == ns for t in (dx, dy, w)) and frame_off.shape == dt.shape
+             and ns > 0,
+             "shapes: px/py/fnorm (N,), dx/dy/w (S,), basis (S, Ks), dt and frame_off "
+             "(N, T), ft/gx/gy (N, S)")
+    if rows is None:
+        _require("ic_rhs", n == big_n, f"p has {n} rows for {big_n} points (pass rows)")
+    else:
+        _require("ic_rhs", rows.shape == (n,) and (n == 0 or 0 <= int(rows.min())
+                                                  and int(rows.max()) < big_n),
+                 f"rows must be (M,) = ({n},) indices into the {big_n} points")
+    frame_off = frame_off.to(torch.int64).contiguous()
+    _check_planes("ic_rhs", img_args, frame_off)
+
+    def c(t):
+        return t.to(dtype).contiguous()
+
+    b = torch.empty(n, 2 * k, dtype=torch.float64)
+    zn = torch.empty(n, dtype=dtype)
+    out = torch.empty(n, dtype=torch.uint8)
+    run_rows(kernel("sts_ic_rhs", dtype), n, nt * ns,
+              dict(flat=flat, **_geo(img_args, order), nt=nt, ns=ns, ks=ks, k=k,
+                   has_time=int(has_time), znssd=int(znssd), p=c(p), px=c(px.reshape(-1)),
+                   py=c(py.reshape(-1)), dx=c(dx), dy=c(dy), basis=c(basis), dt=c(dt),
+                   frame_off=frame_off, ft=c(ft),
+                   fnorm=c(fnorm.reshape(-1)), gx=c(gx), gy=c(gy), w=c(w),
+                   rows=None if rows is None else rows.to(torch.int64).contiguous(),
+                   w_img=float(w_img), h=float(h), b=b, zn=zn, outside=out))
+    return b, zn, out.bool()
+
+
+def gram(gx: torch.Tensor, gy: torch.Tensor, basis: torch.Tensor, w: torch.Tensor):
+    """Native twin of solver._gram: G (N, P', P') and m (N, P') in float64 for the augmented
+    steepest-descent images [gx B, gx, gy B, gy] (P' = 2 (Ks + 1)) weighted by w (S,)."""
+    dtype = gx.dtype
+    n, ns = gx.shape
+    ks = basis.shape[1]
+    _require("gram", gy.shape == gx.shape and tuple(basis.shape) == (ns, ks)
+             and w.numel() == ns, "gx, gy (N, S), basis (S, Ks), w (S,)")
+    npa = 2 * (ks + 1)
+    tens = {k: t.to(dtype).contiguous()
+            for k, t in dict(gx=gx, gy=gy, basis=basis, w=w).items()}
+    g = torch.empty(n, npa, npa, dtype=torch.float64)
+    m = torch.empty(n, npa, dtype=torch.float64)
+    run_rows(kernel("sts_gram", dtype), n, ns * npa, dict(ns=ns, ks=ks, **tens, G=g, m=m))
+    return g, m
+
+
+def prefilter(images: torch.Tensor, order: int) -> torch.Tensor:
+    """Native twin of interpolation.bspline_prefilter for (..., H, W) float32/float64 CPU
+    tensors: the recursive filter (two passes per pole and axis), mirror boundary. Returns a
+    new tensor."""
+    h, w = images.shape[-2:]
+    out = images.clone(memory_format=torch.contiguous_format)  # filtered in place
+    planes = out.numel() // max(1, h * w)
+    fn = kernel("sts_prefilter", out.dtype)
+    args = dict(data=out, planes=planes, h=h, w=w, order=order)
+    if w >= 2:
+        run_rows(fn, planes * h, w * 4, dict(args, axis=1))
+    if h >= 2:
+        blocks = planes * ((w + 63) // 64)
+        run_rows(fn, blocks, h * 64 * 4, dict(args, axis=0))
+    return out
