@@ -135,6 +135,27 @@ def test_help_lists_each_command_once(capsys):
     assert "COMMAND\n" not in out  # no bare metavar line above the list
 
 
+def test_help_states_every_default_once():
+    """Every option with a default names it once in its help ('(default: ...)' as
+    options.add_option writes it, or 'default: ...' inside a parenthesis)."""
+    import argparse
+
+    from torch_stsdic.cli.app import build_parser
+
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    checked = 0
+    for name, p in sub.choices.items():
+        for a in p._actions:
+            if not a.option_strings or a.help == argparse.SUPPRESS:
+                continue
+            if a.default in (None, False, argparse.SUPPRESS):
+                continue
+            text = a.help.replace("%(default)s", str(a.default))
+            assert text.count("default: ") == 1, (name, a.option_strings, text)
+            checked += 1
+    assert checked > 40
+
+
 def test_no_command(capsys):
     code, out, err = _run(capsys)
     assert code == 2

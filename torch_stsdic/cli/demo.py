@@ -44,21 +44,16 @@ examples:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The options of ``stsdic demo``."""
-    p.add_argument(
-        "--out", "-o", default=DEMO_DIR, metavar="DIR",
-        help="directory for plots and numbers (default: ./%(default)s)",
-    )  # fmt: skip
-    p.add_argument(
-        "--size", type=options.int_min(41), default=None, metavar="PX",
-        help="image size in px (default: 301; 101 with --quick)",
-    )  # fmt: skip
-    p.add_argument(
-        "--frames", type=options.int_min(1), default=None, metavar="N",
-        help="deformed frames (default: 9; 7 with --quick)",
-    )  # fmt: skip
+    opt = options.add_option
+    opt(p, "--out", "-o", default=DEMO_DIR, metavar="DIR",
+        help="directory for plots and numbers", shown="./%(default)s")  # fmt: skip
+    opt(p, "--size", type=options.int_min(41), default=None, metavar="PX",
+        help="image size in px", shown="301; 101 with --quick")  # fmt: skip
+    opt(p, "--frames", type=options.int_min(1), default=None, metavar="N",
+        help="deformed frames", shown="9; 7 with --quick")  # fmt: skip
     options.add_speckle(p)
     options.add_dic(p, min_m=1)
-    options.add_step(p, default=None, default_text="20; 25 with --quick")
+    options.add_step(p, default=None, shown="20; 25 with --quick")
     p.add_argument(
         "--still-frames", type=options.int_min(0), default=None, metavar="K",
         help="also run with the reference = mean of K noisy still frames taken before the "

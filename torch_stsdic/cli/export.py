@@ -51,18 +51,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--out", "-o", required=True, metavar="DIR",
         help="output directory (csv: or a {frame} pattern)",
     )  # fmt: skip
-    p.add_argument(
-        "--format", "-f", choices=FORMATS, default="csv",
-        help="csv: one file per frame; vtk: ParaView .vtu per frame + .pvd; mat: MATLAB "
-        "(default: %(default)s)",
-    )  # fmt: skip
-    p.add_argument(
-        "--frames",
-        default=None,
-        metavar="SPEC",
-        help="image frame numbers to export, e.g. 5, -1 (last), 0:10, 3,7 "
-        "(default: every finished frame)",
-    )
+    options.add_option(p, "--format", "-f", choices=FORMATS, default="csv",
+                       help="csv: one file per frame; vtk: ParaView .vtu per frame + .pvd; "
+                       "mat: MATLAB")  # fmt: skip
+    options.add_option(p, "--frames", default=None, metavar="SPEC",
+                       help="image frame numbers to export, e.g. 5, -1 (last), 0:10, 3,7",
+                       shown="every finished frame")  # fmt: skip
     ex = p.add_mutually_exclusive_group()
     ex.add_argument(
         "--comment", action="store_true",

@@ -55,32 +55,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     """The options of ``stsdic plot``."""
     options.add_result(p)
     p.add_argument("--out", "-o", required=True, metavar="DIR", help="output directory")
-    p.add_argument(
-        "--frame",
-        default="last",
-        metavar="N|last",
-        help="image frame number of the maps, or 'last' finished frame (default: %(default)s)",
-    )
-    p.add_argument(
-        "--fields",
-        default=None,
-        metavar="LIST",
-        help="comma-separated fields to map, e.g. u,v,exx,eyy,exy,ut,vt,zncc,status "
-        "(default: u,v,exx,eyy,exy, those in the file)",
-    )
-    p.add_argument(
-        "--image",
-        default=None,
-        metavar="INPUT",
-        help="image series for the background (default: the inputs recorded in the file, "
-        "if they still exist)",
-    )
-    p.add_argument(
-        "--image-frame",
-        default=None,
-        metavar="N",
-        help="frame of the background series (default: the run's reference frame)",
-    )
+    opt = options.add_option
+    opt(p, "--frame", default="last", metavar="N|last",
+        help="image frame number of the maps, or 'last' finished frame")  # fmt: skip
+    opt(p, "--fields", default=None, metavar="LIST",
+        help="comma-separated fields to map, e.g. u,v,exx,eyy,exy,ut,vt,zncc,status",
+        shown="u,v,exx,eyy,exy, those in the file")  # fmt: skip
+    opt(p, "--image", default=None, metavar="INPUT", help="image series for the background",
+        shown="the inputs recorded in the file, if they still exist")  # fmt: skip
+    opt(p, "--image-frame", default=None, metavar="N", help="frame of the background series",
+        shown="the run's reference frame")  # fmt: skip
     p.add_argument("--no-image", action="store_true", help="no background image")
     ex = p.add_mutually_exclusive_group()
     ex.add_argument(
@@ -96,26 +80,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="time history of the mean over the valid points (the default)",
     )
-    p.add_argument(
-        "--dpi", type=options.int_min(20), default=120, help="PNG resolution (default: %(default)s)"
-    )
-    p.add_argument(
-        "--animate", default=None, metavar="FIELD",
-        help="also write FIELD_movie.gif: the field at every frame over the moving images",
-    )  # fmt: skip
-    p.add_argument(
-        "--animate-format", choices=("gif", "mp4"), default="gif",
-        help="mp4 needs ffmpeg (else a GIF is written) (default: %(default)s)",
-    )  # fmt: skip
-    p.add_argument(
-        "--fps", type=options.float_pos, default=4.0,
-        help="frames per second of --animate (default: %(default)s)",
-    )  # fmt: skip
-    p.add_argument(
-        "--min-zncc", type=float, default=0.8, metavar="Z",
-        help="hide points whose ZNCC is below Z in the maps, e.g. holes, edges, background "
-        "(default: %(default)s; -1 shows every converged point)",
-    )  # fmt: skip
+    opt(p, "--dpi", type=options.int_min(20), default=120, help="PNG resolution")
+    p.add_argument("--animate", default=None, metavar="FIELD", help="also write "
+                   "FIELD_movie.gif: the field at every frame over the moving images")  # fmt: skip
+    opt(p, "--animate-format", choices=("gif", "mp4"), default="gif",
+        help="mp4 needs ffmpeg (else a GIF is written)")  # fmt: skip
+    opt(p, "--fps", type=options.float_pos, default=4.0, help="frames per second of --animate")
+    opt(p, "--min-zncc", type=float, default=0.8, metavar="Z",
+        help="hide points whose ZNCC is below Z in the maps, e.g. holes, edges, background",
+        shown="%(default)s; -1 shows every converged point")  # fmt: skip
 
 
 # ----------------------------------------------------------------------------------------

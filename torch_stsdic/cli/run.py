@@ -59,6 +59,7 @@ examples:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The options of ``stsdic run``."""
+    opt = options.add_option
     p.add_argument("inputs", nargs="+", metavar="INPUT", help="image series (see above)")
     p.add_argument(
         "--out", "-o", required=True, metavar="FILE.h5", help="result file (HDF5), required"
@@ -67,39 +68,26 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     options.add_points(p)
     options.add_solver(p)
     g = p.add_argument_group("strain")
-    g.add_argument(
-        "--strain-window", type=options.odd_int(3), default=5, metavar="N",
-        help="plane fit over N x N grid points (odd) (default: %(default)s)",
-    )  # fmt: skip
-    g.add_argument(
-        "--strain-kind", choices=("green", "small"), default="green",
-        help="green: Green-Lagrange; small: infinitesimal strain (default: %(default)s)",
-    )  # fmt: skip
+    opt(g, "--strain-window", type=options.odd_int(3), default=5, metavar="N",
+        help="plane fit over N x N grid points (odd)")  # fmt: skip
+    opt(g, "--strain-kind", choices=("green", "small"), default="green",
+        help="green: Green-Lagrange; small: infinitesimal strain")  # fmt: skip
     options.add_calibration(p.add_argument_group("calibration"))
     g = p.add_argument_group("computation and output")
-    g.add_argument(
-        "--dtype",
-        choices=("float32", "float64"),
-        default=None,
-        help="computation precision (default: float32 for integer images, else the image's)",
-    )
+    opt(g, "--dtype", choices=("float32", "float64"), default=None,
+        help="computation precision",
+        shown="float32 for integer images, else the image's")  # fmt: skip
     ex = g.add_mutually_exclusive_group()
-    ex.add_argument(
-        "--resume",
-        action="store_true",
-        help="continue the run that wrote --out (same inputs and options); finished frames "
-        "are kept",
-    )
-    ex.add_argument(
-        "--overwrite",
-        action="store_true",
-        help="replace an existing --out (the old file stays intact until the new run ends)",
-    )
+    ex.add_argument("--resume", action="store_true", help="continue the run that wrote --out "
+                    "(same inputs and options); finished frames are kept")  # fmt: skip
+    ex.add_argument("--overwrite", action="store_true", help="replace an existing --out (the "
+                    "old file stays intact until the new run ends)")  # fmt: skip
     options.add_compute(g)
 
 
 def _add_frames(p: argparse.ArgumentParser) -> None:
     """The 'frames and reference' group."""
+    opt = options.add_option
     g = p.add_argument_group("frames and reference")
     g.add_argument(
         "--reference",
@@ -108,28 +96,14 @@ def _add_frames(p: argparse.ArgumentParser) -> None:
         help="reference frame, or several frames averaged into the reference, e.g. 0:5 "
         "(frame numbers of the series, 0-based; default: %(default)s)",
     )
-    g.add_argument(
-        "--frames",
-        default=None,
-        metavar="SPEC",
-        help="output frames: an index, slices and lists such as 5, -1, 10:100:2, 0:5,9, all "
-        "(default: every frame)",
-    )
-    g.add_argument(
-        "--timestamps",
-        default=None,
-        metavar="FILE",
+    opt(g, "--frames", default=None, metavar="SPEC", help="output frames: an index, slices "
+        "and lists such as 5, -1, 10:100:2, 0:5,9, all", shown="every frame")  # fmt: skip
+    opt(g, "--timestamps", default=None, metavar="FILE",
         help="frame times, one per frame (text/CSV: one number a line, or a column named "
-        "'time'); velocities are then per this time unit (default: 0, 1, 2, ...)",
-    )
-    g.add_argument(
-        "--reference-update",
-        type=options.unit_open,
-        default=None,
-        metavar="THRESH",
+        "'time'); velocities are then per this time unit", shown="0, 1, 2, ...")  # fmt: skip
+    opt(g, "--reference-update", type=options.unit_open, default=None, metavar="THRESH",
         help="take a new reference (incremental DIC) when the mean ZNCC falls below THRESH, "
-        "e.g. 0.9 (default: never, one fixed reference)",
-    )
+        "e.g. 0.9", shown="never, one fixed reference")  # fmt: skip
     g.add_argument(
         "--refine-reference",
         action="store_true",
@@ -137,13 +111,9 @@ def _add_frames(p: argparse.ArgumentParser) -> None:
         "frames around the reference, a polynomial fit in time per point, its value at the "
         "reference time subtracted (needs --reference to be one frame; docs/accuracy.md)",
     )
-    g.add_argument(
-        "--refine-frames",
-        type=options.int_min(5),
-        default=None,
-        metavar="N",
-        help="most frames of that fit (default: 41; fewer where the motion is not smooth)",
-    )
+    opt(g, "--refine-frames", type=options.int_min(5), default=None, metavar="N",
+        help="most frames of that fit",
+        shown="41; fewer where the motion is not smooth")  # fmt: skip
 
 
 # ----------------------------------------------------------------------------------------

@@ -84,44 +84,28 @@ TRUTH_KEYS = ("u", "v", "ut", "vt", "dudx", "dudy", "dvdx", "dvdy")
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The options of ``stsdic synth``."""
+    opt = options.add_option
     p.add_argument("--out", "-o", required=True, metavar="DIR", help="output directory")
-    p.add_argument(
-        "--size", type=options.int_min(16), nargs="+", default=[301], metavar="PX",
-        help="image size: N (square) or W H, px (default: 301)",
-    )  # fmt: skip
-    p.add_argument(
-        "--frames", type=options.int_min(1), default=9, metavar="N",
-        help="deformed frames after the reference (t = 1..N) (default: %(default)s)",
-    )  # fmt: skip
-    p.add_argument(
-        "--motion", choices=MOTIONS, default="translation",
-        help="motion type, see above (default: %(default)s)",
-    )  # fmt: skip
+    opt(p, "--size", type=options.int_min(16), nargs="+", default=[301], metavar="PX",
+        help="image size: N (square) or W H, px", shown="301")  # fmt: skip
+    opt(p, "--frames", type=options.int_min(1), default=9, metavar="N",
+        help="deformed frames after the reference (t = 1..N)")  # fmt: skip
+    opt(p, "--motion", choices=MOTIONS, default="translation", help="motion type, see above")
     options.add_speckle(p)
-    p.add_argument(
-        "--bits", type=int, choices=(0, 8, 10, 12, 14, 16), default=8,
-        help="quantisation: 8 -> uint8, 10..16 -> uint16, 0 -> float32 (default: %(default)s)",
-    )  # fmt: skip
-    p.add_argument(
-        "--radius", type=options.float_pos, default=2.0, metavar="PX",
-        help="mean speckle spot radius (Gaussian std) in px (default: %(default)s)",
-    )  # fmt: skip
-    p.add_argument(
-        "--layout", choices=("multipage", "files"), default="multipage",
-        help="one multi-page TIFF (movie.tif) or one TIFF per frame (default: %(default)s)",
-    )  # fmt: skip
-    p.add_argument(
-        "--truth-step", type=options.int_min(1), default=10, metavar="PX",
-        help="grid spacing of the ground-truth points in truth.csv (default: %(default)s)",
-    )  # fmt: skip
+    opt(p, "--bits", type=int, choices=(0, 8, 10, 12, 14, 16), default=8,
+        help="quantisation: 8 -> uint8, 10..16 -> uint16, 0 -> float32")  # fmt: skip
+    opt(p, "--radius", type=options.float_pos, default=2.0, metavar="PX",
+        help="mean speckle spot radius (Gaussian std) in px")  # fmt: skip
+    opt(p, "--layout", choices=("multipage", "files"), default="multipage",
+        help="one multi-page TIFF (movie.tif) or one TIFF per frame")  # fmt: skip
+    opt(p, "--truth-step", type=options.int_min(1), default=10, metavar="PX",
+        help="grid spacing of the ground-truth points in truth.csv")  # fmt: skip
     p.add_argument("--overwrite", action="store_true", help="replace existing files in DIR")
     options.add_threads(p)
     g = p.add_argument_group("motion parameters (t in frames, lengths in px)")
     for flag, unit, kind, default, text in MOTION_PARAMETERS:
         g.add_argument(flag, metavar=unit, type=kind, default=default, help=text)
-    g.add_argument(
-        "--axis", choices=("x", "y"), default="x", help="sinusoidal: varies along (default: x)"
-    )
+    opt(g, "--axis", choices=("x", "y"), default="x", help="sinusoidal: varies along")
 
 
 # ----------------------------------------------------------------------------------------

@@ -1,4 +1,5 @@
-"""Files in and out: image series (:mod:`.images`), frame specifications (:mod:`.specs`),
+"""Files in and out: image series (:mod:`.images`; one image file's header and pixels in
+:mod:`.imagefile`), frame specifications (:mod:`.specs`),
 users' small tables (:mod:`.tables`),
 HDF5 result files (:mod:`.results`) and exports for other tools (:mod:`.export`)."""
 

@@ -5,7 +5,7 @@ files or a ``(T, H, W)`` array/tensor into an :class:`ImageSeries`. Only image *
 read up front (sizes, dtypes, page counts); pixels are decoded one frame at a time when asked
 for, so memory is bounded by what is requested, not by the movie length. Frames come back as
 ``(H, W)`` float tensors in their native grey-level scale (8-bit: 0..255, 16-bit: 0..65535);
-colour images are converted to grey.
+colour images are converted to grey. One file's header and pixels: :mod:`.imagefile`.
 """
 
 from __future__ import annotations
@@ -18,19 +18,27 @@ import threading
 import warnings
 from collections import OrderedDict
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import tifffile
 import torch
-from PIL import Image, UnidentifiedImageError
 
+from .imagefile import (
+    GREY_RULE,
+    LUMA_WEIGHTS,
+    FileInfo,
+    probe_file,
+    read_pil,
+    read_tiff_page,
+    to_grey,
+)
 from .specs import InputError, natural_sort_key, parse_frame_spec
 
 __all__ = [
     "IMAGE_EXTENSIONS",
+    "LUMA_WEIGHTS",
     "ImageSeries",
     "InputError",
     "load_series",
@@ -39,177 +47,31 @@ __all__ = [
 ]
 
 IMAGE_EXTENSIONS: tuple[str, ...] = (".tif", ".tiff", ".png", ".bmp", ".jpg", ".jpeg")
-#: ITU-R BT.601 luma weights used for colour -> grey (alpha is dropped).
-LUMA_WEIGHTS: tuple[float, float, float] = (0.299, 0.587, 0.114)
-
-_TIFF_MAGIC = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")
 _OPEN_TIFF_CACHE = 4  # multi-page TIFF handles kept open per series
 
-
-
+#: where a frame goes: a torch device, its name, or None (stays on the CPU)
+Device = torch.device | str | None
 
 # ----------------------------------------------------------------------------------------
 # image series
 # ----------------------------------------------------------------------------------------
 
 
-@dataclass
-class _FileInfo:
-    """Header information of one image file (nothing decoded)."""
-
-    path: Path
-    kind: str  # "tiff" | "pil"
-    n_frames: int
-    shape: tuple[int, int]
-    dtype: np.dtype
-    bits: int
-    colour: bool = False  # >= 3 samples: luminance of the first three
-    extra: bool = False  # 2 samples (grey + alpha): first sample
-    planar: bool = False  # TIFF planar-separate samples (S, H, W)
-    pil_mode: str = ""
-    planes: bool = False  # one planar RGB(A) page whose sample planes are the frames
-
-
-def _is_tiff(path: Path) -> bool:
-    try:
-        with open(path, "rb") as fh:
-            return fh.read(4) in _TIFF_MAGIC
-    except OSError as exc:
-        raise InputError(f"cannot open image file {path}: {exc}") from exc
-
-
-_PIL_DTYPES: dict[str, tuple[str, int]] = {
-    "1": ("uint8", 8),
-    "L": ("uint8", 8),
-    "P": ("uint8", 8),
-    "LA": ("uint8", 8),
-    "La": ("uint8", 8),
-    "I;16": ("uint16", 16),
-    "I;16L": ("uint16", 16),
-    "I;16B": ("uint16", 16),
-    "I;16N": ("uint16", 16),
-    "I": ("int32", 32),
-    "F": ("float32", 32),
-}
-
-
-def _probe_pil(path: Path) -> _FileInfo:
-    try:
-        with Image.open(path) as im:
-            w, h = im.size
-            mode = im.mode
-    except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as exc:
-        raise InputError(f"cannot read image file {path}: {exc}") from exc
-    dt, bits = _PIL_DTYPES.get(mode, ("uint8", 8))
-    colour = mode not in _PIL_DTYPES or mode == "P"
-    return _FileInfo(
-        path=path,
-        kind="pil",
-        n_frames=1,
-        shape=(h, w),
-        dtype=np.dtype(dt),
-        bits=bits,
-        colour=colour,
-        extra=mode in ("LA", "La"),
-        pil_mode=mode,
-    )
-
-
-_EXTRA_AXES_OK = set("YXS")
-
-
-def _probe_tiff(path: Path) -> _FileInfo:
-    try:
-        with tifffile.TiffFile(path) as tif:
-            series = tif.series
-            if not series:
-                raise InputError(f"TIFF file {path} contains no image")
-            s0 = series[0]
-            nonyx = [(a, n) for a, n in zip(s0.axes, s0.shape) if a not in _EXTRA_AXES_OK]
-            if sum(1 for _, n in nonyx if n > 1) > 1:
-                raise InputError(
-                    f"TIFF file {path} has axes {s0.axes!r} with shape {tuple(s0.shape)}: "
-                    "only one stacking axis (time) is supported; extract one channel/slice first"
-                )
-            page = s0.keyframe
-            h, w = int(page.imagelength), int(page.imagewidth)
-            spp = int(page.samplesperpixel)
-            n = len(s0)
-            dtype = np.dtype(s0.dtype)
-            bits = int(page.bitspersample)
-            # further series of the same page size are treated as more frames
-            for k, s in enumerate(series[1:], start=1):
-                kf = s.keyframe
-                if (int(kf.imagelength), int(kf.imagewidth)) != (h, w):
-                    first = s[0]
-                    where = f"page {first.index}" if first is not None else f"series {k}"
-                    raise InputError(
-                        f"mixed image sizes in {path}: {where} is "
-                        f"{int(kf.imagelength)}x{int(kf.imagewidth)} (HxW) but page 0 is "
-                        f"{h}x{w}"
-                    )
-                n += len(s)
-            planar = spp > 1 and int(page.planarconfig) == 2
-            if planar and spp in (3, 4):
-                if n > 1:
-                    raise InputError(
-                        f"TIFF file {path} holds {n} pages of {spp} separate sample planes: "
-                        f"that is either {n} colour frames or {n * spp} grey frames; rewrite "
-                        "it as grey pages (tifffile: photometric='minisblack') or as "
-                        "interleaved colour (photometric='rgb', planarconfig='contig')"
-                    )
-                # one page of separate planes: how tifffile stores a (3|4, H, W) stack written
-                # without photometric; DIC frames are grey, so the planes are the frames
-                return _FileInfo(path=path, kind="tiff", n_frames=spp, shape=(h, w),
-                                 dtype=dtype, bits=bits, planar=True, planes=True)
-            return _FileInfo(
-                path=path,
-                kind="tiff",
-                n_frames=n,
-                shape=(h, w),
-                dtype=dtype,
-                bits=bits,
-                colour=spp >= 3,
-                extra=spp == 2,
-                planar=planar,
-            )
-    except InputError:
-        raise
-    except Exception as exc:  # tifffile raises various types on corrupt files
-        raise InputError(f"cannot read TIFF file {path}: {exc}") from exc
-
-
-def _probe_file(path: Path) -> _FileInfo:
-    if not path.exists():
-        raise InputError(f"image file not found: {path}")
-    if path.is_dir():
-        raise InputError(f"expected an image file, got a directory: {path}")
-    return _probe_tiff(path) if _is_tiff(path) else _probe_pil(path)
-
-
-def _to_grey(arr: np.ndarray, name: str) -> np.ndarray:
-    """(H, W, C) -> (H, W): luminance for C >= 3 (alpha dropped), first sample for C == 2."""
-    if arr.ndim == 2:
-        return arr
-    if arr.ndim != 3:
-        raise InputError(f"{name}: expected a 2-D image, got shape {arr.shape}")
-    c = arr.shape[-1]
-    if c == 1:
-        return arr[..., 0]
-    if c == 2:
-        return arr[..., 0]
-    a = arr[..., :3].astype(np.float64)
-    return a[..., 0] * LUMA_WEIGHTS[0] + a[..., 1] * LUMA_WEIGHTS[1] + a[..., 2] * LUMA_WEIGHTS[2]
-
-
 _TORCH_FLOAT = {torch.float32: np.float32, torch.float64: np.float64}
 
 
 def _np_float(dtype: torch.dtype) -> type:
+    """The numpy type of a float torch ``dtype`` (ValueError for others)."""
     try:
         return _TORCH_FLOAT[dtype]
     except KeyError:
         raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype}") from None
+
+
+def _tensor(a: np.ndarray, device: Device) -> torch.Tensor:
+    """``a`` as a tensor (sharing its memory), moved to ``device`` unless that is None."""
+    t = torch.from_numpy(a)
+    return t if device is None else t.to(device)
 
 
 class ImageSeries:
@@ -224,7 +86,7 @@ class ImageSeries:
     def __init__(
         self,
         *,
-        files: list[_FileInfo] | None = None,
+        files: list[FileInfo] | None = None,
         array: np.ndarray | torch.Tensor | None = None,
         timestamps: Any = None,
         label: str = "",
@@ -375,27 +237,14 @@ class ImageSeries:
         j = i - int(self._offsets[k])
         try:
             if info.kind == "pil":
-                return self._read_pil(info)
+                return read_pil(info)
             return self._read_tiff(info, j)
         except InputError:
             raise
         except Exception as exc:
             raise InputError(f"cannot decode {self.frame_name(i)}: {exc}") from exc
 
-    @staticmethod
-    def _read_pil(info: _FileInfo) -> np.ndarray:
-        with Image.open(info.path) as im:
-            im.load()
-            mode = im.mode
-            if mode == "1":
-                im = im.convert("L")
-            elif mode == "P":
-                im = im.convert("RGBA" if "transparency" in im.info else "RGB")
-            elif mode not in _PIL_DTYPES and mode not in ("RGB", "RGBA", "RGBX", "RGBa"):
-                im = im.convert("RGB")
-            return np.asarray(im)
-
-    def _read_tiff(self, info: _FileInfo, j: int) -> np.ndarray:
+    def _read_tiff(self, info: FileInfo, j: int) -> np.ndarray:
         if self._pid != os.getpid():  # forked worker: never share file offsets with the parent
             self._lock = threading.RLock()
             self._handles = OrderedDict()
@@ -411,27 +260,10 @@ class ImageSeries:
             else:
                 self._handles.move_to_end(info.path)
             try:
-                arr = None
-                if info.planes:  # the page's sample planes are the frames
-                    return np.asarray(tif.pages[0].asarray())[j]
-                for k, s in enumerate(tif.series):
-                    if j < len(s):
-                        page = s[j]
-                        if page is not None:
-                            arr = page.asarray()
-                        else:  # missing IFDs (e.g. ImageJ raw > 4 GB): memory-map
-                            mm = tifffile.memmap(info.path, series=k, mode="r")
-                            arr = np.array(mm.reshape(-1, *mm.shape[-len(s.keyframe.shape) :])[j])
-                        break
-                    j -= len(s)
-                if arr is None:
-                    raise InputError(f"{info.path}: page {j} not found")
+                return read_tiff_page(tif, info, j)
             finally:
                 if info.n_frames <= 1:
                     tif.close()
-        if info.planar and arr.ndim == 3:
-            arr = np.moveaxis(arr, 0, -1)
-        return arr
 
     def numpy(self, i: int, dtype: type = np.float32) -> np.ndarray:
         """Frame ``i`` as an ``(H, W)`` numpy array of ``dtype`` (grey, native scale)."""
@@ -445,7 +277,7 @@ class ImageSeries:
                 f"mixed image sizes: {self.frame_name(i)} is {arr.shape[0]}x{arr.shape[1]} "
                 f"(HxW) but the series is {h}x{w}"
             )
-        arr = _to_grey(arr, self.frame_name(i))
+        arr = to_grey(arr, self.frame_name(i))
         out = np.asarray(arr, dtype=dtype)
         if out.dtype.kind == "f" and arr.dtype.kind in "fc" and not np.isfinite(out).all():
             bad = int(np.size(out) - np.count_nonzero(np.isfinite(out)))
@@ -453,14 +285,10 @@ class ImageSeries:
         return out
 
     def get(
-        self,
-        i: int,
-        dtype: torch.dtype = torch.float32,
-        device: torch.device | str | None = None,
+        self, i: int, dtype: torch.dtype = torch.float32, device: Device = None
     ) -> torch.Tensor:
         """Frame ``i`` as an ``(H, W)`` tensor (float32 or float64), native grey scale."""
-        t = torch.from_numpy(self.numpy(i, _np_float(dtype)))
-        return t if device is None else t.to(device)
+        return _tensor(self.numpy(i, _np_float(dtype)), device)
 
     def __getitem__(self, i: Any) -> torch.Tensor:
         """``series[i]`` -> ``(H, W)`` float32; ``series[a:b]`` / lists -> ``(k, H, W)``."""
@@ -473,25 +301,18 @@ class ImageSeries:
             yield self.get(i)
 
     def read(
-        self,
-        indices: Any,
-        dtype: torch.dtype = torch.float32,
-        device: torch.device | str | None = None,
+        self, indices: Any, dtype: torch.dtype = torch.float32, device: Device = None
     ) -> torch.Tensor:
         """Frames ``indices`` (see :meth:`resolve`) stacked as a ``(k, H, W)`` tensor."""
         idx = self.resolve(indices)
-        h, w = self._shape
-        out = torch.empty((len(idx), h, w), dtype=dtype)
         npd = _np_float(dtype)
+        out = np.empty((len(idx), *self._shape), dtype=npd)
         for k, i in enumerate(idx):
-            out[k] = torch.from_numpy(self.numpy(i, npd))
-        return out if device is None else out.to(device)
+            out[k] = self.numpy(i, npd)
+        return _tensor(out, device)
 
     def mean_of(
-        self,
-        indices: Any,
-        dtype: torch.dtype = torch.float32,
-        device: torch.device | str | None = None,
+        self, indices: Any, dtype: torch.dtype = torch.float32, device: Device = None
     ) -> torch.Tensor:
         """Pixel-wise mean of frames ``indices`` as ``(H, W)`` (e.g. ``"0:5"``), memory O(H*W)."""
         idx = self.resolve(indices)
@@ -501,8 +322,7 @@ class ImageSeries:
         for i in idx:
             acc += self.numpy(i, np.float64)
         acc /= len(idx)
-        t = torch.from_numpy(acc.astype(_np_float(dtype), copy=False))
-        return t if device is None else t.to(device)
+        return _tensor(acc.astype(_np_float(dtype), copy=False), device)
 
     # -- resources ------------------------------------------------------------------------
     def close(self) -> None:
@@ -649,10 +469,10 @@ def load_series(source: Any, *, timestamps: Any = None) -> ImageSeries:
             f"unsupported image source of type {type(source).__name__}: give a path, "
             "a directory, a glob pattern, a list of paths, or a (T, H, W) array"
         )
-    infos: list[_FileInfo] = []
+    infos: list[FileInfo] = []
     warned_dtype = False
     for p in paths:
-        info = _probe_file(p)
+        info = probe_file(p)
         if infos and info.shape != infos[0].shape:
             (h0, w0), (h, w) = infos[0].shape, info.shape
             raise InputError(
@@ -681,9 +501,7 @@ def load_series(source: Any, *, timestamps: Any = None) -> ImageSeries:
     if series.is_colour or any(f.extra for f in infos):
         which = next(f for f in infos if f.colour or f.extra)
         warnings.warn(
-            f"colour images (e.g. {which.path}) are converted to grey "
-            f"(luminance {LUMA_WEIGHTS[0]}R + {LUMA_WEIGHTS[1]}G + {LUMA_WEIGHTS[2]}B, "
-            f"alpha dropped)",
+            f"colour images (e.g. {which.path}) are converted to grey ({GREY_RULE})",
             stacklevel=2,
         )
     return series
@@ -707,9 +525,7 @@ def _series_from_array(arr: np.ndarray | torch.Tensor, timestamps: Any) -> Image
     series = ImageSeries(array=arr, timestamps=timestamps)
     if colour:
         warnings.warn(
-            f"colour image array {tuple(arr.shape)} is converted to grey "
-            f"(luminance {LUMA_WEIGHTS[0]}R + {LUMA_WEIGHTS[1]}G + {LUMA_WEIGHTS[2]}B, "
-            "alpha dropped)",
+            f"colour image array {tuple(arr.shape)} is converted to grey ({GREY_RULE})",
             stacklevel=3,
         )
     return series

@@ -197,7 +197,26 @@ def _diff_config(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[tuple[s
     return out
 
 
-class ResultWriter:
+class _FieldShape:
+    """The (F, N) shape of a result file's fields: F rows (output frames) of N points."""
+
+    frames: np.ndarray  # (F,) image frame numbers of the rows
+    points: np.ndarray  # (N, 2) x, y in px
+
+    @property
+    def n_rows(self) -> int:
+        """F, the number of output frames (rows of every field)."""
+        return len(self.frames)
+
+    n_frames = n_rows
+
+    @property
+    def n_points(self) -> int:
+        """N, the number of points."""
+        return len(self.points)
+
+
+class ResultWriter(_FieldShape):
     """Write DIC results to HDF5, one row (= one output frame) at a time.
 
     Layout: ``points`` (N, 2) float64 (x, y), ``frames`` (F,) int64 image indices,
@@ -311,7 +330,7 @@ class ResultWriter:
             f.attrs["status_codes"] = Status.describe()
             for k, v in self._attrs.items():
                 f.attrs[k] = v
-            n_f, n_p = len(self.frames), len(self.points)
+            n_f, n_p = self.n_rows, self.n_points
             f.create_dataset("points", data=self.points)
             f.create_dataset("frames", data=self.frames)
             f.create_dataset("times", data=self.times)
@@ -355,13 +374,12 @@ class ResultWriter:
             return problems
         pts = f["points"][()]
         if pts.shape != self.points.shape:
-            problems.append(("points", f"points: {pts.shape[0]} in file, {len(self.points)} now"))
+            problems.append(("points", f"points: {pts.shape[0]} in file, {self.n_points} now"))
         elif not np.array_equal(pts, self.points):
             problems.append(("points", "points: same count but different coordinates"))
         fr = f["frames"][()]
         if not np.array_equal(fr, self.frames):
-            problems.append(("frames", f"frames differ ({len(fr)} in file, {len(self.frames)} "
-                                       "now)"))
+            problems.append(("frames", f"frames differ ({len(fr)} in file, {self.n_rows} now)"))
         elif not np.allclose(f["times"][()], self.times, rtol=1e-12, atol=0, equal_nan=True):
             problems.append(("times", "times differ"))
         try:
@@ -413,16 +431,6 @@ class ResultWriter:
         )
 
     # -- writing --------------------------------------------------------------------------
-    @property
-    def n_rows(self) -> int:
-        """F, the number of output frames (rows)."""
-        return len(self.frames)
-
-    @property
-    def n_points(self) -> int:
-        """N, the number of points."""
-        return len(self.points)
-
     @property
     def file_path(self) -> Path:
         """File being written now (``path`` or ``<path>.partial``)."""
@@ -565,7 +573,7 @@ class ResultWriter:
 
 
 @dataclass
-class Results:
+class Results(_FieldShape):
     """Contents of a result file. Fields are attributes: ``res.u`` is ``(F, N)``."""
 
     path: Path
@@ -588,17 +596,9 @@ class Results:
         )
 
     @property
-    def n_frames(self) -> int:
-        return len(self.frames)
-
-    @property
     def units(self) -> Units:
         """The calibration recorded in the file (pixels and frames when none)."""
         return units_of(self.attrs)
-
-    @property
-    def n_points(self) -> int:
-        return len(self.points)
 
     @property
     def x(self) -> np.ndarray:
