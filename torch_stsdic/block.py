@@ -37,7 +37,9 @@ from .status import Status
 
 __all__ = ["BlockContext", "Carry", "solve_block", "rows_numpy", "make_carry", "STD_OF"]
 
-CHECK_ITER = 3  #: Gauss-Newton steps of the model check's classical solutions
+#: Gauss-Newton steps of the model check's classical solutions (measured on a 2,500-point
+#: movie: 26 % of rows had not converged after 3 steps, 0.8 % after 4; the rest are re-solved)
+CHECK_ITER = 4
 
 #: the predicted-std field of each parameter stored with the results (px, px per time unit)
 STD_OF = {"u": "u_std", "v": "v_std", "ut": "ut_std", "vt": "vt_std"}
@@ -84,7 +86,7 @@ class BlockContext:
     def check_solver(self) -> SubsetSolver:
         """The solver of the model check's classical solutions: the run's, with at most
         ``CHECK_ITER`` Gauss-Newton steps (they start from the window's solution, a noise's
-        width away: one or two steps reach the classical one; MAX_ITER stays usable)."""
+        width away; rows not converged in them are solved in full before they are judged)."""
         if self._checker is None:
             cfg = self.solver.config
             self._checker = SubsetSolver(cfg.replace(max_iter=min(cfg.max_iter, CHECK_ITER)))

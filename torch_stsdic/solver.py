@@ -29,16 +29,18 @@ fixed point exactly the ZNCC maximum.
 
 from __future__ import annotations
 
-import math
 import time as _time
 from dataclasses import dataclass, field
 
 import torch
 
-from . import formulations, kernels, native, uncertainty
+from . import formulations
 from .config import DICConfig
-from .formulations import Formulation, Geometry, SubsetData, reference_subsets, wsum
-from .formulations.joint_ic import centred_gram
+from .formulations import (
+    Formulation,
+    Geometry,
+)
+from .gauss_newton import BatchContext, solve_batch
 from .initial import (
     carry_from_seed,
     fft_cross_correlation,
@@ -55,6 +57,11 @@ from .validation import as_image, as_points, as_series, as_times, check_init
 from .window import make_window
 
 __all__ = ["WindowSolution", "SubsetSolver", "solve_window"]
+
+
+def _parameter(name: str, doc: str) -> property:
+    """A read-only property: the (N,) column of parameter ``name``."""
+    return property(lambda self: self.param(name), doc=doc)
 
 
 @dataclass
@@ -90,30 +97,17 @@ class WindowSolution:
     std: torch.Tensor | None = None
     sigma: torch.Tensor | None = None
 
-    def _get(self, name: str) -> torch.Tensor:
+    def param(self, name: str) -> torch.Tensor:
+        """(N,) parameter ``name`` (e.g. "ux"; NaN if the shape function has none)."""
         if name in self.param_names:
             return self.params[:, self.param_names.index(name)]
         return torch.full_like(self.params[:, 0], float("nan"))
 
-    @property
-    def u(self) -> torch.Tensor:
-        """(N,) displacement along x, px."""
-        return self._get("u")
-
-    @property
-    def v(self) -> torch.Tensor:
-        """(N,) displacement along y, px."""
-        return self._get("v")
-
-    @property
-    def ut(self) -> torch.Tensor:
-        """(N,) velocity du/dt, px per frame (NaN for m = 0: one frame has no velocity)."""
-        return self._get("ut")
-
-    @property
-    def vt(self) -> torch.Tensor:
-        """(N,) velocity dv/dt, px per frame (NaN for m = 0)."""
-        return self._get("vt")
+    u = _parameter("u", "(N,) displacement along x, px.")
+    v = _parameter("v", "(N,) displacement along y, px.")
+    ut = _parameter("ut", "(N,) velocity du/dt, px per frame (NaN for m = 0: one frame has no "
+                    "velocity).")
+    vt = _parameter("vt", "(N,) velocity dv/dt, px per frame (NaN for m = 0).")
 
     def std_of(self, name: str) -> torch.Tensor:
         """(N,) predicted standard deviation of parameter ``name`` (NaN if not estimated)."""
@@ -201,16 +195,8 @@ class SubsetSolver:
         cfg = self.config
         device, dtype = points.device, points.dtype
         n = points.shape[0]
-        dt = dt.to(device=device, dtype=dtype)
+        dt, frame_index, ref_index = _per_point(points, dt, frame_index, ref_index)
         t_count = dt.shape[-1]
-        dt = dt.expand(n, t_count) if dt.dim() == 1 else dt
-        if frame_index is None:
-            frame_index = torch.arange(t_count, device=device)
-        frame_index = frame_index.to(device).long().expand(n, t_count)
-        ref_index = (
-            torch.zeros(n, dtype=torch.long, device=device)
-            if ref_index is None else ref_index.to(device).long().expand(n)
-        )
         shape = self.shape_for(dt)
         p_count = shape.n_params
         half = float(self.window.half)
@@ -220,10 +206,7 @@ class SubsetSolver:
         zncc = torch.full((n,), float("nan"), dtype=dtype, device=device)
         iters = torch.zeros(n, dtype=torch.int32, device=device)
 
-        inside = (
-            (points[:, 0] - half >= 0) & (points[:, 0] + half <= w - 1)
-            & (points[:, 1] - half >= 0) & (points[:, 1] + half <= h - 1)
-        )
+        inside = _inside(points, half, h, w)
         status[~inside] = int(Status.OUTSIDE)
 
         if init is None:
@@ -253,7 +236,7 @@ class SubsetSolver:
         first_stage = torch.full_like(params, float("nan"))
         grey = ref_pixels if ref_pixels is not None else ref.coeffs
         geo = Geometry.make(shape, self.window, cfg.criterion, dtype, device)
-        ctx = _Context(
+        ctx = BatchContext(
             geo=geo, ref=ref, frames=frames, cfg=cfg, stages=self.stages_for(shape),
             grey_range=_grey_range(grey), work=int(todo.numel()) * t_count * int(geo.w.numel()),
             noise_ratio=float(noise_ratio),
@@ -263,7 +246,7 @@ class SubsetSolver:
         batch = cfg.batch_points or ctx.batch_size(t_count)
         for s0 in range(0, todo.numel(), batch):
             idx = todo[s0 : s0 + batch]
-            pr, zr, sr, ir, p1, sd, sg = _solve_batch(
+            pr, zr, sr, ir, p1, sd, sg = solve_batch(
                 ctx, points[idx], p0[idx], dt[idx], frame_index[idx], ref_index[idx]
             )
             params[idx], zncc[idx], status[idx], iters[idx] = pr, zr, sr, ir
@@ -484,150 +467,26 @@ def _expand_init(p0: torch.Tensor, shape: ShapeFunction, full: ShapeFunction) ->
     return out
 
 
-@dataclass
-class _Context:
-    """What every batch of one solve shares: geometry, images, settings."""
-
-    geo: Geometry
-    ref: BSplineImage
-    frames: BSplineImage
-    cfg: DICConfig
-    stages: list[Formulation]
-    grey_range: float
-    work: int = 0  # samples per iteration over all batches (decides torch.compile)
-    noise_ratio: float = 1.0  # reference noise variance / one frame's
-
-    def batch_size(self, t: int) -> int:
-        """POIs per batch within ``cfg.memory_mb``."""
-        s, ks = self.geo.spatial.shape
-        elem = self.geo.spatial.element_size()
-        ic_only = all(f.inverse_compositional for f in self.stages)
-        if ic_only and (native.usable(self.geo.spatial) or kernels.usable(
-                self.frames.kernel_args()[0], self.frames.order, s)):
-            # fused kernels: no (N, T, S) temporaries, only the per-point reference data
-            per_point = s * elem * 12
-        else:
-            jac = 0 if ic_only else t * 2 * (ks + 1)
-            per_point = s * elem * (t * 40 + jac + 8 * ks + 24)
-        return max(16, int(self.cfg.memory_mb * 2**20 / per_point))
+def _per_point(points: torch.Tensor, dt: torch.Tensor, frame_index: torch.Tensor | None,
+               ref_index: torch.Tensor | None):
+    """Each POI's frame times (N, T) in the points' dtype, frame indices (N, T) (default
+    0..T-1) and reference index (N,) (default 0), on the points' device."""
+    n, device = points.shape[0], points.device
+    dt = dt.to(device=device, dtype=points.dtype)
+    t_count = dt.shape[-1]
+    dt = dt.expand(n, t_count) if dt.dim() == 1 else dt
+    if frame_index is None:
+        frame_index = torch.arange(t_count, device=device)
+    frame_index = frame_index.to(device).long().expand(n, t_count)
+    if ref_index is None:
+        return dt, frame_index, torch.zeros(n, dtype=torch.long, device=device)
+    return dt, frame_index, ref_index.to(device).long().expand(n)
 
 
-def _solve_batch(ctx: _Context, pts, p0, dt, fidx, ridx):
-    """Solve one batch of POIs (all inside the image). Returns params, zncc, status, iters
-    and the first stage's params."""
-    cfg, geo = ctx.cfg, ctx.geo
-    n = pts.shape[0]
-    device, dtype = pts.device, pts.dtype
-    w = geo.w
-    wsum_w = w.sum()
-    data = reference_subsets(geo, ctx.ref, pts, ridx, dt, fidx)
-    data.gram = centred_gram(geo, data.gx, data.gy)  # for the Hessian and the uncertainty
-    status = torch.full((n,), int(Status.NOT_COMPUTED), dtype=torch.int8, device=device)
-    texture = wsum(data.gx * data.gx + data.gy * data.gy, w) / wsum_w
-    low = texture < cfg.texture_threshold * ctx.grey_range**2
-    low |= data.fnorm < 1e-6 * ctx.grey_range * math.sqrt(float(wsum_w))
-    status[low] = int(Status.LOW_TEXTURE)
-    params = p0.clone()
-    zncc = torch.full((n,), float("nan"), dtype=dtype, device=device)
-    iters = torch.zeros(n, dtype=torch.int32, device=device)
-    live = ~low
-    stage_params = []
-    for stage_i, form in enumerate(ctx.stages):
-        params, zn, st, used = _run_stage(ctx, form, params, data, live)
-        stage_params.append(params)
-        zncc = torch.where(live, zn, zncc)
-        iters += used
-        if stage_i == len(ctx.stages) - 1:
-            status = torch.where(live, st, status)
-        else:
-            # a stage that failed ends the point; MAX_ITER in an early stage is not fatal
-            failed = live & (st > int(Status.MAX_ITER))
-            status = torch.where(failed, st, status)
-            live = live & ~failed
-    maxd = cfg.max_displacement if cfg.max_displacement is not None else float(cfg.subset_size)
-    k = geo.k
-    jump = torch.maximum((params[:, 0] - p0[:, 0]).abs(), (params[:, k] - p0[:, k]).abs())
-    far = (status <= int(Status.MAX_ITER)) & ~(jump <= maxd)
-    status[far] = int(Status.DIVERGED)
-    std = torch.full_like(params, float("nan"))
-    sigma = torch.full_like(zncc, float("nan"))
-    ok = torch.nonzero(status <= int(Status.MAX_ITER)).flatten()
-    if ok.numel():
-        resp, _ = uncertainty.solution_response(geo, ctx.frames, data.take(ok), params[ok],
-                                                ctx.noise_ratio, ctx.frames.order,
-                                                zncc=zncc[ok])
-        std[ok] = uncertainty.std_of(resp).to(dtype)
-        sigma[ok] = resp.noise.total.sqrt().to(dtype)
-    return params, zncc, status, iters, stage_params[0], std, sigma
-
-
-def _run_stage(ctx: _Context, form: Formulation, params, data: SubsetData, live):
-    """Iterate one Gauss-Newton stage over the live points, dropping finished points.
-
-    Returns params, zncc (N,), status (N,), iterations used (N,)."""
-    cfg, geo = ctx.cfg, ctx.geo
-    n = params.shape[0]
-    device, dtype = params.device, params.dtype
-    status = torch.full((n,), int(Status.MAX_ITER), dtype=torch.int8, device=device)
-    zncc = torch.full((n,), float("nan"), dtype=dtype, device=device)
-    used = torch.zeros(n, dtype=torch.int32, device=device)
-    rows = torch.nonzero(live).flatten()
-    if rows.numel() == 0:
-        return params, zncc, status, used
-    params = params.clone()
-    if rows.numel() < n:
-        data = data.take(rows)
-    sing = form.prepare(geo, data)
-    if sing.any():
-        status[rows[sing]] = int(Status.LOW_TEXTURE)
-        rows, data = rows[~sing], data.take(~sing)
-    scale = geo.shape.increment_scale(geo.spatial, data.dt)
-    p = params[rows]
-    # fused kernel: finished rows are skipped through an index (`sel`) instead of copying
-    # the per-point data of the remaining rows
-    sel = (torch.arange(rows.numel(), device=device)
-           if form.uses_fused_kernel(ctx.frames, data, p) else None)
-    active = torch.ones(rows.numel(), dtype=torch.bool, device=device)
-    # On CUDA every boolean test or compaction waits for the GPU: look every few iterations.
-    check_every = 1 if device.type == "cpu" else 4
-    conv_code = torch.tensor(int(Status.CONVERGED), dtype=torch.int8, device=device)
-    for it in range(cfg.max_iter):
-        if rows.numel() == 0:
-            break
-        dp, zn, outside = form.step(geo, ctx.frames, data, p, ctx.work, sel)
-        p_new = form.update(geo, p, dp)
-        used[rows] += active.to(used.dtype)
-        norm = (dp * scale).norm(dim=1)
-        finite = torch.isfinite(norm) & torch.isfinite(p_new).all(1)
-        bad = ~finite | (norm > 4.0 * geo.half)
-        conv = finite & (norm < cfg.tol) & ~outside
-        p = torch.where((finite & active).unsqueeze(1), p_new, p)
-        zncc[rows] = torch.where(active, zn.to(dtype), zncc[rows])
-        done = (conv | bad | outside) & active
-        # record finished points without boolean indexing (no host synchronisation)
-        st = torch.where(bad, int(Status.DIVERGED), torch.where(outside, int(Status.OUTSIDE),
-                                                                 conv_code)).to(torch.int8)
-        params[rows] = torch.where(done.unsqueeze(1), p, params[rows])
-        status[rows] = torch.where(done, st, status[rows])
-        active = active & ~done
-        if (it + 1) % check_every == 0 or it + 1 == cfg.max_iter:
-            n_active = int(active.sum())
-            if n_active == 0:
-                rows = rows[:0]
-                break
-            # drop finished rows once enough of them have piled up (copying costs too)
-            if n_active < 0.7 * active.numel():
-                rows, p, scale = rows[active], p[active], scale[active]
-                if sel is None:
-                    data = data.take(active)
-                else:
-                    sel = sel[active]
-                active = active[active]
-    if rows.numel():
-        rows, p = rows[active], p[active]
-    if rows.numel():
-        params[rows] = p  # MAX_ITER: the last iterate
-    return params, zncc, status, used
+def _inside(points: torch.Tensor, half: float, h: int, w: int) -> torch.Tensor:
+    """(N,) bool: the subset of half-width ``half`` around each POI lies in an H x W image."""
+    return ((points[:, 0] - half >= 0) & (points[:, 0] + half <= w - 1)
+            & (points[:, 1] - half >= 0) & (points[:, 1] + half <= h - 1))
 
 
 # ---------------------------------------------------------------------------------------

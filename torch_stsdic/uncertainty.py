@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .formulations import Geometry, SubsetData, gram
+from .formulations import Geometry, SubsetData, centred_gram, gram
 from .interpolation import BSplineImage
 from .noise import gradient_noise_factor, interpolation_variance_factor
 from .window import effective_pixels
@@ -92,8 +92,8 @@ def noise_model(geo: Geometry, residual: Tensor, p: Tensor, data: SubsetData, rh
     dof = 1.0 - (2.0 + p.shape[1] / t) / s_eff  # mean, scale and a share of P per frame
     zero = torch.zeros(1, dtype=geo.dx.dtype, device=geo.dx.device)
     u, v = geo.shape.displacement(p, geo.shape.spatial_basis(zero, zero), data.dt)
-    x = (data.px + u[..., 0]).double().cpu()  # the POI centre in every frame, px
-    y = (data.py + v[..., 0]).double().cpu()
+    x = (data.px + u[..., 0]).double()  # the POI centre in every frame, px
+    y = (data.py + v[..., 0]).double()
     c = interpolation_variance_factor(x, y, order).to(residual)
     sig_g = residual.mean(1) / dof / (rho + c.mean(1))
     return NoiseModel(ref=rho * sig_g, frame=sig_g)
@@ -143,8 +143,10 @@ class Response:
     """Linear response of the solutions of N points to the images' noise.
 
     Attributes:
-        coef: (N, P', P) H^-1 in the augmented basis (rows), per parameter (columns).
+        coef: (N, P', P) H^-1 in the augmented basis (rows), per parameter (columns); NaN
+            where the noise-corrected Hessian is not positive definite.
         z: (N, T, P') column factors of the frames.
+        zz: (N, P', P') ``sum_t z_t z_t^T``.
         g2: (N, P', P') the centred w^2-moments of the reference's augmented columns.
         b2: (P', P') the w^2-moments of the bare basis.
         noise: the noise variances.
@@ -153,6 +155,7 @@ class Response:
 
     coef: Tensor
     z: Tensor
+    zz: Tensor
     g2: Tensor
     b2: Tensor
     noise: NoiseModel
@@ -161,39 +164,44 @@ class Response:
 
 def response(geo: Geometry, data: SubsetData, noise: NoiseModel, order: int) -> Response:
     """The noise response of solutions with geometry ``geo`` at the points and frame times of
-    ``data`` (reference gradients ``gx, gy`` (N, S), ``dt`` (N, T))."""
+    ``data`` (reference gradients ``gx, gy`` (N, S) or their ``gram``, ``dt`` (N, T))."""
     kappa = gradient_noise_factor(order)
     w = geo.w
     z = _z(geo, data.dt)
-    zz = torch.einsum("ntp,ntq->npq", z, z)
-    gw, mw = gram(data.gx, data.gy, geo.spatial, w) if data.gram is None else (None, None)
-    g1 = data.gram if data.gram is not None else _centred_gram(geo, gw, mw, mw, w)
-    g2 = g1  # a 0/1 window: the w^2-moments are the w-moments
-    if not bool(((w * w) == w).all()):
-        if mw is None:
-            _, mw = gram(data.gx, data.gy, geo.spatial, w)
-        gww, mww = gram(data.gx, data.gy, geo.spatial, w * w)
-        g2 = _centred_gram(geo, gww, mww, mw, w * w)
+    zz = z.transpose(1, 2) @ z
+    g1 = data.gram if data.gram is not None else centred_gram(geo, data.gx, data.gy)
     bw = _basis_moments(geo, w)
+    g2, b2 = g1, bw  # a 0/1 window: the w^2-moments are the w-moments
+    if not bool(((w * w) == w).all()):
+        _, mw = gram(data.gx, data.gy, geo.spatial, w)
+        gww, mww = gram(data.gx, data.gy, geo.spatial, w * w)
+        g2, b2 = _centred_gram(geo, gww, mww, mw, w * w), _basis_moments(geo, w * w)
+    h = g1 * zz - kappa * noise.ref.double().view(-1, 1, 1) * bw * zz
     cols = _aug_columns(geo)
-    h = (g1 * zz - kappa * noise.ref.double().view(-1, 1, 1) * bw * zz)[:, cols][:, :, cols]
-    hinv = torch.linalg.inv(h)
-    coef = torch.zeros(h.shape[0], z.shape[-1], len(cols), dtype=torch.float64,
-                       device=h.device)
-    coef[:, cols] = hinv
-    return Response(coef=coef, z=z, g2=g2, b2=_basis_moments(geo, w * w), noise=noise,
-                    kappa=kappa)
+    if not geo.shape.has_time:
+        h = h[:, cols][:, :, cols]
+    chol, info = torch.linalg.cholesky_ex(h)  # H is symmetric: 3x cheaper than an LU inverse
+    hinv = torch.cholesky_inverse(chol).masked_fill((info != 0).view(-1, 1, 1), float("nan"))
+    if geo.shape.has_time:
+        coef = hinv
+    else:
+        coef = hinv.new_zeros(h.shape[0], z.shape[-1], len(cols))
+        coef[:, cols] = hinv
+    return Response(coef=coef, z=z, zz=zz, g2=g2, b2=b2, noise=noise, kappa=kappa)
+
+
+def _middle(r: Response) -> Tensor:
+    """(N, P', P') the noise moments between ``coef^T`` and ``coef`` (module docstring)."""
+    zs = r.z.sum(1)
+    f2 = r.noise.ref.double().view(-1, 1, 1)
+    g2n = r.noise.frame.double().view(-1, 1, 1)
+    return (f2 * r.g2 * zs.unsqueeze(-1) * zs.unsqueeze(-2) + g2n * r.g2 * r.zz
+            + r.kappa * f2 * g2n * r.b2 * r.zz)
 
 
 def covariance(r: Response) -> Tensor:
     """(N, P, P) predicted covariance of the parameters (module docstring)."""
-    zs = r.z.sum(1)
-    zz = torch.einsum("ntp,ntq->npq", r.z, r.z)
-    f2 = r.noise.ref.double().view(-1, 1, 1)
-    g2n = r.noise.frame.double().view(-1, 1, 1)
-    mid = (f2 * r.g2 * zs.unsqueeze(-1) * zs.unsqueeze(-2) + g2n * r.g2 * zz
-           + r.kappa * f2 * g2n * r.b2 * zz)
-    return r.coef.transpose(1, 2) @ mid @ r.coef
+    return r.coef.transpose(1, 2) @ _middle(r) @ r.coef
 
 
 def cross_covariance(a: Response, b: Response, shared: Tensor) -> Tensor:
@@ -223,5 +231,7 @@ def solution_response(geo: Geometry, frames: BSplineImage, data: SubsetData, p: 
 
 
 def std_of(r: Response) -> Tensor:
-    """(N, P) predicted standard deviation of every parameter."""
-    return torch.diagonal(covariance(r), dim1=-2, dim2=-1).clamp(min=0).sqrt()
+    """(N, P) predicted standard deviation of every parameter (the diagonal of
+    :func:`covariance` alone)."""
+    var = ((_middle(r) @ r.coef) * r.coef).sum(1)
+    return var.clamp(min=0).sqrt()

@@ -18,7 +18,7 @@ from __future__ import annotations
 from ..shape import ShapeFunction
 from .base import Formulation, Geometry, SubsetData, reference_subsets, wsum
 from .forward_additive import AverageFA, JointFA
-from .joint_ic import JointIC, gram, ic_hessian, ic_jacobian, ic_rhs_kernel
+from .joint_ic import JointIC, centred_gram, gram, ic_hessian, ic_jacobian, ic_rhs_kernel
 
 __all__ = [
     "Formulation",
@@ -32,6 +32,7 @@ __all__ = [
     "reference_subsets",
     "wsum",
     "gram",
+    "centred_gram",
     "ic_hessian",
     "ic_jacobian",
     "ic_rhs_kernel",

@@ -94,8 +94,7 @@ class SubsetData:
         px, py: (N, 1) POI positions, px.
         dt: (N, T) frame times minus the time the results refer to.
         fidx: (N, T) frame indices into the prepared frames.
-        f: (N, S) reference subset (grey levels).
-        ft: (N, S) reference subset, zero-mean for ZNSSD.
+        ft: (N, S) reference subset (grey levels), zero-mean for ZNSSD.
         fnorm: (N,) weighted norm of ``ft``.
         gx, gy: (N, S) reference gradient, grey levels per px.
         chol: (N, P, P) Cholesky factor of a Hessian prepared once (inverse compositional).
@@ -108,7 +107,6 @@ class SubsetData:
     py: Tensor
     dt: Tensor
     fidx: Tensor
-    f: Tensor
     ft: Tensor
     fnorm: Tensor
     gx: Tensor
@@ -132,7 +130,7 @@ def reference_subsets(geo: Geometry, ref: BSplineImage, pts: Tensor, ridx: Tenso
     f, gx, gy = ref.sample_subsets(px, py, geo.dx, geo.dy, frame=ridx)
     ft = geo.centred(f)
     fnorm = wsum(ft * ft, geo.w).sqrt()
-    return SubsetData(px=px, py=py, dt=dt, fidx=fidx, f=f, ft=ft, fnorm=fnorm, gx=gx, gy=gy)
+    return SubsetData(px=px, py=py, dt=dt, fidx=fidx, ft=ft, fnorm=fnorm, gx=gx, gy=gy)
 
 
 class Formulation:

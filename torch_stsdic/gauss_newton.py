@@ -1,0 +1,197 @@
+"""Gauss-Newton over one batch of POIs: reference subsets, the stages of the formulation(s),
+convergence and status of every point, and the predicted uncertainty of the solutions.
+
+:class:`~torch_stsdic.solver.SubsetSolver` splits a solve into batches within the memory
+budget and calls :func:`solve_batch` on each; the linearised model itself (residual,
+Jacobian, Hessian, update) is the formulation's (:mod:`torch_stsdic.formulations`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from . import kernels, native, uncertainty
+from .config import DICConfig
+from .formulations import Formulation, Geometry, SubsetData, centred_gram, reference_subsets, wsum
+from .interpolation import BSplineImage
+from .status import Status
+
+__all__ = ["BatchContext", "solve_batch"]
+
+
+@dataclass
+class BatchContext:
+    """What every batch of one solve shares: geometry, images, settings."""
+
+    geo: Geometry
+    ref: BSplineImage
+    frames: BSplineImage
+    cfg: DICConfig
+    stages: list[Formulation]
+    grey_range: float
+    work: int = 0  # samples per iteration over all batches (decides torch.compile)
+    noise_ratio: float = 1.0  # reference noise variance / one frame's
+
+    def batch_size(self, t: int) -> int:
+        """POIs per batch within ``cfg.memory_mb``."""
+        s, ks = self.geo.spatial.shape
+        elem = self.geo.spatial.element_size()
+        ic_only = all(f.inverse_compositional for f in self.stages)
+        if ic_only and (native.usable(self.geo.spatial) or kernels.usable(
+                self.frames.kernel_args()[0], self.frames.order, s)):
+            # fused kernels: no (N, T, S) temporaries, only the per-point reference data
+            per_point = s * elem * 12
+        else:
+            jac = 0 if ic_only else t * 2 * (ks + 1)
+            per_point = s * elem * (t * 40 + jac + 8 * ks + 24)
+        return max(16, int(self.cfg.memory_mb * 2**20 / per_point))
+
+
+def solve_batch(ctx: BatchContext, pts, p0, dt, fidx, ridx):
+    """Solve one batch of N POIs (all inside the image) from ``p0`` (N, P), with frame times
+    ``dt`` (N, T), frame indices ``fidx`` (N, T) and reference indices ``ridx`` (N,).
+
+    Returns params (N, P), zncc (N,), status (N,) int8, iterations (N,), the first stage's
+    params (N, P), predicted std (N, P) and noise std (N,) (grey levels)."""
+    cfg, geo = ctx.cfg, ctx.geo
+    n = pts.shape[0]
+    device, dtype = pts.device, pts.dtype
+    w = geo.w
+    wsum_w = w.sum()
+    data = _reference_data(ctx, pts, dt, fidx, ridx)
+    status = torch.full((n,), int(Status.NOT_COMPUTED), dtype=torch.int8, device=device)
+    texture = wsum(data.gx * data.gx + data.gy * data.gy, w) / wsum_w
+    low = texture < cfg.texture_threshold * ctx.grey_range**2
+    low |= data.fnorm < 1e-6 * ctx.grey_range * math.sqrt(float(wsum_w))
+    status[low] = int(Status.LOW_TEXTURE)
+    params = p0.clone()
+    zncc = torch.full((n,), float("nan"), dtype=dtype, device=device)
+    iters = torch.zeros(n, dtype=torch.int32, device=device)
+    live = ~low
+    stage_params = []
+    for stage_i, form in enumerate(ctx.stages):
+        params, zn, st, used = _run_stage(ctx, form, params, data, live)
+        stage_params.append(params)
+        zncc = torch.where(live, zn, zncc)
+        iters += used
+        if stage_i == len(ctx.stages) - 1:
+            status = torch.where(live, st, status)
+        else:
+            # a stage that failed ends the point; MAX_ITER in an early stage is not fatal
+            failed = live & (st > int(Status.MAX_ITER))
+            status = torch.where(failed, st, status)
+            live = live & ~failed
+    maxd = cfg.max_displacement if cfg.max_displacement is not None else float(cfg.subset_size)
+    k = geo.k
+    jump = torch.maximum((params[:, 0] - p0[:, 0]).abs(), (params[:, k] - p0[:, k]).abs())
+    far = (status <= int(Status.MAX_ITER)) & ~(jump <= maxd)
+    status[far] = int(Status.DIVERGED)
+    std, sigma = _uncertainty(ctx, data, params, zncc, status <= int(Status.MAX_ITER))
+    return params, zncc, status, iters, stage_params[0], std, sigma
+
+
+def _reference_data(ctx: BatchContext, pts, dt, fidx, ridx) -> SubsetData:
+    """The reference subsets of a batch and their centred gram (for the Hessian and the
+    uncertainty), sampled once per distinct (point, reference) pair: a block of B targets
+    repeats every point B times."""
+    geo = ctx.geo
+    n = pts.shape[0]
+    # points are on the pixel grid here (solve snaps off-grid points): one integer key each
+    ij = pts.detach().round()
+    key = (ridx * ctx.ref.height + ij[:, 1].long()) * ctx.ref.width + ij[:, 0].long()
+    uniq, inv = torch.unique(key, return_inverse=True)
+    # few repeats: sampling them is cheaper than the gather
+    if uniq.shape[0] > 0.75 * n or not bool((ij == pts).all()):
+        data = reference_subsets(geo, ctx.ref, pts, ridx, dt, fidx)
+        data.gram = centred_gram(geo, data.gx, data.gy)
+        return data
+    first = torch.full((uniq.shape[0],), n, dtype=torch.long, device=pts.device)
+    first = first.scatter_reduce(0, inv, torch.arange(n, device=pts.device), "amin")
+    data = reference_subsets(geo, ctx.ref, pts[first], ridx[first], dt[first], fidx[first])
+    data.gram = centred_gram(geo, data.gx, data.gy)
+    data = data.take(inv)
+    data.dt, data.fidx = dt, fidx
+    return data
+
+
+def _uncertainty(ctx: BatchContext, data: SubsetData, params, zncc, ok):
+    """Predicted std (N, P) of every parameter and noise std (N,) of the rows ``ok`` (NaN
+    elsewhere): computed for every row (vectorised, no copy of the subsets), then masked."""
+    dtype = params.dtype
+    resp, _ = uncertainty.solution_response(ctx.geo, ctx.frames, data, params, ctx.noise_ratio,
+                                            ctx.frames.order, zncc=zncc)
+    nan = torch.tensor(float("nan"), dtype=dtype, device=params.device)
+    std = torch.where(ok.unsqueeze(1), uncertainty.std_of(resp).to(dtype), nan)
+    return std, torch.where(ok, resp.noise.total.sqrt().to(dtype), nan)
+
+
+def _run_stage(ctx: BatchContext, form: Formulation, params, data: SubsetData, live):
+    """Iterate one Gauss-Newton stage over the live points, dropping finished points.
+
+    Returns params, zncc (N,), status (N,), iterations used (N,)."""
+    cfg, geo = ctx.cfg, ctx.geo
+    n = params.shape[0]
+    device, dtype = params.device, params.dtype
+    status = torch.full((n,), int(Status.MAX_ITER), dtype=torch.int8, device=device)
+    zncc = torch.full((n,), float("nan"), dtype=dtype, device=device)
+    used = torch.zeros(n, dtype=torch.int32, device=device)
+    rows = torch.nonzero(live).flatten()
+    if rows.numel() == 0:
+        return params, zncc, status, used
+    params = params.clone()
+    if rows.numel() < n:
+        data = data.take(rows)
+    sing = form.prepare(geo, data)
+    if sing.any():
+        status[rows[sing]] = int(Status.LOW_TEXTURE)
+        rows, data = rows[~sing], data.take(~sing)
+    scale = geo.shape.increment_scale(geo.spatial, data.dt)
+    p = params[rows]
+    # fused kernel: finished rows are skipped through an index (`sel`) instead of copying
+    # the per-point data of the remaining rows
+    sel = (torch.arange(rows.numel(), device=device)
+           if form.uses_fused_kernel(ctx.frames, data, p) else None)
+    active = torch.ones(rows.numel(), dtype=torch.bool, device=device)
+    # On CUDA every boolean test or compaction waits for the GPU: look every few iterations.
+    check_every = 1 if device.type == "cpu" else 4
+    conv_code = torch.tensor(int(Status.CONVERGED), dtype=torch.int8, device=device)
+    for it in range(cfg.max_iter):
+        if rows.numel() == 0:
+            break
+        dp, zn, outside = form.step(geo, ctx.frames, data, p, ctx.work, sel)
+        p_new = form.update(geo, p, dp)
+        used[rows] += active.to(used.dtype)
+        norm = (dp * scale).norm(dim=1)
+        finite = torch.isfinite(norm) & torch.isfinite(p_new).all(1)
+        bad = ~finite | (norm > 4.0 * geo.half)
+        conv = finite & (norm < cfg.tol) & ~outside
+        p = torch.where((finite & active).unsqueeze(1), p_new, p)
+        zncc[rows] = torch.where(active, zn.to(dtype), zncc[rows])
+        done = (conv | bad | outside) & active
+        # record finished points without boolean indexing (no host synchronisation)
+        st = torch.where(bad, int(Status.DIVERGED), torch.where(outside, int(Status.OUTSIDE),
+                                                                 conv_code)).to(torch.int8)
+        params[rows] = torch.where(done.unsqueeze(1), p, params[rows])
+        status[rows] = torch.where(done, st, status[rows])
+        active = active & ~done
+        if (it + 1) % check_every == 0 or it + 1 == cfg.max_iter:
+            n_active = int(active.sum())
+            if n_active == 0:
+                rows = rows[:0]
+                break
+            # drop finished rows once enough of them have piled up (copying costs too)
+            if n_active < 0.7 * active.numel():
+                rows, p, scale = rows[active], p[active], scale[active]
+                if sel is None:
+                    data = data.take(active)
+                else:
+                    sel = sel[active]
+                active = active[active]
+    if rows.numel():
+        rows, p = rows[active], p[active]
+    if rows.numel():
+        params[rows] = p  # MAX_ITER: the last iterate
+    return params, zncc, status, used
