@@ -143,8 +143,7 @@ class Response:
     """Linear response of the solutions of N points to the images' noise.
 
     Attributes:
-        coef: (N, P', P) H^-1 in the augmented basis (rows), per parameter (columns); NaN
-            where the noise-corrected Hessian is not positive definite.
+        coef: (N, P', P) H^-1 in the augmented basis (rows), per parameter (columns).
         z: (N, T, P') column factors of the frames.
         zz: (N, P', P') ``sum_t z_t z_t^T``.
         g2: (N, P', P') the centred w^2-moments of the reference's augmented columns.
@@ -176,18 +175,28 @@ def response(geo: Geometry, data: SubsetData, noise: NoiseModel, order: int) -> 
         _, mw = gram(data.gx, data.gy, geo.spatial, w)
         gww, mww = gram(data.gx, data.gy, geo.spatial, w * w)
         g2, b2 = _centred_gram(geo, gww, mww, mw, w * w), _basis_moments(geo, w * w)
-    h = g1 * zz - kappa * noise.ref.double().view(-1, 1, 1) * bw * zz
+    hinv = _corrected_inverse(geo, g1 * zz, kappa * noise.ref.double().view(-1, 1, 1) * bw * zz)
     cols = _aug_columns(geo)
-    if not geo.shape.has_time:
-        h = h[:, cols][:, :, cols]
-    chol, info = torch.linalg.cholesky_ex(h)  # H is symmetric: 3x cheaper than an LU inverse
-    hinv = torch.cholesky_inverse(chol).masked_fill((info != 0).view(-1, 1, 1), float("nan"))
     if geo.shape.has_time:
         coef = hinv
     else:
-        coef = hinv.new_zeros(h.shape[0], z.shape[-1], len(cols))
+        coef = hinv.new_zeros(hinv.shape[0], z.shape[-1], len(cols))
         coef[:, cols] = hinv
     return Response(coef=coef, z=z, zz=zz, g2=g2, b2=b2, noise=noise, kappa=kappa)
+
+
+def _corrected_inverse(geo: Geometry, h: Tensor, bias: Tensor) -> Tensor:
+    """(N, P, P) inverse of the Hessian ``h`` minus its expected noise-gradient energy
+    ``bias`` (both (N, P', P')), by Cholesky (symmetric: 3x cheaper than an LU inverse). Where
+    the corrected matrix is not positive definite (a noise estimate as large as the texture's
+    signal, e.g. a subset that does not fit), the correction is not valid: ``h`` itself (the
+    first-order Hessian the solver factored) is inverted instead."""
+    if not geo.shape.has_time:
+        cols = _aug_columns(geo)
+        h, bias = h[:, cols][:, :, cols], bias[:, cols][:, :, cols]
+    chol, info = torch.linalg.cholesky_ex(h - bias)
+    first_order = torch.linalg.cholesky_ex(h)[0]  # both: no host synchronisation on a GPU
+    return torch.cholesky_inverse(torch.where((info != 0).view(-1, 1, 1), first_order, chol))
 
 
 def _middle(r: Response) -> Tensor:
