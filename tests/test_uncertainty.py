@@ -1,0 +1,65 @@
+"""Per-point uncertainty (uncertainty.py): the linear algebra against its definitions."""
+
+import pytest
+import torch
+
+from torch_stsdic import uncertainty
+from torch_stsdic.formulations import Geometry, SubsetData, centred_gram
+from torch_stsdic.shape import make_shape
+from torch_stsdic.window import make_window
+
+
+def _data(n: int = 64, t: int = 5, seed: int = 0, window: str = "square"):
+    g = torch.Generator().manual_seed(seed)
+    geo = Geometry.make(make_shape("affine"), make_window(window, 11), "znssd", torch.float64,
+                        "cpu")
+    s = geo.w.numel()
+    gx = torch.randn(n, s, generator=g, dtype=torch.float64) * 20
+    gy = torch.randn(n, s, generator=g, dtype=torch.float64) * 20
+    dt = (torch.arange(t, dtype=torch.float64) - t // 2).expand(n, t).clone()
+    z = torch.zeros(n, 1, dtype=torch.float64)
+    data = SubsetData(px=z, py=z, dt=dt, fidx=torch.zeros(n, t, dtype=torch.long),
+                      ft=torch.zeros(n, s, dtype=torch.float64),
+                      fnorm=torch.ones(n, dtype=torch.float64), gx=gx, gy=gy)
+    data.gram = centred_gram(geo, gx, gy)
+    return geo, data
+
+
+@pytest.mark.parametrize("window", ["square", "gaussian"])
+def test_std_is_the_diagonal_of_the_covariance(window):
+    geo, data = _data(window=window)
+    n = data.dt.shape[0]
+    noise = uncertainty.NoiseModel(ref=torch.full((n,), 4.0, dtype=torch.float64),
+                                   frame=torch.full((n,), 9.0, dtype=torch.float64))
+    r = uncertainty.response(geo, data, noise, 3)
+    cov = uncertainty.covariance(r)
+    want = torch.diagonal(cov, dim1=-2, dim2=-1).sqrt()
+    torch.testing.assert_close(uncertainty.std_of(r), want, rtol=1e-10, atol=0)
+
+
+def test_inverse_is_the_inverse_of_the_corrected_hessian():
+    geo, data = _data()
+    n = data.dt.shape[0]
+    noise = uncertainty.NoiseModel(ref=torch.full((n,), 4.0, dtype=torch.float64),
+                                   frame=torch.full((n,), 4.0, dtype=torch.float64))
+    r = uncertainty.response(geo, data, noise, 3)
+    z = r.z
+    zz = torch.einsum("ntp,ntq->npq", z, z)
+    kappa = r.kappa
+    bw = r.b2  # square window: w = w^2
+    h = data.gram * zz - kappa * 4.0 * bw * zz
+    torch.testing.assert_close(r.coef, torch.linalg.inv(h), rtol=1e-9, atol=1e-14)
+
+
+def test_noise_as_large_as_the_texture_falls_back_to_the_first_order_hessian():
+    """A noise estimate above the texture's signal makes the corrected Hessian indefinite: the
+    std must stay finite and positive (the first-order Hessian's), not come from the inverse
+    of an indefinite matrix (which inflated it without bound)."""
+    geo, data = _data(n=8)
+    n = 8
+    huge = torch.full((n,), 1e6, dtype=torch.float64)
+    r = uncertainty.response(geo, data, uncertainty.NoiseModel(ref=huge, frame=huge), 3)
+    zz = torch.einsum("ntp,ntq->npq", r.z, r.z)
+    torch.testing.assert_close(r.coef, torch.linalg.inv(data.gram * zz), rtol=1e-9, atol=1e-14)
+    std = uncertainty.std_of(r)
+    assert torch.isfinite(std).all() and (std > 0).all()
