@@ -195,8 +195,9 @@ def _corrected_inverse(geo: Geometry, h: Tensor, bias: Tensor) -> Tensor:
         cols = _aug_columns(geo)
         h, bias = h[:, cols][:, :, cols], bias[:, cols][:, :, cols]
     chol, info = torch.linalg.cholesky_ex(h - bias)
-    first_order = torch.linalg.cholesky_ex(h)[0]  # both: no host synchronisation on a GPU
-    return torch.cholesky_inverse(torch.where((info != 0).view(-1, 1, 1), first_order, chol))
+    if bool(info.any()):  # one host synchronisation per batch
+        chol = torch.where((info != 0).view(-1, 1, 1), torch.linalg.cholesky_ex(h)[0], chol)
+    return torch.cholesky_inverse(chol)
 
 
 def _middle(r: Response) -> Tensor:
