@@ -63,3 +63,36 @@ def test_noise_as_large_as_the_texture_falls_back_to_the_first_order_hessian():
     torch.testing.assert_close(r.coef, torch.linalg.inv(data.gram * zz), rtol=1e-9, atol=1e-14)
     std = uncertainty.std_of(r)
     assert torch.isfinite(std).all() and (std > 0).all()
+
+
+def test_rows_without_texture_give_nan_not_an_error():
+    """A flat subset (zero gradients: a singular Hessian, corrected or not) among textured
+    ones: NaN std for it, the others unchanged, no exception (a flat image region on real
+    data raised from the Cholesky inverse)."""
+    geo, data = _data(n=6)
+    n = 6
+    noise = uncertainty.NoiseModel(ref=torch.full((n,), 4.0, dtype=torch.float64),
+                                   frame=torch.full((n,), 4.0, dtype=torch.float64))
+    want = uncertainty.std_of(uncertainty.response(geo, data, noise, 3))
+    data.gx[2] = 0.0
+    data.gy[2] = 0.0
+    data.gram = centred_gram(geo, data.gx, data.gy)
+    std = uncertainty.std_of(uncertainty.response(geo, data, noise, 3))
+    assert torch.isnan(std[2]).all()
+    keep = [0, 1, 3, 4, 5]
+    torch.testing.assert_close(std[keep], want[keep], rtol=1e-10, atol=0)
+
+
+def test_flat_region_in_a_movie_is_low_texture_with_nan_std():
+    """End to end: a flat patch in the images is LOW_TEXTURE (std NaN), the rest solves."""
+    from torch_stsdic import DICConfig, Status, solve_window, synth
+
+    mv = synth.synthetic_movie((96, 96), 4, noise_sigma=1.0, seed=2)
+    ref, frames = mv.ref.clone(), mv.frames.clone()
+    ref[:, :40] = 100.0
+    frames[:, :, :40] = 100.0
+    pts = torch.tensor([[20.0, 48.0], [70.0, 48.0]])
+    sol = solve_window(ref, frames[:3], pts, DICConfig(subset_size=15, m=1))
+    assert int(sol.status[0]) == int(Status.LOW_TEXTURE)
+    assert torch.isnan(sol.std[0]).all()
+    assert int(sol.status[1]) == int(Status.CONVERGED) and torch.isfinite(sol.std[1]).all()

@@ -190,14 +190,19 @@ def _corrected_inverse(geo: Geometry, h: Tensor, bias: Tensor) -> Tensor:
     ``bias`` (both (N, P', P')), by Cholesky (symmetric: 3x cheaper than an LU inverse). Where
     the corrected matrix is not positive definite (a noise estimate as large as the texture's
     signal, e.g. a subset that does not fit), the correction is not valid: ``h`` itself (the
-    first-order Hessian the solver factored) is inverted instead."""
+    first-order Hessian the solver factored) is inverted instead; where that is singular too
+    (no texture) the inverse is NaN."""
     if not geo.shape.has_time:
         cols = _aug_columns(geo)
         h, bias = h[:, cols][:, :, cols], bias[:, cols][:, :, cols]
     chol, info = torch.linalg.cholesky_ex(h - bias)
-    if bool(info.any()):  # one host synchronisation per batch
-        chol = torch.where((info != 0).view(-1, 1, 1), torch.linalg.cholesky_ex(h)[0], chol)
-    return torch.cholesky_inverse(chol)
+    if not bool(info.any()):  # one host synchronisation per batch
+        return torch.cholesky_inverse(chol)
+    first, info1 = torch.linalg.cholesky_ex(h)
+    chol = torch.where((info != 0).view(-1, 1, 1), first, chol)
+    dead = ((info != 0) & (info1 != 0)).view(-1, 1, 1)  # no texture: no inverse, NaN
+    eye = torch.eye(h.shape[-1], dtype=h.dtype, device=h.device)
+    return torch.cholesky_inverse(torch.where(dead, eye, chol)).masked_fill(dead, float("nan"))
 
 
 def _middle(r: Response) -> Tensor:

@@ -142,8 +142,9 @@ def ic_rhs(img_args: tuple, order: int, p, px, py, dx, dy, basis, dt, frame_off,
 
 
 def gram(gx: torch.Tensor, gy: torch.Tensor, basis: torch.Tensor, w: torch.Tensor):
-    """Native twin of formulations.joint_ic.gram: G (N, P', P') and m (N, P') in float64 for the augmented
-    steepest-descent images [gx B, gx, gy B, gy] (P' = 2 (Ks + 1)) weighted by w (S,)."""
+    """Native twin of formulations.joint_ic.gram: G (N, P', P') and m (N, P') in float64 for
+    the augmented steepest-descent images [gx B, gx, gy B, gy] (P' = 2 (Ks + 1)) weighted by
+    w (S,)."""
     dtype = gx.dtype
     n, ns = gx.shape
     ks = basis.shape[1]
