@@ -444,14 +444,17 @@ def figure(path: Path, real: dict, calib: list[dict]) -> None:
 
 
 def main(argv=None) -> int:
+    global SUBSET
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", default=str(REPO.parent / "shared" / "data"),
                     help="folder with dic-challenge-sample12 and mudic-hourglass")
     ap.add_argument("--quick", action="store_true", help="fewer points and frames")
     ap.add_argument("--series", default="sample12,hourglass")
+    ap.add_argument("--subset", type=int, default=SUBSET, help="subset width, px (default 31)")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--out", default="docs/validation")
     args = ap.parse_args(argv)
+    SUBSET = args.subset
     torch.set_num_threads(args.threads)
     data = Path(args.data)
     names = [s.strip() for s in args.series.split(",") if s.strip()]
