@@ -86,3 +86,33 @@ def test_dic_challenge_quick(tmp_path):
     assert {r["image"] for r in s14} == {"L1", "L3", "L5"}
     assert all(float(r["u_rms"]) < 0.05 for r in s14)
     assert (tmp_path / "dic_challenge_sample14_quick.png").stat().st_size > 1000
+
+
+def test_real_time_model_skips_without_data(tmp_path):
+    out = _run("real_time_model.py", "--quick", "--data", str(tmp_path / "absent"),
+               "--out", str(tmp_path))
+    assert "SKIPPED" in out
+    assert not list(tmp_path.glob("*.csv"))
+
+
+@pytest.mark.skipif(not (DATA / "dic-challenge-sample12").is_dir(),
+                    reason="DIC Challenge sample 12 not found in ../shared/data (not part of the "
+                           "repository)")
+def test_real_time_model_quick(tmp_path):
+    _run("real_time_model.py", "--quick", "--series", "sample12", "--out", str(tmp_path))
+    rows = _rows(tmp_path / "real_time_model_quick.csv")
+    real = [r for r in rows if r["kind"] == "real"]
+    synth = [r for r in rows if r["kind"] == "synthetic"]
+    assert len(real) == 1 and len(synth) == 3
+    # the real series: most windows rejected, and the STS - classical difference is the
+    # straight line through the classical trajectory (motion, not noise)
+    assert float(real[0]["m0"]) > 0.5
+    assert float(real[0]["u_corr_d_dtraj"]) > 0.95 and float(real[0]["v_corr_d_dtraj"]) > 0.95
+    # the same texture moving affinely in time: (almost) no false alarms, and the predicted
+    # std of a static texture within 25 % of the measured one
+    for r in synth:
+        assert float(r["m2"]) > 0.97 and float(r["fail_z"]) < 0.03
+    static = [r for r in synth if r["series"].endswith("static")][0]
+    assert float(static["cls_std_measured"]) == pytest.approx(
+        float(static["cls_std_predicted"]), rel=0.25)
+    assert (tmp_path / "real_time_model_quick.png").stat().st_size > 1000
