@@ -142,7 +142,7 @@ def _run_blocks(plan: RunPlan, sink: MemorySink, run: BlockContext, ref: Referen
         else:
             full = rows_numpy(solve_block(run, block, ref, carry), plan.fields)
             if offsets is not None:
-                full = apply_offsets(full, offsets)
+                full = apply_offsets(full, offsets, block)
             stored = as_stored(full)
             sink.write_rows(rs, full, reference_frame=ref.frame)
         carry = make_carry(stored, plan.times[block], plan.param_names, carry, plan.dtype,
