@@ -240,9 +240,10 @@ def track(
         callback: called as ``callback(rows_done, n_rows)`` after each block.
         refine_reference: remove the noisy reference's constant per-point offset: classical
             DIC of up to ``refine_frames`` frames around the reference (default 41), a
-            polynomial fit in time per point, its value at the reference time subtracted from
-            every row (:mod:`torch_stsdic.refine`, ``docs/accuracy.md``). Needs a reference
-            that is one series frame and no ``reference_update``.
+            polynomial fit in time per point, its value at the reference time (shrunk by
+            the offsets' spread) subtracted from every row, and the reference's own row set
+            to zero displacement (:mod:`torch_stsdic.refine`, ``docs/accuracy.md``). Needs a
+            reference that is one series frame and no ``reference_update``.
         strain_window, strain_kind: strains written to ``out`` (grid points per side of the
             plane fit; "green" or "small"); ``strain_window=None``: none.
         scale, unit, time_unit: calibration recorded with the results (``out`` attributes,
