@@ -121,6 +121,13 @@ def test_refined_reference_lifts_the_floor():
     # and the level: within 25 % of the prediction over frames 3..37
     level = np.sqrt(np.mean(err[:, 3:-3] ** 2) / (a_f2 * var[3:-3].mean()))
     assert 0.8 < level < 1.25, level
+    # the stored predicted std follows: the refined error, not the unrefined one (2.4x
+    # higher), in every band of frames, growing with them
+    std = np.stack([refined.field("u_std").numpy(), refined.field("v_std").numpy()])
+    for band in (slice(1, 3), near, slice(15, 25), far):
+        r = np.sqrt(np.mean(err[:, band] ** 2) / np.mean(std[:, band] ** 2))
+        assert 0.75 < r < 1.33, (band, r)
+    assert np.sqrt(np.mean(std[:, far] ** 2) / np.mean(std[:, near] ** 2)) > 1.2
 
 
 def test_refined_reference_with_a_noisier_reference():

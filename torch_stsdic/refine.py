@@ -50,7 +50,8 @@ from .plan import RunPlan
 from .result import USABLE
 
 __all__ = ["ReferenceOffsets", "check_refinable", "fit_frames", "measure_offsets",
-           "fit_intercepts", "apply_offsets", "predicted_profile", "set_refinement",
+           "fit_intercepts", "apply_offsets", "predicted_profile", "std_factor",
+           "set_refinement",
            "DEFAULT_MAX_FRAMES"]
 
 DEFAULT_MAX_FRAMES = 41
@@ -76,6 +77,10 @@ class ReferenceOffsets:
         rho: estimated var(offset) / var(per-frame error) over all points (inf: no shrink).
         reference_frame: series index of the reference (its row is set to zero displacement
             by :func:`apply_offsets`); -1 when unknown.
+        t_fit: (L,) times of the fitted frames minus the reference time; min_frames: the
+            shortest window tried (with ``frames``, they give each point's fitted window).
+        fit: (L,) series indices of the fitted frames; times: (T,) series times; m: the run's
+            window half-width (set by :func:`measure_offsets`; used to rescale u_std, v_std).
     """
 
     values: dict[str, np.ndarray]
@@ -87,6 +92,11 @@ class ReferenceOffsets:
     shrink: np.ndarray | None = None
     rho: float = float("inf")
     reference_frame: int = -1
+    t_fit: np.ndarray | None = None
+    min_frames: int = 5
+    fit: np.ndarray | None = None
+    times: np.ndarray | None = None
+    m: int = 0
 
     def summary(self) -> dict[str, float | int]:
         """JSON-friendly summary for ``TrackResult.info["refine_reference"]``."""
@@ -153,6 +163,9 @@ def measure_offsets(plan: RunPlan, max_frames: int = DEFAULT_MAX_FRAMES) -> Refe
     out = fit_intercepts(t, ys, min_frames=max(5, plan.config.n_frames))
     out.seconds = time.perf_counter() - t0
     out.reference_frame = int(plan.reference_frame)
+    out.fit = np.asarray(frames, dtype=np.int64)
+    out.times = np.asarray(plan.times, dtype=np.float64)
+    out.m = int(plan.config.m)
     return out
 
 
@@ -251,7 +264,8 @@ def fit_intercepts(t: np.ndarray, ys: dict[str, np.ndarray], *, min_frames: int 
     rho, shrink = _shrink(best, sig2, best_d, frames > 0, dof)
     return ReferenceOffsets(values={k: v * shrink for k, v in best.items()}, frames=frames,
                             degree=degree, sigma=np.sqrt(sig2["u"]), seconds=0.0,
-                            bias_terms=bias, shrink=shrink, rho=rho)
+                            bias_terms=bias, shrink=shrink, rho=rho, t_fit=t,
+                            min_frames=int(min_frames))
 
 
 #: (sum over lags of the autocovariance^2 of a third difference of white noise) / its
@@ -379,14 +393,28 @@ def apply_offsets(rows: dict[str, np.ndarray], offsets: ReferenceOffsets,
     """Rows (name -> (B, N)) with the offsets subtracted (names without an offset, and the
     velocities, unchanged). With ``frames`` (B,) (the rows' series frames), the reference
     frame's row reports the truth where it was solved (status usable): displacement and
-    gradients 0, and so their predicted std (u_std, v_std); the velocity stays as measured."""
+    gradients 0, and so their predicted std (u_std, v_std); the velocity stays as measured. The
+    other rows' u_std, v_std (predicted for the unrefined solution, the reference's noise
+    included) are scaled by :func:`std_factor`."""
     out = dict(rows)
     for k, off in offsets.values.items():
         if k in out and k not in _RATES:
             out[k] = out[k] - off[None, :]
-    if frames is None or offsets.reference_frame not in list(frames):
+    if frames is None:
         return out
-    i = list(frames).index(offsets.reference_frame)
+    stds = [k for k in ("u_std", "v_std") if k in out]
+    if stds and offsets.fit is not None and offsets.times is not None:
+        m_rows = out["m"] if "m" in out else np.full(out[stds[0]].shape, offsets.m)
+        for k in stds:
+            out[k] = out[k].copy()
+        for i, fr in enumerate(frames):
+            if int(fr) != offsets.reference_frame:
+                factor = std_factor(offsets, int(fr), np.asarray(m_rows[i]))
+                for k in stds:
+                    out[k][i] = out[k][i] * factor
+    if offsets.reference_frame not in [int(f) for f in frames]:
+        return out
+    i = [int(f) for f in frames].index(offsets.reference_frame)
     ok = out["status"][i] <= USABLE if "status" in out else np.ones(
         next(iter(out.values())).shape[1], dtype=bool)
     for k in [*offsets.values, "u_std", "v_std"]:
@@ -394,6 +422,45 @@ def apply_offsets(rows: dict[str, np.ndarray], offsets: ReferenceOffsets,
             out[k] = out[k].copy()
             out[k][i] = np.where(ok, 0.0, out[k][i])
     return out
+
+
+def _window_weights(t: np.ndarray, k: int, m: int) -> np.ndarray:
+    """(T,) weights of the STS value at frame k on the frames: the line of its window
+    (``window_frames``: k-m .. k+m, shifted at the ends) evaluated at ``t[k]``."""
+    n = len(t)
+    w = window_frames(torch.tensor([k]), int(m), n)[0].numpy()
+    lam = np.zeros(n)
+    lam[w] = np.linalg.pinv(np.stack([np.ones(len(w)), t[w] - t[k]], 1))[0]
+    return lam
+
+
+def _intercept_weights(t: np.ndarray, fit: np.ndarray, degree: int) -> np.ndarray:
+    """(T,) weights of the intercept at t = 0 of a polynomial of ``degree`` fitted to the frames
+    ``fit`` (series indices)."""
+    om = np.zeros(len(t))
+    om[fit] = np.linalg.pinv(np.vander(t[fit], degree + 1, increasing=True))[0]
+    return om
+
+
+def _error_var(lam: np.ndarray, om: np.ndarray, ref: int, rho: float,
+               shrink: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
+    """First-order variances, in units of a^2, of the STS value with weights ``lam`` minus
+    ``shrink`` (k) times the intercept with weights ``om``, both on the classical errors
+    ``e_j = c + s_j`` (``e_ref = 0``; var(c) = rho a^2, var(s_j) = a^2):
+    ``rho (1 - lam_ref - k sum om)^2 + sum_j (lam_j - k om_j)^2`` (j != ref); and the unrefined
+    variance *as* :mod:`torch_stsdic.uncertainty` *predicts it* (u_std): ``rho + sum_j lam_j^2``
+    over all frames, i.e. a reference frame inside the window counted as one more independent
+    frame (it is not: its ``n_t - n_ref`` is 0, so that prediction is too high for the first m
+    rows; dividing by it keeps the rescaled u_std right there). rho = inf: both divided by
+    rho."""
+    k = np.asarray(shrink, dtype=np.float64)
+    rest = np.arange(len(lam)) != ref
+    a, b, c = np.sum(lam[rest] ** 2), np.sum(lam[rest] * om[rest]), np.sum(om[rest] ** 2)
+    coef = 1.0 - lam[ref] - k * om[rest].sum()
+    frames_part = a - 2 * k * b + k * k * c
+    if np.isinf(rho):
+        return coef**2 + 0 * frames_part, 1.0 + 0 * k
+    return rho * coef**2 + frames_part, rho + np.sum(lam**2) + 0 * k
 
 
 def predicted_profile(times: np.ndarray, reference_frame: int, fit: Sequence[int], m: int,
@@ -414,21 +481,39 @@ def predicted_profile(times: np.ndarray, reference_frame: int, fit: Sequence[int
         in :class:`ReferenceOffsets`.
     """
     t = np.asarray(times, dtype=np.float64) - float(times[reference_frame])
-    n = len(t)
-    fit = np.asarray([j for j in fit if j != reference_frame], dtype=np.int64)
-    om = np.zeros(n)
-    om[fit] = shrink * np.linalg.pinv(np.stack([np.ones(len(fit)), t[fit]], 1))[0]
-    wins = window_frames(torch.arange(n), int(m), n).numpy()
-    out = np.zeros(n)
-    rest = np.arange(n) != reference_frame
-    for k in range(n):
-        if k == reference_frame:
-            continue
-        lam = np.zeros(n)
-        w = wins[k]
-        lam[w] = np.linalg.pinv(np.stack([np.ones(len(w)), t[w] - t[k]], 1))[0]
-        coef_c = 1.0 - lam[reference_frame] - om.sum()
-        out[k] = rho * coef_c**2 + np.sum((lam - om)[rest] ** 2)
+    fit_idx = np.asarray([j for j in fit if j != reference_frame], dtype=np.int64)
+    om = _intercept_weights(t, fit_idx, 1)
+    out = np.zeros(len(t))
+    for k in range(len(t)):
+        if k != reference_frame:
+            out[k] = float(_error_var(_window_weights(t, k, m), om, reference_frame, rho,
+                                      shrink)[0])
+    return out
+
+
+def std_factor(offsets: ReferenceOffsets, frame: int, m_row: np.ndarray) -> np.ndarray:
+    """(N,) first-order std of the refined u (or v) at series ``frame`` over the unrefined
+    one that u_std predicts (:func:`_error_var`), per point: its kept fit (window and degree;
+    the bias terms left out) and shrink, the row's window half-width ``m_row`` (N,) (-1: not
+    solved, factor 1), and rho. Multiplies the predicted u_std, v_std (which hold the
+    reference's share) of refined rows: about 0.3-0.55 at 40 fitted frames, lowest near the
+    reference, so the stored std follows the per-frame profile (``docs/accuracy.md``)."""
+    n = len(m_row)
+    out = np.ones(n)
+    t = offsets.times - offsets.times[offsets.reference_frame]
+    ref = offsets.reference_frame
+    cands = {len(idx): offsets.fit[idx] for idx in _candidates(offsets.t_fit, offsets.min_frames)}
+    shrink = offsets.shrink if offsets.shrink is not None else np.ones(n)
+    for mm in np.unique(m_row[m_row >= 0]):
+        lam = _window_weights(t, frame, int(mm))
+        for count, fit in cands.items():
+            for deg in (1, 2):
+                sel = (m_row == mm) & (offsets.frames == count) & (offsets.degree == deg)
+                if not sel.any() or len(fit) <= deg:
+                    continue
+                var, var0 = _error_var(lam, _intercept_weights(t, fit, deg), ref, offsets.rho,
+                                       shrink[sel])
+                out[sel] = np.sqrt(np.where(var0 > 0, var / np.where(var0 > 0, var0, 1.0), 1.0))
     return out
 
 
