@@ -22,8 +22,10 @@ given that the offsets are zero-mean with that variance (empirical Bayes; rho ~ 
 image has the same noise, large where the frames are much cleaner than the reference).
 
 :func:`apply_offsets` subtracts the intercepts (u, v and the displacement gradients;
-velocities have no offset) from result rows and sets the reference frame's own row to the
-truth: zero displacement and gradients (and their predicted std), the velocity as measured.
+velocities have no offset) from result rows, sets the reference frame's own row to the
+truth (zero displacement and gradients, and their predicted std; the velocity as measured),
+and scales the other rows' u_std, v_std by :func:`std_factor` (the first-order ratio of the
+refined to the unrefined error at that frame).
 
 What remains is ``s_bar(t) - dc`` (``s_bar``: the window's average of the frames' errors, ``dc``:
 the intercept's error), which is *not* the same at every frame: ``dc`` is a weighted sum of
