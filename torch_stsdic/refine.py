@@ -13,8 +13,9 @@ many frames* of the point's own trajectory takes at the reference time.
 ``max_frames`` frames around the reference -- the reference itself left out: matched against
 itself it gives exactly 0, which says nothing about ``c`` -- then per point fits polynomials in
 time to the per-frame values over nested windows and keeps the fit with the smallest predicted
-intercept variance among those whose next-higher term is not significant (|t| < 3, noise from
-the trajectory's own third differences): long linear fits where the motion is smooth, short or
+intercept variance among those whose next-higher term is not significant (|t| below Student's
+t quantile of the normal's 3 at the degrees of freedom of the noise, which comes from the
+trajectory's own third differences): long linear fits where the motion is smooth, short or
 quadratic ones where it is not. The intercepts are then shrunk towards 0 by
 ``rho / (rho + d)`` (``d``: the fit's intercept variance in units of the per-frame variance;
 ``rho``: var(c) / var(s_t), estimated over all points), the least-squares estimate of ``c``
@@ -203,7 +204,11 @@ def fit_intercepts(t: np.ndarray, ys: dict[str, np.ndarray], *, min_frames: int 
             names starting with "v" use the v component's bias terms, the others u's.
         min_frames: the shortest window tried.
         t_limit: a fit of degree d over a window is accepted where the added term of degree
-            d + 1 has |coefficient / standard error| < t_limit in both u and v.
+            d + 1 has |coefficient / standard error| below the Student-t quantile, at the
+            trajectory noise estimate's degrees of freedom, of the normal's ``t_limit`` (3:
+            two-sided 0.27 %; 3.5 for 40 frames, ~10 for 9, where the noise is known from
+            6 third differences and the normal's threshold rejected 4-12 % of straight
+            trajectories) in both u and v.
 
     Returns:
         :class:`ReferenceOffsets` (offset 0 and frames 0 where no window is usable).
@@ -214,6 +219,9 @@ def fit_intercepts(t: np.ndarray, ys: dict[str, np.ndarray], *, min_frames: int 
     n = next(iter(ys.values())).shape[1]
     scale = max(float(np.abs(t).max()), 1.0)
     sig2 = {k: _noise_var(ys[k]) for k in ("u", "v")}
+    n3 = np.isfinite(np.diff(ys["u"], n=3, axis=0)).sum(0)  # third differences per point
+    dof = float(np.median(n3)) / _D3_VAR_FACTOR if n3.size else 0.0
+    t_crit = _t_quantile(t_limit, dof)
     bias = _bias_significant(t / scale, ys, sig2)
     best_var = np.full(n, np.inf)
     best_d = np.full(n, np.nan)  # intercept variance / per-frame variance of the kept fit
@@ -237,7 +245,7 @@ def fit_intercepts(t: np.ndarray, ys: dict[str, np.ndarray], *, min_frames: int 
                 c_fit, cov_fit = _fit(ts, d + 1, y_c, bias=bias)
                 c_test, cov_test = _fit(ts, d + 2, y_c, bias=bias)
                 top = d + 1  # the added polynomial term (the bias terms follow it)
-                ok &= np.abs(c_test[top]) < t_limit * np.sqrt(sig2[comp] * cov_test[:, top, top])
+                ok &= np.abs(c_test[top]) < t_crit * np.sqrt(sig2[comp] * cov_test[:, top, top])
                 if comp == "u":
                     var = sig2["u"] * cov_fit[:, 0, 0]
                     d00 = cov_fit[:, 0, 0]
@@ -261,8 +269,6 @@ def fit_intercepts(t: np.ndarray, ys: dict[str, np.ndarray], *, min_frames: int 
         best_d = np.where(take, d00, best_d)
         frames = np.where(take, len(idx), frames)
         degree = np.where(take, d, degree)
-    n3 = np.isfinite(np.diff(ys["u"], n=3, axis=0)).sum(0)  # third differences per point
-    dof = float(np.median(n3)) / _D3_VAR_FACTOR if n3.size else 0.0
     rho, shrink = _shrink(best, sig2, best_d, frames > 0, dof)
     return ReferenceOffsets(values={k: v * shrink for k, v in best.items()}, frames=frames,
                             degree=degree, sigma=np.sqrt(sig2["u"]), seconds=0.0,
@@ -276,15 +282,21 @@ def fit_intercepts(t: np.ndarray, ys: dict[str, np.ndarray], *, min_frames: int 
 _D3_VAR_FACTOR = 2.31
 
 
+def _t_quantile(z: float, dof: float) -> float:
+    """Student-t quantile with ``dof`` degrees of freedom at the tail probability of the normal
+    quantile ``z`` (Cornish-Fisher expansion, three terms; dof clamped to >= 2; z for
+    dof -> inf)."""
+    if not np.isfinite(dof) or dof > 1e6:
+        return float(z)
+    nu = max(float(dof), 2.0)
+    return float(z + (z**3 + z) / (4 * nu) + (5 * z**5 + 16 * z**3 + 3 * z) / (96 * nu**2)
+                 + (3 * z**7 + 19 * z**5 + 17 * z**3 - 15 * z) / (384 * nu**3))
+
+
 def _f1_median(dof: float) -> float:
     """Median of F(1, dof) (the square of Student's t upper quartile; Cornish-Fisher
     expansion, within 0.5 % for dof >= 2; chi-square(1)'s 0.4549 for dof -> inf)."""
-    z = 0.67449  # upper quartile of N(0, 1)
-    if not np.isfinite(dof) or dof > 1e6:
-        return z * z
-    nu = max(float(dof), 2.0)
-    t = z + (z**3 + z) / (4 * nu) + (5 * z**5 + 16 * z**3 + 3 * z) / (96 * nu**2)
-    return t * t
+    return _t_quantile(0.67449, dof) ** 2  # 0.67449: upper quartile of N(0, 1)
 
 
 def _shrink(coef: dict[str, np.ndarray], sig2: dict[str, np.ndarray], d: np.ndarray,
