@@ -10,7 +10,7 @@ import torch
 
 import torch_stsdic as sts
 from torch_stsdic.offgrid import carry_params
-from torch_stsdic.refine import fit_intercepts
+from torch_stsdic.refine import fit_intercepts, predicted_profile
 from torch_stsdic.synth import (
     HomogeneousStrain,
     Translation,
@@ -55,15 +55,37 @@ def test_fit_intercepts_linear_and_quadratic():
     # + the odd, 1-px periodic interpolation bias of a sub-pixel shift (0.05 t px): absorbed
     biased = lin + 0.01 * np.sin(2 * np.pi * 0.05 * t[:, None])
     for y, deg in ((lin, 1), (quad, 2), (biased, 1)):
+        y = y.copy()
+        y[0] = 0.0  # the reference against itself: 0, whatever the offset (left out)
         res = fit_intercepts(t, {"u": y, "v": y.copy()})
         err = res.values["u"] - off
-        # predicted intercept std of the chosen fit: linear 41 frames ~ sig * 0.31,
-        # quadratic ~ sig * 0.46; a 5-frame fit would give ~ sig * 0.9
+        # predicted intercept std of the chosen fit (frames 1..40): linear ~ sig * 0.32,
+        # quadratic ~ sig * 0.48, times sqrt(rho / (rho + d)) ~ 0.95 after the shrink; a
+        # 5-frame fit would give ~ sig * 0.9
         assert np.sqrt(np.mean(err**2)) < sig * (0.4 if deg == 1 else 0.6)
         assert abs(err.mean()) < 3 * sig / np.sqrt(n)
         assert np.mean(res.degree == deg) > 0.9
-        assert np.median(res.frames) == 41
+        assert np.median(res.frames) == 40
+        assert 0.6 < res.rho < 1.6  # var(off) / sig^2 = 1
         np.testing.assert_allclose(np.median(res.sigma), sig, rtol=0.2)
+
+
+def test_fit_intercepts_short_series_keeps_the_line():
+    """Ten frames (the reference and 9): the trajectory's noise is known from 6 third
+    differences only, so the curvature test uses Student's t at their degrees of freedom; with
+    the normal's 3 it rejected 4 % (white noise) to 12 % (renders) of straight trajectories,
+    whose short extrapolated fits then did worse than no refinement."""
+    rng = np.random.default_rng(1)
+    t = np.arange(10.0)
+    n = 4000
+    off = rng.normal(0, 1.0, n)
+    y = off + 0.05 * t[:, None] + rng.normal(0, 1.0, (10, n))
+    y[0] = 0.0
+    res = fit_intercepts(t, {"u": y, "v": y.copy()})
+    assert np.mean((res.frames == 9) & (res.degree == 1)) > 0.97
+    # shrunk intercept of a 9-frame line: rho d / (rho + d) = 0.35 (d = 0.53, rho = 1)
+    assert np.sqrt(np.mean((res.values["u"] - off) ** 2)) < 0.65
+    assert 0.7 < res.rho < 1.4
 
 
 def test_fit_intercepts_unusable_points_get_no_offset():
@@ -93,9 +115,60 @@ def test_refined_reference_lifts_the_floor():
     # scripts/refined_reference.py (docs/accuracy.md)
     assert abs(float(np.mean(refined.u.numpy() - truth))) < 4e-3
     info = refined.info["refine_reference"]
-    assert info["refined"] == len(pts) and info["frames_median"] == 41
+    assert info["refined"] == len(pts) and info["frames_median"] == 40  # all but the reference
     # velocities have no reference offset: unchanged
     np.testing.assert_allclose(refined.ut.numpy(), plain.ut.numpy(), atol=5e-5)  # solver tol
+    # the reference's own row is the truth (zero displacement, gradients, std), not minus the
+    # fitted offset (~15e-3 px RMS before)
+    assert refined.ok[0].all()
+    for name in ("u", "v", "ux", "uy", "vx", "vy", "u_std", "v_std"):
+        assert np.all(refined.field(name).numpy()[0] == 0.0), name
+    # the error grows away from the reference as the first-order theory says (the offset's
+    # error shares the frames' noise: lower near the reference, higher at the far end of the
+    # fitted line), and no more: a term in the displacement (e.g. a gain error from the noisy
+    # reference gradient) would show here. Bands of 8 frames, ratio far / near.
+    err = np.stack([refined.u.numpy() - truth, refined.v.numpy()])  # (2, T, N)
+    near, far = slice(3, 11), slice(30, 38)
+    e0 = np.stack([classical.u.numpy() - truth, classical.v.numpy()])[:, 1:]
+    a_f2 = np.mean(np.var(e0, axis=1, ddof=1))
+    rho = (np.mean(e0.mean(1) ** 2) - a_f2 / e0.shape[1]) / a_f2  # var(offset) / a_f^2
+    var = predicted_profile(refined.times.numpy(), 0, range(1, 41), 2, rho, info["shrink"])
+    ratio = np.sqrt(np.mean(err[:, far] ** 2) / np.mean(err[:, near] ** 2))
+    pred = np.sqrt(var[far].mean() / var[near].mean())  # ~1.5
+    assert 0.75 < ratio / pred < 1.33, (ratio, pred)
+    # and the level: within 25 % of the prediction over frames 3..37
+    level = np.sqrt(np.mean(err[:, 3:-3] ** 2) / (a_f2 * var[3:-3].mean()))
+    assert 0.8 < level < 1.25, level
+    # the stored predicted std follows: the refined error, not the unrefined one (2.4x
+    # higher), in every band of frames, growing with them
+    std = np.stack([refined.field("u_std").numpy(), refined.field("v_std").numpy()])
+    for band in (slice(1, 3), near, slice(15, 25), far):
+        r = np.sqrt(np.mean(err[:, band] ** 2) / np.mean(std[:, band] ** 2))
+        assert 0.75 < r < 1.33, (band, r)
+    assert np.sqrt(np.mean(std[:, far] ** 2) / np.mean(std[:, near] ** 2)) > 1.2
+
+
+def test_refined_reference_with_a_noisier_reference():
+    """Noise std 5 on the reference, 1 on the frames: the reference's offset is nearly all of
+    the error, and the refinement removes it (the offset's variance over the points, rho ~ 25
+    per-frame variances, is estimated: no shrink). The reference's own zero kept in the fit
+    made a step no line passed (short quadratic fits: 0.53x the unrefined error here, 0.9x
+    with clean frames)."""
+    motion = Translation(ut=0.05)
+    pat = make_speckle(SIZE, radius=2.0, seed=3)
+    ref, frames = render_series(pat, SIZE, motion, torch.arange(1, 21))
+    g = torch.Generator().manual_seed(5)
+    ref = ref + 5.0 * torch.randn(ref.shape, generator=g, dtype=ref.dtype)
+    frames = frames + 1.0 * torch.randn(frames.shape, generator=g, dtype=frames.dtype)
+    movie = torch.cat([ref[None], frames]).float()
+    pts = _grid()
+    cfg = sts.DICConfig(m=2, dtype="float32")
+    plain = sts.track(movie, points=pts, config=cfg, progress=False)
+    refined = sts.track(movie, points=pts, config=cfg, progress=False, refine_reference=True)
+    e_plain, e_ref = _rms(plain, motion, pts), _rms(refined, motion, pts)
+    assert e_ref < 0.3 * e_plain, (e_ref, e_plain)
+    info = refined.info["refine_reference"]
+    assert info["rho"] is None or info["rho"] > 5 and info["shrink"] > 0.95
 
 
 def test_refine_reference_refuses_what_it_cannot_do():

@@ -1,37 +1,61 @@
 """Refined reference: lift the single-reference noise floor by re-zeroing every trajectory.
 
 With a noisy reference ``f = f0 + n_ref`` every Gauss-Newton solve of a point sees the same
-reference subset, so to first order its error is ``P (n_t - n_ref)``: a part ``-P n_ref``
+reference subset, so to first order its error is ``P (n_t - n_ref)``: a part ``c = -P n_ref``
 that is the *same* for every frame and window of the point (a constant offset in time), and
-the frames' part ``P n_t`` that the STS window averages. The window cannot remove the offset;
-averaging warped frames into a new reference does not either (such a template inherits the
-offset it was warped with). What removes it is the definition of zero displacement: the
-truth is 0 at the reference time, so the offset is the value a *fit over many frames* of the
-point's own trajectory takes at the reference time. Subtracting that intercept leaves the
-window's noise plus the intercept's (``docs/accuracy.md`` has the variances).
+the frames' part ``s_t = P n_t`` that the STS window averages. The window cannot remove the
+offset; averaging warped frames into a new reference does not either (such a template
+inherits the offset it was warped with). What removes it is the definition of zero
+displacement: the truth is 0 at the reference time, so the offset is the value a *fit over
+many frames* of the point's own trajectory takes at the reference time.
 
 :func:`measure_offsets` runs classical DIC (every frame alone against the reference) on up to
-``max_frames`` frames around the reference, then per point fits polynomials in time to the
-per-frame values over nested windows and keeps the fit with the smallest predicted intercept
-variance among those whose next-higher term is not significant (|t| < 3, noise from the
+``max_frames`` frames around the reference -- the reference itself left out: matched against
+itself it gives exactly 0, which says nothing about ``c`` -- then per point fits polynomials in
+time to the per-frame values over nested windows and keeps the fit with the smallest predicted
+intercept variance among those whose next-higher term is not significant (|t| below Student's
+t quantile of the normal's 3 at the degrees of freedom of the noise, which comes from the
 trajectory's own third differences): long linear fits where the motion is smooth, short or
-quadratic ones where it is not. :func:`apply_offsets` subtracts the intercepts (u, v and the
-displacement gradients; velocities have no offset) from result rows.
+quadratic ones where it is not. The intercepts are then shrunk towards 0 by
+``rho / (rho + d)`` (``d``: the fit's intercept variance in units of the per-frame variance;
+``rho``: var(c) / var(s_t), estimated over all points), the least-squares estimate of ``c``
+given that the offsets are zero-mean with that variance (empirical Bayes; rho ~ 1 where every
+image has the same noise, large where the frames are much cleaner than the reference).
+
+:func:`apply_offsets` subtracts the intercepts (u, v and the displacement gradients;
+velocities have no offset) from result rows, sets the reference frame's own row to the
+truth (zero displacement and gradients, and their predicted std; the velocity as measured),
+and scales the other rows' u_std, v_std by :func:`std_factor` (the first-order ratio of the
+refined to the unrefined error at that frame).
+
+What remains is ``s_bar(t) - dc`` (``s_bar``: the window's average of the frames' errors, ``dc``:
+the intercept's error), which is *not* the same at every frame: ``dc`` is a weighted sum of
+the same frames' errors (positive weights near the reference, negative at the far end of a
+line's span), so its covariance with ``s_bar(t)`` lowers the error near the reference and
+raises it far from it; per point the remainder is ``db t + (local residual)``, ``db`` the fitted
+slope's error. Measured on renders, this first-order profile is the whole story (no term in
+the displacement from the noisy reference gradient): ``docs/accuracy.md``,
+``scripts/refine_drift.py``.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 
+from .frames import window_frames
 from .plan import RunPlan
 from .result import USABLE
 
 __all__ = ["ReferenceOffsets", "check_refinable", "fit_frames", "measure_offsets",
-           "fit_intercepts", "apply_offsets", "set_refinement", "DEFAULT_MAX_FRAMES"]
+           "fit_intercepts", "apply_offsets", "predicted_profile", "std_factor",
+           "set_refinement",
+           "DEFAULT_MAX_FRAMES"]
 
 DEFAULT_MAX_FRAMES = 41
 _T_LIMIT = 3.0  # |t| of the next polynomial term above which a fit is rejected
@@ -51,6 +75,15 @@ class ReferenceOffsets:
         sigma: (N,) per-frame scatter of u (px) estimated from the trajectory.
         seconds: wall time of the measurement.
         bias_terms: whether the sub-pixel interpolation-bias terms were fitted.
+        shrink: (N,) factor the fitted intercepts were multiplied by (``rho / (rho + d)``; 1
+            where not refined).
+        rho: estimated var(offset) / var(per-frame error) over all points (inf: no shrink).
+        reference_frame: series index of the reference (its row is set to zero displacement
+            by :func:`apply_offsets`); -1 when unknown.
+        t_fit: (L,) times of the fitted frames minus the reference time; min_frames: the
+            shortest window tried (with ``frames``, they give each point's fitted window).
+        fit: (L,) series indices of the fitted frames; times: (T,) series times; m: the run's
+            window half-width (set by :func:`measure_offsets`; used to rescale u_std, v_std).
     """
 
     values: dict[str, np.ndarray]
@@ -59,6 +92,14 @@ class ReferenceOffsets:
     sigma: np.ndarray
     seconds: float
     bias_terms: bool = False
+    shrink: np.ndarray | None = None
+    rho: float = float("inf")
+    reference_frame: int = -1
+    t_fit: np.ndarray | None = None
+    min_frames: int = 5
+    fit: np.ndarray | None = None
+    times: np.ndarray | None = None
+    m: int = 0
 
     def summary(self) -> dict[str, float | int]:
         """JSON-friendly summary for ``TrackResult.info["refine_reference"]``."""
@@ -66,7 +107,11 @@ class ReferenceOffsets:
         return {"points": int(ok.size), "refined": int(ok.sum()),
                 "frames_median": float(np.median(self.frames[ok])) if ok.any() else 0.0,
                 "linear_fraction": float((self.degree[ok] == 1).mean()) if ok.any() else 0.0,
-                "bias_terms": bool(self.bias_terms), "seconds": round(self.seconds, 3)}
+                "bias_terms": bool(self.bias_terms),
+                "rho": round(self.rho, 3) if np.isfinite(self.rho) else None,
+                "shrink": (round(float(np.median(self.shrink[ok])), 4)
+                           if ok.any() and self.shrink is not None else 1.0),
+                "seconds": round(self.seconds, 3)}
 
 
 def check_refinable(plan: RunPlan) -> None:
@@ -103,7 +148,11 @@ def measure_offsets(plan: RunPlan, max_frames: int = DEFAULT_MAX_FRAMES) -> Refe
     if int(max_frames) < 5:
         raise ValueError(f"refine_frames: must be >= 5, got {max_frames!r}")
     t0 = time.perf_counter()
-    frames = fit_frames(plan, max_frames)
+    # the reference against itself gives exactly 0, whatever its offset: left out of the fit
+    # (and any frame stamped with the reference's time, which fit_intercepts drops too)
+    t_ref = plan.times[plan.reference_frame]
+    frames = [k for k in fit_frames(plan, max_frames)
+              if k != plan.reference_frame and plan.times[k] != t_ref]
     cfg = plan.config.replace(m=0)
     opts = {**plan.options, "smoothing": None, "reference_update": None}
     opts.pop("refine_reference", None)
@@ -119,6 +168,10 @@ def measure_offsets(plan: RunPlan, max_frames: int = DEFAULT_MAX_FRAMES) -> Refe
     t = plan.times[frames] - plan.times[plan.reference_frame]
     out = fit_intercepts(t, ys, min_frames=max(5, plan.config.n_frames))
     out.seconds = time.perf_counter() - t0
+    out.reference_frame = int(plan.reference_frame)
+    out.fit = np.asarray(frames, dtype=np.int64)
+    out.times = np.asarray(plan.times, dtype=np.float64)
+    out.m = int(plan.config.m)
     return out
 
 
@@ -138,7 +191,8 @@ def _candidates(t: np.ndarray, min_frames: int) -> list[np.ndarray]:
 
 def fit_intercepts(t: np.ndarray, ys: dict[str, np.ndarray], *, min_frames: int = 5,
                    t_limit: float = _T_LIMIT) -> ReferenceOffsets:
-    """Per point, the intercept at t = 0 of the best polynomial fit of its trajectory.
+    """Per point, the intercept at t = 0 of the best polynomial fit of its trajectory, shrunk
+    towards 0 by ``rho / (rho + d)`` (:func:`_shrink`).
 
     Where the images show a sub-pixel interpolation bias (:func:`_bias_significant`) and a
     component moves by >= 0.5 px over a window, its fit also has the terms sin(2 pi w),
@@ -147,22 +201,33 @@ def fit_intercepts(t: np.ndarray, ys: dict[str, np.ndarray], *, min_frames: int 
     through a few periods) without touching the value at w = 0.
 
     Args:
-        t: (L,) frame times minus the reference time.
+        t: (L,) frame times minus the reference time; a frame at t = 0 (the reference
+            matched against itself: 0 by construction) is left out.
         ys: name -> (L, N) per-frame values (NaN where not usable); "u" and "v" decide; the
             names starting with "v" use the v component's bias terms, the others u's.
         min_frames: the shortest window tried.
         t_limit: a fit of degree d over a window is accepted where the added term of degree
-            d + 1 has |coefficient / standard error| < t_limit in both u and v.
+            d + 1 has |coefficient / standard error| below the Student-t quantile, at the
+            trajectory noise estimate's degrees of freedom, of the normal's ``t_limit`` (3:
+            two-sided 0.27 %; 3.5 for 40 frames, ~10 for 9, where the noise is known from
+            6 third differences and the normal's threshold rejected 4-12 % of straight
+            trajectories) in both u and v.
 
     Returns:
         :class:`ReferenceOffsets` (offset 0 and frames 0 where no window is usable).
     """
     t = np.asarray(t, dtype=np.float64)
+    keep = t != 0
+    t, ys = t[keep], {k: np.asarray(v)[keep] for k, v in ys.items()}
     n = next(iter(ys.values())).shape[1]
     scale = max(float(np.abs(t).max()), 1.0)
     sig2 = {k: _noise_var(ys[k]) for k in ("u", "v")}
+    n3 = np.isfinite(np.diff(ys["u"], n=3, axis=0)).sum(0)  # third differences per point
+    dof = float(np.median(n3)) / _D3_VAR_FACTOR if n3.size else 0.0
+    t_crit = _t_quantile(t_limit, dof)
     bias = _bias_significant(t / scale, ys, sig2)
     best_var = np.full(n, np.inf)
+    best_d = np.full(n, np.nan)  # intercept variance / per-frame variance of the kept fit
     best = {k: np.zeros(n) for k in ys}
     frames = np.zeros(n, dtype=np.int64)
     degree = np.zeros(n, dtype=np.int64)
@@ -176,35 +241,111 @@ def fit_intercepts(t: np.ndarray, ys: dict[str, np.ndarray], *, min_frames: int 
             ok = np.ones(n, dtype=bool)
             coef: dict[str, np.ndarray] = {}
             var = np.zeros(n)
+            d00 = np.zeros(n)
             for comp in ("u", "v"):
                 y_c = np.nan_to_num(ys[comp][idx])
                 fin &= np.isfinite(ys[comp][idx]).all(0)
                 c_fit, cov_fit = _fit(ts, d + 1, y_c, bias=bias)
                 c_test, cov_test = _fit(ts, d + 2, y_c, bias=bias)
                 top = d + 1  # the added polynomial term (the bias terms follow it)
-                ok &= np.abs(c_test[top]) < t_limit * np.sqrt(sig2[comp] * cov_test[:, top, top])
+                ok &= np.abs(c_test[top]) < t_crit * np.sqrt(sig2[comp] * cov_test[:, top, top])
                 if comp == "u":
                     var = sig2["u"] * cov_fit[:, 0, 0]
+                    d00 = cov_fit[:, 0, 0]
                 for k in ys:
                     if (k[0] == "v") == (comp == "v"):
                         coef[k] = _fit(ts, d + 1, y_c, np.nan_to_num(ys[k][idx]), bias=bias)[0][0]
             if fallback is None or len(idx) <= len(fallback[0]):
-                fallback = (idx, d, coef, fin)  # the shortest quadratic fit, if none passes
+                fallback = (idx, d, coef, fin, d00)  # the shortest quadratic fit, if none passes
             take = fin & ok & np.isfinite(var) & (var < best_var)
             best_var = np.where(take, var, best_var)
+            best_d = np.where(take, d00, best_d)
             for k in ys:
                 best[k] = np.where(take, coef[k], best[k])
             frames = np.where(take, len(idx), frames)
             degree = np.where(take, d, degree)
     if fallback is not None:
-        idx, d, coef, fin = fallback
+        idx, d, coef, fin, d00 = fallback
         take = (frames == 0) & fin
         for k in ys:
             best[k] = np.where(take, coef[k], best[k])
+        best_d = np.where(take, d00, best_d)
         frames = np.where(take, len(idx), frames)
         degree = np.where(take, d, degree)
-    return ReferenceOffsets(values=best, frames=frames, degree=degree,
-                            sigma=np.sqrt(sig2["u"]), seconds=0.0, bias_terms=bias)
+    rho, shrink = _shrink(best, sig2, best_d, frames > 0, dof)
+    return ReferenceOffsets(values={k: v * shrink for k, v in best.items()}, frames=frames,
+                            degree=degree, sigma=np.sqrt(sig2["u"]), seconds=0.0,
+                            bias_terms=bias, shrink=shrink, rho=rho, t_fit=t,
+                            min_frames=int(min_frames))
+
+
+#: (sum over lags of the autocovariance^2 of a third difference of white noise) / its
+#: variance^2 = (20^2 + 2 (15^2 + 6^2 + 1^2)) / 20^2: the noise variance from n third
+#: differences has the spread of a chi-square with n / 2.31 degrees of freedom
+_D3_VAR_FACTOR = 2.31
+
+
+def _t_quantile(z: float, dof: float) -> float:
+    """Student-t quantile with ``dof`` degrees of freedom at the tail probability of the normal
+    quantile ``z`` (Cornish-Fisher expansion, three terms; dof clamped to >= 2; z for
+    dof -> inf)."""
+    if not np.isfinite(dof) or dof > 1e6:
+        return float(z)
+    nu = max(float(dof), 2.0)
+    return float(z + (z**3 + z) / (4 * nu) + (5 * z**5 + 16 * z**3 + 3 * z) / (96 * nu**2)
+                 + (3 * z**7 + 19 * z**5 + 17 * z**3 - 15 * z) / (384 * nu**3))
+
+
+def _f1_median(dof: float) -> float:
+    """Median of F(1, dof) (the square of Student's t upper quartile; Cornish-Fisher
+    expansion, within 0.5 % for dof >= 2; chi-square(1)'s 0.4549 for dof -> inf)."""
+    return _t_quantile(0.67449, dof) ** 2  # 0.67449: upper quartile of N(0, 1)
+
+
+def _shrink(coef: dict[str, np.ndarray], sig2: dict[str, np.ndarray], d: np.ndarray,
+            fitted: np.ndarray, dof: float = np.inf) -> tuple[float, np.ndarray]:
+    """``rho`` and the per-point factor ``rho / (rho + d)`` (1 where not fitted).
+
+    Model: the fitted intercept of a point is ``c + dc``, ``c`` its offset (zero-mean over
+    points, variance ``rho * sigma^2``, sigma^2 the point's per-frame variance, because the
+    reference's and the frames' noise go through the same projection) and ``dc`` the fit's
+    error (variance ``d * sigma^2``). So ``z = intercept^2 / (sigma^2 (rho + d))`` is chi-square
+    with 1 degree of freedom, or F(1, dof) with sigma^2 estimated from the trajectory (``dof``:
+    that estimate's degrees of freedom; without this, short fits overestimate rho by ~40 %);
+    rho is solved from its median over the points and both components (robust to a few bad
+    trajectories), and ``rho / (rho + d)`` times the intercept is
+    the least-squares estimate of ``c`` (the Bayes estimate for Gaussian offsets). With every
+    image equally noisy rho ~ 1 (0.6-1.2 measured on renders and real speckle); with clean
+    frames rho -> inf and nothing is shrunk; with a clean reference rho -> 0 and nothing is
+    subtracted.
+    """
+    n = d.shape[0]
+    target = _f1_median(dof)
+    zs = [coef[k] ** 2 / sig2[k] for k in ("u", "v")]
+    ds = np.concatenate([d, d])
+    z = np.concatenate(zs)
+    use = np.concatenate([fitted, fitted]) & np.isfinite(z) & np.isfinite(ds) & (ds > 0)
+    shrink = np.ones(n)
+    if use.sum() < 8:  # too few points to estimate rho
+        return float("inf"), shrink
+    z, ds = z[use], ds[use]
+
+    def med(rho: float) -> float:
+        return float(np.median(z / (rho + ds)))
+
+    if med(1e6) >= target:  # offsets dwarf the fits' errors: no shrink
+        return float("inf"), shrink
+    if med(0.0) <= target:  # intercepts no larger than the fits' errors: no offsets
+        rho = 0.0
+    else:  # med decreases with rho: bisection on a log scale
+        lo, hi = 1e-9, 1e6
+        for _ in range(50):
+            mid = float(np.sqrt(lo * hi))
+            lo, hi = (mid, hi) if med(mid) > target else (lo, mid)
+        rho = float(np.sqrt(lo * hi))
+    ok = fitted & np.isfinite(d) & (d > 0)
+    shrink[ok] = rho / (rho + d[ok])
+    return float(rho), shrink
 
 
 def _bias_significant(ts: np.ndarray, ys: dict[str, np.ndarray],
@@ -265,13 +406,132 @@ def _noise_var(y: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(v) & (v > 0), v, np.nan)
 
 
-def apply_offsets(rows: dict[str, np.ndarray], offsets: ReferenceOffsets) -> dict[str, np.ndarray]:
+def apply_offsets(rows: dict[str, np.ndarray], offsets: ReferenceOffsets,
+                  frames: Sequence[int] | None = None) -> dict[str, np.ndarray]:
     """Rows (name -> (B, N)) with the offsets subtracted (names without an offset, and the
-    velocities, unchanged)."""
+    velocities, unchanged). With ``frames`` (B,) (the rows' series frames), the reference
+    frame's row reports the truth where it was solved (status usable): displacement and
+    gradients 0, and so their predicted std (u_std, v_std); the velocity stays as measured. The
+    other rows' u_std, v_std (predicted for the unrefined solution, the reference's noise
+    included) are scaled by :func:`std_factor`."""
     out = dict(rows)
     for k, off in offsets.values.items():
         if k in out and k not in _RATES:
             out[k] = out[k] - off[None, :]
+    if frames is None:
+        return out
+    stds = [k for k in ("u_std", "v_std") if k in out]
+    if stds and offsets.fit is not None and offsets.times is not None:
+        m_rows = out["m"] if "m" in out else np.full(out[stds[0]].shape, offsets.m)
+        for k in stds:
+            out[k] = out[k].copy()
+        for i, fr in enumerate(frames):
+            if int(fr) != offsets.reference_frame:
+                factor = std_factor(offsets, int(fr), np.asarray(m_rows[i]))
+                for k in stds:
+                    out[k][i] = out[k][i] * factor
+    if offsets.reference_frame not in [int(f) for f in frames]:
+        return out
+    i = [int(f) for f in frames].index(offsets.reference_frame)
+    ok = out["status"][i] <= USABLE if "status" in out else np.ones(
+        next(iter(out.values())).shape[1], dtype=bool)
+    for k in [*offsets.values, "u_std", "v_std"]:
+        if k in out and k not in _RATES:
+            out[k] = out[k].copy()
+            out[k][i] = np.where(ok, 0.0, out[k][i])
+    return out
+
+
+def _window_weights(t: np.ndarray, k: int, m: int) -> np.ndarray:
+    """(T,) weights of the STS value at frame k on the frames: the line of its window
+    (``window_frames``: k-m .. k+m, shifted at the ends) evaluated at ``t[k]``."""
+    n = len(t)
+    w = window_frames(torch.tensor([k]), int(m), n)[0].numpy()
+    lam = np.zeros(n)
+    lam[w] = np.linalg.pinv(np.stack([np.ones(len(w)), t[w] - t[k]], 1))[0]
+    return lam
+
+
+def _intercept_weights(t: np.ndarray, fit: np.ndarray, degree: int) -> np.ndarray:
+    """(T,) weights of the intercept at t = 0 of a polynomial of ``degree`` fitted to the frames
+    ``fit`` (series indices)."""
+    om = np.zeros(len(t))
+    om[fit] = np.linalg.pinv(np.vander(t[fit], degree + 1, increasing=True))[0]
+    return om
+
+
+def _error_var(lam: np.ndarray, om: np.ndarray, ref: int, rho: float,
+               shrink: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
+    """First-order variances, in units of a^2, of the STS value with weights ``lam`` minus
+    ``shrink`` (k) times the intercept with weights ``om``, both on the classical errors
+    ``e_j = c + s_j`` (``e_ref = 0``; var(c) = rho a^2, var(s_j) = a^2):
+    ``rho (1 - lam_ref - k sum om)^2 + sum_j (lam_j - k om_j)^2`` (j != ref); and the unrefined
+    variance *as* :mod:`torch_stsdic.uncertainty` *predicts it* (u_std): ``rho + sum_j lam_j^2``
+    over all frames, i.e. a reference frame inside the window counted as one more independent
+    frame (it is not: its ``n_t - n_ref`` is 0, so that prediction is too high for the first m
+    rows; dividing by it keeps the rescaled u_std right there). rho = inf: both divided by
+    rho."""
+    k = np.asarray(shrink, dtype=np.float64)
+    rest = np.arange(len(lam)) != ref
+    a, b, c = np.sum(lam[rest] ** 2), np.sum(lam[rest] * om[rest]), np.sum(om[rest] ** 2)
+    coef = 1.0 - lam[ref] - k * om[rest].sum()
+    frames_part = a - 2 * k * b + k * k * c
+    if np.isinf(rho):
+        return coef**2 + 0 * frames_part, 1.0 + 0 * k
+    return rho * coef**2 + frames_part, rho + np.sum(lam**2) + 0 * k
+
+
+def predicted_profile(times: np.ndarray, reference_frame: int, fit: Sequence[int], m: int,
+                      rho: float, shrink: float = 1.0) -> np.ndarray:
+    """(T,) first-order variance of the refined STS error at every frame of a series, in units
+    of the per-frame variance ``a^2`` of classical DIC, for an offset from a straight line.
+
+    Frame ``k``'s STS value is the line of its window (``window_frames``: k-m .. k+m, shifted at
+    the ends) evaluated at ``t_k``, weights ``lam_k``, on the classical errors ``e_j = c + s_j``
+    (``e_ref = 0``: the reference against itself); the offset subtracted is ``sum_j om_j e_j``
+    (``om``: ``shrink`` times the intercept weights of the line through ``fit``). So the error is
+    ``c (1 - lam_k,ref - sum om) + sum_j (lam_kj - om_j) s_j``, with ``var(c) = rho a^2`` and
+    ``var(s_j) = a^2``; the reference's own row is exact (0).
+
+    Args:
+        times: (T,) series times; reference_frame: its index; fit: series indices of the fit's
+        frames (the reference excluded); m: window half-width (0: classical); rho, shrink: as
+        in :class:`ReferenceOffsets`.
+    """
+    t = np.asarray(times, dtype=np.float64) - float(times[reference_frame])
+    fit_idx = np.asarray([j for j in fit if j != reference_frame], dtype=np.int64)
+    om = _intercept_weights(t, fit_idx, 1)
+    out = np.zeros(len(t))
+    for k in range(len(t)):
+        if k != reference_frame:
+            out[k] = float(_error_var(_window_weights(t, k, m), om, reference_frame, rho,
+                                      shrink)[0])
+    return out
+
+
+def std_factor(offsets: ReferenceOffsets, frame: int, m_row: np.ndarray) -> np.ndarray:
+    """(N,) first-order std of the refined u (or v) at series ``frame`` over the unrefined
+    one that u_std predicts (:func:`_error_var`), per point: its kept fit (window and degree;
+    the bias terms left out) and shrink, the row's window half-width ``m_row`` (N,) (-1: not
+    solved, factor 1), and rho. Multiplies the predicted u_std, v_std (which hold the
+    reference's share) of refined rows: about 0.3-0.55 at 40 fitted frames, lowest near the
+    reference, so the stored std follows the per-frame profile (``docs/accuracy.md``)."""
+    n = len(m_row)
+    out = np.ones(n)
+    t = offsets.times - offsets.times[offsets.reference_frame]
+    ref = offsets.reference_frame
+    cands = {len(idx): offsets.fit[idx] for idx in _candidates(offsets.t_fit, offsets.min_frames)}
+    shrink = offsets.shrink if offsets.shrink is not None else np.ones(n)
+    for mm in np.unique(m_row[m_row >= 0]):
+        lam = _window_weights(t, frame, int(mm))
+        for count, fit in cands.items():
+            for deg in (1, 2):
+                sel = (m_row == mm) & (offsets.frames == count) & (offsets.degree == deg)
+                if not sel.any() or len(fit) <= deg:
+                    continue
+                var, var0 = _error_var(lam, _intercept_weights(t, fit, deg), ref, offsets.rho,
+                                       shrink[sel])
+                out[sel] = np.sqrt(np.where(var0 > 0, var / np.where(var0 > 0, var0, 1.0), 1.0))
     return out
 
 

@@ -142,7 +142,7 @@ def _run_blocks(plan: RunPlan, sink: MemorySink, run: BlockContext, ref: Referen
         else:
             full = rows_numpy(solve_block(run, block, ref, carry), plan.fields)
             if offsets is not None:
-                full = apply_offsets(full, offsets)
+                full = apply_offsets(full, offsets, block)
             stored = as_stored(full)
             sink.write_rows(rs, full, reference_frame=ref.frame)
         carry = make_carry(stored, plan.times[block], plan.param_names, carry, plan.dtype,
@@ -240,9 +240,10 @@ def track(
         callback: called as ``callback(rows_done, n_rows)`` after each block.
         refine_reference: remove the noisy reference's constant per-point offset: classical
             DIC of up to ``refine_frames`` frames around the reference (default 41), a
-            polynomial fit in time per point, its value at the reference time subtracted from
-            every row (:mod:`torch_stsdic.refine`, ``docs/accuracy.md``). Needs a reference
-            that is one series frame and no ``reference_update``.
+            polynomial fit in time per point, its value at the reference time (shrunk by
+            the offsets' spread) subtracted from every row, and the reference's own row set
+            to zero displacement (:mod:`torch_stsdic.refine`, ``docs/accuracy.md``). Needs a
+            reference that is one series frame and no ``reference_update``.
         strain_window, strain_kind: strains written to ``out`` (grid points per side of the
             plane fit; "green" or "small"); ``strain_window=None``: none.
         scale, unit, time_unit: calibration recorded with the results (``out`` attributes,
