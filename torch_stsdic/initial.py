@@ -19,18 +19,19 @@ def _regions(
     img: torch.Tensor, index: torch.Tensor, cx: torch.Tensor, cy: torch.Tensor, size: int
 ) -> torch.Tensor:
     """Square regions (N, T, size, size) of images ``img[index]`` (img (F, H, W), index
-    (N, T)), top-left at (cx, cy) ints, (N,) or (N, T), zero outside the image."""
+    (N, T)), top-left at (cx, cy) ints, (N,) (the same for every frame: the index arithmetic
+    is done once per point) or (N, T), zero outside the image."""
     _, h, w = img.shape
     r = torch.arange(size, device=img.device)
-    cy = cy.reshape(cy.shape[0], -1).expand(-1, index.shape[1])
-    cx = cx.reshape(cx.shape[0], -1).expand(-1, index.shape[1])
-    rows = cy.unsqueeze(-1) + r  # (N, T, size)
+    cy = cy.reshape(cy.shape[0], -1)  # (N, 1) or (N, T)
+    cx = cx.reshape(cx.shape[0], -1)
+    rows = cy.unsqueeze(-1) + r  # (N, 1 or T, size)
     cols = cx.unsqueeze(-1) + r
     valid = ((rows >= 0) & (rows < h)).unsqueeze(-1) & ((cols >= 0) & (cols < w)).unsqueeze(-2)
     rows = rows.clamp(0, h - 1)
     cols = cols.clamp(0, w - 1)
-    flat = rows.unsqueeze(-1) * w + cols.unsqueeze(-2)  # (N, T, size, size)
-    flat = flat + (index * (h * w)).view(*index.shape, 1, 1)
+    flat = rows.unsqueeze(-1) * w + cols.unsqueeze(-2)  # (N, 1 or T, size, size)
+    flat = flat + (index * (h * w)).view(*index.shape, 1, 1)  # (N, T, size, size)
     out = img.reshape(-1).take(flat)
     return out * valid.to(out.dtype)
 
@@ -118,9 +119,8 @@ def fft_cross_correlation(
     npix = subset_size * subset_size
     cx = torch.round(points[:, 0]).long()
     cy = torch.round(points[:, 1]).long()
-    if prior is None:
-        prior = torch.zeros(n, t_count, 2, dtype=torch.long, device=dev)
-    prior = torch.round(prior).long().expand(n, t_count, 2)
+    if prior is not None:
+        prior = torch.round(prior).long().expand(n, t_count, 2)
     disp = torch.zeros(n, t_count, 2, dtype=dtype, device=images.device)
     score = torch.full((n, t_count), -1.0, dtype=dtype, device=images.device)
     shifts = torch.arange(-rad, rad + 1, device=images.device)
@@ -131,9 +131,11 @@ def fft_cross_correlation(
         f = _regions(ref, ref_index[sl].view(-1, 1), bx - half, by - half, subset_size)[:, 0]
         f = f - f.mean(dim=(-1, -2), keepdim=True)
         fnorm = f.square().sum(dim=(-1, -2)).sqrt()  # (B,)
-        px_, py_ = prior[sl, :, 0], prior[sl, :, 1]  # (B, T)
-        g = _regions(images, frame_index[sl], bx.view(-1, 1) + px_ - half - rad,
-                     by.view(-1, 1) + py_ - half - rad, size)
+        # search centre per frame (B, T), or (B, 1) for all frames without a prior
+        ox, oy = bx.view(-1, 1), by.view(-1, 1)
+        if prior is not None:
+            ox, oy = ox + prior[sl, :, 0], oy + prior[sl, :, 1]
+        g = _regions(images, frame_index[sl], ox - half - rad, oy - half - rad, size)
         ff = torch.fft.rfft2(f, s=(fast, fast))
         gg = torch.fft.rfft2(g, s=(fast, fast))
         corr = torch.fft.irfft2(torch.conj(ff).unsqueeze(1) * gg, s=(fast, fast))
@@ -144,11 +146,11 @@ def fft_cross_correlation(
         denom = fnorm.view(-1, 1, 1, 1) * var.sqrt()
         zn = torch.where(denom > 1e-12, corr / denom.clamp(min=1e-30), torch.full_like(corr, -1.0))
         # shifts whose subset leaves the image are invalid
-        sx = (bx.view(-1, 1) + px_).unsqueeze(-1) + shifts  # (B, T, 2R+1)
-        sy = (by.view(-1, 1) + py_).unsqueeze(-1) + shifts
+        sx = ox.unsqueeze(-1) + shifts  # (B, T or 1, 2R+1)
+        sy = oy.unsqueeze(-1) + shifts
         okx = ((sx - half) >= 0) & ((sx + half) < w)
         oky = ((sy - half) >= 0) & ((sy + half) < h)
-        ok = oky.unsqueeze(-1) & okx.unsqueeze(-2)  # (B, T, 2R+1 rows, 2R+1 cols)
+        ok = oky.unsqueeze(-1) & okx.unsqueeze(-2)  # (B, T or 1, 2R+1 rows, 2R+1 cols)
         zn = torch.where(ok, zn, torch.full_like(zn, -2.0))
         k = 2 * rad + 1
         best = zn.reshape(zn.shape[0], t_count, -1).argmax(-1)  # (B, T)
@@ -159,8 +161,8 @@ def fft_cross_correlation(
         flat = zn.reshape(zn.shape[0], t_count, -1)
         sub_x = _parabola(_at(flat, iy, ix, 0, -1, k), peak, _at(flat, iy, ix, 0, 1, k), ix, k)
         sub_y = _parabola(_at(flat, iy, ix, -1, 0, k), peak, _at(flat, iy, ix, 1, 0, k), iy, k)
-        disp[sl, :, 0] = (ix - rad + px_).to(dtype) + sub_x
-        disp[sl, :, 1] = (iy - rad + py_).to(dtype) + sub_y
+        disp[sl, :, 0] = (ix - rad + ox - bx.view(-1, 1)).to(dtype) + sub_x
+        disp[sl, :, 1] = (iy - rad + oy - by.view(-1, 1)).to(dtype) + sub_y
         score[sl] = torch.where(peak > -1.5, peak, torch.full_like(peak, -1.0))
     return disp, score
 
