@@ -144,3 +144,28 @@ def test_linear_motion_keeps_full_windows_and_std_matches_scatter():
 def test_status_codes_documented():
     assert Status.POOR_FIT == 6 and Status.INCONSISTENT == 7
     assert "poor_fit" in Status.describe()
+
+
+def test_median_test_flags_a_patch_of_wild_values_not_a_jump():
+    """Subsets across a specimen's edge find peaks px apart: a patch of wild values, each as
+    far from its neighbours as they are from each other, which the normalised residual alone
+    cannot judge. The patch is flagged; a 0.5 px jump (a crack) beside a smooth field is not
+    wild, only its outliers would be."""
+    n = 9
+    pts = _grid(n)
+    gen = torch.Generator().manual_seed(1)
+    u = 0.01 * torch.randn(n * n, generator=gen, dtype=torch.float64)
+    v = 0.01 * torch.randn(n * n, generator=gen, dtype=torch.float64)
+    x = pts[:, 0]
+    vals = torch.stack([u + 0.5 * (x >= 45), v], -1)[None]  # a crack at x = 45
+    nb = neighbours(pts)
+    ok = torch.ones(1, n * n, dtype=torch.bool)
+    assert not bool(median_test(vals, ok, nb, 0.05).any())
+    wild = vals.clone()
+    patch = (x <= 20) & (pts[:, 1] <= 30)  # 3 x 4 points in a corner
+    wild[0, patch] += 20.0 * torch.randn(int(patch.sum()), 2, generator=gen,
+                                          dtype=torch.float64)
+    out = median_test(wild, ok, nb, 0.05)[0]
+    assert bool(out[patch].all())
+    far = (x >= 40)  # beyond the patch's neighbourhood: untouched
+    assert not bool(out[far].any())

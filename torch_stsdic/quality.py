@@ -26,7 +26,13 @@ criterion is at a minimum; these checks say whether that minimum is the motion:
   above ``MEDIAN_THRESHOLD`` is an outlier: INCONSISTENT. ``eps`` is ``MEDIAN_EPS_STD`` times
   the median predicted std, at least ``MEDIAN_EPS_MIN`` px: the test catches gross outliers
   (a wrong peak, off by more than ~0.1 px), never the noise or the noise of the gradients
-  used to carry the neighbours.
+  used to carry the neighbours. The test normalises by the neighbours' own scatter, so it
+  cannot judge a point whose neighbours scatter as wildly as it does (subsets across a
+  specimen's edge, where half the subset is background: each finds some peak, px to tens of
+  px apart). A point whose carried neighbours scatter by more than ``MEDIAN_SCATTER`` times
+  ``eps`` (median absolute residual) is therefore INCONSISTENT too: a smooth field, even a
+  strongly strained one, carried by its gradients scatters by the noise; a crack's jump moves
+  the median residual of the points beside it by at most half the jump.
 """
 
 from __future__ import annotations
@@ -38,7 +44,7 @@ from .points import nearest_points
 
 __all__ = [
     "MODEL_Z", "MODEL_TOL", "RESIDUAL_Z", "RESIDUAL_ZNCC", "FIT_RATIO", "FIT_ZNCC_GOOD",
-    "MEDIAN_THRESHOLD", "MEDIAN_EPS_STD", "MEDIAN_EPS_MIN",
+    "MEDIAN_THRESHOLD", "MEDIAN_EPS_STD", "MEDIAN_EPS_MIN", "MEDIAN_SCATTER",
     "model_mismatch", "residual_mismatch", "poor_fit", "neighbours", "median_test",
 ]
 
@@ -52,6 +58,9 @@ FIT_ZNCC_GOOD = 0.999  #: fit check: a ZNCC at least this is a good fit whatever
 MEDIAN_THRESHOLD = 2.0  #: neighbour check: normalised median residual above this is an outlier
 MEDIAN_EPS_STD = 3.0  #: neighbour check: eps in units of the median predicted std
 MEDIAN_EPS_MIN = 0.05  #: neighbour check: smallest eps, px (half the 0.1 px a user notices)
+#: neighbour check: neighbours (carried by their gradients) whose median absolute residual
+#: exceeds this times eps are no smooth field: the point is INCONSISTENT (1 px at eps 0.05)
+MEDIAN_SCATTER = 20.0
 
 
 def model_mismatch(d_sts: Tensor, d_cls: Tensor, std_sts: Tensor, std_cls: Tensor) -> Tensor:
@@ -135,7 +144,9 @@ def median_test(values: Tensor, valid: Tensor, nb: Tensor, eps: float | Tensor,
     u and v) over the neighbours ``nb`` (N, k); only ``valid`` (B, N) points count as
     neighbours or are judged. With ``points`` (N, 2) px and ``gradients`` (B, N, C, 2) (d/dx,
     d/dy of each component), each neighbour's value is carried to the point by its own
-    gradient first, so linear fields pass at edges and beside holes too. Returns (B, N) bool
+    gradient first, so linear fields pass at edges and beside holes too. A point whose
+    carried neighbours scatter (median absolute residual) by more than ``MEDIAN_SCATTER``
+    times ``eps`` is an outlier too: no smooth field to judge it by. Returns (B, N) bool
     outliers (never a point with fewer than ``min_neighbours`` valid neighbours)."""
     b, n, c = values.shape
     v = torch.where(valid.unsqueeze(-1), values.double(), torch.nan)
@@ -156,5 +167,6 @@ def median_test(values: Tensor, valid: Tensor, nb: Tensor, eps: float | Tensor,
         eps_t = eps_t.view(b, 1, 1)
     r = (v - med).abs() / (rm + eps_t)
     count = (~torch.isnan(vn[..., 0])).sum(-1)
-    out = (r > MEDIAN_THRESHOLD).any(-1) & valid & (count >= min_neighbours)
+    wild = (rm > MEDIAN_SCATTER * eps_t).any(-1)
+    out = ((r > MEDIAN_THRESHOLD).any(-1) | wild) & valid & (count >= min_neighbours)
     return out
