@@ -104,16 +104,16 @@ def _reference_data(ctx: BatchContext, pts, dt, fidx, ridx) -> SubsetData:
     key = (ridx * ctx.ref.height + ij[:, 1].long()) * ctx.ref.width + ij[:, 0].long()
     uniq, inv = torch.unique(key, return_inverse=True)
     # few repeats: sampling them is cheaper than the gather
-    if uniq.shape[0] > 0.75 * n or not bool((ij == pts).all()):
-        data = reference_subsets(geo, ctx.ref, pts, ridx, dt, fidx)
-        data.gram = centred_gram(geo, data.gx, data.gy)
-        return data
-    first = torch.full((uniq.shape[0],), n, dtype=torch.long, device=pts.device)
-    first = first.scatter_reduce(0, inv, torch.arange(n, device=pts.device), "amin")
-    data = reference_subsets(geo, ctx.ref, pts[first], ridx[first], dt[first], fidx[first])
+    repeats = uniq.shape[0] <= 0.75 * n and bool((ij == pts).all())
+    sel = slice(None)
+    if repeats:  # the first row of each distinct point
+        sel = torch.full((uniq.shape[0],), n, dtype=torch.long, device=pts.device)
+        sel = sel.scatter_reduce(0, inv, torch.arange(n, device=pts.device), "amin")
+    data = reference_subsets(geo, ctx.ref, pts[sel], ridx[sel], dt[sel], fidx[sel])
     data.gram = centred_gram(geo, data.gx, data.gy)
-    data = data.take(inv)
-    data.dt, data.fidx = dt, fidx
+    if repeats:
+        data = data.take(inv)
+        data.dt, data.fidx = dt, fidx
     return data
 
 

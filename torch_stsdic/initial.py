@@ -131,10 +131,9 @@ def fft_cross_correlation(
         f = _regions(ref, ref_index[sl].view(-1, 1), bx - half, by - half, subset_size)[:, 0]
         f = f - f.mean(dim=(-1, -2), keepdim=True)
         fnorm = f.square().sum(dim=(-1, -2)).sqrt()  # (B,)
-        # search centre per frame (B, T), or (B, 1) for all frames without a prior
-        ox, oy = bx.view(-1, 1), by.view(-1, 1)
-        if prior is not None:
-            ox, oy = ox + prior[sl, :, 0], oy + prior[sl, :, 1]
+        # search centre: the prior per frame (B, T), or none: (B, 1) for all frames
+        qx, qy = (0, 0) if prior is None else (prior[sl, :, 0], prior[sl, :, 1])
+        ox, oy = bx.view(-1, 1) + qx, by.view(-1, 1) + qy
         g = _regions(images, frame_index[sl], ox - half - rad, oy - half - rad, size)
         ff = torch.fft.rfft2(f, s=(fast, fast))
         gg = torch.fft.rfft2(g, s=(fast, fast))
@@ -161,8 +160,8 @@ def fft_cross_correlation(
         flat = zn.reshape(zn.shape[0], t_count, -1)
         sub_x = _parabola(_at(flat, iy, ix, 0, -1, k), peak, _at(flat, iy, ix, 0, 1, k), ix, k)
         sub_y = _parabola(_at(flat, iy, ix, -1, 0, k), peak, _at(flat, iy, ix, 1, 0, k), iy, k)
-        disp[sl, :, 0] = (ix - rad + ox - bx.view(-1, 1)).to(dtype) + sub_x
-        disp[sl, :, 1] = (iy - rad + oy - by.view(-1, 1)).to(dtype) + sub_y
+        disp[sl, :, 0] = (ix - rad + qx).to(dtype) + sub_x
+        disp[sl, :, 1] = (iy - rad + qy).to(dtype) + sub_y
         score[sl] = torch.where(peak > -1.5, peak, torch.full_like(peak, -1.0))
     return disp, score
 

@@ -420,19 +420,20 @@ def apply_offsets(rows: dict[str, np.ndarray], offsets: ReferenceOffsets,
             out[k] = out[k] - off[None, :]
     if frames is None:
         return out
+    frames = [int(f) for f in frames]
     stds = [k for k in ("u_std", "v_std") if k in out]
     if stds and offsets.fit is not None and offsets.times is not None:
         m_rows = out["m"] if "m" in out else np.full(out[stds[0]].shape, offsets.m)
         for k in stds:
             out[k] = out[k].copy()
         for i, fr in enumerate(frames):
-            if int(fr) != offsets.reference_frame:
-                factor = std_factor(offsets, int(fr), np.asarray(m_rows[i]))
+            if fr != offsets.reference_frame:
+                factor = std_factor(offsets, fr, np.asarray(m_rows[i]))
                 for k in stds:
                     out[k][i] = out[k][i] * factor
-    if offsets.reference_frame not in [int(f) for f in frames]:
+    if offsets.reference_frame not in frames:
         return out
-    i = [int(f) for f in frames].index(offsets.reference_frame)
+    i = frames.index(offsets.reference_frame)
     ok = out["status"][i] <= USABLE if "status" in out else np.ones(
         next(iter(out.values())).shape[1], dtype=bool)
     for k in [*offsets.values, "u_std", "v_std"]:

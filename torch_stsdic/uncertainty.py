@@ -175,26 +175,23 @@ def response(geo: Geometry, data: SubsetData, noise: NoiseModel, order: int) -> 
         _, mw = gram(data.gx, data.gy, geo.spatial, w)
         gww, mww = gram(data.gx, data.gy, geo.spatial, w * w)
         g2, b2 = _centred_gram(geo, gww, mww, mw, w * w), _basis_moments(geo, w * w)
-    hinv = _corrected_inverse(geo, g1 * zz, kappa * noise.ref.double().view(-1, 1, 1) * bw * zz)
-    cols = _aug_columns(geo)
+    h, bias = g1 * zz, kappa * noise.ref.double().view(-1, 1, 1) * bw * zz
     if geo.shape.has_time:
-        coef = hinv
-    else:
-        coef = hinv.new_zeros(hinv.shape[0], z.shape[-1], len(cols))
-        coef[:, cols] = hinv
+        coef = _corrected_inverse(h, bias)
+    else:  # the time columns are not parameters: invert without them, put back as zeros
+        cols = _aug_columns(geo)
+        coef = h.new_zeros(h.shape[0], z.shape[-1], len(cols))
+        coef[:, cols] = _corrected_inverse(h[:, cols][:, :, cols], bias[:, cols][:, :, cols])
     return Response(coef=coef, z=z, zz=zz, g2=g2, b2=b2, noise=noise, kappa=kappa)
 
 
-def _corrected_inverse(geo: Geometry, h: Tensor, bias: Tensor) -> Tensor:
+def _corrected_inverse(h: Tensor, bias: Tensor) -> Tensor:
     """(N, P, P) inverse of the Hessian ``h`` minus its expected noise-gradient energy
-    ``bias`` (both (N, P', P')), by Cholesky (symmetric: 3x cheaper than an LU inverse). Where
+    ``bias`` (both (N, P, P)), by Cholesky (symmetric: 3x cheaper than an LU inverse). Where
     the corrected matrix is not positive definite (a noise estimate as large as the texture's
     signal, e.g. a subset that does not fit), the correction is not valid: ``h`` itself (the
     first-order Hessian the solver factored) is inverted instead; where that is singular too
     (no texture) the inverse is NaN."""
-    if not geo.shape.has_time:
-        cols = _aug_columns(geo)
-        h, bias = h[:, cols][:, :, cols], bias[:, cols][:, :, cols]
     chol, info = torch.linalg.cholesky_ex(h - bias)
     if not bool(info.any()):  # one host synchronisation per batch
         return torch.cholesky_inverse(chol)
