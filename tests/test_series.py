@@ -75,8 +75,10 @@ def sts_run(movie, tmp_path_factory):
     ser.get = counting_get  # type: ignore[method-assign]
     reads_at_callback: list[int] = []
     out = tmp_path_factory.mktemp("sts") / "full.h5"
+    # shared motion off: its measuring pass reads every frame once more (test_shared_motion)
     res = track(ser, config=CFG, roi=ROI, step=18, progress=False, batch_frames=BATCH, out=out,
-                callback=lambda done, total: reads_at_callback.append(len(reads)))
+                callback=lambda done, total: reads_at_callback.append(len(reads)),
+                shared_motion=None)
     return res, out, reads, reads_at_callback
 
 

@@ -32,6 +32,7 @@ from .quality import (
 )
 from .reference import Reference, noise_ratio, to_relative, to_total
 from .result import USABLE
+from .shared_motion import SharedMotion, window_offsets
 from .solver import SubsetSolver, WindowSolution
 from .status import Status
 
@@ -81,6 +82,7 @@ class BlockContext:
     noise_ratio: float | None = None  # reference noise variance / a frame's (None: measure
     reference_desc: Any = 0  # on the first block, reference.noise_ratio; the plan's desc)
     neighbours: torch.Tensor | None = None  # (N, k) grid neighbours, made on first use
+    shared: SharedMotion | None = None  # the specimen's per-frame motion (None: not used)
     _checker: SubsetSolver | None = None
 
     def check_solver(self) -> SubsetSolver:
@@ -119,6 +121,25 @@ class _Block:
         self.std = torch.full((rows, p_count), float("nan"), dtype=run.dtype, device=dev)
         self.sigma = torch.full((rows,), float("nan"), dtype=run.dtype, device=dev)
         self.m_used = torch.full((rows,), -1, dtype=torch.int8, device=dev)
+        self._motion: dict[int, torch.Tensor] = {}
+
+    def motion_of(self, m: int) -> torch.Tensor | None:
+        """(B*N, 2m+1, 2) the shared motion's known part of every row's window frames
+        (:func:`~torch_stsdic.shared_motion.window_offsets`), or None (no shared motion, or
+        m = 0)."""
+        run = self.run
+        if run.shared is None or m == 0:
+            return None
+        if m not in self._motion:
+            win = self.windows(m)  # (B, T)
+            b, t = win.shape
+            pts = self.ref.points
+            g = run.shared.displacement(pts, win.reshape(-1)).to(run.dtype)  # (B*T, N, 2)
+            g = g.reshape(b, t, -1, 2).permute(0, 2, 1, 3)  # (B, N, T, 2)
+            dt = (run.ts[win] - run.ts[self.k].unsqueeze(1)).to(run.dtype)  # (B, T)
+            o = window_offsets(g, dt.unsqueeze(1).expand(-1, g.shape[1], -1))
+            self._motion[m] = o.reshape(-1, t, 2).contiguous()
+        return self._motion[m]
 
     def windows(self, m: int) -> torch.Tensor:
         """(B, 2m+1) series frames of every target's window, shifted (not shrunk) at the
@@ -146,10 +167,11 @@ class _Block:
         if m == 0 and run.m > 0 and init is not None and init.shape[1] == len(run.names):
             spatial = run.solver.shape.spatial().param_names
             init = init[:, [run.names.index(nm) for nm in spatial]]
+        motion = self.motion_of(run.m if m is None else m)
         return (solver or run.solver).solve(
             ref.img, self.img, self.pts[idx], dt, frame_index=fidx,
             init=init, ref_pixels=ref.raw.unsqueeze(0), frame_pixels=self.raw,
-            noise_ratio=run.noise_ratio,
+            noise_ratio=run.noise_ratio, motion=None if motion is None else motion[idx],
         )
 
     def keep(self, idx: torch.Tensor, sol: WindowSolution, only_better: bool,

@@ -50,9 +50,10 @@ class BatchContext:
         return max(16, int(self.cfg.memory_mb * 2**20 / per_point))
 
 
-def solve_batch(ctx: BatchContext, pts, p0, dt, fidx, ridx):
+def solve_batch(ctx: BatchContext, pts, p0, dt, fidx, ridx, motion=None):
     """Solve one batch of N POIs (all inside the image) from ``p0`` (N, P), with frame times
-    ``dt`` (N, T), frame indices ``fidx`` (N, T) and reference indices ``ridx`` (N,).
+    ``dt`` (N, T), frame indices ``fidx`` (N, T), reference indices ``ridx`` (N,) and the
+    known motion of every frame ``motion`` (N, T, 2) (None: none).
 
     Returns params (N, P), zncc (N,), status (N,) int8, iterations (N,), the first stage's
     params (N, P), predicted std (N, P) and noise std (N,) (grey levels)."""
@@ -62,6 +63,7 @@ def solve_batch(ctx: BatchContext, pts, p0, dt, fidx, ridx):
     w = geo.w
     wsum_w = w.sum()
     data = _reference_data(ctx, pts, dt, fidx, ridx)
+    data.motion = motion
     status = torch.full((n,), int(Status.NOT_COMPUTED), dtype=torch.int8, device=device)
     texture = wsum(data.gx * data.gx + data.gy * data.gy, w) / wsum_w
     low = texture < cfg.texture_threshold * ctx.grey_range**2

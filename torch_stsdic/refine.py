@@ -51,6 +51,7 @@ import torch
 from .frames import window_frames
 from .plan import RunPlan
 from .result import USABLE
+from .shared_motion import SharedMotion
 
 __all__ = ["ReferenceOffsets", "check_refinable", "fit_frames", "measure_offsets",
            "fit_intercepts", "apply_offsets", "predicted_profile", "std_factor",
@@ -140,8 +141,14 @@ def fit_frames(plan: RunPlan, max_frames: int) -> list[int]:
     return list(range(start, start + count))
 
 
-def measure_offsets(plan: RunPlan, max_frames: int = DEFAULT_MAX_FRAMES) -> ReferenceOffsets:
-    """Classical DIC of the frames around the reference, then :func:`fit_intercepts`."""
+def measure_offsets(plan: RunPlan, max_frames: int = DEFAULT_MAX_FRAMES,
+                    shared: SharedMotion | None = None) -> ReferenceOffsets:
+    """Classical DIC of the frames around the reference, then :func:`fit_intercepts`.
+
+    With the specimen's ``shared`` motion (:mod:`torch_stsdic.shared_motion`) the fits are
+    of each trajectory *minus* it: a specimen that shakes as a whole leaves smooth
+    trajectories, so the long fits pass their test; the shared motion is zero at the
+    reference, so the intercepts are the same offsets."""
     from .series import run_plan  # local: series imports this module
 
     check_refinable(plan)
@@ -154,7 +161,8 @@ def measure_offsets(plan: RunPlan, max_frames: int = DEFAULT_MAX_FRAMES) -> Refe
     frames = [k for k in fit_frames(plan, max_frames)
               if k != plan.reference_frame and plan.times[k] != t_ref]
     cfg = plan.config.replace(m=0)
-    opts = {**plan.options, "smoothing": None, "reference_update": None}
+    opts = {**plan.options, "smoothing": None, "reference_update": None,
+            "shared_motion": None}
     opts.pop("refine_reference", None)
     names = tuple(nm for nm in plan.param_names if nm not in _RATES)
     sub = dataclasses.replace(plan, config=cfg, targets=frames, options=opts,
@@ -165,6 +173,8 @@ def measure_offsets(plan: RunPlan, max_frames: int = DEFAULT_MAX_FRAMES) -> Refe
     usable = (res.status <= USABLE).cpu().numpy()
     for k in ys:
         ys[k] = np.where(usable, ys[k], np.nan)
+    if shared is not None:
+        _remove_shared(ys, shared, plan, frames)
     t = plan.times[frames] - plan.times[plan.reference_frame]
     out = fit_intercepts(t, ys, min_frames=max(5, plan.config.n_frames))
     out.seconds = time.perf_counter() - t0
@@ -173,6 +183,20 @@ def measure_offsets(plan: RunPlan, max_frames: int = DEFAULT_MAX_FRAMES) -> Refe
     out.times = np.asarray(plan.times, dtype=np.float64)
     out.m = int(plan.config.m)
     return out
+
+
+def _remove_shared(ys: dict[str, np.ndarray], shared: SharedMotion, plan: RunPlan,
+                   frames: list[int]) -> None:
+    """Subtract the shared motion (displacement and its gradients) of ``frames`` at the
+    plan's points from the (F, N) trajectories ``ys`` in place."""
+    pts = plan.points.double()
+    g = shared.displacement(pts, torch.as_tensor(frames)).numpy()  # (F, N, 2)
+    ys["u"] = ys["u"] - g[..., 0]
+    ys["v"] = ys["v"] - g[..., 1]
+    par = shared.params[frames]
+    for j, nm in enumerate(("ux", "uy", "vx", "vy")):
+        if nm in ys:
+            ys[nm] = ys[nm] - par[:, 2 + j : 3 + j]
 
 
 def _candidates(t: np.ndarray, min_frames: int) -> list[np.ndarray]:

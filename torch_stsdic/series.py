@@ -50,6 +50,7 @@ from .plan import RunPlan, plan_run
 from .reference import Reference, maybe_update
 from .refine import ReferenceOffsets, apply_offsets, measure_offsets, set_refinement
 from .result import TrackResult
+from .shared_motion import estimate_shared_motion, set_shared_motion
 from .sinks import MemorySink, open_sink
 from .smoothing import smooth_in_time
 from .solver import SubsetSolver
@@ -86,8 +87,10 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
     run.reference_desc = plan.reference_desc  # its noise ratio is measured on the 1st block
     updates: list[dict[str, Any]] = []
     offsets = None
+    if plan.options.get("shared_motion"):
+        run.shared = estimate_shared_motion(plan, plan.options["shared_motion"])
     if plan.options.get("refine_reference"):
-        offsets = measure_offsets(plan, int(plan.options["refine_reference"]))
+        offsets = measure_offsets(plan, int(plan.options["refine_reference"]), run.shared)
     bar = tqdm(total=plan.n_rows, unit="frame", file=sys.stderr, disable=not progress,
                desc="STS-DIC" if cfg.m else "DIC", dynamic_ncols=True)
     try:
@@ -107,6 +110,8 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
         }
         if offsets is not None:
             info["refine_reference"] = offsets.summary()
+        if run.shared is not None:
+            info["shared_motion"] = run.shared.summary()
         if plan.options.get("smoothing"):
             info["smoothing"] = plan.options["smoothing"]
         result = sink.result(info)
@@ -194,6 +199,7 @@ def track(
     callback: Callable[[int, int], None] | None = None,
     refine_reference: bool = False,
     refine_frames: int | None = None,
+    shared_motion: str | None = "auto",
     strain_window: int | None = 5,
     strain_kind: str = "green",
     scale: float | None = None,
@@ -244,6 +250,12 @@ def track(
             the offsets' spread) subtracted from every row, and the reference's own row set
             to zero displacement (:mod:`torch_stsdic.refine`, ``docs/accuracy.md``). Needs a
             reference that is one series frame and no ``reference_update``.
+        shared_motion: the specimen's per-frame motion carried as a known term in every
+            window (:mod:`torch_stsdic.shared_motion`): "affine" or "translation" per frame,
+            measured by a classical pass at up to 2,000 POIs and fitted robustly, so a
+            specimen that shakes or steps as a whole keeps its full windows. "auto" (default):
+            "affine" for STS windows (m > 0) without ``reference_update``; None: off. The
+            per-frame motion is in ``result.shared_motion`` and the result file.
         strain_window, strain_kind: strains written to ``out`` (grid points per side of the
             plane fit; "green" or "small"); ``strain_window=None``: none.
         scale, unit, time_unit: calibration recorded with the results (``out`` attributes,
@@ -268,6 +280,7 @@ def track(
         set_refinement(plan, refine_frames)
     elif refine_frames is not None:
         raise ValueError("refine_frames: only with refine_reference=True")
+    set_shared_motion(plan, shared_motion)
     sink = open_sink(plan, out, resume=resume, overwrite=overwrite,
                      strain_window=strain_window, strain_kind=strain_kind)
     return run_plan(plan, sink, progress=progress, callback=callback)

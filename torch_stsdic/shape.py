@@ -115,11 +115,16 @@ class ShapeFunction(nn.Module):
                                    self.has_time)
 
     def warp(self, params: torch.Tensor, px: torch.Tensor, py: torch.Tensor,
-             dx: torch.Tensor, dy: torch.Tensor, spatial: torch.Tensor, dt: torch.Tensor):
+             dx: torch.Tensor, dy: torch.Tensor, spatial: torch.Tensor, dt: torch.Tensor,
+             motion: torch.Tensor | None = None):
         """Warped subset coordinates (x, y), each (N, T, S) px: the POI (px, py) (N, 1) plus
-        the offsets (dx, dy) (S,) plus the displacement at every frame time dt (N, T)."""
+        the offsets (dx, dy) (S,) plus the displacement at every frame time dt (N, T), plus a
+        known ``motion`` (N, T, 2) (u, v) px per frame (the shared motion; None: none)."""
         u, v = self.displacement(params, spatial, dt)
         t_count = dt.shape[-1]
+        if motion is not None:
+            u = u + motion[..., 0:1]
+            v = v + motion[..., 1:2]
         xs = (px.unsqueeze(-1) + dx + u).expand(-1, t_count, -1)
         ys = (py.unsqueeze(-1) + dy + v).expand(-1, t_count, -1)
         return xs, ys

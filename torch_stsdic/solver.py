@@ -170,6 +170,7 @@ class SubsetSolver:
         frame_pixels: torch.Tensor | None = None,
         time: float | torch.Tensor = 0.0,
         noise_ratio: float = 1.0,
+        motion: torch.Tensor | None = None,
     ) -> WindowSolution:
         """Solve many POIs, each against its own window of frames.
 
@@ -185,18 +186,23 @@ class SubsetSolver:
             time: reported as ``WindowSolution.time``.
             noise_ratio: the reference's noise variance over one frame's (1 for a single
                 frame, 1/K for a mean of K frames), for the predicted uncertainty.
+            motion: (T, 2) or (N, T, 2) a known displacement (u, v) px of every frame added
+                to the warp (the specimen's shared motion, :mod:`torch_stsdic.shared_motion`);
+                the parameters then describe the motion *besides* it. None: none.
         """
         grid, offset = snap_points(points)
         if bool((offset != 0).any()):  # off the pixel grid: solve on it, carry the result
             sol = self.solve(ref, frames, grid, dt, frame_index=frame_index,
                              ref_index=ref_index, init=init, ref_pixels=ref_pixels,
-                             frame_pixels=frame_pixels, time=time, noise_ratio=noise_ratio)
+                             frame_pixels=frame_pixels, time=time, noise_ratio=noise_ratio,
+                             motion=motion)
             return carry_solution(sol, points, offset)
         cfg = self.config
         device, dtype = points.device, points.dtype
         n = points.shape[0]
         dt, frame_index, ref_index = _per_point(points, dt, frame_index, ref_index)
         t_count = dt.shape[-1]
+        motion = _per_point_motion(motion, n, t_count, points)
         shape = self.shape_for(dt)
         p_count = shape.n_params
         half = float(self.window.half)
@@ -216,7 +222,7 @@ class SubsetSolver:
             if plan is not None:
                 return self._solve_seeded(
                     plan, ref, frames, points, dt, frame_index, ref_index, ref_pixels,
-                    frame_pixels, time, inside, noise_ratio,
+                    frame_pixels, time, inside, noise_ratio, motion,
                 )
             p0 = torch.zeros(n, p_count, dtype=dtype, device=device)
             t_fft = _clock(device)
@@ -224,6 +230,7 @@ class SubsetSolver:
                 p0[inside] = self.initial_guess(
                     shape, ref_pixels, frame_pixels, points[inside], dt[inside],
                     frame_index[inside], ref_index[inside],
+                    motion=None if motion is None else motion[inside],
                 )
             t_fft = _clock(device) - t_fft
         else:
@@ -247,7 +254,8 @@ class SubsetSolver:
         for s0 in range(0, todo.numel(), batch):
             idx = todo[s0 : s0 + batch]
             pr, zr, sr, ir, p1, sd, sg = solve_batch(
-                ctx, points[idx], p0[idx], dt[idx], frame_index[idx], ref_index[idx]
+                ctx, points[idx], p0[idx], dt[idx], frame_index[idx], ref_index[idx],
+                None if motion is None else motion[idx],
             )
             params[idx], zncc[idx], status[idx], iters[idx] = pr, zr, sr, ir
             first_stage[idx], std[idx], sigma[idx] = p1, sd, sg
@@ -292,7 +300,7 @@ class SubsetSolver:
         return idx, cell, seeds
 
     def _solve_seeded(self, plan, ref, frames, points, dt, frame_index, ref_index, ref_pixels,
-                      frame_pixels, time, inside, noise_ratio) -> WindowSolution:
+                      frame_pixels, time, inside, noise_ratio, motion=None) -> WindowSolution:
         """Seeds by FFT cross-correlation and Gauss-Newton; every other POI starts from its
         cell's seed solution (:func:`carry_from_seed`); POIs that then fail (not converged, or
         ZNCC more than 0.1 below the best of their cell) are solved again from FFT cross-correlation
@@ -301,17 +309,22 @@ class SubsetSolver:
         n = points.shape[0]
         shape = self.shape_for(dt)
 
+        def rows_of(a, rows):
+            return None if a is None else a[rows]
+
         def sub(rows, init):
             return self.solve(ref, frames, points[rows], dt[rows], frame_index=frame_index[rows],
                               ref_index=ref_index[rows], init=init, ref_pixels=ref_pixels,
-                              frame_pixels=frame_pixels, time=time, noise_ratio=noise_ratio)
+                              frame_pixels=frame_pixels, time=time, noise_ratio=noise_ratio,
+                              motion=rows_of(motion, rows))
 
         fft_s = [0.0]
 
         def fft(rows):
             t0 = _clock(points.device)
             p0 = self.initial_guess(shape, ref_pixels, frame_pixels, points[rows], dt[rows],
-                                    frame_index[rows], ref_index[rows])
+                                    frame_index[rows], ref_index[rows],
+                                    motion=rows_of(motion, rows))
             fft_s[0] += _clock(points.device) - t0
             return p0
 
@@ -393,10 +406,11 @@ class SubsetSolver:
         )
 
     def initial_guess(
-        self, shape, ref_pixels, frame_pixels, points, dt, frame_index, ref_index
+        self, shape, ref_pixels, frame_pixels, points, dt, frame_index, ref_index, motion=None
     ) -> torch.Tensor:
         """FFT cross-correlation on every frame of each POI's window, then a line in time:
-        (N, P) parameters (displacement at dt = 0 and velocity; gradients zero)."""
+        (N, P) parameters (displacement at dt = 0 and velocity; gradients zero) of the motion
+        besides the known ``motion`` (N, T, 2) (None: none)."""
         cfg = self.config
         d, score = fft_cross_correlation(
             ref_pixels, frame_pixels, points, cfg.subset_size, cfg.search_radius,
@@ -410,6 +424,8 @@ class SubsetSolver:
                                         frame_index, ref_index, cfg.subset_size,
                                         cfg.search_radius)
         d = d.to(points.dtype)
+        if motion is not None:
+            d = d - motion.to(d)
         p0 = torch.zeros(points.shape[0], shape.n_params, dtype=points.dtype,
                          device=points.device)
         k = shape.n_basis
@@ -481,6 +497,23 @@ def _per_point(points: torch.Tensor, dt: torch.Tensor, frame_index: torch.Tensor
     if ref_index is None:
         return dt, frame_index, torch.zeros(n, dtype=torch.long, device=device)
     return dt, frame_index, ref_index.to(device).long().expand(n)
+
+
+def _per_point_motion(motion: torch.Tensor | None, n: int, t_count: int,
+                      points: torch.Tensor) -> torch.Tensor | None:
+    """Each POI's known motion (N, T, 2) from (T, 2) or (N, T, 2), in the points' dtype
+    (None: none)."""
+    if motion is None:
+        return None
+    motion = torch.as_tensor(motion).to(device=points.device, dtype=points.dtype)
+    if motion.dim() == 2:
+        motion = motion.unsqueeze(0).expand(n, -1, -1)
+    if tuple(motion.shape) != (n, t_count, 2):
+        raise ValueError(f"motion must be (T, 2) or (N, T, 2) = ({n}, {t_count}, 2), got "
+                         f"{tuple(motion.shape)}")
+    if not bool(torch.isfinite(motion).all()):
+        raise ValueError("motion has NaN or infinite values")
+    return motion.contiguous()
 
 
 def _inside(points: torch.Tensor, half: float, h: int, w: int) -> torch.Tensor:

@@ -48,7 +48,8 @@ def frame_residuals(geo: Geometry, frames: BSplineImage, data: SubsetData, p: Te
     """(N, T) weighted residual variance of every frame of the joint criterion at ``p``:
     ``sum_s w e_t,s^2 / sum_s w`` with ``e_t = f~ - (|f~| / |g~_t|) g~_t`` (ZNSSD) or
     ``f - g_t`` (SSD), grey levels^2."""
-    xs, ys = geo.shape.warp(p, data.px, data.py, geo.dx, geo.dy, geo.spatial, data.dt)
+    xs, ys = geo.shape.warp(p, data.px, data.py, geo.dx, geo.dy, geo.spatial, data.dt,
+                            data.motion)
     g = frames.sample(xs, ys, frame=data.fidx.unsqueeze(-1))
     w = geo.w
     if geo.znssd:
@@ -94,6 +95,8 @@ def noise_model(geo: Geometry, residual: Tensor, p: Tensor, data: SubsetData, rh
     u, v = geo.shape.displacement(p, geo.shape.spatial_basis(zero, zero), data.dt)
     x = (data.px + u[..., 0]).double()  # the POI centre in every frame, px
     y = (data.py + v[..., 0]).double()
+    if data.motion is not None:
+        x, y = x + data.motion[..., 0].double(), y + data.motion[..., 1].double()
     c = interpolation_variance_factor(x, y, order).to(residual)
     sig_g = residual.mean(1) / dof / (rho + c.mean(1))
     return NoiseModel(ref=rho * sig_g, frame=sig_g)

@@ -401,8 +401,8 @@ void ic_rhs_range(const T* flat, const Geo& g, int64_t i0, int64_t i1, int64_t n
                   int64_t ks, int64_t k, bool has_time, bool znssd, const T* p, const T* px,
                   const T* py, const T* dx, const T* dy, const T* basis, const T* dt,
                   const int64_t* frame_off, const T* ft, const T* fnorm, const T* fgx,
-                  const T* fgy, const T* w, const int64_t* rows, double w_img, double h,
-                  double* b, T* zn, uint8_t* outside) {
+                  const T* fgy, const T* w, const int64_t* rows, const T* motion,
+                  double w_img, double h, double* b, T* zn, uint8_t* outside) {
   const int64_t np = 2 * k;
   std::vector<T> dxu(ns), dyv(ns), gv(ns), ex(ns), ey(ns), fxs(ns), fys(ns), bt(ks * ns);
   std::vector<int32_t> idx(ns);
@@ -447,7 +447,11 @@ void ic_rhs_range(const T* flat, const Geo& g, int64_t i0, int64_t i1, int64_t n
     const double fn = double(fnorm[i]);
     for (int64_t t = 0; t < nt; ++t) {
       const double dti = double(dt[i * nt + t]);
-      const double ox = double(px[i]) + ut * dti, oy = double(py[i]) + vt * dti;
+      double ox = double(px[i]) + ut * dti, oy = double(py[i]) + vt * dti;
+      if (motion) {  // the known (shared) motion of this row's frame t
+        ox += double(motion[(i * nt + t) * 2]);
+        oy += double(motion[(i * nt + t) * 2 + 1]);
+      }
       out_i = out_i || ox + xmn < 0 || ox + xmx > w_img - 1 || oy + ymn < 0 ||
               oy + ymx > h - 1;
       sample_points<T, ORDER>(flat + frame_off[i * nt + t], g, T(ox), T(oy), dxu.data(),
@@ -544,24 +548,25 @@ STS_KERNEL(sts_gram, (int64_t i0, int64_t i1, int64_t ns, int64_t ks, const T* g
 
 // The joint IC-GN right-hand side b (M, 2k) in double, the mean ZNCC zn and the outside flag
 // of the rows j in [i0, i1) of p (see ic_rhs_range); rows[j] is row j's per-point data row
-// (rows null: row j).
+// (rows null: row j); motion (N, T, 2) a known displacement (u, v) added to the warp of each
+// data row's frame t (the shared motion of the specimen; null: none).
 STS_KERNEL(sts_ic_rhs, (const T* flat, int64_t wp, double x_lo, double x_hi, double y_lo,
                         double y_hi, int64_t shift, int order, int64_t i0, int64_t i1,
                         int64_t nt, int64_t ns, int64_t ks, int64_t k, int has_time, int znssd,
                         const T* p, const T* px, const T* py, const T* dx, const T* dy,
                         const T* basis, const T* dt, const int64_t* frame_off, const T* ft,
                         const T* fnorm, const T* gx, const T* gy, const T* w,
-                        nullable<const int64_t> rows, double w_img, double h, double* b, T* zn,
-                        uint8_t* outside)) {
+                        nullable<const int64_t> rows, nullable<const T> motion, double w_img,
+                        double h, double* b, T* zn, uint8_t* outside)) {
   const Geo g{wp, x_lo, x_hi, y_lo, y_hi, shift};
   if (order == 3) {
     ic_rhs_range<T, 3>(flat, g, i0, i1, nt, ns, ks, k, has_time, znssd, p, px, py, dx, dy,
-                       basis, dt, frame_off, ft, fnorm, gx, gy, w, rows, w_img, h, b, zn,
-                       outside);
+                       basis, dt, frame_off, ft, fnorm, gx, gy, w, rows, motion, w_img, h, b,
+                       zn, outside);
   } else if (order == 5) {
     ic_rhs_range<T, 5>(flat, g, i0, i1, nt, ns, ks, k, has_time, znssd, p, px, py, dx, dy,
-                       basis, dt, frame_off, ft, fnorm, gx, gy, w, rows, w_img, h, b, zn,
-                       outside);
+                       basis, dt, frame_off, ft, fnorm, gx, gy, w, rows, motion, w_img, h, b,
+                       zn, outside);
   } else {
     return 1;
   }

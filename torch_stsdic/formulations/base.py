@@ -101,6 +101,8 @@ class SubsetData:
         gram: (N, P', P') the centred moments of the reference gradients
             (:func:`~torch_stsdic.formulations.joint_ic.centred_gram`) when computed once for
             both the Hessian and the uncertainty.
+        motion: (N, T, 2) known displacement (u, v) px of every frame added to the warp (the
+            specimen's shared motion, :mod:`torch_stsdic.shared_motion`), or None.
     """
 
     px: Tensor
@@ -113,6 +115,7 @@ class SubsetData:
     gy: Tensor
     chol: Tensor | None = None
     gram: Tensor | None = None
+    motion: Tensor | None = None
 
     def take(self, idx: Tensor) -> SubsetData:
         """The rows ``idx`` (index or boolean mask)."""
@@ -122,7 +125,7 @@ class SubsetData:
 
 
 def reference_subsets(geo: Geometry, ref: BSplineImage, pts: Tensor, ridx: Tensor,
-                      dt: Tensor, fidx: Tensor) -> SubsetData:
+                      dt: Tensor, fidx: Tensor, motion: Tensor | None = None) -> SubsetData:
     """Sample the reference subsets of POIs ``pts`` (N, 2) in reference images ``ridx`` (N,)
     with gradients and normalise them for the criterion. Differentiable in the reference
     pixels and the points when they require gradients (the native kernels are then skipped)."""
@@ -130,7 +133,8 @@ def reference_subsets(geo: Geometry, ref: BSplineImage, pts: Tensor, ridx: Tenso
     f, gx, gy = ref.sample_subsets(px, py, geo.dx, geo.dy, frame=ridx)
     ft = geo.centred(f)
     fnorm = wsum(ft * ft, geo.w).sqrt()
-    return SubsetData(px=px, py=py, dt=dt, fidx=fidx, ft=ft, fnorm=fnorm, gx=gx, gy=gy)
+    return SubsetData(px=px, py=py, dt=dt, fidx=fidx, ft=ft, fnorm=fnorm, gx=gx, gy=gy,
+                      motion=motion)
 
 
 class Formulation:

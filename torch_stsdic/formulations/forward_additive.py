@@ -31,7 +31,8 @@ def _sample_warped(geo: Geometry, frames: BSplineImage, data: SubsetData, p: Ten
                    work: int | None = None):
     """Values and gradients (each (N, T, S)) of the frames at the warped subsets, and the
     outside flag (N,)."""
-    xs, ys = geo.shape.warp(p, data.px, data.py, geo.dx, geo.dy, geo.spatial, data.dt)
+    xs, ys = geo.shape.warp(p, data.px, data.py, geo.dx, geo.dy, geo.spatial, data.dt,
+                            data.motion)
     outside = (
         (xs.amin(dim=(1, 2)) < 0) | (xs.amax(dim=(1, 2)) > frames.width - 1)
         | (ys.amin(dim=(1, 2)) < 0) | (ys.amax(dim=(1, 2)) > frames.height - 1)

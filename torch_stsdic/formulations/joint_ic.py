@@ -31,12 +31,16 @@ __all__ = ["JointIC", "ic_rhs_kernel", "gram", "centred_gram", "ic_hessian", "ic
 def ic_rhs_kernel(flat, p, px, py, dx, dy, spatial_t, dt, frame_off, ft, fnorm, gx, gy, w,
                   wp: int, x_lo: float, x_hi: float, y_lo: float, y_hi: float, shift: int,
                   w_img: int, h: int, ks: int, k: int, has_time: bool, znssd: bool,
-                  order: int):
+                  order: int, motion=None):
     """F(p) = sum_t J_t^T W e_t (N, P), per-frame-mean ZNCC (N,) and the outside flag (N,):
     warp (Eq. 9), sample, criterion and reduction in one function of plain tensor code, so
     torch.compile can fuse it into a few loops over (N, T, S) without temporaries. The fused
-    C++ kernel (``native.ic_rhs``) computes the same; the tests compare the two."""
+    C++ kernel (``native.ic_rhs``) computes the same; the tests compare the two. ``motion``
+    (N, T, 2): a known displacement added to the warp of every frame (None: none)."""
     u, v = linear_displacement(p, spatial_t, dt, ks, k, has_time)
+    if motion is not None:
+        u = u + motion[..., 0:1]
+        v = v + motion[..., 1:2]
     xs = (px.unsqueeze(-1) + dx + u).expand(-1, dt.shape[1], -1)
     ys = (py.unsqueeze(-1) + dy + v).expand(-1, dt.shape[1], -1)
     outside = (
@@ -142,8 +146,9 @@ class JointIC(Formulation):
         return info > 0
 
     def uses_fused_kernel(self, frames: BSplineImage, data: SubsetData, p: Tensor) -> bool:
-        return native.usable_image(frames.kernel_args(), p, data.ft) or self._triton(
-            frames, data, p)
+        # the Triton step has no shared-motion term: the torch code serves those calls
+        return native.usable_image(frames.kernel_args(), p, data.ft) or (
+            data.motion is None and self._triton(frames, data, p))
 
     @staticmethod
     def _triton(frames: BSplineImage, data: SubsetData, p: Tensor) -> bool:
@@ -156,17 +161,21 @@ class JointIC(Formulation):
         return (flat, p, data.px, data.py, geo.dx, geo.dy, geo.spatial.T.contiguous(), data.dt,
                 data.fidx * plane, data.ft, data.fnorm, data.gx, data.gy, geo.w, wp, x_lo,
                 x_hi, y_lo, y_hi, shift, frames.width, frames.height, geo.ks, geo.k,
-                geo.shape.has_time, geo.znssd, frames.order)
+                geo.shape.has_time, geo.znssd, frames.order, data.motion)
 
     def step(self, geo: Geometry, frames: BSplineImage, data: SubsetData, p: Tensor,
              work: int, sel: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
         if sel is not None:
             ka = frames.kernel_args()
-            fused = native.ic_rhs if native.usable_image(ka, p, data.ft) else kernels.ic_rhs
+            extra = {}
+            if native.usable_image(ka, p, data.ft):
+                fused, extra = native.ic_rhs, {"motion": data.motion}
+            else:
+                fused = kernels.ic_rhs
             b, zn, outside = fused(
                 ka, frames.order, p, data.px, data.py, geo.dx, geo.dy, geo.spatial, data.dt,
                 data.fidx * ka[-1], data.ft, data.fnorm, data.gx, data.gy, geo.w, frames.width,
-                frames.height, geo.k, geo.shape.has_time, geo.znssd, rows=sel,
+                frames.height, geo.k, geo.shape.has_time, geo.znssd, rows=sel, **extra,
             )
             dp = -torch.cholesky_solve(b.unsqueeze(-1), data.chol[sel]).squeeze(-1)
             return dp.to(p.dtype), zn, outside

@@ -98,10 +98,11 @@ def subsets(img_args: tuple, order: int, px, py, dx, dy, frame_off, grad: bool):
 
 def ic_rhs(img_args: tuple, order: int, p, px, py, dx, dy, basis, dt, frame_off, ft, fnorm,
            gx, gy, w, w_img: int, h: int, k: int, has_time: bool, znssd: bool,
-           rows: torch.Tensor | None = None):
+           rows: torch.Tensor | None = None, motion: torch.Tensor | None = None):
     """Native twin of formulations.joint_ic.ic_rhs_kernel. Shapes: p (M, 2k), px/py (N, 1) or (N,),
     dx/dy/w (S,), basis (S, Ks), dt and frame_off (N, T), ft/gx/gy (N, S), fnorm (N,);
-    ``rows`` (M,) picks the per-point data rows of p's rows (default: M = N, row j = j).
+    ``rows`` (M,) picks the per-point data rows of p's rows (default: M = N, row j = j);
+    ``motion`` (N, T, 2) a known displacement added to each row's warp of frame t (None: none).
     Returns b (M, 2k) float64, per-POI mean ZNCC (M,) and the outside flag (M,) bool."""
     flat = img_args[0].contiguous()
     dtype = flat.dtype
@@ -123,6 +124,8 @@ def ic_rhs(img_args: tuple, order: int, p, px, py, dx, dy, basis, dt, frame_off,
                  f"rows must be (M,) = ({n},) indices into the {big_n} points")
     frame_off = frame_off.to(torch.int64).contiguous()
     _check_planes("ic_rhs", img_args, frame_off)
+    _require("ic_rhs", motion is None or tuple(motion.shape) == (big_n, nt, 2),
+             f"motion must be (N, T, 2) = ({big_n}, {nt}, 2)")
 
     def c(t):
         return t.to(dtype).contiguous()
@@ -137,6 +140,7 @@ def ic_rhs(img_args: tuple, order: int, p, px, py, dx, dy, basis, dt, frame_off,
                    frame_off=frame_off, ft=c(ft),
                    fnorm=c(fnorm.reshape(-1)), gx=c(gx), gy=c(gy), w=c(w),
                    rows=None if rows is None else rows.to(torch.int64).contiguous(),
+                   motion=None if motion is None else c(motion),
                    w_img=float(w_img), h=float(h), b=b, zn=zn, outside=out))
     return b, zn, out.bool()
 

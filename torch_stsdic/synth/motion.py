@@ -204,6 +204,68 @@ class Rotation(Motion):
         return f"Rotation(rate={self.rate}, center={self.center})"
 
 
+class RigidJitter(Motion):
+    """A rigid motion of the whole field of view per frame: the shake of a specimen (or a
+    camera) between frames. At time ``times[k]`` the translation is ``(tx[k], ty[k])`` px and
+    the rotation ``angle[k]`` rad about ``center`` (exact, not small-angle); at any other
+    time that of the nearest listed time. Add it to a smooth deformation
+    (``HomogeneousStrain(...) + RigidJitter.random(...)``) for a movie that jitters the way
+    real ones do. Its velocity is reported as zero (a jitter has no smooth velocity).
+    """
+
+    def __init__(self, times: ArrayLike, tx: ArrayLike, ty: ArrayLike,
+                 angle: ArrayLike | None = None, center: tuple[float, float] = (0.0, 0.0)):
+        self.times = as_float64(times).reshape(-1)
+        self.tx, self.ty = as_float64(tx).reshape(-1), as_float64(ty).reshape(-1)
+        self.angle = (torch.zeros_like(self.tx) if angle is None
+                      else as_float64(angle).reshape(-1))
+        if not (self.times.numel() == self.tx.numel() == self.ty.numel()
+                == self.angle.numel()) or self.times.numel() == 0:
+            raise ValueError("RigidJitter: times, tx, ty, angle must have one value per frame")
+        self.center = (float(center[0]), float(center[1]))
+
+    @classmethod
+    def random(cls, times: ArrayLike, shift_std: float, angle_std: float = 0.0,
+               center: tuple[float, float] = (0.0, 0.0), seed: int = 0,
+               still: float | None = 0.0) -> RigidJitter:
+        """Independent Gaussian jitter per frame: translation std ``shift_std`` px per axis,
+        rotation std ``angle_std`` rad; the frame at time ``still`` (default 0, the usual
+        reference) does not move (None: every frame jitters)."""
+        t = as_float64(times).reshape(-1)
+        g = torch.Generator().manual_seed(int(seed))
+        tx = torch.randn(t.numel(), generator=g, dtype=DTYPE) * shift_std
+        ty = torch.randn(t.numel(), generator=g, dtype=DTYPE) * shift_std
+        an = torch.randn(t.numel(), generator=g, dtype=DTYPE) * angle_std
+        if still is not None:
+            at = (t - float(still)).abs() < 1e-9
+            tx[at], ty[at], an[at] = 0.0, 0.0, 0.0
+        return cls(t, tx, ty, an, center)
+
+    def _at(self, t: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        k = (t.unsqueeze(-1) - self.times).abs().argmin(-1)
+        return self.tx[k], self.ty[k], self.angle[k]
+
+    def displacement(self, x, y, t):
+        x, y, t = self._shape(x, y, t)
+        tx, ty, th = self._at(t)
+        dx, dy = x - self.center[0], y - self.center[1]
+        c, s = torch.cos(th), torch.sin(th)
+        return (c - 1) * dx - s * dy + tx, s * dx + (c - 1) * dy + ty
+
+    def gradient(self, x, y, t):
+        x, y, t = self._shape(x, y, t)
+        _, _, th = self._at(t)
+        c, s = torch.cos(th), torch.sin(th)
+        return c - 1, -s, s.clone(), c - 1
+
+    def velocity(self, x, y, t):
+        x, y, t = self._shape(x, y, t)
+        return _zeros_like(x), _zeros_like(x)
+
+    def __repr__(self) -> str:
+        return f"RigidJitter({self.times.numel()} frames, center={self.center})"
+
+
 class QuadraticInTime(_Uniform):
     """Uniform motion, quadratic in time (constant acceleration).
 

@@ -1,0 +1,309 @@
+"""Shared motion: the per-frame affine motion of the whole specimen, carried as a known term in
+every window.
+
+Real movies are not smooth in time the way a render is: the specimen (or the camera) shakes
+as a whole by a fraction of a pixel from frame to frame, and machines move in load steps. A
+window of 2m+1 frames with a displacement affine in time cannot describe such a jitter, so the
+model check rejects it and the point falls back to classical DIC. But the jitter is the *same*
+motion for every point: a rigid (or affine) motion of the whole field of view per frame. It is
+measured once, from all points together, and carried as a known term:
+
+    U(x, t) = G_t(x) + D(x, t),     G_t(x) = a_t + B_t (x - x0)
+
+``G_t`` (6 numbers per frame: translation ``a_t`` and the 2x2 gradient ``B_t``) is fitted
+robustly (Huber IRLS) to the classical displacements of a sample of points at every frame
+(:func:`estimate_shared_motion`: one classical pass over the frames at up to ``max_points``
+POIs), so outliers, lost points and background move it by at most a bounded share. ``D``, the
+deformation, is what the STS window has to describe; it is smooth in time even where ``G``
+jitters. In a window of target frame ``k``, the known part of frame ``t`` is the jitter of
+``G`` about its own line through the window (:func:`window_offsets`):
+
+    o_t(x_i) = G_t(x_i) - G_k(x_i) - beta_i (t - t_k)      (beta_i: the window's LS slope of G)
+
+added to the warp of frame ``t`` (``SubsetSolver.solve(..., motion=)``), so the window's
+parameters keep their meaning (u, v: the total displacement at the target frame; ut, vt: the
+smooth velocity) and a window where ``G`` moves affinely in time is solved exactly as without
+it (o = 0). Within a subset only the translation of ``o`` at the POI is carried: the jitter's
+own rotation moves a subset's edge by ``|B_t - line| * half`` (1e-3 rad: 0.01 px at 10 px),
+a zero-mean misfit that the window's gradients cannot absorb but that does not bias u, v.
+
+The estimate's own error is the classical noise over the sample, ``sigma_c * sqrt(3 / n)`` for
+n points (0.04 sigma_c at 2,000 points), far below the window's error.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+__all__ = ["SharedMotion", "SHARED_MOTION_KINDS", "fit_frame_motion", "window_offsets",
+           "estimate_shared_motion", "set_shared_motion", "sample_points",
+           "DEFAULT_MAX_POINTS"]
+
+#: kinds of shared motion: a translation per frame (2 numbers) or an affine motion (6)
+SHARED_MOTION_KINDS = ("translation", "affine")
+#: POIs of the classical pass that measures the shared motion
+DEFAULT_MAX_POINTS = 2000
+_HUBER = 2.0  # Huber threshold in robust (MAD) standard deviations
+_IRLS_STEPS = 8
+_MIN_POINTS = 8  # fewer usable points in a frame: no estimate there (interpolated)
+
+
+@dataclass
+class SharedMotion:
+    """The shared (whole-specimen) motion of every series frame relative to the reference.
+
+    Attributes:
+        kind: "translation" or "affine".
+        params: (T_series, 6) float64 per frame: a_x, a_y (px, the displacement at
+            ``origin``), b_xx, b_xy, b_yx, b_yy (px/px: du/dx, du/dy, dv/dx, dv/dy); zeros for
+            "translation" gradients. Frames not measured: interpolated in time.
+        origin: (2,) x0, y0 px, the point the translation refers to (centre of the POIs).
+        scatter: (T_series,) robust std (px) of the points about the fitted motion (NaN where
+            not measured): the deformation plus the noise.
+        points: (T_series,) points that carried the fit per frame.
+        measured: (T_series,) bool, frames with their own estimate.
+        seconds: wall time of the measurement.
+    """
+
+    kind: str
+    params: np.ndarray
+    origin: np.ndarray
+    scatter: np.ndarray
+    points: np.ndarray
+    measured: np.ndarray
+    seconds: float = 0.0
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def displacement(self, points: Tensor, frames: Tensor) -> Tensor:
+        """(K, N, 2) the shared motion's displacement (u, v) px at ``points`` (N, 2) px in
+        series frames ``frames`` (K,), in the points' dtype and device."""
+        p = torch.as_tensor(self.params, dtype=torch.float64)[frames.long().cpu()]  # (K, 6)
+        p = p.to(device=points.device)
+        d = points.double() - torch.as_tensor(self.origin, dtype=torch.float64,
+                                              device=points.device)
+        u = p[:, 0:1] + p[:, 2:3] * d[:, 0] + p[:, 3:4] * d[:, 1]
+        v = p[:, 1:2] + p[:, 4:5] * d[:, 0] + p[:, 5:6] * d[:, 1]
+        return torch.stack([u, v], -1).to(points.dtype)
+
+    @property
+    def rotation(self) -> np.ndarray:
+        """(T_series,) small-angle rotation per frame, rad ((dv/dx - du/dy) / 2)."""
+        return 0.5 * (self.params[:, 4] - self.params[:, 3])
+
+    def jitter(self) -> np.ndarray:
+        """(T_series,) px, the frame-to-frame jitter of the translation: |second difference|
+        / sqrt(6) (a smooth motion gives ~0; independent jitter of std s gives ~s)."""
+        a = self.params[:, :2]
+        out = np.full(len(a), np.nan)
+        if len(a) >= 3:
+            d2 = a[2:] - 2 * a[1:-1] + a[:-2]
+            out[1:-1] = np.linalg.norm(d2, axis=1) / np.sqrt(6.0)
+        return out
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-friendly record for ``TrackResult.info["shared_motion"]`` (per-frame arrays
+        as lists, so the result file and ``TrackResult.shared_motion`` carry them)."""
+        jit = self.jitter()
+        fin = jit[np.isfinite(jit)]
+        return {
+            "kind": self.kind,
+            "origin": [float(x) for x in self.origin],
+            "params": np.round(self.params, 9).tolist(),
+            "scatter": [None if not np.isfinite(s) else round(float(s), 6)
+                        for s in self.scatter],
+            "points": [int(n) for n in self.points],
+            "measured": [bool(b) for b in self.measured],
+            "jitter_px_median": round(float(np.median(fin)), 6) if fin.size else None,
+            "jitter_px_max": round(float(np.max(fin)), 6) if fin.size else None,
+            "seconds": round(self.seconds, 3),
+            **self.extra,
+        }
+
+    @classmethod
+    def from_summary(cls, rec: dict[str, Any]) -> SharedMotion:
+        """The inverse of :meth:`summary`."""
+        known = {"kind", "origin", "params", "scatter", "points", "measured", "seconds",
+                 "jitter_px_median", "jitter_px_max"}
+        return cls(kind=rec["kind"], params=np.asarray(rec["params"], dtype=np.float64),
+                   origin=np.asarray(rec["origin"], dtype=np.float64),
+                   scatter=np.array([np.nan if s is None else s for s in rec["scatter"]],
+                                    dtype=np.float64),
+                   points=np.asarray(rec["points"], dtype=np.int64),
+                   measured=np.asarray(rec["measured"], dtype=bool),
+                   seconds=float(rec.get("seconds", 0.0)),
+                   extra={k: v for k, v in rec.items() if k not in known})
+
+
+def fit_frame_motion(points: Tensor, disp: Tensor, valid: Tensor, kind: str = "affine",
+                     origin: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+    """Robust per-frame fit of a shared motion to measured displacements.
+
+    Args:
+        points: (N, 2) POIs (x, y) px.
+        disp: (F, N, 2) displacements (u, v) px of every point in every frame.
+        valid: (F, N) bool, the measurements to use (NaN displacements are never used).
+        kind: "translation" or "affine".
+        origin: (2,) the point the translation refers to (default: the points' mean).
+
+    Returns:
+        params (F, 6) float64 (a_x, a_y, b_xx, b_xy, b_yx, b_yy; NaN where a frame has fewer
+        than 8 valid points), robust scatter (F,) px, points used (F,).
+    """
+    if kind not in SHARED_MOTION_KINDS:
+        raise ValueError(f"shared motion kind must be one of {SHARED_MOTION_KINDS}, got "
+                         f"{kind!r}")
+    p = points.double()
+    d = disp.double()
+    ok = valid.bool() & torch.isfinite(d).all(-1)
+    o = p.mean(0) if origin is None else torch.as_tensor(origin, dtype=torch.float64,
+                                                          device=p.device)
+    rel = p - o
+    scale = float(rel.abs().max().clamp(min=1.0))  # conditioning: columns of order 1
+    cols = [torch.ones_like(rel[:, 0])]
+    if kind == "affine":
+        cols += [rel[:, 0] / scale, rel[:, 1] / scale]
+    x = torch.stack(cols, 1)  # (N, C)
+    f, c = d.shape[0], x.shape[1]
+    d0 = torch.where(ok.unsqueeze(-1), d, torch.zeros_like(d))
+    w = ok.double()
+    eye = 1e-12 * torch.eye(c, dtype=torch.float64, device=p.device)
+    coef = torch.zeros(f, c, 2, dtype=torch.float64, device=p.device)
+    s = torch.full((f,), float("nan"), dtype=torch.float64, device=p.device)
+    for _ in range(_IRLS_STEPS):
+        xw = x.unsqueeze(0) * w.unsqueeze(-1)  # (F, N, C)
+        a = xw.transpose(1, 2) @ x + eye  # (F, C, C)
+        b = xw.transpose(1, 2) @ d0  # (F, C, 2)
+        coef = torch.linalg.solve(a, b)
+        r = (d0 - x @ coef).norm(dim=-1)  # (F, N)
+        rr = torch.where(ok, r, torch.nan)
+        # 2-D residuals of std s per component: |r| is Rayleigh, median 1.1774 s
+        s = torch.nanmedian(rr, dim=1).values / 1.1774
+        k = (_HUBER * s).clamp(min=1e-6).unsqueeze(1)
+        w = torch.where(ok, torch.clamp(k / r.clamp(min=1e-12), max=1.0), torch.zeros_like(r))
+    used = ok.sum(1)
+    out = torch.zeros(f, 6, dtype=torch.float64, device=p.device)
+    out[:, 0], out[:, 1] = coef[:, 0, 0], coef[:, 0, 1]
+    if kind == "affine":
+        out[:, 2], out[:, 3] = coef[:, 1, 0] / scale, coef[:, 2, 0] / scale
+        out[:, 4], out[:, 5] = coef[:, 1, 1] / scale, coef[:, 2, 1] / scale
+    few = used < _MIN_POINTS
+    out[few] = float("nan")
+    s = torch.where(few, torch.nan, s)
+    return out, s, used
+
+
+def window_offsets(g: Tensor, dt: Tensor) -> Tensor:
+    """The known motion of every frame of a window: the shared motion's jitter about its own
+    line through the window (module docstring).
+
+    Args:
+        g: (..., T, 2) the shared motion's displacement at a point in the window's T frames.
+        dt: (..., T) frame times minus the target's (0 at the target frame).
+
+    Returns:
+        (..., T, 2) ``o_t = g_t - g_k - beta dt_t`` (``beta`` the least-squares slope of g over
+        the window; ``g_k`` its value at dt = 0), 0 where the window has one frame."""
+    dt = dt.to(g.dtype)
+    t_count = dt.shape[-1]
+    if t_count < 2:
+        return torch.zeros_like(g)
+    dc = dt - dt.mean(-1, keepdim=True)
+    den = (dc * dc).sum(-1, keepdim=True).clamp(min=1e-30)
+    beta = ((dc.unsqueeze(-1) * (g - g.mean(-2, keepdim=True))).sum(-2)
+            / den)  # (..., 2)
+    at0 = (dt == 0).to(g.dtype)
+    has0 = at0.sum(-1, keepdim=True) > 0
+    g_k = (g * at0.unsqueeze(-1)).sum(-2) / at0.sum(-1, keepdim=True).clamp(min=1)
+    line0 = g.mean(-2) - beta * dt.mean(-1, keepdim=True)  # the line's value at dt = 0
+    g_k = torch.where(has0, g_k, line0)
+    return g - g_k.unsqueeze(-2) - beta.unsqueeze(-2) * dt.unsqueeze(-1)
+
+
+def sample_points(points: Tensor, max_points: int) -> Tensor:
+    """(n,) indices of at most ``max_points`` of the POIs, spread evenly over them."""
+    n = points.shape[0]
+    if n <= max_points:
+        return torch.arange(n)
+    return torch.linspace(0, n - 1, int(max_points)).round().long().unique()
+
+
+def _fill(params: np.ndarray, times: np.ndarray) -> np.ndarray:
+    """Frames without an estimate (NaN rows) linearly interpolated in time (constant at
+    the ends; zero where no frame has one)."""
+    out = params.copy()
+    ok = np.isfinite(out).all(1)
+    if not ok.any():
+        return np.zeros_like(out)
+    for j in range(out.shape[1]):
+        out[~ok, j] = np.interp(times[~ok], times[ok], out[ok, j])
+    return out
+
+
+def set_shared_motion(plan, kind: str | None = "auto") -> None:
+    """Choose a plan's shared motion (recorded in ``plan.options["shared_motion"]``):
+    ``"auto"`` is "affine" for STS windows (m > 0) without reference updates or smoothing and
+    None (not measured) otherwise; "affine" / "translation" measure it whatever m (with m = 0
+    it is reported, and changes no result); None or "none": not measured."""
+    if kind is None or kind == "none":
+        plan.options["shared_motion"] = None
+        return
+    if kind != "auto" and kind not in SHARED_MOTION_KINDS:
+        raise ValueError(f"shared_motion: must be 'auto', 'none', None or one of "
+                         f"{SHARED_MOTION_KINDS}, got {kind!r}")
+    updating = plan.options.get("reference_update") is not None
+    if kind == "auto":
+        use = plan.config.m > 0 and not updating and not plan.options.get("smoothing")
+        plan.options["shared_motion"] = "affine" if use else None
+        return
+    if updating:
+        raise ValueError("shared_motion: cannot be combined with reference_update (the shared "
+                         "motion is measured against one reference); pass shared_motion=None")
+    plan.options["shared_motion"] = kind
+
+
+def estimate_shared_motion(plan, kind: str = "affine",
+                           max_points: int = DEFAULT_MAX_POINTS) -> SharedMotion:
+    """Measure the shared motion of a run: classical DIC (checks off) of every series frame
+    that a window of the run uses, at up to ``max_points`` of the run's POIs, then
+    :func:`fit_frame_motion` per frame. The reference frame's motion is exactly zero."""
+    from .frames import frames_in_order
+    from .result import USABLE
+    from .series import run_plan  # local: series imports this module
+
+    t0 = time.perf_counter()
+    n_series = len(plan.series)
+    frames = sorted(set(frames_in_order(plan.blocks, plan.config.m, n_series)))
+    sel = sample_points(plan.points, max_points)
+    cfg = plan.config.replace(m=0)
+    opts = {**plan.options, "smoothing": None, "reference_update": None, "checks": False,
+            "shared_motion": None}
+    opts.pop("refine_reference", None)
+    names = tuple(nm for nm in plan.param_names if nm not in ("ut", "vt"))
+    sub = dataclasses.replace(plan, config=cfg, targets=frames, options=opts,
+                              param_names=names, points=plan.points[sel])
+    res = run_plan(sub, progress=False)
+    disp = torch.stack([res.u, res.v], -1).double().cpu()  # (F, n, 2)
+    valid = (res.status <= USABLE).cpu() & (res.zncc.cpu() >= float(
+        plan.options.get("lost_zncc", 0.8)))
+    pts = plan.points[sel].double().cpu()
+    origin = plan.points.double().mean(0).cpu()
+    par, scat, used = fit_frame_motion(pts, disp, valid, kind, origin=origin)
+    params = np.full((n_series, 6), np.nan)
+    scatter = np.full(n_series, np.nan)
+    count = np.zeros(n_series, dtype=np.int64)
+    params[frames] = par.numpy()
+    scatter[frames] = scat.numpy()
+    count[frames] = used.numpy()
+    if 0 <= plan.reference_frame < n_series:  # the reference against itself: exactly 0
+        params[plan.reference_frame] = 0.0
+    measured = np.isfinite(params).all(1)
+    params = _fill(params, np.asarray(plan.times, dtype=np.float64))
+    return SharedMotion(kind=kind, params=params, origin=origin.numpy(), scatter=scatter,
+                        points=count, measured=measured, seconds=time.perf_counter() - t0)
