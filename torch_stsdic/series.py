@@ -87,8 +87,12 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
     run.reference_desc = plan.reference_desc  # its noise ratio is measured on the 1st block
     updates: list[dict[str, Any]] = []
     offsets = None
+    shared = None
     if plan.options.get("shared_motion"):
-        run.shared = estimate_shared_motion(plan, plan.options["shared_motion"])
+        kind = plan.options["shared_motion"]
+        shared = estimate_shared_motion(plan, "affine" if kind == "auto" else kind,
+                                        auto=kind == "auto")
+        run.shared = shared if shared.applied else None
     if plan.options.get("refine_reference"):
         offsets = measure_offsets(plan, int(plan.options["refine_reference"]), run.shared)
     bar = tqdm(total=plan.n_rows, unit="frame", file=sys.stderr, disable=not progress,
@@ -110,8 +114,8 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
         }
         if offsets is not None:
             info["refine_reference"] = offsets.summary()
-        if run.shared is not None:
-            info["shared_motion"] = run.shared.summary()
+        if shared is not None:
+            info["shared_motion"] = shared.summary()
         if plan.options.get("smoothing"):
             info["smoothing"] = plan.options["smoothing"]
         result = sink.result(info)
