@@ -57,6 +57,7 @@ from .config import DICConfig
 from .formulations import Geometry, reference_subsets
 from .interpolation import BSplineImage
 from .offgrid import carry_params, carry_solution, snap_points
+from .shared_motion import window_offsets
 from .solver import SubsetSolver, WindowSolution
 from .status import Status
 
@@ -127,6 +128,7 @@ class _Problem:
     grad_dtype: torch.dtype | None
     report: dict
     solution: WindowSolution | None = None
+    motion: Tensor | None = None  # (N, T, 2) known motion of every frame (window offsets)
 
 
 def _jacobian(f: Tensor, p: Tensor) -> Tensor:
@@ -190,7 +192,8 @@ def _implicit_vjp(
     order = solver.config.interpolation_order
     ref_img = BSplineImage(ref_l, order=order)
     frm_img = BSplineImage(frm_l, order=order)
-    data = reference_subsets(geo, ref_img, pts_l[rows], ridx, dt, fidx)
+    motion = None if prob.motion is None else prob.motion[rows].to(dtype)
+    data = reference_subsets(geo, ref_img, pts_l[rows], ridx, dt, fidx, motion)
     forms = {f.name: f for f in solver.stages_for(shape)}
     v = torch.nan_to_num(grad_out[rows].to(dtype), nan=0.0, posinf=0.0, neginf=0.0)
     scale = shape.increment_scale(geo.spatial, dt)
@@ -264,7 +267,7 @@ class _ImplicitSTSDIC(torch.autograd.Function):
         frm_img = solver.prepare(frame_px)
         sol = solver.solve(
             ref_img, frm_img, pts, prob.dt, frame_index=prob.fidx, ref_index=prob.ridx,
-            init=init, ref_pixels=ref_px, frame_pixels=frame_px,
+            init=init, ref_pixels=ref_px, frame_pixels=frame_px, motion=prob.motion,
         )
         prob.solution = sol
         ctx.prob = prob
@@ -291,6 +294,22 @@ class _ImplicitSTSDIC(torch.autograd.Function):
                 grad_params, needs,
             )
         return g_ref, g_frm, g_pts, g_init, None
+
+
+def _window_motion(shared: Tensor | None, b: int, n: int, t_count: int, dt: Tensor,
+                   dtype: torch.dtype, device: torch.device) -> Tensor | None:
+    """(B*N, T, 2) window offsets from a shared motion (B, T, 2) or (B, N, T, 2), or None."""
+    if shared is None:
+        return None
+    g = torch.as_tensor(shared).detach().to(device=device, dtype=dtype)
+    if g.dim() == 3:
+        g = g.unsqueeze(1).expand(-1, n, -1, -1)
+    if tuple(g.shape) != (b, n, t_count, 2):
+        raise ValueError(f"shared_motion must be (B={b}, 2m+1={t_count}, 2) or (B, N={n}, "
+                         f"{t_count}, 2), got {tuple(torch.as_tensor(shared).shape)}")
+    if not bool(torch.isfinite(g).all()):
+        raise ValueError("shared_motion contains non-finite values")
+    return window_offsets(g.reshape(b * n, t_count, 2), dt).contiguous()
 
 
 # ------------------------------------------------------------------------------------------
@@ -350,13 +369,15 @@ class STSDIC(nn.Module):
 
     # --------------------------------------------------------------------------------------
     def forward(
-        self, ref: Tensor, frames: Tensor, points: Tensor, init: Tensor | None = None
+        self, ref: Tensor, frames: Tensor, points: Tensor, init: Tensor | None = None,
+        shared_motion: Tensor | None = None,
     ) -> Tensor:
         """(B, N, 2) displacement (u, v) at the centre frame (see the class docstring)."""
-        return self.forward_full(ref, frames, points, init).disp
+        return self.forward_full(ref, frames, points, init, shared_motion).disp
 
     def forward_full(
-        self, ref: Tensor, frames: Tensor, points: Tensor, init: Tensor | None = None
+        self, ref: Tensor, frames: Tensor, points: Tensor, init: Tensor | None = None,
+        shared_motion: Tensor | None = None,
     ) -> STSDICOutput:
         """Displacement, velocity, all parameters, status and ZNCC for every POI.
 
@@ -365,6 +386,12 @@ class STSDIC(nn.Module):
             frames: (B, 2m+1, H, W) or (B, 2m+1, 1, H, W) windows of frames.
             points: (N, 2) or (B, N, 2) POIs (x, y) in px.
             init: None or (B, N, 2|4|P) initial guess (zero gradient).
+            shared_motion: None, or the specimen's known displacement (u, v) px in every
+                frame of the window, (B, 2m+1, 2) (the same at every point, e.g. a rigid
+                shake measured by :func:`~torch_stsdic.shared_motion.fit_frame_motion`) or
+                (B, N, 2m+1, 2): its jitter about a line in time is carried in every warp
+                (:func:`~torch_stsdic.shared_motion.window_offsets`), so the outputs are the
+                total displacement and the smooth velocity. No gradient flows to it.
 
         Returns:
             :class:`STSDICOutput` with (B, N, ...) tensors in ref's dtype and device.
@@ -400,7 +427,8 @@ class STSDIC(nn.Module):
             tol = max(100.0 * self.config.tol, 1e-2)
         report: dict = {}
         prob = _Problem(solver=self.solver, dt=dt, fidx=fidx, ridx=seq, residual_tol=tol,
-                        grad_dtype=self.grad_dtype, report=report)
+                        grad_dtype=self.grad_dtype, report=report,
+                        motion=_window_motion(shared_motion, b, n, t_count, dt, dtype, device))
         self.last_report = report
         grid, offset = snap_points(flat_pts)  # solved at pixel centres, carried to the POIs
         params = _ImplicitSTSDIC.apply(

@@ -50,7 +50,7 @@ from .plan import RunPlan, plan_run
 from .reference import Reference, maybe_update
 from .refine import ReferenceOffsets, apply_offsets, measure_offsets, set_refinement
 from .result import TrackResult
-from .shared_motion import estimate_shared_motion, set_shared_motion
+from .shared_pass import estimate_shared_motion, set_shared_motion
 from .sinks import MemorySink, open_sink
 from .smoothing import smooth_in_time
 from .solver import SubsetSolver

@@ -12,10 +12,10 @@ measured once, from all points together, and carried as a known term:
 
 ``G_t`` (6 numbers per frame: translation ``a_t`` and the 2x2 gradient ``B_t``) is fitted
 robustly (Huber IRLS) to the classical displacements of a sample of points at every frame
-(:func:`estimate_shared_motion`: one classical pass over the frames at up to ``max_points``
-POIs), so outliers, lost points and background move it by at most a bounded share. ``D``, the
-deformation, is what the STS window has to describe; it is smooth in time even where ``G``
-jitters. In a window of target frame ``k``, the known part of frame ``t`` is the jitter of
+(:func:`~torch_stsdic.shared_pass.estimate_shared_motion`: one classical pass over the
+frames at up to ``max_points`` POIs), so outliers, lost points and background move it by
+at most a bounded share. ``D``, the deformation, is what the STS window has to describe;
+it is smooth in time even where ``G`` jitters. In a window of target frame ``k``, the known part of frame ``t`` is the jitter of
 ``G`` about its own line through the window (:func:`window_offsets`):
 
     o_t(x_i) = G_t(x_i) - G_k(x_i) - beta_i (t - t_k)      (beta_i: the window's LS slope of G)
@@ -33,8 +33,6 @@ n points (0.04 sigma_c at 2,000 points), far below the window's error.
 
 from __future__ import annotations
 
-import dataclasses
-import time
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -43,8 +41,7 @@ import torch
 from torch import Tensor
 
 __all__ = ["SharedMotion", "SHARED_MOTION_KINDS", "fit_frame_motion", "window_offsets",
-           "estimate_shared_motion", "set_shared_motion", "sample_points",
-           "DEFAULT_MAX_POINTS"]
+           "overlap_factor", "sample_points", "DEFAULT_MAX_POINTS", "SIGNIFICANT"]
 
 #: kinds of shared motion: a translation per frame (2 numbers) or an affine motion (6)
 SHARED_MOTION_KINDS = ("translation", "affine")
@@ -290,89 +287,3 @@ def sample_points(points: Tensor, max_points: int) -> Tensor:
     if n <= max_points:
         return torch.arange(n)
     return torch.linspace(0, n - 1, int(max_points)).round().long().unique()
-
-
-def _fill(params: np.ndarray, times: np.ndarray) -> np.ndarray:
-    """Frames without an estimate (NaN rows) linearly interpolated in time (constant at
-    the ends; zero where no frame has one)."""
-    out = params.copy()
-    ok = np.isfinite(out).all(1)
-    if not ok.any():
-        return np.zeros_like(out)
-    for j in range(out.shape[1]):
-        out[~ok, j] = np.interp(times[~ok], times[ok], out[ok, j])
-    return out
-
-
-def set_shared_motion(plan, kind: str | None = "auto") -> None:
-    """Choose a plan's shared motion (recorded in ``plan.options["shared_motion"]``):
-    ``"auto"`` measures an affine motion for STS windows (m > 0) without reference updates or
-    smoothing, and applies it where it is significant, and is None (not measured) otherwise; "affine" / "translation" measure it whatever m (with m = 0
-    it is reported, and changes no result); None or "none": not measured."""
-    if kind is None or kind == "none":
-        plan.options["shared_motion"] = None
-        return
-    if kind != "auto" and kind not in SHARED_MOTION_KINDS:
-        raise ValueError(f"shared_motion: must be 'auto', 'none', None or one of "
-                         f"{SHARED_MOTION_KINDS}, got {kind!r}")
-    updating = plan.options.get("reference_update") is not None
-    if kind == "auto":
-        use = plan.config.m > 0 and not updating and not plan.options.get("smoothing")
-        plan.options["shared_motion"] = "auto" if use else None
-        return
-    if updating:
-        raise ValueError("shared_motion: cannot be combined with reference_update (the shared "
-                         "motion is measured against one reference); pass shared_motion=None")
-    plan.options["shared_motion"] = kind
-
-
-def estimate_shared_motion(plan, kind: str = "affine",
-                           max_points: int = DEFAULT_MAX_POINTS,
-                           auto: bool = False) -> SharedMotion:
-    """Measure the shared motion of a run: classical DIC (checks off) of every series frame
-    that a window of the run uses, at up to ``max_points`` of the run's POIs, then
-    :func:`fit_frame_motion` per frame. The reference frame's motion is exactly zero. With
-    ``auto`` it is applied (``SharedMotion.applied``) only where its departure from a line in
-    time is significant (:meth:`SharedMotion.significance` above ``SIGNIFICANT``): where it
-    is not, carrying it would only add its estimation noise to every window."""
-    from .frames import frames_in_order
-    from .result import USABLE
-    from .series import run_plan  # local: series imports this module
-
-    t0 = time.perf_counter()
-    n_series = len(plan.series)
-    frames = sorted(set(frames_in_order(plan.blocks, plan.config.m, n_series)))
-    sel = sample_points(plan.points, max_points)
-    cfg = plan.config.replace(m=0)
-    opts = {**plan.options, "smoothing": None, "reference_update": None, "checks": False,
-            "shared_motion": None}
-    opts.pop("refine_reference", None)
-    names = tuple(nm for nm in plan.param_names if nm not in ("ut", "vt"))
-    sub = dataclasses.replace(plan, config=cfg, targets=frames, options=opts,
-                              param_names=names, points=plan.points[sel])
-    res = run_plan(sub, progress=False)
-    disp = torch.stack([res.u, res.v], -1).double().cpu()  # (F, n, 2)
-    valid = (res.status <= USABLE).cpu() & (res.zncc.cpu() >= float(
-        plan.options.get("lost_zncc", 0.8)))
-    pts = plan.points[sel].double().cpu()
-    origin = plan.points.double().mean(0).cpu()
-    par, scat, used, se_t = fit_frame_motion(pts, disp, valid, kind, origin=origin)
-    se_t = se_t * overlap_factor(pts, plan.config.subset_size)
-    params = np.full((n_series, 6), np.nan)
-    scatter, se = np.full(n_series, np.nan), np.full(n_series, np.nan)
-    count = np.zeros(n_series, dtype=np.int64)
-    params[frames] = par.numpy()
-    scatter[frames], se[frames] = scat.numpy(), se_t.numpy()
-    count[frames] = used.numpy()
-    if 0 <= plan.reference_frame < n_series:  # the reference against itself: exactly 0
-        params[plan.reference_frame] = 0.0
-        se[plan.reference_frame] = 0.0
-    measured = np.isfinite(params).all(1)
-    params = _fill(params, np.asarray(plan.times, dtype=np.float64))
-    out = SharedMotion(kind=kind, params=params, origin=origin.numpy(), scatter=scatter,
-                       points=count, measured=measured, se=se)
-    if auto:
-        z = out.significance()
-        out.applied = bool(np.isfinite(z) and z > SIGNIFICANT)
-    out.seconds = time.perf_counter() - t0
-    return out

@@ -52,6 +52,7 @@ from .initial import (
 from .interpolation import BSplineImage
 from .offgrid import carry_solution, snap_points
 from .shape import ShapeFunction, make_shape
+from .shared_motion import window_offsets
 from .status import Status
 from .validation import as_image, as_points, as_series, as_times, check_init
 from .window import make_window
@@ -505,7 +506,7 @@ def _per_point_motion(motion: torch.Tensor | None, n: int, t_count: int,
     (None: none)."""
     if motion is None:
         return None
-    motion = torch.as_tensor(motion).to(device=points.device, dtype=points.dtype)
+    motion = torch.as_tensor(motion).detach().to(device=points.device, dtype=points.dtype)
     if motion.dim() == 2:
         motion = motion.unsqueeze(0).expand(n, -1, -1)
     if tuple(motion.shape) != (n, t_count, 2):
@@ -531,6 +532,7 @@ def solve_window(
     times=None,
     init=None,
     center: int | None = None,
+    shared_motion=None,
 ) -> WindowSolution:
     """Measure displacement and velocity at many POIs from one window of 2m+1 frames.
 
@@ -546,6 +548,10 @@ def solve_window(
             ``config.search_radius`` on every frame of the window, then a line fit in time.
         center: index of the frame the results refer to (default m, the window centre; a
             shifted window at the ends of a movie uses another index).
+        shared_motion: the specimen's known displacement (u, v) px in every frame, (2m+1, 2)
+            (the same at every POI: a rigid shake) or (N, 2m+1, 2); its jitter about a line in
+            time is carried in every warp (:mod:`torch_stsdic.shared_motion`), so u, v stay
+            the total displacement and ut, vt the smooth velocity. None: none.
 
     Returns:
         :class:`WindowSolution` on the input's device: u, v, ut, vt (N,), params (N, P),
@@ -576,7 +582,11 @@ def solve_window(
     solver = SubsetSolver(cfg)
     ref_img = solver.prepare(ref_t)
     frames_img = solver.prepare(frames_t)
+    motion = None
+    if shared_motion is not None:
+        g = _per_point_motion(shared_motion, pts.shape[0], n_frames, pts)
+        motion = window_offsets(g, (t - t[c]).expand(pts.shape[0], -1))
     return solver.solve(
         ref_img, frames_img, pts, t - t[c], init=init_t, ref_pixels=ref_t.unsqueeze(0),
-        frame_pixels=frames_t, time=float(t[c]),
+        frame_pixels=frames_t, time=float(t[c]), motion=motion,
     )

@@ -1,0 +1,112 @@
+"""The measuring pass of a run's shared motion (:mod:`torch_stsdic.shared_motion`): which
+kind a run uses (:func:`set_shared_motion`) and its measurement by a classical pass at a
+sample of the run's POIs (:func:`estimate_shared_motion`)."""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import numpy as np
+import torch
+
+from .frames import frames_in_order
+from .plan import RunPlan
+from .result import USABLE
+from .shared_motion import (
+    DEFAULT_MAX_POINTS,
+    SHARED_MOTION_KINDS,
+    SIGNIFICANT,
+    SharedMotion,
+    fit_frame_motion,
+    overlap_factor,
+    sample_points,
+)
+
+__all__ = ["set_shared_motion", "estimate_shared_motion"]
+
+
+def _fill(params: np.ndarray, times: np.ndarray) -> np.ndarray:
+    """Frames without an estimate (NaN rows) linearly interpolated in time (constant at
+    the ends; zero where no frame has one)."""
+    out = params.copy()
+    ok = np.isfinite(out).all(1)
+    if not ok.any():
+        return np.zeros_like(out)
+    for j in range(out.shape[1]):
+        out[~ok, j] = np.interp(times[~ok], times[ok], out[ok, j])
+    return out
+
+
+def set_shared_motion(plan: RunPlan, kind: str | None = "auto") -> None:
+    """Choose a plan's shared motion (recorded in ``plan.options["shared_motion"]``).
+
+    ``"auto"``: for STS windows (m > 0) without reference updates or smoothing an affine
+    motion is measured and applied where it is significant; otherwise none is measured.
+    "affine" / "translation": measured and applied whatever m (with m = 0 it is reported and
+    changes no result). None or "none": not measured."""
+    if kind is None or kind == "none":
+        plan.options["shared_motion"] = None
+        return
+    if kind != "auto" and kind not in SHARED_MOTION_KINDS:
+        raise ValueError(f"shared_motion: must be 'auto', 'none', None or one of "
+                         f"{SHARED_MOTION_KINDS}, got {kind!r}")
+    updating = plan.options.get("reference_update") is not None
+    if kind == "auto":
+        use = plan.config.m > 0 and not updating and not plan.options.get("smoothing")
+        plan.options["shared_motion"] = "auto" if use else None
+        return
+    if updating:
+        raise ValueError("shared_motion: cannot be combined with reference_update (the shared "
+                         "motion is measured against one reference); pass shared_motion=None")
+    plan.options["shared_motion"] = kind
+
+
+def estimate_shared_motion(plan: RunPlan, kind: str = "affine",
+                           max_points: int = DEFAULT_MAX_POINTS,
+                           auto: bool = False) -> SharedMotion:
+    """Measure the shared motion of a run: classical DIC (checks off) of every series frame
+    that a window of the run uses, at up to ``max_points`` of the run's POIs, then
+    :func:`fit_frame_motion` per frame. The reference frame's motion is exactly zero. With
+    ``auto`` it is applied (``SharedMotion.applied``) only where its departure from a line in
+    time is significant (:meth:`SharedMotion.significance` above ``SIGNIFICANT``): where it
+    is not, carrying it would only add its estimation noise to every window."""
+    from .series import run_plan  # local: series imports this module
+
+    t0 = time.perf_counter()
+    n_series = len(plan.series)
+    frames = sorted(set(frames_in_order(plan.blocks, plan.config.m, n_series)))
+    sel = sample_points(plan.points, max_points)
+    cfg = plan.config.replace(m=0)
+    opts = {**plan.options, "smoothing": None, "reference_update": None, "checks": False,
+            "shared_motion": None}
+    opts.pop("refine_reference", None)
+    names = tuple(nm for nm in plan.param_names if nm not in ("ut", "vt"))
+    sub = dataclasses.replace(plan, config=cfg, targets=frames, options=opts,
+                              param_names=names, points=plan.points[sel])
+    res = run_plan(sub, progress=False)
+    disp = torch.stack([res.u, res.v], -1).double().cpu()  # (F, n, 2)
+    valid = (res.status <= USABLE).cpu() & (res.zncc.cpu() >= float(
+        plan.options.get("lost_zncc", 0.8)))
+    pts = plan.points[sel].double().cpu()
+    origin = plan.points.double().mean(0).cpu()
+    par, scat, used, se_t = fit_frame_motion(pts, disp, valid, kind, origin=origin)
+    se_t = se_t * overlap_factor(pts, plan.config.subset_size)
+    params = np.full((n_series, 6), np.nan)
+    scatter, se = np.full(n_series, np.nan), np.full(n_series, np.nan)
+    count = np.zeros(n_series, dtype=np.int64)
+    params[frames] = par.numpy()
+    scatter[frames], se[frames] = scat.numpy(), se_t.numpy()
+    count[frames] = used.numpy()
+    if 0 <= plan.reference_frame < n_series:  # the reference against itself: exactly 0
+        params[plan.reference_frame] = 0.0
+        se[plan.reference_frame] = 0.0
+    measured = np.isfinite(params).all(1)
+    params = _fill(params, np.asarray(plan.times, dtype=np.float64))
+    out = SharedMotion(kind=kind, params=params, origin=origin.numpy(), scatter=scatter,
+                       points=count, measured=measured, se=se)
+    if auto:
+        z = out.significance()
+        out.applied = bool(np.isfinite(z) and z > SIGNIFICANT)
+    out.seconds = time.perf_counter() - t0
+    return out
