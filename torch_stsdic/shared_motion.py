@@ -15,8 +15,9 @@ robustly (Huber IRLS) to the classical displacements of a sample of points at ev
 (:func:`~torch_stsdic.shared_pass.estimate_shared_motion`: one classical pass over the
 frames at up to ``max_points`` POIs), so outliers, lost points and background move it by
 at most a bounded share. ``D``, the deformation, is what the STS window has to describe;
-it is smooth in time even where ``G`` jitters. In a window of target frame ``k``, the known part of frame ``t`` is the jitter of
-``G`` about its own line through the window (:func:`window_offsets`):
+it is smooth in time even where ``G`` jitters. In a window of target frame ``k``, the known
+part of frame ``t`` is the jitter of ``G`` about its own line through the window
+(:func:`window_offsets`):
 
     o_t(x_i) = G_t(x_i) - G_k(x_i) - beta_i (t - t_k)      (beta_i: the window's LS slope of G)
 
