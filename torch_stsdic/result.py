@@ -8,6 +8,7 @@ from typing import Any
 import torch
 
 from .config import DICConfig
+from .shared_motion import SharedMotion
 from .status import Status
 from .strain import compute_strain
 
@@ -99,6 +100,14 @@ class TrackResult:
         if hit.numel() == 0:
             raise KeyError(f"frame {frame} is not a target frame of this result")
         return int(hit[0])
+
+    @property
+    def shared_motion(self) -> SharedMotion | None:
+        """The run's shared motion (:mod:`torch_stsdic.shared_motion`): per series frame the
+        specimen's affine motion (``.params`` (T_series, 6), ``.rotation``, ``.jitter()``,
+        ``.applied``), or None when it was not measured."""
+        rec = self.info.get("shared_motion")
+        return None if rec is None else SharedMotion.from_summary(rec)
 
     def strain(self, window: int = 5, kind: str = "green", **kwargs: Any) -> dict[str, Any]:
         """Strain fields (F, N) by local plane fits (:func:`~torch_stsdic.strain.

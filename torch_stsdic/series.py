@@ -93,6 +93,7 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
         shared = estimate_shared_motion(plan, "affine" if kind == "auto" else kind,
                                         auto=kind == "auto")
         run.shared = shared if shared.applied else None
+        sink.write_shared_motion(shared)
     if plan.options.get("refine_reference"):
         offsets = measure_offsets(plan, int(plan.options["refine_reference"]), run.shared)
     bar = tqdm(total=plan.n_rows, unit="frame", file=sys.stderr, disable=not progress,

@@ -77,6 +77,10 @@ class MemorySink:
     def close(self, commit: bool = True) -> None:
         """Release the output (``commit`` False after an error or interruption)."""
 
+    def write_shared_motion(self, shared: Any) -> None:
+        """Record the run's shared motion (:class:`~torch_stsdic.shared_motion.SharedMotion`)
+        as soon as it is measured (memory: kept in the result's info only)."""
+
     def result(self, info: dict[str, Any]) -> TrackResult:
         """The :class:`TrackResult` of the rows held, on the plan's device and dtype."""
         plan, v = self.plan, self.values
@@ -168,6 +172,13 @@ class HDF5Sink(MemorySink):
             # not foreseen when the file was made (a resume with other strain options):
             # the only case where finishing changes the file's metadata
             self.writer.add_fields(new, {"strain": settings})
+
+    def write_shared_motion(self, shared: Any) -> None:
+        rec = shared.summary()
+        attrs = {k: v for k, v in rec.items() if k != "params"}
+        attrs["columns"] = ["a_x", "a_y", "b_xx", "b_xy", "b_yx", "b_yy"]
+        attrs["units"] = ["px", "px", "px/px", "px/px", "px/px", "px/px"]
+        self.writer.write_array("shared_motion", shared.params, attrs)
 
     def close(self, commit: bool = True) -> None:
         self.writer.close(commit=commit)

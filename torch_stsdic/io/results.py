@@ -70,7 +70,9 @@ STRAIN_FIELDS: tuple[str, ...] = ("exx", "eyy", "exy")
 CSV_COLUMNS: tuple[str, ...] = (
     "x", "y", "u", "v", "ut", "vt", "exx", "eyy", "exy", "zncc", "status",
 )  # fmt: skip
-_RESERVED = {"points", "frames", "times", "completed"}
+#: run-level arrays (not (F, N) fields) a result file may hold, by dataset name
+RUN_ARRAYS = ("shared_motion",)
+_RESERVED = {"points", "frames", "times", "completed", *RUN_ARRAYS}
 _INT_FIELDS: dict[str, tuple[type, int]] = {
     "status": (np.int8, int(Status.NOT_COMPUTED)),
     "iterations": (np.int16, -1),
@@ -523,6 +525,21 @@ class ResultWriter(_FieldShape):
         _add_fields(self._h5(), values, attrs)
         self._h5().flush()
 
+    def write_array(self, name: str, values: Any, attrs: Mapping[str, Any] | None = None
+                    ) -> None:
+        """Write (or replace) the run-level array ``name`` (one of ``RUN_ARRAYS``, e.g. the
+        shared motion, (T_series, 6)) with its own attributes (JSON strings for nested
+        values), flushed at once."""
+        if name not in RUN_ARRAYS:
+            raise ValueError(f"{name!r} is not a run-level array ({RUN_ARRAYS})")
+        f = self._h5()
+        if name in f:
+            del f[name]
+        ds = f.create_dataset(name, data=np.asarray(values, dtype=np.float64))
+        for k, v in (attrs or {}).items():
+            ds.attrs[k] = v if isinstance(v, (str, int, float, bool)) else json.dumps(v)
+        f.flush()
+
     def attrs(self) -> dict[str, Any]:
         """The file's root attributes (a copy)."""
         return {k: _py(v) for k, v in self._h5().attrs.items()}
@@ -585,6 +602,8 @@ class Results(_FieldShape):
     config: dict[str, Any]
     inputs: list[str]
     attrs: dict[str, Any] = field(default_factory=dict)
+    #: run-level arrays (``RUN_ARRAYS``) present in the file: name -> (values, attributes)
+    arrays: dict[str, tuple[np.ndarray, dict[str, Any]]] = field(default_factory=dict)
 
     def __getattr__(self, name: str) -> np.ndarray:
         fields = self.__dict__.get("fields")
@@ -659,6 +678,8 @@ def read_results(path: str | os.PathLike[str], fields: Sequence[str] | None = No
                 raise KeyError(f"field(s) {bad} not in {p} (has {names})")
             names = list(fields)
         attrs = {k: _py(f.attrs[k]) for k in f.attrs}
+        arrays = {nm: (f[nm][()], {k: _py(f[nm].attrs[k]) for k in f[nm].attrs})
+                  for nm in RUN_ARRAYS if nm in f}
         return Results(
             path=p,
             points=f["points"][()],
@@ -668,7 +689,7 @@ def read_results(path: str | os.PathLike[str], fields: Sequence[str] | None = No
             fields={n: f[n][()] for n in names},
             config=json.loads(attrs.pop("config", "{}")),
             inputs=list(json.loads(attrs.pop("inputs", "[]"))),
-            attrs=attrs,
+            attrs=attrs, arrays=arrays,
         )
 
 

@@ -1,0 +1,238 @@
+"""The shared motion (torch_stsdic.shared_motion): the specimen's per-frame affine motion,
+measured robustly from all points and carried as a known term in every window."""
+
+import numpy as np
+import pytest
+import torch
+
+import torch_stsdic as sts
+import torch_stsdic.nn as sts_nn
+from torch_stsdic import native
+from torch_stsdic.formulations.joint_ic import ic_rhs_kernel
+from torch_stsdic.io import read_results
+from torch_stsdic.shared_motion import SharedMotion, fit_frame_motion, window_offsets
+from torch_stsdic.synth import (
+    HomogeneousStrain,
+    RigidJitter,
+    Translation,
+    ground_truth,
+    make_speckle,
+    render_series,
+)
+
+SIZE = 131
+CENTER = ((SIZE - 1) / 2, (SIZE - 1) / 2)
+
+
+def _grid(step=10, margin=20, size=SIZE):
+    g = torch.arange(margin, size - margin + 1, step, dtype=torch.float64)
+    yy, xx = torch.meshgrid(g, g, indexing="ij")
+    return torch.stack([xx.flatten(), yy.flatten()], 1)
+
+
+def test_fit_recovers_an_affine_motion_per_frame_despite_outliers():
+    gen = torch.Generator().manual_seed(0)
+    pts = _grid(step=8, size=400)
+    n, f = pts.shape[0], 6
+    par = torch.randn(f, 6, generator=gen, dtype=torch.float64) * torch.tensor(
+        [0.5, 0.5, 1e-3, 1e-3, 1e-3, 1e-3], dtype=torch.float64)
+    origin = pts.mean(0)
+    d = pts - origin
+    u = par[:, 0:1] + par[:, 2:3] * d[:, 0] + par[:, 3:4] * d[:, 1]
+    v = par[:, 1:2] + par[:, 4:5] * d[:, 0] + par[:, 5:6] * d[:, 1]
+    disp = torch.stack([u, v], -1) + 0.01 * torch.randn(f, n, 2, generator=gen,
+                                                        dtype=torch.float64)
+    wild = torch.rand(f, n, generator=gen) < 0.2  # 20 % wrong peaks, px off
+    disp[wild] += 5.0 * torch.randn(int(wild.sum()), 2, generator=gen, dtype=torch.float64)
+    valid = torch.ones(f, n, dtype=torch.bool)
+    valid[0, :n // 2] = False  # half the points lost in one frame
+    disp[1, 7] = float("nan")  # a NaN is never used
+    fit, scatter, used, se = fit_frame_motion(pts, disp, valid, "affine", origin=origin)
+    assert torch.allclose(fit[:, :2], par[:, :2], atol=3e-3)
+    assert torch.allclose(fit[:, 2:], par[:, 2:], atol=3e-5)
+    assert int(used[0]) == n - n // 2 and int(used[1]) == n - 1
+    assert bool((se > 0).all()) and bool((se < 2e-3).all())
+    # without the outliers the plain mean would be far off: the fit is robust
+    assert float((disp[..., 0].nanmean(1) - u.mean(1)).abs().max()) > 3e-3
+    tr, _, _, _ = fit_frame_motion(pts, disp, valid, "translation", origin=origin)
+    assert bool((tr[:, 2:] == 0).all())
+    with pytest.raises(ValueError, match="kind"):
+        fit_frame_motion(pts, disp, valid, "rigid-ish")
+
+
+def test_window_offsets_vanish_for_motion_affine_in_time():
+    dt = torch.tensor([-2.0, -1.0, 0.0, 1.0, 2.0], dtype=torch.float64)
+    line = (0.3 + 0.1 * dt).unsqueeze(-1).repeat(1, 2)
+    assert float(window_offsets(line, dt).abs().max()) < 1e-12
+    jitter = torch.tensor([[0.2, 0.0], [-0.1, 0.1], [0.3, -0.2], [0.0, 0.1], [-0.2, 0.0]],
+                          dtype=torch.float64)
+    o = window_offsets(line + jitter, dt)
+    assert float(o[2].abs().max()) < 1e-12  # zero at the target frame
+    # what is left is the jitter minus its value at the target and its own slope
+    slope = (dt.unsqueeze(-1) * (jitter - jitter.mean(0))).sum(0) / (dt * dt).sum()
+    assert torch.allclose(o, jitter - jitter[2] - slope * dt.unsqueeze(-1), atol=1e-12)
+    # a shifted window (target at its first frame) and a window of one frame
+    o2 = window_offsets(line + jitter, dt + 2.0)
+    assert float(o2[0].abs().max()) < 1e-12
+    assert float(window_offsets(jitter[:1], dt[:1]).abs().max()) == 0.0
+
+
+def _window(jit_std=0.3, seed=0, noise=2.0, m=2):
+    pat = make_speckle((SIZE, SIZE), seed=seed)
+    times = torch.arange(0.0, 2 * m + 2)  # reference at 0, window 1 .. 2m+1
+    jit = RigidJitter.random(times, jit_std, 0.0, center=CENTER, seed=seed + 1)
+    motion = Translation(ut=0.05, vt=-0.03) + jit
+    ref, frames = render_series(pat, (SIZE, SIZE), motion, times[1:], noise_sigma=noise,
+                                seed=seed + 2)
+    g = torch.stack([jit.tx[1:], jit.ty[1:]], -1)  # (2m+1, 2) the shake of every frame
+    return ref, frames, motion, times[1:], g
+
+
+def test_solve_window_with_the_shared_motion_recovers_the_smooth_motion():
+    ref, frames, motion, times, g = _window()
+    pts = _grid()
+    cfg = sts.DICConfig(m=2, dtype="float64")
+    truth = ground_truth(motion, pts, times[2:3])
+    plain = sts.solve_window(ref, frames, pts, config=cfg, times=times)
+    carried = sts.solve_window(ref, frames, pts, config=cfg, times=times, shared_motion=g)
+    classical = sts.solve_window(ref, frames[2], pts,
+                                 config=sts.DICConfig(m=0, dtype="float64"))
+
+    def rms(sol):
+        e2 = (sol.u - truth["u"][0]) ** 2 + (sol.v - truth["v"][0]) ** 2
+        return float(e2.mean().sqrt())
+
+    # measured: 0.0117 carried, 0.0151 classical, 0.169 plain (the line through the shake)
+    assert rms(carried) < 0.9 * rms(classical) and rms(plain) > 5 * rms(classical)
+    # the velocity is that of the line through the total motion over the window: the
+    # deformation's plus the shake's least-squares slope over these frames
+    dt = times - times[2]
+    slope = (dt.unsqueeze(-1) * (g - g.mean(0))).sum(0) / (dt * dt).sum()
+    assert abs(float(carried.ut.mean()) - (0.05 + float(slope[0]))) < 0.005
+    assert abs(float(carried.vt.mean()) - (-0.03 + float(slope[1]))) < 0.005
+    assert float(carried.zncc.median()) > float(plain.zncc.median())
+    # the same through the differentiable module
+    mod = sts_nn.STSDIC(cfg, times=times)
+    out = mod.forward_full(ref.unsqueeze(0), frames.unsqueeze(0), pts,
+                           shared_motion=g.unsqueeze(0))
+    assert torch.allclose(out.disp[0, :, 0], carried.u, atol=1e-5)
+    with pytest.raises(ValueError, match="shared_motion"):
+        mod.forward_full(ref.unsqueeze(0), frames.unsqueeze(0), pts,
+                         shared_motion=g[:3].unsqueeze(0))
+
+
+@pytest.mark.skipif(not native.available(), reason="native kernels not built here")
+def test_native_kernel_adds_the_motion_like_the_torch_code():
+    ref, frames, _, times, g = _window(noise=0.0)
+    solver = sts.SubsetSolver(sts.DICConfig(m=2, dtype="float64"))
+    img = solver.prepare(frames)
+    pts = _grid()
+    n = pts.shape[0]
+    from torch_stsdic.formulations import Geometry, reference_subsets
+
+    geo = Geometry.make(solver.shape, solver.window, "znssd", torch.float64, "cpu")
+    dt = (times - times[2]).expand(n, -1).contiguous()
+    fidx = torch.arange(5).expand(n, -1).contiguous()
+    motion = window_offsets(g.expand(n, -1, -1), dt).contiguous()
+    data = reference_subsets(geo, solver.prepare(ref), pts, torch.zeros(n, dtype=torch.long),
+                             dt, fidx, motion)
+    p = torch.zeros(n, 8, dtype=torch.float64)
+    p[:, 0], p[:, 3] = 0.1, 0.05
+    ka = img.kernel_args()
+    b_nat, zn_nat, _ = native.ic_rhs(ka, img.order, p, data.px, data.py, geo.dx, geo.dy,
+                                     geo.spatial, dt, fidx * ka[-1], data.ft, data.fnorm,
+                                     data.gx, data.gy, geo.w, img.width, img.height, geo.k,
+                                     True, True, motion=motion)
+    flat, wp, x_lo, x_hi, y_lo, y_hi, shift, plane = ka
+    b_t, zn_t, _ = ic_rhs_kernel(flat, p, data.px, data.py, geo.dx, geo.dy,
+                                 geo.spatial.T.contiguous(), dt, fidx * plane, data.ft,
+                                 data.fnorm, data.gx, data.gy, geo.w, wp, x_lo, x_hi, y_lo,
+                                 y_hi, shift, img.width, img.height, geo.ks, geo.k, True, True,
+                                 img.order, motion)
+    assert torch.allclose(b_nat, b_t.double(), rtol=1e-6, atol=1e-6)
+    assert torch.allclose(zn_nat, zn_t, atol=1e-9)
+    b0, _, _ = native.ic_rhs(ka, img.order, p, data.px, data.py, geo.dx, geo.dy, geo.spatial,
+                             dt, fidx * ka[-1], data.ft, data.fnorm, data.gx, data.gy, geo.w,
+                             img.width, img.height, geo.k, True, True)
+    assert float((b0 - b_nat).abs().max()) > 1.0  # the motion is used
+
+
+def _jittery_movie(frames=21, shift=0.25, angle=5e-4, noise=3.0, seed=3, size=SIZE):
+    times = torch.arange(0.0, frames)
+    c = ((size - 1) / 2, (size - 1) / 2)
+    smooth = HomogeneousStrain(exx=0.002, eyy=-0.001, exy=0.0005, center=c, rate=1.0)
+    motion = smooth + RigidJitter.random(times, shift, angle, center=c, seed=seed)
+    ref, frames_ = render_series(make_speckle((size, size), seed=seed), (size, size), motion,
+                                 times[1:], noise_sigma=noise, seed=seed + 1)
+    return torch.cat([ref[None], frames_]), motion, times
+
+
+def _rms(res, motion, times):
+    gt = ground_truth(motion, res.points.double(), times)
+    ok = (res.status <= 1)[1:]
+    e2 = ((res.u.double() - gt["u"]) ** 2 + (res.v.double() - gt["v"]) ** 2)[1:] / 2
+    return float(e2[ok].mean().sqrt())
+
+
+def test_jittery_movie_keeps_full_windows_and_beats_classical(tmp_path):
+    """Smooth deformation plus a rigid shake per frame (0.25 px, 5e-4 rad), noise on every
+    image: without the shared motion nearly every window is rejected (classical fallback);
+    with it >= 90 % of point-frames keep the full window and the error drops below the
+    classical one (refined: <= 0.6x)."""
+    movie, motion, times = _jittery_movie()
+    kw = dict(step=10, progress=False)
+    cls = sts.track(movie, config=sts.DICConfig(m=0), **kw)
+    cfg = sts.DICConfig(m=2)
+    off = sts.track(movie, config=cfg, shared_motion=None, **kw)
+    out = tmp_path / "sm.h5"
+    on = sts.track(movie, config=cfg, refine_reference=True, out=out, **kw)
+    e0, e_off, e_on = (_rms(r, motion, times) for r in (cls, off, on))
+    full = ((on.m == 2) & (on.status == 0))[1:].float().mean()
+    full_off = ((off.m == 2) & (off.status == 0))[1:].float().mean()
+    assert float(full_off) < 0.5 and e_off > 0.9 * e0
+    assert float(full) >= 0.9
+    assert e_on <= 0.6 * e0
+    sm = on.shared_motion
+    assert sm is not None and sm.applied and sm.kind == "affine"
+    tx = motion.motions[1].tx  # the shake's translation, at the centre = the origin here
+    a = sm.params[:, 0] - (sm.params[:, 0] - tx.numpy()).mean()
+    assert np.abs(a - tx.numpy()).max() < 0.02
+    assert sm.significance() > 100
+    # the result file carries it as its own array, with units
+    arr, attrs = read_results(out).arrays["shared_motion"]
+    assert arr.shape == (len(times), 6) and np.allclose(arr, sm.params)
+    assert "px/px" in attrs["units"]
+
+
+def test_auto_leaves_a_smooth_motion_alone():
+    """A motion affine in time has no jitter: 'auto' measures it but does not carry it (its
+    estimation noise would only be added to every window); results equal a run without."""
+    times = torch.arange(0.0, 9)
+    motion = Translation(ut=0.05)
+    ref, frames = render_series(make_speckle((101, 101), seed=1), (101, 101), motion,
+                                times[1:], noise_sigma=3.0, seed=2)
+    movie = torch.cat([ref[None], frames])
+    kw = dict(config=sts.DICConfig(m=2), step=12, progress=False)
+    auto = sts.track(movie, **kw)
+    none = sts.track(movie, shared_motion=None, **kw)
+    sm = auto.shared_motion
+    assert sm is not None and not sm.applied and sm.significance() < 25
+    assert torch.equal(auto.u, none.u) and torch.equal(auto.status, none.status)
+    assert none.shared_motion is None
+    with pytest.raises(ValueError, match="shared_motion"):
+        sts.track(movie, shared_motion="wobbly", **kw)
+    with pytest.raises(ValueError, match="reference_update"):
+        sts.track(movie, shared_motion="affine", reference_update=0.9, **kw)
+
+
+def test_summary_round_trip():
+    sm = SharedMotion(kind="affine", params=np.arange(18.0).reshape(3, 6) / 100,
+                      origin=np.array([5.0, 6.0]), scatter=np.array([np.nan, 0.1, 0.2]),
+                      points=np.array([0, 10, 10]), measured=np.array([False, True, True]),
+                      se=np.array([np.nan, 0.01, 0.01]))
+    back = SharedMotion.from_summary(sm.summary())
+    assert np.allclose(back.params, sm.params) and np.allclose(back.origin, sm.origin)
+    assert np.isnan(back.scatter[0]) and back.measured.tolist() == [False, True, True]
+    d = sm.displacement(torch.tensor([[5.0, 6.0], [6.0, 6.0]]), torch.tensor([1]))
+    assert torch.allclose(d[0, 0], torch.tensor([0.06, 0.07]))
+    assert torch.allclose(d[0, 1], torch.tensor([0.06 + 0.08, 0.07 + 0.10]))
