@@ -9,9 +9,11 @@ import torch_stsdic as sts
 import torch_stsdic.nn as sts_nn
 from torch_stsdic import native
 from torch_stsdic.formulations.joint_ic import ic_rhs_kernel
+from torch_stsdic.frames import segment_bounds, window_frames
 from torch_stsdic.io import read_results
 from torch_stsdic.shared_motion import SharedMotion, fit_frame_motion, window_offsets
 from torch_stsdic.synth import (
+    Custom,
     HomogeneousStrain,
     RigidJitter,
     Translation,
@@ -236,3 +238,34 @@ def test_summary_round_trip():
     d = sm.displacement(torch.tensor([[5.0, 6.0], [6.0, 6.0]]), torch.tensor([1]))
     assert torch.allclose(d[0, 0], torch.tensor([0.06, 0.07]))
     assert torch.allclose(d[0, 1], torch.tensor([0.06 + 0.08, 0.07 + 0.10]))
+
+
+def test_load_steps_are_detected_and_windows_stay_inside_a_load_state():
+    """A deformation that grows in load steps (holds of 6 images), with a shake: the steps
+    are found from the data, every window stays inside its load state, and the full windows
+    come back (without the detection a window across a step fails the model check)."""
+    size, times = 111, torch.arange(0.0, 19)
+
+    def fn(x, y, t):
+        a = 0.3 * torch.floor((t + 0.5) / 6.0)  # load states 0-5, 6-11, 12-17, 18
+        return a * torch.sin(2 * np.pi * x / 120.0), -0.5 * a * torch.cos(2 * np.pi * y / 150.0)
+
+    c = ((size - 1) / 2, (size - 1) / 2)
+    motion = Custom(fn) + RigidJitter.random(times, 0.15, 0.0, center=c, seed=2)
+    ref, fr = render_series(make_speckle((size, size), seed=4), (size, size), motion, times[1:],
+                            noise_sigma=3.0, seed=5)
+    movie = torch.cat([ref[None], fr])
+    kw = dict(config=sts.DICConfig(m=2), step=10, progress=False)
+    res = sts.track(movie, **kw)
+    sm = res.shared_motion
+    assert sm.steps == [6, 12, 18] and sm.applied
+    full = ((res.m == 2) & (res.status == 0))[1:].float().mean()
+    assert float(full) > 0.8
+    # the windows of targets 4..5 end at frame 5, those of 6..7 start at frame 6
+    win = window_frames(torch.arange(19), 2, 19, segment_bounds(sm.steps, 19))
+    assert win[5].tolist() == [1, 2, 3, 4, 5] and win[6].tolist() == [6, 7, 8, 9, 10]
+    assert win[18].tolist() == [14, 15, 16, 17, 18]  # a state of 1 image: as before
+    cls = sts.track(movie, config=sts.DICConfig(m=0), step=10, progress=False)
+    assert _rms(res, motion, times) < 0.97 * _rms(cls, motion, times)  # 0.92: 49 points
+    # a steady motion has no step
+    assert sts.track(movie[:6], **kw).shared_motion.steps == []

@@ -83,6 +83,7 @@ class BlockContext:
     reference_desc: Any = 0  # on the first block, reference.noise_ratio; the plan's desc)
     neighbours: torch.Tensor | None = None  # (N, k) grid neighbours, made on first use
     shared: SharedMotion | None = None  # the specimen's per-frame motion (None: not used)
+    segments: torch.Tensor | None = None  # (T_series, 2) load segment of every frame
     _checker: SubsetSolver | None = None
 
     def check_solver(self) -> SubsetSolver:
@@ -144,7 +145,9 @@ class _Block:
     def windows(self, m: int) -> torch.Tensor:
         """(B, 2m+1) series frames of every target's window, shifted (not shrunk) at the
         ends of the series."""
-        return window_frames(self.k, m, self.run.n_series)
+        seg = self.run.segments
+        return window_frames(self.k, m, self.run.n_series,
+                             None if seg is None else seg.to(self.k.device))
 
     def frames_of(self, win: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Per row: indices into the loaded frames (B*N, T) and dt (B*N, T)."""

@@ -28,23 +28,47 @@ from .interpolation import BSplineImage
 from .io import ImageSeries
 from .solver import SubsetSolver
 
-__all__ = ["FrameCache", "window_frames", "frames_in_order", "default_ahead"]
+__all__ = ["FrameCache", "window_frames", "segment_bounds", "frames_in_order",
+           "default_ahead"]
 
 
-def window_frames(ks: torch.Tensor, m: int, n_series: int) -> torch.Tensor:
+def window_frames(ks: torch.Tensor, m: int, n_series: int,
+                  segments: torch.Tensor | None = None) -> torch.Tensor:
     """(B, 2m+1) series frames of the windows of target frames ``ks`` (B,): ``k-m .. k+m``,
-    shifted (not shrunk) at the ends of the series."""
+    shifted (not shrunk) at the ends of the series. With ``segments`` (T_series, 2), the first
+    and last frame of each frame's load segment (:func:`segment_bounds`), a window is shifted
+    to stay inside its target's segment where the segment holds 2m+1 frames (a window never
+    spans a load step it can avoid)."""
     n_win = 2 * m + 1
     start = (ks - m).clamp(0, n_series - n_win)
+    if segments is not None and m > 0:
+        lo, hi = segments[ks, 0].to(ks), segments[ks, 1].to(ks)
+        fits = hi - lo + 1 >= n_win
+        inside = torch.minimum(torch.maximum(ks - m, lo), hi - 2 * m)
+        start = torch.where(fits, inside, start)
     return start.unsqueeze(1) + torch.arange(n_win, device=ks.device)
 
 
-def frames_in_order(blocks: Iterable[Sequence[int]], m: int, n_series: int) -> list[int]:
+def segment_bounds(steps: Sequence[int], n_series: int) -> torch.Tensor:
+    """(T_series, 2) long: the first and last series frame of every frame's segment, the
+    segments starting at frame 0 and at every frame of ``steps`` (frames that begin a new
+    load state)."""
+    starts = sorted({0, *(int(s) for s in steps if 0 < int(s) < n_series)})
+    ends = [s - 1 for s in starts[1:]] + [n_series - 1]
+    out = torch.empty(n_series, 2, dtype=torch.long)
+    for a, b in zip(starts, ends):
+        out[a : b + 1, 0], out[a : b + 1, 1] = a, b
+    return out
+
+
+def frames_in_order(blocks: Iterable[Sequence[int]], m: int, n_series: int,
+                    segments: torch.Tensor | None = None) -> list[int]:
     """Every frame the windows of ``blocks`` (lists of target frames) use, once, in the order
     of first use."""
     seen: dict[int, None] = {}
     for block in blocks:
-        for i in torch.unique(window_frames(torch.tensor(list(block)), m, n_series)).tolist():
+        win = window_frames(torch.tensor(list(block)), m, n_series, segments)
+        for i in torch.unique(win).tolist():
             seen.setdefault(i, None)
     return list(seen)
 

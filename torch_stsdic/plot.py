@@ -37,6 +37,7 @@ __all__ = [
     "plot_field",
     "plot_fields",
     "plot_history",
+    "plot_shared_motion",
     "plot_status",
     "plot_xy",
     "save_figure",
@@ -452,6 +453,46 @@ _HISTORY_SIGNATURE = signature_like(
     plot_xy, replace={"x": param("times", kind=POSITIONAL)}, drop=["logx", "logy", "marker"],
     defaults={"xlabel": "time (frame)"})
 plot_history.__signature__ = _HISTORY_SIGNATURE  # type: ignore[attr-defined]
+
+
+def plot_shared_motion(
+    times: Any,
+    params: Any,
+    *,
+    applied: bool = True,
+    title: str | None = None,
+    time_label: str = "time (frame)",
+    length_unit: str = "px",
+    scale: float = 1.0,
+    path: str | Path | None = None,
+    dpi: int = 120,
+) -> Figure:
+    """The specimen's shared motion per frame (:mod:`torch_stsdic.shared_motion`): its
+    translation at the POIs' centre (``scale`` ``length_unit`` per px) and, below, its
+    rotation and normal strains (the affine gradient), in 1e-3.
+
+    ``times`` (T,); ``params`` (T, 6): a_x, a_y, b_xx, b_xy, b_yx, b_yy."""
+    t = _np(times).astype(np.float64)
+    p = _np(params).astype(np.float64)
+    if p.ndim != 2 or p.shape != (t.shape[0], 6):
+        raise ValueError(f"params must be (T, 6) with T = {t.shape[0]}, got {p.shape}")
+    fig = Figure(figsize=(6.4, 6.0), layout="constrained")
+    ax1, ax2 = fig.subplots(2, 1, sharex=True)
+    ax1.plot(t, p[:, 0] * scale, label="translation x")
+    ax1.plot(t, p[:, 1] * scale, label="translation y")
+    ax1.set_ylabel(f"shared translation ({length_unit})")
+    ax1.legend(fontsize=8)
+    ax1.grid(True, alpha=0.3)
+    ax2.plot(t, 0.5 * (p[:, 4] - p[:, 3]) * 1e3, label="rotation (mrad)")
+    ax2.plot(t, p[:, 2] * 1e3, label="du/dx (1e-3)")
+    ax2.plot(t, p[:, 5] * 1e3, label="dv/dy (1e-3)")
+    ax2.set_ylabel("shared gradient (1e-3)")
+    ax2.set_xlabel(time_label)
+    ax2.legend(fontsize=8)
+    ax2.grid(True, alpha=0.3)
+    note = "carried in every window" if applied else "measured, not carried (no significant shake)"
+    ax1.set_title(title + f"\n{note}" if title else note, fontsize=10)
+    return save_figure(fig, path, dpi=dpi)
 
 
 def plot_error_vs_noise(*args: Any, **kwargs: Any) -> Figure:

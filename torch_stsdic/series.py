@@ -44,7 +44,7 @@ from tqdm import tqdm
 
 from .block import BlockContext, Carry, make_carry, rows_numpy, solve_block
 from .config import DICConfig
-from .frames import FrameCache, default_ahead, frames_in_order
+from .frames import FrameCache, default_ahead, frames_in_order, segment_bounds
 from .io.results import as_stored
 from .plan import RunPlan, plan_run
 from .reference import Reference, maybe_update
@@ -93,6 +93,8 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
         shared = estimate_shared_motion(plan, "affine" if kind == "auto" else kind,
                                         auto=kind == "auto")
         run.shared = shared if shared.applied else None
+        if shared.steps:
+            run.segments = segment_bounds(shared.steps, len(plan.series)).to(plan.device)
         sink.write_shared_motion(shared)
     if plan.options.get("refine_reference"):
         offsets = measure_offsets(plan, int(plan.options["refine_reference"]), run.shared)
@@ -139,7 +141,7 @@ def _run_blocks(plan: RunPlan, sink: MemorySink, run: BlockContext, ref: Referen
     done = sink.completed_rows()
     run.cache.schedule(frames_in_order(  # read ahead the frames of the blocks to solve
         [b for b in plan.blocks if not all(row_of[k] in done for k in b)], plan.config.m,
-        len(plan.series)))
+        len(plan.series), None if run.segments is None else run.segments.cpu()))
     carry: Carry | None = None
     rows_done = 0
     thr = plan.options.get("reference_update")

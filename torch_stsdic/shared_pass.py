@@ -18,6 +18,7 @@ from .shared_motion import (
     SHARED_MOTION_KINDS,
     SIGNIFICANT,
     SharedMotion,
+    detect_steps,
     fit_frame_motion,
     overlap_factor,
     sample_points,
@@ -90,7 +91,9 @@ def estimate_shared_motion(plan: RunPlan, kind: str = "affine",
         plan.options.get("lost_zncc", 0.8)))
     pts = plan.points[sel].double().cpu()
     origin = plan.points.double().mean(0).cpu()
-    par, scat, used, se_t = fit_frame_motion(pts, disp, valid, kind, origin=origin)
+    noise = res.std["u"].double().cpu() if "u" in res.std else None
+    par, scat, used, se_t = fit_frame_motion(pts, disp, valid, kind, origin=origin,
+                                             noise=noise)
     se_t = se_t * overlap_factor(pts, plan.config.subset_size)
     params = np.full((n_series, 6), np.nan)
     scatter, se = np.full(n_series, np.nan), np.full(n_series, np.nan)
@@ -104,7 +107,12 @@ def estimate_shared_motion(plan: RunPlan, kind: str = "affine",
     measured = np.isfinite(params).all(1)
     params = _fill(params, np.asarray(plan.times, dtype=np.float64))
     out = SharedMotion(kind=kind, params=params, origin=origin.numpy(), scatter=scatter,
-                       points=count, measured=measured, se=se)
+                       points=count, measured=measured, se=se,
+                       times=np.asarray(plan.times, dtype=np.float64))
+    g = out.displacement(pts, torch.as_tensor(frames)).double()  # (F, n, 2)
+    sigma = (torch.nanmedian(torch.where(valid, noise, torch.nan), dim=1).values
+             if noise is not None else torch.zeros(len(frames)))
+    out.steps = detect_steps(disp - g, valid, sigma, frames)
     if auto:
         z = out.significance()
         out.applied = bool(np.isfinite(z) and z > SIGNIFICANT)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import warnings
 from collections.abc import Callable
 from pathlib import Path
@@ -250,6 +251,24 @@ def _plot_histories(args: argparse.Namespace, res: Any, valid: np.ndarray, out: 
     return written
 
 
+def _plot_shared_motion(args: argparse.Namespace, res: Any, out: Path) -> list[Path]:
+    """``shared_motion.png`` where the file holds the run's shared motion."""
+    from ..plot import plot_shared_motion
+
+    if "shared_motion" not in res.arrays:
+        return []
+    params, attrs = res.arrays["shared_motion"]
+    times = attrs.get("times")
+    times = np.arange(len(params)) if times is None else np.asarray(json.loads(times))
+    units = res.units
+    path = out / "shared_motion.png"
+    plot_shared_motion(times, params, applied=bool(attrs.get("applied", True)),
+                       title=f"{Path(args.result).name}: shared motion of the specimen",
+                       time_label=units.time_label, length_unit=units.unit,
+                       scale=units.scale or 1.0, path=path, dpi=args.dpi)
+    return [path]
+
+
 def _calibration(res: Any) -> str:
     """'lengths in mm (0.02 mm/px)' or 'lengths in px' for the figures' titles."""
     u = res.units
@@ -357,6 +376,7 @@ def execute(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     written = _plot_frame(args, res, row, valid, image, out)
     written += _plot_histories(args, res, valid, out)
+    written += _plot_shared_motion(args, res, out)
     if args.animate is not None:
         written.append(_animate(args, res, valid, out))
     for path in written:
