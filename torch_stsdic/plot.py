@@ -291,6 +291,7 @@ def plot_fields(
     suptitle: str | None = None,
     panel_height: float = 3.6,
     dpi: int = 120,
+    notes: Mapping[str, str] | None = None,
 ) -> Figure:
     """Multi-panel figure, one panel (with a colour bar as tall as the panel) per field.
 
@@ -307,6 +308,7 @@ def plot_fields(
             ``diverging`` get ``diverging_cmap`` with limits symmetric about 0.
         share: groups of names whose panels share their colour limits (compared panels).
         ncols: panels per row (default: as many as fill about 17 inches of width).
+        notes: a line under a panel's title by name (e.g. why a velocity is missing).
     """
     if not fields:
         raise ValueError("fields is empty")
@@ -340,6 +342,8 @@ def plot_fields(
             cmap=diverging_cmap if sym[name] else cmap,
             label=labels.get(name) or default or FIELD_LABELS.get(name, name),
         )
+        if notes and notes.get(name):
+            ax.set_title(f"{name}\n{notes[name]}", fontsize=9)
     for ax in axes[n:]:
         fig.delaxes(ax)
     if suptitle:

@@ -269,6 +269,27 @@ def _plot_shared_motion(args: argparse.Namespace, res: Any, out: Path) -> list[P
     return [path]
 
 
+def velocity_note(m_row: np.ndarray, valid_row: np.ndarray) -> str | None:
+    """Why a velocity map has holes: the share of usable points measured classically (m = 0:
+    no window, so no velocity), or None where every usable point has one."""
+    ok = np.asarray(valid_row, dtype=bool)
+    if not ok.any():
+        return None
+    share = 100.0 * float((np.asarray(m_row)[ok] == 0).mean())
+    if share == 0.0:
+        return None
+    return f"blank at {share:.0f} %: classical there (motion not affine in time)"
+
+
+def _velocity_notes(res: Any, row: int, valid: np.ndarray, names: list[str]) -> dict[str, str]:
+    """Notes for the velocity panels (ut, vt, strain rates) of one row."""
+    if "m" not in res.fields:
+        return {}
+    note = velocity_note(res.fields["m"][row], valid[row])
+    rates = [nm for nm in names if nm in ("ut", "vt") or nm.endswith("_rate")]
+    return {nm: note for nm in rates} if note else {}
+
+
 def _calibration(res: Any) -> str:
     """'lengths in mm (0.02 mm/px)' or 'lengths in px' for the figures' titles."""
     u = res.units
@@ -300,7 +321,8 @@ def _plot_frame(args: argparse.Namespace, res: Any, row: int, valid: np.ndarray,
             maps[nm] = vals if nm == "status" else np.where(valid[row], vals, np.nan)
         path = out / f"fields_frame{frame:05d}.png"
         plot_fields(image, res.points, maps, path, dpi=args.dpi, units=units,
-                    suptitle=f"{name}: {when}, {_calibration(res)}; unusable points not drawn")
+                    suptitle=f"{name}: {when}, {_calibration(res)}; unusable points not drawn",
+                    notes=_velocity_notes(res, row, valid, names))
         written.append(path)
     if "status" in res.fields:
         from matplotlib.figure import Figure

@@ -114,6 +114,10 @@ def _add_frames(p: argparse.ArgumentParser) -> None:
     opt(g, "--refine-frames", type=options.int_min(5), default=None, metavar="N",
         help="most frames of that fit",
         shown="41; fewer where the motion is not smooth")  # fmt: skip
+    opt(g, "--shared-motion", choices=("auto", "affine", "translation", "none"),
+        default="auto", help="the specimen's per-frame motion (a shake, load steps), "
+        "measured from all points and carried in every window; auto: affine, with --m > 0, "
+        "carried where the shake is significant (docs/series.md)")  # fmt: skip
 
 
 # ----------------------------------------------------------------------------------------
@@ -244,6 +248,7 @@ def execute(args: argparse.Namespace) -> int:
     from ..plan import plan_run
     from ..refine import set_refinement
     from ..series import run_plan
+    from ..shared_pass import set_shared_motion
 
     series = kwargs.pop("series")
     print(series.describe(), flush=True)
@@ -257,6 +262,7 @@ def execute(args: argparse.Namespace) -> int:
                             time_unit=calibration.get("time_unit"))
             if args.refine_reference:
                 set_refinement(plan, args.refine_frames)
+            set_shared_motion(plan, args.shared_motion)
         except ValueError as exc:
             raise CommandError(str(exc)) from None
         sink = _open_sink(plan, args, out)
@@ -385,6 +391,22 @@ def _kept(out: Path, args: argparse.Namespace, plan: Any) -> str:
             "and --resume")
 
 
+def shared_motion_lines(rec: dict[str, Any] | None) -> list[str]:
+    """The summary's lines on the shared motion (``TrackResult.info["shared_motion"]``)."""
+    if not rec:
+        return []
+    shake = (f"shake median {rec['jitter_px_median']:.3f} px, max {rec['jitter_px_max']:.3f} px"
+             if rec.get("jitter_px_median") is not None else "shake not measured")
+    how = ("carried in every window" if rec.get("applied")
+           else "measured, not carried (no significant shake)")
+    lines = [f"shared motion: {rec['kind']}, {how} ({shake}; {rec['seconds']:.1f} s)"]
+    steps = rec.get("steps") or []
+    if steps:
+        lines.append(f"load steps before frames {', '.join(str(s) for s in steps)}: windows "
+                     "stay inside each load state")
+    return lines
+
+
 def _status_summary(status: np.ndarray) -> dict[str, float]:
     """Percent of the (frame, point) results with each status, by lower-case status name."""
     from ..status import Status
@@ -419,7 +441,10 @@ def _print_summary(res: Any, args: argparse.Namespace, elapsed: float, ref: str)
         if ok.any():
             print(f"window: m = {args.m} at {100.0 * (mu[ok] == args.m).mean():.1f} % of the "
                   f"trusted results, shorter where the motion is not affine in time "
-                  f"(classical at {100.0 * (mu[ok] == 0).mean():.1f} %)")
+                  f"(classical at {100.0 * (mu[ok] == 0).mean():.1f} %: no velocity there, "
+                  "ut and vt are NaN)")
+    for line in shared_motion_lines(res.info.get("shared_motion")):
+        print(line)
     device = args.device
     on_cpu = str(device).startswith("cpu")
     kernels = "fused C++ kernels" if on_cpu and native.available() else "torch kernels"
