@@ -48,6 +48,7 @@ import torch
 from tqdm import tqdm
 
 from .plan import RunPlan, plan_run
+from .shared_pass import set_shared_motion
 from .result import TrackResult
 from .series import track
 from .signatures import POSITIONAL, param, signature_like
@@ -134,6 +135,8 @@ def _plan_job(series: Any, plan_args: dict[str, Any], *, chunk_frames: int, out:
     if resume and out is None:
         raise ValueError("resume: needs out (the result file to continue)")
     plan = plan_run(series, **plan_args, lost_zncc=float(extra.get("lost_zncc", 0.8)))
+    # recorded as track records it; every chunk measures the shared motion of its frames
+    set_shared_motion(plan, extra.get("shared_motion", "auto"))
     chunks = chunk_plan(plan.targets, chunk_frames, len(plan.series), plan.config.m)
     ref = plan.reference_image
     kwargs = dict(

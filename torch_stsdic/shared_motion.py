@@ -44,7 +44,7 @@ from torch import Tensor
 
 __all__ = ["SharedMotion", "SHARED_MOTION_KINDS", "fit_frame_motion", "window_offsets",
            "overlap_factor", "sample_points", "detect_steps", "DEFAULT_MAX_POINTS",
-           "SIGNIFICANT", "STEP_Z", "STEP_RATIO"]
+           "SIGNIFICANT", "STEP_Z", "STEP_RATIO", "SE_FLOOR"]
 
 #: kinds of shared motion: a translation per frame (2 numbers) or an affine motion (6)
 SHARED_MOTION_KINDS = ("translation", "affine")
@@ -61,6 +61,11 @@ SIGNIFICANT = 25.0
 #: load-step detection (:func:`detect_steps`): an increment above STEP_Z times its noise and
 #: STEP_RATIO times the median increment of the frames around it starts a new load state
 STEP_Z = 2.0
+#: px added in quadrature to the shared motion's standard error in its significance: what
+#: the noise model leaves out (the sub-pixel interpolation bias, the same at every point of a
+#: uniform motion, ~1e-3 px); so noise-free images, whose noise is ~0, need a shake of
+#: 5 x 0.002 = 0.01 px before it is carried
+SE_FLOOR = 0.002
 STEP_RATIO = 2.0
 
 
@@ -104,14 +109,14 @@ class SharedMotion:
     def significance(self) -> float:
         """How far the translation departs from a line in time, in units of its own
         estimation noise: the median over frames of ``|a_t+1 - 2 a_t + a_t-1|^2 / (6 se^2)``
-        divided by its median without any jitter (ln 4). About 1 for a motion that is affine in
-        time (the estimate's noise alone); a jitter of std j gives about (j / se)^2. NaN when
-        fewer than 3 measured frames."""
+        divided by its median without any jitter (ln 4), ``se`` including ``SE_FLOOR``. About
+        1 for a motion that is affine in time (the estimate's noise alone); a jitter of std j
+        gives about (j / se)^2. NaN when fewer than 3 measured frames."""
         if self.se is None or len(self.params) < 3:
             return float("nan")
         a = self.params[:, :2]
         d2 = np.linalg.norm(a[2:] - 2 * a[1:-1] + a[:-2], axis=1) ** 2
-        se = self.se
+        se = np.sqrt(self.se ** 2 + SE_FLOOR ** 2)
         var = se[2:] ** 2 + 4 * se[1:-1] ** 2 + se[:-2] ** 2  # per component
         ok = (self.measured[2:] & self.measured[1:-1] & self.measured[:-2]
               & np.isfinite(var) & (var > 0))
