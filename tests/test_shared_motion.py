@@ -269,3 +269,55 @@ def test_load_steps_are_detected_and_windows_stay_inside_a_load_state():
     assert _rms(res, motion, times) < 0.97 * _rms(cls, motion, times)  # 0.92: 49 points
     # a steady motion has no step
     assert sts.track(movie[:6], **kw).shared_motion.steps == []
+
+
+def test_run_summary_and_figures_say_why_velocities_are_missing():
+    from torch_stsdic.cli.plot import velocity_note
+    from torch_stsdic.cli.run import shared_motion_lines
+
+    m_row = np.array([2, 2, 0, 0, 1, 0, -1])
+    valid = np.array([True, True, True, True, True, False, False])
+    assert velocity_note(m_row, valid) == (
+        "blank at 40 %: classical there (motion not affine in time)")
+    assert velocity_note(np.array([2, 2]), np.array([True, True])) is None
+    rec = {"kind": "affine", "applied": True, "jitter_px_median": 0.156,
+           "jitter_px_max": 0.49, "seconds": 3.2, "steps": [6, 12]}
+    lines = shared_motion_lines(rec)
+    assert lines[0].startswith("shared motion: affine, carried in every window")
+    assert "0.156 px" in lines[0] and "frames 6, 12" in lines[1]
+    rec.update(applied=False, steps=[])
+    assert shared_motion_lines(rec) == [
+        "shared motion: affine, measured, not carried (no significant shake) (shake median "
+        "0.156 px, max 0.490 px; 3.2 s)"]
+    assert shared_motion_lines(None) == []
+
+
+def test_quadratic_shared_motion_fits_a_tilt_and_its_gradient_is_consistent():
+    gen = torch.Generator().manual_seed(1)
+    pts = _grid(step=20, size=600)
+    origin = pts.mean(0)
+    true = torch.zeros(2, 12, dtype=torch.float64)
+    true[:, :6] = torch.tensor([0.3, -0.2, 1e-3, -5e-4, 2e-4, 8e-4])
+    true[:, 6:] = torch.tensor([2e-6, -1e-6, 3e-6, 1e-6, 2e-6, -2e-6])
+    true[1] *= -1.0
+    sm = SharedMotion(kind="quadratic", params=true.numpy(), origin=origin.numpy(),
+                      scatter=np.zeros(2), points=np.zeros(2), measured=np.ones(2, bool))
+    disp = sm.displacement(pts, torch.arange(2)).double()
+    disp = disp + 0.005 * torch.randn(disp.shape, generator=gen, dtype=torch.float64)
+    fit, _, _, _ = fit_frame_motion(pts, disp, torch.ones(2, pts.shape[0], dtype=torch.bool),
+                                    "quadratic", origin=origin)
+    assert fit.shape == (2, 12)
+    assert torch.allclose(fit[:, :2], true[:, :2], atol=2e-3)
+    assert torch.allclose(fit[:, 6:], true[:, 6:], atol=2e-7)
+    # the affine fit of the same data leaves a bowl: the quadratic one does not
+    aff, s_aff, _, _ = fit_frame_motion(pts, disp, torch.ones(2, pts.shape[0], dtype=torch.bool),
+                                        "affine", origin=origin)
+    assert aff.shape == (2, 6) and float(s_aff.min()) > 0.03  # noise 0.005
+    # the gradient is the derivative of the displacement
+    h = 1e-3
+    p = pts[:5]
+    g = sm.gradient(p, torch.arange(2))
+    ex = torch.tensor([h, 0.0], dtype=torch.float64)
+    dudx = (sm.displacement(p + ex, torch.arange(2)) - sm.displacement(p - ex, torch.arange(2)))
+    assert torch.allclose(g[..., 0], dudx[..., 0] / (2 * h), atol=1e-8)
+    assert torch.allclose(g[..., 2], dudx[..., 1] / (2 * h), atol=1e-8)

@@ -48,9 +48,9 @@ import torch
 from tqdm import tqdm
 
 from .plan import RunPlan, plan_run
-from .shared_pass import set_shared_motion
 from .result import TrackResult
 from .series import track
+from .shared_pass import set_shared_motion
 from .signatures import POSITIONAL, param, signature_like
 from .sinks import MemorySink, open_sink
 

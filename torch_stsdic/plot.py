@@ -475,11 +475,12 @@ def plot_shared_motion(
     translation at the POIs' centre (``scale`` ``length_unit`` per px) and, below, its
     rotation and normal strains (the affine gradient), in 1e-3.
 
-    ``times`` (T,); ``params`` (T, 6): a_x, a_y, b_xx, b_xy, b_yx, b_yy."""
+    ``times`` (T,); ``params`` (T, 6) or (T, 12): columns ``shared_motion.PARAM_NAMES``."""
     t = _np(times).astype(np.float64)
     p = _np(params).astype(np.float64)
-    if p.ndim != 2 or p.shape != (t.shape[0], 6):
-        raise ValueError(f"params must be (T, 6) with T = {t.shape[0]}, got {p.shape}")
+    if p.ndim != 2 or p.shape[0] != t.shape[0] or p.shape[1] not in (6, 12):
+        raise ValueError(f"params must be (T, 6) or (T, 12) with T = {t.shape[0]}, got "
+                         f"{p.shape}")
     fig = Figure(figsize=(6.4, 6.0), layout="constrained")
     ax1, ax2 = fig.subplots(2, 1, sharex=True)
     ax1.plot(t, p[:, 0] * scale, label="translation x")

@@ -193,10 +193,10 @@ def _remove_shared(ys: dict[str, np.ndarray], shared: SharedMotion, plan: RunPla
     g = shared.displacement(pts, torch.as_tensor(frames)).numpy()  # (F, N, 2)
     ys["u"] = ys["u"] - g[..., 0]
     ys["v"] = ys["v"] - g[..., 1]
-    par = shared.params[frames]
+    grad = shared.gradient(pts, torch.as_tensor(frames)).numpy()  # (F, N, 4)
     for j, nm in enumerate(("ux", "uy", "vx", "vy")):
         if nm in ys:
-            ys[nm] = ys[nm] - par[:, 2 + j : 3 + j]
+            ys[nm] = ys[nm] - grad[..., j]
 
 
 def _candidates(t: np.ndarray, min_frames: int) -> list[np.ndarray]:

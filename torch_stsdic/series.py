@@ -90,8 +90,7 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
     shared = None
     if plan.options.get("shared_motion"):
         kind = plan.options["shared_motion"]
-        shared = estimate_shared_motion(plan, "affine" if kind == "auto" else kind,
-                                        auto=kind == "auto")
+        shared = estimate_shared_motion(plan, kind, auto=kind == "auto")
         run.shared = shared if shared.applied else None
         if shared.steps:
             run.segments = segment_bounds(shared.steps, len(plan.series)).to(plan.device)
@@ -258,10 +257,12 @@ def track(
             to zero displacement (:mod:`torch_stsdic.refine`, ``docs/accuracy.md``). Needs a
             reference that is one series frame and no ``reference_update``.
         shared_motion: the specimen's per-frame motion carried as a known term in every
-            window (:mod:`torch_stsdic.shared_motion`): "affine" or "translation" per frame,
-            measured by a classical pass at up to 2,000 POIs and fitted robustly, so a
-            specimen that shakes or steps as a whole keeps its full windows. "auto" (default):
-            "affine" for STS windows (m > 0) without ``reference_update``; None: off. The
+            window (:mod:`torch_stsdic.shared_motion`): "quadratic", "affine" or
+            "translation" per frame, measured by a classical pass at up to 1,000 POIs and
+            fitted robustly, so a specimen that shakes or steps as a whole keeps its full
+            windows. "auto" (default): for STS windows (m > 0) without ``reference_update``,
+            quadratic (affine under 500 points), carried where the shake is significant;
+            None: off. The
             per-frame motion is in ``result.shared_motion`` and the result file.
         strain_window, strain_kind: strains written to ``out`` (grid points per side of the
             plane fit; "green" or "small"); ``strain_window=None``: none.

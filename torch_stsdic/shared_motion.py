@@ -29,7 +29,7 @@ own rotation moves a subset's edge by ``|B_t - line| * half`` (1e-3 rad: 0.01 px
 a zero-mean misfit that the window's gradients cannot absorb but that does not bias u, v.
 
 The estimate's own error is the classical noise over the sample, ``sigma_c * sqrt(3 / n)`` for
-n points (0.04 sigma_c at 2,000 points), far below the window's error.
+n points (0.05 sigma_c at 1,000 independent points), far below the window's error.
 """
 
 from __future__ import annotations
@@ -42,14 +42,22 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["SharedMotion", "SHARED_MOTION_KINDS", "fit_frame_motion", "window_offsets",
-           "overlap_factor", "sample_points", "detect_steps", "DEFAULT_MAX_POINTS",
-           "SIGNIFICANT", "STEP_Z", "STEP_RATIO", "SE_FLOOR"]
+__all__ = ["SharedMotion", "SHARED_MOTION_KINDS", "PARAM_NAMES", "PARAM_UNITS",
+           "fit_frame_motion", "window_offsets", "overlap_factor", "sample_points",
+           "detect_steps", "DEFAULT_MAX_POINTS", "SIGNIFICANT", "STEP_Z", "STEP_RATIO", "SE_FLOOR"]
 
-#: kinds of shared motion: a translation per frame (2 numbers) or an affine motion (6)
-SHARED_MOTION_KINDS = ("translation", "affine")
+#: kinds of shared motion: a translation per frame (2 numbers), an affine motion (6), or a
+#: quadratic one (12: also the second derivatives, as a tilt of the specimen out of the
+#: image plane or a bending shake gives)
+SHARED_MOTION_KINDS = ("translation", "affine", "quadratic")
+#: the columns of ``SharedMotion.params`` (px, px/px, px/px^2): u = a_x + du/dx dx + du/dy dy
+#: + d2u/dx2 dx^2 / 2 + d2u/dxdy dx dy + d2u/dy2 dy^2 / 2 (dx, dy from the origin), v alike
+PARAM_NAMES = ("a_x", "a_y", "du/dx", "du/dy", "dv/dx", "dv/dy", "d2u/dx2", "d2u/dxdy",
+               "d2u/dy2", "d2v/dx2", "d2v/dxdy", "d2v/dy2")
+PARAM_UNITS = ("px", "px", "px/px", "px/px", "px/px", "px/px", "px/px^2", "px/px^2",
+               "px/px^2", "px/px^2", "px/px^2", "px/px^2")
 #: POIs of the classical pass that measures the shared motion
-DEFAULT_MAX_POINTS = 2000
+DEFAULT_MAX_POINTS = 1000
 _HUBER = 2.0  # Huber threshold in robust (MAD) standard deviations
 _IRLS_STEPS = 8
 _MIN_POINTS = 8  # fewer usable points in a frame: no estimate there (interpolated)
@@ -74,10 +82,11 @@ class SharedMotion:
     """The shared (whole-specimen) motion of every series frame relative to the reference.
 
     Attributes:
-        kind: "translation" or "affine".
-        params: (T_series, 6) float64 per frame: a_x, a_y (px, the displacement at
-            ``origin``), b_xx, b_xy, b_yx, b_yy (px/px: du/dx, du/dy, dv/dx, dv/dy); zeros for
-            "translation" gradients. Frames not measured: interpolated in time.
+        kind: "translation", "affine" or "quadratic".
+        params: (T_series, 6) float64 per frame, (T_series, 12) for "quadratic" (columns
+            ``PARAM_NAMES``): a_x, a_y (px, the displacement at ``origin``), du/dx, du/dy,
+            dv/dx, dv/dy there (px/px; zeros for "translation") and the second derivatives
+            (px/px^2). Frames not measured: interpolated in time.
         origin: (2,) x0, y0 px, the point the translation refers to (centre of the POIs).
         scatter: (T_series,) robust std (px) of the points about the fitted motion (NaN where
             not measured): the deformation plus the noise.
@@ -124,16 +133,35 @@ class SharedMotion:
             return float("nan")
         return float(np.median(d2[ok] / var[ok]) / np.log(4.0))
 
-    def displacement(self, points: Tensor, frames: Tensor) -> Tensor:
-        """(K, N, 2) the shared motion's displacement (u, v) px at ``points`` (N, 2) px in
-        series frames ``frames`` (K,), in the points' dtype and device."""
-        p = torch.as_tensor(self.params, dtype=torch.float64)[frames.long().cpu()]  # (K, 6)
+    def _at(self, points: Tensor, frames: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        p = torch.as_tensor(self.params, dtype=torch.float64)[frames.long().cpu()]  # (K, P)
         p = p.to(device=points.device)
         d = points.double() - torch.as_tensor(self.origin, dtype=torch.float64,
                                               device=points.device)
-        u = p[:, 0:1] + p[:, 2:3] * d[:, 0] + p[:, 3:4] * d[:, 1]
-        v = p[:, 1:2] + p[:, 4:5] * d[:, 0] + p[:, 5:6] * d[:, 1]
+        return p, d[:, 0], d[:, 1]
+
+    def displacement(self, points: Tensor, frames: Tensor) -> Tensor:
+        """(K, N, 2) the shared motion's displacement (u, v) px at ``points`` (N, 2) px in
+        series frames ``frames`` (K,), in the points' dtype and device."""
+        p, dx, dy = self._at(points, frames)
+        u = p[:, 0:1] + p[:, 2:3] * dx + p[:, 3:4] * dy
+        v = p[:, 1:2] + p[:, 4:5] * dx + p[:, 5:6] * dy
+        if p.shape[1] == 12:
+            u = u + 0.5 * p[:, 6:7] * dx * dx + p[:, 7:8] * dx * dy + 0.5 * p[:, 8:9] * dy * dy
+            v = v + 0.5 * p[:, 9:10] * dx * dx + p[:, 10:11] * dx * dy + 0.5 * p[:, 11:12] * dy * dy
         return torch.stack([u, v], -1).to(points.dtype)
+
+    def gradient(self, points: Tensor, frames: Tensor) -> Tensor:
+        """(K, N, 4) du/dx, du/dy, dv/dx, dv/dy of the shared motion at ``points`` (N, 2) in
+        series frames ``frames`` (K,)."""
+        p, dx, dy = self._at(points, frames)
+        g = [p[:, 2:3] + 0 * dx, p[:, 3:4] + 0 * dx, p[:, 4:5] + 0 * dx, p[:, 5:6] + 0 * dx]
+        if p.shape[1] == 12:
+            g[0] = g[0] + p[:, 6:7] * dx + p[:, 7:8] * dy
+            g[1] = g[1] + p[:, 7:8] * dx + p[:, 8:9] * dy
+            g[2] = g[2] + p[:, 9:10] * dx + p[:, 10:11] * dy
+            g[3] = g[3] + p[:, 10:11] * dx + p[:, 11:12] * dy
+        return torch.stack(g, -1).to(points.dtype)
 
     @property
     def rotation(self) -> np.ndarray:
@@ -209,17 +237,17 @@ def fit_frame_motion(points: Tensor, disp: Tensor, valid: Tensor, kind: str = "a
         points: (N, 2) POIs (x, y) px.
         disp: (F, N, 2) displacements (u, v) px of every point in every frame.
         valid: (F, N) bool, the measurements to use (NaN displacements are never used).
-        kind: "translation" or "affine".
+        kind: "translation", "affine" or "quadratic".
         origin: (2,) the point the translation refers to (default: the points' mean).
         noise: (F, N) each measurement's noise std per component, px (e.g. the classical
             predicted std), for the standard error; None: the fit's robust scatter (which
             also counts the deformation's departure from the affine motion).
 
     Returns:
-        params (F, 6) float64 (a_x, a_y, b_xx, b_xy, b_yx, b_yy; NaN where a frame has fewer
-        than 8 valid points), robust scatter (F,) px, points used (F,), and the standard error
-        (F,) px of the translation (per component: scatter times the weighted least-squares
-        factor).
+        params (F, 6) float64, (F, 12) for "quadratic" (columns ``PARAM_NAMES``; NaN where a
+        frame has fewer than 8 valid points, 18 for "quadratic"), robust scatter (F,) px,
+        points used (F,), and the standard error (F,) px of the translation (per component:
+        from ``noise`` or the scatter, through the weighted least-squares factor).
     """
     if kind not in SHARED_MOTION_KINDS:
         raise ValueError(f"shared motion kind must be one of {SHARED_MOTION_KINDS}, got "
@@ -231,9 +259,12 @@ def fit_frame_motion(points: Tensor, disp: Tensor, valid: Tensor, kind: str = "a
                                                           device=p.device)
     rel = p - o
     scale = float(rel.abs().max().clamp(min=1.0))  # conditioning: columns of order 1
-    cols = [torch.ones_like(rel[:, 0])]
-    if kind == "affine":
-        cols += [rel[:, 0] / scale, rel[:, 1] / scale]
+    xs, ys = rel[:, 0] / scale, rel[:, 1] / scale
+    cols = [torch.ones_like(xs)]
+    if kind in ("affine", "quadratic"):
+        cols += [xs, ys]
+    if kind == "quadratic":
+        cols += [0.5 * xs * xs, xs * ys, 0.5 * ys * ys]
     x = torch.stack(cols, 1)  # (N, C)
     f, c = d.shape[0], x.shape[1]
     d0 = torch.where(ok.unsqueeze(-1), d, torch.zeros_like(d))
@@ -262,12 +293,18 @@ def fit_frame_motion(points: Tensor, disp: Tensor, valid: Tensor, kind: str = "a
         xn = xw * nv.sqrt().unsqueeze(-1)
         var0 = (inv @ (xn.transpose(1, 2) @ xn) @ inv)[:, 0, 0]
     se = var0.clamp(min=0).sqrt()
-    out = torch.zeros(f, 6, dtype=torch.float64, device=p.device)
+    out = torch.zeros(f, 12 if kind == "quadratic" else 6, dtype=torch.float64, device=p.device)
     out[:, 0], out[:, 1] = coef[:, 0, 0], coef[:, 0, 1]
-    if kind == "affine":
+    if c >= 3:
         out[:, 2], out[:, 3] = coef[:, 1, 0] / scale, coef[:, 2, 0] / scale
         out[:, 4], out[:, 5] = coef[:, 1, 1] / scale, coef[:, 2, 1] / scale
-    few = used < _MIN_POINTS
+    if c == 6:
+        s2 = scale * scale
+        out[:, 6], out[:, 7], out[:, 8] = (coef[:, 3, 0] / s2, coef[:, 4, 0] / s2,
+                                           coef[:, 5, 0] / s2)
+        out[:, 9], out[:, 10], out[:, 11] = (coef[:, 3, 1] / s2, coef[:, 4, 1] / s2,
+                                             coef[:, 5, 1] / s2)
+    few = used < max(_MIN_POINTS, 3 * c)
     out[few] = float("nan")
     s = torch.where(few, torch.nan, s)
     return out, s, used, torch.where(few, torch.nan, se)

@@ -42,9 +42,10 @@ def _fill(params: np.ndarray, times: np.ndarray) -> np.ndarray:
 def set_shared_motion(plan: RunPlan, kind: str | None = "auto") -> None:
     """Choose a plan's shared motion (recorded in ``plan.options["shared_motion"]``).
 
-    ``"auto"``: for STS windows (m > 0) without reference updates or smoothing an affine
-    motion is measured and applied where it is significant; otherwise none is measured.
-    "affine" / "translation": measured and applied whatever m (with m = 0 it is reported and
+    ``"auto"``: for STS windows (m > 0) without reference updates or smoothing a quadratic
+    (affine with few points) motion is measured and applied where it is significant;
+    otherwise none is measured. "quadratic" / "affine" / "translation": measured and
+    applied whatever m (with m = 0 it is reported and
     changes no result). None or "none": not measured."""
     if kind is None or kind == "none":
         plan.options["shared_motion"] = None
@@ -63,7 +64,12 @@ def set_shared_motion(plan: RunPlan, kind: str | None = "auto") -> None:
     plan.options["shared_motion"] = kind
 
 
-def estimate_shared_motion(plan: RunPlan, kind: str = "affine",
+#: "auto" fits the quadratic shared motion where the sample has at least this many points
+#: (its estimate then adds at most ~0.2 of the classical noise to a window), else the affine
+QUADRATIC_POINTS = 500
+
+
+def estimate_shared_motion(plan: RunPlan, kind: str = "auto",
                            max_points: int = DEFAULT_MAX_POINTS,
                            auto: bool = False) -> SharedMotion:
     """Measure the shared motion of a run: classical DIC (checks off) of every series frame
@@ -71,13 +77,18 @@ def estimate_shared_motion(plan: RunPlan, kind: str = "affine",
     :func:`fit_frame_motion` per frame. The reference frame's motion is exactly zero. With
     ``auto`` it is applied (``SharedMotion.applied``) only where its departure from a line in
     time is significant (:meth:`SharedMotion.significance` above ``SIGNIFICANT``): where it
-    is not, carrying it would only add its estimation noise to every window."""
+    is not, carrying it would only add its estimation noise to every window. ``kind`` "auto":
+    "quadratic" where the sample holds ``QUADRATIC_POINTS`` points, else "affine" (the
+    muDIC hourglass's shake has a quadratic part: the 5-frame line misfit of its trajectories
+    is 0.057 px after an affine, 0.016 px after a quadratic shared motion, 0.012 px noise)."""
     from .series import run_plan  # local: series imports this module
 
     t0 = time.perf_counter()
     n_series = len(plan.series)
     frames = sorted(set(frames_in_order(plan.blocks, plan.config.m, n_series)))
     sel = sample_points(plan.points, max_points)
+    if kind == "auto":
+        kind = "quadratic" if sel.numel() >= QUADRATIC_POINTS else "affine"
     cfg = plan.config.replace(m=0)
     opts = {**plan.options, "smoothing": None, "reference_update": None, "checks": False,
             "shared_motion": None}
@@ -95,7 +106,7 @@ def estimate_shared_motion(plan: RunPlan, kind: str = "affine",
     par, scat, used, se_t = fit_frame_motion(pts, disp, valid, kind, origin=origin,
                                              noise=noise)
     se_t = se_t * overlap_factor(pts, plan.config.subset_size)
-    params = np.full((n_series, 6), np.nan)
+    params = np.full((n_series, par.shape[1]), np.nan)
     scatter, se = np.full(n_series, np.nan), np.full(n_series, np.nan)
     count = np.zeros(n_series, dtype=np.int64)
     params[frames] = par.numpy()

@@ -22,6 +22,7 @@ import torch
 from .io.results import STRAIN_FIELDS, ResultWriter, as_stored
 from .plan import RunPlan
 from .result import TrackResult
+from .shared_motion import PARAM_NAMES, PARAM_UNITS
 from .status import Status
 
 __all__ = ["MemorySink", "HDF5Sink", "open_sink", "SMOOTHED"]
@@ -176,8 +177,9 @@ class HDF5Sink(MemorySink):
     def write_shared_motion(self, shared: Any) -> None:
         rec = shared.summary()
         attrs = {k: v for k, v in rec.items() if k != "params"}
-        attrs["columns"] = ["a_x", "a_y", "b_xx", "b_xy", "b_yx", "b_yy"]
-        attrs["units"] = ["px", "px", "px/px", "px/px", "px/px", "px/px"]
+        p = shared.params.shape[1]
+        attrs["columns"] = list(PARAM_NAMES[:p])
+        attrs["units"] = list(PARAM_UNITS[:p])
         self.writer.write_array("shared_motion", shared.params, attrs)
 
     def close(self, commit: bool = True) -> None:

@@ -114,10 +114,11 @@ def _add_frames(p: argparse.ArgumentParser) -> None:
     opt(g, "--refine-frames", type=options.int_min(5), default=None, metavar="N",
         help="most frames of that fit",
         shown="41; fewer where the motion is not smooth")  # fmt: skip
-    opt(g, "--shared-motion", choices=("auto", "affine", "translation", "none"),
+    opt(g, "--shared-motion", choices=("auto", "quadratic", "affine", "translation", "none"),
         default="auto", help="the specimen's per-frame motion (a shake, load steps), "
-        "measured from all points and carried in every window; auto: affine, with --m > 0, "
-        "carried where the shake is significant (docs/series.md)")  # fmt: skip
+        "measured from all points and carried in every window; auto: with --m > 0, "
+        "quadratic (affine under 500 points), carried where the shake is significant "
+        "(docs/series.md)")  # fmt: skip
 
 
 # ----------------------------------------------------------------------------------------
