@@ -150,8 +150,11 @@ def run_three(series, spec: dict, points=None) -> dict:
         cfg = sts.DICConfig(subset_size=SUBSET, m=m)
         t0 = time.perf_counter()
         with recording(log):
+            # the time model alone: the shared motion (on by default) is what removes
+            # these rejections; scripts/shared_motion.py measures that
             res = sts.track(series, roi=spec["roi"], mask=spec["mask"], step=spec["step"],
-                            points=points, config=cfg, checks=checks, progress=False)
+                            points=points, config=cfg, checks=checks, progress=False,
+                            shared_motion=None)
         r = {k: getattr(res, k).numpy() for k in ("u", "v", "status", "zncc")}
         r.update(m=res.m.numpy(), u_std=res.std["u"].numpy(), v_std=res.std["v"].numpy(),
                  points=res.points.numpy(), log=log, seconds=time.perf_counter() - t0,

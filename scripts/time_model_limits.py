@@ -135,7 +135,7 @@ def jump(args, jrows, pattern, shape) -> None:
         # checks=False: the bare model's error (track's model check would shorten these
         # windows; that is measured by scripts/motion_families.py)
         res = sts.track(frames, reference=ref, points=pts, config=cfg, times=times,
-                        progress=False, checks=False)
+                        progress=False, checks=False, shared_motion=None)  # the bare model
         for k in range(res.n_frames):
             t = float(res.times[k])
             true_u = vel * t + (du * moving.double() if t >= t_jump else 0.0)

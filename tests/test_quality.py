@@ -116,7 +116,9 @@ def test_sts_is_trusted_only_where_right(family):
     motion = motion_family(family, SIZE, t_jump=4.0)
     series, times = _family(motion)
     subset = 25
-    res = track(series, config=DICConfig(m=2, subset_size=subset), step=16, progress=False)
+    # the model check alone (a uniform acceleration is also a shared motion: see below)
+    res = track(series, config=DICConfig(m=2, subset_size=subset), step=16, progress=False,
+                shared_motion=None)
     trusted, wrong, m_used = _scores(res, motion, times, subset)
     assert wrong <= 0.01, f"{wrong:.1%} of trusted results off by > 0.1 px"
     assert trusted >= 0.8, f"only {trusted:.1%} trusted"
@@ -125,6 +127,13 @@ def test_sts_is_trusted_only_where_right(family):
     # where the window was shortened to classical, no velocity is claimed
     classical = (res.m == 0) & torch.as_tensor(usable(res.status))
     assert bool(torch.isnan(res.ut[classical]).all())
+    # with the shared motion (the default) every family stays right, and a uniform
+    # acceleration -- the same curve at every point -- keeps its full windows
+    res = track(series, config=DICConfig(m=2, subset_size=subset), step=16, progress=False)
+    trusted, wrong, m_used = _scores(res, motion, times, subset)
+    assert wrong <= 0.01 and trusted >= 0.8, (wrong, trusted)
+    if family == "acceleration":
+        assert res.shared_motion.applied and float((m_used == 2).float().mean()) > 0.95
 
 
 def test_linear_motion_keeps_full_windows_and_std_matches_scatter():
