@@ -231,6 +231,7 @@ def execute(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.is_dir():
         raise UsageError(f"--out {out}: is a directory; give a file name such as result.h5")
+    _check_not_an_input(out, args)
     if out.exists() and not (args.overwrite or args.resume):
         raise CommandError(
             f"output file {out} exists: use --overwrite to replace it or --resume to continue it"
@@ -291,6 +292,37 @@ def _reference_name(series: Any, plan: Any) -> str:
         return str(plan.reference_desc)
     path, sep, page = series.frame_name(plan.reference_frame).partition(" (page ")
     return Path(path).name + (f", page {page.rstrip(')')}" if sep else "")
+
+
+def _input_files(args: argparse.Namespace) -> list[tuple[str, Path]]:
+    """Every file the run reads, with the option that names it: the frames of each INPUT
+    (a folder or glob expanded as the series will), --points, --mask, --timestamps."""
+    from ..io.images import InputError, _expand_source
+
+    files: list[tuple[str, Path]] = []
+    for src in args.inputs:
+        try:
+            files += [("INPUT", p) for p in _expand_source(src)]
+        except InputError:
+            continue  # refused with its reason when the series is opened
+    for flag in ("points", "mask", "timestamps"):
+        if getattr(args, flag, None):
+            files.append((f"--{flag}", Path(getattr(args, flag))))
+    return files
+
+
+def _check_not_an_input(out: Path, args: argparse.Namespace) -> None:
+    """--out is none of the files the run reads, whatever --overwrite/--resume say."""
+    if not out.exists():
+        return
+    for flag, path in _input_files(args):
+        try:
+            same = os.path.samefile(path, out)
+        except OSError:
+            continue
+        if same:
+            raise UsageError(f"--out {out} is {path}, an input of the run ({flag}): it would be "
+                             "overwritten; give another --out")
 
 
 def _check_writable(out: Path) -> None:
