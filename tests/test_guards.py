@@ -6,6 +6,7 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 import tifffile
 
@@ -74,3 +75,70 @@ def test_out_is_a_frame_of_a_folder_or_a_side_file(capsys, movie, tmp_path):
     code, _, err = _run(capsys, "run", movie, "--points", pts, "--out", link, "--overwrite", *FAST)
     _one_line(code, err, "--points")
     assert pts.read_text() == "x,y\n30,30\n"
+
+
+# ----------------------------------------------------------------------------------------
+# issue 22: --refine-reference on a short series (5-frame fit, 6 unknowns with the bias terms)
+# ----------------------------------------------------------------------------------------
+
+#: one trajectory of DIC Challenge sample 12 (t = 1..11 after the reference) whose 5-frame
+#: quadratic fit with the two bias terms (6 unknowns) made numpy raise "Singular matrix"
+_V12 = [-0.4167485535144806, -0.8465142250061035, -1.3896907567977905, -1.8493677377700806,
+        -2.3968091011047363, -2.870800495147705, -3.406524658203125, -4.032723903656006,
+        -4.640514850616455, -5.271877765655518, -5.341021537780762]
+_U12 = [-0.0836915522813797, -0.14846517145633698, -0.25250983238220215, -0.3404434025287628,
+        -0.3647645115852356, -0.3589475154876709, -0.36959344148635864, -0.3422011733055115,
+        -0.34113770723342896, -0.41716256737709045, -0.3938934803009033]
+
+
+def _short_biased_series(n: int = 40) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """11 frames of 40 points moving 0.45 px per frame with a sub-pixel bias, one of them the
+    sample-12 trajectory above."""
+    rng = np.random.default_rng(1)
+    t = np.arange(1.0, 12.0)
+    w = -0.45 * t[:, None] + rng.uniform(0, 1, n)
+    v = w + 0.04 * np.sin(2 * np.pi * w) + rng.normal(0, 0.01, (11, n))
+    u = 0.02 * t[:, None] + rng.normal(0, 0.01, (11, n))
+    v[:, 0], u[:, 0] = _V12, _U12
+    return t, {"u": u, "v": v}
+
+
+def test_refine_fits_have_more_frames_than_unknowns(monkeypatch):
+    from torch_stsdic import refine
+
+    t, ys = _short_biased_series()
+    shapes = []
+    real = refine._fit
+
+    def spy(ts, n_poly, disp, y=None, **kw):
+        out = real(ts, n_poly, disp, y, **kw)
+        shapes.append((len(ts), out[1].shape[-1]))
+        return out
+
+    monkeypatch.setattr(refine, "_fit", spy)
+    res = refine.fit_intercepts(t, ys)  # raised "Singular matrix" before the fix
+    assert res.bias_terms
+    assert all(np.isfinite(v).all() for v in res.values.values())
+    assert (res.frames > 0).all()
+    assert shapes and all(rows > unknowns for rows, unknowns in shapes), shapes
+
+
+@pytest.mark.parametrize("overwrite", [False, True])
+def test_failed_refine_pre_pass_leaves_no_empty_file(capsys, movie, tmp_path, monkeypatch,
+                                                     overwrite):
+    from torch_stsdic import refine
+
+    def broken(*a, **k):
+        raise np.linalg.LinAlgError("Singular matrix")
+
+    monkeypatch.setattr(refine, "fit_intercepts", broken)
+    out = tmp_path / "r.h5"
+    if overwrite:
+        out.write_bytes(b"old result")
+    extra = ["--overwrite"] if overwrite else []
+    code, _, err = _run(capsys, "run", movie, "--subset", "15", "--step", "20",
+                        "--refine-reference", "--out", out, *extra, *FAST)  # fmt: skip
+    _one_line(code, err, "Singular matrix")
+    assert sorted(p.name for p in tmp_path.iterdir()) == (["r.h5"] if overwrite else [])
+    if overwrite:
+        assert out.read_bytes() == b"old result"

@@ -264,7 +264,11 @@ def execute(args: argparse.Namespace) -> int:
         try:
             res = run_plan(plan, sink, progress=not args.no_progress)
         except (OSError, InputError) as exc:  # a full disk, a frame gone or changed mid-run
+            _discard_unfinished(sink, out, args)
             raise CommandError(f"{_text(exc)}; {_kept(out, args, plan)}") from exc
+        except Exception:  # e.g. the refined reference's pre-pass: no empty file is left
+            _discard_unfinished(sink, out, args)
+            raise
         elapsed = time.perf_counter() - t0
         _print_summary(res, args, elapsed, _reference_name(series, plan))
         from ..io.results import field_names, open_results
@@ -391,6 +395,24 @@ def resume_problem(exc: Any) -> str:
         parts.append(f"{flag} ({text})" if flag else text)
     return (f"--resume: {path} was written with other options: {'; '.join(parts)}; repeat "
             "the first run's options to continue it, or use --overwrite to start again")
+
+
+def _discard_unfinished(sink: Any, out: Path, args: argparse.Namespace) -> None:
+    """After a failed run: close the result file and remove it if this run created it and
+    no frame was finished (a file of 0 frames only invites a --resume that fails again)."""
+    import h5py
+
+    sink.close(commit=False)
+    if args.resume:  # the user's file: kept as it was
+        return
+    path = out.with_name(out.name + ".partial") if args.overwrite else out
+    try:
+        with h5py.File(path, "r", locking=False) as f:
+            done = int(np.asarray(f["completed"][()]).sum())
+    except Exception:  # noqa: BLE001 - not ours or not there: leave it
+        return
+    if done == 0:
+        path.unlink(missing_ok=True)
 
 
 def _kept(out: Path, args: argparse.Namespace, plan: Any) -> str:
