@@ -142,3 +142,30 @@ def test_failed_refine_pre_pass_leaves_no_empty_file(capsys, movie, tmp_path, mo
     assert sorted(p.name for p in tmp_path.iterdir()) == (["r.h5"] if overwrite else [])
     if overwrite:
         assert out.read_bytes() == b"old result"
+
+
+# ----------------------------------------------------------------------------------------
+# 2. a truncated TIFF is refused up front, in one line, and no result file is made
+# ----------------------------------------------------------------------------------------
+
+
+def _page_by_page(movie: Path, dst: Path) -> int:
+    """The movie rewritten with each page's directory before its data; its size."""
+    with tifffile.TiffWriter(dst) as w:
+        for im in tifffile.imread(movie):
+            w.write(im, contiguous=False)
+    return dst.stat().st_size
+
+
+@pytest.mark.parametrize("cut", ["last page's pixels", "page directories"])
+def test_truncated_tiff_refused_before_any_output(capsys, movie, tmp_path, cut):
+    full = tmp_path / "full.tif"
+    size = _page_by_page(movie, full)
+    keep = size - 2000 if cut == "last page's pixels" else size // 2
+    bad = tmp_path / "cut.tif"
+    bad.write_bytes(full.read_bytes()[:keep])
+    out = tmp_path / "r.h5"
+    code, _, err = _run(capsys, "run", bad, "--subset", "15", "--m", "1", "--out", out, *FAST)
+    line = _one_line(code, err, "cut.tif", "truncated")
+    assert "resume" not in line
+    assert not out.exists() and not list(tmp_path.glob("r.h5*"))
