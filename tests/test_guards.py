@@ -169,3 +169,56 @@ def test_truncated_tiff_refused_before_any_output(capsys, movie, tmp_path, cut):
     line = _one_line(code, err, "cut.tif", "truncated")
     assert "resume" not in line
     assert not out.exists() and not list(tmp_path.glob("r.h5*"))
+
+
+# ----------------------------------------------------------------------------------------
+# 3. the same image rules at every entry point: nn.STSDIC, solve_window, track / plan_run
+# ----------------------------------------------------------------------------------------
+
+
+def _spoil(kind: str, frames):
+    import torch
+
+    if kind == "bool":
+        return frames > frames.mean()
+    if kind == "complex":
+        return frames.to(torch.complex64)
+    out = frames.clone()
+    out[1, 20, 20] = float(kind)  # "nan" or "inf"
+    return out
+
+
+def _entry(name: str, frames) -> None:
+    import torch
+
+    from torch_stsdic import DICConfig, plan_run, solve_window, track
+    from torch_stsdic.nn import STSDIC
+
+    cfg = DICConfig(subset_size=11, m=1)
+    pts = torch.tensor([[20.0, 20.0], [24.0, 22.0]])
+    if name == "nn.STSDIC":
+        STSDIC(cfg)(frames[:1], frames[None], pts)
+    elif name == "solve_window":
+        solve_window(frames[0], frames, pts, cfg)
+    elif name == "track":
+        track(frames, points=pts, config=cfg, progress=False)
+    else:  # an array reference given to plan_run
+        plan_run(torch.rand(3, *frames.shape[1:]) * 100, reference=frames[1], points=pts,
+                 config=cfg)
+
+
+@pytest.mark.parametrize("kind", ["nan", "inf", "bool", "complex"])
+@pytest.mark.parametrize("entry", ["nn.STSDIC", "solve_window", "track", "reference"])
+def test_bad_pixels_refused_at_every_entry_point(entry, kind):
+    import torch
+
+    g = torch.Generator().manual_seed(0)
+    frames = torch.rand(3, 40, 40, generator=g, dtype=torch.float64) * 200
+    bad = _spoil(kind, frames)
+    expected = TypeError if kind in ("bool", "complex") else ValueError
+    if entry == "track" and kind in ("bool", "complex"):
+        expected = (TypeError, ValueError)  # InputError (a ValueError) names the array
+    with pytest.raises(expected) as info:
+        _entry(entry, bad)
+    msg = str(info.value)
+    assert ("non-finite" in msg) if kind in ("nan", "inf") else ("real numbers" in msg), msg
