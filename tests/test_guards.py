@@ -222,3 +222,21 @@ def test_bad_pixels_refused_at_every_entry_point(entry, kind):
         _entry(entry, bad)
     msg = str(info.value)
     assert ("non-finite" in msg) if kind in ("nan", "inf") else ("real numbers" in msg), msg
+
+
+# ----------------------------------------------------------------------------------------
+# 4. a missing output folder is created (with its parents), as docs/cli.md says
+# ----------------------------------------------------------------------------------------
+
+
+def test_missing_output_folders_are_created_as_documented(capsys, movie, tmp_path):
+    out = tmp_path / "a" / "b" / "r.h5"
+    code, _, err = _run(capsys, "run", movie, "--subset", "15", "--step", "20", "--m", "1",
+                        "--out", out, *FAST)  # fmt: skip
+    assert code == 0, err
+    assert out.is_file()
+    code, _, err = _run(capsys, "export", out, "--out", tmp_path / "c" / "d")
+    assert code == 0 and list((tmp_path / "c" / "d").glob("*.csv")), err
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "cli.md").read_text()
+    assert "missing output folder** is refused" not in doc
+    assert "A missing one is\n  created**" in doc

@@ -49,7 +49,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     options.add_result(p)
     p.add_argument(
         "--out", "-o", required=True, metavar="DIR",
-        help="output directory (csv: or a {frame} pattern)",
+        help="output directory, created if missing (csv: or a {frame} pattern)",
     )  # fmt: skip
     options.add_option(p, "--format", "-f", choices=FORMATS, default="csv",
                        help="csv: one file per frame; vtk: ParaView .vtu per frame + .pvd; "

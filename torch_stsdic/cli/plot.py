@@ -54,7 +54,8 @@ HISTORIES = (
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The options of ``stsdic plot``."""
     options.add_result(p)
-    p.add_argument("--out", "-o", required=True, metavar="DIR", help="output directory")
+    p.add_argument("--out", "-o", required=True, metavar="DIR",
+                   help="output directory, created if missing")
     opt = options.add_option
     opt(p, "--frame", default="last", metavar="N|last",
         help="image frame number of the maps, or 'last' finished frame")  # fmt: skip

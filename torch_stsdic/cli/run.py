@@ -62,7 +62,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     opt = options.add_option
     p.add_argument("inputs", nargs="+", metavar="INPUT", help="image series (see above)")
     p.add_argument(
-        "--out", "-o", required=True, metavar="FILE.h5", help="result file (HDF5), required"
+        "--out", "-o", required=True, metavar="FILE.h5",
+        help="result file (HDF5), required; missing folders are created"
     )
     _add_frames(p)
     options.add_points(p)
