@@ -240,3 +240,61 @@ def test_missing_output_folders_are_created_as_documented(capsys, movie, tmp_pat
     doc = (Path(__file__).resolve().parents[1] / "docs" / "cli.md").read_text()
     assert "missing output folder** is refused" not in doc
     assert "A missing one is\n  created**" in doc
+
+
+# ----------------------------------------------------------------------------------------
+# 5. export, plot, synth, demo into a read-only folder: one line naming the folder
+# ----------------------------------------------------------------------------------------
+
+
+@pytest.fixture()
+def read_only(tmp_path):
+    """A read-only folder: chmod for a user, a read-only tmpfs for root (else skip)."""
+    import os
+    import subprocess
+    import sys
+
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    if os.geteuid() != 0:
+        ro.chmod(0o500)
+        yield ro
+        ro.chmod(0o700)
+        return
+    if sys.platform != "linux":
+        pytest.skip("a read-only folder for root needs a Linux tmpfs")
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "ro,size=64k", "tmpfs", str(ro)],
+                       capture_output=True, text=True)
+    if r.returncode != 0:
+        pytest.skip(f"cannot mount a read-only tmpfs here: {r.stderr.strip()}")
+    try:
+        yield ro
+    finally:
+        subprocess.run(["umount", str(ro)], check=False)
+
+
+@pytest.fixture(scope="module")
+def result(movie, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("run") / "r.h5"
+    assert main(["run", str(movie), "--subset", "15", "--step", "20", "--m", "1", "--out",
+                 str(out), *FAST]) == 0  # fmt: skip
+    return out
+
+
+@pytest.mark.parametrize("argv", [["export", "{r}", "--out", "{ro}/csv"],
+                                  ["export", "{r}", "--format", "mat", "--out", "{ro}"],
+                                  ["export", "{r}", "--out", "{ro}/f{{frame}}.csv"],
+                                  ["plot", "{r}", "--out", "{ro}", "--no-image"],
+                                  ["synth", "--out", "{ro}/mv", "--size", "32"]])
+def test_read_only_output_folder_is_one_line(capsys, result, read_only, argv):
+    args = [a.format(r=result, ro=read_only) for a in argv]
+    code, _, err = _run(capsys, *args)
+    assert code == 1
+    _one_line(code, err, "not writable", str(read_only))
+    assert not list(read_only.iterdir())
+
+
+def test_os_errors_are_one_line_without_errno(capsys, result, tmp_path):
+    (tmp_path / "r_frame00000.csv").mkdir()  # a folder where a CSV file goes
+    code, _, err = _run(capsys, "export", result, "--out", tmp_path)
+    _one_line(code, err, "r_frame00000.csv")

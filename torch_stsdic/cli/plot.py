@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from . import options
-from .common import span
+from .common import check_folder, span
 from .errors import CommandError, UsageError, one_line
 
 NAME = "plot"
@@ -352,9 +352,10 @@ def execute(args: argparse.Namespace) -> int:
     if args.animate is not None and args.animate not in res.fields:
         raise UsageError(f"--animate {args.animate}: no such field (the file has "
                          f"{', '.join(res.fields)})")
+    out = Path(args.out)
+    check_folder(out, f"--out {args.out}")
     valid = _valid(args, res)
     image = _background(args, res)
-    out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     written = _plot_frame(args, res, row, valid, image, out)
     written += _plot_histories(args, res, valid, out)

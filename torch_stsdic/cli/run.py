@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from . import options
-from .common import check_device, fmt_time, to_numpy
+from .common import check_device, check_folder, fmt_time, to_numpy
 from .errors import CommandError, UsageError, one_line
 from .signals import Interrupted
 
@@ -332,15 +332,7 @@ def _check_not_an_input(out: Path, args: argparse.Namespace) -> None:
 
 def _check_writable(out: Path) -> None:
     """--out's folder exists (or can be made) and takes files: checked before any work."""
-    parent = out.absolute().parent
-    existing = parent
-    while not existing.exists() and existing != existing.parent:
-        existing = existing.parent
-    if not existing.is_dir():
-        raise CommandError(f"--out {out}: {existing} is not a folder")
-    if not os.access(existing, os.W_OK | os.X_OK):
-        raise CommandError(f"--out {out}: the folder {existing} is not writable "
-                           "(read-only or no permission); choose another --out")
+    check_folder(out.absolute().parent, f"--out {out}")
 
 
 def _open_sink(plan: Any, args: argparse.Namespace, out: Path) -> Any:
