@@ -298,3 +298,33 @@ def test_os_errors_are_one_line_without_errno(capsys, result, tmp_path):
     (tmp_path / "r_frame00000.csv").mkdir()  # a folder where a CSV file goes
     code, _, err = _run(capsys, "export", result, "--out", tmp_path)
     _one_line(code, err, "r_frame00000.csv")
+
+
+# ----------------------------------------------------------------------------------------
+# 8. docs/cli.md's option table and summary of 'stsdic run' are made from the program
+# ----------------------------------------------------------------------------------------
+
+
+def _docs_script():
+    import importlib.util
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "regenerate_docs.py"
+    spec = importlib.util.spec_from_file_location("regenerate_docs_guards", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_cli_reference_is_generated_and_current():
+    docs = _docs_script()
+    text = docs.CLI_DOC.read_text(encoding="utf-8")
+    assert docs.stale_cli(text) == []  # what `regenerate_docs.py --check --cli` runs
+    table = docs.options_table("run")
+    from torch_stsdic.cli.app import build_parser
+
+    run_help = build_parser().parse_known_args(["run", "x", "--out", "y"])[0]
+    for dest in vars(run_help):
+        if dest not in ("inputs", "command", "func", "debug"):
+            assert f"`--{dest.replace('_', '-')}" in table, dest
+    i, j = docs._block(text, "run-options")
+    assert docs.stale_cli(text[:i] + table.replace("| 21 |", "| 19 |") + text[j:])  # cached
