@@ -328,3 +328,60 @@ def test_cli_reference_is_generated_and_current():
             assert f"`--{dest.replace('_', '-')}" in table, dest
     i, j = docs._block(text, "run-options")
     assert docs.stale_cli(text[:i] + table.replace("| 21 |", "| 19 |") + text[j:])  # cached
+
+
+# ----------------------------------------------------------------------------------------
+# 7. plots: axes in the calibrated unit, diverging maps only for two-signed data, --point far
+#    outside the points refused
+# ----------------------------------------------------------------------------------------
+
+
+def _grid(step: float = 10.0) -> np.ndarray:
+    xs, ys = np.meshgrid(np.arange(20.0, 181.0, step), np.arange(20.0, 121.0, step))
+    return np.column_stack([xs.ravel(), ys.ravel()])
+
+
+def test_plot_axes_in_the_calibrated_unit():
+    from torch_stsdic.io.units import Units
+    from torch_stsdic.plot import plot_fields
+
+    pts = _grid()
+    fig = plot_fields(None, pts, {"u": pts[:, 0] * 0.01}, units=Units(scale=0.02, unit="mm"))
+    ax = fig.axes[0]
+    fig.canvas.draw()
+    assert (ax.get_xlabel(), ax.get_ylabel()) == ("x (mm)", "y (mm)")
+    ticks = [float(t.get_text().replace("\N{MINUS SIGN}", "-")) for t in ax.get_xticklabels()
+             if t.get_text()]
+    assert ticks and all(abs(t * 2 - round(t * 2)) < 1e-9 for t in ticks), ticks  # round mm
+    assert min(ticks) < 20 * 0.02 + 0.5 and max(ticks) > 180 * 0.02 - 0.5
+    plain = plot_fields(None, pts, {"u": pts[:, 0]})
+    assert plain.axes[0].get_xlabel() == "x (px)"
+
+
+def _panel_cmap_and_limits(fig) -> tuple[str, float, float]:
+    m = fig.axes[0].images[-1] if fig.axes[0].images else fig.axes[0].collections[-1]
+    return m.get_cmap().name, float(m.norm.vmin), float(m.norm.vmax)
+
+
+def test_one_signed_strain_uses_its_range():
+    from torch_stsdic.plot import plot_fields
+
+    pts = _grid()
+    rng = np.random.default_rng(0)
+    eyy = 0.004 + 0.001 * rng.standard_normal(len(pts))  # all > 0
+    name, lo, hi = _panel_cmap_and_limits(plot_fields(None, pts, {"eyy": eyy}))
+    assert name != "RdBu_r" and lo > 0 and hi < eyy.max() + 1e-12, (name, lo, hi)
+    exy = 0.002 * rng.standard_normal(len(pts))  # both signs: diverging, centred on 0
+    name, lo, hi = _panel_cmap_and_limits(plot_fields(None, pts, {"exy": exy}))
+    assert name == "RdBu_r" and lo == -hi
+
+
+def test_plot_point_far_outside_is_refused(capsys, result, tmp_path):
+    code, _, err = _run(capsys, "plot", result, "--out", tmp_path / "p", "--point", "500",
+                        "500", "--no-image")  # fmt: skip
+    assert code == 2
+    _one_line(code, err, "--point", "px away")
+    assert not (tmp_path / "p").exists() or not list((tmp_path / "p").iterdir())
+    code, _, err = _run(capsys, "plot", result, "--out", tmp_path / "q", "--point", "31",
+                        "29", "--no-image")  # fmt: skip
+    assert code == 0, err
