@@ -385,3 +385,36 @@ def test_plot_point_far_outside_is_refused(capsys, result, tmp_path):
     code, _, err = _run(capsys, "plot", result, "--out", tmp_path / "q", "--point", "31",
                         "29", "--no-image")  # fmt: skip
     assert code == 0, err
+
+
+# ----------------------------------------------------------------------------------------
+# 6. README and docs say what a new user needs
+# ----------------------------------------------------------------------------------------
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_readme_quick_start_installs_cpu_torch_first():
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    quick = text[text.index("## Quick start"):text.index("<!-- generated: demo-table -->")]
+    venv, cpu = quick.find("python -m venv"), quick.find("download.pytorch.org/whl/cpu")
+    assert 0 <= venv < cpu < quick.find("pip install . "), quick
+    assert "torch==" in quick
+    assert "about 1 minute" not in text and "3 minutes" in quick
+
+
+def test_demo_output_folder_is_git_ignored():
+    import subprocess
+
+    r = subprocess.run(["git", "check-ignore", "-q", "stsdic-demo/fields.png"], cwd=ROOT,
+                       capture_output=True)
+    if r.returncode == 128:
+        pytest.skip("not a git checkout")
+    assert r.returncode == 0, ".gitignore does not ignore ./stsdic-demo"
+
+
+def test_sample14_figure_says_it_is_column_averaged():
+    text = (ROOT / "docs" / "validation.md").read_text(encoding="utf-8")
+    i = text.index("![sample 14](validation/dic_challenge_sample14.png)")
+    near = text[i - 1500:i + 400]
+    assert "averag" in near and "0.022 px" in near, near
