@@ -98,7 +98,7 @@ _EXTRA_AXES_OK = set("YXS")
 
 
 @contextlib.contextmanager
-def _tifffile_log(path: Path) -> Iterator[list[str]]:
+def _tifffile_log() -> Iterator[list[str]]:
     """Collect tifffile's log messages instead of printing them (the caller turns them into
     one error or warning line)."""
     log = logging.getLogger("tifffile")
@@ -147,7 +147,7 @@ def _probe_tiff(path: Path) -> FileInfo:
     """Header of a (multi-page, multi-series) TIFF file; InputError for stacks DIC cannot
     read as a time series, or a file cut short (every page's data checked against the file
     size; tifffile's log lines become the error, or warnings)."""
-    with _tifffile_log(path) as log:
+    with _tifffile_log() as log:
         info = _probe_tiff_header(path, log)
     for msg in log:
         warnings.warn(f"{path}: tifffile: {msg}", stacklevel=3)
