@@ -171,6 +171,22 @@ def test_truncated_tiff_refused_before_any_output(capsys, movie, tmp_path, cut):
     assert not out.exists() and not list(tmp_path.glob("r.h5*"))
 
 
+@pytest.mark.parametrize("suffix", [".png", ".bmp"])
+def test_truncated_png_or_bmp_frame_refused_before_any_output(capsys, movie, tmp_path, suffix):
+    from PIL import Image
+
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for i, im in enumerate(tifffile.imread(movie)):
+        Image.fromarray(im).save(frames / f"f{i}{suffix}")
+    victim = frames / f"f3{suffix}"
+    victim.write_bytes(victim.read_bytes()[:-600])
+    out = tmp_path / "r.h5"
+    code, _, err = _run(capsys, "run", frames, "--subset", "15", "--m", "1", "--out", out, *FAST)
+    _one_line(code, err, f"f3{suffix}", "truncated")
+    assert not list(tmp_path.glob("r.h5*"))
+
+
 # ----------------------------------------------------------------------------------------
 # 3. the same image rules at every entry point: nn.STSDIC, solve_window, track / plan_run
 # ----------------------------------------------------------------------------------------

@@ -71,12 +71,35 @@ _PIL_DTYPES: dict[str, tuple[str, int]] = {
 }
 
 
+def _check_pil_complete(im: Image.Image, path: Path) -> None:
+    """A file cut short is refused from its header and size, nothing decoded: a PNG must end
+    with its IEND chunk, and uncompressed pixel data (BMP ...) must lie inside the file."""
+    size = path.stat().st_size
+    if im.format == "PNG":
+        with open(path, "rb") as fh:
+            fh.seek(max(0, size - 1024))
+            if b"IEND" not in fh.read():
+                raise InputError(f"PNG file {path} is truncated (no IEND chunk at its end): "
+                                 "the file was probably cut short while it was written or "
+                                 "copied; copy it again")
+    for tile in im.tile:
+        codec, extents, offset, args = tile[0], tile[1], tile[2], tile[3]
+        stride = args[1] if codec == "raw" and isinstance(args, tuple) and len(args) > 1 else 0
+        if stride and extents and offset + abs(stride) * (extents[3] - extents[1]) > size:
+            raise InputError(f"image file {path} is truncated (its pixel data end at byte "
+                             f"{offset + abs(stride) * (extents[3] - extents[1])}, the file has "
+                             f"{size} bytes): copy it again")
+
+
 def _probe_pil(path: Path) -> FileInfo:
     """Header of a PNG, BMP, JPEG ... file through PIL."""
     try:
         with Image.open(path) as im:
             w, h = im.size
             mode = im.mode
+            _check_pil_complete(im, path)
+    except InputError:
+        raise
     except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as exc:
         raise InputError(f"cannot read image file {path}: {exc}") from exc
     dt, bits = _PIL_DTYPES.get(mode, ("uint8", 8))
