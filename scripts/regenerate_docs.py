@@ -4,6 +4,11 @@ The blocks between ``<!-- generated: NAME -->`` and ``<!-- end generated: NAME -
 docs/cli.md are program output:
 
 - ``help``: ``stsdic --help``;
+- ``run-options``: the option table of ``stsdic run``, made from its argparse parser
+  (option, default, meaning: the help text every option has);
+- ``run-summary``: what ``stsdic run`` prints, for the small synthetic movie of
+  :data:`SUMMARY_COMMANDS` (run in-process in a temporary folder; its time line is not
+  compared by ``--check``);
 - ``demo``: ``stsdic demo`` (run in a temporary folder), with the wall-clock and CPU time the
   run took and the machine's load; the demo's figures are copied, scaled down, to
   ``docs/demo/``;
@@ -14,7 +19,9 @@ Usage::
 
     python scripts/regenerate_docs.py            # rewrite the blocks and docs/demo/*.png
     python scripts/regenerate_docs.py --check    # exit 1 if the blocks are stale (help text,
-                                                 # demo errors); times are not compared
+                                                 # run options and summary, demo errors);
+                                                 # times are not compared
+    python scripts/regenerate_docs.py --check --cli   # the CLI blocks only (no demo: seconds)
 
 The demo time quoted in the README, in docs/cli.md and in ``stsdic --help`` is one constant,
 :data:`torch_stsdic.cli.demo.DEMO_TIME`; ``--check`` also verifies that every one quotes it.
@@ -23,6 +30,7 @@ The demo time quoted in the README, in docs/cli.md and in ``stsdic --help`` is o
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import re
@@ -49,9 +57,92 @@ def _stsdic(args: list[str], cwd: Path) -> str:
     return done.stdout
 
 
+@functools.lru_cache(maxsize=1)
 def help_text() -> str:
     """``stsdic --help`` as a docs block."""
     return "```\n$ stsdic --help\n" + _stsdic(["--help"], ROOT).rstrip() + "\n```\n"
+
+
+#: the commands whose output is the ``run-summary`` block
+SUMMARY_COMMANDS = (["synth", "--out", "mv", "--size", "81", "--frames", "8"],
+                    ["run", "mv/movie.tif", "--step", "10", "--out", "r.h5", "--no-progress"])
+
+
+def _cell(text: str) -> str:
+    return " ".join(text.split()).replace("|", "\\|")
+
+
+def _option_row(action: argparse.Action, formatter: argparse.HelpFormatter) -> str:
+    """One table row: the option with its value, the default, the meaning."""
+    first, *aliases = action.option_strings
+    if action.nargs != 0:
+        meta = action.metavar
+        if meta is None:
+            meta = "{" + ",".join(map(str, action.choices)) + "}" if action.choices else \
+                action.dest.upper()
+        first += " " + (" ".join(meta) if isinstance(meta, tuple) else str(meta))
+    flags = f"`{first}`" + "".join(f" (`{a}`)" for a in aliases)
+    text = formatter._expand_help(action) if action.help else ""
+    default = "-"
+    found = re.search(r"\s*\(default: (.*)\)\s*$", text, flags=re.S)
+    inner = re.search(r";\s*default: ([^)]*)\)\s*$", text)  # '(..., 0-based; default: 0)'
+    if found and "(" not in found.group(1):
+        default, text = found.group(1), text[: found.start()]
+    elif inner:
+        default, text = inner.group(1), text[: inner.start()] + ")"
+    return f"| {flags} | {_cell(default)} | {_cell(text)} |"
+
+
+def options_table(command: str = "run") -> str:
+    """The option table of ``stsdic COMMAND``, one row per option, grouped as ``--help``
+    groups them (-h and --debug left out)."""
+    from torch_stsdic.cli.app import build_parser
+
+    parser = build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    cmd = sub.choices[command]
+    formatter = cmd._get_formatter()
+    lines = ["| option | default | meaning |", "|--------|---------|---------|"]
+    for group in cmd._action_groups:
+        rows = [_option_row(a, formatter) for a in group._group_actions
+                if a.option_strings and a.help != argparse.SUPPRESS
+                and a.dest not in ("help", "debug")]
+        if rows:
+            lines.append(f"| **{group.title}** | | |")
+            lines += rows
+    return "\n".join(lines) + "\n"
+
+
+@functools.lru_cache(maxsize=1)
+def run_summary() -> str:
+    """The ``run-summary`` block: :data:`SUMMARY_COMMANDS` run now, their commands and what
+    ``stsdic run`` prints."""
+    import contextlib
+    import io
+
+    from torch_stsdic.cli import main
+
+    cwd = Path.cwd()
+    with tempfile.TemporaryDirectory() as tmp:
+        os.chdir(tmp)
+        try:
+            with contextlib.redirect_stdout(io.StringIO()):
+                code = main(SUMMARY_COMMANDS[0])
+            buf = io.StringIO()
+            with contextlib.redirect_stdout(buf):
+                code = code or main(SUMMARY_COMMANDS[1])
+        finally:
+            os.chdir(cwd)
+    if code:
+        raise SystemExit(f"run-summary: the commands failed (exit code {code})")
+    shown = [" ".join(["$ stsdic", *c]) for c in SUMMARY_COMMANDS]
+    body = [ln.rstrip() for ln in buf.getvalue().splitlines()]
+    return "```\n" + "\n".join(shown[1:] + body) + "\n```\n"
+
+
+def _summary_stable(block: str) -> list[str]:
+    """The lines of a pasted run summary that do not depend on the machine (not 'time:')."""
+    return [ln for ln in block.strip().splitlines() if not ln.startswith("time:")]
 
 
 def demo_run(figures_to: Path | None = None) -> dict:
@@ -150,15 +241,28 @@ def replace_block(text: str, name: str, new: str, doc: Path = CLI_DOC) -> str:
     return text[:i] + new + text[j:]
 
 
-def stale(text: str, demo: bool = True) -> list[str]:
-    """What is out of date in docs/cli.md and the README: help text, demo time and (with
-    ``demo``, which runs it) the demo's output."""
-    from torch_stsdic.cli.demo import DEMO_TIME
-
+def stale_cli(text: str) -> list[str]:
+    """What is out of date in docs/cli.md's CLI reference: the 'stsdic --help' block, the
+    option table of 'stsdic run' and its summary example (time line excepted)."""
     problems = []
     i, j = _block(text, "help")
     if text[i:j] != help_text():
         problems.append("the 'stsdic --help' block differs from the program's output")
+    i, j = _block(text, "run-options")
+    if text[i:j] != options_table("run"):
+        problems.append("the option table of 'stsdic run' differs from its parser")
+    i, j = _block(text, "run-summary")
+    if _summary_stable(text[i:j]) != _summary_stable(run_summary()):
+        problems.append("the summary example of 'stsdic run' differs from a run now")
+    return problems
+
+
+def stale(text: str, demo: bool = True) -> list[str]:
+    """What is out of date in docs/cli.md and the README: the CLI reference
+    (:func:`stale_cli`), demo time and (with ``demo``, which runs it) the demo's output."""
+    from torch_stsdic.cli.demo import DEMO_TIME
+
+    problems = stale_cli(text)
     if demo:
         run = demo_run()
         i, j = _block(text, "demo")
@@ -182,16 +286,24 @@ def stale(text: str, demo: bool = True) -> list[str]:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--check", action="store_true", help="only report stale blocks (exit 1)")
+    ap.add_argument("--cli", action="store_true", help="only the CLI reference blocks of "
+                    "docs/cli.md (help, run options, run summary): no demo run")
     args = ap.parse_args(argv)
     sys.path.insert(0, str(ROOT))
     text = CLI_DOC.read_text(encoding="utf-8")
     if args.check:
-        problems = stale(text)
+        problems = stale_cli(text) if args.cli else stale(text)
         for p in problems:
             print(f"stale: {p}")
         return 1 if problems else 0
-    run = demo_run(ROOT / "docs" / "demo")
     text = replace_block(text, "help", help_text())
+    text = replace_block(text, "run-options", options_table("run"))
+    text = replace_block(text, "run-summary", run_summary())
+    if args.cli:
+        CLI_DOC.write_text(text, encoding="utf-8")
+        print(f"rewrote the CLI reference blocks of {CLI_DOC}")
+        return 0
+    run = demo_run(ROOT / "docs" / "demo")
     text = replace_block(text, "demo", demo_text(run))
     CLI_DOC.write_text(text, encoding="utf-8")
     readme = README.read_text(encoding="utf-8")

@@ -60,6 +60,7 @@ from .offgrid import carry_params, carry_solution, snap_points
 from .shared_motion import window_offsets
 from .solver import SubsetSolver, WindowSolution
 from .status import Status
+from .validation import check_pixels
 
 __all__ = [
     "STSDIC",
@@ -455,6 +456,8 @@ class STSDIC(nn.Module):
     def _check_images(self, ref: Tensor, frames: Tensor) -> tuple[Tensor, Tensor]:
         if not isinstance(ref, Tensor) or not isinstance(frames, Tensor):
             raise TypeError("ref and frames must be torch tensors")
+        check_pixels(ref, "ref")
+        check_pixels(frames, "frames")
         if ref.dim() == 4 and ref.shape[1] == 1:
             ref = ref[:, 0]
         if frames.dim() == 5 and frames.shape[2] == 1:

@@ -21,6 +21,7 @@ from .io import DEFAULT_FIELDS, ImageSeries, InputError, load_series, parse_fram
 from .io.units import check_calibration
 from .points import filter_points, grid_points
 from .shape import make_shape
+from .validation import check_pixels
 
 __all__ = ["RunPlan", "plan_run", "resolve_reference", "resolve_frames", "resolve_times",
            "default_batch_frames", "grid_margin", "MAX_DEFAULT_BATCH"]
@@ -232,6 +233,7 @@ def resolve_reference(reference: Any, series: ImageSeries, dtype, device):
     """(raw (H, W), frame index or -1, description for the config)."""
     n = len(series)
     if isinstance(reference, (np.ndarray, torch.Tensor)) and np.ndim(reference) >= 2:
+        check_pixels(reference, "reference")
         arr = torch.as_tensor(np.asarray(reference.detach().cpu() if isinstance(
             reference, torch.Tensor) else reference)).to(dtype)
         if arr.dim() == 3 and arr.shape[0] == 1:

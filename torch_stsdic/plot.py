@@ -5,12 +5,13 @@ nothing to close; the Agg canvas renders it), return it, and save it as PNG (or 
 matplotlib infers from the suffix) when ``path`` is given. In Jupyter the returned figure displays
 itself.
 
-Conventions: axes in pixels, ``x`` = column to the right, ``y`` = row **down** (image
-orientation); NaN values are drawn transparent (the image shows through: the quality mask).
-Every colour bar is labelled with its quantity and unit; displacement-like fields use a
-sequential map with robust limits (0.5 .. 99.5 percentiles of the drawn points), errors,
-strains and gradients a diverging map centred on 0 (99th percentile of |value|, within
-Tukey's far-out fence Q3 + 3 IQR of |value|); panels
+Conventions: axes in pixels (labelled in mm etc. with a calibration, ``units``), ``x`` =
+column to the right, ``y`` = row **down** (image orientation); NaN values are drawn
+transparent (the image shows through: the quality mask). Every colour bar is labelled with
+its quantity and unit; displacement-like fields use a sequential map with robust limits
+(0.5 .. 99.5 percentiles of the drawn points), errors, strains and gradients a diverging map
+centred on 0 (99th percentile of |value|, within Tukey's far-out fence Q3 + 3 IQR of
+|value|) where their values reach both signs, else the sequential map on their range; panels
 that are compared share their limits (``share``). Colour bars are as tall as their panel.
 """
 
@@ -24,6 +25,7 @@ import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.colors import BoundaryNorm, ListedColormap, Normalize
 from matplotlib.figure import Figure
+from matplotlib.ticker import FuncFormatter, MaxNLocator
 
 from .io.units import Units
 from .signatures import POSITIONAL, bind, param, signature_like
@@ -33,6 +35,7 @@ from .strain import detect_grid
 __all__ = [
     "animate_field",
     "is_diverging",
+    "label_axes",
     "plot_error_vs_noise",
     "plot_field",
     "plot_fields",
@@ -41,6 +44,7 @@ __all__ = [
     "plot_status",
     "plot_xy",
     "save_figure",
+    "straddles_zero",
 ]
 
 #: default labels (units) for the usual result fields
@@ -83,6 +87,42 @@ def save_figure(fig: Figure, path: str | Path | None, *, dpi: int = 120) -> Figu
     return fig
 
 
+class _ScaledLocator(MaxNLocator):
+    """Ticks at round values of the scaled unit (e.g. 0, 2, 4 mm) on an axis drawn in px."""
+
+    def __init__(self, scale: float) -> None:
+        super().__init__(nbins="auto", steps=[1, 2, 2.5, 5, 10])
+        self.scale = scale
+
+    def tick_values(self, vmin: float, vmax: float) -> np.ndarray:
+        return super().tick_values(vmin * self.scale, vmax * self.scale) / self.scale
+
+
+def label_axes(ax: Axes, units: Units | None = None) -> None:
+    """Label the image axes x, y in the calibrated length unit (px without a scale): the
+    drawing stays in px, the ticks sit at round values of the unit."""
+    unit = "px" if units is None or units.scale is None else units.unit
+    if unit != "px":
+        scale = float(units.scale)  # type: ignore[union-attr]
+        for axis in (ax.xaxis, ax.yaxis):
+            axis.set_major_locator(_ScaledLocator(scale))
+            axis.set_major_formatter(FuncFormatter(lambda v, _pos: f"{round(v * scale, 9):g}"))
+    ax.set_xlabel(f"x ({unit})")
+    ax.set_ylabel(f"y ({unit})")
+
+
+def straddles_zero(values: np.ndarray, share: float = 0.2) -> bool:
+    """Whether the robust range (0.5 .. 99.5 percentiles) of the finite ``values`` reaches
+    both signs, the smaller side at least ``share`` of the larger: only then does a
+    diverging map centred on 0 use its colours (eyy all positive would leave half unused)."""
+    fin = np.asarray(values, dtype=np.float64)
+    fin = fin[np.isfinite(fin)]
+    if fin.size == 0:
+        return True
+    lo, hi = (float(v) for v in np.percentile(fin, [0.5, 99.5]))
+    return lo < 0 < hi and min(-lo, hi) >= share * max(-lo, hi)
+
+
 def _norm(values: np.ndarray, vmin: float | None, vmax: float | None, symmetric: bool) -> Normalize:
     """Colour limits: robust percentiles of the finite ``values`` (any shape: pass every panel
     that shares the limits), symmetric about 0 when ``symmetric``."""
@@ -116,8 +156,10 @@ def _draw_field(
     alpha: float,
     norm: Normalize,
     marker_size: float | None,
+    units: Units | None = None,
 ) -> Any:
-    """Draw the image (grey) and the field on ``ax``; return the mappable for the colour bar."""
+    """Draw the image (grey) and the field on ``ax`` (axes in ``units``' length unit);
+    return the mappable for the colour bar."""
     if image is not None:
         img = _np(image)
         if img.ndim != 2:
@@ -159,8 +201,7 @@ def _draw_field(
         ax.set_xlim(points[:, 0].min() - pad, points[:, 0].max() + pad)
         ax.set_ylim(points[:, 1].max() + pady, points[:, 1].min() - pady)  # y down
     ax.set_aspect("equal")
-    ax.set_xlabel("x (px)")
-    ax.set_ylabel("y (px)")
+    label_axes(ax, units)
     return mappable
 
 
@@ -191,6 +232,8 @@ def plot_field(
     ax: Axes | None = None,
     path: str | Path | None = None,
     dpi: int = 120,
+    units: Units | None = None,
+    sequential_cmap: str = "viridis",
 ) -> Figure:
     """One scalar field drawn over the reference image, with a colour bar as tall as the
     panel.
@@ -202,8 +245,11 @@ def plot_field(
         title: axes title; ``label``: colour-bar label (put the units here, e.g. ``"u (px)"``).
         cmap, alpha, vmin, vmax: colour map, opacity over the image and colour limits.
         symmetric: colour limits ``[-a, a]`` with a the 99th percentile of |v| (good for
-            strains with a diverging cmap); otherwise the 0.5 .. 99.5 percentiles (robust to a
-            few wild points) unless vmin / vmax are given.
+            strains with a diverging cmap) where the values reach both signs
+            (:func:`straddles_zero`); else, and without ``symmetric``, the 0.5 .. 99.5
+            percentiles (robust to a few wild points) on ``sequential_cmap`` (for a one-signed
+            field) unless vmin / vmax are given.
+        units: the calibration: x, y axes labelled in its length unit (default px).
         marker_size: scatter marker size (scattered points only).
         norm: colour limits to use as they are (e.g. shared by several panels).
         ax: draw into this axes (its figure is returned, not saved unless ``path``).
@@ -213,6 +259,8 @@ def plot_field(
     points; scattered points as a scatter plot.
     """
     p, v = _check_points(points, values)
+    if symmetric and norm is None and vmin is None and vmax is None and not straddles_zero(v):
+        symmetric, cmap = False, sequential_cmap
     if ax is None:
         fig = Figure(figsize=(6.4, 4.8), layout="constrained")
         ax = fig.add_subplot()
@@ -227,6 +275,7 @@ def plot_field(
         alpha=alpha,
             norm=norm if norm is not None else _norm(v, vmin, vmax, symmetric),
         marker_size=marker_size,
+        units=units,
     )
     cb = colorbar(fig, ax, m)
     if label:
@@ -305,7 +354,9 @@ def plot_fields(
             unit, px without ``units`` -- else :data:`FIELD_LABELS`, else the name).
         units: the calibration the values are in (:class:`~torch_stsdic.io.units.Units`).
         cmap: colour map of displacement-like fields; :func:`is_diverging` names and those in
-            ``diverging`` get ``diverging_cmap`` with limits symmetric about 0.
+            ``diverging`` get ``diverging_cmap`` with limits symmetric about 0 where their
+            values reach both signs (:func:`straddles_zero`), else ``cmap`` with the values'
+            range. The x, y axes are in ``units``' length unit.
         share: groups of names whose panels share their colour limits (compared panels).
         ncols: panels per row (default: as many as fill about 17 inches of width).
         notes: a line under a panel's title by name (e.g. why a velocity is missing).
@@ -320,14 +371,17 @@ def plot_fields(
     axes = fig.subplots(nrows, ncols, squeeze=False).ravel()
     units = units or Units()
     labels = dict(labels or {})
-    sym = {nm: is_diverging(nm) or nm in diverging for nm in fields}
+    sym = {nm: (is_diverging(nm) or nm in diverging) and straddles_zero(_np(v))
+           for nm, v in fields.items()}
     norms: dict[str, Normalize] = {}
     for group in share:
         names = [nm for nm in group if nm in fields]
         if names:
             both = np.concatenate([np.ravel(_np(fields[nm])) for nm in names])
-            norm = _norm(both, None, None, any(sym[nm] for nm in names))
-            norms.update({nm: norm for nm in names})
+            shared = any(is_diverging(nm) or nm in diverging for nm in names) and \
+                straddles_zero(both)
+            norms.update({nm: _norm(both, None, None, shared) for nm in names})
+            sym.update({nm: shared for nm in names})
     for ax, (name, vals) in zip(axes, fields.items()):
         default = units.label(name) if units.dims(name) is not None else None
         plot_field(
@@ -341,6 +395,7 @@ def plot_fields(
             norm=norms.get(name),
             cmap=diverging_cmap if sym[name] else cmap,
             label=labels.get(name) or default or FIELD_LABELS.get(name, name),
+            units=units,
         )
         if notes and notes.get(name):
             ax.set_title(f"{name}\n{notes[name]}", fontsize=9)
@@ -368,9 +423,11 @@ def plot_status(
     ax: Axes | None = None,
     path: str | Path | None = None,
     dpi: int = 120,
+    units: Units | None = None,
 ) -> Figure:
     """The quality map: every point coloured by its :class:`~torch_stsdic.status.Status`
-    over the image, with a colour bar naming the codes and the share of points with each."""
+    over the image, with a colour bar naming the codes and the share of points with each
+    (x, y axes in ``units``' length unit)."""
     p = _np(points).astype(np.float64)
     st = _np(status).astype(np.int64)
     codes = list(Status)
@@ -384,7 +441,7 @@ def plot_status(
     cmap = ListedColormap([STATUS_COLOURS[c] for c in codes])
     norm = BoundaryNorm(np.arange(len(codes) + 1) - 0.5, len(codes))
     m = _draw_field(ax, image, p, st.astype(np.float64), cmap=cmap, alpha=0.85, norm=norm,
-                    marker_size=None)  # fmt: skip
+                    marker_size=None, units=units)  # fmt: skip
     cb = colorbar(fig, ax, m, ticks=np.arange(len(codes)))
     total = max(1, st.size)
     cb.ax.set_yticklabels([f"{c.name.lower()} {100.0 * (st == int(c)).sum() / total:.1f} %"
@@ -532,6 +589,7 @@ def animate_field(
     title: str = "",
     fps: float = 4.0,
     dpi: int = 100,
+    units: Units | None = None,
 ) -> Path:
     """An animation of a field over the movie: GIF (matplotlib's PillowWriter), or MP4 when
     ``path`` ends in ``.mp4`` and ffmpeg is installed (else a GIF beside it).
@@ -543,7 +601,9 @@ def animate_field(
         displacement: (u, v), each (F, N) px: the points are drawn where they moved to
             (so the field stays on the material over the moving images).
         stamps: (F,) texts after the title, e.g. "frame 3" or "t = 0.5 s" (default: "row k").
-        symmetric: diverging map centred on 0. The colour limits are fixed over all frames.
+        symmetric: diverging map centred on 0 where the values reach both signs
+            (:func:`straddles_zero`). The colour limits are fixed over all frames.
+        units: the calibration: x, y axes in its length unit (default px).
 
     Returns:
         the path written.
@@ -555,6 +615,7 @@ def animate_field(
     if vals.ndim != 2 or vals.shape[1] != len(p):
         raise ValueError(f"values must have shape (F, N) = (F, {len(p)}), got {vals.shape}")
     n_rows = vals.shape[0]
+    symmetric = symmetric and straddles_zero(vals)
     norm = _norm(vals, None, None, symmetric)
     cmap = cmap or ("RdBu_r" if symmetric else "viridis")
     first = None if frame_image is None else _np(frame_image(0))
@@ -581,8 +642,7 @@ def animate_field(
         ax.set_xlim(p[:, 0].min() - 0.05 * w, p[:, 0].max() + 0.05 * w)
         ax.set_ylim(p[:, 1].max() + 0.05 * h, p[:, 1].min() - 0.05 * h)
     ax.set_aspect("equal")
-    ax.set_xlabel("x (px)")
-    ax.set_ylabel("y (px)")
+    label_axes(ax, units)
     cb = colorbar(fig, ax, scat)
     cb.set_label(label)
     stamps = list(stamps) if stamps is not None else [f"row {k}" for k in range(n_rows)]

@@ -250,6 +250,7 @@ def fit_intercepts(t: np.ndarray, ys: dict[str, np.ndarray], *, min_frames: int 
     dof = float(np.median(n3)) / _D3_VAR_FACTOR if n3.size else 0.0
     t_crit = _t_quantile(t_limit, dof)
     bias = _bias_significant(t / scale, ys, sig2)
+    min_frames = max(int(min_frames), _test_unknowns(1, bias) + 1)
     best_var = np.full(n, np.inf)
     best_d = np.full(n, np.nan)  # intercept variance / per-frame variance of the kept fit
     best = {k: np.zeros(n) for k in ys}
@@ -259,7 +260,7 @@ def fit_intercepts(t: np.ndarray, ys: dict[str, np.ndarray], *, min_frames: int 
     for idx in _candidates(t, min_frames):
         ts = t[idx] / scale
         for d in (1, 2):
-            if len(idx) < d + 3:
+            if len(idx) <= _test_unknowns(d, bias):  # the noise needs >= 1 dof
                 continue
             fin = np.ones(n, dtype=bool)
             ok = np.ones(n, dtype=bool)
@@ -301,6 +302,12 @@ def fit_intercepts(t: np.ndarray, ys: dict[str, np.ndarray], *, min_frames: int 
                             degree=degree, sigma=np.sqrt(sig2["u"]), seconds=0.0,
                             bias_terms=bias, shrink=shrink, rho=rho, t_fit=t,
                             min_frames=int(min_frames))
+
+
+def _test_unknowns(degree: int, bias: bool) -> int:
+    """Unknowns of the test fit of a degree-``degree`` fit: the polynomial of one degree more,
+    plus the two sub-pixel bias terms with ``bias``."""
+    return degree + 2 + (2 if bias else 0)
 
 
 #: (sum over lags of the autocovariance^2 of a third difference of white noise) / its
@@ -379,6 +386,8 @@ def _bias_significant(ts: np.ndarray, ys: dict[str, np.ndarray],
     fit of the whole trajectory exceeds _BIAS_CHI2 (1 expected without a bias). Fitting them
     where there is no bias only adds variance to the intercepts."""
     stats = []
+    if len(ts) <= _test_unknowns(1, True):  # too few frames to fit the bias terms at all
+        return False
     for comp in ("u", "v"):
         y = ys[comp]
         fin = np.isfinite(y).all(0) & np.isfinite(sig2[comp])
@@ -412,7 +421,10 @@ def _fit(ts: np.ndarray, n_poly: int, disp: np.ndarray, y: np.ndarray | None = N
     x = np.concatenate([poly, harm], -1)  # (N, L, K)
     xtx = np.einsum("nlk,nlj->nkj", x, x)
     xtx[:, n_poly:, n_poly:] += np.where(use, 0.0, 1.0)[:, None, None] * np.eye(2)
-    cov = np.linalg.inv(xtx)
+    try:
+        cov = np.linalg.inv(xtx)
+    except np.linalg.LinAlgError:  # a degenerate point (e.g. repeated displacements)
+        cov = np.linalg.pinv(xtx, hermitian=True)
     coef = np.einsum("nkj,nlj,ln->kn", cov, x, y)
     return (coef, cov, use) if with_use else (coef, cov)
 

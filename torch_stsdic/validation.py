@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-__all__ = ["as_image", "as_series", "as_points", "as_times", "check_init", "resolve_dtype"]
+__all__ = ["as_image", "as_series", "as_points", "as_times", "check_init", "check_pixel_dtype",
+           "check_pixels", "resolve_dtype"]
 
 _DTYPES = {None: None, "float32": torch.float32, "float64": torch.float64}
 
@@ -39,17 +40,37 @@ def _to_tensor(x, name: str) -> torch.Tensor:
     raise TypeError(f"{name}: expected a torch.Tensor or numpy array, got {type(x).__name__}")
 
 
-def _check_finite(x: torch.Tensor, name: str) -> None:
-    if x.is_floating_point() and not bool(torch.isfinite(x).all()):
-        bad = int((~torch.isfinite(x)).sum())
+def check_pixel_dtype(x: torch.Tensor | np.ndarray, name: str) -> None:
+    """Images hold real numbers, integer or float: TypeError for bool, complex and others."""
+    kind = x.dtype.kind if isinstance(x, np.ndarray) else (
+        "c" if x.is_complex() else "b" if x.dtype == torch.bool else "f")
+    if kind not in "iuf":
+        raise TypeError(f"{name}: pixels must be real numbers (integer or float), got dtype "
+                        f"{str(x.dtype).replace('torch.', '')}")
+
+
+def check_pixels(x: torch.Tensor | np.ndarray, name: str) -> None:
+    """The one rule for images at every entry point (``solve_window``, ``nn.STSDIC``,
+    reference images of ``track`` / ``plan_run``; arrays given to ``load_series`` are checked
+    frame by frame as they are read): :func:`check_pixel_dtype`, and every pixel finite
+    (ValueError with the count of NaN / inf pixels)."""
+    check_pixel_dtype(x, name)
+    if isinstance(x, np.ndarray):
+        bad = int((~np.isfinite(x)).sum()) if x.dtype.kind == "f" else 0
+    else:
+        bad = int((~torch.isfinite(x)).sum()) if x.is_floating_point() else 0
+    if bad:
         raise ValueError(f"{name}: contains {bad} non-finite pixel(s) (NaN or inf)")
+
+
+def _check_finite(x: torch.Tensor, name: str) -> None:
+    check_pixels(x, name)
 
 
 def as_image(x, name: str, dtype=None, device=None) -> torch.Tensor:
     """A single grey image (H, W) as a float tensor; colour and stacks are rejected."""
     t = _to_tensor(x, name)
-    if t.is_complex():
-        raise TypeError(f"{name}: complex images are not supported")
+    check_pixels(t, name)
     if t.dim() == 3 and t.shape[-1] in (3, 4) and t.shape[0] > 4:
         raise ValueError(
             f"{name}: shape {tuple(t.shape)} looks like a colour image (H, W, {t.shape[-1]}); "
@@ -68,6 +89,7 @@ def as_image(x, name: str, dtype=None, device=None) -> torch.Tensor:
 def as_series(x, name: str, dtype, device, like: torch.Tensor, m: int = 0) -> torch.Tensor:
     """A (T, H, W) float stack matching ``like`` (H, W); (H, W) is accepted as one frame."""
     t = _to_tensor(x, name)
+    check_pixels(t, name)
     if t.dim() == 4 and t.shape[-1] in (3, 4):
         raise ValueError(
             f"{name}: shape {tuple(t.shape)} looks like colour frames (T, H, W, {t.shape[-1]}); "

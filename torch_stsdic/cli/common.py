@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from .errors import UsageError
+from .errors import CommandError, UsageError
 
 
 def to_numpy(a: Any) -> np.ndarray:
@@ -51,3 +53,17 @@ def span(frames: Sequence[int]) -> str:
     if len(f) > 6:
         return f"{f[0]}, {f[1]}, {f[2]}, ..., {f[-1]} ({len(f)} frames)"
     return ", ".join(str(x) for x in f)
+
+
+def check_folder(folder: Path, shown: str) -> None:
+    """``folder`` (or, if missing, the nearest existing folder above it, where it will be
+    created) takes files: a CommandError beginning with ``shown`` (e.g. '--out plots/')
+    before any work."""
+    existing = folder.absolute()
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        raise CommandError(f"{shown}: {existing} is not a folder")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise CommandError(f"{shown}: the folder {existing} is not writable (read-only or no "
+                           "permission); choose another --out")

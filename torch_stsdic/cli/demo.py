@@ -8,9 +8,10 @@ from __future__ import annotations
 
 import argparse
 from dataclasses import asdict
+from pathlib import Path
 
 from . import options
-from .common import check_device
+from .common import check_device, check_folder
 from .errors import UsageError
 
 NAME = "demo"
@@ -80,6 +81,8 @@ def execute(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     out = None if args.no_plots else args.out
+    if out is not None:
+        check_folder(Path(out), f"--out {out}")
     result = run_demo(out, progress=not args.no_progress, log=_say, **asdict(settings))
     print(result.table())
     if result.files:

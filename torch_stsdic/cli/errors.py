@@ -24,9 +24,12 @@ class CommandError(Exception):
 
 
 def one_line(exc: BaseException) -> str:
-    """The exception's message on one line (KeyError without its quotes)."""
+    """The exception's message on one line (KeyError without its quotes, OSError as
+    'PATH: reason')."""
     if isinstance(exc, KeyError) and len(exc.args) == 1 and isinstance(exc.args[0], str):
         msg = exc.args[0]
+    elif isinstance(exc, OSError) and exc.strerror:  # without '[Errno N]', the path first
+        msg = f"{exc.filename}: {exc.strerror}" if exc.filename else exc.strerror
     else:
         msg = str(exc)
     msg = " ".join(part.strip() for part in msg.splitlines() if part.strip())

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from . import options
-from .common import span
+from .common import check_folder, span
 from .errors import CommandError, UsageError
 
 NAME = "export"
@@ -49,7 +49,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     options.add_result(p)
     p.add_argument(
         "--out", "-o", required=True, metavar="DIR",
-        help="output directory (csv: or a {frame} pattern)",
+        help="output directory, created if missing (csv: or a {frame} pattern)",
     )  # fmt: skip
     options.add_option(p, "--format", "-f", choices=FORMATS, default="csv",
                        help="csv: one file per frame; vtk: ParaView .vtu per frame + .pvd; "
@@ -110,6 +110,8 @@ def execute(args: argparse.Namespace) -> int:
     if args.format != "csv" and "{" in args.out:
         raise UsageError(f"--out {args.out}: a {{frame}} pattern is for --format csv; give a "
                          "directory")
+    folder = Path(args.out).parent if "{" in args.out else Path(args.out)
+    check_folder(folder, f"--out {args.out}")
     kw = {"comment": args.comment} if args.format == "csv" else {}
     written = export_results(args.result, args.out, args.format, frames, **kw)
     frame_files = [w for w in written if w.suffix in (".csv", ".vtu")]

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from . import options
-from .common import span
+from .common import check_folder, span
 from .errors import CommandError, UsageError, one_line
 
 NAME = "plot"
@@ -29,10 +29,11 @@ Draw a result file as PNG files in DIR, in the units the run recorded ('stsdic r
   strain_history_*.png     the same for exx, eyy, exy (when the file has strains)
   FIELD_movie.gif          with --animate FIELD: the field over the movie (MP4 with
                            --animate-format mp4 when ffmpeg is installed)
-Every colour bar names its quantity and unit. Displacements use a sequential colour map
-with robust limits (0.5-99.5 percentiles of the usable points), strains, gradients and
-errors a diverging one centred on 0. Unusable points (status not converged/max-iter,
-or ZNCC below --min-zncc) are not drawn: the image shows through.
+Every colour bar and axis names its quantity and unit. Displacements use a sequential
+colour map with robust limits (0.5-99.5 percentiles of the usable points), strains,
+gradients and errors a diverging one centred on 0 when their values have both signs (else
+the sequential one on their range). Unusable points (status not converged/max-iter, or
+ZNCC below --min-zncc) are not drawn: the image shows through.
 """
 
 EPILOG = """\
@@ -55,7 +56,8 @@ HISTORIES = (
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The options of ``stsdic plot``."""
     options.add_result(p)
-    p.add_argument("--out", "-o", required=True, metavar="DIR", help="output directory")
+    p.add_argument("--out", "-o", required=True, metavar="DIR",
+                   help="output directory, created if missing")
     opt = options.add_option
     opt(p, "--frame", default="last", metavar="N|last",
         help="image frame number of the maps, or 'last' finished frame")  # fmt: skip
@@ -74,7 +76,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         nargs=2,
         default=None,
         metavar=("X", "Y"),
-        help="time history of the point nearest to (X, Y) px",
+        help="time history of the point nearest to (X, Y) px (refused when that point is "
+        "more than 2 grid steps away)",
     )
     ex.add_argument(
         "--mean",
@@ -205,6 +208,43 @@ def _series(args: argparse.Namespace, res: Any) -> Any:
 # ----------------------------------------------------------------------------------------
 
 
+#: --point farther than this many grid steps from every point is refused
+POINT_REACH = 2.0
+
+
+def _point_spacing(points: np.ndarray) -> float:
+    """The points' spacing in px: the grid step (the larger of x and y), else the median
+    distance to the nearest neighbour; 1 for a single point."""
+    from ..strain import detect_grid
+
+    grid = detect_grid(points) if len(points) > 1 else None
+    if grid is not None and max(grid.nx, grid.ny) > 1:
+        return float(max(grid.sx if grid.nx > 1 else 0.0, grid.sy if grid.ny > 1 else 0.0))
+    if len(points) < 2:
+        return 1.0
+    from scipy.spatial import cKDTree
+
+    d, _ = cKDTree(points).query(points, k=2)
+    return float(np.median(d[:, 1]))
+
+
+def _nearest_point(args: argparse.Namespace, res: Any) -> int:
+    """Index of the point nearest to ``--point X Y``; UsageError when it is more than
+    :data:`POINT_REACH` grid steps away (a point outside the measured region)."""
+    x, y = args.point
+    pts = np.asarray(res.points, dtype=np.float64)
+    d2 = (pts[:, 0] - x) ** 2 + (pts[:, 1] - y) ** 2
+    k = int(np.argmin(d2))
+    dist, step = float(np.sqrt(d2[k])), _point_spacing(pts)
+    if dist > POINT_REACH * step:
+        lo, hi = pts.min(0), pts.max(0)
+        raise UsageError(
+            f"--point {x:g} {y:g}: the nearest measured point ({pts[k, 0]:g}, {pts[k, 1]:g}) is "
+            f"{dist:.1f} px away, more than {POINT_REACH:g} grid steps ({step:g} px); the "
+            f"points span x {lo[0]:g}..{hi[0]:g}, y {lo[1]:g}..{hi[1]:g} px (--point is in px)")
+    return k
+
+
 def _history_pick(
     args: argparse.Namespace, res: Any, valid: np.ndarray
 ) -> tuple[Callable[[np.ndarray], np.ndarray], str, str]:
@@ -218,8 +258,7 @@ def _history_pick(
                 return np.nanmean(vals, axis=1)
 
         return mean, "mean over usable points", "mean"
-    x, y = args.point
-    k = int(np.argmin((res.points[:, 0] - x) ** 2 + (res.points[:, 1] - y) ** 2))
+    k = _nearest_point(args, res)
     px, py = res.points[k]
 
     def point(a: np.ndarray) -> np.ndarray:
@@ -336,11 +375,11 @@ def _plot_frame(args: argparse.Namespace, res: Any, row: int, valid: np.ndarray,
         fig = Figure(figsize=(fw + 1.3, fh), layout="constrained")  # + the status names
         axes = fig.subplots(1, 2 if zn is not None else 1, squeeze=False).ravel()
         plot_status(image, res.points, res.fields["status"][row], ax=axes[0],
-                    title="status (usable: converged, max_iter)")  # fmt: skip
+                    title="status (usable: converged, max_iter)", units=units)  # fmt: skip
         if zn is not None:
             z = np.where(np.isfinite(zn[row]), zn[row], np.nan)
             plot_field(image, res.points, z, ax=axes[1], title="ZNCC", label="ZNCC (-)",
-                       vmax=1.0)  # fmt: skip
+                       vmax=1.0, units=units)  # fmt: skip
         fig.suptitle(f"{name}: quality at {when}")
         path = out / f"quality_frame{frame:05d}.png"
         save_figure(fig, path, dpi=args.dpi)
@@ -373,7 +412,7 @@ def _animate(args: argparse.Namespace, res: Any, valid: np.ndarray, out: Path) -
         res.points, vals, out / f"{nm}_movie.{args.animate_format}",
         stamps=[_when(res, r) for r in rows], displacement=disp, label=units.label(nm),
         symmetric=is_diverging(nm), title=f"{Path(args.result).name}: {nm} at", fps=args.fps,
-        dpi=args.dpi,
+        dpi=args.dpi, units=units,
     )  # fmt: skip
 
 
@@ -392,9 +431,12 @@ def execute(args: argparse.Namespace) -> int:
     if args.animate is not None and args.animate not in res.fields:
         raise UsageError(f"--animate {args.animate}: no such field (the file has "
                          f"{', '.join(res.fields)})")
+    out = Path(args.out)
+    check_folder(out, f"--out {args.out}")
+    if args.point is not None:
+        _nearest_point(args, res)  # a point far outside is refused before anything is drawn
     valid = _valid(args, res)
     image = _background(args, res)
-    out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     written = _plot_frame(args, res, row, valid, image, out)
     written += _plot_histories(args, res, valid, out)

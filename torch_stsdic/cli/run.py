@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from . import options
-from .common import check_device, fmt_time, to_numpy
+from .common import check_device, check_folder, fmt_time, to_numpy
 from .errors import CommandError, UsageError, one_line
 from .signals import Interrupted
 
@@ -62,7 +62,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     opt = options.add_option
     p.add_argument("inputs", nargs="+", metavar="INPUT", help="image series (see above)")
     p.add_argument(
-        "--out", "-o", required=True, metavar="FILE.h5", help="result file (HDF5), required"
+        "--out", "-o", required=True, metavar="FILE.h5",
+        help="result file (HDF5), required; missing folders are created"
     )
     _add_frames(p)
     options.add_points(p)
@@ -236,6 +237,7 @@ def execute(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.is_dir():
         raise UsageError(f"--out {out}: is a directory; give a file name such as result.h5")
+    _check_not_an_input(out, args)
     if out.exists() and not (args.overwrite or args.resume):
         raise CommandError(
             f"output file {out} exists: use --overwrite to replace it or --resume to continue it"
@@ -270,7 +272,11 @@ def execute(args: argparse.Namespace) -> int:
         try:
             res = run_plan(plan, sink, progress=not args.no_progress)
         except (OSError, InputError) as exc:  # a full disk, a frame gone or changed mid-run
+            _discard_unfinished(sink, out, args)
             raise CommandError(f"{_text(exc)}; {_kept(out, args, plan)}") from exc
+        except Exception:  # e.g. the refined reference's pre-pass: no empty file is left
+            _discard_unfinished(sink, out, args)
+            raise
         elapsed = time.perf_counter() - t0
         _print_summary(res, args, elapsed, _reference_name(series, plan))
         from ..io.results import field_names, open_results
@@ -300,17 +306,40 @@ def _reference_name(series: Any, plan: Any) -> str:
     return Path(path).name + (f", page {page.rstrip(')')}" if sep else "")
 
 
+def _input_files(args: argparse.Namespace) -> list[tuple[str, Path]]:
+    """Every file the run reads, with the option that names it: the frames of each INPUT
+    (a folder or glob expanded as the series will), --points, --mask, --timestamps."""
+    from ..io.images import InputError, _expand_source
+
+    files: list[tuple[str, Path]] = []
+    for src in args.inputs:
+        try:
+            files += [("INPUT", p) for p in _expand_source(src)]
+        except InputError:
+            continue  # refused with its reason when the series is opened
+    for flag in ("points", "mask", "timestamps"):
+        if getattr(args, flag, None):
+            files.append((f"--{flag}", Path(getattr(args, flag))))
+    return files
+
+
+def _check_not_an_input(out: Path, args: argparse.Namespace) -> None:
+    """--out is none of the files the run reads, whatever --overwrite/--resume say."""
+    if not out.exists():
+        return
+    for flag, path in _input_files(args):
+        try:
+            same = os.path.samefile(path, out)
+        except OSError:
+            continue
+        if same:
+            raise UsageError(f"--out {out} is {path}, an input of the run ({flag}): it would be "
+                             "overwritten; give another --out")
+
+
 def _check_writable(out: Path) -> None:
     """--out's folder exists (or can be made) and takes files: checked before any work."""
-    parent = out.absolute().parent
-    existing = parent
-    while not existing.exists() and existing != existing.parent:
-        existing = existing.parent
-    if not existing.is_dir():
-        raise CommandError(f"--out {out}: {existing} is not a folder")
-    if not os.access(existing, os.W_OK | os.X_OK):
-        raise CommandError(f"--out {out}: the folder {existing} is not writable "
-                           "(read-only or no permission); choose another --out")
+    check_folder(out.absolute().parent, f"--out {out}")
 
 
 def _open_sink(plan: Any, args: argparse.Namespace, out: Path) -> Any:
@@ -366,6 +395,24 @@ def resume_problem(exc: Any) -> str:
         parts.append(f"{flag} ({text})" if flag else text)
     return (f"--resume: {path} was written with other options: {'; '.join(parts)}; repeat "
             "the first run's options to continue it, or use --overwrite to start again")
+
+
+def _discard_unfinished(sink: Any, out: Path, args: argparse.Namespace) -> None:
+    """After a failed run: close the result file and remove it if this run created it and
+    no frame was finished (a file of 0 frames only invites a --resume that fails again)."""
+    import h5py
+
+    sink.close(commit=False)
+    if args.resume:  # the user's file: kept as it was
+        return
+    path = out.with_name(out.name + ".partial") if args.overwrite else out
+    try:
+        with h5py.File(path, "r", locking=False) as f:
+            done = int(np.asarray(f["completed"][()]).sum())
+    except Exception:  # noqa: BLE001 - not ours or not there: leave it
+        return
+    if done == 0:
+        path.unlink(missing_ok=True)
 
 
 def _kept(out: Path, args: argparse.Namespace, plan: Any) -> str:

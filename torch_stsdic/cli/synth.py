@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from . import options
-from .common import fmt_time, to_numpy
+from .common import check_folder, fmt_time, to_numpy
 from .errors import CommandError, UsageError
 
 NAME = "synth"
@@ -262,6 +262,7 @@ def execute(args: argparse.Namespace) -> int:
     w, h = args.size if len(args.size) == 2 else args.size * 2
     n = args.frames
     out = Path(args.out)
+    check_folder(out, f"--out {args.out}")
     files = _image_files(args.layout, n + 1)
     _check_targets(out, files, args.overwrite)
     times = np.arange(0, n + 1, dtype=np.float64)

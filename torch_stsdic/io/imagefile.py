@@ -7,6 +7,10 @@ pixels decoded to an ``(H, W)`` grey array (colour -> luminance, alpha dropped).
 
 from __future__ import annotations
 
+import contextlib
+import logging
+import warnings
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -67,12 +71,35 @@ _PIL_DTYPES: dict[str, tuple[str, int]] = {
 }
 
 
+def _check_pil_complete(im: Image.Image, path: Path) -> None:
+    """A file cut short is refused from its header and size, nothing decoded: a PNG must end
+    with its IEND chunk, and uncompressed pixel data (BMP ...) must lie inside the file."""
+    size = path.stat().st_size
+    if im.format == "PNG":
+        with open(path, "rb") as fh:
+            fh.seek(max(0, size - 1024))
+            if b"IEND" not in fh.read():
+                raise InputError(f"PNG file {path} is truncated (no IEND chunk at its end): "
+                                 "the file was probably cut short while it was written or "
+                                 "copied; copy it again")
+    for tile in im.tile:
+        codec, extents, offset, args = tile[0], tile[1], tile[2], tile[3]
+        stride = args[1] if codec == "raw" and isinstance(args, tuple) and len(args) > 1 else 0
+        if stride and extents and offset + abs(stride) * (extents[3] - extents[1]) > size:
+            raise InputError(f"image file {path} is truncated (its pixel data end at byte "
+                             f"{offset + abs(stride) * (extents[3] - extents[1])}, the file has "
+                             f"{size} bytes): copy it again")
+
+
 def _probe_pil(path: Path) -> FileInfo:
     """Header of a PNG, BMP, JPEG ... file through PIL."""
     try:
         with Image.open(path) as im:
             w, h = im.size
             mode = im.mode
+            _check_pil_complete(im, path)
+    except InputError:
+        raise
     except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as exc:
         raise InputError(f"cannot read image file {path}: {exc}") from exc
     dt, bits = _PIL_DTYPES.get(mode, ("uint8", 8))
@@ -93,11 +120,68 @@ def _probe_pil(path: Path) -> FileInfo:
 _EXTRA_AXES_OK = set("YXS")
 
 
+@contextlib.contextmanager
+def _tifffile_log() -> Iterator[list[str]]:
+    """Collect tifffile's log messages instead of printing them (the caller turns them into
+    one error or warning line)."""
+    log = logging.getLogger("tifffile")
+    saved = (log.handlers[:], log.propagate, log.level)
+    got: list[str] = []
+
+    class _Collect(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            msg = " ".join(record.getMessage().split())
+            got.append(msg.split("> ", 1)[1] if msg.startswith("<") and "> " in msg else msg)
+
+    log.handlers, log.propagate = [_Collect(logging.WARNING)], False
+    log.setLevel(logging.WARNING)
+    try:
+        yield got
+    finally:
+        log.handlers, log.propagate = saved[0], saved[1]
+        log.setLevel(saved[2])
+
+
+def _truncated(path: Path, detail: str) -> InputError:
+    return InputError(f"TIFF file {path} is truncated or corrupt ({detail}): the file was "
+                      "probably cut short while it was written or copied; copy it again")
+
+
+def _check_tiff_data(tif: tifffile.TiffFile, path: Path, log: list[str]) -> None:
+    """Every page's directory and pixel data lie inside the file (nothing decoded)."""
+    size = int(tif.filehandle.size)
+    pages = list(tif.pages)  # reads every page directory: a broken chain is logged
+    bad = [msg for msg in log if "offset" in msg or "truncat" in msg or "corrupt" in msg]
+    if bad:
+        raise _truncated(path, f"{bad[0]} after {len(pages)} readable page(s)")
+    for page in pages:
+        ends = [o + c for o, c in zip(page.dataoffsets, page.databytecounts)]
+        if ends and max(ends) > size:
+            raise _truncated(path, f"page {page.index}: its pixel data end at byte {max(ends)}, "
+                             f"the file has {size} bytes")
+    for k, s in enumerate(tif.series):  # pages without a directory (ImageJ > 4 GB)
+        off = getattr(s, "dataoffset", None)
+        if off is not None and s.nbytes and off + s.nbytes > size:
+            raise _truncated(path, f"series {k}: its pixel data end at byte {off + s.nbytes}, "
+                             f"the file has {size} bytes")
+
+
 def _probe_tiff(path: Path) -> FileInfo:
     """Header of a (multi-page, multi-series) TIFF file; InputError for stacks DIC cannot
-    read as a time series."""
+    read as a time series, or a file cut short (every page's data checked against the file
+    size; tifffile's log lines become the error, or warnings)."""
+    with _tifffile_log() as log:
+        info = _probe_tiff_header(path, log)
+    for msg in log:
+        warnings.warn(f"{path}: tifffile: {msg}", stacklevel=3)
+    return info
+
+
+def _probe_tiff_header(path: Path, log: list[str]) -> FileInfo:
+    """:func:`_probe_tiff` with tifffile's log collected in ``log``."""
     try:
         with tifffile.TiffFile(path) as tif:
+            _check_tiff_data(tif, path, log)
             series = tif.series
             if not series:
                 raise InputError(f"TIFF file {path} contains no image")

@@ -508,10 +508,12 @@ def load_series(source: Any, *, timestamps: Any = None) -> ImageSeries:
 
 
 def _series_from_array(arr: np.ndarray | torch.Tensor, timestamps: Any) -> ImageSeries:
-    if isinstance(arr, np.ndarray) and arr.dtype.kind not in "biuf":
-        raise InputError(f"image array has unsupported dtype {arr.dtype}")
-    if isinstance(arr, torch.Tensor) and (arr.is_complex() or arr.dtype == torch.bool):
-        raise InputError(f"image tensor has unsupported dtype {arr.dtype}")
+    from ..validation import check_pixel_dtype
+
+    try:  # the pixels' finiteness is checked frame by frame, as they are read
+        check_pixel_dtype(arr, "image array")
+    except (TypeError, ValueError) as exc:
+        raise InputError(str(exc)) from None
     if arr.ndim == 2:
         arr = arr[None]
     colour = arr.ndim == 4 and arr.shape[-1] in (3, 4)
