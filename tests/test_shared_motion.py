@@ -288,7 +288,7 @@ def test_run_summary_and_figures_say_why_velocities_are_missing():
     rec.update(applied=False, steps=[])
     assert shared_motion_lines(rec) == [
         "shared motion: affine, measured, not carried (no significant shake) (shake median "
-        "0.156 px, max 0.490 px; 3.2 s)"]
+        "0.156 px, max 0.490 px)"]
     assert shared_motion_lines(None) == []
 
 

@@ -447,7 +447,7 @@ def shared_motion_lines(rec: dict[str, Any] | None) -> list[str]:
              if rec.get("jitter_px_median") is not None else "shake not measured")
     how = ("carried in every window" if rec.get("applied")
            else "measured, not carried (no significant shake)")
-    lines = [f"shared motion: {rec['kind']}, {how} ({shake}; {rec['seconds']:.1f} s)"]
+    lines = [f"shared motion: {rec['kind']}, {how} ({shake})"]
     steps = rec.get("steps") or []
     if steps:
         lines.append(f"load steps before frames {', '.join(str(s) for s in steps)}: windows "
