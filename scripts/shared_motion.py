@@ -14,6 +14,7 @@ full windows, velocities present, time.
 
     python scripts/shared_motion.py                # render study, 3 seeds (~3 min)
     python scripts/shared_motion.py --real         # plus the real series (~15 min)
+    python scripts/shared_motion.py --only-real    # the real series alone
     python scripts/shared_motion.py --quick        # smoke test (small render, 1 seed)
 
 Writes docs/validation/shared_motion.csv and shared_motion_real.csv (unless --quick).
@@ -144,6 +145,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="small render, one seed, no files")
     ap.add_argument("--real", action="store_true", help="also the real series")
+    ap.add_argument("--only-real", action="store_true", help="the real series alone")
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--shake", type=float, default=0.25, help="px per axis (std)")
     ap.add_argument("--angle", type=float, default=5e-4, help="rad (std)")
@@ -153,6 +155,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.quick:
         rows = render_study([0], 91, 9, args.shake, args.angle, args.noise)
         return 0 if rows else 1
+    if args.only_real:
+        write_csv(OUT / "shared_motion_real.csv", real_study())
+        return 0
     rows = render_study(list(range(args.seeds)), 201, 24, args.shake, args.angle, args.noise)
     write_csv(OUT / "shared_motion.csv", rows)
     for case in dict.fromkeys(r["case"] for r in rows):

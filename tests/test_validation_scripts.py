@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ast
 import csv
 import math
 import os
@@ -127,3 +128,14 @@ def test_real_time_model_quick(tmp_path):
     assert float(static["cls_std_measured"]) == pytest.approx(
         float(static["cls_std_predicted"]), rel=0.25)
     assert (tmp_path / "real_time_model_quick.png").stat().st_size > 1000
+
+
+def test_shared_motion_quick():
+    """The render study on a small shaking movie: the shared motion brings the full windows
+    back and beats classical; without it the windows fail."""
+    out = _run("shared_motion.py", "--quick")
+    rows = [ast.literal_eval(line) for line in out.splitlines() if line.startswith("{")]
+    by = {r["case"]: r for r in rows}
+    assert by["STS m=2"]["full_window_converged"] < 0.5
+    assert by["STS m=2, shared motion"]["full_window_converged"] > 0.9
+    assert by["STS m=2, shared motion"]["vs_classical"] < 0.95
