@@ -327,3 +327,18 @@ def test_quadratic_shared_motion_fits_a_tilt_and_its_gradient_is_consistent():
     dudx = (sm.displacement(p + ex, torch.arange(2)) - sm.displacement(p - ex, torch.arange(2)))
     assert torch.allclose(g[..., 0], dudx[..., 0] / (2 * h), atol=1e-8)
     assert torch.allclose(g[..., 2], dudx[..., 1] / (2 * h), atol=1e-8)
+
+
+def test_fit_falls_back_to_frame_by_frame_when_no_point_lasts():
+    """A long series where every point is lost somewhere: no point is valid in (nearly)
+    every frame, so the fit is made frame by frame, and still right."""
+    gen = torch.Generator().manual_seed(3)
+    pts = _grid(step=10, size=300)
+    n, f = pts.shape[0], 10
+    shift = torch.randn(f, 2, generator=gen, dtype=torch.float64)
+    disp = shift.unsqueeze(1).expand(f, n, 2) + 0.01 * torch.randn(f, n, 2, generator=gen,
+                                                                     dtype=torch.float64)
+    valid = torch.rand(f, n, generator=gen) > 0.5  # each point lost in ~5 of 10 frames
+    fit, _, used, _ = fit_frame_motion(pts, disp, valid, "affine")
+    assert torch.allclose(fit[:, :2], shift, atol=3e-3)
+    assert bool((used == valid.sum(1)).all())

@@ -367,7 +367,8 @@ def _consistent_fit(x: Tensor, d: Tensor, ok: Tensor, eye: Tensor
     The points are those valid in every frame (a point lost in some frames is usually wrong
     in others: on the hourglass, adding the 3 % valid in >= 90 % of the frames, with their
     gaps interpolated, doubled the misfit); where fewer than half the valid points are, those
-    valid in >= 90 % of the frames, gaps interpolated in time. Each point's weight is a
+    valid in >= 90 % of the frames, gaps interpolated in time (where even those are fewer
+    than 3 per coefficient: the robust fit frame by frame). Each point's weight is a
     Huber weight (3x the median; 0 beyond 10x) on the roughness in time of its residual
     from the shared motion (median |second difference|): a wrong or background point
     jitters on its own; an entry's weight is 0 where it is far (10x the median, at least
@@ -378,6 +379,9 @@ def _consistent_fit(x: Tensor, d: Tensor, ok: Tensor, eye: Tensor
     keep = ok.all(0)
     if int(keep.sum()) < max(3 * x.shape[1], int(0.5 * int(valid_pts.sum()))):
         keep = ok.double().mean(0) >= _VALID_SHARE
+    if int(keep.sum()) < 3 * x.shape[1]:  # too few points tracked throughout: per frame
+        coef, w = _frame_fit(x, d, ok, eye)
+        return coef, w, ok
     use = ok & keep
     coef, _ = _frame_fit(x, d, use, eye)  # a robust start, frame by frame
     w = keep.double().expand(d.shape[0], -1)
