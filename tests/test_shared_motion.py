@@ -290,7 +290,8 @@ def test_run_summary_and_figures_say_why_velocities_are_missing():
            "jitter_px_max": 0.49, "seconds": 3.2, "steps": [6, 12]}
     lines = shared_motion_lines(rec)
     assert lines[0].startswith("shared motion: affine, carried in every window")
-    assert "0.156 px" in lines[0] and "frames 6, 12" in lines[1]
+    assert "0.156 px" in lines[0] and "before frames 6, 12" in lines[1]
+    assert "before frame 10:" in shared_motion_lines({**rec, "steps": [10]})[1]
     rec.update(applied=False, steps=[])
     assert shared_motion_lines(rec) == [
         "shared motion: affine, measured, not carried (no significant shake) (shake median "

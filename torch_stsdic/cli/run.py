@@ -450,8 +450,9 @@ def shared_motion_lines(rec: dict[str, Any] | None) -> list[str]:
     lines = [f"shared motion: {rec['kind']}, {how} ({shake})"]
     steps = rec.get("steps") or []
     if steps:
-        lines.append(f"load steps before frames {', '.join(str(s) for s in steps)}: windows "
-                     "stay inside each load state")
+        which = (f"frame {steps[0]}" if len(steps) == 1
+                 else f"frames {', '.join(str(s) for s in steps)}")
+        lines.append(f"load steps before {which}: windows stay inside each load state")
     return lines
 
 
