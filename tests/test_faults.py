@@ -434,3 +434,27 @@ def test_default_grid_leaves_room_for_motion():
     # the old default's first row: its 5-frame window leaves the image (OUTSIDE), or the
     # tracker falls back to a shorter window / the classical solution for it (m < 2)
     assert ((res0.status[0][first0] == int(Status.OUTSIDE)) | (res0.m[0][first0] < 2)).all()
+
+
+def test_a_signal_inside_a_finalizer_is_not_lost():
+    """Python drops an exception raised in a finalizer (``__del__``, a weakref callback): the
+    handler then keeps the signal, and the run stops at the next block instead."""
+    import weakref
+
+    from torch_stsdic.cli import signals
+
+    class Thing:
+        pass
+
+    with pytest.raises(signals.Interrupted):
+        with signals.stop_on_signals():
+            t = Thing()
+
+            def callback(_):
+                os.kill(os.getpid(), signal.SIGINT)
+                time.sleep(0.05)  # the handler runs here, inside the weakref callback
+
+            ref = weakref.ref(t, callback)
+            del t  # the callback runs now; its exception would be printed and dropped
+            assert ref() is None
+            signals.checkpoint()  # ... the next block: raises

@@ -14,7 +14,7 @@ import numpy as np
 from . import options
 from .common import check_device, check_folder, fmt_time, to_numpy
 from .errors import CommandError, UsageError, one_line
-from .signals import Interrupted
+from .signals import Interrupted, checkpoint
 
 NAME = "run"
 HELP = "measure displacement, velocity and strain in an image series -> HDF5"
@@ -270,7 +270,8 @@ def execute(args: argparse.Namespace) -> int:
             raise CommandError(str(exc)) from None
         sink = _open_sink(plan, args, out)
         try:
-            res = run_plan(plan, sink, progress=not args.no_progress)
+            res = run_plan(plan, sink, progress=not args.no_progress,
+                           callback=lambda done, total: checkpoint())
         except (OSError, InputError) as exc:  # a full disk, a frame gone or changed mid-run
             _discard_unfinished(sink, out, args)
             raise CommandError(f"{_text(exc)}; {_kept(out, args, plan)}") from exc

@@ -14,10 +14,13 @@ from __future__ import annotations
 
 import contextlib
 import signal
+import sys
 import threading
 from collections.abc import Iterator
+from typing import Any
 
-__all__ = ["Interrupted", "SIGNALS", "exit_code", "stop_on_signals", "signal_name"]
+__all__ = ["Interrupted", "SIGNALS", "exit_code", "stop_on_signals", "signal_name",
+           "checkpoint"]
 
 #: the signals that stop a command cleanly
 SIGNALS: tuple[int, ...] = (signal.SIGINT, signal.SIGTERM)
@@ -73,13 +76,38 @@ def stop_on_signals() -> Iterator[None]:
         if hit:  # already stopping: let the clean-up finish
             return
         hit.append(signum)
+        # kept too: raised inside a finalizer (``__del__``, a weakref callback) the exception
+        # is dropped by Python, and the run then stops at the next checkpoint()
+        _PENDING.append(signum)
         raise Interrupted(signum)
+
+    old_hook = sys.unraisablehook
+
+    def unraisable(info: Any) -> None:  # the dropped Interrupted: no traceback printed
+        if not isinstance(info.exc_value, Interrupted):
+            old_hook(info)
 
     old = {s: signal.getsignal(s) for s in SIGNALS}
     for s in SIGNALS:
         signal.signal(s, handler)
+    _PENDING.clear()
+    sys.unraisablehook = unraisable
     try:
         yield
     finally:
+        _PENDING.clear()
+        sys.unraisablehook = old_hook
         for s, h in old.items():
             signal.signal(s, h if h is not None else signal.SIG_DFL)
+
+
+#: the signal being handled, raised again at the next :func:`checkpoint` (where its first
+#: raise was dropped inside a finalizer)
+_PENDING: list[int] = []
+
+
+def checkpoint() -> None:
+    """Raise :class:`Interrupted` again for a signal whose first raise was dropped (it
+    arrived inside a finalizer); called between the blocks of a run."""
+    if _PENDING:
+        raise Interrupted(_PENDING.pop())
