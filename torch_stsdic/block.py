@@ -24,6 +24,7 @@ from .frames import FrameCache, window_frames
 from .quality import (
     MEDIAN_EPS_MIN,
     MEDIAN_EPS_STD,
+    carried_neighbours,
     median_test,
     model_mismatch,
     neighbours,
@@ -63,6 +64,46 @@ class Carry:
         out["v"] = self.vals["v"] + self.vel_v * d
         return out
 
+    def from_neighbours(self, nb: torch.Tensor, points: torch.Tensor) -> tuple[Carry, int]:
+        """This carry with every point that has no valid carry (lost, or a poor fit) carried
+        from its valid grid neighbours ``nb`` (N, k) instead (:func:`neighbour_guess`; points
+        (N, 2) px in the first reference), so a lost point starts near the motion again
+        rather than from FFT cross-correlation. Returns the carry and the points filled."""
+        names = list(self.vals)
+        if bool(self.valid.all()):
+            return self, 0
+        stack = torch.stack([self.vals[nm] for nm in names] + [self.vel_u, self.vel_v], 1)
+        guess = neighbour_guess(stack.unsqueeze(0), self.valid.unsqueeze(0),
+                                names + ["vel_u", "vel_v"], nb, points)[0]
+        fill = ~self.valid & torch.isfinite(guess).all(1)
+        if not bool(fill.any()):
+            return self, 0
+        new = torch.where(fill.unsqueeze(1), guess.to(stack.dtype), stack)
+        vals = {nm: new[:, i] for i, nm in enumerate(names)}
+        return Carry(t=self.t, vals=vals, vel_u=new[:, -2], vel_v=new[:, -1],
+                     valid=self.valid | fill), int(fill.sum())
+
+
+def neighbour_guess(params: torch.Tensor, ok: torch.Tensor, names, nb: torch.Tensor,
+                    points: torch.Tensor, min_count: int = 2) -> torch.Tensor:
+    """(B, N, P) every point's parameters from its ``ok`` (B, N) grid neighbours ``nb``
+    (N, k) in ``params`` (B, N, P) (names ``names``): the median over them, u and v first
+    carried to the point by each neighbour's own gradients (positions ``points`` (N, 2) px,
+    :func:`~torch_stsdic.quality.carried_neighbours`); NaN where fewer than ``min_count``
+    neighbours are ``ok``. Parameters NaN at every neighbour (a classical row's ut) stay
+    NaN."""
+    vn = carried_neighbours(params, ok, nb)  # (B, N, k, P)
+    iu, iv = names.index("u"), names.index("v")
+    if all(nm in names for nm in ("ux", "uy", "vx", "vy")):
+        b, n = params.shape[:2]
+        gi = [names.index(nm) for nm in ("ux", "uy", "vx", "vy")]
+        uv = carried_neighbours(params[..., [iu, iv]], ok, nb, points,
+                                params[..., gi].reshape(b, n, 2, 2))
+        vn[..., iu], vn[..., iv] = uv[..., 0], uv[..., 1]
+    out = torch.nanmedian(vn.transpose(-1, -2), dim=-1).values  # (B, N, P)
+    few = (~torch.isnan(vn[..., iu])).sum(-1) < min_count
+    return torch.where(few.unsqueeze(-1), torch.nan, out)
+
 
 
 @dataclass
@@ -82,6 +123,13 @@ class BlockContext:
     reference_desc: Any = 0  # on the first block, reference.noise_ratio; the plan's desc)
     neighbours: torch.Tensor | None = None  # (N, k) grid neighbours, made on first use
     _checker: SubsetSolver | None = None
+
+    def grid_neighbours(self, ref: Reference) -> torch.Tensor:
+        """(N, k) the POIs' grid neighbours (:func:`~torch_stsdic.quality.neighbours`), made
+        once per run."""
+        if self.neighbours is None:
+            self.neighbours = neighbours(ref.points)
+        return self.neighbours
 
     def check_solver(self) -> SubsetSolver:
         """The solver of the model check's classical solutions: the run's, with at most
@@ -215,7 +263,7 @@ class _Block:
         FFT after a carried start."""
         run, n = self.run, self.n
         names = run.names
-        from_prev = by_fft = redone = 0
+        from_prev = by_fft = redone = from_nb = 0
         for j in range(self.b):
             rows = torch.arange(j * n, (j + 1) * n, device=run.device)
             if j > 0:
@@ -236,12 +284,37 @@ class _Block:
                         self.keep(r[ok], self.solve(r[ok], init[ok], m=m), only_better=True,
                                   m=m)
                         from_prev += int(ok.sum())
+            from_nb += self._rescue_from_neighbours(rows, m)
             r = rows[self.lost()[rows]]
             if r.numel():
                 self.keep(r, self.solve(r, None, m=m), only_better=True, m=m)
                 by_fft += int(r.numel())
                 redone += int(carried[r].sum())
+        run.stats["neighbour_rescued_rows"] = run.stats.get("neighbour_rescued_rows", 0) + from_nb
         return from_prev, by_fft, redone
+
+    def _rescue_from_neighbours(self, rows: torch.Tensor, m: int | None) -> int:
+        """Lost rows among ``rows`` (one target) solved again from their trusted grid
+        neighbours' solutions at the same target (:func:`neighbour_guess`); the better
+        result is kept. Returns the rows tried."""
+        lost = self.lost()[rows]
+        if not bool(lost.any()):
+            return 0
+        ok = (self.status[rows] <= USABLE) & ~lost
+        if int(ok.sum()) < 2:
+            return 0
+        guess = neighbour_guess(self.params[rows].unsqueeze(0), ok.unsqueeze(0),
+                                self.run.names, self.run.grid_neighbours(self.ref),
+                                self.ref.points)[0]
+        for nm in ("ut", "vt"):  # a classical neighbour has no velocity: none
+            if nm in self.run.names:
+                i = self.run.names.index(nm)
+                guess[:, i] = guess[:, i].nan_to_num(0.0)
+        try_ = lost & torch.isfinite(guess).all(1)
+        r = rows[try_]
+        if r.numel():
+            self.keep(r, self.solve(r, guess[try_], m=m), only_better=True, m=m)
+        return int(r.numel())
 
     def check_model(self) -> tuple[int, int]:
         """Model check (:func:`~torch_stsdic.quality.model_mismatch`) of every usable row
@@ -321,24 +394,21 @@ class _Block:
 
     def check_fit(self) -> int:
         """Usable rows whose residual is not the image noise, or whose ZNCC is below the
-        floor, become POOR_FIT (:func:`~torch_stsdic.quality.poor_fit`), target by target.
-        Returns their number."""
-        n, count = self.n, 0
-        for j in range(self.b):
-            sl = slice(j * n, (j + 1) * n)
-            bad = poor_fit(self.sigma[sl], self.zncc[sl], self.status[sl] <= USABLE,
-                           self.run.lost_zncc)
-            self.status[sl][bad] = int(Status.POOR_FIT)
-            count += int(bad.sum())
-        return count
+        floor, become POOR_FIT (:func:`~torch_stsdic.quality.poor_fit`), each compared with
+        the rows of its target solved with the same window length. Returns their number."""
+        usable = self.status <= USABLE
+        target = torch.arange(self.b, device=self.run.device).repeat_interleave(self.n)
+        group = target * (self.run.m + 2) + (self.m_used.long() + 1)
+        bad = poor_fit(self.sigma, self.zncc, usable, self.run.lost_zncc, group=group)
+        self.status[bad] = int(Status.POOR_FIT)
+        return int(bad.sum())
 
     def check_neighbours(self) -> int:
         """Usable rows that are outliers among their grid neighbours become INCONSISTENT
         (:func:`~torch_stsdic.quality.median_test` on u and v per target). Returns their
         number."""
         run = self.run
-        if run.neighbours is None:
-            run.neighbours = neighbours(self.ref.points)
+        nb = run.grid_neighbours(self.ref)
         b, n = self.b, self.n
         iu, iv = run.names.index("u"), run.names.index("v")
         uv = self.params[:, [iu, iv]].reshape(b, n, 2)
@@ -350,7 +420,7 @@ class _Block:
         if all(nm in run.names for nm in ("ux", "uy", "vx", "vy")):
             gi = [run.names.index(nm) for nm in ("ux", "uy", "vx", "vy")]
             grads = self.params[:, gi].reshape(b, n, 2, 2)
-        out = median_test(uv, ok, run.neighbours, eps.clamp(min=MEDIAN_EPS_MIN),
+        out = median_test(uv, ok, nb, eps.clamp(min=MEDIAN_EPS_MIN),
                           points=self.ref.points, gradients=grads)
         self.status[out.reshape(-1)] = int(Status.INCONSISTENT)
         return int(out.sum())
@@ -401,6 +471,10 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
     if carry is None:
         carried = torch.zeros(rows, dtype=torch.bool, device=dev)
     else:
+        pts0 = ref.points if ref.acc is None else ref.points - torch.stack(
+            [ref.acc["u"], ref.acc["v"]], 1)
+        carry, filled = carry.from_neighbours(run.grid_neighbours(ref), pts0)
+        run.stats["neighbour_rows"] = run.stats.get("neighbour_rows", 0) + filled * b
         pred = to_relative(carry.predict(run.ts[blk.k].to(run.dtype)), ref.acc)
         init = blk.init_rows({nm: v.reshape(-1) for nm, v in pred.items()})
         carried = carry.valid.repeat(b) & torch.isfinite(init).all(1)
@@ -452,13 +526,18 @@ def rows_numpy(block: dict[str, torch.Tensor], fields: Sequence[str]) -> dict[st
 
 def make_carry(rows: dict[str, np.ndarray], times: np.ndarray, names, prev: Carry | None,
                 dtype, device) -> Carry:
-    """Carry from the last stored row (velocity from ut/vt, else from the last two rows)."""
+    """Carry from the last stored row (velocity from ut/vt, else from the last two rows).
+
+    Valid are the usable rows and the INCONSISTENT ones: a point the neighbour test
+    doubts fitted its own subset (it passed the fit check), so it goes on from its own
+    solution; restarting it would lose the many good points a bad neighbour condemns."""
 
     def col(nm: str, i: int = -1) -> torch.Tensor:
         return torch.from_numpy(rows[nm][i].astype(np.float64)).to(device=device, dtype=dtype)
 
     vals = {nm: col(nm) for nm in names}
-    ok = torch.from_numpy(rows["status"][-1] <= USABLE).to(device)
+    st = rows["status"][-1]
+    ok = torch.from_numpy((st <= USABLE) | (st == int(Status.INCONSISTENT))).to(device)
     ok &= torch.isfinite(vals["u"]) & torch.isfinite(vals["v"])
     t_last = float(times[-1])
     if len(times) >= 2:

@@ -21,18 +21,20 @@ criterion is at a minimum; these checks say whether that minimum is the motion:
   run's floor, did not find its subset: POOR_FIT.
 - **Neighbour check** (:func:`median_test`): the normalised median test of PIV (Westerweel &
   Scarano 2005, Exp. Fluids 39:1096) on u and v among the nearest grid neighbours, each
-  neighbour's value first carried to the point by its own measured gradient (so linear fields
-  pass at edges and beside holes): residual ``|u_i - med_j c_j| / (med_j |c_j - med| + eps)``
-  above ``MEDIAN_THRESHOLD`` is an outlier: INCONSISTENT. ``eps`` is ``MEDIAN_EPS_STD`` times
-  the median predicted std, at least ``MEDIAN_EPS_MIN`` px: the test catches gross outliers
-  (a wrong peak, off by more than ~0.1 px), never the noise or the noise of the gradients
-  used to carry the neighbours. The test normalises by the neighbours' own scatter, so it
-  cannot judge a point whose neighbours scatter as wildly as it does (subsets across a
-  specimen's edge, where half the subset is background: each finds some peak, px to tens of
-  px apart). A point whose carried neighbours scatter by more than ``MEDIAN_SCATTER`` times
-  ``eps`` (median absolute residual) is therefore INCONSISTENT too: a smooth field, even a
-  strongly strained one, carried by its gradients scatters by the noise; a crack's jump moves
-  the median residual of the points beside it by at most half the jump.
+  neighbour's value first carried to the point by the measured gradients (the trapezoid rule of
+  :func:`carried_neighbours`, so linear and quadratic fields pass, at edges and beside holes
+  too), iterated so that a bad point does not condemn its good neighbours: residual ``|u_i -
+  med_j c_j| / (med_j |c_j - med| + eps)`` above ``MEDIAN_THRESHOLD`` is an outlier:
+  INCONSISTENT. ``eps`` is ``MEDIAN_EPS_STD`` times the median predicted std, at least
+  ``MEDIAN_EPS_MIN`` px: the test catches gross outliers (a wrong peak, off by more than ~0.1
+  px), never the noise or the noise of the gradients used to carry the neighbours. The test
+  normalises by the neighbours' own scatter, so it cannot judge a point whose neighbours scatter
+  as wildly as it does (subsets across a specimen's edge, where half the subset is background:
+  each finds some peak, px to tens of px apart). A point whose carried neighbours scatter by
+  more than ``MEDIAN_SCATTER`` times ``eps`` (median absolute residual) is therefore
+  INCONSISTENT too: a smooth field, even a strongly strained one, carried by its gradients
+  scatters by the noise; a crack's jump moves the median residual of the points beside it by at
+  most half the jump.
 """
 
 from __future__ import annotations
@@ -44,8 +46,9 @@ from .points import nearest_points
 
 __all__ = [
     "MODEL_Z", "MODEL_TOL", "RESIDUAL_Z", "RESIDUAL_ZNCC", "FIT_RATIO", "FIT_ZNCC_GOOD",
-    "MEDIAN_THRESHOLD", "MEDIAN_EPS_STD", "MEDIAN_EPS_MIN", "MEDIAN_SCATTER",
-    "model_mismatch", "residual_mismatch", "poor_fit", "neighbours", "median_test",
+    "MEDIAN_THRESHOLD", "MEDIAN_EPS_STD", "MEDIAN_EPS_MIN", "MEDIAN_SCATTER", "MEDIAN_ROUNDS",
+    "model_mismatch", "residual_mismatch", "poor_fit", "neighbours", "carried_neighbours",
+    "median_test",
 ]
 
 MODEL_Z = 3.0  #: model check: standard deviations of the STS - classical difference allowed
@@ -61,6 +64,8 @@ MEDIAN_EPS_MIN = 0.05  #: neighbour check: smallest eps, px (half the 0.1 px a u
 #: neighbour check: neighbours (carried by their gradients) whose median absolute residual
 #: exceeds this times eps are no smooth field: the point is INCONSISTENT (1 px at eps 0.05)
 MEDIAN_SCATTER = 20.0
+#: neighbour check: rounds of the test (each flags the worst outliers of their neighbourhood)
+MEDIAN_ROUNDS = 4
 
 
 def model_mismatch(d_sts: Tensor, d_cls: Tensor, std_sts: Tensor, std_cls: Tensor) -> Tensor:
@@ -95,7 +100,7 @@ def residual_mismatch(sigma_window: Tensor, sigma_classical: Tensor, n_pixels: f
 
 
 def poor_fit(sigma: Tensor, zncc: Tensor, solved: Tensor, zncc_floor: float,
-             min_points: int = 16) -> Tensor:
+             min_points: int = 16, group: Tensor | None = None) -> Tensor:
     """(N,) bool: solved points whose fit is not the image noise.
 
     Args:
@@ -104,14 +109,26 @@ def poor_fit(sigma: Tensor, zncc: Tensor, solved: Tensor, zncc_floor: float,
         solved: (N,) bool, the points to judge (the median is taken over them).
         zncc_floor: ZNCC below this is a poor fit.
         min_points: the residual test needs at least this many solved points (a median).
+        group: (N,) int >= 0: points are compared with the median of their own group only
+            (points solved alike: one target frame, one window length; a classical solution
+            at the reference frame leaves a round-off residual, a window there the noise).
+            Default: one group.
     """
     bad = solved & ~(zncc >= zncc_floor)
-    s = sigma[solved & torch.isfinite(sigma)]
-    if s.numel() >= min_points:
-        med = s.median()
-        # a match at ZNCC >= FIT_ZNCC_GOOD is never poor (e.g. a frame against itself, where
-        # the "noise" is round-off and its median ~0)
-        bad |= solved & (sigma > FIT_RATIO * med) & ~(zncc >= FIT_ZNCC_GOOD)
+    have = solved & torch.isfinite(sigma)
+    g = torch.zeros_like(sigma, dtype=torch.long) if group is None else group.long()
+    if not bool(have.any()):
+        return bad
+    s, gs = sigma[have], g[have]
+    order = torch.argsort(s, stable=True)
+    order = order[torch.argsort(gs[order], stable=True)]  # by group, then by sigma
+    counts = torch.bincount(gs, minlength=int(g.max()) + 1)
+    first = torch.cumsum(counts, 0) - counts
+    med = s[order][(first + (counts - 1).clamp(min=0) // 2).clamp(max=s.numel() - 1)]
+    enough = (counts >= min_points)[g]
+    # a match at ZNCC >= FIT_ZNCC_GOOD is never poor (e.g. a frame against itself, where
+    # the "noise" is round-off and its median ~0)
+    bad |= solved & enough & (sigma > FIT_RATIO * med[g]) & ~(zncc >= FIT_ZNCC_GOOD)
     return bad
 
 
@@ -137,36 +154,87 @@ def _nanmedian(x: Tensor) -> Tensor:
     return torch.nanmedian(x, dim=-1).values
 
 
-def median_test(values: Tensor, valid: Tensor, nb: Tensor, eps: float | Tensor,
-                points: Tensor | None = None, gradients: Tensor | None = None,
-                min_neighbours: int = 3) -> Tensor:
-    """Normalised median test (module docstring) of (B, N, C) ``values`` (C components, e.g.
-    u and v) over the neighbours ``nb`` (N, k); only ``valid`` (B, N) points count as
-    neighbours or are judged. With ``points`` (N, 2) px and ``gradients`` (B, N, C, 2) (d/dx,
-    d/dy of each component), each neighbour's value is carried to the point by its own
-    gradient first, so linear fields pass at edges and beside holes too. A point whose
-    carried neighbours scatter (median absolute residual) by more than ``MEDIAN_SCATTER``
-    times ``eps`` is an outlier too: no smooth field to judge it by. Returns (B, N) bool
-    outliers (never a point with fewer than ``min_neighbours`` valid neighbours)."""
-    b, n, c = values.shape
+def carried_neighbours(values: Tensor, valid: Tensor, nb: Tensor, points: Tensor | None = None,
+                       gradients: Tensor | None = None) -> Tensor:
+    """(B, N, k, C): the ``valid`` (B, N) neighbours ``nb`` (N, k) of every point, their
+    (B, N, C) ``values`` carried to the point by ``gradients`` (B, N, C, 2) (d/dx, d/dy of
+    each component; positions ``points`` (N, 2) px), NaN where there is no valid neighbour.
+    Without gradients the neighbours' values as they are.
+
+    The carry is the trapezoid rule: the mean of the neighbour's gradient and the gradient at
+    the point, so a quadratic field (a strain that changes along the specimen) is carried
+    exactly; carried by its own gradient alone, every neighbour misses the point by half the
+    curvature times the squared distance, all to the same side (hourglass neck: 0.2-0.3 px,
+    far above the noise). The gradient at the point is the plane fitted to its valid
+    neighbours' gradients (:func:`_gradient_at`), not its own: the point being judged (or a
+    lost one) may be wrong."""
+    n = values.shape[1]
+    safe, has = nb.clamp(min=0), (nb >= 0).view(1, n, -1)
+    use = valid[:, safe] & has  # (B, N, k)
     v = torch.where(valid.unsqueeze(-1), values.double(), torch.nan)
-    has = nb >= 0
-    safe = nb.clamp(min=0)
     vn = v[:, safe]  # (B, N, k, C)
     if points is not None and gradients is not None:
         p = points.double()
         d = (p.unsqueeze(1) - p[safe]).view(1, n, -1, 1, 2)  # (1, N, k, 1, 2) to the point
-        gn = gradients.double()[:, safe]  # (B, N, k, C, 2)
-        vn = vn + (torch.nan_to_num(gn) * d).sum(-1)
-    vn = torch.where(has.view(1, n, -1, 1), vn, torch.nan)
-    med = _nanmedian(vn.transpose(-1, -2))  # (B, N, C)
-    resid_n = (vn - med.unsqueeze(2)).abs()
-    rm = _nanmedian(resid_n.transpose(-1, -2))  # (B, N, C)
+        gn = torch.where(use.view(*use.shape, 1, 1), gradients.double()[:, safe], 0.0)
+        at = _gradient_at(gn, use, d.view(1, n, -1, 2))  # (B, N, C, 2)
+        vn = vn + (0.5 * (torch.nan_to_num(gn) + at.unsqueeze(2)) * d).sum(-1)
+    return torch.where(use.unsqueeze(-1), vn, torch.nan)
+
+
+def _gradient_at(gn: Tensor, use: Tensor, d: Tensor) -> Tensor:
+    """(B, N, C, 2) the gradients at the points: a plane in position fitted by least squares
+    to the neighbours' gradients ``gn`` (B, N, k, C, 2) where ``use`` (B, N, k), at offsets
+    ``-d`` (1, N, k, 2) px from the point (exact for a linear gradient field, at edges too);
+    its slopes are damped (by 1e-3 of the mean squared offset) so that neighbours on one
+    line, or a single one, give their mean."""
+    w = use.double()
+    a = torch.cat([torch.ones_like(d[..., :1]), -d], -1).expand(w.shape[0], -1, -1, -1)
+    m = torch.einsum("bnk,bnki,bnkj->bnij", w, a, a)  # (B, N, 3, 3)
+    scale = (w * d.square().sum(-1)).sum(-1) / w.sum(-1).clamp(min=1.0)
+    damp = torch.tensor([0.0, 1.0, 1.0], dtype=m.dtype, device=m.device)
+    m = m + torch.diag_embed(1e-3 * scale.clamp(min=1e-12).unsqueeze(-1) * damp)
+    m = m + torch.diag_embed((w.sum(-1) == 0).double().unsqueeze(-1) * (1.0 - damp))
+    rhs = torch.einsum("bnk,bnki,bnkf->bnif", w, a, gn.flatten(-2))  # (B, N, 3, 2C)
+    coef = torch.linalg.solve(m, rhs)
+    return coef[..., 0, :].view(gn.shape[0], gn.shape[1], *gn.shape[3:])
+
+
+def median_test(values: Tensor, valid: Tensor, nb: Tensor, eps: float | Tensor,
+                points: Tensor | None = None, gradients: Tensor | None = None,
+                min_neighbours: int = 3, rounds: int = MEDIAN_ROUNDS) -> Tensor:
+    """Normalised median test (module docstring) of (B, N, C) ``values`` (C components, e.g.
+    u and v) over the neighbours ``nb`` (N, k); only ``valid`` (B, N) points count as
+    neighbours or are judged. With ``points`` (N, 2) px and ``gradients`` (B, N, C, 2) (d/dx,
+    d/dy of each component), each neighbour's value is carried to the point by its own
+    gradient first, so linear fields pass at edges and beside holes too.
+
+    A bad point must not condemn its good neighbours: the test is iterated (at most
+    ``rounds`` times): each round flags only the outliers that are the worst of the outliers
+    among their neighbours, and the next round judges the others again without the points
+    flagged so far. A point whose carried neighbours (outliers excluded) scatter (median
+    absolute residual) by more than ``MEDIAN_SCATTER`` times ``eps`` is an outlier too: no
+    smooth field to judge it by. Returns (B, N) bool outliers (never a point with fewer than
+    ``min_neighbours`` valid neighbours)."""
+    b = values.shape[0]
+    v = values.double()
     eps_t = torch.as_tensor(eps, dtype=torch.float64, device=values.device)
     if eps_t.dim() == 1:
         eps_t = eps_t.view(b, 1, 1)
-    r = (v - med).abs() / (rm + eps_t)
-    count = (~torch.isnan(vn[..., 0])).sum(-1)
-    wild = (rm > MEDIAN_SCATTER * eps_t).any(-1)
-    out = ((r > MEDIAN_THRESHOLD).any(-1) | wild) & valid & (count >= min_neighbours)
-    return out
+    safe, has = nb.clamp(min=0), (nb >= 0).unsqueeze(0)
+    out = torch.zeros_like(valid)
+    for i in range(max(1, rounds)):
+        vn = carried_neighbours(values, valid & ~out, nb, points, gradients)
+        med = _nanmedian(vn.transpose(-1, -2))  # (B, N, C)
+        rm = _nanmedian((vn - med.unsqueeze(2)).abs().transpose(-1, -2))  # (B, N, C)
+        r = ((v - med).abs() / (rm + eps_t)).amax(-1)  # (B, N); NaN: no neighbour
+        judged = valid & ~out & ((~torch.isnan(vn[..., 0])).sum(-1) >= min_neighbours)
+        cand = judged & (r > MEDIAN_THRESHOLD)
+        if i == rounds - 1 or not bool(cand.any()):
+            out |= cand
+            break
+        score = torch.where(cand, r, -torch.inf)
+        worst = torch.where(has, score[:, safe], -torch.inf).amax(-1)  # (B, N)
+        out |= cand & (score >= worst)  # the worst among its neighbours
+    wild = judged & ~out & (rm > MEDIAN_SCATTER * eps_t).any(-1)
+    return out | wild
