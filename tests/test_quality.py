@@ -189,14 +189,21 @@ def test_median_test_does_not_condemn_a_good_point_for_its_bad_neighbours():
     assert torch.nonzero(out).flatten().tolist() == bad
 
 
-def test_poor_fit_compares_rows_solved_alike():
-    """At the reference frame a classical row matches the reference to round-off and a
-    window row leaves the noise: each is judged against its own kind."""
+def test_poor_fit_median_ignores_noise_free_matches():
+    """At the reference frame a classical row matches the reference itself to round-off and a
+    window row leaves the noise: where most rows are classical (sample 12), their ~0 median
+    made every window row POOR_FIT. Only a real misfit is."""
     sigma = torch.cat([torch.full((30,), 1e-4), torch.full((20,), 2.0), torch.tensor([5.0])])
     zncc = torch.cat([torch.full((30,), 1.0), torch.full((21,), 0.99)])
-    group = torch.cat([torch.zeros(30), torch.ones(21)]).long()
     solved = torch.ones(51, dtype=torch.bool)
-    bad = poor_fit(sigma, zncc, solved, zncc_floor=0.8, group=group)
+    bad = poor_fit(sigma, zncc, solved, zncc_floor=0.8)
+    assert torch.nonzero(bad).flatten().tolist() == [50]
+    # per group (e.g. target frame): each judged by its own median
+    group = torch.cat([torch.zeros(25), torch.ones(26)]).long()
+    sig2 = sigma.clone()
+    sig2[:25] = 4.0  # group 0: noisier frame, 25 rows at 4.0
+    zn2 = torch.full((51,), 0.99)
+    bad = poor_fit(sig2, zn2, solved, zncc_floor=0.8, group=group)
     assert torch.nonzero(bad).flatten().tolist() == [50]
 
 

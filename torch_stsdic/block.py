@@ -70,8 +70,6 @@ class Carry:
         (N, 2) px in the first reference), so a lost point starts near the motion again
         rather than from FFT cross-correlation. Returns the carry and the points filled."""
         names = list(self.vals)
-        if bool(self.valid.all()):
-            return self, 0
         stack = torch.stack([self.vals[nm] for nm in names] + [self.vel_u, self.vel_v], 1)
         guess = neighbour_guess(stack.unsqueeze(0), self.valid.unsqueeze(0),
                                 names + ["vel_u", "vel_v"], nb, points)[0]
@@ -236,6 +234,15 @@ class _Block:
         pad = torch.cat([a.to(dt), torch.full_like(a[:, :1], float("nan"), dtype=dt)], 1)
         return pad[:, torch.tensor([c if c >= 0 else a.shape[1] for c in cols], device=dev)]
 
+    def identity_rows(self) -> torch.Tensor:
+        """(B*N,) bool: rows whose whole window is the current reference frame itself
+        (classical DIC with the reference frame as a target): they start from the identity
+        (zero displacement) instead of FFT cross-correlation, which has nothing to find."""
+        run = self.run
+        if run.m != 0:
+            return torch.zeros(self.b * self.n, dtype=torch.bool, device=run.device)
+        return (self.windows(0) == self.ref.frame).all(1).repeat_interleave(self.n)
+
     def lost(self) -> torch.Tensor:
         """(B*N,) bool: rows without a trustworthy solution (not converged, a poor fit, or a
         ZNCC below ``lost_zncc``), other than those that cannot be solved at all
@@ -395,11 +402,10 @@ class _Block:
     def check_fit(self) -> int:
         """Usable rows whose residual is not the image noise, or whose ZNCC is below the
         floor, become POOR_FIT (:func:`~torch_stsdic.quality.poor_fit`), each compared with
-        the rows of its target solved with the same window length. Returns their number."""
+        the rows of its own target. Returns their number."""
         usable = self.status <= USABLE
         target = torch.arange(self.b, device=self.run.device).repeat_interleave(self.n)
-        group = target * (self.run.m + 2) + (self.m_used.long() + 1)
-        bad = poor_fit(self.sigma, self.zncc, usable, self.run.lost_zncc, group=group)
+        bad = poor_fit(self.sigma, self.zncc, usable, self.run.lost_zncc, group=target)
         self.status[bad] = int(Status.POOR_FIT)
         return int(bad.sum())
 
@@ -470,14 +476,19 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
     rows = b * n
     if carry is None:
         carried = torch.zeros(rows, dtype=torch.bool, device=dev)
+        init = torch.zeros(rows, len(run.names), dtype=run.dtype, device=dev)
     else:
         pts0 = ref.points if ref.acc is None else ref.points - torch.stack(
             [ref.acc["u"], ref.acc["v"]], 1)
-        carry, filled = carry.from_neighbours(run.grid_neighbours(ref), pts0)
-        run.stats["neighbour_rows"] = run.stats.get("neighbour_rows", 0) + filled * b
+        if not bool(carry.valid.all()):
+            carry, filled = carry.from_neighbours(run.grid_neighbours(ref), pts0)
+            run.stats["neighbour_rows"] = run.stats.get("neighbour_rows", 0) + filled * b
         pred = to_relative(carry.predict(run.ts[blk.k].to(run.dtype)), ref.acc)
         init = blk.init_rows({nm: v.reshape(-1) for nm, v in pred.items()})
         carried = carry.valid.repeat(b) & torch.isfinite(init).all(1)
+    ident = blk.identity_rows()
+    init = torch.where(ident.unsqueeze(1), torch.zeros_like(init), init)
+    carried |= ident
     idx_c = torch.nonzero(carried).flatten()
     guess = None
     if idx_c.numel():

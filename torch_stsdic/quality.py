@@ -110,12 +110,15 @@ def poor_fit(sigma: Tensor, zncc: Tensor, solved: Tensor, zncc_floor: float,
         zncc_floor: ZNCC below this is a poor fit.
         min_points: the residual test needs at least this many solved points (a median).
         group: (N,) int >= 0: points are compared with the median of their own group only
-            (points solved alike: one target frame, one window length; a classical solution
-            at the reference frame leaves a round-off residual, a window there the noise).
-            Default: one group.
+            (e.g. one target frame each). Default: one group.
+
+    The median is taken over the points that are not noise-free matches (ZNCC below
+    ``RESIDUAL_ZNCC``): a classical solution at the reference frame matches the reference
+    itself, to round-off, and where most rows of that frame had fallen back to classical
+    (sample 12: load steps) their ~0 median made a third of the window rows POOR_FIT.
     """
     bad = solved & ~(zncc >= zncc_floor)
-    have = solved & torch.isfinite(sigma)
+    have = solved & torch.isfinite(sigma) & ~(zncc >= RESIDUAL_ZNCC)
     g = torch.zeros_like(sigma, dtype=torch.long) if group is None else group.long()
     if not bool(have.any()):
         return bad
