@@ -55,6 +55,8 @@ class Carry:
     vel_u: torch.Tensor
     vel_v: torch.Tensor
     valid: torch.Tensor  # (N,) bool
+    #: (N,) bool: the velocity was measured (ut, vt, or two rows); None: everywhere
+    vel_known: torch.Tensor | None = None
 
     def predict(self, tk: torch.Tensor) -> dict[str, torch.Tensor]:
         """Predicted total parameters (B, N) at times ``tk`` (B,)."""
@@ -78,8 +80,9 @@ class Carry:
             return self, 0
         new = torch.where(fill.unsqueeze(1), guess.to(stack.dtype), stack)
         vals = {nm: new[:, i] for i, nm in enumerate(names)}
+        known = None if self.vel_known is None else self.vel_known | fill
         return Carry(t=self.t, vals=vals, vel_u=new[:, -2], vel_v=new[:, -1],
-                     valid=self.valid | fill), int(fill.sum())
+                     valid=self.valid | fill, vel_known=known), int(fill.sum())
 
 
 def neighbour_guess(params: torch.Tensor, ok: torch.Tensor, names, nb: torch.Tensor,
@@ -352,8 +355,13 @@ class _Block:
         idx, not_ref = idx[suspect], not_ref[suspect]
         if idx.numel() == 0:
             return 0, 0
-        start = quick.params[suspect].nan_to_num(0.0)
-        cls = self.solve(idx, start, m=0)
+        # where the few steps converged they are the classical solution (the full solver
+        # takes the same steps); only the others go on
+        cls = _rows(quick, suspect)
+        redo = cls.status != int(Status.CONVERGED)
+        if bool(redo.any()):
+            cls = _with_rows(cls, redo, self.solve(idx[redo], cls.params[redo].nan_to_num(0.0),
+                                                   m=0))
         ok_c = cls.status <= USABLE
         self.status[idx[~ok_c]] = int(Status.POOR_FIT)
         idx, not_ref = idx[ok_c], not_ref[ok_c]
@@ -465,6 +473,24 @@ def _rows(sol: WindowSolution, pick: torch.Tensor) -> WindowSolution:
     )
 
 
+def _with_rows(sol: WindowSolution, pick: torch.Tensor, new: WindowSolution) -> WindowSolution:
+    """``sol`` with its rows ``pick`` (bool mask) replaced by the rows of ``new``."""
+
+    def put(a: torch.Tensor | None, b: torch.Tensor | None) -> torch.Tensor | None:
+        if a is None or b is None:
+            return a
+        out = a.clone()
+        out[pick] = b.to(a.dtype)
+        return out
+
+    return WindowSolution(
+        points=sol.points, params=put(sol.params, new.params), param_names=sol.param_names,
+        zncc=put(sol.zncc, new.zncc), status=put(sol.status, new.status),
+        iterations=put(sol.iterations, sol.iterations[pick] + new.iterations), time=sol.time,
+        std=put(sol.std, new.std), sigma=put(sol.sigma, new.sigma),
+    )
+
+
 def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry | None):
     """Solve all POIs of target frames ``ks`` (B,) in one batched solve, then rescue lost
     rows (from the previous target of the block, then by FFT cross-correlation).
@@ -486,6 +512,9 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
         pred = to_relative(carry.predict(run.ts[blk.k].to(run.dtype)), ref.acc)
         init = blk.init_rows({nm: v.reshape(-1) for nm, v in pred.items()})
         carried = carry.valid.repeat(b) & torch.isfinite(init).all(1)
+        if carry.vel_known is not None:  # without a velocity the carry predicts only the
+            later = torch.arange(b, device=dev).repeat_interleave(n) > 0  # first target:
+            carried &= ~later | carry.vel_known.repeat(b)  # the later ones start from it
     ident = blk.identity_rows()
     init = torch.where(ident.unsqueeze(1), torch.zeros_like(init), init)
     carried |= ident
@@ -562,11 +591,13 @@ def make_carry(rows: dict[str, np.ndarray], times: np.ndarray, names, prev: Carr
         vel_u, vel_v = (vals["u"] - u_prev) / span, (vals["v"] - v_prev) / span
     else:
         vel_u, vel_v = torch.zeros_like(vals["u"]), torch.zeros_like(vals["v"])
+    known = torch.full_like(ok, span > 0)  # two rows: a finite difference
     if "ut" in names:  # the measured velocity where the window had one (m > 0)
         vel_u = torch.where(torch.isfinite(vals["ut"]), vals["ut"], vel_u)
         vel_v = torch.where(torch.isfinite(vals["vt"]), vals["vt"], vel_v)
+        known |= torch.isfinite(vals["ut"]) & torch.isfinite(vals["vt"])
     fin = torch.isfinite(vel_u) & torch.isfinite(vel_v)
     vel_u = torch.where(fin, vel_u, torch.zeros_like(vel_u))
     vel_v = torch.where(fin, vel_v, torch.zeros_like(vel_v))
     vals = {nm: (torch.nan_to_num(a) if nm in ("ut", "vt") else a) for nm, a in vals.items()}
-    return Carry(t=t_last, vals=vals, vel_u=vel_u, vel_v=vel_v, valid=ok)
+    return Carry(t=t_last, vals=vals, vel_u=vel_u, vel_v=vel_v, valid=ok, vel_known=known)
