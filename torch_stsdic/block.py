@@ -33,7 +33,7 @@ from .quality import (
 )
 from .reference import Reference, noise_ratio, to_relative, to_total
 from .result import USABLE
-from .solver import SubsetSolver, WindowSolution
+from .solver import SubsetSolver, WindowSolution, subset_inside
 from .status import Status
 
 __all__ = ["BlockContext", "Carry", "solve_block", "rows_numpy", "make_carry", "STD_OF"]
@@ -237,14 +237,30 @@ class _Block:
         pad = torch.cat([a.to(dt), torch.full_like(a[:, :1], float("nan"), dtype=dt)], 1)
         return pad[:, torch.tensor([c if c >= 0 else a.shape[1] for c in cols], device=dev)]
 
-    def identity_rows(self) -> torch.Tensor:
-        """(B*N,) bool: rows whose whole window is the current reference frame itself
-        (classical DIC with the reference frame as a target): they start from the identity
-        (zero displacement) instead of FFT cross-correlation, which has nothing to find."""
+    def keep_identity(self) -> torch.Tensor:
+        """Rows whose whole window is the current reference frame itself (classical DIC with
+        the reference frame as a target) are the identity, known without a solve: zero
+        displacement and gradients, ZNCC 1, zero noise and std, CONVERGED (OUTSIDE where the
+        subset leaves the image, as the solver says). Returns the (B*N,) bool mask of those
+        rows (a pair through ``stsdic run``: half the work)."""
         run = self.run
         if run.m != 0:
             return torch.zeros(self.b * self.n, dtype=torch.bool, device=run.device)
-        return (self.windows(0) == self.ref.frame).all(1).repeat_interleave(self.n)
+        rows = (self.windows(0) == self.ref.frame).all(1).repeat_interleave(self.n)
+        if not bool(rows.any()):
+            return rows
+        inside = subset_inside(self.pts, float(run.solver.window.half), self.ref.img.height,
+                               self.ref.img.width)
+        self.params[rows] = 0.0
+        self.zncc[rows] = 1.0
+        self.status[rows] = torch.where(inside[rows], int(Status.CONVERGED),
+                                        int(Status.OUTSIDE)).to(torch.int8)
+        self.params[rows & ~inside] = float("nan")
+        self.zncc[rows & ~inside] = float("nan")
+        self.std[rows & inside] = 0.0
+        self.sigma[rows & inside] = 0.0
+        self.m_used[rows] = 0
+        return rows
 
     def lost(self) -> torch.Tensor:
         """(B*N,) bool: rows without a trustworthy solution (not converged, a poor fit, or a
@@ -502,7 +518,6 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
     rows = b * n
     if carry is None:
         carried = torch.zeros(rows, dtype=torch.bool, device=dev)
-        init = torch.zeros(rows, len(run.names), dtype=run.dtype, device=dev)
     else:
         pts0 = ref.points if ref.acc is None else ref.points - torch.stack(
             [ref.acc["u"], ref.acc["v"]], 1)
@@ -515,9 +530,7 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
         if carry.vel_known is not None:  # without a velocity the carry predicts only the
             later = torch.arange(b, device=dev).repeat_interleave(n) > 0  # first target:
             carried &= ~later | carry.vel_known.repeat(b)  # the later ones start from it
-    ident = blk.identity_rows()
-    init = torch.where(ident.unsqueeze(1), torch.zeros_like(init), init)
-    carried |= ident
+    carried &= ~blk.keep_identity()
     idx_c = torch.nonzero(carried).flatten()
     guess = None
     if idx_c.numel():

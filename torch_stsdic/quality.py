@@ -43,6 +43,7 @@ import torch
 from torch import Tensor
 
 from .points import nearest_points
+from .strain import detect_grid
 
 __all__ = [
     "MODEL_Z", "MODEL_TOL", "RESIDUAL_Z", "RESIDUAL_ZNCC", "FIT_RATIO", "FIT_ZNCC_GOOD",
@@ -137,20 +138,51 @@ def poor_fit(sigma: Tensor, zncc: Tensor, solved: Tensor, zncc_floor: float,
 
 def neighbours(points: Tensor, k: int = 8, reach: float = 2.5, chunk: int = 2048) -> Tensor:
     """(N, k) indices of the ``k`` nearest other points within ``reach`` times the median
-    nearest-neighbour distance (-1 where fewer), from (N, 2) positions px."""
+    nearest-neighbour distance (-1 where fewer), from (N, 2) positions px. Points on a
+    regular grid (holes allowed) are looked up in the grid; others searched
+    (:func:`~torch_stsdic.points.nearest_points`)."""
     p = points.double()
     n = p.shape[0]
     k_eff = min(k, n - 1)
     if k_eff <= 0:
         return torch.full((n, k), -1, dtype=torch.long, device=points.device)
-    dist_t, idx_t = nearest_points(p, k_eff + 1, chunk)
-    dist_t, idx_t = dist_t[:, 1:], idx_t[:, 1:]  # not itself
-    limit = reach * dist_t[:, 0].median()
-    idx_t = torch.where(dist_t <= limit, idx_t, torch.full_like(idx_t, -1))
+    grid = detect_grid(p.cpu().numpy()) if n > 64 else None
+    if grid is not None:
+        idx_t = _grid_neighbours(grid, k_eff, reach).to(points.device)
+    else:
+        dist_t, idx_t = nearest_points(p, k_eff + 1, chunk)
+        dist_t, idx_t = dist_t[:, 1:], idx_t[:, 1:]  # not itself
+        limit = reach * dist_t[:, 0].median()
+        idx_t = torch.where(dist_t <= limit, idx_t, torch.full_like(idx_t, -1))
     if k_eff < k:
         pad = torch.full((n, k - k_eff), -1, dtype=torch.long, device=idx_t.device)
         idx_t = torch.cat([idx_t, pad], 1)
     return idx_t.to(points.device)
+
+
+def _grid_neighbours(grid, k: int, reach: float) -> Tensor:
+    """(N, k) the nearest ``k`` other points of a regular grid (:func:`detect_grid`) within
+    ``reach`` times the grid's smaller step, nearest first (-1 where fewer)."""
+    ix, iy = torch.from_numpy(grid.ix).long(), torch.from_numpy(grid.iy).long()
+    n = ix.shape[0]
+    table = torch.full((grid.ny, grid.nx), -1, dtype=torch.long)
+    table[iy, ix] = torch.arange(n)
+    step = min(grid.sx, grid.sy)
+    rx, ry = int(reach * step / grid.sx), int(reach * step / grid.sy)
+    dy, dx = torch.meshgrid(torch.arange(-ry, ry + 1), torch.arange(-rx, rx + 1), indexing="ij")
+    dist = torch.hypot(dx * grid.sx, dy * grid.sy).flatten()
+    keep = (dist > 0) & (dist <= reach * step * (1 + 1e-9))
+    order = torch.argsort(dist[keep], stable=True)
+    ox, oy = dx.flatten()[keep][order], dy.flatten()[keep][order]  # nearest first
+    cx, cy = ix.unsqueeze(1) + ox, iy.unsqueeze(1) + oy  # (N, offsets)
+    inside = (cx >= 0) & (cx < grid.nx) & (cy >= 0) & (cy < grid.ny)
+    cand = torch.where(inside, table[cy.clamp(0, grid.ny - 1), cx.clamp(0, grid.nx - 1)], -1)
+    rank = torch.where(cand >= 0, 0, 1) * cand.shape[1] + torch.arange(cand.shape[1])
+    first = torch.argsort(rank, dim=1)[:, :k]  # the valid ones, nearest first
+    out = torch.gather(cand, 1, first)
+    if out.shape[1] < k:
+        out = torch.cat([out, torch.full((n, k - out.shape[1]), -1, dtype=torch.long)], 1)
+    return out
 
 
 def _nanmedian(x: Tensor) -> Tensor:
