@@ -201,6 +201,24 @@ def test_classical_m0_and_progress_bar(movie, capsys):
     assert float((res.v - truth["v"]).abs().max()) < 0.01
 
 
+def test_classical_reference_row_is_the_identity_without_a_solve(movie):
+    """Classical DIC of the reference frame against itself has nothing to find: its row is
+    stored as the identity (a pair through ``stsdic run`` did twice the solver's work), a
+    subset leaving the image is OUTSIDE as the solver says, and the next frame starts like
+    the first block (FFT cross-correlation), with the same results."""
+    frames, motion = movie
+    pts = torch.tensor([[40.0, 40.0], [22.0, 30.0], [5.0, 40.0]])  # the last: subset outside
+    res = track(frames[:3], config=CFG.replace(m=0), points=pts, progress=False)
+    assert res.status[0].tolist() == [int(Status.CONVERGED)] * 2 + [int(Status.OUTSIDE)]
+    assert res.iterations[0].tolist() == [0, 0, 0]
+    assert res.u[0, :2].tolist() == [0.0, 0.0] and res.v[0, :2].tolist() == [0.0, 0.0]
+    assert float(res.zncc[0, 0]) == 1.0
+    truth = ground_truth(motion, res.points, res.times)
+    ok = res.status[1:, :2] == int(Status.CONVERGED)
+    assert bool(ok.all())
+    assert float((res.u[1:, :2] - truth["u"][1:, :2]).abs().max()) < 0.01
+
+
 def test_lost_points_after_a_jump_are_recovered_by_fft():
     # at t = 4 everything jumps by (6, -5) px: the carried guess is far off; the points that
     # do not converge from it start again from their neighbours that did, or from the FFT
