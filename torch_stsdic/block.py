@@ -42,6 +42,10 @@ __all__ = ["BlockContext", "Carry", "solve_block", "rows_numpy", "make_carry", "
 #: movie: 26 % of rows had not converged after 3 steps, 0.8 % after 4; the rest are re-solved)
 CHECK_ITER = 4
 
+#: px beyond the image border a carried prediction must put a subset before the row is
+#: OUTSIDE without a solve
+OUTSIDE_MARGIN = 2.0
+
 #: the predicted-std field of each parameter stored with the results (px, px per time unit)
 STD_OF = {"u": "u_std", "v": "v_std", "ut": "ut_std", "vt": "vt_std"}
 
@@ -168,6 +172,7 @@ class _Block:
         self.std = torch.full((rows, p_count), float("nan"), dtype=run.dtype, device=dev)
         self.sigma = torch.full((rows,), float("nan"), dtype=run.dtype, device=dev)
         self.m_used = torch.full((rows,), -1, dtype=torch.int8, device=dev)
+        self.gone = torch.zeros(rows, dtype=torch.bool, device=dev)  # predicted outside
 
     def windows(self, m: int) -> torch.Tensor:
         """(B, 2m+1) series frames of every target's window, shifted (not shrunk) at the
@@ -271,7 +276,29 @@ class _Block:
             (st == int(Status.MAX_ITER)) | (st == int(Status.DIVERGED))
             | (st == int(Status.OUTSIDE)) | (st == int(Status.NOT_COMPUTED))
             | (st == int(Status.POOR_FIT)) | ((st <= USABLE) & ~(self.zncc >= self.run.lost_zncc))
-        )
+        ) & ~self.gone
+
+    def keep_outside(self, inits: Sequence[torch.Tensor], carried: torch.Tensor
+                     ) -> torch.Tensor:
+        """Carried rows whose subset lies clearly outside the image (by more than
+        ``OUTSIDE_MARGIN`` px) at every one of the predictions ``inits`` ((B*N, P) relative
+        parameters: the carry moved on by its velocity, and where it was last) are OUTSIDE,
+        neither solved nor rescued: a specimen moving out of view (every rescue of such a
+        point found some other peak inside the image, at low ZNCC, again in every block).
+        Returns the (B*N,) bool mask of those rows."""
+        run = self.run
+        iu, iv = run.names.index("u"), run.names.index("v")
+        half = float(run.solver.window.half) + OUTSIDE_MARGIN
+        h, w = self.ref.img.height, self.ref.img.width
+        out = carried.clone()
+        for init in inits:
+            x = self.pts[:, 0] + init[:, iu]
+            y = self.pts[:, 1] + init[:, iv]
+            out &= (x - half < 0) | (x + half > w - 1) | (y - half < 0) | (y + half > h - 1)
+        if bool(out.any()):
+            self.status[out] = int(Status.OUTSIDE)
+            self.gone |= out
+        return out
 
     def init_rows(self, values: dict[str, torch.Tensor]) -> torch.Tensor:
         """(R, P) initial parameters from relative values by name (missing ones zero)."""
@@ -538,6 +565,8 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
         pred = to_relative(carry.predict(run.ts[blk.k].to(run.dtype)), ref.acc)
         init = blk.init_rows({nm: v.reshape(-1) for nm, v in pred.items()})
         carried = carry.valid.repeat(b) & torch.isfinite(init).all(1)
+        last = {nm: v.repeat(b) for nm, v in to_relative(dict(carry.vals), ref.acc).items()}
+        carried &= ~blk.keep_outside((init, blk.init_rows(last)), carried)
         if carry.vel_known is not None:  # without a velocity the carry predicts only the
             later = torch.arange(b, device=dev).repeat_interleave(n) > 0  # first target:
             carried &= ~later | carry.vel_known.repeat(b)  # the later ones start from it
