@@ -270,3 +270,21 @@ def test_median_test_passes_a_strain_that_changes_along_the_specimen():
     vals[0, 24, 1] += 0.5
     out = median_test(vals, ok, nb, 0.05, points=pts, gradients=grads)[0]
     assert torch.nonzero(out).flatten().tolist() == [24]
+
+
+def test_points_moving_out_of_view_are_outside_not_poor_fits():
+    """The specimen moves up 3 px a frame: the top rows leave the image. Once their carried
+    subset is outside, they are OUTSIDE, not solved again to some other peak inside the image
+    (POOR_FIT at low ZNCC, in every block, before)."""
+    size = 121
+    times = torch.arange(1.0, 11.0)
+    pattern = make_speckle((size, size), seed=3, margin=3 * size)
+    ref, imgs = render_series(pattern, (size, size), Translation(ut=0.0, vt=-3.0), times,
+                              noise_sigma=1.0, seed=4)
+    series = torch.cat([ref[None], imgs]).float()
+    res = track(series, config=DICConfig(m=0, subset_size=21), step=12, batch_frames=3,
+                progress=False)
+    top = res.points[:, 1] < 25  # the first row: out of view from frame 7 on
+    st = torch.as_tensor(res.status)
+    assert bool((st[:5][:, top] == int(Status.CONVERGED)).all())
+    assert bool((st[7:][:, top] == int(Status.OUTSIDE)).all())

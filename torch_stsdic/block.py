@@ -42,6 +42,9 @@ __all__ = ["BlockContext", "Carry", "solve_block", "rows_numpy", "make_carry", "
 #: movie: 26 % of rows had not converged after 3 steps, 0.8 % after 4; the rest are re-solved)
 CHECK_ITER = 4
 
+#: rings of lost points filled from their neighbours' carried motion (Carry.from_neighbours)
+FILL_ROUNDS = 8
+
 #: px beyond the image border a carried prediction must put a subset before the row is
 #: OUTSIDE without a solve
 OUTSIDE_MARGIN = 2.0
@@ -70,23 +73,32 @@ class Carry:
         out["v"] = self.vals["v"] + self.vel_v * d
         return out
 
-    def from_neighbours(self, nb: torch.Tensor, points: torch.Tensor) -> tuple[Carry, int]:
+    def from_neighbours(self, nb: torch.Tensor, points: torch.Tensor,
+                        rounds: int = FILL_ROUNDS) -> tuple[Carry, int]:
         """This carry with every point that has no valid carry (lost, or a poor fit) carried
         from its valid grid neighbours ``nb`` (N, k) instead (:func:`neighbour_guess`; points
-        (N, 2) px in the first reference), so a lost point starts near the motion again
-        rather than from FFT cross-correlation. Returns the carry and the points filled."""
+        (N, 2) px in the first reference), ring by ring into a lost region (at most
+        ``rounds``), so a lost point starts near the motion again rather than from FFT
+        cross-correlation (or is seen to have left the image). Returns the carry and the
+        points filled."""
         names = list(self.vals)
         stack = torch.stack([self.vals[nm] for nm in names] + [self.vel_u, self.vel_v], 1)
-        guess = neighbour_guess(stack.unsqueeze(0), self.valid.unsqueeze(0),
-                                names + ["vel_u", "vel_v"], nb, points)[0]
-        fill = ~self.valid & torch.isfinite(guess).all(1)
-        if not bool(fill.any()):
+        ok = self.valid.clone()
+        for _ in range(rounds):
+            guess = neighbour_guess(stack.unsqueeze(0), ok.unsqueeze(0),
+                                    names + ["vel_u", "vel_v"], nb, points)[0]
+            fill = ~ok & torch.isfinite(guess).all(1)
+            if not bool(fill.any()):
+                break
+            stack = torch.where(fill.unsqueeze(1), guess.to(stack.dtype), stack)
+            ok |= fill
+        filled = ok & ~self.valid
+        if not bool(filled.any()):
             return self, 0
-        new = torch.where(fill.unsqueeze(1), guess.to(stack.dtype), stack)
-        vals = {nm: new[:, i] for i, nm in enumerate(names)}
-        known = None if self.vel_known is None else self.vel_known | fill
-        return Carry(t=self.t, vals=vals, vel_u=new[:, -2], vel_v=new[:, -1],
-                     valid=self.valid | fill, vel_known=known), int(fill.sum())
+        vals = {nm: stack[:, i] for i, nm in enumerate(names)}
+        known = None if self.vel_known is None else self.vel_known | filled
+        return Carry(t=self.t, vals=vals, vel_u=stack[:, -2], vel_v=stack[:, -1],
+                     valid=ok, vel_known=known), int(filled.sum())
 
 
 def neighbour_guess(params: torch.Tensor, ok: torch.Tensor, names, nb: torch.Tensor,
