@@ -485,12 +485,18 @@ class _Block:
         sd = self.std[:, [iu, iv]].reshape(b, n, 2)
         sd = torch.where(ok.unsqueeze(-1), sd, torch.nan).flatten(1)
         eps = (MEDIAN_EPS_STD * torch.nanmedian(sd, dim=1).values).nan_to_num(0.0)
+        eps = eps.clamp(min=MEDIAN_EPS_MIN)
         grads = None
         if all(nm in run.names for nm in ("ux", "uy", "vx", "vy")):
             gi = [run.names.index(nm) for nm in ("ux", "uy", "vx", "vy")]
             grads = self.params[:, gi].reshape(b, n, 2, 2)
-        out = median_test(uv, ok, nb, eps.clamp(min=MEDIAN_EPS_MIN),
-                          points=self.ref.points, gradients=grads)
+            # the gradients' own noise, carried over the neighbours' distance
+            sg = self.std[:, gi].reshape(b, n, 4).amax(-1).nan_to_num(0.0)
+            pts = self.ref.points.double()
+            far = (pts.unsqueeze(1) - pts[nb.clamp(min=0)]).norm(dim=-1)[nb >= 0]
+            reach = float(far.median()) if far.numel() else 0.0
+            eps = torch.hypot(eps.unsqueeze(1), MEDIAN_EPS_STD * sg.double() * reach)
+        out = median_test(uv, ok, nb, eps, points=self.ref.points, gradients=grads)
         self.status[out.reshape(-1)] = int(Status.INCONSISTENT)
         return int(out.sum())
 

@@ -65,6 +65,9 @@ MEDIAN_EPS_MIN = 0.05  #: neighbour check: smallest eps, px (half the 0.1 px a u
 #: neighbour check: neighbours (carried by their gradients) whose median absolute residual
 #: exceeds this times eps are no smooth field: the point is INCONSISTENT (1 px at eps 0.05)
 MEDIAN_SCATTER = 20.0
+#: neighbour check: a point's own gradient is used to carry its neighbours where it is
+#: within 3 median absolute deviations of theirs plus this
+GRADIENT_TOL = 0.005
 #: neighbour check: rounds of the test (each flags the worst outliers of their neighbourhood)
 MEDIAN_ROUNDS = 4
 
@@ -200,9 +203,9 @@ def carried_neighbours(values: Tensor, valid: Tensor, nb: Tensor, points: Tensor
     the point, so a quadratic field (a strain that changes along the specimen) is carried
     exactly; carried by its own gradient alone, every neighbour misses the point by half the
     curvature times the squared distance, all to the same side (hourglass neck: 0.2-0.3 px,
-    far above the noise). The gradient at the point is the plane fitted to its valid
-    neighbours' gradients (:func:`_gradient_at`), not its own: the point being judged (or a
-    lost one) may be wrong."""
+    far above the noise). The gradient at the point is its own where that is like its
+    neighbours' (the point being judged, or a lost one, may be wrong), else the plane fitted
+    to its valid neighbours' gradients (:func:`_gradient_at`)."""
     n = values.shape[1]
     safe, has = nb.clamp(min=0), (nb >= 0).view(1, n, -1)
     use = valid[:, safe] & has  # (B, N, k)
@@ -211,8 +214,18 @@ def carried_neighbours(values: Tensor, valid: Tensor, nb: Tensor, points: Tensor
     if points is not None and gradients is not None:
         p = points.double()
         d = (p.unsqueeze(1) - p[safe]).view(1, n, -1, 1, 2)  # (1, N, k, 1, 2) to the point
-        gn = torch.where(use.view(*use.shape, 1, 1), gradients.double()[:, safe], 0.0)
+        g = gradients.double()
+        gn = torch.where(use.view(*use.shape, 1, 1), g[:, safe], 0.0)
         at = _gradient_at(gn, use, d.view(1, n, -1, 2))  # (B, N, C, 2)
+        # the point's own gradient where it is one of its neighbours' (within 3 of their
+        # median absolute deviations from their median, + GRADIENT_TOL): no extrapolation
+        # noise at edges and corners, and a wrong point's wrong gradient is not used
+        gm = torch.where(use.view(*use.shape, 1, 1), g[:, safe], torch.nan).permute(
+            0, 1, 3, 4, 2)  # (B, N, C, 2, k)
+        med = _nanmedian(gm)
+        mad = _nanmedian((gm - med.unsqueeze(-1)).abs())
+        own = valid.view(*valid.shape, 1, 1) & ((g - med).abs() <= 3.0 * mad + GRADIENT_TOL)
+        at = torch.where(own, g, at)
         vn = vn + (0.5 * (torch.nan_to_num(gn) + at.unsqueeze(2)) * d).sum(-1)
     return torch.where(use.unsqueeze(-1), vn, torch.nan)
 
@@ -240,9 +253,11 @@ def median_test(values: Tensor, valid: Tensor, nb: Tensor, eps: float | Tensor,
                 min_neighbours: int = 3, rounds: int = MEDIAN_ROUNDS) -> Tensor:
     """Normalised median test (module docstring) of (B, N, C) ``values`` (C components, e.g.
     u and v) over the neighbours ``nb`` (N, k); only ``valid`` (B, N) points count as
-    neighbours or are judged. With ``points`` (N, 2) px and ``gradients`` (B, N, C, 2) (d/dx,
-    d/dy of each component), each neighbour's value is carried to the point by its own
-    gradient first, so linear fields pass at edges and beside holes too.
+    neighbours or are judged. ``eps`` px: a number, (B,) one per row of ``values`` or (B, N)
+    one per point (the noise of u plus that of the gradients carried over the neighbours'
+    distance). With ``points`` (N, 2) px and ``gradients`` (B, N, C, 2) (d/dx, d/dy of each
+    component), each neighbour's value is carried to the point first
+    (:func:`carried_neighbours`), so linear and quadratic fields pass.
 
     A bad point must not condemn its good neighbours: the test is iterated (at most
     ``rounds`` times): each round flags only the outliers that are the worst of the outliers
@@ -254,8 +269,10 @@ def median_test(values: Tensor, valid: Tensor, nb: Tensor, eps: float | Tensor,
     b = values.shape[0]
     v = values.double()
     eps_t = torch.as_tensor(eps, dtype=torch.float64, device=values.device)
-    if eps_t.dim() == 1:
+    if eps_t.dim() == 1:  # per row of values
         eps_t = eps_t.view(b, 1, 1)
+    elif eps_t.dim() == 2:  # per point
+        eps_t = eps_t.unsqueeze(-1)
     safe, has = nb.clamp(min=0), (nb >= 0).unsqueeze(0)
     out = torch.zeros_like(valid)
     for i in range(max(1, rounds)):
