@@ -3,9 +3,12 @@ started from the carried guesses, with rescue of lost points and the trust check
 
 A block is a few consecutive target frames of a movie. Every row (target frame x POI) starts
 from the :class:`Carry` of the block before (the last stored row moved on by its velocity).
-Rows that get lost (not converged, or ZNCC below ``lost_zncc``) are rescued in time order
-from the solution of the previous target of the same block, then by FFT cross-correlation;
-the better of the attempts is kept. Then (``BlockContext.checks``) every row is checked
+Points without a valid carry start from their grid neighbours' carried motion; rows whose
+carried subset lies outside the image are OUTSIDE; the reference frame as its own classical
+target is the identity. Rows that get lost (not converged, or ZNCC below ``lost_zncc``) are
+rescued in time order from the solution of the previous target of the same block, then from
+their neighbours' solutions, then by FFT cross-correlation; the better of the attempts is
+kept. Then (``BlockContext.checks``) every row is checked
 (:mod:`torch_stsdic.quality`): its window against the classical solution (shorter windows
 where the motion is not affine in time, the classical solution where none fits), rows still
 lost are solved classically, and poor fits and outliers among neighbours are flagged.
@@ -563,7 +566,8 @@ def _only_identity(run: BlockContext, ref: Reference, carry: Carry) -> bool:
 
 def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry | None):
     """Solve all POIs of target frames ``ks`` (B,) in one batched solve, then rescue lost
-    rows (from the previous target of the block, then by FFT cross-correlation).
+    rows (from the previous target of the block, their neighbours, then by FFT
+    cross-correlation) and check them (``run.checks``).
 
     Returns a dict of (B, N) tensors: total parameters by name, "zncc", "status",
     "iterations"."""
