@@ -104,8 +104,17 @@ def recording(log: list):
         sv = state["solves"]
         if state["stage"] == 0 and sv:
             return sv[0][0].numpy()
-        if state["stage"] == 1 and len(sv) > 1:
-            return sv[1][0][sv[1][1] <= block_mod.USABLE].numpy()
+        if state["stage"] == 1 and sv and log:
+            # the suspects of stage 0, with their classical solution: the few-step one where
+            # it converged, else the full solve that followed (sv[1])
+            quick = sv[0][1].numpy()
+            suspect = ((quick != int(block_mod.Status.CONVERGED)) | log[-1]["fail_model"]
+                       | log[-1].get("fail_res", False))
+            st = quick[suspect].copy()
+            redo = st != int(block_mod.Status.CONVERGED)
+            if redo.any() and len(sv) > 1:
+                st[redo] = sv[1][1].numpy()
+            return sv[0][0].numpy()[suspect][st <= block_mod.USABLE]
         return None
 
     def mm(d_sts, d_cls, std_sts, std_cls):

@@ -104,6 +104,7 @@ def test_help(capsys, cmd):
             "--resume",
             "--overwrite",
             "--no-progress",
+            "--no-checks",
             "--out",
         ):
             assert opt in out, opt
@@ -262,6 +263,21 @@ def test_run_summary_and_resume_overwrite(capsys, movie, tmp_path):
     code, stdout, err = _run(capsys, *base, "--overwrite")
     assert code == 0, err
     assert not out.with_name(out.name + ".partial").exists()
+
+
+def test_run_no_checks_is_recorded_and_resumed_alike(capsys, movie, tmp_path):
+    out = tmp_path / "r.h5"
+    base = ["run", movie / "movie.tif", "--subset", "17", "--step", "25", "--m", "1",
+            "--search-radius", "3", "--frames", "0:4", "--out", out, "--no-progress",
+            *FAST]  # fmt: skip
+    code, stdout, err = _run(capsys, *base, "--no-checks")
+    assert code == 0, err
+    with h5py.File(out, "r") as f:
+        assert json.loads(f.attrs["config"])["track"]["checks"] is False
+    code, _, err = _run(capsys, *base, "--resume")  # checks on: not the same run
+    _assert_one_line_error(code, err, "--no-checks")
+    code, _, err = _run(capsys, *base, "--no-checks", "--resume")
+    assert code == 0, err
 
 
 def test_run_points_and_timestamps(capsys, movie, tmp_path):

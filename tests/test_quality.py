@@ -178,3 +178,122 @@ def test_median_test_flags_a_patch_of_wild_values_not_a_jump():
     assert bool(out[patch].all())
     far = (x >= 40)  # beyond the patch's neighbourhood: untouched
     assert not bool(out[far].any())
+
+
+def test_median_test_does_not_condemn_a_good_point_for_its_bad_neighbours():
+    """A corner point whose neighbours are mostly wrong peaks (px apart) is itself right: the
+    iterated test flags the bad ones and judges the corner by the good neighbours left."""
+    pts = _grid()
+    gen = torch.Generator().manual_seed(3)
+    gu = torch.tensor([0.02, -0.01], dtype=torch.float64)
+    gv = torch.tensor([0.01, 0.03], dtype=torch.float64)
+    vals = torch.stack([pts @ gu, pts @ gv], -1)[None]
+    vals = vals + 0.005 * torch.randn(1, 49, 2, generator=gen, dtype=torch.float64)
+    grads = torch.stack([gu, gv])[None, None].expand(1, 49, 2, 2)
+    bad = [1, 2, 7, 8]  # four of the corner's seven neighbours
+    vals[0, bad] += torch.tensor([[3.0, -2.0], [-3.0, -3.0], [-4.0, 1.5], [2.5, 3.5]],
+                                 dtype=torch.float64)
+    ok = torch.ones(1, 49, dtype=torch.bool)
+    out = median_test(vals, ok, neighbours(pts), 0.05, points=pts, gradients=grads)[0]
+    assert torch.nonzero(out).flatten().tolist() == bad
+
+
+def test_poor_fit_median_ignores_noise_free_matches():
+    """At the reference frame a classical row matches the reference itself to round-off and a
+    window row leaves the noise: where most rows are classical (sample 12), their ~0 median
+    made every window row POOR_FIT. Only a real misfit is."""
+    sigma = torch.cat([torch.full((30,), 1e-4), torch.full((20,), 2.0), torch.tensor([5.0])])
+    zncc = torch.cat([torch.full((30,), 1.0), torch.full((21,), 0.99)])
+    solved = torch.ones(51, dtype=torch.bool)
+    bad = poor_fit(sigma, zncc, solved, zncc_floor=0.8)
+    assert torch.nonzero(bad).flatten().tolist() == [50]
+    # per group (e.g. target frame): each judged by its own median
+    group = torch.cat([torch.zeros(25), torch.ones(26)]).long()
+    sig2 = sigma.clone()
+    sig2[:25] = 4.0  # group 0: noisier frame, 25 rows at 4.0
+    zn2 = torch.full((51,), 0.99)
+    bad = poor_fit(sig2, zn2, solved, zncc_floor=0.8, group=group)
+    assert torch.nonzero(bad).flatten().tolist() == [50]
+
+
+def test_inconsistent_point_is_carried_from_its_own_solution():
+    """The neighbour test's doubt is reported, not acted on: an INCONSISTENT point (it fitted
+    its subset) goes on from its own solution; a POOR_FIT one does not."""
+    from torch_stsdic.block import make_carry
+
+    st = [int(Status.CONVERGED), int(Status.INCONSISTENT), int(Status.POOR_FIT)]
+    rows = {"u": torch.tensor([[1.0, 2.0, 3.0]]).numpy(), "v": torch.zeros(1, 3).numpy(),
+            "status": torch.tensor([st], dtype=torch.int8).numpy()}
+    carry = make_carry(rows, torch.tensor([1.0]).numpy(), ("u", "v"), None, torch.float64,
+                       torch.device("cpu"))
+    assert carry.valid.tolist() == [True, True, False]
+
+
+def _spoilt_movie(speed=2.5, frames=8):
+    """A translation of ``speed`` px/frame (beyond the FFT search radius from frame 5 on)
+    whose frame 4 has a 40 px patch of another speckle pattern."""
+    times = torch.arange(1.0, frames + 1.0)
+    motion = Translation(ut=speed, vt=0.0)
+    pattern = make_speckle((SIZE, SIZE), seed=5, margin=SIZE)
+    ref, imgs = render_series(pattern, (SIZE, SIZE), motion, times, noise_sigma=1.0, seed=6)
+    series = torch.cat([ref[None], imgs]).float()
+    other = make_speckle((SIZE, SIZE), seed=9, margin=SIZE)
+    _, alien = render_series(other, (SIZE, SIZE), motion, times[:1], noise_sigma=1.0, seed=7)
+    series[4, 60:100, 60:100] = alien[0, 60:100, 60:100].float()
+    return series, motion, times
+
+
+def test_lost_points_recover_from_their_neighbours():
+    """Points lost at the last target of a block (a spoilt patch of one frame) start the next
+    block from their neighbours' carried motion: before, they restarted by FFT, 12 px
+    beyond its search radius, found wrong peaks and never came back."""
+    series, motion, times = _spoilt_movie()
+    res = track(series, config=DICConfig(m=0, subset_size=21), step=10, batch_frames=2,
+                roi=(20, 20, 110, 140), progress=False)
+    pts = res.points.double()
+    patch = (pts[:, 0] >= 60) & (pts[:, 0] < 100) & (pts[:, 1] >= 60) & (pts[:, 1] < 100)
+    st = torch.as_tensor(res.status)
+    assert not bool(usable(st[4][patch]).any())  # lost in the spoilt frame
+    truth = ground_truth(motion, pts, times)["u"]
+    after = usable(st[5:])
+    assert bool(after.all())  # every point back from the next frame on
+    err = (res.u[5:].double() - truth[4:]).abs()
+    assert float(err.max()) < 0.05
+    assert res.info["neighbour_rows"] > 0
+
+
+def test_median_test_passes_a_strain_that_changes_along_the_specimen():
+    """A neck: the strain dv/dy grows along y (v quadratic in y, 0.1 px noise-free gradients
+    measured exactly). Carried by their own gradients alone, the neighbours all missed each
+    point by half the curvature times the squared distance (0.4 px here) and most points
+    were INCONSISTENT; a wrong peak is still found."""
+    pts = _grid(7, 20.0)
+    y = pts[:, 1]
+    c = 0.002  # v = c y^2: dv/dy from 0 to 0.48
+    vals = torch.stack([torch.zeros_like(y), c * y**2], -1)[None]
+    grads = torch.zeros(1, 49, 2, 2, dtype=torch.float64)
+    grads[0, :, 1, 1] = 2 * c * y
+    ok = torch.ones(1, 49, dtype=torch.bool)
+    nb = neighbours(pts)
+    assert not bool(median_test(vals, ok, nb, 0.05, points=pts, gradients=grads).any())
+    vals[0, 24, 1] += 0.5
+    out = median_test(vals, ok, nb, 0.05, points=pts, gradients=grads)[0]
+    assert torch.nonzero(out).flatten().tolist() == [24]
+
+
+def test_points_moving_out_of_view_are_outside_not_poor_fits():
+    """The specimen moves up 3 px a frame: the top rows leave the image. Once their carried
+    subset is outside, they are OUTSIDE, not solved again to some other peak inside the image
+    (POOR_FIT at low ZNCC, in every block, before)."""
+    size = 121
+    times = torch.arange(1.0, 11.0)
+    pattern = make_speckle((size, size), seed=3, margin=3 * size)
+    ref, imgs = render_series(pattern, (size, size), Translation(ut=0.0, vt=-3.0), times,
+                              noise_sigma=1.0, seed=4)
+    series = torch.cat([ref[None], imgs]).float()
+    res = track(series, config=DICConfig(m=0, subset_size=21), step=12, batch_frames=3,
+                progress=False)
+    top = res.points[:, 1] < 25  # the first row: out of view from frame 7 on
+    st = torch.as_tensor(res.status)
+    assert bool((st[:5][:, top] == int(Status.CONVERGED)).all())
+    assert bool((st[7:][:, top] == int(Status.OUTSIDE)).all())

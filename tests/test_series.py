@@ -203,15 +203,34 @@ def test_classical_m0_and_progress_bar(movie, capsys):
     assert float((res.v - truth["v"]).abs().max()) < 0.01
 
 
+def test_classical_reference_row_is_the_identity_without_a_solve(movie):
+    """Classical DIC of the reference frame against itself has nothing to find: its row is
+    stored as the identity (a pair through ``stsdic run`` did twice the solver's work), a
+    subset leaving the image is OUTSIDE as the solver says, and the next frame starts like
+    the first block (FFT cross-correlation), with the same results."""
+    frames, motion = movie
+    pts = torch.tensor([[40.0, 40.0], [22.0, 30.0], [5.0, 40.0]])  # the last: subset outside
+    res = track(frames[:3], config=CFG.replace(m=0), points=pts, progress=False)
+    assert res.status[0].tolist() == [int(Status.CONVERGED)] * 2 + [int(Status.OUTSIDE)]
+    assert res.iterations[0].tolist() == [0, 0, 0]
+    assert res.u[0, :2].tolist() == [0.0, 0.0] and res.v[0, :2].tolist() == [0.0, 0.0]
+    assert float(res.zncc[0, 0]) == 1.0
+    truth = ground_truth(motion, res.points, res.times)
+    ok = res.status[1:, :2] == int(Status.CONVERGED)
+    assert bool(ok.all())
+    assert float((res.u[1:, :2] - truth["u"][1:, :2]).abs().max()) < 0.01
+
+
 def test_lost_points_after_a_jump_are_recovered_by_fft():
-    # at t = 4 everything jumps by (6, -5) px: the carried guess is far off, the FFT redo
-    # (search radius 10 px) finds the points again
+    # at t = 4 everything jumps by (6, -5) px: the carried guess is far off; the points that
+    # do not converge from it start again from their neighbours that did, or from the FFT
+    # redo (search radius 10 px), and are found again
     motion = Translation(ut=UT) + Jump(-1e9, du=6.0, dv=-5.0, t_jump=4.0)
     mv = synthetic_movie((81, 81), 7, motion)
     frames = torch.cat([mv.ref[None], mv.frames])
     res = track(frames, config=CFG.replace(m=0), roi=ROI, step=18, progress=False,
                 batch_frames=1)
-    assert res.info["redone_rows"] >= 9
+    assert res.info["redone_rows"] + res.info["neighbour_rescued_rows"] >= 9
     truth = ground_truth(motion, res.points, res.times)
     assert bool((res.status == int(Status.CONVERGED)).all())
     assert float((res.u - truth["u"]).abs().max()) < 0.01

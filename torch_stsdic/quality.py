@@ -21,18 +21,20 @@ criterion is at a minimum; these checks say whether that minimum is the motion:
   run's floor, did not find its subset: POOR_FIT.
 - **Neighbour check** (:func:`median_test`): the normalised median test of PIV (Westerweel &
   Scarano 2005, Exp. Fluids 39:1096) on u and v among the nearest grid neighbours, each
-  neighbour's value first carried to the point by its own measured gradient (so linear fields
-  pass at edges and beside holes): residual ``|u_i - med_j c_j| / (med_j |c_j - med| + eps)``
-  above ``MEDIAN_THRESHOLD`` is an outlier: INCONSISTENT. ``eps`` is ``MEDIAN_EPS_STD`` times
-  the median predicted std, at least ``MEDIAN_EPS_MIN`` px: the test catches gross outliers
-  (a wrong peak, off by more than ~0.1 px), never the noise or the noise of the gradients
-  used to carry the neighbours. The test normalises by the neighbours' own scatter, so it
-  cannot judge a point whose neighbours scatter as wildly as it does (subsets across a
-  specimen's edge, where half the subset is background: each finds some peak, px to tens of
-  px apart). A point whose carried neighbours scatter by more than ``MEDIAN_SCATTER`` times
-  ``eps`` (median absolute residual) is therefore INCONSISTENT too: a smooth field, even a
-  strongly strained one, carried by its gradients scatters by the noise; a crack's jump moves
-  the median residual of the points beside it by at most half the jump.
+  neighbour's value first carried to the point by the measured gradients (the trapezoid rule of
+  :func:`carried_neighbours`, so linear and quadratic fields pass, at edges and beside holes
+  too), iterated so that a bad point does not condemn its good neighbours: residual ``|u_i -
+  med_j c_j| / (med_j |c_j - med| + eps)`` above ``MEDIAN_THRESHOLD`` is an outlier:
+  INCONSISTENT. ``eps`` is ``MEDIAN_EPS_STD`` times the median predicted std, at least
+  ``MEDIAN_EPS_MIN`` px: the test catches gross outliers (a wrong peak, off by more than ~0.1
+  px), never the noise or the noise of the gradients used to carry the neighbours. The test
+  normalises by the neighbours' own scatter, so it cannot judge a point whose neighbours scatter
+  as wildly as it does (subsets across a specimen's edge, where half the subset is background:
+  each finds some peak, px to tens of px apart). A point whose carried neighbours scatter by
+  more than ``MEDIAN_SCATTER`` times ``eps`` (median absolute residual) is therefore
+  INCONSISTENT too: a smooth field, even a strongly strained one, carried by its gradients
+  scatters by the noise; a crack's jump moves the median residual of the points beside it by at
+  most half the jump.
 """
 
 from __future__ import annotations
@@ -41,11 +43,13 @@ import torch
 from torch import Tensor
 
 from .points import nearest_points
+from .strain import detect_grid
 
 __all__ = [
     "MODEL_Z", "MODEL_TOL", "RESIDUAL_Z", "RESIDUAL_ZNCC", "FIT_RATIO", "FIT_ZNCC_GOOD",
-    "MEDIAN_THRESHOLD", "MEDIAN_EPS_STD", "MEDIAN_EPS_MIN", "MEDIAN_SCATTER",
-    "model_mismatch", "residual_mismatch", "poor_fit", "neighbours", "median_test",
+    "MEDIAN_THRESHOLD", "MEDIAN_EPS_STD", "MEDIAN_EPS_MIN", "MEDIAN_SCATTER", "MEDIAN_ROUNDS",
+    "model_mismatch", "residual_mismatch", "poor_fit", "neighbours", "carried_neighbours",
+    "median_test",
 ]
 
 MODEL_Z = 3.0  #: model check: standard deviations of the STS - classical difference allowed
@@ -61,6 +65,11 @@ MEDIAN_EPS_MIN = 0.05  #: neighbour check: smallest eps, px (half the 0.1 px a u
 #: neighbour check: neighbours (carried by their gradients) whose median absolute residual
 #: exceeds this times eps are no smooth field: the point is INCONSISTENT (1 px at eps 0.05)
 MEDIAN_SCATTER = 20.0
+#: neighbour check: a point's own gradient is used to carry its neighbours where it is
+#: within 3 median absolute deviations of theirs plus this
+GRADIENT_TOL = 0.005
+#: neighbour check: rounds of the test (each flags the worst outliers of their neighbourhood)
+MEDIAN_ROUNDS = 4
 
 
 def model_mismatch(d_sts: Tensor, d_cls: Tensor, std_sts: Tensor, std_cls: Tensor) -> Tensor:
@@ -95,7 +104,7 @@ def residual_mismatch(sigma_window: Tensor, sigma_classical: Tensor, n_pixels: f
 
 
 def poor_fit(sigma: Tensor, zncc: Tensor, solved: Tensor, zncc_floor: float,
-             min_points: int = 16) -> Tensor:
+             min_points: int = 16, group: Tensor | None = None) -> Tensor:
     """(N,) bool: solved points whose fit is not the image noise.
 
     Args:
@@ -104,69 +113,180 @@ def poor_fit(sigma: Tensor, zncc: Tensor, solved: Tensor, zncc_floor: float,
         solved: (N,) bool, the points to judge (the median is taken over them).
         zncc_floor: ZNCC below this is a poor fit.
         min_points: the residual test needs at least this many solved points (a median).
+        group: (N,) int >= 0: points are compared with the median of their own group only
+            (e.g. one target frame each). Default: one group.
+
+    The median is taken over the points that are not noise-free matches (ZNCC below
+    ``RESIDUAL_ZNCC``): a classical solution at the reference frame matches the reference
+    itself, to round-off, and where most rows of that frame had fallen back to classical
+    (sample 12: load steps) their ~0 median made a third of the window rows POOR_FIT.
     """
     bad = solved & ~(zncc >= zncc_floor)
-    s = sigma[solved & torch.isfinite(sigma)]
-    if s.numel() >= min_points:
-        med = s.median()
-        # a match at ZNCC >= FIT_ZNCC_GOOD is never poor (e.g. a frame against itself, where
-        # the "noise" is round-off and its median ~0)
-        bad |= solved & (sigma > FIT_RATIO * med) & ~(zncc >= FIT_ZNCC_GOOD)
+    have = solved & torch.isfinite(sigma) & ~(zncc >= RESIDUAL_ZNCC)
+    g = torch.zeros_like(sigma, dtype=torch.long) if group is None else group.long()
+    if not bool(have.any()):
+        return bad
+    s, gs = sigma[have], g[have]
+    order = torch.argsort(s, stable=True)
+    order = order[torch.argsort(gs[order], stable=True)]  # by group, then by sigma
+    counts = torch.bincount(gs, minlength=int(g.max()) + 1)
+    first = torch.cumsum(counts, 0) - counts
+    med = s[order][(first + (counts - 1).clamp(min=0) // 2).clamp(max=s.numel() - 1)]
+    enough = (counts >= min_points)[g]
+    # a match at ZNCC >= FIT_ZNCC_GOOD is never poor (e.g. a frame against itself, where
+    # the "noise" is round-off and its median ~0)
+    bad |= solved & enough & (sigma > FIT_RATIO * med[g]) & ~(zncc >= FIT_ZNCC_GOOD)
     return bad
 
 
 def neighbours(points: Tensor, k: int = 8, reach: float = 2.5, chunk: int = 2048) -> Tensor:
     """(N, k) indices of the ``k`` nearest other points within ``reach`` times the median
-    nearest-neighbour distance (-1 where fewer), from (N, 2) positions px."""
+    nearest-neighbour distance (-1 where fewer), from (N, 2) positions px. Points on a
+    regular grid (holes allowed) are looked up in the grid; others searched
+    (:func:`~torch_stsdic.points.nearest_points`)."""
     p = points.double()
     n = p.shape[0]
     k_eff = min(k, n - 1)
     if k_eff <= 0:
         return torch.full((n, k), -1, dtype=torch.long, device=points.device)
-    dist_t, idx_t = nearest_points(p, k_eff + 1, chunk)
-    dist_t, idx_t = dist_t[:, 1:], idx_t[:, 1:]  # not itself
-    limit = reach * dist_t[:, 0].median()
-    idx_t = torch.where(dist_t <= limit, idx_t, torch.full_like(idx_t, -1))
+    grid = detect_grid(p.cpu().numpy()) if n > 64 else None
+    if grid is not None:
+        idx_t = _grid_neighbours(grid, k_eff, reach).to(points.device)
+    else:
+        dist_t, idx_t = nearest_points(p, k_eff + 1, chunk)
+        dist_t, idx_t = dist_t[:, 1:], idx_t[:, 1:]  # not itself
+        limit = reach * dist_t[:, 0].median()
+        idx_t = torch.where(dist_t <= limit, idx_t, torch.full_like(idx_t, -1))
     if k_eff < k:
         pad = torch.full((n, k - k_eff), -1, dtype=torch.long, device=idx_t.device)
         idx_t = torch.cat([idx_t, pad], 1)
     return idx_t.to(points.device)
 
 
+def _grid_neighbours(grid, k: int, reach: float) -> Tensor:
+    """(N, k) the nearest ``k`` other points of a regular grid (:func:`detect_grid`) within
+    ``reach`` times the grid's smaller step, nearest first (-1 where fewer)."""
+    ix, iy = torch.from_numpy(grid.ix).long(), torch.from_numpy(grid.iy).long()
+    n = ix.shape[0]
+    table = torch.full((grid.ny, grid.nx), -1, dtype=torch.long)
+    table[iy, ix] = torch.arange(n)
+    step = min(grid.sx, grid.sy)
+    rx, ry = int(reach * step / grid.sx), int(reach * step / grid.sy)
+    dy, dx = torch.meshgrid(torch.arange(-ry, ry + 1), torch.arange(-rx, rx + 1), indexing="ij")
+    dist = torch.hypot(dx * grid.sx, dy * grid.sy).flatten()
+    keep = (dist > 0) & (dist <= reach * step * (1 + 1e-9))
+    order = torch.argsort(dist[keep], stable=True)
+    ox, oy = dx.flatten()[keep][order], dy.flatten()[keep][order]  # nearest first
+    cx, cy = ix.unsqueeze(1) + ox, iy.unsqueeze(1) + oy  # (N, offsets)
+    inside = (cx >= 0) & (cx < grid.nx) & (cy >= 0) & (cy < grid.ny)
+    cand = torch.where(inside, table[cy.clamp(0, grid.ny - 1), cx.clamp(0, grid.nx - 1)], -1)
+    rank = torch.where(cand >= 0, 0, 1) * cand.shape[1] + torch.arange(cand.shape[1])
+    first = torch.argsort(rank, dim=1)[:, :k]  # the valid ones, nearest first
+    out = torch.gather(cand, 1, first)
+    if out.shape[1] < k:
+        out = torch.cat([out, torch.full((n, k - out.shape[1]), -1, dtype=torch.long)], 1)
+    return out
+
+
 def _nanmedian(x: Tensor) -> Tensor:
     return torch.nanmedian(x, dim=-1).values
 
 
-def median_test(values: Tensor, valid: Tensor, nb: Tensor, eps: float | Tensor,
-                points: Tensor | None = None, gradients: Tensor | None = None,
-                min_neighbours: int = 3) -> Tensor:
-    """Normalised median test (module docstring) of (B, N, C) ``values`` (C components, e.g.
-    u and v) over the neighbours ``nb`` (N, k); only ``valid`` (B, N) points count as
-    neighbours or are judged. With ``points`` (N, 2) px and ``gradients`` (B, N, C, 2) (d/dx,
-    d/dy of each component), each neighbour's value is carried to the point by its own
-    gradient first, so linear fields pass at edges and beside holes too. A point whose
-    carried neighbours scatter (median absolute residual) by more than ``MEDIAN_SCATTER``
-    times ``eps`` is an outlier too: no smooth field to judge it by. Returns (B, N) bool
-    outliers (never a point with fewer than ``min_neighbours`` valid neighbours)."""
-    b, n, c = values.shape
+def carried_neighbours(values: Tensor, valid: Tensor, nb: Tensor, points: Tensor | None = None,
+                       gradients: Tensor | None = None) -> Tensor:
+    """(B, N, k, C): the ``valid`` (B, N) neighbours ``nb`` (N, k) of every point, their
+    (B, N, C) ``values`` carried to the point by ``gradients`` (B, N, C, 2) (d/dx, d/dy of
+    each component; positions ``points`` (N, 2) px), NaN where there is no valid neighbour.
+    Without gradients the neighbours' values as they are.
+
+    The carry is the trapezoid rule: the mean of the neighbour's gradient and the gradient at
+    the point, so a quadratic field (a strain that changes along the specimen) is carried
+    exactly; carried by its own gradient alone, every neighbour misses the point by half the
+    curvature times the squared distance, all to the same side (hourglass neck: 0.2-0.3 px,
+    far above the noise). The gradient at the point is its own where that is like its
+    neighbours' (the point being judged, or a lost one, may be wrong), else the plane fitted
+    to its valid neighbours' gradients (:func:`_gradient_at`)."""
+    n = values.shape[1]
+    safe, has = nb.clamp(min=0), (nb >= 0).view(1, n, -1)
+    use = valid[:, safe] & has  # (B, N, k)
     v = torch.where(valid.unsqueeze(-1), values.double(), torch.nan)
-    has = nb >= 0
-    safe = nb.clamp(min=0)
     vn = v[:, safe]  # (B, N, k, C)
     if points is not None and gradients is not None:
         p = points.double()
         d = (p.unsqueeze(1) - p[safe]).view(1, n, -1, 1, 2)  # (1, N, k, 1, 2) to the point
-        gn = gradients.double()[:, safe]  # (B, N, k, C, 2)
-        vn = vn + (torch.nan_to_num(gn) * d).sum(-1)
-    vn = torch.where(has.view(1, n, -1, 1), vn, torch.nan)
-    med = _nanmedian(vn.transpose(-1, -2))  # (B, N, C)
-    resid_n = (vn - med.unsqueeze(2)).abs()
-    rm = _nanmedian(resid_n.transpose(-1, -2))  # (B, N, C)
+        g = gradients.double()
+        gn = torch.where(use.view(*use.shape, 1, 1), g[:, safe], 0.0)
+        at = _gradient_at(gn, use, d.view(1, n, -1, 2))  # (B, N, C, 2)
+        # the point's own gradient where it is one of its neighbours' (within 3 of their
+        # median absolute deviations from their median, + GRADIENT_TOL): no extrapolation
+        # noise at edges and corners, and a wrong point's wrong gradient is not used
+        gm = torch.where(use.view(*use.shape, 1, 1), g[:, safe], torch.nan).permute(
+            0, 1, 3, 4, 2)  # (B, N, C, 2, k)
+        med = _nanmedian(gm)
+        mad = _nanmedian((gm - med.unsqueeze(-1)).abs())
+        own = valid.view(*valid.shape, 1, 1) & ((g - med).abs() <= 3.0 * mad + GRADIENT_TOL)
+        at = torch.where(own, g, at)
+        vn = vn + (0.5 * (torch.nan_to_num(gn) + at.unsqueeze(2)) * d).sum(-1)
+    return torch.where(use.unsqueeze(-1), vn, torch.nan)
+
+
+def _gradient_at(gn: Tensor, use: Tensor, d: Tensor) -> Tensor:
+    """(B, N, C, 2) the gradients at the points: a plane in position fitted by least squares
+    to the neighbours' gradients ``gn`` (B, N, k, C, 2) where ``use`` (B, N, k), at offsets
+    ``-d`` (1, N, k, 2) px from the point (exact for a linear gradient field, at edges too);
+    its slopes are damped (by 1e-3 of the mean squared offset) so that neighbours on one
+    line, or a single one, give their mean."""
+    w = use.double()
+    a = torch.cat([torch.ones_like(d[..., :1]), -d], -1).expand(w.shape[0], -1, -1, -1)
+    m = torch.einsum("bnk,bnki,bnkj->bnij", w, a, a)  # (B, N, 3, 3)
+    scale = (w * d.square().sum(-1)).sum(-1) / w.sum(-1).clamp(min=1.0)
+    damp = torch.tensor([0.0, 1.0, 1.0], dtype=m.dtype, device=m.device)
+    m = m + torch.diag_embed(1e-3 * scale.clamp(min=1e-12).unsqueeze(-1) * damp)
+    m = m + torch.diag_embed((w.sum(-1) == 0).double().unsqueeze(-1) * (1.0 - damp))
+    rhs = torch.einsum("bnk,bnki,bnkf->bnif", w, a, gn.flatten(-2))  # (B, N, 3, 2C)
+    coef = torch.linalg.solve(m, rhs)
+    return coef[..., 0, :].view(gn.shape[0], gn.shape[1], *gn.shape[3:])
+
+
+def median_test(values: Tensor, valid: Tensor, nb: Tensor, eps: float | Tensor,
+                points: Tensor | None = None, gradients: Tensor | None = None,
+                min_neighbours: int = 3, rounds: int = MEDIAN_ROUNDS) -> Tensor:
+    """Normalised median test (module docstring) of (B, N, C) ``values`` (C components, e.g.
+    u and v) over the neighbours ``nb`` (N, k); only ``valid`` (B, N) points count as
+    neighbours or are judged. ``eps`` px: a number, (B,) one per row of ``values`` or (B, N)
+    one per point (the noise of u plus that of the gradients carried over the neighbours'
+    distance). With ``points`` (N, 2) px and ``gradients`` (B, N, C, 2) (d/dx, d/dy of each
+    component), each neighbour's value is carried to the point first
+    (:func:`carried_neighbours`), so linear and quadratic fields pass.
+
+    A bad point must not condemn its good neighbours: the test is iterated (at most
+    ``rounds`` times): each round flags only the outliers that are the worst of the outliers
+    among their neighbours, and the next round judges the others again without the points
+    flagged so far. A point whose carried neighbours (outliers excluded) scatter (median
+    absolute residual) by more than ``MEDIAN_SCATTER`` times ``eps`` is an outlier too: no
+    smooth field to judge it by. Returns (B, N) bool outliers (never a point with fewer than
+    ``min_neighbours`` valid neighbours)."""
+    b = values.shape[0]
+    v = values.double()
     eps_t = torch.as_tensor(eps, dtype=torch.float64, device=values.device)
-    if eps_t.dim() == 1:
+    if eps_t.dim() == 1:  # per row of values
         eps_t = eps_t.view(b, 1, 1)
-    r = (v - med).abs() / (rm + eps_t)
-    count = (~torch.isnan(vn[..., 0])).sum(-1)
-    wild = (rm > MEDIAN_SCATTER * eps_t).any(-1)
-    out = ((r > MEDIAN_THRESHOLD).any(-1) | wild) & valid & (count >= min_neighbours)
-    return out
+    elif eps_t.dim() == 2:  # per point
+        eps_t = eps_t.unsqueeze(-1)
+    safe, has = nb.clamp(min=0), (nb >= 0).unsqueeze(0)
+    out = torch.zeros_like(valid)
+    for i in range(max(1, rounds)):
+        vn = carried_neighbours(values, valid & ~out, nb, points, gradients)
+        med = _nanmedian(vn.transpose(-1, -2))  # (B, N, C)
+        rm = _nanmedian((vn - med.unsqueeze(2)).abs().transpose(-1, -2))  # (B, N, C)
+        r = ((v - med).abs() / (rm + eps_t)).amax(-1)  # (B, N); NaN: no neighbour
+        judged = valid & ~out & ((~torch.isnan(vn[..., 0])).sum(-1) >= min_neighbours)
+        cand = judged & (r > MEDIAN_THRESHOLD)
+        if i == rounds - 1 or not bool(cand.any()):
+            out |= cand
+            break
+        score = torch.where(cand, r, -torch.inf)
+        worst = torch.where(has, score[:, safe], -torch.inf).amax(-1)  # (B, N)
+        out |= cand & (score >= worst)  # the worst among its neighbours
+    wild = judged & ~out & (rm > MEDIAN_SCATTER * eps_t).any(-1)
+    return out | wild

@@ -57,7 +57,7 @@ from .status import Status
 from .validation import as_image, as_points, as_series, as_times, check_init
 from .window import make_window
 
-__all__ = ["WindowSolution", "SubsetSolver", "solve_window"]
+__all__ = ["WindowSolution", "SubsetSolver", "solve_window", "subset_inside"]
 
 
 def _parameter(name: str, doc: str) -> property:
@@ -213,7 +213,7 @@ class SubsetSolver:
         zncc = torch.full((n,), float("nan"), dtype=dtype, device=device)
         iters = torch.zeros(n, dtype=torch.int32, device=device)
 
-        inside = _inside(points, half, h, w)
+        inside = subset_inside(points, half, h, w)
         status[~inside] = int(Status.OUTSIDE)
 
         if init is None:
@@ -517,7 +517,7 @@ def _per_point_motion(motion: torch.Tensor | None, n: int, t_count: int,
     return motion.contiguous()
 
 
-def _inside(points: torch.Tensor, half: float, h: int, w: int) -> torch.Tensor:
+def subset_inside(points: torch.Tensor, half: float, h: int, w: int) -> torch.Tensor:
     """(N,) bool: the subset of half-width ``half`` around each POI lies in an H x W image."""
     return ((points[:, 0] - half >= 0) & (points[:, 0] + half <= w - 1)
             & (points[:, 1] - half >= 0) & (points[:, 1] + half <= h - 1))

@@ -78,6 +78,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     opt(g, "--dtype", choices=("float32", "float64"), default=None,
         help="computation precision",
         shown="float32 for integer images, else the image's")  # fmt: skip
+    opt(g, "--no-checks", dest="checks", action="store_false", default=True,
+        help="skip the trust checks (window against classical, fit, neighbours): every "
+        "converged point is reported as such, as before the checks existed; faster",
+        shown="checks on")  # fmt: skip
     ex = g.add_mutually_exclusive_group()
     ex.add_argument("--resume", action="store_true", help="continue the run that wrote --out "
                     "(same inputs and options); finished frames are kept")  # fmt: skip
@@ -260,7 +264,7 @@ def execute(args: argparse.Namespace) -> int:
     try:
         try:
             plan = plan_run(series, **kwargs, step=args.step, device=str(device),
-                            reference_update=args.reference_update,
+                            reference_update=args.reference_update, checks=args.checks,
                             scale=calibration.get("scale"), unit=calibration["unit"],
                             time_unit=calibration.get("time_unit"))
             if args.refine_reference:
@@ -366,6 +370,7 @@ CONFIG_FLAGS: dict[str, str] = {
     "seed_spacing": "--seed-spacing", "batch_points": "--batch-points",
     "memory_mb": "--memory-mb", "dtype": "--dtype", "track.reference": "--reference",
     "track.step": "--step", "track.roi": "--roi", "track.reference_update": "--reference-update",
+    "track.checks": "--no-checks",
     "track.points": "--step/--roi/--mask/--points", "track.batch_frames": "--memory-mb",
     "points": "--step/--roi/--mask/--points", "frames": "--frames", "times": "--timestamps",
 }
