@@ -317,7 +317,8 @@ def velocity_note(m_row: np.ndarray, valid_row: np.ndarray) -> str | None:
     share = 100.0 * float((np.asarray(m_row)[ok] == 0).mean())
     if share == 0.0:
         return None
-    return f"blank at {share:.0f} %: classical there (motion not affine in time)"
+    pct = f"{share:.0f}" if share >= 1.0 else f"{share:.1f}"
+    return f"blank at {pct} %: classical there (motion not affine in time)"
 
 
 def _velocity_notes(res: Any, row: int, valid: np.ndarray, names: list[str]) -> dict[str, str]:
