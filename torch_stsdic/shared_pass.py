@@ -42,8 +42,8 @@ def _fill(params: np.ndarray, times: np.ndarray) -> np.ndarray:
 def set_shared_motion(plan: RunPlan, kind: str | None = "auto") -> None:
     """Choose a plan's shared motion (recorded in ``plan.options["shared_motion"]``).
 
-    ``"auto"``: for STS windows (m > 0) without reference updates or smoothing an affine
-    motion is measured and applied where it is significant;
+    ``"auto"``: for STS windows (m > 0) without reference updates or smoothing a quadratic
+    (affine with few points) motion is measured and applied where it is significant;
     otherwise none is measured. "quadratic" / "affine" / "translation": measured and
     applied whatever m (with m = 0 it is reported and
     changes no result). None or "none": not measured."""
@@ -64,6 +64,11 @@ def set_shared_motion(plan: RunPlan, kind: str | None = "auto") -> None:
     plan.options["shared_motion"] = kind
 
 
+#: "auto" fits the quadratic shared motion where the sample has at least this many points
+#: (its estimate then adds at most ~0.2 of the classical noise to a window), else the affine
+QUADRATIC_POINTS = 500
+
+
 def estimate_shared_motion(plan: RunPlan, kind: str = "auto",
                            max_points: int = DEFAULT_MAX_POINTS,
                            auto: bool = False) -> SharedMotion:
@@ -72,9 +77,10 @@ def estimate_shared_motion(plan: RunPlan, kind: str = "auto",
     :func:`fit_frame_motion` per frame. The reference frame's motion is exactly zero. With
     ``auto`` it is applied (``SharedMotion.applied``) only where its departure from a line in
     time is significant (:meth:`SharedMotion.significance` above ``SIGNIFICANT``): where it
-    is not, carrying it would only add its estimation noise to every window. ``kind`` "auto"
-    is "affine" (on the muDIC hourglass the quadratic kind left the same 5-frame line misfit,
-    0.016 px against the noise's 0.012 px, with twice the coefficients to estimate)."""
+    is not, carrying it would only add its estimation noise to every window. ``kind`` "auto":
+    "quadratic" where the sample holds ``QUADRATIC_POINTS`` points, else "affine" (sample 12:
+    full windows at 77 % of the trusted results with the quadratic kind, 71 % with the
+    affine one; the hourglass: 94.5 % and 94.9 %)."""
     from .series import run_plan  # local: series imports this module
 
     t0 = time.perf_counter()
@@ -82,7 +88,7 @@ def estimate_shared_motion(plan: RunPlan, kind: str = "auto",
     frames = sorted(set(frames_in_order(plan.blocks, plan.config.m, n_series)))
     sel = sample_points(plan.points, max_points)
     if kind == "auto":
-        kind = "affine"
+        kind = "quadratic" if sel.numel() >= QUADRATIC_POINTS else "affine"
     cfg = plan.config.replace(m=0)
     opts = {**plan.options, "smoothing": None, "reference_update": None, "checks": False,
             "shared_motion": None}

@@ -122,7 +122,7 @@ def _add_frames(p: argparse.ArgumentParser) -> None:
     opt(g, "--shared-motion", choices=("auto", "quadratic", "affine", "translation", "none"),
         default="auto", help="the specimen's per-frame motion (a shake, load steps), "
         "measured from all points and carried in every window; auto: with --m > 0, "
-        "affine, carried where the shake is significant; quadratic for a specimen that tilts "
+        "quadratic (affine under 500 points), carried where the shake is significant "
         "(docs/series.md)")  # fmt: skip
 
 
