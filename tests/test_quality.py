@@ -297,3 +297,24 @@ def test_points_moving_out_of_view_are_outside_not_poor_fits():
     st = torch.as_tensor(res.status)
     assert bool((st[:5][:, top] == int(Status.CONVERGED)).all())
     assert bool((st[7:][:, top] == int(Status.OUTSIDE)).all())
+
+
+def test_fit_check_keeps_a_point_whose_fit_degrades_gradually():
+    """A residual that grows with the strain (the hourglass's neck) is no wrong match: a
+    point whose misfit 1 - ZNCC grew by at most FIT_GROWTH since its last trusted row keeps
+    its trust; a jump from a good fit (a wrong peak) is POOR_FIT, as is a point with no
+    trusted row before."""
+    from torch_stsdic.quality import FIT_GROWTH, poor_fit
+
+    n = 40
+    sigma = torch.ones(n, dtype=torch.float64)
+    zncc = torch.full((n,), 0.99, dtype=torch.float64)
+    sigma[:3] = 3.0  # three points fit three times worse than the frame's median
+    zncc[:3] = 0.90
+    solved = torch.ones(n, dtype=torch.bool)
+    base = torch.full((n,), 0.99, dtype=torch.float64)
+    base[0] = 1.0 - 0.10 / FIT_GROWTH - 1e-6  # its misfit grew just under FIT_GROWTH x
+    base[2] = float("nan")  # no trusted row before
+    bad = poor_fit(sigma, zncc, solved, 0.8, baseline_zncc=base)
+    assert bad[:3].tolist() == [False, True, True] and not bool(bad[3:].any())
+    assert poor_fit(sigma, zncc, solved, 0.8)[:3].all()  # without a baseline: as before

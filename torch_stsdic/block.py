@@ -68,6 +68,8 @@ class Carry:
     valid: torch.Tensor  # (N,) bool
     #: (N,) bool: the velocity was measured (ut, vt, or two rows); None: everywhere
     vel_known: torch.Tensor | None = None
+    #: (N,) ZNCC of each point's last trusted row (NaN: none), the fit check's baseline
+    fit_zncc: torch.Tensor | None = None
 
     def predict(self, tk: torch.Tensor) -> dict[str, torch.Tensor]:
         """Predicted total parameters (B, N) at times ``tk`` (B,)."""
@@ -490,15 +492,23 @@ class _Block:
         self.rescue(carry, torch.zeros_like(lost), m=0)
         return int((lost & ~self.lost()).sum())
 
-    def check_fit(self) -> int:
+    def check_fit(self, carry: Carry | None = None) -> int:
         """Usable rows whose residual is not the image noise, or whose ZNCC is below the
         floor, become POOR_FIT (:func:`~torch_stsdic.quality.poor_fit`), each compared with
-        the rows of its own target. Returns their number."""
-        usable = self.status <= USABLE
-        target = torch.arange(self.b, device=self.run.device).repeat_interleave(self.n)
-        bad = poor_fit(self.sigma, self.zncc, usable, self.run.lost_zncc, group=target)
-        self.status[bad] = int(Status.POOR_FIT)
-        return int(bad.sum())
+        the rows of its own target and with its point's last trusted row (``carry``, then
+        the block's targets in time order). Returns their number."""
+        n, count = self.n, 0
+        base = torch.full((n,), float("nan"), dtype=self.run.dtype, device=self.run.device)
+        if carry is not None and carry.fit_zncc is not None:
+            base = carry.fit_zncc.to(base)
+        for j in range(self.b):
+            sl = slice(j * n, (j + 1) * n)
+            bad = poor_fit(self.sigma[sl], self.zncc[sl], self.status[sl] <= USABLE,
+                           self.run.lost_zncc, baseline_zncc=base)
+            self.status[sl][bad] = int(Status.POOR_FIT)
+            count += int(bad.sum())
+            base = torch.where(self.status[sl] <= USABLE, self.zncc[sl], base)
+        return count
 
     def check_neighbours(self) -> int:
         """Usable rows that are outliers among their grid neighbours become INCONSISTENT
@@ -634,7 +644,7 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
         stats = run.stats
         stats["shortened_rows"] = stats.get("shortened_rows", 0) + shortened
         stats["classical_rows"] = stats.get("classical_rows", 0) + classical
-        stats["poor_fit_rows"] = stats.get("poor_fit_rows", 0) + blk.check_fit()
+        stats["poor_fit_rows"] = stats.get("poor_fit_rows", 0) + blk.check_fit(carry)
         stats["inconsistent_rows"] = stats.get("inconsistent_rows", 0) + blk.check_neighbours()
     rel = {nm: blk.params[:, j].reshape(b, n) for j, nm in enumerate(run.names)}
     out = to_total(rel, ref.acc)
@@ -701,4 +711,12 @@ def make_carry(rows: dict[str, np.ndarray], times: np.ndarray, names, prev: Carr
     vel_u = torch.where(fin, vel_u, torch.zeros_like(vel_u))
     vel_v = torch.where(fin, vel_v, torch.zeros_like(vel_v))
     vals = {nm: (torch.nan_to_num(a) if nm in ("ut", "vt") else a) for nm, a in vals.items()}
-    return Carry(t=t_last, vals=vals, vel_u=vel_u, vel_v=vel_v, valid=ok, vel_known=known)
+    fit = None
+    if "zncc" in rows:  # the last trusted row of every point, in time order
+        fit = torch.full_like(vals["u"], float("nan")) if prev is None or \
+            prev.fit_zncc is None else prev.fit_zncc.clone()
+        for i in range(len(times)):
+            trusted = torch.from_numpy(rows["status"][i] <= USABLE).to(device)
+            fit = torch.where(trusted, col("zncc", i), fit)
+    return Carry(t=t_last, vals=vals, vel_u=vel_u, vel_v=vel_v, valid=ok, vel_known=known,
+                 fit_zncc=fit)

@@ -47,6 +47,7 @@ from .strain import detect_grid
 
 __all__ = [
     "MODEL_Z", "MODEL_TOL", "RESIDUAL_Z", "RESIDUAL_ZNCC", "FIT_RATIO", "FIT_ZNCC_GOOD",
+    "FIT_GROWTH",
     "MEDIAN_THRESHOLD", "MEDIAN_EPS_STD", "MEDIAN_EPS_MIN", "MEDIAN_SCATTER", "MEDIAN_ROUNDS",
     "model_mismatch", "residual_mismatch", "poor_fit", "neighbours", "carried_neighbours",
     "median_test",
@@ -59,6 +60,9 @@ RESIDUAL_Z = 6.0  #: model check: the window's residual std may exceed the class
 RESIDUAL_ZNCC = 0.9999  #: model check: above this window ZNCC the residual test is not made
 FIT_RATIO = 2.0  #: fit check: residual std above this times the median is POOR_FIT
 FIT_ZNCC_GOOD = 0.999  #: fit check: a ZNCC at least this is a good fit whatever the median
+#: fit check: a point whose misfit (1 - ZNCC) grew by at most this factor since its last
+#: trusted row keeps its trust (a residual growing with the strain, not a jump to a wrong peak)
+FIT_GROWTH = 2.25
 MEDIAN_THRESHOLD = 2.0  #: neighbour check: normalised median residual above this is an outlier
 MEDIAN_EPS_STD = 3.0  #: neighbour check: eps in units of the median predicted std
 MEDIAN_EPS_MIN = 0.05  #: neighbour check: smallest eps, px (half the 0.1 px a user notices)
@@ -104,7 +108,8 @@ def residual_mismatch(sigma_window: Tensor, sigma_classical: Tensor, n_pixels: f
 
 
 def poor_fit(sigma: Tensor, zncc: Tensor, solved: Tensor, zncc_floor: float,
-             min_points: int = 16, group: Tensor | None = None) -> Tensor:
+             min_points: int = 16, group: Tensor | None = None,
+             baseline_zncc: Tensor | None = None) -> Tensor:
     """(N,) bool: solved points whose fit is not the image noise.
 
     Args:
@@ -115,6 +120,12 @@ def poor_fit(sigma: Tensor, zncc: Tensor, solved: Tensor, zncc_floor: float,
         min_points: the residual test needs at least this many solved points (a median).
         group: (N,) int >= 0: points are compared with the median of their own group only
             (e.g. one target frame each). Default: one group.
+        baseline_zncc: (N,) each point's ZNCC at its last trusted row (NaN: none). A point
+            whose misfit energy (1 - ZNCC, proportional to its residual variance) grew by
+            at most ``FIT_GROWTH`` since then is not POOR_FIT for its residual: it fits as it
+            did, only worse as the speckles deform (the hourglass's neck at 50 % strain, ZNCC
+            0.89-0.97, residual 2x the frame's median); a wrong peak or a crack opening
+            under the subset makes it jump.
 
     The median is taken over the points that are not noise-free matches (ZNCC below
     ``RESIDUAL_ZNCC``): a classical solution at the reference frame matches the reference
@@ -135,8 +146,11 @@ def poor_fit(sigma: Tensor, zncc: Tensor, solved: Tensor, zncc_floor: float,
     enough = (counts >= min_points)[g]
     # a match at ZNCC >= FIT_ZNCC_GOOD is never poor (e.g. a frame against itself, where
     # the "noise" is round-off and its median ~0)
-    bad |= solved & enough & (sigma > FIT_RATIO * med[g]) & ~(zncc >= FIT_ZNCC_GOOD)
-    return bad
+    high = solved & enough & (sigma > FIT_RATIO * med[g]) & ~(zncc >= FIT_ZNCC_GOOD)
+    if baseline_zncc is not None:
+        base = (1.0 - baseline_zncc.to(zncc.dtype)).clamp(min=0.0)
+        high &= ~((1.0 - zncc) <= FIT_GROWTH * base)  # NaN baseline: judged as before
+    return bad | high
 
 
 def neighbours(points: Tensor, k: int = 8, reach: float = 2.5, chunk: int = 2048) -> Tensor:
