@@ -104,7 +104,7 @@ class Carry:
         vals = {nm: stack[:, i] for i, nm in enumerate(names)}
         known = None if self.vel_known is None else self.vel_known | filled
         return Carry(t=self.t, vals=vals, vel_u=stack[:, -2], vel_v=stack[:, -1],
-                     valid=ok, vel_known=known), int(filled.sum())
+                     valid=ok, vel_known=known, fit_zncc=self.fit_zncc), int(filled.sum())
 
 
 def neighbour_guess(params: torch.Tensor, ok: torch.Tensor, names, nb: torch.Tensor,
