@@ -127,6 +127,16 @@ def test_solve_window_with_the_shared_motion_recovers_the_smooth_motion():
     with pytest.raises(ValueError, match="shared_motion"):
         mod.forward_full(ref.unsqueeze(0), frames.unsqueeze(0), pts,
                          shared_motion=g[:3].unsqueeze(0))
+    bad = g.clone()
+    bad[1, 0] = float("nan")
+    for call in (lambda x: sts.solve_window(ref, frames, pts, config=cfg, times=times,
+                                            shared_motion=x),
+                 lambda x: mod.forward_full(ref.unsqueeze(0), frames.unsqueeze(0), pts,
+                                            shared_motion=x.unsqueeze(0))):
+        with pytest.raises(ValueError, match="shared_motion contains NaN"):
+            call(bad)
+    with pytest.raises(ValueError, match=r"shared_motion must be \(5, 2\)"):
+        sts.solve_window(ref, frames, pts, config=cfg, times=times, shared_motion=g[:3])
 
 
 @pytest.mark.skipif(not native.available(), reason="native kernels not built here")

@@ -57,7 +57,7 @@ from .config import DICConfig
 from .formulations import Geometry, reference_subsets
 from .interpolation import BSplineImage
 from .offgrid import carry_params, carry_solution, snap_points
-from .shared_motion import window_offsets
+from .shared_motion import known_window_motion
 from .solver import SubsetSolver, WindowSolution
 from .status import Status
 from .validation import check_pixels
@@ -302,15 +302,13 @@ def _window_motion(shared: Tensor | None, b: int, n: int, t_count: int, dt: Tens
     """(B*N, T, 2) window offsets from a shared motion (B, T, 2) or (B, N, T, 2), or None."""
     if shared is None:
         return None
+    hint = f"(B={b}, 2m+1={t_count}, 2) or (B, N={n}, {t_count}, 2)"
     g = torch.as_tensor(shared).detach().to(device=device, dtype=dtype)
-    if g.dim() == 3:
+    if g.dim() == 3 and g.shape[0] == b:  # one motion per sequence: every point of it
         g = g.unsqueeze(1).expand(-1, n, -1, -1)
-    if tuple(g.shape) != (b, n, t_count, 2):
-        raise ValueError(f"shared_motion must be (B={b}, 2m+1={t_count}, 2) or (B, N={n}, "
-                         f"{t_count}, 2), got {tuple(torch.as_tensor(shared).shape)}")
-    if not bool(torch.isfinite(g).all()):
-        raise ValueError("shared_motion contains non-finite values")
-    return window_offsets(g.reshape(b * n, t_count, 2), dt).contiguous()
+    if g.dim() != 4 or g.shape[:2] != (b, n):
+        raise ValueError(f"shared_motion must be {hint}, got {tuple(g.shape)}")
+    return known_window_motion(g.reshape(b * n, *g.shape[2:]), dt.to(dtype), hint)
 
 
 # ------------------------------------------------------------------------------------------

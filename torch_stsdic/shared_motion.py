@@ -43,7 +43,8 @@ import torch
 from torch import Tensor
 
 __all__ = ["SharedMotion", "SHARED_MOTION_KINDS", "PARAM_NAMES", "PARAM_UNITS",
-           "fit_frame_motion", "window_offsets", "overlap_factor", "sample_points",
+           "fit_frame_motion", "window_offsets", "known_window_motion", "overlap_factor",
+           "sample_points",
            "detect_steps", "DEFAULT_MAX_POINTS", "SIGNIFICANT", "STEP_Z", "STEP_RATIO", "SE_FLOOR"]
 
 #: kinds of shared motion: a translation per frame (2 numbers), an affine motion (6), or a
@@ -489,6 +490,25 @@ def overlap_factor(points: Tensor, subset_size: int) -> float:
     d.fill_diagonal_(float("inf"))
     spacing = float(d.min(1).values.median())
     return max(1.0, float(subset_size) / max(spacing, 1e-9))
+
+
+def known_window_motion(shared: Tensor, dt: Tensor, shape_hint: str = "") -> Tensor:
+    """(N, T, 2) what a window carries of a known shared motion given by the user: ``shared``
+    (T, 2) (the same at every point) or (N, T, 2) px per frame, ``dt`` (N, T) frame times
+    minus the target's; checked (shape, finite values: ValueError naming
+    ``shared_motion``), then :func:`window_offsets`, in ``dt``'s dtype and device.
+    ``shape_hint``: the accepted shapes as the caller names them, for the error."""
+    n, t_count = dt.shape
+    g = torch.as_tensor(shared).detach().to(device=dt.device, dtype=dt.dtype)
+    if g.dim() == 2:
+        g = g.unsqueeze(0).expand(n, -1, -1)
+    if tuple(g.shape) != (n, t_count, 2):
+        hint = shape_hint or f"({t_count}, 2) or (N={n}, {t_count}, 2)"
+        raise ValueError(f"shared_motion must be {hint}, got "
+                         f"{tuple(torch.as_tensor(shared).shape)}")
+    if not bool(torch.isfinite(g).all()):
+        raise ValueError("shared_motion contains NaN or infinite values")
+    return window_offsets(g, dt).contiguous()
 
 
 def sample_points(points: Tensor, max_points: int) -> Tensor:
