@@ -257,3 +257,33 @@ def test_nn_off_grid_points_are_carried_differentiably():
     out_off.disp[..., 0].sum().backward()  # d u / d x = the measured ux
     torch.testing.assert_close(off.grad[:, 0], out_off.params[0, :, names.index("ux")],
                                atol=1e-6, rtol=1e-4)
+
+
+def test_off_centre_subsets_are_the_centred_solution_carried():
+    """``centres=``: the subset centred elsewhere, its solution carried to the POI. Equal to
+    solving at the centres and carrying the parameters (u += ux dx + uy dy) and the std
+    (sqrt(sd_u^2 + (dy sd_uy)^2)) by hand; on a strain field, near the truth at the POI."""
+    from torch_stsdic.offgrid import carry_std
+
+    motion = Translation(ut=0.05) + HomogeneousStrain(exx=2e-3, eyy=-3e-3, exy=1e-3,
+                                                         center=(60.0, 60.0), rate=1.0)
+    movie = _movie(4, motion, seed=6, sigma=2.0).double()
+    cfg = sts.DICConfig(m=1, subset_size=17)
+    pts = torch.tensor(_grid()[:12])
+    shift = torch.tensor([0.0, 7.0], dtype=torch.float64).expand(12, 2)
+    off = sts.solve_window(movie[0], movie[1:4], pts, config=cfg, centres=pts + shift)
+    at_c = sts.solve_window(movie[0], movie[1:4], pts + shift, config=cfg)
+    names = at_c.param_names
+    torch.testing.assert_close(off.params, carry_params(at_c.params, names, -shift),
+                               atol=2e-6, rtol=0)
+    torch.testing.assert_close(off.std, carry_std(at_c.std, names, -shift), atol=1e-7,
+                               rtol=1e-5)
+    i, iy = names.index("u"), names.index("uy")
+    expect = torch.sqrt(at_c.std[:, i] ** 2 + (7.0 * at_c.std[:, iy]) ** 2)
+    torch.testing.assert_close(off.std[:, i], expect)
+    assert bool((off.std[:, i] > at_c.std[:, i]).all())
+    truth = ground_truth(motion, pts.numpy(), [2.0])
+    assert float((off.u - truth["u"][0]).abs().max()) < 0.05
+    assert float((off.v - truth["v"][0]).abs().max()) < 0.05
+    with pytest.raises(ValueError, match="centres"):
+        sts.solve_window(movie[0], movie[1:4], pts, config=cfg, centres=pts[:3])

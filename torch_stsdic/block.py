@@ -193,6 +193,12 @@ class _Block:
         self.sigma = torch.full((rows,), float("nan"), dtype=run.dtype, device=dev)
         self.m_used = torch.full((rows,), -1, dtype=torch.int8, device=dev)
         self.gone = torch.zeros(rows, dtype=torch.bool, device=dev)  # predicted outside
+        #: (B*N, 2) px where each row's subset is centred, or None: at its POI everywhere
+        #: (:meth:`keep_outside` moves the subsets of points near the border inside)
+        self.centres: torch.Tensor | None = None
+        #: (B*N,) int8 the half-window a row is first solved with, or None: the run's m
+        #: everywhere (:meth:`keep_outside` shortens it where the point leaves the image)
+        self.window_m: torch.Tensor | None = None
         self._motion: dict[int, torch.Tensor] = {}
 
     def motion_of(self, m: int) -> torch.Tensor | None:
@@ -208,6 +214,12 @@ class _Block:
             pts = self.ref.points
             g = run.shared.displacement(pts, win.reshape(-1)).to(run.dtype)  # (B*T, N, 2)
             g = g.reshape(b, t, -1, 2).permute(0, 2, 1, 3)  # (B, N, T, 2)
+            if self.centres is not None:  # off-centre subsets: the motion at their centres
+                moved = (self.centres != self.pts).any(1).reshape(b, -1)
+                for j in torch.nonzero(moved.any(1)).flatten().tolist():
+                    i = torch.nonzero(moved[j]).flatten()
+                    c = self.centres.reshape(b, -1, 2)[j, i]
+                    g[j, i] = run.shared.displacement(c, win[j]).to(run.dtype).transpose(0, 1)
             dt = (run.ts[win] - run.ts[self.k].unsqueeze(1)).to(run.dtype)  # (B, T)
             o = window_offsets(g, dt.unsqueeze(1).expand(-1, g.shape[1], -1))
             self._motion[m] = o.reshape(-1, t, 2).contiguous()
@@ -246,6 +258,7 @@ class _Block:
             ref.img, self.img, self.pts[idx], dt, frame_index=fidx,
             init=init, ref_pixels=ref.raw.unsqueeze(0), frame_pixels=self.raw,
             noise_ratio=run.noise_ratio, motion=None if motion is None else motion[idx],
+            centres=None if self.centres is None else self.centres[idx],
         )
 
     def keep(self, idx: torch.Tensor, sol: WindowSolution, only_better: bool,
@@ -322,25 +335,92 @@ class _Block:
 
     def keep_outside(self, inits: Sequence[torch.Tensor], carried: torch.Tensor
                      ) -> torch.Tensor:
-        """Carried rows whose subset lies clearly outside the image (by more than
-        ``OUTSIDE_MARGIN`` px) at every one of the predictions ``inits`` ((B*N, P) relative
-        parameters: the carry moved on by its velocity, and where it was last) are OUTSIDE,
-        neither solved nor rescued: a specimen moving out of view (every rescue of such a
-        point found some other peak inside the image, at low ZNCC, again in every block).
-        Returns the (B*N,) bool mask of those rows."""
+        """Carried rows near the image border. At every one of the predictions ``inits``
+        ((B*N, P) relative parameters: the carry moved on by its velocity, and where it was
+        last), over every frame of the row's window, the POI's predicted position is
+        checked:
+
+        * where, as predicted by the first (the carry moved on), the subset would come
+          within ``OUTSIDE_MARGIN`` px of the border but the POI stays that far inside, the
+          subset is moved inside the image by up to its half-size (an off-centre subset,
+          :attr:`centres`; its solution is carried to the POI by its own gradients, the std
+          with them): the point is measured while it is in view;
+        * where that fails over the run's window but holds over a shorter one (the point
+          leaves the image within the window), the row is solved with the longest such
+          window (:attr:`window_m`);
+        * where the POI is that close to the border, or beyond, by the first prediction even
+          at the target frame alone, and the subset is by the others, the row is OUTSIDE,
+          neither solved nor rescued: a specimen moving out of view (every rescue of such a
+          point found some other peak inside the image, at low ZNCC, again in every block).
+
+        Returns the (B*N,) bool mask of the OUTSIDE rows."""
         run = self.run
-        iu, iv = run.names.index("u"), run.names.index("v")
-        half = float(run.solver.window.half) + OUTSIDE_MARGIN
-        h, w = self.ref.img.height, self.ref.img.width
-        out = carried.clone()
-        for init in inits:
-            x = self.pts[:, 0] + init[:, iu]
-            y = self.pts[:, 1] + init[:, iv]
-            out &= (x - half < 0) | (x + half > w - 1) | (y - half < 0) | (y + half > h - 1)
+        rows = carried.shape[0]
+        left = carried.clone()  # carried rows without a window that stays in view yet
+        shift = torch.zeros_like(self.pts)
+        for m in range(run.m, -1, -1):
+            if not bool(left.any()):
+                break
+            if m == run.m:
+                dt = self.dt
+            else:
+                dt = self.frames_of(self.windows(m))[1]
+            fit, d = self._placement(inits, dt, self.motion_of(m))
+            fit &= left
+            shift = torch.where(fit.unsqueeze(1), d, shift)
+            if m < run.m and bool(fit.any()):
+                if self.window_m is None:
+                    self.window_m = torch.full((rows,), run.m, dtype=torch.int8,
+                                               device=run.device)
+                self.window_m[fit] = m
+            left &= ~fit
+        out = left
         if bool(out.any()):
             self.status[out] = int(Status.OUTSIDE)
             self.gone |= out
+        moved = (shift != 0).any(1) & ~out
+        if bool(moved.any()):
+            self.centres = self.pts + torch.where(moved.unsqueeze(1), shift.ceil() * (shift > 0)
+                                                  + shift.floor() * (shift < 0), 0.0)
+            self._motion = {}  # the shared motion at the subsets' centres
+            run.stats["off_centre_rows"] = run.stats.get("off_centre_rows", 0) \
+                + int(moved.sum())
         return out
+
+    def _placement(self, inits: Sequence[torch.Tensor], dt: torch.Tensor,
+                   motion: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(B*N,) bool: the row's subset can be placed in view over its window (frame times
+        ``dt`` (B*N, T), known motion ``motion`` (B*N, T, 2) or None) by one of the
+        predictions ``inits`` (:meth:`keep_outside`), and (B*N, 2) px the shift of its
+        centre that this takes (the largest over the predictions that fit)."""
+        run = self.run
+        names = run.names
+        iu, iv = names.index("u"), names.index("v")
+        half = float(run.solver.window.half)
+        h, w = self.ref.img.height, self.ref.img.width
+        feasible = torch.zeros(self.pts.shape[0], dtype=torch.bool, device=run.device)
+        shift = torch.zeros_like(self.pts)
+        for first, init in zip([True] + [False] * (len(inits) - 1), inits):
+            pos = []
+            for c, (iz, it) in enumerate(((iu, "ut"), (iv, "vt"))):
+                z = self.pts[:, c:c + 1] + init[:, iz:iz + 1]
+                if it in names:
+                    z = z + init[:, names.index(it)].nan_to_num(0.0).unsqueeze(1) * dt
+                if motion is not None:
+                    z = z + motion[..., c]
+                pos.append(z)  # (B*N, T)
+            need = []
+            reach = half if first else 0.0  # only the moved-on prediction moves a subset
+            for z, size in zip(pos, (w, h)):
+                lo = (half + OUTSIDE_MARGIN - z.amin(1)).clamp(min=0)  # move the subset in
+                hi = (z.amax(1) - (size - 1 - half - OUTSIDE_MARGIN)).clamp(min=0)
+                need.append((lo - hi, ((lo == 0) | (hi == 0)) & (torch.maximum(lo, hi) <= reach)))
+            fit = need[0][1] & need[1][1] & torch.isfinite(pos[0]).all(1) \
+                & torch.isfinite(pos[1]).all(1)
+            d = torch.stack([need[0][0], need[1][0]], 1)
+            shift = torch.where(fit.unsqueeze(1) & (d.abs() > shift.abs()), d, shift)
+            feasible |= fit
+        return feasible, shift
 
     def init_rows(self, values: dict[str, torch.Tensor]) -> torch.Tensor:
         """(R, P) initial parameters from relative values by name (missing ones zero)."""
@@ -629,11 +709,20 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
             carried &= ~later | carry.vel_known.repeat(b)  # the later ones start from it
     ident = blk.keep_identity()
     carried &= ~ident
-    idx_c = torch.nonzero(carried).flatten()
     guess = None
-    if idx_c.numel():
+    if bool(carried.any()):
         guess = torch.where(carried.unsqueeze(1), init, torch.full_like(init, float("nan")))
+    shorter = carried & (blk.window_m < run.m) if blk.window_m is not None else None
+    if shorter is not None:  # points leaving the image within their window
+        for m in torch.unique(blk.window_m[shorter]).tolist():
+            r = torch.nonzero(shorter & (blk.window_m == m)).flatten()
+            blk.keep(r, blk.solve(r, init[r], m=m), only_better=False, m=m)
+        carried = carried & ~shorter
+    idx_c = torch.nonzero(carried).flatten()
+    if idx_c.numel():
         blk.keep(idx_c, blk.solve(idx_c, init[idx_c]), only_better=False)
+    if shorter is not None:
+        carried = carried | shorter
     from_prev, by_fft, redone = blk.rescue(carry, carried)
     run.stats["rescued_rows"] = run.stats.get("rescued_rows", 0) + from_prev
     run.stats["fft_rows"] += by_fft

@@ -170,7 +170,8 @@ def _accept(job: _Job, result: dict[str, Any]) -> int:
     rows = list(range(row0, row0 + len(result["targets"])))
     job.sink.write_rows(rows, result["rows"])
     for k, v in result["info"].items():
-        if k in ("frames_read", "prefiltered", "fft_rows", "redone_rows", "blocks"):
+        if k in ("frames_read", "prefiltered", "fft_rows", "redone_rows", "blocks",
+                 "off_centre_rows"):
             job.info[k] = job.info.get(k, 0) + v
         elif k == "max_cached_frames":
             job.info[k] = max(job.info.get(k, 0), v)

@@ -50,7 +50,7 @@ from .initial import (
     walk_weak_frames,
 )
 from .interpolation import BSplineImage
-from .offgrid import carry_solution, snap_points
+from .offgrid import carry_params, carry_solution, snap_points
 from .shape import ShapeFunction, make_shape
 from .shared_motion import known_window_motion
 from .status import Status
@@ -172,6 +172,7 @@ class SubsetSolver:
         time: float | torch.Tensor = 0.0,
         noise_ratio: float = 1.0,
         motion: torch.Tensor | None = None,
+        centres: torch.Tensor | None = None,
     ) -> WindowSolution:
         """Solve many POIs, each against its own window of frames.
 
@@ -190,9 +191,24 @@ class SubsetSolver:
             motion: (T, 2) or (N, T, 2) a known displacement (u, v) px of every frame added
                 to the warp (the specimen's shared motion, :mod:`torch_stsdic.shared_motion`);
                 the parameters then describe the motion *besides* it. None: none.
+            centres: (N, 2) px where each POI's subset is centred (default: the POI): an
+                off-centre subset, e.g. one kept inside the image where its point nears the
+                border. ``init`` and ``motion`` are the POI's and the centre's; the solution is
+                carried to the POI by the subset's own gradients (:mod:`~torch_stsdic.offgrid`:
+                u += ux dx + uy dy, its std with it).
         """
-        grid, offset = snap_points(points)
+        moved = None
+        if centres is not None:
+            centres = torch.as_tensor(centres).to(device=points.device, dtype=points.dtype)
+            if tuple(centres.shape) != tuple(points.shape):
+                raise ValueError(f"centres must be (N, 2) like points {tuple(points.shape)}, "
+                                 f"got {tuple(centres.shape)}")
+            moved = (centres != points).any(1, keepdim=True)
+        grid, _ = snap_points(points if centres is None else centres)
+        offset = points - grid
         if bool((offset != 0).any()):  # off the pixel grid: solve on it, carry the result
+            if moved is not None and init is not None and bool(moved.any()):
+                init = self._init_at(init, dt, torch.where(moved, grid - points, 0.0))
             sol = self.solve(ref, frames, grid, dt, frame_index=frame_index,
                              ref_index=ref_index, init=init, ref_pixels=ref_pixels,
                              frame_pixels=frame_pixels, time=time, noise_ratio=noise_ratio,
@@ -277,6 +293,16 @@ class SubsetSolver:
                                   "fft_s": t_fft},
             },
         )
+
+    def _init_at(self, init: torch.Tensor, dt: torch.Tensor, offset: torch.Tensor
+                 ) -> torch.Tensor:
+        """An initial guess (N, P') at the POIs carried by ``offset`` (N, 2) px to the
+        subset centres (in the parameters of the shape solved for ``dt``)."""
+        shape = self.shape_for(torch.as_tensor(dt))
+        p0 = torch.as_tensor(init).to(offset)
+        if p0.shape[1] != shape.n_params:
+            p0 = _expand_init(p0, shape, self.shape)
+        return carry_params(p0, shape.param_names, offset)
 
     # ---- seeded initial guess --------------------------------------------------------------
     def _seed_plan(self, points, inside, dt, frame_index, ref_index):
@@ -531,6 +557,7 @@ def solve_window(
     init=None,
     center: int | None = None,
     shared_motion=None,
+    centres=None,
 ) -> WindowSolution:
     """Measure displacement and velocity at many POIs from one window of 2m+1 frames.
 
@@ -550,6 +577,10 @@ def solve_window(
             (the same at every POI: a rigid shake) or (N, 2m+1, 2); its jitter about a line in
             time is carried in every warp (:mod:`torch_stsdic.shared_motion`), so u, v stay
             the total displacement and ut, vt the smooth velocity. None: none.
+        centres: (N, 2) px where each POI's subset is centred (default: the POI itself): an
+            off-centre subset, e.g. kept inside the image where its point nears the border;
+            the solution is carried to the POI by the subset's gradients (u += ux dx + uy dy),
+            its predicted std with them.
 
     Returns:
         :class:`WindowSolution` on the input's device: u, v, ut, vt (N,), params (N, P),
@@ -583,7 +614,13 @@ def solve_window(
     motion = None
     if shared_motion is not None:
         motion = known_window_motion(shared_motion, (t - t[c]).expand(pts.shape[0], -1))
+    centres_t = None
+    if centres is not None:
+        centres_t = as_points(centres, "centres", dtype=ref_t.dtype, device=ref_t.device)
+        if centres_t.shape != pts.shape:
+            raise ValueError(f"centres: expected one centre per point, {tuple(pts.shape)}, got "
+                             f"{tuple(centres_t.shape)}")
     return solver.solve(
         ref_img, frames_img, pts, t - t[c], init=init_t, ref_pixels=ref_t.unsqueeze(0),
-        frame_pixels=frames_t, time=float(t[c]), motion=motion,
+        frame_pixels=frames_t, time=float(t[c]), motion=motion, centres=centres_t,
     )

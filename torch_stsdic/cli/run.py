@@ -495,9 +495,14 @@ def _print_summary(res: Any, args: argparse.Namespace, elapsed: float, ref: str)
         ok = status <= 1
         if ok.any():
             print(f"window: m = {args.m} at {100.0 * (mu[ok] == args.m).mean():.1f} % of the "
-                  f"trusted results, shorter where the motion is not affine in time "
-                  f"(classical at {100.0 * (mu[ok] == 0).mean():.1f} %: no velocity there, "
-                  "ut and vt are NaN)")
+                  f"trusted results, shorter where the motion is not affine in time or the "
+                  f"point leaves the image within the window (classical at "
+                  f"{100.0 * (mu[ok] == 0).mean():.1f} %: no velocity there, ut and vt are NaN)")
+    off = int(res.info.get("off_centre_rows", 0) or 0)
+    if off:
+        print(f"border: {100.0 * off / max(1, n_f * n_p):.1f} % of the point-frames solved with "
+              "the subset moved inside the image (the point near the border; its result "
+              "carried by the subset's gradients, u_std and v_std with it)")
     for line in shared_motion_lines(res.info.get("shared_motion")):
         print(line)
     device = args.device
