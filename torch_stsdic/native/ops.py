@@ -23,6 +23,19 @@ def _geo(img_args: tuple, order: int) -> dict:
     return dict(wp=wp, x_lo=x_lo, x_hi=x_hi, y_lo=y_lo, y_hi=y_hi, shift=shift, order=order)
 
 
+def _broadcast(*shapes: torch.Size) -> torch.Size:
+    """The broadcast of ``shapes`` (numpy rules). ``torch.broadcast_shapes`` imports sympy
+    (through torch's symbolic shapes) on its first call: 0.3 s of every run's first sample."""
+    k = max(len(s) for s in shapes)
+    out = []
+    for dims in zip(*[(1,) * (k - len(s)) + tuple(s) for s in shapes]):
+        big = max((d for d in dims if d != 1), default=1)
+        if any(d not in (1, big) for d in dims):
+            raise ValueError(f"shapes {[tuple(s) for s in shapes]} do not broadcast")
+        out.append(big)
+    return torch.Size(out)
+
+
 def _require(fn: str, ok: bool, what: str) -> None:
     """The wrappers' size checks: the kernels index their arrays by these sizes (the
     declarations check kinds and dtypes, not sizes)."""
@@ -46,7 +59,7 @@ def sample(img_args: tuple, order: int, x: torch.Tensor, y: torch.Tensor,
     (N, S) points)."""
     flat = img_args[0].contiguous()
     dtype = flat.dtype
-    shape = torch.broadcast_shapes(x.shape, y.shape, frame_off.shape)
+    shape = _broadcast(x.shape, y.shape, frame_off.shape)
     xc = x.to(dtype).expand(shape).contiguous()
     yc = y.to(dtype).expand(shape).contiguous()
     off = frame_off.to(torch.int64)
