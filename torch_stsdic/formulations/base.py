@@ -103,6 +103,8 @@ class SubsetData:
             both the Hessian and the uncertainty.
         motion: (N, T, 2) known displacement (u, v) px of every frame added to the warp (the
             specimen's shared motion, :mod:`torch_stsdic.shared_motion`), or None.
+        texture: (N,) window-weighted mean of ``gx^2 + gy^2`` (the texture test) when computed
+            with the subsets, or None.
     """
 
     px: Tensor
@@ -116,6 +118,7 @@ class SubsetData:
     chol: Tensor | None = None
     gram: Tensor | None = None
     motion: Tensor | None = None
+    texture: Tensor | None = None
 
     def take(self, idx: Tensor) -> SubsetData:
         """The rows ``idx`` (index or boolean mask)."""
