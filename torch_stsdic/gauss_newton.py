@@ -15,7 +15,15 @@ import torch
 
 from . import kernels, native, uncertainty
 from .config import DICConfig
-from .formulations import Formulation, Geometry, SubsetData, centred_gram, reference_subsets, wsum
+from .formulations import (
+    Formulation,
+    Geometry,
+    JointIC,
+    SubsetData,
+    centred_gram,
+    reference_subsets,
+    wsum,
+)
 from .interpolation import BSplineImage
 from .status import Status
 
@@ -179,9 +187,28 @@ def _reference_data(ctx: BatchContext, pts, dt, fidx, ridx) -> SubsetData:
     data.gram = centred_gram(geo, data.gx, data.gy)
     data.texture = _texture(geo, data)  # of each distinct point, before the repeats
     if repeats:
-        data = data.take(inv)
-        data.dt, data.fidx = dt, fidx
+        data = _rows_of(ctx, data, inv, pts, dt, fidx)
     return data
+
+
+def _shared_subsets(ctx: BatchContext) -> bool:
+    """Rows may read their points' reference subsets through ``SubsetData.ref_rows`` (no copy
+    per row): every use of them in the solve does (the native joint IC step; the Hessian,
+    texture and uncertainty come from per-point moments: ZNSSD, a 0/1 window)."""
+    w = ctx.geo.w
+    return (ctx.geo.znssd and all(isinstance(f, JointIC) for f in ctx.stages)
+            and native.usable_image(ctx.frames.kernel_args(), w) and bool((w * w == w).all()))
+
+
+def _rows_of(ctx: BatchContext, data: SubsetData, rows: torch.Tensor, pts, dt, fidx
+             ) -> SubsetData:
+    """The subsets ``data`` of distinct points (their gram and texture included) for rows that
+    are points ``rows`` (N,) of them, at ``pts``, ``dt``, ``fidx``: shared through
+    ``ref_rows`` where the solve allows (:func:`_shared_subsets`), else copied per row."""
+    out = SubsetData(px=pts[:, 0:1], py=pts[:, 1:2], dt=dt, fidx=fidx, ft=data.ft,
+                     fnorm=data.fnorm[rows], gx=data.gx, gy=data.gy, gram=data.gram[rows],
+                     texture=data.texture[rows], ref_rows=rows)
+    return out if _shared_subsets(ctx) else out.direct()
 
 
 def _cached_reference_data(ctx: BatchContext, pts, dt, fidx, ridx, key, uniq, inv):
@@ -204,12 +231,10 @@ def _cached_reference_data(ctx: BatchContext, pts, dt, fidx, ridx, key, uniq, in
         new.gram = centred_gram(geo, new.gx, new.gy)
         new.texture = _texture(geo, new)
         cache.add(uniq[miss], new)
-    rows = cache.slot[key]
     kept = cache.rows
-    return SubsetData(px=pts[:, 0:1], py=pts[:, 1:2], dt=dt, fidx=fidx,
-                      ft=kept["ft"][rows], fnorm=kept["fnorm"][rows], gx=kept["gx"][rows],
-                      gy=kept["gy"][rows], gram=kept["gram"][rows],
-                      texture=kept["texture"][rows])
+    data = SubsetData(px=pts, py=pts, dt=dt, fidx=fidx, ft=kept["ft"], fnorm=kept["fnorm"],
+                      gx=kept["gx"], gy=kept["gy"], gram=kept["gram"], texture=kept["texture"])
+    return _rows_of(ctx, data, cache.slot[key], pts, dt, fidx)
 
 
 def _texture(geo: Geometry, data: SubsetData) -> torch.Tensor:

@@ -105,6 +105,10 @@ class SubsetData:
             specimen's shared motion, :mod:`torch_stsdic.shared_motion`), or None.
         texture: (N,) window-weighted mean of ``gx^2 + gy^2`` (the texture test) when computed
             with the subsets, or None.
+        ref_rows: (N,) where the rows share their points' reference subsets: the row of
+            ``ft``, ``gx``, ``gy`` (then (R, S), one per distinct point) of every row, read
+            through it by the native joint IC kernel (:meth:`direct`: one row each); None:
+            row i is row i.
     """
 
     px: Tensor
@@ -119,12 +123,23 @@ class SubsetData:
     gram: Tensor | None = None
     motion: Tensor | None = None
     texture: Tensor | None = None
+    ref_rows: Tensor | None = None
 
     def take(self, idx: Tensor) -> SubsetData:
         """The rows ``idx`` (index or boolean mask)."""
+        shared = () if self.ref_rows is None else ("ft", "gx", "gy")
         return SubsetData(**{
-            k: (v[idx] if isinstance(v, Tensor) else v) for k, v in self.__dict__.items()
+            k: (v[idx] if isinstance(v, Tensor) and k not in shared else v)
+            for k, v in self.__dict__.items()
         })
+
+    def direct(self) -> SubsetData:
+        """These rows with reference subsets of their own (``ref_rows`` None)."""
+        if self.ref_rows is None:
+            return self
+        r = self.ref_rows
+        return SubsetData(**{**self.__dict__, "ft": self.ft[r], "gx": self.gx[r],
+                             "gy": self.gy[r], "ref_rows": None})
 
 
 def reference_subsets(geo: Geometry, ref: BSplineImage, pts: Tensor, ridx: Tensor,
