@@ -22,7 +22,6 @@ from .formulations import (
     SubsetData,
     centred_gram,
     reference_subsets,
-    wsum,
 )
 from .interpolation import BSplineImage
 from .status import Status
@@ -240,7 +239,7 @@ def _cached_reference_data(ctx: BatchContext, pts, dt, fidx, ridx, key, uniq, in
 def _texture(geo: Geometry, data: SubsetData) -> torch.Tensor:
     """(N,) the window-weighted mean squared reference gradient of each subset (the texture
     test of :func:`solve_batch`)."""
-    return wsum(data.gx * data.gx + data.gy * data.gy, geo.w) / geo.w.sum()
+    return ((data.gx * data.gx + data.gy * data.gy) * geo.w).sum(-1) / geo.w.sum()
 
 
 def _uncertainty(ctx: BatchContext, data: SubsetData, params, zncc, ok):

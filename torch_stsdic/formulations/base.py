@@ -149,8 +149,10 @@ def reference_subsets(geo: Geometry, ref: BSplineImage, pts: Tensor, ridx: Tenso
     pixels and the points when they require gradients (the native kernels are then skipped)."""
     px, py = pts[:, 0:1], pts[:, 1:2]
     f, gx, gy = ref.sample_subsets(px, py, geo.dx, geo.dy, frame=ridx)
-    ft = geo.centred(f)
-    fnorm = wsum(ft * ft, geo.w).sqrt()
+    # sums row by row (a matrix-vector product rounds a row by where it lies in the batch):
+    # a point's subset is the same whatever points it is solved with, in a resumed run too
+    ft = f - ((f * geo.w).sum(-1) / geo.w.sum()).unsqueeze(-1) if geo.znssd else f
+    fnorm = (ft * ft * geo.w).sum(-1).sqrt()
     return SubsetData(px=px, py=py, dt=dt, fidx=fidx, ft=ft, fnorm=fnorm, gx=gx, gy=gy,
                       motion=motion)
 
