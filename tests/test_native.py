@@ -122,6 +122,18 @@ def test_ic_rhs_matches_torch(has_time, znssd):
                                c["gy"], c["w"], 64, 48, c["k"], has_time, znssd, rows=rows)
     assert torch.allclose(b2, b[rows], rtol=1e-12, atol=1e-12)
     assert torch.allclose(zn2, zn[rows])
+    # rows sharing their reference subsets through `ref_rows`: the numbers of copied rows
+    ref_rows = torch.tensor([2, 0, 2, 1, 0, 2, 1])
+    own = {nm: c[nm][ref_rows] for nm in ("ft", "gx", "gy")}
+    b3, zn3, out3 = native.ic_rhs(a, 3, c["p"], c["px"], c["py"], c["dx"], c["dy"], c["basis"],
+                                  c["dt"], c["fidx"], own["ft"], c["fnorm"], own["gx"],
+                                  own["gy"], c["w"], 64, 48, c["k"], has_time, znssd)
+    b4, zn4, out4 = native.ic_rhs(a, 3, c["p"][rows], c["px"], c["py"], c["dx"], c["dy"],
+                                  c["basis"], c["dt"], c["fidx"], c["ft"][:3], c["fnorm"],
+                                  c["gx"][:3], c["gy"][:3], c["w"], 64, 48, c["k"], has_time,
+                                  znssd, rows=rows, ref_rows=ref_rows)
+    assert torch.equal(b4, b3[rows]) and torch.equal(zn4, zn3[rows])
+    assert torch.equal(out4, out3[rows])
 
 
 def test_wrappers_refuse_sizes_the_kernels_would_overrun():
@@ -148,6 +160,11 @@ def test_wrappers_refuse_sizes_the_kernels_would_overrun():
         rhs(k=c["k"] + 1, p=torch.zeros(7, 2 * c["k"] + 2, dtype=torch.float64))
     with pytest.raises(ValueError, match=r"ft/gx/gy \(N, S\)"):
         rhs(gx=c["gx"][:, :-1].contiguous())
+    with pytest.raises(ValueError, match=r"ref_rows must be \(N,\) = \(7,\) indices into "
+                                         r"the 3 subsets"):
+        native.ic_rhs(a, 3, c["p"], c["px"], c["py"], c["dx"], c["dy"], c["basis"], c["dt"],
+                      c["fidx"], c["ft"][:3], c["fnorm"], c["gx"][:3], c["gy"][:3], c["w"],
+                      64, 48, c["k"], True, True, ref_rows=torch.tensor([0, 1, 2, 3, 0, 1, 2]))
     with pytest.raises(ValueError, match=r"plane offsets \[\d+, \d+\] outside the image's "
                                          r"\[0, 9120\]"):  # 3 planes of 3040
         rhs(fidx=c["fidx"] + a[-1] * 3)
@@ -354,13 +371,13 @@ def test_library_declares_the_source_signatures():
 
 def test_declared_kinds_come_from_the_compiler():
     k32, k64 = native.kernels()["sts_ic_rhs_f32"], native.kernels()["sts_ic_rhs_f64"]
-    assert len(k32.params) == len(k64.params) == 36
+    assert len(k32.params) == len(k64.params) == 37
     by = {p.name: p for p in k32.params}
     assert by["flat"].kind == "*f32" and k64.params[0].kind == "*f64"
     assert by["b"].kind == "*f64"  # b is double in both instances, zn follows T
     assert by["zn"].kind == "*f32" and by["outside"].kind == "*u8"
     assert by["wp"].kind == "i64" and by["order"].kind == "i32" and by["w_img"].kind == "f64"
-    assert [p.name for p in k32.params if p.nullable] == ["rows", "motion"]
+    assert [p.name for p in k32.params if p.nullable] == ["rows", "ref_rows", "motion"]
     assert [p.name for p in native.kernels()["sts_sample_f64"].params if p.nullable] == \
         ["off", "gx", "gy"]
 

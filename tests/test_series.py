@@ -378,3 +378,44 @@ def test_plan_then_run_equals_track_and_file_has_strains(movie, tmp_path):
     nostrain = track(frames, config=CFG, roi=ROI, step=18, progress=False,
                      out=tmp_path / "c.h5", strain_window=None)
     assert "exx" not in read_results(tmp_path / "c.h5").fields and nostrain.n_frames == 9
+
+
+def test_reference_subsets_kept_between_solves_change_nothing(monkeypatch):
+    """The run keeps its points' reference subsets between solves (windows, the model check's
+    classical solves, shorter windows, later blocks; emptied at a reference update): the
+    results are those of sampling them in every solve."""
+    import torch_stsdic.series as series_mod
+    from torch_stsdic.gauss_newton import ReferenceCache
+
+    motion = Translation(ut=1.2, vt=0.4) + Jump(50.0, du=0.6, dv=-0.4, t_jump=4.5)
+    mv = synthetic_movie((101, 101), 9, motion, noise_sigma=1.0, seed=2)
+    frames = torch.cat([mv.ref[None], mv.frames])
+    kw = dict(config=DICConfig(subset_size=21, m=2), roi=(16, 24, 84, 76), step=8,
+              progress=False, batch_frames=3, reference_update=0.99999, shared_motion=None)
+    caches: list[ReferenceCache] = []
+    refs: list[int] = []
+
+    class Counting(ReferenceCache):
+        def __init__(self, budget_mb):
+            super().__init__(budget_mb)
+            caches.append(self)
+
+        def applies(self, ref, geo):
+            if self.coeffs is not ref.coeffs:
+                refs.append(id(ref.coeffs))
+            return super().applies(ref, geo)
+
+    monkeypatch.setattr(series_mod, "ReferenceCache", Counting)
+    kept = track(frames, **kw)
+    assert len(caches) == 1 and 0 < caches[0].count <= kept.n_points and not caches[0].off
+    assert len(kept.info["reference_updates"]) >= 2
+    assert len(refs) >= 2  # emptied at an update, filled again from the new reference
+    # the check solved rows classically, kept some of them and shortened others
+    assert kept.info["shortened_rows"] > 0 and kept.info["classical_rows"] > 0
+    monkeypatch.setattr(series_mod, "ReferenceCache", lambda budget_mb: ReferenceCache(0.0))
+    fresh = track(frames, **kw)
+    for name in ("status", "m"):
+        assert torch.equal(kept.field(name), fresh.field(name)), name
+    for name in ("u", "v", "ut", "vt", "zncc"):
+        a, b = kept.field(name), fresh.field(name)
+        assert torch.allclose(a, b, atol=1e-5, rtol=0, equal_nan=True), name

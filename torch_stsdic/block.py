@@ -163,6 +163,7 @@ class BlockContext:
         if self._checker is None:
             cfg = self.solver.config
             self._checker = SubsetSolver(cfg.replace(max_iter=min(cfg.max_iter, CHECK_ITER)))
+            self._checker.reference_cache = self.solver.reference_cache  # the same subsets
         return self._checker
 
 

@@ -15,11 +15,76 @@ import torch
 
 from . import kernels, native, uncertainty
 from .config import DICConfig
-from .formulations import Formulation, Geometry, SubsetData, centred_gram, reference_subsets, wsum
+from .formulations import (
+    Formulation,
+    Geometry,
+    JointIC,
+    SubsetData,
+    centred_gram,
+    reference_subsets,
+)
 from .interpolation import BSplineImage
 from .status import Status
 
-__all__ = ["BatchContext", "solve_batch"]
+__all__ = ["BatchContext", "ReferenceCache", "solve_batch"]
+
+
+class ReferenceCache:
+    """The reference subsets of the points solved so far (values, gradients, norm and
+    centred gram: :func:`_reference_data`), kept between the solves of one reference so that
+    a point solved again (the next block of a movie, the model check's classical solve,
+    a rescue, a shorter window) is not sampled again: the same numbers, computed once.
+
+    Used by the solves of a run (:attr:`SubsetSolver.reference_cache
+    <torch_stsdic.solver.SubsetSolver>`) whose points lie on the pixel grid. It belongs to
+    one prepared reference and one subset geometry: another reference (an update) empties
+    it, another geometry passes it by. It holds at most ``budget_mb`` MiB; a run whose points
+    need more does without it (as before: sampled in every solve)."""
+
+    def __init__(self, budget_mb: float) -> None:
+        self.budget = float(budget_mb) * 2**20
+        self.off = False  # over budget: not used again
+        self.coeffs: torch.Tensor | None = None  # the reference's coefficients (identity)
+        self.geo: tuple[torch.Tensor, ...] | None = None  # dx, dy, w, spatial
+        self.znssd = True
+        self.slot: torch.Tensor | None = None  # (R*H*W,) row of each pixel's subset, -1: none
+        self.rows: dict[str, torch.Tensor] = {}  # ft, fnorm, gx, gy, gram, texture: (M, ...)
+
+    @property
+    def count(self) -> int:
+        return 0 if not self.rows else int(self.rows["fnorm"].shape[0])
+
+    def applies(self, ref: BSplineImage, geo: Geometry) -> bool:
+        """The cache serves subsets of ``ref`` with ``geo`` (emptied first when ``ref`` is
+        another reference than the one it holds)."""
+        if self.off:
+            return False
+        if self.coeffs is not ref.coeffs:
+            self.coeffs, self.rows = ref.coeffs, {}
+            self.slot = torch.full((ref.n_frames * ref.height * ref.width,), -1,
+                                   dtype=torch.long, device=ref.coeffs.device)
+            self.geo, self.znssd = (geo.dx, geo.dy, geo.w, geo.spatial), geo.znssd
+        return self.znssd == geo.znssd and all(
+            a.shape == b.shape and a.dtype == b.dtype and torch.equal(a, b)
+            for a, b in zip(self.geo, (geo.dx, geo.dy, geo.w, geo.spatial)))
+
+    def fits(self, more: int, s: int, elem: int, pa: int) -> bool:
+        """``more`` points of S samples (element size ``elem``; gram P' x P') fit the
+        budget; if not, the cache is emptied and not used again."""
+        per = 3 * s * elem + 2 * elem + pa * pa * 8
+        if (self.count + more) * per <= self.budget:
+            return True
+        self.off, self.rows, self.slot, self.coeffs = True, {}, None, None
+        return False
+
+    def add(self, keys: torch.Tensor, data: SubsetData) -> None:
+        """Keep the subsets ``data`` of the reference pixels ``keys`` (M,) (not kept yet)."""
+        new = {"ft": data.ft, "fnorm": data.fnorm, "gx": data.gx, "gy": data.gy,
+               "gram": data.gram, "texture": data.texture}
+        self.slot[keys] = torch.arange(self.count, self.count + keys.shape[0],
+                                       device=keys.device)
+        self.rows = new if not self.rows else {
+            k: torch.cat([self.rows[k], v], 0) for k, v in new.items()}
 
 
 @dataclass
@@ -34,6 +99,7 @@ class BatchContext:
     grey_range: float
     work: int = 0  # samples per iteration over all batches (decides torch.compile)
     noise_ratio: float = 1.0  # reference noise variance / one frame's
+    cache: ReferenceCache | None = None  # the reference subsets kept between solves
 
     def batch_size(self, t: int) -> int:
         """POIs per batch within ``cfg.memory_mb``."""
@@ -65,7 +131,7 @@ def solve_batch(ctx: BatchContext, pts, p0, dt, fidx, ridx, motion=None):
     data = _reference_data(ctx, pts, dt, fidx, ridx)
     data.motion = motion
     status = torch.full((n,), int(Status.NOT_COMPUTED), dtype=torch.int8, device=device)
-    texture = wsum(data.gx * data.gx + data.gy * data.gy, w) / wsum_w
+    texture = data.texture if data.texture is not None else _texture(geo, data)
     low = texture < cfg.texture_threshold * ctx.grey_range**2
     low |= data.fnorm < 1e-6 * ctx.grey_range * math.sqrt(float(wsum_w))
     status[low] = int(Status.LOW_TEXTURE)
@@ -106,17 +172,74 @@ def _reference_data(ctx: BatchContext, pts, dt, fidx, ridx) -> SubsetData:
     key = (ridx * ctx.ref.height + ij[:, 1].long()) * ctx.ref.width + ij[:, 0].long()
     uniq, inv = torch.unique(key, return_inverse=True)
     # few repeats: sampling them is cheaper than the gather
-    repeats = uniq.shape[0] <= 0.75 * n and bool((ij == pts).all())
+    on_grid = bool((ij == pts).all())
+    if on_grid and ctx.cache is not None and ctx.cache.applies(ctx.ref, geo):
+        data = _cached_reference_data(ctx, pts, dt, fidx, ridx, key, uniq, inv)
+        if data is not None:
+            return data
+    repeats = uniq.shape[0] <= 0.75 * n and on_grid
     sel = slice(None)
     if repeats:  # the first row of each distinct point
         sel = torch.full((uniq.shape[0],), n, dtype=torch.long, device=pts.device)
         sel = sel.scatter_reduce(0, inv, torch.arange(n, device=pts.device), "amin")
     data = reference_subsets(geo, ctx.ref, pts[sel], ridx[sel], dt[sel], fidx[sel])
     data.gram = centred_gram(geo, data.gx, data.gy)
+    data.texture = _texture(geo, data)  # of each distinct point, before the repeats
     if repeats:
-        data = data.take(inv)
-        data.dt, data.fidx = dt, fidx
+        data = _rows_of(ctx, data, inv, pts, dt, fidx)
     return data
+
+
+def _shared_subsets(ctx: BatchContext) -> bool:
+    """Rows may read their points' reference subsets through ``SubsetData.ref_rows`` (no copy
+    per row): every use of them in the solve does (the native joint IC step; the Hessian,
+    texture and uncertainty come from per-point moments: ZNSSD, a 0/1 window)."""
+    w = ctx.geo.w
+    return (ctx.geo.znssd and all(isinstance(f, JointIC) for f in ctx.stages)
+            and native.usable_image(ctx.frames.kernel_args(), w) and bool((w * w == w).all()))
+
+
+def _rows_of(ctx: BatchContext, data: SubsetData, rows: torch.Tensor, pts, dt, fidx
+             ) -> SubsetData:
+    """The subsets ``data`` of distinct points (their gram and texture included) for rows that
+    are points ``rows`` (N,) of them, at ``pts``, ``dt``, ``fidx``: shared through
+    ``ref_rows`` where the solve allows (:func:`_shared_subsets`), else copied per row."""
+    out = SubsetData(px=pts[:, 0:1], py=pts[:, 1:2], dt=dt, fidx=fidx, ft=data.ft,
+                     fnorm=data.fnorm[rows], gx=data.gx, gy=data.gy, gram=data.gram[rows],
+                     texture=data.texture[rows], ref_rows=rows)
+    return out if _shared_subsets(ctx) else out.direct()
+
+
+def _cached_reference_data(ctx: BatchContext, pts, dt, fidx, ridx, key, uniq, inv):
+    """:func:`_reference_data` through ``ctx.cache``: the distinct points not kept yet are
+    sampled (as there) and kept, then every row takes its point's kept subsets. None where
+    they would exceed the cache's budget (the cache is then off)."""
+    cache, geo = ctx.cache, ctx.geo
+    n = pts.shape[0]
+    slot_u = cache.slot[uniq]
+    miss = slot_u < 0
+    n_miss = int(miss.sum())
+    if n_miss:
+        s = int(geo.w.numel())
+        if not cache.fits(n_miss, s, ctx.ref.coeffs.element_size(), 2 * (geo.ks + 1)):
+            return None
+        first = torch.full((uniq.shape[0],), n, dtype=torch.long, device=pts.device)
+        first = first.scatter_reduce(0, inv, torch.arange(n, device=pts.device), "amin")
+        sel = first[miss]
+        new = reference_subsets(geo, ctx.ref, pts[sel], ridx[sel], dt[sel], fidx[sel])
+        new.gram = centred_gram(geo, new.gx, new.gy)
+        new.texture = _texture(geo, new)
+        cache.add(uniq[miss], new)
+    kept = cache.rows
+    data = SubsetData(px=pts, py=pts, dt=dt, fidx=fidx, ft=kept["ft"], fnorm=kept["fnorm"],
+                      gx=kept["gx"], gy=kept["gy"], gram=kept["gram"], texture=kept["texture"])
+    return _rows_of(ctx, data, cache.slot[key], pts, dt, fidx)
+
+
+def _texture(geo: Geometry, data: SubsetData) -> torch.Tensor:
+    """(N,) the window-weighted mean squared reference gradient of each subset (the texture
+    test of :func:`solve_batch`)."""
+    return ((data.gx * data.gx + data.gy * data.gy) * geo.w).sum(-1) / geo.w.sum()
 
 
 def _uncertainty(ctx: BatchContext, data: SubsetData, params, zncc, ok):

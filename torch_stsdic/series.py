@@ -45,6 +45,7 @@ from tqdm import tqdm
 from .block import BlockContext, Carry, make_carry, rows_numpy, solve_block
 from .config import DICConfig
 from .frames import FrameCache, default_ahead, frames_in_order, segment_bounds
+from .gauss_newton import ReferenceCache
 from .io.results import as_stored
 from .plan import RunPlan, plan_run
 from .reference import Reference, maybe_update
@@ -71,6 +72,10 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
     sink = sink if sink is not None else MemorySink(plan)
     cfg = plan.config
     solver = SubsetSolver(cfg)
+    if cfg.m > 0 or sum(k != plan.reference_frame for k in plan.targets) > 1:
+        # the points are solved again (windows and their checks, later blocks): their
+        # reference subsets are sampled once, within the working-memory budget
+        solver.reference_cache = ReferenceCache(cfg.memory_mb)
     cache = FrameCache(plan.series, solver, plan.dtype, plan.device,
                        ahead=default_ahead(plan.batch_frames, cfg.m))
     run = BlockContext(solver=solver, cache=cache,

@@ -40,7 +40,7 @@ from .formulations import (
     Formulation,
     Geometry,
 )
-from .gauss_newton import BatchContext, solve_batch
+from .gauss_newton import BatchContext, ReferenceCache, solve_batch
 from .initial import (
     carry_from_seed,
     fft_cross_correlation,
@@ -140,6 +140,9 @@ class SubsetSolver:
         self.config.validate()
         self.shape = make_shape(self.config.shape)
         self.window = make_window(self.config.window, self.config.subset_size)
+        #: the reference subsets kept between this solver's solves
+        #: (:class:`~torch_stsdic.gauss_newton.ReferenceCache`; set by a run, None: none)
+        self.reference_cache: ReferenceCache | None = None
 
     def prepare(self, images: torch.Tensor) -> BSplineImage:
         """Prefilter (T, H, W) or (H, W) images into B-spline coefficients."""
@@ -263,7 +266,7 @@ class SubsetSolver:
         ctx = BatchContext(
             geo=geo, ref=ref, frames=frames, cfg=cfg, stages=self.stages_for(shape),
             grey_range=_grey_range(grey), work=int(todo.numel()) * t_count * int(geo.w.numel()),
-            noise_ratio=float(noise_ratio),
+            noise_ratio=float(noise_ratio), cache=self.reference_cache,
         )
         std = torch.full_like(params, float("nan"))
         sigma = torch.full_like(zncc, float("nan"))

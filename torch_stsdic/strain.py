@@ -467,8 +467,8 @@ def compute_strain(
     ut_, vt_ = _as_tensor(u), _as_tensor(v)
     dev = ut_.device
     vt_ = vt_.to(dev)
-    shape = torch.broadcast_shapes(ut_.shape, vt_.shape)
-    uv = torch.stack([ut_.expand(shape), vt_.expand(shape)], dim=-2)  # (..., 2, N)
+    # torch.broadcast_shapes imports sympy on its first call (0.25 s of a run)
+    uv = torch.stack(torch.broadcast_tensors(ut_, vt_), dim=-2)  # (..., 2, N)
     fit = _PlaneFit(window, method, min_points, require_center, None)
     gx, gy = _gradients(points, uv, valid, fit, stacked=True)
     ux, vx = gx[..., 0, :], gx[..., 1, :]
@@ -484,8 +484,7 @@ def compute_strain(
         out.update(ux=ux, uy=uy, vx=vx, vy=vy)
     if ut is not None:
         a, b = _as_tensor(ut, device=dev), _as_tensor(vt, device=dev)
-        rshape = torch.broadcast_shapes(a.shape, b.shape)
-        uvt = torch.stack([a.expand(rshape), b.expand(rshape)], dim=-2)
+        uvt = torch.stack(torch.broadcast_tensors(a, b), dim=-2)
         tx, ty = _gradients(points, uvt, valid, fit, stacked=True)
         utx, vtx = tx[..., 0, :], tx[..., 1, :]
         uty, vty = ty[..., 0, :], ty[..., 1, :]

@@ -401,8 +401,9 @@ void ic_rhs_range(const T* flat, const Geo& g, int64_t i0, int64_t i1, int64_t n
                   int64_t ks, int64_t k, bool has_time, bool znssd, const T* p, const T* px,
                   const T* py, const T* dx, const T* dy, const T* basis, const T* dt,
                   const int64_t* frame_off, const T* ft, const T* fnorm, const T* fgx,
-                  const T* fgy, const T* w, const int64_t* rows, const T* motion,
-                  double w_img, double h, double* b, T* zn, uint8_t* outside) {
+                  const T* fgy, const T* w, const int64_t* rows, const int64_t* ref_rows,
+                  const T* motion, double w_img, double h, double* b, T* zn,
+                  uint8_t* outside) {
   const int64_t np = 2 * k;
   std::vector<T> dxu(ns), dyv(ns), gv(ns), ex(ns), ey(ns), fxs(ns), fys(ns), bt(ks * ns);
   std::vector<int32_t> idx(ns);
@@ -415,10 +416,11 @@ void ic_rhs_range(const T* flat, const Geo& g, int64_t i0, int64_t i1, int64_t n
   for (int64_t j = i0; j < i1; ++j) {
     // j: position in p and the outputs; i: row of the per-point data
     const int64_t i = rows ? rows[j] : j;
+    const int64_t r = ref_rows ? ref_rows[i] : i;  // row of the reference subsets
     const T* pi = p + j * np;
-    const T* fti = ft + i * ns;
-    const T* gxi = fgx + i * ns;
-    const T* gyi = fgy + i * ns;
+    const T* fti = ft + r * ns;
+    const T* gxi = fgx + r * ns;
+    const T* gyi = fgy + r * ns;
     std::fill(dxu.begin(), dxu.end(), T(0));
     std::fill(dyv.begin(), dyv.end(), T(0));
     for (int64_t q = 0; q < ks; ++q) {
@@ -548,25 +550,28 @@ STS_KERNEL(sts_gram, (int64_t i0, int64_t i1, int64_t ns, int64_t ks, const T* g
 
 // The joint IC-GN right-hand side b (M, 2k) in double, the mean ZNCC zn and the outside flag
 // of the rows j in [i0, i1) of p (see ic_rhs_range); rows[j] is row j's per-point data row
-// (rows null: row j); motion (N, T, 2) a known displacement (u, v) added to the warp of each
-// data row's frame t (the shared motion of the specimen; null: none).
+// (rows null: row j); ref_rows[i] is data row i's row of the reference subsets ft, gx, gy
+// (points repeated over targets share theirs; null: row i); motion (N, T, 2) a known
+// displacement (u, v) added to the warp of each data row's frame t (the shared motion of the
+// specimen; null: none).
 STS_KERNEL(sts_ic_rhs, (const T* flat, int64_t wp, double x_lo, double x_hi, double y_lo,
                         double y_hi, int64_t shift, int order, int64_t i0, int64_t i1,
                         int64_t nt, int64_t ns, int64_t ks, int64_t k, int has_time, int znssd,
                         const T* p, const T* px, const T* py, const T* dx, const T* dy,
                         const T* basis, const T* dt, const int64_t* frame_off, const T* ft,
                         const T* fnorm, const T* gx, const T* gy, const T* w,
-                        nullable<const int64_t> rows, nullable<const T> motion, double w_img,
-                        double h, double* b, T* zn, uint8_t* outside)) {
+                        nullable<const int64_t> rows, nullable<const int64_t> ref_rows,
+                        nullable<const T> motion, double w_img, double h, double* b, T* zn,
+                        uint8_t* outside)) {
   const Geo g{wp, x_lo, x_hi, y_lo, y_hi, shift};
   if (order == 3) {
     ic_rhs_range<T, 3>(flat, g, i0, i1, nt, ns, ks, k, has_time, znssd, p, px, py, dx, dy,
-                       basis, dt, frame_off, ft, fnorm, gx, gy, w, rows, motion, w_img, h, b,
-                       zn, outside);
+                       basis, dt, frame_off, ft, fnorm, gx, gy, w, rows, ref_rows, motion,
+                       w_img, h, b, zn, outside);
   } else if (order == 5) {
     ic_rhs_range<T, 5>(flat, g, i0, i1, nt, ns, ks, k, has_time, znssd, p, px, py, dx, dy,
-                       basis, dt, frame_off, ft, fnorm, gx, gy, w, rows, motion, w_img, h, b,
-                       zn, outside);
+                       basis, dt, frame_off, ft, fnorm, gx, gy, w, rows, ref_rows, motion,
+                       w_img, h, b, zn, outside);
   } else {
     return 1;
   }

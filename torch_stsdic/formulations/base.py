@@ -103,6 +103,12 @@ class SubsetData:
             both the Hessian and the uncertainty.
         motion: (N, T, 2) known displacement (u, v) px of every frame added to the warp (the
             specimen's shared motion, :mod:`torch_stsdic.shared_motion`), or None.
+        texture: (N,) window-weighted mean of ``gx^2 + gy^2`` (the texture test) when computed
+            with the subsets, or None.
+        ref_rows: (N,) where the rows share their points' reference subsets: the row of
+            ``ft``, ``gx``, ``gy`` (then (R, S), one per distinct point) of every row, read
+            through it by the native joint IC kernel (:meth:`direct`: one row each); None:
+            row i is row i.
     """
 
     px: Tensor
@@ -116,12 +122,24 @@ class SubsetData:
     chol: Tensor | None = None
     gram: Tensor | None = None
     motion: Tensor | None = None
+    texture: Tensor | None = None
+    ref_rows: Tensor | None = None
 
     def take(self, idx: Tensor) -> SubsetData:
         """The rows ``idx`` (index or boolean mask)."""
+        shared = () if self.ref_rows is None else ("ft", "gx", "gy")
         return SubsetData(**{
-            k: (v[idx] if isinstance(v, Tensor) else v) for k, v in self.__dict__.items()
+            k: (v[idx] if isinstance(v, Tensor) and k not in shared else v)
+            for k, v in self.__dict__.items()
         })
+
+    def direct(self) -> SubsetData:
+        """These rows with reference subsets of their own (``ref_rows`` None)."""
+        if self.ref_rows is None:
+            return self
+        r = self.ref_rows
+        return SubsetData(**{**self.__dict__, "ft": self.ft[r], "gx": self.gx[r],
+                             "gy": self.gy[r], "ref_rows": None})
 
 
 def reference_subsets(geo: Geometry, ref: BSplineImage, pts: Tensor, ridx: Tensor,
@@ -131,8 +149,10 @@ def reference_subsets(geo: Geometry, ref: BSplineImage, pts: Tensor, ridx: Tenso
     pixels and the points when they require gradients (the native kernels are then skipped)."""
     px, py = pts[:, 0:1], pts[:, 1:2]
     f, gx, gy = ref.sample_subsets(px, py, geo.dx, geo.dy, frame=ridx)
-    ft = geo.centred(f)
-    fnorm = wsum(ft * ft, geo.w).sqrt()
+    # sums row by row (a matrix-vector product rounds a row by where it lies in the batch):
+    # a point's subset is the same whatever points it is solved with, in a resumed run too
+    ft = f - ((f * geo.w).sum(-1) / geo.w.sum()).unsqueeze(-1) if geo.znssd else f
+    fnorm = (ft * ft * geo.w).sum(-1).sqrt()
     return SubsetData(px=px, py=py, dt=dt, fidx=fidx, ft=ft, fnorm=fnorm, gx=gx, gy=gy,
                       motion=motion)
 

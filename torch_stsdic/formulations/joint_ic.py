@@ -140,8 +140,8 @@ class JointIC(Formulation):
     inverse_compositional = True
 
     def prepare(self, geo: Geometry, data: SubsetData) -> Tensor:
-        chol, info = torch.linalg.cholesky_ex(
-            ic_hessian(geo, data.gx, data.gy, data.dt, g=data.gram))
+        d = data if data.gram is not None else data.direct()
+        chol, info = torch.linalg.cholesky_ex(ic_hessian(geo, d.gx, d.gy, d.dt, g=d.gram))
         data.chol = chol
         return info > 0
 
@@ -169,9 +169,9 @@ class JointIC(Formulation):
             ka = frames.kernel_args()
             extra = {}
             if native.usable_image(ka, p, data.ft):
-                fused, extra = native.ic_rhs, {"motion": data.motion}
+                fused, extra = native.ic_rhs, {"motion": data.motion, "ref_rows": data.ref_rows}
             else:
-                fused = kernels.ic_rhs
+                fused, data = kernels.ic_rhs, data.direct()
             b, zn, outside = fused(
                 ka, frames.order, p, data.px, data.py, geo.dx, geo.dy, geo.spatial, data.dt,
                 data.fidx * ka[-1], data.ft, data.fnorm, data.gx, data.gy, geo.w, frames.width,
@@ -180,7 +180,7 @@ class JointIC(Formulation):
             dp = -torch.cholesky_solve(b.unsqueeze(-1), data.chol[sel]).squeeze(-1)
             return dp.to(p.dtype), zn, outside
         fn = maybe_compiled(_ic_rhs, ("ic_rhs",), work)
-        b, zn, outside = fn(*self._args(geo, frames, data, p))
+        b, zn, outside = fn(*self._args(geo, frames, data.direct(), p))
         dp = -torch.cholesky_solve(b.double().unsqueeze(-1), data.chol).squeeze(-1)
         return dp.to(p.dtype), zn, outside
 
@@ -189,4 +189,4 @@ class JointIC(Formulation):
 
     def stationarity(self, geo: Geometry, frames: BSplineImage, data: SubsetData,
                      p: Tensor) -> Tensor:
-        return ic_rhs_kernel(*self._args(geo, frames, data, p))[0]
+        return ic_rhs_kernel(*self._args(geo, frames, data.direct(), p))[0]

@@ -23,6 +23,19 @@ def _geo(img_args: tuple, order: int) -> dict:
     return dict(wp=wp, x_lo=x_lo, x_hi=x_hi, y_lo=y_lo, y_hi=y_hi, shift=shift, order=order)
 
 
+def _broadcast(*shapes: torch.Size) -> torch.Size:
+    """The broadcast of ``shapes`` (numpy rules). ``torch.broadcast_shapes`` imports sympy
+    (through torch's symbolic shapes) on its first call: 0.3 s of every run's first sample."""
+    k = max(len(s) for s in shapes)
+    out = []
+    for dims in zip(*[(1,) * (k - len(s)) + tuple(s) for s in shapes]):
+        big = max((d for d in dims if d != 1), default=1)
+        if any(d not in (1, big) for d in dims):
+            raise ValueError(f"shapes {[tuple(s) for s in shapes]} do not broadcast")
+        out.append(big)
+    return torch.Size(out)
+
+
 def _require(fn: str, ok: bool, what: str) -> None:
     """The wrappers' size checks: the kernels index their arrays by these sizes (the
     declarations check kinds and dtypes, not sizes)."""
@@ -46,7 +59,7 @@ def sample(img_args: tuple, order: int, x: torch.Tensor, y: torch.Tensor,
     (N, S) points)."""
     flat = img_args[0].contiguous()
     dtype = flat.dtype
-    shape = torch.broadcast_shapes(x.shape, y.shape, frame_off.shape)
+    shape = _broadcast(x.shape, y.shape, frame_off.shape)
     xc = x.to(dtype).expand(shape).contiguous()
     yc = y.to(dtype).expand(shape).contiguous()
     off = frame_off.to(torch.int64)
@@ -98,11 +111,14 @@ def subsets(img_args: tuple, order: int, px, py, dx, dy, frame_off, grad: bool):
 
 def ic_rhs(img_args: tuple, order: int, p, px, py, dx, dy, basis, dt, frame_off, ft, fnorm,
            gx, gy, w, w_img: int, h: int, k: int, has_time: bool, znssd: bool,
-           rows: torch.Tensor | None = None, motion: torch.Tensor | None = None):
+           rows: torch.Tensor | None = None, motion: torch.Tensor | None = None,
+           ref_rows: torch.Tensor | None = None):
     """Native twin of formulations.joint_ic.ic_rhs_kernel. Shapes: p (M, 2k), px/py (N, 1) or (N,),
     dx/dy/w (S,), basis (S, Ks), dt and frame_off (N, T), ft/gx/gy (N, S), fnorm (N,);
     ``rows`` (M,) picks the per-point data rows of p's rows (default: M = N, row j = j);
-    ``motion`` (N, T, 2) a known displacement added to each row's warp of frame t (None: none).
+    ``motion`` (N, T, 2) a known displacement added to each row's warp of frame t (None: none);
+    ``ref_rows`` (N,) the row of ft/gx/gy (then (R, S)) of each data row (a point repeated
+    over targets: one copy of its reference subset; None: row i).
     Returns b (M, 2k) float64, per-POI mean ZNCC (M,) and the outside flag (M,) bool."""
     flat = img_args[0].contiguous()
     dtype = flat.dtype
@@ -110,7 +126,8 @@ def ic_rhs(img_args: tuple, order: int, p, px, py, dx, dy, basis, dt, frame_off,
     _require("ic_rhs", tuple(p.shape) == (n, 2 * k) and k == ks + int(has_time),
              f"p must be (M, 2k) with k = Ks (+ 1 with time), got {tuple(p.shape)}, k={k}, "
              f"Ks={ks}")
-    _require("ic_rhs", all(tuple(t.shape) == (big_n, ns) for t in (ft, gx, gy))
+    n_ref = big_n if ref_rows is None else ft.shape[0]
+    _require("ic_rhs", all(tuple(t.shape) == (n_ref, ns) for t in (ft, gx, gy))
              and all(t.numel() == big_n for t in (px, py, fnorm))
              and all(t.numel() == ns for t in (dx, dy, w)) and frame_off.shape == dt.shape
              and ns > 0,
@@ -122,6 +139,10 @@ def ic_rhs(img_args: tuple, order: int, p, px, py, dx, dy, basis, dt, frame_off,
         _require("ic_rhs", rows.shape == (n,) and (n == 0 or 0 <= int(rows.min())
                                                   and int(rows.max()) < big_n),
                  f"rows must be (M,) = ({n},) indices into the {big_n} points")
+    if ref_rows is not None:
+        _require("ic_rhs", ref_rows.shape == (big_n,) and (big_n == 0 or 0 <= int(
+            ref_rows.min()) and int(ref_rows.max()) < n_ref),
+                 f"ref_rows must be (N,) = ({big_n},) indices into the {n_ref} subsets")
     frame_off = frame_off.to(torch.int64).contiguous()
     _check_planes("ic_rhs", img_args, frame_off)
     _require("ic_rhs", motion is None or tuple(motion.shape) == (big_n, nt, 2),
@@ -140,6 +161,7 @@ def ic_rhs(img_args: tuple, order: int, p, px, py, dx, dy, basis, dt, frame_off,
                    frame_off=frame_off, ft=c(ft),
                    fnorm=c(fnorm.reshape(-1)), gx=c(gx), gy=c(gy), w=c(w),
                    rows=None if rows is None else rows.to(torch.int64).contiguous(),
+                   ref_rows=None if ref_rows is None else ref_rows.to(torch.int64).contiguous(),
                    motion=None if motion is None else c(motion),
                    w_img=float(w_img), h=float(h), b=b, zn=zn, outside=out))
     return b, zn, out.bool()
