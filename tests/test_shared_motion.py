@@ -294,7 +294,7 @@ def test_run_summary_and_figures_say_why_velocities_are_missing():
     m_row = np.array([2, 2, 0, 0, 1, 0, -1])
     valid = np.array([True, True, True, True, True, False, False])
     assert velocity_note(m_row, valid) == (
-        "blank at 40 %: classical there (motion not affine in time)")
+        "blank at 40 %: classical there (no window fits the motion or stays in view)")
     assert velocity_note(np.array([2, 2]), np.array([True, True])) is None
     rec = {"kind": "affine", "applied": True, "jitter_px_median": 0.156,
            "jitter_px_max": 0.49, "seconds": 3.2, "steps": [6, 12]}

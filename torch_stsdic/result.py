@@ -40,7 +40,8 @@ class TrackResult:
         config: the :class:`DICConfig` used.
         m: (F, N) int8 half-width of the window each result was measured with (the run's
             ``config.m``, shorter where the model check found the motion not affine in time
-            over the window; 0: classical, ut/vt NaN; -1: not solved).
+            over the window, or where the point leaves the image within it; 0: classical,
+            ut/vt NaN; -1: not solved).
         std: name -> (F, N) predicted standard deviation of "u", "v" (px) and "ut", "vt"
             (px per time unit) from the image noise and the subset's gradients
             (:mod:`torch_stsdic.uncertainty`); NaN where not solved.
