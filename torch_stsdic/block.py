@@ -194,6 +194,7 @@ class _Block:
         self.sigma = torch.full((rows,), float("nan"), dtype=run.dtype, device=dev)
         self.m_used = torch.full((rows,), -1, dtype=torch.int8, device=dev)
         self.gone = torch.zeros(rows, dtype=torch.bool, device=dev)  # predicted outside
+        self.identity: torch.Tensor | None = None  # (B*N,) rows known without a solve
         #: (B*N, 2) px where each row's subset is centred, or None: at its POI everywhere
         #: (:meth:`keep_outside` moves the subsets of points near the border inside)
         self.centres: torch.Tensor | None = None
@@ -308,6 +309,7 @@ class _Block:
         if run.m != 0:
             return torch.zeros(self.b * self.n, dtype=torch.bool, device=run.device)
         rows = (self.windows(0) == self.ref.frame).all(1).repeat_interleave(self.n)
+        self.identity = rows
         if not bool(rows.any()):
             return rows
         inside = subset_inside(self.pts, float(run.solver.window.half), self.ref.img.height,
@@ -598,25 +600,33 @@ class _Block:
         run = self.run
         nb = run.grid_neighbours(self.ref)
         b, n = self.b, self.n
+        rows = torch.arange(b * n, device=run.device)
+        if self.identity is not None and bool(self.identity.any()):
+            # the reference frame as its own target (zero motion everywhere) has no outlier
+            rows = rows[~self.identity]
+            b = rows.numel() // n
+            if b == 0:
+                return 0
         iu, iv = run.names.index("u"), run.names.index("v")
-        uv = self.params[:, [iu, iv]].reshape(b, n, 2)
-        ok = (self.status <= USABLE).reshape(b, n)
-        sd = self.std[:, [iu, iv]].reshape(b, n, 2)
+        params, std = self.params[rows], self.std[rows]
+        uv = params[:, [iu, iv]].reshape(b, n, 2)
+        ok = (self.status[rows] <= USABLE).reshape(b, n)
+        sd = std[:, [iu, iv]].reshape(b, n, 2)
         sd = torch.where(ok.unsqueeze(-1), sd, torch.nan).flatten(1)
         eps = (MEDIAN_EPS_STD * torch.nanmedian(sd, dim=1).values).nan_to_num(0.0)
         eps = eps.clamp(min=MEDIAN_EPS_MIN)
         grads = None
         if all(nm in run.names for nm in ("ux", "uy", "vx", "vy")):
             gi = [run.names.index(nm) for nm in ("ux", "uy", "vx", "vy")]
-            grads = self.params[:, gi].reshape(b, n, 2, 2)
+            grads = params[:, gi].reshape(b, n, 2, 2)
             # the gradients' own noise, carried over the neighbours' distance
-            sg = self.std[:, gi].reshape(b, n, 4).amax(-1).nan_to_num(0.0)
+            sg = std[:, gi].reshape(b, n, 4).amax(-1).nan_to_num(0.0)
             pts = self.ref.points.double()
             far = (pts.unsqueeze(1) - pts[nb.clamp(min=0)]).norm(dim=-1)[nb >= 0]
             reach = float(far.median()) if far.numel() else 0.0
             eps = torch.hypot(eps.unsqueeze(1), MEDIAN_EPS_STD * sg.double() * reach)
         out = median_test(uv, ok, nb, eps, points=self.ref.points, gradients=grads)
-        self.status[out.reshape(-1)] = int(Status.INCONSISTENT)
+        self.status[rows[out.reshape(-1)]] = int(Status.INCONSISTENT)
         return int(out.sum())
 
     def _velocity(self, j: int, cand: torch.Tensor, carry: Carry | None):
