@@ -333,3 +333,33 @@ def test_fit_check_keeps_a_point_whose_fit_degrades_gradually():
     bad = poor_fit(sigma, zncc, solved, 0.8, baseline_zncc=base)
     assert bad[:3].tolist() == [False, True, True] and not bool(bad[3:].any())
     assert poor_fit(sigma, zncc, solved, 0.8)[:3].all()  # without a baseline: as before
+
+
+def test_a_vague_point_does_not_widen_its_own_neighbour_tolerance():
+    """A subset that does not determine its motion (the hourglass's right edge: predicted
+    std up to 26,000 px, ZNCC 0.93-0.99, 1-6 px off its neighbours) is an outlier: the
+    neighbour test's tolerance comes from the frame's precision and the neighbours' gradient
+    noise, not from the judged point's own (which made it 1e5 px wide there)."""
+    from torch_stsdic.quality import neighbour_tolerance
+    from torch_stsdic.points import grid_points
+
+    pts = torch.as_tensor(grid_points((200, 200), step=20, margin=20), dtype=torch.float64)
+    n = pts.shape[0]
+    nb = neighbours(pts)
+    g = torch.tensor([[2e-3, 1e-3], [-5e-4, 3e-3]], dtype=torch.float64)  # a linear field
+    uv = (pts @ g.T).unsqueeze(0)  # (1, N, 2)
+    grads = g.expand(1, n, 2, 2).clone()
+    std_uv = torch.full((1, n, 2), 0.01, dtype=torch.float64)
+    grad_std = torch.full((1, n), 1e-3, dtype=torch.float64)
+    i = n // 2 + 3
+    uv[0, i] += torch.tensor([1.5, -2.0], dtype=torch.float64)  # off by 2 px
+    std_uv[0, i], grad_std[0, i] = 26000.0, 50.0  # and it says it does not know
+    ok = torch.ones(1, n, dtype=torch.bool)
+    reach = 20.0
+    eps = neighbour_tolerance(std_uv, grad_std, ok, nb, reach)
+    assert float(eps[0, i]) < 0.1  # the point's own std does not enter
+    out = median_test(uv, ok, nb, eps, points=pts, gradients=grads)
+    assert out[0].nonzero().flatten().tolist() == [i]
+    # the tolerance as it was: the judged point's own gradient noise over the reach
+    old = torch.hypot(torch.tensor(3 * 0.01).clamp(min=0.05), 3.0 * grad_std * reach)
+    assert not bool(median_test(uv, ok, nb, old, points=pts, gradients=grads)[0, i])

@@ -25,11 +25,10 @@ import torch
 
 from .frames import FrameCache, window_frames
 from .quality import (
-    MEDIAN_EPS_MIN,
-    MEDIAN_EPS_STD,
     carried_neighbours,
     median_test,
     model_mismatch,
+    neighbour_tolerance,
     neighbours,
     poor_fit,
     residual_mismatch,
@@ -581,13 +580,14 @@ class _Block:
         the rows of its own target and with its point's last trusted row (``carry``, then
         the block's targets in time order). Returns their number."""
         n, count = self.n, 0
-        base = torch.full((n,), float("nan"), dtype=self.run.dtype, device=self.run.device)
+        run = self.run
+        base = torch.full((n,), float("nan"), dtype=run.dtype, device=run.device)
         if carry is not None and carry.fit_zncc is not None:
             base = carry.fit_zncc.to(base)
         for j in range(self.b):
             sl = slice(j * n, (j + 1) * n)
             bad = poor_fit(self.sigma[sl], self.zncc[sl], self.status[sl] <= USABLE,
-                           self.run.lost_zncc, baseline_zncc=base)
+                           run.lost_zncc, baseline_zncc=base)
             self.status[sl][bad] = int(Status.POOR_FIT)
             count += int(bad.sum())
             base = torch.where(self.status[sl] <= USABLE, self.zncc[sl], base)
@@ -612,19 +612,17 @@ class _Block:
         uv = params[:, [iu, iv]].reshape(b, n, 2)
         ok = (self.status[rows] <= USABLE).reshape(b, n)
         sd = std[:, [iu, iv]].reshape(b, n, 2)
-        sd = torch.where(ok.unsqueeze(-1), sd, torch.nan).flatten(1)
-        eps = (MEDIAN_EPS_STD * torch.nanmedian(sd, dim=1).values).nan_to_num(0.0)
-        eps = eps.clamp(min=MEDIAN_EPS_MIN)
-        grads = None
+        grads = sg = None
+        reach = 0.0
         if all(nm in run.names for nm in ("ux", "uy", "vx", "vy")):
             gi = [run.names.index(nm) for nm in ("ux", "uy", "vx", "vy")]
             grads = params[:, gi].reshape(b, n, 2, 2)
             # the gradients' own noise, carried over the neighbours' distance
-            sg = std[:, gi].reshape(b, n, 4).amax(-1).nan_to_num(0.0)
+            sg = std[:, gi].reshape(b, n, 4).amax(-1)
             pts = self.ref.points.double()
             far = (pts.unsqueeze(1) - pts[nb.clamp(min=0)]).norm(dim=-1)[nb >= 0]
             reach = float(far.median()) if far.numel() else 0.0
-            eps = torch.hypot(eps.unsqueeze(1), MEDIAN_EPS_STD * sg.double() * reach)
+        eps = neighbour_tolerance(sd, sg, ok, nb, reach)
         out = median_test(uv, ok, nb, eps, points=self.ref.points, gradients=grads)
         self.status[rows[out.reshape(-1)]] = int(Status.INCONSISTENT)
         return int(out.sum())

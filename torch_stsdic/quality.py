@@ -26,8 +26,10 @@ criterion is at a minimum; these checks say whether that minimum is the motion:
   too), iterated so that a bad point does not condemn its good neighbours: residual ``|u_i -
   med_j c_j| / (med_j |c_j - med| + eps)`` above ``MEDIAN_THRESHOLD`` is an outlier:
   INCONSISTENT. ``eps`` is ``MEDIAN_EPS_STD`` times the median predicted std, at least
-  ``MEDIAN_EPS_MIN`` px: the test catches gross outliers (a wrong peak, off by more than ~0.1
-  px), never the noise or the noise of the gradients used to carry the neighbours. The test
+  ``MEDIAN_EPS_MIN`` px, combined with the neighbours' gradient noise carried over their
+  distance (:func:`neighbour_tolerance`; never the judged point's own precision): the test
+  catches gross outliers (a wrong peak, off by more than ~0.1 px), never the noise or the
+  noise of the gradients used to carry the neighbours. The test
   normalises by the neighbours' own scatter, so it cannot judge a point whose neighbours scatter
   as wildly as it does (subsets across a specimen's edge, where half the subset is background:
   each finds some peak, px to tens of px apart). A point whose carried neighbours scatter by
@@ -175,6 +177,28 @@ def neighbours(points: Tensor, k: int = 8, reach: float = 2.5, chunk: int = 2048
         pad = torch.full((n, k - k_eff), -1, dtype=torch.long, device=idx_t.device)
         idx_t = torch.cat([idx_t, pad], 1)
     return idx_t.to(points.device)
+
+
+def neighbour_tolerance(std_uv: Tensor, grad_std: Tensor | None, ok: Tensor, nb: Tensor,
+                        reach: float) -> Tensor:
+    """(B, N) eps px of the neighbour test (:func:`median_test`): ``MEDIAN_EPS_STD`` times
+    the median predicted std of u, v of the ``ok`` (B, N) rows of each target (``std_uv``
+    (B, N, 2)), at least ``MEDIAN_EPS_MIN``; with ``grad_std`` (B, N) (the largest predicted
+    std of a point's gradients), combined with ``MEDIAN_EPS_STD`` times the median gradient
+    noise of the point's ``ok`` neighbours ``nb`` (N, k) carried over ``reach`` px (the
+    neighbours' gradients carry their values to the point). The judged point's own precision
+    does not widen its tolerance: a point whose subset does not determine its motion (a
+    predicted std of thousands of px) would otherwise never be an outlier."""
+    sd = torch.where(ok.unsqueeze(-1), std_uv.double(), torch.nan).flatten(1)
+    eps = (MEDIAN_EPS_STD * torch.nanmedian(sd, dim=1).values).nan_to_num(0.0)
+    eps = eps.clamp(min=MEDIAN_EPS_MIN).unsqueeze(1).expand(ok.shape)
+    if grad_std is None:
+        return eps
+    safe, has = nb.clamp(min=0), (nb >= 0).unsqueeze(0)
+    g = torch.where(ok, grad_std.double(), torch.nan)[:, safe]  # (B, N, k)
+    g = torch.where(has & ok[:, safe], g, torch.nan)
+    g_nb = _nanmedian(g).nan_to_num(0.0)
+    return torch.hypot(eps, MEDIAN_EPS_STD * g_nb * reach)
 
 
 def _grid_neighbours(grid, k: int, reach: float) -> Tensor:

@@ -260,7 +260,9 @@ def execute(args: argparse.Namespace) -> int:
     series = kwargs.pop("series")
     print(series.describe(), flush=True)
     t0 = time.perf_counter()
-    plan = None
+    plan = sink = None
+    target = out.with_name(out.name + ".partial") if args.overwrite else out
+    existed = target.exists()
     try:
         try:
             plan = plan_run(series, **kwargs, step=args.step, device=str(device),
@@ -292,6 +294,10 @@ def execute(args: argparse.Namespace) -> int:
         print(f"results: {out} (fields u, v, ut, vt, zncc, status, {', '.join(fields)})")
     except KeyboardInterrupt as exc:  # at any moment: say what is kept
         stop = exc if isinstance(exc, Interrupted) else Interrupted()
+        if sink is not None:  # a file of no finished frame is not left behind
+            _discard_unfinished(sink, out, args)
+        elif not args.resume and not existed:  # stopped while the file was being made
+            target.unlink(missing_ok=True)
         raise stop.with_detail(_kept(out, args, plan)) from None
     return 0
 
