@@ -340,8 +340,8 @@ def test_a_vague_point_does_not_widen_its_own_neighbour_tolerance():
     std up to 26,000 px, ZNCC 0.93-0.99, 1-6 px off its neighbours) is an outlier: the
     neighbour test's tolerance comes from the frame's precision and the neighbours' gradient
     noise, not from the judged point's own (which made it 1e5 px wide there)."""
-    from torch_stsdic.quality import neighbour_tolerance
     from torch_stsdic.points import grid_points
+    from torch_stsdic.quality import neighbour_tolerance
 
     pts = torch.as_tensor(grid_points((200, 200), step=20, margin=20), dtype=torch.float64)
     n = pts.shape[0]
