@@ -254,7 +254,6 @@ def carried_neighbours(values: Tensor, valid: Tensor, nb: Tensor, points: Tensor
         d = (p.unsqueeze(1) - p[safe]).view(1, n, -1, 1, 2)  # (1, N, k, 1, 2) to the point
         g = gradients.double()
         gn = torch.where(use.view(*use.shape, 1, 1), g[:, safe], 0.0)
-        at = _gradient_at(gn, use, d.view(1, n, -1, 2))  # (B, N, C, 2)
         # the point's own gradient where it is one of its neighbours' (within 3 of their
         # median absolute deviations from their median, + GRADIENT_TOL): no extrapolation
         # noise at edges and corners, and a wrong point's wrong gradient is not used
@@ -263,7 +262,12 @@ def carried_neighbours(values: Tensor, valid: Tensor, nb: Tensor, points: Tensor
         med = _nanmedian(gm)
         mad = _nanmedian((gm - med.unsqueeze(-1)).abs())
         own = valid.view(*valid.shape, 1, 1) & ((g - med).abs() <= 3.0 * mad + GRADIENT_TOL)
-        at = torch.where(own, g, at)
+        at = g.clone()
+        fit = ~own.flatten(-2).all(-1)  # (B, N): the plane fit of the neighbours is needed
+        if bool(fit.any()):
+            dd = d.view(1, n, -1, 2).expand(g.shape[0], -1, -1, -1)[fit]  # (M, k, 2)
+            plane = _gradient_at(gn[fit].unsqueeze(0), use[fit].unsqueeze(0), dd.unsqueeze(0))[0]
+            at[fit] = torch.where(own[fit], g[fit], plane)
         vn = vn + (0.5 * (torch.nan_to_num(gn) + at.unsqueeze(2)) * d).sum(-1)
     return torch.where(use.unsqueeze(-1), vn, torch.nan)
 
