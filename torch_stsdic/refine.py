@@ -196,7 +196,7 @@ def measure_offsets(plan: RunPlan, max_frames: int = DEFAULT_MAX_FRAMES,
             f"refine_reference: the intercepts of the trajectories vary "
             f"{out.rho + out.excess:.3g} per-frame variances, the images' noise allows "
             f"{rho_img:.3g}: the motion next to the reference is not what the fits say "
-            f"(e.g. it decelerates), so little is subtracted (median shrink "
+            f"(it decelerates, or moves in load steps), so little is subtracted (median shrink "
             f"{float(np.median(out.shrink[out.frames > 0])) if (out.frames > 0).any() else 1:.3g})",
             RuntimeWarning, stacklevel=2)
     out.seconds = time.perf_counter() - t0
