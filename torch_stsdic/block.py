@@ -244,7 +244,8 @@ class _Block:
               solver: SubsetSolver | None = None) -> WindowSolution:
         """Solve rows ``idx`` from ``init`` (None: FFT) with windows of half-width ``m``
         (default the run's; m = 0: the target frame alone, classical shape), with ``solver``
-        (default the run's)."""
+        (default the run's); subsets at :attr:`centres` where :meth:`keep_outside` moved them
+        inside the image (the results are the POIs')."""
         ref, run = self.ref, self.run
         if m is None or m == run.m:
             fidx, dt = self.fidx[idx], self.dt[idx]
