@@ -144,15 +144,20 @@ class BlockContext:
     noise_ratio: float | None = None  # reference noise variance / a frame's (None: measure
     reference_desc: Any = 0  # on the first block, reference.noise_ratio; the plan's desc)
     neighbours: torch.Tensor | None = None  # (N, k) grid neighbours, made on first use
+    neighbour_reach: float | None = None  # px, their median distance, made with them
     shared: SharedMotion | None = None  # the specimen's per-frame motion (None: not used)
     segments: torch.Tensor | None = None  # (T_series, 2) load segment of every frame
     _checker: SubsetSolver | None = None
 
     def grid_neighbours(self, ref: Reference) -> torch.Tensor:
         """(N, k) the POIs' grid neighbours (:func:`~torch_stsdic.quality.neighbours`), made
-        once per run."""
+        once per run (with :attr:`neighbour_reach`)."""
         if self.neighbours is None:
-            self.neighbours = neighbours(ref.points)
+            nb = neighbours(ref.points)
+            pts = ref.points.double()
+            far = (pts.unsqueeze(1) - pts[nb.clamp(min=0)]).norm(dim=-1)[nb >= 0]
+            self.neighbours = nb
+            self.neighbour_reach = float(far.median()) if far.numel() else 0.0
         return self.neighbours
 
     def check_solver(self) -> SubsetSolver:
@@ -383,8 +388,8 @@ class _Block:
             self.gone |= out
         moved = (shift != 0).any(1) & ~out
         if bool(moved.any()):
-            self.centres = self.pts + torch.where(moved.unsqueeze(1), shift.ceil() * (shift > 0)
-                                                  + shift.floor() * (shift < 0), 0.0)
+            whole = torch.sign(shift) * shift.abs().ceil()  # whole px, away from the border
+            self.centres = self.pts + torch.where(moved.unsqueeze(1), whole, 0.0)
             self._motion = {}  # the shared motion at the subsets' centres
             run.stats["off_centre_rows"] = run.stats.get("off_centre_rows", 0) \
                 + int(moved.sum())
@@ -403,7 +408,7 @@ class _Block:
         h, w = self.ref.img.height, self.ref.img.width
         feasible = torch.zeros(self.pts.shape[0], dtype=torch.bool, device=run.device)
         shift = torch.zeros_like(self.pts)
-        for first, init in zip([True] + [False] * (len(inits) - 1), inits):
+        for i, init in enumerate(inits):
             pos = []
             for c, (iz, it) in enumerate(((iu, "ut"), (iv, "vt"))):
                 z = self.pts[:, c:c + 1] + init[:, iz:iz + 1]
@@ -413,7 +418,7 @@ class _Block:
                     z = z + motion[..., c]
                 pos.append(z)  # (B*N, T)
             need = []
-            reach = half if first else 0.0  # only the moved-on prediction moves a subset
+            reach = half if i == 0 else 0.0  # only the moved-on prediction moves a subset
             for z, size in zip(pos, (w, h)):
                 lo = (half + OUTSIDE_MARGIN - z.amin(1)).clamp(min=0)  # move the subset in
                 hi = (z.amax(1) - (size - 1 - half - OUTSIDE_MARGIN)).clamp(min=0)
@@ -620,9 +625,7 @@ class _Block:
             grads = params[:, gi].reshape(b, n, 2, 2)
             # the gradients' own noise, carried over the neighbours' distance
             sg = std[:, gi].reshape(b, n, 4).amax(-1)
-            pts = self.ref.points.double()
-            far = (pts.unsqueeze(1) - pts[nb.clamp(min=0)]).norm(dim=-1)[nb >= 0]
-            reach = float(far.median()) if far.numel() else 0.0
+            reach = run.neighbour_reach
         eps = neighbour_tolerance(sd, sg, ok, nb, reach)
         out = median_test(uv, ok, nb, eps, points=self.ref.points, gradients=grads)
         self.status[rows[out.reshape(-1)]] = int(Status.INCONSISTENT)

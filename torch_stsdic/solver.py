@@ -617,12 +617,9 @@ def solve_window(
     motion = None
     if shared_motion is not None:
         motion = known_window_motion(shared_motion, (t - t[c]).expand(pts.shape[0], -1))
-    centres_t = None
+    centres_t = None  # one per point: SubsetSolver.solve checks that
     if centres is not None:
         centres_t = as_points(centres, "centres", dtype=ref_t.dtype, device=ref_t.device)
-        if centres_t.shape != pts.shape:
-            raise ValueError(f"centres: expected one centre per point, {tuple(pts.shape)}, got "
-                             f"{tuple(centres_t.shape)}")
     return solver.solve(
         ref_img, frames_img, pts, t - t[c], init=init_t, ref_pixels=ref_t.unsqueeze(0),
         frame_pixels=frames_t, time=float(t[c]), motion=motion, centres=centres_t,

@@ -261,7 +261,7 @@ def execute(args: argparse.Namespace) -> int:
     print(series.describe(), flush=True)
     t0 = time.perf_counter()
     plan = sink = None
-    target = out.with_name(out.name + ".partial") if args.overwrite else out
+    target = _written_file(out, args)
     existed = target.exists()
     try:
         try:
@@ -409,6 +409,12 @@ def resume_problem(exc: Any) -> str:
             "the first run's options to continue it, or use --overwrite to start again")
 
 
+def _written_file(out: Path, args: argparse.Namespace) -> Path:
+    """The file a new run writes: ``out``, or ``<out>.partial`` (renamed over ``out`` when
+    the run finishes) with ``--overwrite``."""
+    return out.with_name(out.name + ".partial") if args.overwrite else out
+
+
 def _discard_unfinished(sink: Any, out: Path, args: argparse.Namespace) -> None:
     """After a failed run: close the result file and remove it if this run created it and
     no frame was finished (a file of 0 frames only invites a --resume that fails again)."""
@@ -417,7 +423,7 @@ def _discard_unfinished(sink: Any, out: Path, args: argparse.Namespace) -> None:
     sink.close(commit=False)
     if args.resume:  # the user's file: kept as it was
         return
-    path = out.with_name(out.name + ".partial") if args.overwrite else out
+    path = _written_file(out, args)
     try:
         with h5py.File(path, "r", locking=False) as f:
             done = int(np.asarray(f["completed"][()]).sum())
