@@ -441,9 +441,14 @@ def test_default_grid_leaves_room_for_motion():
     plain = grid_points(shape, 6, subset_size=15)  # subset/2 only: the old default
     res0 = track(movie, config=cfg, points=plain, frames=[0], progress=False)
     first0 = res0.points[:, 1] == res0.points[:, 1].min()
-    # the old default's first row: its 5-frame window leaves the image (OUTSIDE), or the
-    # tracker falls back to a shorter window / the classical solution for it (m < 2)
-    assert ((res0.status[0][first0] == int(Status.OUTSIDE)) | (res0.m[0][first0] < 2)).all()
+    # the old default's first row: its 5-frame window leaves the image; it is OUTSIDE, or
+    # measured with a shorter window (m < 2) or with its subsets moved inside the image
+    # (off-centre, from the measuring pass's first guess), and then right
+    st, m0 = res0.status[0][first0], res0.m[0][first0]
+    out = st == int(Status.OUTSIDE)
+    assert (out | (m0 < 2)).all() or res0.info.get("off_centre_rows", 0) > 0
+    vel = ~out & (m0 > 0)
+    assert bool((res0.vt[0][first0][vel] + 1.5).abs().max() < 0.05) if vel.any() else True
 
 
 def test_a_signal_inside_a_finalizer_is_not_lost():

@@ -363,3 +363,23 @@ def test_a_vague_point_does_not_widen_its_own_neighbour_tolerance():
     # the tolerance as it was: the judged point's own gradient noise over the reach
     old = torch.hypot(torch.tensor(3 * 0.01).clamp(min=0.05), 3.0 * grad_std * reach)
     assert not bool(median_test(uv, ok, nb, old, points=pts, gradients=grads)[0, i])
+
+
+def test_rows_left_classical_are_the_classical_solution():
+    """Rows the model check leaves classical (m = 0: no window fits the crack) carry the
+    classical solution converged to the run's tolerance, not the check's looser one
+    (block.CHECK_TOL): they equal a classical run's rows to well below that tolerance."""
+    from torch_stsdic import block
+
+    motion = motion_family("crack", SIZE, t_jump=4.0)
+    series, _ = _family(motion)
+    cfg = DICConfig(m=2, subset_size=25, tol=1e-6)
+    res = track(series, config=cfg, step=16, progress=False, shared_motion=None)
+    cls = track(series, config=cfg.replace(m=0), step=16, progress=False)
+    left = (res.m == 0) & torch.as_tensor(usable(res.status)) & torch.as_tensor(
+        usable(cls.status))
+    left[0] = False  # the reference frame: the identity in both
+    assert int(left.sum()) >= 5 and block.CHECK_TOL >= 100 * cfg.tol
+    for f in ("u", "v"):
+        d = (getattr(res, f) - getattr(cls, f))[left].abs().max()
+        assert float(d) < 1e-5, (f, float(d))

@@ -144,12 +144,12 @@ def test_killed_run_resumes_to_identical_result(movie, sts_run, tmp_path):
 
     with pytest.raises(Crash):
         track(movie[0], config=CFG, roi=ROI, step=18, progress=False, batch_frames=BATCH,
-              out=out, callback=crash)
+              out=out, callback=crash, shared_motion=None)  # as sts_run
     part = read_results(out)
     assert part.completed.tolist() == [True] * 4 + [False] * 5
     assert np.isnan(part.u[5:]).all()
     res = track(movie[0], config=CFG, roi=ROI, step=18, progress=False, batch_frames=BATCH,
-                out=out, resume=True)
+                out=out, resume=True, shared_motion=None)
     assert res.info["frames_read"] < 9  # the finished blocks were not recomputed
     for name in ("u", "v", "ut", "vt", "zncc", "status", "iterations"):
         assert torch.equal(getattr(res, name), getattr(full, name)), name
@@ -177,7 +177,7 @@ def test_sigkilled_process_resumes_to_identical_result(movie, sts_run, tmp_path)
 
         track(np.load({str(tmp_path / "movie.npy")!r}), config=DICConfig(**{CFG.to_dict()!r}),
               roi={ROI!r}, step=18, progress=False, batch_frames={BATCH}, out={str(out)!r},
-              callback=kill)
+              callback=kill, shared_motion=None)
     """)
     proc = subprocess.run([sys.executable, "-c", script], cwd=REPO, capture_output=True,
                           text=True, timeout=120)
@@ -186,7 +186,7 @@ def test_sigkilled_process_resumes_to_identical_result(movie, sts_run, tmp_path)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the recorded input name differs (array vs tensor)
         res = track(movie[0], config=CFG, roi=ROI, step=18, progress=False,
-                    batch_frames=BATCH, out=out, resume=True)
+                    batch_frames=BATCH, out=out, resume=True, shared_motion=None)
     for name in ("u", "v", "ut", "vt", "zncc", "status", "iterations"):
         assert torch.equal(getattr(res, name), getattr(full, name)), name
 
@@ -396,8 +396,8 @@ def test_reference_subsets_kept_between_solves_change_nothing(monkeypatch):
     refs: list[int] = []
 
     class Counting(ReferenceCache):
-        def __init__(self, budget_mb):
-            super().__init__(budget_mb)
+        def __init__(self, budget_mb, expected=0):
+            super().__init__(budget_mb, expected)
             caches.append(self)
 
         def applies(self, ref, geo):
@@ -412,7 +412,8 @@ def test_reference_subsets_kept_between_solves_change_nothing(monkeypatch):
     assert len(refs) >= 2  # emptied at an update, filled again from the new reference
     # the check solved rows classically, kept some of them and shortened others
     assert kept.info["shortened_rows"] > 0 and kept.info["classical_rows"] > 0
-    monkeypatch.setattr(series_mod, "ReferenceCache", lambda budget_mb: ReferenceCache(0.0))
+    monkeypatch.setattr(series_mod, "ReferenceCache",
+                        lambda budget_mb, expected=0: ReferenceCache(0.0))
     fresh = track(frames, **kw)
     for name in ("status", "m"):
         assert torch.equal(kept.field(name), fresh.field(name)), name

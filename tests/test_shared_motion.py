@@ -224,7 +224,9 @@ def test_jittery_movie_keeps_full_windows_and_beats_classical(tmp_path):
 
 def test_auto_leaves_a_smooth_motion_alone():
     """A motion affine in time has no jitter: 'auto' measures it but does not carry it (its
-    estimation noise would only be added to every window); results equal a run without."""
+    estimation noise would only be added to every window); results equal a run without, up
+    to the solver's convergence (its first block starts from the measuring pass's solutions
+    instead of FFT cross-correlation: the same minimum, 7e-6 px apart)."""
     times = torch.arange(0.0, 9)
     motion = Translation(ut=0.05)
     ref, frames = render_series(make_speckle((101, 101), seed=1), (101, 101), motion,
@@ -235,7 +237,9 @@ def test_auto_leaves_a_smooth_motion_alone():
     none = sts.track(movie, shared_motion=None, **kw)
     sm = auto.shared_motion
     assert sm is not None and not sm.applied and sm.significance() < 25
-    assert torch.equal(auto.u, none.u) and torch.equal(auto.status, none.status)
+    assert torch.equal(auto.status, none.status) and auto.info["first_guess_rows"] > 0
+    assert float((auto.u - none.u).abs().max()) < 1e-4
+    assert float((auto.v - none.v).abs().max()) < 1e-4
     assert none.shared_motion is None
     with pytest.raises(ValueError, match="shared_motion"):
         sts.track(movie, shared_motion="wobbly", **kw)

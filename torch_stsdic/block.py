@@ -35,6 +35,7 @@ from .quality import (
 )
 from .reference import Reference, noise_ratio, to_relative, to_total
 from .result import USABLE
+from .sample_guess import MeasuredSample
 from .shared_motion import SharedMotion, window_offsets
 from .solver import SubsetSolver, WindowSolution, subset_inside
 from .status import Status
@@ -44,6 +45,13 @@ __all__ = ["BlockContext", "Carry", "solve_block", "rows_numpy", "make_carry", "
 #: Gauss-Newton steps of the model check's classical solutions (measured on a 2,500-point
 #: movie: 26 % of rows had not converged after 3 steps, 0.8 % after 4; the rest are re-solved)
 CHECK_ITER = 4
+
+#: px: convergence threshold of the model check's classical solutions (the run's ``tol``,
+#: 1e-4 px by default, where looser). The check compares the window with the classical
+#: solution within 3 standard deviations of their difference (>= 0.015 px), so a classical
+#: solution 1e-3 px from its minimum decides the same; the rows that keep the classical
+#: solution (the check failed at every window) are converged to the run's ``tol`` first.
+CHECK_TOL = 1e-3
 
 #: rings of lost points filled from their neighbours' carried motion (Carry.from_neighbours)
 FILL_ROUNDS = 8
@@ -147,6 +155,9 @@ class BlockContext:
     neighbour_reach: float | None = None  # px, their median distance, made with them
     shared: SharedMotion | None = None  # the specimen's per-frame motion (None: not used)
     segments: torch.Tensor | None = None  # (T_series, 2) load segment of every frame
+    #: the measuring pass's solutions (:class:`~torch_stsdic.sample_guess.MeasuredSample`):
+    #: the initial guess of a block that has no carry (None: FFT cross-correlation)
+    first_guess: MeasuredSample | None = None
     _checker: SubsetSolver | None = None
 
     def grid_neighbours(self, ref: Reference) -> torch.Tensor:
@@ -166,7 +177,8 @@ class BlockContext:
         width away; rows not converged in them are solved in full before they are judged)."""
         if self._checker is None:
             cfg = self.solver.config
-            self._checker = SubsetSolver(cfg.replace(max_iter=min(cfg.max_iter, CHECK_ITER)))
+            self._checker = SubsetSolver(cfg.replace(max_iter=min(cfg.max_iter, CHECK_ITER),
+                                                     tol=max(cfg.tol, CHECK_TOL)))
             self._checker.reference_cache = self.solver.reference_cache  # the same subsets
         return self._checker
 
@@ -563,7 +575,15 @@ class _Block:
             shortened += int(good.sum())
             fail[sel[good]] = False
         pick = torch.nonzero(ok_c).flatten()[fail]
-        self.keep(idx[fail], _rows(cls, pick), only_better=False, m=0)
+        kept = _rows(cls, pick)
+        loose = ~redo[pick] if bool(redo.any()) else torch.ones_like(pick, dtype=torch.bool)
+        if bool(loose.any()):  # converged to CHECK_TOL only: on to the run's tol
+            pol = self.solve(idx[fail][loose], kept.params[loose].nan_to_num(0.0), m=0)
+            good = pol.status <= USABLE
+            better = loose.clone()
+            better[loose] = good
+            kept = _with_rows(kept, better, _rows(pol, good))
+        self.keep(idx[fail], kept, only_better=False, m=0)
         return shortened, int(fail.sum())
 
     def rescue_classical(self, guess: torch.Tensor | None, carry: Carry | None) -> int:
@@ -704,7 +724,16 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
     rows = b * n
     if carry is not None and _only_identity(run, ref, carry):
         carry = None  # the reference frame's own row, no velocity: it predicts nothing
-    if carry is None:
+    if carry is None and run.first_guess is not None and ref.acc is None:
+        # no carry (the first block): start from the measuring pass's solutions
+        init = blk.init_rows({nm: v.to(device=dev, dtype=run.dtype) for nm, v in
+                              run.first_guess.guess(ref.points, blk.windows(run.m),
+                                                    blk.dt[::n]).items()})
+        carried = torch.isfinite(init).all(1)
+        carried &= ~blk.keep_outside((init,), carried)
+        run.stats["first_guess_rows"] = run.stats.get("first_guess_rows", 0) + int(
+            carried.sum())
+    elif carry is None:
         carried = torch.zeros(rows, dtype=torch.bool, device=dev)
     else:
         pts0 = ref.points if ref.acc is None else ref.points - torch.stack(

@@ -171,7 +171,7 @@ def _accept(job: _Job, result: dict[str, Any]) -> int:
     job.sink.write_rows(rows, result["rows"])
     for k, v in result["info"].items():
         if k in ("frames_read", "prefiltered", "fft_rows", "redone_rows", "blocks",
-                 "off_centre_rows"):
+                 "off_centre_rows", "first_guess_rows"):
             job.info[k] = job.info.get(k, 0) + v
         elif k == "max_cached_frames":
             job.info[k] = max(job.info.get(k, 0), v)

@@ -41,18 +41,26 @@ class ReferenceCache:
     it, another geometry passes it by. It holds at most ``budget_mb`` MiB; a run whose points
     need more does without it (as before: sampled in every solve)."""
 
-    def __init__(self, budget_mb: float) -> None:
+    def __init__(self, budget_mb: float, expected: int = 0) -> None:
         self.budget = float(budget_mb) * 2**20
+        self.expected = int(expected)  # points a run expects to keep (first allocation)
         self.off = False  # over budget: not used again
         self.coeffs: torch.Tensor | None = None  # the reference's coefficients (identity)
         self.geo: tuple[torch.Tensor, ...] | None = None  # dx, dy, w, spatial
         self.znssd = True
         self.slot: torch.Tensor | None = None  # (R*H*W,) row of each pixel's subset, -1: none
-        self.rows: dict[str, torch.Tensor] = {}  # ft, fnorm, gx, gy, gram, texture: (M, ...)
+        # ft, fnorm, gx, gy, gram, texture: (capacity, ...), the first ``count`` rows kept;
+        # grown by doubling (not a concatenation per solve: that copied every kept row)
+        self._store: dict[str, torch.Tensor] = {}
+        self.count = 0
 
     @property
-    def count(self) -> int:
-        return 0 if not self.rows else int(self.rows["fnorm"].shape[0])
+    def rows(self) -> dict[str, torch.Tensor]:
+        """The kept subsets: ft, fnorm, gx, gy, gram, texture, each (count, ...)."""
+        return {k: v[:self.count] for k, v in self._store.items()}
+
+    def _empty(self) -> None:
+        self._store, self.count = {}, 0
 
     def applies(self, ref: BSplineImage, geo: Geometry) -> bool:
         """The cache serves subsets of ``ref`` with ``geo`` (emptied first when ``ref`` is
@@ -60,7 +68,8 @@ class ReferenceCache:
         if self.off:
             return False
         if self.coeffs is not ref.coeffs:
-            self.coeffs, self.rows = ref.coeffs, {}
+            self.coeffs = ref.coeffs
+            self._empty()
             self.slot = torch.full((ref.n_frames * ref.height * ref.width,), -1,
                                    dtype=torch.long, device=ref.coeffs.device)
             self.geo, self.znssd = (geo.dx, geo.dy, geo.w, geo.spatial), geo.znssd
@@ -74,17 +83,28 @@ class ReferenceCache:
         per = 3 * s * elem + 2 * elem + pa * pa * 8
         if (self.count + more) * per <= self.budget:
             return True
-        self.off, self.rows, self.slot, self.coeffs = True, {}, None, None
+        self.off, self.slot, self.coeffs = True, None, None
+        self._empty()
         return False
 
     def add(self, keys: torch.Tensor, data: SubsetData) -> None:
         """Keep the subsets ``data`` of the reference pixels ``keys`` (M,) (not kept yet)."""
         new = {"ft": data.ft, "fnorm": data.fnorm, "gx": data.gx, "gy": data.gy,
                "gram": data.gram, "texture": data.texture}
-        self.slot[keys] = torch.arange(self.count, self.count + keys.shape[0],
-                                       device=keys.device)
-        self.rows = new if not self.rows else {
-            k: torch.cat([self.rows[k], v], 0) for k, v in new.items()}
+        start, end = self.count, self.count + keys.shape[0]
+        capacity = next(iter(self._store.values())).shape[0] if self._store else 0
+        if end > capacity:  # grow: to the run's expected points, else double (within budget)
+            per = sum(v[:1].numel() * v.element_size() for v in new.values())
+            capacity = max(end, min(max(2 * capacity, self.expected),
+                                    int(self.budget // max(per, 1))))
+            store = {k: v.new_empty((capacity, *v.shape[1:])) for k, v in new.items()}
+            for k, v in self._store.items():
+                store[k][:start] = v[:start]
+            self._store = store
+        for k, v in new.items():
+            self._store[k][start:end] = v
+        self.slot[keys] = torch.arange(start, end, device=keys.device)
+        self.count = end
 
 
 @dataclass

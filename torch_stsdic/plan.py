@@ -136,8 +136,11 @@ def plan_run(
     scale: float | None = None,
     unit: str | None = None,
     time_unit: str | None = None,
+    shared_motion: str | None = "auto",
 ) -> RunPlan:
-    """Validate the arguments of :func:`~torch_stsdic.track` (same meaning) into a plan.
+    """Validate the arguments of :func:`~torch_stsdic.track` (same meaning) into a plan
+    (``shared_motion`` as there: a plan run by :func:`~torch_stsdic.run_plan` gives what
+    ``track`` gives).
 
     Raises:
         ValueError / InputError naming the argument: ROI off the image, subset larger than
@@ -204,10 +207,14 @@ def plan_run(
     options = {"step": int(step), "roi": None if roi is None else list(roi),
                "reference_update": reference_update, "lost_zncc": float(lost_zncc),
                "smoothing": smoothing, "checks": bool(checks)}
-    return RunPlan(series=ser, config=cfg, points=pts0.double(), targets=targets, times=ts_np,
+    plan = RunPlan(series=ser, config=cfg, points=pts0.double(), targets=targets, times=ts_np,
                    reference_image=ref_raw, reference_frame=ref_frame, reference_desc=ref_desc,
                    dtype=dtype, device=dev, batch_frames=n_batch, param_names=names,
                    options=options, units=units)
+    from .shared_pass import set_shared_motion  # local: shared_pass imports this module
+
+    set_shared_motion(plan, shared_motion)
+    return plan
 
 
 def grid_margin(cfg: DICConfig) -> int:

@@ -51,7 +51,7 @@ from .plan import RunPlan, plan_run
 from .reference import Reference, maybe_update
 from .refine import ReferenceOffsets, apply_offsets, measure_offsets, set_refinement
 from .result import TrackResult
-from .shared_pass import estimate_shared_motion, set_shared_motion
+from .shared_pass import estimate_shared_motion
 from .sinks import MemorySink, open_sink
 from .smoothing import smooth_in_time
 from .solver import SubsetSolver
@@ -75,7 +75,7 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
     if cfg.m > 0 or sum(k != plan.reference_frame for k in plan.targets) > 1:
         # the points are solved again (windows and their checks, later blocks): their
         # reference subsets are sampled once, within the working-memory budget
-        solver.reference_cache = ReferenceCache(cfg.memory_mb)
+        solver.reference_cache = ReferenceCache(cfg.memory_mb, expected=len(plan.points))
     cache = FrameCache(plan.series, solver, plan.dtype, plan.device,
                        ahead=default_ahead(plan.batch_frames, cfg.m))
     run = BlockContext(solver=solver, cache=cache,
@@ -97,6 +97,7 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
         kind = plan.options["shared_motion"]
         shared = estimate_shared_motion(plan, kind, auto=kind == "auto")
         run.shared = shared if shared.applied else None
+        run.first_guess = shared.sample  # the first block starts from the pass's solutions
         if shared.steps:
             run.segments = segment_bounds(shared.steps, len(plan.series)).to(plan.device)
         sink.write_shared_motion(shared)
@@ -288,12 +289,11 @@ def track(
     plan = plan_run(series, reference, frames, points, roi, mask, step, config, device, times,
                     batch_frames, reference_update=reference_update, smoothing=smoothing,
                     lost_zncc=lost_zncc, checks=checks, scale=scale, unit=unit,
-                    time_unit=time_unit)
+                    time_unit=time_unit, shared_motion=shared_motion)
     if refine_reference:
         set_refinement(plan, refine_frames)
     elif refine_frames is not None:
         raise ValueError("refine_frames: only with refine_reference=True")
-    set_shared_motion(plan, shared_motion)
     sink = open_sink(plan, out, resume=resume, overwrite=overwrite,
                      strain_window=strain_window, strain_kind=strain_kind)
     return run_plan(plan, sink, progress=progress, callback=callback)

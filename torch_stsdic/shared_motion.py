@@ -103,6 +103,7 @@ class SharedMotion:
         applied: whether the windows carry it (``"auto"`` applies it only where the jitter is
             significant: :meth:`significance`).
         seconds: wall time of the measurement.
+        sample: the pass's solutions at its sample points (the first block's initial guess).
     """
 
     kind: str
@@ -117,6 +118,10 @@ class SharedMotion:
     applied: bool = True
     seconds: float = 0.0
     extra: dict[str, Any] = field(default_factory=dict)
+    #: the measuring pass's trusted solutions at its sample of POIs
+    #: (:class:`~torch_stsdic.sample_guess.MeasuredSample`: the first block's initial guess);
+    #: None where not measured by a pass (not written to results)
+    sample: Any = field(default=None, repr=False)
 
     def significance(self) -> float:
         """How far the translation departs from a line in time, in units of its own

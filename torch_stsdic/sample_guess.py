@@ -1,0 +1,122 @@
+"""The first block's initial guess from the measuring pass (:mod:`torch_stsdic.shared_pass`).
+
+A run with a shared motion measures a sample of its POIs classically (FFT cross-correlation
+and Gauss-Newton) on every frame its windows use, before the first block. Those trusted
+solutions are an initial guess for every other POI: the nearest sample point's displacement
+carried by its own gradients, ``d_i = d_s + G_s (x_i - x_s)``, per window frame, and a line
+in time through them (:func:`~torch_stsdic.initial.linear_fit_in_time`) for the window's
+velocity. The first block then starts where later blocks start, from a prediction, instead
+of FFT cross-correlation at seed points (an STS(5) solve of 38,809 POIs: the FFT was a
+quarter of it).
+
+A guess is only made where the sample agrees on it: the POI's nearest sample points (up to
+:data:`NEAREST`, at least two) each carry their displacement to the POI, and the guesses
+must agree within :data:`GUESS_TOL`. Where they do not (a crack or a neck between them, a
+wrong sample point, a field that bends more than that at the sample's spacing) there is no
+guess, and the row is solved as before (FFT cross-correlation). A row that does not
+converge from its guess is rescued as a carried row is (previous target, neighbours,
+FFT)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from .initial import linear_fit_in_time
+
+__all__ = ["MeasuredSample", "GUESS_TOL", "NEAREST"]
+
+#: px: the guesses of a POI's nearest sample points must agree within this (IC-GN converges
+#: from a guess several px off on speckle; a field that bends by more between the sample
+#: points is left to FFT cross-correlation)
+GUESS_TOL = 0.5
+
+#: sample points whose guesses a POI compares: its nearest ones valid at a frame (around a
+#: POI inside the sample's hull: a crack cannot separate it from all of them)
+NEAREST = 4
+
+
+@dataclass
+class MeasuredSample:
+    """The measuring pass's trusted classical solutions at a sample of a run's POIs.
+
+    Attributes:
+        points: (S, 2) the sample POIs (x, y), px.
+        frames: (F,) int64 series frames measured (ascending).
+        disp: (F, S, 2) displacement (u, v), px; NaN where not trusted.
+        grad: (F, S, 2, 2) its gradients [[ux, uy], [vx, vy]], px/px; NaN where not trusted.
+    """
+
+    points: torch.Tensor
+    frames: torch.Tensor
+    disp: torch.Tensor
+    grad: torch.Tensor
+
+    def __post_init__(self) -> None:
+        self.points = self.points.double()
+        self.disp, self.grad = self.disp.double(), self.grad.double()
+
+    def guess(self, points: torch.Tensor, windows: torch.Tensor, dt: torch.Tensor
+              ) -> dict[str, torch.Tensor]:
+        """Initial guesses of the rows (target j, POI i) of a block, row = j * N + i.
+
+        Args:
+            points: (N, 2) the run's POIs, px.
+            windows: (B, T) series frames of every target's window.
+            dt: (B, T) their times minus the target's.
+
+        Returns u, ux, uy, v, vx, vy and (T > 1) ut, vt, each (B*N,) float64 (ut, vt in px
+        per time unit); NaN in every entry of a row without a trusted guess at all of its
+        window frames."""
+        pts = points.detach().to("cpu", torch.float64)
+        n, (b, t) = pts.shape[0], windows.shape
+        nan = torch.full((b * n,), float("nan"), dtype=torch.float64)
+        names = ("u", "ux", "uy", "v", "vx", "vy") + (("ut", "vt") if t > 1 else ())
+        frames, where = torch.unique(windows.cpu(), return_inverse=True)  # (F,), (B, T)
+        col = torch.searchsorted(self.frames, frames).clamp(max=max(len(self.frames) - 1, 0))
+        if (self.points.shape[0] < 2 or len(self.frames) == 0
+                or not bool((self.frames[col] == frames).all())):
+            return {nm: nan.clone() for nm in names}  # a frame the pass did not measure
+        near = _nearest(pts, self.points)  # (N, k)
+        # per distinct frame: the nearest valid sample point's guess, and whether it holds
+        d, g, ok = zip(*(self._at(int(c), near, pts) for c in col.tolist()))
+        d, g, ok = torch.stack(d), torch.stack(g), torch.stack(ok)  # (F, N, ...)
+        ok = ok[where].all(1).reshape(b * n)  # every frame of the row's window
+        disp = d[where].permute(0, 2, 1, 3).reshape(b * n, t, 2)  # (B*N, T, 2)
+        dtr = dt.detach().cpu().double().repeat_interleave(n, 0)  # (B*N, T)
+        d0, vel = linear_fit_in_time(disp, dtr)
+        # the gradients at the target frame (dt = 0; the frame nearest the target if none)
+        at = dt.detach().cpu().abs().argmin(1)  # (B,)
+        grad = g[where[torch.arange(b), at]].reshape(b * n, 2, 2)
+        out = {"u": d0[:, 0], "v": d0[:, 1], "ux": grad[:, 0, 0], "uy": grad[:, 0, 1],
+               "vx": grad[:, 1, 0], "vy": grad[:, 1, 1]}
+        if t > 1:
+            out["ut"], out["vt"] = vel[:, 0], vel[:, 1]
+        return {nm: torch.where(ok, v, nan) for nm, v in out.items()}
+
+    def _at(self, c: int, near: torch.Tensor, pts: torch.Tensor
+            ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """At measured frame ``c``: (N, 2) the guess of every POI ``pts`` (N, 2) from its
+        nearest valid sample point (of its candidates ``near`` (N, k)), (N, 2, 2) that
+        point's gradients, and (N,) bool whether at least two candidates agree on it."""
+        disp, grad = self.disp[c], self.grad[c]  # (S, 2), (S, 2, 2)
+        valid = torch.isfinite(disp).all(-1) & torch.isfinite(grad).flatten(1).all(-1)
+        ok_k = valid[near]  # (N, k)
+        off = pts.unsqueeze(1) - self.points[near]  # (N, k, 2)
+        cand = disp[near] + (grad[near] @ off.unsqueeze(-1)).squeeze(-1)  # (N, k, 2)
+        first = ok_k.to(torch.int8).argmax(-1, keepdim=True)  # (N, 1)
+        d = torch.gather(cand, 1, first.unsqueeze(-1).expand(-1, 1, 2)).squeeze(1)
+        spread = torch.where(ok_k, (cand - d.unsqueeze(1)).norm(dim=-1), 0.0).amax(-1)
+        ok = (ok_k.sum(-1) >= 2) & (spread <= GUESS_TOL)
+        g = grad[torch.gather(near, 1, first).squeeze(1)]
+        return d, g, ok
+
+
+def _nearest(points: torch.Tensor, sample: torch.Tensor, chunk: int = 4096) -> torch.Tensor:
+    """(M, k) indices into ``sample`` (S, 2) of the ``NEAREST`` sample points nearest each of
+    ``points`` (M, 2), nearest first (in chunks: no (M, S) matrix)."""
+    k = min(NEAREST, sample.shape[0])
+    return torch.cat([torch.topk(torch.cdist(points[a:a + chunk], sample), k,
+                                 largest=False).indices
+                      for a in range(0, points.shape[0], chunk)])
