@@ -533,3 +533,31 @@ def test_image_series_type() -> None:
     s2 = load_series(s, timestamps=[1.0, 2.0])
     np.testing.assert_array_equal(s2.times, [1.0, 2.0])
     np.testing.assert_array_equal(s.times, [0.0, 1.0])
+
+
+def test_tables_read_by_numpy_equal_the_line_parser(tmp_path):
+    """read_table's fast path (numpy's parser, for regular tables) gives what the line by
+    line parser gives; irregular tables fall back to it and its errors name the line."""
+    from torch_stsdic.io import tables
+
+    texts = ["x,y\n1.5,2\n3,4e1\n", "# c\n1 2\n\n3 4\n", '"X", "Y"\n1, 2\n 3 ,4\n',
+             "t\n0\n0.5\n1\n"]
+    for i, text in enumerate(texts):
+        f = tmp_path / f"t{i}.csv"
+        f.write_text(text)
+        fast = tables._fast_table(text)
+        assert fast is not None, text
+        orig = tables._fast_table
+        try:
+            tables._fast_table = lambda _text: None  # the line-by-line parser alone
+            slow = tables.read_table(str(f), "points")
+        finally:
+            tables._fast_table = orig
+        assert fast[0] == slow[0] and np.array_equal(fast[1], slow[1]), text
+        assert np.array_equal(tables.read_table(str(f), "points")[1], slow[1])
+    for text, msg in (("1,2\n3\n", "line 2: 1 values"), ("x y\n1 2\n3 a\n", "line 3")):
+        f = tmp_path / "bad.csv"
+        f.write_text(text)
+        assert tables._fast_table(text) is None
+        with pytest.raises(InputError, match=msg):
+            tables.read_table(str(f), "points")

@@ -259,7 +259,8 @@ def _cached_reference_data(ctx: BatchContext, pts, dt, fidx, ridx, key, uniq, in
 def _texture(geo: Geometry, data: SubsetData) -> torch.Tensor:
     """(N,) the window-weighted mean squared reference gradient of each subset (the texture
     test of :func:`solve_batch`)."""
-    return ((data.gx * data.gx + data.gy * data.gy) * geo.w).sum(-1) / geo.w.sum()
+    g2 = torch.addcmul(data.gx * data.gx, data.gy, data.gy)  # one (N, S) temporary
+    return (g2 @ geo.w.to(g2.dtype)) / geo.w.sum()
 
 
 def _uncertainty(ctx: BatchContext, data: SubsetData, params, zncc, ok):
