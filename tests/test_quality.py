@@ -383,3 +383,28 @@ def test_rows_left_classical_are_the_classical_solution():
     for f in ("u", "v"):
         d = (getattr(res, f) - getattr(cls, f))[left].abs().max()
         assert float(d) < 1e-5, (f, float(d))
+
+
+def test_line_mismatch_predicts_the_windows_that_would_fail():
+    """A window whose frames' classical displacements lie on a line (plus noise) is kept for
+    solving; one across a jump of many standard deviations is not; unknown frames never
+    condemn a window."""
+    from torch_stsdic.quality import line_mismatch
+
+    g = torch.Generator().manual_seed(0)
+    r, sd = 4000, 0.01
+    dt = torch.tensor([-1.0, 0.0, 1.0]).expand(r, -1)
+    line = 0.3 + 0.2 * dt
+    noisy = torch.stack([line, -line], -1) + sd * torch.randn(r, 3, 2, generator=g)
+    std = torch.full((r, 2), sd)
+    own = noisy[:, 1]
+    assert float(line_mismatch(noisy, dt, own, std).float().mean()) < 1e-3
+    jump = noisy.clone()
+    jump[:, 2] += 0.3  # a load step of 30 standard deviations after the target
+    assert bool(line_mismatch(jump, dt, own, std).all())
+    jump[:, 0] = float("nan")
+    assert not bool(line_mismatch(jump, dt, own, std).any())
+    # a shifted window (the target at its end: dt = -2, -1, 0)
+    dt2 = torch.tensor([-2.0, -1.0, 0.0]).expand(r, -1)
+    on = torch.stack([0.1 * dt2, 0.1 * dt2], -1) + sd * torch.randn(r, 3, 2, generator=g)
+    assert float(line_mismatch(on, dt2, on[:, 2], std).float().mean()) < 1e-3

@@ -26,6 +26,7 @@ import torch
 from .frames import FrameCache, window_frames
 from .quality import (
     carried_neighbours,
+    line_mismatch,
     median_test,
     model_mismatch,
     neighbour_tolerance,
@@ -511,6 +512,26 @@ class _Block:
             self.keep(r, self.solve(r, guess[try_], m=m), only_better=True, m=m)
         return int(r.numel())
 
+    def _off_a_line(self, rows: torch.Tensor, m: int, disp: torch.Tensor, std: torch.Tensor
+                    ) -> torch.Tensor:
+        """(R,) bool: rows whose window of half-width ``m`` cannot pass the model check,
+        judged from the classical solutions ``disp`` (B*N, 2) (std ``std``) of the block's
+        rows at the window's frames (:func:`~torch_stsdic.quality.line_mismatch`; False
+        where a frame of the window is not a target of the block)."""
+        run, n = self.run, self.n
+        win = self.windows(m)  # (B, T)
+        pos = torch.full((run.n_series,), -1, dtype=torch.long, device=run.device)
+        pos[self.k] = torch.arange(self.b, device=run.device)
+        j, i = rows // n, rows % n
+        at = pos[win[j]]  # (R, T) the block target of each window frame, -1: none
+        d = disp[(at * n + i.unsqueeze(1)).clamp(min=0)]  # (R, T, 2)
+        d = torch.where((at >= 0).unsqueeze(-1), d, float("nan"))
+        off = self.motion_of(m)
+        if off is not None:
+            d = d - off[rows]
+        _, dt = self.frames_of(win)
+        return line_mismatch(d, dt[rows], disp[rows], std[rows])
+
     def check_model(self) -> tuple[int, int]:
         """Model check (:func:`~torch_stsdic.quality.model_mismatch`) of every usable row
         against its classical solution at the target frame (started from the row's own
@@ -529,6 +550,13 @@ class _Block:
         # them, or disagree, are solved classically in full before they are judged
         quick = self.solve(idx, self.params[idx], m=0, solver=run.check_solver())
         cu, cv = quick.param_names.index("u"), quick.param_names.index("v")
+        # every row's classical (u, v) and std (NaN: none), for the shorter windows below
+        d_all = torch.full((self.b * self.n, 2), float("nan"), dtype=run.dtype,
+                           device=run.device)
+        s_all = d_all.clone()
+        conv = quick.status == int(Status.CONVERGED)
+        d_all[idx[conv]] = quick.params[conv][:, [cu, cv]].to(run.dtype)
+        s_all[idx[conv]] = quick.std[conv][:, [cu, cv]].to(run.dtype)
         # the reference frame as target: its classical residual is round-off, no measure
         not_ref = self.k.repeat_interleave(self.n)[idx] != self.ref.frame
         pixels = run.solver.window.effective_pixels()
@@ -548,6 +576,10 @@ class _Block:
             cls = _with_rows(cls, redo, self.solve(idx[redo], cls.params[redo].nan_to_num(0.0),
                                                    m=0))
         ok_c = cls.status <= USABLE
+        d_all[idx] = torch.where(ok_c.unsqueeze(1), cls.params[:, [cu, cv]].to(run.dtype),
+                                 float("nan"))
+        s_all[idx] = torch.where(ok_c.unsqueeze(1), cls.std[:, [cu, cv]].to(run.dtype),
+                                 float("nan"))
         self.status[idx[~ok_c]] = int(Status.POOR_FIT)
         idx, not_ref = idx[ok_c], not_ref[ok_c]
         p_cls = cls.params[ok_c]
@@ -565,6 +597,10 @@ class _Block:
             if not bool(fail.any()):
                 break
             sel = torch.nonzero(fail).flatten()
+            # a window whose frames' classical solutions miss a line would fail: not solved
+            sel = sel[~self._off_a_line(idx[sel], m, d_all, s_all)]
+            if sel.numel() == 0:
+                continue
             sol = self.solve(idx[sel], init[sel], m=m)
             good = sol.status <= USABLE
             d = sol.params[:, [iu, iv]].to(run.dtype)

@@ -51,8 +51,8 @@ __all__ = [
     "MODEL_Z", "MODEL_TOL", "RESIDUAL_Z", "RESIDUAL_ZNCC", "FIT_RATIO", "FIT_ZNCC_GOOD",
     "FIT_GROWTH",
     "MEDIAN_THRESHOLD", "MEDIAN_EPS_STD", "MEDIAN_EPS_MIN", "MEDIAN_SCATTER", "MEDIAN_ROUNDS",
-    "model_mismatch", "residual_mismatch", "poor_fit", "neighbours", "carried_neighbours",
-    "median_test",
+    "LINE_Z", "model_mismatch", "line_mismatch", "residual_mismatch", "poor_fit",
+    "neighbours", "carried_neighbours", "median_test",
 ]
 
 MODEL_Z = 3.0  #: model check: standard deviations of the STS - classical difference allowed
@@ -60,6 +60,9 @@ MODEL_TOL = 0.005  #: model check: px added in quadrature to that standard devia
 RESIDUAL_Z = 6.0  #: model check: the window's residual std may exceed the classical one by
 #: a factor 1 + RESIDUAL_Z / sqrt(subset pixels) (measured spread: 1 +- 0.03 at 21x21)
 RESIDUAL_ZNCC = 0.9999  #: model check: above this window ZNCC the residual test is not made
+#: shorter windows: one whose frames' classical displacements miss a line by the check's
+#: limit plus this many standard deviations of that prediction is not solved (it would fail)
+LINE_Z = 4.0
 FIT_RATIO = 2.0  #: fit check: residual std above this times the median is POOR_FIT
 FIT_ZNCC_GOOD = 0.999  #: fit check: a ZNCC at least this is a good fit whatever the median
 #: fit check: a point whose misfit (1 - ZNCC) grew by at most this factor since its last
@@ -92,6 +95,38 @@ def model_mismatch(d_sts: Tensor, d_cls: Tensor, std_sts: Tensor, std_cls: Tenso
     var = torch.maximum(vc - vs, 0.2 * vc) + MODEL_TOL**2
     z = (d_sts.double() - d_cls.double()).abs() / var.sqrt()
     return ~(z <= MODEL_Z).all(1)  # NaN differences fail
+
+
+def line_mismatch(disp: Tensor, dt: Tensor, own: Tensor, std_cls: Tensor) -> Tensor:
+    """(R,) bool: a window whose frames' classical displacements are this far off a line
+    cannot pass the model check (:func:`model_mismatch`), so it need not be solved.
+
+    The window's displacement at the target is, to within its noise, the least-squares line
+    through its frames' displacements evaluated at dt = 0. Where that line misses the
+    classical displacement ``own`` by more than the check's limit (``MODEL_Z`` standard
+    deviations of the difference, the window's variance taken as the classical one over T)
+    plus ``LINE_Z`` standard deviations of the prediction's own noise, the window fails.
+
+    Args:
+        disp: (R, T, 2) classical (u, v) at the window's frames, px, any known motion the
+            window carries (the shared motion's offsets) removed; NaN: unknown (then False).
+        dt: (R, T) the frames' times minus the target's.
+        own: (R, 2) the classical (u, v) at the target.
+        std_cls: (R, 2) its predicted standard deviation, px (taken for every frame).
+    """
+    d, t = disp.double(), dt.double()
+    n = t.shape[1]
+    tm = t.mean(1, keepdim=True)
+    sxx = ((t - tm) ** 2).sum(1, keepdim=True)
+    a = 1.0 / n - tm * (t - tm) / sxx.clamp(min=1e-12)  # (R, T) weights of the line at 0
+    line0 = (a.unsqueeze(-1) * d).sum(1)  # (R, 2)
+    at = t.abs().argmin(1, keepdim=True)  # the target's own frame in the window
+    c = a - torch.zeros_like(a).scatter_(1, at, 1.0)  # line0 - own, as weights of the frames
+    vc = torch.nan_to_num(std_cls.double(), nan=float("inf")) ** 2
+    sd_pred = (vc * (c * c).sum(1, keepdim=True)).sqrt()
+    sd_diff = (torch.maximum(vc * (1.0 - 1.0 / n), 0.2 * vc) + MODEL_TOL**2).sqrt()
+    off = (line0 - own.double()).abs()
+    return ((off > MODEL_Z * sd_diff + LINE_Z * sd_pred) & torch.isfinite(off)).any(1)
 
 
 def residual_mismatch(sigma_window: Tensor, sigma_classical: Tensor, n_pixels: float,
