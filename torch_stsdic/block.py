@@ -24,6 +24,7 @@ import numpy as np
 import torch
 
 from .frames import FrameCache, window_frames
+from .initial import linear_fit_in_time
 from .quality import (
     carried_neighbours,
     line_mismatch,
@@ -512,12 +513,36 @@ class _Block:
             self.keep(r, self.solve(r, guess[try_], m=m), only_better=True, m=m)
         return int(r.numel())
 
+    def _classical(self, idx: torch.Tensor, solver: SubsetSolver) -> WindowSolution:
+        """The classical solutions of rows ``idx`` from their window's solution (with
+        ``solver``); where the target is the reference frame itself it is the identity
+        (zero motion, ZNCC 1, zero std: the reference against itself), not solved."""
+        run = self.run
+        own = self.k.repeat_interleave(self.n)[idx] == self.ref.frame
+        if not bool(own.any()):
+            return self.solve(idx, self.params[idx], m=0, solver=solver)
+        names = run.solver.shape.spatial().param_names
+        r = idx.numel()
+        zeros = torch.zeros(r, len(names), dtype=run.dtype, device=run.device)
+        ident = WindowSolution(
+            points=self.pts[idx], params=zeros, param_names=names,
+            zncc=torch.ones(r, dtype=run.dtype, device=run.device),
+            status=torch.full((r,), int(Status.CONVERGED), dtype=torch.int8,
+                              device=run.device),
+            iterations=torch.zeros(r, dtype=torch.int32, device=run.device),
+            std=zeros.clone(), sigma=torch.zeros(r, dtype=run.dtype, device=run.device))
+        if bool(own.all()):
+            return ident
+        return _with_rows(ident, ~own, self.solve(idx[~own], self.params[idx[~own]], m=0,
+                                                  solver=solver))
+
     def _off_a_line(self, rows: torch.Tensor, m: int, disp: torch.Tensor, std: torch.Tensor
-                    ) -> torch.Tensor:
+                    ) -> tuple[torch.Tensor, torch.Tensor]:
         """(R,) bool: rows whose window of half-width ``m`` cannot pass the model check,
         judged from the classical solutions ``disp`` (B*N, 2) (std ``std``) of the block's
         rows at the window's frames (:func:`~torch_stsdic.quality.line_mismatch`; False
-        where a frame of the window is not a target of the block)."""
+        where a frame of the window is not a target of the block); and (R, 2) the velocity
+        of the line through them, px per time unit (NaN where a frame has none)."""
         run, n = self.run, self.n
         win = self.windows(m)  # (B, T)
         pos = torch.full((run.n_series,), -1, dtype=torch.long, device=run.device)
@@ -530,7 +555,8 @@ class _Block:
         if off is not None:
             d = d - off[rows]
         _, dt = self.frames_of(win)
-        return line_mismatch(d, dt[rows], disp[rows], std[rows])
+        _, vel = linear_fit_in_time(d, dt[rows])
+        return line_mismatch(d, dt[rows], disp[rows], std[rows]), vel
 
     def check_model(self) -> tuple[int, int]:
         """Model check (:func:`~torch_stsdic.quality.model_mismatch`) of every usable row
@@ -548,7 +574,7 @@ class _Block:
         iu, iv = run.names.index("u"), run.names.index("v")
         # a few classical steps from the window's solution; rows that do not converge in
         # them, or disagree, are solved classically in full before they are judged
-        quick = self.solve(idx, self.params[idx], m=0, solver=run.check_solver())
+        quick = self._classical(idx, run.check_solver())
         cu, cv = quick.param_names.index("u"), quick.param_names.index("v")
         # every row's classical (u, v) and std (NaN: none), for the shorter windows below
         d_all = torch.full((self.b * self.n, 2), float("nan"), dtype=run.dtype,
@@ -598,10 +624,16 @@ class _Block:
                 break
             sel = torch.nonzero(fail).flatten()
             # a window whose frames' classical solutions miss a line would fail: not solved
-            sel = sel[~self._off_a_line(idx[sel], m, d_all, s_all)]
+            off, vel = self._off_a_line(idx[sel], m, d_all, s_all)
+            sel, vel = sel[~off], vel[~off]
             if sel.numel() == 0:
                 continue
-            sol = self.solve(idx[sel], init[sel], m=m)
+            start = init[sel]  # the velocity of the classical solutions' line, where known
+            for c, nm in ((0, "ut"), (1, "vt")):
+                j = run.names.index(nm)
+                start[:, j] = torch.where(torch.isfinite(vel[:, c]), vel[:, c].to(start),
+                                          start[:, j])
+            sol = self.solve(idx[sel], start, m=m)
             good = sol.status <= USABLE
             d = sol.params[:, [iu, iv]].to(run.dtype)
             good &= ~model_mismatch(d, d_cls[sel], sol.std[:, [iu, iv]], s_cls[sel])
