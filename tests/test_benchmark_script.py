@@ -97,3 +97,15 @@ def test_movie_preset_runs_and_splits_time(tmp_path):
     assert sp["ahead_read_s"] > 0 and sp["ahead_prefilter_s"] > 0  # read ahead in the thread
     assert 0 < r["overhead_share"] < 1 and r["frames_per_s"] > 0
     assert "| movie 6x1024 16 POIs STS(5) cpu" in p.stdout
+
+
+def test_opencorr_bench_says_how_to_build_when_the_harness_is_missing(tmp_path):
+    """scripts/bench_opencorr.py without a built OpenCorr harness: one line saying how to
+    build it, no record written, exit status 1 (nothing else runs)."""
+    out = tmp_path / "oc.json"
+    proc = subprocess.run([sys.executable, str(SCRIPT.parent / "bench_opencorr.py"),
+                           "--opencorr-bin", str(tmp_path / "missing"), "--out", str(out)],
+                          capture_output=True, text=True, timeout=120)
+    msg = (proc.stdout + proc.stderr).strip().splitlines()
+    assert proc.returncode == 1 and len(msg) == 1, proc.stdout + proc.stderr
+    assert "scripts/opencorr/build.sh" in msg[0] and not out.exists()
