@@ -226,11 +226,16 @@ def main() -> None:
         print(f"{name:<18}{s['time_s']:>8.2f}{s['poi_per_s']:>9.0f}"
               f"{s.get('vs_bare', 1.0):>8.2f}{s['process_wall_s']:>11.2f}"
               f"{s['max_rss_mb']:>12.0f}")
+    print_stages(summary)
+    print(f"-> {path}")
+
+
+def print_stages(summary: dict[str, Any]) -> None:
+    """One line per ``stsdic run`` case: its stage times (s)."""
     for name in ("cli", "cli --no-checks"):
         st = summary[name]["stages_s"]
         print(f"{name}: " + ", ".join(f"{k[:-2]} {v:.3f}" for k, v in st.items()
                                       if v is not None))
-    print(f"-> {path}")
 
 
 if __name__ == "__main__":

@@ -296,10 +296,7 @@ def main() -> None:
     print(f"opencorr stages: fftcc {oc['fftcc_s']:.3f}, prep {oc['prep_s']:.3f}, "
           f"icgn {oc['icgn_s']:.3f} s; valid {oc['n_valid']:.0f}/{N_POINTS}, "
           f"not converged {oc['not_converged']}")
-    for name in ("cli", "cli --no-checks"):
-        st = summary[name]["stages_s"]
-        print(f"{name}: " + ", ".join(f"{k[:-2]} {v:.3f}" for k, v in st.items()
-                                      if v is not None))
+    bc.print_stages(summary)
     print(f"accuracy (truth u {TRUTH['u']:.2f}, v {TRUTH['v']:.2f}, tol {TOL_PX} px): "
           + ("ok" if accuracy["ok"] else "FAILED: " + ", ".join(
               n for n, c in checks.items() if not c["ok"])))
