@@ -259,8 +259,9 @@ def _cached_reference_data(ctx: BatchContext, pts, dt, fidx, ridx, key, uniq, in
 def _texture(geo: Geometry, data: SubsetData) -> torch.Tensor:
     """(N,) the window-weighted mean squared reference gradient of each subset (the texture
     test of :func:`solve_batch`)."""
-    g2 = torch.addcmul(data.gx * data.gx, data.gy, data.gy)  # one (N, S) temporary
-    return (g2 @ geo.w.to(g2.dtype)) / geo.w.sum()
+    # one (N, S) temporary; summed row by row (a row's value does not depend on its batch)
+    g2 = torch.addcmul(data.gx * data.gx, data.gy, data.gy).mul_(geo.w)
+    return g2.sum(-1) / geo.w.sum()
 
 
 def _uncertainty(ctx: BatchContext, data: SubsetData, params, zncc, ok):

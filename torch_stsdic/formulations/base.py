@@ -152,7 +152,7 @@ def reference_subsets(geo: Geometry, ref: BSplineImage, pts: Tensor, ridx: Tenso
     # sums row by row (a matrix-vector product rounds a row by where it lies in the batch):
     # a point's subset is the same whatever points it is solved with, in a resumed run too
     ft = f - ((f * geo.w).sum(-1) / geo.w.sum()).unsqueeze(-1) if geo.znssd else f
-    fnorm = (ft * ft * geo.w).sum(-1).sqrt()
+    fnorm = (ft * ft).mul_(geo.w).sum(-1).sqrt()  # the same rounding, one temporary fewer
     return SubsetData(px=px, py=py, dt=dt, fidx=fidx, ft=ft, fnorm=fnorm, gx=gx, gy=gy,
                       motion=motion)
 
