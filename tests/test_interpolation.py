@@ -99,3 +99,33 @@ def test_compiled_sampler_matches_eager():
         pytest.skip("torch.compile is not available on this machine (eager fallback used)")
     for a, e in zip(out, ref):
         assert torch.allclose(a, e, atol=1e-3)
+
+
+@pytest.mark.parametrize("order", [3, 5])
+def test_whole_pixel_subsets_are_gathered_bit_identically(order):
+    """Subsets of POIs on the pixel grid (the reference subsets) are gathered from the
+    spline's values and gradients at every pixel, computed by the same kernel: the very
+    same numbers as sampling them, for square and circular windows and several frames;
+    off-grid points and subsets past the border are sampled as before."""
+    from torch_stsdic.interpolation import BSplineImage
+
+    g = torch.Generator().manual_seed(3)
+    img = torch.rand(2, 90, 70, generator=g) * 255
+    b = BSplineImage(img, order)
+    r = 6
+    a = torch.arange(-r, r + 1, dtype=torch.float32)
+    yy, xx = torch.meshgrid(a, a, indexing="ij")
+    dx, dy = xx.flatten(), yy.flatten()
+    n = 400
+    px = torch.randint(r, 70 - r, (n,), generator=g).float()
+    py = torch.randint(r, 90 - r, (n,), generator=g).float()
+    fr = torch.randint(0, 2, (n,), generator=g)
+    for keep in (torch.ones_like(dx, dtype=torch.bool), dx * dx + dy * dy <= (r + 0.5) ** 2):
+        fast = b.sample_subsets(px, py, dx[keep], dy[keep], fr)
+        slow = b._subsets(px.view(-1, 1), py.view(-1, 1), dx[keep], dy[keep], fr.view(-1, 1))
+        assert all(torch.equal(f, s) for f, s in zip(fast, slow))
+    assert b._grid is not None  # the gathered path was taken
+    assert b._subsets_on_grid(px.view(-1, 1) + 0.5, py.view(-1, 1), dx, dy,
+                              fr.view(-1, 1)) is None
+    edge = torch.tensor([[2.0]])
+    assert b._subsets_on_grid(edge, edge, dx, dy, torch.zeros(1, 1, dtype=torch.long)) is None

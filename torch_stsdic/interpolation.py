@@ -231,6 +231,7 @@ class BSplineImage:
         self.padded_width = self.coeffs.shape[-1]
         self.padded_height = self.coeffs.shape[-2]
         self._flat = self.coeffs.reshape(-1)
+        self._grid: tuple[torch.Tensor, ...] | None = None  # values, d/dx, d/dy per pixel
 
     @property
     def device(self) -> torch.device:
@@ -277,10 +278,68 @@ class BSplineImage:
         frame an int or (N,) integer tensor."""
         px, py = px.reshape(-1, 1).to(self.dtype), py.reshape(-1, 1).to(self.dtype)
         frame_t = torch.as_tensor(frame, device=self.device).long().reshape(-1, 1)
+        fast = self._subsets_on_grid(px, py, dx, dy, frame_t)
+        if fast is not None:
+            return fast
+        return self._subsets(px, py, dx, dy, frame_t)
+
+    def _subsets(self, px, py, dx, dy, frame_t):
+        """:meth:`sample_subsets` by the sampling kernels."""
         args = self.kernel_args()
         if native.usable_image(args, px, py, dx, dy):
             return native.subsets(args, self.order, px, py, dx, dy, frame_t * args[-1], True)
         return self.sample(px + dx, py + dy, frame=frame_t, grad=True)
+
+    #: :meth:`sample_subsets` gathers whole-pixel subsets from the spline's values and
+    #: gradients at every pixel (computed once) for stacks of at most this many frames
+    GRID_FRAMES = 4
+
+    def _subsets_on_grid(self, px, py, dx, dy, frame_t):
+        """Subsets whose points and offsets are all whole pixels (the reference subsets of
+        POIs on the pixel grid), gathered from the spline's values and gradients at every
+        pixel (computed once per image by the same kernel: the same numbers); None where
+        that does not apply (off-grid, gradients required, a long stack, points whose
+        subsets leave the image)."""
+        if (self.n_frames > self.GRID_FRAMES or px.requires_grad or py.requires_grad
+                or self._flat.requires_grad or px.numel() == 0):
+            return None
+        if not (bool((px == px.round()).all()) and bool((py == py.round()).all())
+                and bool((dx == dx.round()).all()) and bool((dy == dy.round()).all())):
+            return None
+        hx, hy = int(dx.abs().max()), int(dy.abs().max())
+        x0, y0 = px.long().reshape(-1) - hx, py.long().reshape(-1) - hy
+        if (int(x0.min()) < 0 or int(y0.min()) < 0 or int(x0.max()) + 2 * hx >= self.width
+                or int(y0.max()) + 2 * hy >= self.height):
+            return None
+        grid = self._pixel_grid()  # 3 x (T, H, W)
+        wx, wy = 2 * hx + 1, 2 * hy + 1
+        col = ((dy.round().long() + hy) * wx + dx.round().long() + hx).to(self.device)
+        full = col.numel() == wx * wy and bool((col == torch.arange(wx * wy,
+                                                                   device=col.device)).all())
+        f = frame_t.reshape(-1).expand(x0.numel())
+        out = []
+        for g in grid:
+            t, h, w = g.shape
+            st = g.stride()
+            win = g.as_strided((t, h - wy + 1, w - wx + 1, wy, wx),
+                               (st[0], st[1], st[2], st[1], st[2]))
+            sub = win[f, y0, x0].reshape(x0.numel(), wx * wy)
+            out.append(sub if full else sub[:, col])
+        return tuple(out)
+
+    def _pixel_grid(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The spline's values and d/dx, d/dy at every pixel of every frame, each (T, H, W),
+        by the subset kernel itself (cached)."""
+        if getattr(self, "_grid", None) is None or self._grid[0].device != self.device:
+            t, h, w = self.n_frames, self.height, self.width
+            ys = torch.arange(h, device=self.device, dtype=self.dtype)
+            py = ys.repeat(t).reshape(-1, 1)
+            px = torch.zeros_like(py)
+            dx = torch.arange(w, device=self.device, dtype=self.dtype)
+            frame_t = torch.arange(t, device=self.device).repeat_interleave(h).reshape(-1, 1)
+            v, gx, gy = self._subsets(px, py, dx, torch.zeros_like(dx), frame_t)
+            self._grid = tuple(a.reshape(t, h, w).contiguous() for a in (v, gx, gy))
+        return self._grid
 
     def kernel_args(self) -> tuple:
         """(flat coefficients, padded width, x_lo, x_hi, y_lo, y_hi, index shift, plane size):
