@@ -129,3 +129,10 @@ def test_whole_pixel_subsets_are_gathered_bit_identically(order):
                               fr.view(-1, 1)) is None
     edge = torch.tensor([[2.0]])
     assert b._subsets_on_grid(edge, edge, dx, dy, torch.zeros(1, 1, dtype=torch.long)) is None
+    # a few POIs on a large image: sampled (the per-pixel images would cost more)
+    big = BSplineImage(torch.rand(400, 400, generator=g) * 255, order)
+    few = torch.tensor([100.0, 250.0])
+    got = big.sample_subsets(few, few, dx, dy)
+    assert big._grid is None
+    assert all(torch.equal(a, b_) for a, b_ in zip(got, big._subsets(
+        few.view(-1, 1), few.view(-1, 1), dx, dy, torch.zeros(2, 1, dtype=torch.long))))

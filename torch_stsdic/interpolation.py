@@ -231,7 +231,6 @@ class BSplineImage:
         self.padded_width = self.coeffs.shape[-1]
         self.padded_height = self.coeffs.shape[-2]
         self._flat = self.coeffs.reshape(-1)
-        self._grid: tuple[torch.Tensor, ...] | None = None  # values, d/dx, d/dy per pixel
 
     @property
     def device(self) -> torch.device:
@@ -290,9 +289,17 @@ class BSplineImage:
             return native.subsets(args, self.order, px, py, dx, dy, frame_t * args[-1], True)
         return self.sample(px + dx, py + dy, frame=frame_t, grad=True)
 
+    #: the spline's values, d/dx and d/dy at every pixel, (T, H, W) each (None: not made;
+    #: a class default, so stacks built without ``__init__`` have it too)
+    _grid: tuple[torch.Tensor, ...] | None = None
+
     #: :meth:`sample_subsets` gathers whole-pixel subsets from the spline's values and
-    #: gradients at every pixel (computed once) for stacks of at most this many frames
+    #: gradients at every pixel (computed once) for stacks of at most this many frames,
     GRID_FRAMES = 4
+    #: ... of at most this many MiB for the three per-pixel images, and once the subsets
+    #: asked for hold at least half as many samples as the stack has pixels (sparse POIs on a
+    #: large image are sampled: the per-pixel images would cost more than they save)
+    GRID_MAX_MB = 512.0
 
     def _subsets_on_grid(self, px, py, dx, dy, frame_t):
         """Subsets whose points and offsets are all whole pixels (the reference subsets of
@@ -311,6 +318,11 @@ class BSplineImage:
         if (int(x0.min()) < 0 or int(y0.min()) < 0 or int(x0.max()) + 2 * hx >= self.width
                 or int(y0.max()) + 2 * hy >= self.height):
             return None
+        if self._grid is None:
+            pixels = self.n_frames * self.height * self.width
+            mb = 3 * pixels * self.coeffs.element_size() / 2**20
+            if mb > self.GRID_MAX_MB or 2 * x0.numel() * dx.numel() < pixels:
+                return None
         grid = self._pixel_grid()  # 3 x (T, H, W)
         wx, wy = 2 * hx + 1, 2 * hy + 1
         col = ((dy.round().long() + hy) * wx + dx.round().long() + hx).to(self.device)
@@ -330,7 +342,7 @@ class BSplineImage:
     def _pixel_grid(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The spline's values and d/dx, d/dy at every pixel of every frame, each (T, H, W),
         by the subset kernel itself (cached)."""
-        if getattr(self, "_grid", None) is None or self._grid[0].device != self.device:
+        if self._grid is None or self._grid[0].device != self.device:
             t, h, w = self.n_frames, self.height, self.width
             ys = torch.arange(h, device=self.device, dtype=self.dtype)
             py = ys.repeat(t).reshape(-1, 1)
