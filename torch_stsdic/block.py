@@ -561,11 +561,14 @@ class _Block:
     def check_model(self) -> tuple[int, int]:
         """Model check (:func:`~torch_stsdic.quality.model_mismatch`) of every usable row
         against its classical solution at the target frame (started from the row's own
-        solution: ``CHECK_ITER`` steps, in full where those do not converge or disagree).
-        Rows that fail are solved again with shorter windows (m - 1 .. 1) started
-        from the classical solution and, where none fits, keep the classical solution (ut, vt
-        NaN, ``m_used`` 0). A usable row whose classical solution fails is POOR_FIT. Returns
-        (rows shortened, rows left classical)."""
+        solution: ``CHECK_ITER`` steps to ``CHECK_TOL``, in full where those do not converge
+        or disagree; the identity where the target is the reference frame). Rows that fail
+        are solved again with shorter windows (m - 1 .. 1) started from the classical
+        solution and the velocity of the line through the block's classical solutions,
+        except where those already miss a line (:func:`~torch_stsdic.quality.line_mismatch`);
+        where no window fits they keep the classical solution, converged to the run's
+        ``tol`` (ut, vt NaN, ``m_used`` 0). A usable row whose classical solution fails is
+        POOR_FIT. Returns (rows shortened, rows left classical)."""
         run = self.run
         idx = torch.nonzero((self.status <= USABLE) & torch.isfinite(self.params).all(1)
                             ).flatten()
@@ -630,9 +633,10 @@ class _Block:
                 continue
             start = init[sel]  # the velocity of the classical solutions' line, where known
             for c, nm in ((0, "ut"), (1, "vt")):
-                j = run.names.index(nm)
-                start[:, j] = torch.where(torch.isfinite(vel[:, c]), vel[:, c].to(start),
-                                          start[:, j])
+                if nm in run.names:
+                    j = run.names.index(nm)
+                    start[:, j] = torch.where(torch.isfinite(vel[:, c]), vel[:, c].to(start),
+                                              start[:, j])
             sol = self.solve(idx[sel], start, m=m)
             good = sol.status <= USABLE
             d = sol.params[:, [iu, iv]].to(run.dtype)
