@@ -32,12 +32,13 @@ __all__ = ["MeasuredSample", "GUESS_TOL", "NEAREST"]
 #: points is left to FFT cross-correlation)
 GUESS_TOL = 0.5
 
-#: sample points whose guesses a POI compares: its nearest ones valid at a frame (around a
-#: POI inside the sample's hull: a crack cannot separate it from all of them)
+#: sample points whose guesses a POI compares: its nearest ones, those of them trusted at
+#: the frame (around a POI inside the sample's hull a straight crack cannot separate it
+#: from all of them)
 NEAREST = 4
 
 
-@dataclass
+@dataclass(eq=False)
 class MeasuredSample:
     """The measuring pass's trusted classical solutions at a sample of a run's POIs.
 
