@@ -85,19 +85,29 @@ def recording(log: list):
             block_mod.residual_mismatch)
 
     def check_model(self):
-        state.update(stage=0, block=self, solves=[])
-        solve = self.solve
+        state.update(stage=0, block=self, solves=[], quiet=False)
+        solve, classical = self.solve, self._classical
 
         def solve_logged(idx, init, m=None, solver=None):  # the rows of each stage
             sol = solve(idx, init, m=m, solver=solver)
+            if not state["quiet"]:
+                state["solves"].append((idx, sol.status))
+            return sol
+
+        def classical_logged(idx, solver):  # stage 0: every usable row (the reference
+            state["quiet"] = True  # frame's own rows are the identity, not solved)
+            try:
+                sol = classical(idx, solver)
+            finally:
+                state["quiet"] = False
             state["solves"].append((idx, sol.status))
             return sol
 
-        self.solve = solve_logged
+        self.solve, self._classical = solve_logged, classical_logged
         try:
             return orig[0](self)
         finally:
-            del self.solve
+            del self.solve, self._classical
 
     def rows_of_stage() -> np.ndarray | None:
         """Rows (target * N + point) judged in this call (stages 0 and 1)."""
