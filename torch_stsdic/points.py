@@ -13,7 +13,8 @@ import torch
 
 from .io import InputError, load_series
 
-__all__ = ["grid_points", "filter_points", "check_roi", "load_mask", "nearest_points"]
+__all__ = ["grid_points", "filter_points", "check_roi", "load_mask", "nearest_points",
+           "nearest_among"]
 
 
 def check_roi(roi: Any, shape: tuple[int, int]) -> tuple[float, float, float, float]:
@@ -191,14 +192,23 @@ def _nearest_brute(p: torch.Tensor, k: int, chunk: int, dtype, rows: torch.Tenso
                    ) -> tuple[torch.Tensor, torch.Tensor]:
     """:func:`nearest_points` of the points ``rows`` (default all) among all, by chunks of
     rows of the full distance matrix."""
-    q = p if rows is None else p[rows]
+    dist, idx = nearest_among(p if rows is None else p[rows], p, k, chunk)
+    return dist.to(dtype), idx
+
+
+def nearest_among(query: torch.Tensor, points: torch.Tensor, k: int, chunk: int = 4096
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Distances and indices (M, k) of the ``k`` points of ``points`` (N, 2) nearest each of
+    ``query`` (M, 2), nearest first: the full distance matrix by chunks of ``chunk`` rows
+    (another set than ``query``'s own, e.g. a sample of it; :func:`nearest_points` for a set
+    among itself)."""
     dist, idx = [], []
-    for i in range(0, q.shape[0], chunk):
-        d = torch.cdist(q[i : i + chunk], p)
+    for i in range(0, query.shape[0], chunk):
+        d = torch.cdist(query[i : i + chunk], points)
         dk, ik = torch.topk(d, k, dim=1, largest=False)
         dist.append(dk)
         idx.append(ik)
     if not dist:
-        return (torch.zeros(0, k, dtype=dtype, device=p.device),
-                torch.zeros(0, k, dtype=torch.long, device=p.device))
-    return torch.cat(dist, 0).to(dtype), torch.cat(idx, 0)
+        return (torch.zeros(0, k, dtype=points.dtype, device=points.device),
+                torch.zeros(0, k, dtype=torch.long, device=points.device))
+    return torch.cat(dist, 0), torch.cat(idx, 0)

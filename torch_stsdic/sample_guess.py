@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import torch
 
 from .initial import linear_fit_in_time
+from .points import nearest_among
 
 __all__ = ["MeasuredSample", "GUESS_TOL", "NEAREST"]
 
@@ -79,7 +80,8 @@ class MeasuredSample:
         if (self.points.shape[0] < 2 or len(self.frames) == 0
                 or not bool((self.frames[col] == frames).all())):
             return {nm: nan.clone() for nm in names}  # a frame the pass did not measure
-        near = _nearest(pts, self.points)  # (N, k)
+        # (N, k) each POI's nearest sample points, nearest first
+        near = nearest_among(pts, self.points, min(NEAREST, self.points.shape[0]))[1]
         # per distinct frame: the nearest valid sample point's guess, and whether it holds
         d, g, ok = zip(*(self._at(int(c), near, pts) for c in col.tolist()))
         d, g, ok = torch.stack(d), torch.stack(g), torch.stack(ok)  # (F, N, ...)
@@ -112,12 +114,3 @@ class MeasuredSample:
         ok = (ok_k.sum(-1) >= 2) & (spread <= GUESS_TOL)
         g = grad[torch.gather(near, 1, first).squeeze(1)]
         return d, g, ok
-
-
-def _nearest(points: torch.Tensor, sample: torch.Tensor, chunk: int = 4096) -> torch.Tensor:
-    """(M, k) indices into ``sample`` (S, 2) of the ``NEAREST`` sample points nearest each of
-    ``points`` (M, 2), nearest first (in chunks: no (M, S) matrix)."""
-    k = min(NEAREST, sample.shape[0])
-    return torch.cat([torch.topk(torch.cdist(points[a:a + chunk], sample), k,
-                                 largest=False).indices
-                      for a in range(0, points.shape[0], chunk)])
