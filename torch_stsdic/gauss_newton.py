@@ -191,22 +191,34 @@ def _reference_data(ctx: BatchContext, pts, dt, fidx, ridx) -> SubsetData:
     ij = pts.detach().round()
     key = (ridx * ctx.ref.height + ij[:, 1].long()) * ctx.ref.width + ij[:, 0].long()
     uniq, inv = torch.unique(key, return_inverse=True)
-    # few repeats: sampling them is cheaper than the gather
     on_grid = bool((ij == pts).all())
     if on_grid and ctx.cache is not None and ctx.cache.applies(ctx.ref, geo):
         data = _cached_reference_data(ctx, pts, dt, fidx, ridx, key, uniq, inv)
         if data is not None:
             return data
+    # few repeats: sampling them is cheaper than the gather
     repeats = uniq.shape[0] <= 0.75 * n and on_grid
-    sel = slice(None)
-    if repeats:  # the first row of each distinct point
-        sel = torch.full((uniq.shape[0],), n, dtype=torch.long, device=pts.device)
-        sel = sel.scatter_reduce(0, inv, torch.arange(n, device=pts.device), "amin")
-    data = reference_subsets(geo, ctx.ref, pts[sel], ridx[sel], dt[sel], fidx[sel])
-    data.gram = centred_gram(geo, data.gx, data.gy)
-    data.texture = _texture(geo, data)  # of each distinct point, before the repeats
+    sel = _first_rows(inv, uniq.shape[0]) if repeats else slice(None)
+    data = _sampled(ctx, pts, dt, fidx, ridx, sel)
     if repeats:
         data = _rows_of(ctx, data, inv, pts, dt, fidx)
+    return data
+
+
+def _first_rows(inv: torch.Tensor, n_points: int) -> torch.Tensor:
+    """(n_points,) the first row of each distinct point, from the rows' point ``inv`` (N,)."""
+    n = inv.shape[0]
+    first = torch.full((n_points,), n, dtype=torch.long, device=inv.device)
+    return first.scatter_reduce(0, inv, torch.arange(n, device=inv.device), "amin")
+
+
+def _sampled(ctx: BatchContext, pts, dt, fidx, ridx, rows) -> SubsetData:
+    """The reference subsets of the rows ``rows`` (one per distinct point), sampled, with
+    their centred gram and texture."""
+    geo = ctx.geo
+    data = reference_subsets(geo, ctx.ref, pts[rows], ridx[rows], dt[rows], fidx[rows])
+    data.gram = centred_gram(geo, data.gx, data.gy)
+    data.texture = _texture(geo, data)  # of each distinct point, before any repeats
     return data
 
 
@@ -235,7 +247,6 @@ def _cached_reference_data(ctx: BatchContext, pts, dt, fidx, ridx, key, uniq, in
     sampled (as there) and kept, then every row takes its point's kept subsets. None where
     they would exceed the cache's budget (the cache is then off)."""
     cache, geo = ctx.cache, ctx.geo
-    n = pts.shape[0]
     slot_u = cache.slot[uniq]
     miss = slot_u < 0
     n_miss = int(miss.sum())
@@ -243,13 +254,8 @@ def _cached_reference_data(ctx: BatchContext, pts, dt, fidx, ridx, key, uniq, in
         s = int(geo.w.numel())
         if not cache.fits(n_miss, s, ctx.ref.coeffs.element_size(), 2 * (geo.ks + 1)):
             return None
-        first = torch.full((uniq.shape[0],), n, dtype=torch.long, device=pts.device)
-        first = first.scatter_reduce(0, inv, torch.arange(n, device=pts.device), "amin")
-        sel = first[miss]
-        new = reference_subsets(geo, ctx.ref, pts[sel], ridx[sel], dt[sel], fidx[sel])
-        new.gram = centred_gram(geo, new.gx, new.gy)
-        new.texture = _texture(geo, new)
-        cache.add(uniq[miss], new)
+        cache.add(uniq[miss], _sampled(ctx, pts, dt, fidx, ridx,
+                                       _first_rows(inv, uniq.shape[0])[miss]))
     kept = cache.rows
     data = SubsetData(px=pts, py=pts, dt=dt, fidx=fidx, ft=kept["ft"], fnorm=kept["fnorm"],
                       gx=kept["gx"], gy=kept["gy"], gram=kept["gram"], texture=kept["texture"])
