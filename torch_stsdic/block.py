@@ -333,16 +333,29 @@ class _Block:
             return rows
         inside = subset_inside(self.pts, float(run.solver.window.half), self.ref.img.height,
                                self.ref.img.width)
-        self.params[rows] = 0.0
-        self.zncc[rows] = 1.0
-        self.status[rows] = torch.where(inside[rows], int(Status.CONVERGED),
-                                        int(Status.OUTSIDE)).to(torch.int8)
-        self.params[rows & ~inside] = float("nan")
-        self.zncc[rows & ~inside] = float("nan")
-        self.std[rows & inside] = 0.0
-        self.sigma[rows & inside] = 0.0
-        self.m_used[rows] = 0
+        idx = torch.nonzero(rows & inside).flatten()
+        self.keep(idx, self.identity_solution(idx), only_better=False, m=0)
+        out = rows & ~inside
+        self.params[out] = float("nan")
+        self.zncc[out] = float("nan")
+        self.status[out] = int(Status.OUTSIDE)
+        self.m_used[out] = 0
         return rows
+
+    def identity_solution(self, idx: torch.Tensor) -> WindowSolution:
+        """The classical solution of rows ``idx`` whose target is the current reference
+        frame itself: zero displacement and gradients, ZNCC 1, zero noise and std,
+        CONVERGED (the reference against itself, known without a solve)."""
+        run, r = self.run, idx.numel()
+        names = run.solver.shape.spatial().param_names
+        zeros = torch.zeros(r, len(names), dtype=run.dtype, device=run.device)
+        return WindowSolution(
+            points=self.pts[idx], params=zeros, param_names=names,
+            zncc=torch.ones(r, dtype=run.dtype, device=run.device),
+            status=torch.full((r,), int(Status.CONVERGED), dtype=torch.int8,
+                              device=run.device),
+            iterations=torch.zeros(r, dtype=torch.int32, device=run.device),
+            std=zeros.clone(), sigma=torch.zeros(r, dtype=run.dtype, device=run.device))
 
     def lost(self) -> torch.Tensor:
         """(B*N,) bool: rows without a trustworthy solution (not converged, a poor fit, or a
@@ -515,22 +528,12 @@ class _Block:
 
     def _classical(self, idx: torch.Tensor, solver: SubsetSolver) -> WindowSolution:
         """The classical solutions of rows ``idx`` from their window's solution (with
-        ``solver``); where the target is the reference frame itself it is the identity
-        (zero motion, ZNCC 1, zero std: the reference against itself), not solved."""
-        run = self.run
+        ``solver``); where the target is the reference frame itself it is the
+        :meth:`identity_solution`, not solved."""
         own = self.k.repeat_interleave(self.n)[idx] == self.ref.frame
         if not bool(own.any()):
             return self.solve(idx, self.params[idx], m=0, solver=solver)
-        names = run.solver.shape.spatial().param_names
-        r = idx.numel()
-        zeros = torch.zeros(r, len(names), dtype=run.dtype, device=run.device)
-        ident = WindowSolution(
-            points=self.pts[idx], params=zeros, param_names=names,
-            zncc=torch.ones(r, dtype=run.dtype, device=run.device),
-            status=torch.full((r,), int(Status.CONVERGED), dtype=torch.int8,
-                              device=run.device),
-            iterations=torch.zeros(r, dtype=torch.int32, device=run.device),
-            std=zeros.clone(), sigma=torch.zeros(r, dtype=run.dtype, device=run.device))
+        ident = self.identity_solution(idx)
         if bool(own.all()):
             return ident
         return _with_rows(ident, ~own, self.solve(idx[~own], self.params[idx[~own]], m=0,
