@@ -50,7 +50,6 @@ from tqdm import tqdm
 from .plan import RunPlan, plan_run
 from .result import TrackResult
 from .series import track
-from .shared_pass import set_shared_motion
 from .signatures import POSITIONAL, param, signature_like
 from .sinks import MemorySink, open_sink
 
@@ -134,9 +133,9 @@ def _plan_job(series: Any, plan_args: dict[str, Any], *, chunk_frames: int, out:
               resume: bool, overwrite: bool, extra: dict[str, Any]) -> _Job:
     if resume and out is None:
         raise ValueError("resume: needs out (the result file to continue)")
-    plan = plan_run(series, **plan_args, lost_zncc=float(extra.get("lost_zncc", 0.8)))
-    # recorded as track records it; every chunk measures the shared motion of its frames
-    set_shared_motion(plan, extra.get("shared_motion", "auto"))
+    # the shared motion recorded as track records it; every chunk measures that of its frames
+    plan = plan_run(series, **plan_args, lost_zncc=float(extra.get("lost_zncc", 0.8)),
+                    shared_motion=extra.get("shared_motion", "auto"))
     chunks = chunk_plan(plan.targets, chunk_frames, len(plan.series), plan.config.m)
     ref = plan.reference_image
     kwargs = dict(

@@ -255,7 +255,6 @@ def execute(args: argparse.Namespace) -> int:
     from ..plan import plan_run
     from ..refine import set_refinement
     from ..series import run_plan
-    from ..shared_pass import set_shared_motion
 
     series = kwargs.pop("series")
     print(series.describe(), flush=True)
@@ -268,10 +267,10 @@ def execute(args: argparse.Namespace) -> int:
             plan = plan_run(series, **kwargs, step=args.step, device=str(device),
                             reference_update=args.reference_update, checks=args.checks,
                             scale=calibration.get("scale"), unit=calibration["unit"],
-                            time_unit=calibration.get("time_unit"))
+                            time_unit=calibration.get("time_unit"),
+                            shared_motion=args.shared_motion)
             if args.refine_reference:
                 set_refinement(plan, args.refine_frames)
-            set_shared_motion(plan, args.shared_motion)
         except ValueError as exc:
             raise CommandError(str(exc)) from None
         sink = _open_sink(plan, args, out)
