@@ -185,15 +185,26 @@ def test_ic_rhs_flags_outside():
     assert out[2] and out.sum() == 1
 
 
-def test_gram_matches_torch():
+@pytest.mark.parametrize("quadratic", [False, True])
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_gram_matches_torch(quadratic, dtype):
+    """The native gram (built from basis products and gradient products) against the
+    definition sum_s w J_s J_s^T, for the affine (Ks 2) and the quadratic (Ks 5) basis and
+    a non-uniform window."""
     from torch_stsdic.formulations import gram
 
     img, shape, c = _rhs_case(True, n=5)
-    g_nat, m_nat = gram(c["gx"], c["gy"], c["basis"], c["w"])
+    basis = c["basis"]
+    if quadratic:
+        basis = sts.shape.QuadraticShape(temporal=True).spatial_basis(c["dx"], c["dy"])
+    args = [c["gx"].to(dtype), c["gy"].to(dtype), basis.to(dtype), c["w"].to(dtype)]
+    g_nat, m_nat = gram(*args)
+    assert g_nat.shape == (5, 2 * (basis.shape[1] + 1), 2 * (basis.shape[1] + 1))
     native.set_native(False)
-    g_t, m_t = gram(c["gx"], c["gy"], c["basis"], c["w"])
-    assert torch.allclose(g_nat, g_t, rtol=1e-12, atol=1e-9)
-    assert torch.allclose(m_nat, m_t, rtol=1e-12, atol=1e-9)
+    g_t, m_t = gram(*[a.double() for a in args])
+    tol = dict(rtol=1e-12, atol=1e-9) if dtype == torch.float64 else dict(rtol=2e-5, atol=1e-3)
+    assert torch.allclose(g_nat, g_t, **tol)
+    assert torch.allclose(m_nat, m_t, **tol)
 
 
 @pytest.mark.parametrize("m", [0, 1])
@@ -408,6 +419,7 @@ def test_wrappers_pass_exactly_the_declared_parameters(monkeypatch):
         native.ic_rhs(a, 3, c["p"], *args)
         native.ic_rhs(a, 3, c["p"][[1, 0]], *args, rows=torch.tensor([1, 0]))
         native.gram(c["gx"], c["gy"], c["basis"], c["w"])
+        native.spd_inverse(torch.eye(3, dtype=dtype).expand(2, 3, 3))
         native.prefilter(x, 3)
     declared = native.kernels()
     assert set(seen) == set(declared)
@@ -702,3 +714,36 @@ def test_ctrl_c_never_crashes_in_the_kernels_long(tmp_path):
     for seed in range(5):
         problems += _interrupt_children(tmp_path, children=2, interrupts=10, seed=100 + seed)
     assert not problems, problems
+
+
+@pytest.mark.parametrize("p", [1, 6, 8, 12])
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_spd_inverse_matches_torch(p, dtype):
+    """The native SPD inverse (Cholesky) against torch's, with rows that are not positive
+    definite (negative, NaN, singular) flagged and NaN; the torch path of
+    ``linalg.spd_inverse`` (native off) gives the same."""
+    from torch_stsdic.linalg import spd_inverse
+
+    g = torch.Generator().manual_seed(p)
+    a = torch.randn(40, p, p, generator=g, dtype=torch.float64)
+    h = a @ a.transpose(1, 2) + 0.1 * torch.eye(p, dtype=torch.float64)
+    h[3] = -h[3]
+    h[5, 0, 0] = float("nan")
+    h[7] = 0.0
+    h = h.to(dtype)
+    inv, bad = native.spd_inverse(h)
+    assert inv.dtype == dtype and bad.tolist() == [i in (3, 5, 7) for i in range(40)]
+    assert torch.isnan(inv[bad]).all() and torch.isfinite(inv[~bad]).all()
+    want = torch.linalg.inv(h[~bad].double())
+    limit = 1e-12 if dtype == torch.float64 else 1e-4
+
+    def rel(x):  # largest error relative to the largest entry
+        return (x[~bad].double() - want).abs().amax() / want.abs().amax()
+    assert rel(inv) < limit
+    assert torch.equal(spd_inverse(h)[1], bad)
+    native.set_native(False)
+    inv_t, bad_t = spd_inverse(h)
+    assert torch.equal(bad_t, bad) and torch.isnan(inv_t[bad]).all()
+    assert rel(inv_t) < limit
+    with pytest.raises(ValueError, match=r"native.spd_inverse: h must be \(N, P, P\)"):
+        native.spd_inverse(torch.zeros(2, 17, 17, dtype=dtype))

@@ -300,3 +300,52 @@ def test_compiled_ic_step_matches_eager(pattern):
     assert torch.allclose(fused.u, eager.u, atol=1e-4)
     assert torch.allclose(fused.ut, eager.ut, atol=1e-4)
     assert (fused.status == eager.status).all()
+
+
+def test_stopping_rule_predicts_the_next_increment():
+    from torch_stsdic.gauss_newton import RATE_FLOOR, _next_increment
+
+    norm = torch.tensor([1e-3, 1e-3, 1e-3, 2e-3, 1e-3])
+    prev = torch.tensor([0.0, 0.1, 1.5e-3, 1e-3, float("nan")])
+    got = _next_increment(norm, prev)
+    # no previous increment: the increment itself; a fast rate: no faster than the floor;
+    # a slow rate: the rate; a growing increment (or none known): the increment itself
+    want = torch.tensor([1e-3, 1e-3 * RATE_FLOOR, 1e-3 * (1e-3 / 1.5e-3), 2e-3, 1e-3])
+    assert torch.allclose(got, want, rtol=1e-6)
+
+
+@pytest.mark.parametrize("m", [0, 2])
+def test_stopping_rule_stays_within_tol_of_the_minimum(pattern, m, monkeypatch):
+    """Stopping once the predicted next increment is below tol: the solution is within a few
+    tol of the one converged to 1e-10 px, with fewer iterations than waiting for the
+    increment itself to be below tol (a rate floor of 1: no prediction)."""
+    motion = synth.Translation(0.6, -0.3, ut=0.04, vt=0.02) + synth.HomogeneousStrain(
+        exx=0.004, eyy=-0.003, center=(50.0, 50.0), rate=0.3)
+    ref, frames = _series(pattern, motion, [1, 2, 3, 4, 5], sigma=2.0, seed=3)
+    pts = _grid(step=5)
+    win = frames if m else frames[2]
+    sol = sts.solve_window(ref, win, pts, config=sts.DICConfig(m=m))
+    tight = sts.solve_window(ref, win, pts, config=sts.DICConfig(m=m, tol=1e-10, max_iter=60))
+    assert sol.ok.all() and tight.ok.all()
+    tol = sts.DICConfig().tol
+    assert (sol.u - tight.u).abs().max() < 3 * tol
+    assert (sol.v - tight.v).abs().max() < 3 * tol
+    monkeypatch.setattr("torch_stsdic.gauss_newton.RATE_FLOOR", 1.0)
+    plain = sts.solve_window(ref, win, pts, config=sts.DICConfig(m=m))
+    assert (plain.u - tight.u).abs().max() < tol
+    assert sol.iterations.float().mean() < plain.iterations.float().mean() - 0.5
+
+
+def test_texture_is_read_off_the_gram():
+    from torch_stsdic.formulations import Geometry, centred_gram, gram_and_texture
+
+    g = torch.Generator().manual_seed(2)
+    shape = sts.shape.AffineShape(temporal=False)
+    for window in (sts.window.SquareWindow(11), sts.window.GaussianWindow(11)):
+        geo = Geometry.make(shape, window, "znssd", torch.float64, torch.device("cpu"))
+        gx = torch.randn(6, geo.w.numel(), generator=g, dtype=torch.float64)
+        gy = torch.randn(6, geo.w.numel(), generator=g, dtype=torch.float64)
+        cg, texture = gram_and_texture(geo, gx, gy)
+        want = ((gx * gx + gy * gy) * geo.w).sum(-1) / geo.w.sum()
+        assert torch.allclose(texture, want, rtol=1e-12)
+        assert torch.equal(cg, centred_gram(geo, gx, gy))

@@ -35,6 +35,7 @@ from torch import Tensor
 
 from .formulations import Geometry, SubsetData, centred_gram, gram
 from .interpolation import BSplineImage
+from .linalg import spd_inverse
 from .noise import gradient_noise_factor, interpolation_variance_factor
 from .window import effective_pixels
 
@@ -190,19 +191,15 @@ def response(geo: Geometry, data: SubsetData, noise: NoiseModel, order: int) -> 
 
 def _corrected_inverse(h: Tensor, bias: Tensor) -> Tensor:
     """(N, P, P) inverse of the Hessian ``h`` minus its expected noise-gradient energy
-    ``bias`` (both (N, P, P)), by Cholesky (symmetric: 3x cheaper than an LU inverse). Where
+    ``bias`` (both (N, P, P)), by Cholesky (:func:`~torch_stsdic.linalg.spd_inverse`). Where
     the corrected matrix is not positive definite (a noise estimate as large as the texture's
     signal, e.g. a subset that does not fit), the correction is not valid: ``h`` itself (the
     first-order Hessian the solver factored) is inverted instead; where that is singular too
     (no texture) the inverse is NaN."""
-    chol, info = torch.linalg.cholesky_ex(h - bias)
-    if not bool(info.any()):  # one host synchronisation per batch
-        return torch.cholesky_inverse(chol)
-    first, info1 = torch.linalg.cholesky_ex(h)
-    chol = torch.where((info != 0).view(-1, 1, 1), first, chol)
-    dead = ((info != 0) & (info1 != 0)).view(-1, 1, 1)  # no texture: no inverse, NaN
-    eye = torch.eye(h.shape[-1], dtype=h.dtype, device=h.device)
-    return torch.cholesky_inverse(torch.where(dead, eye, chol)).masked_fill(dead, float("nan"))
+    inv, bad = spd_inverse(h - bias)
+    if bool(bad.any()):  # one host synchronisation per batch
+        inv[bad] = spd_inverse(h[bad])[0]
+    return inv
 
 
 def _middle(r: Response) -> Tensor:

@@ -18,7 +18,15 @@ from __future__ import annotations
 from ..shape import ShapeFunction
 from .base import Formulation, Geometry, SubsetData, reference_subsets, wsum
 from .forward_additive import AverageFA, JointFA
-from .joint_ic import JointIC, centred_gram, gram, ic_hessian, ic_jacobian, ic_rhs_kernel
+from .joint_ic import (
+    JointIC,
+    centred_gram,
+    gram,
+    gram_and_texture,
+    ic_hessian,
+    ic_jacobian,
+    ic_rhs_kernel,
+)
 
 __all__ = [
     "Formulation",
@@ -33,6 +41,7 @@ __all__ = [
     "wsum",
     "gram",
     "centred_gram",
+    "gram_and_texture",
     "ic_hessian",
     "ic_jacobian",
     "ic_rhs_kernel",

@@ -97,7 +97,7 @@ class SubsetData:
         ft: (N, S) reference subset (grey levels), zero-mean for ZNSSD.
         fnorm: (N,) weighted norm of ``ft``.
         gx, gy: (N, S) reference gradient, grey levels per px.
-        chol: (N, P, P) Cholesky factor of a Hessian prepared once (inverse compositional).
+        hinv: (N, P, P) float64 inverse of a Hessian prepared once (inverse compositional).
         gram: (N, P', P') the centred moments of the reference gradients
             (:func:`~torch_stsdic.formulations.joint_ic.centred_gram`) when computed once for
             both the Hessian and the uncertainty.
@@ -119,7 +119,7 @@ class SubsetData:
     fnorm: Tensor
     gx: Tensor
     gy: Tensor
-    chol: Tensor | None = None
+    hinv: Tensor | None = None
     gram: Tensor | None = None
     motion: Tensor | None = None
     texture: Tensor | None = None

@@ -13,7 +13,7 @@ import torch
 from .loader import kernel
 from .rows import run_rows
 
-__all__ = ["sample", "subsets", "ic_rhs", "gram", "prefilter"]
+__all__ = ["sample", "subsets", "ic_rhs", "gram", "spd_inverse", "prefilter"]
 
 
 def _geo(img_args: tuple, order: int) -> dict:
@@ -183,6 +183,21 @@ def gram(gx: torch.Tensor, gy: torch.Tensor, basis: torch.Tensor, w: torch.Tenso
     m = torch.empty(n, npa, dtype=torch.float64)
     run_rows(kernel("sts_gram", dtype), n, ns * npa, dict(ns=ns, ks=ks, **tens, G=g, m=m))
     return g, m
+
+
+def spd_inverse(h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Native inverse of symmetric positive definite matrices ``h`` (N, P, P), P <= 16, by
+    Cholesky (the lower triangle read): the inverses (N, P, P) in h's dtype (NaN where not
+    positive definite) and that mask (N,) bool."""
+    _require("spd_inverse", h.dim() == 3 and h.shape[1] == h.shape[2] and 1 <= h.shape[1] <= 16,
+             f"h must be (N, P, P) with 1 <= P <= 16, got {tuple(h.shape)}")
+    n, p = h.shape[0], h.shape[1]
+    hc = h.contiguous()
+    inv = torch.empty_like(hc)
+    bad = torch.empty(n, dtype=torch.uint8)
+    run_rows(kernel("sts_spd_inverse", h.dtype), n, p * p * p,
+             dict(np=p, h=hc, inv=inv, bad=bad))
+    return inv, bad.bool()
 
 
 def prefilter(images: torch.Tensor, order: int) -> torch.Tensor:
