@@ -253,12 +253,14 @@ def _grid_neighbours(grid, k: int, reach: float) -> Tensor:
     cx, cy = ix.unsqueeze(1) + ox, iy.unsqueeze(1) + oy  # (N, offsets)
     inside = (cx >= 0) & (cx < grid.nx) & (cy >= 0) & (cy < grid.ny)
     cand = torch.where(inside, table[cy.clamp(0, grid.ny - 1), cx.clamp(0, grid.nx - 1)], -1)
-    rank = torch.where(cand >= 0, 0, 1) * cand.shape[1] + torch.arange(cand.shape[1])
-    first = torch.argsort(rank, dim=1)[:, :k]  # the valid ones, nearest first
-    out = torch.gather(cand, 1, first)
-    if out.shape[1] < k:
-        out = torch.cat([out, torch.full((n, k - out.shape[1]), -1, dtype=torch.long)], 1)
-    return out
+    # the valid ones, nearest first: each to its place among the valid ones of its row (a
+    # cumulative count, not a sort), the rest and those beyond k to a spare column
+    valid = cand >= 0
+    pos = torch.cumsum(valid, 1) - 1
+    pos = torch.where(valid & (pos < k), pos, k)
+    out = torch.full((n, k + 1), -1, dtype=torch.long)
+    out.scatter_(1, pos, torch.where(valid, cand, -1))
+    return out[:, :k]
 
 
 def _nanmedian(x: Tensor) -> Tensor:
