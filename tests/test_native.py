@@ -382,13 +382,15 @@ def test_library_declares_the_source_signatures():
 
 def test_declared_kinds_come_from_the_compiler():
     k32, k64 = native.kernels()["sts_ic_rhs_f32"], native.kernels()["sts_ic_rhs_f64"]
-    assert len(k32.params) == len(k64.params) == 37
+    assert len(k32.params) == len(k64.params) == 38
     by = {p.name: p for p in k32.params}
     assert by["flat"].kind == "*f32" and k64.params[0].kind == "*f64"
     assert by["b"].kind == "*f64"  # b is double in both instances, zn follows T
     assert by["zn"].kind == "*f32" and by["outside"].kind == "*u8"
     assert by["wp"].kind == "i64" and by["order"].kind == "i32" and by["w_img"].kind == "f64"
-    assert [p.name for p in k32.params if p.nullable] == ["rows", "ref_rows", "motion"]
+    assert [p.name for p in k32.params if p.nullable] == ["rows", "ref_rows", "motion",
+                                                           "bframe"]
+    assert by["bframe"].kind == "*f64"  # double in both instances, like b
     assert [p.name for p in native.kernels()["sts_sample_f64"].params if p.nullable] == \
         ["off", "gx", "gy"]
 
@@ -747,3 +749,31 @@ def test_spd_inverse_matches_torch(p, dtype):
     assert rel(inv_t) < limit
     with pytest.raises(ValueError, match=r"native.spd_inverse: h must be \(N, P, P\)"):
         native.spd_inverse(torch.zeros(2, 17, 17, dtype=dtype))
+
+
+@pytest.mark.parametrize("znssd", [True, False])
+def test_ic_rhs_frame_rhs_is_each_frames_classical_rhs(znssd):
+    """frame_rhs: frame t's own part of the joint right-hand side equals the classical
+    (one-frame, no time) right-hand side at that frame's warp (u + ut dt, v + vt dt)."""
+    img, shape, c = _rhs_case(True)
+    a = img.kernel_args()
+    n, t = c["dt"].shape
+    ks = c["basis"].shape[1]
+    common = (c["px"], c["py"], c["dx"], c["dy"], c["basis"])
+    rest = (c["ft"], c["fnorm"], c["gx"], c["gy"], c["w"], 64, 48)
+    bf = torch.full((n, t, 2 * ks), float("nan"), dtype=torch.float64)
+    b, _, _ = native.ic_rhs(a, 3, c["p"], *common, c["dt"], c["fidx"], *rest, c["k"], True,
+                            znssd, frame_rhs=bf)
+    k = c["k"]
+    assert torch.allclose(bf[..., :ks].sum(1), b[:, :ks], rtol=1e-12, atol=1e-12)
+    for j in range(t):
+        dtj = c["dt"][:, j]
+        p1 = torch.cat([c["p"][:, :ks], c["p"][:, k:k + ks]], 1).clone()
+        p1[:, 0] += c["p"][:, k - 1] * dtj
+        p1[:, ks] += c["p"][:, 2 * k - 1] * dtj
+        b1, _, _ = native.ic_rhs(a, 3, p1, *common, torch.zeros(n, 1, dtype=torch.float64),
+                                 c["fidx"][:, j:j + 1].contiguous(), *rest, ks, False, znssd)
+        assert torch.allclose(bf[:, j], b1, rtol=1e-9, atol=1e-9)
+    with pytest.raises(ValueError, match=r"frame_rhs must be a contiguous float64"):
+        native.ic_rhs(a, 3, c["p"], *common, c["dt"], c["fidx"], *rest, c["k"], True, znssd,
+                      frame_rhs=bf[:, :1])

@@ -349,3 +349,34 @@ def test_texture_is_read_off_the_gram():
         want = ((gx * gx + gy * gy) * geo.w).sum(-1) / geo.w.sum()
         assert torch.allclose(texture, want, rtol=1e-12)
         assert torch.equal(cg, centred_gram(geo, gx, gy))
+
+
+def test_classical_step_is_one_classical_step_from_the_window(pattern):
+    """info["classical_step"]: the classical solution one Gauss-Newton step from the window's
+    solution at its centre frame, read off the window solve's last step: what the classical
+    solver's own first step from there gives (to the size of the window's last increment),
+    and much nearer the classical minimum than the window's solution."""
+    motion = synth.Translation(0.6, -0.3, ut=0.04, vt=0.02) + synth.HomogeneousStrain(
+        exx=0.004, eyy=-0.003, center=(50.0, 50.0), rate=0.3)
+    ref, frames = _series(pattern, motion, [1, 2, 3, 4, 5], sigma=2.0, seed=3)
+    pts = _grid(step=5)
+    solver = sts.SubsetSolver(sts.DICConfig(m=2))
+    ref_img, frames_img = solver.prepare(ref), solver.prepare(frames)
+    dt = torch.arange(-2.0, 3.0, dtype=torch.float64)
+    sol = solver.solve(ref_img, frames_img, pts, dt, ref_pixels=ref.unsqueeze(0),
+                       frame_pixels=frames, classical_step=True)
+    step = sol.info["classical_step"]
+    assert step.shape == (pts.shape[0], 6) and torch.isfinite(step).all()
+    at_centre = torch.cat([sol.params[:, 0:3], sol.params[:, 4:7]], 1)  # u.. v.. at dt = 0
+    centre = sts.SubsetSolver(sts.DICConfig(m=0)).prepare(frames[2:3])
+    zero = torch.zeros(1, dtype=torch.float64)
+    one = sts.SubsetSolver(sts.DICConfig(m=0, max_iter=1, tol=1e-12)).solve(
+        ref_img, centre, pts, zero, init=at_centre)
+    full = sts.SubsetSolver(sts.DICConfig(m=0, tol=1e-10, max_iter=50)).solve(
+        ref_img, centre, pts, zero, init=at_centre)
+    assert (step - one.params).abs().max() < 2e-4
+    far = (at_centre - full.params)[:, [0, 3]].abs().max()
+    assert (step - full.params)[:, [0, 3]].abs().max() < 0.1 * far
+    plain = solver.solve(ref_img, frames_img, pts, dt, ref_pixels=ref.unsqueeze(0),
+                         frame_pixels=frames)
+    assert "classical_step" not in plain.info and torch.equal(plain.params, sol.params)

@@ -211,6 +211,11 @@ class _Block:
         self.std = torch.full((rows, p_count), float("nan"), dtype=run.dtype, device=dev)
         self.sigma = torch.full((rows,), float("nan"), dtype=run.dtype, device=dev)
         self.m_used = torch.full((rows,), -1, dtype=torch.int8, device=dev)
+        #: (B*N, P) each row's classical solution one Gauss-Newton step from its window's
+        #: solution, where the window's solve gave it (``classical_step``), else NaN: where
+        #: the model check starts the row's classical solve
+        self.check_start = torch.full((rows, p_count), float("nan"), dtype=run.dtype,
+                                      device=dev)
         self.gone = torch.zeros(rows, dtype=torch.bool, device=dev)  # predicted outside
         self.identity: torch.Tensor | None = None  # (B*N,) rows known without a solve
         #: (B*N, 2) px where each row's subset is centred, or None: at its POI everywhere
@@ -280,6 +285,8 @@ class _Block:
             init=init, ref_pixels=ref.raw.unsqueeze(0), frame_pixels=self.raw,
             noise_ratio=run.noise_ratio, motion=None if motion is None else motion[idx],
             centres=None if self.centres is None else self.centres[idx],
+            # the model check's first classical step, from the window solve's last step
+            classical_step=run.checks and (run.m if m is None else m) > 0 and solver is None,
         )
 
     def keep(self, idx: torch.Tensor, sol: WindowSolution, only_better: bool,
@@ -301,6 +308,13 @@ class _Block:
         p, sd = self._columns(sol.params[take], cols), self._columns(
             sol.std[take] if sol.std is not None else None, cols, rows=int(take.sum()))
         self.params[r], self.std[r] = p, sd
+        cstep = sol.info.get("classical_step")
+        if cstep is None:
+            self.check_start[r] = float("nan")
+        else:
+            names = self.run.solver.shape.spatial().param_names
+            self.check_start[r] = self._columns(cstep[take], [
+                names.index(nm) if nm in names else -1 for nm in self.run.names])
         self.zncc[r] = sol.zncc[take].to(self.run.dtype)
         self.status[r] = sol.status[take]
         if sol.sigma is not None:
@@ -531,13 +545,17 @@ class _Block:
         ``solver``); where the target is the reference frame itself it is the
         :meth:`identity_solution`, not solved."""
         own = self.k.repeat_interleave(self.n)[idx] == self.ref.frame
+        # one classical step from the window's solution is known where its solve gave it
+        start = self.check_start[idx]
+        cols = [self.run.names.index(nm) for nm in self.run.solver.shape.spatial().param_names]
+        have = torch.isfinite(start[:, cols]).all(1, keepdim=True)
+        start = torch.where(have, start, self.params[idx])
         if not bool(own.any()):
-            return self.solve(idx, self.params[idx], m=0, solver=solver)
+            return self.solve(idx, start, m=0, solver=solver)
         ident = self.identity_solution(idx)
         if bool(own.all()):
             return ident
-        return _with_rows(ident, ~own, self.solve(idx[~own], self.params[idx[~own]], m=0,
-                                                  solver=solver))
+        return _with_rows(ident, ~own, self.solve(idx[~own], start[~own], m=0, solver=solver))
 
     def _off_a_line(self, rows: torch.Tensor, m: int, disp: torch.Tensor, std: torch.Tensor
                     ) -> tuple[torch.Tensor, torch.Tensor]:

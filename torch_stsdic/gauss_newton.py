@@ -25,6 +25,7 @@ from .formulations import (
     reference_subsets,
 )
 from .interpolation import BSplineImage
+from .linalg import spd_inverse
 from .status import Status
 
 __all__ = ["BatchContext", "ReferenceCache", "solve_batch"]
@@ -128,6 +129,10 @@ class BatchContext:
     work: int = 0  # samples per iteration over all batches (decides torch.compile)
     noise_ratio: float = 1.0  # reference noise variance / one frame's
     cache: ReferenceCache | None = None  # the reference subsets kept between solves
+    #: also each point's classical solution after one Gauss-Newton step from its window's
+    #: solution at the target frame (dt = 0), from the last step's frame-by-frame
+    #: right-hand sides (:func:`_classical_step`; the model check starts there)
+    classical_step: bool = False
 
     def batch_size(self, t: int) -> int:
         """POIs per batch within ``cfg.memory_mb``."""
@@ -150,7 +155,9 @@ def solve_batch(ctx: BatchContext, pts, p0, dt, fidx, ridx, motion=None):
     known motion of every frame ``motion`` (N, T, 2) (None: none).
 
     Returns params (N, P), zncc (N,), status (N,) int8, iterations (N,), the first stage's
-    params (N, P), predicted std (N, P) and noise std (N,) (grey levels)."""
+    params (N, P), predicted std (N, P), noise std (N,) (grey levels) and, with
+    ``ctx.classical_step``, the classical step (N, 2 Ks) (:func:`_classical_step`; NaN where
+    not known), else None."""
     cfg, geo = ctx.cfg, ctx.geo
     n = pts.shape[0]
     device, dtype = pts.device, pts.dtype
@@ -167,8 +174,11 @@ def solve_batch(ctx: BatchContext, pts, p0, dt, fidx, ridx, motion=None):
     iters = torch.zeros(n, dtype=torch.int32, device=device)
     live = ~low
     stage_params = []
+    last = None
     for stage_i, form in enumerate(ctx.stages):
-        params, zn, st, used = _run_stage(ctx, form, params, data, live)
+        final = stage_i == len(ctx.stages) - 1
+        params, zn, st, used, last = _run_stage(ctx, form, params, data, live,
+                                                frame_rhs=final and ctx.classical_step)
         stage_params.append(params)
         zncc = torch.where(live, zn, zncc)
         iters += used
@@ -185,7 +195,36 @@ def solve_batch(ctx: BatchContext, pts, p0, dt, fidx, ridx, motion=None):
     far = (status <= int(Status.MAX_ITER)) & ~(jump <= maxd)
     status[far] = int(Status.DIVERGED)
     std, sigma = _uncertainty(ctx, data, params, zncc, status <= int(Status.MAX_ITER))
-    return params, zncc, status, iters, stage_params[0], std, sigma
+    cstep = None
+    if ctx.classical_step:
+        cstep = torch.full((n, 2 * geo.ks), float("nan"), dtype=dtype, device=device)
+        if last is not None:
+            cstep = _classical_step(geo, data, *last).to(dtype)
+        cstep[status != int(Status.CONVERGED)] = float("nan")
+    return params, zncc, status, iters, stage_params[0], std, sigma, cstep
+
+
+def _classical_step(geo: Geometry, data: SubsetData, p_last: Tensor, rhs: Tensor) -> Tensor:
+    """(N, 2 Ks) each point's classical solution (the shape without time, ``geo.shape``'s
+    spatial parameters) after one inverse-compositional Gauss-Newton step from its window's
+    warp at the target frame (dt = 0): ``p_last`` (N, P) the parameters at which the window's
+    last step was taken, ``rhs`` (N, T, 2 Ks) that step's frame-by-frame spatial right-hand
+    sides (NaN rows: none). At dt = 0 the window's warp is its spatial parameters (the shared
+    motion's known part is zero there), and frame t's right-hand side and the classical
+    Hessian (the spatial block of the centred gram) are exactly what a classical solve's
+    first step from there computes: the step is free. NaN where the window has no frame at
+    dt = 0 or no step was recorded."""
+    ks, k = geo.ks, geo.k
+    at0 = data.dt == 0  # (N, T)
+    t0 = at0.to(torch.int8).argmax(1)
+    b = rhs[torch.arange(rhs.shape[0], device=rhs.device), t0]  # (N, 2 Ks)
+    keep = [*range(ks), *range(ks + 1, 2 * ks + 1)]
+    hinv, singular = spd_inverse(data.gram[:, keep][:, :, keep])
+    dp = -(hinv @ b.unsqueeze(-1)).squeeze(-1)
+    pc = torch.cat([p_last[:, :ks], p_last[:, k:k + ks]], 1).double()
+    out = geo.shape.spatial().compose_inverse(pc, dp)
+    bad = singular | ~at0.any(1) | ~torch.isfinite(out).all(1)
+    return out.masked_fill(bad.unsqueeze(1), float("nan"))
 
 
 def _reference_data(ctx: BatchContext, pts, dt, fidx, ridx) -> SubsetData:
@@ -290,10 +329,14 @@ def _next_increment(norm: Tensor, prev: Tensor) -> Tensor:
     return norm * rate
 
 
-def _run_stage(ctx: BatchContext, form: Formulation, params, data: SubsetData, live):
+def _run_stage(ctx: BatchContext, form: Formulation, params, data: SubsetData, live,
+               frame_rhs: bool = False):
     """Iterate one Gauss-Newton stage over the live points, dropping finished points.
 
-    Returns params, zncc (N,), status (N,), iterations used (N,)."""
+    Returns params, zncc (N,), status (N,), iterations used (N,) and, with ``frame_rhs``
+    where the formulation gives them, (the parameters (N, P) at which each converged point's
+    last step was taken, that step's frame-by-frame spatial right-hand sides (N, T, 2 Ks);
+    NaN rows: none), else None."""
     cfg, geo = ctx.cfg, ctx.geo
     n = params.shape[0]
     device, dtype = params.device, params.dtype
@@ -302,7 +345,7 @@ def _run_stage(ctx: BatchContext, form: Formulation, params, data: SubsetData, l
     used = torch.zeros(n, dtype=torch.int32, device=device)
     rows = torch.nonzero(live).flatten()
     if rows.numel() == 0:
-        return params, zncc, status, used
+        return params, zncc, status, used, None
     params = params.clone()
     if rows.numel() < n:
         data = data.take(rows)
@@ -316,6 +359,12 @@ def _run_stage(ctx: BatchContext, form: Formulation, params, data: SubsetData, l
     # the per-point data of the remaining rows
     sel = (torch.arange(rows.numel(), device=device)
            if form.uses_fused_kernel(ctx.frames, data, p) else None)
+    last = None
+    if frame_rhs and sel is not None and form.gives_frame_rhs(ctx.frames, data, p):
+        t_count, ks = data.dt.shape[1], ctx.geo.ks
+        last = (torch.full_like(params, float("nan")),
+                torch.full((n, t_count, 2 * ks), float("nan"), dtype=torch.float64,
+                           device=device))
     active = torch.ones(rows.numel(), dtype=torch.bool, device=device)
     prev = torch.zeros(rows.numel(), dtype=dtype, device=device)
     # On CUDA every boolean test or compaction waits for the GPU: look every few iterations.
@@ -324,7 +373,13 @@ def _run_stage(ctx: BatchContext, form: Formulation, params, data: SubsetData, l
     for it in range(cfg.max_iter):
         if rows.numel() == 0:
             break
-        dp, zn, outside = form.step(geo, ctx.frames, data, p, ctx.work, sel)
+        if last is None:
+            dp, zn, outside = form.step(geo, ctx.frames, data, p, ctx.work, sel)
+        else:
+            buf = torch.empty(p.shape[0], *last[1].shape[1:], dtype=torch.float64,
+                              device=device)
+            dp, zn, outside = form.step(geo, ctx.frames, data, p, ctx.work, sel,
+                                        frame_rhs=buf)
         p_new = form.update(geo, p, dp)
         used[rows] += active.to(used.dtype)
         norm = (dp * scale).norm(dim=1)
@@ -333,12 +388,16 @@ def _run_stage(ctx: BatchContext, form: Formulation, params, data: SubsetData, l
         # converged: the last increment, or the next one predicted from the last two, < tol
         conv = finite & (_next_increment(norm, prev) < cfg.tol) & ~outside
         prev = norm
+        p_old = p
         p = torch.where((finite & active).unsqueeze(1), p_new, p)
         zncc[rows] = torch.where(active, zn.to(dtype), zncc[rows])
         done = (conv | bad | outside) & active
         # record finished points without boolean indexing (no host synchronisation)
         st = torch.where(bad, int(Status.DIVERGED), torch.where(outside, int(Status.OUTSIDE),
                                                                  conv_code)).to(torch.int8)
+        if last is not None:  # where this step ends a point: the step's point and rhs
+            last[0][rows] = torch.where(done.unsqueeze(1), p_old, last[0][rows])
+            last[1][rows] = torch.where(done.view(-1, 1, 1), buf, last[1][rows])
         params[rows] = torch.where(done.unsqueeze(1), p, params[rows])
         status[rows] = torch.where(done, st, status[rows])
         active = active & ~done
@@ -359,4 +418,4 @@ def _run_stage(ctx: BatchContext, form: Formulation, params, data: SubsetData, l
         rows, p = rows[active], p[active]
     if rows.numel():
         params[rows] = p  # MAX_ITER: the last iterate
-    return params, zncc, status, used
+    return params, zncc, status, used, last

@@ -176,6 +176,7 @@ class SubsetSolver:
         noise_ratio: float = 1.0,
         motion: torch.Tensor | None = None,
         centres: torch.Tensor | None = None,
+        classical_step: bool = False,
     ) -> WindowSolution:
         """Solve many POIs, each against its own window of frames.
 
@@ -199,6 +200,12 @@ class SubsetSolver:
                 border. ``init`` and ``motion`` are the POI's and the centre's; the solution is
                 carried to the POI by the subset's own gradients (:mod:`~torch_stsdic.offgrid`:
                 u += ux dx + uy dy, its std with it).
+            classical_step: also ``info["classical_step"]`` (N, 2 Ks): each converged POI's
+                classical solution (the parameters of :meth:`shape_for` one frame) after one
+                Gauss-Newton step from its solution at dt = 0, taken from the last step's
+                frame-by-frame right-hand sides at no cost (the model check starts there);
+                NaN where not known (another path than the native CPU kernel, no frame at
+                dt = 0, an off-grid or off-centre subset, not converged).
         """
         moved = None
         if centres is not None:
@@ -215,7 +222,11 @@ class SubsetSolver:
             sol = self.solve(ref, frames, grid, dt, frame_index=frame_index,
                              ref_index=ref_index, init=init, ref_pixels=ref_pixels,
                              frame_pixels=frame_pixels, time=time, noise_ratio=noise_ratio,
-                             motion=motion)
+                             motion=motion, classical_step=classical_step)
+            cstep = sol.info.get("classical_step")
+            if cstep is not None:  # known at the subset centre only
+                sol.info["classical_step"] = cstep.masked_fill(
+                    (offset != 0).any(1, keepdim=True), float("nan"))
             return carry_solution(sol, points, offset)
         cfg = self.config
         device, dtype = points.device, points.dtype
@@ -242,7 +253,7 @@ class SubsetSolver:
             if plan is not None:
                 return self._solve_seeded(
                     plan, ref, frames, points, dt, frame_index, ref_index, ref_pixels,
-                    frame_pixels, time, inside, noise_ratio, motion,
+                    frame_pixels, time, inside, noise_ratio, motion, classical_step,
                 )
             p0 = torch.zeros(n, p_count, dtype=dtype, device=device)
             t_fft = _clock(device)
@@ -267,18 +278,23 @@ class SubsetSolver:
             geo=geo, ref=ref, frames=frames, cfg=cfg, stages=self.stages_for(shape),
             grey_range=_grey_range(grey), work=int(todo.numel()) * t_count * int(geo.w.numel()),
             noise_ratio=float(noise_ratio), cache=self.reference_cache,
+            classical_step=classical_step,
         )
         std = torch.full_like(params, float("nan"))
         sigma = torch.full_like(zncc, float("nan"))
+        cstep = (torch.full((n, 2 * geo.ks), float("nan"), dtype=dtype, device=device)
+                 if classical_step else None)
         batch = cfg.batch_points or ctx.batch_size(t_count)
         for s0 in range(0, todo.numel(), batch):
             idx = todo[s0 : s0 + batch]
-            pr, zr, sr, ir, p1, sd, sg = solve_batch(
+            pr, zr, sr, ir, p1, sd, sg, cs = solve_batch(
                 ctx, points[idx], p0[idx], dt[idx], frame_index[idx], ref_index[idx],
                 None if motion is None else motion[idx],
             )
             params[idx], zncc[idx], status[idx], iters[idx] = pr, zr, sr, ir
             first_stage[idx], std[idx], sigma[idx] = p1, sd, sg
+            if cstep is not None:
+                cstep[idx] = cs
 
         bad = status > int(Status.MAX_ITER)
         params[bad] = float("nan")
@@ -294,6 +310,7 @@ class SubsetSolver:
                 "initial_params": p0,
                 "initial_guess": {"method": "fft" if init is None else "given",
                                   "fft_s": t_fft},
+                **({} if cstep is None else {"classical_step": cstep}),
             },
         )
 
@@ -330,7 +347,8 @@ class SubsetSolver:
         return idx, cell, seeds
 
     def _solve_seeded(self, plan, ref, frames, points, dt, frame_index, ref_index, ref_pixels,
-                      frame_pixels, time, inside, noise_ratio, motion=None) -> WindowSolution:
+                      frame_pixels, time, inside, noise_ratio, motion=None,
+                      classical_step=False) -> WindowSolution:
         """Seeds by FFT cross-correlation and Gauss-Newton; every other POI starts from its
         cell's seed solution (:func:`carry_from_seed`); POIs that then fail (not converged, or
         ZNCC more than 0.1 below the best of their cell) are solved again from FFT cross-correlation
@@ -346,7 +364,7 @@ class SubsetSolver:
             return self.solve(ref, frames, points[rows], dt[rows], frame_index=frame_index[rows],
                               ref_index=ref_index[rows], init=init, ref_pixels=ref_pixels,
                               frame_pixels=frame_pixels, time=time, noise_ratio=noise_ratio,
-                              motion=rows_of(motion, rows))
+                              motion=rows_of(motion, rows), classical_step=classical_step)
 
         fft_s = [0.0]
 
@@ -394,6 +412,9 @@ class SubsetSolver:
             "std": torch.full((n, p_count), float("nan"), dtype=dtype, device=dev),
             "sigma": torch.full((n,), float("nan"), dtype=dtype, device=dev),
         }
+        if classical_step:
+            out["cstep"] = torch.full((n, 2 * shape.spatial().n_basis), float("nan"),
+                                      dtype=dtype, device=dev)
 
         def put(rows, sol, mask=None):
             if mask is not None:
@@ -407,6 +428,8 @@ class SubsetSolver:
             out["status"][rows] = sol.status[pick]
             out["std"][rows] = sol.std[pick]
             out["sigma"][rows] = sol.sigma[pick]
+            if classical_step:
+                out["cstep"][rows] = sol.info["classical_step"][pick]
 
         put(seeds, sol_s)
         out["iters"][seeds] = sol_s.iterations
@@ -426,6 +449,7 @@ class SubsetSolver:
                    if k not in ("first_stage_params", "initial_params")},
                 "first_stage_params": out["first"],
                 "initial_params": out["init"],
+                **({"classical_step": out["cstep"]} if classical_step else {}),
                 "initial_guess": {
                     "method": "seeded", "seeds": int(seeds.numel()),
                     "fft_points": int(seeds.numel() + orphans.sum() + redo.numel()),

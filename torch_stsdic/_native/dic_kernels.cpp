@@ -404,7 +404,7 @@ void ic_rhs_range(const T* flat, const Geo& g, int64_t i0, int64_t i1, int64_t n
                   const int64_t* frame_off, const T* ft, const T* fnorm, const T* fgx,
                   const T* fgy, const T* w, const int64_t* rows, const int64_t* ref_rows,
                   const T* motion, double w_img, double h, double* b, T* zn,
-                  uint8_t* outside) {
+                  uint8_t* outside, double* bframe) {
   const int64_t np = 2 * k;
   std::vector<T> dxu(ns), dyv(ns), gv(ns), ex(ns), ey(ns), fxs(ns), fys(ns), bt(ks * ns);
   std::vector<int32_t> idx(ns);
@@ -485,9 +485,16 @@ void ic_rhs_range(const T* flat, const Geo& g, int64_t i0, int64_t i1, int64_t n
         exp_[s] = gxi[s] * e;
         eyp[s] = gyi[s] * e;
       }
+      double* bf = bframe ? bframe + (j * nt + t) * 2 * ks : nullptr;
       for (int64_t q = 0; q < ks; ++q) {
-        bb[q] += double(dot(exp_, bt.data() + q * ns, ns));
-        bb[k + q] += double(dot(eyp, bt.data() + q * ns, ns));
+        const double bxq = double(dot(exp_, bt.data() + q * ns, ns));
+        const double byq = double(dot(eyp, bt.data() + q * ns, ns));
+        bb[q] += bxq;
+        bb[k + q] += byq;
+        if (bf) {  // frame t's own (spatial) right-hand side: a classical step's
+          bf[q] = bxq;
+          bf[ks + q] = byq;
+        }
       }
       if (has_time) {
         T sx = 0, sy = 0;
@@ -561,7 +568,8 @@ STS_KERNEL(sts_gram, (int64_t i0, int64_t i1, int64_t ns, int64_t ks, const T* g
 // (rows null: row j); ref_rows[i] is data row i's row of the reference subsets ft, gx, gy
 // (points repeated over targets share theirs; null: row i); motion (N, T, 2) a known
 // displacement (u, v) added to the warp of each data row's frame t (the shared motion of the
-// specimen; null: none).
+// specimen; null: none); bframe (M, T, 2 Ks) in double, where not null, each frame's own
+// spatial part of b (the classical IC-GN right-hand side of frame t at this warp).
 STS_KERNEL(sts_ic_rhs, (const T* flat, int64_t wp, double x_lo, double x_hi, double y_lo,
                         double y_hi, int64_t shift, int order, int64_t i0, int64_t i1,
                         int64_t nt, int64_t ns, int64_t ks, int64_t k, int has_time, int znssd,
@@ -570,16 +578,16 @@ STS_KERNEL(sts_ic_rhs, (const T* flat, int64_t wp, double x_lo, double x_hi, dou
                         const T* fnorm, const T* gx, const T* gy, const T* w,
                         nullable<const int64_t> rows, nullable<const int64_t> ref_rows,
                         nullable<const T> motion, double w_img, double h, double* b, T* zn,
-                        uint8_t* outside)) {
+                        uint8_t* outside, nullable<double> bframe)) {
   const Geo g{wp, x_lo, x_hi, y_lo, y_hi, shift};
   if (order == 3) {
     ic_rhs_range<T, 3>(flat, g, i0, i1, nt, ns, ks, k, has_time, znssd, p, px, py, dx, dy,
                        basis, dt, frame_off, ft, fnorm, gx, gy, w, rows, ref_rows, motion,
-                       w_img, h, b, zn, outside);
+                       w_img, h, b, zn, outside, bframe);
   } else if (order == 5) {
     ic_rhs_range<T, 5>(flat, g, i0, i1, nt, ns, ks, k, has_time, znssd, p, px, py, dx, dy,
                        basis, dt, frame_off, ft, fnorm, gx, gy, w, rows, ref_rows, motion,
-                       w_img, h, b, zn, outside);
+                       w_img, h, b, zn, outside, bframe);
   } else {
     return 1;
   }
@@ -741,7 +749,7 @@ extern "C" {
 
 // Version of this interface (the sts_kernel_* functions and what the kernels' parameters
 // mean); native/declarations.py refuses a library of another version.
-int sts_abi_version() { return 6; }
+int sts_abi_version() { return 7; }
 
 int sts_kernel_count() { return int(declarations().size()); }
 

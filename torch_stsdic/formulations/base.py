@@ -200,3 +200,8 @@ class Formulation:
         """Whether :meth:`step` takes a fused native path that indexes ``data`` rows through
         ``sel`` (so the solver need not copy the data of finished rows)."""
         return False
+
+    def gives_frame_rhs(self, frames: BSplineImage, data: SubsetData, p: Tensor) -> bool:
+        """Whether :meth:`step` (with ``sel``) fills a ``frame_rhs`` (M, T, 2 Ks) float64
+        buffer with each frame's own spatial right-hand side (a classical step's)."""
+        return False

@@ -174,13 +174,18 @@ class JointIC(Formulation):
                 x_hi, y_lo, y_hi, shift, frames.width, frames.height, geo.ks, geo.k,
                 geo.shape.has_time, geo.znssd, frames.order, data.motion)
 
+    def gives_frame_rhs(self, frames: BSplineImage, data: SubsetData, p: Tensor) -> bool:
+        return native.usable_image(frames.kernel_args(), p, data.ft)
+
     def step(self, geo: Geometry, frames: BSplineImage, data: SubsetData, p: Tensor,
-             work: int, sel: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+             work: int, sel: Tensor | None = None, frame_rhs: Tensor | None = None
+             ) -> tuple[Tensor, Tensor, Tensor]:
         if sel is not None:
             ka = frames.kernel_args()
             extra = {}
             if native.usable_image(ka, p, data.ft):
-                fused, extra = native.ic_rhs, {"motion": data.motion, "ref_rows": data.ref_rows}
+                fused, extra = native.ic_rhs, {"motion": data.motion, "ref_rows": data.ref_rows,
+                                               "frame_rhs": frame_rhs}
             else:
                 fused, data = kernels.ic_rhs, data.direct()
             b, zn, outside = fused(

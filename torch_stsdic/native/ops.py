@@ -112,13 +112,15 @@ def subsets(img_args: tuple, order: int, px, py, dx, dy, frame_off, grad: bool):
 def ic_rhs(img_args: tuple, order: int, p, px, py, dx, dy, basis, dt, frame_off, ft, fnorm,
            gx, gy, w, w_img: int, h: int, k: int, has_time: bool, znssd: bool,
            rows: torch.Tensor | None = None, motion: torch.Tensor | None = None,
-           ref_rows: torch.Tensor | None = None):
+           ref_rows: torch.Tensor | None = None, frame_rhs: torch.Tensor | None = None):
     """Native twin of formulations.joint_ic.ic_rhs_kernel. Shapes: p (M, 2k), px/py (N, 1) or (N,),
     dx/dy/w (S,), basis (S, Ks), dt and frame_off (N, T), ft/gx/gy (N, S), fnorm (N,);
     ``rows`` (M,) picks the per-point data rows of p's rows (default: M = N, row j = j);
     ``motion`` (N, T, 2) a known displacement added to each row's warp of frame t (None: none);
     ``ref_rows`` (N,) the row of ft/gx/gy (then (R, S)) of each data row (a point repeated
-    over targets: one copy of its reference subset; None: row i).
+    over targets: one copy of its reference subset; None: row i); ``frame_rhs`` a float64
+    (M, T, 2 Ks) tensor filled with each frame's own spatial part of b (the classical
+    right-hand side of that frame at the row's warp), or None.
     Returns b (M, 2k) float64, per-POI mean ZNCC (M,) and the outside flag (M,) bool."""
     flat = img_args[0].contiguous()
     dtype = flat.dtype
@@ -147,6 +149,10 @@ def ic_rhs(img_args: tuple, order: int, p, px, py, dx, dy, basis, dt, frame_off,
     _check_planes("ic_rhs", img_args, frame_off)
     _require("ic_rhs", motion is None or tuple(motion.shape) == (big_n, nt, 2),
              f"motion must be (N, T, 2) = ({big_n}, {nt}, 2)")
+    _require("ic_rhs", frame_rhs is None or (tuple(frame_rhs.shape) == (n, nt, 2 * ks)
+                                             and frame_rhs.dtype == torch.float64
+                                             and frame_rhs.is_contiguous()),
+             f"frame_rhs must be a contiguous float64 (M, T, 2 Ks) = ({n}, {nt}, {2 * ks})")
 
     def c(t):
         return t.to(dtype).contiguous()
@@ -163,7 +169,8 @@ def ic_rhs(img_args: tuple, order: int, p, px, py, dx, dy, basis, dt, frame_off,
                    rows=None if rows is None else rows.to(torch.int64).contiguous(),
                    ref_rows=None if ref_rows is None else ref_rows.to(torch.int64).contiguous(),
                    motion=None if motion is None else c(motion),
-                   w_img=float(w_img), h=float(h), b=b, zn=zn, outside=out))
+                   w_img=float(w_img), h=float(h), b=b, zn=zn, outside=out,
+                   bframe=frame_rhs))
     return b, zn, out.bool()
 
 
