@@ -422,6 +422,7 @@ def test_wrappers_pass_exactly_the_declared_parameters(monkeypatch):
         native.ic_rhs(a, 3, c["p"][[1, 0]], *args, rows=torch.tensor([1, 0]))
         native.gram(c["gx"], c["gy"], c["basis"], c["w"])
         native.spd_inverse(torch.eye(3, dtype=dtype).expand(2, 3, 3))
+        native.nanmedian(x)
         native.prefilter(x, 3)
     declared = native.kernels()
     assert set(seen) == set(declared)
@@ -777,3 +778,25 @@ def test_ic_rhs_frame_rhs_is_each_frames_classical_rhs(znssd):
     with pytest.raises(ValueError, match=r"frame_rhs must be a contiguous float64"):
         native.ic_rhs(a, 3, c["p"], *common, c["dt"], c["fidx"], *rest, c["k"], True, znssd,
                       frame_rhs=bf[:, :1])
+
+
+@pytest.mark.parametrize("k", [1, 2, 5, 8, 9])
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_nanmedian_matches_torch(k, dtype):
+    """The native median of short rows (a sorting network for 8, insertion otherwise) is
+    torch.nanmedian's: NaN ignored, the lower middle value for an even count, NaN for a row
+    of NaN, infinities kept; used through quality.nanmedian_rows."""
+    from torch_stsdic.quality import nanmedian_rows
+
+    g = torch.Generator().manual_seed(k)
+    x = torch.randn(3, 500, k, generator=g, dtype=torch.float64).to(dtype)
+    x[x > 0.7] = float("nan")
+    x[0, 0] = float("nan")
+    x[0, 1, 0] = float("inf")
+    x[0, 2, -1] = -float("inf")
+    want = torch.nanmedian(x, dim=-1).values
+    for got in (native.nanmedian(x), nanmedian_rows(x), nanmedian_rows(x.transpose(0, 1))
+                .transpose(0, 1)):
+        assert got.dtype == dtype and torch.equal(got.nan_to_num(9e9), want.nan_to_num(9e9))
+    with pytest.raises(ValueError, match=r"native.nanmedian: rows of 1 to 64 values"):
+        native.nanmedian(torch.zeros(3, 65, dtype=dtype))

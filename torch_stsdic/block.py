@@ -30,6 +30,7 @@ from .quality import (
     line_mismatch,
     median_test,
     model_mismatch,
+    nanmedian_rows,
     neighbour_tolerance,
     neighbours,
     poor_fit,
@@ -132,7 +133,7 @@ def neighbour_guess(params: torch.Tensor, ok: torch.Tensor, names, nb: torch.Ten
         uv = carried_neighbours(params[..., [iu, iv]], ok, nb, points,
                                 params[..., gi].reshape(b, n, 2, 2))
         vn[..., iu], vn[..., iv] = uv[..., 0], uv[..., 1]
-    out = torch.nanmedian(vn.transpose(-1, -2), dim=-1).values  # (B, N, P)
+    out = nanmedian_rows(vn.transpose(-1, -2))  # (B, N, P)
     few = (~torch.isnan(vn[..., iu])).sum(-1) < min_count
     return torch.where(few.unsqueeze(-1), torch.nan, out)
 
@@ -213,9 +214,8 @@ class _Block:
         self.m_used = torch.full((rows,), -1, dtype=torch.int8, device=dev)
         #: (B*N, P) each row's classical solution one Gauss-Newton step from its window's
         #: solution, where the window's solve gave it (``classical_step``), else NaN: where
-        #: the model check starts the row's classical solve
-        self.check_start = torch.full((rows, p_count), float("nan"), dtype=run.dtype,
-                                      device=dev)
+        #: the model check starts the row's classical solve (None: no solve gave one)
+        self.check_start: torch.Tensor | None = None
         self.gone = torch.zeros(rows, dtype=torch.bool, device=dev)  # predicted outside
         self.identity: torch.Tensor | None = None  # (B*N,) rows known without a solve
         #: (B*N, 2) px where each row's subset is centred, or None: at its POI everywhere
@@ -309,12 +309,14 @@ class _Block:
             sol.std[take] if sol.std is not None else None, cols, rows=int(take.sum()))
         self.params[r], self.std[r] = p, sd
         cstep = sol.info.get("classical_step")
-        if cstep is None:
-            self.check_start[r] = float("nan")
-        else:
+        if cstep is not None and self.check_start is None:
+            self.check_start = torch.full_like(self.params, float("nan"))
+        if cstep is not None:
             names = self.run.solver.shape.spatial().param_names
             self.check_start[r] = self._columns(cstep[take], [
                 names.index(nm) if nm in names else -1 for nm in self.run.names])
+        elif self.check_start is not None:
+            self.check_start[r] = float("nan")
         self.zncc[r] = sol.zncc[take].to(self.run.dtype)
         self.status[r] = sol.status[take]
         if sol.sigma is not None:
@@ -546,10 +548,13 @@ class _Block:
         :meth:`identity_solution`, not solved."""
         own = self.k.repeat_interleave(self.n)[idx] == self.ref.frame
         # one classical step from the window's solution is known where its solve gave it
-        start = self.check_start[idx]
-        cols = [self.run.names.index(nm) for nm in self.run.solver.shape.spatial().param_names]
-        have = torch.isfinite(start[:, cols]).all(1, keepdim=True)
-        start = torch.where(have, start, self.params[idx])
+        start = self.params[idx]
+        if self.check_start is not None:
+            known = self.check_start[idx]
+            cols = [self.run.names.index(nm)
+                    for nm in self.run.solver.shape.spatial().param_names]
+            start = torch.where(torch.isfinite(known[:, cols]).all(1, keepdim=True), known,
+                                start)
         if not bool(own.any()):
             return self.solve(idx, start, m=0, solver=solver)
         ident = self.identity_solution(idx)

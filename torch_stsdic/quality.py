@@ -44,6 +44,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from . import native
 from .points import nearest_points
 from .strain import detect_grid
 
@@ -52,7 +53,7 @@ __all__ = [
     "FIT_GROWTH",
     "MEDIAN_THRESHOLD", "MEDIAN_EPS_STD", "MEDIAN_EPS_MIN", "MEDIAN_SCATTER", "MEDIAN_ROUNDS",
     "LINE_Z", "model_mismatch", "line_mismatch", "residual_mismatch", "poor_fit",
-    "neighbours", "carried_neighbours", "median_test",
+    "neighbours", "carried_neighbours", "median_test", "nanmedian_rows",
 ]
 
 MODEL_Z = 3.0  #: model check: standard deviations of the STS - classical difference allowed
@@ -232,7 +233,7 @@ def neighbour_tolerance(std_uv: Tensor, grad_std: Tensor | None, ok: Tensor, nb:
     safe, has = nb.clamp(min=0), (nb >= 0).unsqueeze(0)
     g = torch.where(ok, grad_std.double(), torch.nan)[:, safe]  # (B, N, k)
     g = torch.where(has & ok[:, safe], g, torch.nan)
-    g_nb = _nanmedian(g).nan_to_num(0.0)
+    g_nb = nanmedian_rows(g).nan_to_num(0.0)
     return torch.hypot(eps, MEDIAN_EPS_STD * g_nb * reach)
 
 
@@ -263,7 +264,12 @@ def _grid_neighbours(grid, k: int, reach: float) -> Tensor:
     return out[:, :k]
 
 
-def _nanmedian(x: Tensor) -> Tensor:
+def nanmedian_rows(x: Tensor) -> Tensor:
+    """The median along the last dim over the values that are not NaN (the lower middle one
+    for an even count; NaN where none): ``torch.nanmedian``'s, natively on the CPU for the
+    short rows of the neighbour tests (8x faster)."""
+    if x.dim() and 1 <= x.shape[-1] <= 64 and x.numel() and native.usable(x):
+        return native.nanmedian(x)
     return torch.nanmedian(x, dim=-1).values
 
 
@@ -296,8 +302,8 @@ def carried_neighbours(values: Tensor, valid: Tensor, nb: Tensor, points: Tensor
         # noise at edges and corners, and a wrong point's wrong gradient is not used
         gm = torch.where(use.view(*use.shape, 1, 1), g[:, safe], torch.nan).permute(
             0, 1, 3, 4, 2)  # (B, N, C, 2, k)
-        med = _nanmedian(gm)
-        mad = _nanmedian((gm - med.unsqueeze(-1)).abs())
+        med = nanmedian_rows(gm)
+        mad = nanmedian_rows((gm - med.unsqueeze(-1)).abs())
         own = valid.view(*valid.shape, 1, 1) & ((g - med).abs() <= 3.0 * mad + GRADIENT_TOL)
         at = g.clone()
         fit = ~own.flatten(-2).all(-1)  # (B, N): the plane fit of the neighbours is needed
@@ -356,8 +362,8 @@ def median_test(values: Tensor, valid: Tensor, nb: Tensor, eps: float | Tensor,
     out = torch.zeros_like(valid)
     for i in range(max(1, rounds)):
         vn = carried_neighbours(values, valid & ~out, nb, points, gradients)
-        med = _nanmedian(vn.transpose(-1, -2))  # (B, N, C)
-        rm = _nanmedian((vn - med.unsqueeze(2)).abs().transpose(-1, -2))  # (B, N, C)
+        med = nanmedian_rows(vn.transpose(-1, -2))  # (B, N, C)
+        rm = nanmedian_rows((vn - med.unsqueeze(2)).abs().transpose(-1, -2))  # (B, N, C)
         r = ((v - med).abs() / (rm + eps_t)).amax(-1)  # (B, N); NaN: no neighbour
         judged = valid & ~out & ((~torch.isnan(vn[..., 0])).sum(-1) >= min_neighbours)
         cand = judged & (r > MEDIAN_THRESHOLD)

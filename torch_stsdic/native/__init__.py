@@ -7,7 +7,8 @@ operations writes each intermediate (N, T, S) tensor to memory. The kernels in
 one pass per point (double accumulators across frames), a few ns per sample and thread
 (measured by ``scripts/bench_kernels.py``, recorded in ``docs/bench/kernels-cpu.json``);
 also the reference subsets with gradients, the IC Hessian's moments, the inverses of small
-symmetric positive definite matrices and the recursive B-spline prefilter.
+symmetric positive definite matrices, medians of short rows and the recursive B-spline
+prefilter.
 
 * Built with the system C++ compiler (``$CXX``, else ``c++``/``g++``/``clang++``; the same
   one torch.compile needs on a CPU) into ``$TORCH_STSDIC_CACHE`` (default
@@ -40,7 +41,7 @@ Modules, one job each: ``builder`` (compiler, cache directory, :func:`build`),
 ``declarations`` (the library's signatures, :class:`Kernel` and its checked call),
 ``loader`` (the switch, loading once, :func:`usable`), ``rows`` (the row-parallel runner),
 ``ops`` (the wrappers :func:`sample`, :func:`subsets`, :func:`ic_rhs`, :func:`gram`,
-:func:`spd_inverse`, :func:`prefilter`).
+:func:`spd_inverse`, :func:`nanmedian`, :func:`prefilter`).
 """
 
 from __future__ import annotations
@@ -48,8 +49,8 @@ from __future__ import annotations
 from .builder import build
 from .declarations import Kernel, Param
 from .loader import available, kernels, native_enabled, set_native, usable, usable_image
-from .ops import gram, ic_rhs, prefilter, sample, spd_inverse, subsets
+from .ops import gram, ic_rhs, nanmedian, prefilter, sample, spd_inverse, subsets
 
 __all__ = ["available", "set_native", "native_enabled", "sample", "subsets", "ic_rhs", "gram",
-           "spd_inverse", "prefilter", "build", "kernels", "Kernel", "Param", "usable",
+           "spd_inverse", "nanmedian", "prefilter", "build", "kernels", "Kernel", "Param", "usable",
            "usable_image"]

@@ -13,7 +13,7 @@ import torch
 from .loader import kernel
 from .rows import run_rows
 
-__all__ = ["sample", "subsets", "ic_rhs", "gram", "spd_inverse", "prefilter"]
+__all__ = ["sample", "subsets", "ic_rhs", "gram", "spd_inverse", "nanmedian", "prefilter"]
 
 
 def _geo(img_args: tuple, order: int) -> dict:
@@ -205,6 +205,19 @@ def spd_inverse(h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     run_rows(kernel("sts_spd_inverse", h.dtype), n, p * p * p,
              dict(np=p, h=hc, inv=inv, bad=bad))
     return inv, bad.bool()
+
+
+def nanmedian(x: torch.Tensor) -> torch.Tensor:
+    """Native twin of ``torch.nanmedian(x, dim=-1).values`` for rows of at most 64 values
+    (float32/float64): the median over the values that are not NaN (the lower middle one for
+    an even count), NaN where a row has none; shape ``x.shape[:-1]``."""
+    k = x.shape[-1] if x.dim() else 0
+    _require("nanmedian", 1 <= k <= 64, f"rows of 1 to 64 values, got {tuple(x.shape)}")
+    xc = x.contiguous()
+    out = torch.empty(x.shape[:-1], dtype=x.dtype)
+    n = out.numel()
+    run_rows(kernel("sts_nanmedian", x.dtype), n, 4 * k, dict(k=k, x=xc, out=out))
+    return out
 
 
 def prefilter(images: torch.Tensor, order: int) -> torch.Tensor:
