@@ -262,3 +262,16 @@ def test_argument_checks():
         compute_strain(pts, np.zeros(15), np.zeros(15))
     with pytest.raises(ValueError, match="grid"):
         compute_strain(np.random.default_rng(0).random((16, 2)), z, z, method="grid")
+
+
+def test_detect_grid_answers_again_from_the_points_bytes():
+    ys, xs = np.meshgrid(np.arange(0.0, 50, 5), np.arange(3.0, 83, 8), indexing="ij")
+    pts = np.stack([xs.ravel(), ys.ravel()], 1)
+    g1 = detect_grid(pts)
+    g2 = detect_grid(torch.from_numpy(pts.copy()))  # same points, another object: kept
+    assert g1 is g2 and (g1.nx, g1.ny, g1.sx, g1.sy) == (10, 10, 8.0, 5.0)
+    assert not g1.ix.flags.writeable and not g1.iy.flags.writeable
+    moved = pts.copy()
+    moved[0, 0] += 0.5  # off the grid now
+    assert detect_grid(moved) is None
+    assert detect_grid(pts[1:]) is not g1 and detect_grid(pts[1:]).nx == 10

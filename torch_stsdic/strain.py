@@ -25,6 +25,7 @@ exist. A point gets NaN when it is itself invalid, has fewer than ``min_points``
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -106,10 +107,29 @@ def detect_grid(points: Any, *, max_fill: float = 4.0, rtol: float = 1e-6) -> Gr
 
     The grid is ``x0 + i * sx``, ``y0 + j * sy`` with steps taken from the unique coordinates.
     Holes (masked points) are allowed, but the bounding grid may hold at most ``max_fill * N``
-    cells and no cell may hold two points. Returns a :class:`GridInfo`, or None when the points
-    are scattered.
+    cells and no cell may hold two points. Returns a :class:`GridInfo` (its index arrays
+    read-only), or None when the points are scattered. The last few answers are kept by the
+    points' bytes: a run asks for the same points' grid three times (neighbour test, strains).
     """
-    p = _as_numpy(points).astype(np.float64).reshape(-1, 2)
+    p = np.ascontiguousarray(_as_numpy(points), dtype=np.float64).reshape(-1, 2)
+    key = (hashlib.blake2b(p.tobytes(), digest_size=16).digest(), float(max_fill), float(rtol))
+    if key in _GRIDS:
+        return _GRIDS[key]
+    grid = _detect_grid(p, max_fill, rtol)
+    if grid is not None:
+        grid.ix.flags.writeable = False
+        grid.iy.flags.writeable = False
+    _GRIDS[key] = grid
+    while len(_GRIDS) > 4:
+        _GRIDS.pop(next(iter(_GRIDS)))
+    return grid
+
+
+_GRIDS: dict[tuple, GridInfo | None] = {}  # detect_grid's last answers, oldest first
+
+
+def _detect_grid(p: np.ndarray, max_fill: float, rtol: float) -> GridInfo | None:
+    """:func:`detect_grid` of (N, 2) float64 points."""
     n = p.shape[0]
     if n == 0 or not np.all(np.isfinite(p)):
         return None
