@@ -240,7 +240,7 @@ def neighbour_tolerance(std_uv: Tensor, grad_std: Tensor | None, ok: Tensor, nb:
 def _grid_neighbours(grid, k: int, reach: float) -> Tensor:
     """(N, k) the nearest ``k`` other points of a regular grid (:func:`detect_grid`) within
     ``reach`` times the grid's smaller step, nearest first (-1 where fewer)."""
-    ix, iy = torch.from_numpy(grid.ix).long(), torch.from_numpy(grid.iy).long()
+    ix, iy = torch.tensor(grid.ix, dtype=torch.long), torch.tensor(grid.iy, dtype=torch.long)
     n = ix.shape[0]
     table = torch.full((grid.ny, grid.nx), -1, dtype=torch.long)
     table[iy, ix] = torch.arange(n)
