@@ -408,3 +408,31 @@ def test_line_mismatch_predicts_the_windows_that_would_fail():
     dt2 = torch.tensor([-2.0, -1.0, 0.0]).expand(r, -1)
     on = torch.stack([0.1 * dt2, 0.1 * dt2], -1) + sd * torch.randn(r, 3, 2, generator=g)
     assert float(line_mismatch(on, dt2, on[:, 2], std).float().mean()) < 1e-3
+
+
+def test_grid_neighbours_match_a_sort_of_all_candidates():
+    """The grid lookup (the nearest k offsets where all hold a point, else every offset
+    within reach, placed by a cumulative count) gives what sorting every candidate by
+    (missing last, distance) gives, holes and borders included."""
+    from torch_stsdic.quality import _grid_neighbours
+    from torch_stsdic.strain import detect_grid
+
+    g = torch.Generator().manual_seed(5)
+    ys, xs = torch.meshgrid(torch.arange(0.0, 60, 3), torch.arange(0.0, 100, 5), indexing="ij")
+    pts = torch.stack([xs.flatten(), ys.flatten()], 1)
+    pts = pts[torch.rand(len(pts), generator=g) > 0.2]  # holes
+    grid = detect_grid(pts)
+    for k in (4, 8, 30):
+        got = _grid_neighbours(grid, k, 2.5)
+        ix, iy = torch.tensor(grid.ix), torch.tensor(grid.iy)
+        d = torch.hypot((ix[None] - ix[:, None]) * grid.sx, (iy[None] - iy[:, None]) * grid.sy)
+        reach = 2.5 * min(grid.sx, grid.sy) * (1 + 1e-9)
+        ok = (d > 0) & (d <= reach)
+        # offsets nearest first, ties in row-major offset order (dy, then dx)
+        key = torch.where(ok, d * 1e6 + (iy[None] - iy[:, None]) * 1e3 + (ix[None] - ix[:, None]),
+                          torch.inf)
+        order = torch.argsort(key, dim=1)[:, :k]
+        want = torch.where(torch.gather(ok, 1, order), order, -1)
+        if want.shape[1] < k:
+            want = torch.cat([want, torch.full((len(pts), k - want.shape[1]), -1)], 1)
+        assert torch.equal(got, want), k

@@ -122,3 +122,25 @@ def test_initial_guess_config_is_validated():
         sts.DICConfig(initial_guess="magic")
     with pytest.raises(ValueError, match="seed_spacing"):
         sts.DICConfig(seed_spacing=0.0)
+
+
+@pytest.mark.parametrize("per_frame", [False, True])
+def test_fft_regions_gathered_from_windows_equal_the_clamped_ones(per_frame):
+    """FFT-CC's search regions: gathered from a strided view where inside the image, by
+    clamped index arithmetic (zero outside) elsewhere; the same numbers either way."""
+    from torch_stsdic.initial import _regions, _regions_clamped
+
+    g = torch.Generator().manual_seed(1)
+    img = torch.rand(3, 60, 90, generator=g)
+    n, t = 200, 4
+    index = torch.randint(0, 3, (n, t), generator=g)
+    shape = (n, t) if per_frame else (n,)
+    cx = torch.randint(-25, 95, shape, generator=g)
+    cy = torch.randint(-25, 65, shape, generator=g)
+    got = _regions(img, index, cx, cy, 21)
+    assert got.shape == (n, t, 21, 21)
+    assert torch.equal(got, _regions_clamped(img, index, cx, cy, 21))
+    inside = (cx >= 0) & (cy >= 0) & (cx + 21 <= 90) & (cy + 21 <= 60)
+    assert inside.any() and (~inside).any()  # both paths ran
+    assert torch.equal(_regions(img[:, :10], index, cx, cy, 21),  # smaller than a region
+                       _regions_clamped(img[:, :10], index, cx, cy, 21))

@@ -19,8 +19,34 @@ def _regions(
     img: torch.Tensor, index: torch.Tensor, cx: torch.Tensor, cy: torch.Tensor, size: int
 ) -> torch.Tensor:
     """Square regions (N, T, size, size) of images ``img[index]`` (img (F, H, W), index
-    (N, T)), top-left at (cx, cy) ints, (N,) (the same for every frame: the index arithmetic
-    is done once per point) or (N, T), zero outside the image."""
+    (N, T)), top-left at (cx, cy) ints, (N,) (the same for every frame) or (N, T), zero
+    outside the image. Regions inside the image are gathered from a strided view of all
+    size x size windows (no index arithmetic per pixel); the others by :func:`_regions_clamped`
+    (the same numbers)."""
+    _, h, w = img.shape
+    n, t = index.shape
+    x0 = cx.reshape(cx.shape[0], -1).expand(n, t)
+    y0 = cy.reshape(cy.shape[0], -1).expand(n, t)
+    if h < size or w < size:
+        return _regions_clamped(img, index, cx, cy, size)
+    inside = (x0 >= 0) & (y0 >= 0) & (x0 + size <= w) & (y0 + size <= h)
+    st = img.stride()
+    win = img.as_strided((img.shape[0], h - size + 1, w - size + 1, size, size),
+                         (st[0], st[1], st[2], st[1], st[2]))
+    if bool(inside.all()):
+        return win[index, y0, x0]
+    out = img.new_empty(n, t, size, size)
+    out[inside] = win[index[inside], y0[inside], x0[inside]]
+    rest = ~inside
+    out[rest] = _regions_clamped(img, index[rest].view(-1, 1), x0[rest], y0[rest], size)[:, 0]
+    return out
+
+
+def _regions_clamped(
+    img: torch.Tensor, index: torch.Tensor, cx: torch.Tensor, cy: torch.Tensor, size: int
+) -> torch.Tensor:
+    """:func:`_regions` by index arithmetic on clamped coordinates, zero outside the image
+    (cx, cy (N,) or (N, T) as there)."""
     _, h, w = img.shape
     r = torch.arange(size, device=img.device)
     cy = cy.reshape(cy.shape[0], -1)  # (N, 1) or (N, T)

@@ -251,17 +251,31 @@ def _grid_neighbours(grid, k: int, reach: float) -> Tensor:
     keep = (dist > 0) & (dist <= reach * step * (1 + 1e-9))
     order = torch.argsort(dist[keep], stable=True)
     ox, oy = dx.flatten()[keep][order], dy.flatten()[keep][order]  # nearest first
-    cx, cy = ix.unsqueeze(1) + ox, iy.unsqueeze(1) + oy  # (N, offsets)
-    inside = (cx >= 0) & (cx < grid.nx) & (cy >= 0) & (cy < grid.ny)
-    cand = torch.where(inside, table[cy.clamp(0, grid.ny - 1), cx.clamp(0, grid.nx - 1)], -1)
+
+    def candidates(rows, m):  # (R, m) the points at the nearest m offsets, -1: none
+        cx, cy = ix[rows].unsqueeze(1) + ox[:m], iy[rows].unsqueeze(1) + oy[:m]
+        inside = (cx >= 0) & (cx < grid.nx) & (cy >= 0) & (cy < grid.ny)
+        return torch.where(inside, table[cy.clamp(0, grid.ny - 1), cx.clamp(0, grid.nx - 1)],
+                           -1)
+
+    # where the nearest k offsets all hold a point (the grid's interior) they are the answer
+    if ox.shape[0] >= k:
+        out = candidates(slice(None), k)
+        short = torch.nonzero((out < 0).any(1)).flatten()
+        if short.numel() == 0:
+            return out
+    else:
+        out, short = torch.full((n, k), -1, dtype=torch.long), torch.arange(n)
+    cand = candidates(short, ox.shape[0])
     # the valid ones, nearest first: each to its place among the valid ones of its row (a
     # cumulative count, not a sort), the rest and those beyond k to a spare column
     valid = cand >= 0
     pos = torch.cumsum(valid, 1) - 1
     pos = torch.where(valid & (pos < k), pos, k)
-    out = torch.full((n, k + 1), -1, dtype=torch.long)
-    out.scatter_(1, pos, torch.where(valid, cand, -1))
-    return out[:, :k]
+    some = torch.full((short.numel(), k + 1), -1, dtype=torch.long)
+    some.scatter_(1, pos, torch.where(valid, cand, -1))
+    out[short] = some[:, :k]
+    return out
 
 
 def nanmedian_rows(x: Tensor) -> Tensor:
