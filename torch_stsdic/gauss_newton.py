@@ -403,8 +403,9 @@ def _run_stage(ctx: BatchContext, form: Formulation, params, data: SubsetData, l
         st = torch.where(bad, int(Status.DIVERGED), torch.where(outside, int(Status.OUTSIDE),
                                                                  conv_code)).to(torch.int8)
         if last is not None:  # where this step ends a point: the step's point and rhs
-            last[0][rows] = torch.where(done.unsqueeze(1), p_old, last[0][rows])
-            last[1][rows] = torch.where(done.view(-1, 1, 1), buf, last[1][rows])
+            ended = torch.nonzero(done).flatten()
+            last[0][rows[ended]] = p_old[ended]
+            last[1][rows[ended]] = buf[ended]
         params[rows] = torch.where(done.unsqueeze(1), p, params[rows])
         status[rows] = torch.where(done, st, status[rows])
         active = active & ~done
