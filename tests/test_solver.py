@@ -356,6 +356,10 @@ def test_classical_step_is_one_classical_step_from_the_window(pattern):
     solution at its centre frame, read off the window solve's last step: what the classical
     solver's own first step from there gives (to the size of the window's last increment),
     and much nearer the classical minimum than the window's solution."""
+    from torch_stsdic import native
+
+    if not native.available():
+        pytest.skip("the classical step comes from the native kernel (not built here)")
     motion = synth.Translation(0.6, -0.3, ut=0.04, vt=0.02) + synth.HomogeneousStrain(
         exx=0.004, eyy=-0.003, center=(50.0, 50.0), rate=0.3)
     ref, frames = _series(pattern, motion, [1, 2, 3, 4, 5], sigma=2.0, seed=3)
@@ -380,3 +384,21 @@ def test_classical_step_is_one_classical_step_from_the_window(pattern):
     plain = solver.solve(ref_img, frames_img, pts, dt, ref_pixels=ref.unsqueeze(0),
                          frame_pixels=frames)
     assert "classical_step" not in plain.info and torch.equal(plain.params, sol.params)
+
+
+def test_classical_step_is_nan_where_the_native_kernel_is_not_used(pattern):
+    """Without the native kernel (CUDA, autograd, no compiler) the window solve cannot give
+    the classical step: NaN, and the model check starts from the window's solution."""
+    from torch_stsdic import native
+
+    ref, frames = _series(pattern, synth.Translation(0.3, -0.2, ut=0.05), [1, 2, 3])
+    pts = _grid()
+    solver = sts.SubsetSolver(sts.DICConfig(m=1))
+    native.set_native(False)
+    try:
+        sol = solver.solve(solver.prepare(ref), solver.prepare(frames), pts,
+                           torch.tensor([-1.0, 0.0, 1.0], dtype=torch.float64),
+                           ref_pixels=ref.unsqueeze(0), frame_pixels=frames, classical_step=True)
+    finally:
+        native.set_native("auto")
+    assert sol.ok.all() and torch.isnan(sol.info["classical_step"]).all()
