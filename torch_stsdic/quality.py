@@ -310,14 +310,14 @@ def carried_neighbours(values: Tensor, valid: Tensor, nb: Tensor, points: Tensor
         p = points.double()
         d = (p.unsqueeze(1) - p[safe]).view(1, n, -1, 1, 2)  # (1, N, k, 1, 2) to the point
         g = gradients.double()
-        gn = torch.where(use.view(*use.shape, 1, 1), g[:, safe], 0.0)
+        gs, use5 = g[:, safe], use.view(*use.shape, 1, 1)  # (B, N, k, C, 2)
+        gn = torch.where(use5, gs, 0.0)
         # the point's own gradient where it is one of its neighbours' (within 3 of their
         # median absolute deviations from their median, + GRADIENT_TOL): no extrapolation
         # noise at edges and corners, and a wrong point's wrong gradient is not used
-        gm = torch.where(use.view(*use.shape, 1, 1), g[:, safe], torch.nan).permute(
-            0, 1, 3, 4, 2)  # (B, N, C, 2, k)
+        gm = torch.where(use5, gs, torch.nan).permute(0, 1, 3, 4, 2).contiguous()  # (B,N,C,2,k)
         med = nanmedian_rows(gm)
-        mad = nanmedian_rows((gm - med.unsqueeze(-1)).abs())
+        mad = nanmedian_rows((gm - med.unsqueeze(-1)).abs_())
         own = valid.view(*valid.shape, 1, 1) & ((g - med).abs() <= 3.0 * mad + GRADIENT_TOL)
         at = g.clone()
         fit = ~own.flatten(-2).all(-1)  # (B, N): the plane fit of the neighbours is needed
