@@ -8,6 +8,7 @@ Jacobian, Hessian, update) is the formulation's (:mod:`torch_stsdic.formulations
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -22,6 +23,7 @@ from .formulations import (
     JointIC,
     SubsetData,
     gram_and_texture,
+    ic_hessian,
     reference_subsets,
 )
 from .interpolation import BSplineImage
@@ -225,11 +227,12 @@ def _classical_step(geo: Geometry, data: SubsetData, p_last: Tensor, rhs: Tensor
     at0 = data.dt == 0  # (N, T)
     t0 = at0.to(torch.int8).argmax(1)
     b = rhs[torch.arange(rhs.shape[0], device=rhs.device), t0]  # (N, 2 Ks)
-    keep = [*range(ks), *range(ks + 1, 2 * ks + 1)]
-    hinv, singular = spd_inverse(data.gram[:, keep][:, :, keep])
+    classical = dataclasses.replace(geo, shape=geo.shape.spatial())
+    hinv, singular = spd_inverse(ic_hessian(classical, data.gx, data.gy, data.dt[:, :1],
+                                            g=data.gram))
     dp = -(hinv @ b.unsqueeze(-1)).squeeze(-1)
     pc = torch.cat([p_last[:, :ks], p_last[:, k:k + ks]], 1).double()
-    out = geo.shape.spatial().compose_inverse(pc, dp)
+    out = classical.shape.compose_inverse(pc, dp)
     bad = singular | ~at0.any(1) | ~torch.isfinite(out).all(1)
     return out.masked_fill(bad.unsqueeze(1), float("nan"))
 
