@@ -212,9 +212,10 @@ class _Block:
         self.std = torch.full((rows, p_count), float("nan"), dtype=run.dtype, device=dev)
         self.sigma = torch.full((rows,), float("nan"), dtype=run.dtype, device=dev)
         self.m_used = torch.full((rows,), -1, dtype=torch.int8, device=dev)
-        #: (B*N, P) each row's classical solution one Gauss-Newton step from its window's
-        #: solution, where the window's solve gave it (``classical_step``), else NaN: where
-        #: the model check starts the row's classical solve (None: no solve gave one)
+        #: (B*N, 2 Ks) each row's classical solution (the spatial shape's parameters) one
+        #: Gauss-Newton step from its window's solution, where the window's solve gave it
+        #: (``classical_step``), else NaN: where the model check starts the row's classical
+        #: solve (None: no solve gave one)
         self.check_start: torch.Tensor | None = None
         self.gone = torch.zeros(rows, dtype=torch.bool, device=dev)  # predicted outside
         self.identity: torch.Tensor | None = None  # (B*N,) rows known without a solve
@@ -310,13 +311,11 @@ class _Block:
         self.params[r], self.std[r] = p, sd
         cstep = sol.info.get("classical_step")
         if cstep is not None and self.check_start is None:
-            self.check_start = torch.full_like(self.params, float("nan"))
-        if cstep is not None:
-            names = self.run.solver.shape.spatial().param_names
-            self.check_start[r] = self._columns(cstep[take], [
-                names.index(nm) if nm in names else -1 for nm in self.run.names])
-        elif self.check_start is not None:
-            self.check_start[r] = float("nan")
+            self.check_start = torch.full((self.params.shape[0], cstep.shape[1]), float("nan"),
+                                          dtype=self.params.dtype, device=self.params.device)
+        if self.check_start is not None:
+            self.check_start[r] = float("nan") if cstep is None else cstep[take].to(
+                self.params.dtype)
         self.zncc[r] = sol.zncc[take].to(self.run.dtype)
         self.status[r] = sol.status[take]
         if sol.sigma is not None:
@@ -551,10 +550,10 @@ class _Block:
         start = self.params[idx]
         if self.check_start is not None:
             known = self.check_start[idx]
-            cols = [self.run.names.index(nm)
-                    for nm in self.run.solver.shape.spatial().param_names]
-            start = torch.where(torch.isfinite(known[:, cols]).all(1, keepdim=True), known,
-                                start)
+            spatial = [self.run.names.index(nm)
+                       for nm in self.run.solver.shape.spatial().param_names]
+            start = torch.where(torch.isfinite(known).all(1, keepdim=True), known,
+                                start[:, spatial])
         if not bool(own.any()):
             return self.solve(idx, start, m=0, solver=solver)
         ident = self.identity_solution(idx)

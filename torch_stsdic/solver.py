@@ -413,8 +413,8 @@ class SubsetSolver:
             "sigma": torch.full((n,), float("nan"), dtype=dtype, device=dev),
         }
         if classical_step:
-            out["cstep"] = torch.full((n, 2 * shape.spatial().n_basis), float("nan"),
-                                      dtype=dtype, device=dev)
+            out["cstep"] = sol_s.info["classical_step"].new_full(
+                (n, sol_s.info["classical_step"].shape[1]), float("nan"))
 
         def put(rows, sol, mask=None):
             if mask is not None:
