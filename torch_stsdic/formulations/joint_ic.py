@@ -158,8 +158,13 @@ class JointIC(Formulation):
 
     def uses_fused_kernel(self, frames: BSplineImage, data: SubsetData, p: Tensor) -> bool:
         # the Triton step has no shared-motion term: the torch code serves those calls
-        return native.usable_image(frames.kernel_args(), p, data.ft) or (
+        return self._native(frames, data, p) or (
             data.motion is None and self._triton(frames, data, p))
+
+    @staticmethod
+    def _native(frames: BSplineImage, data: SubsetData, p: Tensor) -> bool:
+        """The fused native step (:mod:`torch_stsdic.native`) serves this call (CPU)."""
+        return native.usable_image(frames.kernel_args(), p, data.ft)
 
     @staticmethod
     def _triton(frames: BSplineImage, data: SubsetData, p: Tensor) -> bool:
@@ -175,7 +180,7 @@ class JointIC(Formulation):
                 geo.shape.has_time, geo.znssd, frames.order, data.motion)
 
     def gives_frame_rhs(self, frames: BSplineImage, data: SubsetData, p: Tensor) -> bool:
-        return native.usable_image(frames.kernel_args(), p, data.ft)
+        return self._native(frames, data, p)  # the Triton and torch steps do not
 
     def step(self, geo: Geometry, frames: BSplineImage, data: SubsetData, p: Tensor,
              work: int, sel: Tensor | None = None, frame_rhs: Tensor | None = None
@@ -183,7 +188,7 @@ class JointIC(Formulation):
         if sel is not None:
             ka = frames.kernel_args()
             extra = {}
-            if native.usable_image(ka, p, data.ft):
+            if self._native(frames, data, p):
                 fused, extra = native.ic_rhs, {"motion": data.motion, "ref_rows": data.ref_rows,
                                                "frame_rhs": frame_rhs}
             else:
