@@ -108,19 +108,17 @@ class ReferenceCache:
             # the first solve brings the run's points: keep its tensors, no copy (a pair:
             # 38,809 subsets, 0.03 s); they are read, never written, by the solves
             self._store = {k: v.contiguous() for k, v in new.items()}
-            self.slot[keys] = torch.arange(start, end, device=keys.device)
-            self.count = end
-            return
-        if end > capacity:  # grow: to the run's expected points, else double (within budget)
-            per = sum(v[:1].numel() * v.element_size() for v in new.values())
-            capacity = max(end, min(max(2 * capacity, self.expected),
-                                    int(self.budget // max(per, 1))))
-            store = {k: v.new_empty((capacity, *v.shape[1:])) for k, v in new.items()}
-            for k, v in self._store.items():
-                store[k][:start] = v[:start]
-            self._store = store
-        for k, v in new.items():
-            self._store[k][start:end] = v
+        else:
+            if end > capacity:  # grow: to the run's expected points, else double (in budget)
+                per = sum(v[:1].numel() * v.element_size() for v in new.values())
+                capacity = max(end, min(max(2 * capacity, self.expected),
+                                        int(self.budget // max(per, 1))))
+                store = {k: v.new_empty((capacity, *v.shape[1:])) for k, v in new.items()}
+                for k, v in self._store.items():
+                    store[k][:start] = v[:start]
+                self._store = store
+            for k, v in new.items():
+                self._store[k][start:end] = v
         self.slot[keys] = torch.arange(start, end, device=keys.device)
         self.count = end
 
