@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import torch
 
+from .interpolation import window_view
+
 __all__ = ["fft_cross_correlation", "coarse_to_fine", "linear_fit_in_time", "seed_cells",
            "carry_from_seed", "retry_weak_peaks", "walk_weak_frames"]
 
@@ -30,9 +32,7 @@ def _regions(
     if h < size or w < size:
         return _regions_clamped(img, index, cx, cy, size)
     inside = (x0 >= 0) & (y0 >= 0) & (x0 + size <= w) & (y0 + size <= h)
-    st = img.stride()
-    win = img.as_strided((img.shape[0], h - size + 1, w - size + 1, size, size),
-                         (st[0], st[1], st[2], st[1], st[2]))
+    win = window_view(img, size, size)
     if bool(inside.all()):
         return win[index, y0, x0]
     out = img.new_empty(n, t, size, size)

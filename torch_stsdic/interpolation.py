@@ -22,7 +22,17 @@ import torch
 
 from . import native
 
-__all__ = ["BSplineImage", "bspline_prefilter", "set_compile"]
+__all__ = ["BSplineImage", "bspline_prefilter", "set_compile", "window_view"]
+
+
+def window_view(images: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """Every ``height`` x ``width`` window of ``images`` (F, H, W), as a view (no copy):
+    (F, H - height + 1, W - width + 1, height, width), ``[f, y, x]`` the window whose top-left
+    pixel is (x, y). Indexing it with (N,) frames, rows and columns gathers N windows."""
+    f, h, w = images.shape
+    st = images.stride()
+    return images.as_strided((f, h - height + 1, w - width + 1, height, width),
+                             (st[0], st[1], st[2], st[1], st[2]))
 
 
 def _transfer(order: int, n: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
@@ -331,11 +341,7 @@ class BSplineImage:
         f = frame_t.reshape(-1).expand(x0.numel())
         out = []
         for g in grid:
-            t, h, w = g.shape
-            st = g.stride()
-            win = g.as_strided((t, h - wy + 1, w - wx + 1, wy, wx),
-                               (st[0], st[1], st[2], st[1], st[2]))
-            sub = win[f, y0, x0].reshape(x0.numel(), wx * wy)
+            sub = window_view(g, wy, wx)[f, y0, x0].reshape(x0.numel(), wx * wy)
             out.append(sub if full else sub[:, col])
         return tuple(out)
 
