@@ -281,7 +281,7 @@ def _grid_neighbours(grid, k: int, reach: float) -> Tensor:
 def nanmedian_rows(x: Tensor) -> Tensor:
     """The median along the last dim over the values that are not NaN (the lower middle one
     for an even count; NaN where none): ``torch.nanmedian``'s, natively on the CPU for the
-    short rows of the neighbour tests (8x faster)."""
+    short rows of the neighbour tests (~6x faster: 1.5 against 9 ms for 155,000 rows of 8)."""
     if x.dim() and 1 <= x.shape[-1] <= 64 and x.numel() and native.usable(x):
         return native.nanmedian(x)
     return torch.nanmedian(x, dim=-1).values
