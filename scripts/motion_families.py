@@ -122,7 +122,7 @@ def main() -> None:
     _markdown(rows, args.out / "motion_families.md", size, n_frames, subset, step, noise)
 
 
-LABELS = {"rotation4": "rotation\n4 deg/frame", "rotation1": "rotation\n1 deg/frame",
+LABELS = {"rotation4": "rotation\n4°/frame", "rotation1": "rotation\n1°/frame",
           "acceleration": "acceleration", "crack": "crack",
           "large_translation": "translation\n12 px/frame"}
 
@@ -131,7 +131,7 @@ def _figure(rows, path: Path) -> None:
     from matplotlib.figure import Figure
 
     fams = list(dict.fromkeys(r["family"] for r in rows))
-    fig = Figure(figsize=(12, 3.9), layout="constrained")
+    fig = Figure(figsize=(13, 3.9), layout="constrained")
     axs = fig.subplots(1, 3)
     x = np.arange(len(fams))
     styles = {(0, False): ("classical, no checks", "#9ecae1", "//"),
