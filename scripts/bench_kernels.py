@@ -170,7 +170,7 @@ def main(argv=None) -> None:
             sec = _median_time(fn, args.repeats, dev)
             rows.append({"kernel": name, "impl": impl, "threads": th, "samples": samples,
                          "median_s": sec, "ns_per_sample": sec / samples * 1e9})
-            print(f"{th}t {impl:6s} {name}: {sec / samples * 1e9:.1f} ns/sample", flush=True)
+            print(f"{th}t {impl:6s} {name}: {sec / samples * 1e9:.3g} ns/sample", flush=True)
     rec = {
         "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
         "arch": platform.machine(),
@@ -200,7 +200,7 @@ def table(rows) -> str:
         vals = []
         for i, t in cols:
             r = [x for x in rows if x["kernel"] == k and x["impl"] == i and x["threads"] == t]
-            vals.append(f"{r[0]['ns_per_sample']:.1f}" if r else "-")
+            vals.append(f"{r[0]['ns_per_sample']:.3g}" if r else "-")
         lines.append(f"| {k} | " + " | ".join(vals) + " |")
     return "\n".join(lines)
 

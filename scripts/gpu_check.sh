@@ -1,0 +1,68 @@
+#!/usr/bin/env bash
+# GPU correctness and speed in one call (a lent GPU machine with torch, Triton, h5py and
+# tifffile; kornia travels as wheels in .whl/, the benchmark inputs in .benchcache/).
+#
+#   bash scripts/gpu_check.sh [steps]     # steps: any of tests,kernels,targets,cli,movie
+#
+# Writes its logs and JSON records under $OUT (default ./gpu-out). Each step has its own
+# time limit, so one that hangs cannot take the others with it.
+set -uo pipefail
+OUT=${OUT:-$PWD/gpu-out}
+mkdir -p "$OUT"
+STEPS=${1:-tests,kernels,targets,cli,movie}
+export PYTHONUNBUFFERED=1 OMP_WAIT_POLICY=PASSIVE
+if ls .whl/*.whl >/dev/null 2>&1; then
+  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
+    --target /tmp/site .whl/*.whl || exit 1
+  export PYTHONPATH=/tmp/site:$PWD
+else
+  export PYTHONPATH=$PWD
+fi
+export STSDIC_BENCH_CACHE=${STSDIC_BENCH_CACHE:-$PWD/.benchcache}
+mkdir -p "$STSDIC_BENCH_CACHE"
+nvidia-smi --query-gpu=name,memory.total,driver_version,clocks.sm --format=csv | tee -a "$OUT/log.txt"
+python3 -c "import torch, triton, kornia, sys; print(sys.version.split()[0], torch.__version__,
+triton.__version__, kornia.__version__, torch.cuda.get_device_name(0))" | tee -a "$OUT/log.txt"
+t0=$SECONDS
+step() { [[ ",$STEPS," == *",$1,"* ]]; }
+if step tests; then
+  timeout 150 python3 -m pytest -q -p no:cacheprovider --maxfail=8 \
+    ${TESTS:-tests/test_cuda.py tests/test_triton.py tests/test_frames.py} 2>&1 | tee -a "$OUT/log.txt" | tail -40
+  echo "## tests: $((SECONDS - t0)) s"
+fi
+if step kernels; then
+  timeout 50 python3 scripts/bench_kernels.py --device cuda --out "$OUT/kernels-cuda.json" \
+    2>&1 | tee -a "$OUT/log.txt" | tail -15
+  echo "## kernels: $((SECONDS - t0)) s"
+fi
+if step targets; then
+  timeout 130 python3 scripts/benchmark.py --targets --device cuda --repeats 3 --no-isolate \
+    --no-update-doc --only '^(?!.*(native=0|init=fft))' --out "$OUT/targets-cuda.json" \
+    2>&1 | tee -a "$OUT/log.txt" | tail -25
+  echo "## targets: $((SECONDS - t0)) s"
+fi
+if step cli; then
+  timeout 120 python3 scripts/bench_cli.py --device cuda --repeats ${CLI_REPEATS:-3} --threads 4 \
+    --out "$OUT/cli-cuda.json" 2>&1 | tee -a "$OUT/log.txt" | tail -14
+  echo "## cli: $((SECONDS - t0)) s"
+fi
+if step movie; then
+  timeout 120 python3 scripts/benchmark.py --movie --device cuda --movie-frames "${MOVIE_FRAMES:-500}" \
+    --no-update-doc --out "$OUT/movie-cuda.json" 2>&1 | tee -a "$OUT/log.txt" | tail -12
+  echo "## movie: $((SECONDS - t0)) s"
+fi
+if step profile; then  # one `stsdic run --device cuda` of the benchmark pair, by function
+  read -r DIR CSV < <(python3 -c "import sys; sys.path.insert(0, 'scripts'); import bench_cli as b
+d, c, _ = b.ensure_data(0); print(d, c)")
+  for i in 1 2; do
+    s0=$(date +%s.%N)
+    timeout 60 python3 -m torch_stsdic run "$DIR" --points "$CSV" --subset 21 --m 0 \
+      --out /tmp/r.h5 --overwrite --no-progress --device cuda 2>&1 | tail -3 | tee -a "$OUT/log.txt"
+    echo "## stsdic run --device cuda, process: $(python3 -c "print(round($(date +%s.%N) - $s0, 2))") s" \
+      | tee -a "$OUT/log.txt"
+  done
+  timeout 60 python3 -m cProfile -s cumtime -m torch_stsdic run "$DIR" --points "$CSV" --subset 21 \
+    --m 0 --out /tmp/r.h5 --overwrite --no-progress --device cuda 2>&1 | head -70 \
+    | tee -a "$OUT/log.txt" | cut -c1-150 | head -45
+  echo "## profile: $((SECONDS - t0)) s"
+fi

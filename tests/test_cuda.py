@@ -1,0 +1,213 @@
+"""The same problems solved on CUDA and on the CPU: the GPU path (torch code, compiled or not,
+the fused Triton step) must give the CPU path's answer and the known motion.
+
+Every test here needs a CUDA device and is skipped without one (CI has none); run them on a
+GPU machine with ``pytest tests/test_cuda.py``. The CPU side runs the same call, so a
+difference is the device's, not the problem's.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+import torch_stsdic as sts
+from torch_stsdic import kernels
+from torch_stsdic.io import read_results
+from torch_stsdic.status import Status
+from torch_stsdic.synth import (
+    HomogeneousStrain,
+    RigidJitter,
+    Translation,
+    ground_truth,
+    make_speckle,
+    render_series,
+)
+
+# TORCH_STSDIC_TEST_DEVICE=cpu runs the "GPU" side on the CPU: a check of the tests themselves
+DEV = os.environ.get("TORCH_STSDIC_TEST_DEVICE", "cuda")
+pytestmark = pytest.mark.skipif(DEV == "cuda" and not torch.cuda.is_available(),
+                                reason="no CUDA device")
+
+SIZE = 161
+
+
+def _grid(step=12, margin=24, size=SIZE):
+    g = torch.arange(margin, size - margin + 1, step, dtype=torch.float64)
+    yy, xx = torch.meshgrid(g, g, indexing="ij")
+    return torch.stack([xx.flatten(), yy.flatten()], 1)
+
+
+@pytest.fixture(scope="module")
+def window():
+    """A 5-frame window (t = 1..5) of a translating speckle, noise sigma 2; truth at t = 3."""
+    motion = Translation(u0=0.4, v0=-0.3, ut=0.12, vt=0.07)
+    ref, frames = render_series(make_speckle((SIZE, SIZE), seed=5), (SIZE, SIZE), motion,
+                                torch.arange(1.0, 6.0), noise_sigma=2.0, seed=6,
+                                reference_time=None)
+    return ref.float(), frames.float(), _grid(), motion
+
+
+def _both(fn):
+    """fn(device) on the CPU and on CUDA; the CUDA result moved to the CPU."""
+    cpu = fn("cpu")
+    gpu = fn(DEV)
+    return cpu, gpu
+
+
+def _to(sol_field, device="cpu"):
+    return sol_field.detach().to(device)
+
+
+@pytest.mark.parametrize("m", [0, 2])
+def test_solve_window_on_cuda_equals_cpu_and_truth(window, m):
+    ref, frames, pts, motion = window
+    cfg = sts.DICConfig(m=m, subset_size=21)
+    sel = frames[2 - m: 3 + m]
+
+    def run(dev):
+        return sts.solve_window(ref.to(dev), sel.to(dev), pts.to(dev), cfg)
+
+    cpu, gpu = _both(run)
+    assert gpu.u.device.type == torch.device(DEV).type
+    ok = (cpu.status == 0) & (_to(gpu.status) == 0)
+    assert float(ok.float().mean()) > 0.95
+    # float32 sampling and sums in another order: well inside the noise (~0.01 px)
+    assert float((cpu.u - _to(gpu.u))[ok].abs().max()) < 2e-3
+    assert float((cpu.v - _to(gpu.v))[ok].abs().max()) < 2e-3
+    truth_u = 0.4 + 0.12 * 3
+    assert abs(float(_to(gpu.u)[ok].median()) - truth_u) < 5e-3
+    if m:
+        assert abs(float(_to(gpu.ut)[ok].median()) - 0.12) < 5e-3
+
+
+def test_triton_and_torch_step_agree_on_cuda(window, monkeypatch):
+    """The fused Triton step (default on CUDA) against the plain torch step."""
+    if not kernels.available():
+        pytest.skip("triton is not importable")
+    ref, frames, pts, _ = window
+    cfg = sts.DICConfig(m=2, subset_size=21)
+    args = (ref.to(DEV), frames[:5].to(DEV), pts.to(DEV), cfg)
+    kernels.set_triton("1")
+    try:
+        a = sts.solve_window(*args)
+        kernels.set_triton("0")
+        b = sts.solve_window(*args)
+    finally:
+        kernels.set_triton("auto")
+    ok = (a.status == 0) & (b.status == 0)
+    assert float(ok.float().mean()) > 0.95
+    assert float((a.u - b.u)[ok].abs().max()) < 2e-3
+    assert float((a.ut - b.ut)[ok].abs().max()) < 2e-3
+
+
+def test_shared_motion_and_off_centre_subsets_on_cuda(window):
+    """The known-motion term and off-centre subsets (plain torch operations) on CUDA."""
+    ref, frames, pts, _ = window
+    cfg = sts.DICConfig(m=2, subset_size=21)
+    shake = torch.tensor([[0.1, -0.05], [-0.2, 0.1], [0.0, 0.0], [0.15, 0.05], [-0.1, 0.2]],
+                         dtype=torch.float64)
+    centres = pts + torch.tensor([3.0, -2.0], dtype=torch.float64)
+
+    def run(dev):
+        return sts.solve_window(ref.to(dev), frames.to(dev), pts.to(dev), cfg,
+                                shared_motion=shake.to(dev), centres=centres.to(dev))
+
+    cpu, gpu = _both(run)
+    ok = (cpu.status <= 1) & (_to(gpu.status) <= 1)
+    assert float(ok.float().mean()) > 0.9
+    assert float((cpu.u - _to(gpu.u))[ok].abs().max()) < 5e-3
+    assert float((cpu.vt - _to(gpu.vt))[ok].abs().max()) < 5e-3
+
+
+def _jittery(frames=16, size=SIZE):
+    times = torch.arange(0.0, frames)
+    c = ((size - 1) / 2, (size - 1) / 2)
+    smooth = HomogeneousStrain(exx=0.002, eyy=-0.001, exy=0.0005, center=c, rate=1.0)
+    motion = smooth + RigidJitter.random(times, 0.25, 5e-4, center=c, seed=3)
+    ref, rest = render_series(make_speckle((size, size), seed=3), (size, size), motion,
+                              times[1:], noise_sigma=3.0, seed=4)
+    return torch.cat([ref[None], rest]), motion, times
+
+
+def _cpu_result(res):
+    import dataclasses
+
+    return dataclasses.replace(res, **{f.name: getattr(res, f.name).cpu()
+                                       for f in dataclasses.fields(res)
+                                       if isinstance(getattr(res, f.name), torch.Tensor)})
+
+
+def test_track_on_cuda_equals_cpu(tmp_path):
+    """A whole run (shared motion, checks, carry, strains) on CUDA and on the CPU."""
+    movie, motion, times = _jittery()
+    kw = dict(step=12, progress=False, config=sts.DICConfig(m=2))
+    cpu = sts.track(movie, device="cpu", **kw)
+    on_dev = sts.track(movie, device=DEV, out=tmp_path / "g.h5", **kw)
+    assert on_dev.u.device.type == torch.device(DEV).type  # the result stays on the device
+    gpu = _cpu_result(on_dev)
+    assert gpu.u.shape == cpu.u.shape
+    both = (cpu.status <= 1) & (gpu.status <= 1)
+    assert float(both[1:].float().mean()) > 0.9
+    assert float((cpu.status == gpu.status).float().mean()) > 0.98
+    assert float((cpu.u - gpu.u)[both].abs().max()) < 5e-3
+    assert float((cpu.v - gpu.v)[both].abs().max()) < 5e-3
+    gt = ground_truth(motion, gpu.points.double(), times)
+    err = (gpu.u.double() - gt["u"])[1:][both[1:]]
+    assert float(err.pow(2).mean().sqrt()) < 0.02
+    if cpu.shared_motion is not None:
+        assert gpu.shared_motion is not None
+        assert np.abs(np.asarray(cpu.shared_motion.params)
+                      - np.asarray(gpu.shared_motion.params)).max() < 5e-3
+    stored = read_results(tmp_path / "g.h5").fields
+    assert np.array_equal(stored["u"], gpu.u.numpy(), equal_nan=True)
+
+
+def test_nn_module_forward_and_backward_on_cuda(window):
+    """Tensors in, tensors out on the device; gradients reach the points and the pixels."""
+    from torch_stsdic.nn import STSDIC
+
+    ref, frames, pts, _ = window
+    cfg = sts.DICConfig(m=1, subset_size=17, tol=1e-8)
+    mod = STSDIC(cfg)
+    r = ref[None].double().to(DEV)
+    f = frames[None, 1:4].double().to(DEV).requires_grad_(True)
+    p = pts[:20].double().to(DEV).requires_grad_(True)
+    out = mod.forward_full(r, f, p)
+    assert out.disp.device.type == torch.device(DEV).type
+    assert bool((out.status == Status.CONVERGED).all())
+    out.disp.sum().backward()
+    assert f.grad is not None and bool(torch.isfinite(f.grad).all())
+    assert p.grad is not None and bool(torch.isfinite(p.grad).all())
+    # the same on the CPU: the implicit gradient is the device's
+    fc = frames[None, 1:4].double().requires_grad_(True)
+    outc = mod.forward_full(ref[None].double(), fc, pts[:20].double())
+    outc.disp.sum().backward()
+    assert float((outc.disp - out.disp.detach().cpu()).abs().max()) < 1e-6
+    assert float((fc.grad - f.grad.cpu()).abs().max()) < 1e-6 * float(fc.grad.abs().max()) + 1e-9
+
+
+def test_cli_run_on_cuda(tmp_path):
+    """``stsdic run --device cuda`` writes the same file contents as on the CPU."""
+    movie, _, _ = _jittery(frames=8)
+    import tifffile
+
+    src = tmp_path / "movie.tif"
+    tifffile.imwrite(src, movie.clamp(0, 255).round().to(torch.uint8).numpy())
+    outs = {}
+    for dev in ("cpu", DEV):
+        out = tmp_path / f"{dev}-{len(outs)}.h5"
+        r = subprocess.run([sys.executable, "-m", "torch_stsdic", "run", str(src), "--m", "2",
+                            "--step", "12", "--device", dev, "--no-progress", "--out", str(out)],
+                           capture_output=True, text=True)
+        assert r.returncode == 0, r.stderr
+        outs[dev] = read_results(out)
+    a, b = outs["cpu"].fields, outs[DEV].fields
+    ok = (a["status"] <= 1) & (b["status"] <= 1)
+    assert ok.mean() > 0.9
+    assert np.abs(a["u"] - b["u"])[ok].max() < 5e-3
