@@ -231,7 +231,8 @@ def main() -> None:
         summary[name]["vs_bare"] = summary[name]["poi_per_s"] / summary["bare"]["poi_per_s"]
     record = {"kind": "cli", "date": time.strftime("%Y-%m-%d"), "m": args.m,
               "n_points": n, "deformed_frames": n_frames, "threads": args.threads,
-              "repeats": args.repeats, "device": args.device, "machine": bench.machine_info([args.threads], args.device),
+              "repeats": args.repeats, "device": args.device,
+              "machine": bench.machine_info([args.threads], args.device),
               "summary": summary, "runs": runs}
     path = Path(args.out) if args.out else bench.BENCH_DIR / (
         f"cli-{args.device}.json" if args.m == 0 else f"cli-{args.device}-m{args.m}.json")
