@@ -29,8 +29,10 @@ def main() -> int:
         signal.signal(s, _stop)
     started = False
     try:
+        from torch_stsdic.allocator import keep_freed_memory
         from torch_stsdic.cli import main as cli_main
 
+        keep_freed_memory()  # the command owns the process: freed memory kept for reuse
         started = True
         code = cli_main()  # handles its own signals while the command runs
         _ignore()

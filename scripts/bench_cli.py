@@ -13,7 +13,9 @@ Cases, each in a fresh process (its peak RSS from ``wait4``):
 
 - ``bare``: the images already in memory, ``SubsetSolver.prepare`` (B-spline prefilter) of
   the reference and the frames, then ``SubsetSolver.solve`` (seeded FFT-CC + IC-GN) of the
-  target frame: the solver's own throughput (``benchmark.py``'s "solve" case);
+  target frame: the solver's own throughput (``benchmark.py``'s "solve" case), in a process
+  set up as the command sets it up (:func:`torch_stsdic.keep_freed_memory`);
+- ``bare, default malloc`` (``--default-malloc``): the same with glibc's default settings;
 - ``cli``: ``stsdic run DIR --points poi.csv --subset 21 --m M --out r.h5``, checks on, timed
   inside the process by stage (reading + prefilter of the frames, planning, the solve of
   every block, the checks, the strains, writing) and as the command's own time (from the
@@ -71,9 +73,15 @@ def ensure_data(m: int) -> tuple[Path, Path, int]:
 # ---------------------------------------------------------------------------------------
 # children
 # ---------------------------------------------------------------------------------------
-def child_bare(folder: str, pts_csv: str, m: int, device: str = "cpu") -> dict[str, Any]:
+def child_bare(folder: str, pts_csv: str, m: int, device: str = "cpu",
+               malloc: str = "kept") -> dict[str, Any]:
     import numpy as np
     import torch
+
+    from torch_stsdic import keep_freed_memory
+
+    if malloc == "kept":
+        keep_freed_memory()  # the process set up as the command sets it up
 
     from torch_stsdic import DICConfig, SubsetSolver
     from torch_stsdic.io import load_series
@@ -117,8 +125,10 @@ def child_cli(argv: list[str]) -> dict[str, Any]:
     import torch_stsdic.plan as plan
     import torch_stsdic.series as series
     import torch_stsdic.sinks as sinks
+    from torch_stsdic import keep_freed_memory
     from torch_stsdic.cli import main
 
+    keep_freed_memory()  # as the ``stsdic`` command does at start
     acc: dict[str, float] = {}
 
     def timed(owner, name, key):
@@ -179,6 +189,9 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--threads", type=int, default=len(os.sched_getaffinity(0)))
     ap.add_argument("--device", default="cpu", help="cpu or cuda (the bare solve and --device)")
+    ap.add_argument("--default-malloc", action="store_true",
+                    help="also the bare solve with glibc's default malloc settings (the "
+                         "others run with keep_freed_memory, as the command does)")
     ap.add_argument("--out", default=None, help="JSON record (default docs/bench/cli-cpu.json)")
     ap.add_argument("--child", nargs=argparse.REMAINDER)
     args = ap.parse_args()
@@ -187,7 +200,7 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     if args.child:
         kind, rest = args.child[0], args.child[1:]
-        rec = (child_bare(*rest[:2], int(rest[2]), *rest[3:4]) if kind == "bare"
+        rec = (child_bare(*rest[:2], int(rest[2]), *rest[3:5]) if kind == "bare"
                else child_cli(rest))
         print(TAG + json.dumps(rec), flush=True)
         return
@@ -200,6 +213,8 @@ def main() -> None:
         cli += ["--frames", str(args.m + 1)]
     cases = {"bare": ["bare", str(folder), str(pts_csv), str(args.m), args.device],
              "cli": ["cli", *cli], "cli --no-checks": ["cli", *cli, "--no-checks"]}
+    if args.default_malloc:
+        cases["bare, default malloc"] = [*cases["bare"], "default"]
     runs: dict[str, list[dict[str, Any]]] = {k: [] for k in cases}
     for _ in range(args.repeats):  # interleaved: the machine's load hits every case alike
         for name, child in cases.items():
@@ -216,13 +231,13 @@ def main() -> None:
 
     summary: dict[str, Any] = {}
     for name in cases:
-        t = med(name, "time_s" if name == "bare" else "command_s")
+        t = med(name, "time_s" if name.startswith("bare") else "command_s")
         summary[name] = {
             "time_s": t, "poi_per_s": n / t, "process_wall_s": med(name, "process_wall_s"),
             "process_poi_per_s": n / med(name, "process_wall_s"),
             "max_rss_mb": med(name, "max_rss_mb"),
         }
-        if name != "bare":
+        if name.startswith("cli"):
             summary[name]["stages_s"] = {k: med(name, k) for k in (
                 "inputs_s", "plan_s", "frames_read_s", "frames_prefilter_s",
                 "frames_ahead_read_s", "frames_ahead_prefilter_s", "frames_wait_s",

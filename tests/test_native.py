@@ -424,6 +424,12 @@ def test_wrappers_pass_exactly_the_declared_parameters(monkeypatch):
         native.spd_inverse(torch.eye(3, dtype=dtype).expand(2, 3, 3))
         native.nanmedian(x)
         native.prefilter(x, 3)
+        nb = torch.tensor([[1, 2, -1], [0, 2, -1], [0, 1, -1]])
+        valid = torch.tensor([[True, True, False]])
+        vals, pts = torch.rand(1, 3, 2, dtype=dtype), torch.rand(3, 2, dtype=dtype)
+        grads = torch.rand(1, 3, 2, 2, dtype=dtype)
+        native.neighbour_own_gradient(nb, valid, grads, 1e-4)
+        native.neighbour_test(nb, valid, vals, pts, torch.ones(1, 3, dtype=dtype), grads, grads)
     declared = native.kernels()
     assert set(seen) == set(declared)
     for name, calls in seen.items():

@@ -436,3 +436,59 @@ def test_grid_neighbours_match_a_sort_of_all_candidates():
         if want.shape[1] < k:
             want = torch.cat([want, torch.full((len(pts), k - want.shape[1]), -1)], 1)
         assert torch.equal(got, want), k
+
+
+def _neighbour_field(b=3, side=40, seed=0):
+    """A curved field (u, v) with its gradients on a grid with holes, noise, wild values,
+    wrong gradients, invalid points, a NaN value and a NaN gradient."""
+    g = torch.Generator().manual_seed(seed)
+    ax = torch.arange(0.0, side * 5.0, 5.0, dtype=torch.float64)
+    ys, xs = torch.meshgrid(ax, ax, indexing="ij")
+    pts = torch.stack([xs.flatten(), ys.flatten()], 1)
+    pts = pts[torch.rand(len(pts), generator=g) > 0.1]  # holes: edges inside the grid
+    n = len(pts)
+    x, y = pts[:, 0], pts[:, 1]
+    vals = torch.stack([1e-4 * x * x + 0.01 * y, -0.002 * x + 2e-4 * y * y], -1)
+    vals = vals.expand(b, n, 2) + 0.01 * torch.randn(b, n, 2, generator=g, dtype=torch.float64)
+    grads = torch.zeros(b, n, 2, 2, dtype=torch.float64)
+    grads[..., 0, 0], grads[..., 0, 1] = 2e-4 * x, 0.01
+    grads[..., 1, 0], grads[..., 1, 1] = -0.002, 4e-4 * y
+    grads = grads + 1e-4 * torch.randn(b, n, 2, 2, generator=g, dtype=torch.float64)
+    wild = torch.rand(b, n, generator=g) < 0.03
+    vals[wild] += 2.0 * torch.randn(int(wild.sum()), 2, generator=g, dtype=torch.float64)
+    grads[torch.rand(b, n, generator=g) < 0.03] += 0.05
+    valid = torch.rand(b, n, generator=g) > 0.05
+    vals[0, 5, 1] = float("nan")
+    grads[1, 7, 0, 1] = float("nan")
+    return vals, valid, neighbours(pts), pts, grads
+
+
+def test_native_neighbour_round_is_the_torch_round():
+    """One round of the neighbour test by the native kernels gives the torch code's numbers
+    bit for bit at the points it judges (residual, scatter, count), with and without the
+    carry by gradients, and median_test the same outliers."""
+    from torch_stsdic import native
+    from torch_stsdic.quality import _round_native, _round_torch
+
+    if not native.available():
+        pytest.skip("the native kernels are not built here")
+    vals, valid, nb, pts, grads = _neighbour_field()
+    b, n = valid.shape
+    eps = 0.01 + 0.02 * torch.rand(b, n, generator=torch.Generator().manual_seed(1),
+                                   dtype=torch.float64)
+    for p, g in ((pts, grads), (None, None)):
+        want = _round_torch(vals, valid, nb, p, g, eps)
+        got = _round_native(vals, valid, nb, p, g, eps)
+        for a, w in zip(got, want):  # at the valid points: the others are never judged
+            torch.testing.assert_close(a[valid], w[valid], rtol=0, atol=0, equal_nan=True)
+        assert int(want[2].max()) == 8 and bool((want[2] < 8).any())  # edges and holes
+        for e in (0.02, eps, torch.tensor([0.01, 0.02, 0.03], dtype=torch.float64)):
+            native.set_native(False)
+            try:
+                ref = median_test(vals, valid, nb, e, points=p, gradients=g)
+            finally:
+                native.set_native("auto")
+            out = median_test(vals, valid, nb, e, points=p, gradients=g)
+            assert torch.equal(out, ref) and 0 < int(out.sum()) < out.numel() // 4
+    with pytest.raises(ValueError, match="native.neighbour_test: eps must be"):
+        native.neighbour_test(nb, valid, vals, pts, eps[:, :-1], None, None)

@@ -14,7 +14,8 @@ import os as _os
 # `stsdic` command is); set OMP_WAIT_POLICY=PASSIVE yourself otherwise.
 _os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-from .config import DICConfig  # noqa: E402
+from .allocator import keep_freed_memory  # noqa: E402
+from .config import DICConfig
 from .interpolation import BSplineImage, bspline_prefilter
 from .io import ImageSeries, InputError, ResultWriter, export_csv, load_series, read_results
 from .native import set_native
@@ -72,4 +73,5 @@ __all__ = [
     "predicted_std",
     "estimate_noise_sigma",
     "set_native",
+    "keep_freed_memory",
 ]

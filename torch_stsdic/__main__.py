@@ -2,7 +2,9 @@
 
 import sys
 
+from torch_stsdic.allocator import keep_freed_memory
 from torch_stsdic.cli import main
 
 if __name__ == "__main__":
+    keep_freed_memory()  # as the ``stsdic`` command does
     sys.exit(main())

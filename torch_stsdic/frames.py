@@ -206,6 +206,7 @@ class FrameCache:
         """Read the frames ``order`` ahead in the background, in this order (no-op when
         ``ahead`` is 0 or nothing is to be read)."""
         self.close()
+        order = [i for i in order if i not in self.raw]  # held already (the reference)
         if self.ahead > 0 and order:
             self._reader = _Reader(self, list(order), self.ahead)
             self._reader.start()
@@ -217,6 +218,12 @@ class FrameCache:
             self._ahead_s[0] += self._reader.read_s
             self._ahead_s[1] += self._reader.prefilter_s
             self._reader = None
+
+    def put(self, i: int, raw: torch.Tensor, prep: BSplineImage) -> None:
+        """Hold frame ``i`` already read and prepared (the reference frame): a block that
+        needs it takes it from here, and :meth:`schedule` does not read it again."""
+        self.raw[i], self.prep[i] = raw, prep
+        self.prefiltered += 1
 
     def read(self, i: int) -> torch.Tensor:
         """(H, W) frame ``i`` from the cache or the series (counted)."""

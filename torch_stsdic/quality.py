@@ -347,6 +347,45 @@ def _gradient_at(gn: Tensor, use: Tensor, d: Tensor) -> Tensor:
     return coef[..., 0, :].view(gn.shape[0], gn.shape[1], *gn.shape[3:])
 
 
+def _round_torch(v: Tensor, valid: Tensor, nb: Tensor, points: Tensor | None,
+                 gradients: Tensor | None, eps: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """One round of :func:`median_test` on ``valid`` (B, N) points, eps (B, N) px: the
+    normalised residual r (B, N) (NaN: no neighbour), the neighbours' scatter rm (B, N, C)
+    (median absolute residual) and the number of neighbours (B, N)."""
+    vn = carried_neighbours(v, valid, nb, points, gradients)
+    med = nanmedian_rows(vn.transpose(-1, -2))  # (B, N, C)
+    rm = nanmedian_rows((vn - med.unsqueeze(2)).abs().transpose(-1, -2))  # (B, N, C)
+    r = ((v - med).abs() / (rm + eps.unsqueeze(-1))).amax(-1)
+    return r, rm, (~torch.isnan(vn[..., 0])).sum(-1)
+
+
+def _round_native(v: Tensor, valid: Tensor, nb: Tensor, points: Tensor | None,
+                  gradients: Tensor | None, eps: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`_round_torch` by the native kernels (CPU): the same numbers at the ``valid``
+    points (the others are never judged; their gradient is not fitted here). The
+    gradient at each point is its own where the kernel finds it like its neighbours', else
+    the plane fitted by :func:`_gradient_at` here (few points: edges, corners, outliers)."""
+    n = v.shape[1]
+    if points is None or gradients is None:
+        return native.neighbour_test(nb, valid, v, torch.zeros(n, 2, dtype=v.dtype), eps,
+                                     None, None)
+    g = gradients.double().contiguous()
+    own = native.neighbour_own_gradient(nb, valid, g, GRADIENT_TOL)
+    at = g
+    fit = valid & ~own.flatten(-2).all(-1)
+    if bool(fit.any()):
+        at = g.clone()
+        bi, ii = fit.nonzero(as_tuple=True)
+        q = nb[ii].clamp(min=0)  # (M, k)
+        use = (nb[ii] >= 0) & valid[bi.unsqueeze(1), q]
+        gn = torch.where(use[..., None, None], g[bi.unsqueeze(1), q], 0.0)  # (M, k, C, 2)
+        p = points.double()
+        d = p[ii].unsqueeze(1) - p[q]  # (M, k, 2) to the point
+        plane = _gradient_at(gn.unsqueeze(0), use.unsqueeze(0), d.unsqueeze(0))[0]
+        at[bi, ii] = torch.where(own[bi, ii], g[bi, ii], plane)
+    return native.neighbour_test(nb, valid, v, points.double(), eps, g, at)
+
+
 def median_test(values: Tensor, valid: Tensor, nb: Tensor, eps: float | Tensor,
                 points: Tensor | None = None, gradients: Tensor | None = None,
                 min_neighbours: int = 3, rounds: int = MEDIAN_ROUNDS) -> Tensor:
@@ -374,12 +413,13 @@ def median_test(values: Tensor, valid: Tensor, nb: Tensor, eps: float | Tensor,
         eps_t = eps_t.unsqueeze(-1)
     safe, has = nb.clamp(min=0), (nb >= 0).unsqueeze(0)
     out = torch.zeros_like(valid)
+    fast = (native.usable(v, eps_t) and nb.shape[1] <= 64 and v.shape[-1] <= 8
+            and (points is None or gradients is None or native.usable(points, gradients)))
+    eps_bn = (eps_t if eps_t.dim() else eps_t.view(1, 1, 1)).expand(b, v.shape[1], 1)[..., 0]
     for i in range(max(1, rounds)):
-        vn = carried_neighbours(values, valid & ~out, nb, points, gradients)
-        med = nanmedian_rows(vn.transpose(-1, -2))  # (B, N, C)
-        rm = nanmedian_rows((vn - med.unsqueeze(2)).abs().transpose(-1, -2))  # (B, N, C)
-        r = ((v - med).abs() / (rm + eps_t)).amax(-1)  # (B, N); NaN: no neighbour
-        judged = valid & ~out & ((~torch.isnan(vn[..., 0])).sum(-1) >= min_neighbours)
+        round_ = _round_native if fast else _round_torch  # the same numbers (native ~3x faster)
+        r, rm, count = round_(v, valid & ~out, nb, points, gradients, eps_bn)
+        judged = valid & ~out & (count >= min_neighbours)
         cand = judged & (r > MEDIAN_THRESHOLD)
         if i == rounds - 1 or not bool(cand.any()):
             out |= cand

@@ -89,6 +89,8 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
         device=plan.device, dtype=plan.dtype)
     ref = Reference(frame=plan.reference_frame, raw=ref_raw, img=solver.prepare(ref_raw),
                     points=plan.points.to(device=plan.device, dtype=plan.dtype))
+    if plan.reference_image is None:  # a frame of the series: read and prepared once
+        cache.put(plan.reference_frame, ref.raw, ref.img)
     run.reference_desc = plan.reference_desc  # its noise ratio is measured on the 1st block
     updates: list[dict[str, Any]] = []
     offsets = None

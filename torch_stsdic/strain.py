@@ -88,8 +88,7 @@ def _axis_grid(c: np.ndarray, rtol: float) -> tuple[float, float, np.ndarray] | 
     if span == 0.0:
         return c0, 1.0, np.zeros(c.shape, dtype=np.int64)
     tol = rtol * max(span, 1.0)
-    uniq = np.unique(c)
-    d = np.diff(uniq)
+    d = np.diff(np.sort(c))  # (np.unique's first call imports numpy.ma: 9 ms a run)
     d = d[d > tol]
     if d.size == 0:
         return c0, 1.0, np.zeros(c.shape, dtype=np.int64)
@@ -142,7 +141,7 @@ def _detect_grid(p: np.ndarray, max_fill: float, rtol: float) -> GridInfo | None
     if nx * ny > max(max_fill * n, 16):
         return None
     flat = iy * nx + ix
-    if np.unique(flat).size != n:
+    if n > 1 and not np.all(np.diff(np.sort(flat))):  # two points in one grid cell
         return None
     return GridInfo(x0=x0, y0=y0, sx=sx, sy=sy, nx=nx, ny=ny, ix=ix, iy=iy)
 

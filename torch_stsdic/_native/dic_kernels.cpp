@@ -695,6 +695,146 @@ STS_KERNEL(sts_nanmedian, (int64_t i0, int64_t i1, int64_t k, const T* x, T* out
   return 0;
 }
 
+// ---- the neighbour test (quality.median_test) -------------------------------------------
+// One round of the normalised median test of quality.py, per point, over its k <= 64 grid
+// neighbours: the same arithmetic as the torch code (quality.carried_neighbours and
+// median_test), in double, each product and sum rounded on its own (no fused multiply-add,
+// see exact_*), so both give the same decisions. Rows r = b * n + i: target b, point i.
+
+// a * b + c and a * b + c * d with every product rounded before the sum, as torch computes
+// them (this file is built with -ffp-contract=fast, which would fuse them)
+inline double exact_mul_add(double a, double b, double c) {
+  volatile double t = a * b;
+  return t + c;
+}
+
+// the median of the c values v[0..c) (sorted in place; v has room for 8): the lower middle
+// one; NaN if c == 0. Up to 8 values: padded with +inf (sorted last) and sorted by the
+// branch-free network of sts_nanmedian
+template <typename T>
+inline T lower_median(T* v, int c) {
+  if (c <= 8) {
+    constexpr int net[19][2] = {{0, 1}, {2, 3}, {4, 5}, {6, 7}, {0, 2}, {1, 3}, {4, 6},
+                                {5, 7}, {1, 2}, {5, 6}, {0, 4}, {3, 7}, {1, 5}, {2, 6},
+                                {1, 4}, {3, 6}, {2, 4}, {3, 5}, {3, 4}};
+    for (int j = c; j < 8; ++j) v[j] = std::numeric_limits<T>::infinity();
+    for (const auto& e : net) {
+      const T a = v[e[0]], b = v[e[1]];
+      v[e[0]] = std::min(a, b);
+      v[e[1]] = std::max(a, b);
+    }
+    return c ? v[(c - 1) / 2] : std::numeric_limits<T>::quiet_NaN();
+  }
+  for (int j = 1; j < c; ++j) {  // insertion sort (c <= 64)
+    const T a = v[j];
+    int q = j;
+    while (q > 0 && v[q - 1] > a) {
+      v[q] = v[q - 1];
+      --q;
+    }
+    v[q] = a;
+  }
+  return c ? v[(c - 1) / 2] : std::numeric_limits<T>::quiet_NaN();
+}
+
+// Whether a point's own gradient is like its neighbours' (quality.carried_neighbours):
+// own[r, e] = valid[r] and |g[r, e] - med| <= 3 mad + tol, med and mad the median and the
+// median absolute deviation of component e (of nc x 2) over the valid neighbours' gradients.
+STS_KERNEL(sts_nb_own, (int64_t i0, int64_t i1, int64_t n, int64_t k, int64_t ne,
+                        const int64_t* nb, const uint8_t* valid, const T* g, double tol,
+                        uint8_t* own)) {
+  if (k < 1 || k > 64 || ne < 1 || ne > 16 || n < 1) return 1;
+  int64_t use[64];
+  T v[64];
+  for (int64_t r = i0; r < i1; ++r) {
+    const int64_t b = r / n, i = r - b * n;
+    int cu = 0;
+    if (valid[r]) {
+      for (int64_t j = 0; j < k; ++j) {
+        const int64_t q = nb[i * k + j];
+        if (q >= 0 && q < n && valid[b * n + q]) use[cu++] = b * n + q;
+      }
+    }
+    for (int64_t e = 0; e < ne; ++e) {
+      uint8_t ok = 0;
+      if (cu) {
+        int c = 0;
+        for (int u = 0; u < cu; ++u) {
+          const T x = g[use[u] * ne + e];
+          if (x == x) v[c++] = x;
+        }
+        const T med = lower_median(v, c);
+        for (int u = 0; u < c; ++u) v[u] = std::fabs(v[u] - med);
+        const T mad = lower_median(v, c);
+        const double x = double(g[r * ne + e]);
+        ok = std::fabs(x - double(med)) <= exact_mul_add(3.0, double(mad), tol);
+      }
+      own[r * ne + e] = ok;
+    }
+  }
+  return 0;
+}
+
+// The test's numbers for each point: its valid neighbours' values v (nc components), carried
+// to the point by the trapezoid rule with their gradients g and the gradient at the point
+// `at` (both (rows, nc, 2); null: not carried), d = p[i] - p[q]:
+//   vn = v[q] + (0.5 (g[q] + at[r]))_x d_x + (0.5 (g[q] + at[r]))_y d_y  (NaN g[q] as 0);
+// med, rm: per component the median of vn and of |vn - med| (lower middle, NaN values left
+// out); out_r = max over components of |v[r] - med| / (rm + eps[r]) (NaN if any is NaN);
+// out_rm (rows, nc); out_count: the neighbours whose first component is a number.
+STS_KERNEL(sts_nb_test, (int64_t i0, int64_t i1, int64_t n, int64_t k, int64_t nc,
+                         const int64_t* nb, const uint8_t* valid, const T* v, const T* p,
+                         nullable<const T> g, nullable<const T> at, const T* eps, T* out_r,
+                         T* out_rm, int64_t* out_count)) {
+  if (k < 1 || k > 64 || nc < 1 || nc > 8 || n < 1) return 1;
+  const T big = std::numeric_limits<T>::max();
+  T vn[8][64];
+  T w[64];
+  for (int64_t r = i0; r < i1; ++r) {
+    const int64_t b = r / n, i = r - b * n;
+    int cu = 0;
+    for (int64_t j = 0; j < k; ++j) {
+      const int64_t q = nb[i * k + j];
+      if (q < 0 || q >= n || !valid[b * n + q]) continue;
+      const int64_t rq = b * n + q;
+      const T dx = p[i * 2] - p[q * 2], dy = p[i * 2 + 1] - p[q * 2 + 1];
+      for (int64_t c = 0; c < nc; ++c) {
+        T x = v[rq * nc + c];
+        if (g != nullptr && at != nullptr) {
+          T gx = g[(rq * nc + c) * 2], gy = g[(rq * nc + c) * 2 + 1];
+          gx = gx != gx ? T(0) : (gx > big ? big : (gx < -big ? -big : gx));  // nan_to_num
+          gy = gy != gy ? T(0) : (gy > big ? big : (gy < -big ? -big : gy));
+          volatile T tx = (T(0.5) * (gx + at[(r * nc + c) * 2])) * dx;
+          volatile T ty = (T(0.5) * (gy + at[(r * nc + c) * 2 + 1])) * dy;
+          const T t = tx + ty;
+          x = x + t;
+        }
+        vn[c][cu] = x;
+      }
+      ++cu;
+    }
+    int64_t count = 0;
+    for (int u = 0; u < cu; ++u) count += vn[0][u] == vn[0][u];
+    T rmax = T(0);
+    bool any_nan = false;
+    for (int64_t c = 0; c < nc; ++c) {
+      int m = 0;
+      for (int u = 0; u < cu; ++u)
+        if (vn[c][u] == vn[c][u]) w[m++] = vn[c][u];
+      const T med = lower_median(w, m);
+      for (int u = 0; u < m; ++u) w[u] = std::fabs(w[u] - med);
+      const T rm = lower_median(w, m);
+      out_rm[r * nc + c] = rm;
+      const T q = std::fabs(v[r * nc + c] - med) / (rm + eps[r]);
+      if (q != q) any_nan = true;
+      else if (c == 0 || q > rmax) rmax = q;
+    }
+    out_r[r] = any_nan ? std::numeric_limits<T>::quiet_NaN() : rmax;
+    out_count[r] = count;
+  }
+  return 0;
+}
+
 // ---- B-spline prefilter: recursive (Unser 1991; Thevenaz's initialisation) -----------------
 // Mirror (whole-sample symmetric) boundary, the same as interpolation.bspline_prefilter's
 // FFT version, to ~1e-12 relative in double.
@@ -797,7 +937,7 @@ extern "C" {
 
 // Version of this interface (the sts_kernel_* functions and what the kernels' parameters
 // mean); native/declarations.py refuses a library of another version.
-int sts_abi_version() { return 8; }
+int sts_abi_version() { return 9; }
 
 int sts_kernel_count() { return int(declarations().size()); }
 

@@ -273,7 +273,7 @@ class ResultWriter(_FieldShape):
         if fr.ndim != 1 or (fr.size and fr.dtype.kind not in "iu"):
             raise ValueError(f"frames must be a 1-D integer array, got {fr.dtype} {fr.shape}")
         fr = fr.astype(np.int64)
-        if len(np.unique(fr)) != len(fr):
+        if len(set(fr.tolist())) != len(fr):
             raise ValueError("frames must not contain duplicates")
         tm = np.asarray(_as_numpy(times), dtype=np.float64)
         if tm.shape != fr.shape:
@@ -465,7 +465,7 @@ class ResultWriter(_FieldShape):
         if rows.size and (rows.min() < -nf or rows.max() >= nf):
             raise IndexError(f"row index out of range for {nf} rows: {rows.tolist()}")
         rows = rows % max(nf, 1)
-        if len(np.unique(rows)) != len(rows):
+        if len(set(rows.tolist())) != len(rows):
             raise ValueError("row_indices contain duplicates")
         known = set(self.fields + self.extra_fields)
         unknown = set(values) - known

@@ -64,29 +64,31 @@ def read_table(path: str, what: str) -> tuple[list[str] | None, np.ndarray]:
 
 
 def _fast_table(text: str) -> tuple[list[str] | None, np.ndarray] | None:
-    """:func:`read_table`'s result by numpy's C parser (a 38,809-row point list: 0.1 s in
-    Python), or None where the table is not regular (then the line-by-line parser says
+    """:func:`read_table`'s result by numpy's C parser (a 38,809-row point list: 2 ms, 0.1 s
+    in Python), or None where the table is not regular (then the line-by-line parser says
     where)."""
-    lines = [ln.strip() for ln in text.splitlines()]
-    lines = [ln for ln in lines if ln and not ln.startswith("#")]
-    if not lines:
+    first, skip = None, 0
+    for ln in io.StringIO(text):  # the first line that is neither blank nor a comment
+        skip += 1
+        if ln.strip() and not ln.lstrip().startswith("#"):
+            first = ln.strip()
+            break
+    if first is None:
         return None
+    comma = "," in first
+    cells = first.split(",") if comma else first.split()
     header = None
-    first = lines[0].split(",") if "," in lines[0] else lines[0].split()
     try:
-        [float(c) for c in first]
+        [float(c) for c in cells]
+        skip -= 1  # a data line: read it
     except ValueError:
-        header = [c.strip().strip('"').lower() for c in first]
-        lines = lines[1:]
-    if not lines:
-        return None
-    comma = "," in lines[0]
-    if any(("," in ln) != comma for ln in lines):
-        return None
+        header = [c.strip().strip('"').lower() for c in cells]
     try:
-        arr = np.loadtxt(io.StringIO("\n".join(lines)), delimiter="," if comma else None,
-                         ndmin=2, dtype=np.float64, comments=None)
+        arr = np.loadtxt(io.StringIO(text), delimiter="," if comma else None, skiprows=skip,
+                         ndmin=2, dtype=np.float64, comments="#")
     except ValueError:
+        return None
+    if arr.shape[0] == 0:
         return None
     return header, arr
 

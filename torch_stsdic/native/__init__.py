@@ -41,7 +41,8 @@ Modules, one job each: ``builder`` (compiler, cache directory, :func:`build`),
 ``declarations`` (the library's signatures, :class:`Kernel` and its checked call),
 ``loader`` (the switch, loading once, :func:`usable`), ``rows`` (the row-parallel runner),
 ``ops`` (the wrappers :func:`sample`, :func:`subsets`, :func:`ic_rhs`, :func:`gram`,
-:func:`spd_inverse`, :func:`nanmedian`, :func:`prefilter`).
+:func:`spd_inverse`, :func:`nanmedian`, :func:`neighbour_own_gradient`,
+:func:`neighbour_test`, :func:`prefilter`).
 """
 
 from __future__ import annotations
@@ -49,8 +50,18 @@ from __future__ import annotations
 from .builder import build
 from .declarations import Kernel, Param
 from .loader import available, kernels, native_enabled, set_native, usable, usable_image
-from .ops import gram, ic_rhs, nanmedian, prefilter, sample, spd_inverse, subsets
+from .ops import (
+    gram,
+    ic_rhs,
+    nanmedian,
+    neighbour_own_gradient,
+    neighbour_test,
+    prefilter,
+    sample,
+    spd_inverse,
+    subsets,
+)
 
 __all__ = ["available", "set_native", "native_enabled", "sample", "subsets", "ic_rhs", "gram",
-           "spd_inverse", "nanmedian", "prefilter", "build", "kernels", "Kernel", "Param", "usable",
-           "usable_image"]
+           "spd_inverse", "nanmedian", "neighbour_own_gradient", "neighbour_test", "prefilter",
+           "build", "kernels", "Kernel", "Param", "usable", "usable_image"]

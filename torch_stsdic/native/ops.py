@@ -13,7 +13,8 @@ import torch
 from .loader import kernel
 from .rows import run_rows
 
-__all__ = ["sample", "subsets", "ic_rhs", "gram", "spd_inverse", "nanmedian", "prefilter"]
+__all__ = ["sample", "subsets", "ic_rhs", "gram", "spd_inverse", "nanmedian", "prefilter",
+           "neighbour_own_gradient", "neighbour_test"]
 
 
 def _geo(img_args: tuple, order: int) -> dict:
@@ -218,6 +219,67 @@ def nanmedian(x: torch.Tensor) -> torch.Tensor:
     n = out.numel()
     run_rows(kernel("sts_nanmedian", x.dtype), n, 4 * k, dict(k=k, x=xc, out=out))
     return out
+
+
+def _neighbour_args(fn: str, nb: torch.Tensor, valid: torch.Tensor) -> dict:
+    """The neighbour kernels' shared arguments: nb (N, k) int64 (-1: none), valid (B, N)."""
+    _require(fn, nb.dim() == 2 and 1 <= nb.shape[1] <= 64, f"nb must be (N, k <= 64), got "
+             f"{tuple(nb.shape)}")
+    _require(fn, valid.dim() == 2 and valid.shape[1] == nb.shape[0],
+             f"valid must be (B, N={nb.shape[0]}), got {tuple(valid.shape)}")
+    return dict(n=nb.shape[0], k=nb.shape[1], nb=nb.to(torch.int64).contiguous(),
+                valid=valid.to(torch.uint8).contiguous())
+
+
+def neighbour_own_gradient(nb: torch.Tensor, valid: torch.Tensor, g: torch.Tensor,
+                           tol: float) -> torch.Tensor:
+    """Native twin of the "own gradient" mask of quality.carried_neighbours: (B, N, C, 2) bool,
+    a valid point's gradient component within 3 median absolute deviations (+ ``tol``) of
+    the median of its valid neighbours' ``g`` (B, N, C, 2) float64."""
+    a = _neighbour_args("neighbour_own_gradient", nb, valid)
+    b, n = valid.shape
+    _require("neighbour_own_gradient", g.dim() == 4 and tuple(g.shape[:2]) == (b, n)
+             and g.shape[3] == 2, f"g must be (B, N, C, 2), got {tuple(g.shape)}")
+    gc = g.contiguous()
+    own = torch.empty(g.shape, dtype=torch.uint8)
+    ne = g.shape[2] * 2
+    run_rows(kernel("sts_nb_own", g.dtype), b * n, ne * a["k"] * 8,
+             dict(a, ne=ne, g=gc, tol=float(tol), own=own))
+    return own.bool()
+
+
+def neighbour_test(nb: torch.Tensor, valid: torch.Tensor, values: torch.Tensor,
+                   points: torch.Tensor, eps: torch.Tensor, gradients: torch.Tensor | None,
+                   at: torch.Tensor | None):
+    """Native twin of one round of quality.median_test: the ``valid`` neighbours' ``values``
+    (B, N, C) carried to each point (``gradients`` and the gradient at the point ``at``,
+    (B, N, C, 2), or neither), and per point the normalised residual r (B, N) (NaN where a
+    component has no neighbour), the neighbours' scatter rm (B, N, C) and their count (B, N)
+    int64. ``eps`` (B, N) px; float64 throughout."""
+    fn = "neighbour_test"
+    a = _neighbour_args(fn, nb, valid)
+    b, n = valid.shape
+    _require(fn, values.dim() == 3 and tuple(values.shape[:2]) == (b, n)
+             and 1 <= values.shape[2] <= 8, f"values must be (B, N, C <= 8), got "
+             f"{tuple(values.shape)}")
+    c = values.shape[2]
+    _require(fn, tuple(points.shape) == (n, 2), f"points must be (N, 2), got "
+             f"{tuple(points.shape)}")
+    _require(fn, tuple(eps.shape) == (b, n), f"eps must be (B, N), got {tuple(eps.shape)}")
+    _require(fn, (gradients is None) == (at is None), "gradients and at go together")
+    for nm, t in (("gradients", gradients), ("at", at)):
+        _require(fn, t is None or tuple(t.shape) == (b, n, c, 2),
+                 f"{nm} must be (B, N, C, 2), got {None if t is None else tuple(t.shape)}")
+    dt = values.dtype
+    r = torch.empty(b, n, dtype=dt)
+    rm = torch.empty(b, n, c, dtype=dt)
+    count = torch.empty(b, n, dtype=torch.int64)
+    run_rows(kernel("sts_nb_test", dt), b * n, c * a["k"] * 12,
+             dict(a, nc=c, v=values.contiguous(), p=points.to(dt).contiguous(),
+                  g=None if gradients is None else gradients.to(dt).contiguous(),
+                  at=None if at is None else at.to(dt).contiguous(),
+                  eps=eps.to(dt).contiguous(), out_r=r, out_rm=rm, out_count=count))
+    return r, rm, count
 
 
 def prefilter(images: torch.Tensor, order: int) -> torch.Tensor:
