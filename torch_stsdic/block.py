@@ -297,29 +297,34 @@ class _Block:
         is higher). Parameters missing from ``sol`` (a classical solution has no ut, vt)
         are stored as NaN."""
         self.iters[idx] += sol.iterations
-        take = torch.ones_like(idx, dtype=torch.bool)
         if only_better:
             new_ok = sol.status <= USABLE
             old_ok = self.status[idx] <= USABLE
             take = new_ok & (~old_ok | (sol.zncc.to(self.run.dtype) > self.zncc[idx]))
             take |= self.status[idx] == int(Status.NOT_COMPUTED)  # a reason beats none
-        r = idx[take]
+
+            def pick(a: torch.Tensor) -> torch.Tensor:
+                return a[take]
+        else:  # every row (no copies of the solution's rows)
+            def pick(a: torch.Tensor) -> torch.Tensor:
+                return a
+        r = pick(idx)
         cols = [sol.param_names.index(nm) if nm in sol.param_names else -1
                 for nm in self.run.names]
-        p, sd = self._columns(sol.params[take], cols), self._columns(
-            sol.std[take] if sol.std is not None else None, cols, rows=int(take.sum()))
+        p, sd = self._columns(pick(sol.params), cols), self._columns(
+            pick(sol.std) if sol.std is not None else None, cols, rows=r.numel())
         self.params[r], self.std[r] = p, sd
         cstep = sol.info.get("classical_step")
         if cstep is not None and self.check_start is None:
             self.check_start = torch.full((self.params.shape[0], cstep.shape[1]), float("nan"),
                                           dtype=self.params.dtype, device=self.params.device)
         if self.check_start is not None:
-            self.check_start[r] = float("nan") if cstep is None else cstep[take].to(
+            self.check_start[r] = float("nan") if cstep is None else pick(cstep).to(
                 self.params.dtype)
-        self.zncc[r] = sol.zncc[take].to(self.run.dtype)
-        self.status[r] = sol.status[take]
+        self.zncc[r] = pick(sol.zncc).to(self.run.dtype)
+        self.status[r] = pick(sol.status)
         if sol.sigma is not None:
-            self.sigma[r] = sol.sigma[take].to(self.run.dtype)
+            self.sigma[r] = pick(sol.sigma).to(self.run.dtype)
         self.m_used[r] = self.run.m if m is None else m
 
     def _columns(self, a: torch.Tensor | None, cols: list[int], rows: int = 0) -> torch.Tensor:
@@ -938,7 +943,12 @@ def make_carry(rows: dict[str, np.ndarray], times: np.ndarray, names, prev: Carr
     fin = torch.isfinite(vel_u) & torch.isfinite(vel_v)
     vel_u = torch.where(fin, vel_u, torch.zeros_like(vel_u))
     vel_v = torch.where(fin, vel_v, torch.zeros_like(vel_v))
-    vals = {nm: (torch.nan_to_num(a) if nm in ("ut", "vt") else a) for nm, a in vals.items()}
+    # where the row had no window velocity (classical, m = 0), the next window starts from
+    # the finite difference, as its displacement does (not from zero velocity: sample 12's
+    # rows left classical before a load step took 3.5 instead of 3.2 steps in the next block)
+    for nm, vel in (("ut", vel_u), ("vt", vel_v)):
+        if nm in vals:
+            vals[nm] = torch.where(torch.isfinite(vals[nm]), vals[nm], vel)
     fit = None
     if "zncc" in rows:  # the last trusted row of every point, in time order
         fit = torch.full_like(vals["u"], float("nan")) if prev is None or \
