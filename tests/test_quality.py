@@ -10,6 +10,7 @@ wrong while marked CONVERGED.
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
@@ -227,6 +228,24 @@ def test_inconsistent_point_is_carried_from_its_own_solution():
     carry = make_carry(rows, torch.tensor([1.0]).numpy(), ("u", "v"), None, torch.float64,
                        torch.device("cpu"))
     assert carry.valid.tolist() == [True, True, False]
+
+
+def test_a_row_left_classical_carries_its_finite_difference_velocity():
+    """A point whose last row has no window velocity (left classical: ut, vt NaN) starts the
+    next window from the finite difference of its last two rows, as its displacement does,
+    not from zero velocity; a measured velocity is carried as it is."""
+    from torch_stsdic.block import make_carry
+
+    nan = float("nan")
+    ok = int(Status.CONVERGED)
+    rows = {"u": np.array([[1.0, 2.0], [1.5, 2.2]]), "v": np.array([[0.0, 0.0], [-0.4, 0.1]]),
+            "ut": np.array([[0.5, 0.2], [nan, 0.3]]), "vt": np.array([[0.0, 0.0], [nan, 0.2]]),
+            "status": np.full((2, 2), ok, dtype=np.int8)}
+    carry = make_carry(rows, np.array([1.0, 3.0]), ("u", "v", "ut", "vt"), None,
+                       torch.float64, torch.device("cpu"))
+    assert carry.vals["ut"].tolist() == [0.25, 0.3] and carry.vals["vt"].tolist() == [-0.2, 0.2]
+    pred = carry.predict(torch.tensor([4.0], dtype=torch.float64))
+    assert pred["u"].tolist() == [[1.75, 2.5]] and pred["ut"].tolist() == [[0.25, 0.3]]
 
 
 def _spoilt_movie(speed=2.5, frames=8):
