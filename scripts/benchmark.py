@@ -1136,7 +1136,7 @@ def target_rows(records: list[dict[str, Any]]) -> list[tuple[str, str, str, str,
 
 def _movie_targets(r, where: str, src: str, gpu: bool) -> list[tuple[str, str, str, str, str]]:
     what = (f"{r['n_frames']}-frame 1024x1024 TIFF via sts.track, {r['n_points']:,} POIs, "
-            f"STS(5), {where}")
+            f"STS(5), {r.get('batch_frames', '?')} targets a block, {where}")
     goal, ref = TARGETS["movie_overhead_share"]
     share = r["overhead_share"]
     rows = [(f"{what}: per-frame overhead (all but the solve)", f"<= {100 * goal:.0f} % of "

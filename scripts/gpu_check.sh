@@ -66,3 +66,25 @@ d, c, _ = b.ensure_data(0); print(d, c)")
     | tee -a "$OUT/log.txt" | cut -c1-150 | head -45
   echo "## profile: $((SECONDS - t0)) s"
 fi
+if step movie32; then  # the long movie with 32 target frames a block instead of the default
+  timeout 150 python3 scripts/benchmark.py --movie --device cuda --movie-frames "${MOVIE_FRAMES:-500}" \
+    --movie-batch-frames 32 --no-update-doc --out "$OUT/movie-cuda-b32.json" 2>&1 \
+    | tee -a "$OUT/log.txt" | tail -5
+  echo "## movie32: $((SECONDS - t0)) s"
+fi
+if step warm; then  # stsdic run --device cuda twice in one process: first-use cost vs the rest
+  timeout 120 python3 - <<'PY' 2>&1 | tee -a "$OUT/log.txt"
+import contextlib, io, sys, time
+sys.path.insert(0, "scripts")
+import bench_cli as b
+from torch_stsdic.cli import main
+d, c, _ = b.ensure_data(0)
+for dev in ("cuda", "cuda", "cuda"):
+    t = time.perf_counter()
+    with contextlib.redirect_stdout(io.StringIO()):
+        rc = main(["run", str(d), "--points", str(c), "--subset", "21", "--m", "0", "--out",
+                   "/tmp/w.h5", "--overwrite", "--no-progress", "--device", dev])
+    print(f"## stsdic run --device {dev} in one process: {time.perf_counter() - t:.3f} s (rc {rc})")
+PY
+  echo "## warm: $((SECONDS - t0)) s"
+fi

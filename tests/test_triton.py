@@ -161,3 +161,34 @@ def test_solver_with_fused_step_matches_torch_code(monkeypatch):
     assert torch.equal(got.status, want.status)
     assert torch.allclose(got.params, want.params, atol=1e-8)
     assert (want.u - 0.4).abs().max() < 0.02  # and the solve is right (u at t = 2)
+
+
+def test_eager_launch_does_not_import_the_compiler_stack():
+    """Outside torch.compile the step is called directly, not through the torch.library op:
+    launching a Triton kernel inside the op makes torch import torch._dynamo (with sympy and
+    FSDP: seconds of every fresh process's first GPU run). A fresh interpreter: the kernel
+    (Triton's interpreter without a GPU) runs, and torch._dynamo is not imported."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    if not (INTERPRET or torch.cuda.is_available()):
+        pytest.skip("no CUDA and TRITON_INTERPRET is not 1")
+    dev = "cuda" if torch.cuda.is_available() and not INTERPRET else "cpu"
+    code = f"""
+import sys
+sys.path.insert(0, {str(Path(__file__).parent)!r})
+import torch
+from torch_stsdic import kernels
+from test_triton import _case, _rhs
+kernels.set_triton("1")
+img, k, c = _case(True, torch.float32, device={dev!r})
+b, zn, out = _rhs(img, k, c, True, True)
+assert b.shape == (6, 2 * k) and bool(torch.isfinite(b).all()), b
+print("dynamo" if "torch._dynamo" in sys.modules else "no dynamo")
+"""
+    env = dict(os.environ, TRITON_INTERPRET="1" if dev == "cpu" else "0")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
+                       timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stdout.strip().endswith("no dynamo"), r.stdout

@@ -176,11 +176,14 @@ def poor_fit(sigma: Tensor, zncc: Tensor, solved: Tensor, zncc_floor: float,
     if not bool(have.any()):
         return bad
     s, gs = sigma[have], g[have]
-    order = torch.argsort(s, stable=True)
-    order = order[torch.argsort(gs[order], stable=True)]  # by group, then by sigma
     counts = torch.bincount(gs, minlength=int(g.max()) + 1)
-    first = torch.cumsum(counts, 0) - counts
-    med = s[order][(first + (counts - 1).clamp(min=0) // 2).clamp(max=s.numel() - 1)]
+    if counts.numel() == 1:  # one group: the lower middle value, without a sort
+        med = torch.kthvalue(s, (s.numel() - 1) // 2 + 1).values.reshape(1)
+    else:
+        order = torch.argsort(s, stable=True)
+        order = order[torch.argsort(gs[order], stable=True)]  # by group, then by sigma
+        first = torch.cumsum(counts, 0) - counts
+        med = s[order][(first + (counts - 1).clamp(min=0) // 2).clamp(max=s.numel() - 1)]
     enough = (counts >= min_points)[g]
     # a match at ZNCC >= FIT_ZNCC_GOOD is never poor (e.g. a frame against itself, where
     # the "noise" is round-off and its median ~0)

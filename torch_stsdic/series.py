@@ -164,8 +164,9 @@ def _run_blocks(plan: RunPlan, sink: MemorySink, run: BlockContext, ref: Referen
                 full = apply_offsets(full, offsets, block)
             stored = as_stored(full)
             sink.write_rows(rs, full, reference_frame=ref.frame)
-        carry = make_carry(stored, plan.times[block], plan.param_names, carry, plan.dtype,
-                            plan.device)
+        if block is not plan.blocks[-1]:  # the last block carries nothing on
+            carry = make_carry(stored, plan.times[block], plan.param_names, carry,
+                               plan.dtype, plan.device)
         if thr is not None:
             ref = maybe_update(ref, stored, block[-1], float(thr), pts0, plan.param_names,
                                run.cache, plan.dtype, plan.device, updates, rs[-1])
