@@ -648,66 +648,6 @@ STS_KERNEL(sts_spd_inverse, (int64_t i0, int64_t i1, int64_t np, const T* h, T* 
 }
 
 // ---- medians of short rows ---------------------------------------------------------------
-// The median of each row [i0, i1) of x (rows of k <= 64 values) over its values that are not
-// NaN, the lower of the two middle ones for an even count (torch.nanmedian's), NaN where a row
-// has none. The neighbour test takes it over a point's k = 8 neighbours, 10^5 rows at a time:
-// torch's batched nanmedian costs ~9 ms per 155,000 rows, this 1.5 ms (2 threads).
-STS_KERNEL(sts_nanmedian, (int64_t i0, int64_t i1, int64_t k, const T* x, T* out)) {
-  if (k < 1 || k > 64) return 1;
-  T v[64];
-  if (k == 8) {  // a point's 8 neighbours: a sorting network (NaN last as +inf), branch-free
-    constexpr int net[19][2] = {{0, 1}, {2, 3}, {4, 5}, {6, 7}, {0, 2}, {1, 3}, {4, 6},
-                                {5, 7}, {1, 2}, {5, 6}, {0, 4}, {3, 7}, {1, 5}, {2, 6},
-                                {1, 4}, {3, 6}, {2, 4}, {3, 5}, {3, 4}};
-    const T inf = std::numeric_limits<T>::infinity();
-    for (int64_t i = i0; i < i1; ++i) {
-      const T* xi = x + i * 8;
-      int c = 0;
-      for (int j = 0; j < 8; ++j) {
-        const bool ok = xi[j] == xi[j];
-        c += ok;
-        v[j] = ok ? xi[j] : inf;
-      }
-      for (const auto& e : net) {  // std::min/max: minsd/maxsd, no branch
-        const T a = v[e[0]], b = v[e[1]];
-        v[e[0]] = std::min(a, b);
-        v[e[1]] = std::max(a, b);
-      }
-      out[i] = c ? v[(c - 1) / 2] : std::numeric_limits<T>::quiet_NaN();
-    }
-    return 0;
-  }
-  for (int64_t i = i0; i < i1; ++i) {
-    const T* xi = x + i * k;
-    int64_t c = 0;
-    for (int64_t j = 0; j < k; ++j) {  // insertion sort of the values that are not NaN
-      const T a = xi[j];
-      if (a != a) continue;
-      int64_t q = c++;
-      while (q > 0 && v[q - 1] > a) {
-        v[q] = v[q - 1];
-        --q;
-      }
-      v[q] = a;
-    }
-    out[i] = c ? v[(c - 1) / 2] : std::numeric_limits<T>::quiet_NaN();
-  }
-  return 0;
-}
-
-// ---- the neighbour test (quality.median_test) -------------------------------------------
-// One round of the normalised median test of quality.py, per point, over its k <= 64 grid
-// neighbours: the same arithmetic as the torch code (quality.carried_neighbours and
-// median_test), in double, each product and sum rounded on its own (no fused multiply-add,
-// see exact_*), so both give the same decisions. Rows r = b * n + i: target b, point i.
-
-// a * b + c and a * b + c * d with every product rounded before the sum, as torch computes
-// them (this file is built with -ffp-contract=fast, which would fuse them)
-inline double exact_mul_add(double a, double b, double c) {
-  volatile double t = a * b;
-  return t + c;
-}
-
 // the median of the c values v[0..c) (sorted in place; v has room for 8): the lower middle
 // one; NaN if c == 0. Up to 8 values: padded with +inf (sorted last) and sorted by the
 // branch-free network of sts_nanmedian
@@ -735,6 +675,36 @@ inline T lower_median(T* v, int c) {
     v[q] = a;
   }
   return c ? v[(c - 1) / 2] : std::numeric_limits<T>::quiet_NaN();
+}
+
+// The median of each row [i0, i1) of x (rows of k <= 64 values) over its values that are not
+// NaN, the lower of the two middle ones for an even count (torch.nanmedian's), NaN where a row
+// has none. The neighbour test takes it over a point's k = 8 neighbours, 10^5 rows at a time:
+// torch's batched nanmedian costs ~9 ms per 155,000 rows, this 1.5 ms (2 threads).
+STS_KERNEL(sts_nanmedian, (int64_t i0, int64_t i1, int64_t k, const T* x, T* out)) {
+  if (k < 1 || k > 64) return 1;
+  T v[64];
+  for (int64_t i = i0; i < i1; ++i) {
+    const T* xi = x + i * k;
+    int c = 0;
+    for (int64_t j = 0; j < k; ++j)
+      if (xi[j] == xi[j]) v[c++] = xi[j];
+    out[i] = lower_median(v, c);
+  }
+  return 0;
+}
+
+// ---- the neighbour test (quality.median_test) -------------------------------------------
+// One round of the normalised median test of quality.py, per point, over its k <= 64 grid
+// neighbours: the same arithmetic as the torch code (quality.carried_neighbours and
+// median_test), in double, each product and sum rounded on its own (no fused multiply-add,
+// see exact_*), so both give the same decisions. Rows r = b * n + i: target b, point i.
+
+// a * b + c and a * b + c * d with every product rounded before the sum, as torch computes
+// them (this file is built with -ffp-contract=fast, which would fuse them)
+inline double exact_mul_add(double a, double b, double c) {
+  volatile double t = a * b;
+  return t + c;
 }
 
 // Whether a point's own gradient is like its neighbours' (quality.carried_neighbours):
