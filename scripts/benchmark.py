@@ -85,7 +85,8 @@ TARGETS = {
     "table1_sts5_s": (1.0, "paper: 95.7 s"),
     "table1_ratio": (4.0, "paper: 32x"),
     "cpu_classical_poi_s": (35_000.0, "OpenCorr's published 34,650 POI/s, another machine; "
-                                      "measured here side by side: 53,508 on 2026-11-26, opencorr-cpu.json"),
+                                      "measured here side by side: 53,508 on 2026-11-26, "
+                                      "opencorr-cpu.json"),
     "cpu_sts5_poi_s": (10_000.0, ""),
     "gpu_classical_poi_s": (1e6, ""),
     "gpu_sts5_poi_s": (2e5, ""),
