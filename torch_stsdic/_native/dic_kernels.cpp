@@ -649,8 +649,8 @@ STS_KERNEL(sts_spd_inverse, (int64_t i0, int64_t i1, int64_t np, const T* h, T* 
 
 // ---- medians of short rows ---------------------------------------------------------------
 // the median of the c values v[0..c) (sorted in place; v has room for 8): the lower middle
-// one; NaN if c == 0. Up to 8 values: padded with +inf (sorted last) and sorted by the
-// branch-free network of sts_nanmedian
+// one; NaN if c == 0. Up to 8 values: padded with +inf (sorted last) and sorted by a
+// branch-free sorting network (19 compare-exchanges); more: by insertion
 template <typename T>
 inline T lower_median(T* v, int c) {
   if (c <= 8) {
@@ -698,10 +698,11 @@ STS_KERNEL(sts_nanmedian, (int64_t i0, int64_t i1, int64_t k, const T* x, T* out
 // One round of the normalised median test of quality.py, per point, over its k <= 64 grid
 // neighbours: the same arithmetic as the torch code (quality.carried_neighbours and
 // median_test), in double, each product and sum rounded on its own (no fused multiply-add,
-// see exact_*), so both give the same decisions. Rows r = b * n + i: target b, point i.
+// see exact_mul_add), so both give the same decisions. Rows r = b * n + i: target b, point i.
 
-// a * b + c and a * b + c * d with every product rounded before the sum, as torch computes
-// them (this file is built with -ffp-contract=fast, which would fuse them)
+// a * b + c with the product rounded before the sum, as torch computes it (this file is
+// built with -ffp-contract=fast, which would fuse them; sts_nb_test rounds its products
+// through volatile temporaries for the same reason)
 inline double exact_mul_add(double a, double b, double c) {
   volatile double t = a * b;
   return t + c;
