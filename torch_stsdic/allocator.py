@@ -11,7 +11,9 @@ the memory between the peaks stays mapped).
 :func:`keep_freed_memory` sets that for the whole process (``mallopt``: no mmap for large
 blocks, trim the heap only above 1 GiB free). The ``stsdic`` command calls it at start;
 ``TORCH_STSDIC_MALLOC=0`` switches it off. A Python program that uses the library can call
-it once itself: it changes the process, so the library never does so on import. Where
+it once itself: it changes the process, so the library never does so on import (the same
+from the environment, for any program: ``MALLOC_MMAP_MAX_=0
+MALLOC_TRIM_THRESHOLD_=1073741824``, both; either alone leaves most of the faults). Where
 glibc is not the C library (macOS, Windows, musl) it does nothing.
 """
 
