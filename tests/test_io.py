@@ -555,7 +555,8 @@ def test_tables_read_by_numpy_equal_the_line_parser(tmp_path):
             tables._fast_table = orig
         assert fast[0] == slow[0] and np.array_equal(fast[1], slow[1]), text
         assert np.array_equal(tables.read_table(str(f), "points")[1], slow[1])
-    for text, msg in (("1,2\n3\n", "line 2: 1 values"), ("x y\n1 2\n3 a\n", "line 3")):
+    for text, msg in (("1,2\n3\n", "line 2: 1 values"), ("x y\n1 2\n3 a\n", "line 3"),
+                      ("1,2\n3,4 # note\n", "line 2: not numbers")):
         f = tmp_path / "bad.csv"
         f.write_text(text)
         assert tables._fast_table(text) is None

@@ -9,6 +9,7 @@ argument name the user gave, e.g. ``--points``) and the path.
 from __future__ import annotations
 
 import io
+import re
 import warnings
 from pathlib import Path
 
@@ -63,6 +64,10 @@ def read_table(path: str, what: str) -> tuple[list[str] | None, np.ndarray]:
     return header, arr
 
 
+#: a '#' after something else on its line (only whole-line comments are comments)
+_INLINE_COMMENT = re.compile(r"^[ \t]*[^#\s][^\n]*#", re.MULTILINE)
+
+
 def _fast_table(text: str) -> tuple[list[str] | None, np.ndarray] | None:
     """:func:`read_table`'s result by numpy's C parser (a 38,809-row point list: 2 ms, 0.1 s
     in Python), or None where the table is not regular (then the line-by-line parser says
@@ -73,7 +78,7 @@ def _fast_table(text: str) -> tuple[list[str] | None, np.ndarray] | None:
         if ln.strip() and not ln.lstrip().startswith("#"):
             first = ln.strip()
             break
-    if first is None:
+    if first is None or ("#" in text and _INLINE_COMMENT.search(text)):  # the line parser
         return None
     comma = "," in first
     cells = first.split(",") if comma else first.split()
