@@ -15,14 +15,13 @@ import sys
 import numpy as np
 import pytest
 import torch
+from test_shared_motion import _jittery_movie  # the jittery render (tests/ on the path)
 
 import torch_stsdic as sts
 from torch_stsdic import kernels
 from torch_stsdic.io import read_results
 from torch_stsdic.status import Status
 from torch_stsdic.synth import (
-    HomogeneousStrain,
-    RigidJitter,
     Translation,
     ground_truth,
     make_speckle,
@@ -125,16 +124,6 @@ def test_shared_motion_and_off_centre_subsets_on_cuda(window):
     assert float((cpu.vt - _to(gpu.vt))[ok].abs().max()) < 5e-3
 
 
-def _jittery(frames=16, size=SIZE):
-    times = torch.arange(0.0, frames)
-    c = ((size - 1) / 2, (size - 1) / 2)
-    smooth = HomogeneousStrain(exx=0.002, eyy=-0.001, exy=0.0005, center=c, rate=1.0)
-    motion = smooth + RigidJitter.random(times, 0.25, 5e-4, center=c, seed=3)
-    ref, rest = render_series(make_speckle((size, size), seed=3), (size, size), motion,
-                              times[1:], noise_sigma=3.0, seed=4)
-    return torch.cat([ref[None], rest]), motion, times
-
-
 def _cpu_result(res):
     import dataclasses
 
@@ -145,7 +134,7 @@ def _cpu_result(res):
 
 def test_track_on_cuda_equals_cpu(tmp_path):
     """A whole run (shared motion, checks, carry, strains) on CUDA and on the CPU."""
-    movie, motion, times = _jittery()
+    movie, motion, times = _jittery_movie(frames=16, size=SIZE)
     kw = dict(step=12, progress=False, config=sts.DICConfig(m=2))
     cpu = sts.track(movie, device="cpu", **kw)
     on_dev = sts.track(movie, device=DEV, out=tmp_path / "g.h5", **kw)
@@ -194,7 +183,7 @@ def test_nn_module_forward_and_backward_on_cuda(window):
 
 def test_cli_run_on_cuda(tmp_path):
     """``stsdic run --device cuda`` writes the same file contents as on the CPU."""
-    movie, _, _ = _jittery(frames=8)
+    movie, _, _ = _jittery_movie(frames=8, size=SIZE)
     import tifffile
 
     src = tmp_path / "movie.tif"
