@@ -78,13 +78,11 @@ def child_bare(folder: str, pts_csv: str, m: int, device: str = "cpu",
     import numpy as np
     import torch
 
-    from torch_stsdic import keep_freed_memory
+    from torch_stsdic import DICConfig, SubsetSolver, keep_freed_memory
+    from torch_stsdic.io import load_series
 
     if malloc == "kept":
         keep_freed_memory()  # the process set up as the command sets it up
-
-    from torch_stsdic import DICConfig, SubsetSolver
-    from torch_stsdic.io import load_series
 
     ser = load_series(folder)
     imgs = torch.from_numpy(np.stack([ser.numpy(i) for i in range(len(ser))]).astype(
