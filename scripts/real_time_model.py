@@ -88,8 +88,8 @@ def recording(log: list):
         state.update(stage=0, block=self, solves=[], quiet=False)
         solve, classical = self.solve, self._classical
 
-        def solve_logged(idx, init, m=None, solver=None):  # the rows of each stage
-            sol = solve(idx, init, m=m, solver=solver)
+        def solve_logged(idx, init, m=None, solver=None, **kw):  # the rows of each stage
+            sol = solve(idx, init, m=m, solver=solver, **kw)
             if not state["quiet"]:
                 state["solves"].append((idx, sol.status))
             return sol

@@ -422,6 +422,9 @@ def test_wrappers_pass_exactly_the_declared_parameters(monkeypatch):
         native.ic_rhs(a, 3, c["p"][[1, 0]], *args, rows=torch.tensor([1, 0]))
         native.gram(c["gx"], c["gy"], c["basis"], c["w"])
         native.spd_inverse(torch.eye(3, dtype=dtype).expand(2, 3, 3))
+        eye = torch.eye(4, dtype=dtype)
+        native.param_std(torch.arange(4), torch.zeros(2, 1), False, 1, eye.expand(2, 4, 4),
+                         None, eye, eye, torch.ones(2), torch.ones(2), 1.4)
         native.nanmedian(x)
         native.prefilter(x, 3)
         nb = torch.tensor([[1, 2, -1], [0, 2, -1], [0, 1, -1]])
@@ -756,6 +759,48 @@ def test_spd_inverse_matches_torch(p, dtype):
     assert rel(inv_t) < limit
     with pytest.raises(ValueError, match=r"native.spd_inverse: h must be \(N, P, P\)"):
         native.spd_inverse(torch.zeros(2, 17, 17, dtype=dtype))
+
+
+@pytest.mark.parametrize("temporal", [True, False])
+@pytest.mark.parametrize("window", ["square", "gaussian"])
+def test_param_std_matches_the_response(temporal, window):
+    """uncertainty.predicted_std (the native kernel) against std_of(response(...)) in torch:
+    STS and classical shapes, a 0/1 and a Gaussian window (its own w^2 moments), a row whose
+    noise-corrected Hessian is not positive definite (both fall back to the plain Hessian)
+    and a row without texture (NaN)."""
+    from torch_stsdic import uncertainty as unc
+    from torch_stsdic.formulations import Geometry, SubsetData
+
+    g = torch.Generator().manual_seed(7)
+    win = (sts.window.SquareWindow(11) if window == "square"
+           else sts.window.GaussianWindow(11))
+    geo = Geometry.make(sts.shape.AffineShape(temporal=temporal), win, "znssd",
+                        torch.float64, torch.device("cpu"))
+    n, s = 300, geo.w.numel()
+    gx = torch.randn(n, s, generator=g, dtype=torch.float64) * 15.0
+    gy = torch.randn(n, s, generator=g, dtype=torch.float64) * 15.0
+    gx[5], gy[5] = 0.0, 0.0  # no texture
+    dt = (torch.arange(5.0, dtype=torch.float64) - 2.0).expand(n, 5).clone() if temporal \
+        else torch.zeros(n, 1, dtype=torch.float64)
+    data = SubsetData(px=None, py=None, dt=dt, fidx=None, ft=None, fnorm=None, gx=gx, gy=gy)
+    ref = torch.rand(n, generator=g, dtype=torch.float64) * 4.0 + 0.5
+    ref[9] = 1e6  # a noise estimate as large as the texture: the correction is not valid
+    noise = unc.NoiseModel(ref=ref, frame=torch.rand(n, generator=g, dtype=torch.float64) + 1)
+    want = unc.std_of(unc.response(geo, data, noise, 3))
+    got = unc.predicted_std(geo, data, noise, 3)
+    assert got.shape == want.shape == (n, 8 if temporal else 6)
+    assert torch.isnan(got[5]).all() and torch.isnan(want[5]).all()
+    ok = torch.ones(n, dtype=torch.bool)
+    ok[5] = False
+    assert bool(torch.isfinite(got[ok]).all())
+    assert float(((got[ok] - want[ok]).abs() / want[ok]).max()) < 1e-10
+    h = unc.response(geo, data, noise, 3)  # row 9 took the plain Hessian's inverse
+    assert torch.isfinite(h.coef[9]).all() and float(got[9, 0]) > 0
+    with pytest.raises(ValueError, match=r"native.param_std: g1 must be \(N, P', P'\)"):
+        native.param_std(torch.arange(20), dt, temporal, geo.ks,
+                         torch.zeros(n, 20, 20, dtype=torch.float64), None,
+                         torch.zeros(20, 20, dtype=torch.float64),
+                         torch.zeros(20, 20, dtype=torch.float64), ref, ref, 1.4)
 
 
 @pytest.mark.parametrize("znssd", [True, False])

@@ -50,6 +50,29 @@ def test_a_smooth_field_is_guessed_at_every_point_with_its_velocity():
     assert float((g["vy"] - grad[:, 1, 1]).abs().max()) < 1e-12
 
 
+def test_the_guess_averages_the_sample_points_noise():
+    """Noisy sample solutions (0.02 px displacement, 2e-3 px/px gradient noise, as a classical
+    pass gives): the mean of the nearest points' carried guesses is nearer the truth than the
+    nearest point's alone."""
+    frames = [2]
+    spts = _grid(30.0, 15.0)
+    gen = torch.Generator().manual_seed(4)
+    d, g = _field(spts, 2.0)
+    d = d + 0.02 * torch.randn(d.shape, generator=gen, dtype=torch.float64)
+    g = g + 2e-3 * torch.randn(g.shape, generator=gen, dtype=torch.float64)
+    sample = MeasuredSample(points=spts, frames=torch.tensor(frames), disp=d[None],
+                            grad=g[None])
+    pts = _grid(7.0, 20.0, 190.0)
+    guess = sample.guess(pts, torch.tensor([frames]), torch.zeros(1, 1))
+    truth, _ = _field(pts, 2.0)
+    near = (pts.unsqueeze(1) - spts.unsqueeze(0)).norm(dim=-1).argmin(1)
+    alone = d[near] + (g[near] @ (pts - spts[near]).unsqueeze(-1)).squeeze(-1)
+    err = (torch.stack([guess["u"], guess["v"]], 1) - truth).square().mean().sqrt()
+    err_alone = (alone - truth).square().mean().sqrt()
+    assert bool(torch.isfinite(guess["u"]).all())
+    assert float(err) < 0.8 * float(err_alone)  # 0.73 measured; the nearest alone: 1
+
+
 def test_no_guess_where_a_sample_point_disagrees_with_its_neighbours():
     """A wrong sample point (a false peak 5 px off) guides nobody: its leave-one-out test
     fails, and the points around it take the next sample point or no guess."""

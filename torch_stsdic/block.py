@@ -212,10 +212,10 @@ class _Block:
         self.std = torch.full((rows, p_count), float("nan"), dtype=run.dtype, device=dev)
         self.sigma = torch.full((rows,), float("nan"), dtype=run.dtype, device=dev)
         self.m_used = torch.full((rows,), -1, dtype=torch.int8, device=dev)
-        #: (B*N, 2 Ks) each row's classical solution (the spatial shape's parameters) one
-        #: Gauss-Newton step from its window's solution, where the window's solve gave it
-        #: (``classical_step``), else NaN: where the model check starts the row's classical
-        #: solve (None: no solve gave one)
+        #: (B*N, 2 Ks + 1) each row's classical solution (the spatial shape's parameters)
+        #: one Gauss-Newton step from its window's solution, then that step's size, where the
+        #: window's solve gave it (``classical_step``), else NaN: where the model check starts
+        #: the row's classical solve (None: no solve gave one)
         self.check_start: torch.Tensor | None = None
         self.gone = torch.zeros(rows, dtype=torch.bool, device=dev)  # predicted outside
         self.identity: torch.Tensor | None = None  # (B*N,) rows known without a solve
@@ -266,7 +266,8 @@ class _Block:
         return fidx, dt.repeat_interleave(self.n, 0)
 
     def solve(self, idx: torch.Tensor, init: torch.Tensor | None, m: int | None = None,
-              solver: SubsetSolver | None = None) -> WindowSolution:
+              solver: SubsetSolver | None = None, init_step: torch.Tensor | None = None
+              ) -> WindowSolution:
         """Solve rows ``idx`` from ``init`` (None: FFT) with windows of half-width ``m``
         (default the run's; m = 0: the target frame alone, classical shape), with ``solver``
         (default the run's); subsets at :attr:`centres` where :meth:`keep_outside` moved them
@@ -288,6 +289,7 @@ class _Block:
             centres=None if self.centres is None else self.centres[idx],
             # the model check's first classical step, from the window solve's last step
             classical_step=run.checks and (run.m if m is None else m) > 0 and solver is None,
+            init_step=init_step,
         )
 
     def keep(self, idx: torch.Tensor, sol: WindowSolution, only_better: bool,
@@ -315,6 +317,8 @@ class _Block:
             pick(sol.std) if sol.std is not None else None, cols, rows=r.numel())
         self.params[r], self.std[r] = p, sd
         cstep = sol.info.get("classical_step")
+        if cstep is not None:
+            cstep = torch.cat([cstep, sol.info["classical_step_size"].unsqueeze(1)], 1)
         if cstep is not None and self.check_start is None:
             self.check_start = torch.full((self.params.shape[0], cstep.shape[1]), float("nan"),
                                           dtype=self.params.dtype, device=self.params.device)
@@ -551,20 +555,24 @@ class _Block:
         ``solver``); where the target is the reference frame itself it is the
         :meth:`identity_solution`, not solved."""
         own = self.k.repeat_interleave(self.n)[idx] == self.ref.frame
-        # one classical step from the window's solution is known where its solve gave it
-        start = self.params[idx]
+        # one classical step from the window's solution is known where its solve gave it:
+        # the solve goes on from there, that step its previous increment
+        start, step = self.params[idx], None
         if self.check_start is not None:
             known = self.check_start[idx]
             spatial = [self.run.names.index(nm)
                        for nm in self.run.solver.shape.spatial().param_names]
-            start = torch.where(torch.isfinite(known).all(1, keepdim=True), known,
-                                start[:, spatial])
+            have = torch.isfinite(known).all(1, keepdim=True)
+            start = torch.where(have, known[:, :-1], start[:, spatial])
+            step = known[:, -1].nan_to_num(0.0)
         if not bool(own.any()):
-            return self.solve(idx, start, m=0, solver=solver)
+            return self.solve(idx, start, m=0, solver=solver, init_step=step)
         ident = self.identity_solution(idx)
         if bool(own.all()):
             return ident
-        return _with_rows(ident, ~own, self.solve(idx[~own], start[~own], m=0, solver=solver))
+        return _with_rows(ident, ~own, self.solve(
+            idx[~own], start[~own], m=0, solver=solver,
+            init_step=None if step is None else step[~own]))
 
     def _off_a_line(self, rows: torch.Tensor, m: int, disp: torch.Tensor, std: torch.Tensor
                     ) -> tuple[torch.Tensor, torch.Tensor]:

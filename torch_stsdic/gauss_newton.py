@@ -156,15 +156,17 @@ class BatchContext:
         return max(16, int(self.cfg.memory_mb * 2**20 / per_point))
 
 
-def solve_batch(ctx: BatchContext, pts, p0, dt, fidx, ridx, motion=None):
+def solve_batch(ctx: BatchContext, pts, p0, dt, fidx, ridx, motion=None, step0=None):
     """Solve one batch of N POIs (all inside the image) from ``p0`` (N, P), with frame times
-    ``dt`` (N, T), frame indices ``fidx`` (N, T), reference indices ``ridx`` (N,) and the
-    known motion of every frame ``motion`` (N, T, 2) (None: none).
+    ``dt`` (N, T), frame indices ``fidx`` (N, T), reference indices ``ridx`` (N,), the
+    known motion of every frame ``motion`` (N, T, 2) (None: none) and the size of the step
+    that gave ``p0`` (N,) (the first stage's previous increment for its convergence rate;
+    None, 0 or NaN: none).
 
     Returns params (N, P), zncc (N,), status (N,) int8, iterations (N,), the first stage's
     params (N, P), predicted std (N, P), noise std (N,) (grey levels) and, with
-    ``ctx.classical_step``, the classical step (N, 2 Ks) (:func:`_classical_step`; NaN where
-    not known), else None."""
+    ``ctx.classical_step``, the classical step (N, 2 Ks + 1) (:func:`_classical_step`: the
+    parameters, then the step's size; NaN where not known), else None."""
     cfg, geo = ctx.cfg, ctx.geo
     n = pts.shape[0]
     device, dtype = pts.device, pts.dtype
@@ -185,7 +187,8 @@ def solve_batch(ctx: BatchContext, pts, p0, dt, fidx, ridx, motion=None):
     for stage_i, form in enumerate(ctx.stages):
         final = stage_i == len(ctx.stages) - 1
         params, zn, st, used, last = _run_stage(ctx, form, params, data, live,
-                                                frame_rhs=final and ctx.classical_step)
+                                                frame_rhs=final and ctx.classical_step,
+                                                step0=step0 if stage_i == 0 else None)
         stage_params.append(params)
         zncc = torch.where(live, zn, zncc)
         iters += used
@@ -204,7 +207,7 @@ def solve_batch(ctx: BatchContext, pts, p0, dt, fidx, ridx, motion=None):
     std, sigma = _uncertainty(ctx, data, params, zncc, status <= int(Status.MAX_ITER))
     cstep = None
     if ctx.classical_step:
-        cstep = torch.full((n, 2 * geo.ks), float("nan"), dtype=dtype, device=device)
+        cstep = torch.full((n, 2 * geo.ks + 1), float("nan"), dtype=dtype, device=device)
         if last is not None:
             cstep = _classical_step(geo, data, *last).to(dtype)
         cstep[status != int(Status.CONVERGED)] = float("nan")
@@ -212,15 +215,17 @@ def solve_batch(ctx: BatchContext, pts, p0, dt, fidx, ridx, motion=None):
 
 
 def _classical_step(geo: Geometry, data: SubsetData, p_last: Tensor, rhs: Tensor) -> Tensor:
-    """(N, 2 Ks) each point's classical solution (the shape without time, ``geo.shape``'s
+    """(N, 2 Ks + 1) each point's classical solution (the shape without time, ``geo.shape``'s
     spatial parameters) after one inverse-compositional Gauss-Newton step from its window's
     warp at the target frame (dt = 0): ``p_last`` (N, P) the parameters at which the window's
     last step was taken, ``rhs`` (N, T, 2 Ks) that step's frame-by-frame spatial right-hand
     sides (NaN rows: none). At dt = 0 the window's warp is its spatial parameters (the shared
     motion's known part is zero there), and frame t's right-hand side and the classical
     Hessian (the spatial block of the centred gram) are exactly what a classical solve's
-    first step from there computes: the step is free. NaN where the window has no frame at
-    dt = 0 or no step was recorded."""
+    first step from there computes: the step is free. The last column is that step's size
+    ``|dp * scale|`` px (the convergence test's measure): a classical solve started from the
+    step takes it as its previous increment (``SubsetSolver.solve``'s ``init_step``). NaN
+    where the window has no frame at dt = 0 or no step was recorded."""
     ks, k = geo.ks, geo.k
     at0 = data.dt == 0  # (N, T)
     t0 = at0.to(torch.int8).argmax(1)
@@ -231,6 +236,8 @@ def _classical_step(geo: Geometry, data: SubsetData, p_last: Tensor, rhs: Tensor
     dp = -(hinv @ b.unsqueeze(-1)).squeeze(-1)
     pc = torch.cat([p_last[:, :ks], p_last[:, k:k + ks]], 1).double()
     out = classical.shape.compose_inverse(pc, dp)
+    size = (dp * classical.shape.increment_scale(geo.spatial, data.dt[:, :1])).norm(dim=1)
+    out = torch.cat([out, size.unsqueeze(1).to(out.dtype)], 1)
     bad = singular | ~at0.any(1) | ~torch.isfinite(out).all(1)
     return out.masked_fill(bad.unsqueeze(1), float("nan"))
 
@@ -319,11 +326,12 @@ def _uncertainty(ctx: BatchContext, data: SubsetData, params, zncc, ok):
     """Predicted std (N, P) of every parameter and noise std (N,) of the rows ``ok`` (NaN
     elsewhere): computed for every row (vectorised, no copy of the subsets), then masked."""
     dtype = params.dtype
-    resp, _ = uncertainty.solution_response(ctx.geo, ctx.frames, data, params, ctx.noise_ratio,
-                                            ctx.frames.order, zncc=zncc)
+    noise, _ = uncertainty.solution_noise(ctx.geo, ctx.frames, data, params, ctx.noise_ratio,
+                                          ctx.frames.order, zncc=zncc)
+    std = uncertainty.predicted_std(ctx.geo, data, noise, ctx.frames.order)
     nan = torch.tensor(float("nan"), dtype=dtype, device=params.device)
-    std = torch.where(ok.unsqueeze(1), uncertainty.std_of(resp).to(dtype), nan)
-    return std, torch.where(ok, resp.noise.total.sqrt().to(dtype), nan)
+    std = torch.where(ok.unsqueeze(1), std.to(dtype), nan)
+    return std, torch.where(ok, noise.total.sqrt().to(dtype), nan)
 
 
 def _next_increment(norm: Tensor, prev: Tensor) -> Tensor:
@@ -338,8 +346,10 @@ def _next_increment(norm: Tensor, prev: Tensor) -> Tensor:
 
 
 def _run_stage(ctx: BatchContext, form: Formulation, params, data: SubsetData, live,
-               frame_rhs: bool = False):
-    """Iterate one Gauss-Newton stage over the live points, dropping finished points.
+               frame_rhs: bool = False, step0: Tensor | None = None):
+    """Iterate one Gauss-Newton stage over the live points, dropping finished points;
+    ``step0`` (N,): the size of the increment that gave ``params`` (None, 0 or NaN: none),
+    the previous increment of the first step's convergence test (:func:`_next_increment`).
 
     Returns params, zncc (N,), status (N,), iterations used (N,) and, with ``frame_rhs``
     where the formulation gives them, (the parameters (N, P) at which each converged point's
@@ -374,7 +384,8 @@ def _run_stage(ctx: BatchContext, form: Formulation, params, data: SubsetData, l
                 torch.full((n, t_count, 2 * ks), float("nan"), dtype=torch.float64,
                            device=device))
     active = torch.ones(rows.numel(), dtype=torch.bool, device=device)
-    prev = torch.zeros(rows.numel(), dtype=dtype, device=device)
+    prev = (torch.zeros(rows.numel(), dtype=dtype, device=device) if step0 is None
+            else step0[rows].to(dtype).nan_to_num(0.0))
     # On CUDA every boolean test or compaction waits for the GPU: look every few iterations.
     check_every = 1 if device.type == "cpu" else 4
     conv_code = torch.tensor(int(Status.CONVERGED), dtype=torch.int8, device=device)

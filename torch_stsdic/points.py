@@ -133,23 +133,33 @@ def filter_points(points: Any, shape, roi, mask) -> torch.Tensor:
 def nearest_points(points: torch.Tensor, k: int, chunk: int = 4096
                    ) -> tuple[torch.Tensor, torch.Tensor]:
     """Distances and indices (N, k) of the ``k`` nearest points of every point of (N, 2)
-    ``points`` (itself first, at distance 0), nearest first.
+    ``points`` (itself first, at distance 0), nearest first (:func:`nearest_among` of the
+    set among itself)."""
+    return nearest_among(points, points, k, chunk)
 
-    Points are binned into square cells sized so that a point's 3 x 3 block of cells holds
-    its ``k`` nearest at the average density; each point's candidates are the points of its
-    block, and a point whose k-th candidate lies farther than the block reaches (a sparse
-    region, an edge) is searched among all points (by chunks of ``chunk`` rows). Time and
-    memory O(N k), not O(N^2): 38,809 POIs in milliseconds instead of 27 s and 600 MB."""
-    n = points.shape[0]
+
+def nearest_among(query: torch.Tensor, points: torch.Tensor, k: int, chunk: int = 4096
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Distances and indices (M, k) of the ``k`` points of ``points`` (N, 2) nearest each of
+    ``query`` (M, 2), nearest first (``k`` at most N).
+
+    ``points`` are binned into square cells sized so that a 3 x 3 block of cells holds
+    ``k`` points at their average density; each query's candidates are the points of the
+    block around it, and a query whose k-th candidate lies farther than the block reaches (a
+    sparse region, an edge, a query outside the points' extent) is searched among all points
+    (the full distance matrix by chunks of ``chunk`` rows). Time and memory O(M k), not
+    O(M N): 38,809 POIs among themselves in milliseconds instead of 27 s and 600 MB; among a
+    1,000-point sample 13 ms instead of 0.17 s."""
+    m, n = query.shape[0], points.shape[0]
     k = min(k, n)
-    p = points.double()
-    if n <= chunk or k < 1:
-        return _nearest_brute(p, k, chunk, points.dtype)
+    q, p = query.double(), points.double()
+    if m == 0 or k < 1 or n <= 64:
+        return _nearest_brute(q, p, k, chunk, points.dtype)
     lo = p.amin(0)
     span = (p.amax(0) - lo).clamp(min=1e-9)
     density = n / float(span[0] * span[1]) if float(span.min()) > 1e-6 else 0.0
     if density <= 0.0:  # all points on a line: the full search
-        return _nearest_brute(p, k, chunk, points.dtype)
+        return _nearest_brute(q, p, k, chunk, points.dtype)
     h = 1.2 * math.sqrt((k + 1) / (math.pi * density))  # k-th neighbour within one cell
     cell = ((p - lo) / h).floor().long()
     gx, gy = int(cell[:, 0].max()) + 1, int(cell[:, 1].max()) + 1
@@ -158,50 +168,46 @@ def nearest_points(points: torch.Tensor, k: int, chunk: int = 4096
     counts = torch.bincount(cid, minlength=gx * gy)
     start = torch.cumsum(counts, 0) - counts
     cmax = int(counts.max())
-    if n * 9 * cmax > 64 * n * max(k, 8):  # clustered points: cells too full for blocks
-        return _nearest_brute(p, k, chunk, points.dtype)
+    if 9 * cmax > 64 * max(k, 8):  # clustered points: cells too full for blocks
+        return _nearest_brute(q, p, k, chunk, points.dtype)
+    rel = (q - lo) / h
+    qcell = rel.floor().clamp(-(2 ** 40), 2 ** 40).long()  # a query's cell (may be off the grid)
     off = torch.tensor([-1, 0, 1], device=p.device)
     ox, oy = torch.meshgrid(off, off, indexing="xy")
-    nx = cell[:, :1] + ox.reshape(1, -1)  # (N, 9)
-    ny = cell[:, 1:] + oy.reshape(1, -1)
+    nx = qcell[:, :1] + ox.reshape(1, -1)  # (M, 9)
+    ny = qcell[:, 1:] + oy.reshape(1, -1)
     inside = (nx >= 0) & (nx < gx) & (ny >= 0) & (ny < gy)
     ncell = (ny.clamp(0, gy - 1) * gx + nx.clamp(0, gx - 1))
     slot = torch.arange(cmax, device=p.device)
-    have = inside.unsqueeze(-1) & (slot < counts[ncell].unsqueeze(-1))  # (N, 9, cmax)
+    have = inside.unsqueeze(-1) & (slot < counts[ncell].unsqueeze(-1))  # (M, 9, cmax)
     pos = (start[ncell].unsqueeze(-1) + slot).clamp(max=n - 1)
-    cand = torch.where(have, order[pos], -1).reshape(n, -1)  # (N, 9 cmax)
-    d = (p.unsqueeze(1) - p[cand.clamp(min=0)]).square().sum(-1).sqrt()
-    d = torch.where(cand >= 0, d, torch.inf)
-    dk, pick = torch.topk(d, min(k, d.shape[1]), dim=1, largest=False, sorted=True)
+    cand = torch.where(have, order[pos], -1).reshape(m, -1)  # (M, 9 cmax)
+    c = cand.clamp(min=0)
+    px, py = p[:, 0].contiguous(), p[:, 1].contiguous()
+    d2 = (q[:, :1] - px[c]).square_() + (q[:, 1:] - py[c]).square_()
+    d2.masked_fill_(cand < 0, torch.inf)
+    dk, pick = torch.topk(d2, min(k, d2.shape[1]), dim=1, largest=False, sorted=True)
+    dk = dk.sqrt_()
     ik = torch.gather(cand, 1, pick)
     # exact only where the k-th neighbour is nearer than the block's edge
-    rel = (p - lo) / h - cell.double()  # position in its cell, 0..1
-    reach = h * torch.minimum(rel, 1.0 - rel).amin(1) + h
-    redo = ~(dk[:, -1] <= reach) if dk.shape[1] == k else torch.ones(n, dtype=torch.bool)
+    frac = rel - qcell.double()  # position in its cell, 0..1
+    reach = h * torch.minimum(frac, 1.0 - frac).amin(1) + h
+    redo = ~(dk[:, -1] <= reach) if dk.shape[1] == k else torch.ones(m, dtype=torch.bool,
+                                                                      device=p.device)
     if bool(redo.any()):
         r = torch.nonzero(redo).flatten()
-        dr, ir = _nearest_brute(p, k, chunk, torch.float64, rows=r)
+        dr, ir = _nearest_brute(q[r], p, k, chunk, torch.float64)
         if dk.shape[1] < k:
-            dk = torch.full((n, k), torch.inf, dtype=torch.float64, device=p.device)
-            ik = torch.full((n, k), -1, dtype=torch.long, device=p.device)
+            dk = torch.full((m, k), torch.inf, dtype=torch.float64, device=p.device)
+            ik = torch.full((m, k), -1, dtype=torch.long, device=p.device)
         dk[r], ik[r] = dr, ir
     return dk.to(points.dtype), ik
 
 
-def _nearest_brute(p: torch.Tensor, k: int, chunk: int, dtype, rows: torch.Tensor | None = None
+def _nearest_brute(query: torch.Tensor, points: torch.Tensor, k: int, chunk: int, dtype
                    ) -> tuple[torch.Tensor, torch.Tensor]:
-    """:func:`nearest_points` of the points ``rows`` (default all) among all, by chunks of
-    rows of the full distance matrix."""
-    dist, idx = nearest_among(p if rows is None else p[rows], p, k, chunk)
-    return dist.to(dtype), idx
-
-
-def nearest_among(query: torch.Tensor, points: torch.Tensor, k: int, chunk: int = 4096
-                  ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Distances and indices (M, k) of the ``k`` points of ``points`` (N, 2) nearest each of
-    ``query`` (M, 2), nearest first: the full distance matrix by chunks of ``chunk`` rows
-    (another set than ``query``'s own, e.g. a sample of it; :func:`nearest_points` for a set
-    among itself)."""
+    """:func:`nearest_among` by the full distance matrix, by chunks of ``chunk`` query rows:
+    distances (as ``dtype``) and indices (M, k)."""
     dist, idx = [], []
     for i in range(0, query.shape[0], chunk):
         d = torch.cdist(query[i : i + chunk], points)
@@ -209,6 +215,6 @@ def nearest_among(query: torch.Tensor, points: torch.Tensor, k: int, chunk: int 
         dist.append(dk)
         idx.append(ik)
     if not dist:
-        return (torch.zeros(0, k, dtype=points.dtype, device=points.device),
+        return (torch.zeros(0, k, dtype=dtype, device=points.device),
                 torch.zeros(0, k, dtype=torch.long, device=points.device))
-    return torch.cat(dist, 0), torch.cat(idx, 0)
+    return torch.cat(dist, 0).to(dtype), torch.cat(idx, 0)

@@ -2,12 +2,16 @@
 
 A run with a shared motion measures a sample of its POIs classically (FFT cross-correlation
 and Gauss-Newton) on every frame its windows use, before the first block. Those trusted
-solutions are an initial guess for every other POI: the nearest sample point's displacement
-carried by its own gradients, ``d_i = d_s + G_s (x_i - x_s)``, per window frame, and a line
+solutions are an initial guess for every other POI: the mean over its nearest trusted sample
+points of their displacements carried by their own gradients, ``d_i = mean_s(d_s + G_s (x_i -
+x_s))`` (and the mean of their gradients), per window frame, and a line
 in time through them (:func:`~torch_stsdic.initial.linear_fit_in_time`) for the window's
 velocity. The first block then starts where later blocks start, from a prediction, instead
 of FFT cross-correlation at seed points (an STS(5) solve of 38,809 POIs: the FFT was a
-quarter of it).
+quarter of it). The mean, not the nearest point alone: each sample point carries its
+classical noise and its gradients' noise times the distance (1.5e-3 px/px over 16-30 px);
+over the benchmark pair's 38,809 POIs the guess's 90th-percentile error in u fell from 0.049
+to 0.033 px and the window solve from 2.63 to 2.44 Gauss-Newton steps a point.
 
 A guess is only made where the sample agrees on it: the POI's nearest sample points (up to
 :data:`NEAREST`, at least two) each carry their displacement to the POI, and the guesses
@@ -100,17 +104,18 @@ class MeasuredSample:
 
     def _at(self, c: int, near: torch.Tensor, pts: torch.Tensor
             ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """At measured frame ``c``: (N, 2) the guess of every POI ``pts`` (N, 2) from its
-        nearest valid sample point (of its candidates ``near`` (N, k)), (N, 2, 2) that
-        point's gradients, and (N,) bool whether at least two candidates agree on it."""
+        """At measured frame ``c``: (N, 2) the guess of every POI ``pts`` (N, 2), the mean of
+        its valid candidates' (``near`` (N, k)) displacements carried to it by their
+        gradients, (N, 2, 2) the mean of their gradients, and (N,) bool whether at least two
+        candidates are valid and all agree with it within ``GUESS_TOL``."""
         disp, grad = self.disp[c], self.grad[c]  # (S, 2), (S, 2, 2)
         valid = torch.isfinite(disp).all(-1) & torch.isfinite(grad).flatten(1).all(-1)
         ok_k = valid[near]  # (N, k)
         off = pts.unsqueeze(1) - self.points[near]  # (N, k, 2)
         cand = disp[near] + (grad[near] @ off.unsqueeze(-1)).squeeze(-1)  # (N, k, 2)
-        first = ok_k.to(torch.int8).argmax(-1, keepdim=True)  # (N, 1)
-        d = torch.gather(cand, 1, first.unsqueeze(-1).expand(-1, 1, 2)).squeeze(1)
+        cnt = ok_k.sum(-1, keepdim=True).clamp(min=1).to(cand.dtype)  # (N, 1)
+        d = torch.where(ok_k.unsqueeze(-1), cand, 0.0).sum(1) / cnt
         spread = torch.where(ok_k, (cand - d.unsqueeze(1)).norm(dim=-1), 0.0).amax(-1)
         ok = (ok_k.sum(-1) >= 2) & (spread <= GUESS_TOL)
-        g = grad[torch.gather(near, 1, first).squeeze(1)]
+        g = torch.where(ok_k.view(*ok_k.shape, 1, 1), grad[near], 0.0).sum(1) / cnt.unsqueeze(-1)
         return d, g, ok

@@ -177,6 +177,7 @@ class SubsetSolver:
         motion: torch.Tensor | None = None,
         centres: torch.Tensor | None = None,
         classical_step: bool = False,
+        init_step: torch.Tensor | None = None,
     ) -> WindowSolution:
         """Solve many POIs, each against its own window of frames.
 
@@ -205,7 +206,13 @@ class SubsetSolver:
                 Gauss-Newton step from its solution at dt = 0, taken from the last step's
                 frame-by-frame right-hand sides at no cost (the model check starts there);
                 NaN where not known (another path than the native CPU kernel, no frame at
-                dt = 0, an off-grid or off-centre subset, not converged).
+                dt = 0, an off-grid or off-centre subset, not converged); and
+                ``info["classical_step_size"]`` (N,) that step's size ``|dp * scale|`` px.
+            init_step: (N,) the size of the Gauss-Newton step that gave ``init`` (e.g.
+                ``info["classical_step_size"]`` with ``init`` the classical step; NaN or 0:
+                none): the first step's convergence test then predicts the next increment
+                from the rate between the two, as it does between later steps, so a point
+                whose first step here shrank enough stops after it.
         """
         moved = None
         if centres is not None:
@@ -222,11 +229,14 @@ class SubsetSolver:
             sol = self.solve(ref, frames, grid, dt, frame_index=frame_index,
                              ref_index=ref_index, init=init, ref_pixels=ref_pixels,
                              frame_pixels=frame_pixels, time=time, noise_ratio=noise_ratio,
-                             motion=motion, classical_step=classical_step)
-            cstep = sol.info.get("classical_step")
-            if cstep is not None:  # known at the subset centre only
-                sol.info["classical_step"] = cstep.masked_fill(
-                    (offset != 0).any(1, keepdim=True), float("nan"))
+                             motion=motion, classical_step=classical_step,
+                             init_step=init_step)
+            if classical_step:  # known at the subset centre only
+                off = (offset != 0).any(1)
+                sol.info["classical_step"] = sol.info["classical_step"].masked_fill(
+                    off.unsqueeze(1), float("nan"))
+                sol.info["classical_step_size"] = sol.info["classical_step_size"].masked_fill(
+                    off, float("nan"))
             return carry_solution(sol, points, offset)
         cfg = self.config
         device, dtype = points.device, points.dtype
@@ -282,14 +292,17 @@ class SubsetSolver:
         )
         std = torch.full_like(params, float("nan"))
         sigma = torch.full_like(zncc, float("nan"))
-        cstep = (torch.full((n, 2 * geo.ks), float("nan"), dtype=dtype, device=device)
+        cstep = (torch.full((n, 2 * geo.ks + 1), float("nan"), dtype=dtype, device=device)
                  if classical_step else None)
+        if init_step is not None:
+            init_step = torch.as_tensor(init_step).to(device=device, dtype=dtype).reshape(n)
         batch = cfg.batch_points or ctx.batch_size(t_count)
         for s0 in range(0, todo.numel(), batch):
             idx = todo[s0 : s0 + batch]
             pr, zr, sr, ir, p1, sd, sg, cs = solve_batch(
                 ctx, points[idx], p0[idx], dt[idx], frame_index[idx], ref_index[idx],
                 None if motion is None else motion[idx],
+                None if init_step is None else init_step[idx],
             )
             params[idx], zncc[idx], status[idx], iters[idx] = pr, zr, sr, ir
             first_stage[idx], std[idx], sigma[idx] = p1, sd, sg
@@ -310,7 +323,8 @@ class SubsetSolver:
                 "initial_params": p0,
                 "initial_guess": {"method": "fft" if init is None else "given",
                                   "fft_s": t_fft},
-                **({} if cstep is None else {"classical_step": cstep}),
+                **({} if cstep is None else {"classical_step": cstep[:, :-1],
+                                             "classical_step_size": cstep[:, -1]}),
             },
         )
 
@@ -415,6 +429,7 @@ class SubsetSolver:
         if classical_step:
             out["cstep"] = sol_s.info["classical_step"].new_full(
                 (n, sol_s.info["classical_step"].shape[1]), float("nan"))
+            out["cstep_size"] = out["cstep"].new_full((n,), float("nan"))
 
         def put(rows, sol, mask=None):
             if mask is not None:
@@ -430,6 +445,7 @@ class SubsetSolver:
             out["sigma"][rows] = sol.sigma[pick]
             if classical_step:
                 out["cstep"][rows] = sol.info["classical_step"][pick]
+                out["cstep_size"][rows] = sol.info["classical_step_size"][pick]
 
         put(seeds, sol_s)
         out["iters"][seeds] = sol_s.iterations
@@ -449,7 +465,8 @@ class SubsetSolver:
                    if k not in ("first_stage_params", "initial_params")},
                 "first_stage_params": out["first"],
                 "initial_params": out["init"],
-                **({"classical_step": out["cstep"]} if classical_step else {}),
+                **({"classical_step": out["cstep"], "classical_step_size": out["cstep_size"]}
+                   if classical_step else {}),
                 "initial_guess": {
                     "method": "seeded", "seeds": int(seeds.numel()),
                     "fft_points": int(seeds.numel() + orphans.sum() + redo.numel()),

@@ -33,6 +33,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from . import native
 from .formulations import Geometry, SubsetData, centred_gram, gram
 from .interpolation import BSplineImage
 from .linalg import spd_inverse
@@ -40,8 +41,8 @@ from .noise import gradient_noise_factor, interpolation_variance_factor
 from .window import effective_pixels
 
 __all__ = ["NoiseModel", "Response", "frame_residuals", "residual_from_zncc", "noise_model",
-           "response",
-           "covariance", "cross_covariance", "solution_response", "std_of"]
+           "response", "covariance", "cross_covariance", "solution_noise", "solution_response",
+           "std_of", "predicted_std"]
 
 
 def frame_residuals(geo: Geometry, frames: BSplineImage, data: SubsetData, p: Tensor
@@ -165,20 +166,29 @@ class Response:
     kappa: float
 
 
+def _moments(geo: Geometry, data: SubsetData
+             ) -> tuple[Tensor, Tensor | None, Tensor, Tensor]:
+    """(g1, g2, bw, b2): the centred gram (N, P', P') of the reference's augmented columns,
+    their w^2-moments (None where the window is 0/1: then they are g1), and the bare basis's
+    w- and w^2-moments (P', P')."""
+    w = geo.w
+    g1 = data.gram if data.gram is not None else centred_gram(geo, data.gx, data.gy)
+    bw = _basis_moments(geo, w)
+    if bool(((w * w) == w).all()):  # a 0/1 window: the w^2-moments are the w-moments
+        return g1, None, bw, bw
+    _, mw = gram(data.gx, data.gy, geo.spatial, w)
+    gww, mww = gram(data.gx, data.gy, geo.spatial, w * w)
+    return g1, _centred_gram(geo, gww, mww, mw, w * w), bw, _basis_moments(geo, w * w)
+
+
 def response(geo: Geometry, data: SubsetData, noise: NoiseModel, order: int) -> Response:
     """The noise response of solutions with geometry ``geo`` at the points and frame times of
     ``data`` (reference gradients ``gx, gy`` (N, S) or their ``gram``, ``dt`` (N, T))."""
     kappa = gradient_noise_factor(order)
-    w = geo.w
     z = _z(geo, data.dt)
     zz = z.transpose(1, 2) @ z
-    g1 = data.gram if data.gram is not None else centred_gram(geo, data.gx, data.gy)
-    bw = _basis_moments(geo, w)
-    g2, b2 = g1, bw  # a 0/1 window: the w^2-moments are the w-moments
-    if not bool(((w * w) == w).all()):
-        _, mw = gram(data.gx, data.gy, geo.spatial, w)
-        gww, mww = gram(data.gx, data.gy, geo.spatial, w * w)
-        g2, b2 = _centred_gram(geo, gww, mww, mw, w * w), _basis_moments(geo, w * w)
+    g1, g2, bw, b2 = _moments(geo, data)
+    g2 = g1 if g2 is None else g2
     h, bias = g1 * zz, kappa * noise.ref.double().view(-1, 1, 1) * bw * zz
     if geo.shape.has_time:
         coef = _corrected_inverse(h, bias)
@@ -228,17 +238,25 @@ def cross_covariance(a: Response, b: Response, shared: Tensor) -> Tensor:
     return a.coef.transpose(1, 2) @ mid @ b.coef
 
 
-def solution_response(geo: Geometry, frames: BSplineImage, data: SubsetData, p: Tensor,
-                      rho: float, order: int, zncc: Tensor | None = None
-                      ) -> tuple[Response, Tensor]:
-    """The noise response of the solutions ``p`` (N, P) of the points in ``data``, with the
-    noise estimated from their own residuals, and those residuals ((N, T) per frame, or
-    (N, 1) from the window's mean ``zncc`` (N,) when given, for ZNSSD: no new sampling)."""
+def solution_noise(geo: Geometry, frames: BSplineImage, data: SubsetData, p: Tensor,
+                   rho: float, order: int, zncc: Tensor | None = None
+                   ) -> tuple[NoiseModel, Tensor]:
+    """The noise of the solutions ``p`` (N, P) of the points in ``data``, estimated from their
+    own residuals, and those residuals ((N, T) per frame, or (N, 1) from the window's mean
+    ``zncc`` (N,) when given, for ZNSSD: no new sampling)."""
     if zncc is not None and geo.znssd:
         res = residual_from_zncc(geo, data, zncc)
     else:
         res = frame_residuals(geo, frames, data, p)
-    noise = noise_model(geo, res, p, data, rho, order)
+    return noise_model(geo, res, p, data, rho, order), res
+
+
+def solution_response(geo: Geometry, frames: BSplineImage, data: SubsetData, p: Tensor,
+                      rho: float, order: int, zncc: Tensor | None = None
+                      ) -> tuple[Response, Tensor]:
+    """The noise response of the solutions ``p`` (N, P) of the points in ``data``, with the
+    noise estimated from their own residuals (:func:`solution_noise`), and those residuals."""
+    noise, res = solution_noise(geo, frames, data, p, rho, order, zncc)
     return response(geo, data, noise, order), res
 
 
@@ -247,3 +265,16 @@ def std_of(r: Response) -> Tensor:
     :func:`covariance` alone)."""
     var = ((_middle(r) @ r.coef) * r.coef).sum(1)
     return var.clamp(min=0).sqrt()
+
+
+def predicted_std(geo: Geometry, data: SubsetData, noise: NoiseModel, order: int) -> Tensor:
+    """(N, P) :func:`std_of` of :func:`response`: row by row in the native kernel where it
+    can run (CPU, no autograd graph; no (N, P', P') temporaries: 38,809 classical rows in
+    ~3 instead of ~30 ms), else through the response."""
+    g1, g2, bw, b2 = _moments(geo, data)
+    cols = _aug_columns(geo)
+    if native.usable(g1, data.dt, noise.ref, noise.frame) and 1 <= cols.numel() <= 16:
+        return native.param_std(cols, data.dt, geo.shape.has_time, geo.ks, g1, g2, bw, b2,
+                             noise.ref.double(), noise.frame.double(),
+                             gradient_noise_factor(order))
+    return std_of(response(geo, data, noise, order))

@@ -595,54 +595,125 @@ STS_KERNEL(sts_ic_rhs, (const T* flat, int64_t wp, double x_lo, double x_hi, dou
 }
 
 // ---- small symmetric positive definite inverses ------------------------------------------
+// inv (np, np) = a^-1 of the symmetric positive definite (np, np) matrix a (its lower
+// triangle read), by Cholesky: a = L L^T, inv = L^-T L^-1, in double; false (inv unset)
+// where a is not positive definite (a pivot not > 0, or not finite). np <= 16.
+template <typename A>
+inline bool cholesky_inverse(const A* a, int64_t np, double* inv) {
+  double L[256], M[256];
+  for (int64_t j = 0; j < np; ++j) {
+    double d = double(a[j * np + j]);
+    for (int64_t k = 0; k < j; ++k) d -= L[j * np + k] * L[j * np + k];
+    if (!(d > 0.0) || !std::isfinite(d)) return false;
+    const double ljj = std::sqrt(d);
+    L[j * np + j] = ljj;
+    for (int64_t r = j + 1; r < np; ++r) {
+      double v = double(a[r * np + j]);
+      for (int64_t k = 0; k < j; ++k) v -= L[r * np + k] * L[j * np + k];
+      L[r * np + j] = v / ljj;
+    }
+  }
+  for (int64_t c = 0; c < np; ++c) {  // M = L^-1 (lower), column by column
+    for (int64_t r = c; r < np; ++r) {
+      double v = r == c ? 1.0 : 0.0;
+      for (int64_t k = c; k < r; ++k) v -= L[r * np + k] * M[k * np + c];
+      M[r * np + c] = v / L[r * np + r];
+    }
+  }
+  for (int64_t p = 0; p < np; ++p) {  // inv = M^T M
+    for (int64_t q = p; q < np; ++q) {
+      double v = 0.0;
+      for (int64_t r = q; r < np; ++r) v += M[r * np + p] * M[r * np + q];
+      inv[p * np + q] = inv[q * np + p] = v;
+    }
+  }
+  return true;
+}
+
 // The inverse of each symmetric positive definite (np, np) matrix h[i] (its lower triangle
-// read) of the rows [i0, i1), by Cholesky: h = L L^T, inv = L^-T L^-1, in double; bad[i] = 1
-// and inv[i] NaN where h[i] is not positive definite (a pivot not > 0, or not finite).
-// np <= 16 (the Hessians and noise responses: 6 to 12 parameters). torch's batched
-// cholesky_ex + cholesky_inverse take ~15 ms for 38,809 6x6 matrices, this ~1 ms.
+// read) of the rows [i0, i1) (cholesky_inverse); bad[i] = 1 and inv[i] NaN where h[i] is not
+// positive definite. np <= 16 (the Hessians and noise responses: 6 to 12 parameters).
+// torch's batched cholesky_ex + cholesky_inverse take ~15 ms for 38,809 6x6 matrices, this
+// ~1 ms.
 STS_KERNEL(sts_spd_inverse, (int64_t i0, int64_t i1, int64_t np, const T* h, T* inv,
                              uint8_t* bad)) {
   if (np < 1 || np > 16) return 1;
   for (int64_t i = i0; i < i1; ++i) {
-    const T* a = h + i * np * np;
     T* out = inv + i * np * np;
-    double L[256], M[256];
-    bool ok = true;
-    for (int64_t j = 0; j < np && ok; ++j) {
-      double d = double(a[j * np + j]);
-      for (int64_t k = 0; k < j; ++k) d -= L[j * np + k] * L[j * np + k];
-      if (!(d > 0.0) || !std::isfinite(d)) {
-        ok = false;
-        break;
-      }
-      const double ljj = std::sqrt(d);
-      L[j * np + j] = ljj;
-      for (int64_t r = j + 1; r < np; ++r) {
-        double v = double(a[r * np + j]);
-        for (int64_t k = 0; k < j; ++k) v -= L[r * np + k] * L[j * np + k];
-        L[r * np + j] = v / ljj;
-      }
-    }
-    if (!ok) {
+    double v[256];
+    if (!cholesky_inverse(h + i * np * np, np, v)) {
       for (int64_t q = 0; q < np * np; ++q) out[q] = std::numeric_limits<T>::quiet_NaN();
       bad[i] = 1;
       continue;
     }
-    for (int64_t c = 0; c < np; ++c) {  // M = L^-1 (lower), column by column
-      for (int64_t r = c; r < np; ++r) {
-        double v = r == c ? 1.0 : 0.0;
-        for (int64_t k = c; k < r; ++k) v -= L[r * np + k] * M[k * np + c];
-        M[r * np + c] = v / L[r * np + r];
-      }
-    }
-    for (int64_t p = 0; p < np; ++p) {  // inv = M^T M
-      for (int64_t q = p; q < np; ++q) {
-        double v = 0.0;
-        for (int64_t r = q; r < np; ++r) v += M[r * np + p] * M[r * np + q];
-        out[p * np + q] = out[q * np + p] = T(v);
-      }
-    }
+    for (int64_t q = 0; q < np * np; ++q) out[q] = T(v[q]);
     bad[i] = 0;
+  }
+  return 0;
+}
+
+// ---- predicted standard deviations of the parameters -------------------------------------
+// uncertainty.std_of(uncertainty.response(...)) row by row, without the (N, P', P')
+// temporaries. Row i: z_t = (1 .. 1, dt_t) per component (dt_t at the augmented columns ks
+// and 2 ks + 1 where has_time, else 0), zz = sum_t z_t z_t^T, zs = sum_t z_t, each
+// restricted to the parameters' augmented columns cols[0 .. np); with f = f2[i] (reference
+// noise variance) and g = g2n[i] (one frame's):
+//   A = g1 o zz - kappa f bw o zz   (Cholesky; g1 o zz where A is not positive definite;
+//                                    std NaN where neither is)
+//   M = f g2 o zs zs^T + g g2 o zz + kappa f g b2 o zz
+//   std_p = sqrt(max(0, (A^-1 M A^-1)_pp)).
+// g1, g2 (npa, npa) per row (g2 null: g1, a 0/1 window), bw, b2 (npa, npa) shared; np <= 16.
+STS_KERNEL(sts_param_std, (int64_t i0, int64_t i1, int64_t npa, int64_t np, int64_t nt,
+                           int64_t ks, int64_t has_time, const int64_t* cols, const T* dt,
+                           const T* g1, nullable<const T> g2, const T* bw, const T* b2,
+                           const T* f2, const T* g2n, double kappa, T* std)) {
+  if (np < 1 || np > 16 || npa < np) return 1;
+  for (int64_t a = 0; a < np; ++a) {
+    if (cols[a] < 0 || cols[a] >= npa) return 2;
+  }
+  for (int64_t i = i0; i < i1; ++i) {
+    double s1 = 0.0, s2 = 0.0;
+    if (has_time) {
+      for (int64_t t = 0; t < nt; ++t) {
+        const double d = double(dt[i * nt + t]);
+        s1 += d;
+        s2 += d * d;
+      }
+    }
+    const double s0 = double(nt);
+    bool tm[16];
+    for (int64_t a = 0; a < np; ++a) tm[a] = has_time && (cols[a] == ks || cols[a] == 2 * ks + 1);
+    const T* G1 = g1 + i * npa * npa;
+    const T* G2 = g2 ? g2 + i * npa * npa : G1;
+    const double f = double(f2[i]), g = double(g2n[i]);
+    double A[256], H[256], M[256], inv[256];
+    for (int64_t a = 0; a < np; ++a) {
+      const double za = tm[a] ? s1 : s0;
+      for (int64_t b = 0; b < np; ++b) {
+        const double zb = tm[b] ? s1 : s0;
+        const double zz = tm[a] && tm[b] ? s2 : (tm[a] || tm[b] ? s1 : s0);
+        const int64_t e = cols[a] * npa + cols[b];
+        const double h = double(G1[e]) * zz;
+        H[a * np + b] = h;
+        A[a * np + b] = h - kappa * f * double(bw[e]) * zz;
+        M[a * np + b] = f * double(G2[e]) * za * zb + g * double(G2[e]) * zz
+                        + kappa * f * g * double(b2[e]) * zz;
+      }
+    }
+    T* out = std + i * np;
+    if (!cholesky_inverse(A, np, inv) && !cholesky_inverse(H, np, inv)) {
+      for (int64_t p = 0; p < np; ++p) out[p] = std::numeric_limits<T>::quiet_NaN();
+      continue;
+    }
+    for (int64_t p = 0; p < np; ++p) {
+      double var = 0.0;
+      for (int64_t a = 0; a < np; ++a) {
+        double ma = 0.0;
+        for (int64_t b = 0; b < np; ++b) ma += M[a * np + b] * inv[b * np + p];
+        var += inv[a * np + p] * ma;
+      }
+      out[p] = T(std::sqrt(std::max(var, 0.0)));
+    }
   }
   return 0;
 }
@@ -908,7 +979,7 @@ extern "C" {
 
 // Version of this interface (the sts_kernel_* functions and what the kernels' parameters
 // mean); native/declarations.py refuses a library of another version.
-int sts_abi_version() { return 9; }
+int sts_abi_version() { return 10; }
 
 int sts_kernel_count() { return int(declarations().size()); }
 

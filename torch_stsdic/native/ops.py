@@ -13,7 +13,8 @@ import torch
 from .loader import kernel
 from .rows import run_rows
 
-__all__ = ["sample", "subsets", "ic_rhs", "gram", "spd_inverse", "nanmedian", "prefilter",
+__all__ = ["sample", "subsets", "ic_rhs", "gram", "spd_inverse", "param_std", "nanmedian",
+           "prefilter",
            "neighbour_own_gradient", "neighbour_test"]
 
 
@@ -206,6 +207,40 @@ def spd_inverse(h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     run_rows(kernel("sts_spd_inverse", h.dtype), n, p * p * p,
              dict(np=p, h=hc, inv=inv, bad=bad))
     return inv, bad.bool()
+
+
+def param_std(cols: torch.Tensor, dt: torch.Tensor, has_time: bool, ks: int, g1: torch.Tensor,
+              g2: torch.Tensor | None, bw: torch.Tensor, b2: torch.Tensor, f2: torch.Tensor,
+              g2n: torch.Tensor, kappa: float) -> torch.Tensor:
+    """Native :func:`~torch_stsdic.uncertainty.std_of` of
+    :func:`~torch_stsdic.uncertainty.response`: (N, P) predicted std of the parameters at
+    the augmented columns ``cols`` (P,) of N rows with frame times ``dt`` (N, T), centred
+    grams ``g1`` (N, P', P') and ``g2`` (its w^2 moments; None: ``g1``), basis moments
+    ``bw``, ``b2`` (P', P'), reference and frame noise variances ``f2``, ``g2n`` (N,) and
+    gradient noise factor ``kappa``; in g1's dtype (float32/float64, computed in double),
+    P <= 16."""
+    n, npa = g1.shape[0], g1.shape[-1]
+    p = cols.numel()
+    _require("param_std", g1.shape == (n, npa, npa) and 1 <= p <= 16 and p <= npa,
+             f"g1 must be (N, P', P') with P = {p} <= min(P', 16), got {tuple(g1.shape)}")
+    _require("param_std", dt.dim() == 2 and dt.shape[0] == n and dt.shape[1] >= 1,
+             f"dt must be (N={n}, T), got {tuple(dt.shape)}")
+    _require("param_std", g2 is None or tuple(g2.shape) == tuple(g1.shape),
+             f"g2 must be like g1 {tuple(g1.shape)}")
+    _require("param_std", tuple(bw.shape) == (npa, npa) and tuple(b2.shape) == (npa, npa),
+             f"bw, b2 must be ({npa}, {npa})")
+    _require("param_std", f2.shape == (n,) and g2n.shape == (n,), f"f2, g2n must be ({n},)")
+    dbl = g1.dtype
+
+    def c(t):
+        return t.to(dbl).contiguous()
+    std = torch.empty(n, p, dtype=dbl)
+    run_rows(kernel("sts_param_std", dbl), n, 4 * p * p * p,
+             dict(npa=npa, np=p, nt=dt.shape[1], ks=ks, has_time=int(has_time),
+                  cols=cols.to(torch.int64).contiguous(), dt=c(dt), g1=c(g1),
+                  g2=None if g2 is None else c(g2), bw=c(bw), b2=c(b2), f2=c(f2), g2n=c(g2n),
+                  kappa=float(kappa), std=std))
+    return std
 
 
 def nanmedian(x: torch.Tensor) -> torch.Tensor:
