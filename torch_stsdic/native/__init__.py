@@ -64,5 +64,5 @@ from .ops import (
 )
 
 __all__ = ["available", "set_native", "native_enabled", "sample", "subsets", "ic_rhs", "gram",
-           "spd_inverse", "param_std", "nanmedian", "neighbour_own_gradient", "neighbour_test", "prefilter",
-           "build", "kernels", "Kernel", "Param", "usable", "usable_image"]
+           "spd_inverse", "param_std", "nanmedian", "neighbour_own_gradient", "neighbour_test",
+           "prefilter", "build", "kernels", "Kernel", "Param", "usable", "usable_image"]
