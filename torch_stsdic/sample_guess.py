@@ -86,36 +86,56 @@ class MeasuredSample:
             return {nm: nan.clone() for nm in names}  # a frame the pass did not measure
         # (N, k) each POI's nearest sample points, nearest first
         near = nearest_among(pts, self.points, min(NEAREST, self.points.shape[0]))[1]
-        # per distinct frame: the nearest valid sample point's guess, and whether it holds
-        d, g, ok = zip(*(self._at(int(c), near, pts) for c in col.tolist()))
-        d, g, ok = torch.stack(d), torch.stack(g), torch.stack(ok)  # (F, N, ...)
+        # per distinct frame: the mean of the valid sample points' guesses, whether they agree
+        d, ok, valid = self._at(col, near, pts)  # (F, N, 2), (F, N), (F, N, k)
         ok = ok[where].all(1).reshape(b * n)  # every frame of the row's window
         disp = d[where].permute(0, 2, 1, 3).reshape(b * n, t, 2)  # (B*N, T, 2)
         dtr = dt.detach().cpu().double().repeat_interleave(n, 0)  # (B*N, T)
         d0, vel = linear_fit_in_time(disp, dtr)
         # the gradients at the target frame (dt = 0; the frame nearest the target if none)
-        at = dt.detach().cpu().abs().argmin(1)  # (B,)
-        grad = g[where[torch.arange(b), at]].reshape(b * n, 2, 2)
+        at = where[torch.arange(b), dt.detach().cpu().abs().argmin(1)]  # (B,) among col
+        used, inv = torch.unique(at, return_inverse=True)
+        grad = self._grad_at(col[used], near, valid[used])[inv].reshape(b * n, 2, 2)
         out = {"u": d0[:, 0], "v": d0[:, 1], "ux": grad[:, 0, 0], "uy": grad[:, 0, 1],
                "vx": grad[:, 1, 0], "vy": grad[:, 1, 1]}
         if t > 1:
             out["ut"], out["vt"] = vel[:, 0], vel[:, 1]
         return {nm: torch.where(ok, v, nan) for nm, v in out.items()}
 
-    def _at(self, c: int, near: torch.Tensor, pts: torch.Tensor
+    def _valid(self, col: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """At measured frames ``col`` (F,): displacements (F, S, 2) and gradients (F, S, 2, 2)
+        of the sample, 0 where not trusted, and (F, S) bool where trusted."""
+        disp, grad = self.disp[col], self.grad[col]
+        valid = torch.isfinite(disp).all(-1) & torch.isfinite(grad).flatten(2).all(-1)
+        disp = torch.where(valid.unsqueeze(-1), disp, 0.0)
+        grad = torch.where(valid.view(*valid.shape, 1, 1), grad, 0.0)
+        return disp, grad, valid
+
+    def _at(self, col: torch.Tensor, near: torch.Tensor, pts: torch.Tensor
             ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """At measured frame ``c``: (N, 2) the guess of every POI ``pts`` (N, 2), the mean of
-        its valid candidates' (``near`` (N, k)) displacements carried to it by their
-        gradients, (N, 2, 2) the mean of their gradients, and (N,) bool whether at least two
-        candidates are valid and all agree with it within ``GUESS_TOL``."""
-        disp, grad = self.disp[c], self.grad[c]  # (S, 2), (S, 2, 2)
-        valid = torch.isfinite(disp).all(-1) & torch.isfinite(grad).flatten(1).all(-1)
-        ok_k = valid[near]  # (N, k)
-        off = pts.unsqueeze(1) - self.points[near]  # (N, k, 2)
-        cand = disp[near] + (grad[near] @ off.unsqueeze(-1)).squeeze(-1)  # (N, k, 2)
-        cnt = ok_k.sum(-1, keepdim=True).clamp(min=1).to(cand.dtype)  # (N, 1)
-        d = torch.where(ok_k.unsqueeze(-1), cand, 0.0).sum(1) / cnt
-        spread = torch.where(ok_k, (cand - d.unsqueeze(1)).norm(dim=-1), 0.0).amax(-1)
+        """At measured frames ``col`` (F,): (F, N, 2) the guess of every POI ``pts`` (N, 2),
+        the mean of its valid candidates' (``near`` (N, k)) displacements carried to it by
+        their gradients; (F, N) bool whether at least two candidates are valid and all agree
+        with it within ``GUESS_TOL``; (F, N, k) bool which candidates are valid."""
+        disp, grad, valid = self._valid(col)
+        ok_k = valid[:, near]  # (F, N, k)
+        w = ok_k.to(disp.dtype)
+        cnt = w.sum(-1).clamp(min=1.0)
+        ox = pts[:, 0:1] - self.points[near, 0]  # (N, k) px from each candidate
+        oy = pts[:, 1:2] - self.points[near, 1]
+        dn, gn = disp[:, near], grad[:, near]  # (F, N, k, 2), (F, N, k, 2, 2)
+        cu = dn[..., 0] + gn[..., 0, 0] * ox + gn[..., 0, 1] * oy  # (F, N, k)
+        cv = dn[..., 1] + gn[..., 1, 0] * ox + gn[..., 1, 1] * oy
+        du, dv = (cu * w).sum(-1) / cnt, (cv * w).sum(-1) / cnt  # (F, N)
+        spread = (torch.hypot(cu - du.unsqueeze(-1), cv - dv.unsqueeze(-1)) * w).amax(-1)
         ok = (ok_k.sum(-1) >= 2) & (spread <= GUESS_TOL)
-        g = torch.where(ok_k.view(*ok_k.shape, 1, 1), grad[near], 0.0).sum(1) / cnt.unsqueeze(-1)
-        return d, g, ok
+        return torch.stack([du, dv], -1), ok, ok_k
+
+    def _grad_at(self, col: torch.Tensor, near: torch.Tensor, ok_k: torch.Tensor
+                 ) -> torch.Tensor:
+        """(F, N, 2, 2) the mean gradients of every POI's valid candidates ``near`` (N, k)
+        (``ok_k`` (F, N, k)) at measured frames ``col`` (F,)."""
+        _, grad, _ = self._valid(col)
+        w = ok_k.to(grad.dtype)
+        return (grad[:, near] * w.view(*w.shape, 1, 1)).sum(2) / w.sum(-1).clamp(
+            min=1.0).view(*w.shape[:2], 1, 1)
