@@ -2,7 +2,8 @@
 # GPU correctness and speed in one call (a lent GPU machine with torch, Triton, h5py and
 # tifffile; kornia travels as wheels in .whl/, the benchmark inputs in .benchcache/).
 #
-#   bash scripts/gpu_check.sh [steps]     # steps: any of tests,kernels,targets,cli,movie
+#   bash scripts/gpu_check.sh [steps]     # steps: any of tests,kernels,targets,cli,cli2,movie,
+#                                         # profile,movie32,warm
 #
 # Writes its logs and JSON records under $OUT (default ./gpu-out). Each step has its own
 # time limit, so one that hangs cannot take the others with it.
@@ -45,6 +46,12 @@ if step cli; then
   timeout 120 python3 scripts/bench_cli.py --device cuda --repeats ${CLI_REPEATS:-3} --threads 4 \
     --out "$OUT/cli-cuda.json" 2>&1 | tee -a "$OUT/log.txt" | tail -14
   echo "## cli: $((SECONDS - t0)) s"
+fi
+if step cli2; then  # the same with STS(5) (--m 2): the shared-motion pass, its sample guess,
+  # the model check
+  timeout 120 python3 scripts/bench_cli.py --m 2 --device cuda --repeats ${CLI_REPEATS:-3} \
+    --threads 4 --out "$OUT/cli-cuda-m2.json" 2>&1 | tee -a "$OUT/log.txt" | tail -14
+  echo "## cli2: $((SECONDS - t0)) s"
 fi
 if step movie; then
   timeout 120 python3 scripts/benchmark.py --movie --device cuda --movie-frames "${MOVIE_FRAMES:-500}" \

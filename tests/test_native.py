@@ -806,29 +806,32 @@ def test_param_std_matches_the_response(temporal, window):
 @pytest.mark.parametrize("znssd", [True, False])
 def test_ic_rhs_frame_rhs_is_each_frames_classical_rhs(znssd):
     """frame_rhs: frame t's own part of the joint right-hand side equals the classical
-    (one-frame, no time) right-hand side at that frame's warp (u + ut dt, v + vt dt)."""
+    (one-frame, no time) right-hand side at that frame's warp (u + ut dt, v + vt dt), and
+    its last entry the ZNCC there (the classical solve's mean ZNCC of one frame)."""
     img, shape, c = _rhs_case(True)
     a = img.kernel_args()
     n, t = c["dt"].shape
     ks = c["basis"].shape[1]
     common = (c["px"], c["py"], c["dx"], c["dy"], c["basis"])
     rest = (c["ft"], c["fnorm"], c["gx"], c["gy"], c["w"], 64, 48)
-    bf = torch.full((n, t, 2 * ks), float("nan"), dtype=torch.float64)
-    b, _, _ = native.ic_rhs(a, 3, c["p"], *common, c["dt"], c["fidx"], *rest, c["k"], True,
-                            znssd, frame_rhs=bf)
+    bf = torch.full((n, t, 2 * ks + 1), float("nan"), dtype=torch.float64)
+    b, zn, _ = native.ic_rhs(a, 3, c["p"], *common, c["dt"], c["fidx"], *rest, c["k"], True,
+                             znssd, frame_rhs=bf)
     k = c["k"]
     assert torch.allclose(bf[..., :ks].sum(1), b[:, :ks], rtol=1e-12, atol=1e-12)
+    assert torch.allclose(bf[..., 2 * ks].mean(1), zn.double(), rtol=1e-12, atol=1e-12)
     for j in range(t):
         dtj = c["dt"][:, j]
         p1 = torch.cat([c["p"][:, :ks], c["p"][:, k:k + ks]], 1).clone()
         p1[:, 0] += c["p"][:, k - 1] * dtj
         p1[:, ks] += c["p"][:, 2 * k - 1] * dtj
-        b1, _, _ = native.ic_rhs(a, 3, p1, *common, torch.zeros(n, 1, dtype=torch.float64),
-                                 c["fidx"][:, j:j + 1].contiguous(), *rest, ks, False, znssd)
-        assert torch.allclose(bf[:, j], b1, rtol=1e-9, atol=1e-9)
+        b1, z1, _ = native.ic_rhs(a, 3, p1, *common, torch.zeros(n, 1, dtype=torch.float64),
+                                  c["fidx"][:, j:j + 1].contiguous(), *rest, ks, False, znssd)
+        assert torch.allclose(bf[:, j, : 2 * ks], b1, rtol=1e-9, atol=1e-9)
+        assert torch.allclose(bf[:, j, 2 * ks], z1.double(), rtol=1e-9, atol=1e-9)
     with pytest.raises(ValueError, match=r"frame_rhs must be a contiguous float64"):
         native.ic_rhs(a, 3, c["p"], *common, c["dt"], c["fidx"], *rest, c["k"], True, znssd,
-                      frame_rhs=bf[:, :1])
+                      frame_rhs=bf[:, :, : 2 * ks].contiguous())
 
 
 @pytest.mark.parametrize("k", [1, 2, 5, 8, 9])

@@ -137,6 +137,42 @@ def test_sts_is_trusted_only_where_right(family):
         assert res.shared_motion.applied and float((m_used == 2).float().mean()) > 0.95
 
 
+@pytest.mark.parametrize("family, judged_share", [("rotation4", 0.0), ("crack", 0.5)])
+def test_the_model_check_judges_from_the_free_step_as_from_the_classical_solve(
+        family, judged_share, monkeypatch):
+    """block.SCREEN: rows whose window's free classical step (its estimated solution, ZNCC,
+    noise and std) passes with room to spare are not solved again. The run gives the same
+    statuses and windows as with every row solved classically; where the windows fit (the
+    crack away from it), most rows are judged from the step (4 degrees a frame: most
+    windows fail, and those are always solved)."""
+    import torch_stsdic.block as block
+
+    motion = motion_family(family, SIZE, t_jump=4.0)
+    series, _ = _family(motion)
+    kw = dict(config=DICConfig(m=2, subset_size=25), step=16, progress=False,
+              shared_motion=None)
+    counts = [0, 0]
+    screen = block._Block._screen
+
+    def counting(self, idx):
+        ok, est = screen(self, idx)
+        if ok is not None:
+            counts[0] += int(ok.sum())
+            counts[1] += int(idx.numel())
+        return ok, est
+
+    monkeypatch.setattr(block._Block, "_screen", counting)
+    judged = track(series, **kw)
+    monkeypatch.setattr(block, "SCREEN", False)
+    solved = track(series, **kw)
+    assert counts[0] >= judged_share * counts[1], counts
+    assert torch.equal(judged.status, solved.status)
+    assert torch.equal(judged.m, solved.m)
+    ok = torch.as_tensor(usable(solved.status))
+    assert float((judged.u - solved.u)[ok].abs().max()) < 2e-3
+    assert float((judged.v - solved.v)[ok].abs().max()) < 2e-3
+
+
 def test_linear_motion_keeps_full_windows_and_std_matches_scatter():
     motion = Translation(ut=0.05, vt=-0.03)
     series, times = _family(motion, n_frames=10, noise=3.0, seed=4)

@@ -381,6 +381,15 @@ def test_classical_step_is_one_classical_step_from_the_window(pattern):
     assert (step - one.params).abs().max() < 2e-4
     far = (at_centre - full.params)[:, [0, 3]].abs().max()
     assert (step - full.params)[:, [0, 3]].abs().max() < 0.1 * far
+    # what the classical solve reports at its minimum, from the Gauss-Newton model
+    z, sg = sol.info["classical_step_zncc"], sol.info["classical_step_sigma"]
+    sd, size = sol.info["classical_step_std"], sol.info["classical_step_size"]
+    assert bool(torch.isfinite(z).all() & torch.isfinite(sg).all() & torch.isfinite(sd).all())
+    assert float(((z - full.zncc) / (1 - full.zncc)).abs().max()) < 0.01  # of the misfit
+    assert float((sg / full.sigma - 1).abs().max()) < 0.01
+    assert float((sd / full.std - 1).abs().max()) < 0.01
+    step = (at_centre - one.params)[:, [0, 3]].abs().amax(1)  # the step moved u or v by ...
+    assert bool((size >= step - 1e-9).all())  # ... no more than its size
     plain = solver.solve(ref_img, frames_img, pts, dt, ref_pixels=ref.unsqueeze(0),
                          frame_pixels=frames)
     assert "classical_step" not in plain.info and torch.equal(plain.params, sol.params)

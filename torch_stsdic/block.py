@@ -24,6 +24,7 @@ import numpy as np
 import torch
 
 from .frames import FrameCache, window_frames
+from .gauss_newton import classical_step_columns
 from .initial import linear_fit_in_time
 from .quality import (
     carried_neighbours,
@@ -40,7 +41,7 @@ from .reference import Reference, noise_ratio, to_relative, to_total
 from .result import USABLE
 from .sample_guess import MeasuredSample
 from .shared_motion import SharedMotion, window_offsets
-from .solver import SubsetSolver, WindowSolution, subset_inside
+from .solver import SubsetSolver, WindowSolution, packed_classical_step, subset_inside
 from .status import Status
 
 __all__ = ["BlockContext", "Carry", "solve_block", "rows_numpy", "make_carry", "STD_OF"]
@@ -55,6 +56,18 @@ CHECK_ITER = 4
 #: solution 1e-3 px from its minimum decides the same; the rows that keep the classical
 #: solution (the check failed at every window) are converged to the run's ``tol`` first.
 CHECK_TOL = 1e-3
+
+#: The model check judges a row from its window's free classical step (``classical_step``:
+#: the classical solution one Gauss-Newton step from the window, its ZNCC, noise and std
+#: from the Gauss-Newton model) where the row passes with room to spare: the displacement
+#: test with SCREEN_SLACK times the step's size added to the difference (the classical
+#: solution lies within that of the estimate where Gauss-Newton contracts at a rate <= 0.2)
+#: and the residual test with the limit tightened by SCREEN_MARGIN. Other rows are solved
+#: classically (CHECK_ITER steps from the step), as all were before. False: every row is
+#: solved.
+SCREEN = True
+SCREEN_SLACK = 0.25
+SCREEN_MARGIN = 0.98
 
 #: rings of lost points filled from their neighbours' carried motion (Carry.from_neighbours)
 FILL_ROUNDS = 8
@@ -212,10 +225,12 @@ class _Block:
         self.std = torch.full((rows, p_count), float("nan"), dtype=run.dtype, device=dev)
         self.sigma = torch.full((rows,), float("nan"), dtype=run.dtype, device=dev)
         self.m_used = torch.full((rows,), -1, dtype=torch.int8, device=dev)
-        #: (B*N, 2 Ks + 1) each row's classical solution (the spatial shape's parameters)
-        #: one Gauss-Newton step from its window's solution, then that step's size, where the
-        #: window's solve gave it (``classical_step``), else NaN: where the model check starts
-        #: the row's classical solve (None: no solve gave one)
+        #: (B*N, 4 Ks + 3) each row's classical solution (the spatial shape's parameters)
+        #: one Gauss-Newton step from its window's solution, that step's size and what a
+        #: classical solve would report there (``gauss_newton.classical_step_columns``),
+        #: where the window's solve gave it (``classical_step``), else NaN: the model check
+        #: judges the row from it or starts its classical solve there (None: no solve gave
+        #: one)
         self.check_start: torch.Tensor | None = None
         self.gone = torch.zeros(rows, dtype=torch.bool, device=dev)  # predicted outside
         self.identity: torch.Tensor | None = None  # (B*N,) rows known without a solve
@@ -316,9 +331,7 @@ class _Block:
         p, sd = self._columns(pick(sol.params), cols), self._columns(
             pick(sol.std) if sol.std is not None else None, cols, rows=r.numel())
         self.params[r], self.std[r] = p, sd
-        cstep = sol.info.get("classical_step")
-        if cstep is not None:
-            cstep = torch.cat([cstep, sol.info["classical_step_size"].unsqueeze(1)], 1)
+        cstep = packed_classical_step(sol.info) if "classical_step" in sol.info else None
         if cstep is not None and self.check_start is None:
             self.check_start = torch.full((self.params.shape[0], cstep.shape[1]), float("nan"),
                                           dtype=self.params.dtype, device=self.params.device)
@@ -562,9 +575,11 @@ class _Block:
             known = self.check_start[idx]
             spatial = [self.run.names.index(nm)
                        for nm in self.run.solver.shape.spatial().param_names]
-            have = torch.isfinite(known).all(1, keepdim=True)
-            start = torch.where(have, known[:, :-1], start[:, spatial])
-            step = known[:, -1].nan_to_num(0.0)
+            cols = classical_step_columns(len(spatial) // 2)
+            p0, size = known[:, cols["params"]], known[:, cols["size"]].squeeze(1)
+            have = (torch.isfinite(p0).all(1) & torch.isfinite(size)).unsqueeze(1)
+            start = torch.where(have, p0, start[:, spatial])
+            step = torch.where(have.squeeze(1), size, 0.0)
         if not bool(own.any()):
             return self.solve(idx, start, m=0, solver=solver, init_step=step)
         ident = self.identity_solution(idx)
@@ -573,6 +588,38 @@ class _Block:
         return _with_rows(ident, ~own, self.solve(
             idx[~own], start[~own], m=0, solver=solver,
             init_step=None if step is None else step[~own]))
+
+    def _screen(self, idx: torch.Tensor) -> tuple[torch.Tensor | None, WindowSolution | None]:
+        """(R,) bool: rows ``idx`` that pass the model check from their window's free
+        classical step (:data:`SCREEN`), and the classical solutions estimated there (a
+        :class:`WindowSolution` of R rows, CONVERGED, NaN where unknown); (None, None)
+        where no solve gave one."""
+        run = self.run
+        if not SCREEN or self.check_start is None:
+            return None, None
+        names = run.solver.shape.spatial().param_names
+        cols = classical_step_columns(len(names) // 2)
+        known = self.check_start[idx]
+        p_est, sd = known[:, cols["params"]], known[:, cols["std"]]
+        size, zn = known[:, cols["size"]].squeeze(1), known[:, cols["zncc"]].squeeze(1)
+        sig = known[:, cols["sigma"]].squeeze(1)
+        own = self.k.repeat_interleave(self.n)[idx] == self.ref.frame
+        cu, cv = names.index("u"), names.index("v")
+        iu, iv = run.names.index("u"), run.names.index("v")
+        ok = torch.isfinite(known).all(1) & ~own
+        ok &= ~model_mismatch(self.params[idx][:, [iu, iv]], p_est[:, [cu, cv]],
+                              self.std[idx][:, [iu, iv]], sd[:, [cu, cv]],
+                              slack=SCREEN_SLACK * size)
+        ok &= ~residual_mismatch(self.sigma[idx], sig, run.solver.window.effective_pixels(),
+                                 self.zncc[idx], margin=SCREEN_MARGIN)
+        r = idx.numel()
+        est = WindowSolution(
+            points=self.pts[idx], params=p_est.to(run.dtype), param_names=names,
+            zncc=zn.to(run.dtype), status=torch.full((r,), int(Status.CONVERGED),
+                                                     dtype=torch.int8, device=run.device),
+            iterations=torch.zeros(r, dtype=torch.int32, device=run.device),
+            std=sd.to(run.dtype), sigma=sig.to(run.dtype))
+        return ok, est
 
     def _off_a_line(self, rows: torch.Tensor, m: int, disp: torch.Tensor, std: torch.Tensor
                     ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -613,9 +660,14 @@ class _Block:
         if run.m == 0 or idx.numel() == 0:
             return 0, 0
         iu, iv = run.names.index("u"), run.names.index("v")
-        # a few classical steps from the window's solution; rows that do not converge in
-        # them, or disagree, are solved classically in full before they are judged
-        quick = self._classical(idx, run.check_solver())
+        # rows whose free classical step passes with room to spare are judged from it; the
+        # others take a few classical steps from there; rows that do not converge in them,
+        # or disagree, are solved classically in full before they are judged
+        screened, quick = self._screen(idx)
+        if screened is None or not bool(screened.all()):
+            rest = None if screened is None else ~screened
+            solved = self._classical(idx if rest is None else idx[rest], run.check_solver())
+            quick = solved if rest is None else _with_rows(quick, rest, solved)
         cu, cv = quick.param_names.index("u"), quick.param_names.index("v")
         # every row's classical (u, v) and std (NaN: none), for the shorter windows below
         d_all = torch.full((self.b * self.n, 2), float("nan"), dtype=run.dtype,

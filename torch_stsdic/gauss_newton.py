@@ -165,8 +165,8 @@ def solve_batch(ctx: BatchContext, pts, p0, dt, fidx, ridx, motion=None, step0=N
 
     Returns params (N, P), zncc (N,), status (N,) int8, iterations (N,), the first stage's
     params (N, P), predicted std (N, P), noise std (N,) (grey levels) and, with
-    ``ctx.classical_step``, the classical step (N, 2 Ks + 1) (:func:`_classical_step`: the
-    parameters, then the step's size; NaN where not known), else None."""
+    ``ctx.classical_step``, the classical step (N, :func:`classical_step_width`)
+    (:func:`_classical_step`; NaN where not known), else None."""
     cfg, geo = ctx.cfg, ctx.geo
     n = pts.shape[0]
     device, dtype = pts.device, pts.dtype
@@ -207,29 +207,63 @@ def solve_batch(ctx: BatchContext, pts, p0, dt, fidx, ridx, motion=None, step0=N
     std, sigma = _uncertainty(ctx, data, params, zncc, status <= int(Status.MAX_ITER))
     cstep = None
     if ctx.classical_step:
-        cstep = torch.full((n, 2 * geo.ks + 1), float("nan"), dtype=dtype, device=device)
+        cstep = torch.full((n, classical_step_width(geo.ks)), float("nan"), dtype=dtype,
+                           device=device)
         if last is not None:
-            cstep = _classical_step(geo, data, *last).to(dtype)
+            cstep = _classical_step(ctx, data, *last).to(dtype)
         cstep[status != int(Status.CONVERGED)] = float("nan")
     return params, zncc, status, iters, stage_params[0], std, sigma, cstep
 
 
-def _classical_step(geo: Geometry, data: SubsetData, p_last: Tensor, rhs: Tensor) -> Tensor:
-    """(N, 2 Ks + 1) each point's classical solution (the shape without time, ``geo.shape``'s
-    spatial parameters) after one inverse-compositional Gauss-Newton step from its window's
-    warp at the target frame (dt = 0): ``p_last`` (N, P) the parameters at which the window's
-    last step was taken, ``rhs`` (N, T, 2 Ks) that step's frame-by-frame spatial right-hand
-    sides (NaN rows: none). At dt = 0 the window's warp is its spatial parameters (the shared
-    motion's known part is zero there), and frame t's right-hand side and the classical
-    Hessian (the spatial block of the centred gram) are exactly what a classical solve's
-    first step from there computes: the step is free. The last column is that step's size
-    ``|dp * scale|`` px (the convergence test's measure): a classical solve started from the
-    step takes it as its previous increment (``SubsetSolver.solve``'s ``init_step``). NaN
-    where the window has no frame at dt = 0 or no step was recorded."""
-    ks, k = geo.ks, geo.k
+#: the classical step's ZNCC, noise and std (:func:`_classical_step`) are given where the
+#: Gauss-Newton model's residual decrease of the step is at most this share of the residual
+#: energy before it; a larger step (a window far from the classical minimum: 4 degrees a
+#: frame of rotation, 1.7 px steps, the ZNCC estimate 0.02 too low) is left to a solve
+STEP_DROP = 0.05
+
+
+def classical_step_columns(ks: int) -> dict[str, slice]:
+    """The columns of :func:`_classical_step`'s rows for a spatial shape of ``ks`` parameters
+    a component: the classical parameters (2 Ks), the step's size (1, px), the ZNCC (1),
+    the noise std (1, grey levels) and the parameters' predicted std (2 Ks) there."""
+    return {"params": slice(0, 2 * ks), "size": slice(2 * ks, 2 * ks + 1),
+            "zncc": slice(2 * ks + 1, 2 * ks + 2), "sigma": slice(2 * ks + 2, 2 * ks + 3),
+            "std": slice(2 * ks + 3, 4 * ks + 3)}
+
+
+def classical_step_width(ks: int) -> int:
+    """The number of :func:`classical_step_columns`."""
+    return 4 * ks + 3
+
+
+def _classical_step(ctx: BatchContext, data: SubsetData, p_last: Tensor, frame: Tensor
+                    ) -> Tensor:
+    """(N, :func:`classical_step_width`) each point's classical solution (the shape without
+    time, ``geo.shape``'s spatial parameters) after one inverse-compositional Gauss-Newton
+    step from its window's warp at the target frame (dt = 0), and what the classical solve
+    would report there (:func:`classical_step_columns`).
+
+    ``p_last`` (N, P): the parameters at which the window's last step was taken; ``frame``
+    (N, T, 2 Ks + 1): that step's frame-by-frame spatial right-hand sides and ZNCCs (NaN
+    rows: none). At dt = 0 the window's warp is its spatial parameters (the shared motion's
+    known part is zero there), and frame t's right-hand side ``b`` and the classical Hessian
+    ``H`` (the spatial block of the centred gram) are exactly what a classical solve's first
+    step from there computes: the step ``dp = -H^-1 b`` is free. Its size ``|dp * scale|``
+    px is the convergence test's measure (a classical solve started from the step takes it as
+    its previous increment, ``SubsetSolver.solve``'s ``init_step``). With ZNSSD and a 0/1
+    window, the ZNCC after the step is the frame's ZNCC before it plus the Gauss-Newton
+    model's decrease ``b^T H^-1 b`` of the residual energy ``2 |f~|^2 (1 - ZNCC)``; the noise
+    and the predicted std follow from it as a classical solve's (:func:`_uncertainty`), so
+    the model check can judge a row without solving it (NaN where that decrease exceeds
+    :data:`STEP_DROP` of the energy before the step, or the criterion or window differ). NaN
+    rows where the window has no frame at dt = 0 or no step was recorded."""
+    geo = ctx.geo
+    ks, k, n = geo.ks, geo.k, p_last.shape[0]
     at0 = data.dt == 0  # (N, T)
     t0 = at0.to(torch.int8).argmax(1)
-    b = rhs[torch.arange(rhs.shape[0], device=rhs.device), t0]  # (N, 2 Ks)
+    rows = torch.arange(n, device=frame.device)
+    fr = frame[rows, t0]  # (N, 2 Ks + 1)
+    b, zf = fr[:, : 2 * ks], fr[:, 2 * ks]
     classical = dataclasses.replace(geo, shape=geo.shape.spatial())
     hinv, singular = spd_inverse(ic_hessian(classical, data.gx, data.gy, data.dt[:, :1],
                                             g=data.gram))
@@ -237,9 +271,31 @@ def _classical_step(geo: Geometry, data: SubsetData, p_last: Tensor, rhs: Tensor
     pc = torch.cat([p_last[:, :ks], p_last[:, k:k + ks]], 1).double()
     out = classical.shape.compose_inverse(pc, dp)
     size = (dp * classical.shape.increment_scale(geo.spatial, data.dt[:, :1])).norm(dim=1)
-    out = torch.cat([out, size.unsqueeze(1).to(out.dtype)], 1)
-    bad = singular | ~at0.any(1) | ~torch.isfinite(out).all(1)
-    return out.masked_fill(bad.unsqueeze(1), float("nan"))
+    cols = classical_step_columns(ks)
+    est = torch.full((n, classical_step_width(ks)), float("nan"), dtype=torch.float64,
+                     device=out.device)
+    est[:, cols["params"]] = out
+    est[:, cols["size"]] = size.unsqueeze(1)
+    w = geo.w
+    if geo.znssd and bool((w * w == w).all()):
+        # the model's decrease and the energy before the step, both over 2 |f~|^2
+        drop = (-(b * dp).sum(1)) / (2.0 * data.fnorm.double().square().clamp(min=1e-30))
+        zncc = zf + drop
+        # trusted only where the step is small for the model: a decrease of at most
+        # STEP_DROP of the residual energy (further steps then change it by ~rate^2 of that)
+        zncc = torch.where(drop <= STEP_DROP * (1.0 - zf).clamp(min=0.0), zncc, float("nan"))
+        cdata = dataclasses.replace(  # the classical problem: the target frame alone
+            data, dt=torch.zeros_like(data.dt[:, :1]), fidx=data.fidx[rows, t0].unsqueeze(1),
+            motion=None if data.motion is None else data.motion[rows, t0].unsqueeze(1),
+            hinv=None)
+        noise, _ = uncertainty.solution_noise(classical, ctx.frames, cdata, out.to(p_last.dtype),
+                                              ctx.noise_ratio, ctx.frames.order, zncc=zncc)
+        est[:, cols["zncc"]] = zncc.unsqueeze(1)
+        est[:, cols["sigma"]] = noise.total.sqrt().double().unsqueeze(1)
+        est[:, cols["std"]] = uncertainty.predicted_std(classical, cdata, noise,
+                                                        ctx.frames.order).double()
+    bad = singular | ~at0.any(1) | ~torch.isfinite(est[:, : 2 * ks + 1]).all(1)
+    return est.masked_fill(bad.unsqueeze(1), float("nan"))
 
 
 def _reference_data(ctx: BatchContext, pts, dt, fidx, ridx) -> SubsetData:
@@ -353,8 +409,8 @@ def _run_stage(ctx: BatchContext, form: Formulation, params, data: SubsetData, l
 
     Returns params, zncc (N,), status (N,), iterations used (N,) and, with ``frame_rhs``
     where the formulation gives them, (the parameters (N, P) at which each converged point's
-    last step was taken, that step's frame-by-frame spatial right-hand sides (N, T, 2 Ks);
-    NaN rows: none), else None."""
+    last step was taken, that step's frame-by-frame spatial right-hand sides and ZNCCs
+    (N, T, 2 Ks + 1); NaN rows: none), else None."""
     cfg, geo = ctx.cfg, ctx.geo
     n = params.shape[0]
     device, dtype = params.device, params.dtype
@@ -381,7 +437,7 @@ def _run_stage(ctx: BatchContext, form: Formulation, params, data: SubsetData, l
     if frame_rhs and sel is not None and form.gives_frame_rhs(ctx.frames, data, p):
         t_count, ks = data.dt.shape[1], ctx.geo.ks
         last = (torch.full_like(params, float("nan")),
-                torch.full((n, t_count, 2 * ks), float("nan"), dtype=torch.float64,
+                torch.full((n, t_count, 2 * ks + 1), float("nan"), dtype=torch.float64,
                            device=device))
     active = torch.ones(rows.numel(), dtype=torch.bool, device=device)
     prev = (torch.zeros(rows.numel(), dtype=dtype, device=device) if step0 is None

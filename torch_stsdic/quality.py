@@ -82,7 +82,8 @@ GRADIENT_TOL = 0.005
 MEDIAN_ROUNDS = 4
 
 
-def model_mismatch(d_sts: Tensor, d_cls: Tensor, std_sts: Tensor, std_cls: Tensor) -> Tensor:
+def model_mismatch(d_sts: Tensor, d_cls: Tensor, std_sts: Tensor, std_cls: Tensor,
+                   slack: Tensor | None = None) -> Tensor:
     """(N,) bool: the window's displacement disagrees with the classical one.
 
     Args:
@@ -90,11 +91,16 @@ def model_mismatch(d_sts: Tensor, d_cls: Tensor, std_sts: Tensor, std_cls: Tenso
             the classical solution's.
         std_sts, std_cls: (N, 2) their predicted standard deviations, px (NaN: unknown, then
             only ``MODEL_TOL`` is allowed beyond ``MODEL_Z`` times the classical std).
+        slack: (N,) px by which ``d_cls`` may miss the classical solution (an estimate of
+            it: the difference must pass however it lies within that), or None: 0.
     """
     vs = torch.nan_to_num(std_sts.double(), nan=0.0) ** 2
     vc = torch.nan_to_num(std_cls.double(), nan=0.0) ** 2
     var = torch.maximum(vc - vs, 0.2 * vc) + MODEL_TOL**2
-    z = (d_sts.double() - d_cls.double()).abs() / var.sqrt()
+    diff = (d_sts.double() - d_cls.double()).abs()
+    if slack is not None:
+        diff = diff + slack.double().unsqueeze(1)
+    z = diff / var.sqrt()
     return ~(z <= MODEL_Z).all(1)  # NaN differences fail
 
 
@@ -131,7 +137,7 @@ def line_mismatch(disp: Tensor, dt: Tensor, own: Tensor, std_cls: Tensor) -> Ten
 
 
 def residual_mismatch(sigma_window: Tensor, sigma_classical: Tensor, n_pixels: float,
-                      zncc_window: Tensor) -> Tensor:
+                      zncc_window: Tensor, margin: float = 1.0) -> Tensor:
     """(N,) bool: the window's residual is not the image noise that the classical solution
     of the same point leaves: ``sigma_window > (1 + RESIDUAL_Z / sqrt(n_pixels)) *
     sigma_classical`` (both (N,) noise std estimates, grey levels). Under the model the two
@@ -139,8 +145,9 @@ def residual_mismatch(sigma_window: Tensor, sigma_classical: Tensor, n_pixels: f
     a jump in time or an arc can still put its displacement right at the target frame (the
     line through a step can pass through it), but not its residual. Not judged where the
     window matches at ZNCC >= ``RESIDUAL_ZNCC`` (noise-free images: both residuals are
-    interpolation round-off, and their ratio means nothing)."""
-    limit = 1.0 + RESIDUAL_Z / max(float(n_pixels), 1.0) ** 0.5
+    interpolation round-off, and their ratio means nothing). ``margin`` < 1 tightens the
+    limit by that factor (``sigma_classical`` an estimate)."""
+    limit = margin * (1.0 + RESIDUAL_Z / max(float(n_pixels), 1.0) ** 0.5)
     misfit = sigma_window.double() > limit * sigma_classical.double()
     return misfit & ~(zncc_window.double() >= RESIDUAL_ZNCC)
 

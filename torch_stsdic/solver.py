@@ -40,7 +40,13 @@ from .formulations import (
     Formulation,
     Geometry,
 )
-from .gauss_newton import BatchContext, ReferenceCache, solve_batch
+from .gauss_newton import (
+    BatchContext,
+    ReferenceCache,
+    classical_step_columns,
+    classical_step_width,
+    solve_batch,
+)
 from .initial import (
     carry_from_seed,
     fft_cross_correlation,
@@ -206,8 +212,12 @@ class SubsetSolver:
                 Gauss-Newton step from its solution at dt = 0, taken from the last step's
                 frame-by-frame right-hand sides at no cost (the model check starts there);
                 NaN where not known (another path than the native CPU kernel, no frame at
-                dt = 0, an off-grid or off-centre subset, not converged); and
-                ``info["classical_step_size"]`` (N,) that step's size ``|dp * scale|`` px.
+                dt = 0, an off-grid or off-centre subset, not converged); with it
+                ``info["classical_step_size"]`` (N,) that step's size ``|dp * scale|`` px,
+                and what a classical solve would report there (ZNSSD and a 0/1 window,
+                else NaN): ``"classical_step_zncc"`` (N,), ``"classical_step_sigma"`` (N,)
+                grey levels and ``"classical_step_std"`` (N, 2 Ks)
+                (:func:`~torch_stsdic.gauss_newton.classical_step_columns`).
             init_step: (N,) the size of the Gauss-Newton step that gave ``init`` (e.g.
                 ``info["classical_step_size"]`` with ``init`` the classical step; NaN or 0:
                 none): the first step's convergence test then predicts the next increment
@@ -232,11 +242,9 @@ class SubsetSolver:
                              motion=motion, classical_step=classical_step,
                              init_step=init_step)
             if classical_step:  # known at the subset centre only
-                off = (offset != 0).any(1)
-                sol.info["classical_step"] = sol.info["classical_step"].masked_fill(
-                    off.unsqueeze(1), float("nan"))
-                sol.info["classical_step_size"] = sol.info["classical_step_size"].masked_fill(
-                    off, float("nan"))
+                off = (offset != 0).any(1, keepdim=True)
+                sol.info.update(classical_step_info(packed_classical_step(sol.info).masked_fill(
+                    off, float("nan"))))
             return carry_solution(sol, points, offset)
         cfg = self.config
         device, dtype = points.device, points.dtype
@@ -292,8 +300,8 @@ class SubsetSolver:
         )
         std = torch.full_like(params, float("nan"))
         sigma = torch.full_like(zncc, float("nan"))
-        cstep = (torch.full((n, 2 * geo.ks + 1), float("nan"), dtype=dtype, device=device)
-                 if classical_step else None)
+        cstep = (torch.full((n, classical_step_width(geo.ks)), float("nan"), dtype=dtype,
+                            device=device) if classical_step else None)
         if init_step is not None:
             init_step = torch.as_tensor(init_step).to(device=device, dtype=dtype).reshape(n)
         batch = cfg.batch_points or ctx.batch_size(t_count)
@@ -323,8 +331,7 @@ class SubsetSolver:
                 "initial_params": p0,
                 "initial_guess": {"method": "fft" if init is None else "given",
                                   "fft_s": t_fft},
-                **({} if cstep is None else {"classical_step": cstep[:, :-1],
-                                             "classical_step_size": cstep[:, -1]}),
+                **({} if cstep is None else classical_step_info(cstep)),
             },
         )
 
@@ -427,9 +434,8 @@ class SubsetSolver:
             "sigma": torch.full((n,), float("nan"), dtype=dtype, device=dev),
         }
         if classical_step:
-            out["cstep"] = sol_s.info["classical_step"].new_full(
-                (n, sol_s.info["classical_step"].shape[1]), float("nan"))
-            out["cstep_size"] = out["cstep"].new_full((n,), float("nan"))
+            packed = packed_classical_step(sol_s.info)
+            out["cstep"] = packed.new_full((n, packed.shape[1]), float("nan"))
 
         def put(rows, sol, mask=None):
             if mask is not None:
@@ -444,8 +450,7 @@ class SubsetSolver:
             out["std"][rows] = sol.std[pick]
             out["sigma"][rows] = sol.sigma[pick]
             if classical_step:
-                out["cstep"][rows] = sol.info["classical_step"][pick]
-                out["cstep_size"][rows] = sol.info["classical_step_size"][pick]
+                out["cstep"][rows] = packed_classical_step(sol.info)[pick]
 
         put(seeds, sol_s)
         out["iters"][seeds] = sol_s.iterations
@@ -465,8 +470,7 @@ class SubsetSolver:
                    if k not in ("first_stage_params", "initial_params")},
                 "first_stage_params": out["first"],
                 "initial_params": out["init"],
-                **({"classical_step": out["cstep"], "classical_step_size": out["cstep_size"]}
-                   if classical_step else {}),
+                **(classical_step_info(out["cstep"]) if classical_step else {}),
                 "initial_guess": {
                     "method": "seeded", "seeds": int(seeds.numel()),
                     "fft_points": int(seeds.numel() + orphans.sum() + redo.numel()),
@@ -665,3 +669,23 @@ def solve_window(
         ref_img, frames_img, pts, t - t[c], init=init_t, ref_pixels=ref_t.unsqueeze(0),
         frame_pixels=frames_t, time=float(t[c]), motion=motion, centres=centres_t,
     )
+
+
+#: info keys of a classical step's columns (gauss_newton.classical_step_columns)
+_CSTEP_KEYS = {"params": "classical_step", "size": "classical_step_size",
+               "zncc": "classical_step_zncc", "sigma": "classical_step_sigma",
+               "std": "classical_step_std"}
+
+
+def classical_step_info(packed: torch.Tensor) -> dict[str, torch.Tensor]:
+    """The info entries of classical steps ``packed`` (N, 4 Ks + 3) (one value per row for
+    the size, ZNCC and sigma)."""
+    cols = classical_step_columns((packed.shape[1] - 3) // 4)
+    return {key: packed[:, cols[part]].squeeze(1) if part in ("size", "zncc", "sigma")
+            else packed[:, cols[part]] for part, key in _CSTEP_KEYS.items()}
+
+
+def packed_classical_step(info: dict) -> torch.Tensor:
+    """The classical steps of a solution's ``info`` as one (N, 4 Ks + 3) tensor."""
+    return torch.cat([info[key].reshape(info[key].shape[0], -1)
+                      for key in _CSTEP_KEYS.values()], 1)

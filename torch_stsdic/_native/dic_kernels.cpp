@@ -485,7 +485,7 @@ void ic_rhs_range(const T* flat, const Geo& g, int64_t i0, int64_t i1, int64_t n
         exp_[s] = gxi[s] * e;
         eyp[s] = gyi[s] * e;
       }
-      double* bf = bframe ? bframe + (j * nt + t) * 2 * ks : nullptr;
+      double* bf = bframe ? bframe + (j * nt + t) * (2 * ks + 1) : nullptr;
       for (int64_t q = 0; q < ks; ++q) {
         const double bxq = double(dot(exp_, bt.data() + q * ns, ns));
         const double byq = double(dot(eyp, bt.data() + q * ns, ns));
@@ -496,6 +496,7 @@ void ic_rhs_range(const T* flat, const Geo& g, int64_t i0, int64_t i1, int64_t n
           bf[ks + q] = byq;
         }
       }
+      if (bf) bf[2 * ks] = double(sfg) / (fn * std::sqrt(gn2));  // and frame t's ZNCC
       if (has_time) {
         T sx = 0, sy = 0;
 #pragma omp simd reduction(+ : sx, sy)
@@ -568,8 +569,9 @@ STS_KERNEL(sts_gram, (int64_t i0, int64_t i1, int64_t ns, int64_t ks, const T* g
 // (rows null: row j); ref_rows[i] is data row i's row of the reference subsets ft, gx, gy
 // (points repeated over targets share theirs; null: row i); motion (N, T, 2) a known
 // displacement (u, v) added to the warp of each data row's frame t (the shared motion of the
-// specimen; null: none); bframe (M, T, 2 Ks) in double, where not null, each frame's own
-// spatial part of b (the classical IC-GN right-hand side of frame t at this warp).
+// specimen; null: none); bframe (M, T, 2 Ks + 1) in double, where not null, each frame's own
+// spatial part of b (the classical IC-GN right-hand side of frame t at this warp), then the
+// frame's ZNCC there.
 STS_KERNEL(sts_ic_rhs, (const T* flat, int64_t wp, double x_lo, double x_hi, double y_lo,
                         double y_hi, int64_t shift, int order, int64_t i0, int64_t i1,
                         int64_t nt, int64_t ns, int64_t ks, int64_t k, int has_time, int znssd,

@@ -202,6 +202,7 @@ class Formulation:
         return False
 
     def gives_frame_rhs(self, frames: BSplineImage, data: SubsetData, p: Tensor) -> bool:
-        """Whether :meth:`step` (with ``sel``) fills a ``frame_rhs`` (M, T, 2 Ks) float64
-        buffer with each frame's own spatial right-hand side (a classical step's)."""
+        """Whether :meth:`step` (with ``sel``) fills a ``frame_rhs`` (M, T, 2 Ks + 1) float64
+        buffer with each frame's own spatial right-hand side (a classical step's), then the
+        frame's ZNCC."""
         return False

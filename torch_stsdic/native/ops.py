@@ -121,8 +121,8 @@ def ic_rhs(img_args: tuple, order: int, p, px, py, dx, dy, basis, dt, frame_off,
     ``motion`` (N, T, 2) a known displacement added to each row's warp of frame t (None: none);
     ``ref_rows`` (N,) the row of ft/gx/gy (then (R, S)) of each data row (a point repeated
     over targets: one copy of its reference subset; None: row i); ``frame_rhs`` a float64
-    (M, T, 2 Ks) tensor filled with each frame's own spatial part of b (the classical
-    right-hand side of that frame at the row's warp), or None.
+    (M, T, 2 Ks + 1) tensor filled with each frame's own spatial part of b (the classical
+    right-hand side of that frame at the row's warp), then that frame's ZNCC, or None.
     Returns b (M, 2k) float64, per-POI mean ZNCC (M,) and the outside flag (M,) bool."""
     flat = img_args[0].contiguous()
     dtype = flat.dtype
@@ -151,10 +151,11 @@ def ic_rhs(img_args: tuple, order: int, p, px, py, dx, dy, basis, dt, frame_off,
     _check_planes("ic_rhs", img_args, frame_off)
     _require("ic_rhs", motion is None or tuple(motion.shape) == (big_n, nt, 2),
              f"motion must be (N, T, 2) = ({big_n}, {nt}, 2)")
-    _require("ic_rhs", frame_rhs is None or (tuple(frame_rhs.shape) == (n, nt, 2 * ks)
+    _require("ic_rhs", frame_rhs is None or (tuple(frame_rhs.shape) == (n, nt, 2 * ks + 1)
                                              and frame_rhs.dtype == torch.float64
                                              and frame_rhs.is_contiguous()),
-             f"frame_rhs must be a contiguous float64 (M, T, 2 Ks) = ({n}, {nt}, {2 * ks})")
+             f"frame_rhs must be a contiguous float64 (M, T, 2 Ks + 1) = ({n}, {nt}, "
+             f"{2 * ks + 1})")
 
     def c(t):
         return t.to(dtype).contiguous()
