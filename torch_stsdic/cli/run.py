@@ -518,7 +518,13 @@ def _print_summary(res: Any, args: argparse.Namespace, elapsed: float, ref: str)
         print(line)
     device = args.device
     on_cpu = str(device).startswith("cpu")
-    kernels = "fused C++ kernels" if on_cpu and native.available() else "torch kernels"
+    if on_cpu:
+        kernels = "fused C++ kernels" if native.available() else "torch kernels"
+    else:  # the fused Triton step where Triton is installed and switched on
+        from .. import kernels as triton_kernels
+
+        kernels = ("fused Triton kernel" if triton_kernels.available()
+                   and triton_kernels.triton_mode() != "0" else "torch kernels")
     threads = f", {torch.get_num_threads()} threads" if on_cpu else ""
     print(
         f"time: {fmt_time(elapsed)} (strains included)   "
