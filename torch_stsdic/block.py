@@ -59,14 +59,18 @@ CHECK_TOL = 1e-3
 
 #: The model check judges a row from its window's free classical step (``classical_step``:
 #: the classical solution one Gauss-Newton step from the window, its ZNCC, noise and std
-#: from the Gauss-Newton model) where the row passes with room to spare: the displacement
+#: from the Gauss-Newton model; none where that step is large for the model,
+#: ``gauss_newton.STEP_DROP``) where the row passes with room to spare: the displacement
 #: test with SCREEN_SLACK times the step's size added to the difference (the classical
-#: solution lies within that of the estimate where Gauss-Newton contracts at a rate <= 0.2)
+#: solution lies within that of the estimate where Gauss-Newton contracts at a rate <= 1/3)
 #: and the residual test with the limit tightened by SCREEN_MARGIN. Other rows are solved
-#: classically (CHECK_ITER steps from the step), as all were before. False: every row is
-#: solved.
+#: classically (CHECK_ITER steps from the step), as all were before; False: every row is.
+#: Measured against solving every row (``scripts/real_time_model.py`` solves them all): the
+#: 1024^2 pair 87 % of rows judged from the step, none that the solve fails; the muDIC
+#: hourglass 86 %, one of 64,609 rows that the solve fails (z 3.11 against the limit 3);
+#: sample 12 40 % / 12 % (its load step: most rows fail), none.
 SCREEN = True
-SCREEN_SLACK = 0.25
+SCREEN_SLACK = 0.5
 SCREEN_MARGIN = 0.98
 
 #: rings of lost points filled from their neighbours' carried motion (Carry.from_neighbours)
