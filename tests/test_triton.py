@@ -90,6 +90,44 @@ def test_fused_step_matches_torch_code(device, dtype, has_time, znssd):
     assert torch.allclose(got_r[1], got[1][rows], atol=10 * tol)
 
 
+@pytest.mark.parametrize("device", _devices())
+@pytest.mark.parametrize("znssd", [True, False])
+def test_fused_step_frame_rhs_matches_the_native_kernel(device, znssd):
+    """frame_rhs: each frame's own spatial right-hand side and ZNCC, as the native kernel
+    writes them (the model check's free classical step on CUDA), also for picked rows; and
+    refused where the Triton kernel does not serve the call."""
+    if not native.available():
+        pytest.skip("the native kernel is the reference here")
+    img, k, c = _case(True, torch.float64, device=device)
+    n, t = c["dt"].shape
+    ks = c["basis"].shape[1]
+    kernels.set_triton("1")
+    rows = torch.tensor([4, 0, 2], device=device)
+    for pick in (None, rows):
+        p = c["p"] if pick is None else c["p"][pick]
+        got = torch.full((p.shape[0], t, 2 * ks + 1), float("nan"), dtype=torch.float64,
+                         device=device)
+        b, zn, _ = kernels.ic_rhs(img.kernel_args(), 3, p, c["px"], c["py"], c["dx"], c["dy"],
+                                  c["basis"], c["dt"], c["fidx"], c["ft"], c["fnorm"], c["gx"],
+                                  c["gy"], c["w"], img.width, img.height, k, True, znssd,
+                                  rows=pick, frame_rhs=got)
+        want = torch.full_like(got, float("nan")).cpu()
+        cc = {key: v.cpu() for key, v in c.items()}
+        native.ic_rhs(img.to(device="cpu").kernel_args(), 3, p.cpu(), cc["px"], cc["py"],
+                      cc["dx"], cc["dy"], cc["basis"], cc["dt"], cc["fidx"], cc["ft"],
+                      cc["fnorm"], cc["gx"], cc["gy"], cc["w"], img.width, img.height, k, True,
+                      znssd, rows=None if pick is None else pick.cpu(), frame_rhs=want)
+        assert bool(torch.isfinite(got).all())
+        assert torch.allclose(got.cpu(), want, rtol=1e-9, atol=1e-9)
+        assert torch.allclose(got[..., : ks].sum(1), b[:, :ks], rtol=1e-9, atol=1e-9)
+        assert torch.allclose(got[..., 2 * ks].mean(1), zn, rtol=1e-9, atol=1e-9)
+    kernels.set_triton("0")
+    with pytest.raises(ValueError, match="frame_rhs needs the Triton kernel"):
+        kernels.ic_rhs(img.kernel_args(), 3, c["p"], c["px"], c["py"], c["dx"], c["dy"],
+                       c["basis"], c["dt"], c["fidx"], c["ft"], c["fnorm"], c["gx"], c["gy"],
+                       c["w"], img.width, img.height, k, True, znssd, frame_rhs=got)
+
+
 @pytest.mark.skipif(not INTERPRET, reason="CPU check through Triton's interpreter")
 def test_fused_step_flags_outside_and_uses_every_frame():
     img, k, c = _case(True, torch.float64)
@@ -161,6 +199,34 @@ def test_solver_with_fused_step_matches_torch_code(monkeypatch):
     assert torch.equal(got.status, want.status)
     assert torch.allclose(got.params, want.params, atol=1e-8)
     assert (want.u - 0.4).abs().max() < 0.02  # and the solve is right (u at t = 2)
+
+
+def test_classical_step_through_the_fused_step():
+    """The model check's free classical step and its estimates (classical_step*) from the
+    Triton step (interpreted) equal the native kernel's: the check judges rows on CUDA as on
+    the CPU."""
+    if not native.available():
+        pytest.skip("the native kernel is the reference here")
+    mv = synth.synthetic_movie((64, 64), 5, synth.Translation(ut=0.2, vt=-0.1), seed=3,
+                               noise_sigma=2.0)
+    solver = sts.SubsetSolver(sts.DICConfig(subset_size=11, m=2, dtype="float64"))
+    ref, frames = mv.ref.double(), mv.frames.double()
+    pts = torch.tensor([[24.0, 24.0], [30.0, 28.0], [36.0, 33.0]], dtype=torch.float64)
+    dt = torch.arange(-2.0, 3.0, dtype=torch.float64)
+
+    def solve():
+        return solver.solve(solver.prepare(ref), solver.prepare(frames), pts, dt,
+                            ref_pixels=ref.unsqueeze(0), frame_pixels=frames,
+                            classical_step=True)
+    want = solve()  # the native kernel
+    native.set_native("0")
+    kernels.set_triton("1")
+    got = solve()
+    keys = ("classical_step", "classical_step_size", "classical_step_zncc",
+            "classical_step_sigma", "classical_step_std")
+    for key in keys:
+        assert bool(torch.isfinite(want.info[key]).all()), key
+        assert torch.allclose(got.info[key], want.info[key], rtol=1e-7, atol=1e-9), key
 
 
 def test_eager_launch_does_not_import_the_compiler_stack():

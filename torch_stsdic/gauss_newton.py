@@ -471,9 +471,14 @@ def _run_stage(ctx: BatchContext, form: Formulation, params, data: SubsetData, l
         st = torch.where(bad, int(Status.DIVERGED), torch.where(outside, int(Status.OUTSIDE),
                                                                  conv_code)).to(torch.int8)
         if last is not None:  # where this step ends a point: the step's point and rhs
-            ended = torch.nonzero(done).flatten()
-            last[0][rows[ended]] = p_old[ended]
-            last[1][rows[ended]] = buf[ended]
+            if device.type == "cpu":
+                ended = torch.nonzero(done).flatten()
+                last[0][rows[ended]] = p_old[ended]
+                last[1][rows[ended]] = buf[ended]
+            else:  # without a host synchronisation
+                d = done.unsqueeze(1)
+                last[0][rows] = torch.where(d, p_old.to(last[0].dtype), last[0][rows])
+                last[1][rows] = torch.where(d.unsqueeze(2), buf, last[1][rows])
         params[rows] = torch.where(done.unsqueeze(1), p, params[rows])
         status[rows] = torch.where(done, st, status[rows])
         active = active & ~done

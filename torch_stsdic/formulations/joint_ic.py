@@ -180,7 +180,10 @@ class JointIC(Formulation):
                 geo.shape.has_time, geo.znssd, frames.order, data.motion)
 
     def gives_frame_rhs(self, frames: BSplineImage, data: SubsetData, p: Tensor) -> bool:
-        return self._native(frames, data, p)  # the Triton and torch steps do not
+        # the native and Triton steps do (Triton: the calls it serves, no shared motion);
+        # the torch step does not
+        return self._native(frames, data, p) or (
+            data.motion is None and self._triton(frames, data, p))
 
     def step(self, geo: Geometry, frames: BSplineImage, data: SubsetData, p: Tensor,
              work: int, sel: Tensor | None = None, frame_rhs: Tensor | None = None
@@ -193,6 +196,8 @@ class JointIC(Formulation):
                                                "frame_rhs": frame_rhs}
             else:
                 fused, data = kernels.ic_rhs, data.direct()
+                if frame_rhs is not None:
+                    extra = {"frame_rhs": frame_rhs}
             b, zn, outside = fused(
                 ka, frames.order, p, data.px, data.py, geo.dx, geo.dy, geo.spatial, data.dt,
                 data.fidx * ka[-1], data.ft, data.fnorm, data.gx, data.gy, geo.w, frames.width,

@@ -127,7 +127,7 @@ def _(flat, p, px, py, dx, dy, basis, dt, frame_off, ft, fnorm, gx, gy, w, rows,
 
 def ic_rhs(img_args: tuple, order: int, p, px, py, dx, dy, basis, dt, frame_off, ft, fnorm,
            gx, gy, w, w_img: int, h: int, k: int, has_time: bool, znssd: bool,
-           rows: Tensor | None = None):
+           rows: Tensor | None = None, frame_rhs: Tensor | None = None):
     """``torch.ops.torch_stsdic.ic_rhs`` with the arguments of ``native.ic_rhs``: img_args
     from :meth:`BSplineImage.kernel_args`, p (M, 2k), basis (S, Ks), dt and frame_off (N, T)
     (frame offsets in coefficients), the per-point data (N, ...), ``rows`` (M,) the data row
@@ -136,8 +136,26 @@ def ic_rhs(img_args: tuple, order: int, p, px, py, dx, dy, basis, dt, frame_off,
     Outside ``torch.compile`` the op's body is called directly: the first Triton launch
     through a ``torch.library`` op makes torch import its compiler stack (torch._dynamo,
     sympy, FSDP: 4.6 s of a fresh process's first ``stsdic run --device cuda`` on an H100,
-    measured under cProfile); the op serves compiled graphs."""
+    measured under cProfile); the op serves compiled graphs.
+
+    ``frame_rhs``: a contiguous float64 (M, T, 2 Ks + 1) tensor filled with each frame's own
+    spatial right-hand side and its ZNCC (as ``native.ic_rhs``), by the Triton kernel only
+    (:func:`usable`; ValueError otherwise), outside ``torch.compile``."""
     flat, wp, x_lo, x_hi, y_lo, y_hi, shift, _ = img_args
+    if frame_rhs is not None:
+        n_t, ks = dt.shape[1], basis.shape[1]
+        if not usable(flat, order, basis.shape[0], p, ft):
+            raise ValueError("kernels.ic_rhs: frame_rhs needs the Triton kernel (usable)")
+        if (tuple(frame_rhs.shape) != (p.shape[0], n_t, 2 * ks + 1)
+                or frame_rhs.dtype != torch.float64 or not frame_rhs.is_contiguous()
+                or frame_rhs.device != flat.device):
+            raise ValueError(f"kernels.ic_rhs: frame_rhs must be a contiguous float64 "
+                             f"({p.shape[0]}, {n_t}, {2 * ks + 1}) tensor on {flat.device}")
+        return _module().ic_rhs_triton(
+            flat, p, px.reshape(-1), py.reshape(-1), dx, dy, basis.contiguous(), dt,
+            frame_off.to(torch.int64), ft, fnorm.reshape(-1), gx, gy, w, rows, int(wp),
+            float(x_lo), float(x_hi), float(y_lo), float(y_hi), int(shift), int(w_img), int(h),
+            int(k), bool(has_time), bool(znssd), frame_rhs=frame_rhs)
     compiling = getattr(torch.compiler, "is_compiling", lambda: False)()  # torch >= 2.3
     call = torch.ops.torch_stsdic.ic_rhs if compiling else _ic_rhs_impl
     return call(

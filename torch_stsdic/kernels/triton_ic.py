@@ -52,10 +52,11 @@ def _tap_row(flat_ptr, base, m, w0, w1, w2, w3):
 @triton.jit
 def _ic_rhs_kernel(flat_ptr, p_ptr, px_ptr, py_ptr, dx_ptr, dy_ptr, basis_ptr, dt_ptr,
                    foff_ptr, ft_ptr, fnorm_ptr, gx_ptr, gy_ptr, w_ptr, rows_ptr,
-                   b_ptr, zn_ptr, out_ptr,
+                   b_ptr, zn_ptr, out_ptr, bf_ptr,
                    NT, S, wp, x_lo, x_hi, y_lo, y_hi, shift, w_img, h,
                    KS: tl.constexpr, K: tl.constexpr, HAS_TIME: tl.constexpr,
-                   ZNSSD: tl.constexpr, HAS_ROWS: tl.constexpr, BLOCK_S: tl.constexpr):
+                   ZNSSD: tl.constexpr, HAS_ROWS: tl.constexpr, BLOCK_S: tl.constexpr,
+                   FRAME_RHS: tl.constexpr):
     j = tl.program_id(0).to(tl.int64)
     if HAS_ROWS:
         i = tl.load(rows_ptr + j).to(tl.int64)
@@ -82,6 +83,8 @@ def _ic_rhs_kernel(flat_ptr, p_ptr, px_ptr, py_ptr, dx_ptr, dy_ptr, basis_ptr, d
     if HAS_TIME:
         ut = tl.load(pj + K - 1)
         vt = tl.load(pj + 2 * K - 1)
+    gx = tl.load(gx_ptr + i * S + offs, mask=m, other=0.0)
+    gy = tl.load(gy_ptr + i * S + offs, mask=m, other=0.0)
     e1 = tl.zeros([BLOCK_S], dtype=ft.dtype)
     e2 = tl.zeros([BLOCK_S], dtype=ft.dtype)
     zsum = tl.sum(e1, axis=0)  # a zero scalar of the data's dtype
@@ -118,7 +121,8 @@ def _ic_rhs_kernel(flat_ptr, p_ptr, px_ptr, py_ptr, dx_ptr, dy_ptr, basis_ptr, d
             g = g - tl.sum(g * w, axis=0) / wsum
         gg = tl.maximum(tl.sum(g * g * w, axis=0), 1e-30)
         gn = tl.sqrt(gg)
-        zsum += tl.sum(ft * g * w, axis=0) / (fn * gn)
+        zt = tl.sum(ft * g * w, axis=0) / (fn * gn)
+        zsum += zt
         if ZNSSD:
             e = (ft - (fn / gn) * g) * w
         else:
@@ -126,8 +130,13 @@ def _ic_rhs_kernel(flat_ptr, p_ptr, px_ptr, py_ptr, dx_ptr, dy_ptr, basis_ptr, d
         e = tl.where(m, e, 0.0)
         e1 += e
         e2 += e * dtt
-    gx = tl.load(gx_ptr + i * S + offs, mask=m, other=0.0)
-    gy = tl.load(gy_ptr + i * S + offs, mask=m, other=0.0)
+        if FRAME_RHS:  # frame t's own spatial right-hand side (a classical step's), its ZNCC
+            bf = bf_ptr + (j * NT + t) * (2 * KS + 1)
+            for q in tl.static_range(KS):
+                bq = tl.load(basis_ptr + offs * KS + q, mask=m, other=0.0)
+                tl.store(bf + q, tl.sum(gx * e * bq, axis=0).to(tl.float64))
+                tl.store(bf + KS + q, tl.sum(gy * e * bq, axis=0).to(tl.float64))
+            tl.store(bf + 2 * KS, zt.to(tl.float64))
     gxe = gx * e1
     gye = gy * e1
     bj = b_ptr + j * (2 * K)
@@ -144,10 +153,12 @@ def _ic_rhs_kernel(flat_ptr, p_ptr, px_ptr, py_ptr, dx_ptr, dy_ptr, basis_ptr, d
 
 def ic_rhs_triton(flat, p, px, py, dx, dy, basis, dt, frame_off, ft, fnorm, gx, gy, w, rows,
                   wp: int, x_lo: float, x_hi: float, y_lo: float, y_hi: float, shift: int,
-                  w_img: int, h: int, k: int, has_time: bool, znssd: bool):
+                  w_img: int, h: int, k: int, has_time: bool, znssd: bool, frame_rhs=None):
     """Launch the kernel. Shapes: p (M, 2k), px/py/fnorm (N,) or (N, 1), dx/dy/w (S,), basis
     (S, Ks), dt and frame_off (N, T) (frame_off in coefficients, int64), ft/gx/gy (N, S),
-    rows (M,) data row of each row of p or None (M = N). Returns b (M, 2k) float64, mean ZNCC
+    rows (M,) data row of each row of p or None (M = N); ``frame_rhs`` a contiguous float64
+    (M, T, 2 Ks + 1) tensor on the device, filled with each frame's own spatial right-hand
+    side and its ZNCC (as ``native.ic_rhs``), or None. Returns b (M, 2k) float64, mean ZNCC
     (M,) in p's dtype and the outside flag (M,) bool."""
     dtype = flat.dtype
     m_rows = p.shape[0]
@@ -170,9 +181,10 @@ def ic_rhs_triton(flat, p, px, py, dx, dy, basis, dt, frame_off, ft, fnorm, gx, 
         flat.contiguous(), c(p), c(px.reshape(-1)), c(py.reshape(-1)), c(dx), c(dy),
         c(basis), c(dt), frame_off.to(device=dev, dtype=torch.int64).contiguous(), c(ft),
         c(fnorm.reshape(-1)), c(gx), c(gy), c(w), rows_t, b, zn, out,
+        b if frame_rhs is None else frame_rhs,
         n_t, s, int(wp), float(x_lo), float(x_hi), float(y_lo), float(y_hi), int(shift),
         float(w_img), float(h),
         KS=ks, K=k, HAS_TIME=bool(has_time), ZNSSD=bool(znssd), HAS_ROWS=rows is not None,
-        BLOCK_S=block, num_warps=4 if block <= 512 else 8,
+        BLOCK_S=block, FRAME_RHS=frame_rhs is not None, num_warps=4 if block <= 512 else 8,
     )
     return b, zn, out.bool()
