@@ -201,10 +201,11 @@ def test_solver_with_fused_step_matches_torch_code(monkeypatch):
     assert (want.u - 0.4).abs().max() < 0.02  # and the solve is right (u at t = 2)
 
 
-def test_classical_step_through_the_fused_step():
+@pytest.mark.parametrize("device", _devices())
+def test_classical_step_through_the_fused_step(device):
     """The model check's free classical step and its estimates (classical_step*) from the
-    Triton step (interpreted) equal the native kernel's: the check judges rows on CUDA as on
-    the CPU."""
+    Triton step (interpreted on the CPU, or on CUDA) equal the native kernel's: the check
+    judges rows on CUDA as on the CPU."""
     if not native.available():
         pytest.skip("the native kernel is the reference here")
     mv = synth.synthetic_movie((64, 64), 5, synth.Translation(ut=0.2, vt=-0.1), seed=3,
@@ -214,14 +215,16 @@ def test_classical_step_through_the_fused_step():
     pts = torch.tensor([[24.0, 24.0], [30.0, 28.0], [36.0, 33.0]], dtype=torch.float64)
     dt = torch.arange(-2.0, 3.0, dtype=torch.float64)
 
-    def solve():
-        return solver.solve(solver.prepare(ref), solver.prepare(frames), pts, dt,
-                            ref_pixels=ref.unsqueeze(0), frame_pixels=frames,
-                            classical_step=True)
-    want = solve()  # the native kernel
+    def solve(dev):
+        r, f = ref.to(dev), frames.to(dev)
+        return solver.solve(solver.prepare(r), solver.prepare(f), pts.to(dev), dt.to(dev),
+                            ref_pixels=r.unsqueeze(0), frame_pixels=f, classical_step=True)
+    want = solve("cpu")  # the native kernel
     native.set_native("0")
     kernels.set_triton("1")
-    got = solve()
+    got = solve(device)
+    got.info = {key: v.cpu() if isinstance(v, torch.Tensor) else v
+                for key, v in got.info.items()}
     keys = ("classical_step", "classical_step_size", "classical_step_zncc",
             "classical_step_sigma", "classical_step_std")
     for key in keys:
