@@ -142,6 +142,10 @@ def ic_rhs(img_args: tuple, order: int, p, px, py, dx, dy, basis, dt, frame_off,
     spatial right-hand side and its ZNCC (as ``native.ic_rhs``), by the Triton kernel only
     (:func:`usable`; ValueError otherwise), outside ``torch.compile``."""
     flat, wp, x_lo, x_hi, y_lo, y_hi, shift, _ = img_args
+    args = (flat, p, px.reshape(-1), py.reshape(-1), dx, dy, basis.contiguous(), dt,
+            frame_off.to(torch.int64), ft, fnorm.reshape(-1), gx, gy, w, rows, int(wp),
+            float(x_lo), float(x_hi), float(y_lo), float(y_hi), int(shift), int(w_img), int(h),
+            int(k), bool(has_time), bool(znssd))
     if frame_rhs is not None:
         n_t, ks = dt.shape[1], basis.shape[1]
         if not usable(flat, order, basis.shape[0], p, ft):
@@ -151,15 +155,7 @@ def ic_rhs(img_args: tuple, order: int, p, px, py, dx, dy, basis, dt, frame_off,
                 or frame_rhs.device != flat.device):
             raise ValueError(f"kernels.ic_rhs: frame_rhs must be a contiguous float64 "
                              f"({p.shape[0]}, {n_t}, {2 * ks + 1}) tensor on {flat.device}")
-        return _module().ic_rhs_triton(
-            flat, p, px.reshape(-1), py.reshape(-1), dx, dy, basis.contiguous(), dt,
-            frame_off.to(torch.int64), ft, fnorm.reshape(-1), gx, gy, w, rows, int(wp),
-            float(x_lo), float(x_hi), float(y_lo), float(y_hi), int(shift), int(w_img), int(h),
-            int(k), bool(has_time), bool(znssd), frame_rhs=frame_rhs)
+        return _module().ic_rhs_triton(*args, frame_rhs=frame_rhs)
     compiling = getattr(torch.compiler, "is_compiling", lambda: False)()  # torch >= 2.3
     call = torch.ops.torch_stsdic.ic_rhs if compiling else _ic_rhs_impl
-    return call(
-        flat, p, px.reshape(-1), py.reshape(-1), dx, dy, basis.contiguous(), dt,
-        frame_off.to(torch.int64), ft, fnorm.reshape(-1), gx, gy, w, rows, int(wp),
-        float(x_lo), float(x_hi), float(y_lo), float(y_hi), int(shift), int(w_img), int(h),
-        int(k), bool(has_time), bool(znssd), int(order))
+    return call(*args, int(order))
