@@ -271,10 +271,11 @@ def predicted_std(geo: Geometry, data: SubsetData, noise: NoiseModel, order: int
     """(N, P) :func:`std_of` of :func:`response`: row by row in the native kernel where it
     can run (CPU, no autograd graph; no (N, P', P') temporaries: 38,809 classical rows in
     ~3 instead of ~30 ms), else through the response."""
-    g1, g2, bw, b2 = _moments(geo, data)
     cols = _aug_columns(geo)
-    if native.usable(g1, data.dt, noise.ref, noise.frame) and 1 <= cols.numel() <= 16:
+    grads = [t for t in (data.gram, data.gx, data.gy) if t is not None]
+    if native.usable(*grads, data.dt, noise.ref, noise.frame) and 1 <= cols.numel() <= 16:
+        g1, g2, bw, b2 = _moments(geo, data)
         return native.param_std(cols, data.dt, geo.shape.has_time, geo.ks, g1, g2, bw, b2,
-                             noise.ref.double(), noise.frame.double(),
-                             gradient_noise_factor(order))
+                                noise.ref.double(), noise.frame.double(),
+                                gradient_noise_factor(order))
     return std_of(response(geo, data, noise, order))
