@@ -87,7 +87,8 @@ class MeasuredSample:
         # (N, k) each POI's nearest sample points, nearest first
         near = nearest_among(pts, self.points, min(NEAREST, self.points.shape[0]))[1]
         # per distinct frame: the mean of the valid sample points' guesses, whether they agree
-        d, ok, valid = self._at(col, near, pts)  # (F, N, 2), (F, N), (F, N, k)
+        disp, grad, valid = self._valid(col)
+        d, ok, ok_k = self._at(disp, grad, valid, near, pts)  # (F, N, 2), (F, N), (F, N, k)
         ok = ok[where].all(1).reshape(b * n)  # every frame of the row's window
         disp = d[where].permute(0, 2, 1, 3).reshape(b * n, t, 2)  # (B*N, T, 2)
         dtr = dt.detach().cpu().double().repeat_interleave(n, 0)  # (B*N, T)
@@ -95,7 +96,7 @@ class MeasuredSample:
         # the gradients at the target frame (dt = 0; the frame nearest the target if none)
         at = where[torch.arange(b), dt.detach().cpu().abs().argmin(1)]  # (B,) among col
         used, inv = torch.unique(at, return_inverse=True)
-        grad = self._grad_at(col[used], near, valid[used])[inv].reshape(b * n, 2, 2)
+        grad = _mean_gradient(grad[used], near, ok_k[used])[inv].reshape(b * n, 2, 2)
         out = {"u": d0[:, 0], "v": d0[:, 1], "ux": grad[:, 0, 0], "uy": grad[:, 0, 1],
                "vx": grad[:, 1, 0], "vy": grad[:, 1, 1]}
         if t > 1:
@@ -111,13 +112,14 @@ class MeasuredSample:
         grad = torch.where(valid.view(*valid.shape, 1, 1), grad, 0.0)
         return disp, grad, valid
 
-    def _at(self, col: torch.Tensor, near: torch.Tensor, pts: torch.Tensor
+    def _at(self, disp: torch.Tensor, grad: torch.Tensor, valid: torch.Tensor,
+            near: torch.Tensor, pts: torch.Tensor
             ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """At measured frames ``col`` (F,): (F, N, 2) the guess of every POI ``pts`` (N, 2),
-        the mean of its valid candidates' (``near`` (N, k)) displacements carried to it by
-        their gradients; (F, N) bool whether at least two candidates are valid and all agree
-        with it within ``GUESS_TOL``; (F, N, k) bool which candidates are valid."""
-        disp, grad, valid = self._valid(col)
+        """From the sample at F frames (:meth:`_valid`): (F, N, 2) the guess of every POI
+        ``pts`` (N, 2), the mean of its valid candidates' (``near`` (N, k)) displacements
+        carried to it by their gradients; (F, N) bool whether at least two candidates are
+        valid and all agree with it within ``GUESS_TOL``; (F, N, k) bool which candidates
+        are valid."""
         ok_k = valid[:, near]  # (F, N, k)
         w = ok_k.to(disp.dtype)
         cnt = w.sum(-1).clamp(min=1.0)
@@ -131,11 +133,10 @@ class MeasuredSample:
         ok = (ok_k.sum(-1) >= 2) & (spread <= GUESS_TOL)
         return torch.stack([du, dv], -1), ok, ok_k
 
-    def _grad_at(self, col: torch.Tensor, near: torch.Tensor, ok_k: torch.Tensor
-                 ) -> torch.Tensor:
-        """(F, N, 2, 2) the mean gradients of every POI's valid candidates ``near`` (N, k)
-        (``ok_k`` (F, N, k)) at measured frames ``col`` (F,)."""
-        _, grad, _ = self._valid(col)
-        w = ok_k.to(grad.dtype)
-        return (grad[:, near] * w.view(*w.shape, 1, 1)).sum(2) / w.sum(-1).clamp(
-            min=1.0).view(*w.shape[:2], 1, 1)
+
+def _mean_gradient(grad: torch.Tensor, near: torch.Tensor, ok_k: torch.Tensor) -> torch.Tensor:
+    """(F, N, 2, 2) the mean gradients of every POI's valid candidates ``near`` (N, k)
+    (``ok_k`` (F, N, k)) among the sample's gradients ``grad`` (F, S, 2, 2) at F frames."""
+    w = ok_k.to(grad.dtype)
+    return (grad[:, near] * w.view(*w.shape, 1, 1)).sum(2) / w.sum(-1).clamp(
+        min=1.0).view(*w.shape[:2], 1, 1)
