@@ -24,7 +24,6 @@ import numpy as np
 import torch
 
 from .frames import FrameCache, window_frames
-from .gauss_newton import classical_step_columns
 from .initial import linear_fit_in_time
 from .quality import (
     carried_neighbours,
@@ -41,7 +40,13 @@ from .reference import Reference, noise_ratio, to_relative, to_total
 from .result import USABLE
 from .sample_guess import MeasuredSample
 from .shared_motion import SharedMotion, window_offsets
-from .solver import SubsetSolver, WindowSolution, packed_classical_step, subset_inside
+from .solver import (
+    SubsetSolver,
+    WindowSolution,
+    classical_step_info,
+    packed_classical_step,
+    subset_inside,
+)
 from .status import Status
 
 __all__ = ["BlockContext", "Carry", "solve_block", "rows_numpy", "make_carry", "STD_OF"]
@@ -567,20 +572,24 @@ class _Block:
             self.keep(r, self.solve(r, guess[try_], m=m), only_better=True, m=m)
         return int(r.numel())
 
+    def _own(self, idx: torch.Tensor) -> torch.Tensor:
+        """(R,) bool: rows ``idx`` whose target is the current reference frame itself (their
+        classical solution is the identity)."""
+        return self.k.repeat_interleave(self.n)[idx] == self.ref.frame
+
     def _classical(self, idx: torch.Tensor, solver: SubsetSolver) -> WindowSolution:
         """The classical solutions of rows ``idx`` from their window's solution (with
         ``solver``); where the target is the reference frame itself it is the
         :meth:`identity_solution`, not solved."""
-        own = self.k.repeat_interleave(self.n)[idx] == self.ref.frame
+        own = self._own(idx)
         # one classical step from the window's solution is known where its solve gave it:
         # the solve goes on from there, that step its previous increment
         start, step = self.params[idx], None
         if self.check_start is not None:
-            known = self.check_start[idx]
+            known = classical_step_info(self.check_start[idx])
             spatial = [self.run.names.index(nm)
                        for nm in self.run.solver.shape.spatial().param_names]
-            cols = classical_step_columns(len(spatial) // 2)
-            p0, size = known[:, cols["params"]], known[:, cols["size"]].squeeze(1)
+            p0, size = known["classical_step"], known["classical_step_size"]
             have = (torch.isfinite(p0).all(1) & torch.isfinite(size)).unsqueeze(1)
             start = torch.where(have, p0, start[:, spatial])
             step = torch.where(have.squeeze(1), size, 0.0)
@@ -602,15 +611,14 @@ class _Block:
         if not SCREEN or self.check_start is None:
             return None, None
         names = run.solver.shape.spatial().param_names
-        cols = classical_step_columns(len(names) // 2)
         known = self.check_start[idx]
-        p_est, sd = known[:, cols["params"]], known[:, cols["std"]]
-        size, zn = known[:, cols["size"]].squeeze(1), known[:, cols["zncc"]].squeeze(1)
-        sig = known[:, cols["sigma"]].squeeze(1)
-        own = self.k.repeat_interleave(self.n)[idx] == self.ref.frame
+        step = classical_step_info(known)
+        p_est, sd = step["classical_step"], step["classical_step_std"]
+        size, zn = step["classical_step_size"], step["classical_step_zncc"]
+        sig = step["classical_step_sigma"]
         cu, cv = names.index("u"), names.index("v")
         iu, iv = run.names.index("u"), run.names.index("v")
-        ok = torch.isfinite(known).all(1) & ~own
+        ok = torch.isfinite(known).all(1) & ~self._own(idx)
         ok &= ~model_mismatch(self.params[idx][:, [iu, iv]], p_est[:, [cu, cv]],
                               self.std[idx][:, [iu, iv]], sd[:, [cu, cv]],
                               slack=SCREEN_SLACK * size)
@@ -681,7 +689,7 @@ class _Block:
         d_all[idx[conv]] = quick.params[conv][:, [cu, cv]].to(run.dtype)
         s_all[idx[conv]] = quick.std[conv][:, [cu, cv]].to(run.dtype)
         # the reference frame as target: its classical residual is round-off, no measure
-        not_ref = self.k.repeat_interleave(self.n)[idx] != self.ref.frame
+        not_ref = ~self._own(idx)
         pixels = run.solver.window.effective_pixels()
         suspect = (quick.status != int(Status.CONVERGED)) | model_mismatch(
             self.params[idx][:, [iu, iv]], quick.params[:, [cu, cv]].to(run.dtype),

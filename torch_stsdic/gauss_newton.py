@@ -294,7 +294,7 @@ def _classical_step(ctx: BatchContext, data: SubsetData, p_last: Tensor, frame: 
         est[:, cols["sigma"]] = noise.total.sqrt().double().unsqueeze(1)
         est[:, cols["std"]] = uncertainty.predicted_std(classical, cdata, noise,
                                                         ctx.frames.order).double()
-    bad = singular | ~at0.any(1) | ~torch.isfinite(est[:, : 2 * ks + 1]).all(1)
+    bad = singular | ~at0.any(1) | ~torch.isfinite(est[:, : cols["size"].stop]).all(1)
     return est.masked_fill(bad.unsqueeze(1), float("nan"))
 
 
