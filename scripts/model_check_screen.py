@@ -30,7 +30,12 @@ import torch
 import torch_stsdic.block as block
 from torch_stsdic.cli import main as cli_main
 from torch_stsdic.gauss_newton import classical_step_columns
-from torch_stsdic.quality import MODEL_TOL, RESIDUAL_Z, model_mismatch, residual_mismatch
+from torch_stsdic.quality import (
+    RESIDUAL_Z,
+    difference_std,
+    model_mismatch,
+    residual_mismatch,
+)
 from torch_stsdic.status import Status
 
 TOTAL = {"rows": 0, "screened": 0, "pass": 0, "false": 0}
@@ -75,9 +80,7 @@ def _judged(self, idx, screened, est) -> None:
             line += f"; sigma ratio {rs.min():.3f}-{rs.max():.3f}"
     print(line, flush=True)
     if bool(false.any()):
-        vs = self.std[idx][:, [iu, iv]].double().nan_to_num(0) ** 2
-        vc = act.std[:, [cu, cv]].double().nan_to_num(0) ** 2
-        sd = (torch.maximum(vc - vs, 0.2 * vc) + MODEL_TOL**2).sqrt()
+        sd = difference_std(self.std[idx][:, [iu, iv]], act.std[:, [cu, cv]])
         z = ((d_win - d_cls).abs() / sd).amax(1)
         limit = 1.0 + RESIDUAL_Z / max(float(pixels), 1.0) ** 0.5
         res = self.sigma[idx].double() / act.sigma.double() / limit

@@ -129,16 +129,14 @@ def recording(log: list):
 
     def mm(d_sts, d_cls, std_sts, std_cls):
         out = orig[1](d_sts, d_cls, std_sts, std_cls)
-        vs = torch.nan_to_num(std_sts.double(), nan=0.0) ** 2
-        vc = torch.nan_to_num(std_cls.double(), nan=0.0) ** 2
-        var = torch.maximum(vc - vs, 0.2 * vc) + quality.MODEL_TOL**2
+        sd = quality.difference_std(std_sts, std_cls)
         diff = d_sts.double() - d_cls.double()
         rows, blk = rows_of_stage(), state["block"]
         not_ref = np.ones(diff.shape[0], bool)
         if rows is not None:  # the reference frame as target: no residual test
             not_ref = np.asarray(blk.ks)[rows // blk.n] != blk.ref.frame
         log.append({"stage": state["stage"], "d": diff.numpy(), "not_ref": not_ref,
-                    "z": (diff.abs() / var.sqrt()).numpy(), "sd": var.sqrt().numpy(),
+                    "z": (diff.abs() / sd).numpy(), "sd": sd.numpy(),
                     "std_cls": std_cls.double().numpy(), "fail_model": out.numpy()})
         return out
 

@@ -52,7 +52,7 @@ __all__ = [
     "MODEL_Z", "MODEL_TOL", "RESIDUAL_Z", "RESIDUAL_ZNCC", "FIT_RATIO", "FIT_ZNCC_GOOD",
     "FIT_GROWTH",
     "MEDIAN_THRESHOLD", "MEDIAN_EPS_STD", "MEDIAN_EPS_MIN", "MEDIAN_SCATTER", "MEDIAN_ROUNDS",
-    "LINE_Z", "model_mismatch", "line_mismatch", "residual_mismatch", "poor_fit",
+    "LINE_Z", "difference_std", "model_mismatch", "line_mismatch", "residual_mismatch", "poor_fit",
     "neighbours", "carried_neighbours", "median_test", "nanmedian_rows",
 ]
 
@@ -82,6 +82,16 @@ GRADIENT_TOL = 0.005
 MEDIAN_ROUNDS = 4
 
 
+def difference_std(std_sts: Tensor, std_cls: Tensor) -> Tensor:
+    """(N, 2) px the predicted standard deviation of the window's displacement minus the
+    classical one (Hausman: ``var_classical - var_sts``, at least a fifth of the classical
+    variance), with ``MODEL_TOL`` added in quadrature; from their (N, 2) predicted
+    standard deviations (NaN: 0)."""
+    vs = torch.nan_to_num(std_sts.double(), nan=0.0) ** 2
+    vc = torch.nan_to_num(std_cls.double(), nan=0.0) ** 2
+    return (torch.maximum(vc - vs, 0.2 * vc) + MODEL_TOL**2).sqrt()
+
+
 def model_mismatch(d_sts: Tensor, d_cls: Tensor, std_sts: Tensor, std_cls: Tensor,
                    slack: Tensor | None = None) -> Tensor:
     """(N,) bool: the window's displacement disagrees with the classical one.
@@ -94,13 +104,10 @@ def model_mismatch(d_sts: Tensor, d_cls: Tensor, std_sts: Tensor, std_cls: Tenso
         slack: (N,) px by which ``d_cls`` may miss the classical solution (an estimate of
             it: the difference must pass however it lies within that), or None: 0.
     """
-    vs = torch.nan_to_num(std_sts.double(), nan=0.0) ** 2
-    vc = torch.nan_to_num(std_cls.double(), nan=0.0) ** 2
-    var = torch.maximum(vc - vs, 0.2 * vc) + MODEL_TOL**2
     diff = (d_sts.double() - d_cls.double()).abs()
     if slack is not None:
         diff = diff + slack.double().unsqueeze(1)
-    z = diff / var.sqrt()
+    z = diff / difference_std(std_sts, std_cls)
     return ~(z <= MODEL_Z).all(1)  # NaN differences fail
 
 
