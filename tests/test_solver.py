@@ -147,6 +147,23 @@ def test_fft_initial_guess_and_user_init(pattern):
     assert torch.allclose(sol2.u, sol.u, atol=1e-4)
 
 
+def test_init_and_init_step_must_have_a_row_per_point(pattern):
+    """SubsetSolver.solve: an init or init_step of another length than the points is a clear
+    error (an init with extra rows was used silently, its first rows taken)."""
+    ref, frames = _series(pattern, synth.Translation(0.3, 0.1), [0])
+    solver = sts.SubsetSolver(sts.DICConfig(m=0))
+    args = (solver.prepare(ref), solver.prepare(frames), _grid(35, 45, 10), torch.zeros(1))
+    n = args[2].shape[0]
+    with pytest.raises(ValueError, match=rf"init must be \(N, P\) with a row for each of "
+                                         rf"the {n} points, got \({n + 1}, 6\)"):
+        solver.solve(*args, init=torch.zeros(n + 1, 6))
+    with pytest.raises(ValueError, match=rf"init_step must be \(N,\) with a value for each "
+                                         rf"of the {n} points"):
+        solver.solve(*args, init=torch.zeros(n, 6), init_step=torch.zeros(n + 1))
+    ok = solver.solve(*args, init=torch.zeros(n, 6), init_step=torch.zeros(n))
+    assert bool(ok.ok.all())
+
+
 def test_float32_matches_float64(pattern):
     ref, frames = _series(pattern, synth.Translation(0.3, 0.2, ut=0.05), [0, 1, 2])
     pts = _grid()

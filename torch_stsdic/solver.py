@@ -284,7 +284,10 @@ class SubsetSolver:
             t_fft = _clock(device) - t_fft
         else:
             t_fft = 0.0
-            p0 = init.to(device=device, dtype=dtype)
+            p0 = torch.as_tensor(init).to(device=device, dtype=dtype)
+            if p0.dim() != 2 or p0.shape[0] != n:
+                raise ValueError(f"init must be (N, P) with a row for each of the {n} points, "
+                                 f"got {tuple(p0.shape)}")
             if p0.shape[1] != p_count:
                 p0 = _expand_init(p0, shape, self.shape)
 
@@ -303,7 +306,11 @@ class SubsetSolver:
         cstep = (torch.full((n, classical_step_width(geo.ks)), float("nan"), dtype=dtype,
                             device=device) if classical_step else None)
         if init_step is not None:
-            init_step = torch.as_tensor(init_step).to(device=device, dtype=dtype).reshape(n)
+            init_step = torch.as_tensor(init_step).to(device=device, dtype=dtype)
+            if init_step.numel() != n:
+                raise ValueError(f"init_step must be (N,) with a value for each of the {n} "
+                                 f"points, got {tuple(init_step.shape)}")
+            init_step = init_step.reshape(n)
         batch = cfg.batch_points or ctx.batch_size(t_count)
         for s0 in range(0, todo.numel(), batch):
             idx = todo[s0 : s0 + batch]
