@@ -1,0 +1,1 @@
+"""Stereo STS-DIC: 3D shape, displacement and velocity from two cameras (see docs/stereo.md)."""

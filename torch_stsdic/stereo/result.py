@@ -1,0 +1,131 @@
+"""The result of a stereo run: per point and frame X, Y, Z, U, V, W (mm), velocity, status."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+__all__ = ["StereoResult", "best_fit_plane", "FIELDS"]
+
+#: the (F, N) fields of a result and their units
+FIELDS = {"X": "mm", "Y": "mm", "Z": "mm", "U": "mm", "V": "mm", "W": "mm",
+          "Ut": "mm per time unit", "Vt": "mm per time unit", "Wt": "mm per time unit",
+          "reprojection_error": "px"}
+
+
+@dataclass
+class StereoResult:
+    """3D shape, displacement and velocity of points over time, in the left-camera frame.
+
+    Attributes:
+        points: (N, 2) left reference points px. right_points: (N, 2) their matches in the
+            right reference px (NaN where the cross-camera match failed).
+        frames: (F,) series indices; times: (F,) their times.
+        X, Y, Z: (F, N) position at each frame, mm (world = left camera frame: X right,
+            Y down, Z along the optical axis). U, V, W: (F, N) displacement from the reference
+            position, mm. Ut, Vt, Wt: (F, N) velocity from the STS time terms, mm per time unit
+            (NaN for classical DIC, m = 0).
+        X0: (N, 3) the reference shape, mm; X0_std: (N, 3) its predicted std (cross-match
+            noise carried through the triangulation).
+        std: name -> (F, N) predicted standard deviation of "X", "Y", "Z", "U", "V", "W",
+            "Ut", "Vt", "Wt" (pixel stds of both cameras carried through the triangulation).
+        reprojection_error: (F, N) px, RMS over the two cameras.
+        status: (F, N) int8 :class:`torch_stsdic.Status` (the worst of the left track, the
+            right track and the cross-camera match; INCONSISTENT where the reprojection error
+            exceeds the run's limit).
+        left, right: the two :class:`torch_stsdic.TrackResult` (px). cross: the
+            :class:`~torch_stsdic.stereo.matching.CrossMatch`.
+        calibration: the rig's summary (baseline, stereo angle, focal lengths, source).
+    """
+
+    points: Tensor
+    right_points: Tensor
+    frames: Tensor
+    times: Tensor
+    X: Tensor
+    Y: Tensor
+    Z: Tensor
+    U: Tensor
+    V: Tensor
+    W: Tensor
+    Ut: Tensor
+    Vt: Tensor
+    Wt: Tensor
+    X0: Tensor
+    X0_std: Tensor
+    std: dict[str, Tensor]
+    reprojection_error: Tensor
+    status: Tensor
+    left: Any = None
+    right: Any = None
+    cross: Any = None
+    calibration: dict[str, Any] = field(default_factory=dict)
+    info: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def ok(self) -> Tensor:
+        """(F, N) bool: usable (CONVERGED or MAX_ITER)."""
+        return self.status <= 1
+
+    @property
+    def displacement(self) -> Tensor:
+        """(F, N, 3) U, V, W mm."""
+        return torch.stack([self.U, self.V, self.W], -1)
+
+    def __repr__(self) -> str:
+        return (f"<StereoResult {self.frames.numel()} frames x {self.points.shape[0]} points, "
+                f"ok={float(self.ok.float().mean()):.1%}>")
+
+    def to_hdf5(self, path, overwrite: bool = False) -> None:
+        """Write ``points`` (N, 2), ``right_points``, ``frames``, ``times``, X, Y, Z, U, V, W,
+        Ut, Vt, Wt, their ``*_std``, ``reprojection_error``, ``status`` (F, N), ``X0``
+        (N, 3) with ``units`` attributes, and the calibration summary (JSON attribute)."""
+        import h5py
+        with h5py.File(path, "w" if overwrite else "w-") as f:
+            f.attrs["kind"] = "torch_stsdic stereo result"
+            f.attrs["frame"] = "left camera: X right, Y down, Z along the optical axis"
+            f.attrs["calibration"] = json.dumps(self.calibration, default=str)
+            f.attrs["info"] = json.dumps(self.info, default=str)
+            d = f.create_dataset("points", data=self.points.cpu().numpy())
+            d.attrs["units"] = "px"
+            d = f.create_dataset("right_points", data=self.right_points.cpu().numpy())
+            d.attrs["units"] = "px"
+            f.create_dataset("frames", data=self.frames.cpu().numpy())
+            f.create_dataset("times", data=self.times.cpu().numpy())
+            for name, unit in FIELDS.items():
+                d = f.create_dataset(name, data=getattr(self, name).cpu().numpy())
+                d.attrs["units"] = unit
+                if name in self.std:
+                    d = f.create_dataset(f"{name}_std", data=self.std[name].cpu().numpy())
+                    d.attrs["units"] = unit
+            d = f.create_dataset("X0", data=self.X0.cpu().numpy())
+            d.attrs["units"] = "mm"
+            d = f.create_dataset("X0_std", data=self.X0_std.cpu().numpy())
+            d.attrs["units"] = "mm"
+            d = f.create_dataset("status", data=self.status.cpu().numpy().astype(np.int8))
+            d.attrs["codes"] = "0 converged, 1 max_iter, 2 diverged, 3 outside, 4 low texture, " \
+                "5 not computed, 6 poor fit, 7 inconsistent"
+
+
+def best_fit_plane(points: Tensor, valid: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """Least-squares plane through (N, 3) points: (origin (3,), rotation (3, 3)) whose rows
+    are the plane's axes (x, y in the plane, z its normal, towards the left camera); a point's
+    plane coordinates are ``(p - origin) @ rotation.T``."""
+    p = points if valid is None else points[valid]
+    p = p[torch.isfinite(p).all(1)]
+    c = p.mean(0)
+    _, _, vh = torch.linalg.svd(p - c, full_matrices=False)
+    n = vh[2]
+    if float(n @ (-c)) < 0:  # normal towards the camera (at the origin)
+        n = -n
+    x = vh[0] - (vh[0] @ n) * n
+    x = x / torch.linalg.norm(x)
+    if float(x[0]) < 0:
+        x = -x
+    y = torch.linalg.cross(n, x)
+    return c, torch.stack([x, y, n])

@@ -1,0 +1,187 @@
+"""Stereo STS-DIC of two image series: :func:`track_stereo`.
+
+1. The left reference points (a grid, or given) are matched into the right reference
+   (:func:`~torch_stsdic.stereo.matching.match_stereo`: epipolar search, subset solver).
+2. The left series is tracked against the left reference and the right series against the
+   right reference, both with :func:`torch_stsdic.track` and the same options (m, subset,
+   reference, refinement ...); the right points are the matched ones, so the right track
+   follows the left points through time.
+3. Every frame's pixel pair is triangulated (distortion removed, least squares in the images):
+   X, Y, Z and U, V, W mm in the left-camera frame; the STS velocities (ut, vt of both cameras)
+   are carried through the same linearised triangulation to mm per time unit; the predicted
+   pixel stds of both cameras give the predicted std of every 3D quantity.
+"""
+
+from __future__ import annotations
+
+import time as _time
+from typing import Any
+
+import numpy as np
+import torch
+
+from torch_stsdic import DICConfig, Status, grid_points, load_series, track
+
+from .calibration import StereoCalibration, load_calibration
+from .matching import match_stereo
+from .result import StereoResult
+from .triangulation import propagate_std, triangulate
+
+__all__ = ["track_stereo"]
+
+DTYPE = torch.float64
+
+
+def _reference_image(series, reference, which: str) -> torch.Tensor:
+    if isinstance(reference, (tuple, list)) and len(reference) == 2 and not isinstance(
+            reference[0], (int, np.integer)):
+        img = reference[0 if which == "left" else 1]
+        return torch.as_tensor(np.asarray(img, dtype=np.float64))
+    if isinstance(reference, (int, np.integer)):
+        return series.get(int(reference), dtype=DTYPE)
+    return series.mean_of(reference, dtype=DTYPE)
+
+
+def track_stereo(left: Any, right: Any, calibration: StereoCalibration | str, *,
+                 points: Any = None, roi=None, mask=None, step: int = 10,
+                 config: DICConfig | None = None, reference: Any = 0, frames: Any = None,
+                 times: Any = None, device: str | torch.device = "cpu", progress: bool = False,
+                 cross_shape: str = "affine", depth_range=None,
+                 max_reprojection: float = 1.0, **track_kwargs: Any) -> StereoResult:
+    """Stereo STS-DIC: 3D shape, displacement and velocity of points over a stereo movie.
+
+    Args:
+        left, right: the two series, anything :func:`torch_stsdic.load_series` accepts
+            ((T, H, W) arrays or tensors, TIFF stacks, lists of files, globs), frame k of one
+            taken at the same time as frame k of the other.
+        calibration: a :class:`StereoCalibration` or a calibration file
+            (:func:`~torch_stsdic.stereo.calibration.load_calibration`).
+        points: (N, 2) left reference points px; default a grid of spacing ``step`` inside
+            ``roi`` (x0, y0, x1, y1) and ``mask``.
+        config: :class:`torch_stsdic.DICConfig` of both tracks (m, subset size, ...).
+        reference: frame index or frame spec ("0:5": the mean of frames 0-4) of both series,
+            or a pair of (H, W) images (left, right).
+        frames, times, device, progress: as for :func:`torch_stsdic.track`.
+        cross_shape: subset warp of the cross-camera match, "affine" or "quadratic".
+        depth_range: (min, max) depth mm of the epipolar search (default: any).
+        max_reprojection: px; rows whose reprojection error exceeds it are INCONSISTENT.
+        **track_kwargs: passed to both :func:`torch_stsdic.track` calls
+            (``refine_reference``, ``shared_motion``, ``checks`` ...).
+
+    Returns:
+        :class:`~torch_stsdic.stereo.result.StereoResult` (tensors on the CPU, float64).
+
+    Raises:
+        ValueError (one line) for a calibration that does not fit the images, series of
+        different lengths, and the input errors of :func:`torch_stsdic.track`.
+    """
+    t_start = _time.perf_counter()
+    rig = calibration if isinstance(calibration, StereoCalibration) else \
+        load_calibration(calibration)
+    cfg = config if config is not None else DICConfig()
+    ls = load_series(left, timestamps=times)
+    rs = load_series(right, timestamps=times)
+    rig.check_images(ls.shape, rs.shape)
+    if len(ls) != len(rs):
+        raise ValueError(f"left and right series differ in length: {len(ls)} and {len(rs)} "
+                         "frames")
+    for k in ("out", "resume", "overwrite", "roi", "mask", "step", "points"):
+        if k in track_kwargs:
+            raise ValueError(f"track_stereo: {k} is not passed to the 2-D tracks")
+    if points is None:
+        pts = grid_points(ls.shape, step, roi, mask, cfg.subset_size).to(DTYPE)
+    else:
+        pts = torch.as_tensor(np.asarray(points, dtype=np.float64))
+        if pts.ndim != 2 or pts.shape[1] != 2 or pts.shape[0] == 0:
+            raise ValueError(f"points: expected (N, 2), got {tuple(pts.shape)}")
+    n = pts.shape[0]
+    lref = _reference_image(ls, reference, "left")
+    rref = _reference_image(rs, reference, "right")
+    t0 = _time.perf_counter()
+    cross = match_stereo(rig, lref, rref, pts, cfg, shape=cross_shape, depth_range=depth_range)
+    t_cross = _time.perf_counter() - t0
+    okc = cross.status <= int(Status.MAX_ITER)
+    if not bool(okc.any()):
+        raise ValueError("cross-camera match: no point of the left reference was found in the "
+                         "right reference (check the calibration and the image order)")
+    ref_l = lref if isinstance(reference, (tuple, list)) and len(reference) == 2 and not \
+        isinstance(reference[0], (int, np.integer)) else reference
+    ref_r = rref if ref_l is lref else reference
+    common = dict(frames=frames, config=cfg, device=device, times=times, progress=progress,
+                  **track_kwargs)
+    t0 = _time.perf_counter()
+    lres = track(ls, reference=ref_l, points=pts, **common)
+    rres = track(rs, reference=ref_r, points=cross.right[okc], **common)
+    t_track = _time.perf_counter() - t0
+    F = lres.frames.numel()
+
+    def full(a):  # right (F, n_ok) -> (F, N), NaN where not matched
+        out = torch.full((F, n), float("nan"), dtype=DTYPE)
+        out[:, okc] = a.to(DTYPE).cpu()
+        return out
+
+    def col(res, name):
+        return res.field(name).to(DTYPE).cpu()
+
+    uL, vL = col(lres, "u"), col(lres, "v")
+    uR, vR = full(rres.u), full(rres.v)
+    pl = pts[None] + torch.stack([uL, vL], -1)
+    right0 = cross.right.to(DTYPE)
+    pr = right0[None] + torch.stack([uR, vR], -1)
+    tri = triangulate(rig, pl, pr)
+    tri0 = triangulate(rig, pts, right0)
+    X, X0 = tri.X, tri0.X
+    U = X - X0[None]
+    s_l = [lres.std.get(k) for k in ("u", "v")]
+    s_r = [rres.std.get(k) for k in ("u", "v")]
+    std: dict[str, torch.Tensor] = {}
+    if all(s is not None for s in s_l + s_r):
+        std4 = torch.stack([s_l[0].to(DTYPE).cpu(), s_l[1].to(DTYPE).cpu(), full(s_r[0]),
+                            full(s_r[1])], -1)
+        sd = propagate_std(tri.sensitivity, std4)
+        for i, k in enumerate("XYZ"):
+            std[k] = sd[..., i]
+        for i, k in enumerate("UVW"):
+            std[k] = sd[..., i]  # the reference's triangulation error is common: cancels
+    vel = torch.full_like(X, float("nan"))
+    if cfg.m > 0:
+        rate = torch.stack([col(lres, "ut"), col(lres, "vt"), full(rres.ut), full(rres.vt)], -1)
+        vel = (tri.sensitivity @ rate[..., None])[..., 0]
+        st_l = [lres.std.get(k) for k in ("ut", "vt")]
+        st_r = [rres.std.get(k) for k in ("ut", "vt")]
+        if all(s is not None for s in st_l + st_r):
+            s4 = torch.stack([st_l[0].to(DTYPE).cpu(), st_l[1].to(DTYPE).cpu(), full(st_r[0]),
+                              full(st_r[1])], -1)
+            sv = propagate_std(tri.sensitivity, s4)
+            for i, k in enumerate(("Ut", "Vt", "Wt")):
+                std[k] = sv[..., i]
+    x0_std = propagate_std(tri0.sensitivity, torch.cat(
+        [torch.zeros_like(cross.std), cross.std], -1))
+    # status: the cross match, then the left and right tracks, then the geometry
+    st_l = lres.status.cpu().to(torch.int16)
+    st_r = torch.full((F, n), int(Status.NOT_COMPUTED), dtype=torch.int16)
+    st_r[:, okc] = rres.status.cpu().to(torch.int16)
+    st_c = cross.status.cpu().to(torch.int16)[None].expand(F, n)
+    bad = int(Status.MAX_ITER)
+    status = torch.where(st_c > bad, st_c, torch.where(st_l > bad, st_l, torch.where(
+        st_r > bad, st_r, torch.maximum(st_l, st_r))))
+    geo_bad = ~(tri.reprojection_error <= max_reprojection) | ~tri.in_front
+    status = torch.where((status <= bad) & geo_bad, torch.full_like(status,
+                         int(Status.INCONSISTENT)), status).to(torch.int8)
+    nan = status > bad
+    for a in (X, U, vel):
+        a[nan] = float("nan")
+    for k in std:
+        std[k][nan] = float("nan")
+    info = {"cross_s": t_cross, "track_s": t_track,
+            "total_s": _time.perf_counter() - t_start, "m": cfg.m,
+            "subset_size": cfg.subset_size, "cross_ok": int(okc.sum()), "points": n,
+            "cross_repaired": int(cross.repaired.sum()),
+            "reference_reprojection_px": float(tri0.reprojection_error[okc].median()),
+            "max_reprojection": max_reprojection}
+    return StereoResult(
+        points=pts, right_points=right0, frames=lres.frames.cpu(), times=lres.times.cpu(),
+        X=X[..., 0], Y=X[..., 1], Z=X[..., 2], U=U[..., 0], V=U[..., 1], W=U[..., 2],
+        Ut=vel[..., 0], Vt=vel[..., 1], Wt=vel[..., 2], X0=X0, X0_std=x0_std, std=std,
+        reprojection_error=tri.reprojection_error, status=status, left=lres, right=rres,
+        cross=cross, calibration=rig.summary(), info=info)
