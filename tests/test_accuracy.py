@@ -9,8 +9,8 @@ import pytest
 import torch
 
 import torch_stsdic as sts
-from torch_stsdic.offgrid import carry_params
-from torch_stsdic.refine import fit_intercepts, predicted_profile
+from torch_stsdic.core.offgrid import carry_params
+from torch_stsdic.movie.refine import fit_intercepts, predicted_profile
 from torch_stsdic.synth import (
     HomogeneousStrain,
     Translation,
@@ -112,7 +112,7 @@ def test_refined_reference_lifts_the_floor():
     truth = ground_truth(motion, pts, refined.times.numpy())["u"].numpy()
     # no bias: the mean over 81 points of per-point offsets of ~10e-3 px has a std of ~1.1e-3
     # px (one movie), so 4e-3 is a 3.5 sigma bound; the bias study over seeds and crops is
-    # scripts/refined_reference.py (docs/accuracy.md)
+    # scripts/validation/refined_reference.py (docs/accuracy.md)
     assert abs(float(np.mean(refined.u.numpy() - truth))) < 4e-3
     info = refined.info["refine_reference"]
     assert info["refined"] == len(pts) and info["frames_median"] == 40  # all but the reference
@@ -263,7 +263,7 @@ def test_off_centre_subsets_are_the_centred_solution_carried():
     """``centres=``: the subset centred elsewhere, its solution carried to the POI. Equal to
     solving at the centres and carrying the parameters (u += ux dx + uy dy) and the std
     (sqrt(sd_u^2 + (dy sd_uy)^2)) by hand; on a strain field, near the truth at the POI."""
-    from torch_stsdic.offgrid import carry_std
+    from torch_stsdic.core.offgrid import carry_std
 
     motion = Translation(ut=0.05) + HomogeneousStrain(exx=2e-3, eyy=-3e-3, exy=1e-3,
                                                          center=(60.0, 60.0), rate=1.0)

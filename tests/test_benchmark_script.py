@@ -1,4 +1,5 @@
-"""scripts/benchmark.py: the --quick preset runs and records; the doc tables regenerate."""
+"""scripts/benchmarks/benchmark.py: the --quick preset runs and records; the doc tables
+regenerate."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "benchmark.py"
+SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "benchmarks" / "benchmark.py"
 
 
 def _load():
@@ -100,7 +101,7 @@ def test_movie_preset_runs_and_splits_time(tmp_path):
 
 
 def test_opencorr_bench_says_how_to_build_when_the_harness_is_missing(tmp_path):
-    """scripts/bench_opencorr.py without a built OpenCorr harness: one line saying how to
+    """scripts/benchmarks/bench_opencorr.py without a built OpenCorr harness: one line saying how to
     build it, no record written, exit status 1 (nothing else runs)."""
     out = tmp_path / "oc.json"
     proc = subprocess.run([sys.executable, str(SCRIPT.parent / "bench_opencorr.py"),

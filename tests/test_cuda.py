@@ -19,8 +19,8 @@ from test_shared_motion import _jittery_movie  # the jittery render (tests/ on t
 
 import torch_stsdic as sts
 from torch_stsdic import kernels
+from torch_stsdic.core.status import Status
 from torch_stsdic.io import read_results
-from torch_stsdic.status import Status
 from torch_stsdic.synth import (
     Translation,
     ground_truth,

@@ -196,7 +196,7 @@ def _docs_script():
     import importlib.util
     from pathlib import Path
 
-    path = Path(__file__).resolve().parents[1] / "scripts" / "regenerate_docs.py"
+    path = Path(__file__).resolve().parents[1] / "scripts" / "tools" / "regenerate_docs.py"
     spec = importlib.util.spec_from_file_location("regenerate_docs", path)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
@@ -205,7 +205,7 @@ def _docs_script():
 
 def test_docs_quote_the_program():
     """docs/cli.md pastes 'stsdic --help' as it is now, and the README, docs/cli.md and
-    'stsdic --help' all quote the same demo time (scripts/regenerate_docs.py --check)."""
+    'stsdic --help' all quote the same demo time (scripts/tools/regenerate_docs.py --check)."""
     docs = _docs_script()
     text = docs.CLI_DOC.read_text(encoding="utf-8")
     assert docs.stale(text, demo=False) == []

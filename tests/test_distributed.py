@@ -1,4 +1,4 @@
-"""Tests for torch_stsdic.distributed: frame chunks tracked on Dask workers, merged into one
+"""Tests for torch_stsdic.movie.distributed: frame chunks tracked on Dask workers, merged into one
 HDF5 file that matches a single-process ``track`` run."""
 
 from __future__ import annotations
@@ -11,10 +11,10 @@ import pytest
 import torch
 
 from torch_stsdic import DICConfig
-from torch_stsdic.distributed import chunk_plan, track_distributed, track_distributed_many
+from torch_stsdic.core.status import Status
 from torch_stsdic.io import read_results
-from torch_stsdic.series import track
-from torch_stsdic.status import Status
+from torch_stsdic.movie.distributed import chunk_plan, track_distributed, track_distributed_many
+from torch_stsdic.movie.series import track
 from torch_stsdic.synth import Translation, synthetic_movie
 
 ROI = (22, 22, 58, 58)  # 3 x 3 points with step 18 on an 81 x 81 image

@@ -10,8 +10,9 @@ import h5py
 import numpy as np
 import pytest
 
+from torch_stsdic.analysis.export import export_results
 from torch_stsdic.cli import main
-from torch_stsdic.io import ResultWriter, Units, export_results, read_results, units_of
+from torch_stsdic.io import ResultWriter, Units, read_results, units_of
 from torch_stsdic.io.units import check_calibration
 
 FAST = ["--threads", "1", "--no-progress"]

@@ -5,7 +5,7 @@ process loading the CPU), a full disk (simulated mid-run; a real small tmpfs whe
 test may mount one), a read-only output folder, corrupt or foreign files given to
 ``--resume``, a frame that vanishes or changes size mid-run. Every case: one clear line,
 the finished frames kept, and ``--resume`` ending with the numbers of an uninterrupted run.
-The long campaign on real images is ``scripts/interrupt_resume.py``.
+The long campaign on real images is ``scripts/tools/interrupt_resume.py``.
 """
 
 from __future__ import annotations
@@ -28,11 +28,11 @@ import tifffile
 import torch
 
 from torch_stsdic import DICConfig, track
+from torch_stsdic.analysis.points import grid_points
 from torch_stsdic.cli import main
+from torch_stsdic.core.status import Status
 from torch_stsdic.io import ImageSeries, load_series
 from torch_stsdic.io.results import ResultWriter
-from torch_stsdic.points import grid_points
-from torch_stsdic.status import Status
 from torch_stsdic.synth import Translation, make_speckle, render_series
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -11,9 +11,9 @@ import torch
 
 import torch_stsdic as sts
 from torch_stsdic import synth
-from torch_stsdic.frames import FrameCache, default_ahead, frames_in_order, window_frames
+from torch_stsdic.core.solver import SubsetSolver
 from torch_stsdic.io import load_series
-from torch_stsdic.solver import SubsetSolver
+from torch_stsdic.movie.frames import FrameCache, default_ahead, frames_in_order, window_frames
 
 
 def test_window_frames_shift_at_the_ends():

@@ -194,7 +194,7 @@ class _Stop(BaseException):
 
 @pytest.fixture
 def no_solve(monkeypatch):
-    import torch_stsdic.series as series
+    import torch_stsdic.movie.series as series
 
     def stop(*args, **kwargs):
         raise _Stop

@@ -104,7 +104,7 @@ def _short_biased_series(n: int = 40) -> tuple[np.ndarray, dict[str, np.ndarray]
 
 
 def test_refine_fits_have_more_frames_than_unknowns(monkeypatch):
-    from torch_stsdic import refine
+    from torch_stsdic.movie import refine
 
     t, ys = _short_biased_series()
     shapes = []
@@ -126,7 +126,7 @@ def test_refine_fits_have_more_frames_than_unknowns(monkeypatch):
 @pytest.mark.parametrize("overwrite", [False, True])
 def test_failed_refine_pre_pass_leaves_no_empty_file(capsys, movie, tmp_path, monkeypatch,
                                                      overwrite):
-    from torch_stsdic import refine
+    from torch_stsdic.movie import refine
 
     def broken(*a, **k):
         raise np.linalg.LinAlgError("Singular matrix")
@@ -324,7 +324,7 @@ def test_os_errors_are_one_line_without_errno(capsys, result, tmp_path):
 def _docs_script():
     import importlib.util
 
-    path = Path(__file__).resolve().parents[1] / "scripts" / "regenerate_docs.py"
+    path = Path(__file__).resolve().parents[1] / "scripts" / "tools" / "regenerate_docs.py"
     spec = importlib.util.spec_from_file_location("regenerate_docs_guards", path)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)

@@ -18,6 +18,8 @@ import tifffile
 import torch
 from PIL import Image
 
+from torch_stsdic.analysis.export import export_csv
+from torch_stsdic.core.status import Status
 from torch_stsdic.io import (
     CSV_COLUMNS,
     RESULTS_FORMAT,
@@ -25,13 +27,11 @@ from torch_stsdic.io import (
     InputError,
     ResultFileError,
     ResultWriter,
-    export_csv,
     load_series,
     natural_sort_key,
     parse_frame_spec,
     read_results,
 )
-from torch_stsdic.status import Status
 
 REPO = Path(__file__).resolve().parents[1]
 

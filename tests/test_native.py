@@ -1,4 +1,4 @@
-"""Fused C++ CPU kernels (torch_stsdic.native) against the torch code they replace."""
+"""Fused C++ CPU kernels (torch_stsdic.kernels.native) against the torch code they replace."""
 
 import os
 import queue
@@ -17,11 +17,12 @@ import pytest
 import torch
 
 import torch_stsdic as sts
-from torch_stsdic import native, synth
-from torch_stsdic.formulations import ic_rhs_kernel
-from torch_stsdic.interpolation import BSplineImage, sample_kernel
-from torch_stsdic.native import builder, declarations, loader, ops
-from torch_stsdic.native import rows as native_rows
+from torch_stsdic import synth
+from torch_stsdic.core.formulations import ic_rhs_kernel
+from torch_stsdic.core.interpolation import BSplineImage, sample_kernel
+from torch_stsdic.kernels import native
+from torch_stsdic.kernels.native import builder, declarations, loader, ops
+from torch_stsdic.kernels.native import rows as native_rows
 
 pytestmark = pytest.mark.skipif(not native.available(),
                                 reason="fused CPU kernels did not build (no C++ compiler?)")
@@ -78,7 +79,7 @@ def test_subsets_match_points(order):
 def _rhs_case(has_time, dtype=torch.float64, n=7, t=3, seed=0):
     g = torch.Generator().manual_seed(seed)
     img = _image(dtype, 3, frames=t, seed=seed)
-    shape = sts.shape.AffineShape(temporal=has_time)
+    shape = sts.AffineShape(temporal=has_time)
     d = torch.arange(-4.0, 5.0, dtype=dtype)
     dx, dy = d.repeat(9), d.repeat_interleave(9)
     basis = shape.spatial_basis(dx, dy)
@@ -191,12 +192,12 @@ def test_gram_matches_torch(quadratic, dtype):
     """The native gram (built from basis products and gradient products) against the
     definition sum_s w J_s J_s^T, for the affine (Ks 2) and the quadratic (Ks 5) basis and
     a non-uniform window."""
-    from torch_stsdic.formulations import gram
+    from torch_stsdic.core.formulations import gram
 
     img, shape, c = _rhs_case(True, n=5)
     basis = c["basis"]
     if quadratic:
-        basis = sts.shape.QuadraticShape(temporal=True).spatial_basis(c["dx"], c["dy"])
+        basis = sts.QuadraticShape(temporal=True).spatial_basis(c["dx"], c["dy"])
     args = [c["gx"].to(dtype), c["gy"].to(dtype), basis.to(dtype), c["w"].to(dtype)]
     g_nat, m_nat = gram(*args)
     assert g_nat.shape == (5, 2 * (basis.shape[1] + 1), 2 * (basis.shape[1] + 1))
@@ -284,10 +285,10 @@ def test_portable_build_matches_torch(tmp_path):
     """The scalar code path (no AVX2: what other CPUs run) built and checked in float32."""
     code = textwrap.dedent("""
         import torch
-        from torch_stsdic import native
-        from torch_stsdic.interpolation import BSplineImage, sample_kernel
-        from torch_stsdic.formulations import ic_rhs_kernel
-        from torch_stsdic.shape import AffineShape
+        from torch_stsdic.kernels import native
+        from torch_stsdic.core.interpolation import BSplineImage, sample_kernel
+        from torch_stsdic.core.formulations import ic_rhs_kernel
+        from torch_stsdic.core.shape import AffineShape
         g = torch.Generator().manual_seed(0)
         img = BSplineImage(torch.rand(2, 40, 50, generator=g) * 255, 3)
         a = img.kernel_args()
@@ -326,7 +327,7 @@ def test_portable_build_matches_torch(tmp_path):
 @pytest.mark.parametrize("order", [3, 5])
 @pytest.mark.parametrize("shape", [(3, 40, 50), (2, 7), (5, 3), (1, 9), (9, 1), (1, 1), (30, 200)])
 def test_prefilter_matches_fft(order, shape):
-    from torch_stsdic.interpolation import _prefilter_axis
+    from torch_stsdic.core.interpolation import _prefilter_axis
 
     g = torch.Generator().manual_seed(2)
     x = torch.rand(*shape, generator=g, dtype=torch.float64) * 255
@@ -469,7 +470,7 @@ def test_wrong_calls_raise_before_any_c_code(change, error, message):
     c, args = _gram_args()
     native.kernels()["sts_gram_f64"](**args)  # the unchanged call is right ...
     native.set_native(False)
-    from torch_stsdic.formulations import gram
+    from torch_stsdic.core.formulations import gram
 
     g_t, m_t = gram(c["gx"], c["gy"], c["basis"], c["w"])
     assert torch.allclose(args["G"], g_t, rtol=1e-12, atol=1e-9)
@@ -590,9 +591,9 @@ def test_failing_chunk_raises_naming_its_rows():
 _INTERRUPT_CHILD = """
 import sys
 import torch
-from torch_stsdic import native
-from torch_stsdic.interpolation import BSplineImage
-from torch_stsdic.shape import AffineShape
+from torch_stsdic.kernels import native
+from torch_stsdic.core.interpolation import BSplineImage
+from torch_stsdic.core.shape import AffineShape
 
 rounds = int(sys.argv[1])
 torch.set_num_threads(2)
@@ -734,7 +735,7 @@ def test_spd_inverse_matches_torch(p, dtype):
     """The native SPD inverse (Cholesky) against torch's, with rows that are not positive
     definite (negative, NaN, singular) flagged and NaN; the torch path of
     ``linalg.spd_inverse`` (native off) gives the same."""
-    from torch_stsdic.linalg import spd_inverse
+    from torch_stsdic.kernels.linalg import spd_inverse
 
     g = torch.Generator().manual_seed(p)
     a = torch.randn(40, p, p, generator=g, dtype=torch.float64)
@@ -768,13 +769,13 @@ def test_param_std_matches_the_response(temporal, window):
     STS and classical shapes, a 0/1 and a Gaussian window (its own w^2 moments), a row whose
     noise-corrected Hessian is not positive definite (both fall back to the plain Hessian)
     and a row without texture (NaN)."""
-    from torch_stsdic import uncertainty as unc
-    from torch_stsdic.formulations import Geometry, SubsetData
+    from torch_stsdic.core import uncertainty as unc
+    from torch_stsdic.core.formulations import Geometry, SubsetData
 
     g = torch.Generator().manual_seed(7)
-    win = (sts.window.SquareWindow(11) if window == "square"
-           else sts.window.GaussianWindow(11))
-    geo = Geometry.make(sts.shape.AffineShape(temporal=temporal), win, "znssd",
+    win = (sts.SquareWindow(11) if window == "square"
+           else sts.GaussianWindow(11))
+    geo = Geometry.make(sts.AffineShape(temporal=temporal), win, "znssd",
                         torch.float64, torch.device("cpu"))
     n, s = 300, geo.w.numel()
     gx = torch.randn(n, s, generator=g, dtype=torch.float64) * 15.0
@@ -840,7 +841,7 @@ def test_nanmedian_matches_torch(k, dtype):
     """The native median of short rows (a sorting network for 8, insertion otherwise) is
     torch.nanmedian's: NaN ignored, the lower middle value for an even count, NaN for a row
     of NaN, infinities kept; used through quality.nanmedian_rows."""
-    from torch_stsdic.quality import nanmedian_rows
+    from torch_stsdic.analysis.quality import nanmedian_rows
 
     g = torch.Generator().manual_seed(k)
     x = torch.randn(3, 500, k, generator=g, dtype=torch.float64).to(dtype)

@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from torch_stsdic import DICConfig, SubsetSolver, grid_points, solve_window
+from torch_stsdic.core.status import Status
 from torch_stsdic.nn import STSDIC, STSDICOutput, dense_to_points, points_to_dense
-from torch_stsdic.status import Status
 from torch_stsdic.synth import Translation, make_speckle, render_series
 
 SIZE = (41, 41)

@@ -1,4 +1,4 @@
-"""Tests of the noise-floor prediction and the noise estimators (torch_stsdic.noise)."""
+"""Tests of the noise-floor prediction and the noise estimators (torch_stsdic.core.noise)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import pytest
 import torch
 
 import torch_stsdic as sts
-from torch_stsdic.noise import (
+from torch_stsdic.core.noise import (
     estimate_noise_sigma,
     gradient_noise_factor,
     interpolated_noise_autocorrelation,
@@ -108,7 +108,7 @@ def test_interpolated_noise_factors():
                           atol=1e-9)
     assert torch.allclose(r[1], r[1].flip(-1), atol=1e-12)  # symmetric in the lag
     # Monte Carlo: interpolated white noise at a half-pixel shift
-    from torch_stsdic.interpolation import BSplineImage
+    from torch_stsdic.core.interpolation import BSplineImage
 
     gen = torch.Generator().manual_seed(0)
     n = torch.randn(1, 120, 120, generator=gen, dtype=torch.float64)

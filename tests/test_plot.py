@@ -11,6 +11,7 @@ import pytest  # noqa: E402
 import torch  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
+from torch_stsdic.core.status import Status  # noqa: E402
 from torch_stsdic.io import Units  # noqa: E402
 from torch_stsdic.plot import (  # noqa: E402
     animate_field,
@@ -23,7 +24,6 @@ from torch_stsdic.plot import (  # noqa: E402
     plot_status,
     plot_xy,
 )
-from torch_stsdic.status import Status  # noqa: E402
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 

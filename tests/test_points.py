@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import torch
 
-from torch_stsdic.points import _nearest_brute, nearest_among, nearest_points
-from torch_stsdic.quality import neighbours
+from torch_stsdic.analysis.points import _nearest_brute, nearest_among, nearest_points
+from torch_stsdic.analysis.quality import neighbours
 
 
 def test_nearest_points_by_cells_equals_the_full_search():

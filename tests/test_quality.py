@@ -15,14 +15,14 @@ import pytest
 import torch
 
 from torch_stsdic import DICConfig, track
-from torch_stsdic.quality import (
+from torch_stsdic.analysis.quality import (
     median_test,
     model_mismatch,
     neighbours,
     poor_fit,
     residual_mismatch,
 )
-from torch_stsdic.status import Status, usable
+from torch_stsdic.core.status import Status, usable
 from torch_stsdic.synth import (
     Translation,
     ground_truth,
@@ -145,7 +145,7 @@ def test_the_model_check_judges_from_the_free_step_as_from_the_classical_solve(
     statuses and windows as with every row solved classically; where the windows fit (the
     crack away from it), most rows are judged from the step (4 degrees a frame: most
     windows fail, and those are always solved)."""
-    import torch_stsdic.block as block
+    import torch_stsdic.movie.block as block
 
     motion = motion_family(family, SIZE, t_jump=4.0)
     series, _ = _family(motion)
@@ -256,7 +256,7 @@ def test_poor_fit_median_ignores_noise_free_matches():
 def test_inconsistent_point_is_carried_from_its_own_solution():
     """The neighbour test's doubt is reported, not acted on: an INCONSISTENT point (it fitted
     its subset) goes on from its own solution; a POOR_FIT one does not."""
-    from torch_stsdic.block import make_carry
+    from torch_stsdic.movie.block import make_carry
 
     st = [int(Status.CONVERGED), int(Status.INCONSISTENT), int(Status.POOR_FIT)]
     rows = {"u": torch.tensor([[1.0, 2.0, 3.0]]).numpy(), "v": torch.zeros(1, 3).numpy(),
@@ -270,7 +270,7 @@ def test_a_row_left_classical_carries_its_finite_difference_velocity():
     """A point whose last row has no window velocity (left classical: ut, vt NaN) starts the
     next window from the finite difference of its last two rows, as its displacement does,
     not from zero velocity; a measured velocity is carried as it is."""
-    from torch_stsdic.block import make_carry
+    from torch_stsdic.movie.block import make_carry
 
     nan = float("nan")
     ok = int(Status.CONVERGED)
@@ -374,7 +374,7 @@ def test_fit_check_keeps_a_point_whose_fit_degrades_gradually():
     point whose misfit 1 - ZNCC grew by at most FIT_GROWTH since its last trusted row keeps
     its trust; a jump from a good fit (a wrong peak) is POOR_FIT, as is a point with no
     trusted row before."""
-    from torch_stsdic.quality import FIT_GROWTH, poor_fit
+    from torch_stsdic.analysis.quality import FIT_GROWTH, poor_fit
 
     n = 40
     sigma = torch.ones(n, dtype=torch.float64)
@@ -395,8 +395,8 @@ def test_a_vague_point_does_not_widen_its_own_neighbour_tolerance():
     std up to 26,000 px, ZNCC 0.93-0.99, 1-6 px off its neighbours) is an outlier: the
     neighbour test's tolerance comes from the frame's precision and the neighbours' gradient
     noise, not from the judged point's own (which made it 1e5 px wide there)."""
-    from torch_stsdic.points import grid_points
-    from torch_stsdic.quality import neighbour_tolerance
+    from torch_stsdic.analysis.points import grid_points
+    from torch_stsdic.analysis.quality import neighbour_tolerance
 
     pts = torch.as_tensor(grid_points((200, 200), step=20, margin=20), dtype=torch.float64)
     n = pts.shape[0]
@@ -424,7 +424,7 @@ def test_rows_left_classical_are_the_classical_solution():
     """Rows the model check leaves classical (m = 0: no window fits the crack) carry the
     classical solution converged to the run's tolerance, not the check's looser one
     (block.CHECK_TOL): they equal a classical run's rows to well below that tolerance."""
-    from torch_stsdic import block
+    from torch_stsdic.movie import block
 
     motion = motion_family("crack", SIZE, t_jump=4.0)
     series, _ = _family(motion)
@@ -444,7 +444,7 @@ def test_line_mismatch_predicts_the_windows_that_would_fail():
     """A window whose frames' classical displacements lie on a line (plus noise) is kept for
     solving; one across a jump of many standard deviations is not; unknown frames never
     condemn a window."""
-    from torch_stsdic.quality import line_mismatch
+    from torch_stsdic.analysis.quality import line_mismatch
 
     g = torch.Generator().manual_seed(0)
     r, sd = 4000, 0.01
@@ -469,8 +469,8 @@ def test_grid_neighbours_match_a_sort_of_all_candidates():
     """The grid lookup (the nearest k offsets where all hold a point, else every offset
     within reach, placed by a cumulative count) gives what sorting every candidate by
     (missing last, distance) gives, holes and borders included."""
-    from torch_stsdic.quality import _grid_neighbours
-    from torch_stsdic.strain import detect_grid
+    from torch_stsdic.analysis.quality import _grid_neighbours
+    from torch_stsdic.analysis.strain import detect_grid
 
     g = torch.Generator().manual_seed(5)
     ys, xs = torch.meshgrid(torch.arange(0.0, 60, 3), torch.arange(0.0, 100, 5), indexing="ij")
@@ -522,8 +522,8 @@ def test_native_neighbour_round_is_the_torch_round():
     """One round of the neighbour test by the native kernels gives the torch code's numbers
     bit for bit at the points it judges (residual, scatter, count), with and without the
     carry by gradients, and median_test the same outliers."""
-    from torch_stsdic import native
-    from torch_stsdic.quality import _round_native, _round_torch
+    from torch_stsdic.analysis.quality import _round_native, _round_torch
+    from torch_stsdic.kernels import native
 
     if not native.available():
         pytest.skip("the native kernels are not built here")

@@ -8,7 +8,7 @@ Before, rho (the offsets' variance over the per-frame variance) was solved from 
 intercepts alone (41 here, 46 on the hourglass, ~1 from the noise), nearly all of the error was
 subtracted (shrink 0.98) and the predicted std scaled down to match: 4.8x the unrefined error,
 30x its predicted std. Now rho is held to what the images' noise allows
-(:func:`torch_stsdic.refine.images_rho`) and the rest counts as intercept error.
+(:func:`torch_stsdic.movie.refine.images_rho`) and the rest counts as intercept error.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ import pytest
 import torch
 
 import torch_stsdic as sts
-from torch_stsdic.refine import _shrink, images_rho
+from torch_stsdic.movie.refine import _shrink, images_rho
 from torch_stsdic.synth import Custom, ground_truth, make_speckle, render_series
 
 SIZE = (121, 121)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 
 import torch_stsdic as sts
-from torch_stsdic.sample_guess import GUESS_TOL, MeasuredSample
+from torch_stsdic.movie.sample_guess import GUESS_TOL, MeasuredSample
 from torch_stsdic.synth import Translation, make_speckle, render_series
 
 

@@ -5,8 +5,8 @@ import torch
 
 import torch_stsdic as sts
 from torch_stsdic import synth
-from torch_stsdic.initial import carry_from_seed, seed_cells
-from torch_stsdic.shape import AffineShape
+from torch_stsdic.core.initial import carry_from_seed, seed_cells
+from torch_stsdic.core.shape import AffineShape
 
 SIZE = (121, 121)
 
@@ -128,7 +128,7 @@ def test_initial_guess_config_is_validated():
 def test_fft_regions_gathered_from_windows_equal_the_clamped_ones(per_frame):
     """FFT-CC's search regions: gathered from a strided view where inside the image, by
     clamped index arithmetic (zero outside) elsewhere; the same numbers either way."""
-    from torch_stsdic.initial import _regions, _regions_clamped
+    from torch_stsdic.core.initial import _regions, _regions_clamped
 
     g = torch.Generator().manual_seed(1)
     img = torch.rand(3, 60, 90, generator=g)

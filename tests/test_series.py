@@ -1,4 +1,4 @@
-"""Tests for torch_stsdic.series: tracking a movie with sliding STS-DIC windows."""
+"""Tests for torch_stsdic.movie.series: tracking a movie with sliding STS-DIC windows."""
 
 from __future__ import annotations
 
@@ -15,13 +15,13 @@ import pytest
 import torch
 
 from torch_stsdic import DICConfig
-from torch_stsdic.frames import default_ahead
+from torch_stsdic.analysis.points import grid_points
+from torch_stsdic.analysis.smoothing import smooth_in_time, temporal_smoothing
+from torch_stsdic.core.status import Status
 from torch_stsdic.io import load_series, read_results
-from torch_stsdic.plan import resolve_reference
-from torch_stsdic.points import grid_points
-from torch_stsdic.series import track
-from torch_stsdic.smoothing import smooth_in_time, temporal_smoothing
-from torch_stsdic.status import Status
+from torch_stsdic.movie.frames import default_ahead
+from torch_stsdic.movie.plan import resolve_reference
+from torch_stsdic.movie.series import track
 from torch_stsdic.synth import (
     HomogeneousStrain,
     Jump,
@@ -169,7 +169,7 @@ def test_sigkilled_process_resumes_to_identical_result(movie, sts_run, tmp_path)
         import os, signal
         import numpy as np, torch
         from torch_stsdic import DICConfig
-        from torch_stsdic.series import track
+        from torch_stsdic.movie.series import track
         torch.set_num_threads(1)
 
         def kill(done, total):
@@ -385,8 +385,8 @@ def test_reference_subsets_kept_between_solves_change_nothing(monkeypatch):
     """The run keeps its points' reference subsets between solves (windows, the model check's
     classical solves, shorter windows, later blocks; emptied at a reference update): the
     results are those of sampling them in every solve."""
-    import torch_stsdic.series as series_mod
-    from torch_stsdic.gauss_newton import ReferenceCache
+    import torch_stsdic.movie.series as series_mod
+    from torch_stsdic.core.gauss_newton import ReferenceCache
 
     motion = Translation(ut=1.2, vt=0.4) + Jump(50.0, du=0.6, dv=-0.4, t_jump=4.5)
     mv = synthetic_movie((101, 101), 9, motion, noise_sigma=1.0, seed=2)

@@ -3,8 +3,8 @@
 import pytest
 import torch
 
-from torch_stsdic.shape import AffineShape, QuadraticShape, make_shape
-from torch_stsdic.window import make_window
+from torch_stsdic.core.shape import AffineShape, QuadraticShape, make_shape
+from torch_stsdic.core.window import make_window
 
 
 def _grid(dtype=torch.float64):

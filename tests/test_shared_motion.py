@@ -1,4 +1,4 @@
-"""The shared motion (torch_stsdic.shared_motion): the specimen's per-frame affine motion,
+"""The shared motion (torch_stsdic.core.shared_motion): the specimen's per-frame affine motion,
 measured robustly from all points and carried as a known term in every window."""
 
 import numpy as np
@@ -7,11 +7,11 @@ import torch
 
 import torch_stsdic as sts
 import torch_stsdic.nn as sts_nn
-from torch_stsdic import native
-from torch_stsdic.formulations.joint_ic import ic_rhs_kernel
-from torch_stsdic.frames import segment_bounds, window_frames
+from torch_stsdic.core.formulations.joint_ic import ic_rhs_kernel
+from torch_stsdic.core.shared_motion import SharedMotion, fit_frame_motion, window_offsets
 from torch_stsdic.io import read_results
-from torch_stsdic.shared_motion import SharedMotion, fit_frame_motion, window_offsets
+from torch_stsdic.kernels import native
+from torch_stsdic.movie.frames import segment_bounds, window_frames
 from torch_stsdic.synth import (
     Custom,
     HomogeneousStrain,
@@ -146,7 +146,7 @@ def test_native_kernel_adds_the_motion_like_the_torch_code():
     img = solver.prepare(frames)
     pts = _grid()
     n = pts.shape[0]
-    from torch_stsdic.formulations import Geometry, reference_subsets
+    from torch_stsdic.core.formulations import Geometry, reference_subsets
 
     geo = Geometry.make(solver.shape, solver.window, "znssd", torch.float64, "cpu")
     dt = (times - times[2]).expand(n, -1).contiguous()

@@ -4,8 +4,10 @@ import inspect
 
 import pytest
 
-from torch_stsdic import distributed, noise, plot, series
-from torch_stsdic.signatures import bind, param, signature_like
+from torch_stsdic import plot
+from torch_stsdic.core import noise
+from torch_stsdic.core.signatures import bind, param, signature_like
+from torch_stsdic.movie import distributed, series
 
 P, K = inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY
 

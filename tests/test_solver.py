@@ -6,7 +6,8 @@ import torch
 
 import torch_stsdic as sts
 from torch_stsdic import synth
-from torch_stsdic.status import Status
+from torch_stsdic.kernels.compile import compile_failed
+from torch_stsdic.core.status import Status
 
 SIZE = (101, 101)
 
@@ -185,7 +186,7 @@ def test_numpy_and_uint8_inputs(pattern):
 
 def test_ic_hessian_matches_brute_force(pattern):
     # the factored IC Hessian equals sum_t J_t^T J_t built explicitly (ZNSSD: centred J)
-    from torch_stsdic.formulations import Geometry, ic_hessian, ic_jacobian
+    from torch_stsdic.core.formulations import Geometry, ic_hessian, ic_jacobian
 
     solver = sts.SubsetSolver(sts.DICConfig(m=1, subset_size=11))
     ref = synth.render(pattern, SIZE)
@@ -301,7 +302,7 @@ def test_bad_config(kwargs, match):
 @pytest.mark.slow  # compiles three kernels: 1-3 min on 2 cores
 def test_compiled_ic_step_matches_eager(pattern):
     # large jobs run the fused (torch.compile) IC step: same answer as the eager code
-    from torch_stsdic import interpolation
+    from torch_stsdic.core import interpolation
 
     ref, frames = _series(pattern, synth.Translation(0.3, -0.2, ut=0.05), [0, 1, 2])
     cfg = sts.DICConfig(m=1)
@@ -312,7 +313,7 @@ def test_compiled_ic_step_matches_eager(pattern):
         fused = sts.solve_window(ref.float(), frames.float(), _grid().float(), config=cfg)
     finally:
         interpolation.set_compile("auto")
-    if interpolation._COMPILE_FAILED:
+    if compile_failed():
         pytest.skip("torch.compile is not available on this machine (eager fallback used)")
     assert torch.allclose(fused.u, eager.u, atol=1e-4)
     assert torch.allclose(fused.ut, eager.ut, atol=1e-4)
@@ -320,7 +321,7 @@ def test_compiled_ic_step_matches_eager(pattern):
 
 
 def test_stopping_rule_predicts_the_next_increment():
-    from torch_stsdic.gauss_newton import RATE_FLOOR, _next_increment
+    from torch_stsdic.core.gauss_newton import RATE_FLOOR, _next_increment
 
     norm = torch.tensor([1e-3, 1e-3, 1e-3, 2e-3, 1e-3])
     prev = torch.tensor([0.0, 0.1, 1.5e-3, 1e-3, float("nan")])
@@ -347,18 +348,18 @@ def test_stopping_rule_stays_within_tol_of_the_minimum(pattern, m, monkeypatch):
     tol = sts.DICConfig().tol
     assert (sol.u - tight.u).abs().max() < 3 * tol
     assert (sol.v - tight.v).abs().max() < 3 * tol
-    monkeypatch.setattr("torch_stsdic.gauss_newton.RATE_FLOOR", 1.0)
+    monkeypatch.setattr("torch_stsdic.core.gauss_newton.RATE_FLOOR", 1.0)
     plain = sts.solve_window(ref, win, pts, config=sts.DICConfig(m=m))
     assert (plain.u - tight.u).abs().max() < tol
     assert sol.iterations.float().mean() < plain.iterations.float().mean() - 0.5
 
 
 def test_texture_is_read_off_the_gram():
-    from torch_stsdic.formulations import Geometry, centred_gram, gram_and_texture
+    from torch_stsdic.core.formulations import Geometry, centred_gram, gram_and_texture
 
     g = torch.Generator().manual_seed(2)
-    shape = sts.shape.AffineShape(temporal=False)
-    for window in (sts.window.SquareWindow(11), sts.window.GaussianWindow(11)):
+    shape = sts.AffineShape(temporal=False)
+    for window in (sts.SquareWindow(11), sts.GaussianWindow(11)):
         geo = Geometry.make(shape, window, "znssd", torch.float64, torch.device("cpu"))
         gx = torch.randn(6, geo.w.numel(), generator=g, dtype=torch.float64)
         gy = torch.randn(6, geo.w.numel(), generator=g, dtype=torch.float64)
@@ -373,7 +374,7 @@ def test_classical_step_is_one_classical_step_from_the_window(pattern):
     solution at its centre frame, read off the window solve's last step: what the classical
     solver's own first step from there gives (to the size of the window's last increment),
     and much nearer the classical minimum than the window's solution."""
-    from torch_stsdic import native
+    from torch_stsdic.kernels import native
 
     if not native.available():
         pytest.skip("the classical step comes from the native kernel (not built here)")
@@ -415,7 +416,7 @@ def test_classical_step_is_one_classical_step_from_the_window(pattern):
 def test_classical_step_is_nan_where_the_native_kernel_is_not_used(pattern):
     """Without the native kernel (CUDA, autograd, no compiler) the window solve cannot give
     the classical step: NaN, and the model check starts from the window's solution."""
-    from torch_stsdic import native
+    from torch_stsdic.kernels import native
 
     ref, frames = _series(pattern, synth.Translation(0.3, -0.2, ut=0.05), [1, 2, 3])
     pts = _grid()

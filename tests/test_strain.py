@@ -1,4 +1,4 @@
-"""Tests of torch_stsdic.strain: plane-fit gradients, small / Green-Lagrange strain and rates."""
+"""Tests of torch_stsdic.analysis.strain: plane-fit gradients, small / Green-Lagrange strain and rates."""
 
 from __future__ import annotations
 
@@ -6,7 +6,12 @@ import numpy as np
 import pytest
 import torch
 
-from torch_stsdic.strain import compute_strain, detect_grid, plane_fit_gradients, principal_strains
+from torch_stsdic.analysis.strain import (
+    compute_strain,
+    detect_grid,
+    plane_fit_gradients,
+    principal_strains,
+)
 
 
 def grid_points(nx: int = 12, ny: int = 9, step: float = 10.0, x0: float = 20.0, y0: float = 15.0):

@@ -12,8 +12,9 @@ if not torch.cuda.is_available():  # no GPU: Triton's interpreter, before Triton
     os.environ.setdefault("TRITON_INTERPRET", "1")
 
 import torch_stsdic as sts
-from torch_stsdic import kernels, native, synth
-from torch_stsdic.interpolation import BSplineImage
+from torch_stsdic import kernels, synth
+from torch_stsdic.core.interpolation import BSplineImage
+from torch_stsdic.kernels import fused_step, native
 
 pytestmark = pytest.mark.skipif(not kernels.available(),
                                 reason="triton is not importable (pip install triton)")
@@ -31,7 +32,7 @@ def _case(has_time, dtype, n=6, t=3, half=4, seed=0, device="cpu"):
     """A small random step problem: a 3-frame 40x52 image, affine shape, 9x9 subsets."""
     g = torch.Generator().manual_seed(seed)
     img = BSplineImage(torch.rand(t, 40, 52, generator=g, dtype=dtype) * 255, 3)
-    shape = sts.shape.AffineShape(temporal=has_time)
+    shape = sts.AffineShape(temporal=has_time)
     d = torch.arange(-half, half + 1.0, dtype=dtype)
     dx, dy = d.repeat(d.numel()), d.repeat_interleave(d.numel())
     k = shape.n_basis
@@ -179,7 +180,7 @@ def test_op_is_a_torch_operator():
 def test_solver_with_fused_step_matches_torch_code(monkeypatch):
     """A whole STS(3) solve with the Triton step (interpreted) equals the torch code's."""
     mv = synth.synthetic_movie((48, 48), 3, synth.Translation(ut=0.2, vt=-0.1), seed=2)
-    mod = kernels._module()
+    mod = fused_step.triton_module()
     launches = []
 
     def counted(*args, _fn=mod.ic_rhs_triton):

@@ -3,10 +3,10 @@
 import pytest
 import torch
 
-from torch_stsdic import uncertainty
-from torch_stsdic.formulations import Geometry, SubsetData, centred_gram
-from torch_stsdic.shape import make_shape
-from torch_stsdic.window import make_window
+from torch_stsdic.core import uncertainty
+from torch_stsdic.core.formulations import Geometry, SubsetData, centred_gram
+from torch_stsdic.core.shape import make_shape
+from torch_stsdic.core.window import make_window
 
 
 def _data(n: int = 64, t: int = 5, seed: int = 0, window: str = "square"):

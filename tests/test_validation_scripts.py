@@ -1,4 +1,5 @@
-"""Smoke tests of the validation scripts (scripts/*.py --quick), run from the repository root."""
+"""Smoke tests of the validation scripts (scripts/validation/*.py --quick), run from the
+repository root."""
 
 from __future__ import annotations
 
@@ -19,7 +20,7 @@ DATA = REPO.parent / "shared" / "data"
 def _run(script: str, *args: str, timeout: float = 300.0) -> str:
     env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
     proc = subprocess.run(
-        [sys.executable, str(REPO / "scripts" / script), *args],
+        [sys.executable, str(REPO / "scripts" / "validation" / script), *args],
         cwd=REPO, capture_output=True, text=True, timeout=timeout, env=env,
     )
     assert proc.returncode == 0, f"{script} failed:\n{proc.stdout}\n{proc.stderr}"

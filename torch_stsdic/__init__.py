@@ -14,23 +14,30 @@ import os as _os
 # `stsdic` command is); set OMP_WAIT_POLICY=PASSIVE yourself otherwise.
 _os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-from .allocator import keep_freed_memory  # noqa: E402
-from .config import DICConfig
-from .interpolation import BSplineImage, bspline_prefilter
-from .io import ImageSeries, InputError, ResultWriter, export_csv, load_series, read_results
-from .native import set_native
-from .noise import estimate_noise_sigma, predicted_std
-from .plan import RunPlan, plan_run
-from .points import grid_points
-from .result import TrackResult
-from .series import classical_smoothed, run_plan, track
-from .shape import AffineShape, QuadraticShape, ShapeFunction, make_shape
-from .sinks import HDF5Sink, MemorySink
-from .smoothing import smooth_in_time, temporal_smoothing
-from .solver import SubsetSolver, WindowSolution, solve_window
-from .status import Status, usable
-from .strain import compute_strain
-from .window import CircularWindow, GaussianWindow, SquareWindow, SubsetWindow, make_window
+from torch_stsdic.allocator import keep_freed_memory  # noqa: E402
+from torch_stsdic.analysis.export import export_csv
+from torch_stsdic.analysis.points import grid_points
+from torch_stsdic.analysis.result import TrackResult
+from torch_stsdic.analysis.smoothing import smooth_in_time, temporal_smoothing
+from torch_stsdic.analysis.strain import compute_strain
+from torch_stsdic.core.config import DICConfig
+from torch_stsdic.core.interpolation import BSplineImage, bspline_prefilter
+from torch_stsdic.core.noise import estimate_noise_sigma, predicted_std
+from torch_stsdic.core.shape import AffineShape, QuadraticShape, ShapeFunction, make_shape
+from torch_stsdic.core.solver import SubsetSolver, WindowSolution, solve_window
+from torch_stsdic.core.status import Status, usable
+from torch_stsdic.core.window import (
+    CircularWindow,
+    GaussianWindow,
+    SquareWindow,
+    SubsetWindow,
+    make_window,
+)
+from torch_stsdic.io import ImageSeries, InputError, ResultWriter, load_series, read_results
+from torch_stsdic.kernels.native import set_native
+from torch_stsdic.movie.plan import RunPlan, plan_run
+from torch_stsdic.movie.series import classical_smoothed, run_plan, track
+from torch_stsdic.movie.sinks import HDF5Sink, MemorySink
 
 __version__ = "0.1.0"
 

@@ -189,8 +189,8 @@ def run_demo(
     """
     import torch
 
-    from . import synth
-    from .io import load_series
+    from torch_stsdic import synth
+    from torch_stsdic.io import load_series
 
     s = DemoSettings.create(quick, **changes)
     check_settings(s)
@@ -246,9 +246,9 @@ def _measure(
     refine: bool = False,
 ) -> MethodResult:
     """Track the movie with half window ``m`` against ``reference``; errors and speed."""
-    from .config import DICConfig
-    from .series import track
-    from .status import Status
+    from torch_stsdic.core.config import DICConfig
+    from torch_stsdic.core.status import Status
+    from torch_stsdic.movie.series import track
 
     s = demo.settings
     cfg = DICConfig(subset_size=s.subset, m=m, formulation=s.formulation, search_radius=2)
@@ -341,7 +341,7 @@ def _table(d: DemoResult) -> str:
 
 def _write_files(d: DemoResult, ref_image: np.ndarray, out: Path) -> list[Path]:
     """The figures and ``demo.json`` in ``out``; their paths (in :data:`FILES` order)."""
-    from .plot import plot_xy
+    from torch_stsdic.plot import plot_xy
 
     out.mkdir(parents=True, exist_ok=True)
     paths = [out / name for name in FILES]
@@ -359,7 +359,7 @@ def _write_files(d: DemoResult, ref_image: np.ndarray, out: Path) -> list[Path]:
 def _fields_figure(d: DemoResult, ref_image: np.ndarray, path: Path | None) -> Any:
     """Error maps at the middle frame over the reference: u (top) and ut (bottom), classical
     DIC (left) and STS-DIC (right); each row on one diverging scale centred on 0."""
-    from .plot import plot_fields
+    from torch_stsdic.plot import plot_fields
 
     c, sts, s = d.classical, d.sts, d.settings
     k = len(d.times) // 2
@@ -385,7 +385,7 @@ def _history_figure(d: DemoResult, path: Path | None) -> Any:
     mean over the points (line) and +-1 standard deviation (band)."""
     from matplotlib.figure import Figure
 
-    from .plot import save_figure
+    from torch_stsdic.plot import save_figure
 
     n = len(d.methods)
     fig = Figure(figsize=(3.2 * n + 0.8, 5.6), layout="constrained")

@@ -2,7 +2,7 @@
 
 :class:`STSDIC` measures the displacement (and velocity) at points of interest (POIs) for a
 batch of B short sequences (a reference image and a window of 2m+1 frames each) with the
-batched Gauss-Newton solver of :mod:`torch_stsdic.solver`: the B sequences are solved as one
+batched Gauss-Newton solver of :mod:`torch_stsdic.core.solver`: the B sequences are solved as one
 set of tensor operations (every POI row carries its own reference and frame indices).
 
 Gradients are obtained by **implicit differentiation** at the converged solution, not by
@@ -53,14 +53,14 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor, nn
 
-from .config import DICConfig
-from .formulations import Geometry, reference_subsets
-from .interpolation import BSplineImage
-from .offgrid import carry_params, carry_solution, snap_points
-from .shared_motion import known_window_motion
-from .solver import SubsetSolver, WindowSolution
-from .status import Status
-from .validation import check_pixels
+from torch_stsdic.core.config import DICConfig
+from torch_stsdic.core.formulations import Geometry, reference_subsets
+from torch_stsdic.core.interpolation import BSplineImage
+from torch_stsdic.core.offgrid import carry_params, carry_solution, snap_points
+from torch_stsdic.core.shared_motion import known_window_motion
+from torch_stsdic.core.solver import SubsetSolver, WindowSolution
+from torch_stsdic.core.status import Status
+from torch_stsdic.core.validation import check_pixels
 
 __all__ = [
     "STSDIC",
@@ -82,13 +82,13 @@ class STSDICOutput:
             (implicit gradient); NaN where ``status`` is DIVERGED, OUTSIDE, LOW_TEXTURE or
             NOT_COMPUTED.
         vel: (B, N, 2) velocity (ut, vt), px per time unit (NaN for m = 0). Differentiable.
-        status: (B, N) int8 :class:`~torch_stsdic.status.Status` codes.
+        status: (B, N) int8 :class:`~torch_stsdic.core.status.Status` codes.
         zncc: (B, N) zero-normalised cross-correlation (mean over the window's frames).
         params: (B, N, P) all shape-function parameters (names in ``param_names``).
             Differentiable.
         param_names: e.g. ('u', 'ux', 'uy', 'ut', 'v', 'vx', 'vy', 'vt').
         iterations: (B, N) Gauss-Newton iterations used (all stages).
-        solution: the solver's raw :class:`~torch_stsdic.solver.WindowSolution` for the
+        solution: the solver's raw :class:`~torch_stsdic.core.solver.WindowSolution` for the
             B * N flattened POIs (row b * N + i is sequence b, POI i).
         report: filled by the backward pass: "zero_grad" (POIs given a zero gradient),
             "not_converged" (status not CONVERGED) and "not_stationary" (CONVERGED but the
@@ -318,7 +318,7 @@ class STSDIC(nn.Module):
     """Differentiable STS-DIC: displacement and velocity at POIs for a batch of sequences.
 
     Args:
-        config: solver settings (:class:`~torch_stsdic.config.DICConfig`); ``config.m``
+        config: solver settings (:class:`~torch_stsdic.core.config.DICConfig`); ``config.m``
             fixes the window: ``frames`` must hold 2m+1 frames. All three formulations
             ("joint", "average", "joint+average"; "auto" is resolved by the solver, currently
             to "joint") have exact implicit gradients.
@@ -387,9 +387,9 @@ class STSDIC(nn.Module):
             init: None or (B, N, 2|4|P) initial guess (zero gradient).
             shared_motion: None, or the specimen's known displacement (u, v) px in every
                 frame of the window, (B, 2m+1, 2) (the same at every point, e.g. a rigid
-                shake measured by :func:`~torch_stsdic.shared_motion.fit_frame_motion`) or
+                shake measured by :func:`~torch_stsdic.core.shared_motion.fit_frame_motion`) or
                 (B, N, 2m+1, 2): its jitter about a line in time is carried in every warp
-                (:func:`~torch_stsdic.shared_motion.window_offsets`), so the outputs are the
+                (:func:`~torch_stsdic.core.shared_motion.window_offsets`), so the outputs are the
                 total displacement and the smooth velocity. No gradient flows to it.
 
         Returns:

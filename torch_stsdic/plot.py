@@ -27,10 +27,10 @@ from matplotlib.colors import BoundaryNorm, ListedColormap, Normalize
 from matplotlib.figure import Figure
 from matplotlib.ticker import FuncFormatter, MaxNLocator
 
-from .io.units import Units
-from .signatures import POSITIONAL, bind, param, signature_like
-from .status import Status
-from .strain import detect_grid
+from torch_stsdic.analysis.strain import detect_grid
+from torch_stsdic.core.signatures import POSITIONAL, bind, param, signature_like
+from torch_stsdic.core.status import Status
+from torch_stsdic.io.units import Units
 
 __all__ = [
     "animate_field",
@@ -425,7 +425,7 @@ def plot_status(
     dpi: int = 120,
     units: Units | None = None,
 ) -> Figure:
-    """The quality map: every point coloured by its :class:`~torch_stsdic.status.Status`
+    """The quality map: every point coloured by its :class:`~torch_stsdic.core.status.Status`
     over the image, with a colour bar naming the codes and the share of points with each
     (x, y axes in ``units``' length unit)."""
     p = _np(points).astype(np.float64)
@@ -528,7 +528,7 @@ def plot_shared_motion(
     path: str | Path | None = None,
     dpi: int = 120,
 ) -> Figure:
-    """The specimen's shared motion per frame (:mod:`torch_stsdic.shared_motion`): its
+    """The specimen's shared motion per frame (:mod:`torch_stsdic.core.shared_motion`): its
     translation at the POIs' centre (``scale`` ``length_unit`` per px) and, below, its
     rotation and normal strains (the affine gradient), in 1e-3.
 

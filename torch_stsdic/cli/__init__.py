@@ -5,7 +5,7 @@ One module per sub-command, the options they share in :mod:`.options`, the parse
 matplotlib) are imported inside the commands.
 """
 
-from .app import build_parser, main
-from .errors import CommandError, UsageError
+from torch_stsdic.cli.app import build_parser, main
+from torch_stsdic.cli.errors import CommandError, UsageError
 
 __all__ = ["main", "build_parser", "UsageError", "CommandError"]

@@ -18,10 +18,17 @@ import traceback
 from collections.abc import Sequence
 from typing import Any
 
-from . import demo, export, options, plot, run, synth
-from .demo import DEMO_TIME
-from .errors import PROG, CommandError, UsageError, one_line, print_error, warnings_on_stderr
-from .signals import Interrupted, stop_on_signals
+from torch_stsdic.cli import demo, export, options, plot, run, synth
+from torch_stsdic.cli.demo import DEMO_TIME
+from torch_stsdic.cli.errors import (
+    PROG,
+    CommandError,
+    UsageError,
+    one_line,
+    print_error,
+    warnings_on_stderr,
+)
+from torch_stsdic.cli.signals import Interrupted, stop_on_signals
 
 #: the sub-command modules, in the order of ``stsdic --help``
 COMMANDS = (run, export, plot, synth, demo)

@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from .errors import CommandError, UsageError
+from torch_stsdic.cli.errors import CommandError, UsageError
 
 
 def to_numpy(a: Any) -> np.ndarray:

@@ -10,9 +10,9 @@ import argparse
 from dataclasses import asdict
 from pathlib import Path
 
-from . import options
-from .common import check_device, check_folder
-from .errors import UsageError
+from torch_stsdic.cli import options
+from torch_stsdic.cli.common import check_device, check_folder
+from torch_stsdic.cli.errors import UsageError
 
 NAME = "demo"
 HELP = "classical DIC vs STS-DIC on the paper's synthetic movie (start here)"
@@ -68,7 +68,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def execute(args: argparse.Namespace) -> int:
     """``stsdic demo``: run the experiment, print its table, say where the files are."""
-    from ..demo import DemoSettings, check_settings, run_demo
+    from torch_stsdic.demo import DemoSettings, check_settings, run_demo
 
     device = check_device(args.device)
     settings = DemoSettings.create(

@@ -7,9 +7,9 @@ from pathlib import Path
 
 import numpy as np
 
-from . import options
-from .common import check_folder, span
-from .errors import CommandError, UsageError
+from torch_stsdic.cli import options
+from torch_stsdic.cli.common import check_folder, span
+from torch_stsdic.cli.errors import CommandError, UsageError
 
 NAME = "export"
 HELP = "write a result file as CSV (one file per frame), VTK (ParaView) or MATLAB .mat"
@@ -44,7 +44,7 @@ examples:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The options of ``stsdic export``."""
-    from ..io.export import FORMATS
+    from torch_stsdic.analysis.export import FORMATS
 
     options.add_result(p)
     p.add_argument(
@@ -83,7 +83,7 @@ def _read_frames(path: str) -> np.ndarray:
 
 def _select_frames(spec: str, frames: np.ndarray, path: str) -> list[int]:
     """Image frame numbers from ``--frames spec`` that the result file holds."""
-    from ..io import InputError, parse_frame_spec
+    from torch_stsdic.io import InputError, parse_frame_spec
 
     if len(frames) == 0:
         raise CommandError(f"{path}: the result file holds no frame")
@@ -101,7 +101,7 @@ def _select_frames(spec: str, frames: np.ndarray, path: str) -> list[int]:
 
 def execute(args: argparse.Namespace) -> int:
     """``stsdic export``: CSV per frame, VTK per frame + .pvd, or one .mat."""
-    from ..io import export_results
+    from torch_stsdic.analysis.export import export_results
 
     frames = None
     stored = _read_frames(args.result)
@@ -132,8 +132,8 @@ def execute(args: argparse.Namespace) -> int:
 
 def _say_units(path: str) -> None:
     """One line: the units of the export (the calibration the run recorded)."""
-    from ..io.results import open_results
-    from ..io.units import units_of
+    from torch_stsdic.io.results import open_results
+    from torch_stsdic.io.units import units_of
 
     with open_results(Path(path)) as f:
         u = units_of(f.attrs)

@@ -12,7 +12,7 @@ import math
 from collections.abc import Callable
 from typing import Any
 
-from ..config import CRITERIA, FORMULATION_HELP, FORMULATIONS, INITIAL_GUESSES
+from torch_stsdic.core.config import CRITERIA, FORMULATION_HELP, FORMULATIONS, INITIAL_GUESSES
 
 #: an ArgumentParser or one of its argument groups
 Group = Any
@@ -198,8 +198,8 @@ def add_calibration(g: Group) -> None:
 
 def check_calibration(args: argparse.Namespace) -> dict[str, Any]:
     """The calibration of ``--scale``, ``--unit``, ``--time-unit`` (UsageError naming them)."""
-    from ..io.units import check_calibration as check
-    from .errors import UsageError
+    from torch_stsdic.cli.errors import UsageError
+    from torch_stsdic.io.units import check_calibration as check
 
     try:
         return check(args.scale, args.unit, args.time_unit)

@@ -11,9 +11,9 @@ from typing import Any
 
 import numpy as np
 
-from . import options
-from .common import check_folder, span
-from .errors import CommandError, UsageError, one_line
+from torch_stsdic.cli import options
+from torch_stsdic.cli.common import check_folder, span
+from torch_stsdic.cli.errors import CommandError, UsageError, one_line
 
 NAME = "plot"
 HELP = "draw fields over the image and time histories as PNG files"
@@ -138,7 +138,7 @@ def _field_names(args: argparse.Namespace, res: Any) -> list[str]:
 
 def _valid(args: argparse.Namespace, res: Any) -> np.ndarray:
     """(F, N) bool: usable points (converged or max-iter) with ZNCC >= ``--min-zncc``."""
-    from ..status import usable
+    from torch_stsdic.core.status import usable
 
     status = res.fields.get("status")
     valid = (
@@ -164,7 +164,7 @@ def _reference_frame(res: Any, n: int) -> int:
 
 def _background(args: argparse.Namespace, res: Any) -> np.ndarray | None:
     """Background image for the maps, or None."""
-    from ..io import parse_frame_spec
+    from torch_stsdic.io import parse_frame_spec
 
     series = _series(args, res)
     if series is None:
@@ -184,7 +184,7 @@ def _background(args: argparse.Namespace, res: Any) -> np.ndarray | None:
 
 def _series(args: argparse.Namespace, res: Any) -> Any:
     """The image series of ``--image`` or of the inputs the file records, or None."""
-    from ..io import load_series
+    from torch_stsdic.io import load_series
 
     if args.no_image:
         return None
@@ -215,7 +215,7 @@ POINT_REACH = 2.0
 def _point_spacing(points: np.ndarray) -> float:
     """The points' spacing in px: the grid step (the larger of x and y), else the median
     distance to the nearest neighbour; 1 for a single point."""
-    from ..strain import detect_grid
+    from torch_stsdic.analysis.strain import detect_grid
 
     grid = detect_grid(points) if len(points) > 1 else None
     if grid is not None and max(grid.nx, grid.ny) > 1:
@@ -269,7 +269,7 @@ def _history_pick(
 
 def _plot_histories(args: argparse.Namespace, res: Any, valid: np.ndarray, out: Path) -> list[Path]:
     """The time-history PNGs that have data; their paths."""
-    from ..plot import plot_history
+    from torch_stsdic.plot import plot_history
 
     pick, what, tag = _history_pick(args, res, valid)
     done = res.completed.astype(bool)
@@ -292,7 +292,7 @@ def _plot_histories(args: argparse.Namespace, res: Any, valid: np.ndarray, out: 
 
 def _plot_shared_motion(args: argparse.Namespace, res: Any, out: Path) -> list[Path]:
     """``shared_motion.png`` where the file holds the run's shared motion."""
-    from ..plot import plot_shared_motion
+    from torch_stsdic.plot import plot_shared_motion
 
     if "shared_motion" not in res.arrays:
         return []
@@ -348,7 +348,7 @@ def _when(res: Any, row: int) -> str:
 def _plot_frame(args: argparse.Namespace, res: Any, row: int, valid: np.ndarray,
                 image: np.ndarray | None, out: Path) -> list[Path]:
     """The field maps and the quality map of one row; their paths."""
-    from ..plot import plot_fields, plot_status
+    from torch_stsdic.plot import plot_fields, plot_status
 
     frame, units, name = int(res.frames[row]), res.units, Path(args.result).name
     when = _when(res, row)
@@ -367,7 +367,7 @@ def _plot_frame(args: argparse.Namespace, res: Any, row: int, valid: np.ndarray,
     if "status" in res.fields:
         from matplotlib.figure import Figure
 
-        from ..plot import panel_extent, panel_layout, plot_field, save_figure
+        from torch_stsdic.plot import panel_extent, panel_layout, plot_field, save_figure
 
         zn = res.fields.get("zncc")
         w, h = panel_extent(image, res.points)
@@ -390,7 +390,7 @@ def _plot_frame(args: argparse.Namespace, res: Any, row: int, valid: np.ndarray,
 
 def _animate(args: argparse.Namespace, res: Any, valid: np.ndarray, out: Path) -> Path:
     """``--animate FIELD``: the field over the movie."""
-    from ..plot import animate_field, is_diverging
+    from torch_stsdic.plot import animate_field, is_diverging
 
     nm = args.animate
     if nm not in res.fields:
@@ -419,7 +419,7 @@ def _animate(args: argparse.Namespace, res: Any, valid: np.ndarray, out: Path) -
 
 def execute(args: argparse.Namespace) -> int:
     """``stsdic plot``: field maps at one frame and time histories as PNG."""
-    from ..io import read_results
+    from torch_stsdic.io import read_results
 
     p = Path(args.result)
     if not p.exists():

@@ -11,10 +11,10 @@ from typing import Any
 
 import numpy as np
 
-from . import options
-from .common import check_device, check_folder, fmt_time, to_numpy
-from .errors import CommandError, UsageError, one_line
-from .signals import Interrupted, checkpoint
+from torch_stsdic.cli import options
+from torch_stsdic.cli.common import check_device, check_folder, fmt_time, to_numpy
+from torch_stsdic.cli.errors import CommandError, UsageError, one_line
+from torch_stsdic.cli.signals import Interrupted, checkpoint
 
 NAME = "run"
 HELP = "measure displacement, velocity and strain in an image series -> HDF5"
@@ -132,7 +132,7 @@ def _add_frames(p: argparse.ArgumentParser) -> None:
 
 
 def _open_series(inputs: Sequence[str], timestamps: np.ndarray | None) -> Any:
-    from ..io import InputError, load_series
+    from torch_stsdic.io import InputError, load_series
 
     src: Any = inputs[0] if len(inputs) == 1 else list(inputs)
     try:
@@ -145,7 +145,7 @@ def _open_series(inputs: Sequence[str], timestamps: np.ndarray | None) -> Any:
 
 def _frame_spec(option: str, spec: str, n: int) -> list[int]:
     """Frame numbers of ``spec`` in a series of ``n`` frames; UsageError naming ``option``."""
-    from ..io import InputError, parse_frame_spec
+    from torch_stsdic.io import InputError, parse_frame_spec
 
     try:
         return parse_frame_spec(spec, n)
@@ -166,7 +166,7 @@ def _roi(args: argparse.Namespace, w: int, h: int, name: str) -> tuple[int, int,
 
 
 def _config(args: argparse.Namespace) -> Any:
-    from ..config import DICConfig
+    from torch_stsdic.core.config import DICConfig
 
     try:
         return DICConfig(
@@ -192,7 +192,7 @@ def _config(args: argparse.Namespace) -> Any:
 
 def _track_arguments(args: argparse.Namespace) -> dict[str, Any]:
     """Open and check every input; the keyword arguments of ``track`` (output excluded)."""
-    from ..io import read_mask, read_points, read_timestamps
+    from torch_stsdic.io import read_mask, read_points, read_timestamps
 
     times = read_timestamps(args.timestamps, "--timestamps") if args.timestamps else None
     series = _open_series(args.inputs, times)
@@ -251,10 +251,10 @@ def execute(args: argparse.Namespace) -> int:
     calibration = options.check_calibration(args)
     kwargs = _track_arguments(args)
 
-    from ..io import InputError
-    from ..plan import plan_run
-    from ..refine import set_refinement
-    from ..series import run_plan
+    from torch_stsdic.io import InputError
+    from torch_stsdic.movie.plan import plan_run
+    from torch_stsdic.movie.refine import set_refinement
+    from torch_stsdic.movie.series import run_plan
 
     series = kwargs.pop("series")
     print(series.describe(), flush=True)
@@ -285,7 +285,7 @@ def execute(args: argparse.Namespace) -> int:
             raise
         elapsed = time.perf_counter() - t0
         _print_summary(res, args, elapsed, _reference_name(series, plan))
-        from ..io.results import field_names, open_results
+        from torch_stsdic.io.results import field_names, open_results
 
         with open_results(out) as f:
             fields = [nm for nm in field_names(f)
@@ -319,12 +319,12 @@ def _reference_name(series: Any, plan: Any) -> str:
 def _input_files(args: argparse.Namespace) -> list[tuple[str, Path]]:
     """Every file the run reads, with the option that names it: the frames of each INPUT
     (a folder or glob expanded as the series will), --points, --mask, --timestamps."""
-    from ..io.images import InputError, _expand_source
+    from torch_stsdic.io.images import InputError, expand_source
 
     files: list[tuple[str, Path]] = []
     for src in args.inputs:
         try:
-            files += [("INPUT", p) for p in _expand_source(src)]
+            files += [("INPUT", p) for p in expand_source(src)]
         except InputError:
             continue  # refused with its reason when the series is opened
     for flag in ("points", "mask", "timestamps"):
@@ -354,8 +354,8 @@ def _check_writable(out: Path) -> None:
 
 def _open_sink(plan: Any, args: argparse.Namespace, out: Path) -> Any:
     """The HDF5 result file of the run; its problems in the words of the command line."""
-    from ..io.results import ResultFileError
-    from ..sinks import open_sink
+    from torch_stsdic.io.results import ResultFileError
+    from torch_stsdic.movie.sinks import open_sink
 
     try:
         return open_sink(plan, str(out), resume=args.resume, overwrite=args.overwrite,
@@ -434,7 +434,7 @@ def _discard_unfinished(sink: Any, out: Path, args: argparse.Namespace) -> None:
 
 def _kept(out: Path, args: argparse.Namespace, plan: Any) -> str:
     """What an interrupted or failed run left: the finished frames and how to continue."""
-    from ..io.results import RESULTS_FORMAT, open_results
+    from torch_stsdic.io.results import RESULTS_FORMAT, open_results
 
     partial = out.with_name(out.name + ".partial")
     path = partial if (args.overwrite or args.resume) and partial.exists() else out
@@ -475,7 +475,7 @@ def shared_motion_lines(rec: dict[str, Any] | None) -> list[str]:
 
 def _status_summary(status: np.ndarray) -> dict[str, float]:
     """Percent of the (frame, point) results with each status, by lower-case status name."""
-    from ..status import Status
+    from torch_stsdic.core.status import Status
 
     s = np.asarray(status).astype(np.int64)
     total = max(1, s.size)
@@ -487,7 +487,7 @@ def _print_summary(res: Any, args: argparse.Namespace, elapsed: float, ref: str)
     the reference's file (and page), or how it was made."""
     import torch
 
-    from .. import native
+    from torch_stsdic.kernels import dispatch
 
     status = to_numpy(res.status)
     n_f, n_p = status.shape
@@ -518,13 +518,7 @@ def _print_summary(res: Any, args: argparse.Namespace, elapsed: float, ref: str)
         print(line)
     device = args.device
     on_cpu = str(device).startswith("cpu")
-    if on_cpu:
-        kernels = "fused C++ kernels" if native.available() else "torch kernels"
-    else:  # the fused Triton step where Triton is installed and switched on
-        from .. import kernels as triton_kernels
-
-        kernels = ("fused Triton kernel" if triton_kernels.available()
-                   and triton_kernels.triton_mode() != "0" else "torch kernels")
+    kernels = dispatch.describe("cpu" if on_cpu else "cuda")
     threads = f", {torch.get_num_threads()} threads" if on_cpu else ""
     print(
         f"time: {fmt_time(elapsed)} (strains included)   "

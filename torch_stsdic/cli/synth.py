@@ -12,9 +12,9 @@ from typing import Any
 
 import numpy as np
 
-from . import options
-from .common import check_folder, fmt_time, to_numpy
-from .errors import CommandError, UsageError
+from torch_stsdic.cli import options
+from torch_stsdic.cli.common import check_folder, fmt_time, to_numpy
+from torch_stsdic.cli.errors import CommandError, UsageError
 
 NAME = "synth"
 HELP = "write a synthetic speckle movie with exactly known motion"
@@ -115,7 +115,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def _make_motion(args: argparse.Namespace, w: int, h: int, n_frames: int) -> tuple[Any, dict]:
     """The ``synth`` motion that ``--motion`` names, and its parameters (for motion.json)."""
-    from .. import synth
+    from torch_stsdic import synth
 
     cx, cy = (w - 1) / 2.0, (h - 1) / 2.0
     kind = args.motion
@@ -188,7 +188,7 @@ def _write_tiff_atomic(path: Path, data: np.ndarray) -> None:
 
 def _to_dtype(img: Any, bits: int) -> np.ndarray:
     """Images quantised to ``bits`` (uint8 / uint16), or float32 for ``bits`` 0."""
-    from ..synth import quantize
+    from torch_stsdic.synth import quantize
 
     if bits == 0:
         return to_numpy(img).astype(np.float32)
@@ -198,7 +198,7 @@ def _to_dtype(img: Any, bits: int) -> np.ndarray:
 
 def _write_truth(path: Path, motion: Any, pts: np.ndarray, times: np.ndarray) -> dict:
     """truth.csv at ``pts`` (N, 2) px and ``times`` (F,); the truth arrays by name (F, N)."""
-    from ..synth import ground_truth
+    from torch_stsdic.synth import ground_truth
 
     truth = ground_truth(motion, pts, times)
     tr = {k: to_numpy(truth[k]) for k in TRUTH_KEYS}
@@ -255,7 +255,7 @@ def execute(args: argparse.Namespace) -> int:
     """``stsdic synth``: synthetic speckle movie + ground truth."""
     import torch
 
-    from .. import synth
+    from torch_stsdic import synth
 
     if len(args.size) > 2:
         raise UsageError(f"--size: give N or W H, got {len(args.size)} values")

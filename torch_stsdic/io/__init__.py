@@ -1,11 +1,11 @@
 """Files in and out: image series (:mod:`.images`; one image file's header and pixels in
 :mod:`.imagefile`), frame specifications (:mod:`.specs`),
 users' small tables (:mod:`.tables`),
-HDF5 result files (:mod:`.results`) and exports for other tools (:mod:`.export`)."""
+HDF5 result files (:mod:`.results`). Exports for other tools (CSV, MATLAB, VTK, with
+strains) sit a layer up, in :mod:`torch_stsdic.analysis.export`."""
 
-from .export import FORMATS, export_csv, export_mat, export_results, export_vtk
-from .images import IMAGE_EXTENSIONS, ImageSeries, load_series
-from .results import (
+from torch_stsdic.io.images import IMAGE_EXTENSIONS, ImageSeries, load_series
+from torch_stsdic.io.results import (
     CSV_COLUMNS,
     DEFAULT_FIELDS,
     RESULTS_FORMAT,
@@ -17,14 +17,13 @@ from .results import (
     add_fields,
     read_results,
 )
-from .specs import InputError, natural_sort_key, parse_frame_spec
-from .tables import read_mask, read_points, read_table, read_timestamps
-from .units import Units, units_of
+from torch_stsdic.io.specs import InputError, natural_sort_key, parse_frame_spec
+from torch_stsdic.io.tables import read_mask, read_points, read_table, read_timestamps
+from torch_stsdic.io.units import Units, units_of
 
 __all__ = [
     "CSV_COLUMNS",
     "DEFAULT_FIELDS",
-    "FORMATS",
     "IMAGE_EXTENSIONS",
     "RESULTS_FORMAT",
     "RESULTS_FORMAT_VERSION",
@@ -36,10 +35,6 @@ __all__ = [
     "Results",
     "Units",
     "add_fields",
-    "export_csv",
-    "export_mat",
-    "export_results",
-    "export_vtk",
     "load_series",
     "natural_sort_key",
     "parse_frame_spec",

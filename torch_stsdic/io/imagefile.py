@@ -18,7 +18,7 @@ import numpy as np
 import tifffile
 from PIL import Image, UnidentifiedImageError
 
-from .specs import InputError
+from torch_stsdic.io.specs import InputError
 
 #: ITU-R BT.601 luma weights used for colour -> grey (alpha is dropped).
 LUMA_WEIGHTS: tuple[float, float, float] = (0.299, 0.587, 0.114)

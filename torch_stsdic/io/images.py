@@ -25,7 +25,7 @@ import numpy as np
 import tifffile
 import torch
 
-from .imagefile import (
+from torch_stsdic.io.imagefile import (
     GREY_RULE,
     LUMA_WEIGHTS,
     FileInfo,
@@ -34,12 +34,13 @@ from .imagefile import (
     read_tiff_page,
     to_grey,
 )
-from .specs import InputError, natural_sort_key, parse_frame_spec
+from torch_stsdic.io.specs import InputError, natural_sort_key, parse_frame_spec
 
 __all__ = [
     "IMAGE_EXTENSIONS",
     "LUMA_WEIGHTS",
     "ImageSeries",
+    "expand_source",
     "InputError",
     "load_series",
     "natural_sort_key",
@@ -377,7 +378,7 @@ def _check_times(timestamps: Any, n: int) -> np.ndarray:
     return t
 
 
-def _expand_source(source: str | os.PathLike[str]) -> list[Path]:
+def expand_source(source: str | os.PathLike[str]) -> list[Path]:
     s = os.fspath(source)
     p = Path(s).expanduser()
     if p.is_dir():
@@ -454,7 +455,7 @@ def load_series(source: Any, *, timestamps: Any = None) -> ImageSeries:
     if isinstance(source, (np.ndarray, torch.Tensor)):
         return _series_from_array(source, timestamps)
     if isinstance(source, (str, os.PathLike)):
-        paths = _reference_first(_expand_source(source), reorder=True)
+        paths = _reference_first(expand_source(source), reorder=True)
     elif isinstance(source, Iterable):
         paths = []
         for item in source:
@@ -508,7 +509,7 @@ def load_series(source: Any, *, timestamps: Any = None) -> ImageSeries:
 
 
 def _series_from_array(arr: np.ndarray | torch.Tensor, timestamps: Any) -> ImageSeries:
-    from ..validation import check_pixel_dtype
+    from torch_stsdic.core.validation import check_pixel_dtype
 
     try:  # the pixels' finiteness is checked frame by frame, as they are read
         check_pixel_dtype(arr, "image array")

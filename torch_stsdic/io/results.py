@@ -24,8 +24,8 @@ import h5py
 import numpy as np
 import torch
 
-from ..status import Status
-from .units import Units, units_of
+from torch_stsdic.core.status import Status
+from torch_stsdic.io.units import Units, units_of
 
 __all__ = [
     "CSV_COLUMNS",

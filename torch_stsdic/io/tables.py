@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .images import InputError, load_series
+from torch_stsdic.io.images import InputError, load_series
 
 __all__ = ["read_table", "read_timestamps", "read_points", "read_mask"]
 

@@ -1,7 +1,7 @@
 """The fused joint IC-GN step in Triton: warp + cubic B-spline sampling + ZNSSD/SSD residual
 + J^T r over all frames of a point, one program per point.
 
-Same conventions and result as :func:`torch_stsdic.formulations.joint_ic.ic_rhs_kernel` (the
+Same conventions and result as :func:`torch_stsdic.core.formulations.joint_ic.ic_rhs_kernel` (the
 torch code) and ``native.ic_rhs`` (the C++ CPU kernel): for point ``j`` (data row ``i``),
 
     u_s,t = sum_q p_q B_sq + ut dt_t,  x_s,t = px_i + dx_s + u_s,t   (likewise v, y)

@@ -33,7 +33,7 @@ Modules: :mod:`.pattern` (speckle), :mod:`.motion` (exact motions), :mod:`.rende
 (rendering, noise, series, ground truth).
 """
 
-from .motion import (
+from torch_stsdic.synth.motion import (
     MOTION_FAMILIES,
     Custom,
     HomogeneousStrain,
@@ -47,8 +47,16 @@ from .motion import (
     Translation,
     motion_family,
 )
-from .pattern import SpecklePattern, make_speckle
-from .render import Movie, add_noise, ground_truth, quantize, render, render_series, synthetic_movie
+from torch_stsdic.synth.pattern import SpecklePattern, make_speckle
+from torch_stsdic.synth.render import (
+    Movie,
+    add_noise,
+    ground_truth,
+    quantize,
+    render,
+    render_series,
+    synthetic_movie,
+)
 
 __all__ = [
     "SpecklePattern",

@@ -9,7 +9,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from .pattern import DTYPE, ArrayLike, as_float64
+from torch_stsdic.synth.pattern import DTYPE, ArrayLike, as_float64
 
 __all__ = ["Motion", "Translation", "HomogeneousStrain", "QuadraticInTime", "Sinusoidal", "Jump",
            "Custom", "Sum"]

@@ -11,8 +11,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .motion import Motion, Translation
-from .pattern import DTYPE, ArrayLike, SpecklePattern, as_float64, make_speckle
+from torch_stsdic.synth.motion import Motion, Translation
+from torch_stsdic.synth.pattern import DTYPE, ArrayLike, SpecklePattern, as_float64, make_speckle
 
 __all__ = ["render", "add_noise", "quantize", "render_series", "ground_truth", "Movie",
            "synthetic_movie"]

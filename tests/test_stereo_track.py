@@ -1,0 +1,128 @@
+"""Stereo STS-DIC on synthetic stereo movies with exact truth (noise on every image):
+classical error vs its predicted uncertainty, STS (m = 2) vs classical, velocity, the
+result file and the command module."""
+
+import argparse
+
+import h5py
+import numpy as np
+import pytest
+import tifffile
+import torch
+
+from torch_stsdic import DICConfig
+from torch_stsdic.stereo import cli, track_stereo
+from torch_stsdic.stereo.render import SurfaceMotion, make_rig, make_scene, render_stereo
+
+SHAPE = (140, 180)
+FRAMES = 21
+SIGMA = 2.0
+
+
+def _movie(motion, seed=0):
+    rig = make_rig(SHAPE)
+    scene = make_scene(rig, motion, seed=seed, max_time=FRAMES)
+    times = np.arange(FRAMES, dtype=float)
+    left, right = render_stereo(scene, times, noise_sigma=SIGMA, seed=seed + 1, quadrature=2,
+                                cutoff=5)
+    return rig, scene, times, left, right
+
+
+#: rigid 3D translation + in-plane stretch + out-of-plane bulge, together
+COMBINED = SurfaceMotion(translation=(0.004, -0.003, 0.01), exx=2e-4, eyy=-1e-4, bulge=0.004,
+                         bulge_radius=6.0)
+
+
+@pytest.fixture(scope="module")
+def movie():
+    return _movie(COMBINED)
+
+
+def _errors(res, scene, times):
+    truth = scene.truth(res.points, times)
+    ok = res.ok & (torch.arange(len(times))[:, None] > 0)
+    err = (res.displacement - truth["U"])[ok]
+    pred = torch.stack([res.std[k] for k in "UVW"], -1)[ok]
+    return err.pow(2).mean(0).sqrt(), pred.pow(2).mean(0).sqrt(), ok, truth
+
+
+def _run(movie, m, **kw):
+    rig, scene, times, left, right = movie
+    res = track_stereo(left, right, rig, step=10, config=DICConfig(subset_size=21, m=m), **kw)
+    return res, *_errors(res, scene, times)
+
+
+def test_classical_error_matches_prediction_and_sts_beats_it(movie):
+    res0, rms0, pred0, ok0, truth = _run(movie, 0)
+    assert float(ok0.float().mean()) > 0.5
+    ratio = rms0 / pred0
+    assert bool(((ratio > 0.8) & (ratio < 1.25)).all()), ratio.tolist()
+    assert float(truth["U"][-1].norm(dim=-1).mean()) > 0.1  # mm: a real motion (~15 px)
+    # STS with the noisy reference: bounded by sqrt((1 + 1/5) / 2) = 0.77
+    res2, rms2, pred2, _, _ = _run(movie, 2)
+    r_plain = float(rms2.norm() / rms0.norm())
+    assert r_plain < 0.9, r_plain
+    # STS with the reference refined from the series (as 2-D runs have it)
+    res3, rms3, pred3, ok3, truth3 = _run(movie, 2, refine_reference=True)
+    r_ref = float(rms3.norm() / rms0.norm())
+    assert r_ref <= 0.7, r_ref
+    ratio3 = rms3 / pred3
+    assert bool(((ratio3 > 0.7) & (ratio3 < 1.3)).all()), ratio3.tolist()
+    # velocity from the STS time terms vs the exact one
+    vel = torch.stack([res3.Ut, res3.Vt, res3.Wt], -1)
+    good = ok3 & torch.isfinite(vel).all(-1)
+    ev = (vel - truth3["velocity"])[good].pow(2).mean(0).sqrt()
+    vmag = truth3["velocity"][good].norm(dim=-1).mean()
+    assert float(ev.norm()) < 0.1 * float(vmag), (ev.tolist(), float(vmag))
+    # the reference shape against the exact plane, within its predicted std
+    e0 = (res0.X0 - truth["X0"])[res0.ok[0]].pow(2).mean(0).sqrt()
+    p0 = res0.X0_std[res0.ok[0]].pow(2).mean(0).sqrt()
+    assert bool((e0 < 1.5 * p0).all()), (e0.tolist(), p0.tolist())
+
+
+def test_result_file_and_command(movie, tmp_path):
+    rig, scene, times, left, right = movie
+    lp, rp = tmp_path / "left.tif", tmp_path / "right.tif"
+    tifffile.imwrite(lp, left[:6].clamp(0, 255).round().to(torch.uint8).numpy())
+    tifffile.imwrite(rp, right[:6].clamp(0, 255).round().to(torch.uint8).numpy())
+    cal = tmp_path / "cal.yml"
+    rig.save_opencv(cal)
+    p = argparse.ArgumentParser()
+    cli.add_arguments(p)
+    out = tmp_path / "r.h5"
+    args = p.parse_args(["--left", str(lp), "--right", str(rp), "--calibration", str(cal),
+                         "--m", "1", "--step", "20", "--roi", "20", "20", "160", "120",
+                         "--out", str(out), "--no-progress"])
+    assert cli.execute(args) == 0
+    with h5py.File(out, "r") as f:
+        n = f["points"].shape[0]
+        assert f["points"].shape == (n, 2) and f["frames"].shape == (6,)
+        for k in ("X", "Y", "Z", "U", "V", "W", "status"):
+            assert f[k].shape == (6, n), k
+        assert f["W"].attrs["units"] == "mm" and f["points"].attrs["units"] == "px"
+        assert np.nanmax(np.abs(f["U"][0])) < 1e-9  # the reference itself
+        assert np.isfinite(f["Z"][3][f["status"][3] <= 1]).all()
+    with pytest.raises(ValueError, match="exists"):
+        cli.execute(args)
+    # a calibration for other images is refused in one line
+    bad = tmp_path / "bad.yml"
+    make_rig((100, 100)).save_opencv(bad)
+    with pytest.raises(ValueError, match="calibration") as e:
+        track_stereo(left[:3], right[:3], str(bad), step=40)
+    assert "\n" not in str(e.value)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name,motion", [
+    ("rigid translation", SurfaceMotion(translation=(0.006, 0.004, 0.015))),
+    ("in-plane stretch", SurfaceMotion(exx=4e-4, eyy=-2e-4)),
+    ("out-of-plane", SurfaceMotion(translation=(0.0, 0.0, 0.02), bulge=0.006,
+                                   bulge_radius=5.0)),
+])
+def test_each_motion_alone(name, motion):
+    mv = _movie(motion, seed=3)
+    _, rms0, pred0, _, _ = _run(mv, 0)
+    ratio = rms0 / pred0
+    assert bool(((ratio > 0.8) & (ratio < 1.25)).all()), (name, ratio.tolist())
+    _, rms3, _, _, _ = _run(mv, 2, refine_reference=True)
+    assert float(rms3.norm() / rms0.norm()) <= 0.7, name

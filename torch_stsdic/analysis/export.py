@@ -1,0 +1,337 @@
+"""Exports of result files for other tools: CSV (one file per frame), VTK for ParaView (one
+``.vtu`` per frame and a ``.pvd`` time series), MATLAB ``.mat``.
+
+Every export converts the stored pixel values into the calibration the file records
+(:mod:`torch_stsdic.io.units`: lengths times ``scale``, velocities in unit per time unit,
+strains unchanged) and carries every (F, N) field of the file, whatever its name (new fields,
+such as predicted uncertainties ``u_std``, come through with their unit).
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+from xml.sax.saxutils import quoteattr
+
+import h5py
+import numpy as np
+
+from torch_stsdic.core.status import Status
+from torch_stsdic.io.results import CSV_COLUMNS, field_names, open_results
+from torch_stsdic.io.units import Units, units_of
+
+__all__ = ["FORMATS", "export_csv", "export_mat", "export_results", "export_vtk"]
+
+#: the export formats of :func:`export_results` (and ``stsdic export --format``)
+FORMATS = ("csv", "vtk", "mat")
+
+Frames = int | Sequence[int] | None
+
+
+# ----------------------------------------------------------------------------------------
+# shared: rows, columns, values in physical units
+# ----------------------------------------------------------------------------------------
+
+
+def _rows(f: h5py.File, frames: Frames, path: Path) -> list[int]:
+    """Result rows of image frames ``frames`` (default: every completed row)."""
+    all_frames = f["frames"][()]
+    if frames is None:
+        return np.flatnonzero(f["completed"][()]).tolist()
+    wanted = [frames] if isinstance(frames, (int, np.integer)) else list(frames)
+    rows = []
+    for fr in wanted:
+        hit = np.flatnonzero(all_frames == int(fr))
+        if not hit.size:
+            raise KeyError(f"frame {fr} is not in {path} (frames {all_frames.tolist()})")
+        rows.append(int(hit[0]))
+    return rows
+
+
+def _columns(f: h5py.File, *, fixed: bool = False) -> list[str]:
+    """Field names in export order: x, y, u, v, ut, vt, strains, zncc, status (``fixed``:
+    always, else those stored), then every other stored field (x and y are the point
+    coordinates, not fields)."""
+    names = field_names(f)
+    head = [c for c in CSV_COLUMNS if fixed or c in ("x", "y") or c in names]
+    return head + [n for n in names if n not in CSV_COLUMNS]
+
+
+def _row_values(f: h5py.File, r: int, names: Sequence[str], units: Units,
+                points: np.ndarray) -> dict[str, np.ndarray]:
+    """(N,) values of row ``r`` of every field in ``names`` (``points`` (N, 2) give x, y), in
+    physical units; a field the file lacks is all NaN."""
+    out = {}
+    for nm in names:
+        if nm in ("x", "y"):
+            out[nm] = units.convert(nm, points[:, 0 if nm == "x" else 1])
+        elif nm in f:
+            out[nm] = units.convert(nm, f[nm][r])
+        else:
+            out[nm] = np.full(len(points), np.nan)
+    return out
+
+
+def _describe(f: h5py.File, src: Path, units: Units, columns: Sequence[str]) -> dict[str, Any]:
+    """The metadata of an export: source, calibration, columns with units, status codes."""
+    return {
+        "source": str(src),
+        "software_version": str(f.attrs.get("software_version", "unknown")),
+        "unit": units.unit,
+        "scale": units.scale,
+        "scale_note": "length units per px; null: values in px",
+        "time_unit": units.time_unit,
+        "columns": list(columns),
+        "units": {c: units.unit_of(c) for c in columns},
+        "status_codes": {s.name.lower(): int(s) for s in Status},
+        "usable_status": [int(Status.CONVERGED), int(Status.MAX_ITER)],
+    }
+
+
+# ----------------------------------------------------------------------------------------
+# CSV
+# ----------------------------------------------------------------------------------------
+
+
+def _fmt(a: np.ndarray, spec: str) -> np.ndarray:
+    s = np.char.mod(spec, a)
+    if a.dtype.kind == "f":
+        s[~np.isfinite(a)] = ""
+    return s
+
+
+def export_csv(
+    path_h5: str | os.PathLike[str],
+    out_dir_or_pattern: str | os.PathLike[str],
+    frames: Frames = None,
+    *,
+    comment: bool = False,
+    sidecar: bool = True,
+) -> list[Path]:
+    """Write one CSV per frame, in the file's physical units; return the paths written.
+
+    ``out_dir_or_pattern``: a directory (files ``<h5 stem>_frame<frame:05d>.csv``) or a pattern
+    with ``{frame}`` (also ``{row}``, ``{time}``), e.g. ``"csv/f{frame:04d}.csv"``.
+    ``frames``: image frame indices to export (default: all completed rows).
+    The first line is the header: ``x, y, u, v, ut, vt, exx, eyy, exy, zncc, status`` (those
+    the file has) then every other stored field, so ``np.genfromtxt(f, delimiter=",",
+    names=True)`` and spreadsheets read it; NaN are empty cells. The units, calibration and
+    the frame/time of every file go to a sidecar ``<h5 stem>_csv.json`` next to the files
+    (``sidecar``); ``comment`` (opt-in) puts a ``# torch_stsdic ... frame=<f> time=<t>
+    unit=...`` line before the header.
+    """
+    p = Path(path_h5)
+    out = os.fspath(out_dir_or_pattern)
+    written: list[Path] = []
+    with open_results(p) as f:
+        all_frames, times = f["frames"][()], f["times"][()]
+        completed = f["completed"][()]
+        rows = _rows(f, frames, p)
+        units = units_of(f.attrs)
+        columns = _columns(f, fixed=True)
+        pts = f["points"][()]
+        is_pattern = "{" in out
+        if not is_pattern:
+            Path(out).mkdir(parents=True, exist_ok=True)
+        listing = []
+        seen: set[Path] = set()
+        for r in rows:
+            fr, t = int(all_frames[r]), float(times[r])
+            if is_pattern:
+                target = Path(out.format(frame=fr, row=r, time=t))
+            else:
+                target = Path(out) / f"{p.stem}_frame{fr:05d}.csv"
+            if target in seen:
+                raise ValueError(f"output pattern {out!r} gives the same file {target} twice")
+            seen.add(target)
+            target.parent.mkdir(parents=True, exist_ok=True)
+            vals = _row_values(f, r, columns, units, pts)
+            cols = [_fmt(a, "%d" if a.dtype.kind in "iub" else "%.9g") for a in vals.values()]
+            with open(target, "w", encoding="utf-8", newline="") as fh:
+                if comment:
+                    fh.write(
+                        f"# torch_stsdic results {p.name}: frame={fr} time={t!r} row={r} "
+                        f"completed={bool(completed[r])} unit={units.unit} "
+                        f"time_unit={units.time_unit}\n"
+                    )
+                fh.write(",".join(columns) + "\n")
+                for line in zip(*cols):
+                    fh.write(",".join(line) + "\n")
+            written.append(target)
+            listing.append({"file": target.name, "frame": fr, "time": t, "row": r,
+                            "completed": bool(completed[r])})  # fmt: skip
+        if sidecar and written:
+            meta = {**_describe(f, p, units, columns), "files": listing}
+            side = written[0].parent / f"{p.stem}_csv.json"
+            side.write_text(json.dumps(meta, indent=1) + "\n", encoding="utf-8")
+    return written
+
+
+# ----------------------------------------------------------------------------------------
+# VTK (XML UnstructuredGrid + ParaView collection)
+# ----------------------------------------------------------------------------------------
+
+_VTK_TYPES = {
+    "f4": "Float32", "f8": "Float64", "i1": "Int8", "i2": "Int16", "i4": "Int32",
+    "i8": "Int64", "u1": "UInt8", "b1": "UInt8",
+}  # fmt: skip
+_VTK_VERTEX, _VTK_QUAD = 1, 9
+
+
+def _cells(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(connectivity, offsets, types) of the cells over ``points`` (N, 2): on a regular grid
+    one quad per grid cell whose four corners are points (a surface in ParaView), and a
+    vertex for every point in no quad; scattered points are vertices."""
+    from torch_stsdic.analysis.strain import detect_grid
+
+    n = len(points)
+    grid = detect_grid(points) if n else None
+    quads = np.zeros((0, 4), dtype=np.int64)
+    if grid is not None and grid.nx > 1 and grid.ny > 1:
+        index = np.full((grid.ny, grid.nx), -1, dtype=np.int64)
+        index[grid.iy, grid.ix] = np.arange(n)
+        corners = np.stack([index[:-1, :-1], index[:-1, 1:], index[1:, 1:], index[1:, :-1]], -1)
+        corners = corners.reshape(-1, 4)
+        quads = corners[(corners >= 0).all(axis=1)]
+    lone = np.setdiff1d(np.arange(n), quads.ravel())
+    conn = np.concatenate([quads.ravel(), lone]).astype(np.int64)
+    sizes = np.concatenate([np.full(len(quads), 4), np.ones(len(lone), dtype=np.int64)])
+    types = np.concatenate([np.full(len(quads), _VTK_QUAD), np.full(len(lone), _VTK_VERTEX)])
+    return conn, np.cumsum(sizes).astype(np.int64), types.astype(np.uint8)
+
+
+def _data_array(name: str, a: np.ndarray, components: int = 1) -> str:
+    """One inline base64 ``DataArray`` (UInt64 byte-count header, little endian)."""
+    a = np.ascontiguousarray(a)
+    if a.dtype.kind == "b":
+        a = a.astype(np.uint8)
+    a = a.astype(a.dtype.newbyteorder("<"), copy=False)
+    vtk_type = _VTK_TYPES[f"{a.dtype.kind}{a.dtype.itemsize}"]
+    raw = a.tobytes()
+    blob = base64.b64encode(np.uint64(len(raw)).tobytes() + raw).decode("ascii")
+    comp = f' NumberOfComponents="{components}"' if components > 1 else ""
+    return (f'<DataArray type="{vtk_type}" Name={quoteattr(name)}{comp} format="binary">'
+            f"{blob}</DataArray>")
+
+
+def write_vtu(path: Path, points: np.ndarray, point_data: dict[str, np.ndarray],
+              cells: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> None:
+    """A VTK XML UnstructuredGrid: ``points`` (N, 2) or (N, 3), point data name -> (N,) or
+    (N, 3) arrays, ``cells`` from :func:`_cells` (default: computed)."""
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.shape[1] == 2:
+        pts = np.column_stack([pts, np.zeros(len(pts))])
+    conn, offsets, types = cells if cells is not None else _cells(pts[:, :2])
+    arrays = [_data_array(nm, a, 1 if a.ndim == 1 else a.shape[1])
+              for nm, a in point_data.items()]  # fmt: skip
+    text = "\n".join([
+        '<?xml version="1.0"?>',
+        '<VTKFile type="UnstructuredGrid" version="1.0" byte_order="LittleEndian" '
+        'header_type="UInt64">',
+        "<UnstructuredGrid>",
+        f'<Piece NumberOfPoints="{len(pts)}" NumberOfCells="{len(types)}">',
+        "<Points>", _data_array("Points", pts, 3), "</Points>",
+        "<Cells>", _data_array("connectivity", conn), _data_array("offsets", offsets),
+        _data_array("types", types), "</Cells>",
+        "<PointData>", *arrays, "</PointData>",
+        "</Piece>", "</UnstructuredGrid>", "</VTKFile>", "",
+    ])  # fmt: skip
+    path.write_text(text, encoding="ascii")
+
+
+def export_vtk(path_h5: str | os.PathLike[str], out_dir: str | os.PathLike[str],
+               frames: Frames = None) -> list[Path]:
+    """ParaView files, in the file's physical units: ``<stem>_frame<NNNNN>.vtu`` per frame
+    and the time series ``<stem>.pvd`` (last in the returned list).
+
+    Points (x, y, 0) are the reference positions (y is the image row, pointing down); on a
+    grid they are joined into quads. Point data: every field of the file (u, v, ut, vt,
+    strains, zncc, status, predicted std ...), and the vectors ``displacement`` (u, v, 0)
+    and ``velocity`` (ut, vt, 0) for ParaView's Warp By Vector and glyphs."""
+    p, out = Path(path_h5), Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    written: list[Path] = []
+    steps = []
+    with open_results(p) as f:
+        units = units_of(f.attrs)
+        names = [c for c in _columns(f) if c not in ("x", "y")]
+        xy = units.convert("x", f["points"][()])  # x and y are both lengths
+        pts = f["points"][()]
+        cells = _cells(pts)
+        for r in _rows(f, frames, p):
+            vals = _row_values(f, r, names, units, pts)
+            for vec, (a, b) in (("displacement", ("u", "v")), ("velocity", ("ut", "vt"))):
+                if a in vals and b in vals:
+                    vals[vec] = np.column_stack([vals[a], vals[b], np.zeros_like(vals[a])])
+            fr = int(f["frames"][r])
+            target = out / f"{p.stem}_frame{fr:05d}.vtu"
+            write_vtu(target, xy, vals, cells)
+            written.append(target)
+            steps.append((float(f["times"][r]), target.name))
+    pvd = out / f"{p.stem}.pvd"
+    lines = ['<?xml version="1.0"?>',
+             '<VTKFile type="Collection" version="0.1" byte_order="LittleEndian">',
+             "<Collection>"]  # fmt: skip
+    lines += [f'<DataSet timestep="{t!r}" group="" part="0" file={quoteattr(n)}/>'
+              for t, n in steps]  # fmt: skip
+    lines += ["</Collection>", "</VTKFile>", ""]
+    pvd.write_text("\n".join(lines), encoding="utf-8")
+    return [*written, pvd]
+
+
+# ----------------------------------------------------------------------------------------
+# MATLAB
+# ----------------------------------------------------------------------------------------
+
+
+def export_mat(path_h5: str | os.PathLike[str], out_dir: str | os.PathLike[str],
+               frames: Frames = None) -> list[Path]:
+    """One MATLAB file ``<stem>.mat`` (:func:`scipy.io.savemat`), in physical units: every
+    field as a (frames, points) array (``u``, ``v``, ``ut``, ...; NaN for failed points),
+    ``x``, ``y`` (1, N) reference coordinates, ``frames``, ``times``, ``completed`` (1, F),
+    ``unit``, ``scale`` (1 with unit "px"), ``time_unit``, ``units`` (a struct: field ->
+    unit) and ``status_codes`` (a struct)."""
+    try:
+        from scipy.io import savemat
+    except ImportError as exc:  # pragma: no cover - scipy comes with the test extra
+        raise ImportError("MATLAB export needs scipy: pip install scipy") from exc
+    p, out = Path(path_h5), Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    with open_results(p) as f:
+        units = units_of(f.attrs)
+        rows = sorted(set(_rows(f, frames, p)))
+        names = [c for c in _columns(f) if c not in ("x", "y")]
+        pts = f["points"][()]
+        data: dict[str, Any] = {
+            nm: units.convert(nm, f[nm][rows] if rows else np.zeros((0, len(pts)))) for nm in names
+        }
+        data.update(
+            x=units.convert("x", pts[:, 0]), y=units.convert("y", pts[:, 1]),
+            frames=f["frames"][()][rows].astype(np.float64), times=f["times"][()][rows],
+            completed=f["completed"][()][rows], unit=units.unit,
+            scale=units.length_factor, time_unit=units.time_unit, source=str(p),
+            units={nm: units.unit_of(nm) for nm in ["x", "y", *names]},
+            status_codes={s.name.lower(): int(s) for s in Status},
+        )  # fmt: skip
+    target = out / f"{p.stem}.mat"
+    savemat(target, data, do_compression=True, oned_as="row")
+    return [target]
+
+
+def export_results(path_h5: str | os.PathLike[str], out: str | os.PathLike[str],
+                   fmt: str = "csv", frames: Frames = None, **kwargs: Any) -> list[Path]:
+    """Export a result file in format ``fmt`` (one of :data:`FORMATS`) into ``out``; the
+    paths written. ``kwargs`` go to :func:`export_csv`."""
+    if fmt == "csv":
+        return export_csv(path_h5, out, frames, **kwargs)
+    if kwargs:
+        raise TypeError(f"{fmt} export takes no options {sorted(kwargs)}")
+    if fmt == "vtk":
+        return export_vtk(path_h5, out, frames)
+    if fmt == "mat":
+        return export_mat(path_h5, out, frames)
+    raise ValueError(f"format: {fmt!r} is not one of {', '.join(FORMATS)}")

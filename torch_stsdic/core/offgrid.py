@@ -1,0 +1,87 @@
+"""Points off the pixel grid at the error of points on it.
+
+A subset centred between pixels samples the reference's B-spline at sub-pixel positions; the
+prefilter amplifies the reference's high-frequency noise there, so the part of the error that
+the reference's noise causes grows (by ~1/3 for cubic B-splines). Like OpenCorr and Ncorr,
+the solver therefore solves the subset centred on the nearest pixel and carries the result to
+the requested point with the measured shape function (a Taylor shift of the polynomial:
+exact for the affine and quadratic shapes). All operations are plain differentiable torch.
+
+The same carry serves a subset centred away from its point on purpose: one moved inside the
+image where the point nears the border (``SubsetSolver.solve(centres=)``), the point's
+displacement then extrapolated from the subset's gradients, its predicted std with them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+
+import torch
+
+__all__ = ["snap_points", "carry_params", "carry_std", "carry_solution"]
+
+
+def snap_points(points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(N, 2) points (x, y) px -> (nearest pixel centres (N, 2), offsets point - pixel (N, 2))
+    (the pixel centres carry no gradient)."""
+    grid = torch.round(points.detach())
+    return grid, points - grid
+
+
+def carry_params(params: torch.Tensor, names: Sequence[str], offset: torch.Tensor) -> torch.Tensor:
+    """Shape-function parameters (N, P) measured at pixel centres, carried to the points at
+    ``offset`` (N, 2) px from them: every component's spatial polynomial re-expanded about
+    the new centre (u += ux dx + uy dy + uxx dx^2/2 + uxy dx dy + uyy dy^2/2; ux += uxx dx +
+    uxy dy; uy += uxy dx + uyy dy; second-order and temporal terms unchanged)."""
+    idx = {nm: i for i, nm in enumerate(names)}
+    dx, dy = offset[:, 0].to(params.dtype), offset[:, 1].to(params.dtype)
+    cols = list(params.unbind(1))
+    for c in ("u", "v"):
+        if c not in idx:
+            continue
+        gx, gy, gxx, gxy, gyy = (params[:, idx[c + t]] if c + t in idx else 0.0
+                                 for t in ("x", "y", "xx", "xy", "yy"))
+        cols[idx[c]] = params[:, idx[c]] + gx * dx + gy * dy + 0.5 * gxx * dx * dx \
+            + gxy * dx * dy + 0.5 * gyy * dy * dy
+        if c + "x" in idx:
+            cols[idx[c + "x"]] = params[:, idx[c + "x"]] + gxx * dx + gxy * dy
+        if c + "y" in idx:
+            cols[idx[c + "y"]] = params[:, idx[c + "y"]] + gxy * dx + gyy * dy
+    return torch.stack(cols, 1)
+
+
+def carry_std(std: torch.Tensor, names: Sequence[str], offset: torch.Tensor) -> torch.Tensor:
+    """Predicted standard deviations (N, P) carried with :func:`carry_params` by ``offset``
+    (N, 2) px: u's becomes sqrt(sd_u^2 + (dx sd_ux)^2 + (dy sd_uy)^2) (v alike), the
+    covariance of a centred subset's displacement and gradients neglected (zero for a
+    symmetric window over an isotropic texture); the others unchanged."""
+    idx = {nm: i for i, nm in enumerate(names)}
+    dx, dy = offset[:, 0].to(std.dtype), offset[:, 1].to(std.dtype)
+    cols = list(std.unbind(1))
+    for c in ("u", "v"):
+        if c not in idx:
+            continue
+        var = std[:, idx[c]] ** 2
+        for t, d in (("x", dx), ("y", dy)):
+            if c + t in idx:
+                var = var + (d * std[:, idx[c + t]]) ** 2
+        cols[idx[c]] = var.sqrt()
+    return torch.stack(cols, 1)
+
+
+def carry_solution(sol, points: torch.Tensor, offset: torch.Tensor):
+    """A :class:`~torch_stsdic.core.solver.WindowSolution` solved at subset centres, carried to
+    ``points`` (N, 2) = centres + ``offset``: parameters (also the first-stage and initial
+    ones in ``info``) re-expanded, the predicted std carried (:func:`carry_std`; for a
+    snap to the pixel grid, |offset| <= 0.5 px, a second-order share)."""
+    names = sol.param_names
+    info = dict(sol.info)
+    for key in ("first_stage_params", "initial_params"):
+        val = info.get(key)
+        if isinstance(val, torch.Tensor) and val.shape == sol.params.shape:
+            info[key] = carry_params(val, names, offset)
+    info["snapped_to_pixels"] = int((offset != 0).any(1).sum())
+    std = None if sol.std is None else carry_std(sol.std, names, offset)
+    return dataclasses.replace(sol, points=points, params=carry_params(sol.params, names, offset),
+                               std=std, info=info)

@@ -1,0 +1,524 @@
+"""Shared motion: the per-frame affine motion of the whole specimen, carried as a known term in
+every window.
+
+Real movies are not smooth in time the way a render is: the specimen (or the camera) shakes
+as a whole by a fraction of a pixel from frame to frame, and machines move in load steps. A
+window of 2m+1 frames with a displacement affine in time cannot describe such a jitter, so the
+model check rejects it and the point falls back to classical DIC. But the jitter is the *same*
+motion for every point: a rigid (or affine) motion of the whole field of view per frame. It is
+measured once, from all points together, and carried as a known term:
+
+    U(x, t) = G_t(x) + D(x, t),     G_t(x) = a_t + B_t (x - x0)
+
+``G_t`` (6 numbers per frame: translation ``a_t`` and the 2x2 gradient ``B_t``) is fitted
+robustly (Huber IRLS) to the classical displacements of a sample of points at every frame
+(:func:`~torch_stsdic.movie.shared_pass.estimate_shared_motion`: one classical pass over the
+frames at up to ``max_points`` POIs), so outliers, lost points and background move it by
+at most a bounded share. ``D``, the deformation, is what the STS window has to describe;
+it is smooth in time even where ``G`` jitters. In a window of target frame ``k``, the known
+part of frame ``t`` is the jitter of ``G`` about its own line through the window
+(:func:`window_offsets`):
+
+    o_t(x_i) = G_t(x_i) - G_k(x_i) - beta_i (t - t_k)      (beta_i: the window's LS slope of G)
+
+added to the warp of frame ``t`` (``SubsetSolver.solve(..., motion=)``), so the window's
+parameters keep their meaning (u, v: the total displacement at the target frame; ut, vt: the
+smooth velocity) and a window where ``G`` moves affinely in time is solved exactly as without
+it (o = 0). Within a subset only the translation of ``o`` at the POI is carried: the jitter's
+own rotation moves a subset's edge by ``|B_t - line| * half`` (1e-3 rad: 0.01 px at 10 px),
+a zero-mean misfit that the window's gradients cannot absorb but that does not bias u, v.
+
+The estimate's own error is the classical noise over the sample, ``sigma_c * sqrt(3 / n)`` for
+n points (0.05 sigma_c at 1,000 independent points), far below the window's error.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+__all__ = ["SharedMotion", "SHARED_MOTION_KINDS", "PARAM_NAMES", "PARAM_UNITS",
+           "fit_frame_motion", "window_offsets", "known_window_motion", "overlap_factor",
+           "sample_points",
+           "detect_steps", "DEFAULT_MAX_POINTS", "SIGNIFICANT", "STEP_Z", "STEP_RATIO", "SE_FLOOR"]
+
+#: kinds of shared motion: a translation per frame (2 numbers), an affine motion (6), or a
+#: quadratic one (12: also the second derivatives, as a tilt of the specimen out of the
+#: image plane or a bending shake gives)
+SHARED_MOTION_KINDS = ("translation", "affine", "quadratic")
+#: the columns of ``SharedMotion.params`` (px, px/px, px/px^2): u = a_x + du/dx dx + du/dy dy
+#: + d2u/dx2 dx^2 / 2 + d2u/dxdy dx dy + d2u/dy2 dy^2 / 2 (dx, dy from the origin), v alike
+PARAM_NAMES = ("a_x", "a_y", "du/dx", "du/dy", "dv/dx", "dv/dy", "d2u/dx2", "d2u/dxdy",
+               "d2u/dy2", "d2v/dx2", "d2v/dxdy", "d2v/dy2")
+PARAM_UNITS = ("px", "px", "px/px", "px/px", "px/px", "px/px", "px/px^2", "px/px^2",
+               "px/px^2", "px/px^2", "px/px^2", "px/px^2")
+#: POIs of the classical pass that measures the shared motion
+DEFAULT_MAX_POINTS = 1000
+_HUBER = 2.0  # Huber threshold in robust (MAD) standard deviations
+_IRLS_STEPS = 8
+_MIN_POINTS = 8  # fewer usable points in a frame: no estimate there (interpolated)
+_VALID_SHARE = 0.9  # a series' fit uses the points valid in at least this share of frames
+_GROSS_PX = 0.5  # an entry this far (or 10x the median) from its neighbours: a wrong peak
+#: "auto" applies the shared motion where its significance (jitter variance over estimation
+#: variance) exceeds this: a jitter of 5 times the estimate's standard error. (A motion
+#: affine in time gives ~1, and up to ~6 where the sub-pixel interpolation bias, the same at
+#: every point of a uniform translation, moves the estimate; a real shake gives 10^3-10^5.)
+SIGNIFICANT = 25.0
+#: load-step detection (:func:`detect_steps`): an increment above STEP_Z times its noise and
+#: STEP_RATIO times the median increment of the frames around it starts a new load state
+STEP_Z = 2.0
+#: px added in quadrature to the shared motion's standard error in its significance: what
+#: the noise model leaves out (the sub-pixel interpolation bias, the same at every point of a
+#: uniform motion, ~1e-3 px); so noise-free images, whose noise is ~0, need a shake of
+#: 5 x 0.002 = 0.01 px before it is carried
+SE_FLOOR = 0.002
+STEP_RATIO = 2.0
+
+
+@dataclass
+class SharedMotion:
+    """The shared (whole-specimen) motion of every series frame relative to the reference.
+
+    Attributes:
+        kind: "translation", "affine" or "quadratic".
+        params: (T_series, 6) float64 per frame, (T_series, 12) for "quadratic" (columns
+            ``PARAM_NAMES``): a_x, a_y (px, the displacement at ``origin``), du/dx, du/dy,
+            dv/dx, dv/dy there (px/px; zeros for "translation") and the second derivatives
+            (px/px^2). Frames not measured: interpolated in time.
+        origin: (2,) x0, y0 px, the point the translation refers to (centre of the POIs).
+        scatter: (T_series,) robust std (px) of the points about the fitted motion (NaN where
+            not measured): the deformation plus the noise.
+        points: (T_series,) points that carried the fit per frame.
+        measured: (T_series,) bool, frames with their own estimate.
+        se: (T_series,) standard error of the translation per component, px (NaN where not
+            measured; 0 at the reference).
+        times: (T_series,) the series frames' times (None: frame indices).
+        steps: series frames that begin a new load state (:func:`detect_steps`); windows stay
+            inside a load state where it holds 2m+1 frames.
+        applied: whether the windows carry it (``"auto"`` applies it only where the jitter is
+            significant: :meth:`significance`).
+        seconds: wall time of the measurement.
+        sample: the pass's solutions at its sample points (the first block's initial guess).
+    """
+
+    kind: str
+    params: np.ndarray
+    origin: np.ndarray
+    scatter: np.ndarray
+    points: np.ndarray
+    measured: np.ndarray
+    se: np.ndarray | None = None
+    times: np.ndarray | None = None
+    steps: list[int] = field(default_factory=list)
+    applied: bool = True
+    seconds: float = 0.0
+    extra: dict[str, Any] = field(default_factory=dict)
+    #: the measuring pass's trusted solutions at its sample of POIs
+    #: (:class:`~torch_stsdic.movie.sample_guess.MeasuredSample`: the first block's initial guess);
+    #: None where not measured by a pass (not written to results)
+    sample: Any = field(default=None, repr=False)
+
+    def significance(self) -> float:
+        """How far the translation departs from a line in time, in units of its own
+        estimation noise: the median over frames of ``|a_t+1 - 2 a_t + a_t-1|^2 / (6 se^2)``
+        divided by its median without any jitter (ln 4), ``se`` including ``SE_FLOOR``. About
+        1 for a motion that is affine in time (the estimate's noise alone); a jitter of std j
+        gives about (j / se)^2. NaN when fewer than 3 measured frames."""
+        if self.se is None or len(self.params) < 3:
+            return float("nan")
+        a = self.params[:, :2]
+        d2 = np.linalg.norm(a[2:] - 2 * a[1:-1] + a[:-2], axis=1) ** 2
+        se = np.sqrt(self.se ** 2 + SE_FLOOR ** 2)
+        var = se[2:] ** 2 + 4 * se[1:-1] ** 2 + se[:-2] ** 2  # per component
+        ok = (self.measured[2:] & self.measured[1:-1] & self.measured[:-2]
+              & np.isfinite(var) & (var > 0))
+        if not ok.any():
+            return float("nan")
+        return float(np.median(d2[ok] / var[ok]) / np.log(4.0))
+
+    def _at(self, points: Tensor, frames: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        p = torch.as_tensor(self.params, dtype=torch.float64)[frames.long().cpu()]  # (K, P)
+        p = p.to(device=points.device)
+        d = points.double() - torch.as_tensor(self.origin, dtype=torch.float64,
+                                              device=points.device)
+        return p, d[:, 0], d[:, 1]
+
+    def displacement(self, points: Tensor, frames: Tensor) -> Tensor:
+        """(K, N, 2) the shared motion's displacement (u, v) px at ``points`` (N, 2) px in
+        series frames ``frames`` (K,), in the points' dtype and device."""
+        p, dx, dy = self._at(points, frames)
+        u = p[:, 0:1] + p[:, 2:3] * dx + p[:, 3:4] * dy
+        v = p[:, 1:2] + p[:, 4:5] * dx + p[:, 5:6] * dy
+        if p.shape[1] == 12:
+            u = u + 0.5 * p[:, 6:7] * dx * dx + p[:, 7:8] * dx * dy + 0.5 * p[:, 8:9] * dy * dy
+            v = v + 0.5 * p[:, 9:10] * dx * dx + p[:, 10:11] * dx * dy + 0.5 * p[:, 11:12] * dy * dy
+        return torch.stack([u, v], -1).to(points.dtype)
+
+    def gradient(self, points: Tensor, frames: Tensor) -> Tensor:
+        """(K, N, 4) du/dx, du/dy, dv/dx, dv/dy of the shared motion at ``points`` (N, 2) in
+        series frames ``frames`` (K,)."""
+        p, dx, dy = self._at(points, frames)
+        g = [p[:, 2:3] + 0 * dx, p[:, 3:4] + 0 * dx, p[:, 4:5] + 0 * dx, p[:, 5:6] + 0 * dx]
+        if p.shape[1] == 12:
+            g[0] = g[0] + p[:, 6:7] * dx + p[:, 7:8] * dy
+            g[1] = g[1] + p[:, 7:8] * dx + p[:, 8:9] * dy
+            g[2] = g[2] + p[:, 9:10] * dx + p[:, 10:11] * dy
+            g[3] = g[3] + p[:, 10:11] * dx + p[:, 11:12] * dy
+        return torch.stack(g, -1).to(points.dtype)
+
+    @property
+    def rotation(self) -> np.ndarray:
+        """(T_series,) small-angle rotation per frame, rad ((dv/dx - du/dy) / 2)."""
+        return 0.5 * (self.params[:, 4] - self.params[:, 3])
+
+    def jitter(self) -> np.ndarray:
+        """(T_series,) px, the frame-to-frame jitter of the translation: |second difference|
+        / sqrt(6) (a smooth motion gives ~0; independent jitter of std s gives ~s)."""
+        a = self.params[:, :2]
+        out = np.full(len(a), np.nan)
+        if len(a) >= 3:
+            d2 = a[2:] - 2 * a[1:-1] + a[:-2]
+            out[1:-1] = np.linalg.norm(d2, axis=1) / np.sqrt(6.0)
+        return out
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-friendly record for ``TrackResult.info["shared_motion"]`` (per-frame arrays
+        as lists, so the result file and ``TrackResult.shared_motion`` carry them)."""
+        jit = self.jitter()
+        fin = jit[np.isfinite(jit)]
+        return {
+            "kind": self.kind,
+            "origin": [float(x) for x in self.origin],
+            "params": np.round(self.params, 9).tolist(),
+            "scatter": [None if not np.isfinite(s) else round(float(s), 6)
+                        for s in self.scatter],
+            "points": [int(n) for n in self.points],
+            "measured": [bool(b) for b in self.measured],
+            "jitter_px_median": round(float(np.median(fin)), 6) if fin.size else None,
+            "jitter_px_max": round(float(np.max(fin)), 6) if fin.size else None,
+            "se": [None if not np.isfinite(s) else round(float(s), 7)
+                   for s in (self.se if self.se is not None else self.scatter * np.nan)],
+            "significance": (round(self.significance(), 3)
+                             if np.isfinite(self.significance()) else None),
+            "applied": bool(self.applied),
+            "steps": [int(k) for k in self.steps],
+            "times": (None if self.times is None
+                      else [float(t) for t in np.asarray(self.times, dtype=np.float64)]),
+            "seconds": round(self.seconds, 3),
+            **self.extra,
+        }
+
+    @classmethod
+    def from_summary(cls, rec: dict[str, Any]) -> SharedMotion:
+        """The inverse of :meth:`summary`."""
+        known = {"kind", "origin", "params", "scatter", "points", "measured", "seconds",
+                 "jitter_px_median", "jitter_px_max", "se", "significance", "applied",
+                 "times", "steps"}
+        se = rec.get("se")
+        return cls(kind=rec["kind"], params=np.asarray(rec["params"], dtype=np.float64),
+                   origin=np.asarray(rec["origin"], dtype=np.float64),
+                   scatter=np.array([np.nan if s is None else s for s in rec["scatter"]],
+                                    dtype=np.float64),
+                   points=np.asarray(rec["points"], dtype=np.int64),
+                   measured=np.asarray(rec["measured"], dtype=bool),
+                   se=None if se is None else np.array([np.nan if s is None else s
+                                                        for s in se], dtype=np.float64),
+                   applied=bool(rec.get("applied", True)),
+                   steps=[int(k) for k in rec.get("steps", [])],
+                   times=(None if rec.get("times") is None
+                          else np.asarray(rec["times"], dtype=np.float64)),
+                   seconds=float(rec.get("seconds", 0.0)),
+                   extra={k: v for k, v in rec.items() if k not in known})
+
+
+def fit_frame_motion(points: Tensor, disp: Tensor, valid: Tensor, kind: str = "affine",
+                     origin: Tensor | None = None, noise: Tensor | None = None
+                     ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Robust per-frame fit of a shared motion to measured displacements.
+
+    Args:
+        points: (N, 2) POIs (x, y) px.
+        disp: (F, N, 2) displacements (u, v) px of every point in every frame.
+        valid: (F, N) bool, the measurements to use (NaN displacements are never used).
+        kind: "translation", "affine" or "quadratic".
+        origin: (2,) the point the translation refers to (default: the points' mean).
+        noise: (F, N) each measurement's noise std per component, px (e.g. the classical
+            predicted std), for the standard error; None: the fit's robust scatter (which
+            also counts the deformation's departure from the affine motion).
+
+    Returns:
+        params (F, 6) float64, (F, 12) for "quadratic" (columns ``PARAM_NAMES``; NaN where a
+        frame has fewer than 8 valid points, 18 for "quadratic"), robust scatter (F,) px,
+        points used (F,), and the standard error (F,) px of the translation (per component:
+        from ``noise`` or the scatter, through the weighted least-squares factor).
+    """
+    if kind not in SHARED_MOTION_KINDS:
+        raise ValueError(f"shared motion kind must be one of {SHARED_MOTION_KINDS}, got "
+                         f"{kind!r}")
+    p = points.double()
+    d = disp.double()
+    ok = valid.bool() & torch.isfinite(d).all(-1)
+    o = p.mean(0) if origin is None else torch.as_tensor(origin, dtype=torch.float64,
+                                                          device=p.device)
+    rel = p - o
+    scale = float(rel.abs().max().clamp(min=1.0))  # conditioning: columns of order 1
+    xs, ys = rel[:, 0] / scale, rel[:, 1] / scale
+    cols = [torch.ones_like(xs)]
+    if kind in ("affine", "quadratic"):
+        cols += [xs, ys]
+    if kind == "quadratic":
+        cols += [0.5 * xs * xs, xs * ys, 0.5 * ys * ys]
+    x = torch.stack(cols, 1)  # (N, C)
+    f, c = d.shape[0], x.shape[1]
+    eye = 1e-12 * torch.eye(c, dtype=torch.float64, device=p.device)
+    if f >= 3:
+        coef, w, ok = _consistent_fit(x, d, ok, eye)
+    else:
+        coef, w = _frame_fit(x, d, ok, eye)
+    d0 = torch.where(ok.unsqueeze(-1), d, torch.zeros_like(d))
+    r = (d0 - x @ coef).norm(dim=-1)
+    # 2-D residuals of std s per component: |r| is Rayleigh, median 1.1774 s
+    s = torch.nanmedian(torch.where(ok, r, torch.nan), dim=1).values / 1.1774
+    used = ok.sum(1)
+    xw = x.unsqueeze(0) * w.unsqueeze(-1)
+    inv = torch.linalg.inv(xw.transpose(1, 2) @ x + eye)
+    if noise is None:
+        var0 = (inv @ (xw.transpose(1, 2) @ xw) @ inv)[:, 0, 0] * s * s
+    else:  # sandwich with each row's own noise variance
+        nv = torch.where(ok, torch.nan_to_num(noise.double(), nan=0.0) ** 2, torch.zeros_like(w))
+        xn = xw * nv.sqrt().unsqueeze(-1)
+        var0 = (inv @ (xn.transpose(1, 2) @ xn) @ inv)[:, 0, 0]
+    se = var0.clamp(min=0).sqrt()
+    out = torch.zeros(f, 12 if kind == "quadratic" else 6, dtype=torch.float64, device=p.device)
+    out[:, 0], out[:, 1] = coef[:, 0, 0], coef[:, 0, 1]
+    if c >= 3:
+        out[:, 2], out[:, 3] = coef[:, 1, 0] / scale, coef[:, 2, 0] / scale
+        out[:, 4], out[:, 5] = coef[:, 1, 1] / scale, coef[:, 2, 1] / scale
+    if c == 6:
+        s2 = scale * scale
+        out[:, 6], out[:, 7], out[:, 8] = (coef[:, 3, 0] / s2, coef[:, 4, 0] / s2,
+                                           coef[:, 5, 0] / s2)
+        out[:, 9], out[:, 10], out[:, 11] = (coef[:, 3, 1] / s2, coef[:, 4, 1] / s2,
+                                             coef[:, 5, 1] / s2)
+    few = used < max(_MIN_POINTS, 3 * c)
+    out[few] = float("nan")
+    s = torch.where(few, torch.nan, s)
+    return out, s, used, torch.where(few, torch.nan, se)
+
+
+def _wls(x: Tensor, d: Tensor, w: Tensor, eye: Tensor) -> Tensor:
+    """(F, C, 2) per-frame weighted least squares of d (F, N, 2) on x (N, C), weights w
+    (F, N) or (N,)."""
+    w = w.expand(d.shape[0], -1) if w.dim() == 1 else w
+    xw = x.unsqueeze(0) * w.unsqueeze(-1)
+    return torch.linalg.solve(xw.transpose(1, 2) @ x + eye, xw.transpose(1, 2) @ d)
+
+
+def _frame_fit(x: Tensor, d: Tensor, ok: Tensor, eye: Tensor) -> tuple[Tensor, Tensor]:
+    """Huber IRLS per frame (for fewer than 3 frames): coefficients, weights (F, N)."""
+    d0 = torch.where(ok.unsqueeze(-1), d, torch.zeros_like(d))
+    w = ok.double()
+    coef = _wls(x, d0, w, eye)
+    for _ in range(_IRLS_STEPS):
+        r = (d0 - x @ coef).norm(dim=-1)
+        s = torch.nanmedian(torch.where(ok, r, torch.nan), dim=1).values / 1.1774
+        k = (_HUBER * s).clamp(min=1e-6).unsqueeze(1)
+        w = torch.where(ok, torch.clamp(k / r.clamp(min=1e-12), max=1.0), torch.zeros_like(r))
+        coef = _wls(x, d0, w, eye)
+    return coef, w
+
+
+def _fill_in_time(r: Tensor, ok: Tensor) -> Tensor:
+    """(F, N, 2) ``r`` with the entries not ``ok`` interpolated linearly in time between the
+    point's nearest valid frames (the nearest one before its first or after its last; 0 for
+    a point never valid)."""
+    f = r.shape[0]
+    t = torch.arange(f, device=r.device).unsqueeze(1).expand_as(ok)
+    prev = torch.where(ok, t, torch.full_like(t, -1)).cummax(0).values
+    nxt = torch.where(ok, t, torch.full_like(t, f)).flip(0).cummin(0).values.flip(0)
+    a = torch.where(prev >= 0, prev, nxt).clamp(0, f - 1)
+    b = torch.where(nxt < f, nxt, prev).clamp(0, f - 1)
+    ra = torch.gather(r, 0, a.unsqueeze(-1).expand(-1, -1, 2))
+    rb = torch.gather(r, 0, b.unsqueeze(-1).expand(-1, -1, 2))
+    span = (b - a).clamp(min=1).to(r.dtype)
+    frac = ((t - a).to(r.dtype) / span).clamp(0, 1).unsqueeze(-1)
+    out = ra + (rb - ra) * frac
+    return torch.where(ok.any(0, keepdim=True).unsqueeze(-1), out, torch.zeros_like(out))
+
+
+def _neighbours_line(r: Tensor) -> Tensor:
+    """(F, N, 2) each frame's value as its neighbours predict it: the mean of the frames
+    before and after, extrapolated from the next two (previous two) at the first (last)
+    frame; a wrong peak in one frame stands out, a trend or an acceleration does not."""
+    out = torch.empty_like(r)
+    out[1:-1] = 0.5 * (r[:-2] + r[2:])
+    out[0] = 2 * r[1] - r[2]
+    out[-1] = 2 * r[-2] - r[-3]
+    return out
+
+
+def _consistent_fit(x: Tensor, d: Tensor, ok: Tensor, eye: Tensor
+                    ) -> tuple[Tensor, Tensor, Tensor]:
+    """The fit of :func:`fit_frame_motion` for a series (>= 3 frames): the same points with
+    the same weights in every frame, so the shared motion does not jump from frame to frame
+    where the deformation departs from it (a per-frame robust fit re-weights the points of a
+    non-uniform field differently in each frame: on the hourglass its 5-frame line misfit
+    was 7x that of this fit).
+
+    The points are those valid in every frame (a point lost in some frames is usually wrong
+    in others: on the hourglass, adding the 3 % valid in >= 90 % of the frames, with their
+    gaps interpolated, doubled the misfit); where fewer than half the valid points are, those
+    valid in >= 90 % of the frames, gaps interpolated in time (where even those are fewer
+    than 3 per coefficient: the robust fit frame by frame). Each point's weight is a
+    Huber weight (3x the median; 0 beyond 10x) on the roughness in time of its residual
+    from the shared motion (median |second difference|): a wrong or background point
+    jitters on its own; an entry's weight is 0 where it is far (10x the median, at least
+    0.5 px) from what the point's neighbouring frames predict: a wrong peak in one frame.
+    Returns
+    coefficients (F, C, 2), weights (F, N) and the entries used (F, N)."""
+    valid_pts = ok.any(0)
+    keep = ok.all(0)
+    if int(keep.sum()) < max(3 * x.shape[1], int(0.5 * int(valid_pts.sum()))):
+        keep = ok.double().mean(0) >= _VALID_SHARE
+    if int(keep.sum()) < 3 * x.shape[1]:  # too few points tracked throughout: per frame
+        coef, w = _frame_fit(x, d, ok, eye)
+        return coef, w, ok
+    use = ok & keep
+    coef, _ = _frame_fit(x, d, use, eye)  # a robust start, frame by frame
+    w = keep.double().expand(d.shape[0], -1)
+    for _ in range(3):
+        r = torch.where(use.unsqueeze(-1), d - x @ coef, torch.zeros_like(d))
+        rf = _fill_in_time(r, use)
+        rough = (rf[2:] - 2 * rf[1:-1] + rf[:-2]).norm(dim=-1).median(0).values  # (N,)
+        s_r = torch.nanmedian(torch.where(keep, rough, torch.nan)).clamp(min=1e-9)
+        w_pt = torch.where(keep & (rough <= 10.0 * s_r),
+                           torch.clamp(3.0 * s_r / rough.clamp(min=1e-12), max=1.0),
+                           torch.zeros_like(rough))
+        # a wrong peak in single frames: far from what the point's neighbouring frames
+        # predict (what all points share there is the shared motion's own error)
+        jump = rf - _neighbours_line(rf)
+        shared = torch.nanmedian(torch.where(use.unsqueeze(-1), jump, torch.nan), 1).values
+        dev = (jump - torch.nan_to_num(shared).unsqueeze(1)).norm(dim=-1)
+        scale = torch.nanmedian(torch.where(use, dev, torch.nan)).clamp(min=1e-9)
+        limit = torch.clamp(10.0 * scale, min=_GROSS_PX)
+        w = w_pt * (dev <= limit).double()
+        full = torch.where(use.unsqueeze(-1), d, x @ coef + rf)
+        coef = _wls(x, torch.nan_to_num(full), w, eye)
+    return coef, w, use
+
+
+def window_offsets(g: Tensor, dt: Tensor) -> Tensor:
+    """The known motion of every frame of a window: the shared motion's jitter about its own
+    line through the window (module docstring).
+
+    Args:
+        g: (..., T, 2) the shared motion's displacement at a point in the window's T frames.
+        dt: (..., T) frame times minus the target's (0 at the target frame).
+
+    Returns:
+        (..., T, 2) ``o_t = g_t - g_k - beta dt_t`` (``beta`` the least-squares slope of g over
+        the window; ``g_k`` its value at dt = 0), 0 where the window has one frame."""
+    dt = dt.to(g.dtype)
+    t_count = dt.shape[-1]
+    if t_count < 2:
+        return torch.zeros_like(g)
+    dc = dt - dt.mean(-1, keepdim=True)
+    den = (dc * dc).sum(-1, keepdim=True).clamp(min=1e-30)
+    beta = ((dc.unsqueeze(-1) * (g - g.mean(-2, keepdim=True))).sum(-2)
+            / den)  # (..., 2)
+    at0 = (dt == 0).to(g.dtype)
+    has0 = at0.sum(-1, keepdim=True) > 0
+    g_k = (g * at0.unsqueeze(-1)).sum(-2) / at0.sum(-1, keepdim=True).clamp(min=1)
+    line0 = g.mean(-2) - beta * dt.mean(-1, keepdim=True)  # the line's value at dt = 0
+    g_k = torch.where(has0, g_k, line0)
+    return g - g_k.unsqueeze(-2) - beta.unsqueeze(-2) * dt.unsqueeze(-1)
+
+
+def detect_steps(residual: Tensor, valid: Tensor, sigma: Tensor, frames: Sequence[int],
+                 z: float = STEP_Z, ratio: float = STEP_RATIO, reach: int = 5) -> list[int]:
+    """Load steps: frames where the deformation jumps while it holds still around them.
+
+    Args:
+        residual: (F, N, 2) each point's displacement minus the shared motion (the
+            deformation's own part), px, at series frames ``frames`` (F,) ascending.
+        valid: (F, N) bool measurements to use.
+        sigma: (F,) typical classical noise std of one displacement component, px.
+        frames: the series index of each row.
+
+    A frame ``t`` (following frame ``t - 1`` in the series) starts a new load state when the
+    median increment ``s_t = med_i |r_i(t) - r_i(t-1)|`` exceeds both ``z`` times its noise
+    level (1.18 sigma, the median length of the increment of two frames' noise: the
+    reference's noise, half of sigma^2, cancels) and ``ratio`` times the median increment of
+    the frames within ``reach`` of it: a jump among still frames (measured on renders: holds
+    at 1.0 sigma, a 0.3 px sinusoidal step at 3 sigma). A steady motion (every increment
+    alike) or one load state per image has no step.
+
+    Returns:
+        series frames that begin a new segment (ascending)."""
+    f = residual.shape[0]
+    if f < 3:
+        return []
+    fr = torch.as_tensor(list(frames))
+    both = valid[1:] & valid[:-1]
+    inc = (residual[1:] - residual[:-1]).norm(dim=-1)
+    inc = torch.where(both & torch.isfinite(inc), inc, torch.nan)
+    s = torch.nanmedian(inc, dim=1).values  # (F-1,) increment into frames[1:]
+    adjacent = (fr[1:] - fr[:-1]) == 1
+    noise = 1.1774 * torch.maximum(sigma[1:], sigma[:-1])
+    out = []
+    for j in range(f - 1):
+        if not bool(adjacent[j]) or not bool(torch.isfinite(s[j])):
+            continue
+        near = [i for i in range(max(0, j - reach), min(f - 1, j + reach + 1)) if i != j]
+        base = torch.nanmedian(s[near]) if near else torch.tensor(float("nan"))
+        if not bool(torch.isfinite(base)):
+            continue
+        if float(s[j]) > z * float(noise[j]) and float(s[j]) > ratio * float(base):
+            out.append(int(fr[j + 1]))
+    return out
+
+
+def overlap_factor(points: Tensor, subset_size: int) -> float:
+    """Standard-error factor for the errors of overlapping subsets: points closer than a
+    subset share pixels, so their errors correlate and n points carry about
+    ``n (spacing / subset)^2`` independent measurements: ``max(1, subset / spacing)``, the
+    spacing being the median nearest-neighbour distance (measured: 2.0 at subset 21, step
+    10; this gives 2.1)."""
+    if points.shape[0] < 2:
+        return 1.0
+    d = torch.cdist(points.double(), points.double())
+    d.fill_diagonal_(float("inf"))
+    spacing = float(d.min(1).values.median())
+    return max(1.0, float(subset_size) / max(spacing, 1e-9))
+
+
+def known_window_motion(shared: Tensor, dt: Tensor, shape_hint: str = "") -> Tensor:
+    """(N, T, 2) what a window carries of a known shared motion given by the user: ``shared``
+    (T, 2) (the same at every point) or (N, T, 2) px per frame, ``dt`` (N, T) frame times
+    minus the target's; checked (shape, finite values: ValueError naming
+    ``shared_motion``), then :func:`window_offsets`, in ``dt``'s dtype and device.
+    ``shape_hint``: the accepted shapes as the caller names them, for the error."""
+    n, t_count = dt.shape
+    g = torch.as_tensor(shared).detach().to(device=dt.device, dtype=dt.dtype)
+    if g.dim() == 2:
+        g = g.unsqueeze(0).expand(n, -1, -1)
+    if tuple(g.shape) != (n, t_count, 2):
+        hint = shape_hint or f"({t_count}, 2) or (N={n}, {t_count}, 2)"
+        raise ValueError(f"shared_motion must be {hint}, got "
+                         f"{tuple(torch.as_tensor(shared).shape)}")
+    if not bool(torch.isfinite(g).all()):
+        raise ValueError("shared_motion contains NaN or infinite values")
+    return window_offsets(g, dt).contiguous()
+
+
+def sample_points(points: Tensor, max_points: int) -> Tensor:
+    """(n,) indices of at most ``max_points`` of the POIs, spread evenly over them."""
+    n = points.shape[0]
+    if n <= max_points:
+        return torch.arange(n)
+    return torch.linspace(0, n - 1, int(max_points)).round().long().unique()

@@ -1,0 +1,695 @@
+"""Batched subset / STS-DIC solver: Gauss-Newton over all POIs of a window at once.
+
+Notation (the paper's Eqs. 1-18): f is the reference image, g_t the 2m+1 deformed frames of
+the window, (dx, dy) a subset pixel's offset from its POI, dt = t - t_c the frame time minus
+the time the results refer to, and p the shape-function parameters, e.g.
+(u, ux, uy, ut, v, vx, vy, vt). Every subset pixel of every POI in every frame is warped and
+sampled in one batched interpolation call per iteration; the P x P normal equations of all
+POIs are solved together.
+
+Formulations:
+
+* ``joint``: minimise sum_t C(f, g_t(W(x; p, t))) by inverse-compositional Gauss-Newton
+  (IC-GN). The Jacobian uses the reference gradient, so the Hessian is formed and
+  Cholesky-factored once per POI; each iteration only samples the frames' values.
+* ``average``: the paper's own model, C(f, G) with G the average of the 2m+1 warped frames
+  (Eqs. 2, 11, 14), forward-additive Gauss-Newton with the Jacobian of Eq. 16 and the
+  Gauss-Newton Hessian of Eq. 18.
+* ``joint+average``: ``joint`` first (it finds the velocity), then the spatial unknowns are
+  refined with ``average`` at the joint velocity.
+* ``auto`` (default): ``joint``. It measured the most accurate of the three (the forward-
+  additive ``average`` uses the gradient of the noisy warped frames, whose correlation with
+  the interpolated noise biases u by ~1e-2 px at sigma = 5) and the fastest (the Hessian is
+  factored once). See the README for the measurements behind this choice.
+
+The ZNSSD criterion is solved in its variable-projection form: the residual is
+f~ - a g~ with f~, g~ the zero-mean subsets and a the least-squares scale, which makes the
+fixed point exactly the ZNCC maximum.
+"""
+
+from __future__ import annotations
+
+import time as _time
+from dataclasses import dataclass, field
+
+import torch
+
+from torch_stsdic.core import formulations
+from torch_stsdic.core.config import DICConfig
+from torch_stsdic.core.formulations import Formulation, Geometry
+from torch_stsdic.core.gauss_newton import (
+    BatchContext,
+    ReferenceCache,
+    classical_step_columns,
+    classical_step_width,
+    solve_batch,
+)
+from torch_stsdic.core.initial import (
+    carry_from_seed,
+    fft_cross_correlation,
+    linear_fit_in_time,
+    retry_weak_peaks,
+    seed_cells,
+    walk_weak_frames,
+)
+from torch_stsdic.core.interpolation import BSplineImage
+from torch_stsdic.core.offgrid import carry_params, carry_solution, snap_points
+from torch_stsdic.core.shape import ShapeFunction, make_shape
+from torch_stsdic.core.shared_motion import known_window_motion
+from torch_stsdic.core.status import Status
+from torch_stsdic.core.validation import as_image, as_points, as_series, as_times, check_init
+from torch_stsdic.core.window import make_window
+
+__all__ = ["WindowSolution", "SubsetSolver", "solve_window", "subset_inside"]
+
+
+def _parameter(name: str, doc: str) -> property:
+    """A read-only property: the (N,) column of parameter ``name``."""
+    return property(lambda self: self.param(name), doc=doc)
+
+
+@dataclass
+class WindowSolution:
+    """Per-POI results of one window, at the expansion time ``time``.
+
+    Attributes:
+        points: (N, 2) POI positions (x, y), px.
+        params: (N, P) shape-function parameters (names in ``param_names``); NaN rows where
+            ``status`` is DIVERGED, OUTSIDE, LOW_TEXTURE or NOT_COMPUTED.
+        zncc: (N,) zero-normalised cross-correlation, mean over the window's frames.
+        status: (N,) int8 :class:`Status` codes.
+        iterations: (N,) Gauss-Newton iterations used (all stages).
+        time: the time the displacement refers to (frame units unless times were given).
+        std: (N, P) predicted standard deviation of every parameter (same units), from the
+            image noise estimated from the point's own residual and its subset's gradients
+            (:mod:`torch_stsdic.core.uncertainty`); NaN where the point failed.
+        sigma: (N,) that noise, grey levels: the std of one reference/frame difference.
+        info: extras: "stages" (the Gauss-Newton stages run), "first_stage_params" (N, P)
+            (the joint solution before the "auto" refinement), "initial_params" (N, P),
+            "initial_guess" (how the POIs started: "method" fft / seeded / given, with the
+            number of seeds and FFT points and "fft_s", the seconds spent in FFT).
+    """
+
+    points: torch.Tensor
+    params: torch.Tensor
+    param_names: tuple[str, ...]
+    zncc: torch.Tensor
+    status: torch.Tensor
+    iterations: torch.Tensor
+    time: float | torch.Tensor = 0.0
+    info: dict = field(default_factory=dict)
+    std: torch.Tensor | None = None
+    sigma: torch.Tensor | None = None
+
+    def param(self, name: str) -> torch.Tensor:
+        """(N,) parameter ``name`` (e.g. "ux"; NaN if the shape function has none)."""
+        if name in self.param_names:
+            return self.params[:, self.param_names.index(name)]
+        return torch.full_like(self.params[:, 0], float("nan"))
+
+    u = _parameter("u", "(N,) displacement along x, px.")
+    v = _parameter("v", "(N,) displacement along y, px.")
+    ut = _parameter("ut", "(N,) velocity du/dt, px per frame (NaN for m = 0: one frame has no "
+                    "velocity).")
+    vt = _parameter("vt", "(N,) velocity dv/dt, px per frame (NaN for m = 0).")
+
+    def std_of(self, name: str) -> torch.Tensor:
+        """(N,) predicted standard deviation of parameter ``name`` (NaN if not estimated)."""
+        if self.std is None or name not in self.param_names:
+            return torch.full_like(self.params[:, 0], float("nan"))
+        return self.std[:, self.param_names.index(name)]
+
+    @property
+    def ok(self) -> torch.Tensor:
+        """(N,) bool: converged (or stopped at max_iter with usable parameters)."""
+        return self.status <= int(Status.MAX_ITER)
+
+    def __len__(self) -> int:
+        return self.points.shape[0]
+
+
+class SubsetSolver:
+    """The solver with its configuration resolved into modules (shape, window).
+
+    ``prepare`` does the per-image work (B-spline prefilter) once; ``solve`` does the
+    per-point work. :func:`solve_window` wraps both for one window. ``solve`` is general:
+    every POI can use its own reference (``ref_index``), its own frames (``frame_index``)
+    and its own frame times (``dt``), so several windows of a movie, or a batch of
+    sequences, are solved as one set of tensor operations.
+    """
+
+    def __init__(self, config: DICConfig | None = None) -> None:
+        self.config = config if config is not None else DICConfig()
+        self.config.validate()
+        self.shape = make_shape(self.config.shape)
+        self.window = make_window(self.config.window, self.config.subset_size)
+        #: the reference subsets kept between this solver's solves
+        #: (:class:`~torch_stsdic.core.gauss_newton.ReferenceCache`; set by a run, None: none)
+        self.reference_cache: ReferenceCache | None = None
+
+    def prepare(self, images: torch.Tensor) -> BSplineImage:
+        """Prefilter (T, H, W) or (H, W) images into B-spline coefficients."""
+        return BSplineImage(images, order=self.config.interpolation_order)
+
+    def stages_for(self, shape: ShapeFunction) -> list[Formulation]:
+        """The Gauss-Newton stages (formulations) run for ``shape`` (see :func:`shape_for`)."""
+        return formulations.stages(self.config.formulation, shape)
+
+    def shape_for(self, dt: torch.Tensor) -> ShapeFunction:
+        """The shape function used for frame offsets ``dt``: without temporal terms when all
+        frames are at the same time (one frame, m = 0: classical DIC)."""
+        if dt.shape[-1] > 1 and float(dt.abs().max()) > 0:
+            return self.shape
+        return self.shape.spatial()
+
+    # ------------------------------------------------------------------------------------
+    def solve(
+        self,
+        ref: BSplineImage,
+        frames: BSplineImage,
+        points: torch.Tensor,
+        dt: torch.Tensor,
+        *,
+        frame_index: torch.Tensor | None = None,
+        ref_index: torch.Tensor | None = None,
+        init: torch.Tensor | None = None,
+        ref_pixels: torch.Tensor | None = None,
+        frame_pixels: torch.Tensor | None = None,
+        time: float | torch.Tensor = 0.0,
+        noise_ratio: float = 1.0,
+        motion: torch.Tensor | None = None,
+        centres: torch.Tensor | None = None,
+        classical_step: bool = False,
+        init_step: torch.Tensor | None = None,
+    ) -> WindowSolution:
+        """Solve many POIs, each against its own window of frames.
+
+        Args:
+            ref: prepared reference image(s) (R frames).
+            frames: prepared deformed frames (F frames).
+            points: (N, 2) POIs (x, y) in px; its dtype is the computation's.
+            dt: (T,) or (N, T) frame times minus the time the results refer to.
+            frame_index: (T,) or (N, T) indices into ``frames`` (default 0..T-1).
+            ref_index: (N,) indices into ``ref`` (default 0).
+            init: (N, P) initial parameters, or None for FFT cross-correlation (which needs
+                ``ref_pixels`` (R, H, W) and ``frame_pixels`` (F, H, W)).
+            time: reported as ``WindowSolution.time``.
+            noise_ratio: the reference's noise variance over one frame's (1 for a single
+                frame, 1/K for a mean of K frames), for the predicted uncertainty.
+            motion: (T, 2) or (N, T, 2) a known displacement (u, v) px of every frame added
+                to the warp (the specimen's shared motion, :mod:`torch_stsdic.core.shared_motion`);
+                the parameters then describe the motion *besides* it. None: none.
+            centres: (N, 2) px where each POI's subset is centred (default: the POI): an
+                off-centre subset, e.g. one kept inside the image where its point nears the
+                border. ``init`` and ``motion`` are the POI's and the centre's; the solution is
+                carried to the POI by the subset's own gradients (:mod:`~torch_stsdic.core.offgrid`:
+                u += ux dx + uy dy, its std with it).
+            classical_step: also ``info["classical_step"]`` (N, 2 Ks): each converged POI's
+                classical solution (the parameters of :meth:`shape_for` one frame) after one
+                Gauss-Newton step from its solution at dt = 0, taken from the last step's
+                frame-by-frame right-hand sides at no cost (the model check starts there);
+                NaN where not known (another path than the native CPU kernel, no frame at
+                dt = 0, an off-grid or off-centre subset, not converged); with it
+                ``info["classical_step_size"]`` (N,) that step's size ``|dp * scale|`` px,
+                and what a classical solve would report there (ZNSSD and a 0/1 window,
+                else NaN): ``"classical_step_zncc"`` (N,), ``"classical_step_sigma"`` (N,)
+                grey levels and ``"classical_step_std"`` (N, 2 Ks)
+                (:func:`~torch_stsdic.core.gauss_newton.classical_step_columns`).
+            init_step: (N,) the size of the Gauss-Newton step that gave ``init`` (e.g.
+                ``info["classical_step_size"]`` with ``init`` the classical step; NaN or 0:
+                none): the first step's convergence test then predicts the next increment
+                from the rate between the two, as it does between later steps, so a point
+                whose first step here shrank enough stops after it.
+        """
+        moved = None
+        if centres is not None:
+            centres = torch.as_tensor(centres).to(device=points.device, dtype=points.dtype)
+            if tuple(centres.shape) != tuple(points.shape):
+                raise ValueError(f"centres must be (N, 2) like points {tuple(points.shape)}, "
+                                 f"got {tuple(centres.shape)}")
+            moved = (centres != points).any(1, keepdim=True)
+        grid, _ = snap_points(points if centres is None else centres)
+        offset = points - grid
+        if bool((offset != 0).any()):  # off the pixel grid: solve on it, carry the result
+            if moved is not None and init is not None and bool(moved.any()):
+                init = self._init_at(init, dt, torch.where(moved, grid - points, 0.0))
+            sol = self.solve(ref, frames, grid, dt, frame_index=frame_index,
+                             ref_index=ref_index, init=init, ref_pixels=ref_pixels,
+                             frame_pixels=frame_pixels, time=time, noise_ratio=noise_ratio,
+                             motion=motion, classical_step=classical_step,
+                             init_step=init_step)
+            if classical_step:  # known at the subset centre only
+                off = (offset != 0).any(1, keepdim=True)
+                sol.info.update(classical_step_info(packed_classical_step(sol.info).masked_fill(
+                    off, float("nan"))))
+            return carry_solution(sol, points, offset)
+        cfg = self.config
+        device, dtype = points.device, points.dtype
+        n = points.shape[0]
+        dt, frame_index, ref_index = _per_point(points, dt, frame_index, ref_index)
+        t_count = dt.shape[-1]
+        motion = _per_point_motion(motion, n, t_count, points)
+        shape = self.shape_for(dt)
+        p_count = shape.n_params
+        half = float(self.window.half)
+        h, w = ref.height, ref.width
+        status = torch.full((n,), int(Status.NOT_COMPUTED), dtype=torch.int8, device=device)
+        params = torch.full((n, p_count), float("nan"), dtype=dtype, device=device)
+        zncc = torch.full((n,), float("nan"), dtype=dtype, device=device)
+        iters = torch.zeros(n, dtype=torch.int32, device=device)
+
+        inside = subset_inside(points, half, h, w)
+        status[~inside] = int(Status.OUTSIDE)
+
+        if init is None:
+            if ref_pixels is None or frame_pixels is None:
+                raise ValueError("solve needs init or the raw images for the FFT initial guess")
+            plan = self._seed_plan(points, inside, dt, frame_index, ref_index)
+            if plan is not None:
+                return self._solve_seeded(
+                    plan, ref, frames, points, dt, frame_index, ref_index, ref_pixels,
+                    frame_pixels, time, inside, noise_ratio, motion, classical_step,
+                )
+            p0 = torch.zeros(n, p_count, dtype=dtype, device=device)
+            t_fft = _clock(device)
+            if inside.any():
+                p0[inside] = self.initial_guess(
+                    shape, ref_pixels, frame_pixels, points[inside], dt[inside],
+                    frame_index[inside], ref_index[inside],
+                    motion=None if motion is None else motion[inside],
+                )
+            t_fft = _clock(device) - t_fft
+        else:
+            t_fft = 0.0
+            p0 = torch.as_tensor(init).to(device=device, dtype=dtype)
+            if p0.dim() != 2 or p0.shape[0] != n:
+                raise ValueError(f"init must be (N, P) with a row for each of the {n} points, "
+                                 f"got {tuple(p0.shape)}")
+            if p0.shape[1] != p_count:
+                p0 = _expand_init(p0, shape, self.shape)
+
+        todo = torch.nonzero(inside).flatten()
+        first_stage = torch.full_like(params, float("nan"))
+        grey = ref_pixels if ref_pixels is not None else ref.coeffs
+        geo = Geometry.make(shape, self.window, cfg.criterion, dtype, device)
+        ctx = BatchContext(
+            geo=geo, ref=ref, frames=frames, cfg=cfg, stages=self.stages_for(shape),
+            grey_range=_grey_range(grey), work=int(todo.numel()) * t_count * int(geo.w.numel()),
+            noise_ratio=float(noise_ratio), cache=self.reference_cache,
+            classical_step=classical_step,
+        )
+        std = torch.full_like(params, float("nan"))
+        sigma = torch.full_like(zncc, float("nan"))
+        cstep = (torch.full((n, classical_step_width(geo.ks)), float("nan"), dtype=dtype,
+                            device=device) if classical_step else None)
+        if init_step is not None:
+            init_step = torch.as_tensor(init_step).to(device=device, dtype=dtype)
+            if init_step.numel() != n:
+                raise ValueError(f"init_step must be (N,) with a value for each of the {n} "
+                                 f"points, got {tuple(init_step.shape)}")
+            init_step = init_step.reshape(n)
+        batch = cfg.batch_points or ctx.batch_size(t_count)
+        for s0 in range(0, todo.numel(), batch):
+            idx = todo[s0 : s0 + batch]
+            pr, zr, sr, ir, p1, sd, sg, cs = solve_batch(
+                ctx, points[idx], p0[idx], dt[idx], frame_index[idx], ref_index[idx],
+                None if motion is None else motion[idx],
+                None if init_step is None else init_step[idx],
+            )
+            params[idx], zncc[idx], status[idx], iters[idx] = pr, zr, sr, ir
+            first_stage[idx], std[idx], sigma[idx] = p1, sd, sg
+            if cstep is not None:
+                cstep[idx] = cs
+
+        bad = status > int(Status.MAX_ITER)
+        params[bad] = float("nan")
+        zncc[bad] = float("nan")
+        return WindowSolution(
+            points=points, params=params, param_names=shape.param_names, zncc=zncc,
+            status=status, iterations=iters, time=time, std=std, sigma=sigma,
+            info={
+                "formulation": cfg.formulation,
+                "n_frames": t_count,
+                "stages": [f.name for f in ctx.stages],
+                "first_stage_params": first_stage,
+                "initial_params": p0,
+                "initial_guess": {"method": "fft" if init is None else "given",
+                                  "fft_s": t_fft},
+                **({} if cstep is None else classical_step_info(cstep)),
+            },
+        )
+
+    def _init_at(self, init: torch.Tensor, dt: torch.Tensor, offset: torch.Tensor
+                 ) -> torch.Tensor:
+        """An initial guess (N, P') at the POIs carried by ``offset`` (N, 2) px to the
+        subset centres (in the parameters of the shape solved for ``dt``)."""
+        shape = self.shape_for(torch.as_tensor(dt))
+        p0 = torch.as_tensor(init).to(offset)
+        if p0.shape[1] != shape.n_params:
+            p0 = _expand_init(p0, shape, self.shape)
+        return carry_params(p0, shape.param_names, offset)
+
+    # ---- seeded initial guess --------------------------------------------------------------
+    def _seed_plan(self, points, inside, dt, frame_index, ref_index):
+        """(inside indices, cell of each, seed positions) for the seeded initial guess, or None
+        when FFT cross-correlation at every POI is wanted (config, or sparse POIs)."""
+        cfg = self.config
+        n_in = int(inside.sum())
+        if cfg.initial_guess == "fft" or n_in < 2:
+            return None
+        idx = torch.nonzero(inside).flatten()
+        # POIs share a seed only when they see the same reference, frames and frame times
+        key = torch.cat([ref_index[idx].unsqueeze(1).double(), frame_index[idx].double(),
+                         dt[idx].double()], 1)
+        if bool((key == key[:1]).all()):  # one window for all (the common case): no sort
+            group = torch.zeros(idx.numel(), dtype=torch.long, device=idx.device)
+        else:
+            _, group = torch.unique(key, dim=0, return_inverse=True)
+        spacing = float(cfg.seed_spacing or cfg.subset_size)
+        cell, seeds = seed_cells(points[idx], group, spacing)
+        if cfg.initial_guess == "auto" and seeds.numel() * 4 > n_in:
+            return None
+        return idx, cell, seeds
+
+    def _solve_seeded(self, plan, ref, frames, points, dt, frame_index, ref_index, ref_pixels,
+                      frame_pixels, time, inside, noise_ratio, motion=None,
+                      classical_step=False) -> WindowSolution:
+        """Seeds by FFT cross-correlation and Gauss-Newton; every other POI starts from its
+        cell's seed solution (:func:`carry_from_seed`); POIs that then fail (not converged, or
+        ZNCC more than 0.1 below the best of their cell) are solved again from FFT cross-correlation
+        and keep the better of the two results."""
+        idx, cell, seeds_local = plan
+        n = points.shape[0]
+        shape = self.shape_for(dt)
+
+        def rows_of(a, rows):
+            return None if a is None else a[rows]
+
+        def sub(rows, init):
+            return self.solve(ref, frames, points[rows], dt[rows], frame_index=frame_index[rows],
+                              ref_index=ref_index[rows], init=init, ref_pixels=ref_pixels,
+                              frame_pixels=frame_pixels, time=time, noise_ratio=noise_ratio,
+                              motion=rows_of(motion, rows), classical_step=classical_step)
+
+        fft_s = [0.0]
+
+        def fft(rows):
+            t0 = _clock(points.device)
+            p0 = self.initial_guess(shape, ref_pixels, frame_pixels, points[rows], dt[rows],
+                                    frame_index[rows], ref_index[rows],
+                                    motion=rows_of(motion, rows))
+            fft_s[0] += _clock(points.device) - t0
+            return p0
+
+        seeds = idx[seeds_local]
+        sol_s = sub(seeds, fft(seeds))
+        is_seed = torch.zeros(idx.numel(), dtype=torch.bool, device=idx.device)
+        is_seed[seeds_local] = True
+        others = idx[~is_seed]
+        pos = cell[~is_seed]  # cell number == position of the cell's seed in `seeds`
+        seed_ok = sol_s.ok[pos]
+        init = carry_from_seed(shape, torch.nan_to_num(sol_s.params[pos]),
+                               points[others] - points[seeds[pos]])
+        orphans = ~seed_ok  # cells whose seed failed: FFT for their POIs
+        if orphans.any():
+            init[orphans] = fft(others[orphans])
+        sol_o = sub(others, init)
+        # a POI is suspect when its ZNCC is 0.1 below the best of its cell (its seed included):
+        # it may have started from a seed across a discontinuity
+        best = torch.nan_to_num(sol_s.zncc, nan=-1.0).clone()
+        best = best.scatter_reduce(0, pos, torch.nan_to_num(sol_o.zncc, nan=-1.0), "amax")
+        lost = ~sol_o.ok | (sol_o.status == int(Status.MAX_ITER)) | ~(
+            sol_o.zncc >= best[pos] - 0.1
+        )
+        lost &= seed_ok  # orphans already started from FFT
+        redo = others[lost]
+        sol_r = sub(redo, fft(redo)) if redo.numel() else None
+
+        p_count = shape.n_params
+        dev, dtype = points.device, points.dtype
+        out = {
+            "params": torch.full((n, p_count), float("nan"), dtype=dtype, device=dev),
+            "first": torch.full((n, p_count), float("nan"), dtype=dtype, device=dev),
+            "init": torch.zeros(n, p_count, dtype=dtype, device=dev),
+            "zncc": torch.full((n,), float("nan"), dtype=dtype, device=dev),
+            "status": torch.full((n,), int(Status.OUTSIDE), dtype=torch.int8, device=dev),
+            "iters": torch.zeros(n, dtype=torch.int32, device=dev),
+            "std": torch.full((n, p_count), float("nan"), dtype=dtype, device=dev),
+            "sigma": torch.full((n,), float("nan"), dtype=dtype, device=dev),
+        }
+        if classical_step:
+            packed = packed_classical_step(sol_s.info)
+            out["cstep"] = packed.new_full((n, packed.shape[1]), float("nan"))
+
+        def put(rows, sol, mask=None):
+            if mask is not None:
+                rows, pick = rows[mask], mask
+            else:
+                pick = slice(None)
+            out["params"][rows] = sol.params[pick]
+            out["first"][rows] = sol.info["first_stage_params"][pick]
+            out["init"][rows] = sol.info["initial_params"][pick]
+            out["zncc"][rows] = sol.zncc[pick]
+            out["status"][rows] = sol.status[pick]
+            out["std"][rows] = sol.std[pick]
+            out["sigma"][rows] = sol.sigma[pick]
+            if classical_step:
+                out["cstep"][rows] = packed_classical_step(sol.info)[pick]
+
+        put(seeds, sol_s)
+        out["iters"][seeds] = sol_s.iterations
+        put(others, sol_o)
+        out["iters"][others] = sol_o.iterations
+        if sol_r is not None:
+            old_ok = sol_o.ok[lost]
+            better = sol_r.ok & (~old_ok | (sol_r.zncc > sol_o.zncc[lost]))
+            put(redo, sol_r, better)
+            out["iters"][redo] += sol_r.iterations
+        return WindowSolution(
+            points=points, params=out["params"], param_names=shape.param_names,
+            zncc=out["zncc"], status=out["status"], iterations=out["iters"], time=time,
+            std=out["std"], sigma=out["sigma"],
+            info={
+                **{k: v for k, v in sol_s.info.items()
+                   if k not in ("first_stage_params", "initial_params")},
+                "first_stage_params": out["first"],
+                "initial_params": out["init"],
+                **(classical_step_info(out["cstep"]) if classical_step else {}),
+                "initial_guess": {
+                    "method": "seeded", "seeds": int(seeds.numel()),
+                    "fft_points": int(seeds.numel() + orphans.sum() + redo.numel()),
+                    "redone": int(redo.numel()), "points": int(idx.numel()),
+                    "fft_s": fft_s[0],
+                },
+            },
+        )
+
+    def initial_guess(
+        self, shape, ref_pixels, frame_pixels, points, dt, frame_index, ref_index, motion=None
+    ) -> torch.Tensor:
+        """FFT cross-correlation on every frame of each POI's window, then a line in time:
+        (N, P) parameters (displacement at dt = 0 and velocity; gradients zero) of the motion
+        besides the known ``motion`` (N, T, 2) (None: none)."""
+        cfg = self.config
+        d, score = fft_cross_correlation(
+            ref_pixels, frame_pixels, points, cfg.subset_size, cfg.search_radius,
+            frame_index=frame_index, ref_index=ref_index,
+        )
+        cfg = self.config
+        d, score = retry_weak_peaks(d, score, ref_pixels, frame_pixels, points, frame_index,
+                                    ref_index, cfg.subset_size, cfg.search_radius)
+        if d.shape[1] > 1:
+            d, score = walk_weak_frames(d, score, dt, ref_pixels, frame_pixels, points,
+                                        frame_index, ref_index, cfg.subset_size,
+                                        cfg.search_radius)
+        d = d.to(points.dtype)
+        if motion is not None:
+            d = d - motion.to(d)
+        p0 = torch.zeros(points.shape[0], shape.n_params, dtype=points.dtype,
+                         device=points.device)
+        k = shape.n_basis
+        if shape.has_time:
+            d0, vel = linear_fit_in_time(d, dt, weights=score.to(points.dtype) + 1.0)
+            p0[:, k - 1] = vel[:, 0]
+            p0[:, 2 * k - 1] = vel[:, 1]
+        else:
+            d0 = (d * (score.unsqueeze(-1) + 1.0)).sum(1) / (score + 1.0).sum(1, keepdim=True)
+        p0[:, 0] = d0[:, 0]
+        p0[:, k] = d0[:, 1]
+        return p0
+
+
+def _clock(device: torch.device) -> float:
+    """Wall-clock seconds, after the device's queued work (CUDA) has finished."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    return _time.perf_counter()
+
+
+def _grey_range(img: torch.Tensor) -> float:
+    """Intensity range of the reference (0.1 .. 99.9 percentile, from a subsample of at most
+    ~65k pixels), for the texture threshold."""
+    flat = img.reshape(-1)
+    if flat.numel() > 65536:
+        flat = flat[:: flat.numel() // 65536 + 1]
+    flat = flat.float()
+    k = max(1, int(0.001 * flat.numel()))
+    lo = flat.kthvalue(k).values
+    hi = flat.kthvalue(flat.numel() - k + 1).values
+    return max(float(hi - lo), 1e-12)
+
+
+def _expand_init(p0: torch.Tensor, shape: ShapeFunction, full: ShapeFunction) -> torch.Tensor:
+    """Map a short initial guess ((N,2) u,v; (N,4) u,v,ut,vt; or the full/spatial parameter
+    set of the other shape variant) onto ``shape``'s parameters."""
+    n = p0.shape[0]
+    out = torch.zeros(n, shape.n_params, dtype=p0.dtype, device=p0.device)
+    names = shape.param_names
+    if p0.shape[1] in (2, 4):
+        src = ("u", "v", "ut", "vt")[: p0.shape[1]]
+    elif p0.shape[1] == full.n_params:
+        src = full.param_names
+    elif p0.shape[1] == full.spatial().n_params:
+        src = full.spatial().param_names
+    else:
+        raise ValueError(
+            f"init must be (N, 2) (u, v), (N, 4) (u, v, ut, vt) or (N, {shape.n_params}) "
+            f"parameters {names}, got {tuple(p0.shape)}"
+        )
+    for j, nm in enumerate(src):
+        if nm in names:
+            out[:, names.index(nm)] = p0[:, j]
+    return out
+
+
+def _per_point(points: torch.Tensor, dt: torch.Tensor, frame_index: torch.Tensor | None,
+               ref_index: torch.Tensor | None):
+    """Each POI's frame times (N, T) in the points' dtype, frame indices (N, T) (default
+    0..T-1) and reference index (N,) (default 0), on the points' device."""
+    n, device = points.shape[0], points.device
+    dt = dt.to(device=device, dtype=points.dtype)
+    t_count = dt.shape[-1]
+    dt = dt.expand(n, t_count) if dt.dim() == 1 else dt
+    if frame_index is None:
+        frame_index = torch.arange(t_count, device=device)
+    frame_index = frame_index.to(device).long().expand(n, t_count)
+    if ref_index is None:
+        return dt, frame_index, torch.zeros(n, dtype=torch.long, device=device)
+    return dt, frame_index, ref_index.to(device).long().expand(n)
+
+
+def _per_point_motion(motion: torch.Tensor | None, n: int, t_count: int,
+                      points: torch.Tensor) -> torch.Tensor | None:
+    """Each POI's known motion (N, T, 2) from (T, 2) or (N, T, 2), in the points' dtype
+    (None: none). Its values are the caller's to check (every solve of a run passes here)."""
+    if motion is None:
+        return None
+    motion = torch.as_tensor(motion).detach().to(device=points.device, dtype=points.dtype)
+    if motion.dim() == 2:
+        motion = motion.unsqueeze(0).expand(n, -1, -1)
+    if tuple(motion.shape) != (n, t_count, 2):
+        raise ValueError(f"motion must be (T, 2) or (N, T, 2) = ({n}, {t_count}, 2), got "
+                         f"{tuple(motion.shape)}")
+    return motion.contiguous()
+
+
+def subset_inside(points: torch.Tensor, half: float, h: int, w: int) -> torch.Tensor:
+    """(N,) bool: the subset of half-width ``half`` around each POI lies in an H x W image."""
+    return ((points[:, 0] - half >= 0) & (points[:, 0] + half <= w - 1)
+            & (points[:, 1] - half >= 0) & (points[:, 1] + half <= h - 1))
+
+
+# ---------------------------------------------------------------------------------------
+def solve_window(
+    ref,
+    frames,
+    points,
+    config: DICConfig | None = None,
+    times=None,
+    init=None,
+    center: int | None = None,
+    shared_motion=None,
+    centres=None,
+) -> WindowSolution:
+    """Measure displacement and velocity at many POIs from one window of 2m+1 frames.
+
+    Args:
+        ref: reference image f, (H, W) tensor or array (grey; any real dtype).
+        frames: the window's deformed frames g_t in time order, (2m+1, H, W); (H, W) is
+            accepted when m = 0.
+        points: (N, 2) POIs as (x, y) in px (x = column, y = row, 0-based).
+        config: a :class:`DICConfig` (default DICConfig()).
+        times: (2m+1,) frame times (default 0, 1, ..., 2m: frame units).
+        init: optional initial guess per POI: (N, 2) (u, v), (N, 4) (u, v, ut, vt) or
+            (N, P) full parameters; default: FFT cross-correlation within
+            ``config.search_radius`` on every frame of the window, then a line fit in time.
+        center: index of the frame the results refer to (default m, the window centre; a
+            shifted window at the ends of a movie uses another index).
+        shared_motion: the specimen's known displacement (u, v) px in every frame, (2m+1, 2)
+            (the same at every POI: a rigid shake) or (N, 2m+1, 2); its jitter about a line in
+            time is carried in every warp (:mod:`torch_stsdic.core.shared_motion`), so u, v stay
+            the total displacement and ut, vt the smooth velocity. None: none.
+        centres: (N, 2) px where each POI's subset is centred (default: the POI itself): an
+            off-centre subset, e.g. kept inside the image where its point nears the border;
+            the solution is carried to the POI by the subset's gradients (u += ux dx + uy dy),
+            its predicted std with them.
+
+    Returns:
+        :class:`WindowSolution` on the input's device: u, v, ut, vt (N,), params (N, P),
+        zncc (N,), status (N,), iterations (N,).
+    """
+    cfg = config if config is not None else DICConfig()
+    if not isinstance(cfg, DICConfig):
+        raise TypeError(f"config must be a DICConfig, got {type(cfg).__name__}")
+    ref_t = as_image(ref, "ref", dtype=cfg.dtype)
+    frames_t = as_series(frames, "frames", dtype=ref_t.dtype, device=ref_t.device,
+                         like=ref_t, m=cfg.m)
+    n_frames = frames_t.shape[0]
+    if n_frames != cfg.n_frames:
+        raise ValueError(
+            f"frames: config.m = {cfg.m} needs 2m+1 = {cfg.n_frames} frames, got {n_frames}"
+            + (" (m is larger than the frames given)" if n_frames < cfg.n_frames else "")
+        )
+    if min(ref_t.shape) < cfg.subset_size:
+        raise ValueError(
+            f"subset_size {cfg.subset_size} is larger than the image {tuple(ref_t.shape)}"
+        )
+    pts = as_points(points, "points", dtype=ref_t.dtype, device=ref_t.device)
+    t = as_times(times, n_frames, dtype=ref_t.dtype, device=ref_t.device)
+    c = cfg.m if center is None else int(center)
+    if not 0 <= c < n_frames:
+        raise ValueError(f"center must be in 0..{n_frames - 1}, got {center}")
+    init_t = check_init(init, pts.shape[0], dtype=ref_t.dtype, device=ref_t.device)
+    solver = SubsetSolver(cfg)
+    ref_img = solver.prepare(ref_t)
+    frames_img = solver.prepare(frames_t)
+    motion = None
+    if shared_motion is not None:
+        motion = known_window_motion(shared_motion, (t - t[c]).expand(pts.shape[0], -1))
+    centres_t = None  # one per point: SubsetSolver.solve checks that
+    if centres is not None:
+        centres_t = as_points(centres, "centres", dtype=ref_t.dtype, device=ref_t.device)
+    return solver.solve(
+        ref_img, frames_img, pts, t - t[c], init=init_t, ref_pixels=ref_t.unsqueeze(0),
+        frame_pixels=frames_t, time=float(t[c]), motion=motion, centres=centres_t,
+    )
+
+
+#: info keys of a classical step's columns (gauss_newton.classical_step_columns)
+_CSTEP_KEYS = {"params": "classical_step", "size": "classical_step_size",
+               "zncc": "classical_step_zncc", "sigma": "classical_step_sigma",
+               "std": "classical_step_std"}
+
+
+def classical_step_info(packed: torch.Tensor) -> dict[str, torch.Tensor]:
+    """The info entries of classical steps ``packed`` (N, 4 Ks + 3) (one value per row for
+    the size, ZNCC and sigma)."""
+    cols = classical_step_columns((packed.shape[1] - 3) // 4)
+    return {key: packed[:, cols[part]].squeeze(1) if part in ("size", "zncc", "sigma")
+            else packed[:, cols[part]] for part, key in _CSTEP_KEYS.items()}
+
+
+def packed_classical_step(info: dict) -> torch.Tensor:
+    """The classical steps of a solution's ``info`` as one (N, 4 Ks + 3) tensor."""
+    return torch.cat([info[key].reshape(info[key].shape[0], -1)
+                      for key in _CSTEP_KEYS.values()], 1)

@@ -1,0 +1,153 @@
+"""The row-parallel runner: one kernel call over rows [0, n) on several threads.
+
+ctypes releases the GIL, so a call's rows are split over ``torch.get_num_threads()``
+threads, the calling thread and pool threads taking chunks in turn. No tensor whose pointer
+goes to C is freed while C may still use it, and a call returns or raises (KeyboardInterrupt
+included) only once no pool thread is inside the kernel (:class:`_Rows`); C code itself is
+never interrupted.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
+
+import torch
+
+from torch_stsdic.kernels.native.declarations import Kernel
+
+__all__ = ["run_rows"]
+
+_POOL: ThreadPoolExecutor | None = None
+_POOL_SIZE = 0
+_POOL_PID = 0
+# below this many samples a call runs on the calling thread (thread hand-off costs ~50 us)
+_PARALLEL_MIN = 20_000
+
+
+def _pool(n: int) -> ThreadPoolExecutor:
+    """The helper threads (made again after a fork: a forked child has none of them)."""
+    global _POOL, _POOL_SIZE, _POOL_PID
+    if _POOL is None or _POOL_SIZE != n or _POOL_PID != os.getpid():
+        if _POOL is not None and _POOL_PID == os.getpid():
+            _POOL.shutdown(wait=False)  # idle: every call waits for its helpers
+        _POOL = ThreadPoolExecutor(max_workers=n, thread_name_prefix="stsdic")
+        _POOL_SIZE, _POOL_PID = n, os.getpid()
+    return _POOL
+
+
+class _Rows:
+    """One kernel call over rows [0, n) in chunks, taken in turn by the calling thread and
+    helper threads of the pool.
+
+    Nothing handed to C is freed while C may still use it: this object holds every tensor the
+    arguments point to, and each helper holds this object. The call does not return, normally
+    or by an exception (KeyboardInterrupt included), while a helper is inside the kernel: an
+    exception in the calling thread stops the hand-out of chunks and waits for the chunks
+    under way (at most one per helper; an interrupt during that wait is held back and the
+    first exception propagates)."""
+
+    def __init__(self, kernel: Kernel, raw: list, keep: list, edges: list[int]):
+        self.kernel, self.raw, self.keep, self.edges = kernel, raw, keep, edges
+        self.lock = threading.Lock()
+        self.idle = threading.Event()
+        self.idle.set()
+        self.next = 0
+        self.busy = 0  # helpers inside the loop below
+        self.stop = False
+        self.failed: list = []  # (i0, i1, rc) or an exception of a helper
+
+    def _take(self) -> int | None:
+        with self.lock:
+            j = self.next
+            if self.stop or j >= len(self.edges) - 1:
+                return None
+            self.next = j + 1
+        return j
+
+    def _chunk(self, j: int) -> None:
+        args = self.raw.copy()
+        args[self.kernel.i0], args[self.kernel.i1] = self.edges[j], self.edges[j + 1]
+        rc = self.kernel.fn(*args)
+        if rc:
+            self.failed.append((self.edges[j], self.edges[j + 1], rc))
+            self.stop = True
+
+    def helper(self) -> None:
+        """A pool thread's part (signals are handled on the main thread only: no
+        KeyboardInterrupt here)."""
+        with self.lock:  # registered as busy before the calling thread can see idle
+            if self.stop or self.next >= len(self.edges) - 1:
+                return
+            self.busy += 1
+            self.idle.clear()
+        try:
+            while (j := self._take()) is not None:
+                self._chunk(j)
+        except BaseException as exc:  # not expected (arguments are checked): report it
+            self.failed.append(exc)
+            self.stop = True
+        finally:
+            with self.lock:
+                self.busy -= 1
+                if not self.busy:
+                    self.idle.set()
+
+    def _wait(self) -> BaseException | None:
+        """Until no helper is inside the kernel; returns an exception (e.g. a second Ctrl-C)
+        that arrived meanwhile."""
+        held = None
+        while True:
+            try:
+                with self.lock:  # a helper past its stop check is counted in busy now
+                    pass
+                self.idle.wait()
+                return held
+            except BaseException as exc:
+                held = held or exc
+                self.stop = True
+
+    def run(self, pool: ThreadPoolExecutor, helpers: int) -> None:
+        done = False
+        try:
+            for _ in range(helpers):
+                try:
+                    pool.submit(self.helper)
+                except RuntimeError:  # interpreter shutting down: no new threads
+                    break
+            while (j := self._take()) is not None:
+                self._chunk(j)
+            done = True
+        finally:
+            if not done:
+                self.stop = True
+            held = self._wait()
+        if held is not None:
+            raise held
+        for f in self.failed:
+            if isinstance(f, BaseException):
+                raise f
+            raise RuntimeError(f"{self.kernel.name} returned {f[2]} for rows [{f[0]}, {f[1]})")
+
+
+def run_rows(kernel: Kernel, n_rows: int, work_per_row: int, args: dict) -> None:
+    """Call ``kernel`` with ``args`` (every parameter but i0, i1, by name) over the rows
+    [0, n_rows), split over ``torch.get_num_threads()`` threads when that pays."""
+    if "i0" in args or "i1" in args or kernel.i0 is None or kernel.i1 is None:
+        raise TypeError(f"{kernel.name}: the rows i0, i1 are set by run_rows")
+    raw, keep = kernel.bind({**args, "i0": 0, "i1": n_rows})
+    if n_rows <= 0:
+        return
+    threads = max(1, torch.get_num_threads())
+    if threads == 1 or n_rows * work_per_row < _PARALLEL_MIN or n_rows < 2:
+        # on this thread alone: a Ctrl-C is raised only once C returned, and keep holds the
+        # tensors until then
+        rc = kernel.fn(*raw)
+        del keep
+        if rc:
+            raise RuntimeError(f"{kernel.name} returned {rc}")
+        return
+    parts = min(threads * 4, n_rows)  # a few chunks per thread evens out uneven rows
+    edges = [n_rows * j // parts for j in range(parts + 1)]
+    _Rows(kernel, raw, keep, edges).run(_pool(threads - 1), min(threads, parts) - 1)

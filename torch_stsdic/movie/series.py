@@ -1,0 +1,314 @@
+"""Track a whole movie with STS-DIC: sliding 2m+1 windows, carried-forward guesses, batching.
+
+For every target frame ``k`` the window ``k-m .. k+m`` (2m+1 frames) is solved against the
+reference; the result refers to the time of frame ``k`` (``dt = t_j - t_k``, the paper's
+Eqs. 1-10 with the expansion time at the target frame). At the ends of the series the
+window is **shifted, not shrunk**: frames ``0 .. 2m`` for the first ``m`` targets (and the
+last ``2m+1`` frames at the end), so every result averages the same number of frames.
+
+A run is a :class:`~torch_stsdic.movie.plan.RunPlan` (validated inputs, points, reference, frame
+blocks; :func:`~torch_stsdic.movie.plan.plan_run`) executed by :func:`run_plan` block by block into
+a sink (:mod:`torch_stsdic.movie.sinks`: memory or an HDF5 file). :func:`track` does both.
+
+Target frames are processed in time order, in fixed *blocks* of consecutive targets
+(``batch_frames``). The first block is the first target alone, initialised by FFT
+cross-correlation; every later block is initialised from the last row of the block before,
+moved on by its velocity: ``u + ut (t_k - t_last)``, ``v + vt (t_k - t_last)``, gradients
+carried (classical DIC, m = 0, uses the finite-difference velocity of the last two rows).
+All POIs of all targets of a block go through **one** call of
+:meth:`~torch_stsdic.core.solver.SubsetSolver.solve` (each row has its own frames and ``dt``).
+Lost points (not converged, or ZNCC below ``lost_zncc``) are solved again with an FFT
+initial guess, and the better of the two results is kept.
+
+Frames are read lazily (:class:`~torch_stsdic.movie.frames.FrameCache`): only the frames of the
+current block's windows are held, so memory is bounded by ``batch_frames + 2m`` frames (plus
+the few read ahead by a background thread: :func:`~torch_stsdic.movie.frames.default_ahead`), not by
+the movie length.
+
+Determinism and resume: the carried state is always taken from the rows *as stored*
+(float32, like the HDF5 file), and blocks are fixed by the target list and
+``batch_frames``. A run resumed from a result file replays the finished blocks from the
+file (carry, reference updates) and recomputes exactly the same pending blocks, so it ends
+with the same numbers as an uninterrupted run.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import torch
+from tqdm import tqdm
+
+from torch_stsdic.analysis.result import TrackResult
+from torch_stsdic.analysis.smoothing import smooth_in_time
+from torch_stsdic.core.config import DICConfig
+from torch_stsdic.core.gauss_newton import ReferenceCache
+from torch_stsdic.core.solver import SubsetSolver
+from torch_stsdic.io.results import as_stored
+from torch_stsdic.movie.block import BlockContext, Carry, make_carry, rows_numpy, solve_block
+from torch_stsdic.movie.frames import FrameCache, default_ahead, frames_in_order, segment_bounds
+from torch_stsdic.movie.plan import RunPlan, plan_run
+from torch_stsdic.movie.reference import Reference, maybe_update
+from torch_stsdic.movie.refine import (
+    ReferenceOffsets,
+    apply_offsets,
+    measure_offsets,
+    set_refinement,
+)
+from torch_stsdic.movie.shared_pass import estimate_shared_motion
+from torch_stsdic.movie.sinks import MemorySink, open_sink
+
+__all__ = ["track", "run_plan", "classical_smoothed"]
+
+
+# ---------------------------------------------------------------------------------------
+# running a plan
+# ---------------------------------------------------------------------------------------
+def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = True,
+             callback: Callable[[int, int], None] | None = None) -> TrackResult:
+    """Execute ``plan`` block by block into ``sink`` (default: memory) and return the result.
+
+    Blocks the sink already holds (an interrupted run being resumed) are replayed from it, not
+    recomputed. On any error or interruption the sink is closed without committing, so an
+    HDF5 file keeps every finished block and can be resumed."""
+    sink = sink if sink is not None else MemorySink(plan)
+    cfg = plan.config
+    solver = SubsetSolver(cfg)
+    if cfg.m > 0 or sum(k != plan.reference_frame for k in plan.targets) > 1:
+        # the points are solved again (windows and their checks, later blocks): their
+        # reference subsets are sampled once, within the working-memory budget
+        solver.reference_cache = ReferenceCache(cfg.memory_mb, expected=len(plan.points))
+    cache = FrameCache(plan.series, solver, plan.dtype, plan.device,
+                       ahead=default_ahead(plan.batch_frames, cfg.m))
+    run = BlockContext(solver=solver, cache=cache,
+               ts=torch.from_numpy(plan.times).to(device=plan.device, dtype=torch.float64),
+               n_series=len(plan.series), m=cfg.m, dtype=plan.dtype, device=plan.device,
+               lost_zncc=float(plan.options.get("lost_zncc", 0.8)), names=plan.param_names,
+               checks=bool(plan.options.get("checks", True)),
+               stats={"fft_rows": 0, "redone_rows": 0})
+    ref_raw = plan.reference_image
+    ref_raw = cache.read(plan.reference_frame) if ref_raw is None else ref_raw.to(
+        device=plan.device, dtype=plan.dtype)
+    ref = Reference(frame=plan.reference_frame, raw=ref_raw, img=solver.prepare(ref_raw),
+                    points=plan.points.to(device=plan.device, dtype=plan.dtype))
+    if plan.reference_image is None:  # a frame of the series: read and prepared once
+        cache.put(plan.reference_frame, ref.raw, ref.img)
+    run.reference_desc = plan.reference_desc  # its noise ratio is measured on the 1st block
+    updates: list[dict[str, Any]] = []
+    offsets = None
+    shared = None
+    if plan.options.get("shared_motion"):
+        kind = plan.options["shared_motion"]
+        shared = estimate_shared_motion(plan, kind, auto=kind == "auto", run=run_plan)
+        run.shared = shared if shared.applied else None
+        run.first_guess = shared.sample  # the first block starts from the pass's solutions
+        if shared.steps:
+            run.segments = segment_bounds(shared.steps, len(plan.series)).to(plan.device)
+        sink.write_shared_motion(shared)
+    if plan.options.get("refine_reference"):
+        offsets = measure_offsets(plan, int(plan.options["refine_reference"]), run.shared,
+                                  run=run_plan)
+    bar = tqdm(total=plan.n_rows, unit="frame", file=sys.stderr, disable=not progress,
+               desc="STS-DIC" if cfg.m else "DIC", dynamic_ncols=True)
+    try:
+        try:
+            _run_blocks(plan, sink, run, ref, updates, bar, callback, offsets)
+        finally:
+            cache.close()
+        if plan.options.get("smoothing"):
+            _smooth(plan, sink)
+        info: dict[str, Any] = {
+            "batch_frames": plan.batch_frames, "blocks": len(plan.blocks),
+            "frames_read": cache.reads, "prefiltered": cache.prefiltered,
+            "max_cached_frames": cache.max_cached, "reference": plan.reference_desc,
+            "frame_times_s": cache.times(),
+            "reference_updates": updates, "reference_noise_ratio": run.noise_ratio,
+            **run.stats,
+        }
+        if offsets is not None:
+            info["refine_reference"] = offsets.summary()
+        if shared is not None:
+            info["shared_motion"] = shared.summary()
+        if plan.options.get("smoothing"):
+            info["smoothing"] = plan.options["smoothing"]
+        result = sink.result(info)
+        sink.finish(result)
+    except BaseException:
+        bar.close()
+        sink.close(commit=False)
+        raise
+    bar.close()
+    sink.close()
+    return result
+
+
+def _run_blocks(plan: RunPlan, sink: MemorySink, run: BlockContext, ref: Reference,
+                updates: list, bar: tqdm, callback,
+                offsets: ReferenceOffsets | None = None) -> None:
+    """Solve (or replay) every block, carrying guesses and reference updates along
+    (``offsets``: the refined reference's per-point offsets, subtracted before storing)."""
+    row_of = plan.row_of()
+    done = sink.completed_rows()
+    run.cache.schedule(frames_in_order(  # read ahead the frames of the blocks to solve
+        [b for b in plan.blocks if not all(row_of[k] in done for k in b)], plan.config.m,
+        len(plan.series), None if run.segments is None else run.segments.cpu()))
+    carry: Carry | None = None
+    rows_done = 0
+    thr = plan.options.get("reference_update")
+    pts0 = plan.points.to(device=plan.device, dtype=plan.dtype)
+    for block in plan.blocks:
+        rs = [row_of[k] for k in block]
+        if all(r in done for r in rs):
+            stored = sink.read_rows(rs)  # replay a finished block from the file
+            sink.reference_frames[rs] = ref.frame
+        else:
+            full = rows_numpy(solve_block(run, block, ref, carry), plan.fields)
+            if offsets is not None:
+                full = apply_offsets(full, offsets, block)
+            stored = as_stored(full)
+            sink.write_rows(rs, full, reference_frame=ref.frame)
+        if block is not plan.blocks[-1]:  # the last block carries nothing on
+            carry = make_carry(stored, plan.times[block], plan.param_names, carry,
+                               plan.dtype, plan.device)
+        if thr is not None:
+            ref = maybe_update(ref, stored, block[-1], float(thr), pts0, plan.param_names,
+                               run.cache, plan.dtype, plan.device, updates, rs[-1])
+            if updates:  # the reference is now a frame of the series
+                run.noise_ratio = 1.0
+        rows_done += len(block)
+        bar.update(len(block))
+        if callback is not None:
+            callback(rows_done, plan.n_rows)
+
+
+def _smooth(plan: RunPlan, sink: MemorySink) -> None:
+    """The "direct smoothing" baseline: u, v of the classical rows smoothed in time."""
+    span = plan.options["smoothing"]
+    t_rows = plan.row_times
+    su, sut = smooth_in_time(sink.values["u"], span, t_rows, return_rate=True)
+    sv, svt = smooth_in_time(sink.values["v"], span, t_rows, return_rate=True)
+    sink.write_smoothed({"u": su, "v": sv, "ut": sut, "vt": svt})
+
+
+# ---------------------------------------------------------------------------------------
+# track
+# ---------------------------------------------------------------------------------------
+def track(
+    series: Any,
+    reference: Any = 0,
+    frames: Any = None,
+    points: Any = None,
+    roi: Sequence[float] | None = None,
+    mask: Any = None,
+    step: int = 10,
+    config: DICConfig | None = None,
+    device: str | torch.device = "cpu",
+    times: Any = None,
+    progress: bool = True,
+    out: str | os.PathLike[str] | None = None,
+    resume: bool = False,
+    batch_frames: int | None = None,
+    reference_update: float | None = None,
+    smoothing: int | None = None,
+    *,
+    lost_zncc: float = 0.8,
+    checks: bool = True,
+    overwrite: bool = False,
+    callback: Callable[[int, int], None] | None = None,
+    refine_reference: bool = False,
+    refine_frames: int | None = None,
+    shared_motion: str | None = "auto",
+    strain_window: int | None = 5,
+    strain_kind: str = "green",
+    scale: float | None = None,
+    unit: str | None = None,
+    time_unit: str | None = None,
+) -> TrackResult:
+    """Track POIs through a movie with STS-DIC (sliding windows of 2m+1 frames).
+
+    Args:
+        series: anything :func:`~torch_stsdic.io.load_series` accepts (TIFF stack, directory,
+            glob, list of files, (T, H, W) array/tensor) or an ImageSeries; read lazily.
+        reference: frame index (int), a frame spec / list ("0:5", [0, 1, 2]) whose pixel-wise
+            MEAN is the reference (less reference noise), or an (H, W) image.
+        frames: target frames (spec string, int or list; default all frames of the series,
+            the reference frame included). Sorted ascending; one result row each.
+        points: (N, 2) POIs (x, y) px; default a grid of spacing ``step`` px inside ``roi``
+            and ``mask`` (see :func:`~torch_stsdic.analysis.points.grid_points`). Given points are
+            filtered by roi/mask.
+        roi: (x0, y0, x1, y1) px, inclusive. mask: (H, W) array or image path, 0 = drop.
+        step: grid spacing, px.
+        config: :class:`DICConfig` (default DICConfig()); ``config.m`` sets the window.
+        device: torch device of the computation.
+        times: (T,) time of every series frame (uneven frame rates); default the series'
+            timestamps, else frame indices. Velocities are px per this time unit.
+        progress: tqdm progress bar on stderr (frames/s, ETA).
+        out: HDF5 result path, written block by block (:class:`~torch_stsdic.movie.sinks.HDF5Sink`;
+            fields u, v, ut, vt, zncc, status, iterations, ux, uy, vx, vy, and at the end the
+            strains exx, eyy, exy and their rates).
+        resume: continue the run recorded in ``out`` (same settings); the result equals
+            an uninterrupted run. overwrite: replace an existing ``out``.
+        batch_frames: target frames solved together per block (default from
+            ``config.memory_mb``, at most 8).
+        reference_update: ZNCC threshold in (0, 1): when the mean ZNCC of a block's last
+            frame drops below it, that frame becomes the new reference (see docs).
+        smoothing: odd span (frames): run classical DIC (config.m = 0) and smooth u, v in
+            time with :func:`~torch_stsdic.analysis.smoothing.smooth_in_time` (the paper's "direct
+            smoothing" baseline).
+        lost_zncc: points whose ZNCC falls below this are re-solved with an FFT guess, and a
+            solved point still below it is POOR_FIT.
+        checks: the trust checks of :mod:`torch_stsdic.analysis.quality` (model check of every window
+            against the classical solution with shorter windows where the motion is not
+            affine in time, fit and neighbour checks; default True). False: every converged
+            point is reported as such (faster, and as before these checks existed).
+        callback: called as ``callback(rows_done, n_rows)`` after each block.
+        refine_reference: remove the noisy reference's constant per-point offset: classical
+            DIC of up to ``refine_frames`` frames around the reference (default 41), a
+            polynomial fit in time per point, its value at the reference time (shrunk by
+            the offsets' spread) subtracted from every row, and the reference's own row set
+            to zero displacement (:mod:`torch_stsdic.movie.refine`, ``docs/accuracy.md``). Needs a
+            reference that is one series frame and no ``reference_update``.
+        shared_motion: the specimen's per-frame motion carried as a known term in every
+            window (:mod:`torch_stsdic.core.shared_motion`): "quadratic", "affine" or
+            "translation" per frame, measured by a classical pass at up to 1,000 POIs and
+            fitted robustly, so a specimen that shakes or steps as a whole keeps its full
+            windows. "auto" (default): for STS windows (m > 0) without ``reference_update``,
+            quadratic (affine under 500 points), carried where the shake is significant;
+            None: off. The
+            per-frame motion is in ``result.shared_motion`` and the result file.
+        strain_window, strain_kind: strains written to ``out`` (grid points per side of the
+            plane fit; "green" or "small"); ``strain_window=None``: none.
+        scale, unit, time_unit: calibration recorded with the results (``out`` attributes,
+            ``result.info["units"]``): ``scale`` length ``unit``s per px (e.g. 0.02, "mm"),
+            ``time_unit`` of ``times`` (default "frame", "time unit" with timestamps). The
+            values stay in px; exports and figures convert (:mod:`torch_stsdic.io.units`).
+
+    Returns:
+        :class:`TrackResult` with (F, N) fields. With ``out`` the values are those stored in
+        the file (float32 precision), so a resumed run returns the same numbers.
+
+    Raises:
+        ValueError naming the argument (see :func:`~torch_stsdic.movie.plan.plan_run`).
+    """
+    if resume and out is None:
+        raise ValueError("resume: needs out (the result file to continue)")
+    plan = plan_run(series, reference, frames, points, roi, mask, step, config, device, times,
+                    batch_frames, reference_update=reference_update, smoothing=smoothing,
+                    lost_zncc=lost_zncc, checks=checks, scale=scale, unit=unit,
+                    time_unit=time_unit, shared_motion=shared_motion)
+    if refine_reference:
+        set_refinement(plan, refine_frames)
+    elif refine_frames is not None:
+        raise ValueError("refine_frames: only with refine_reference=True")
+    sink = open_sink(plan, out, resume=resume, overwrite=overwrite,
+                     strain_window=strain_window, strain_kind=strain_kind)
+    return run_plan(plan, sink, progress=progress, callback=callback)
+
+
+def classical_smoothed(series: Any, span: int = 5, **kwargs: Any) -> TrackResult:
+    """Classical DIC (m = 0) of ``series`` smoothed in time over ``span`` frames: shorthand
+    for ``track(series, smoothing=span, **kwargs)``."""
+    return track(series, smoothing=span, **kwargs)
