@@ -12,7 +12,7 @@
 #   OPENCORR_DL       downloaded wheels                        (default /tmp/opencorr/dl)
 #   OPENCORR_DATA     where the PGM images are written         (default /tmp/opencorr/data)
 #   OPENCORR_TIFFS    folder holding img000.tif, img001.tif    (default /tmp/stsdic_bench/cli_pair_m0_v1,
-#                     written by scripts/bench_cli.py / scripts/bench_opencorr.py); skipped if missing
+#                     written by scripts/benchmarks/bench_cli.py / scripts/benchmarks/bench_opencorr.py); skipped if missing
 #   OPENCORR_OPENCV   1: compile and link against OpenCV (pkg-config opencv4), for an unpatched OpenCorr
 #                     clone whose oc_image.cpp reads images with cv::imread (default 0: no OpenCV, which
 #                     needs the PGM-loader patch of oc_image.{h,cpp} described in README.md)
@@ -78,7 +78,7 @@ if [ -d "$SRC/body" ]; then
   for f in "$SRC"/body/*; do cat "$SRC/LICENSE_HEADER.txt" "$f" > "$SRC/$(basename "$f")"; done
 fi
 
-# --- images: TIFF -> 8-bit binary PGM (scripts/bench_opencorr.py does the same if they are missing) ---
+# --- images: TIFF -> 8-bit binary PGM (scripts/benchmarks/bench_opencorr.py does the same if they are missing) ---
 if [ -f "$TIFFS/img000.tif" ]; then
   TIFFS="$TIFFS" DATA="$DATA" python3 - <<'EOF'
 import os

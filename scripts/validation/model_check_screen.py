@@ -15,8 +15,8 @@ converge) and judges it with the same tests. Printed per block and in total:
   noise and std ratios) and the estimate's error over the step's size (the contraction the
   slack ``block.SCREEN_SLACK`` allows for).
 
-    python scripts/model_check_screen.py run ../shared/data/mudic-hourglass/ --subset 31 \\
-        --step 20 --roi 150 20 1120 734 --m 2
+    python scripts/validation/model_check_screen.py run ../shared/data/mudic-hourglass/ \\
+        --subset 31 --step 20 --roi 150 20 1120 734 --m 2
 
 The run's own results are not changed (the extra solves only inform the printout).
 """
@@ -27,16 +27,16 @@ import sys
 
 import torch
 
-import torch_stsdic.block as block
-from torch_stsdic.cli import main as cli_main
-from torch_stsdic.gauss_newton import classical_step_columns
-from torch_stsdic.quality import (
+import torch_stsdic.movie.block as block
+from torch_stsdic.analysis.quality import (
     RESIDUAL_Z,
     difference_std,
     model_mismatch,
     residual_mismatch,
 )
-from torch_stsdic.status import Status
+from torch_stsdic.cli import main as cli_main
+from torch_stsdic.core.gauss_newton import classical_step_columns
+from torch_stsdic.core.status import Status
 
 TOTAL = {"rows": 0, "screened": 0, "pass": 0, "false": 0}
 

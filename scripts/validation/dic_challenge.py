@@ -9,7 +9,7 @@ Every state is a single image, so only **classical DIC** (m = 0) is possible: ST
 2m+1 >= 3 frames of one continuous motion, and two images at different, unrelated states
 are not a time series. The error of u and v against the truth (bias, std, RMS) is reported,
 with the noise floor predicted from the images' noise (estimated by Immerkaer's method on
-each image) by :mod:`torch_stsdic.noise`. Note that the truth of sample 5 is only 0.0 and 0.1
+each image) by :mod:`torch_stsdic.core.noise`. Note that the truth of sample 5 is only 0.0 and 0.1
 px: the errors are dominated by noise and contrast change, not by large-motion effects.
 
 Sample 14 (synthetic, sinusoidal u(x) with frequency growing along x, amplitude 0.1 px;
@@ -23,8 +23,8 @@ u(L5)) does not hold and a 3-frame "series" would be meaningless.
 Outputs (``--out``, default docs/validation): dic_challenge.csv, dic_challenge.md,
 dic_challenge_sample14.png, dic_challenge_sample14_profiles.csv.
 
-    python scripts/dic_challenge.py             # about a minute on 2 cores
-    python scripts/dic_challenge.py --quick     # smoke run
+    python scripts/validation/dic_challenge.py             # about a minute on 2 cores
+    python scripts/validation/dic_challenge.py --quick     # smoke run
 """
 
 from __future__ import annotations
@@ -41,10 +41,10 @@ import torch
 from matplotlib.figure import Figure
 
 import torch_stsdic as sts
-from torch_stsdic.noise import estimate_noise_sigma, predicted_std, residual_noise_sigma
+from torch_stsdic.core.noise import estimate_noise_sigma, predicted_std, residual_noise_sigma
 from torch_stsdic.plot import save_figure
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def _read_tiff(path: Path) -> np.ndarray:
@@ -83,7 +83,7 @@ def sample5(folder: Path, args, rows: list[dict], lines: list[str]) -> None:
     lines += ["## Sample 5 (classical DIC; one image per state)", "",
               f"Grid step {step} px, {margin} px from the border; errors in px. σ res: noise "
               "from the converged DIC residual (sqrt(σ_ref² + σ_img²) in reference grey "
-              "levels, torch_stsdic.noise.residual_noise_sigma); σ Imm.: Immerkaer single-"
+              "levels, torch_stsdic.core.noise.residual_noise_sigma); σ Imm.: Immerkaer single-"
               "image estimates of the reference / image (texture-inflated on real speckle); "
               "pred: the noise floor (std) predicted from σ res.", "",
               "| image | subset | points ok | u bias | u std | u RMS | v bias | v std | v RMS "

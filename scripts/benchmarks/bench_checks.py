@@ -1,9 +1,9 @@
 #!/usr/bin/env python
 """What the trust checks cost on a real series: ``stsdic run ARGS`` with and without
 ``--no-checks``, interleaved pairs of fresh processes, the command's own time (from the start
-of ``execute``, after Python's imports; ``scripts/bench_cli.py``'s child) and its stages.
+of ``execute``, after Python's imports; ``scripts/benchmarks/bench_cli.py``'s child) and its stages.
 
-    python scripts/bench_checks.py --pairs 5 -- ../shared/data/dic-challenge-sample12/ \\
+    python scripts/benchmarks/bench_checks.py --pairs 5 -- ../shared/data/dic-challenge-sample12/ \\
         --subset 31 --step 10 --roi 58 60 334 1020 --mask s12_mask.png --m 2
 
 Prints each run, then the medians and the ratio checked / unchecked (issue 23 asks for at most

@@ -2,8 +2,8 @@
 # GPU correctness and speed in one call (a lent GPU machine with torch, Triton, h5py and
 # tifffile; kornia travels as wheels in .whl/, the benchmark inputs in .benchcache/).
 #
-#   bash scripts/gpu_check.sh [steps]     # steps: any of tests,kernels,targets,cli,cli2,movie,
-#                                         # profile,movie32,warm
+#   bash scripts/benchmarks/gpu_check.sh [steps]   # steps: any of tests,kernels,targets,cli,
+#                                                  # cli2,movie,profile,movie32,warm
 #
 # Writes its logs and JSON records under $OUT (default ./gpu-out). Each step has its own
 # time limit, so one that hangs cannot take the others with it.
@@ -32,34 +32,34 @@ if step tests; then
   echo "## tests: $((SECONDS - t0)) s"
 fi
 if step kernels; then
-  timeout 50 python3 scripts/bench_kernels.py --device cuda --out "$OUT/kernels-cuda.json" \
+  timeout 50 python3 scripts/benchmarks/bench_kernels.py --device cuda --out "$OUT/kernels-cuda.json" \
     2>&1 | tee -a "$OUT/log.txt" | tail -15
   echo "## kernels: $((SECONDS - t0)) s"
 fi
 if step targets; then
-  timeout 130 python3 scripts/benchmark.py --targets --device cuda --repeats 3 --no-isolate \
+  timeout 130 python3 scripts/benchmarks/benchmark.py --targets --device cuda --repeats 3 --no-isolate \
     --no-update-doc --only '^(?!.*(native=0|init=fft))' --out "$OUT/targets-cuda.json" \
     2>&1 | tee -a "$OUT/log.txt" | tail -25
   echo "## targets: $((SECONDS - t0)) s"
 fi
 if step cli; then
-  timeout 120 python3 scripts/bench_cli.py --device cuda --repeats ${CLI_REPEATS:-3} --threads 4 \
+  timeout 120 python3 scripts/benchmarks/bench_cli.py --device cuda --repeats ${CLI_REPEATS:-3} --threads 4 \
     --out "$OUT/cli-cuda.json" 2>&1 | tee -a "$OUT/log.txt" | tail -14
   echo "## cli: $((SECONDS - t0)) s"
 fi
 if step cli2; then  # the same with STS(5) (--m 2): the shared-motion pass, its sample guess,
   # the model check
-  timeout 120 python3 scripts/bench_cli.py --m 2 --device cuda --repeats ${CLI_REPEATS:-3} \
+  timeout 120 python3 scripts/benchmarks/bench_cli.py --m 2 --device cuda --repeats ${CLI_REPEATS:-3} \
     --threads 4 --out "$OUT/cli-cuda-m2.json" 2>&1 | tee -a "$OUT/log.txt" | tail -14
   echo "## cli2: $((SECONDS - t0)) s"
 fi
 if step movie; then
-  timeout 120 python3 scripts/benchmark.py --movie --device cuda --movie-frames "${MOVIE_FRAMES:-500}" \
+  timeout 120 python3 scripts/benchmarks/benchmark.py --movie --device cuda --movie-frames "${MOVIE_FRAMES:-500}" \
     --no-update-doc --out "$OUT/movie-cuda.json" 2>&1 | tee -a "$OUT/log.txt" | tail -12
   echo "## movie: $((SECONDS - t0)) s"
 fi
 if step profile; then  # one `stsdic run --device cuda` of the benchmark pair, by function
-  read -r DIR CSV < <(python3 -c "import sys; sys.path.insert(0, 'scripts'); import bench_cli as b
+  read -r DIR CSV < <(python3 -c "import sys; sys.path.insert(0, 'scripts/benchmarks'); import bench_cli as b
 d, c, _ = b.ensure_data(0); print(d, c)")
   for i in 1 2; do
     s0=$(date +%s.%N)
@@ -74,7 +74,7 @@ d, c, _ = b.ensure_data(0); print(d, c)")
   echo "## profile: $((SECONDS - t0)) s"
 fi
 if step movie32; then  # the long movie with 32 target frames a block instead of the default
-  timeout 150 python3 scripts/benchmark.py --movie --device cuda --movie-frames "${MOVIE_FRAMES:-500}" \
+  timeout 150 python3 scripts/benchmarks/benchmark.py --movie --device cuda --movie-frames "${MOVIE_FRAMES:-500}" \
     --movie-batch-frames 32 --no-update-doc --out "$OUT/movie-cuda-b32.json" 2>&1 \
     | tee -a "$OUT/log.txt" | tail -5
   echo "## movie32: $((SECONDS - t0)) s"
@@ -82,7 +82,7 @@ fi
 if step warm; then  # stsdic run --device cuda twice in one process: first-use cost vs the rest
   timeout 120 python3 - <<'PY' 2>&1 | tee -a "$OUT/log.txt"
 import contextlib, io, sys, time
-sys.path.insert(0, "scripts")
+sys.path.insert(0, "scripts/benchmarks")
 import bench_cli as b
 from torch_stsdic.cli import main
 d, c, _ = b.ensure_data(0)

@@ -1,12 +1,13 @@
 #!/usr/bin/env python
 """OpenCorr (C++) next to ``stsdic run`` and the bare solver, on the same 1024x1024 pair.
 
-    python scripts/bench_opencorr.py               # -> docs/bench/opencorr-cpu.json, prints a table
-    python scripts/bench_opencorr.py --repeats 5 --threads 1 --out /tmp/oc.json
+    python scripts/benchmarks/bench_opencorr.py  # -> docs/bench/opencorr-cpu.json, prints a table
+    python scripts/benchmarks/bench_opencorr.py --repeats 5 --threads 1 --out /tmp/oc.json
 
-The data are ``scripts/bench_cli.py``'s (``ensure_data(0)``): the solver benchmark's reference and
-its frame at t = 5 (u = 2.05, v = -0.20 px), 38,809 POIs (197 x 197, 5 px apart), subset 21
-(OpenCorr: subset radius 10), classical DIC. OpenCorr reads the same images as 8-bit PGM files.
+The data are ``scripts/benchmarks/bench_cli.py``'s (``ensure_data(0)``): the solver benchmark's
+reference and its frame at t = 5 (u = 2.05, v = -0.20 px), 38,809 POIs (197 x 197, 5 px
+apart), subset 21 (OpenCorr: subset radius 10), classical DIC. OpenCorr reads the same images as
+8-bit PGM files.
 
 Cases, each one fresh process per repetition (peak RSS from ``wait4``), interleaved round by
 round so that the machine's load hits every case alike:
@@ -39,8 +40,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "scripts"))
+REPO = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(REPO / "scripts" / "benchmarks"))
 
 import bench_cli as bc  # noqa: E402  (the pair, the children, run_child)
 

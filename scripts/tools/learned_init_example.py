@@ -11,7 +11,7 @@ Part 2: a small residual denoiser is applied to noisy frames before STS-DIC, and
 a few steps with a loss on STS-DIC's displacement and velocity: gradients flow through the
 solver by implicit differentiation into the denoiser's weights.
 
-Runs on 2 CPU cores in about a minute:  python scripts/learned_init_example.py
+Runs on 2 CPU cores in about a minute:  python scripts/tools/learned_init_example.py
 """
 
 from __future__ import annotations

@@ -8,7 +8,7 @@ stopped run is continued with ``--resume`` and its u, v and status are compared 
 reference (bit for bit). Recorded per try: the signal, the moment, the exit code, whether
 stderr held a traceback, the message line, the resume's exit code, identical or not.
 
-    python scripts/interrupt_resume.py ../shared/data/dic-challenge-sample12 \\
+    python scripts/tools/interrupt_resume.py ../shared/data/dic-challenge-sample12 \\
         --sigint 12 --sigkill 2 --work /tmp/ir --record docs/faults/interrupt_resume.json \
         [-- more 'stsdic run' options]
 
@@ -30,7 +30,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _cmd(folder: Path, out: Path, extra: list[str]) -> list[str]:

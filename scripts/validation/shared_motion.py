@@ -12,10 +12,10 @@ Real series (skipped with a reason where ../shared/data is absent): the muDIC ho
 DIC Challenge sample 12 with the commands of docs/real.md: usable points at the last frame,
 full windows, velocities present, time.
 
-    python scripts/shared_motion.py                # render study, 3 seeds (~3 min)
-    python scripts/shared_motion.py --real         # plus the real series (~15 min)
-    python scripts/shared_motion.py --only-real    # the real series alone
-    python scripts/shared_motion.py --quick        # smoke test (small render, 1 seed)
+    python scripts/validation/shared_motion.py                # render study, 3 seeds (~3 min)
+    python scripts/validation/shared_motion.py --real         # plus the real series (~15 min)
+    python scripts/validation/shared_motion.py --only-real    # the real series alone
+    python scripts/validation/shared_motion.py --quick        # smoke test (small render, 1 seed)
 
 Writes docs/validation/shared_motion.csv and shared_motion_real.csv (unless --quick).
 """
@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
 import torch_stsdic as sts  # noqa: E402

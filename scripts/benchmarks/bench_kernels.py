@@ -1,5 +1,5 @@
-"""Per-sample cost of the solver's inner kernels: fused C++ (torch_stsdic.native) vs torch on
-a CPU; fused Triton (torch_stsdic.kernels, ``--device cuda``) vs torch on a GPU.
+"""Per-sample cost of the solver's inner kernels: fused C++ (torch_stsdic.kernels.native) vs torch
+on a CPU; fused Triton (torch_stsdic.kernels, ``--device cuda``) vs torch on a GPU.
 
 Times, in ns per sample and per thread count, on a 1024x1024 float32 image with POIs on a
 grid (the solver's access pattern): B-spline value sampling, value + gradient, and one joint
@@ -7,8 +7,8 @@ IC-GN right-hand side (warp + sample + ZNSSD + J^T e) for 1 and 5 frames. The to
 the same functions the solver falls back to (eager; torch.compile is left out: minutes of
 compile time). Writes docs/bench/kernels-cpu.json and prints a markdown table.
 
-    python scripts/bench_kernels.py [--threads 1,2] [--out PATH]
-    python scripts/bench_kernels.py --device cuda    # IC-GN step: Triton vs torch, ->
+    python scripts/benchmarks/bench_kernels.py [--threads 1,2] [--out PATH]
+    python scripts/benchmarks/bench_kernels.py --device cuda    # IC-GN step: Triton vs torch, ->
                                                      # docs/bench/kernels-cuda.json
 """
 
@@ -25,17 +25,18 @@ import time
 from pathlib import Path
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as torch_stsdic does, before torch loads
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))  # the checkout this script is in, not an installed torch_stsdic
 
 import torch  # noqa: E402
-from benchmark import _cpu_model  # noqa: E402  (scripts/benchmark.py, beside this file)
+from benchmark import _cpu_model  # noqa: E402  (scripts/benchmarks/benchmark.py, beside this file)
 
 import torch_stsdic  # noqa: E402
-from torch_stsdic import kernels, native  # noqa: E402
-from torch_stsdic.formulations import ic_rhs_kernel  # noqa: E402
-from torch_stsdic.interpolation import BSplineImage, sample_kernel  # noqa: E402
-from torch_stsdic.shape import AffineShape  # noqa: E402
+from torch_stsdic import kernels  # noqa: E402
+from torch_stsdic.core.formulations import ic_rhs_kernel  # noqa: E402
+from torch_stsdic.core.interpolation import BSplineImage, sample_kernel  # noqa: E402
+from torch_stsdic.core.shape import AffineShape  # noqa: E402
+from torch_stsdic.kernels import native  # noqa: E402
 
 
 def _median_time(fn, repeats: int, device: str = "cpu") -> float:
@@ -177,7 +178,7 @@ def main(argv=None) -> None:
         "cpu": _cpu_model(),
         "torch": torch.__version__,
         "device": dev if dev == "cpu" else torch.cuda.get_device_name(),
-        "command": " ".join(["python scripts/bench_kernels.py",
+        "command": " ".join(["python scripts/benchmarks/bench_kernels.py",
                              *(sys.argv[1:] if argv is None else argv)]),
         "package": str(Path(torch_stsdic.__file__).parent),
         "native_library": str(native.build()) if native.available() else None,

@@ -18,8 +18,9 @@ levels, 21 px subsets):
 
 Usage::
 
-    python scripts/compare_versions.py --before faf48d2            # working tree vs faf48d2
-    python scripts/compare_versions.py --before v1 --after v2 --out docs/bench/versions-cpu.json
+    python scripts/benchmarks/compare_versions.py --before faf48d2  # working tree vs faf48d2
+    python scripts/benchmarks/compare_versions.py --before v1 --after v2 \\
+        --out docs/bench/versions-cpu.json
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 CHILD = r"""
 import inspect, json, sys, time

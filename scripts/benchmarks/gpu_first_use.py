@@ -2,7 +2,7 @@
 """Where a fresh process's first CUDA run spends its time (``stsdic run --device cuda`` on the
 benchmark pair took 4.9 s the first time in a process, 0.16-0.18 s the next times).
 
-    python scripts/gpu_first_use.py     # on a GPU machine; prints one line per phase
+    python scripts/benchmarks/gpu_first_use.py     # on a GPU machine; prints one line per phase
 
 Phases, each timed once in this order: importing torch_stsdic; the CUDA context; cuFFT's
 first transform; the fused Triton step's first launch (the op registered with
@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tests"))
 
 
 def main() -> None:

@@ -3,13 +3,14 @@
 
 Presets (one command each; every preset writes a JSON record and prints a table):
 
-    python scripts/benchmark.py --quick      # seconds: smoke test (used by the test suite)
-    python scripts/benchmark.py --targets    # the target cases  -> docs/bench/targets-<dev>.json
-    python scripts/benchmark.py --full       # m x subset x N x dtype -> docs/bench/full-<dev>.json
-    python scripts/benchmark.py --memory     # 1000-frame 1024x1024 TIFF through sts.track
-    python scripts/benchmark.py --movie      # 500-frame 1024x1024 TIFF, 10,000 POIs, STS(5):
-                                             # frames/s, time split -> docs/bench/movie-<dev>.json
-    python scripts/benchmark.py --report     # only rewrite docs/benchmarks.md from docs/bench/
+    cd scripts/benchmarks   # or give the path: python scripts/benchmarks/benchmark.py ...
+    python benchmark.py --quick      # seconds: smoke test (used by the test suite)
+    python benchmark.py --targets    # the target cases  -> docs/bench/targets-<dev>.json
+    python benchmark.py --full       # m x subset x N x dtype -> docs/bench/full-<dev>.json
+    python benchmark.py --memory     # 1000-frame 1024x1024 TIFF through sts.track
+    python benchmark.py --movie      # 500-frame 1024x1024 TIFF, 10,000 POIs, STS(5):
+                                     # frames/s, time split -> docs/bench/movie-<dev>.json
+    python benchmark.py --report     # only rewrite docs/benchmarks.md from docs/bench/
 
 ``--device cuda`` (or ``auto``) runs on the GPU; ``--threads N`` sets torch's intra-op threads
 (default: all cores of the process' CPU affinity). After ``--targets/--full/--memory`` the
@@ -70,7 +71,7 @@ import traceback
 from pathlib import Path
 from typing import Any
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 DOC = REPO / "docs" / "benchmarks.md"
 BENCH_DIR = REPO / "docs" / "bench"
 CHILD_TAG = "BENCH_RESULT "
@@ -128,10 +129,10 @@ def _git(*args: str) -> str:
 def _code_hash() -> dict[str, str]:
     """sha1 (12 hex) of the solver sources measured: the tree changes while people work."""
     out = {}
-    for name in ("solver.py", "interpolation.py", "initial.py", "series.py"):
-        p = REPO / "torch_stsdic" / name
-        if p.exists():
-            out[name] = hashlib.sha1(p.read_bytes()).hexdigest()[:12]
+    for rel in ("core/solver.py", "core/interpolation.py", "core/initial.py", "movie/series.py"):
+        p = REPO / "torch_stsdic" / rel
+        if p.exists():  # keyed by the file's name, as in the records before the layer folders
+            out[p.name] = hashlib.sha1(p.read_bytes()).hexdigest()[:12]
     return out
 
 
@@ -440,7 +441,7 @@ def run_solve_case(spec: dict[str, Any]) -> dict[str, Any]:
 
 
 def _native_on() -> bool:
-    from torch_stsdic import native
+    from torch_stsdic.kernels import native
 
     return native.available()
 
@@ -567,10 +568,10 @@ def run_movie_case(spec: dict[str, Any]) -> dict[str, Any]:
     import torch
 
     import torch_stsdic as sts
-    from torch_stsdic import series as series_mod
-    from torch_stsdic.frames import default_ahead
-    from torch_stsdic.plan import plan_run
-    from torch_stsdic.sinks import open_sink
+    from torch_stsdic.movie import series as series_mod
+    from torch_stsdic.movie.frames import default_ahead
+    from torch_stsdic.movie.plan import plan_run
+    from torch_stsdic.movie.sinks import open_sink
 
     dev = spec["device"]
     clock = _Clock(dev)
@@ -726,12 +727,12 @@ def run_case(spec: dict[str, Any], isolate: bool, timeout: float) -> dict[str, A
         old = torch.get_num_threads()
         torch.set_num_threads(spec["threads"])
         if spec.get("compile"):
-            from torch_stsdic import interpolation
+            from torch_stsdic.core import interpolation
 
             if hasattr(interpolation, "set_compile"):
                 interpolation.set_compile(spec["compile"])
         if spec.get("native"):
-            from torch_stsdic import native
+            from torch_stsdic.kernels import native
 
             native.set_native(spec["native"])
         try:
@@ -1280,11 +1281,12 @@ _PRESET_ORDER = {"targets": 0, "memory": 1, "movie": 2, "full": 3}
 
 def _triton_kernel_row() -> tuple[str, str, str, str, str]:
     """The fused Triton step against the torch step, from ``kernels-cuda.json``
-    (``scripts/bench_kernels.py --device cuda``)."""
+    (``scripts/benchmarks/bench_kernels.py --device cuda``)."""
     label, goal = "GPU, fused Triton IC-GN step vs the torch step (5 frames)", ">= 3x"
     path = BENCH_DIR / "kernels-cuda.json"
     if not path.exists():
-        return (label, goal, "GPU not measured (run scripts/bench_kernels.py --device cuda)",
+        return (label, goal,
+                "GPU not measured (run scripts/benchmarks/bench_kernels.py --device cuda)",
                 "-", "-")
     rec = json.loads(path.read_text())
     ns = {(r["kernel"], r["impl"]): r["ns_per_sample"] for r in rec["results"]}

@@ -4,8 +4,8 @@ mis-calibrated check?
 On two real series (DIC Challenge 1.0 sample 12, the muDIC hourglass; ``../shared/data``)
 ``sts.track`` is run three times with the same points and 31 px subsets: m = 2 with the trust
 checks (the default), m = 2 without them, and classical (m = 0). While the checked run goes,
-the inputs of the model check (:func:`torch_stsdic.quality.model_mismatch` and
-:func:`~torch_stsdic.quality.residual_mismatch`, called from ``block.py``) are recorded
+the inputs of the model check (:func:`torch_stsdic.analysis.quality.model_mismatch` and
+:func:`~torch_stsdic.analysis.quality.residual_mismatch`, called from ``block.py``) are recorded
 (wrapped for the run only; the library is not changed). Measured:
 
 1. which test rejects, and by how much: the Hausman z (difference STS - classical over its
@@ -24,8 +24,8 @@ the inputs of the model check (:func:`torch_stsdic.quality.model_mismatch` and
 Outputs (``--out``, default docs/validation): real_time_model.csv, real_time_model.png and
 real_time_model_tables.md (the tables; docs/validation/real_time_model.md is the written page).
 
-    python scripts/real_time_model.py            # ~6 min on 2 cores (loaded machine)
-    python scripts/real_time_model.py --quick    # fewer points and frames, smoke run
+    python scripts/validation/real_time_model.py            # ~6 min on 2 cores (loaded machine)
+    python scripts/validation/real_time_model.py --quick    # fewer points and frames, smoke run
 """
 
 from __future__ import annotations
@@ -40,12 +40,12 @@ import numpy as np
 import torch
 
 import torch_stsdic as sts
-import torch_stsdic.block as block_mod
-from torch_stsdic import quality
-from torch_stsdic.interpolation import BSplineImage
+import torch_stsdic.movie.block as block_mod
+from torch_stsdic.analysis import quality
+from torch_stsdic.core.interpolation import BSplineImage
 from torch_stsdic.io import load_series
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 SUBSET = 31
 M = 2
 
@@ -172,7 +172,7 @@ def run_three(series, spec: dict, points=None) -> dict:
         t0 = time.perf_counter()
         with recording(log):
             # the time model alone: the shared motion (on by default) is what removes
-            # these rejections; scripts/shared_motion.py measures that
+            # these rejections; scripts/validation/shared_motion.py measures that
             res = sts.track(series, roi=spec["roi"], mask=spec["mask"], step=spec["step"],
                             points=points, config=cfg, checks=checks, progress=False,
                             shared_motion=None)

@@ -24,15 +24,15 @@ Reference-noise protocols (sigma > 0):
 The ``average`` formulation is retired (it runs as ``joint+average``) and not in the table.
 
 The frames' noise is the same realisation in all three protocols. Beside the measured error,
-the noise floor predicted by :func:`torch_stsdic.noise.predicted_std` (from the clean
+the noise floor predicted by :func:`torch_stsdic.core.noise.predicted_std` (from the clean
 reference's gradients) and the ratio of the measured *random* error (RMS of u minus the
 noise-free solution of the same formulation) to it are reported.
 
 Outputs (``--out``, default docs/validation): table1.csv, table1.md.
 
-    python scripts/reproduce_table1.py --seeds 2        # as in docs (~15 min, 2 cores)
-    python scripts/reproduce_table1.py --formulations auto --protocols noisy,clean
-    python scripts/reproduce_table1.py --quick          # tiny smoke run (seconds)
+    python scripts/validation/reproduce_table1.py --seeds 2        # as in docs (~15 min, 2 cores)
+    python scripts/validation/reproduce_table1.py --formulations auto --protocols noisy,clean
+    python scripts/validation/reproduce_table1.py --quick          # tiny smoke run (seconds)
 """
 
 from __future__ import annotations
@@ -46,7 +46,7 @@ from pathlib import Path
 import torch
 
 import torch_stsdic as sts
-from torch_stsdic.noise import predicted_std
+from torch_stsdic.core.noise import predicted_std
 from torch_stsdic.synth import Translation, make_speckle, render_series
 
 PAPER_SIGMA5 = {1: 10.7272, 3: 5.5453, 5: 4.7422, 7: 4.4291, 9: 3.7261}  # e-3 px
@@ -269,7 +269,7 @@ def markdown(rows, args) -> str:
     lines = [f"Table 1 reproduction ({args.mode} windows, {args.size}x{args.size}, "
              f"{args.grid}x{args.grid} POIs, {args.seeds} seed(s), {args.threads} thread(s)). "
              "Errors in 1e-3 px; `random` = RMS of u minus the noise-free solution; `pred` = "
-             "predicted noise floor (torch_stsdic.noise); time = "
+             "predicted noise floor (torch_stsdic.core.noise); time = "
              + ("one solve_window call (s)." if args.mode == "centre" else
                 "the whole sts.track run over the 9 frames (s)."), ""]
     sig = sorted({r["sigma"] for r in rows})

@@ -17,11 +17,11 @@ and in README.md the block ``demo-table``: the same run's error table and ratios
 
 Usage::
 
-    python scripts/regenerate_docs.py            # rewrite the blocks and docs/demo/*.png
-    python scripts/regenerate_docs.py --check    # exit 1 if the blocks are stale (help text,
+    python scripts/tools/regenerate_docs.py            # rewrite the blocks and docs/demo/*.png
+    python scripts/tools/regenerate_docs.py --check    # exit 1 if the blocks are stale (help text,
                                                  # run options and summary, demo errors);
                                                  # times are not compared
-    python scripts/regenerate_docs.py --check --cli   # the CLI blocks only (no demo: seconds)
+    python scripts/tools/regenerate_docs.py --check --cli   # the CLI blocks only (no demo: seconds)
 
 The demo time quoted in the README, in docs/cli.md and in ``stsdic --help`` is one constant,
 :data:`torch_stsdic.cli.demo.DEMO_TIME`; ``--check`` also verifies that every one quotes it.
@@ -42,7 +42,7 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 CLI_DOC = ROOT / "docs" / "cli.md"
 README = ROOT / "README.md"
 FIGURES = ("fields.png", "history.png", "error_per_frame.png")
@@ -169,7 +169,7 @@ def demo_text(run: dict) -> str:
     note = (f"\nThis run took {run['wall']:.1f} s of wall-clock time and {run['cpu']:.1f} s of "
             f"CPU time (Python start-up, plots and files included) on a {os.cpu_count()}-core "
             f"machine with a load average of {run['load']:.1f} when it ended (other jobs "
-            "running; `python scripts/regenerate_docs.py` reran it and pasted this block).\n")
+            "running; `python scripts/tools/regenerate_docs.py` reran it and pasted this block).\n")
     return block + note
 
 

@@ -10,14 +10,14 @@ Three methods on the paper's simulated series (301 x 301, nine frames, u = t / 2
 
 Two reference-noise protocols: ``noisy`` (noise on every image, the paper's protocol) and
 ``clean`` (noise-free reference). The frames' noise is the same realisation in both. The
-dashed lines are the noise floors predicted by :mod:`torch_stsdic.noise`; for the symmetric
+dashed lines are the noise floors predicted by :mod:`torch_stsdic.core.noise`; for the symmetric
 window the smoothing floor equals the STS floor (to first order both average the five
 frames' noise and neither averages the reference's).
 
 Outputs (``--out``, default docs/validation): fig6.csv, fig6.png, fig6.md.
 
-    python scripts/reproduce_fig6.py            # full run (a few minutes on 2 cores)
-    python scripts/reproduce_fig6.py --quick    # tiny smoke run
+    python scripts/validation/reproduce_fig6.py            # full run (a few minutes on 2 cores)
+    python scripts/validation/reproduce_fig6.py --quick    # tiny smoke run
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ import torch
 from matplotlib.figure import Figure
 
 import torch_stsdic as sts
-from torch_stsdic.noise import predicted_std
+from torch_stsdic.core.noise import predicted_std
 from torch_stsdic.plot import plot_xy, save_figure
 from torch_stsdic.synth import Translation, make_speckle, render_series
 

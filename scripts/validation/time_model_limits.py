@@ -11,19 +11,19 @@ formulation):
    a m(m+1)/3, the velocity is not. The measured bias is compared with this formula.
 2. **Trade-off with noise** (sigma = 5 on the frames; noisy or noise-free reference): the
    total RMS error against the prediction sqrt((a m(m+1)/3)^2 + floor(m)^2), with floor(m)
-   from :func:`torch_stsdic.noise.predicted_std`. The best m is where the two balance.
+   from :func:`torch_stsdic.core.noise.predicted_std`. The best m is where the two balance.
 3. **Sudden jump** (crack-like, ``Jump``: +du for x > x0 from t_jump on, on top of a uniform
    velocity), tracked with ``sts.track`` for m = 0..4: a window that straddles the jump
    returns the mean of the step over its frames, so the 2m frames nearest to the jump are
    wrong by up to du m/(2m+1); the window's mean ZNCC drops there (a usable detector). Run
    with ``checks=False`` to show the bare model: by default ``track`` detects these windows
-   and shortens them (``scripts/motion_families.py``).
+   and shortens them (``scripts/validation/motion_families.py``).
 
 Outputs (``--out``, default docs/validation): time_model_limits.csv,
 time_model_limits_jump.csv, time_model_limits.png, time_model_limits.md.
 
-    python scripts/time_model_limits.py            # about 1-3 minutes on 2 cores
-    python scripts/time_model_limits.py --quick    # smoke run
+    python scripts/validation/time_model_limits.py            # about 1-3 minutes on 2 cores
+    python scripts/validation/time_model_limits.py --quick    # smoke run
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ import torch
 from matplotlib.figure import Figure
 
 import torch_stsdic as sts
-from torch_stsdic.noise import predicted_std
+from torch_stsdic.core.noise import predicted_std
 from torch_stsdic.synth import Jump, QuadraticInTime, Translation, make_speckle, render_series
 
 
@@ -133,7 +133,7 @@ def jump(args, jrows, pattern, shape) -> None:
     for m in range(min(args.max_m, (n_frames - 1) // 2) + 1):
         cfg = sts.DICConfig(subset_size=21, m=m)
         # checks=False: the bare model's error (track's model check would shorten these
-        # windows; that is measured by scripts/motion_families.py)
+        # windows; that is measured by scripts/validation/motion_families.py)
         res = sts.track(frames, reference=ref, points=pts, config=cfg, times=times,
                         progress=False, checks=False, shared_motion=None)  # the bare model
         for k in range(res.n_frames):

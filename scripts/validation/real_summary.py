@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """The columns of docs/real.md's comparison table from result files.
 
-    python scripts/real_summary.py s12_m2.h5 s12_m2_nochecks.h5 [--reference 0]
+    python scripts/validation/real_summary.py s12_m2.h5 s12_m2_nochecks.h5 [--reference 0]
 
 Per file: usable point-frames (status <= MAX_ITER) of all frames and of the last frame; of
 the usable ones, those measured with the run's full window (m) and those with a velocity;
@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from torch_stsdic.io import read_results  # noqa: E402
 

@@ -1,11 +1,11 @@
 #!/usr/bin/env python
 """``stsdic run`` end to end next to the bare solver, on the same 1024x1024 pair.
 
-    python scripts/bench_cli.py                  # -> docs/bench/cli-cpu.json, prints a table
-    python scripts/bench_cli.py --repeats 5 --threads 1
+    python scripts/benchmarks/bench_cli.py  # -> docs/bench/cli-cpu.json, prints a table
+    python scripts/benchmarks/bench_cli.py --repeats 5 --threads 1
 
-The data: the solver benchmark's movie (``scripts/benchmark.py``: 1024x1024 8-bit speckle,
-noise sigma 2, u = 1.3 + 0.15 t, v = -0.7 + 0.1 t px), its reference and the frame at t = 5
+The data: the solver benchmark's movie (``scripts/benchmarks/benchmark.py``: 1024x1024 8-bit
+speckle, noise sigma 2, u = 1.3 + 0.15 t, v = -0.7 + 0.1 t px), its reference and the frame at t = 5
 written as two TIFF files, and its 38,809 POIs (197 x 197, 5 px apart) as a CSV file; subset
 21, classical DIC (``--m 0``; ``--m 2`` solves STS(5) on the frames t = 3..7 instead).
 
@@ -39,8 +39,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "scripts"))
+REPO = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(REPO / "scripts" / "benchmarks"))
 
 import benchmark as bench  # noqa: E402  (the movie, the POI grid, the machine record)
 
@@ -118,11 +118,11 @@ def child_bare(folder: str, pts_csv: str, m: int, device: str = "cpu",
 
 def child_cli(argv: list[str]) -> dict[str, Any]:
     """``stsdic run`` in this process, its stages timed by wrapping the functions."""
-    import torch_stsdic.block as block
     import torch_stsdic.cli.run as run
-    import torch_stsdic.plan as plan
-    import torch_stsdic.series as series
-    import torch_stsdic.sinks as sinks
+    import torch_stsdic.movie.block as block
+    import torch_stsdic.movie.plan as plan
+    import torch_stsdic.movie.series as series
+    import torch_stsdic.movie.sinks as sinks
     from torch_stsdic import keep_freed_memory
     from torch_stsdic.cli import main
 
