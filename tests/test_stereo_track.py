@@ -72,8 +72,15 @@ def test_classical_error_matches_prediction_and_sts_beats_it(movie):
     vel = torch.stack([res3.Ut, res3.Vt, res3.Wt], -1)
     good = ok3 & torch.isfinite(vel).all(-1)
     ev = (vel - truth3["velocity"])[good].pow(2).mean(0).sqrt()
-    vmag = truth3["velocity"][good].norm(dim=-1).mean()
-    assert float(ev.norm()) < 0.1 * float(vmag), (ev.tolist(), float(vmag))
+    pv = torch.stack([res3.std[k] for k in ("Ut", "Vt", "Wt")], -1)[good].pow(2).mean(0).sqrt()
+    rv = ev / pv
+    assert bool(((rv > 0.7) & (rv < 1.4)).all()), rv.tolist()
+    # ... and better than central differences of the classical displacements
+    D = res0.displacement
+    fd = (D[2:] - D[:-2]) / 2
+    g0 = ok0[1:-1] & res0.ok[2:] & res0.ok[:-2]
+    efd = (fd - truth["velocity"][1:-1])[g0].pow(2).mean(0).sqrt()
+    assert float(ev.norm() / efd.norm()) < 0.6
     # the reference shape against the exact plane, within its predicted std
     e0 = (res0.X0 - truth["X0"])[res0.ok[0]].pow(2).mean(0).sqrt()
     p0 = res0.X0_std[res0.ok[0]].pow(2).mean(0).sqrt()
@@ -100,7 +107,7 @@ def test_result_file_and_command(movie, tmp_path):
         for k in ("X", "Y", "Z", "U", "V", "W", "status"):
             assert f[k].shape == (6, n), k
         assert f["W"].attrs["units"] == "mm" and f["points"].attrs["units"] == "px"
-        assert np.nanmax(np.abs(f["U"][0])) < 1e-9  # the reference itself
+        assert np.nanmax(np.abs(f["U"][0])) < 5e-3  # the reference frame: a window fit, mm
         assert np.isfinite(f["Z"][3][f["status"][3] <= 1]).all()
     with pytest.raises(ValueError, match="exists"):
         cli.execute(args)

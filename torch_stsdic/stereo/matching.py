@@ -229,25 +229,37 @@ def _h_jacobian(H: Tensor, p: Tensor) -> Tensor:
     return j / wq[:, None, None]
 
 
-def repair_outliers(pts: Tensor, coarse: Tensor, predicted: Tensor, k: int = 8,
-                    tol: float = 2.0) -> tuple[Tensor, Tensor]:
-    """Points whose coarse match departs more than ``tol`` px from ``predicted`` + the median
-    offset (coarse - predicted) of their ``k`` nearest neighbours are moved there.
-    Returns the repaired matches (N, 2) and the mask of moved points."""
+def repair_outliers(pts: Tensor, coarse: Tensor, predicted: Tensor,
+                    trusted: Tensor | None = None, k: int = 8, tol: float = 2.0
+                    ) -> tuple[Tensor, Tensor]:
+    """Points whose match departs more than ``tol`` px from ``predicted`` + the median
+    offset (match - predicted) of their ``k`` nearest *trusted* neighbours (default: all
+    points) are moved there. Returns the repaired matches (N, 2) and the mask of moved
+    points."""
     off = coarse - predicted
     n = pts.shape[0]
-    kk = min(k + 1, n)
-    dist = torch.cdist(pts.to(DTYPE), pts.to(DTYPE))
-    nb = dist.topk(kk, largest=False).indices[:, 1:] if n > 1 else \
-        torch.zeros(n, 0, dtype=torch.long)
-    if nb.shape[1] == 0:
+    trusted = torch.ones(n, dtype=torch.bool) if trusted is None else \
+        trusted & torch.isfinite(off).all(1)
+    idx = torch.nonzero(trusted).flatten()
+    if idx.numel() < 2:
         return coarse, torch.zeros(n, dtype=torch.bool)
-    med = off[nb].nanmedian(dim=1).values  # (N, 2)
-    med = torch.where(torch.isfinite(med), med, torch.zeros_like(med))
+    kk = min(k, idx.numel() - 1)
+    dist = torch.cdist(pts.to(DTYPE), pts[idx].to(DTYPE))
+    dist[idx, torch.arange(idx.numel())] = math.inf  # not its own neighbour
+    nb = idx[dist.topk(kk, largest=False).indices]  # (N, kk)
+    med = off[nb].median(dim=1).values  # (N, 2)
     bad = ~((off - med).norm(dim=1) <= tol)
     out = coarse.clone()
     out[bad] = predicted[bad] + med[bad]
     return out, bad
+
+
+def _trusted(z: Tensor, usable: Tensor) -> Tensor:
+    """Matches whose ZNCC is within 0.1 of the median of the usable ones (and >= 0.5)."""
+    ok = usable & torch.isfinite(z)
+    if not bool(ok.any()):
+        return ok
+    return ok & (z >= max(0.5, float(z[ok].median()) - 0.1))
 
 
 @dataclass
@@ -301,7 +313,7 @@ def match_stereo(rig: StereoCalibration, left_ref, right_ref, left_pts, config: 
     H = robust_homography(pts, coarse, weights=torch.where(good, zc, torch.zeros_like(zc)))
     pred = _apply_h(H, pts)
     start, moved = repair_outliers(pts, torch.where(good[:, None], coarse, pred), pred,
-                                   tol=repair_tol)
+                                   _trusted(zc, good), tol=repair_tol)
     J = _h_jacobian(H, pts)
     d = start - pts
     init = torch.stack([d[:, 0], J[:, 0, 0] - 1, J[:, 0, 1], d[:, 1], J[:, 1, 0],
@@ -323,5 +335,11 @@ def match_stereo(rig: StereoCalibration, left_ref, right_ref, left_pts, config: 
     status[(status <= int(Status.MAX_ITER)) & far] = int(Status.INCONSISTENT)
     poor = ~(sol.zncc >= min_zncc)
     status[(status <= int(Status.MAX_ITER)) & poor] = int(Status.POOR_FIT)
+    # the disparity field is smooth: a match off its trusted neighbours' consensus is wrong
+    usable = status <= int(Status.MAX_ITER)
+    zf = sol.zncc.to(DTYPE)
+    _, off = repair_outliers(pts, torch.where(usable[:, None], right, pred), pred,
+                             _trusted(zf, usable), tol=max(3.0, 2.0 * repair_tol))
+    status[usable & off] = int(Status.INCONSISTENT)
     right[status > int(Status.MAX_ITER)] = float("nan")
     return CrossMatch(pts, right, std, sol.zncc.to(DTYPE), status, sol, coarse, moved, H)
