@@ -174,7 +174,8 @@ def test_no_private_name_across_modules():
 
 def test_sizes():
     root = [p for p in PKG.glob("*.py") if p.name not in ("__init__.py", "__main__.py")]
-    assert len(root) <= 8, f"{len(root)} modules in the package root: {sorted(p.name for p in root)}"
+    names = sorted(p.name for p in root)
+    assert len(root) <= 8, f"{len(root)} modules in the package root: {names}"
     long_modules = []
     long_functions = []
     for p in MODULES.values():
@@ -201,3 +202,14 @@ def test_the_check_can_fail(bad_edge):
     g[a].add(b)
     assert _cycle(g) is not None
     assert _rank(b) > _rank(a)
+
+
+def test_architecture_page_shows_the_tree_of_the_code():
+    """docs/architecture.md's tree is the one the code gives (architecture_tree.py)."""
+    import subprocess
+    import sys
+
+    root = PKG.parent
+    r = subprocess.run([sys.executable, str(root / "scripts/tools/architecture_tree.py"),
+                        "--check"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stdout + r.stderr

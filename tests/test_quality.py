@@ -140,19 +140,19 @@ def test_sts_is_trusted_only_where_right(family):
 @pytest.mark.parametrize("family, judged_share", [("rotation4", 0.0), ("crack", 0.5)])
 def test_the_model_check_judges_from_the_free_step_as_from_the_classical_solve(
         family, judged_share, monkeypatch):
-    """block.SCREEN: rows whose window's free classical step (its estimated solution, ZNCC,
+    """checks.SCREEN: rows whose window's free classical step (its estimated solution, ZNCC,
     noise and std) passes with room to spare are not solved again. The run gives the same
     statuses and windows as with every row solved classically; where the windows fit (the
     crack away from it), most rows are judged from the step (4 degrees a frame: most
     windows fail, and those are always solved)."""
-    import torch_stsdic.movie.block as block
+    import torch_stsdic.movie.checks as checks
 
     motion = motion_family(family, SIZE, t_jump=4.0)
     series, _ = _family(motion)
     kw = dict(config=DICConfig(m=2, subset_size=25), step=16, progress=False,
               shared_motion=None)
     counts = [0, 0]
-    screen = block._Block._screen
+    screen = checks.BlockChecks._screen
 
     def counting(self, idx):
         ok, est = screen(self, idx)
@@ -161,9 +161,9 @@ def test_the_model_check_judges_from_the_free_step_as_from_the_classical_solve(
             counts[1] += int(idx.numel())
         return ok, est
 
-    monkeypatch.setattr(block._Block, "_screen", counting)
+    monkeypatch.setattr(checks.BlockChecks, "_screen", counting)
     judged = track(series, **kw)
-    monkeypatch.setattr(block, "SCREEN", False)
+    monkeypatch.setattr(checks, "SCREEN", False)
     solved = track(series, **kw)
     assert counts[0] >= judged_share * counts[1], counts
     assert torch.equal(judged.status, solved.status)
@@ -256,7 +256,7 @@ def test_poor_fit_median_ignores_noise_free_matches():
 def test_inconsistent_point_is_carried_from_its_own_solution():
     """The neighbour test's doubt is reported, not acted on: an INCONSISTENT point (it fitted
     its subset) goes on from its own solution; a POOR_FIT one does not."""
-    from torch_stsdic.movie.block import make_carry
+    from torch_stsdic.movie.carry import make_carry
 
     st = [int(Status.CONVERGED), int(Status.INCONSISTENT), int(Status.POOR_FIT)]
     rows = {"u": torch.tensor([[1.0, 2.0, 3.0]]).numpy(), "v": torch.zeros(1, 3).numpy(),
@@ -270,7 +270,7 @@ def test_a_row_left_classical_carries_its_finite_difference_velocity():
     """A point whose last row has no window velocity (left classical: ut, vt NaN) starts the
     next window from the finite difference of its last two rows, as its displacement does,
     not from zero velocity; a measured velocity is carried as it is."""
-    from torch_stsdic.movie.block import make_carry
+    from torch_stsdic.movie.carry import make_carry
 
     nan = float("nan")
     ok = int(Status.CONVERGED)
@@ -423,8 +423,8 @@ def test_a_vague_point_does_not_widen_its_own_neighbour_tolerance():
 def test_rows_left_classical_are_the_classical_solution():
     """Rows the model check leaves classical (m = 0: no window fits the crack) carry the
     classical solution converged to the run's tolerance, not the check's looser one
-    (block.CHECK_TOL): they equal a classical run's rows to well below that tolerance."""
-    from torch_stsdic.movie import block
+    (checks.CHECK_TOL): they equal a classical run's rows to well below that tolerance."""
+    from torch_stsdic.movie import checks
 
     motion = motion_family("crack", SIZE, t_jump=4.0)
     series, _ = _family(motion)
@@ -434,7 +434,7 @@ def test_rows_left_classical_are_the_classical_solution():
     left = (res.m == 0) & torch.as_tensor(usable(res.status)) & torch.as_tensor(
         usable(cls.status))
     left[0] = False  # the reference frame: the identity in both
-    assert int(left.sum()) >= 5 and block.CHECK_TOL >= 100 * cfg.tol
+    assert int(left.sum()) >= 5 and checks.CHECK_TOL >= 100 * cfg.tol
     for f in ("u", "v"):
         d = (getattr(res, f) - getattr(cls, f))[left].abs().max()
         assert float(d) < 1e-5, (f, float(d))

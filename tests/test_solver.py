@@ -6,8 +6,8 @@ import torch
 
 import torch_stsdic as sts
 from torch_stsdic import synth
-from torch_stsdic.kernels.compile import compile_failed
 from torch_stsdic.core.status import Status
+from torch_stsdic.kernels.compile import compile_failed
 
 SIZE = (101, 101)
 

@@ -11,7 +11,8 @@ import tifffile
 import torch
 
 from torch_stsdic import DICConfig
-from torch_stsdic.stereo import cli, track_stereo
+from torch_stsdic.cli import stereo as cli
+from torch_stsdic.stereo import track_stereo
 from torch_stsdic.stereo.render import SurfaceMotion, make_rig, make_scene, render_stereo
 
 SHAPE = (140, 180)

@@ -1,4 +1,5 @@
-"""Tests of torch_stsdic.analysis.strain: plane-fit gradients, small / Green-Lagrange strain and rates."""
+"""Tests of torch_stsdic.analysis.strain: plane-fit gradients, small / Green-Lagrange strain and
+rates."""
 
 from __future__ import annotations
 

@@ -119,7 +119,7 @@ def child_bare(folder: str, pts_csv: str, m: int, device: str = "cpu",
 def child_cli(argv: list[str]) -> dict[str, Any]:
     """``stsdic run`` in this process, its stages timed by wrapping the functions."""
     import torch_stsdic.cli.run as run
-    import torch_stsdic.movie.block as block
+    import torch_stsdic.movie.checks as checks
     import torch_stsdic.movie.plan as plan
     import torch_stsdic.movie.series as series
     import torch_stsdic.movie.sinks as sinks
@@ -144,7 +144,7 @@ def child_cli(argv: list[str]) -> dict[str, Any]:
     timed(plan, "plan_run", "plan_s")
     timed(series, "solve_block", "blocks_s")
     for nm in ("check_model", "rescue_classical", "check_fit", "check_neighbours"):
-        timed(block._Block, nm, "checks_s")
+        timed(checks.BlockChecks, nm, "checks_s")
     timed(sinks.HDF5Sink, "write_rows", "write_s")
     timed(sinks.HDF5Sink, "finish", "strain_s")
     timed(run, "execute", "command_s")

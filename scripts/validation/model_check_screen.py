@@ -1,7 +1,7 @@
 #!/usr/bin/env python
-"""How the model check's screen (``block.SCREEN``) decides against solving every row.
+"""How the model check's screen (``checks.SCREEN``) decides against solving every row.
 
-The model check (``block._Block.check_model``) judges a row from its window's free classical
+The model check (``checks.BlockChecks.check_model``) judges a row from its window's free classical
 step where the row passes with room to spare, and solves the others classically. This script
 runs ``stsdic run ARGS`` and, at every check, also solves *every* usable row classically (as
 the check did before the screen: CHECK_ITER steps from the step, in full where those do not
@@ -13,7 +13,7 @@ converge) and judges it with the same tests. Printed per block and in total:
   the limit and their window - classical difference, px;
 - how near the step's estimates are to the solved classical solutions (u, v px; ZNCC;
   noise and std ratios) and the estimate's error over the step's size (the contraction the
-  slack ``block.SCREEN_SLACK`` allows for).
+  slack ``checks.SCREEN_SLACK`` allows for).
 
     python scripts/validation/model_check_screen.py run ../shared/data/mudic-hourglass/ \\
         --subset 31 --step 20 --roi 150 20 1120 734 --m 2
@@ -27,7 +27,7 @@ import sys
 
 import torch
 
-import torch_stsdic.movie.block as block
+import torch_stsdic.movie.checks as checks
 from torch_stsdic.analysis.quality import (
     RESIDUAL_Z,
     difference_std,
@@ -47,7 +47,7 @@ def _judged(self, idx, screened, est) -> None:
     act = self._classical(idx, run.check_solver())
     nc = act.status != int(Status.CONVERGED)
     if bool(nc.any()):  # the full check solves these to the run's tol before judging
-        act = block._with_rows(act, nc, self.solve(idx[nc], act.params[nc].nan_to_num(0.0),
+        act = checks.with_rows(act, nc, self.solve(idx[nc], act.params[nc].nan_to_num(0.0),
                                                    m=0))
     names = est.param_names
     cu, cv = names.index("u"), names.index("v")
@@ -90,7 +90,7 @@ def _judged(self, idx, screened, est) -> None:
 
 
 def main(argv: list[str]) -> int:
-    screen = block._Block._screen
+    screen = checks.BlockChecks._screen
 
     def recording(self, idx):
         screened, est = screen(self, idx)
@@ -98,7 +98,7 @@ def main(argv: list[str]) -> int:
             _judged(self, idx, screened, est)
         return screened, est
 
-    block._Block._screen = recording
+    checks.BlockChecks._screen = recording
     code = cli_main(argv)
     t = TOTAL
     if t["rows"]:

@@ -5,7 +5,8 @@ On two real series (DIC Challenge 1.0 sample 12, the muDIC hourglass; ``../share
 ``sts.track`` is run three times with the same points and 31 px subsets: m = 2 with the trust
 checks (the default), m = 2 without them, and classical (m = 0). While the checked run goes,
 the inputs of the model check (:func:`torch_stsdic.analysis.quality.model_mismatch` and
-:func:`~torch_stsdic.analysis.quality.residual_mismatch`, called from ``block.py``) are recorded
+:func:`~torch_stsdic.analysis.quality.residual_mismatch`, called from ``movie/checks.py``) are
+recorded
 (wrapped for the run only; the library is not changed). Measured:
 
 1. which test rejects, and by how much: the Hausman z (difference STS - classical over its
@@ -40,7 +41,7 @@ import numpy as np
 import torch
 
 import torch_stsdic as sts
-import torch_stsdic.movie.block as block_mod
+import torch_stsdic.movie.checks as block_mod
 from torch_stsdic.analysis import quality
 from torch_stsdic.core.interpolation import BSplineImage
 from torch_stsdic.io import load_series
@@ -81,7 +82,7 @@ def recording(log: list):
     (stage 0: the quick classical solution of every usable row; 1: the full classical
     solution of the suspect rows; 2..: the shorter windows)."""
     state: dict = {"stage": 0}
-    orig = (block_mod._Block.check_model, block_mod.model_mismatch,
+    orig = (block_mod.BlockChecks.check_model, block_mod.model_mismatch,
             block_mod.residual_mismatch)
 
     def check_model(self):
@@ -149,7 +150,7 @@ def recording(log: list):
         state["stage"] += 1
         return out
 
-    block_mod._Block.check_model, block_mod.model_mismatch = check_model, mm
+    block_mod.BlockChecks.check_model, block_mod.model_mismatch = check_model, mm
     block_mod.residual_mismatch = rm
     # every usable row solved classically (no judging from the window's free step): the
     # stages above are the check's full ones
@@ -157,7 +158,7 @@ def recording(log: list):
     try:
         yield
     finally:
-        (block_mod._Block.check_model, block_mod.model_mismatch,
+        (block_mod.BlockChecks.check_model, block_mod.model_mismatch,
          block_mod.residual_mismatch) = orig
         block_mod.SCREEN = screen
 

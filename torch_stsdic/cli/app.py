@@ -18,7 +18,7 @@ import traceback
 from collections.abc import Sequence
 from typing import Any
 
-from torch_stsdic.cli import demo, export, options, plot, run, synth
+from torch_stsdic.cli import demo, export, options, plot, run, stereo, synth
 from torch_stsdic.cli.demo import DEMO_TIME
 from torch_stsdic.cli.errors import (
     PROG,
@@ -31,7 +31,7 @@ from torch_stsdic.cli.errors import (
 from torch_stsdic.cli.signals import Interrupted, stop_on_signals
 
 #: the sub-command modules, in the order of ``stsdic --help``
-COMMANDS = (run, export, plot, synth, demo)
+COMMANDS = (run, stereo, export, plot, synth, demo)
 
 DESCRIPTION = """\
 STS-DIC: short-time-series digital image correlation (Wang & Ma) in PyTorch.

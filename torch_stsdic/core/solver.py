@@ -30,7 +30,6 @@ fixed point exactly the ZNCC maximum.
 from __future__ import annotations
 
 import time as _time
-from dataclasses import dataclass, field
 
 import torch
 
@@ -40,7 +39,6 @@ from torch_stsdic.core.formulations import Formulation, Geometry
 from torch_stsdic.core.gauss_newton import (
     BatchContext,
     ReferenceCache,
-    classical_step_columns,
     classical_step_width,
     solve_batch,
 )
@@ -56,76 +54,16 @@ from torch_stsdic.core.interpolation import BSplineImage
 from torch_stsdic.core.offgrid import carry_params, carry_solution, snap_points
 from torch_stsdic.core.shape import ShapeFunction, make_shape
 from torch_stsdic.core.shared_motion import known_window_motion
+from torch_stsdic.core.solution import (
+    WindowSolution,
+    classical_step_info,
+    packed_classical_step,
+)
 from torch_stsdic.core.status import Status
 from torch_stsdic.core.validation import as_image, as_points, as_series, as_times, check_init
 from torch_stsdic.core.window import make_window
 
 __all__ = ["WindowSolution", "SubsetSolver", "solve_window", "subset_inside"]
-
-
-def _parameter(name: str, doc: str) -> property:
-    """A read-only property: the (N,) column of parameter ``name``."""
-    return property(lambda self: self.param(name), doc=doc)
-
-
-@dataclass
-class WindowSolution:
-    """Per-POI results of one window, at the expansion time ``time``.
-
-    Attributes:
-        points: (N, 2) POI positions (x, y), px.
-        params: (N, P) shape-function parameters (names in ``param_names``); NaN rows where
-            ``status`` is DIVERGED, OUTSIDE, LOW_TEXTURE or NOT_COMPUTED.
-        zncc: (N,) zero-normalised cross-correlation, mean over the window's frames.
-        status: (N,) int8 :class:`Status` codes.
-        iterations: (N,) Gauss-Newton iterations used (all stages).
-        time: the time the displacement refers to (frame units unless times were given).
-        std: (N, P) predicted standard deviation of every parameter (same units), from the
-            image noise estimated from the point's own residual and its subset's gradients
-            (:mod:`torch_stsdic.core.uncertainty`); NaN where the point failed.
-        sigma: (N,) that noise, grey levels: the std of one reference/frame difference.
-        info: extras: "stages" (the Gauss-Newton stages run), "first_stage_params" (N, P)
-            (the joint solution before the "auto" refinement), "initial_params" (N, P),
-            "initial_guess" (how the POIs started: "method" fft / seeded / given, with the
-            number of seeds and FFT points and "fft_s", the seconds spent in FFT).
-    """
-
-    points: torch.Tensor
-    params: torch.Tensor
-    param_names: tuple[str, ...]
-    zncc: torch.Tensor
-    status: torch.Tensor
-    iterations: torch.Tensor
-    time: float | torch.Tensor = 0.0
-    info: dict = field(default_factory=dict)
-    std: torch.Tensor | None = None
-    sigma: torch.Tensor | None = None
-
-    def param(self, name: str) -> torch.Tensor:
-        """(N,) parameter ``name`` (e.g. "ux"; NaN if the shape function has none)."""
-        if name in self.param_names:
-            return self.params[:, self.param_names.index(name)]
-        return torch.full_like(self.params[:, 0], float("nan"))
-
-    u = _parameter("u", "(N,) displacement along x, px.")
-    v = _parameter("v", "(N,) displacement along y, px.")
-    ut = _parameter("ut", "(N,) velocity du/dt, px per frame (NaN for m = 0: one frame has no "
-                    "velocity).")
-    vt = _parameter("vt", "(N,) velocity dv/dt, px per frame (NaN for m = 0).")
-
-    def std_of(self, name: str) -> torch.Tensor:
-        """(N,) predicted standard deviation of parameter ``name`` (NaN if not estimated)."""
-        if self.std is None or name not in self.param_names:
-            return torch.full_like(self.params[:, 0], float("nan"))
-        return self.std[:, self.param_names.index(name)]
-
-    @property
-    def ok(self) -> torch.Tensor:
-        """(N,) bool: converged (or stopped at max_iter with usable parameters)."""
-        return self.status <= int(Status.MAX_ITER)
-
-    def __len__(self) -> int:
-        return self.points.shape[0]
 
 
 class SubsetSolver:
@@ -243,24 +181,20 @@ class SubsetSolver:
                 sol.info.update(classical_step_info(packed_classical_step(sol.info).masked_fill(
                     off, float("nan"))))
             return carry_solution(sol, points, offset)
-        cfg = self.config
-        device, dtype = points.device, points.dtype
+        return self._solve_on_grid(ref, frames, points, dt, frame_index, ref_index, init,
+                                   ref_pixels, frame_pixels, time, noise_ratio, motion,
+                                   classical_step, init_step)
+
+    def _solve_on_grid(self, ref: BSplineImage, frames: BSplineImage, points: torch.Tensor,
+                       dt, frame_index, ref_index, init, ref_pixels, frame_pixels, time,
+                       noise_ratio: float, motion, classical_step: bool, init_step
+                       ) -> WindowSolution:
+        """:meth:`solve` for POIs on the pixel grid with centred subsets."""
         n = points.shape[0]
         dt, frame_index, ref_index = _per_point(points, dt, frame_index, ref_index)
-        t_count = dt.shape[-1]
-        motion = _per_point_motion(motion, n, t_count, points)
+        motion = _per_point_motion(motion, n, dt.shape[-1], points)
         shape = self.shape_for(dt)
-        p_count = shape.n_params
-        half = float(self.window.half)
-        h, w = ref.height, ref.width
-        status = torch.full((n,), int(Status.NOT_COMPUTED), dtype=torch.int8, device=device)
-        params = torch.full((n, p_count), float("nan"), dtype=dtype, device=device)
-        zncc = torch.full((n,), float("nan"), dtype=dtype, device=device)
-        iters = torch.zeros(n, dtype=torch.int32, device=device)
-
-        inside = subset_inside(points, half, h, w)
-        status[~inside] = int(Status.OUTSIDE)
-
+        inside = subset_inside(points, float(self.window.half), ref.height, ref.width)
         if init is None:
             if ref_pixels is None or frame_pixels is None:
                 raise ValueError("solve needs init or the raw images for the FFT initial guess")
@@ -270,6 +204,28 @@ class SubsetSolver:
                     plan, ref, frames, points, dt, frame_index, ref_index, ref_pixels,
                     frame_pixels, time, inside, noise_ratio, motion, classical_step,
                 )
+        p0, t_fft = self._initial_params(shape, init, inside, points, dt, frame_index,
+                                         ref_index, ref_pixels, frame_pixels, motion)
+        if init_step is not None:
+            init_step = torch.as_tensor(init_step).to(device=points.device, dtype=points.dtype)
+            if init_step.numel() != n:
+                raise ValueError(f"init_step must be (N,) with a value for each of the {n} "
+                                 f"points, got {tuple(init_step.shape)}")
+            init_step = init_step.reshape(n)
+        guess = {"method": "fft" if init is None else "given", "fft_s": t_fft}
+        return self._solve_batches(ref, frames, shape, points, dt, frame_index, ref_index,
+                                   inside, p0, motion, init_step, ref_pixels, time,
+                                   noise_ratio, classical_step, guess)
+
+    def _initial_params(self, shape: ShapeFunction, init, inside: torch.Tensor,
+                        points: torch.Tensor, dt: torch.Tensor, frame_index: torch.Tensor,
+                        ref_index: torch.Tensor, ref_pixels, frame_pixels, motion
+                        ) -> tuple[torch.Tensor, float]:
+        """The starting parameters (N, P) of a solve, and the seconds the FFT guess took:
+        ``init`` checked and expanded to ``shape``, or FFT cross-correlation (init None)."""
+        device, dtype = points.device, points.dtype
+        n, p_count = points.shape[0], shape.n_params
+        if init is None:
             p0 = torch.zeros(n, p_count, dtype=dtype, device=device)
             t_fft = _clock(device)
             if inside.any():
@@ -278,15 +234,30 @@ class SubsetSolver:
                     frame_index[inside], ref_index[inside],
                     motion=None if motion is None else motion[inside],
                 )
-            t_fft = _clock(device) - t_fft
-        else:
-            t_fft = 0.0
-            p0 = torch.as_tensor(init).to(device=device, dtype=dtype)
-            if p0.dim() != 2 or p0.shape[0] != n:
-                raise ValueError(f"init must be (N, P) with a row for each of the {n} points, "
-                                 f"got {tuple(p0.shape)}")
-            if p0.shape[1] != p_count:
-                p0 = _expand_init(p0, shape, self.shape)
+            return p0, _clock(device) - t_fft
+        p0 = torch.as_tensor(init).to(device=device, dtype=dtype)
+        if p0.dim() != 2 or p0.shape[0] != n:
+            raise ValueError(f"init must be (N, P) with a row for each of the {n} points, "
+                             f"got {tuple(p0.shape)}")
+        if p0.shape[1] != p_count:
+            p0 = _expand_init(p0, shape, self.shape)
+        return p0, 0.0
+
+    def _solve_batches(self, ref: BSplineImage, frames: BSplineImage, shape: ShapeFunction,
+                       points: torch.Tensor, dt: torch.Tensor, frame_index: torch.Tensor,
+                       ref_index: torch.Tensor, inside: torch.Tensor, p0: torch.Tensor,
+                       motion, init_step, ref_pixels, time, noise_ratio: float,
+                       classical_step: bool, guess: dict) -> WindowSolution:
+        """Gauss-Newton from ``p0`` for the POIs ``inside``, in batches within the memory
+        budget (:func:`~torch_stsdic.core.gauss_newton.solve_batch`); the others OUTSIDE."""
+        cfg = self.config
+        device, dtype = points.device, points.dtype
+        n, p_count, t_count = points.shape[0], shape.n_params, dt.shape[-1]
+        status = torch.full((n,), int(Status.NOT_COMPUTED), dtype=torch.int8, device=device)
+        params = torch.full((n, p_count), float("nan"), dtype=dtype, device=device)
+        zncc = torch.full((n,), float("nan"), dtype=dtype, device=device)
+        iters = torch.zeros(n, dtype=torch.int32, device=device)
+        status[~inside] = int(Status.OUTSIDE)
 
         todo = torch.nonzero(inside).flatten()
         first_stage = torch.full_like(params, float("nan"))
@@ -302,12 +273,6 @@ class SubsetSolver:
         sigma = torch.full_like(zncc, float("nan"))
         cstep = (torch.full((n, classical_step_width(geo.ks)), float("nan"), dtype=dtype,
                             device=device) if classical_step else None)
-        if init_step is not None:
-            init_step = torch.as_tensor(init_step).to(device=device, dtype=dtype)
-            if init_step.numel() != n:
-                raise ValueError(f"init_step must be (N,) with a value for each of the {n} "
-                                 f"points, got {tuple(init_step.shape)}")
-            init_step = init_step.reshape(n)
         batch = cfg.batch_points or ctx.batch_size(t_count)
         for s0 in range(0, todo.numel(), batch):
             idx = todo[s0 : s0 + batch]
@@ -333,8 +298,7 @@ class SubsetSolver:
                 "stages": [f.name for f in ctx.stages],
                 "first_stage_params": first_stage,
                 "initial_params": p0,
-                "initial_guess": {"method": "fft" if init is None else "given",
-                                  "fft_s": t_fft},
+                "initial_guess": guess,
                 **({} if cstep is None else classical_step_info(cstep)),
             },
         )
@@ -673,23 +637,3 @@ def solve_window(
         ref_img, frames_img, pts, t - t[c], init=init_t, ref_pixels=ref_t.unsqueeze(0),
         frame_pixels=frames_t, time=float(t[c]), motion=motion, centres=centres_t,
     )
-
-
-#: info keys of a classical step's columns (gauss_newton.classical_step_columns)
-_CSTEP_KEYS = {"params": "classical_step", "size": "classical_step_size",
-               "zncc": "classical_step_zncc", "sigma": "classical_step_sigma",
-               "std": "classical_step_std"}
-
-
-def classical_step_info(packed: torch.Tensor) -> dict[str, torch.Tensor]:
-    """The info entries of classical steps ``packed`` (N, 4 Ks + 3) (one value per row for
-    the size, ZNCC and sigma)."""
-    cols = classical_step_columns((packed.shape[1] - 3) // 4)
-    return {key: packed[:, cols[part]].squeeze(1) if part in ("size", "zncc", "sigma")
-            else packed[:, cols[part]] for part, key in _CSTEP_KEYS.items()}
-
-
-def packed_classical_step(info: dict) -> torch.Tensor:
-    """The classical steps of a solution's ``info`` as one (N, 4 Ks + 3) tensor."""
-    return torch.cat([info[key].reshape(info[key].shape[0], -1)
-                      for key in _CSTEP_KEYS.values()], 1)

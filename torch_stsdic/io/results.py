@@ -9,11 +9,8 @@ finished one. This module is the only one that knows the file layout.
 
 from __future__ import annotations
 
-import datetime as _dt
-import errno
 import json
 import os
-import re
 import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -22,9 +19,18 @@ from typing import Any
 
 import h5py
 import numpy as np
-import torch
 
 from torch_stsdic.core.status import Status
+from torch_stsdic.io.run_record import (
+    as_numpy,
+    chunks,
+    config_json,
+    creation_properties,
+    diff_config,
+    now_stamp,
+    os_reason,
+    software_version,
+)
 from torch_stsdic.io.units import Units, units_of
 
 __all__ = [
@@ -89,113 +95,12 @@ def as_stored(values: Mapping[str, Any]) -> dict[str, np.ndarray]:
     iterations int16, clipped): what a resumed run reads back."""
     out = {}
     for name, val in values.items():
-        a = np.asarray(_as_numpy(val))
+        a = np.asarray(as_numpy(val))
         dt = _field_dtype(name)[0]
         if np.issubdtype(dt, np.integer):
             info = np.iinfo(dt)
             a = np.clip(a, info.min, info.max)
         out[name] = a.astype(dt)
-    return out
-
-
-def _software_version() -> str:
-    try:
-        from importlib.metadata import version
-
-        return version("torch_stsdic")
-    except Exception:
-        return "unknown"
-
-
-def _now() -> str:
-    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
-
-
-def _json_default(o: Any) -> Any:
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, torch.Tensor):
-        return o.detach().cpu().tolist()
-    if isinstance(o, (Path, torch.dtype, torch.device)):
-        return str(o)
-    if isinstance(o, (set, frozenset)):
-        return sorted(o)
-    raise TypeError(f"config value of type {type(o).__name__} is not JSON serialisable")
-
-
-def _config_json(config: Mapping[str, Any]) -> str:
-    return json.dumps(dict(config), sort_keys=True, default=_json_default, allow_nan=True)
-
-
-def _as_numpy(x: Any) -> np.ndarray:
-    if isinstance(x, torch.Tensor):
-        return x.detach().cpu().numpy()
-    return np.asarray(x)
-
-
-def _chunks(n_rows: int, n_cols: int, itemsize: int) -> tuple[int, int] | None:
-    if n_rows == 0 or n_cols == 0:
-        return None
-    cols = min(n_cols, max(1, (4 << 20) // itemsize))  # <= 4 MiB per row chunk
-    rows = max(1, min(n_rows, (64 << 10) // (cols * itemsize)))  # >= ~64 KiB when N small
-    return rows, cols
-
-
-#: short reasons for the errors a result file meets (HDF5's own messages run to a paragraph)
-_REASONS = {errno.ENOSPC: "no space left on the device (the disk is full)",
-            errno.EDQUOT: "disk quota exceeded", errno.EROFS: "read-only file system",
-            errno.EACCES: "permission denied", errno.EPERM: "permission denied",
-            errno.EFBIG: "file too large (file-size limit of the system or file system)",
-            errno.EIO: "input/output error (device lost?)"}
-
-
-def os_reason(exc: BaseException) -> str:
-    """A short reason for an OSError, e.g. 'no space left on the device (the disk is full)';
-    HDF5's own text when the error number is unknown."""
-    text = " ".join(str(exc).split())
-    code = getattr(exc, "errno", None)
-    if code is None:  # HDF5 puts the number in the text: "errno = 28"
-        m = re.search(r"errno = (\d+)", text)
-        code = int(m.group(1)) if m else None
-    return _REASONS.get(code, text) if code is not None else text
-
-
-def _dcpl() -> Any:
-    """Dataset creation properties: storage allocated (and filled) when the dataset is
-    created, so writing rows later only overwrites data in place and never changes the
-    file's metadata (nothing for a killed process to leave half-written)."""
-    dcpl = h5py.h5p.create(h5py.h5p.DATASET_CREATE)
-    dcpl.set_alloc_time(h5py.h5d.ALLOC_TIME_EARLY)
-    return dcpl
-
-
-def _flat(d: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
-    """Nested settings as one level with dotted keys ({"track": {"step": 5}} -> track.step)."""
-    out: dict[str, Any] = {}
-    for k, v in d.items():
-        if isinstance(v, Mapping) and v:
-            out.update(_flat(v, f"{prefix}{k}."))
-        else:
-            out[f"{prefix}{k}"] = v
-    return out
-
-
-def _diff_config(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[tuple[str, str]]:
-    """(dotted key, "key: old -> new") for every setting that differs."""
-    old, new = _flat(old), _flat(new)
-    out = []
-    for k in sorted(set(old) | set(new)):
-        if k not in old:
-            text = f"{k}: (absent) -> {new[k]!r}"
-        elif k not in new:
-            text = f"{k}: {old[k]!r} -> (absent)"
-        elif old[k] != new[k]:
-            text = f"{k}: {old[k]!r} -> {new[k]!r}"
-        else:
-            continue
-        out.append((k, text if len(text) < 200 else text[:197] + "..."))
     return out
 
 
@@ -264,18 +169,18 @@ class ResultWriter(_FieldShape):
         self._rename_on_close = False
         self._file: h5py.File | None = None
 
-        pts = np.asarray(_as_numpy(points), dtype=np.float64)
+        pts = np.asarray(as_numpy(points), dtype=np.float64)
         if pts.ndim != 2 or pts.shape[1] != 2:
             raise ValueError(f"points must have shape (N, 2), got {pts.shape}")
         if not np.isfinite(pts).all():
             raise ValueError("points must be finite")
-        fr = np.asarray(_as_numpy(frames))
+        fr = np.asarray(as_numpy(frames))
         if fr.ndim != 1 or (fr.size and fr.dtype.kind not in "iu"):
             raise ValueError(f"frames must be a 1-D integer array, got {fr.dtype} {fr.shape}")
         fr = fr.astype(np.int64)
         if len(set(fr.tolist())) != len(fr):
             raise ValueError("frames must not contain duplicates")
-        tm = np.asarray(_as_numpy(times), dtype=np.float64)
+        tm = np.asarray(as_numpy(times), dtype=np.float64)
         if tm.shape != fr.shape:
             raise ValueError(f"times must have shape {fr.shape} like frames, got {tm.shape}")
         names = list(fields) + list(extra_fields)
@@ -287,7 +192,7 @@ class ResultWriter(_FieldShape):
         self.points, self.frames, self.times = pts, fr, tm
         self.fields: tuple[str, ...] = tuple(fields)
         self.extra_fields: tuple[str, ...] = tuple(extra_fields)
-        self.config: dict[str, Any] = json.loads(_config_json(config))
+        self.config: dict[str, Any] = json.loads(config_json(config))
         self.inputs = [str(s) for s in inputs]
         self._resume_ignore = set(resume_ignore)
         self._attrs = dict(attrs or {})
@@ -314,7 +219,8 @@ class ResultWriter(_FieldShape):
     def _create(self, target: Path, mode: str) -> None:
         """Write the file's skeleton (attributes, every dataset allocated and filled) under a
         temporary name, then rename it to ``target``: a process killed meanwhile leaves no
-        half-made file. Writing rows later changes no HDF5 metadata (see :func:`_dcpl`), so
+        half-made file. Writing rows later changes no HDF5 metadata (see
+        :func:`creation_properties`), so
         a SIGKILL at any moment leaves a file that opens and resumes."""
         if mode == "x" and target.exists():
             raise FileExistsError(f"result file {target} exists")
@@ -324,9 +230,9 @@ class ResultWriter(_FieldShape):
         try:
             f.attrs["format"] = RESULTS_FORMAT
             f.attrs["version"] = RESULTS_FORMAT_VERSION
-            f.attrs["software_version"] = _software_version()
-            f.attrs["created"] = _now()
-            f.attrs["config"] = _config_json(self.config)
+            f.attrs["software_version"] = software_version()
+            f.attrs["created"] = now_stamp()
+            f.attrs["config"] = config_json(self.config)
             f.attrs["inputs"] = json.dumps(self.inputs)
             f.attrs["fields"] = json.dumps(list(self.fields + self.extra_fields))
             f.attrs["status_codes"] = Status.describe()
@@ -343,8 +249,8 @@ class ResultWriter(_FieldShape):
                     shape=(n_f, n_p),
                     dtype=dt,
                     fillvalue=fill,
-                    chunks=_chunks(n_f, n_p, np.dtype(dt).itemsize),
-                    dcpl=_dcpl(),
+                    chunks=chunks(n_f, n_p, np.dtype(dt).itemsize),
+                    dcpl=creation_properties(),
                 )
             f.create_dataset("completed", data=np.zeros(n_f, dtype=bool))
             f.close()
@@ -390,7 +296,7 @@ class ResultWriter(_FieldShape):
             old = {}
         new = self.config
         ign = self._resume_ignore
-        diff = _diff_config(
+        diff = diff_config(
             {k: v for k, v in old.items() if k not in ign},
             {k: v for k, v in new.items() if k not in ign},
         )
@@ -457,7 +363,7 @@ class ResultWriter(_FieldShape):
         The rows are then flagged completed and the file is flushed.
         """
         f = self._h5()
-        rows = np.atleast_1d(np.asarray(_as_numpy(row_indices)))
+        rows = np.atleast_1d(np.asarray(as_numpy(row_indices)))
         if rows.ndim != 1 or (rows.size and rows.dtype.kind not in "iu"):
             raise ValueError(f"row_indices must be integers, got {row_indices!r}")
         rows = rows.astype(np.int64)
@@ -478,7 +384,7 @@ class ResultWriter(_FieldShape):
         k = len(rows)
         data: dict[str, np.ndarray] = {}
         for name, val in values.items():
-            a = _as_numpy(val)
+            a = as_numpy(val)
             if a.ndim == 1 and k == 1:
                 a = a[None]
             if a.shape != (k, n_p):
@@ -706,13 +612,13 @@ def _add_fields(f: h5py.File, values: Mapping[str, Any],
     names = json.loads(f.attrs.get("fields", "[]"))
     n_f, n_p = len(f["frames"]), len(f["points"])
     for name, val in values.items():
-        a = np.asarray(_as_numpy(val), dtype=np.float32)
+        a = np.asarray(as_numpy(val), dtype=np.float32)
         if a.shape != (n_f, n_p):
             raise ValueError(f"field {name}: shape {a.shape}, expected ({n_f}, {n_p})")
         if name in f:
             f[name][...] = a
         else:
-            f.create_dataset(name, data=a, chunks=_chunks(n_f, n_p, 4), fillvalue=np.nan)
+            f.create_dataset(name, data=a, chunks=chunks(n_f, n_p, 4), fillvalue=np.nan)
         if name not in names:
             names.append(name)
     f.attrs["fields"] = json.dumps(names)

@@ -11,7 +11,8 @@ it with.
 Selection (:func:`usable`): the environment variable ``TORCH_STSDIC_TRITON`` or
 :func:`set_triton`: ``"auto"`` (default: CUDA tensors, Triton importable, cubic splines),
 ``"0"`` (never), ``"1"`` (also CPU tensors when ``TRITON_INTERPRET=1``, Triton's interpreter:
-how the tests run the kernel without a GPU). On a CPU the C++ kernels (:mod:`torch_stsdic.kernels.native`)
+how the tests run the kernel without a GPU). On a CPU the C++ kernels
+(:mod:`torch_stsdic.kernels.native`)
 come first anyway.
 """
 

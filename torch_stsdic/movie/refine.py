@@ -596,7 +596,8 @@ def _error_var(lam: np.ndarray, om: np.ndarray, ref: int, rho: float,
     ``shrink`` (k) times the intercept with weights ``om``, both on the classical errors
     ``e_j = c + s_j`` (``e_ref = 0``; var(c) = rho a^2, var(s_j) = a^2):
     ``rho (1 - lam_ref - k sum om)^2 + sum_j (lam_j - k om_j)^2`` (j != ref); and the unrefined
-    variance *as* :mod:`torch_stsdic.core.uncertainty` *predicts it* (u_std): ``rho + sum_j lam_j^2``
+    variance *as* :mod:`torch_stsdic.core.uncertainty` *predicts it* (u_std): ``rho + sum_j
+    lam_j^2``
     over all frames, i.e. a reference frame inside the window counted as one more independent
     frame (it is not: its ``n_t - n_ref`` is 0, so that prediction is too high for the first m
     rows; dividing by it keeps the rescaled u_std right there). rho = inf: both divided by

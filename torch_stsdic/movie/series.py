@@ -48,7 +48,8 @@ from torch_stsdic.core.config import DICConfig
 from torch_stsdic.core.gauss_newton import ReferenceCache
 from torch_stsdic.core.solver import SubsetSolver
 from torch_stsdic.io.results import as_stored
-from torch_stsdic.movie.block import BlockContext, Carry, make_carry, rows_numpy, solve_block
+from torch_stsdic.movie.block import BlockContext, solve_block
+from torch_stsdic.movie.carry import Carry, make_carry, rows_numpy
 from torch_stsdic.movie.frames import FrameCache, default_ahead, frames_in_order, segment_bounds
 from torch_stsdic.movie.plan import RunPlan, plan_run
 from torch_stsdic.movie.reference import Reference, maybe_update
@@ -260,7 +261,8 @@ def track(
             smoothing" baseline).
         lost_zncc: points whose ZNCC falls below this are re-solved with an FFT guess, and a
             solved point still below it is POOR_FIT.
-        checks: the trust checks of :mod:`torch_stsdic.analysis.quality` (model check of every window
+        checks: the trust checks of :mod:`torch_stsdic.analysis.quality` (model check of every
+        window
             against the classical solution with shorter windows where the motion is not
             affine in time, fit and neighbour checks; default True). False: every converged
             point is reported as such (faster, and as before these checks existed).

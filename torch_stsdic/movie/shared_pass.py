@@ -1,5 +1,6 @@
 """The measuring pass of a run's shared motion (:mod:`torch_stsdic.core.shared_motion`): which
-kind a run uses (:func:`torch_stsdic.movie.plan.set_shared_motion`) and its measurement by a classical pass at a
+kind a run uses (:func:`torch_stsdic.movie.plan.set_shared_motion`) and its measurement by a
+classical pass at a
 sample of the run's POIs (:func:`estimate_shared_motion`)."""
 
 from __future__ import annotations

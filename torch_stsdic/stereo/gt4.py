@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from torch_stsdic import DICConfig
+from torch_stsdic.core.config import DICConfig
 
 from .calibration import load_calibration
 from .run import track_stereo

@@ -26,7 +26,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from torch_stsdic import DICConfig, Status, WindowSolution, solve_window
+from torch_stsdic.core.config import DICConfig
+from torch_stsdic.core.solution import WindowSolution
+from torch_stsdic.core.solver import solve_window
+from torch_stsdic.core.status import Status
 
 from .calibration import StereoCalibration
 from .triangulation import project, undistort

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from torch_stsdic import synth
+import torch_stsdic.synth as synth
 
 from .calibration import Camera, StereoCalibration
 from .triangulation import project, undistort

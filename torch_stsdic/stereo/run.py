@@ -20,7 +20,11 @@ from typing import Any
 import numpy as np
 import torch
 
-from torch_stsdic import DICConfig, Status, grid_points, load_series, track
+from torch_stsdic.analysis.points import grid_points
+from torch_stsdic.core.config import DICConfig
+from torch_stsdic.core.status import Status
+from torch_stsdic.io import load_series
+from torch_stsdic.movie.series import track
 
 from .calibration import StereoCalibration, load_calibration
 from .matching import match_stereo
@@ -113,6 +117,29 @@ def track_stereo(left: Any, right: Any, calibration: StereoCalibration | str, *,
     lres = track(ls, reference=ref_l, points=pts, **common)
     rres = track(rs, reference=ref_r, points=cross.right[okc], **common)
     t_track = _time.perf_counter() - t0
+    d = _three_d(rig, pts, cross, okc, lres, rres, cfg, max_reprojection)
+    X, U, vel, std, X0, x0_std = d["X"], d["U"], d["vel"], d["std"], d["X0"], d["x0_std"]
+    tri, tri0, right0, status = d["tri"], d["tri0"], d["right0"], d["status"]
+    info = {"cross_s": t_cross, "track_s": t_track,
+            "total_s": _time.perf_counter() - t_start, "m": cfg.m,
+            "subset_size": cfg.subset_size, "cross_ok": int(okc.sum()), "points": n,
+            "cross_repaired": int(cross.repaired.sum()),
+            "reference_reprojection_px": float(tri0.reprojection_error[okc].median()),
+            "max_reprojection": max_reprojection}
+    return StereoResult(
+        points=pts, right_points=right0, frames=lres.frames.cpu(), times=lres.times.cpu(),
+        X=X[..., 0], Y=X[..., 1], Z=X[..., 2], U=U[..., 0], V=U[..., 1], W=U[..., 2],
+        Ut=vel[..., 0], Vt=vel[..., 1], Wt=vel[..., 2], X0=X0, X0_std=x0_std, std=std,
+        reprojection_error=tri.reprojection_error, status=status, left=lres, right=rres,
+        cross=cross, calibration=rig.summary(), info=info)
+
+
+def _three_d(rig: StereoCalibration, pts: torch.Tensor, cross, okc: torch.Tensor, lres, rres,
+             cfg: DICConfig, max_reprojection: float) -> dict[str, Any]:
+    """The left and right tracks triangulated: X, U, velocity (F, N, 3), their predicted std,
+    the reference shape and its std, and each row's status (cross match, then the left and
+    right tracks, then the geometry: reprojection error, points behind a camera)."""
+    n = pts.shape[0]
     F = lres.frames.numel()
 
     def full(a):  # right (F, n_ok) -> (F, N), NaN where not matched
@@ -173,15 +200,5 @@ def track_stereo(left: Any, right: Any, calibration: StereoCalibration | str, *,
         a[nan] = float("nan")
     for k in std:
         std[k][nan] = float("nan")
-    info = {"cross_s": t_cross, "track_s": t_track,
-            "total_s": _time.perf_counter() - t_start, "m": cfg.m,
-            "subset_size": cfg.subset_size, "cross_ok": int(okc.sum()), "points": n,
-            "cross_repaired": int(cross.repaired.sum()),
-            "reference_reprojection_px": float(tri0.reprojection_error[okc].median()),
-            "max_reprojection": max_reprojection}
-    return StereoResult(
-        points=pts, right_points=right0, frames=lres.frames.cpu(), times=lres.times.cpu(),
-        X=X[..., 0], Y=X[..., 1], Z=X[..., 2], U=U[..., 0], V=U[..., 1], W=U[..., 2],
-        Ut=vel[..., 0], Vt=vel[..., 1], Wt=vel[..., 2], X0=X0, X0_std=x0_std, std=std,
-        reprojection_error=tri.reprojection_error, status=status, left=lres, right=rres,
-        cross=cross, calibration=rig.summary(), info=info)
+    return {"X": X, "U": U, "vel": vel, "std": std, "X0": X0, "x0_std": x0_std, "tri": tri,
+            "tri0": tri0, "right0": right0, "status": status}

@@ -1,6 +1,7 @@
 """Building the kernels library: the C++ compiler, the cache directory, the build.
 
-:func:`build` compiles ``kernels/native/dic_kernels.cpp`` (beside this module) with the system C++ compiler (``$CXX``,
+:func:`build` compiles ``kernels/native/dic_kernels.cpp`` (beside this module) with the system C++
+compiler (``$CXX``,
 else ``c++``/``g++``/``clang++``) into ``$TORCH_STSDIC_CACHE`` (default
 ``~/.cache/torch_stsdic``; a per-user temp directory if that is not writable), keyed by the
 source, the compiler's version, the CPU and the target (``TORCH_STSDIC_NATIVE_MARCH``,

@@ -1,9 +1,10 @@
 """``stsdic stereo``: stereo STS-DIC of a left and a right image series with a calibration.
 
-A command module in the pattern of ``torch_stsdic.cli`` (``NAME``, ``HELP``, ``DESCRIPTION``,
-``EPILOG``, ``add_arguments(parser)``, ``execute(args) -> int``); register it by adding it to
-``COMMANDS`` in ``torch_stsdic/cli/app.py``. Errors are ``ValueError`` / ``OSError`` with one
-line, which ``stsdic``'s main turns into ``stsdic: error: ...``.
+A command module (``NAME``, ``HELP``, ``DESCRIPTION``, ``EPILOG``, ``add_arguments(parser)``,
+``execute(args) -> int``), registered in ``COMMANDS`` of ``torch_stsdic/cli/app.py``. Errors
+are ``ValueError`` / ``OSError`` with one line, which ``stsdic``'s main turns into ``stsdic:
+error: ...``. The method is in
+:mod:`torch_stsdic.stereo`.
 """
 
 from __future__ import annotations
@@ -13,7 +14,8 @@ import os
 import sys
 import time
 
-from torch_stsdic import DICConfig
+from torch_stsdic.cli import options
+from torch_stsdic.core.config import DICConfig
 
 NAME = "stereo"
 HELP = "3D shape, displacement and velocity from two cameras (stereo STS-DIC)"
@@ -51,21 +53,21 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="stereo calibration (OpenCV YAML/XML, VIC-3D XML, DICe XML, JSON, "
                         "NPZ, MATLAB .mat/.json)")
     p.add_argument("--out", required=True, metavar="FILE.h5", help="result file (HDF5)")
-    p.add_argument("--m", type=int, default=2, help="window half-width: 2m+1 frames per "
-                   "solve (0 = classical DIC; default 2)")
-    p.add_argument("--subset", type=int, default=21, help="subset size px (odd; default 21)")
-    p.add_argument("--step", type=int, default=10, help="grid spacing px (default 10)")
+    options.add_option(p, "--m", type=int, default=2,
+                       help="window half-width: 2m+1 frames per solve (0 = classical DIC)")
+    options.add_option(p, "--subset", type=int, default=21, help="subset size px (odd)")
+    options.add_option(p, "--step", type=int, default=10, help="grid spacing px")
     p.add_argument("--roi", type=float, nargs=4, metavar=("X0", "Y0", "X1", "Y1"),
                    help="region of the left reference, px inclusive")
-    p.add_argument("--reference", default="0",
-                   help="reference frame or frame spec of both series, e.g. 0 or 0:5 (mean)")
+    options.add_option(p, "--reference", default="0",
+                       help="reference frame or frame spec of both series, e.g. 0 or 0:5 (mean)")
     p.add_argument("--refine-reference", action="store_true",
                    help="remove the noisy reference's offset (as in 'stsdic run')")
-    p.add_argument("--cross-shape", choices=("affine", "quadratic"), default="affine",
-                   help="subset warp of the left -> right match (default affine)")
-    p.add_argument("--max-reprojection", type=float, default=1.0,
-                   help="px; points beyond are flagged INCONSISTENT (default 1)")
-    p.add_argument("--device", default="cpu", help="torch device (default cpu)")
+    options.add_option(p, "--cross-shape", choices=("affine", "quadratic"), default="affine",
+                       help="subset warp of the left -> right match")
+    options.add_option(p, "--max-reprojection", type=float, default=1.0,
+                       help="px; points beyond are flagged INCONSISTENT")
+    options.add_option(p, "--device", default="cpu", help="torch device")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
 
@@ -75,8 +77,8 @@ def _series(items: list[str]):
 
 
 def execute(args: argparse.Namespace) -> int:
-    from .calibration import load_calibration
-    from .run import track_stereo
+    from torch_stsdic.stereo.calibration import load_calibration
+    from torch_stsdic.stereo.run import track_stereo
 
     if os.path.exists(args.out) and not args.overwrite:
         raise ValueError(f"--out: {args.out} exists (use --overwrite to replace it)")

@@ -1,0 +1,122 @@
+"""What a result file records beside its fields, and how it is laid out in HDF5: the
+software version and time stamps, the run's settings as JSON and their differences (resume
+checks them), the chunk shape and creation properties of the datasets, and one-line reasons
+for the OS errors a write can meet."""
+
+from __future__ import annotations
+
+import datetime as _dt
+import errno
+import json
+import re
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+import torch
+
+__all__ = ["software_version", "now_stamp", "json_default", "config_json", "as_numpy", "chunks",
+           "OS_REASONS", "os_reason", "creation_properties", "flat_config", "diff_config"]
+
+
+def software_version() -> str:
+    try:
+        from importlib.metadata import version
+
+        return version("torch_stsdic")
+    except Exception:
+        return "unknown"
+
+
+def now_stamp() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+
+
+def json_default(o: Any) -> Any:
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, torch.Tensor):
+        return o.detach().cpu().tolist()
+    if isinstance(o, (Path, torch.dtype, torch.device)):
+        return str(o)
+    if isinstance(o, (set, frozenset)):
+        return sorted(o)
+    raise TypeError(f"config value of type {type(o).__name__} is not JSON serialisable")
+
+
+def config_json(config: Mapping[str, Any]) -> str:
+    return json.dumps(dict(config), sort_keys=True, default=json_default, allow_nan=True)
+
+
+def as_numpy(x: Any) -> np.ndarray:
+    if isinstance(x, torch.Tensor):
+        return x.detach().cpu().numpy()
+    return np.asarray(x)
+
+
+def chunks(n_rows: int, n_cols: int, itemsize: int) -> tuple[int, int] | None:
+    if n_rows == 0 or n_cols == 0:
+        return None
+    cols = min(n_cols, max(1, (4 << 20) // itemsize))  # <= 4 MiB per row chunk
+    rows = max(1, min(n_rows, (64 << 10) // (cols * itemsize)))  # >= ~64 KiB when N small
+    return rows, cols
+
+
+#: short reasons for the errors a result file meets (HDF5's own messages run to a paragraph)
+OS_REASONS = {errno.ENOSPC: "no space left on the device (the disk is full)",
+            errno.EDQUOT: "disk quota exceeded", errno.EROFS: "read-only file system",
+            errno.EACCES: "permission denied", errno.EPERM: "permission denied",
+            errno.EFBIG: "file too large (file-size limit of the system or file system)",
+            errno.EIO: "input/output error (device lost?)"}
+
+
+def os_reason(exc: BaseException) -> str:
+    """A short reason for an OSError, e.g. 'no space left on the device (the disk is full)';
+    HDF5's own text when the error number is unknown."""
+    text = " ".join(str(exc).split())
+    code = getattr(exc, "errno", None)
+    if code is None:  # HDF5 puts the number in the text: "errno = 28"
+        m = re.search(r"errno = (\d+)", text)
+        code = int(m.group(1)) if m else None
+    return OS_REASONS.get(code, text) if code is not None else text
+
+
+def creation_properties() -> Any:
+    """Dataset creation properties: storage allocated (and filled) when the dataset is
+    created, so writing rows later only overwrites data in place and never changes the
+    file's metadata (nothing for a killed process to leave half-written)."""
+    dcpl = h5py.h5p.create(h5py.h5p.DATASET_CREATE)
+    dcpl.set_alloc_time(h5py.h5d.ALLOC_TIME_EARLY)
+    return dcpl
+
+
+def flat_config(d: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Nested settings as one level with dotted keys ({"track": {"step": 5}} -> track.step)."""
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        if isinstance(v, Mapping) and v:
+            out.update(flat_config(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def diff_config(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[tuple[str, str]]:
+    """(dotted key, "key: old -> new") for every setting that differs."""
+    old, new = flat_config(old), flat_config(new)
+    out = []
+    for k in sorted(set(old) | set(new)):
+        if k not in old:
+            text = f"{k}: (absent) -> {new[k]!r}"
+        elif k not in new:
+            text = f"{k}: {old[k]!r} -> (absent)"
+        elif old[k] != new[k]:
+            text = f"{k}: {old[k]!r} -> {new[k]!r}"
+        else:
+            continue
+        out.append((k, text if len(text) < 200 else text[:197] + "..."))
+    return out

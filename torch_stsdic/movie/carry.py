@@ -1,0 +1,163 @@
+"""Carried guesses between blocks of a movie: the last stored row of every point moved on
+by its velocity (:class:`Carry`), lost points filled from their grid neighbours'
+(:func:`neighbour_guess`), and a block's rows turned into the next carry
+(:func:`rows_numpy`, :func:`make_carry`)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from torch_stsdic.analysis.quality import carried_neighbours, nanmedian_rows
+from torch_stsdic.analysis.result import USABLE
+from torch_stsdic.core.status import Status
+
+__all__ = ["Carry", "neighbour_guess", "rows_numpy", "make_carry", "FILL_ROUNDS"]
+
+#: rings of lost points filled from their neighbours' carried motion (Carry.from_neighbours)
+FILL_ROUNDS = 8
+
+
+@dataclass
+class Carry:
+    """Last stored row (total quantities, float32-rounded) and the velocity to extrapolate."""
+
+    t: float
+    vals: dict[str, torch.Tensor]  # name -> (N,)
+    vel_u: torch.Tensor
+    vel_v: torch.Tensor
+    valid: torch.Tensor  # (N,) bool
+    #: (N,) bool: the velocity was measured (ut, vt, or two rows); None: everywhere
+    vel_known: torch.Tensor | None = None
+    #: (N,) ZNCC of each point's last trusted row (NaN: none), the fit check's baseline
+    fit_zncc: torch.Tensor | None = None
+
+    def predict(self, tk: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Predicted total parameters (B, N) at times ``tk`` (B,)."""
+        d = (tk - self.t).unsqueeze(1)
+        out = {k: v.unsqueeze(0).expand(tk.shape[0], -1) for k, v in self.vals.items()}
+        out["u"] = self.vals["u"] + self.vel_u * d
+        out["v"] = self.vals["v"] + self.vel_v * d
+        return out
+
+    def from_neighbours(self, nb: torch.Tensor, points: torch.Tensor,
+                        rounds: int = FILL_ROUNDS) -> tuple[Carry, int]:
+        """This carry with every point that has no valid carry (lost, or a poor fit) carried
+        from its valid grid neighbours ``nb`` (N, k) instead (:func:`neighbour_guess`; points
+        (N, 2) px in the first reference), ring by ring into a lost region (at most
+        ``rounds``), so a lost point starts near the motion again rather than from FFT
+        cross-correlation (or is seen to have left the image). Returns the carry and the
+        points filled."""
+        names = list(self.vals)
+        stack = torch.stack([self.vals[nm] for nm in names] + [self.vel_u, self.vel_v], 1)
+        ok = self.valid.clone()
+        for _ in range(rounds):
+            guess = neighbour_guess(stack.unsqueeze(0), ok.unsqueeze(0),
+                                    names + ["vel_u", "vel_v"], nb, points)[0]
+            fill = ~ok & torch.isfinite(guess).all(1)
+            if not bool(fill.any()):
+                break
+            stack = torch.where(fill.unsqueeze(1), guess.to(stack.dtype), stack)
+            ok |= fill
+        filled = ok & ~self.valid
+        if not bool(filled.any()):
+            return self, 0
+        vals = {nm: stack[:, i] for i, nm in enumerate(names)}
+        known = None if self.vel_known is None else self.vel_known | filled
+        return Carry(t=self.t, vals=vals, vel_u=stack[:, -2], vel_v=stack[:, -1],
+                     valid=ok, vel_known=known, fit_zncc=self.fit_zncc), int(filled.sum())
+
+
+def neighbour_guess(params: torch.Tensor, ok: torch.Tensor, names, nb: torch.Tensor,
+                    points: torch.Tensor, min_count: int = 2) -> torch.Tensor:
+    """(B, N, P) every point's parameters from its ``ok`` (B, N) grid neighbours ``nb``
+    (N, k) in ``params`` (B, N, P) (names ``names``): the median over them, u and v first
+    carried to the point by each neighbour's own gradients (positions ``points`` (N, 2) px,
+    :func:`~torch_stsdic.analysis.quality.carried_neighbours`); NaN where fewer than ``min_count``
+    neighbours are ``ok``. Parameters NaN at every neighbour (a classical row's ut) stay
+    NaN."""
+    vn = carried_neighbours(params, ok, nb)  # (B, N, k, P)
+    iu, iv = names.index("u"), names.index("v")
+    if all(nm in names for nm in ("ux", "uy", "vx", "vy")):
+        b, n = params.shape[:2]
+        gi = [names.index(nm) for nm in ("ux", "uy", "vx", "vy")]
+        uv = carried_neighbours(params[..., [iu, iv]], ok, nb, points,
+                                params[..., gi].reshape(b, n, 2, 2))
+        vn[..., iu], vn[..., iv] = uv[..., 0], uv[..., 1]
+    out = nanmedian_rows(vn.transpose(-1, -2))  # (B, N, P)
+    few = (~torch.isnan(vn[..., iu])).sum(-1) < min_count
+    return torch.where(few.unsqueeze(-1), torch.nan, out)
+
+
+
+
+def rows_numpy(block: dict[str, torch.Tensor], fields: Sequence[str]) -> dict[str, np.ndarray]:
+    """(B, N) numpy rows per field (float64; ut/vt NaN when absent)."""
+    b, n = block["status"].shape
+    out = {}
+    for nm in fields:
+        if nm in block:
+            out[nm] = block[nm].detach().cpu().numpy()
+        else:
+            out[nm] = np.full((b, n), np.nan)
+    out["status"] = out["status"].astype(np.int8)
+    if "m" in out:
+        out["m"] = np.nan_to_num(out["m"], nan=-1).astype(np.int8)
+    out["iterations"] = out["iterations"].astype(np.int64)
+    return out
+
+
+
+def make_carry(rows: dict[str, np.ndarray], times: np.ndarray, names, prev: Carry | None,
+                dtype, device) -> Carry:
+    """Carry from the last stored row (velocity from ut/vt, else from the last two rows).
+
+    Valid are the usable rows and the INCONSISTENT ones: a point the neighbour test
+    doubts fitted its own subset (it passed the fit check), so it goes on from its own
+    solution; restarting it would lose the many good points a bad neighbour condemns."""
+
+    def col(nm: str, i: int = -1) -> torch.Tensor:
+        return torch.from_numpy(rows[nm][i].astype(np.float64)).to(device=device, dtype=dtype)
+
+    vals = {nm: col(nm) for nm in names}
+    st = rows["status"][-1]
+    ok = torch.from_numpy((st <= USABLE) | (st == int(Status.INCONSISTENT))).to(device)
+    ok &= torch.isfinite(vals["u"]) & torch.isfinite(vals["v"])
+    t_last = float(times[-1])
+    if len(times) >= 2:
+        t_prev, u_prev, v_prev = float(times[-2]), col("u", -2), col("v", -2)
+    elif prev is not None:
+        t_prev, u_prev, v_prev = prev.t, prev.vals["u"], prev.vals["v"]
+    else:
+        t_prev, u_prev, v_prev = t_last, vals["u"], vals["v"]
+    span = t_last - t_prev
+    if span > 0:
+        vel_u, vel_v = (vals["u"] - u_prev) / span, (vals["v"] - v_prev) / span
+    else:
+        vel_u, vel_v = torch.zeros_like(vals["u"]), torch.zeros_like(vals["v"])
+    known = torch.full_like(ok, span > 0)  # two rows: a finite difference
+    if "ut" in names:  # the measured velocity where the window had one (m > 0)
+        vel_u = torch.where(torch.isfinite(vals["ut"]), vals["ut"], vel_u)
+        vel_v = torch.where(torch.isfinite(vals["vt"]), vals["vt"], vel_v)
+        known |= torch.isfinite(vals["ut"]) & torch.isfinite(vals["vt"])
+    fin = torch.isfinite(vel_u) & torch.isfinite(vel_v)
+    vel_u = torch.where(fin, vel_u, torch.zeros_like(vel_u))
+    vel_v = torch.where(fin, vel_v, torch.zeros_like(vel_v))
+    # where the row had no window velocity (classical, m = 0), the next window starts from
+    # the finite difference, as its displacement does (not from zero velocity: sample 12's
+    # rows left classical before a load step took 3.5 instead of 3.2 steps in the next block)
+    for nm, vel in (("ut", vel_u), ("vt", vel_v)):
+        if nm in vals:
+            vals[nm] = torch.where(torch.isfinite(vals[nm]), vals[nm], vel)
+    fit = None
+    if "zncc" in rows:  # the last trusted row of every point, in time order
+        fit = torch.full_like(vals["u"], float("nan")) if prev is None or \
+            prev.fit_zncc is None else prev.fit_zncc.clone()
+        for i in range(len(times)):
+            trusted = torch.from_numpy(rows["status"][i] <= USABLE).to(device)
+            fit = torch.where(trusted, col("zncc", i), fit)
+    return Carry(t=t_last, vals=vals, vel_u=vel_u, vel_v=vel_v, valid=ok, vel_known=known,
+                 fit_zncc=fit)
