@@ -238,10 +238,12 @@ def test_run_result_file(result):
     assert (status <= 1).mean() > 0.95
     ok = status <= 1
     err = (u - 0.05 * times[:, None])[ok]
-    assert np.sqrt(np.mean(err**2)) < 0.02
-    assert np.abs(v[ok]).max() < 0.05
-    assert np.abs(ut[ok] - 0.05).max() < 0.03
-    assert np.nanmax(np.abs(exx)) < 5e-3
+    # measured: RMS u error 0.0051 px, |v| 0.011 px, |ut - 0.05| 0.0048 px/frame, |exx|
+    # 2.7e-4 at most (noise 1, 8-bit); bands about 3x
+    assert np.sqrt(np.mean(err**2)) < 0.015
+    assert np.abs(v[ok]).max() < 0.035
+    assert np.abs(ut[ok] - 0.05).max() < 0.015
+    assert np.nanmax(np.abs(exx)) < 1e-3
 
 
 def test_run_summary_and_resume_overwrite(capsys, movie, tmp_path):
@@ -295,7 +297,9 @@ def test_run_points_and_timestamps(capsys, movie, tmp_path):
         np.testing.assert_allclose(f["points"][()], [[30, 30], [40, 40], [50, 35]])
         np.testing.assert_allclose(f["times"][()], [1.0, 1.5, 2.0])
         ut = f["ut"][()]
-    assert np.abs(ut - 0.1).max() < 0.03  # 0.05 px/frame = 0.1 px per time unit
+    # 0.05 px/frame = 0.1 px per time unit (measured |ut - 0.1| 0.0078 at most; a velocity
+    # per frame instead would be off by 0.05)
+    assert np.abs(ut - 0.1).max() < 0.025
 
 
 def test_export_csv(capsys, result, tmp_path):

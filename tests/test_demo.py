@@ -55,10 +55,13 @@ def test_sts_beats_classical_at_noise_5(quick):
     assert s.rms_u < c.rms_u and s.rms_v < c.rms_v
     # the velocity: STS-DIC measures it; finite differences of classical u are >2x worse
     assert c.ut_from_finite_differences and not s.ut_from_finite_differences
-    assert s.rms_ut < 0.5 * c.rms_ut
-    # one noisy reference bounds the gain in u near 1 / sqrt((1 + 1/5) / 2) = 1.29
+    # measured 4.47 (README's full demo: 3.1; seeds 0-5 of the quick demo: 2.6-4.5)
+    assert 3.5 < c.rms_ut / s.rms_ut < 5.5
+    # one noisy reference bounds the expected gain in u near 1 / sqrt((1 + 1/5) / 2) = 1.29;
+    # measured 1.18 (u) and 1.21 (v) for this seed; bands 1.1..1.3 (9 points: other seeds
+    # give 1.18-1.58, so this pins the computation of seed 0, deterministic)
     ratios = quick.ratios()
-    assert 1.0 < ratios["u"] < 1.6
+    assert 1.1 < ratios["u"] < 1.3 and 1.1 < ratios["v"] < 1.3, ratios
     assert ratios["ut"] == pytest.approx(c.rms_ut / s.rms_ut)
 
 
@@ -86,7 +89,9 @@ def test_averaged_reference_lowers_the_error(quick_stills):
     ]
     assert rows[2].rms_u < rows[0].rms_u  # classical: averaged vs single reference
     assert rows[3].rms_u < rows[1].rms_u  # STS-DIC
-    assert rows[3].rms_u < 0.6 * rows[0].rms_u  # STS + averaged reference vs classical
+    # STS + averaged reference vs classical: README 0.42x (full demo, 8 stills); measured
+    # 0.46 here (4 stills); band 0.38..0.55
+    assert 0.38 < rows[3].rms_u / rows[0].rms_u < 0.55
     table = quick_stills.table()
     assert "ref=mean of 4" in table and "1 / sqrt((1 + 1/5) / 2) = 1.29x" in table
     _assert_ratios_under_their_columns(table)
@@ -189,6 +194,8 @@ def test_refined_reference_row():
     refined = d.methods[2]
     assert refined.valid_percent == 100.0
     assert refined.rms_u < d.methods[1].rms_u  # the reference's offset fitted away
+    # README: 0.49x classical with 10 images; measured 0.54 here (9 points); band 0.42..0.65
+    assert 0.42 < refined.rms_u / d.methods[0].rms_u < 0.65
     assert "STS-DIC refined ref" in d.table()
 
 

@@ -59,9 +59,12 @@ def test_forward_matches_solve_window(seq):
         torch.testing.assert_close(out.vel[0, :, 1], sol.vt, rtol=0, atol=1e-12)
         assert torch.equal(out.status[0], sol.status)
         # the truth at the centre frame (t = 2): u = 0.3 + 0.1 * 2, v = -0.2 + 0.05 * 2
+        # measured at most 0.054 (u), 0.021 (v), 0.017 (ut), 0.0085 (vt); bands about 2x
+        # (noise 2, subset 13, 3 points): v = 0 or a velocity of 0 fails
         assert (out.disp[0, :, 0] - 0.5).abs().max() < 0.1
-        assert (out.disp[0, :, 1] + 0.1).abs().max() < 0.1
-        assert (out.vel[0, :, 1] - 0.05).abs().max() < 0.03
+        assert (out.disp[0, :, 1] + 0.1).abs().max() < 0.05
+        assert (out.vel[0, :, 0] - 0.1).abs().max() < 0.04
+        assert (out.vel[0, :, 1] - 0.05).abs().max() < 0.02
 
 
 @pytest.mark.parametrize("form", ["joint", "average", "joint+average"])
