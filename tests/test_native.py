@@ -421,6 +421,10 @@ def test_wrappers_pass_exactly_the_declared_parameters(monkeypatch):
                 c["fnorm"], c["gx"], c["gy"], c["w"], 64, 48, c["k"], True, True)
         native.ic_rhs(a, 3, c["p"], *args)
         native.ic_rhs(a, 3, c["p"][[1, 0]], *args, rows=torch.tensor([1, 0]))
+        n_pt, n_p = c["p"].shape
+        native.ic_solve(a, 3, c["p"], *args, torch.eye(n_p, dtype=torch.float64).expand(
+            n_pt, n_p, n_p), torch.ones(n_pt, n_p, dtype=dtype), torch.zeros(n_pt, dtype=dtype),
+            1e-4, 3, 40.0, 0.05, (0, 1, 2, 3), frame_rhs=True)
         native.gram(c["gx"], c["gy"], c["basis"], c["w"])
         native.spd_inverse(torch.eye(3, dtype=dtype).expand(2, 3, 3))
         eye = torch.eye(4, dtype=dtype)

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from torch_stsdic.core import uncertainty
+from torch_stsdic.core import point_solve, uncertainty
 from torch_stsdic.core.config import DICConfig
 from torch_stsdic.core.formulations import (
     Formulation,
@@ -413,6 +413,10 @@ def _run_stage(ctx: BatchContext, form: Formulation, params, data: SubsetData, l
     where the formulation gives them, (the parameters (N, P) at which each converged point's
     last step was taken, that step's frame-by-frame spatial right-hand sides and ZNCCs
     (N, T, 2 Ks + 1); NaN rows: none), else None."""
+    # on the CPU: every point iterated to its end in one C++ call (no barrier per iteration)
+    solved = point_solve.solve_stage(ctx, form, params, data, live, frame_rhs, step0, RATE_FLOOR)
+    if solved is not None:
+        return solved
     cfg, geo = ctx.cfg, ctx.geo
     n = params.shape[0]
     device, dtype = params.device, params.dtype

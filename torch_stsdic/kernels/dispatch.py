@@ -86,3 +86,14 @@ def describe(device: str) -> str:
     if fused_step.available() and fused_step.triton_mode() != "0":
         return "fused Triton kernel"
     return "torch kernels"
+
+
+def ic_solve(kernel_args: tuple, p: Tensor, ft: Tensor, ks: int, affine: bool) -> str:
+    """A whole joint IC-GN stage (every point iterated to its end): the C++ per-point solver
+    on the CPU (threads take chunks of points and run each to convergence, no barrier per
+    iteration) for affine shapes (``ks`` = 3 spatial terms) outside autograd, with the image's
+    dtype; else ``"torch"``: the batched loop, one step of all points at a time (GPU,
+    autograd, other shapes). ``TORCH_STSDIC_PER_POINT=0`` keeps the batched loop."""
+    ok = (affine and ks == 3 and native.per_point_enabled() and p.dtype == kernel_args[0].dtype
+          and native.usable_image(kernel_args, p, ft))
+    return NATIVE if ok else TORCH

@@ -99,13 +99,7 @@ def _run_chunk(series: Any, targets: list[int], kwargs: dict[str, Any], torch_th
                fields: tuple[str, ...]) -> dict[str, Any]:
     """Worker side: ``track`` one chunk; (F_chunk, N) numpy rows per field + counters."""
     if torch_threads is None:
-        try:
-            from distributed import get_worker
-
-            per = get_worker().state.nthreads
-        except (ImportError, ValueError, AttributeError):
-            per = 1
-        torch_threads = max(1, _cores() // max(1, per))
+        torch_threads = _threads_per_task()
     if torch_threads > 0:
         torch.set_num_threads(int(torch_threads))
     res = track(series, frames=targets, progress=False, **kwargs)
@@ -216,6 +210,31 @@ def _open_client(client: Any, n_workers: int, threads_per_worker: int, processes
 
 _PLAN_ARGS = ("reference", "frames", "points", "roi", "mask", "step", "config", "times",
               "batch_frames")
+
+
+def _threads_per_task() -> int:
+    """Torch (and kernel) threads of one task on this worker of a cluster not made here: the
+    cores this process may use over the task threads of every worker on this host (the
+    scheduler's list of workers), so that workers side by side do not oversubscribe the node;
+    1 where that is not known."""
+    try:
+        from distributed import get_worker
+
+        worker = get_worker()
+        per = int(worker.state.nthreads)
+    except (ImportError, ValueError, AttributeError):
+        return 1
+
+    def host(addr: str) -> str:
+        return addr.split("://")[-1].rsplit(":", 1)[0]
+
+    try:  # every worker on this host, with its task threads
+        infos = worker.client.scheduler_info().get("workers", {})
+        here = sum(int(w.get("nthreads", 1)) for a, w in infos.items()
+                   if host(a) == host(worker.address))
+    except Exception:  # (a scheduler that does not answer: this worker alone)
+        here = 0
+    return max(1, _cores() // max(1, per, here))
 
 
 def _cores() -> int:

@@ -53,6 +53,7 @@ from torch_stsdic.kernels.native.loader import (
     available,
     kernels,
     native_enabled,
+    per_point_enabled,
     set_native,
     usable,
     usable_image,
@@ -60,6 +61,7 @@ from torch_stsdic.kernels.native.loader import (
 from torch_stsdic.kernels.native.ops import (
     gram,
     ic_rhs,
+    ic_solve,
     nanmedian,
     neighbour_own_gradient,
     neighbour_test,
@@ -70,6 +72,8 @@ from torch_stsdic.kernels.native.ops import (
     subsets,
 )
 
-__all__ = ["available", "set_native", "native_enabled", "sample", "subsets", "ic_rhs", "gram",
+__all__ = ["available", "set_native", "native_enabled", "sample", "subsets", "ic_rhs",
+           "ic_solve", "gram",
            "spd_inverse", "param_std", "nanmedian", "neighbour_own_gradient", "neighbour_test",
-           "prefilter", "build", "kernels", "Kernel", "Param", "usable", "usable_image"]
+           "prefilter", "build", "kernels", "Kernel", "Param", "usable", "usable_image",
+           "per_point_enabled"]

@@ -397,119 +397,170 @@ inline T dot(const T* a, const T* b, int64_t n) {
 //   e_t = w (ft - g_t)                    (SSD)
 // Per frame: sample the subset, its weighted mean and norm, the residual, then
 // 2 (Ks + 1) dot products; frame sums in double.
+//
+// IcProblem holds what every row of a call shares, IcScratch one thread's buffers, and
+// ic_rhs_row computes one row; sts_ic_rhs runs it over a range of rows (one step of a batch),
+// sts_ic_solve iterates each row to convergence (no barrier between iterations).
+template <typename T>
+struct IcProblem {
+  const T* flat;
+  Geo g;
+  int64_t nt, ns, ks, k;
+  bool has_time, znssd;
+  const T *px, *py, *dx, *dy, *dt;
+  const int64_t* frame_off;
+  const T *ft, *fnorm, *fgx, *fgy, *w;
+  const int64_t* ref_rows;
+  const T* motion;
+  double w_img, h;
+  std::vector<T> bt;  // basis transposed (Ks, S)
+  T inv_wsum;
+
+  IcProblem(const T* flat_, const Geo& g_, int64_t nt_, int64_t ns_, int64_t ks_, int64_t k_,
+            bool has_time_, bool znssd_, const T* px_, const T* py_, const T* dx_,
+            const T* dy_, const T* basis, const T* dt_, const int64_t* frame_off_,
+            const T* ft_, const T* fnorm_, const T* fgx_, const T* fgy_, const T* w_,
+            const int64_t* ref_rows_, const T* motion_, double w_img_, double h_)
+      : flat(flat_), g(g_), nt(nt_), ns(ns_), ks(ks_), k(k_), has_time(has_time_),
+        znssd(znssd_), px(px_), py(py_), dx(dx_), dy(dy_), dt(dt_), frame_off(frame_off_),
+        ft(ft_), fnorm(fnorm_), fgx(fgx_), fgy(fgy_), w(w_), ref_rows(ref_rows_),
+        motion(motion_), w_img(w_img_), h(h_), bt(ks_ * ns_) {
+    for (int64_t s = 0; s < ns; ++s)
+      for (int64_t q = 0; q < ks; ++q) bt[q * ns + s] = basis[s * ks + q];
+    double wsum = 0;
+    for (int64_t s = 0; s < ns; ++s) wsum += w[s];
+    inv_wsum = T(1.0 / wsum);
+  }
+};
+
+template <typename T>
+struct IcScratch {
+  std::vector<T> dxu, dyv, gv, ex, ey, fxs, fys;
+  std::vector<int32_t> idx;
+  std::vector<double> bb;
+  explicit IcScratch(const IcProblem<T>& P)
+      : dxu(P.ns), dyv(P.ns), gv(P.ns), ex(P.ns), ey(P.ns), fxs(P.ns), fys(P.ns), idx(P.ns),
+        bb(2 * P.k) {}
+};
+
+// Data row i at parameters pi (2k): b into S.bb (2k, double), the mean ZNCC into *zn, whether
+// a warped subset leaves the image into *out; bf (T, 2 Ks + 1) where not null: each frame's
+// own spatial b and its ZNCC.
 template <typename T, int ORDER>
-void ic_rhs_range(const T* flat, const Geo& g, int64_t i0, int64_t i1, int64_t nt, int64_t ns,
-                  int64_t ks, int64_t k, bool has_time, bool znssd, const T* p, const T* px,
-                  const T* py, const T* dx, const T* dy, const T* basis, const T* dt,
-                  const int64_t* frame_off, const T* ft, const T* fnorm, const T* fgx,
-                  const T* fgy, const T* w, const int64_t* rows, const int64_t* ref_rows,
-                  const T* motion, double w_img, double h, double* b, T* zn,
-                  uint8_t* outside, double* bframe) {
-  const int64_t np = 2 * k;
-  std::vector<T> dxu(ns), dyv(ns), gv(ns), ex(ns), ey(ns), fxs(ns), fys(ns), bt(ks * ns);
-  std::vector<int32_t> idx(ns);
-  std::vector<double> bb(np);
-  for (int64_t s = 0; s < ns; ++s)
-    for (int64_t q = 0; q < ks; ++q) bt[q * ns + s] = basis[s * ks + q];
-  double wsum = 0;
-  for (int64_t s = 0; s < ns; ++s) wsum += w[s];
-  const T inv_wsum = T(1.0 / wsum);
+inline void ic_rhs_row(const IcProblem<T>& P, IcScratch<T>& S, int64_t i, const T* pi, T* zn,
+                       bool* out, double* bf) {
+  const int64_t nt = P.nt, ns = P.ns, ks = P.ks, k = P.k, np = 2 * k;
+  const T* w = P.w;
+  const int64_t r = P.ref_rows ? P.ref_rows[i] : i;  // row of the reference subsets
+  const T* fti = P.ft + r * ns;
+  const T* gxi = P.fgx + r * ns;
+  const T* gyi = P.fgy + r * ns;
+  T* dxu = S.dxu.data();
+  T* dyv = S.dyv.data();
+  std::fill(S.dxu.begin(), S.dxu.end(), T(0));
+  std::fill(S.dyv.begin(), S.dyv.end(), T(0));
+  for (int64_t q = 0; q < ks; ++q) {
+    const T pu = pi[q], pv = pi[k + q];
+    const T* bq = P.bt.data() + q * ns;
+#pragma omp simd
+    for (int64_t s = 0; s < ns; ++s) {
+      dxu[s] += pu * bq[s];
+      dyv[s] += pv * bq[s];
+    }
+  }
+  T xmn = P.dx[0] + dxu[0], xmx = xmn, ymn = P.dy[0] + dyv[0], ymx = ymn;
+  for (int64_t s = 0; s < ns; ++s) {
+    dxu[s] += P.dx[s];
+    dyv[s] += P.dy[s];
+    xmn = std::min(xmn, dxu[s]);
+    xmx = std::max(xmx, dxu[s]);
+    ymn = std::min(ymn, dyv[s]);
+    ymx = std::max(ymx, dyv[s]);
+  }
+  double* bb = S.bb.data();
+  std::fill(S.bb.begin(), S.bb.end(), 0.0);
+  const double ut = P.has_time ? double(pi[k - 1]) : 0.0;
+  const double vt = P.has_time ? double(pi[2 * k - 1]) : 0.0;
+  bool out_i = false;
+  double zsum = 0;
+  const double fn = double(P.fnorm[i]);
+  for (int64_t t = 0; t < nt; ++t) {
+    const double dti = double(P.dt[i * nt + t]);
+    double ox = double(P.px[i]) + ut * dti, oy = double(P.py[i]) + vt * dti;
+    if (P.motion) {  // the known (shared) motion of this row's frame t
+      ox += double(P.motion[(i * nt + t) * 2]);
+      oy += double(P.motion[(i * nt + t) * 2 + 1]);
+    }
+    out_i = out_i || ox + xmn < 0 || ox + xmx > P.w_img - 1 || oy + ymn < 0 ||
+            oy + ymx > P.h - 1;
+    sample_points<T, ORDER>(P.flat + P.frame_off[i * nt + t], P.g, T(ox), T(oy), dxu, dyv, ns,
+                            S.idx.data(), S.fxs.data(), S.fys.data(), S.gv.data());
+    T gm = 0;
+    if (P.znssd) {
+      gm = dot(w, S.gv.data(), ns) * P.inv_wsum;
+      T* gc = S.gv.data();
+#pragma omp simd
+      for (int64_t s = 0; s < ns; ++s) gc[s] -= gm;
+    }
+    // g is now centred (ZNSSD) or raw (SSD)
+    T sgg = 0, sfg = 0;
+    const T* gc = S.gv.data();
+#pragma omp simd reduction(+ : sgg, sfg)
+    for (int64_t s = 0; s < ns; ++s) {
+      sgg += w[s] * gc[s] * gc[s];
+      sfg += w[s] * fti[s] * gc[s];
+    }
+    const double gn2 = std::max(double(sgg), 1e-30);
+    zsum += double(sfg) / (fn * std::sqrt(gn2));
+    const T a = P.znssd ? T(fn / std::sqrt(gn2)) : T(1);
+    T* exp_ = S.ex.data();
+    T* eyp = S.ey.data();
+#pragma omp simd
+    for (int64_t s = 0; s < ns; ++s) {
+      const T e = w[s] * (fti[s] - a * gc[s]);
+      exp_[s] = gxi[s] * e;
+      eyp[s] = gyi[s] * e;
+    }
+    double* bft = bf ? bf + t * (2 * ks + 1) : nullptr;
+    for (int64_t q = 0; q < ks; ++q) {
+      const double bxq = double(dot(exp_, P.bt.data() + q * ns, ns));
+      const double byq = double(dot(eyp, P.bt.data() + q * ns, ns));
+      bb[q] += bxq;
+      bb[k + q] += byq;
+      if (bft) {  // frame t's own (spatial) right-hand side: a classical step's
+        bft[q] = bxq;
+        bft[ks + q] = byq;
+      }
+    }
+    if (bft) bft[2 * ks] = double(sfg) / (fn * std::sqrt(gn2));  // and frame t's ZNCC
+    if (P.has_time) {
+      T sx = 0, sy = 0;
+#pragma omp simd reduction(+ : sx, sy)
+      for (int64_t s = 0; s < ns; ++s) {
+        sx += exp_[s];
+        sy += eyp[s];
+      }
+      bb[k - 1] += dti * double(sx);
+      bb[2 * k - 1] += dti * double(sy);
+    }
+  }
+  (void)np;
+  *zn = T(zsum / double(nt));
+  *out = out_i;
+}
+
+template <typename T, int ORDER>
+void ic_rhs_range(const IcProblem<T>& P, int64_t i0, int64_t i1, const T* p,
+                  const int64_t* rows, double* b, T* zn, uint8_t* outside, double* bframe) {
+  const int64_t np = 2 * P.k, nt = P.nt, ks = P.ks;
+  IcScratch<T> S(P);
   for (int64_t j = i0; j < i1; ++j) {
     // j: position in p and the outputs; i: row of the per-point data
     const int64_t i = rows ? rows[j] : j;
-    const int64_t r = ref_rows ? ref_rows[i] : i;  // row of the reference subsets
-    const T* pi = p + j * np;
-    const T* fti = ft + r * ns;
-    const T* gxi = fgx + r * ns;
-    const T* gyi = fgy + r * ns;
-    std::fill(dxu.begin(), dxu.end(), T(0));
-    std::fill(dyv.begin(), dyv.end(), T(0));
-    for (int64_t q = 0; q < ks; ++q) {
-      const T pu = pi[q], pv = pi[k + q];
-      const T* bq = bt.data() + q * ns;
-#pragma omp simd
-      for (int64_t s = 0; s < ns; ++s) {
-        dxu[s] += pu * bq[s];
-        dyv[s] += pv * bq[s];
-      }
-    }
-    T xmn = dx[0] + dxu[0], xmx = xmn, ymn = dy[0] + dyv[0], ymx = ymn;
-    for (int64_t s = 0; s < ns; ++s) {
-      dxu[s] += dx[s];
-      dyv[s] += dy[s];
-      xmn = std::min(xmn, dxu[s]);
-      xmx = std::max(xmx, dxu[s]);
-      ymn = std::min(ymn, dyv[s]);
-      ymx = std::max(ymx, dyv[s]);
-    }
-    std::fill(bb.begin(), bb.end(), 0.0);
-    const double ut = has_time ? double(pi[k - 1]) : 0.0;
-    const double vt = has_time ? double(pi[2 * k - 1]) : 0.0;
     bool out_i = false;
-    double zsum = 0;
-    const double fn = double(fnorm[i]);
-    for (int64_t t = 0; t < nt; ++t) {
-      const double dti = double(dt[i * nt + t]);
-      double ox = double(px[i]) + ut * dti, oy = double(py[i]) + vt * dti;
-      if (motion) {  // the known (shared) motion of this row's frame t
-        ox += double(motion[(i * nt + t) * 2]);
-        oy += double(motion[(i * nt + t) * 2 + 1]);
-      }
-      out_i = out_i || ox + xmn < 0 || ox + xmx > w_img - 1 || oy + ymn < 0 ||
-              oy + ymx > h - 1;
-      sample_points<T, ORDER>(flat + frame_off[i * nt + t], g, T(ox), T(oy), dxu.data(),
-                              dyv.data(), ns, idx.data(), fxs.data(), fys.data(), gv.data());
-      T gm = 0;
-      if (znssd) {
-        gm = dot(w, gv.data(), ns) * inv_wsum;
-        T* gc = gv.data();
-#pragma omp simd
-        for (int64_t s = 0; s < ns; ++s) gc[s] -= gm;
-      }
-      // g is now centred (ZNSSD) or raw (SSD)
-      T sgg = 0, sfg = 0;
-      const T* gc = gv.data();
-#pragma omp simd reduction(+ : sgg, sfg)
-      for (int64_t s = 0; s < ns; ++s) {
-        sgg += w[s] * gc[s] * gc[s];
-        sfg += w[s] * fti[s] * gc[s];
-      }
-      const double gn2 = std::max(double(sgg), 1e-30);
-      zsum += double(sfg) / (fn * std::sqrt(gn2));
-      const T a = znssd ? T(fn / std::sqrt(gn2)) : T(1);
-      T* exp_ = ex.data();
-      T* eyp = ey.data();
-#pragma omp simd
-      for (int64_t s = 0; s < ns; ++s) {
-        const T e = w[s] * (fti[s] - a * gc[s]);
-        exp_[s] = gxi[s] * e;
-        eyp[s] = gyi[s] * e;
-      }
-      double* bf = bframe ? bframe + (j * nt + t) * (2 * ks + 1) : nullptr;
-      for (int64_t q = 0; q < ks; ++q) {
-        const double bxq = double(dot(exp_, bt.data() + q * ns, ns));
-        const double byq = double(dot(eyp, bt.data() + q * ns, ns));
-        bb[q] += bxq;
-        bb[k + q] += byq;
-        if (bf) {  // frame t's own (spatial) right-hand side: a classical step's
-          bf[q] = bxq;
-          bf[ks + q] = byq;
-        }
-      }
-      if (bf) bf[2 * ks] = double(sfg) / (fn * std::sqrt(gn2));  // and frame t's ZNCC
-      if (has_time) {
-        T sx = 0, sy = 0;
-#pragma omp simd reduction(+ : sx, sy)
-        for (int64_t s = 0; s < ns; ++s) {
-          sx += exp_[s];
-          sy += eyp[s];
-        }
-        bb[k - 1] += dti * double(sx);
-        bb[2 * k - 1] += dti * double(sy);
-      }
-    }
-    for (int64_t q = 0; q < np; ++q) b[j * np + q] = bb[q];
-    zn[j] = T(zsum / double(nt));
+    ic_rhs_row<T, ORDER>(P, S, i, p + j * np, zn + j, &out_i,
+                         bframe ? bframe + j * nt * (2 * ks + 1) : nullptr);
+    for (int64_t q = 0; q < np; ++q) b[j * np + q] = S.bb[q];
     outside[j] = out_i ? 1 : 0;
   }
 }
@@ -582,17 +633,149 @@ STS_KERNEL(sts_ic_rhs, (const T* flat, int64_t wp, double x_lo, double x_hi, dou
                         nullable<const T> motion, double w_img, double h, double* b, T* zn,
                         uint8_t* outside, nullable<double> bframe)) {
   const Geo g{wp, x_lo, x_hi, y_lo, y_hi, shift};
-  if (order == 3) {
-    ic_rhs_range<T, 3>(flat, g, i0, i1, nt, ns, ks, k, has_time, znssd, p, px, py, dx, dy,
-                       basis, dt, frame_off, ft, fnorm, gx, gy, w, rows, ref_rows, motion,
-                       w_img, h, b, zn, outside, bframe);
-  } else if (order == 5) {
-    ic_rhs_range<T, 5>(flat, g, i0, i1, nt, ns, ks, k, has_time, znssd, p, px, py, dx, dy,
-                       basis, dt, frame_off, ft, fnorm, gx, gy, w, rows, ref_rows, motion,
-                       w_img, h, b, zn, outside, bframe);
-  } else {
-    return 1;
+  if (order != 3 && order != 5) return 1;
+  const IcProblem<T> P(flat, g, nt, ns, ks, k, has_time != 0, znssd != 0, px, py, dx, dy, basis,
+                       dt, frame_off, ft, fnorm, gx, gy, w, ref_rows, motion, w_img, h);
+  if (order == 3)
+    ic_rhs_range<T, 3>(P, i0, i1, p, rows, b, zn, outside, bframe);
+  else
+    ic_rhs_range<T, 5>(P, i0, i1, p, rows, b, zn, outside, bframe);
+  return 0;
+}
+
+// ---- the joint IC-GN solve, point by point ------------------------------------------------
+// core/gauss_newton.py's stage loop for one point at a time: each thread takes `chunk` points
+// from a shared counter and iterates every one of them to its end, with no barrier between
+// iterations (a descheduled thread holds back only its own chunk). Per iteration, as there:
+//   b, zn, outside = ic_rhs_row(p);  dp = -(Hinv b) (double, then T);
+//   p_new = p o dp^-1 (affine_compose);  norm = |dp * scale|;
+//   finite = norm and p_new finite;  bad = !finite or norm > div_norm;
+//   rate = clamp(prev > 0 ? norm / prev : 1, rate_floor, 1);
+//   converged = finite and norm * rate < tol and !outside;  prev = norm;
+//   p = p_new where finite;  ends on converged, bad or outside (status diverged/outside/
+//   converged), else after max_iter iterations (status max_iter; p the last iterate).
+
+// W(p) o W(dp)^-1 of the affine (spatio-temporal) warp, in T, as shape.AffineShape's
+// compose_inverse: M = (I + D)(I + dD)^-1, b' = b - M db, bt' = bt - M dbt.
+template <typename T>
+inline void affine_compose(const T* p, const T* dp, int64_t k, bool has_time, T* out) {
+  const T a00 = T(1) + dp[1], a01 = dp[2], a10 = dp[k + 1], a11 = T(1) + dp[k + 2];
+  const T det = a00 * a11 - a01 * a10;
+  const T i00 = a11 / det, i01 = -a01 / det, i10 = -a10 / det, i11 = a00 / det;
+  const T e00 = T(1) + p[1], e01 = p[2], e10 = p[k + 1], e11 = T(1) + p[k + 2];
+  const T m00 = e00 * i00 + e01 * i10, m01 = e00 * i01 + e01 * i11;
+  const T m10 = e10 * i00 + e11 * i10, m11 = e10 * i01 + e11 * i11;
+  const T bu = p[0] - (m00 * dp[0] + m01 * dp[k]);
+  const T bv = p[k] - (m10 * dp[0] + m11 * dp[k]);
+  out[0] = bu;
+  out[1] = m00 - T(1);
+  out[2] = m01;
+  out[k] = bv;
+  out[k + 1] = m10;
+  out[k + 2] = m11 - T(1);
+  if (has_time) {
+    out[3] = p[3] - (m00 * dp[3] + m01 * dp[k + 3]);
+    out[k + 3] = p[k + 3] - (m10 * dp[3] + m11 * dp[k + 3]);
   }
+}
+
+template <typename T, int ORDER>
+void ic_solve_points(const IcProblem<T>& P, int64_t i0, int64_t i1, int64_t* counter,
+                     int64_t chunk, const double* hinv, const T* scale, T* p, const T* prev0,
+                     double tol, int64_t max_iter, double div_norm, double rate_floor,
+                     const int64_t* codes, T* zn, uint8_t* status, int32_t* used,
+                     double* bframe, T* plast) {
+  const int64_t np = 2 * P.k, nt = P.nt, fw = 2 * P.ks + 1;
+  IcScratch<T> S(P);
+  std::vector<T> dp(np), pn(np), pold(np);
+  const T nan = std::numeric_limits<T>::quiet_NaN();
+  for (;;) {
+    const int64_t c0 = i0 + __atomic_fetch_add(counter, chunk, __ATOMIC_RELAXED);
+    if (c0 >= i1) break;
+    const int64_t c1 = std::min(i1, c0 + chunk);
+    for (int64_t i = c0; i < c1; ++i) {
+      T* pi = p + i * np;
+      const double* hi = hinv + i * np * np;
+      const T* sc = scale + i * np;
+      double* bf = bframe ? bframe + i * nt * fw : nullptr;
+      T prev = prev0[i], znv = nan;
+      int64_t st = codes[1], it = 0;
+      while (it < max_iter) {
+        bool out_i = false;
+        ic_rhs_row<T, ORDER>(P, S, i, pi, &znv, &out_i, bf);
+        const double* bb = S.bb.data();
+        for (int64_t a = 0; a < np; ++a) {
+          double acc = 0.0;
+          for (int64_t c = 0; c < np; ++c) acc += hi[a * np + c] * bb[c];
+          dp[a] = T(-acc);
+        }
+        affine_compose(pi, dp.data(), P.k, P.has_time, pn.data());
+        ++it;
+        T n2 = 0;
+        bool finite = true;
+        for (int64_t a = 0; a < np; ++a) {
+          const T d = dp[a] * sc[a];
+          n2 += d * d;
+          finite = finite && std::isfinite(pn[a]);
+        }
+        const T norm = std::sqrt(n2);
+        finite = finite && std::isfinite(norm);
+        const bool bad = !finite || norm > T(div_norm);  // compared in T, as torch does
+        T rate = prev > T(0) ? norm / prev : T(1);
+        rate = std::min(std::max(rate, T(rate_floor)), T(1));
+        const bool conv = finite && norm * rate < T(tol) && !out_i;
+        prev = norm;
+        if (plast) std::copy(pi, pi + np, pold.begin());
+        if (finite) std::copy(pn.begin(), pn.end(), pi);
+        if (conv || bad || out_i) {
+          st = bad ? codes[2] : (out_i ? codes[3] : codes[0]);
+          if (plast) std::copy(pold.begin(), pold.end(), plast + i * np);
+          break;
+        }
+      }
+      if (st == codes[1]) {  // no step ended the point: no last step to report
+        if (bf) std::fill(bf, bf + nt * fw, std::numeric_limits<double>::quiet_NaN());
+        if (plast) std::fill(plast + i * np, plast + (i + 1) * np, nan);
+      }
+      zn[i] = znv;
+      status[i] = uint8_t(st);
+      used[i] = int32_t(it);
+    }
+  }
+}
+
+// Each point i in [i0, i1) solved to its end (see ic_solve_points), threads taking `chunk`
+// points at a time from *counter (set to 0 before the call; every thread of a call runs this
+// with the same arguments). The problem's arguments are sts_ic_rhs's (the data rows are p's
+// rows); hinv (N, P, P) double, the inverse Hessians; scale (N, P) the increments' scale;
+// p (N, P) the start, overwritten by the result; prev (N,) the previous increments (0: none);
+// codes: the statuses converged, max_iter, diverged, outside. Out: zn (N,) the mean ZNCC of
+// the last step, status (N,), used (N,) the iterations; bframe (N, T, 2 Ks + 1) and plast
+// (N, P), where not null, the last step's frame-by-frame b and ZNCC and the parameters it was
+// taken at (NaN where the point ran out of iterations). Affine shapes only (Ks = 3).
+STS_KERNEL(sts_ic_solve, (const T* flat, int64_t wp, double x_lo, double x_hi, double y_lo,
+                          double y_hi, int64_t shift, int order, int64_t i0, int64_t i1,
+                          int64_t* counter, int64_t chunk, int64_t nt, int64_t ns, int64_t ks,
+                          int64_t k, int has_time, int znssd, const T* px, const T* py,
+                          const T* dx, const T* dy, const T* basis, const T* dt,
+                          const int64_t* frame_off, const T* ft, const T* fnorm, const T* gx,
+                          const T* gy, const T* w, nullable<const int64_t> ref_rows,
+                          nullable<const T> motion, double w_img, double h,
+                          const double* hinv, const T* scale, T* p, const T* prev, double tol,
+                          int64_t max_iter, double div_norm, double rate_floor,
+                          const int64_t* codes, T* zn, uint8_t* status, int32_t* used,
+                          nullable<double> bframe, nullable<T> plast)) {
+  if (order != 3 && order != 5) return 1;
+  if (ks != 3 || k != ks + (has_time ? 1 : 0) || chunk < 1) return 2;
+  const Geo g{wp, x_lo, x_hi, y_lo, y_hi, shift};
+  const IcProblem<T> P(flat, g, nt, ns, ks, k, has_time != 0, znssd != 0, px, py, dx, dy, basis,
+                       dt, frame_off, ft, fnorm, gx, gy, w, ref_rows, motion, w_img, h);
+  if (order == 3)
+    ic_solve_points<T, 3>(P, i0, i1, counter, chunk, hinv, scale, p, prev, tol, max_iter,
+                          div_norm, rate_floor, codes, zn, status, used, bframe, plast);
+  else
+    ic_solve_points<T, 5>(P, i0, i1, counter, chunk, hinv, scale, p, prev, tol, max_iter,
+                          div_norm, rate_floor, codes, zn, status, used, bframe, plast);
   return 0;
 }
 
@@ -981,7 +1164,7 @@ extern "C" {
 
 // Version of this interface (the sts_kernel_* functions and what the kernels' parameters
 // mean); native/declarations.py refuses a library of another version.
-int sts_abi_version() { return 10; }
+int sts_abi_version() { return 11; }
 
 int sts_kernel_count() { return int(declarations().size()); }
 

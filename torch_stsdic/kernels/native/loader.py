@@ -17,8 +17,8 @@ import torch
 from torch_stsdic.kernels.native.builder import build
 from torch_stsdic.kernels.native.declarations import VARIANTS, Kernel, Library
 
-__all__ = ["set_native", "native_enabled", "available", "usable", "usable_image", "kernels",
-           "kernel"]
+__all__ = ["set_native", "native_enabled", "per_point_enabled", "available", "usable",
+           "usable_image", "kernels", "kernel"]
 
 _MODE = os.environ.get("TORCH_STSDIC_NATIVE", "auto").lower()
 _LIB: Library | None = None
@@ -38,6 +38,13 @@ def set_native(mode: str | bool) -> None:
 def native_enabled() -> bool:
     """Whether the native kernels are switched on (they may still fail to build)."""
     return _MODE != "0"
+
+
+def per_point_enabled() -> bool:
+    """Whether a CPU Gauss-Newton stage may run point by point in one C++ call
+    (``sts_ic_solve``): on unless the environment variable ``TORCH_STSDIC_PER_POINT`` is
+    "0" (then the batched loop, one step of all points at a time, as before; read per call)."""
+    return os.environ.get("TORCH_STSDIC_PER_POINT", "1") != "0"
 
 
 def kernels() -> dict[str, Kernel]:

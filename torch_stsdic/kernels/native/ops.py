@@ -11,11 +11,10 @@ from __future__ import annotations
 import torch
 
 from torch_stsdic.kernels.native.loader import kernel
-from torch_stsdic.kernels.native.rows import run_rows
+from torch_stsdic.kernels.native.rows import run_rows, run_shared, threads
 
-__all__ = ["sample", "subsets", "ic_rhs", "gram", "spd_inverse", "param_std", "nanmedian",
-           "prefilter",
-           "neighbour_own_gradient", "neighbour_test"]
+__all__ = ["sample", "subsets", "ic_rhs", "ic_solve", "gram", "spd_inverse", "param_std",
+           "nanmedian", "prefilter", "neighbour_own_gradient", "neighbour_test"]
 
 
 def _geo(img_args: tuple, order: int) -> dict:
@@ -175,6 +174,73 @@ def ic_rhs(img_args: tuple, order: int, p, px, py, dx, dy, basis, dt, frame_off,
                    w_img=float(w_img), h=float(h), b=b, zn=zn, outside=out,
                    bframe=frame_rhs))
     return b, zn, out.bool()
+
+
+def ic_solve(img_args: tuple, order: int, p, px, py, dx, dy, basis, dt, frame_off, ft, fnorm,
+             gx, gy, w, w_img: int, h: int, k: int, has_time: bool, znssd: bool, hinv, scale,
+             prev, tol: float, max_iter: int, div_norm: float, rate_floor: float,
+             codes: tuple[int, int, int, int], motion=None, ref_rows=None,
+             frame_rhs: bool = False):
+    """Every point's joint IC-GN solve to its end in one call (C++ ``sts_ic_solve``: threads
+    take chunks of points from a shared counter and iterate each one to convergence, with no
+    barrier per iteration). The arguments are :func:`ic_rhs`'s (the rows of ``p`` (N, P) are
+    the data rows), with ``hinv`` (N, P, P) the inverse Hessians, ``scale`` (N, P) the
+    increments' scale, ``prev`` (N,) the previous increments (0: none), the convergence
+    tolerance, iteration limit, divergence bound of the increment and rate floor, and
+    ``codes`` the statuses (converged, max_iter, diverged, outside). Affine shapes (Ks = 3).
+
+    Returns p (N, P) (the end of each point's iteration), the last step's mean ZNCC (N,),
+    status (N,) int8, iterations (N,) int32 and, with ``frame_rhs``, (the parameters (N, P)
+    of each point's last step, that step's frame-by-frame right-hand sides and ZNCCs
+    (N, T, 2 Ks + 1) float64; NaN where the point ran out of iterations), else None."""
+    flat = img_args[0].contiguous()
+    dtype = flat.dtype
+    (n, nt), (ns, ks) = dt.shape, basis.shape
+    n_ref = n if ref_rows is None else ft.shape[0]
+    _require("ic_solve", ks == 3 and k == ks + int(has_time) and tuple(p.shape) == (n, 2 * k),
+             f"affine shapes only: p (N, 2k) with k = 3 (+ 1 with time), got "
+             f"{tuple(p.shape)}, k={k}, Ks={ks}")
+    _require("ic_solve", all(tuple(t.shape) == (n_ref, ns) for t in (ft, gx, gy))
+             and all(t.numel() == n for t in (px, py, fnorm, prev))
+             and all(t.numel() == ns for t in (dx, dy, w)) and frame_off.shape == dt.shape
+             and tuple(hinv.shape) == (n, 2 * k, 2 * k) and tuple(scale.shape) == (n, 2 * k)
+             and ns > 0, "shapes: px/py/fnorm/prev (N,), dx/dy/w (S,), dt and frame_off "
+             "(N, T), ft/gx/gy (N, S), hinv (N, P, P), scale (N, P)")
+    if ref_rows is not None:
+        _require("ic_solve", ref_rows.shape == (n,) and (n == 0 or 0 <= int(ref_rows.min())
+                                                        and int(ref_rows.max()) < n_ref),
+                 f"ref_rows must be (N,) = ({n},) indices into the {n_ref} subsets")
+    _require("ic_solve", motion is None or tuple(motion.shape) == (n, nt, 2),
+             f"motion must be (N, T, 2) = ({n}, {nt}, 2)")
+    frame_off = frame_off.to(torch.int64).contiguous()
+    _check_planes("ic_solve", img_args, frame_off)
+
+    def c(t):
+        return t.to(dtype).contiguous()
+
+    out_p = c(p).clone()
+    zn = torch.empty(n, dtype=dtype)
+    status = torch.empty(n, dtype=torch.uint8)
+    used = torch.empty(n, dtype=torch.int32)
+    bframe = torch.empty(n, nt, 2 * ks + 1, dtype=torch.float64) if frame_rhs else None
+    plast = torch.empty(n, 2 * k, dtype=dtype) if frame_rhs else None
+    n_threads = threads()
+    chunk = max(1, min(16, n // max(1, 32 * n_threads)))
+    run_shared(kernel("sts_ic_solve", dtype), n, 3 * nt * ns,
+               dict(flat=flat, **_geo(img_args, order), counter=torch.zeros(1, dtype=torch.int64),
+                    chunk=chunk, nt=nt, ns=ns, ks=ks, k=k, has_time=int(has_time),
+                    znssd=int(znssd), px=c(px.reshape(-1)), py=c(py.reshape(-1)), dx=c(dx),
+                    dy=c(dy), basis=c(basis), dt=c(dt), frame_off=frame_off, ft=c(ft),
+                    fnorm=c(fnorm.reshape(-1)), gx=c(gx), gy=c(gy), w=c(w),
+                    ref_rows=None if ref_rows is None else ref_rows.to(torch.int64).contiguous(),
+                    motion=None if motion is None else c(motion), w_img=float(w_img),
+                    h=float(h), hinv=hinv.to(torch.float64).contiguous(), scale=c(scale),
+                    p=out_p, prev=c(prev.reshape(-1)), tol=float(tol), max_iter=int(max_iter),
+                    div_norm=float(div_norm), rate_floor=float(rate_floor),
+                    codes=torch.tensor(codes, dtype=torch.int64), zn=zn, status=status,
+                    used=used, bframe=bframe, plast=plast), n_threads)
+    last = (plast, bframe) if frame_rhs else None
+    return out_p, zn, status.to(torch.int8), used, last
 
 
 def gram(gx: torch.Tensor, gy: torch.Tensor, basis: torch.Tensor, w: torch.Tensor):

@@ -17,13 +17,25 @@ import torch
 
 from torch_stsdic.kernels.native.declarations import Kernel
 
-__all__ = ["run_rows"]
+__all__ = ["run_rows", "run_shared", "threads"]
 
 _POOL: ThreadPoolExecutor | None = None
 _POOL_SIZE = 0
 _POOL_PID = 0
 # below this many samples a call runs on the calling thread (thread hand-off costs ~50 us)
 _PARALLEL_MIN = 20_000
+
+
+def threads() -> int:
+    """The kernels' threads: ``torch.get_num_threads()`` (``--threads``, ``OMP_NUM_THREADS``,
+    else torch's default: the physical cores), at most the CPUs the scheduler lets this process
+    run on (``os.sched_getaffinity``: a ``taskset``, a container's or a batch job's share;
+    more threads than those only wait for each other)."""
+    n = max(1, torch.get_num_threads())
+    try:
+        return max(1, min(n, len(os.sched_getaffinity(0))))
+    except (AttributeError, OSError):  # not on Linux
+        return n
 
 
 def _pool(n: int) -> ThreadPoolExecutor:
@@ -133,13 +145,13 @@ class _Rows:
 
 def run_rows(kernel: Kernel, n_rows: int, work_per_row: int, args: dict) -> None:
     """Call ``kernel`` with ``args`` (every parameter but i0, i1, by name) over the rows
-    [0, n_rows), split over ``torch.get_num_threads()`` threads when that pays."""
+    [0, n_rows), split over :func:`threads` threads when that pays."""
     if "i0" in args or "i1" in args or kernel.i0 is None or kernel.i1 is None:
         raise TypeError(f"{kernel.name}: the rows i0, i1 are set by run_rows")
     raw, keep = kernel.bind({**args, "i0": 0, "i1": n_rows})
     if n_rows <= 0:
         return
-    threads = max(1, torch.get_num_threads())
+    threads = _threads()
     if threads == 1 or n_rows * work_per_row < _PARALLEL_MIN or n_rows < 2:
         # on this thread alone: a Ctrl-C is raised only once C returned, and keep holds the
         # tensors until then
@@ -151,3 +163,40 @@ def run_rows(kernel: Kernel, n_rows: int, work_per_row: int, args: dict) -> None
     parts = min(threads * 4, n_rows)  # a few chunks per thread evens out uneven rows
     edges = [n_rows * j // parts for j in range(parts + 1)]
     _Rows(kernel, raw, keep, edges).run(_pool(threads - 1), min(threads, parts) - 1)
+
+
+class _Shared(_Rows):
+    """One kernel call per thread, every one over all rows: the kernel hands its rows out
+    itself (a shared counter), so a thread that is descheduled holds back only the rows it
+    took, and no thread waits for another until the end of the call."""
+
+    def _chunk(self, j: int) -> None:
+        rc = self.kernel.fn(*self.raw)
+        if rc:
+            self.failed.append((self.edges[0], self.edges[-1], rc))
+            self.stop = True
+
+
+def run_shared(kernel: Kernel, n_rows: int, work_per_row: int, args: dict,
+               threads: int | None = None) -> None:
+    """Call ``kernel`` with ``args`` (every parameter but i0, i1) once on each of ``threads``
+    threads (default :func:`threads`), each call over all rows [0, n_rows): the
+    kernel takes its rows from a shared counter in ``args`` (zeroed by the caller). Small
+    calls run on the calling thread alone."""
+    if "i0" in args or "i1" in args or kernel.i0 is None or kernel.i1 is None:
+        raise TypeError(f"{kernel.name}: the rows i0, i1 are set by run_shared")
+    raw, keep = kernel.bind({**args, "i0": 0, "i1": n_rows})
+    if n_rows <= 0:
+        return
+    threads = min(max(1, _threads() if threads is None else int(threads)), n_rows)
+    if threads == 1 or n_rows * work_per_row < _PARALLEL_MIN:
+        rc = kernel.fn(*raw)
+        del keep
+        if rc:
+            raise RuntimeError(f"{kernel.name} returned {rc}")
+        return
+    edges = list(range(threads + 1))  # one call per thread (its "chunk")
+    _Shared(kernel, raw, keep, edges).run(_pool(threads - 1), threads - 1)
+
+
+_threads = threads  # (the runners' name for it: run_shared's parameter shadows the function)

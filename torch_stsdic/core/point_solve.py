@@ -1,0 +1,87 @@
+"""A Gauss-Newton stage point by point: every point iterated to its end in one C++ call.
+
+:func:`torch_stsdic.core.gauss_newton.solve_batch` runs each stage either as a batched loop
+(one step of all live points at a time, then the update, the convergence test and the
+compaction in torch: a parallel region and its barrier per iteration) or, where
+:func:`torch_stsdic.kernels.dispatch.ic_solve` allows (the joint IC formulation with an
+affine shape, CPU, native kernels, no autograd), through :func:`solve_stage`: threads take
+chunks of points and iterate each one to convergence with no barrier between iterations
+(``sts_ic_solve``), so one descheduled thread no longer stalls the others every iteration.
+The same steps, update, convergence rule, statuses and iteration counts as the batched loop;
+the results equal it to float rounding (``tests/test_native_solve.py``).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from torch_stsdic.core.formulations import JointIC, SubsetData
+from torch_stsdic.core.shape import AffineShape
+from torch_stsdic.core.status import Status
+from torch_stsdic.kernels import dispatch, native
+
+__all__ = ["applies", "solve_stage"]
+
+#: the statuses the kernel reports, in its order: converged, max_iter, diverged, outside
+CODES = (int(Status.CONVERGED), int(Status.MAX_ITER), int(Status.DIVERGED),
+         int(Status.OUTSIDE))
+
+
+def applies(ctx, form, params: Tensor, data: SubsetData) -> bool:
+    """Whether :func:`solve_stage` runs this stage (else the batched loop)."""
+    geo = ctx.geo
+    return (type(form) is JointIC and isinstance(geo.shape, AffineShape)
+            and dispatch.ic_solve(ctx.frames.kernel_args(), params, data.ft, geo.ks,
+                                  geo.shape.inverse_compositional) == "native")
+
+
+def solve_stage(ctx, form, params: Tensor, data: SubsetData, live: Tensor, frame_rhs: bool,
+                step0: Tensor | None, rate_floor: float):
+    """``_run_stage`` of :mod:`torch_stsdic.core.gauss_newton` point by point, where
+    :func:`applies`; None where it does not (the caller runs the batched loop). The same
+    arguments (``ctx`` a ``BatchContext``, ``rate_floor`` the convergence rule's
+    ``RATE_FLOOR``) and returns: params, zncc (N,), status (N,), iterations (N,) and, with
+    ``frame_rhs``, (the parameters of each converged point's last step, that step's
+    frame-by-frame spatial right-hand sides and ZNCCs (N, T, 2 Ks + 1); NaN rows: none)."""
+    if not applies(ctx, form, params, data):
+        return None
+    cfg, geo, frames = ctx.cfg, ctx.geo, ctx.frames
+    n = params.shape[0]
+    device, dtype = params.device, params.dtype
+    status = torch.full((n,), int(Status.MAX_ITER), dtype=torch.int8, device=device)
+    zncc = torch.full((n,), float("nan"), dtype=dtype, device=device)
+    used = torch.zeros(n, dtype=torch.int32, device=device)
+    rows = torch.nonzero(live).flatten()
+    if rows.numel() == 0:
+        return params, zncc, status, used, None
+    params = params.clone()
+    if rows.numel() < n:
+        data = data.take(rows)
+    sing = form.prepare(geo, data)
+    if sing.any():
+        status[rows[sing]] = int(Status.LOW_TEXTURE)
+        rows, data = rows[~sing], data.take(~sing)
+    scale = geo.shape.increment_scale(geo.spatial, data.dt)
+    prev = (torch.zeros(rows.numel(), dtype=dtype, device=device) if step0 is None
+            else step0[rows].to(dtype).nan_to_num(0.0))
+    ka = frames.kernel_args()
+    p, zn, st, it, last_rows = native.ic_solve(
+        ka, frames.order, params[rows], data.px, data.py, geo.dx, geo.dy, geo.spatial,
+        data.dt, data.fidx * ka[-1], data.ft, data.fnorm, data.gx, data.gy, geo.w,
+        frames.width, frames.height, geo.k, geo.shape.has_time, geo.znssd, data.hinv, scale,
+        prev, cfg.tol, cfg.max_iter, 4.0 * geo.half, rate_floor, CODES, motion=data.motion,
+        ref_rows=data.ref_rows, frame_rhs=frame_rhs)
+    params[rows] = p.to(dtype)
+    zncc[rows] = zn.to(dtype)
+    status[rows] = st
+    used[rows] = it
+    last = None
+    if frame_rhs:
+        t_count = data.dt.shape[1]
+        last = (torch.full_like(params, float("nan")),
+                torch.full((n, t_count, 2 * geo.ks + 1), float("nan"), dtype=torch.float64,
+                           device=device))
+        last[0][rows] = last_rows[0].to(dtype)
+        last[1][rows] = last_rows[1]
+    return params, zncc, status, used, last
