@@ -14,7 +14,8 @@ if not torch.cuda.is_available():  # no GPU: Triton's interpreter, before Triton
 import torch_stsdic as sts
 from torch_stsdic import kernels, synth
 from torch_stsdic.core.interpolation import BSplineImage
-from torch_stsdic.kernels import fused_step, native
+from torch_stsdic.kernels import dispatch, fused_step, native
+from torch_stsdic.kernels.ic_step import ic_rhs_kernel
 
 pytestmark = pytest.mark.skipif(not kernels.available(),
                                 reason="triton is not importable (pip install triton)")
@@ -53,11 +54,19 @@ def _case(has_time, dtype, n=6, t=3, half=4, seed=0, device="cpu"):
     return img.to(device=device), k, c
 
 
-def _rhs(img, k, c, has_time, znssd, rows=None, p=None):
+def _rhs(img, k, c, has_time, znssd, rows=None, p=None, **extra):
     return kernels.ic_rhs(img.kernel_args(), 3, c["p"] if p is None else p, c["px"], c["py"],
                           c["dx"], c["dy"], c["basis"], c["dt"], c["fidx"], c["ft"], c["fnorm"],
                           c["gx"], c["gy"], c["w"], img.width, img.height, k, has_time, znssd,
-                          rows=rows)
+                          rows=rows, **extra)
+
+
+def _motion(c, seed=5):
+    """A known displacement (N, T, 2) per point and frame, up to +-1.5 px (subsets stay in)."""
+    n, t = c["dt"].shape
+    g = torch.Generator().manual_seed(seed)
+    m = (torch.rand(n, t, 2, generator=g, dtype=torch.float64) - 0.5) * 3.0
+    return m.to(device=c["p"].device, dtype=c["p"].dtype)
 
 
 def _devices():
@@ -89,6 +98,76 @@ def test_fused_step_matches_torch_code(device, dtype, has_time, znssd):
     got_r = _rhs(img, k, c, has_time, znssd, rows=rows, p=c["p"][rows])
     assert (got_r[0] - got[0][rows]).abs().max() <= tol * scale
     assert torch.allclose(got_r[1], got[1][rows], atol=10 * tol)
+
+
+@pytest.mark.parametrize("device", _devices())
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("has_time,znssd", [(True, True), (False, True), (True, False)])
+def test_fused_step_with_shared_motion_matches_torch_code(device, dtype, has_time, znssd):
+    """The shared motion (a known displacement per point and frame added to every frame's
+    warp): the Triton step equals the torch code (ic_rhs_kernel(..., motion=)) for STS
+    (has_time) and classical windows, all rows and picked rows; and the motion is used."""
+    img, k, c = _case(has_time, dtype, device=device)
+    motion = _motion(c)
+    kernels.set_triton("0")
+    want = _rhs(img, k, c, has_time, znssd, motion=motion)  # the torch code
+    flat, wp, x_lo, x_hi, y_lo, y_hi, shift, _ = img.kernel_args()
+    direct = ic_rhs_kernel(flat, c["p"], c["px"], c["py"], c["dx"], c["dy"],
+                           c["basis"].T.contiguous(), c["dt"], c["fidx"], c["ft"],
+                           c["fnorm"].reshape(-1), c["gx"], c["gy"], c["w"], wp, x_lo, x_hi,
+                           y_lo, y_hi, shift, img.width, img.height, c["basis"].shape[1], k,
+                           has_time, znssd, 3, motion)
+    assert torch.equal(want[0], direct[0].double())
+    kernels.set_triton("1")
+    got = _rhs(img, k, c, has_time, znssd, motion=motion)
+    tol = 1e-9 if dtype == torch.float64 else 2e-3
+    scale = float(want[0].abs().max())
+    assert (got[0] - want[0]).abs().max() <= tol * scale
+    assert torch.allclose(got[1], want[1], atol=10 * tol)
+    assert torch.equal(got[2], want[2])
+    still = _rhs(img, k, c, has_time, znssd)
+    assert float((still[0] - got[0]).abs().max()) > 100 * tol * scale  # the motion is used
+    rows = torch.tensor([4, 0, 2], device=device)
+    for mode in ("0", "1"):  # picked rows: the motion of each row's data row
+        kernels.set_triton(mode)
+        got_r = _rhs(img, k, c, has_time, znssd, rows=rows, p=c["p"][rows], motion=motion)
+        assert (got_r[0] - got[0][rows]).abs().max() <= tol * scale
+        assert torch.allclose(got_r[1], got[1][rows], atol=10 * tol)
+    with pytest.raises(ValueError, match="motion must be"):
+        _rhs(img, k, c, has_time, znssd, motion=motion[:, :1])
+
+
+@pytest.mark.parametrize("device", _devices())
+@pytest.mark.parametrize("has_time", [True, False])
+def test_fused_step_frame_rhs_with_shared_motion(device, has_time):
+    """frame_rhs with the shared motion: each frame's own right-hand side and ZNCC as the
+    native kernel writes them with the same motion, and summing to the joint b."""
+    if not native.available():
+        pytest.skip("the native kernel is the reference here")
+    img, k, c = _case(has_time, torch.float64, device=device)
+    motion = _motion(c)
+    n, t = c["dt"].shape
+    ks = c["basis"].shape[1]
+    kernels.set_triton("1")
+    rows = torch.tensor([4, 0, 2], device=device)
+    cc = {key: v.cpu() for key, v in c.items()}
+    for pick in (None, rows):
+        p = c["p"] if pick is None else c["p"][pick]
+        got = torch.full((p.shape[0], t, 2 * ks + 1), float("nan"), dtype=torch.float64,
+                         device=device)
+        b, zn, _ = _rhs(img, k, c, has_time, True, rows=pick, p=p, frame_rhs=got,
+                        motion=motion)
+        want = torch.full_like(got, float("nan")).cpu()
+        b_nat, _, _ = native.ic_rhs(
+            img.to(device="cpu").kernel_args(), 3, p.cpu(), cc["px"], cc["py"], cc["dx"],
+            cc["dy"], cc["basis"], cc["dt"], cc["fidx"], cc["ft"], cc["fnorm"], cc["gx"],
+            cc["gy"], cc["w"], img.width, img.height, k, has_time, True,
+            rows=None if pick is None else pick.cpu(), frame_rhs=want, motion=motion.cpu())
+        assert bool(torch.isfinite(got).all())
+        assert torch.allclose(got.cpu(), want, rtol=1e-9, atol=1e-9)
+        assert torch.allclose(b.cpu(), b_nat, rtol=1e-9, atol=1e-9)
+        assert torch.allclose(got[..., :ks].sum(1), b[:, :ks], rtol=1e-9, atol=1e-9)
+        assert torch.allclose(got[..., 2 * ks].mean(1), zn, rtol=1e-9, atol=1e-9)
 
 
 @pytest.mark.parametrize("device", _devices())
@@ -183,9 +262,9 @@ def test_solver_with_fused_step_matches_torch_code(monkeypatch):
     mod = fused_step.triton_module()
     launches = []
 
-    def counted(*args, _fn=mod.ic_rhs_triton):
+    def counted(*args, _fn=mod.ic_rhs_triton, **kw):
         launches.append(args[1].shape[0])
-        return _fn(*args)
+        return _fn(*args, **kw)
 
     monkeypatch.setattr(mod, "ic_rhs_triton", counted)
     cfg = sts.DICConfig(subset_size=11, m=1, dtype="float64")
@@ -200,6 +279,42 @@ def test_solver_with_fused_step_matches_torch_code(monkeypatch):
     assert torch.equal(got.status, want.status)
     assert torch.allclose(got.params, want.params, atol=1e-8)
     assert (want.u - 0.4).abs().max() < 0.02  # and the solve is right (u at t = 2)
+
+
+@pytest.mark.skipif(not INTERPRET, reason="CPU check through Triton's interpreter")
+@pytest.mark.parametrize("m", [1, 0])
+def test_solver_with_shared_motion_through_the_fused_step(monkeypatch, m):
+    """A whole solve with the shared motion (STS(m) and classical) through the Triton step
+    (interpreted) equals the torch code's; the dispatcher picks Triton with the motion."""
+    mv = synth.synthetic_movie((48, 48), 2 * m + 1, synth.Translation(ut=0.2, vt=-0.1), seed=2)
+    mod = fused_step.triton_module()
+    launches = []
+
+    def counted(*args, _fn=mod.ic_rhs_triton, **kw):
+        launches.append(kw.get("motion") is not None)
+        return _fn(*args, **kw)
+
+    monkeypatch.setattr(mod, "ic_rhs_triton", counted)
+    g = torch.tensor([[0.3, -0.2], [-0.25, 0.15], [0.1, 0.35]], dtype=torch.float64)
+    g = g[: 2 * m + 1]
+    frames, times = (mv.frames, mv.times) if m else (mv.frames[0], None)
+    cfg = sts.DICConfig(subset_size=11, m=m, dtype="float64")
+    pts = torch.tensor([[20.0, 20.0], [27.0, 24.0]], dtype=torch.float64)
+    kw = dict(shared_motion=g, times=times)
+    native.set_native("0")
+    kernels.set_triton("0")
+    want = sts.solve_window(mv.ref, frames, pts, cfg, **kw)
+    kernels.set_triton("1")
+    assert not launches
+    img = BSplineImage(mv.frames.double(), 3)
+    p = torch.zeros(2, 8, dtype=torch.float64)
+    ft = torch.zeros(2, 121, dtype=torch.float64)
+    assert dispatch.ic_step(img.kernel_args(), 3, p, ft, ft, ft, True) == "triton"
+    got = sts.solve_window(mv.ref, frames, pts, cfg, **kw)
+    assert launches and all(launches)  # every step went through the kernel, with the motion
+    assert torch.equal(got.status, want.status)
+    assert torch.allclose(got.params, want.params, atol=1e-8)
+    assert torch.allclose(got.zncc, want.zncc, atol=1e-9)
 
 
 @pytest.mark.parametrize("device", _devices())
@@ -262,3 +377,41 @@ print("dynamo" if "torch._dynamo" in sys.modules else "no dynamo")
                        timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
     assert r.stdout.strip().endswith("no dynamo"), r.stdout
+
+
+def test_auto_compile_policy_is_for_cpu_jobs_only(monkeypatch):
+    """"auto" compiles large CPU jobs (unchanged: with the device, a CPU tensor or none
+    given); a CUDA job never ("1" still forces it). The policy alone: no GPU needed, and
+    nothing is compiled (maybe_compiled hands back the function itself)."""
+    from torch_stsdic.kernels import compile as kc
+
+    big, small = kc._COMPILE_MIN, kc._COMPILE_MIN - 1
+    cpu_t = torch.zeros(1)
+    cuda = torch.device("cuda")
+    try:
+        kc.set_compile("auto")
+        for dev in (None, "cpu", torch.device("cpu"), cpu_t):
+            assert kc.compile_wanted(big, dev) and not kc.compile_wanted(small, dev)
+        for dev in ("cuda", "cuda:0", cuda):
+            assert not kc.compile_wanted(big, dev) and not kc.compile_wanted(10**12, dev)
+
+        def fn(x):
+            return x
+
+        # a CUDA job in auto mode: the function itself, also where a compiled one exists
+        monkeypatch.setitem(kc._COMPILED, ("policy-test",), "compiled")
+        assert kc.maybe_compiled(fn, ("policy-test",), 10**12, device=cuda) is fn
+        assert kc.maybe_compiled(fn, ("policy-test",), kc._COMPILED_MIN, device="cuda") is fn
+        # a CPU job: the compiled one once it exists (for >= _COMPILED_MIN), as before
+        assert kc.maybe_compiled(fn, ("policy-test",), kc._COMPILED_MIN, device="cpu") \
+            == "compiled"
+        assert kc.maybe_compiled(fn, ("policy-test",), kc._COMPILED_MIN) == "compiled"
+        assert kc.maybe_compiled(fn, ("policy-test",), kc._COMPILED_MIN - 1) is fn
+        kc.set_compile("1")
+        assert kc.compile_wanted(1, cuda) and kc.compile_wanted(1, "cpu")
+        assert kc.maybe_compiled(fn, ("policy-test",), 1, device=cuda) == "compiled"
+        kc.set_compile("0")
+        assert not kc.compile_wanted(big, "cpu")
+        assert kc.maybe_compiled(fn, ("policy-test",), 10**12, device="cpu") is fn
+    finally:
+        kc.set_compile("auto")

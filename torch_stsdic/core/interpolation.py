@@ -75,14 +75,14 @@ def bspline_prefilter(images: torch.Tensor, order: int = 3) -> torch.Tensor:
     return _prefilter_axis(c, order, images.dim() - 2)
 
 
-def _kernel(order: int, grad: bool, work: int, needs_autograd: bool):
+def _kernel(order: int, grad: bool, work: int, needs_autograd: bool, device=None):
     def eager(*args):
         return sample_kernel(*args, order, grad)
 
     def kernel(*args):
         return sample_kernel(*args, order, grad)
 
-    run = maybe_compiled(kernel, ("sample", order, grad), work, needs_autograd)
+    run = maybe_compiled(kernel, ("sample", order, grad), work, needs_autograd, device)
     return eager if run is kernel else run
 
 
@@ -153,7 +153,7 @@ class BSplineImage:
             return native.sample(ka, self.order, x, y, frame_t, grad)
         args = (flat, x, y, frame_t, wp, x_lo, x_hi, y_lo, y_hi, shift)
         kernel = _kernel(self.order, grad, x.numel() if work is None else work,
-                         x.requires_grad or self._flat.requires_grad)
+                         x.requires_grad or self._flat.requires_grad, self.device)
         return kernel(*args)
 
     def sample_subsets(self, px: torch.Tensor, py: torch.Tensor, dx: torch.Tensor,

@@ -1,6 +1,12 @@
 """torch.compile for the torch kernels: when a job is large enough to pay for the compile,
 one compiled version per kernel and process, and a fall-back to eager mode for good when
-compiling fails (no C++ compiler, unsupported platform)."""
+compiling fails (no C++ compiler, unsupported platform).
+
+"auto" mode compiles CPU jobs only. On CUDA the fused Triton step serves the Gauss-Newton
+iterations, and what is left to the torch code (the reference subsets, the odd sampling)
+runs a few times per block: there a compile (~45 s of imports and Inductor on an H200,
+measured under cProfile for ``stsdic run --device cuda`` on the 40-frame hourglass) never
+pays back. "1" compiles on any device."""
 
 from __future__ import annotations
 
@@ -33,18 +39,30 @@ def set_compile(mode: str | bool) -> None:
         raise ValueError(f"compile mode must be 'auto', True or False, got {mode!r}")
 
 
-def compile_wanted(work: int) -> bool:
-    """Whether "auto" mode compiles for a job of ``work`` samples in all (e.g. all POIs x
-    frames x subset pixels of one Gauss-Newton iteration, over all batches)."""
-    return _COMPILE_MODE == "1" or (_COMPILE_MODE == "auto" and work >= _COMPILE_MIN)
+def _auto_device(device) -> bool:
+    """Whether "auto" mode compiles at all for a job on ``device`` (a torch.device, a device
+    string, a tensor, or None: unknown, taken as the CPU): CPU jobs only."""
+    if isinstance(device, torch.Tensor):
+        device = device.device
+    return device is None or torch.device(device).type == "cpu"
 
 
-def maybe_compiled(fn, key, work: int, needs_autograd: bool = False):
+def compile_wanted(work: int, device=None) -> bool:
+    """Whether the policy compiles for a job of ``work`` samples in all (e.g. all POIs x
+    frames x subset pixels of one Gauss-Newton iteration, over all batches) on ``device``
+    (a device, a tensor, or None: the CPU): "1" always, "auto" for large CPU jobs only."""
+    return _COMPILE_MODE == "1" or (_COMPILE_MODE == "auto" and work >= _COMPILE_MIN
+                                    and _auto_device(device))
+
+
+def maybe_compiled(fn, key, work: int, needs_autograd: bool = False, device=None):
     """``fn`` itself, or its torch.compile'd version (made once per ``key`` and process) when
-    the compile policy wants it for a job of ``work`` samples. A compile failure (no C++
+    the compile policy (:func:`compile_wanted`) wants it for a job of ``work`` samples on
+    ``device`` (a device, a tensor, or None: the CPU). A compile failure (no C++
     compiler, unsupported platform) warns once and falls back to ``fn`` for good."""
-    use = compile_wanted(work) or (
+    use = compile_wanted(work, device) or (
         _COMPILE_MODE == "auto" and key in _COMPILED and work >= _COMPILED_MIN
+        and _auto_device(device)
     )
     if not use or _COMPILE_FAILED or needs_autograd:
         return fn

@@ -37,14 +37,14 @@ def gram(*tensors: Tensor) -> str:
 
 
 def ic_step(kernel_args: tuple, order: int, p: Tensor, ft: Tensor, gx: Tensor, gy: Tensor,
-            shared_motion: bool) -> str:
+            shared_motion: bool = False) -> str:
     """One joint IC-GN right-hand side (warp, sampling, criterion, J^T r over all frames):
-    the C++ kernel on the CPU, the Triton kernel on CUDA (which has no shared-motion term),
-    else the torch code."""
+    the C++ kernel on the CPU, the Triton kernel on CUDA, else the torch code. All three take
+    the shared motion (a known displacement per point and frame), so ``shared_motion`` no
+    longer decides (kept for the callers that pass it)."""
     if native.usable_image(kernel_args, p, ft):
         return NATIVE
-    if not shared_motion and fused_step.usable(kernel_args[0], order, ft.shape[1], p, ft,
-                                               gx, gy):
+    if fused_step.usable(kernel_args[0], order, ft.shape[1], p, ft, gx, gy):
         return TRITON
     return TORCH
 

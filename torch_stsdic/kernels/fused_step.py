@@ -85,26 +85,29 @@ def usable(flat: Tensor, order: int, n_subset: int, *tensors: Tensor) -> bool:
 
 
 def _torch_ic_rhs(flat, p, px, py, dx, dy, basis, dt, frame_off, ft, fnorm, gx, gy, w, rows,
-                  wp, x_lo, x_hi, y_lo, y_hi, shift, w_img, h, k, has_time, znssd, order):
+                  wp, x_lo, x_hi, y_lo, y_hi, shift, w_img, h, k, has_time, znssd, order,
+                  motion=None):
     """The torch code on the rows ``rows`` of the per-point data (None: all)."""
     if rows is not None:
         px, py, dt, frame_off = px[rows], py[rows], dt[rows], frame_off[rows]
         ft, fnorm, gx, gy = ft[rows], fnorm[rows], gx[rows], gy[rows]
+        motion = None if motion is None else motion[rows]
     b, zn, outside = ic_rhs_kernel(
         flat, p, px.reshape(-1, 1), py.reshape(-1, 1), dx, dy, basis.T.contiguous(), dt,
         frame_off, ft, fnorm.reshape(-1), gx, gy, w, wp, x_lo, x_hi, y_lo, y_hi, shift, w_img,
-        h, basis.shape[1], k, has_time, znssd, order)
+        h, basis.shape[1], k, has_time, znssd, order, motion)
     return b.double(), zn, outside
 
 
 def _ic_rhs_impl(flat, p, px, py, dx, dy, basis, dt, frame_off, ft, fnorm, gx, gy, w, rows,
-                 wp, x_lo, x_hi, y_lo, y_hi, shift, w_img, h, k, has_time, znssd, order):
+                 wp, x_lo, x_hi, y_lo, y_hi, shift, w_img, h, k, has_time, znssd, order,
+                 motion=None):
     """The op's body: the Triton kernel where :func:`usable`, else the torch code."""
     args = (flat, p, px, py, dx, dy, basis, dt, frame_off, ft, fnorm, gx, gy, w, rows, wp,
             x_lo, x_hi, y_lo, y_hi, shift, w_img, h, k, has_time, znssd)
     if usable(flat, order, basis.shape[0], p, ft):
-        return triton_module().ic_rhs_triton(*args)
-    return _torch_ic_rhs(*args, order)
+        return triton_module().ic_rhs_triton(*args, motion=motion)
+    return _torch_ic_rhs(*args, order, motion)
 
 
 @torch.library.custom_op("torch_stsdic::ic_rhs", mutates_args=())
@@ -112,15 +115,16 @@ def _ic_rhs_op(flat: Tensor, p: Tensor, px: Tensor, py: Tensor, dx: Tensor, dy: 
                basis: Tensor, dt: Tensor, frame_off: Tensor, ft: Tensor, fnorm: Tensor,
                gx: Tensor, gy: Tensor, w: Tensor, rows: Tensor | None, wp: int, x_lo: float,
                x_hi: float, y_lo: float, y_hi: float, shift: int, w_img: int, h: int, k: int,
-               has_time: bool, znssd: bool, order: int) -> tuple[Tensor, Tensor, Tensor]:
+               has_time: bool, znssd: bool, order: int,
+               motion: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
     return _ic_rhs_impl(flat, p, px, py, dx, dy, basis, dt, frame_off, ft, fnorm, gx, gy, w,
                         rows, wp, x_lo, x_hi, y_lo, y_hi, shift, w_img, h, k, has_time, znssd,
-                        order)
+                        order, motion)
 
 
 @_ic_rhs_op.register_fake
 def _(flat, p, px, py, dx, dy, basis, dt, frame_off, ft, fnorm, gx, gy, w, rows, wp, x_lo,
-      x_hi, y_lo, y_hi, shift, w_img, h, k, has_time, znssd, order):
+      x_hi, y_lo, y_hi, shift, w_img, h, k, has_time, znssd, order, motion=None):
     m = p.shape[0]
     return (p.new_empty(m, 2 * k, dtype=torch.float64), p.new_empty(m, dtype=flat.dtype),
             p.new_empty(m, dtype=torch.bool))
@@ -128,7 +132,8 @@ def _(flat, p, px, py, dx, dy, basis, dt, frame_off, ft, fnorm, gx, gy, w, rows,
 
 def ic_rhs(img_args: tuple, order: int, p, px, py, dx, dy, basis, dt, frame_off, ft, fnorm,
            gx, gy, w, w_img: int, h: int, k: int, has_time: bool, znssd: bool,
-           rows: Tensor | None = None, frame_rhs: Tensor | None = None):
+           rows: Tensor | None = None, frame_rhs: Tensor | None = None,
+           motion: Tensor | None = None):
     """``torch.ops.torch_stsdic.ic_rhs`` with the arguments of ``native.ic_rhs``: img_args
     from :meth:`BSplineImage.kernel_args`, p (M, 2k), basis (S, Ks), dt and frame_off (N, T)
     (frame offsets in coefficients), the per-point data (N, ...), ``rows`` (M,) the data row
@@ -141,12 +146,18 @@ def ic_rhs(img_args: tuple, order: int, p, px, py, dx, dy, basis, dt, frame_off,
 
     ``frame_rhs``: a contiguous float64 (M, T, 2 Ks + 1) tensor filled with each frame's own
     spatial right-hand side and its ZNCC (as ``native.ic_rhs``), by the Triton kernel only
-    (:func:`usable`; ValueError otherwise), outside ``torch.compile``."""
+    (:func:`usable`; ValueError otherwise), outside ``torch.compile``.
+
+    ``motion``: (N, T, 2) a known displacement (u, v) added to each data row's warp of frame
+    t (the specimen's shared motion, as ``native.ic_rhs``), or None."""
     flat, wp, x_lo, x_hi, y_lo, y_hi, shift, _ = img_args
     args = (flat, p, px.reshape(-1), py.reshape(-1), dx, dy, basis.contiguous(), dt,
             frame_off.to(torch.int64), ft, fnorm.reshape(-1), gx, gy, w, rows, int(wp),
             float(x_lo), float(x_hi), float(y_lo), float(y_hi), int(shift), int(w_img), int(h),
             int(k), bool(has_time), bool(znssd))
+    if motion is not None and tuple(motion.shape) != (*dt.shape, 2):
+        raise ValueError(f"kernels.ic_rhs: motion must be (N, T, 2) = ({dt.shape[0]}, "
+                         f"{dt.shape[1]}, 2), got {tuple(motion.shape)}")
     if frame_rhs is not None:
         n_t, ks = dt.shape[1], basis.shape[1]
         if not usable(flat, order, basis.shape[0], p, ft):
@@ -156,7 +167,7 @@ def ic_rhs(img_args: tuple, order: int, p, px, py, dx, dy, basis, dt, frame_off,
                 or frame_rhs.device != flat.device):
             raise ValueError(f"kernels.ic_rhs: frame_rhs must be a contiguous float64 "
                              f"({p.shape[0]}, {n_t}, {2 * ks + 1}) tensor on {flat.device}")
-        return triton_module().ic_rhs_triton(*args, frame_rhs=frame_rhs)
+        return triton_module().ic_rhs_triton(*args, frame_rhs=frame_rhs, motion=motion)
     compiling = getattr(torch.compiler, "is_compiling", lambda: False)()  # torch >= 2.3
     call = torch.ops.torch_stsdic.ic_rhs if compiling else _ic_rhs_impl
-    return call(*args, int(order))
+    return call(*args, int(order), motion)

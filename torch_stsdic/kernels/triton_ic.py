@@ -4,10 +4,13 @@
 Same conventions and result as :func:`torch_stsdic.core.formulations.joint_ic.ic_rhs_kernel` (the
 torch code) and ``native.ic_rhs`` (the C++ CPU kernel): for point ``j`` (data row ``i``),
 
-    u_s,t = sum_q p_q B_sq + ut dt_t,  x_s,t = px_i + dx_s + u_s,t   (likewise v, y)
+    u_s,t = sum_q p_q B_sq + ut dt_t + mu_i,t,  x_s,t = px_i + dx_s + u_s,t   (likewise v, y)
     g_s,t = spline of frame t at (x_s,t, y_s,t)
     e_s,t = w_s (ft_s - |ft| / |g~_t| g~_t)   (ZNSSD, g~ zero-mean)   or   w_s (ft_s - g_s,t)
     b = [sum_s gx_s B_sq sum_t e_s,t, sum_s gx_s sum_t dt_t e_s,t, (same with gy)]
+
+with ``mu_i,t`` (and ``mv_i,t``) the known displacement of data row ``i``'s frame ``t`` (the
+specimen's shared motion, ``motion`` (N, T, 2); zero without it).
 
 The subset (S pixels) lives in one block of ``next_pow2(S)`` lanes, so each frame is sampled
 once (16 gathers per pixel); frames are a loop, so the Gauss-Newton right-hand side of a
@@ -52,11 +55,11 @@ def _tap_row(flat_ptr, base, m, w0, w1, w2, w3):
 @triton.jit
 def _ic_rhs_kernel(flat_ptr, p_ptr, px_ptr, py_ptr, dx_ptr, dy_ptr, basis_ptr, dt_ptr,
                    foff_ptr, ft_ptr, fnorm_ptr, gx_ptr, gy_ptr, w_ptr, rows_ptr,
-                   b_ptr, zn_ptr, out_ptr, bf_ptr,
+                   b_ptr, zn_ptr, out_ptr, bf_ptr, mo_ptr,
                    NT, S, wp, x_lo, x_hi, y_lo, y_hi, shift, w_img, h,
                    KS: tl.constexpr, K: tl.constexpr, HAS_TIME: tl.constexpr,
                    ZNSSD: tl.constexpr, HAS_ROWS: tl.constexpr, BLOCK_S: tl.constexpr,
-                   FRAME_RHS: tl.constexpr):
+                   FRAME_RHS: tl.constexpr, HAS_MOTION: tl.constexpr):
     j = tl.program_id(0).to(tl.int64)
     if HAS_ROWS:
         i = tl.load(rows_ptr + j).to(tl.int64)
@@ -97,6 +100,9 @@ def _ic_rhs_kernel(flat_ptr, p_ptr, px_ptr, py_ptr, dx_ptr, dy_ptr, basis_ptr, d
         else:
             xs = xs0
             ys = ys0
+        if HAS_MOTION:  # the known (shared) motion of this row's frame t
+            xs = xs + tl.load(mo_ptr + (i * NT + t) * 2)
+            ys = ys + tl.load(mo_ptr + (i * NT + t) * 2 + 1)
         big = 3.0e38
         lo_x = tl.min(tl.where(m, xs, big), axis=0)
         hi_x = tl.max(tl.where(m, xs, -big), axis=0)
@@ -153,12 +159,15 @@ def _ic_rhs_kernel(flat_ptr, p_ptr, px_ptr, py_ptr, dx_ptr, dy_ptr, basis_ptr, d
 
 def ic_rhs_triton(flat, p, px, py, dx, dy, basis, dt, frame_off, ft, fnorm, gx, gy, w, rows,
                   wp: int, x_lo: float, x_hi: float, y_lo: float, y_hi: float, shift: int,
-                  w_img: int, h: int, k: int, has_time: bool, znssd: bool, frame_rhs=None):
+                  w_img: int, h: int, k: int, has_time: bool, znssd: bool, frame_rhs=None,
+                  motion=None):
     """Launch the kernel. Shapes: p (M, 2k), px/py/fnorm (N,) or (N, 1), dx/dy/w (S,), basis
     (S, Ks), dt and frame_off (N, T) (frame_off in coefficients, int64), ft/gx/gy (N, S),
     rows (M,) data row of each row of p or None (M = N); ``frame_rhs`` a contiguous float64
     (M, T, 2 Ks + 1) tensor on the device, filled with each frame's own spatial right-hand
-    side and its ZNCC (as ``native.ic_rhs``), or None. Returns b (M, 2k) float64, mean ZNCC
+    side and its ZNCC (as ``native.ic_rhs``), or None; ``motion`` (N, T, 2) the known
+    displacement added to each data row's warp of frame t (as ``native.ic_rhs``), or None.
+    Returns b (M, 2k) float64, mean ZNCC
     (M,) in p's dtype and the outside flag (M,) bool."""
     dtype = flat.dtype
     m_rows = p.shape[0]
@@ -181,10 +190,11 @@ def ic_rhs_triton(flat, p, px, py, dx, dy, basis, dt, frame_off, ft, fnorm, gx, 
         flat.contiguous(), c(p), c(px.reshape(-1)), c(py.reshape(-1)), c(dx), c(dy),
         c(basis), c(dt), frame_off.to(device=dev, dtype=torch.int64).contiguous(), c(ft),
         c(fnorm.reshape(-1)), c(gx), c(gy), c(w), rows_t, b, zn, out,
-        b if frame_rhs is None else frame_rhs,
+        b if frame_rhs is None else frame_rhs, b if motion is None else c(motion),
         n_t, s, int(wp), float(x_lo), float(x_hi), float(y_lo), float(y_hi), int(shift),
         float(w_img), float(h),
         KS=ks, K=k, HAS_TIME=bool(has_time), ZNSSD=bool(znssd), HAS_ROWS=rows is not None,
-        BLOCK_S=block, FRAME_RHS=frame_rhs is not None, num_warps=4 if block <= 512 else 8,
+        BLOCK_S=block, FRAME_RHS=frame_rhs is not None, HAS_MOTION=motion is not None,
+        num_warps=4 if block <= 512 else 8,
     )
     return b, zn, out.bool()

@@ -119,7 +119,7 @@ class JointIC(Formulation):
     @staticmethod
     def _backend(frames: BSplineImage, data: SubsetData, p: Tensor) -> str:
         """Which kernel runs this call's step (:func:`torch_stsdic.kernels.dispatch.ic_step`:
-        C++ on the CPU, Triton on CUDA without shared motion, else torch)."""
+        C++ on the CPU, Triton on CUDA, else torch)."""
         return dispatch.ic_step(frames.kernel_args(), frames.order, p, data.ft, data.gx,
                                 data.gy, data.motion is not None)
 
@@ -143,10 +143,11 @@ class JointIC(Formulation):
             if self._backend(frames, data, p) == "native":
                 fused, extra = native.ic_rhs, {"motion": data.motion, "ref_rows": data.ref_rows,
                                                "frame_rhs": frame_rhs}
-            else:
+            else:  # Triton: reference subsets row by row (no ref_rows), the motion by data row
                 fused, data = kernels.ic_rhs, data.direct()
+                extra = {"motion": data.motion}
                 if frame_rhs is not None:
-                    extra = {"frame_rhs": frame_rhs}
+                    extra["frame_rhs"] = frame_rhs
             b, zn, outside = fused(
                 ka, frames.order, p, data.px, data.py, geo.dx, geo.dy, geo.spatial, data.dt,
                 data.fidx * ka[-1], data.ft, data.fnorm, data.gx, data.gy, geo.w, frames.width,
@@ -154,7 +155,7 @@ class JointIC(Formulation):
             )
             dp = -(data.hinv[sel] @ b.unsqueeze(-1)).squeeze(-1)
             return dp.to(p.dtype), zn, outside
-        fn = maybe_compiled(ic_rhs_compiled, ("ic_rhs",), work)
+        fn = maybe_compiled(ic_rhs_compiled, ("ic_rhs",), work, device=p.device)
         b, zn, outside = fn(*self._args(geo, frames, data.direct(), p))
         dp = -(data.hinv @ b.double().unsqueeze(-1)).squeeze(-1)
         return dp.to(p.dtype), zn, outside
