@@ -1,0 +1,264 @@
+"""Mutation check: deliberate breakages of the product, each of which the default test suite
+must catch (issue 39).
+
+Every mutation is one text substitution in one file of ``torch_stsdic/``. For each, the
+repository is copied to a temporary folder (without ``.git``), the substitution applied (it
+must match exactly once), and the test files that exercise that area run there with the
+default options (``-m 'not slow'``) and ``-x -q``. The mutation is *caught* when pytest
+fails; it *survives* when the tests pass. A substitution that no longer matches the source
+(the code moved on) is reported as *stale*: update the list.
+
+    python scripts/tools/mutation_check.py              # every mutation, a table, exit 1 if any
+                                                        # survives or is stale
+    python scripts/tools/mutation_check.py --list       # the mutations
+    python scripts/tools/mutation_check.py --only criterion-ssd-as-znssd cli-drops-shape
+
+Results are recorded in docs/testing.md. tests/test_mutation_check.py (slow) runs it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+@dataclass(frozen=True)
+class Mutation:
+    name: str
+    area: str
+    path: str  # relative to the repository root
+    old: str
+    new: str
+    tests: tuple[str, ...]  # test files (relative to tests/) that must catch it
+    what: str
+
+
+OPTIONS = "test_options.py"
+STRAIN = "test_strain_end_to_end.py"
+HEADLINE = "test_headline_numbers.py"
+
+MUTATIONS: tuple[Mutation, ...] = (
+    Mutation(
+        "solver-stops-early", "solver", "torch_stsdic/core/gauss_newton.py",
+        "conv = finite & (_next_increment(norm, prev) < cfg.tol) & ~outside",
+        "conv = finite & (_next_increment(norm, prev) < 1000 * cfg.tol) & ~outside",
+        (OPTIONS, HEADLINE, "test_solver.py", "test_accuracy.py"),
+        "Gauss-Newton stops 1000x too early (convergence test against 1000 tol)"),
+    Mutation(
+        "criterion-ssd-as-znssd", "criteria", "torch_stsdic/core/formulations/base.py",
+        'znssd=criterion == "znssd"', "znssd=True",
+        (OPTIONS, "test_solver.py"),
+        'criterion="ssd" runs as ZNSSD'),
+    Mutation(
+        "criterion-znssd-as-ssd", "criteria", "torch_stsdic/core/formulations/base.py",
+        'znssd=criterion == "znssd"', "znssd=False",
+        (OPTIONS, "test_solver.py"),
+        'criterion="znssd" runs as SSD'),
+    Mutation(
+        "quintic-as-cubic", "interpolation", "torch_stsdic/core/config.py",
+        'return 3 if self.interpolation == "cubic" else 5', "return 3",
+        (OPTIONS, "test_interpolation.py"),
+        'interpolation="quintic" runs as cubic'),
+    Mutation(
+        "quadratic-shape-as-affine", "shape", "torch_stsdic/core/shape.py",
+        '_SHAPES = {"affine": AffineShape, "quadratic": QuadraticShape}',
+        '_SHAPES = {"affine": AffineShape, "quadratic": AffineShape}',
+        (OPTIONS, "test_shape.py"),
+        'shape="quadratic" runs as affine'),
+    Mutation(
+        "gaussian-window-as-square", "window", "torch_stsdic/core/window.py",
+        '"gaussian": GaussianWindow}', '"gaussian": SquareWindow}',
+        (OPTIONS,),
+        'window="gaussian" runs as square'),
+    Mutation(
+        "circular-window-as-square", "window", "torch_stsdic/core/window.py",
+        '"circular": CircularWindow,', '"circular": SquareWindow,',
+        (OPTIONS,),
+        'window="circular" runs as square'),
+    Mutation(
+        "green-strain-as-small", "strain", "torch_stsdic/analysis/strain.py",
+        '    if kind == "small":\n        out["exx"]', '    if True:\n        out["exx"]',
+        (STRAIN, OPTIONS),
+        "Green-Lagrange strains computed as small strains"),
+    Mutation(
+        "strain-u-v-swapped", "strain", "torch_stsdic/analysis/result.py",
+        "self.points, self.u, self.v, window=window", "self.points, self.v, self.u, window=window",
+        (STRAIN, OPTIONS),
+        "TrackResult.strain (and so every run's strains) with u and v swapped"),
+    Mutation(
+        "strain-rate-ut-vt-swapped", "strain", "torch_stsdic/analysis/result.py",
+        "ut=self.ut if has_rate else None, vt=self.vt if has_rate else None",
+        "ut=self.vt if has_rate else None, vt=self.ut if has_rate else None",
+        (STRAIN, OPTIONS),
+        "strain rates of a run from ut and vt swapped"),
+    Mutation(
+        "strain-window-ignored", "strain", "torch_stsdic/movie/sinks.py",
+        "result.strain(window=self.strain_window, kind=self.strain_kind)",
+        "result.strain(window=5, kind=self.strain_kind)",
+        (OPTIONS, STRAIN),
+        "the result file's strains always over 5x5 points (strain_window ignored)"),
+    Mutation(
+        "averaged-reference-is-first-frame", "reference", "torch_stsdic/movie/plan.py",
+        "raw = series.mean_of(idx, dtype=torch.float64)",
+        "raw = series.mean_of(idx[:1], dtype=torch.float64)",
+        (OPTIONS, "test_series.py"),
+        'reference="0:5" uses frame 0 alone'),
+    Mutation(
+        "reference-never-updated", "reference", "torch_stsdic/movie/reference.py",
+        "if frame == ref.frame or z.size == 0 or not float(z.mean()) < thr:",
+        "if True:",
+        (OPTIONS, "test_series.py"),
+        "reference_update never takes a new reference"),
+    Mutation(
+        "refined-offsets-not-subtracted", "reference", "torch_stsdic/movie/refine.py",
+        "out[k] = out[k] - off[None, :]", "out[k] = out[k]",
+        (OPTIONS, "test_refine.py"),
+        "refine_reference measures the offsets but does not subtract them"),
+    Mutation(
+        "mask-ignored", "points", "torch_stsdic/analysis/points.py",
+        "pts = pts[m[pts[:, 1].long(), pts[:, 0].long()]]", "pts = pts",
+        (OPTIONS, "test_series.py"),
+        "the grid keeps points on zero mask pixels"),
+    Mutation(
+        "cli-drops-criterion", "CLI", "torch_stsdic/cli/run.py",
+        "criterion=args.criterion,", 'criterion="znssd",',
+        (OPTIONS, "test_cli.py"),
+        "stsdic run ignores --criterion"),
+    Mutation(
+        "cli-drops-shape", "CLI", "torch_stsdic/cli/run.py",
+        "shape=args.shape,", 'shape="affine",',
+        (OPTIONS, "test_cli.py"),
+        "stsdic run ignores --shape"),
+    Mutation(
+        "cli-drops-window", "CLI", "torch_stsdic/cli/run.py",
+        "window=args.window,", 'window="square",',
+        (OPTIONS, "test_cli.py"),
+        "stsdic run ignores --window"),
+    Mutation(
+        "cli-drops-interpolation", "CLI", "torch_stsdic/cli/run.py",
+        "interpolation=args.interpolation,", 'interpolation="cubic",',
+        (OPTIONS, "test_cli.py"),
+        "stsdic run ignores --interpolation"),
+    Mutation(
+        "cli-drops-strain-kind", "CLI", "torch_stsdic/cli/run.py",
+        "strain_kind=args.strain_kind)", 'strain_kind="green")',
+        (OPTIONS, STRAIN, "test_cli.py"),
+        "stsdic run ignores --strain-kind"),
+    Mutation(
+        "cli-drops-reference-update", "CLI", "torch_stsdic/cli/run.py",
+        "reference_update=args.reference_update,", "reference_update=None,",
+        (OPTIONS, "test_cli.py"),
+        "stsdic run ignores --reference-update"),
+    Mutation(
+        "cli-averaged-reference-is-first-frame", "CLI", "torch_stsdic/cli/run.py",
+        '"reference": refs[0] if len(refs) == 1 else args.reference,',
+        '"reference": refs[0],',
+        (OPTIONS, "test_cli.py"),
+        "stsdic run --reference 0:5 uses frame 0 alone"),
+    Mutation(
+        "export-units-ignored", "exports", "torch_stsdic/io/units.py",
+        "return 1.0 if d is None else self.length_factor ** d[0]", "return 1.0",
+        ("test_export.py",),
+        "exports (CSV, VTK, MAT) in px although the file records a scale"),
+    Mutation(
+        "resume-replays-wrong-rows", "resume", "torch_stsdic/io/results.py",
+        "return {nm: f[nm][first : last + 1] for nm in (fields or self.fields)}",
+        "return {nm: f[nm][0 : last + 1 - first] for nm in (fields or self.fields)}",
+        ("test_series.py", "test_io.py", "test_faults.py"),
+        "a resumed run replays the file's first rows instead of the finished block's"),
+)
+
+
+def _copy(dst: Path) -> None:
+    ignore = shutil.ignore_patterns(".git", "__pycache__", ".pytest_cache", "*.egg-info",
+                                    ".ruff_cache", "stsdic-demo")
+    shutil.copytree(REPO, dst, ignore=ignore, symlinks=True)
+
+
+def _env(root: Path) -> dict[str, str]:
+    return {**os.environ, "PYTHONPATH": str(root) + os.pathsep + os.environ.get("PYTHONPATH", ""),
+            "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "PYTHONDONTWRITEBYTECODE": "1"}
+
+
+def run_one(mut: Mutation, timeout: float) -> dict[str, object]:
+    """Apply ``mut`` in a fresh copy, run its tests; 'caught', 'SURVIVED' or 'STALE'."""
+    src = (REPO / mut.path).read_text(encoding="utf-8")
+    if src.count(mut.old) != 1:
+        return {"result": "STALE", "detail": f"{mut.old!r} found {src.count(mut.old)} times",
+                "seconds": 0.0}
+    with tempfile.TemporaryDirectory(prefix="stsdic-mutant-") as tmp:
+        root = Path(tmp) / "repo"
+        _copy(root)
+        (root / mut.path).write_text(src.replace(mut.old, mut.new), encoding="utf-8")
+        env = _env(root)
+        where = subprocess.run([sys.executable, "-c", "import torch_stsdic; "
+                                "print(torch_stsdic.__file__)"], cwd=root, env=env,
+                               capture_output=True, text=True)
+        if not where.stdout.strip().startswith(str(root)):
+            raise RuntimeError(f"the copy does not import its own package: {where.stdout!r} "
+                               f"{where.stderr[-500:]}")
+        cmd = [sys.executable, "-m", "pytest", "-x", "-q", "-p", "no:cacheprovider",
+               *[f"tests/{t}" for t in mut.tests]]
+        t0 = time.monotonic()
+        try:
+            proc = subprocess.run(cmd, cwd=root, env=env, capture_output=True, text=True,
+                                  timeout=timeout)
+        except subprocess.TimeoutExpired:
+            return {"result": "timeout", "detail": f"over {timeout:.0f} s",
+                    "seconds": time.monotonic() - t0}
+        seconds = time.monotonic() - t0
+    lines = proc.stdout.strip().splitlines()
+    if proc.returncode == 0:
+        return {"result": "SURVIVED", "detail": lines[-1] if lines else "", "seconds": seconds}
+    if proc.returncode not in (1,):  # 2: interrupted/collection error, 5: no tests
+        return {"result": "error", "detail": "\n".join(lines[-5:]), "seconds": seconds}
+    failed = [ln.split(" - ")[0].removeprefix("FAILED ") for ln in lines
+              if ln.startswith("FAILED ")]
+    return {"result": "caught", "detail": failed[0] if failed else lines[-1],
+            "seconds": seconds}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--only", nargs="+", metavar="NAME", help="run these mutations only")
+    ap.add_argument("--list", action="store_true", help="list the mutations and exit")
+    ap.add_argument("--timeout", type=float, default=900.0, help="seconds per mutation")
+    args = ap.parse_args(argv)
+    muts = [m for m in MUTATIONS if not args.only or m.name in args.only]
+    if args.only and len(muts) != len(args.only):
+        known = {m.name for m in MUTATIONS}
+        ap.error(f"unknown mutation(s): {sorted(set(args.only) - known)}")
+    if args.list:
+        for m in muts:
+            print(f"{m.name:40s} {m.area:14s} {m.path}: {m.what}")
+        return 0
+    rows = []
+    t0 = time.monotonic()
+    for m in muts:
+        r = run_one(m, args.timeout)
+        rows.append((m, r))
+        print(f"{m.name}: {r['result']} ({r['seconds']:.0f} s) {r['detail']}", flush=True)
+    print()
+    print("| mutation | area | file | result | caught by | time (s) |")
+    print("|---|---|---|---|---|---|")
+    for m, r in rows:
+        by = r["detail"] if r["result"] == "caught" else f"({r['detail']})"
+        print(f"| {m.name} | {m.area} | `{m.path.removeprefix('torch_stsdic/')}` | "
+              f"{r['result']} | {by} | {r['seconds']:.0f} |")
+    bad = [m.name for m, r in rows if r["result"] != "caught"]
+    print(f"\n{len(rows) - len(bad)} of {len(rows)} mutations caught in "
+          f"{time.monotonic() - t0:.0f} s" + (f"; not caught: {', '.join(bad)}" if bad else ""))
+    return 1 if bad else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
