@@ -45,8 +45,10 @@ N_POINTS = 38809
 
 def child(tree: str, folder: str, pts_csv: str, m: int, threads: int) -> dict[str, Any]:
     """One timed solve in this process, with the torch_stsdic of ``tree``."""
+    import importlib
+
     sys.path.insert(0, tree)
-    import torch_stsdic  # noqa: F401  (before torch: the library's OpenMP settings)
+    importlib.import_module("torch_stsdic")  # before torch: the library's OpenMP settings
     import numpy as np
     import torch
 
@@ -174,11 +176,11 @@ def main() -> None:
                           f"{rec['time_s']:.3f} s (loadavg {la:.2f})", flush=True)
         finally:
             stop(procs)
-    summary = summarise(runs, loads, threads, ms, variants)
-    record = {"what": "issue 35: POI/s idle and with competing busy processes",
-              "command": " ".join(sys.argv), "date": time.strftime("%Y-%m-%d %H:%M"),
-              "machine": machine, "n_points": N_POINTS, "summary": summary, "runs": runs}
-    Path(args.out).write_text(json.dumps(record, indent=1))
+        summary = summarise(runs, loads, threads, ms, variants)  # written after every level
+        record = {"what": "issue 35: POI/s idle and with competing busy processes",
+                  "command": " ".join(sys.argv), "date": time.strftime("%Y-%m-%d %H:%M"),
+                  "machine": machine, "n_points": N_POINTS, "summary": summary, "runs": runs}
+        Path(args.out).write_text(json.dumps(record, indent=1))
     print_table(summary)
     print(f"-> {args.out}")
 
