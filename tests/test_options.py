@@ -209,7 +209,7 @@ def test_refined_reference_zeroes_the_reference_row():
     """refine_reference: the reference frame's own row reports exactly zero displacement
     (README); without it, STS-DIC's window about frame 0 leaves noise there (measured
     0.014 px at most)."""
-    movie, _ = _movie(Translation(ut=0.05), n=12, noise=2.0)
+    movie, times = _movie(Translation(ut=0.05), n=12, noise=2.0)
     cfg = sts.DICConfig(subset_size=15, m=2)
     kw = dict(config=cfg, step=8, progress=False, strain_window=None, shared_motion=None)
     plain = sts.track(movie, **kw)
@@ -219,6 +219,11 @@ def test_refined_reference_zeroes_the_reference_row():
     assert ok.float().mean() > 0.9
     assert float(refined.u[0][ok].abs().max()) < 1e-9
     assert float(refined.v[0][ok].abs().max()) < 1e-9
+    # and the other frames: the offsets subtracted lower the RMS u error, measured 0.0113 ->
+    # 0.0089 px (ratio 0.79; seeds 8, 9: 0.57, 0.67); band 0.4..0.9
+    truth = 0.05 * times[1:, None]
+    rms = [float((r.u[1:] - truth).pow(2).mean().sqrt()) for r in (plain, refined)]
+    assert 0.4 < rms[1] / rms[0] < 0.9, rms
 
 
 def test_mask_and_roi_select_the_points():

@@ -121,7 +121,7 @@ MUTATIONS: tuple[Mutation, ...] = (
     Mutation(
         "refined-offsets-not-subtracted", "reference", "torch_stsdic/movie/refine.py",
         "out[k] = out[k] - off[None, :]", "out[k] = out[k]",
-        (OPTIONS, "test_refine.py"),
+        (OPTIONS, "test_refine.py", "test_demo.py"),
         "refine_reference measures the offsets but does not subtract them"),
     Mutation(
         "mask-ignored", "points", "torch_stsdic/analysis/points.py",
