@@ -119,6 +119,14 @@ def _add_frames(p: argparse.ArgumentParser) -> None:
     opt(g, "--refine-frames", type=options.int_min(5), default=None, metavar="N",
         help="most frames of that fit",
         shown="41; fewer where the motion is not smooth")  # fmt: skip
+    opt(g, "--series-reference", type=options.int_min(1), nargs="?", const=2, default=None,
+        metavar="ROUNDS", help="measure against a template made from the series: up to "
+        "--series-frames frames mapped back with their measured subset warps and averaged, "
+        "ROUNDS rounds of template and classical measurement (2 without a number); less "
+        "reference noise at the cost of a classical run of those frames per round "
+        "(docs/validation/series_reference.md)", shown="off: the reference image")  # fmt: skip
+    opt(g, "--series-frames", type=options.int_min(2), default=None, metavar="N",
+        help="most frames of the template, evenly spread", shown="21")  # fmt: skip
     opt(g, "--shared-motion", choices=("auto", "quadratic", "affine", "translation", "none"),
         default="auto", help="the specimen's per-frame motion (a shake, load steps), "
         "measured from all points and carried in every window; auto: with --m > 0, "
@@ -131,26 +139,44 @@ def _add_frames(p: argparse.ArgumentParser) -> None:
 # ----------------------------------------------------------------------------------------
 
 
-def _open_series(inputs: Sequence[str], timestamps: np.ndarray | None) -> Any:
+def _open_series(inputs: Sequence[str], timestamps: np.ndarray | None,
+                 times_file: str | None = None) -> Any:
     from torch_stsdic.io import InputError, load_series
 
     src: Any = inputs[0] if len(inputs) == 1 else list(inputs)
     try:
         return load_series(src, timestamps=timestamps)
     except InputError as exc:
-        if timestamps is not None and "timestamps" in str(exc):
-            raise CommandError(f"--timestamps: {exc}") from exc
-        raise
+        if timestamps is None or "timestamps" not in str(exc):
+            raise
+        n = len(load_series(src))  # the series itself opens: the times do not fit it
+        if len(timestamps) != n:  # an option that does not fit the input: usage error
+            raise UsageError(f"--timestamps {times_file}: {len(timestamps)} time(s) for the "
+                             f"{n} frames of the series (one per frame)") from None
+        raise CommandError(f"--timestamps {times_file}: {exc}") from exc
 
 
 def _frame_spec(option: str, spec: str, n: int) -> list[int]:
-    """Frame numbers of ``spec`` in a series of ``n`` frames; UsageError naming ``option``."""
+    """Frame numbers of ``spec`` in a series of ``n`` frames; UsageError naming ``option``.
+    A --reference range is not clipped to the series (it would average fewer frames)."""
     from torch_stsdic.io import InputError, parse_frame_spec
+    from torch_stsdic.movie.plan import reference_frames
 
     try:
-        return parse_frame_spec(spec, n)
+        return (reference_frames if option == "--reference" else parse_frame_spec)(spec, n)
     except InputError as exc:
         raise UsageError(f"{option} {spec}: {exc}") from None
+
+
+def _side_file(read: Any, option: str, path: str, *args: Any) -> Any:
+    """``read(path, *args, option)``; a file that does not fit the images (a mask of
+    another size, points outside them) is a usage error, exit code 2."""
+    from torch_stsdic.io.tables import MismatchError
+
+    try:
+        return read(path, *args, option)
+    except MismatchError as exc:
+        raise UsageError(str(exc)) from None
 
 
 def _roi(args: argparse.Namespace, w: int, h: int, name: str) -> tuple[int, int, int, int] | None:
@@ -195,7 +221,7 @@ def _track_arguments(args: argparse.Namespace) -> dict[str, Any]:
     from torch_stsdic.io import read_mask, read_points, read_timestamps
 
     times = read_timestamps(args.timestamps, "--timestamps") if args.timestamps else None
-    series = _open_series(args.inputs, times)
+    series = _open_series(args.inputs, times, args.timestamps)
     name = args.inputs[0] if len(args.inputs) == 1 else f"{args.inputs[0]} .. {args.inputs[-1]}"
     h, w = series.shape
     n = len(series)
@@ -220,8 +246,9 @@ def _track_arguments(args: argparse.Namespace) -> dict[str, Any]:
         "reference": refs[0] if len(refs) == 1 else args.reference,
         "frames": frames,
         "roi": _roi(args, w, h, name),
-        "mask": read_mask(args.mask, (h, w), "--mask") if args.mask else None,
-        "points": read_points(args.points, (h, w), "--points") if args.points else None,
+        "mask": _side_file(read_mask, "--mask", args.mask, (h, w)) if args.mask else None,
+        "points": (_side_file(read_points, "--points", args.points, (h, w)) if args.points
+                   else None),
         "config": _config(args),
     }
     # float images: NaN/inf anywhere is found now, before any output file is written
@@ -253,8 +280,7 @@ def execute(args: argparse.Namespace) -> int:
 
     from torch_stsdic.io import InputError
     from torch_stsdic.movie.plan import plan_run
-    from torch_stsdic.movie.refine import set_refinement
-    from torch_stsdic.movie.series import run_plan
+    from torch_stsdic.movie.series import run_plan, set_reference_mode
 
     series = kwargs.pop("series")
     print(series.describe(), flush=True)
@@ -269,11 +295,12 @@ def execute(args: argparse.Namespace) -> int:
                             scale=calibration.get("scale"), unit=calibration["unit"],
                             time_unit=calibration.get("time_unit"),
                             shared_motion=args.shared_motion)
-            if args.refine_reference:
-                set_refinement(plan, args.refine_frames)
+            set_reference_mode(plan, args.refine_reference, args.refine_frames,
+                               args.series_reference or False, args.series_frames)
         except ValueError as exc:
             raise CommandError(str(exc)) from None
         sink = _open_sink(plan, args, out)
+        kept = len(sink.completed_rows()) if args.resume else 0
         try:
             res = run_plan(plan, sink, progress=not args.no_progress,
                            callback=lambda done, total: checkpoint())
@@ -284,7 +311,7 @@ def execute(args: argparse.Namespace) -> int:
             _discard_unfinished(sink, out, args)
             raise
         elapsed = time.perf_counter() - t0
-        _print_summary(res, args, elapsed, _reference_name(series, plan))
+        _print_summary(res, args, elapsed, _reference_name(series, plan), kept)
         from torch_stsdic.io.results import field_names, open_results
 
         with open_results(out) as f:
@@ -363,7 +390,8 @@ def _open_sink(plan: Any, args: argparse.Namespace, out: Path) -> Any:
     except ResultFileError as exc:
         raise CommandError(resume_problem(exc)) from None
     except OSError as exc:  # read-only filesystem, no permission, full disk at creation
-        raise CommandError(f"--out {out}: {_text(exc)}") from None
+        text = _text(exc)  # said once: 'cannot create the result file OUT: reason'
+        raise CommandError(text if str(out) in text else f"--out {out}: {text}") from None
 
 
 #: result-file settings (dotted keys of the recorded config) -> the option that sets them
@@ -482,9 +510,16 @@ def _status_summary(status: np.ndarray) -> dict[str, float]:
     return {st.name.lower(): 100.0 * float((s == int(st)).sum()) / total for st in Status}
 
 
-def _print_summary(res: Any, args: argparse.Namespace, elapsed: float, ref: str) -> None:
+def _pct(share: float) -> str:
+    """A percentage with one decimal, never '-0.0' (a difference rounding below zero)."""
+    return f"{max(0.0, share):.1f}"
+
+
+def _print_summary(res: Any, args: argparse.Namespace, elapsed: float, ref: str,
+                   kept: int = 0) -> None:
     """Points, frames, status percentages, time and throughput of a finished run; ``ref``:
-    the reference's file (and page), or how it was made."""
+    the reference's file (and page), or how it was made; ``kept``: frames a ``--resume``
+    found finished (the throughput counts only the frames solved now)."""
     import torch
 
     from torch_stsdic.kernels import dispatch
@@ -492,35 +527,48 @@ def _print_summary(res: Any, args: argparse.Namespace, elapsed: float, ref: str)
     status = to_numpy(res.status)
     n_f, n_p = status.shape
     st = _status_summary(status)
+    bad = sum(v for k, v in st.items() if k not in ("converged", "max_iter"))
     print(f"points: {n_p}   frames: {n_f}   reference: {args.reference} ({ref})   m: {args.m}")
     print(
-        f"converged: {st['converged']:.1f} %   max-iter: {st['max_iter']:.1f} %   "
-        f"not trusted: {100.0 - st['converged'] - st['max_iter']:.1f} % "
-        f"(diverged {st['diverged']:.1f}, outside {st['outside']:.1f}, "
-        f"low texture {st['low_texture']:.1f}, not computed {st['not_computed']:.1f}, "
-        f"poor fit {st['poor_fit']:.1f}, inconsistent {st['inconsistent']:.1f})"
+        f"converged: {_pct(st['converged'])} %   max-iter: {_pct(st['max_iter'])} %   "
+        f"not trusted: {_pct(bad)} % "
+        f"(diverged {_pct(st['diverged'])}, outside {_pct(st['outside'])}, "
+        f"low texture {_pct(st['low_texture'])}, not computed {_pct(st['not_computed'])}, "
+        f"poor fit {_pct(st['poor_fit'])}, inconsistent {_pct(st['inconsistent'])})"
     )
     m_used = res.m
     if args.m and m_used is not None:
         mu = to_numpy(m_used)
         ok = status <= 1
         if ok.any():
-            print(f"window: m = {args.m} at {100.0 * (mu[ok] == args.m).mean():.1f} % of the "
+            print(f"window: m = {args.m} at {_pct(100.0 * (mu[ok] == args.m).mean())} % of the "
                   f"trusted results, shorter where the motion is not affine in time or the "
                   f"point leaves the image within the window (classical at "
-                  f"{100.0 * (mu[ok] == 0).mean():.1f} %: no velocity there, ut and vt are NaN)")
+                  f"{_pct(100.0 * (mu[ok] == 0).mean())} %: no velocity there, ut and vt are "
+                  "NaN)")
     off = int(res.info.get("off_centre_rows", 0) or 0)
     if off:
-        print(f"border: {100.0 * off / max(1, n_f * n_p):.1f} % of the point-frames solved with "
-              "the subset moved inside the image (the point near the border; its result "
+        print(f"border: {_pct(100.0 * off / max(1, n_f * n_p))} % of the point-frames solved "
+              "with the subset moved inside the image (the point near the border; its result "
               "carried by the subset's gradients, u_std and v_std with it)")
     for line in shared_motion_lines(res.info.get("shared_motion")):
         print(line)
+    sref = res.info.get("series_reference")
+    if sref:
+        added = sref.get("added_std_px")
+        print(f"reference: a template of {len(sref['frames'])} frames, {sref['iterations']} "
+              f"round(s) ({sref['seconds']:.1f} s); its noise {sref['noise_ratio']:.3f} of a "
+              "frame's" + (f", its registration +{added:.4f} px in u_std and v_std"
+                           if added else ""))
+    solved = n_f - kept
+    if args.resume:
+        print(f"resumed: {kept} of {n_f} frames were finished in the file and kept, "
+              f"{solved} solved now")
     device = args.device
     on_cpu = str(device).startswith("cpu")
     kernels = dispatch.describe("cpu" if on_cpu else "cuda")
     threads = f", {torch.get_num_threads()} threads" if on_cpu else ""
-    print(
-        f"time: {fmt_time(elapsed)} (strains included)   "
-        f"{n_f * n_p / max(elapsed, 1e-9):.0f} POI/s   ({device}, {kernels}{threads})"
-    )
+    rate = (f"{solved * n_p / max(elapsed, 1e-9):.0f} POI/s" + (" (frames solved now)"
+            if kept else "")) if solved else "no frame left to solve"
+    print(f"time: {fmt_time(elapsed)} (strains included)   {rate}   ({device}, {kernels}"
+          f"{threads})")

@@ -70,6 +70,9 @@ class BlockContext:
     #: the measuring pass's solutions (:class:`~torch_stsdic.movie.sample_guess.MeasuredSample`):
     #: the initial guess of a block that has no carry (None: FFT cross-correlation)
     first_guess: MeasuredSample | None = None
+    #: (N,) px^2 the variance the reference adds to u and to v of every row, beyond what the
+    #: solver predicts (the registration of a template made from the series; None: none)
+    reference_var: torch.Tensor | None = None
     _checker: SubsetSolver | None = None
 
     def grid_neighbours(self, ref: Reference) -> torch.Tensor:
@@ -217,6 +220,7 @@ class Block(BlockChecks):
             old_ok = self.status[idx] <= USABLE
             take = new_ok & (~old_ok | (sol.zncc.to(self.run.dtype) > self.zncc[idx]))
             take |= self.status[idx] == int(Status.NOT_COMPUTED)  # a reason beats none
+            take = torch.nonzero(take).flatten()  # one index for all (a mask syncs per tensor)
 
             def pick(a: torch.Tensor) -> torch.Tensor:
                 return a[take]
@@ -409,11 +413,17 @@ class Block(BlockChecks):
         run, n = self.run, self.n
         names = run.names
         from_prev = by_fft = redone = from_nb = 0
+        # a target without lost rows has nothing to rescue (a target's rescue writes only its
+        # own rows): one host synchronisation for all targets instead of several each
+        has_lost = self.lost().reshape(self.b, n).any(1).tolist()
         for j in range(self.b):
+            if not has_lost[j]:
+                continue
             rows = torch.arange(j * n, (j + 1) * n, device=run.device)
             if j > 0:
                 prev = rows - n
-                cand = self.lost()[rows] & (self.status[prev] <= USABLE) & ~self.lost()[prev]
+                lost = self.lost()
+                cand = lost[rows] & (self.status[prev] <= USABLE) & ~lost[prev]
                 if bool(cand.any()):
                     r, pr = rows[cand], prev[cand]
                     d = (run.ts[self.k[j]] - run.ts[self.k[j - 1]]).to(run.dtype)
@@ -544,7 +554,10 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
     out["m"] = blk.m_used.reshape(b, n)
     for j, nm in enumerate(run.names):
         if nm in STD_OF:
-            out[STD_OF[nm]] = blk.std[:, j].reshape(b, n)
+            std = blk.std[:, j].reshape(b, n)
+            if run.reference_var is not None and nm in ("u", "v"):
+                std = (std.pow(2) + run.reference_var.to(std)).sqrt()
+            out[STD_OF[nm]] = std
     return out
 
 

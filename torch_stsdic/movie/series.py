@@ -59,10 +59,11 @@ from torch_stsdic.movie.refine import (
     measure_offsets,
     set_refinement,
 )
+from torch_stsdic.movie.series_reference import build_series_reference, set_series_reference
 from torch_stsdic.movie.shared_pass import estimate_shared_motion
 from torch_stsdic.movie.sinks import MemorySink, open_sink
 
-__all__ = ["track", "run_plan", "classical_smoothed"]
+__all__ = ["track", "run_plan", "classical_smoothed", "set_reference_mode"]
 
 
 # ---------------------------------------------------------------------------------------
@@ -109,6 +110,17 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
         if shared.steps:
             run.segments = segment_bounds(shared.steps, len(plan.series)).to(plan.device)
         sink.write_shared_motion(shared)
+    series_ref = None
+    if plan.options.get("series_reference"):
+        opt = plan.options["series_reference"]
+        series_ref = build_series_reference(plan, ref.raw, run=run_plan,
+                                            max_frames=opt["frames"],
+                                            iterations=opt["iterations"])
+        img = series_ref.image.to(device=plan.device, dtype=plan.dtype)
+        ref = Reference(frame=-1, raw=img, img=solver.prepare(img), points=ref.points)
+        run.noise_ratio = series_ref.noise_ratio
+        if series_ref.added_var is not None:
+            run.reference_var = series_ref.added_var.to(device=plan.device)
     if plan.options.get("refine_reference"):
         offsets = measure_offsets(plan, int(plan.options["refine_reference"]), run.shared,
                                   run=run_plan)
@@ -131,6 +143,8 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
         }
         if offsets is not None:
             info["refine_reference"] = offsets.summary()
+        if series_ref is not None:
+            info["series_reference"] = series_ref.summary()
         if shared is not None:
             info["shared_motion"] = shared.summary()
         if plan.options.get("smoothing"):
@@ -220,6 +234,8 @@ def track(
     overwrite: bool = False,
     callback: Callable[[int, int], None] | None = None,
     refine_reference: bool = False,
+    series_reference: bool | int = False,
+    series_frames: int | None = None,
     refine_frames: int | None = None,
     shared_motion: str | None = "auto",
     strain_window: int | None = 5,
@@ -261,9 +277,8 @@ def track(
             smoothing" baseline).
         lost_zncc: points whose ZNCC falls below this are re-solved with an FFT guess, and a
             solved point still below it is POOR_FIT.
-        checks: the trust checks of :mod:`torch_stsdic.analysis.quality` (model check of every
-        window
-            against the classical solution with shorter windows where the motion is not
+        checks: the trust checks of :mod:`torch_stsdic.analysis.quality` (model check of
+            every window against the classical solution with shorter windows where the motion is not
             affine in time, fit and neighbour checks; default True). False: every converged
             point is reported as such (faster, and as before these checks existed).
         callback: called as ``callback(rows_done, n_rows)`` after each block.
@@ -273,6 +288,12 @@ def track(
             the offsets' spread) subtracted from every row, and the reference's own row set
             to zero displacement (:mod:`torch_stsdic.movie.refine`, ``docs/accuracy.md``). Needs a
             reference that is one series frame and no ``reference_update``.
+        series_reference: measure against a template made from the series
+            (:mod:`torch_stsdic.movie.series_reference`): up to ``series_frames`` frames
+            (default 21) mapped back with their classically measured subset warps and
+            averaged; True for 2 rounds of template and measurement, an integer for that
+            many. Each round costs a classical run of those frames. Not with
+            ``refine_reference`` or ``reference_update``.
         shared_motion: the specimen's per-frame motion carried as a known term in every
             window (:mod:`torch_stsdic.core.shared_motion`): "quadratic", "affine" or
             "translation" per frame, measured by a classical pass at up to 1,000 POIs and
@@ -301,13 +322,23 @@ def track(
                     batch_frames, reference_update=reference_update, smoothing=smoothing,
                     lost_zncc=lost_zncc, checks=checks, scale=scale, unit=unit,
                     time_unit=time_unit, shared_motion=shared_motion)
+    set_reference_mode(plan, refine_reference, refine_frames, series_reference, series_frames)
+    sink = open_sink(plan, out, resume=resume, overwrite=overwrite,
+                     strain_window=strain_window, strain_kind=strain_kind)
+    return run_plan(plan, sink, progress=progress, callback=callback)
+
+
+def set_reference_mode(plan: RunPlan, refine_reference: bool, refine_frames: int | None,
+                       series_reference: bool | int, series_frames: int | None) -> None:
+    """Record the refined reference or the reference made from the series in ``plan``."""
     if refine_reference:
         set_refinement(plan, refine_frames)
     elif refine_frames is not None:
         raise ValueError("refine_frames: only with refine_reference=True")
-    sink = open_sink(plan, out, resume=resume, overwrite=overwrite,
-                     strain_window=strain_window, strain_kind=strain_kind)
-    return run_plan(plan, sink, progress=progress, callback=callback)
+    if series_reference:
+        set_series_reference(plan, series_reference, series_frames)
+    elif series_frames is not None:
+        raise ValueError("series_frames: only with series_reference")
 
 
 def classical_smoothed(series: Any, span: int = 5, **kwargs: Any) -> TrackResult:
