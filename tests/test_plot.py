@@ -248,6 +248,7 @@ def test_stsdic_plot_in_the_recorded_units(tmp_path, monkeypatch):
     assert labels == ["u (um)", "v (um)", "exx (-)", "eyy (-)", "exy (-)"]
     u_map = figs["plot_fields"][0].axes[0].images[-1].get_array()
     assert float(u_map.max()) == pytest.approx(3.0 * 0.5)  # last frame: 3 px = 1.5 um
-    hist = {f.axes[0].get_ylabel(): f.axes[0].get_xlabel() for f in figs["plot_history"]}
+    # the time axis is labelled under the lowest panel (the points each mean rests on)
+    hist = {f.axes[0].get_ylabel(): f.axes[-1].get_xlabel() for f in figs["plot_history"]}
     assert hist["displacement (um)"] == "time (s)" and "velocity (um/s)" in hist
     assert main(["plot", str(path), "--out", str(out), "--animate", "nope"]) == 2

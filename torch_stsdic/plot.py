@@ -17,6 +17,7 @@ that are compared share their limits (``share``). Colour bars are as tall as the
 
 from __future__ import annotations
 
+import textwrap
 from collections.abc import Callable, Collection, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -30,6 +31,7 @@ from matplotlib.ticker import FuncFormatter, MaxNLocator
 from torch_stsdic.analysis.strain import detect_grid
 from torch_stsdic.core.signatures import POSITIONAL, bind, param, signature_like
 from torch_stsdic.core.status import Status
+from torch_stsdic.io.run_record import written_atomically
 from torch_stsdic.io.units import Units
 
 __all__ = [
@@ -79,11 +81,14 @@ def _np(a: Any) -> np.ndarray:
 
 
 def save_figure(fig: Figure, path: str | Path | None, *, dpi: int = 120) -> Figure:
-    """Save ``fig`` to ``path`` (parent folders created) if ``path`` is not None; return ``fig``."""
+    """Save ``fig`` to ``path`` (parent folders created) if ``path`` is not None; return ``fig``.
+    The file is written whole or not at all (a full disk leaves no truncated PNG and raises
+    an OSError naming ``path``)."""
     if path is not None:
         p = Path(path)
         p.parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(p, dpi=dpi, bbox_inches="tight")
+        with written_atomically(p) as tmp:
+            fig.savefig(tmp, dpi=dpi, bbox_inches="tight")
     return fig
 
 
@@ -171,27 +176,15 @@ def _draw_field(
         z = np.ma.masked_invalid(grid.to_image(values.astype(np.float64)))
         x1 = grid.x0 + (grid.nx - 1) * grid.sx
         y1 = grid.y0 + (grid.ny - 1) * grid.sy
-        extent = (
-            grid.x0 - grid.sx / 2,
-            x1 + grid.sx / 2,
-            y1 + grid.sy / 2,
-            grid.y0 - grid.sy / 2,
-        )
-        mappable = ax.imshow(
-            z, cmap=cmap, norm=norm, alpha=alpha, extent=extent, interpolation="nearest"
-        )
+        extent = (grid.x0 - grid.sx / 2, x1 + grid.sx / 2, y1 + grid.sy / 2,
+                  grid.y0 - grid.sy / 2)
+        mappable = ax.imshow(z, cmap=cmap, norm=norm, alpha=alpha, extent=extent,
+                             interpolation="nearest")
     else:
         fin = np.isfinite(values)
-        mappable = ax.scatter(
-            points[fin, 0],
-            points[fin, 1],
-            c=values[fin],
-            cmap=cmap,
-            norm=norm,
-            alpha=alpha,
-            s=marker_size if marker_size is not None else 12.0,
-            linewidths=0,
-        )
+        mappable = ax.scatter(points[fin, 0], points[fin, 1], c=values[fin], cmap=cmap,
+                              norm=norm, alpha=alpha, linewidths=0,
+                              s=marker_size if marker_size is not None else 12.0)
     if image is not None:
         ax.set_xlim(-0.5, w - 0.5)
         ax.set_ylim(h - 0.5, -0.5)
@@ -266,17 +259,9 @@ def plot_field(
         ax = fig.add_subplot()
     else:
         fig = ax.get_figure()
-    m = _draw_field(
-        ax,
-        image,
-        p,
-        v,
-        cmap=cmap,
-        alpha=alpha,
-            norm=norm if norm is not None else _norm(v, vmin, vmax, symmetric),
-        marker_size=marker_size,
-        units=units,
-    )
+    m = _draw_field(ax, image, p, v, cmap=cmap, alpha=alpha, marker_size=marker_size,
+                    norm=norm if norm is not None else _norm(v, vmin, vmax, symmetric),
+                    units=units)
     cb = colorbar(fig, ax, m)
     if label:
         cb.set_label(label)
@@ -384,21 +369,13 @@ def plot_fields(
             sym.update({nm: shared for nm in names})
     for ax, (name, vals) in zip(axes, fields.items()):
         default = units.label(name) if units.dims(name) is not None else None
-        plot_field(
-            image,
-            pts,
-            vals,
-            title=name,
-            ax=ax,
-            alpha=alpha,
-            symmetric=sym[name],
-            norm=norms.get(name),
-            cmap=diverging_cmap if sym[name] else cmap,
-            label=labels.get(name) or default or FIELD_LABELS.get(name, name),
-            units=units,
-        )
-        if notes and notes.get(name):
-            ax.set_title(f"{name}\n{notes[name]}", fontsize=9)
+        plot_field(image, pts, vals, title=name, ax=ax, alpha=alpha, symmetric=sym[name],
+                   norm=norms.get(name), cmap=diverging_cmap if sym[name] else cmap,
+                   label=labels.get(name) or default or FIELD_LABELS.get(name, name),
+                   units=units)
+        if notes and notes.get(name):  # wrapped to the panel's width (not over the next bar)
+            chars = max(12, int((size[0] / ncols - 1.0) * 72 / (9 * 0.6)))  # 9 pt font
+            ax.set_title(f"{name}\n" + textwrap.fill(notes[name], chars), fontsize=9)
     for ax in axes[n:]:
         fig.delaxes(ax)
     if suptitle:
@@ -465,29 +442,44 @@ def plot_xy(
     ax: Axes | None = None,
     path: str | Path | None = None,
     dpi: int = 120,
+    counts: Any = None,
+    min_count: float = 0.0,
+    count_label: str = "points",
 ) -> Figure:
     """Line plot of several series against one x (validation curves: error vs sigma, vs m ...).
 
     ``x`` (K,); ``series`` label -> (K,) values (NaN = gap). A legend is drawn when there is
-    more than one series or a non-empty label.
+    more than one series or a non-empty label. ``counts`` (K,): how many points each value
+    (an aggregate, e.g. a mean over points) rests on, drawn in a panel below (``count_label``
+    on its axis); values resting on fewer than ``min_count`` are left out (a gap, not a line).
     """
     xs = _np(x).astype(np.float64)
+    n = None if counts is None else _np(counts).astype(np.float64)
+    if n is not None and n.shape != xs.shape:
+        raise ValueError(f"counts has shape {n.shape}, x has {xs.shape}")
+    below = n is not None and ax is None  # the counts get their own panel
     if ax is None:
         tall = 4.0 + (0.3 * (-(-len(series) // 2)) + 0.3 if len(series) > 2 else 0.0)
-        fig = Figure(figsize=(6.4, tall), layout="constrained")
-        ax = fig.add_subplot()
+        fig = Figure(figsize=(6.4, tall + (1.6 if below else 0.0)), layout="constrained")
+        if n is None:
+            ax = fig.add_subplot()
+        else:
+            ax, cax = fig.subplots(2, 1, sharex=True, height_ratios=(tall, 1.6))
+            _draw_counts(cax, xs, n, min_count, count_label, xlabel)
     else:
         fig = ax.get_figure()
     for name, y in series.items():
         yv = _np(y).astype(np.float64)
         if yv.shape != xs.shape:
             raise ValueError(f"series {name!r} has shape {yv.shape}, x has {xs.shape}")
+        if n is not None:
+            yv = np.where(n >= min_count, yv, np.nan)
         ax.plot(xs, yv, marker=marker, label=name)
     if logx:
         ax.set_xscale("log")
     if logy:
         ax.set_yscale("log")
-    ax.set_xlabel(xlabel)
+    ax.set_xlabel("" if below else xlabel)  # under the counts' panel instead
     ax.set_ylabel(ylabel)
     if title:
         ax.set_title(title)
@@ -498,6 +490,23 @@ def plot_xy(
     elif len(series) > 1 or any(series):
         ax.legend()
     return save_figure(fig, path, dpi=dpi)
+
+
+def _draw_counts(ax: Axes, xs: np.ndarray, n: np.ndarray, min_count: float, label: str,
+                 xlabel: str) -> None:
+    """The panel under an aggregate: how many points each value rests on, the threshold
+    below which it is left out, and those values marked."""
+    ax.plot(xs, n, marker=".", color="0.3")
+    low = n < min_count
+    if min_count > 0:
+        ax.axhline(min_count, color="#d73027", linestyle="--", linewidth=1,
+                   label=f"fewer than {min_count:g}: left out")
+        ax.plot(xs[low], n[low], "x", color="#d73027")
+        ax.legend(fontsize=7, loc="best")
+    ax.set_ylim(0, max(float(np.nanmax(n, initial=0.0)), min_count, 1.0) * 1.1)
+    ax.set_ylabel(label, fontsize=8)
+    ax.set_xlabel(xlabel)
+    ax.grid(True, alpha=0.3)
 
 
 def plot_history(*args: Any, **kwargs: Any) -> Figure:
@@ -570,7 +579,7 @@ def plot_error_vs_noise(*args: Any, **kwargs: Any) -> Figure:
 _NOISE_PLOT_SIGNATURE = signature_like(
     plot_xy, replace={"x": param("sigmas", kind=POSITIONAL),
                       "series": param("errors", annotation="Mapping[str, Any]", kind=POSITIONAL)},
-    drop=["logx", "marker", "ax"],
+    drop=["logx", "marker", "ax", "counts", "min_count", "count_label"],
     defaults={"ylabel": "RMS error (px)", "xlabel": "noise sigma (grey levels)"})
 plot_error_vs_noise.__signature__ = _NOISE_PLOT_SIGNATURE  # type: ignore[attr-defined]
 
@@ -670,5 +679,6 @@ def animate_field(
         out = out.with_suffix(".gif")
         writer = animation.PillowWriter(fps=fps)
     anim = animation.FuncAnimation(fig, draw, frames=n_rows, blit=False)
-    anim.save(out, writer=writer, dpi=dpi)
+    with written_atomically(out) as tmp:
+        anim.save(tmp, writer=writer, dpi=dpi)
     return out

@@ -5,14 +5,20 @@ Every export converts the stored pixel values into the calibration the file reco
 (:mod:`torch_stsdic.io.units`: lengths times ``scale``, velocities in unit per time unit,
 strains unchanged) and carries every (F, N) field of the file, whatever its name (new fields,
 such as predicted uncertainties ``u_std``, come through with their unit).
+
+Every file is written whole or not at all (``io.run_record.written_atomically``: a
+temporary file beside it, renamed when complete): a full disk leaves no truncated file and
+raises a ``WriteError`` naming the file, whose ``written`` lists the files that this export
+finished before it.
 """
 
 from __future__ import annotations
 
 import base64
+import contextlib
 import json
 import os
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 from xml.sax.saxutils import quoteattr
@@ -22,6 +28,7 @@ import numpy as np
 
 from torch_stsdic.core.status import Status
 from torch_stsdic.io.results import CSV_COLUMNS, field_names, open_results
+from torch_stsdic.io.run_record import WriteError, written_atomically
 from torch_stsdic.io.units import Units, units_of
 
 __all__ = ["FORMATS", "export_csv", "export_mat", "export_results", "export_vtk"]
@@ -151,14 +158,12 @@ def export_csv(
             target.parent.mkdir(parents=True, exist_ok=True)
             vals = _row_values(f, r, columns, units, pts)
             cols = [_fmt(a, "%d" if a.dtype.kind in "iub" else "%.9g") for a in vals.values()]
-            with open(target, "w", encoding="utf-8", newline="") as fh:
-                if comment:
-                    fh.write(
-                        f"# torch_stsdic results {p.name}: frame={fr} time={t!r} row={r} "
-                        f"completed={bool(completed[r])} unit={units.unit} "
-                        f"time_unit={units.time_unit}\n"
-                    )
-                fh.write(",".join(columns) + "\n")
+            head = (f"# torch_stsdic results {p.name}: frame={fr} time={t!r} row={r} "
+                    f"completed={bool(completed[r])} unit={units.unit} "
+                    f"time_unit={units.time_unit}\n") if comment else ""
+            with _keeping(written), written_atomically(target) as tmp, \
+                    open(tmp, "w", encoding="utf-8", newline="") as fh:
+                fh.write(head + ",".join(columns) + "\n")
                 for line in zip(*cols):
                     fh.write(",".join(line) + "\n")
             written.append(target)
@@ -167,8 +172,19 @@ def export_csv(
         if sidecar and written:
             meta = {**_describe(f, p, units, columns), "files": listing}
             side = written[0].parent / f"{p.stem}_csv.json"
-            side.write_text(json.dumps(meta, indent=1) + "\n", encoding="utf-8")
+            with _keeping(written), written_atomically(side) as tmp:
+                tmp.write_text(json.dumps(meta, indent=1) + "\n", encoding="utf-8")
     return written
+
+
+@contextlib.contextmanager
+def _keeping(written: list[Path]) -> Iterator[None]:
+    """A :class:`WriteError` inside the block lists the files finished before it."""
+    try:
+        yield
+    except WriteError as exc:
+        exc.written = list(written)  # type: ignore[attr-defined]
+        raise
 
 
 # ----------------------------------------------------------------------------------------
@@ -240,7 +256,8 @@ def write_vtu(path: Path, points: np.ndarray, point_data: dict[str, np.ndarray],
         "<PointData>", *arrays, "</PointData>",
         "</Piece>", "</UnstructuredGrid>", "</VTKFile>", "",
     ])  # fmt: skip
-    path.write_text(text, encoding="ascii")
+    with written_atomically(path) as tmp:
+        tmp.write_text(text, encoding="ascii")
 
 
 def export_vtk(path_h5: str | os.PathLike[str], out_dir: str | os.PathLike[str],
@@ -269,7 +286,8 @@ def export_vtk(path_h5: str | os.PathLike[str], out_dir: str | os.PathLike[str],
                     vals[vec] = np.column_stack([vals[a], vals[b], np.zeros_like(vals[a])])
             fr = int(f["frames"][r])
             target = out / f"{p.stem}_frame{fr:05d}.vtu"
-            write_vtu(target, xy, vals, cells)
+            with _keeping(written):
+                write_vtu(target, xy, vals, cells)
             written.append(target)
             steps.append((float(f["times"][r]), target.name))
     pvd = out / f"{p.stem}.pvd"
@@ -279,7 +297,8 @@ def export_vtk(path_h5: str | os.PathLike[str], out_dir: str | os.PathLike[str],
     lines += [f'<DataSet timestep="{t!r}" group="" part="0" file={quoteattr(n)}/>'
               for t, n in steps]  # fmt: skip
     lines += ["</Collection>", "</VTKFile>", ""]
-    pvd.write_text("\n".join(lines), encoding="utf-8")
+    with _keeping(written), written_atomically(pvd) as tmp:
+        tmp.write_text("\n".join(lines), encoding="utf-8")
     return [*written, pvd]
 
 
@@ -318,7 +337,8 @@ def export_mat(path_h5: str | os.PathLike[str], out_dir: str | os.PathLike[str],
             status_codes={s.name.lower(): int(s) for s in Status},
         )  # fmt: skip
     target = out / f"{p.stem}.mat"
-    savemat(target, data, do_compression=True, oned_as="row")
+    with written_atomically(target) as tmp:
+        savemat(tmp, data, do_compression=True, oned_as="row")
     return [target]
 
 

@@ -9,7 +9,7 @@ import numpy as np
 
 from torch_stsdic.cli import options
 from torch_stsdic.cli.common import check_folder, span
-from torch_stsdic.cli.errors import CommandError, UsageError
+from torch_stsdic.cli.errors import CommandError, UsageError, one_line
 
 NAME = "export"
 HELP = "write a result file as CSV (one file per frame), VTK (ParaView) or MATLAB .mat"
@@ -113,7 +113,13 @@ def execute(args: argparse.Namespace) -> int:
     folder = Path(args.out).parent if "{" in args.out else Path(args.out)
     check_folder(folder, f"--out {args.out}")
     kw = {"comment": args.comment} if args.format == "csv" else {}
-    written = export_results(args.result, args.out, args.format, frames, **kw)
+    try:
+        written = export_results(args.result, args.out, args.format, frames, **kw)
+    except OSError as exc:  # a full disk: the file named, none left half-written
+        done = getattr(exc, "written", None)
+        kept = (f"; the {len(done)} file(s) finished before it are whole ({done[0].name} ..)"
+                if done else "; no file was left half-written")
+        raise CommandError(f"{one_line(exc)}{kept}") from None
     frame_files = [w for w in written if w.suffix in (".csv", ".vtu")]
     if args.format != "mat" and not frame_files:
         print(f"no finished frame in {args.result}: nothing written")

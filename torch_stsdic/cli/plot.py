@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import warnings
 from collections.abc import Callable
 from pathlib import Path
@@ -23,7 +24,9 @@ Draw a result file as PNG files in DIR, in the units the run recorded ('stsdic r
 --scale 0.02 --unit mm': lengths in mm; px without a scale):
   fields_frameNNNNN.png    maps of the chosen fields at one frame over the image
   quality_frameNNNNN.png   status of every point and its ZNCC at that frame
-  history_mean.png         time history of u, v averaged over the usable points
+  history_mean.png         time history of u, v averaged over the usable points, with
+                           how many points each frame's mean rests on (left out, a gap,
+                           where fewer than 10 % of the points, or 20, are usable)
   history_xX_yY.png        ... or of the point nearest to (X, Y) with --point
   velocity_history_*.png   the same for ut, vt (STS-DIC results, m >= 1)
   strain_history_*.png     the same for exx, eyy, exy (when the file has strains)
@@ -33,7 +36,9 @@ Every colour bar and axis names its quantity and unit. Displacements use a seque
 colour map with robust limits (0.5-99.5 percentiles of the usable points), strains,
 gradients and errors a diverging one centred on 0 when their values have both signs (else
 the sequential one on their range). Unusable points (status not converged/max-iter, or
-ZNCC below --min-zncc) are not drawn: the image shows through.
+ZNCC below --min-zncc) are not drawn: the image shows through. A file whose run has not
+finished (stopped, killed, a full disk) says so in every figure's title and in the
+summary; its 'last' frame is the last finished one other than the reference.
 """
 
 EPILOG = """\
@@ -101,12 +106,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _row(args: argparse.Namespace, res: Any) -> int:
-    """Row of the result file that ``--frame`` names."""
+    """Row of the result file that ``--frame`` names; 'last' is the last finished frame
+    other than the reference (whose displacement is zero by definition)."""
     if args.frame == "last":
         done = np.flatnonzero(res.completed)
         if not done.size:
-            raise CommandError(f"{args.result}: no finished frame to plot")
-        return int(done[-1])
+            raise CommandError(f"{args.result}: no finished frame to plot"
+                               f"{_continue_hint(res)}")
+        refs = _reference_frames(res)
+        moved = [r for r in done if int(res.frames[r]) not in refs]
+        if not moved and not res.completed.all():
+            raise CommandError(
+                f"{args.result}: only the reference frame is finished ({incomplete(res)}): "
+                f"nothing to map yet{_continue_hint(res)}")
+        return int(moved[-1] if moved else done[-1])
     try:
         fr = int(args.frame)
     except ValueError:
@@ -152,14 +165,34 @@ def _valid(args: argparse.Namespace, res: Any) -> np.ndarray:
     return valid
 
 
-def _reference_frame(res: Any, n: int) -> int:
-    """The run's reference frame (the first one of an averaged reference), else 0."""
+def _reference_frames(res: Any) -> set[int]:
+    """The series frames the run's reference is made of (one, or those averaged)."""
     ref = (res.config.get("track") or {}).get("reference", 0)
     try:
-        k = int(ref)
+        return {int(ref)}
     except (TypeError, ValueError):  # "mean:0,1,2" or "array:..."
-        k = int(str(ref).split(":")[-1].split(",")[0]) if "mean:" in str(ref) else 0
+        if "mean:" not in str(ref):
+            return set()
+        return {int(k) for k in str(ref).split(":")[-1].split(",") if k.strip().isdigit()}
+
+
+def _reference_frame(res: Any, n: int) -> int:
+    """The run's reference frame (the first one of an averaged reference), else 0."""
+    k = min(_reference_frames(res), default=0)
     return k if 0 <= k < n else 0
+
+
+def incomplete(res: Any) -> str | None:
+    """'incomplete: 3 of 12 frames finished' for a file whose run has not finished (killed,
+    stopped, a full disk), else None."""
+    done, n = int(np.count_nonzero(res.completed)), len(res.completed)
+    return None if done == n else f"incomplete: {done} of {n} frames finished"
+
+
+def _continue_hint(res: Any) -> str:
+    """How to finish an interrupted run."""
+    return ("; finish the run with the same 'stsdic run' command and --resume"
+            if incomplete(res) else "")
 
 
 def _background(args: argparse.Namespace, res: Any) -> np.ndarray | None:
@@ -245,49 +278,73 @@ def _nearest_point(args: argparse.Namespace, res: Any) -> int:
     return k
 
 
-def _history_pick(
-    args: argparse.Namespace, res: Any, valid: np.ndarray
-) -> tuple[Callable[[np.ndarray], np.ndarray], str, str]:
-    """(F, N) values -> (F,) history of ``--point`` or of the mean; its title and file tag."""
+#: a frame's mean over points is left out (a gap) where it rests on fewer than this share of
+#: the file's points or fewer than MIN_POINTS (half the points in a file of fewer than 40)
+MIN_SHARE, MIN_POINTS = 0.10, 20
+
+
+def min_points(n_points: int) -> int:
+    """The fewest usable points a frame's mean rests on before it is drawn."""
+    return max(1, math.ceil(MIN_SHARE * n_points), min(MIN_POINTS, math.ceil(n_points / 2)))
+
+
+def _history_pick(args: argparse.Namespace, res: Any, valid: np.ndarray
+                  ) -> tuple[Callable[[np.ndarray], tuple[np.ndarray, np.ndarray | None]], str,
+                             str]:
+    """(F, N) values -> ((F,) history of ``--point`` or of the mean, (F,) points it rests
+    on or None); its title and file tag."""
     if args.point is None:
 
-        def mean(a: np.ndarray) -> np.ndarray:
+        def mean(a: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
             vals = np.where(valid, np.asarray(a, dtype=np.float64), np.nan)
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)
-                return np.nanmean(vals, axis=1)
+                return np.nanmean(vals, axis=1), np.isfinite(vals).sum(axis=1)
 
         return mean, "mean over usable points", "mean"
     k = _nearest_point(args, res)
     px, py = res.points[k]
 
-    def point(a: np.ndarray) -> np.ndarray:
-        return np.where(valid[:, k], np.asarray(a[:, k], dtype=np.float64), np.nan)
+    def point(a: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        return np.where(valid[:, k], np.asarray(a[:, k], dtype=np.float64), np.nan), None
 
     return point, f"point {k} at ({px:g}, {py:g})", f"x{px:g}_y{py:g}"
 
 
-def _plot_histories(args: argparse.Namespace, res: Any, valid: np.ndarray, out: Path) -> list[Path]:
-    """The time-history PNGs that have data; their paths."""
+def _plot_histories(args: argparse.Namespace, res: Any, valid: np.ndarray, out: Path
+                    ) -> tuple[list[Path], list[str]]:
+    """The time-history PNGs that have data, their paths, and what the summary says of the
+    frames left out of the means."""
     from torch_stsdic.plot import plot_history
 
     pick, what, tag = _history_pick(args, res, valid)
     done = res.completed.astype(bool)
-    units = res.units
-    written = []
+    units, need = res.units, min_points(res.n_points)
+    name, note = Path(args.result).name, incomplete(res)
+    written, lines = [], []
     for keys, quantity, prefix in HISTORIES:
-        curves = {}
+        curves, counts = {}, None
         for key in (k for k in keys if k in res.fields):
-            vals = np.where(done, pick(units.convert(key, res.fields[key])), np.nan)
-            if np.isfinite(vals).any():
-                curves[key] = vals
-        if curves:
-            path = out / f"{prefix}_{tag}.png"
-            plot_history(res.times, curves, ylabel=units.label(next(iter(curves)), quantity),
-                         xlabel=units.time_label, title=f"{Path(args.result).name}: {what}",
-                         path=path, dpi=args.dpi)  # fmt: skip
-            written.append(path)
-    return written
+            vals, n = pick(units.convert(key, res.fields[key]))
+            if np.isfinite(vals[done]).any():
+                curves[key] = np.where(done, vals, np.nan)
+                counts = n if counts is None else np.minimum(counts, n)
+        if not curves:
+            continue
+        path = out / f"{prefix}_{tag}.png"
+        title = f"{name}: {what}" + (f" ({note})" if note else "")
+        kw = {}
+        if counts is not None:
+            kw = {"counts": np.where(done, counts, np.nan), "min_count": need,
+                  "count_label": f"usable points\n(of {res.n_points})"}
+            gone = [int(f) for f, c in zip(res.frames[done], counts[done]) if c < need]
+            if gone:
+                lines.append(f"{path.name}: frame(s) {span(gone)} left out, the mean there "
+                             f"resting on fewer than {need} of {res.n_points} points")
+        plot_history(res.times, curves, ylabel=units.label(next(iter(curves)), quantity),
+                     xlabel=units.time_label, title=title, path=path, dpi=args.dpi, **kw)
+        written.append(path)
+    return written, lines
 
 
 def _plot_shared_motion(args: argparse.Namespace, res: Any, out: Path) -> list[Path]:
@@ -318,7 +375,7 @@ def velocity_note(m_row: np.ndarray, valid_row: np.ndarray) -> str | None:
     if share == 0.0:
         return None
     pct = f"{share:.0f}" if share >= 1.0 else f"{share:.1f}"
-    return f"blank at {pct} %: classical there (no window fits the motion or stays in view)"
+    return f"blank at {pct} % of the points: classical there (no window fits the motion)"
 
 
 def _velocity_notes(res: Any, row: int, valid: np.ndarray, names: list[str]) -> dict[str, str]:
@@ -334,6 +391,12 @@ def _calibration(res: Any) -> str:
     """'lengths in mm (0.02 mm/px)' or 'lengths in px' for the figures' titles."""
     u = res.units
     return "lengths in px" if u.scale is None else f"lengths in {u.unit} ({u.scale:g} {u.unit}/px)"
+
+
+def _flag(res: Any) -> str:
+    """A second title line for a file whose run has not finished, else ''."""
+    note = incomplete(res)
+    return f"\n{note.upper()} (the run was interrupted)" if note else ""
 
 
 def _when(res: Any, row: int) -> str:
@@ -361,8 +424,8 @@ def _plot_frame(args: argparse.Namespace, res: Any, row: int, valid: np.ndarray,
             maps[nm] = vals if nm == "status" else np.where(valid[row], vals, np.nan)
         path = out / f"fields_frame{frame:05d}.png"
         plot_fields(image, res.points, maps, path, dpi=args.dpi, units=units,
-                    suptitle=f"{name}: {when}, {_calibration(res)}; unusable points not drawn",
-                    notes=_velocity_notes(res, row, valid, names))
+                    suptitle=f"{name}: {when}, {_calibration(res)}; unusable points not drawn"
+                    + _flag(res), notes=_velocity_notes(res, row, valid, names))
         written.append(path)
     if "status" in res.fields:
         from matplotlib.figure import Figure
@@ -381,7 +444,7 @@ def _plot_frame(args: argparse.Namespace, res: Any, row: int, valid: np.ndarray,
             z = np.where(np.isfinite(zn[row]), zn[row], np.nan)
             plot_field(image, res.points, z, ax=axes[1], title="ZNCC", label="ZNCC (-)",
                        vmax=1.0, units=units)  # fmt: skip
-        fig.suptitle(f"{name}: quality at {when}")
+        fig.suptitle(f"{name}: quality at {when}{_flag(res)}")
         path = out / f"quality_frame{frame:05d}.png"
         save_figure(fig, path, dpi=args.dpi)
         written.append(path)
@@ -439,11 +502,17 @@ def execute(args: argparse.Namespace) -> int:
     valid = _valid(args, res)
     image = _background(args, res)
     out.mkdir(parents=True, exist_ok=True)
+    note = incomplete(res)
+    if note:
+        print(f"{args.result}: {note} (the run was interrupted){_continue_hint(res)}; the "
+              "figures say so")
     written = _plot_frame(args, res, row, valid, image, out)
-    written += _plot_histories(args, res, valid, out)
-    written += _plot_shared_motion(args, res, out)
+    paths, lines = _plot_histories(args, res, valid, out)
+    written += paths + _plot_shared_motion(args, res, out)
     if args.animate is not None:
         written.append(_animate(args, res, valid, out))
     for path in written:
         print(f"wrote {path}")
+    for line in lines:
+        print(line)
     return 0

@@ -9,10 +9,14 @@ finished one. This module is the only one that knows the file layout.
 
 from __future__ import annotations
 
+import contextlib
+import errno
+import io
 import json
 import os
+import shutil
 import warnings
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -22,14 +26,17 @@ import numpy as np
 
 from torch_stsdic.core.status import Status
 from torch_stsdic.io.run_record import (
+    OS_REASONS,
+    WriteError,
     as_numpy,
     chunks,
     config_json,
     creation_properties,
     diff_config,
+    is_io_error,
     now_stamp,
-    os_reason,
     software_version,
+    write_error,
 )
 from torch_stsdic.io.units import Units, units_of
 
@@ -79,6 +86,8 @@ CSV_COLUMNS: tuple[str, ...] = (
 #: run-level arrays (not (F, N) fields) a result file may hold, by dataset name
 RUN_ARRAYS = ("shared_motion",)
 _RESERVED = {"points", "frames", "times", "completed", *RUN_ARRAYS}
+#: result files up to this size (bytes) are made in memory and written in one piece
+SKELETON_IN_MEMORY = 256 << 20
 _INT_FIELDS: dict[str, tuple[type, int]] = {
     "status": (np.int8, int(Status.NOT_COMPUTED)),
     "iterations": (np.int16, -1),
@@ -220,55 +229,84 @@ class ResultWriter(_FieldShape):
         """Write the file's skeleton (attributes, every dataset allocated and filled) under a
         temporary name, then rename it to ``target``: a process killed meanwhile leaves no
         half-made file. Writing rows later changes no HDF5 metadata (see
-        :func:`creation_properties`), so
-        a SIGKILL at any moment leaves a file that opens and resumes."""
+        :func:`creation_properties`), so a SIGKILL at any moment leaves a file that opens and
+        resumes. The free space is checked first: HDF5 meeting a full disk half-way gives
+        paragraphs of errors (and can crash the interpreter when it exits)."""
         if mode == "x" and target.exists():
             raise FileExistsError(f"result file {target} exists")
         target.parent.mkdir(parents=True, exist_ok=True)
+        self._check_space(target)
         tmp = target.with_name(target.name + ".creating")
-        f = h5py.File(tmp, "w")
+        f = None
         try:
-            f.attrs["format"] = RESULTS_FORMAT
-            f.attrs["version"] = RESULTS_FORMAT_VERSION
-            f.attrs["software_version"] = software_version()
-            f.attrs["created"] = now_stamp()
-            f.attrs["config"] = config_json(self.config)
-            f.attrs["inputs"] = json.dumps(self.inputs)
-            f.attrs["fields"] = json.dumps(list(self.fields + self.extra_fields))
-            f.attrs["status_codes"] = Status.describe()
-            for k, v in self._attrs.items():
-                f.attrs[k] = v
-            n_f, n_p = self.n_rows, self.n_points
-            f.create_dataset("points", data=self.points)
-            f.create_dataset("frames", data=self.frames)
-            f.create_dataset("times", data=self.times)
-            for name in self.fields + self.extra_fields:
-                dt, fill = _field_dtype(name)
-                f.create_dataset(
-                    name,
-                    shape=(n_f, n_p),
-                    dtype=dt,
-                    fillvalue=fill,
-                    chunks=chunks(n_f, n_p, np.dtype(dt).itemsize),
-                    dcpl=creation_properties(),
-                )
-            f.create_dataset("completed", data=np.zeros(n_f, dtype=bool))
-            f.close()
+            if self.file_size() <= SKELETON_IN_MEMORY:  # HDF5 never meets the disk here
+                image = io.BytesIO()
+                with h5py.File(image, "w") as mem:
+                    self._write_skeleton(mem)
+                with open(tmp, "wb") as fh:
+                    fh.write(image.getbuffer())
+            else:
+                f = h5py.File(tmp, "w")
+                self._write_skeleton(f)
+                f.close()
             os.replace(tmp, target)
         except BaseException as exc:
-            try:
-                f.close()
-            except Exception:  # noqa: BLE001 - a full disk fails the close too
-                pass
+            if f is not None:
+                with contextlib.suppress(Exception):  # a full disk fails the close too
+                    f.close()
+                f = None  # not kept alive by the error's traceback
             tmp.unlink(missing_ok=True)
-            if isinstance(exc, OSError) or (isinstance(exc, Exception)
-                                            and "errno =" in str(exc)):
-                code = getattr(exc, "errno", None)
-                raise OSError(code, f"cannot create the result file {target}: "
-                                    f"{os_reason(exc)}") from exc
+            if is_io_error(exc):
+                raise write_error(target, exc, "create the result file") from None
             raise
         self._file = h5py.File(target, "r+")
         self._target = target
+
+    def _write_skeleton(self, f: h5py.File) -> None:
+        """The attributes and every dataset, allocated and filled (see :meth:`_create`)."""
+        f.attrs["format"] = RESULTS_FORMAT
+        f.attrs["version"] = RESULTS_FORMAT_VERSION
+        f.attrs["software_version"] = software_version()
+        f.attrs["created"] = now_stamp()
+        f.attrs["config"] = config_json(self.config)
+        f.attrs["inputs"] = json.dumps(self.inputs)
+        f.attrs["fields"] = json.dumps(list(self.fields + self.extra_fields))
+        f.attrs["status_codes"] = Status.describe()
+        for k, v in self._attrs.items():
+            f.attrs[k] = v
+        n_f, n_p = self.n_rows, self.n_points
+        f.create_dataset("points", data=self.points)
+        f.create_dataset("frames", data=self.frames)
+        f.create_dataset("times", data=self.times)
+        for name in self.fields + self.extra_fields:
+            dt, fill = _field_dtype(name)
+            f.create_dataset(name, shape=(n_f, n_p), dtype=dt, fillvalue=fill,
+                             chunks=chunks(n_f, n_p, np.dtype(dt).itemsize),
+                             dcpl=creation_properties())
+        f.create_dataset("completed", data=np.zeros(n_f, dtype=bool))
+
+    def file_size(self) -> int:
+        """Bytes the result file takes on disk, estimated from above (every dataset is
+        allocated when the file is made: whole chunks, plus HDF5's headers)."""
+        n_f, n_p = self.n_rows, self.n_points
+        size = (32 << 10) + len(config_json(self.config)) + 8 * n_f * 3 + 16 * n_p
+        for name in self.fields + self.extra_fields:
+            item = np.dtype(_field_dtype(name)[0]).itemsize
+            ch = chunks(n_f, n_p, item) or (1, 1)
+            size += (4 << 10) + (-(-n_f // ch[0]) * ch[0]) * (-(-n_p // ch[1]) * ch[1]) * item
+        return size
+
+    def _check_space(self, target: Path) -> None:
+        """OSError (ENOSPC) naming ``target`` when its folder has not room for the file."""
+        try:
+            free = shutil.disk_usage(target.parent).free
+        except OSError:  # not measurable here: HDF5 will say
+            return
+        need = self.file_size()
+        if free < need:
+            raise WriteError(errno.ENOSPC, f"cannot create the result file {target}: "
+                             f"{OS_REASONS[errno.ENOSPC]}: it needs {_size(need)}, "
+                             f"{_size(free)} free")
 
     def _check_match(self, f: h5py.File, where: Path) -> list[tuple[str, str]]:
         """What keeps ``f`` from being continued by this writer: (what, text) pairs."""
@@ -409,14 +447,23 @@ class ResultWriter(_FieldShape):
                 f["completed"][srows] = True
                 f.flush()
         except (OSError, ValueError, RuntimeError) as exc:
-            if isinstance(exc, OSError) or "errno =" in str(exc):  # HDF5's I/O failures
-                raise self._write_error(exc) from exc
+            if is_io_error(exc):  # HDF5's I/O failures
+                raise self._write_error(exc) from None
             raise
 
     def _write_error(self, exc: BaseException) -> OSError:
         """``exc`` (from HDF5: a full disk, a lost device ...) as an OSError naming the file."""
-        return OSError(getattr(exc, "errno", None),
-                       f"cannot write the result file {self._target}: {os_reason(exc)}")
+        return write_error(self._target, exc, "write the result file")
+
+    @contextlib.contextmanager
+    def _writing(self) -> Iterator[None]:
+        """HDF5's I/O failures inside the block as one OSError naming the file."""
+        try:
+            yield
+        except (OSError, ValueError, RuntimeError) as exc:
+            if is_io_error(exc):
+                raise self._write_error(exc) from None
+            raise
 
     def read_rows(self, first: int, last: int,
                   fields: Sequence[str] | None = None) -> dict[str, np.ndarray]:
@@ -428,8 +475,9 @@ class ResultWriter(_FieldShape):
     def add_fields(self, values: Mapping[str, Any], attrs: Mapping[str, Any] | None = None
                    ) -> None:
         """Add or replace (F, N) float fields (e.g. strains) and root attributes."""
-        _add_fields(self._h5(), values, attrs)
-        self._h5().flush()
+        with self._writing():
+            _add_fields(self._h5(), values, attrs)
+            self._h5().flush()
 
     def write_array(self, name: str, values: Any, attrs: Mapping[str, Any] | None = None
                     ) -> None:
@@ -439,12 +487,13 @@ class ResultWriter(_FieldShape):
         if name not in RUN_ARRAYS:
             raise ValueError(f"{name!r} is not a run-level array ({RUN_ARRAYS})")
         f = self._h5()
-        if name in f:
-            del f[name]
-        ds = f.create_dataset(name, data=np.asarray(values, dtype=np.float64))
-        for k, v in (attrs or {}).items():
-            ds.attrs[k] = v if isinstance(v, (str, int, float, bool)) else json.dumps(v)
-        f.flush()
+        with self._writing():
+            if name in f:
+                del f[name]
+            ds = f.create_dataset(name, data=np.asarray(values, dtype=np.float64))
+            for k, v in (attrs or {}).items():
+                ds.attrs[k] = v if isinstance(v, (str, int, float, bool)) else json.dumps(v)
+            f.flush()
 
     def attrs(self) -> dict[str, Any]:
         """The file's root attributes (a copy)."""
@@ -541,6 +590,14 @@ class Results(_FieldShape):
         if not hits.size:
             raise KeyError(f"frame {frame} is not in {self.path}")
         return int(hits[0])
+
+
+def _size(n: int) -> str:
+    """Bytes for people: '140 kB', '2.1 GB'."""
+    for unit, k in (("GB", 1e9), ("MB", 1e6), ("kB", 1e3)):
+        if n >= k:
+            return f"{n / k:.3g} {unit}"
+    return f"{n} bytes"
 
 
 def open_results(path: Path) -> h5py.File:

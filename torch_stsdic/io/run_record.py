@@ -5,11 +5,13 @@ for the OS errors a write can meet."""
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 import errno
 import json
+import os
 import re
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -18,7 +20,8 @@ import numpy as np
 import torch
 
 __all__ = ["software_version", "now_stamp", "json_default", "config_json", "as_numpy", "chunks",
-           "OS_REASONS", "os_reason", "creation_properties", "flat_config", "diff_config"]
+           "OS_REASONS", "os_reason", "WriteError", "write_error", "written_atomically",
+           "creation_properties", "flat_config", "diff_config"]
 
 
 def software_version() -> str:
@@ -82,7 +85,54 @@ def os_reason(exc: BaseException) -> str:
     if code is None:  # HDF5 puts the number in the text: "errno = 28"
         m = re.search(r"errno = (\d+)", text)
         code = int(m.group(1)) if m else None
-    return OS_REASONS.get(code, text) if code is not None else text
+    if code in OS_REASONS:
+        return OS_REASONS[code]
+    strerror = getattr(exc, "strerror", None)  # the OS's words, without '[Errno N]' and paths
+    if isinstance(exc, OSError) and strerror and "errno =" not in strerror:
+        return strerror[:1].lower() + strerror[1:]
+    return text
+
+
+class WriteError(OSError):
+    """A file that could not be written, its message one line naming it: 'cannot write
+    PATH: no space left on the device (the disk is full)'."""
+
+
+def is_io_error(exc: BaseException) -> bool:
+    """An OSError, or an HDF5 error that carries the OS's error number ("errno = 28")."""
+    return isinstance(exc, OSError) or (isinstance(exc, Exception) and "errno =" in str(exc))
+
+
+def write_error(path: Any, exc: BaseException, what: str = "write") -> WriteError:
+    """``exc`` met while writing ``path`` as a :class:`WriteError` ('cannot write PATH:
+    reason'; ``what``: the verb, e.g. "create the result file")."""
+    if isinstance(exc, WriteError):
+        return exc
+    code = getattr(exc, "errno", None)
+    if code is None:
+        m = re.search(r"errno = (\d+)", str(exc))
+        code = int(m.group(1)) if m else None
+    return WriteError(code, f"cannot {what} {path}: {os_reason(exc)}")
+
+
+@contextlib.contextmanager
+def written_atomically(path: str | os.PathLike[str]) -> Iterator[Path]:
+    """Write ``path`` whole or not at all: yields a temporary name beside it (same folder
+    and suffix) to write to, renamed over ``path`` when the block ends; on any error the
+    temporary file is deleted (a full disk leaves no truncated or empty file, an existing
+    ``path`` stays as it was) and I/O errors are raised as :class:`WriteError` naming
+    ``path``."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.stem}.partial-{os.getpid()}{path.suffix}")
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    except BaseException as exc:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        if is_io_error(exc):
+            raise write_error(path, exc) from exc
+        raise
 
 
 def creation_properties() -> Any:

@@ -17,7 +17,12 @@ import numpy as np
 
 from torch_stsdic.io.images import InputError, load_series
 
-__all__ = ["read_table", "read_timestamps", "read_points", "read_mask"]
+__all__ = ["MismatchError", "read_table", "read_timestamps", "read_points", "read_mask"]
+
+
+class MismatchError(InputError):
+    """A side file that is readable but does not fit the images: a mask of another size,
+    points outside the image (a command line reports it as a usage error)."""
 
 
 def read_table(path: str, what: str) -> tuple[list[str] | None, np.ndarray]:
@@ -127,7 +132,7 @@ def read_points(path: str, shape: tuple[int, int], what: str = "points") -> np.n
     bad = (pts[:, 0] < 0) | (pts[:, 0] > w - 1) | (pts[:, 1] < 0) | (pts[:, 1] > h - 1)
     if bad.any():
         k = int(np.flatnonzero(bad)[0])
-        raise InputError(
+        raise MismatchError(
             f"{what} {path}: point {k} ({pts[k, 0]:g}, {pts[k, 1]:g}) is outside the "
             f"{w}x{h} (WxH) image ({int(bad.sum())} point(s) outside)"
         )
@@ -152,7 +157,7 @@ def read_mask(path: str, shape: tuple[int, int], what: str = "mask") -> np.ndarr
     arr = np.squeeze(arr)
     if arr.shape != tuple(shape):
         h, w = shape
-        raise InputError(
+        raise MismatchError(
             f"{what} {path}: mask is {arr.shape[0] if arr.ndim else 0}x"
             f"{arr.shape[1] if arr.ndim > 1 else 0} (HxW) but the images are {h}x{w}"
         )

@@ -24,8 +24,9 @@ from torch_stsdic.core.validation import check_pixels
 from torch_stsdic.io import DEFAULT_FIELDS, ImageSeries, InputError, load_series, parse_frame_spec
 from torch_stsdic.io.units import check_calibration
 
-__all__ = ["RunPlan", "plan_run", "resolve_reference", "resolve_frames", "resolve_times",
-           "default_batch_frames", "grid_margin", "set_shared_motion", "MAX_DEFAULT_BATCH"]
+__all__ = ["RunPlan", "plan_run", "reference_frames", "resolve_reference", "resolve_frames",
+           "resolve_times", "default_batch_frames", "grid_margin", "set_shared_motion",
+           "MAX_DEFAULT_BATCH"]
 
 MAX_DEFAULT_BATCH = 8
 _BASE = ("u", "v", "ut", "vt")
@@ -258,7 +259,7 @@ def resolve_reference(reference: Any, series: ImageSeries, dtype, device):
         return None, i % n, i % n
     try:
         if isinstance(reference, str):
-            idx = parse_frame_spec(reference, n)
+            idx = reference_frames(reference, n)
         else:
             idx = series.resolve(list(reference))
     except (InputError, IndexError, TypeError, ValueError) as exc:
@@ -267,6 +268,26 @@ def resolve_reference(reference: Any, series: ImageSeries, dtype, device):
         return None, idx[0], idx[0]
     raw = series.mean_of(idx, dtype=torch.float64).to(device=device, dtype=dtype)
     return raw, -1, f"mean:{','.join(map(str, idx))}"
+
+
+def reference_frames(spec: str, n: int) -> list[int]:
+    """The series frames of a reference spec ("0:5", "3", "0,2,4") in a series of ``n``
+    frames: :func:`parse_frame_spec`, except that a range reaching past the series is an
+    error (InputError naming the valid frames), not clipped: "10:20" on 12 frames would
+    otherwise average 2 frames where 10 were asked for."""
+    idx = parse_frame_spec(spec, n)
+    for part in str(spec).split(","):
+        bits = [b.strip() for b in part.split(":")]
+        if len(bits) < 2:
+            continue  # a single index: checked by parse_frame_spec
+        start, stop = (int(b) if b else None for b in bits[:2])
+        if (start is not None and not -n <= start < n) or (stop is not None
+                                                           and not -n <= stop <= n):
+            raise InputError(
+                f"the range {part.strip()} reaches past the series of {n} frames: the "
+                f"reference frames must be within 0..{n - 1} (a range a:b takes frames "
+                f"a..b-1, e.g. 0:{min(n, 5)})")
+    return idx
 
 
 def resolve_frames(frames: Any, n: int) -> list[int]:
