@@ -178,7 +178,7 @@ def solve_batch(ctx: BatchContext, pts, p0, dt, fidx, ridx, motion=None, step0=N
     status = torch.full((n,), int(Status.NOT_COMPUTED), dtype=torch.int8, device=device)
     low = data.texture < cfg.texture_threshold * ctx.grey_range**2
     low |= data.fnorm < 1e-6 * ctx.grey_range * math.sqrt(float(wsum_w))
-    status[low] = int(Status.LOW_TEXTURE)
+    status.masked_fill_(low, int(Status.LOW_TEXTURE))  # no host sync (boolean indexing)
     params = p0.clone()
     zncc = torch.full((n,), float("nan"), dtype=dtype, device=device)
     iters = torch.zeros(n, dtype=torch.int32, device=device)
@@ -204,7 +204,7 @@ def solve_batch(ctx: BatchContext, pts, p0, dt, fidx, ridx, motion=None, step0=N
     k = geo.k
     jump = torch.maximum((params[:, 0] - p0[:, 0]).abs(), (params[:, k] - p0[:, k]).abs())
     far = (status <= int(Status.MAX_ITER)) & ~(jump <= maxd)
-    status[far] = int(Status.DIVERGED)
+    status.masked_fill_(far, int(Status.DIVERGED))
     std, sigma = _uncertainty(ctx, data, params, zncc, status <= int(Status.MAX_ITER))
     cstep = None
     if ctx.classical_step:
@@ -212,7 +212,7 @@ def solve_batch(ctx: BatchContext, pts, p0, dt, fidx, ridx, motion=None, step0=N
                            device=device)
         if last is not None:
             cstep = _classical_step(ctx, data, *last).to(dtype)
-        cstep[status != int(Status.CONVERGED)] = float("nan")
+        cstep.masked_fill_((status != int(Status.CONVERGED)).unsqueeze(1), float("nan"))
     return params, zncc, status, iters, stage_params[0], std, sigma, cstep
 
 
@@ -432,7 +432,8 @@ def _run_stage(ctx: BatchContext, form: Formulation, params, data: SubsetData, l
     sing = form.prepare(geo, data)
     if sing.any():
         status[rows[sing]] = int(Status.LOW_TEXTURE)
-        rows, data = rows[~sing], data.take(~sing)
+        keep = torch.nonzero(~sing).flatten()  # one index for all (a mask syncs per tensor)
+        rows, data = rows[keep], data.take(keep)
     scale = geo.shape.increment_scale(geo.spatial, data.dt)
     p = params[rows]
     # fused kernel: finished rows are skipped through an index (`sel`) instead of copying
@@ -495,14 +496,16 @@ def _run_stage(ctx: BatchContext, form: Formulation, params, data: SubsetData, l
                 break
             # drop finished rows once enough of them have piled up (copying costs too)
             if n_active < 0.7 * active.numel():
-                rows, p, scale, prev = rows[active], p[active], scale[active], prev[active]
+                keep = torch.nonzero(active).flatten()  # one index for all the tensors
+                rows, p, scale, prev = rows[keep], p[keep], scale[keep], prev[keep]
                 if sel is None:
-                    data = data.take(active)
+                    data = data.take(keep)
                 else:
-                    sel = sel[active]
-                active = active[active]
+                    sel = sel[keep]
+                active = active[keep]
     if rows.numel():
-        rows, p = rows[active], p[active]
+        keep = torch.nonzero(active).flatten()
+        rows, p = rows[keep], p[keep]
     if rows.numel():
         params[rows] = p  # MAX_ITER: the last iterate
     return params, zncc, status, used, last

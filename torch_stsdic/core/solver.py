@@ -257,7 +257,7 @@ class SubsetSolver:
         params = torch.full((n, p_count), float("nan"), dtype=dtype, device=device)
         zncc = torch.full((n,), float("nan"), dtype=dtype, device=device)
         iters = torch.zeros(n, dtype=torch.int32, device=device)
-        status[~inside] = int(Status.OUTSIDE)
+        status.masked_fill_(~inside, int(Status.OUTSIDE))  # no host sync (boolean indexing)
 
         todo = torch.nonzero(inside).flatten()
         first_stage = torch.full_like(params, float("nan"))
@@ -287,8 +287,8 @@ class SubsetSolver:
                 cstep[idx] = cs
 
         bad = status > int(Status.MAX_ITER)
-        params[bad] = float("nan")
-        zncc[bad] = float("nan")
+        params.masked_fill_(bad.unsqueeze(1), float("nan"))
+        zncc.masked_fill_(bad, float("nan"))
         return WindowSolution(
             points=points, params=params, param_names=shape.param_names, zncc=zncc,
             status=status, iterations=iters, time=time, std=std, sigma=sigma,

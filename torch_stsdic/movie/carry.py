@@ -97,12 +97,19 @@ def neighbour_guess(params: torch.Tensor, ok: torch.Tensor, names, nb: torch.Ten
 def rows_numpy(block: dict[str, torch.Tensor], fields: Sequence[str]) -> dict[str, np.ndarray]:
     """(B, N) numpy rows per field (float64; ut/vt NaN when absent)."""
     b, n = block["status"].shape
-    out = {}
+    # one device-to-host copy per dtype (a stack of the fields), not one per field: each
+    # copy of a CUDA tensor waits for the device
+    groups: dict[tuple, list[str]] = {}
     for nm in fields:
         if nm in block:
-            out[nm] = block[nm].detach().cpu().numpy()
-        else:
-            out[nm] = np.full((b, n), np.nan)
+            groups.setdefault((block[nm].dtype, tuple(block[nm].shape)), []).append(nm)
+    host = {}
+    for names in groups.values():
+        stacked = torch.stack([block[nm].detach() for nm in names]).cpu().numpy()
+        host.update(zip(names, stacked))
+    out = {}
+    for nm in fields:
+        out[nm] = host[nm] if nm in host else np.full((b, n), np.nan)
     out["status"] = out["status"].astype(np.int8)
     if "m" in out:
         out["m"] = np.nan_to_num(out["m"], nan=-1).astype(np.int8)

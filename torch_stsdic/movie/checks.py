@@ -57,6 +57,8 @@ SCREEN_MARGIN = 0.98
 
 def solution_rows(sol: WindowSolution, pick: torch.Tensor) -> WindowSolution:
     """The rows ``pick`` (bool mask or indices) of a solution."""
+    if pick.dtype == torch.bool:  # one index for all the fields (a mask syncs per tensor)
+        pick = torch.nonzero(pick).flatten()
     return WindowSolution(
         points=sol.points[pick], params=sol.params[pick], param_names=sol.param_names,
         zncc=sol.zncc[pick], status=sol.status[pick], iterations=sol.iterations[pick],
@@ -67,6 +69,8 @@ def solution_rows(sol: WindowSolution, pick: torch.Tensor) -> WindowSolution:
 
 def with_rows(sol: WindowSolution, pick: torch.Tensor, new: WindowSolution) -> WindowSolution:
     """``sol`` with its rows ``pick`` (bool mask) replaced by the rows of ``new``."""
+    if pick.dtype == torch.bool:  # one index for all the fields
+        pick = torch.nonzero(pick).flatten()
 
     def put(a: torch.Tensor | None, b: torch.Tensor | None) -> torch.Tensor | None:
         if a is None or b is None:
@@ -306,10 +310,10 @@ class BlockChecks:
             sl = slice(j * n, (j + 1) * n)
             bad = poor_fit(self.sigma[sl], self.zncc[sl], self.status[sl] <= USABLE,
                            run.lost_zncc, baseline_zncc=base)
-            self.status[sl][bad] = int(Status.POOR_FIT)
-            count += int(bad.sum())
+            self.status[sl].masked_fill_(bad, int(Status.POOR_FIT))  # a view: no host sync
+            count = count + bad.sum()
             base = torch.where(self.status[sl] <= USABLE, self.zncc[sl], base)
-        return count
+        return int(count)
 
     def check_neighbours(self) -> int:
         """Usable rows that are outliers among their grid neighbours become INCONSISTENT
@@ -340,7 +344,8 @@ class BlockChecks:
             reach = run.neighbour_reach
         eps = neighbour_tolerance(sd, sg, ok, nb, reach)
         out = median_test(uv, ok, nb, eps, points=self.ref.points, gradients=grads)
-        self.status[rows[out.reshape(-1)]] = int(Status.INCONSISTENT)
+        self.status[rows] = self.status[rows].masked_fill(out.reshape(-1),
+                                                          int(Status.INCONSISTENT))
         return int(out.sum())
 
     def _velocity(self, j: int, cand: torch.Tensor, carry: Carry | None):
