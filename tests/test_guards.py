@@ -417,7 +417,9 @@ def test_readme_quick_start_installs_cpu_torch_first():
     venv, cpu = quick.find("python -m venv"), quick.find("download.pytorch.org/whl/cpu")
     assert 0 <= venv < cpu < quick.find("pip install . "), quick
     assert "torch==" in quick
-    assert "about 1 minute" not in text and "3 minutes" in quick
+    # the test command's time, as measured (with the date and the machine)
+    assert "about 1 minute" not in text and "measured" in quick and " min " in quick
+    assert "2 cores" in quick
 
 
 def test_demo_output_folder_is_git_ignored():

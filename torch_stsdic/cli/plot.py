@@ -375,7 +375,7 @@ def velocity_note(m_row: np.ndarray, valid_row: np.ndarray) -> str | None:
     if share == 0.0:
         return None
     pct = f"{share:.0f}" if share >= 1.0 else f"{share:.1f}"
-    return f"blank at {pct} % of the points: classical there (no window fits the motion)"
+    return f"blank at {pct} %: classical there (no window fits the motion or stays in view)"
 
 
 def _velocity_notes(res: Any, row: int, valid: np.ndarray, names: list[str]) -> dict[str, str]:
