@@ -88,6 +88,54 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     ex.add_argument("--overwrite", action="store_true", help="replace an existing --out (the "
                     "old file stays intact until the new run ends)")  # fmt: skip
     options.add_compute(g)
+    _add_distributed(p)
+
+
+def _add_distributed(p: argparse.ArgumentParser) -> None:
+    """The 'beyond one machine' group: the run in frame chunks on Dask workers."""
+    opt = options.add_option
+    g = p.add_argument_group(
+        "beyond one machine", "the targets in chunks of --chunk-frames, each on a Dask worker "
+        "(pip install torch_stsdic[dist]); the shared motion, load steps and reference are "
+        "measured once for the whole series, so the result equals the one-process run's to "
+        "within --tol; not with --reference-update")
+    ex = g.add_mutually_exclusive_group()
+    opt(ex, "--workers", type=options.int_min(1), default=None, metavar="N",
+        help="a local Dask cluster of N worker processes", shown="one process, no Dask")
+    opt(ex, "--scheduler", default=None, metavar="ADDRESS",
+        help="an existing Dask cluster: its scheduler's address (tcp://host:8786) or "
+        "scheduler file (scheduler.json); the workers must see INPUT",
+        shown="none")  # fmt: skip
+    opt(g, "--chunk-frames", type=options.int_min(1), default=None, metavar="N",
+        help="target frames per task (each chunk but the first also solves the 2 targets "
+        "before it; docs/benchmarks.md sizes it)", shown="50")  # fmt: skip
+
+
+def _runner(args: argparse.Namespace) -> Any:
+    """``run_plan``, or its distributed twin with --workers/--scheduler (checked here)."""
+    from torch_stsdic.movie.series import run_plan
+
+    if args.workers is None and args.scheduler is None:
+        if args.chunk_frames is not None:
+            raise UsageError("--chunk-frames: only with --workers or --scheduler")
+        return run_plan
+    flag = "--workers" if args.workers is not None else "--scheduler"
+    if args.reference_update is not None:
+        raise UsageError(f"--reference-update: not with {flag} (the incremental reference "
+                         "chains every frame to the previous ones)")
+    from torch_stsdic.movie.distributed import DASK_HINT, run_plan_distributed
+
+    try:
+        import distributed  # noqa: F401
+    except ImportError:
+        raise UsageError(f"{flag} needs Dask distributed, which is not installed: "
+                         f"{DASK_HINT}") from None
+
+    def run(plan: Any, sink: Any, **kw: Any) -> Any:
+        return run_plan_distributed(plan, sink, chunk_frames=args.chunk_frames or 50,
+                                    client=args.scheduler, n_workers=args.workers or 1, **kw)
+
+    return run
 
 
 def _add_frames(p: argparse.ArgumentParser) -> None:
@@ -127,6 +175,10 @@ def _add_frames(p: argparse.ArgumentParser) -> None:
         "(docs/validation/series_reference.md)", shown="off: the reference image")  # fmt: skip
     opt(g, "--series-frames", type=options.int_min(2), default=None, metavar="N",
         help="most frames of the template, evenly spread", shown="21")  # fmt: skip
+    g.add_argument("--keep-background", action="store_true",
+                   help="keep the default grid's points whose subsets are not on speckle in the "
+                   "reference image (background, holes, featureless or saturated areas: left "
+                   "out by default)")
     opt(g, "--shared-motion", choices=("auto", "quadratic", "affine", "translation", "none"),
         default="auto", help="the specimen's per-frame motion (a shake, load steps), "
         "measured from all points and carried in every window; auto: with --m > 0, "
@@ -277,10 +329,11 @@ def execute(args: argparse.Namespace) -> int:
     device = check_device(args.device)
     calibration = options.check_calibration(args)
     kwargs = _track_arguments(args)
+    run = _runner(args)
 
     from torch_stsdic.io import InputError
     from torch_stsdic.movie.plan import plan_run
-    from torch_stsdic.movie.series import run_plan, set_reference_mode
+    from torch_stsdic.movie.series import set_reference_mode
 
     series = kwargs.pop("series")
     print(series.describe(), flush=True)
@@ -294,7 +347,8 @@ def execute(args: argparse.Namespace) -> int:
                             reference_update=args.reference_update, checks=args.checks,
                             scale=calibration.get("scale"), unit=calibration["unit"],
                             time_unit=calibration.get("time_unit"),
-                            shared_motion=args.shared_motion)
+                            shared_motion=args.shared_motion,
+                            find_specimen=not args.keep_background)
             set_reference_mode(plan, args.refine_reference, args.refine_frames,
                                args.series_reference or False, args.series_frames)
         except ValueError as exc:
@@ -302,8 +356,8 @@ def execute(args: argparse.Namespace) -> int:
         sink = _open_sink(plan, args, out)
         kept = len(sink.completed_rows()) if args.resume else 0
         try:
-            res = run_plan(plan, sink, progress=not args.no_progress,
-                           callback=lambda done, total: checkpoint())
+            res = run(plan, sink, progress=not args.no_progress,
+                      callback=lambda done, total: checkpoint())
         except (OSError, InputError) as exc:  # a full disk, a frame gone or changed mid-run
             _discard_unfinished(sink, out, args)
             raise CommandError(f"{_text(exc)}; {_kept(out, args, plan)}") from exc
@@ -492,6 +546,9 @@ def shared_motion_lines(rec: dict[str, Any] | None) -> list[str]:
              if rec.get("jitter_px_median") is not None else "shake not measured")
     how = ("carried in every window" if rec.get("applied")
            else "measured, not carried (no significant shake)")
+    if rec.get("refused"):
+        how = (f"REFUSED, not carried: {rec['refused']}; the points may include background "
+               "or a second body (choose them with --roi/--mask)")
     lines = [f"shared motion: {rec['kind']}, {how} ({shake})"]
     steps = rec.get("steps") or []
     if steps:
@@ -553,6 +610,11 @@ def _print_summary(res: Any, args: argparse.Namespace, elapsed: float, ref: str,
               "carried by the subset's gradients, u_std and v_std with it)")
     for line in shared_motion_lines(res.info.get("shared_motion")):
         print(line)
+    spec = res.info.get("specimen")
+    if spec and spec.get("left_out"):
+        print(f"specimen: {spec['left_out']} of {spec['points']} grid points left out, their "
+              "subsets not on speckle (background, holes, featureless or saturated areas; "
+              "--keep-background keeps them)")
     sref = res.info.get("series_reference")
     if sref:
         added = sref.get("added_std_px")

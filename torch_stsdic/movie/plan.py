@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from torch_stsdic.analysis.points import filter_points, grid_points
+from torch_stsdic.analysis.specimen import SpecimenReport, on_specimen
 from torch_stsdic.core.config import DICConfig
 from torch_stsdic.core.shape import make_shape
 from torch_stsdic.core.shared_motion import SHARED_MOTION_KINDS
@@ -139,6 +140,7 @@ def plan_run(
     unit: str | None = None,
     time_unit: str | None = None,
     shared_motion: str | None = "auto",
+    find_specimen: bool = True,
 ) -> RunPlan:
     """Validate the arguments of :func:`~torch_stsdic.track` (same meaning) into a plan
     (``shared_motion`` as there: a plan run by :func:`~torch_stsdic.run_plan` gives what
@@ -152,6 +154,11 @@ def plan_run(
 
     ``scale`` (length ``unit``s per px, e.g. 0.02 with ``unit="mm"``) and ``time_unit``
     (default "frame", or "time unit" for timestamps) are recorded, not applied.
+
+    ``find_specimen`` (default True): the default grid keeps only the points whose subsets lie
+    on speckle in the reference image (:func:`torch_stsdic.analysis.specimen.on_specimen`:
+    not on a saturated or dark background, a hole, a featureless area); given points are
+    kept as given. Where no grid point is on speckle, all are kept.
     """
     cfg = config if config is not None else DICConfig()
     if not isinstance(cfg, DICConfig):
@@ -199,6 +206,9 @@ def plan_run(
         # the whole image: keep room for motion; a roi is the user's choice (subset/2 only)
         margin = grid_margin(cfg) if roi is None else 0
         pts0 = grid_points((h, w), step, roi, mask, cfg.subset_size, margin=margin)
+        specimen = _on_specimen(pts0, ref_raw, ser, ref_frame, cfg) if find_specimen else None
+        if specimen is not None:
+            pts0 = specimen[0]
     else:
         pts0 = filter_points(points, (h, w), roi, mask)
     elem = torch.finfo(dtype).bits // 8
@@ -209,12 +219,25 @@ def plan_run(
     options = {"step": int(step), "roi": None if roi is None else list(roi),
                "reference_update": reference_update, "lost_zncc": float(lost_zncc),
                "smoothing": smoothing, "checks": bool(checks)}
+    if points is None and find_specimen and specimen is not None:
+        options["specimen"] = specimen[1].summary()
     plan = RunPlan(series=ser, config=cfg, points=pts0.double(), targets=targets, times=ts_np,
                    reference_image=ref_raw, reference_frame=ref_frame, reference_desc=ref_desc,
                    dtype=dtype, device=dev, batch_frames=n_batch, param_names=names,
                    options=options, units=units)
     set_shared_motion(plan, shared_motion)
     return plan
+
+
+def _on_specimen(pts: torch.Tensor, ref_raw: torch.Tensor | None, ser: ImageSeries,
+                 ref_frame: int, cfg: DICConfig) -> tuple[torch.Tensor, SpecimenReport] | None:
+    """The grid points on the specimen and the report, or None where none is (every point
+    kept then: the solver gives them their status)."""
+    image = ref_raw if ref_raw is not None else ser.get(ref_frame, dtype=torch.float64)
+    keep, report = on_specimen(pts, image.double().cpu(), cfg.subset_size)
+    if report.kept == 0:
+        return None
+    return pts[keep], report
 
 
 def grid_margin(cfg: DICConfig) -> int:

@@ -50,17 +50,12 @@ from torch_stsdic.core.solver import SubsetSolver
 from torch_stsdic.io.results import as_stored
 from torch_stsdic.movie.block import BlockContext, solve_block
 from torch_stsdic.movie.carry import Carry, make_carry, rows_numpy
+from torch_stsdic.movie.estimates import RunEstimates, measure_run
 from torch_stsdic.movie.frames import FrameCache, default_ahead, frames_in_order, segment_bounds
 from torch_stsdic.movie.plan import RunPlan, plan_run
 from torch_stsdic.movie.reference import Reference, maybe_update
-from torch_stsdic.movie.refine import (
-    ReferenceOffsets,
-    apply_offsets,
-    measure_offsets,
-    set_refinement,
-)
-from torch_stsdic.movie.series_reference import build_series_reference, set_series_reference
-from torch_stsdic.movie.shared_pass import estimate_shared_motion
+from torch_stsdic.movie.refine import ReferenceOffsets, apply_offsets, set_refinement
+from torch_stsdic.movie.series_reference import set_series_reference
 from torch_stsdic.movie.sinks import MemorySink, open_sink
 
 __all__ = ["track", "run_plan", "classical_smoothed", "set_reference_mode"]
@@ -70,12 +65,17 @@ __all__ = ["track", "run_plan", "classical_smoothed", "set_reference_mode"]
 # running a plan
 # ---------------------------------------------------------------------------------------
 def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = True,
-             callback: Callable[[int, int], None] | None = None) -> TrackResult:
+             callback: Callable[[int, int], None] | None = None,
+             estimates: RunEstimates | None = None) -> TrackResult:
     """Execute ``plan`` block by block into ``sink`` (default: memory) and return the result.
 
     Blocks the sink already holds (an interrupted run being resumed) are replayed from it, not
     recomputed. On any error or interruption the sink is closed without committing, so an
-    HDF5 file keeps every finished block and can be resumed."""
+    HDF5 file keeps every finished block and can be resumed. ``estimates``: the run-level
+    estimates (:class:`~torch_stsdic.movie.estimates.RunEstimates`: shared motion, load
+    steps, first guess, reference made from the series, refined reference's offsets)
+    measured already, e.g. on the whole movie of which ``plan`` is a piece; default: measured
+    here (:func:`~torch_stsdic.movie.estimates.measure_run`)."""
     sink = sink if sink is not None else MemorySink(plan)
     cfg = plan.config
     solver = SubsetSolver(cfg)
@@ -100,30 +100,22 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
         cache.put(plan.reference_frame, ref.raw, ref.img)
     run.reference_desc = plan.reference_desc  # its noise ratio is measured on the 1st block
     updates: list[dict[str, Any]] = []
-    offsets = None
-    shared = None
-    if plan.options.get("shared_motion"):
-        kind = plan.options["shared_motion"]
-        shared = estimate_shared_motion(plan, kind, auto=kind == "auto", run=run_plan)
+    est = estimates if estimates is not None else measure_run(plan, ref.raw, run=run_plan)
+    if est.shared is not None:
+        shared = est.shared
         run.shared = shared if shared.applied else None
         run.first_guess = shared.sample  # the first block starts from the pass's solutions
         if shared.steps:
             run.segments = segment_bounds(shared.steps, len(plan.series)).to(plan.device)
         sink.write_shared_motion(shared)
-    series_ref = None
-    if plan.options.get("series_reference"):
-        opt = plan.options["series_reference"]
-        series_ref = build_series_reference(plan, ref.raw, run=run_plan,
-                                            max_frames=opt["frames"],
-                                            iterations=opt["iterations"])
-        img = series_ref.image.to(device=plan.device, dtype=plan.dtype)
+    if est.series_reference is not None:
+        img = est.series_reference.image.to(device=plan.device, dtype=plan.dtype)
         ref = Reference(frame=-1, raw=img, img=solver.prepare(img), points=ref.points)
-        run.noise_ratio = series_ref.noise_ratio
-        if series_ref.added_var is not None:
-            run.reference_var = series_ref.added_var.to(device=plan.device)
-    if plan.options.get("refine_reference"):
-        offsets = measure_offsets(plan, int(plan.options["refine_reference"]), run.shared,
-                                  run=run_plan)
+        if est.series_reference.added_var is not None:
+            run.reference_var = est.series_reference.added_var.to(device=plan.device)
+    if est.noise_ratio is not None:
+        run.noise_ratio = est.noise_ratio
+    offsets = est.offsets
     bar = tqdm(total=plan.n_rows, unit="frame", file=sys.stderr, disable=not progress,
                desc="STS-DIC" if cfg.m else "DIC", dynamic_ncols=True)
     try:
@@ -141,12 +133,9 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
             "reference_updates": updates, "reference_noise_ratio": run.noise_ratio,
             **run.stats,
         }
-        if offsets is not None:
-            info["refine_reference"] = offsets.summary()
-        if series_ref is not None:
-            info["series_reference"] = series_ref.summary()
-        if shared is not None:
-            info["shared_motion"] = shared.summary()
+        info.update(est.summary())
+        if plan.options.get("specimen"):
+            info["specimen"] = plan.options["specimen"]
         if plan.options.get("smoothing"):
             info["smoothing"] = plan.options["smoothing"]
         result = sink.result(info)
@@ -238,11 +227,13 @@ def track(
     series_frames: int | None = None,
     refine_frames: int | None = None,
     shared_motion: str | None = "auto",
+    find_specimen: bool = True,
     strain_window: int | None = 5,
     strain_kind: str = "green",
     scale: float | None = None,
     unit: str | None = None,
     time_unit: str | None = None,
+    run_estimates: RunEstimates | None = None,
 ) -> TrackResult:
     """Track POIs through a movie with STS-DIC (sliding windows of 2m+1 frames).
 
@@ -294,6 +285,9 @@ def track(
             averaged; True for 2 rounds of template and measurement, an integer for that
             many. Each round costs a classical run of those frames. Not with
             ``refine_reference`` or ``reference_update``.
+        find_specimen: the default grid keeps only points whose subsets lie on speckle in the
+            reference image (not on background, holes, featureless or saturated areas;
+            :mod:`torch_stsdic.analysis.specimen`); False: the whole grid.
         shared_motion: the specimen's per-frame motion carried as a known term in every
             window (:mod:`torch_stsdic.core.shared_motion`): "quadratic", "affine" or
             "translation" per frame, measured by a classical pass at up to 1,000 POIs and
@@ -308,6 +302,12 @@ def track(
             ``result.info["units"]``): ``scale`` length ``unit``s per px (e.g. 0.02, "mm"),
             ``time_unit`` of ``times`` (default "frame", "time unit" with timestamps). The
             values stay in px; exports and figures convert (:mod:`torch_stsdic.io.units`).
+        run_estimates: the run-level estimates measured already
+            (:class:`~torch_stsdic.movie.estimates.RunEstimates`, from
+            :func:`~torch_stsdic.movie.estimates.measure_run` on the whole movie): the
+            distributed runner's hook, so that a run of some of the frames uses the shared
+            motion, load steps, first guess and reference of the whole movie's run. Default:
+            measured from this run's frames.
 
     Returns:
         :class:`TrackResult` with (F, N) fields. With ``out`` the values are those stored in
@@ -321,11 +321,12 @@ def track(
     plan = plan_run(series, reference, frames, points, roi, mask, step, config, device, times,
                     batch_frames, reference_update=reference_update, smoothing=smoothing,
                     lost_zncc=lost_zncc, checks=checks, scale=scale, unit=unit,
-                    time_unit=time_unit, shared_motion=shared_motion)
+                    time_unit=time_unit, shared_motion=shared_motion,
+                    find_specimen=find_specimen)
     set_reference_mode(plan, refine_reference, refine_frames, series_reference, series_frames)
     sink = open_sink(plan, out, resume=resume, overwrite=overwrite,
                      strain_window=strain_window, strain_kind=strain_kind)
-    return run_plan(plan, sink, progress=progress, callback=callback)
+    return run_plan(plan, sink, progress=progress, callback=callback, estimates=run_estimates)
 
 
 def set_reference_mode(plan: RunPlan, refine_reference: bool, refine_frames: int | None,

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+import warnings
 from collections.abc import Callable
 
 import numpy as np
@@ -63,6 +64,33 @@ def _measured_sample(res, pts: torch.Tensor, valid: torch.Tensor) -> MeasuredSam
 #: "auto" fits the quadratic shared motion where the sample has at least this many points
 #: (its estimate then adds at most ~0.2 of the classical noise to a window), else the affine
 QUADRATIC_POINTS = 500
+
+
+#: the fitted motion may leave the range of the points' measured displacements by this much
+#: (px) at a frame before the fit is refused
+PLAUSIBLE_MARGIN = 1.0
+
+
+def implausible(disp: torch.Tensor, fitted: torch.Tensor, valid: torch.Tensor,
+                frames: list[int]) -> str | None:
+    """Why a shared-motion fit does not describe the points, or None: at some frame the
+    fitted displacement (F, n, 2) lies outside the range of the trusted points' measured
+    displacements ``disp`` (1st-99th percentile, +- ``PLAUSIBLE_MARGIN`` px) at more than half
+    of the points (a robust fit follows the majority; one that leaves them all, as a fit
+    dragged by background points that froze or diverged, is not the specimen's motion)."""
+    for f in range(disp.shape[0]):
+        ok = valid[f]
+        if int(ok.sum()) < 10:
+            continue
+        d, g = disp[f][ok], fitted[f][ok]
+        lo = torch.quantile(d, 0.01, dim=0) - PLAUSIBLE_MARGIN
+        hi = torch.quantile(d, 0.99, dim=0) + PLAUSIBLE_MARGIN
+        out = ((g < lo) | (g > hi)).any(-1).double().mean()
+        if float(out) > 0.5:
+            return (f"at frame {frames[f]} it puts {float(out):.0%} of the points outside "
+                    f"the measured displacements (u {float(lo[0]):.2f}..{float(hi[0]):.2f}, "
+                    f"v {float(lo[1]):.2f}..{float(hi[1]):.2f} px)")
+    return None
 
 
 def estimate_shared_motion(plan: RunPlan, kind: str = "auto",
@@ -125,5 +153,13 @@ def estimate_shared_motion(plan: RunPlan, kind: str = "auto",
     if auto:
         z = out.significance()
         out.applied = bool(np.isfinite(z) and z > SIGNIFICANT)
+    reason = implausible(disp, g, valid, frames)
+    if reason is not None:
+        out.applied = False
+        out.steps = []
+        out.extra["refused"] = reason
+        warnings.warn(f"shared motion: not carried, the fit is implausible: {reason}; the "
+                      "points may include background or a second body (choose them with "
+                      "roi/mask)", RuntimeWarning, stacklevel=3)
     out.seconds = time.perf_counter() - t0
     return out
