@@ -207,7 +207,7 @@ class BlockChecks:
         d_all = torch.full((self.b * self.n, 2), float("nan"), dtype=run.dtype,
                            device=run.device)
         s_all = d_all.clone()
-        conv = quick.status == int(Status.CONVERGED)
+        conv = torch.nonzero(quick.status == int(Status.CONVERGED)).flatten()  # one sync
         d_all[idx[conv]] = quick.params[conv][:, [cu, cv]].to(run.dtype)
         s_all[idx[conv]] = quick.std[conv][:, [cu, cv]].to(run.dtype)
         # the reference frame as target: its classical residual is round-off, no measure
@@ -218,6 +218,7 @@ class BlockChecks:
             self.std[idx][:, [iu, iv]], quick.std[:, [cu, cv]].to(run.dtype))
         suspect |= not_ref & residual_mismatch(self.sigma[idx], quick.sigma, pixels,
                                                self.zncc[idx])
+        suspect = torch.nonzero(suspect).flatten()  # one index for all (one sync)
         idx, not_ref = idx[suspect], not_ref[suspect]
         if idx.numel() == 0:
             return 0, 0
@@ -233,12 +234,13 @@ class BlockChecks:
                                  float("nan"))
         s_all[idx] = torch.where(ok_c.unsqueeze(1), cls.std[:, [cu, cv]].to(run.dtype),
                                  float("nan"))
-        self.status[idx[~ok_c]] = int(Status.POOR_FIT)
-        idx, not_ref = idx[ok_c], not_ref[ok_c]
-        p_cls = cls.params[ok_c]
-        sig_cls = cls.sigma[ok_c]
+        self.status[idx] = self.status[idx].masked_fill(~ok_c, int(Status.POOR_FIT))
+        ok_i = torch.nonzero(ok_c).flatten()  # one index for all (one sync)
+        idx, not_ref = idx[ok_i], not_ref[ok_i]
+        p_cls = cls.params[ok_i]
+        sig_cls = cls.sigma[ok_i]
         d_cls = p_cls[:, [cu, cv]].to(run.dtype)
-        s_cls = cls.std[ok_c][:, [cu, cv]].to(run.dtype)
+        s_cls = cls.std[ok_i][:, [cu, cv]].to(run.dtype)
         fail = model_mismatch(self.params[idx][:, [iu, iv]], d_cls, self.std[idx][:, [iu, iv]],
                               s_cls)
         fail |= not_ref & residual_mismatch(self.sigma[idx], sig_cls, pixels, self.zncc[idx])
@@ -270,7 +272,7 @@ class BlockChecks:
             self.keep(idx[sel][good], solution_rows(sol, good), only_better=False, m=m)
             shortened += int(good.sum())
             fail[sel[good]] = False
-        pick = torch.nonzero(ok_c).flatten()[fail]
+        pick = ok_i[fail]
         kept = solution_rows(cls, pick)
         loose = ~redo[pick] if bool(redo.any()) else torch.ones_like(pick, dtype=torch.bool)
         if bool(loose.any()):  # converged to CHECK_TOL only: on to the run's tol
