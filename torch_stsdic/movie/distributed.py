@@ -11,16 +11,24 @@ the same layout as ``track(out=...)`` (:class:`~torch_stsdic.io.ResultWriter`), 
 ``read_results``/``export_csv``/``stsdic plot`` work unchanged; ``resume=True`` skips the
 chunks whose rows are all completed in the file.
 
-Guesses are not carried across chunks: each chunk starts, like a single run, with FFT cross-
-correlation on its first target and carries its own guesses from there. A point that
-converges lands on the same minimum from either guess, so the results equal the single-process
-run to within the Gauss-Newton stopping tolerance (``config.tol``, the last increment in px):
-measured differences are ~1e-6 px or less with ``tol = 1e-8`` (noise-free or noisy), and a
-fraction of ``tol`` with the default ``tol = 1e-4`` (see docs/benchmarks.md, "Beyond one
-machine"). Points that do not converge (MAX_ITER, lost, DIVERGED) can differ, as between any
-two initialisations. Not supported, because they chain state along the whole movie:
-``reference_update`` (incremental reference) and ``smoothing`` (run ``m = 0`` here, then
-:func:`~torch_stsdic.movie.series.temporal_smoothing` on the result).
+Every run-level estimate is measured once, by the driver, on the whole movie
+(:func:`~torch_stsdic.movie.estimates.measure_run`: the shared motion and its load steps,
+the measuring pass's solutions that are the first block's guess, the reference made from the
+series, the refined reference's offsets, the reference's noise ratio), recorded in the result
+file as a one-process run records them, and handed to every chunk
+(``run_plan(estimates=...)``), so that a chunk's windows, segments and reference are those of
+the one-process run. A chunk's blocks are the one-process run's blocks cut at the chunk's
+edges. Guesses are not carried across chunks; instead a chunk other than the first solves
+the ``WARM_UP`` targets before its first one (from the measuring pass's guess, as a first
+block starts) and carries its guesses on from those rows, which are then dropped: its first
+block starts, like the one-process run's, from a carried prediction with the trust checks'
+baselines of the rows just before it. A point that converges lands on the same minimum from
+either guess, so the results equal the one-process run to within the Gauss-Newton stopping
+tolerance (``config.tol``, the last increment in px), and the statuses but for the rare
+point whose decision turns on it (docs/benchmarks.md, "Beyond one machine"). Not supported,
+because they chain state along the whole movie: ``reference_update`` (incremental reference)
+and ``smoothing`` (run ``m = 0`` here, then
+:func:`~torch_stsdic.analysis.smoothing.smooth_in_time` on the result).
 
 Why Dask distributed rather than Ray: it is pure pip (``pip install torch_stsdic[dist]``),
 ``LocalCluster`` runs the workers as ordinary local processes (or threads) started and
@@ -34,6 +42,7 @@ that this workload does not need.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import os
@@ -49,19 +58,28 @@ from tqdm import tqdm
 
 from torch_stsdic.analysis.result import TrackResult
 from torch_stsdic.core.signatures import POSITIONAL, param, signature_like
+from torch_stsdic.movie.estimates import RunEstimates, measure_run
 from torch_stsdic.movie.plan import RunPlan, plan_run
-from torch_stsdic.movie.series import track
+from torch_stsdic.movie.series import run_plan, set_reference_mode
 from torch_stsdic.movie.sinks import MemorySink, open_sink
 
-__all__ = ["track_distributed", "track_distributed_many", "chunk_plan", "DASK_HINT"]
+__all__ = ["track_distributed", "track_distributed_many", "run_plan_distributed", "chunk_plan",
+           "DASK_HINT", "WARM_UP"]
 
 DASK_HINT = "pip install torch_stsdic[dist]  (or: pip install \"dask[distributed]\")"
-_BASE = ("u", "v", "ut", "vt")
 _UNSUPPORTED = {
     "reference_update": "the incremental reference chains every frame to the previous ones",
     "smoothing": "smoothing spans chunk edges: run with config.m = 0, then "
-                 "temporal_smoothing(result)",
+                 "smooth_in_time(result)",
 }
+#: targets before a chunk (but the first) solved first and dropped: the chunk's guesses are
+#: carried on from their rows, as the one-process run carries them from the rows before
+#: (two rows: the velocity of a classical row is their difference)
+WARM_UP = 2
+#: keyword arguments of track that the plan, the reference mode and the result file take
+_PLAN_KW = ("device", "lost_zncc", "checks", "scale", "unit", "time_unit", "shared_motion")
+_MODE_KW = ("refine_reference", "refine_frames", "series_reference", "series_frames")
+_SINK_KW = ("strain_window", "strain_kind")
 
 
 def _import_distributed():
@@ -74,10 +92,12 @@ def _import_distributed():
     return distributed
 
 
-def chunk_plan(targets: Sequence[int], chunk_frames: int, n_series: int, m: int
-               ) -> list[dict[str, Any]]:
-    """Chunks of consecutive targets: ``targets`` (the chunk's result rows, disjoint) and
-    ``reads`` (first, last) series frames its windows need (overlapping with neighbours).
+def chunk_plan(targets: Sequence[int], chunk_frames: int, n_series: int, m: int,
+               warm: int = 0) -> list[dict[str, Any]]:
+    """Chunks of consecutive targets: ``targets`` (the chunk's result rows, disjoint),
+    ``warm`` (up to ``warm`` targets before them, solved first and dropped: every chunk but
+    the first) and ``reads`` (first, last) series frames its windows need (overlapping with
+    neighbours).
 
     >>> [c["reads"] for c in chunk_plan(range(10), 4, 10, 1)]
     [(0, 4), (3, 8), (7, 9)]
@@ -89,58 +109,68 @@ def chunk_plan(targets: Sequence[int], chunk_frames: int, n_series: int, m: int
     out = []
     for i in range(0, len(tg), int(chunk_frames)):
         part = tg[i : i + int(chunk_frames)]
-        lo = min(max(part[0] - m, 0), n_series - n_win)
+        before = tg[max(0, i - int(warm)) : i]
+        lo = min(max((before or part)[0] - m, 0), n_series - n_win)
         hi = max(min(part[-1] + m, n_series - 1), n_win - 1)
-        out.append({"index": len(out), "targets": part, "reads": (lo, hi)})
+        out.append({"index": len(out), "targets": part, "warm": before, "reads": (lo, hi)})
     return out
 
 
-def _run_chunk(series: Any, targets: list[int], kwargs: dict[str, Any], torch_threads: int | None,
-               fields: tuple[str, ...]) -> dict[str, Any]:
-    """Worker side: ``track`` one chunk; (F_chunk, N) numpy rows per field + counters."""
+@dataclass
+class _ChunkPlan(RunPlan):
+    """A chunk's plan: the whole run's plan over the chunk's targets, with the whole run's
+    blocks cut at the chunk's edges (and the warm-up block first) instead of its own."""
+
+    chunk_blocks: list[list[int]] = field(default_factory=list)
+
+    @property
+    def blocks(self) -> list[list[int]]:
+        return self.chunk_blocks
+
+
+def _run_chunk(plan: RunPlan, chunk: dict[str, Any], estimates: RunEstimates,
+               torch_threads: int | None) -> dict[str, Any]:
+    """Worker side: run one chunk of ``plan`` with the whole run's ``estimates``; (F_chunk, N)
+    numpy rows per field (the warm-up rows dropped) + counters."""
     if torch_threads is None:
         torch_threads = _threads_per_task()
     if torch_threads > 0:
         torch.set_num_threads(int(torch_threads))
-    res = track(series, frames=targets, progress=False, **kwargs)
-    rows: dict[str, np.ndarray] = {}
-    for nm in fields:
-        rows[nm] = res.field(nm).detach().cpu().numpy()
+    warm = list(chunk["warm"])
+    args = {f.name: getattr(plan, f.name) for f in dataclasses.fields(RunPlan) if f.init}
+    args["targets"] = warm + list(chunk["targets"])
+    sub = _ChunkPlan(**args, chunk_blocks=([warm] if warm else []) + chunk["blocks"])
+    res = run_plan(sub, MemorySink(sub), progress=False, estimates=estimates)
+    rows = {nm: res.field(nm)[len(warm):].detach().cpu().numpy() for nm in plan.fields}
     info = {k: v for k, v in res.info.items() if isinstance(v, (int, float))}
-    return {"targets": list(targets), "rows": rows, "info": info, "pid": os.getpid()}
+    return {"targets": list(chunk["targets"]), "rows": rows, "info": info, "pid": os.getpid()}
 
 
 @dataclass
 class _Job:
-    """One movie: its plan, its sink (memory or HDF5) and the chunks still to run."""
+    """One movie: its plan, its sink (memory or HDF5), the chunks still to run and the
+    run-level estimates handed to them."""
 
     plan: RunPlan
     sink: MemorySink
     chunks: list[dict[str, Any]]
     n_chunks: int
-    kwargs: dict[str, Any]
+    estimates: RunEstimates | None = None
     info: dict[str, Any] = field(default_factory=dict)
     rows_done: int = 0
 
 
-def _plan_job(series: Any, plan_args: dict[str, Any], *, chunk_frames: int, out: Any,
-              resume: bool, overwrite: bool, extra: dict[str, Any]) -> _Job:
-    if resume and out is None:
-        raise ValueError("resume: needs out (the result file to continue)")
-    # the shared motion recorded as track records it; every chunk measures that of its frames
-    plan = plan_run(series, **plan_args, lost_zncc=float(extra.get("lost_zncc", 0.8)),
-                    shared_motion=extra.get("shared_motion", "auto"))
-    chunks = chunk_plan(plan.targets, chunk_frames, len(plan.series), plan.config.m)
-    ref = plan.reference_image
-    kwargs = dict(
-        reference=plan.reference_frame if ref is None else ref.numpy(),
-        points=plan.points.numpy(), config=plan.config, times=plan.times,
-        batch_frames=plan.batch_frames, **extra,
-    )
-    dist = {"chunk_frames": int(chunk_frames), "chunks": len(chunks)}
-    sink = open_sink(plan, out, resume=resume, overwrite=overwrite,
-                     attrs={"distributed": json.dumps(dist)})
-    job = _Job(plan=plan, sink=sink, chunks=chunks, n_chunks=len(chunks), kwargs=kwargs)
+def _job(plan: RunPlan, sink: MemorySink, chunk_frames: int) -> _Job:
+    """The chunks of ``plan`` (those ``sink`` holds already read back, not run again)."""
+    for k, why in _UNSUPPORTED.items():
+        if plan.options.get(k) is not None:
+            raise ValueError(f"{k}: not supported by track_distributed ({why})")
+    chunks = chunk_plan(plan.targets, chunk_frames, len(plan.series), plan.config.m,
+                        warm=WARM_UP)
+    for ch in chunks:  # the one-process run's blocks, cut at the chunk's edges
+        mine = set(ch["targets"])
+        ch["blocks"] = [c for c in ([k for k in b if k in mine] for b in plan.blocks) if c]
+    job = _Job(plan=plan, sink=sink, chunks=chunks, n_chunks=len(chunks))
     done = sink.completed_rows()
     if done:
         row_of = plan.row_of()
@@ -157,6 +187,34 @@ def _plan_job(series: Any, plan_args: dict[str, Any], *, chunk_frames: int, out:
     return job
 
 
+def _plan_job(series: Any, plan_args: dict[str, Any], *, chunk_frames: int, out: Any,
+              resume: bool, overwrite: bool, extra: dict[str, Any]) -> _Job:
+    """Plan one movie as ``track`` plans it, and open its result file."""
+    if resume and out is None:
+        raise ValueError("resume: needs out (the result file to continue)")
+    plan = plan_run(series, **plan_args, **{k: extra[k] for k in _PLAN_KW if k in extra})
+    mode = {k: extra.get(k) for k in _MODE_KW}
+    set_reference_mode(plan, bool(mode["refine_reference"]), mode["refine_frames"],
+                       mode["series_reference"] or False, mode["series_frames"])
+    dist = {"chunk_frames": int(chunk_frames)}
+    sink = open_sink(plan, out, resume=resume, overwrite=overwrite,
+                     attrs={"distributed": json.dumps(dist)},
+                     **{k: extra[k] for k in _SINK_KW if k in extra})
+    try:
+        return _job(plan, sink, chunk_frames)
+    except BaseException:
+        sink.close(commit=False)
+        raise
+
+
+def _measure(job: _Job) -> None:
+    """The run-level estimates of the whole movie, measured here once, recorded in the
+    result as the one-process run records them."""
+    job.estimates = measure_run(job.plan, run=run_plan, first_noise=True)
+    if job.estimates.shared is not None:
+        job.sink.write_shared_motion(job.estimates.shared)
+
+
 def _accept(job: _Job, result: dict[str, Any]) -> int:
     """Merge one chunk's rows into the job's sink. Returns the rows added."""
     row0 = job.plan.row_of()[result["targets"][0]]
@@ -164,7 +222,8 @@ def _accept(job: _Job, result: dict[str, Any]) -> int:
     job.sink.write_rows(rows, result["rows"])
     for k, v in result["info"].items():
         if k in ("frames_read", "prefiltered", "fft_rows", "redone_rows", "blocks",
-                 "off_centre_rows", "first_guess_rows"):
+                 "off_centre_rows", "first_guess_rows", "rescued_rows", "neighbour_rows",
+                 "shortened_rows", "classical_rows", "poor_fit_rows", "inconsistent_rows"):
             job.info[k] = job.info.get(k, 0) + v
         elif k == "max_cached_frames":
             job.info[k] = max(job.info.get(k, 0), v)
@@ -174,12 +233,15 @@ def _accept(job: _Job, result: dict[str, Any]) -> int:
 
 
 def _finish(job: _Job, chunk_frames: int, workers: int) -> TrackResult:
+    est = job.estimates or RunEstimates()
     info = {
         "batch_frames": job.plan.batch_frames, "reference": job.plan.reference_desc,
-        "reference_updates": [], "chunk_frames": chunk_frames, "chunks": job.n_chunks,
-        "chunks_run": len(job.chunks), "workers": workers,
+        "reference_updates": [], "reference_noise_ratio": est.noise_ratio,
+        "chunk_frames": chunk_frames, "chunks": job.n_chunks,
+        "chunks_run": len(job.chunks), "workers": workers, "warm_up": WARM_UP,
         **{k: v for k, v in job.info.items() if k != "worker_pids"},
         "worker_processes": len(job.info.get("worker_pids", ())),
+        **est.summary(),
     }
     result = job.sink.result(info)
     job.sink.finish(result)
@@ -265,15 +327,13 @@ def track_distributed_many(
     for k in track_kwargs:
         if k in _UNSUPPORTED:
             raise ValueError(f"{k}: not supported by track_distributed ({_UNSUPPORTED[k]})")
-    if k_bad := {"series", "out", "progress"} & set(track_kwargs):
+    known = set(_PLAN_ARGS + _PLAN_KW + _MODE_KW + _SINK_KW)
+    if k_bad := set(track_kwargs) - known:
         raise TypeError(f"unexpected argument(s) {sorted(k_bad)}")
     movies = list(movies)
     if outs is not None and len(list(outs)) != len(movies):
         raise ValueError(f"outs: {len(list(outs))} paths for {len(movies)} movies")
     outs_l = list(outs) if outs is not None else [None] * len(movies)
-    if client is None and torch_threads is None:
-        # threads share this process' torch thread pool: leave it alone (0)
-        torch_threads = max(1, _cores() // (n_workers * threads_per_worker)) if processes else 0
     plan_args = {k: track_kwargs.pop(k) for k in _PLAN_ARGS if k in track_kwargs}
     jobs: list[_Job] = []
     try:
@@ -284,27 +344,91 @@ def track_distributed_many(
         for j in jobs:
             j.sink.close(commit=False)
         raise
-    total = sum(j.plan.n_rows for j in jobs)
-    done = sum(j.rows_done for j in jobs)
-    bar = tqdm(total=total, initial=done, unit="frame", file=sys.stderr, disable=not progress,
-               desc="STS-DIC (dask)", dynamic_ncols=True)
+    return _run_jobs(jobs, int(chunk_frames), _Cluster(client, n_workers, threads_per_worker,
+                                                       processes, torch_threads),
+                     progress, callback)
+
+
+def run_plan_distributed(
+    plan: RunPlan,
+    sink: MemorySink | None = None,
+    *,
+    chunk_frames: int = 50,
+    client: Any = None,
+    n_workers: int = 2,
+    threads_per_worker: int = 1,
+    processes: bool = True,
+    torch_threads: int | None = None,
+    progress: bool = True,
+    callback: Callable[[int, int], None] | None = None,
+) -> TrackResult:
+    """:func:`~torch_stsdic.movie.series.run_plan` on Dask workers: ``plan`` in chunks of
+    ``chunk_frames`` targets into ``sink`` (memory, or an HDF5 file opened by the caller,
+    resumed where it holds finished chunks); the cluster settings as for
+    :func:`track_distributed`. The result equals ``run_plan(plan, sink)``'s to within the
+    stopping tolerance (``stsdic run --workers``)."""
+    sink = sink if sink is not None else MemorySink(plan)
+    try:
+        job = _job(plan, sink, chunk_frames)
+    except BaseException:
+        sink.close(commit=False)
+        raise
+    cluster = _Cluster(client, n_workers, threads_per_worker, processes, torch_threads)
+    return _run_jobs([job], int(chunk_frames), cluster, progress, callback)[0]
+
+
+@dataclass
+class _Cluster:
+    """Where the chunks run: a client (or address, scheduler file, None for a LocalCluster
+    of ``n_workers`` x ``threads_per_worker``) and the torch threads of a task."""
+
+    client: Any
+    n_workers: int
+    threads_per_worker: int
+    processes: bool
+    torch_threads: int | None
+
+    def task_threads(self) -> int | None:
+        if self.client is None and self.torch_threads is None:
+            # threads share this process' torch thread pool: leave it alone (0)
+            per = self.n_workers * self.threads_per_worker
+            return max(1, _cores() // per) if self.processes else 0
+        return self.torch_threads
+
+
+def _run_jobs(jobs: list[_Job], chunk_frames: int, where: _Cluster, progress: bool,
+              callback: Callable[[int, int], None] | None) -> list[TrackResult]:
+    """Measure every job's run-level estimates, run their pending chunks on the cluster,
+    merge the rows as the chunks finish; on any error or interruption every sink is closed
+    without committing (a file keeps its finished chunks and can be resumed)."""
     cl, cluster, owns = (None, None, False)
     futures: list[Any] = []
+    bar = None
     try:
-        if any(j.chunks for j in jobs):
-            cl, cluster, owns = _open_client(client, n_workers, threads_per_worker, processes)
-            futures, where = _submit(cl, jobs, torch_threads)
+        for j in jobs:
+            _measure(j)
+        total = sum(j.plan.n_rows for j in jobs)
+        done = sum(j.rows_done for j in jobs)
+        n_chunks = sum(len(j.chunks) for j in jobs)
+        bar = tqdm(total=total, initial=done, unit="frame", file=sys.stderr,
+                   disable=not progress, desc="STS-DIC (dask)", dynamic_ncols=True)
+        if n_chunks:
+            cl, cluster, owns = _open_client(where.client, where.n_workers,
+                                             where.threads_per_worker, where.processes)
+            futures, job_of = _submit(cl, jobs, where.task_threads())
             distributed = _import_distributed()
-            for fut in distributed.as_completed(futures):
-                added = _accept(where[fut.key], fut.result())
+            for i, fut in enumerate(distributed.as_completed(futures)):
+                added = _accept(job_of[fut.key], fut.result())
                 done += added
+                bar.set_postfix_str(f"chunk {i + 1}/{n_chunks}", refresh=False)
                 bar.update(added)
                 if callback is not None:
                     callback(done, total)
     except BaseException:
         for fut in futures:
             fut.cancel()
-        bar.close()
+        if bar is not None:
+            bar.close()
         for j in jobs:
             j.sink.close(commit=False)
         _close_client(cl, cluster, owns)
@@ -317,24 +441,26 @@ def track_distributed_many(
         except Exception:
             workers = 0
     _close_client(cl, cluster, owns)
-    return [_finish(j, int(chunk_frames), workers) for j in jobs]
+    return [_finish(j, chunk_frames, workers) for j in jobs]
 
 
 def _submit(cl: Any, jobs: list[_Job], torch_threads: int | None
             ) -> tuple[list[Any], dict[str, _Job]]:
-    """One task per pending chunk of every job (the series scattered once per job): the
-    futures, and the job of every future's key."""
+    """One task per pending chunk of every job (the plan, with its series, and the estimates
+    scattered once per job): the futures, and the job of every future's key."""
     run_id = uuid.uuid4().hex[:8]
-    futures, where = [], {}
+    futures, job_of = [], {}
     for ji, job in enumerate(jobs):
-        src = cl.scatter(job.plan.series, broadcast=True, hash=False)
+        if not job.chunks:
+            continue
+        plan = cl.scatter(job.plan, broadcast=True, hash=False)
+        est = cl.scatter(job.estimates, broadcast=True, hash=False)
         for ch in job.chunks:
-            fut = cl.submit(_run_chunk, src, ch["targets"], job.kwargs, torch_threads,
-                            job.plan.fields, key=f"stsdic-{run_id}-{ji}-{ch['index']}",
-                            pure=False)
-            where[fut.key] = job
+            fut = cl.submit(_run_chunk, plan, ch, est, torch_threads,
+                            key=f"stsdic-{run_id}-{ji}-{ch['index']}", pure=False)
+            job_of[fut.key] = job
             futures.append(fut)
-    return futures, where
+    return futures, job_of
 
 
 def _close_client(cl: Any, cluster: Any, owns: bool) -> None:
@@ -352,8 +478,10 @@ def track_distributed(series: Any, *, out: Any = None, **kwargs: Any) -> TrackRe
             of files, array, ImageSeries). Workers read the frames themselves: on a cluster
             the paths must be visible to every worker (shared filesystem); an in-memory
             array is sent to each worker once (``Client.scatter``).
-        chunk_frames: target frames per task. Each chunk costs ``2m`` extra frame reads and
-            one FFT-initialised block, so keep it well above ``m`` (default 50).
+        chunk_frames: target frames per task. Each chunk but the first also solves the
+            ``WARM_UP`` (2) targets before it, and reads their and its windows' frames
+            (``2m + 2`` extra reads and prefilters), so keep it well above ``m`` and
+            ``WARM_UP`` (default 50; docs/benchmarks.md sizes it).
         client: None (a ``LocalCluster`` of ``n_workers`` is started and stopped here), a
             ``dask.distributed.Client``, a scheduler address (``"tcp://host:8786"``) or a
             scheduler file (``scheduler.json``, e.g. from dask-mpi / dask-jobqueue).
@@ -365,9 +493,14 @@ def track_distributed(series: Any, *, out: Any = None, **kwargs: Any) -> TrackRe
             chunks finish. resume: skip the chunks already completed in ``out``.
             overwrite: replace an existing ``out``.
         progress: progress bar (rows). callback: ``callback(rows_done, n_rows)``.
-        **track_kwargs: passed to ``track`` (reference, frames, points, roi, mask, step,
-            config, times, device, batch_frames, lost_zncc). ``reference_update`` and
-            ``smoothing`` are not supported (ValueError).
+        **track_kwargs: as for ``track`` (reference, frames, points, roi, mask, step,
+            config, times, device, batch_frames, lost_zncc, checks, shared_motion,
+            refine_reference, refine_frames, series_reference, series_frames,
+            strain_window, strain_kind, scale, unit, time_unit). ``reference_update`` and
+            ``smoothing`` are not supported (ValueError). The run-level estimates (shared
+            motion, load steps, first guess, the reference made from the series, the
+            refined reference's offsets) are measured once, here, on the whole movie, and
+            handed to every chunk.
 
     Returns:
         :class:`~torch_stsdic.movie.series.TrackResult` over all targets; ``info["chunks"]``,

@@ -268,17 +268,15 @@ def track(
             smoothing" baseline).
         lost_zncc: points whose ZNCC falls below this are re-solved with an FFT guess, and a
             solved point still below it is POOR_FIT.
-        checks: the trust checks of :mod:`torch_stsdic.analysis.quality` (model check of
-            every window against the classical solution with shorter windows where the motion is not
-            affine in time, fit and neighbour checks; default True). False: every converged
-            point is reported as such (faster, and as before these checks existed).
+        checks: the trust checks of :mod:`torch_stsdic.analysis.quality` (model check of every
+            window against the classical solution, shorter windows where the motion is not affine
+            in time, fit and neighbour checks). False: every converged point is reported so.
         callback: called as ``callback(rows_done, n_rows)`` after each block.
         refine_reference: remove the noisy reference's constant per-point offset: classical
             DIC of up to ``refine_frames`` frames around the reference (default 41), a
             polynomial fit in time per point, its value at the reference time (shrunk by
-            the offsets' spread) subtracted from every row, and the reference's own row set
-            to zero displacement (:mod:`torch_stsdic.movie.refine`, ``docs/accuracy.md``). Needs a
-            reference that is one series frame and no ``reference_update``.
+            the offsets' spread) subtracted from every row, the reference's own row set to 0
+            (:mod:`torch_stsdic.movie.refine`, ``docs/accuracy.md``); one reference frame.
         series_reference: measure against a template made from the series
             (:mod:`torch_stsdic.movie.series_reference`): up to ``series_frames`` frames
             (default 21) mapped back with their classically measured subset warps and
@@ -294,20 +292,16 @@ def track(
             fitted robustly, so a specimen that shakes or steps as a whole keeps its full
             windows. "auto" (default): for STS windows (m > 0) without ``reference_update``,
             quadratic (affine under 500 points), carried where the shake is significant;
-            None: off. The
-            per-frame motion is in ``result.shared_motion`` and the result file.
+            None: off. The per-frame motion is in ``result.shared_motion`` and the file.
         strain_window, strain_kind: strains written to ``out`` (grid points per side of the
             plane fit; "green" or "small"); ``strain_window=None``: none.
         scale, unit, time_unit: calibration recorded with the results (``out`` attributes,
             ``result.info["units"]``): ``scale`` length ``unit``s per px (e.g. 0.02, "mm"),
             ``time_unit`` of ``times`` (default "frame", "time unit" with timestamps). The
             values stay in px; exports and figures convert (:mod:`torch_stsdic.io.units`).
-        run_estimates: the run-level estimates measured already
-            (:class:`~torch_stsdic.movie.estimates.RunEstimates`, from
-            :func:`~torch_stsdic.movie.estimates.measure_run` on the whole movie): the
-            distributed runner's hook, so that a run of some of the frames uses the shared
-            motion, load steps, first guess and reference of the whole movie's run. Default:
-            measured from this run's frames.
+        run_estimates: the distributed runner's hook: the run-level estimates of the whole
+            movie (:func:`~torch_stsdic.movie.estimates.measure_run`), used instead of
+            measuring them on this run's frames.
 
     Returns:
         :class:`TrackResult` with (F, N) fields. With ``out`` the values are those stored in
@@ -321,8 +315,7 @@ def track(
     plan = plan_run(series, reference, frames, points, roi, mask, step, config, device, times,
                     batch_frames, reference_update=reference_update, smoothing=smoothing,
                     lost_zncc=lost_zncc, checks=checks, scale=scale, unit=unit,
-                    time_unit=time_unit, shared_motion=shared_motion,
-                    find_specimen=find_specimen)
+                    time_unit=time_unit, shared_motion=shared_motion, find_specimen=find_specimen)
     set_reference_mode(plan, refine_reference, refine_frames, series_reference, series_frames)
     sink = open_sink(plan, out, resume=resume, overwrite=overwrite,
                      strain_window=strain_window, strain_kind=strain_kind)
