@@ -67,7 +67,7 @@ QUADRATIC_POINTS = 500
 
 
 #: the fitted motion may leave the range of the points' measured displacements by this much
-#: (px) at a frame before the fit is refused
+#: (px), or by a quarter of that range where it is wider, at a frame before the fit is refused
 PLAUSIBLE_MARGIN = 1.0
 
 
@@ -75,7 +75,8 @@ def implausible(disp: torch.Tensor, fitted: torch.Tensor, valid: torch.Tensor,
                 frames: list[int]) -> str | None:
     """Why a shared-motion fit does not describe the points, or None: at some frame the
     fitted displacement (F, n, 2) lies outside the range of the trusted points' measured
-    displacements ``disp`` (1st-99th percentile, +- ``PLAUSIBLE_MARGIN`` px) at more than half
+    displacements ``disp`` (1st-99th percentile, +- a quarter of that range and at least
+    ``PLAUSIBLE_MARGIN`` px) at more than half
     of the points (a robust fit follows the majority; one that leaves them all, as a fit
     dragged by background points that froze or diverged, is not the specimen's motion)."""
     for f in range(disp.shape[0]):
@@ -83,8 +84,9 @@ def implausible(disp: torch.Tensor, fitted: torch.Tensor, valid: torch.Tensor,
         if int(ok.sum()) < 10:
             continue
         d, g = disp[f][ok], fitted[f][ok]
-        lo = torch.quantile(d, 0.01, dim=0) - PLAUSIBLE_MARGIN
-        hi = torch.quantile(d, 0.99, dim=0) + PLAUSIBLE_MARGIN
+        q01, q99 = torch.quantile(d, 0.01, dim=0), torch.quantile(d, 0.99, dim=0)
+        margin = torch.clamp(0.25 * (q99 - q01), min=PLAUSIBLE_MARGIN)
+        lo, hi = q01 - margin, q99 + margin
         out = ((g < lo) | (g > hi)).any(-1).double().mean()
         if float(out) > 0.5:
             return (f"at frame {frames[f]} it puts {float(out):.0%} of the points outside "
