@@ -233,7 +233,9 @@ def _on_specimen(pts: torch.Tensor, ref_raw: torch.Tensor | None, ser: ImageSeri
                  ref_frame: int, cfg: DICConfig) -> tuple[torch.Tensor, SpecimenReport] | None:
     """The grid points on the specimen and the report, or None where none is (every point
     kept then: the solver gives them their status)."""
-    image = ref_raw if ref_raw is not None else ser.get(ref_frame, dtype=torch.float64)
+    # through the series' own frame cache: the run reads the reference frame again from it
+    image = (ref_raw if ref_raw is not None
+             else torch.from_numpy(np.asarray(ser.numpy(ref_frame, np.float64))))
     keep, report = on_specimen(pts, image.double().cpu(), cfg.subset_size)
     if report.kept == 0:
         return None
