@@ -64,7 +64,8 @@ def single(movie, tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def threaded(dask_distributed, movie, tmp_path_factory):
-    """Two thread workers, chunks of 4 targets (13 targets: 4 chunks)."""
+    """Two thread workers, chunks of 4 targets rounded up to whole blocks (blocks of 8
+    targets after the first alone: 2 chunks, [0 .. 8] and [9 .. 12])."""
     out = tmp_path_factory.mktemp("dist") / "dist.h5"
     calls: list[tuple[int, int]] = []
     res = track_distributed(movie, config=CFG, roi=ROI, step=18, chunk_frames=CHUNK,
@@ -87,6 +88,11 @@ def test_chunk_plan_targets_disjoint_reads_overlap():
     warm = chunk_plan(range(13), 4, 13, 2, warm=2)
     assert [c["warm"] for c in warm] == [[], [2, 3], [6, 7], [10, 11]]
     assert [c["reads"] for c in warm] == [(0, 5), (0, 9), (4, 12), (8, 12)]
+    # with the run's blocks: whole blocks, as few as make chunk_frames targets
+    blocks = [[0], [1, 2, 3], [4, 5, 6], [7, 8, 9], [10, 11, 12]]
+    whole = chunk_plan(range(13), 4, 13, 2, warm=2, blocks=blocks)
+    assert [c["targets"] for c in whole] == [[0, 1, 2, 3], [4, 5, 6, 7, 8, 9], [10, 11, 12]]
+    assert [c["warm"] for c in whole] == [[], [2, 3], [8, 9]]
     with pytest.raises(ValueError, match="chunk_frames"):
         chunk_plan(range(5), 0, 5, 0)
 
@@ -106,7 +112,7 @@ def test_unsupported_options_rejected(movie, kwargs):
 def test_equals_single_process_run(threaded, single):
     res, _, calls = threaded
     ref, _ = single
-    assert res.info["chunks"] == 4 and res.info["chunks_run"] == 4
+    assert res.info["chunks"] == 2 and res.info["chunks_run"] == 2
     assert res.frames.tolist() == ref.frames.tolist() == list(range(13))
     assert torch.equal(res.points, ref.points)
     assert torch.equal(res.status, ref.status)
@@ -117,8 +123,8 @@ def test_equals_single_process_run(threaded, single):
         assert float((res.gradients[g] - ref.gradients[g]).abs().max()) < 1e-6
     # the first block, and every other chunk's warm-up block (the WARM_UP targets before it),
     # start from the whole run's measuring pass (else FFT-CC): 9 points each
-    assert res.info["fft_rows"] + res.info.get("first_guess_rows", 0) == 9 + 3 * WARM_UP * 9
-    assert calls[-1] == (13, 13) and len(calls) == 4
+    assert res.info["fft_rows"] + res.info.get("first_guess_rows", 0) == 9 + WARM_UP * 9
+    assert calls[-1] == (13, 13) and len(calls) == 2
 
 
 def test_file_has_the_track_layout(threaded, single):
@@ -145,13 +151,13 @@ def test_resume_recomputes_only_unfinished_chunks(dask_distributed, threaded, mo
     res, out, _ = threaded
     part = tmp_path / "part.h5"
     part.write_bytes(out.read_bytes())
-    with h5py.File(part, "r+") as f:  # as if killed during chunk 2 (rows 4..7)
-        f["completed"][5] = False
-        f["u"][5] = np.nan
+    with h5py.File(part, "r+") as f:  # as if killed during chunk 2 (rows 9..12)
+        f["completed"][10] = False
+        f["u"][10] = np.nan
     again = track_distributed(movie, config=CFG, roi=ROI, step=18, chunk_frames=CHUNK,
                               n_workers=2, processes=False, out=part, resume=True,
                               progress=False)
-    assert again.info["chunks_run"] == 1 and again.info["chunks_resumed"] == 3
+    assert again.info["chunks_run"] == 1 and again.info["chunks_resumed"] == 1
     for name in ("u", "v", "ut", "vt"):
         assert torch.equal(getattr(again, name), getattr(res, name))
     assert read_results(part).completed.all()
@@ -181,7 +187,7 @@ def test_list_of_movies_shares_the_workers(dask_distributed, movie, noisy_movie,
                                   processes=False, progress=False)
     for res, mv, o in ((a, movie, outs[0]), (b, noisy_movie.astype(np.float64), outs[1])):
         ref = track(mv, config=cfg, roi=ROI, step=18, progress=False)
-        assert res.info["chunks"] == 3
+        assert res.info["chunks"] == 2
         assert _max_diff(res, ref) < 1e-5
         assert read_results(o).completed.all()
 
@@ -227,10 +233,12 @@ def _timeless(rec: dict) -> dict:
 
 
 def equality(a, b) -> dict[str, float]:
-    """Every field of two results compared: the largest difference of each float field among
-    the point-frames usable in both (``max_<name>``), the share of equal statuses and of
-    equal windows (``m``), and the share of usable point-frames within MAX_DIFF_PX."""
+    """Every field of two results compared, among the point-frames usable in both: the
+    largest difference of each float field where both used the same window (``max_<name>``;
+    a classical row has no ut, vt), of u and v everywhere (``all_u``, ``all_v``), the share
+    within MAX_DIFF_PX (``within``), and the shares of equal statuses and windows (``m``)."""
     ok = (a.status <= 1) & (b.status <= 1)
+    same = ok & (a.m == b.m)
     out = {"statuses": float((a.status == b.status).float().mean()),
            "windows": float((a.m == b.m).float().mean()), "usable": int(ok.sum())}
     fields = {"u": (a.u, b.u), "v": (a.v, b.v), "ut": (a.ut, b.ut), "vt": (a.vt, b.vt),
@@ -238,12 +246,13 @@ def equality(a, b) -> dict[str, float]:
     fields.update({g: (a.gradients[g], b.gradients[g]) for g in a.gradients})
     fields.update({f"{k}_std": (a.std[k], b.std[k]) for k in a.std})
     for nm, (x, y) in fields.items():
-        d = (x.double() - y.double()).abs()[ok]
-        both_nan = torch.isnan(x)[ok] & torch.isnan(y)[ok]
+        d = (x.double() - y.double()).abs()[same]
+        both_nan = torch.isnan(x)[same] & torch.isnan(y)[same]
         assert bool((torch.isfinite(d) | both_nan).all()), f"{nm}: NaN in one run only"
-        out[f"max_{nm}"] = float(d[torch.isfinite(d)].max()) if bool(ok.any()) else 0.0
-    near = torch.maximum((a.u - b.u).abs(), (a.v - b.v).abs())[ok] <= MAX_DIFF_PX
-    out["within"] = float(near.float().mean())
+        out[f"max_{nm}"] = float(d[torch.isfinite(d)].max()) if bool(same.any()) else 0.0
+    du, dv = (a.u - b.u).abs()[ok], (a.v - b.v).abs()[ok]
+    out["all_u"], out["all_v"] = float(du.max()), float(dv.max())
+    out["within"] = float(((du <= MAX_DIFF_PX) & (dv <= MAX_DIFF_PX)).float().mean())
     return out
 
 
@@ -273,24 +282,24 @@ def test_shake_and_load_steps_equal_the_one_process_run(dask_distributed, steppe
     one = track(stepped_movie, out=tmp_path / "one.h5", **kw)
     dist = track_distributed(stepped_movie, out=tmp_path / "dist.h5", chunk_frames=6,
                              n_workers=2, processes=False, **kw)
-    assert dist.info["chunks"] == 5 and dist.shared_motion.steps == [8, 16, 24]
+    assert dist.info["chunks"] == 3 and dist.shared_motion.steps == [8, 16, 24]
     assert _timeless(dist.info["shared_motion"]) == _timeless(one.info["shared_motion"])
     eq = equality(one, dist)
     assert eq["statuses"] >= MIN_EQUAL and eq["windows"] >= MIN_EQUAL, eq
-    assert eq["max_u"] <= MAX_DIFF_PX and eq["max_v"] <= MAX_DIFF_PX, eq
+    assert eq["all_u"] <= MAX_DIFF_PX and eq["all_v"] <= MAX_DIFF_PX, eq
     assert eq["max_ut"] <= 10 * MAX_DIFF_PX and eq["max_vt"] <= 10 * MAX_DIFF_PX, eq
     # the file records the whole run's shared motion, as the one-process run's does
     a, b = read_results(tmp_path / "one.h5"), read_results(tmp_path / "dist.h5")
     np.testing.assert_array_equal(a.arrays["shared_motion"][0], b.arrays["shared_motion"][0])
 
 
-@pytest.mark.slow
 def test_sample12_equals_the_one_process_run(dask_distributed):
     """DIC Challenge sample 12 (a loading series with a step before frame 10), defaults but
-    step 20, 2 workers, chunks of 6 (about 40 s on a busy 2-core machine). The few
+    step 20, 2 workers, chunks of 6 (4 s on the 2-core machine). The few
     point-frames whose window length the model check decides at its margin may take
-    another window (m): a different estimate, as between any two initialisations; every
-    other usable point-frame agrees at the stopping rule's scale."""
+    another window (m): a different estimate, as between two one-process runs with other
+    blocks (batch_frames 4 and 8: 0.023 % of them, up to 0.016 px); every other usable
+    point-frame agrees at the stopping rule's scale."""
     if not SAMPLE12.is_dir():
         pytest.skip(f"DIC Challenge sample 12 not found at {SAMPLE12} (../shared/data)")
     one = track(str(SAMPLE12), step=20, progress=False)
@@ -299,9 +308,7 @@ def test_sample12_equals_the_one_process_run(dask_distributed):
     eq = equality(one, dist)
     assert eq["statuses"] >= MIN_EQUAL and eq["windows"] >= MIN_EQUAL, eq
     assert eq["within"] >= MIN_EQUAL, eq
-    same = (one.status <= 1) & (dist.status <= 1) & (one.m == dist.m)
-    d = torch.maximum((one.u - dist.u).abs(), (one.v - dist.v).abs())[same]
-    assert float(d.max()) <= MAX_DIFF_PX, eq
+    assert eq["max_u"] <= MAX_DIFF_PX and eq["max_v"] <= MAX_DIFF_PX, eq
 
 
 def test_command_line_workers_give_the_one_process_file(dask_distributed, stepped_movie,

@@ -107,8 +107,9 @@ def _add_distributed(p: argparse.ArgumentParser) -> None:
         "scheduler file (scheduler.json); the workers must see INPUT",
         shown="none")  # fmt: skip
     opt(g, "--chunk-frames", type=options.int_min(1), default=None, metavar="N",
-        help="target frames per task (each chunk but the first also solves the 2 targets "
-        "before it; docs/benchmarks.md sizes it)", shown="50")  # fmt: skip
+        help="target frames per task, rounded up to whole blocks of the run (each chunk but "
+        "the first also solves the 2 targets before it; docs/benchmarks.md sizes it)",
+        shown="50")  # fmt: skip
 
 
 def _runner(args: argparse.Namespace) -> Any:

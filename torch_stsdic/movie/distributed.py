@@ -1,33 +1,33 @@
 """Beyond one machine: a movie split into frame chunks, each tracked by a Dask worker.
 
 :func:`track_distributed` splits the target frames of a movie into consecutive *chunks* of
-``chunk_frames`` targets. Each chunk is one task: :func:`~torch_stsdic.movie.series.track` with
-``frames=<the chunk's targets>`` and the same points, reference and settings, on a Dask
-worker. Target frames never overlap between chunks; the frames *read* do: the windows of a
-chunk's first and last targets reach ``m`` frames beyond its edges (``2m`` extra reads and
-prefilters per chunk, shifted windows at the ends of the movie exactly as in ``track``). The
-driver (the calling process) writes every finished chunk's rows into one HDF5 result file,
-the same layout as ``track(out=...)`` (:class:`~torch_stsdic.io.ResultWriter`), so
-``read_results``/``export_csv``/``stsdic plot`` work unchanged; ``resume=True`` skips the
-chunks whose rows are all completed in the file.
+``chunk_frames`` targets, rounded up to whole blocks of the one-process run
+(``batch_frames``). Each chunk is one task on a Dask worker:
+:func:`~torch_stsdic.movie.series.run_plan` of the whole run's plan over the chunk's targets
+and blocks. Target frames never overlap between chunks; the frames *read* do (the windows
+reach ``m`` frames beyond a chunk's edges, and a chunk also solves the ``WARM_UP`` targets
+before it). The driver (the calling process) writes every finished chunk's rows into one
+HDF5 result file, the same layout as ``track(out=...)`` (:class:`~torch_stsdic.io.
+ResultWriter`), so ``read_results``/``export_csv``/``stsdic plot`` work unchanged;
+``resume=True`` skips the chunks whose rows are all completed in the file.
 
 Every run-level estimate is measured once, by the driver, on the whole movie
 (:func:`~torch_stsdic.movie.estimates.measure_run`: the shared motion and its load steps,
 the measuring pass's solutions that are the first block's guess, the reference made from the
 series, the refined reference's offsets, the reference's noise ratio), recorded in the result
 file as a one-process run records them, and handed to every chunk
-(``run_plan(estimates=...)``), so that a chunk's windows, segments and reference are those of
-the one-process run. A chunk's blocks are the one-process run's blocks cut at the chunk's
-edges. Guesses are not carried across chunks; instead a chunk other than the first solves
-the ``WARM_UP`` targets before its first one (from the measuring pass's guess, as a first
+(``run_plan(estimates=...)``): a chunk's windows, segments, reference and blocks are those of
+the one-process run. Guesses are not carried across chunks; instead a chunk other than the
+first solves the ``WARM_UP`` targets before it (from the measuring pass's guess, as a first
 block starts) and carries its guesses on from those rows, which are then dropped: its first
-block starts, like the one-process run's, from a carried prediction with the trust checks'
-baselines of the rows just before it. A point that converges lands on the same minimum from
-either guess, so the results equal the one-process run to within the Gauss-Newton stopping
-tolerance (``config.tol``, the last increment in px), and the statuses but for the rare
-point whose decision turns on it (docs/benchmarks.md, "Beyond one machine"). Not supported,
-because they chain state along the whole movie: ``reference_update`` (incremental reference)
-and ``smoothing`` (run ``m = 0`` here, then
+block starts, like the one-process run's, from a carried prediction, with the fit check's
+baselines of the rows just before it (a warm-up row that the fit check made POOR_FIT for
+its residual alone, without the point's history, is carried on as trusted). A point that
+converges lands on the same minimum from either guess, so the results equal the one-process
+run's to within the Gauss-Newton stopping tolerance (``config.tol``), and so do the statuses
+and windows but for the rare point whose decision turns on that (docs/benchmarks.md,
+"Beyond one machine"). Not supported, because they chain state along the whole movie:
+``reference_update`` (incremental reference) and ``smoothing`` (run ``m = 0`` here, then
 :func:`~torch_stsdic.analysis.smoothing.smooth_in_time` on the result).
 
 Why Dask distributed rather than Ray: it is pure pip (``pip install torch_stsdic[dist]``),
@@ -93,11 +93,13 @@ def _import_distributed():
 
 
 def chunk_plan(targets: Sequence[int], chunk_frames: int, n_series: int, m: int,
-               warm: int = 0) -> list[dict[str, Any]]:
+               warm: int = 0, blocks: Sequence[Sequence[int]] | None = None
+               ) -> list[dict[str, Any]]:
     """Chunks of consecutive targets: ``targets`` (the chunk's result rows, disjoint),
     ``warm`` (up to ``warm`` targets before them, solved first and dropped: every chunk but
     the first) and ``reads`` (first, last) series frames its windows need (overlapping with
-    neighbours).
+    neighbours). With ``blocks`` (the run's blocks of targets), a chunk is whole blocks, as
+    few as make ``chunk_frames`` targets, so that its blocks are the run's.
 
     >>> [c["reads"] for c in chunk_plan(range(10), 4, 10, 1)]
     [(0, 4), (3, 8), (7, 9)]
@@ -105,21 +107,28 @@ def chunk_plan(targets: Sequence[int], chunk_frames: int, n_series: int, m: int,
     if not isinstance(chunk_frames, (int, np.integer)) or chunk_frames < 1:
         raise ValueError(f"chunk_frames: must be an integer >= 1, got {chunk_frames!r}")
     tg = [int(t) for t in targets]
+    if blocks is None:
+        blocks = [[t] for t in tg]
+    parts: list[list[int]] = []
+    for blk in blocks:
+        if not parts or len(parts[-1]) >= int(chunk_frames):
+            parts.append([])
+        parts[-1].extend(int(t) for t in blk)
     n_win = 2 * m + 1
-    out = []
-    for i in range(0, len(tg), int(chunk_frames)):
-        part = tg[i : i + int(chunk_frames)]
+    out, i = [], 0
+    for part in parts:
         before = tg[max(0, i - int(warm)) : i]
         lo = min(max((before or part)[0] - m, 0), n_series - n_win)
         hi = max(min(part[-1] + m, n_series - 1), n_win - 1)
         out.append({"index": len(out), "targets": part, "warm": before, "reads": (lo, hi)})
+        i += len(part)
     return out
 
 
 @dataclass
 class _ChunkPlan(RunPlan):
     """A chunk's plan: the whole run's plan over the chunk's targets, with the whole run's
-    blocks cut at the chunk's edges (and the warm-up block first) instead of its own."""
+    blocks (and the warm-up block first) instead of its own."""
 
     chunk_blocks: list[list[int]] = field(default_factory=list)
 
@@ -140,7 +149,8 @@ def _run_chunk(plan: RunPlan, chunk: dict[str, Any], estimates: RunEstimates,
     args = {f.name: getattr(plan, f.name) for f in dataclasses.fields(RunPlan) if f.init}
     args["targets"] = warm + list(chunk["targets"])
     sub = _ChunkPlan(**args, chunk_blocks=([warm] if warm else []) + chunk["blocks"])
-    res = run_plan(sub, MemorySink(sub), progress=False, estimates=estimates)
+    res = run_plan(sub, MemorySink(sub), progress=False, estimates=estimates,
+                   warm_up=bool(warm))
     rows = {nm: res.field(nm)[len(warm):].detach().cpu().numpy() for nm in plan.fields}
     info = {k: v for k, v in res.info.items() if isinstance(v, (int, float))}
     return {"targets": list(chunk["targets"]), "rows": rows, "info": info, "pid": os.getpid()}
@@ -166,8 +176,8 @@ def _job(plan: RunPlan, sink: MemorySink, chunk_frames: int) -> _Job:
         if plan.options.get(k) is not None:
             raise ValueError(f"{k}: not supported by track_distributed ({why})")
     chunks = chunk_plan(plan.targets, chunk_frames, len(plan.series), plan.config.m,
-                        warm=WARM_UP)
-    for ch in chunks:  # the one-process run's blocks, cut at the chunk's edges
+                        warm=WARM_UP, blocks=plan.blocks)
+    for ch in chunks:  # the one-process run's blocks
         mine = set(ch["targets"])
         ch["blocks"] = [c for c in ([k for k in b if k in mine] for b in plan.blocks) if c]
     job = _Job(plan=plan, sink=sink, chunks=chunks, n_chunks=len(chunks))
@@ -478,7 +488,9 @@ def track_distributed(series: Any, *, out: Any = None, **kwargs: Any) -> TrackRe
             of files, array, ImageSeries). Workers read the frames themselves: on a cluster
             the paths must be visible to every worker (shared filesystem); an in-memory
             array is sent to each worker once (``Client.scatter``).
-        chunk_frames: target frames per task. Each chunk but the first also solves the
+        chunk_frames: target frames per task, rounded up to whole blocks of ``batch_frames``
+            targets (the first block is the first target alone). Each chunk but the first
+            also solves the
             ``WARM_UP`` (2) targets before it, and reads their and its windows' frames
             (``2m + 2`` extra reads and prefilters), so keep it well above ``m`` and
             ``WARM_UP`` (default 50; docs/benchmarks.md sizes it).

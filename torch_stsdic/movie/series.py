@@ -39,6 +39,7 @@ import sys
 from collections.abc import Callable, Sequence
 from typing import Any
 
+import numpy as np
 import torch
 from tqdm import tqdm
 
@@ -47,6 +48,7 @@ from torch_stsdic.analysis.smoothing import smooth_in_time
 from torch_stsdic.core.config import DICConfig
 from torch_stsdic.core.gauss_newton import ReferenceCache
 from torch_stsdic.core.solver import SubsetSolver
+from torch_stsdic.core.status import Status
 from torch_stsdic.io.results import as_stored
 from torch_stsdic.movie.block import BlockContext, solve_block
 from torch_stsdic.movie.carry import Carry, make_carry, rows_numpy
@@ -66,7 +68,7 @@ __all__ = ["track", "run_plan", "classical_smoothed", "set_reference_mode"]
 # ---------------------------------------------------------------------------------------
 def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = True,
              callback: Callable[[int, int], None] | None = None,
-             estimates: RunEstimates | None = None) -> TrackResult:
+             estimates: RunEstimates | None = None, warm_up: bool = False) -> TrackResult:
     """Execute ``plan`` block by block into ``sink`` (default: memory) and return the result.
 
     Blocks the sink already holds (an interrupted run being resumed) are replayed from it, not
@@ -75,7 +77,11 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
     estimates (:class:`~torch_stsdic.movie.estimates.RunEstimates`: shared motion, load
     steps, first guess, reference made from the series, refined reference's offsets)
     measured already, e.g. on the whole movie of which ``plan`` is a piece; default: measured
-    here (:func:`~torch_stsdic.movie.estimates.measure_run`)."""
+    here (:func:`~torch_stsdic.movie.estimates.measure_run`). ``warm_up``: the first block
+    only seeds the carry of the next (the distributed runner's rows before a chunk): the rows
+    its fit check made POOR_FIT without their point's history (the last trusted row's ZNCC)
+    are carried on as trusted, as the one-process run carries a point whose fit worsens
+    gradually."""
     sink = sink if sink is not None else MemorySink(plan)
     cfg = plan.config
     solver = SubsetSolver(cfg)
@@ -120,7 +126,7 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
                desc="STS-DIC" if cfg.m else "DIC", dynamic_ncols=True)
     try:
         try:
-            _run_blocks(plan, sink, run, ref, updates, bar, callback, offsets)
+            _run_blocks(plan, sink, run, ref, updates, bar, callback, offsets, warm_up)
         finally:
             cache.close()
         if plan.options.get("smoothing"):
@@ -151,7 +157,7 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
 
 def _run_blocks(plan: RunPlan, sink: MemorySink, run: BlockContext, ref: Reference,
                 updates: list, bar: tqdm, callback,
-                offsets: ReferenceOffsets | None = None) -> None:
+                offsets: ReferenceOffsets | None = None, warm_up: bool = False) -> None:
     """Solve (or replay) every block, carrying guesses and reference updates along
     (``offsets``: the refined reference's per-point offsets, subtracted before storing)."""
     row_of = plan.row_of()
@@ -175,7 +181,14 @@ def _run_blocks(plan: RunPlan, sink: MemorySink, run: BlockContext, ref: Referen
             stored = as_stored(full)
             sink.write_rows(rs, full, reference_frame=ref.frame)
         if block is not plan.blocks[-1]:  # the last block carries nothing on
-            carry = make_carry(stored, plan.times[block], plan.param_names, carry,
+            seed = stored
+            if warm_up and block is plan.blocks[0]:  # poor for the residual, judged without
+                # its history: trusted
+                poor = (stored["status"] == int(Status.POOR_FIT)) & (
+                    stored["zncc"] >= float(plan.options.get("lost_zncc", 0.8)))
+                seed = {**stored, "status": np.where(poor, int(Status.CONVERGED),
+                                                     stored["status"]).astype(np.int8)}
+            carry = make_carry(seed, plan.times[block], plan.param_names, carry,
                                plan.dtype, plan.device)
         if thr is not None:
             ref = maybe_update(ref, stored, block[-1], float(thr), pts0, plan.param_names,
