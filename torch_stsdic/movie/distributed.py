@@ -77,7 +77,8 @@ _UNSUPPORTED = {
 #: (two rows: the velocity of a classical row is their difference)
 WARM_UP = 2
 #: keyword arguments of track that the plan, the reference mode and the result file take
-_PLAN_KW = ("device", "lost_zncc", "checks", "scale", "unit", "time_unit", "shared_motion")
+_PLAN_KW = ("device", "lost_zncc", "checks", "scale", "unit", "time_unit", "shared_motion",
+            "find_specimen")
 _MODE_KW = ("refine_reference", "refine_frames", "series_reference", "series_frames")
 _SINK_KW = ("strain_window", "strain_kind")
 
@@ -506,7 +507,7 @@ def track_distributed(series: Any, *, out: Any = None, **kwargs: Any) -> TrackRe
             overwrite: replace an existing ``out``.
         progress: progress bar (rows). callback: ``callback(rows_done, n_rows)``.
         **track_kwargs: as for ``track`` (reference, frames, points, roi, mask, step,
-            config, times, device, batch_frames, lost_zncc, checks, shared_motion,
+            config, times, device, batch_frames, lost_zncc, checks, shared_motion, find_specimen,
             refine_reference, refine_frames, series_reference, series_frames,
             strain_window, strain_kind, scale, unit, time_unit). ``reference_update`` and
             ``smoothing`` are not supported (ValueError). The run-level estimates (shared
