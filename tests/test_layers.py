@@ -50,6 +50,12 @@ def _rank(mod: str) -> int:
 
 def _imports(mod: str) -> list[tuple[str, list[str], int]]:
     """(imported module, imported names, line) for every package import in ``mod``."""
+    if mod not in _IMPORTS:
+        _IMPORTS[mod] = _parse_imports(mod)
+    return _IMPORTS[mod]
+
+
+def _parse_imports(mod: str) -> list[tuple[str, list[str], int]]:
     path = MODULES[mod]
     tree = ast.parse(path.read_text())
     is_pkg = path.name == "__init__.py"
@@ -83,6 +89,9 @@ def _longest(name: str) -> str:
         if ".".join(parts[:i]) in MODULES:
             return ".".join(parts[:i])
     return name
+
+
+_IMPORTS: dict[str, list] = {}
 
 
 def _graph() -> dict[str, set[str]]:

@@ -44,6 +44,7 @@ def test_reproduce_table1_quick(tmp_path):
     assert (tmp_path / "table1_quick.md").read_text().startswith("Table 1 reproduction")
 
 
+@pytest.mark.slow  # 9 s; a research script, not a product path
 def test_refine_drift_quick(tmp_path):
     _run("refine_drift.py", "--quick", "--out", str(tmp_path))
     rows = _rows(tmp_path / "refine_drift_quick.csv")
@@ -111,6 +112,7 @@ def test_real_time_model_skips_without_data(tmp_path):
 @pytest.mark.skipif(not (DATA / "dic-challenge-sample12").is_dir(),
                     reason="DIC Challenge sample 12 not found in ../shared/data (not part of the "
                            "repository)")
+@pytest.mark.slow  # 17 s; a research script, not a product path
 def test_real_time_model_quick(tmp_path):
     _run("real_time_model.py", "--quick", "--series", "sample12", "--out", str(tmp_path))
     rows = _rows(tmp_path / "real_time_model_quick.csv")
