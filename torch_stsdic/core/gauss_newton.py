@@ -420,20 +420,10 @@ def _run_stage(ctx: BatchContext, form: Formulation, params, data: SubsetData, l
     cfg, geo = ctx.cfg, ctx.geo
     n = params.shape[0]
     device, dtype = params.device, params.dtype
-    status = torch.full((n,), int(Status.MAX_ITER), dtype=torch.int8, device=device)
-    zncc = torch.full((n,), float("nan"), dtype=dtype, device=device)
-    used = torch.zeros(n, dtype=torch.int32, device=device)
-    rows = torch.nonzero(live).flatten()
-    if rows.numel() == 0:
+    params, zncc, status, used, rows, data = point_solve.start_stage(form, geo, params, data,
+                                                                     live)
+    if data is None:
         return params, zncc, status, used, None
-    params = params.clone()
-    if rows.numel() < n:
-        data = data.take(rows)
-    sing = form.prepare(geo, data)
-    if sing.any():
-        status[rows[sing]] = int(Status.LOW_TEXTURE)
-        keep = torch.nonzero(~sing).flatten()  # one index for all (a mask syncs per tensor)
-        rows, data = rows[keep], data.take(keep)
     scale = geo.shape.increment_scale(geo.spatial, data.dt)
     p = params[rows]
     # fused kernel: finished rows are skipped through an index (`sel`) instead of copying

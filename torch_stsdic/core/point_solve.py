@@ -36,6 +36,32 @@ def applies(ctx, form, params: Tensor, data: SubsetData) -> bool:
                                   geo.shape.inverse_compositional) == "native")
 
 
+def start_stage(form, geo, params: Tensor, data: SubsetData, live: Tensor):
+    """What every Gauss-Newton stage starts with (the batched loop of
+    :mod:`torch_stsdic.core.gauss_newton` and :func:`solve_stage`): the (N,) status (MAX_ITER
+    until decided), ZNCC and iteration counts, the live rows' data prepared by the
+    formulation (Hessian), rows whose Hessian is singular LOW_TEXTURE and dropped. Returns
+    params (a copy), zncc, status, used, rows (the rows to iterate), data (theirs); data is
+    None where no row is live (params then the given tensor)."""
+    n = params.shape[0]
+    device, dtype = params.device, params.dtype
+    status = torch.full((n,), int(Status.MAX_ITER), dtype=torch.int8, device=device)
+    zncc = torch.full((n,), float("nan"), dtype=dtype, device=device)
+    used = torch.zeros(n, dtype=torch.int32, device=device)
+    rows = torch.nonzero(live).flatten()
+    if rows.numel() == 0:
+        return params, zncc, status, used, rows, None
+    params = params.clone()
+    if rows.numel() < n:
+        data = data.take(rows)
+    sing = form.prepare(geo, data)
+    if sing.any():
+        status[rows[sing]] = int(Status.LOW_TEXTURE)
+        keep = torch.nonzero(~sing).flatten()  # one index for all (a mask syncs per tensor)
+        rows, data = rows[keep], data.take(keep)
+    return params, zncc, status, used, rows, data
+
+
 def solve_stage(ctx, form, params: Tensor, data: SubsetData, live: Tensor, frame_rhs: bool,
                 step0: Tensor | None, rate_floor: float):
     """``_run_stage`` of :mod:`torch_stsdic.core.gauss_newton` point by point, where
@@ -49,19 +75,9 @@ def solve_stage(ctx, form, params: Tensor, data: SubsetData, live: Tensor, frame
     cfg, geo, frames = ctx.cfg, ctx.geo, ctx.frames
     n = params.shape[0]
     device, dtype = params.device, params.dtype
-    status = torch.full((n,), int(Status.MAX_ITER), dtype=torch.int8, device=device)
-    zncc = torch.full((n,), float("nan"), dtype=dtype, device=device)
-    used = torch.zeros(n, dtype=torch.int32, device=device)
-    rows = torch.nonzero(live).flatten()
-    if rows.numel() == 0:
+    params, zncc, status, used, rows, data = start_stage(form, geo, params, data, live)
+    if data is None:
         return params, zncc, status, used, None
-    params = params.clone()
-    if rows.numel() < n:
-        data = data.take(rows)
-    sing = form.prepare(geo, data)
-    if sing.any():
-        status[rows[sing]] = int(Status.LOW_TEXTURE)
-        rows, data = rows[~sing], data.take(~sing)
     scale = geo.shape.increment_scale(geo.spatial, data.dt)
     prev = (torch.zeros(rows.numel(), dtype=dtype, device=device) if step0 is None
             else step0[rows].to(dtype).nan_to_num(0.0))
