@@ -309,7 +309,7 @@ def test_solver_with_shared_motion_through_the_fused_step(monkeypatch, m):
     img = BSplineImage(mv.frames.double(), 3)
     p = torch.zeros(2, 8, dtype=torch.float64)
     ft = torch.zeros(2, 121, dtype=torch.float64)
-    assert dispatch.ic_step(img.kernel_args(), 3, p, ft, ft, ft, True) == "triton"
+    assert dispatch.ic_step(img.kernel_args(), 3, p, ft, ft, ft) == "triton"
     got = sts.solve_window(mv.ref, frames, pts, cfg, **kw)
     assert launches and all(launches)  # every step went through the kernel, with the motion
     assert torch.equal(got.status, want.status)

@@ -36,12 +36,11 @@ def gram(*tensors: Tensor) -> str:
     return NATIVE if native.usable(*tensors) else TORCH
 
 
-def ic_step(kernel_args: tuple, order: int, p: Tensor, ft: Tensor, gx: Tensor, gy: Tensor,
-            shared_motion: bool = False) -> str:
+def ic_step(kernel_args: tuple, order: int, p: Tensor, ft: Tensor, gx: Tensor, gy: Tensor
+            ) -> str:
     """One joint IC-GN right-hand side (warp, sampling, criterion, J^T r over all frames):
-    the C++ kernel on the CPU, the Triton kernel on CUDA, else the torch code. All three take
-    the shared motion (a known displacement per point and frame), so ``shared_motion`` no
-    longer decides (kept for the callers that pass it)."""
+    the C++ kernel on the CPU, the Triton kernel on CUDA, else the torch code (all three take
+    the shared motion, a known displacement per point and frame)."""
     if native.usable_image(kernel_args, p, ft):
         return NATIVE
     if fused_step.usable(kernel_args[0], order, ft.shape[1], p, ft, gx, gy):

@@ -151,10 +151,9 @@ def _warps(res: TrackResult, j: int, lost_zncc: float) -> tuple[torch.Tensor, to
 
 
 def _splat(acc: torch.Tensor, img: BSplineImage, pts: torch.Tensor, warp: torch.Tensor,
-           ok: torch.Tensor, half: int, weight: float) -> float:
+           ok: torch.Tensor, half: int, weight: float) -> None:
     """Add frame ``img`` mapped back by each trusted POI's warp to ``acc`` (3, H*W): weighted
-    values, weights, squared weights times the interpolated noise's variance factor. Returns
-    the mean variance factor of the samples."""
+    values, weights, squared weights times the interpolated noise's variance factor."""
     h, w = img.height, img.width
     d = torch.arange(-half, half + 1, dtype=torch.float64)
     dy, dx = torch.meshgrid(d, d, indexing="ij")
@@ -162,7 +161,6 @@ def _splat(acc: torch.Tensor, img: BSplineImage, pts: torch.Tensor, warp: torch.
     tent = ((1.0 - dx.abs() / (half + 1)) * (1.0 - dy.abs() / (half + 1)))
     sel = torch.nonzero(ok).flatten()
     chunk = max(1, _CHUNK_SAMPLES // dx.numel())
-    factors = []
     for s0 in range(0, sel.numel(), chunk):
         i = sel[s0: s0 + chunk]
         c = pts[i].round()
@@ -176,29 +174,31 @@ def _splat(acc: torch.Tensor, img: BSplineImage, pts: torch.Tensor, warp: torch.
                   & (xs <= w - 1) & (ys >= 0) & (ys <= h - 1))
         vals = img.sample(xs.to(img.dtype), ys.to(img.dtype)).double()
         fac = interpolation_variance_factor(xs - xs.floor(), ys - ys.floor())
-        factors.append(float(fac[inside].mean()) if bool(inside.any()) else 1.0)
         wt = (tent * weight).expand_as(x)[inside]
         idx = (y[inside] * w + x[inside]).long()
         acc[0].index_add_(0, idx, wt * vals[inside])
         acc[1].index_add_(0, idx, wt)
         acc[2].index_add_(0, idx, wt * wt * fac[inside] / weight)
-    return float(np.mean(factors)) if factors else 1.0
 
 
-def _template(plan: RunPlan, res: TrackResult, frames: list[int], ref_raw: torch.Tensor
-              ) -> tuple[torch.Tensor, float, float]:
-    """The template from the measured warps of ``res`` (rows = ``frames``): image (H, W),
-    its noise variance over one frame's (median over the covered pixels), coverage."""
+def _frame_noise(plan: RunPlan, frames: list[int]) -> list[float]:
+    """The image noise sigma (grey levels) of each of ``frames`` (Immerkaer's estimate)."""
+    return [max(float(estimate_noise_sigma(plan.series.get(k, dtype=torch.float64))), 1e-6)
+            for k in frames]
+
+
+def _template(plan: RunPlan, res: TrackResult, frames: list[int], sigmas: list[float],
+              ref_raw: torch.Tensor) -> tuple[torch.Tensor, float, float]:
+    """The template from the measured warps of ``res`` (rows = ``frames``, noise ``sigmas``):
+    image (H, W), its noise variance over one frame's (median over the covered pixels),
+    coverage."""
     h, w = plan.series.shape
     pts = plan.points.double().cpu()
     half = (plan.config.subset_size - 1) // 2
     lost = float(plan.options.get("lost_zncc", 0.8))
     acc = torch.zeros(3, h * w, dtype=torch.float64)
-    sigmas = []
-    for j, k in enumerate(frames):
+    for j, (k, sigma) in enumerate(zip(frames, sigmas)):
         raw = plan.series.get(k, dtype=torch.float64)
-        sigma = max(float(estimate_noise_sigma(raw)), 1e-6)
-        sigmas.append(sigma)
         warp, ok = _warps(res, j, lost)
         _splat(acc, BSplineImage(raw), pts, warp, ok, half, 1.0 / sigma ** 2)
     ref = ref_raw.double().cpu().reshape(-1)
@@ -227,13 +227,14 @@ def build_series_reference(plan: RunPlan, ref_raw: torch.Tensor, *,
         raise ValueError(f"series_reference: iterations must be >= 1, got {iterations!r}")
     t0 = time.perf_counter()
     frames = sample_frames(plan, max_frames)
+    sigmas = _frame_noise(plan, frames)  # the same in every round
     image = None
     ratio = coverage = 1.0
     for i in range(int(iterations)):
         res = _measure(plan, frames, image, run)
         if i == 0 and "u" in res.std:
             unit = _unit_variance(res)
-        image, ratio, coverage = _template(plan, res, frames, ref_raw)
+        image, ratio, coverage = _template(plan, res, frames, sigmas, ref_raw)
     added = None
     if "u" in res.std:
         share = registration_share(int(iterations), plan.config.subset_size,

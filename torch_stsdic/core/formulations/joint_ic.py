@@ -121,7 +121,7 @@ class JointIC(Formulation):
         """Which kernel runs this call's step (:func:`torch_stsdic.kernels.dispatch.ic_step`:
         C++ on the CPU, Triton on CUDA, else torch)."""
         return dispatch.ic_step(frames.kernel_args(), frames.order, p, data.ft, data.gx,
-                                data.gy, data.motion is not None)
+                                data.gy)
 
     def _args(self, geo: Geometry, frames: BSplineImage, data: SubsetData, p: Tensor) -> tuple:
         flat, wp, x_lo, x_hi, y_lo, y_hi, shift, plane = frames.kernel_args()
