@@ -270,26 +270,10 @@ def test_full_disk_mid_run(capsys, monkeypatch, movie, reference, tmp_path):
     _assert_same(out, reference)
 
 
-@contextlib.contextmanager
-def _tmpfs(where: Path, options: str):
-    """A small tmpfs at ``where`` (root on Linux only), else skip."""
-    where.mkdir()
-    if sys.platform != "linux" or os.geteuid() != 0:
-        pytest.skip("mounting a tmpfs needs root on Linux")
-    r = subprocess.run(["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(where)],
-                       capture_output=True, text=True)
-    if r.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs here: {r.stderr.strip()}")
-    try:
-        yield where
-    finally:
-        subprocess.run(["umount", str(where)], check=False)
-
-
-def test_real_full_disk_is_found_before_computing(capsys, movie, tmp_path):
+def test_real_full_disk_is_found_before_computing(capsys, movie, tmp_path, tmpfs):
     """The result file takes its full size when it is made, so a disk too small fails at
     once (nothing computed, nothing left behind)."""
-    with _tmpfs(tmp_path / "small", "size=64k") as d:
+    with tmpfs(tmp_path / "small", "size=64k") as d:
         code, _, err = _run(capsys, "run", movie, *RUN, "--step", "2", "--out", d / "r.h5",
                             *FAST)
         assert code == 1
@@ -298,14 +282,14 @@ def test_real_full_disk_is_found_before_computing(capsys, movie, tmp_path):
         assert not list(d.iterdir())
 
 
-def test_read_only_output_folder(capsys, movie, tmp_path):
+def test_read_only_output_folder(capsys, movie, tmp_path, tmpfs):
     ro = tmp_path / "ro"
     if os.geteuid() != 0:
         ro.mkdir()
         ro.chmod(0o500)
         ctx: contextlib.AbstractContextManager = contextlib.nullcontext(ro)
     else:  # root ignores permissions: a read-only file system
-        ctx = _tmpfs(ro, "ro,size=64k")
+        ctx = tmpfs(ro, "ro,size=64k")
     with ctx as d:
         code, _, err = _run(capsys, "run", movie, *RUN, "--out", d / "r.h5", *FAST)
         assert code == 1

@@ -6,12 +6,9 @@ small tmpfs can be mounted (root on Linux), also on a real full file system."""
 
 from __future__ import annotations
 
-import contextlib
 import errno
 import os
 import re
-import subprocess
-import sys
 from pathlib import Path
 
 import h5py
@@ -271,22 +268,6 @@ def test_plot_full_disk_leaves_no_truncated_png(capsys, monkeypatch, result, tmp
 # ----------------------------------------------------------------------------------------
 
 
-@contextlib.contextmanager
-def _tmpfs(where: Path, size: str):
-    """A small tmpfs at ``where`` (root on Linux only), else skip."""
-    where.mkdir()
-    if sys.platform != "linux" or os.geteuid() != 0:
-        pytest.skip("mounting a tmpfs needs root on Linux")
-    r = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(where)],
-                       capture_output=True, text=True)
-    if r.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs here: {r.stderr.strip()}")
-    try:
-        yield where
-    finally:
-        subprocess.run(["umount", str(where)], check=False)
-
-
 def _fill(folder: Path, leave: int) -> None:
     """Fill ``folder``'s file system but ``leave`` bytes (within a page)."""
     free = os.statvfs(folder).f_bavail * os.statvfs(folder).f_frsize
@@ -295,10 +276,10 @@ def _fill(folder: Path, leave: int) -> None:
 
 
 @pytest.mark.parametrize("leave", [0, 4096, 40960], ids=["full", "4k", "40k"])
-def test_real_full_disk(capsys, movie, result, tmp_path, leave):
+def test_real_full_disk(capsys, movie, result, tmp_path, leave, tmpfs):
     """On a real small file system filled up: run, export and plot each fail with one line
     naming the file and leave nothing half-written (the filler aside)."""
-    with _tmpfs(tmp_path / "small", "96k") as d:
+    with tmpfs(tmp_path / "small", "size=96k") as d:
         _fill(d, leave)
         code, _, err = _run(capsys, "run", movie, *RUN, "--out", d / "r.h5", *FAST)
         assert code == 1 and str(d / "r.h5") in _line(err) and FULL in err
