@@ -177,7 +177,7 @@ def test_averaged_reference_lowers_the_error():
     movie, times = _movie(Translation(ut=0.1), n=10, still=5)
     cfg = sts.DICConfig(subset_size=15, m=0)
     kw = dict(config=cfg, step=6, frames="5:", progress=False, strain_window=None)
-    one = sts.track(movie, reference=0, **kw)
+    one = sts.track(movie, reference=0, series_reference=False, **kw)
     avg = sts.track(movie, reference="0:5", **kw)
     truth = 0.1 * times[5:, None]
     rms = [float((r.u - truth).pow(2).mean().sqrt()) for r in (one, avg)]
@@ -212,7 +212,7 @@ def test_refined_reference_zeroes_the_reference_row():
     movie, times = _movie(Translation(ut=0.05), n=12, noise=2.0)
     cfg = sts.DICConfig(subset_size=15, m=2)
     kw = dict(config=cfg, step=8, progress=False, strain_window=None, shared_motion=None)
-    plain = sts.track(movie, **kw)
+    plain = sts.track(movie, series_reference=False, **kw)
     refined = sts.track(movie, refine_reference=True, **kw)
     assert float(plain.u[0].abs().max()) > 1e-3
     ok = refined.ok[0]
@@ -388,7 +388,7 @@ def test_cli_averaged_reference(tmp_path):
     rms = []
     for spec in ("0", "0:5"):
         res = _run(tmp_path, path, "--reference", spec, "--m", "0", "--frames", "5:",
-                   "--step", "6", name=f"ref{len(rms)}.h5")
+                   "--step", "6", "--single-reference", name=f"ref{len(rms)}.h5")
         err = res["u"] - 0.1 * times[5:, None].numpy()
         assert (res["status"] <= 1).all()
         rms.append(float(np.sqrt(np.mean(err**2))))

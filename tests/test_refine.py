@@ -51,7 +51,7 @@ def test_refined_reference_with_motion_the_fits_miss():
     x, y = np.meshgrid(g, g)
     pts = np.stack([x.ravel(), y.ravel()], 1)
     cfg = sts.DICConfig(m=2, dtype="float32")
-    plain = sts.track(movie, points=pts, config=cfg, progress=False)
+    plain = sts.track(movie, points=pts, config=cfg, progress=False, series_reference=False)
     with pytest.warns(RuntimeWarning, match="refine_reference: the intercepts"):
         refined = sts.track(movie, points=pts, config=cfg, progress=False,
                             refine_reference=True)

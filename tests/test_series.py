@@ -110,8 +110,42 @@ def test_batched_centres_equal_one_at_a_time(movie, sts_run):
     assert torch.equal(res.status, seq.status)
 
 
-def test_lazy_reading_bounded_cache(sts_run):
-    res, _, reads, reads_at_callback = sts_run
+def test_template_reads_are_bounded(movie):
+    """The reference made from the series reads its frames a fixed number of times: their
+    noise, each round's classical measurement and mapping, the reference's measurement
+    against the template, then the movie's blocks."""
+    frames, _ = movie
+    ser = load_series(frames)
+    reads: list[int] = []
+    get = ser.get
+
+    def counting_get(i, *args, **kwargs):
+        reads.append(int(i))
+        return get(i, *args, **kwargs)
+
+    ser.get = counting_get  # type: ignore[method-assign]
+    res = track(ser, config=CFG, roi=ROI, step=18, progress=False, batch_frames=BATCH,
+                shared_motion=None, series_reference=True)
+    assert res.info["series_reference"]["iterations"] == 2
+    counts = np.bincount(reads)
+    assert counts.min() >= 1 and counts.max() <= 7, counts
+
+
+def test_lazy_reading_bounded_cache(movie):
+    frames, _ = movie
+    ser = load_series(frames)
+    reads: list[int] = []
+    get = ser.get
+
+    def counting_get(i, *args, **kwargs):
+        reads.append(int(i))
+        return get(i, *args, **kwargs)
+
+    ser.get = counting_get  # type: ignore[method-assign]
+    reads_at_callback: list[int] = []
+    res = track(ser, config=CFG, roi=ROI, step=18, progress=False, batch_frames=BATCH,
+                callback=lambda done, total: reads_at_callback.append(len(reads)),
+                shared_motion=None, series_reference=False)
     n = 9
     # every frame read and prefiltered once: the reference frame is held from the start
     assert sorted(reads) == list(range(n))
@@ -211,7 +245,8 @@ def test_classical_reference_row_is_the_identity_without_a_solve(movie):
     the first block (FFT cross-correlation), with the same results."""
     frames, motion = movie
     pts = torch.tensor([[40.0, 40.0], [22.0, 30.0], [5.0, 40.0]])  # the last: subset outside
-    res = track(frames[:3], config=CFG.replace(m=0), points=pts, progress=False)
+    res = track(frames[:3], config=CFG.replace(m=0), points=pts, progress=False,
+                series_reference=False)
     assert res.status[0].tolist() == [int(Status.CONVERGED)] * 2 + [int(Status.OUTSIDE)]
     assert res.iterations[0].tolist() == [0, 0, 0]
     assert res.u[0, :2].tolist() == [0.0, 0.0] and res.v[0, :2].tolist() == [0.0, 0.0]

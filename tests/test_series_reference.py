@@ -1,6 +1,8 @@
 """The reference made from the series (movie.series_reference): a template of the series'
-images mapped back with their measured subset warps lowers the error against known motion,
-adds no sub-pixel bias, and its predicted std stays honest; bad combinations are refused."""
+images mapped back with their measured subset warps (smoothed by local planes) lowers the
+error against known motion far below the single-reference floor, adds no sub-pixel bias,
+fixes zero displacement by the reference frame's own measurement, and its predicted std
+stays honest; it is on by default where it applies; bad combinations are refused."""
 
 from __future__ import annotations
 
@@ -9,8 +11,8 @@ import pytest
 import torch
 
 import torch_stsdic as sts
+import torch_stsdic.movie.series_reference as series_reference
 from torch_stsdic import synth
-from torch_stsdic.movie.series_reference import registration_share
 
 N_FRAMES = 17
 MOTION = synth.QuadraticInTime(au=0.11, bu=-0.003, av=-0.06, bv=0.002)  # decelerating
@@ -28,63 +30,169 @@ def movie():
 
 def _run(movie, m, **kw):
     series, times, _ = movie
+    kw = {"reference": 0, **kw}
     return sts.track(series, config=sts.DICConfig(m=m, subset_size=21), step=8, times=times,
                      progress=False, checks=False, shared_motion=None, **kw)
 
 
 def _errors(res, truth):
-    e = torch.cat([res.u.double()[1:] - truth[0][1:], res.v.double()[1:] - truth[1][1:]], 1)
-    pred = torch.cat([res.std["u"].double()[1:], res.std["v"].double()[1:]], 1)
+    """RMS of the random error (each frame's mean error, the same at every point of this
+    uniform motion: the time model's bias in a decelerating motion, taken out), RMS of the
+    predicted std, the mean error."""
+    e = torch.stack([res.u.double()[1:] - truth[0][1:], res.v.double()[1:] - truth[1][1:]])
+    pred = torch.stack([res.std["u"].double()[1:], res.std["v"].double()[1:]])
     ok = torch.isfinite(e) & torch.isfinite(pred)
-    return float(e[ok].pow(2).mean().sqrt()), float(pred[ok].pow(2).mean().sqrt()), \
-        float(e[ok].mean())
+    e, pred = torch.where(ok, e, torch.nan), torch.where(ok, pred, torch.nan)
+    rand = e - torch.nanmean(e, -1, keepdim=True)
+    return float(torch.nanmean(rand ** 2).sqrt()), float(torch.nanmean(pred ** 2).sqrt()), \
+        float(torch.nanmean(e))
 
 
 @pytest.fixture(scope="module")
 def runs(movie):
-    return {"single": _run(movie, 0), "series": _run(movie, 0, series_reference=2)}
+    return {"single": _run(movie, 0, series_reference=False),
+            "series": _run(movie, 0),  # the default: on
+            "sts_single": _run(movie, 2, series_reference=False),
+            "sts_series": _run(movie, 2)}
 
 
-def test_template_lowers_the_classical_error(movie, runs):
-    """Classical DIC against the template of 17 images (2 rounds) reads below its error
-    against image 0. Measured on this render (seed 7): 10.53e-3 -> 9.04e-3 px, 0.86x (1
-    round 0.89x, 4 rounds 0.83x); band <= 0.92."""
-    single, _, _ = _errors(runs["single"], movie[2])
-    series, _, _ = _errors(runs["series"], movie[2])
-    assert series <= 0.92 * single, (series, single)
+def test_template_lowers_the_error_below_the_single_reference_floor(movie, runs):
+    """Against image 0 STS-DIC m=2 cannot go below sqrt((1 + 1/5) / 2) = 0.77x classical
+    DIC (the reference's noise is in every frame). Against the template of the 17 images
+    classical DIC and STS m=2 go below it (measured in the docstring of the bands below)."""
+    single = _errors(runs["single"], movie[2])[0]
+    assert _errors(runs["sts_single"], movie[2])[0] >= 0.68 * single  # measured 0.74
+    assert _errors(runs["series"], movie[2])[0] <= BAND_CLASSICAL * single
+    assert _errors(runs["sts_series"], movie[2])[0] <= BAND_STS * single
     info = runs["series"].info["series_reference"]
     assert info["iterations"] == 2 and len(info["frames"]) == N_FRAMES
-    assert info["coverage"] > 0.9
+    assert info["coverage"] > 0.9 and info["plane_share"] > 0.9
+    assert "single_reference" not in runs["series"].info
+    assert runs["single"].info["single_reference"] == "asked for"
+
+
+#: measured on this render (random error): classical 0.76x, STS m=2 0.41x (theory
+#: sqrt((1/5 + 1/17) / 2) = 0.36 inside the movie, more at its ends)
+BAND_CLASSICAL, BAND_STS = 0.85, 0.5
+
+
+def test_reference_frame_reads_zero(runs):
+    """The reference frame's row is the truth, 0 (and its std), where it was solved: the
+    gauge (its own measurement against the template) fixes zero displacement."""
+    for key in ("series", "sts_series"):
+        res = runs[key]
+        ok = res.status[0] <= 1
+        assert bool(ok.all())
+        assert float(res.u[0][ok].abs().max()) == 0.0 and float(res.v[0][ok].abs().max()) == 0.0
+        assert float(res.std["u"][0][ok].abs().max()) == 0.0
 
 
 def test_template_adds_no_bias(movie, runs):
     """The mean error (over points and frames: the sub-pixel bias of the motion's fractional
-    positions) stays within 1e-3 px of the single reference's (measured 1.29e-3 against
-    1.22e-3 px)."""
-    _, _, b_single = _errors(runs["single"], movie[2])
-    _, _, b_series = _errors(runs["series"], movie[2])
-    assert abs(b_series - b_single) < 1e-3 and abs(b_series) < 2e-3, (b_single, b_series)
+    positions) stays within 1e-3 px of the single reference's."""
+    for single, series in (("single", "series"), ("sts_single", "sts_series")):
+        _, _, b_single = _errors(runs[single], movie[2])
+        _, _, b_series = _errors(runs[series], movie[2])
+        assert abs(b_series - b_single) < 1e-3 and abs(b_series) < 2e-3, (b_single, b_series)
 
 
-def test_predicted_std_includes_the_template(movie, runs):
-    """Classical u_std / v_std against the template: measured / predicted within 0.8-1.25
-    (1.10 on this render; 0.96-0.98 on DIC Challenge sample 3; STS m=2 reads 1.35 here and
-    0.92 on sample 3: docs/validation/series_reference.md)."""
-    rms, pred, _ = _errors(runs["series"], movie[2])
+@pytest.mark.parametrize("key", ["series", "sts_series"])
+def test_predicted_std_includes_the_template(movie, runs, key):
+    """u_std / v_std against the template: measured / predicted error within 0.8-1.25
+    (classical and STS m=2 on this render; sample 3 in docs/validation/series_reference.md)."""
+    rms, pred, _ = _errors(runs[key], movie[2])
     assert 0.8 <= rms / pred <= 1.25, (rms, pred)
 
 
-def test_registration_share_law():
-    assert registration_share(1, 21, 8) == pytest.approx(1 / (1 + 0.27 * (21 / 8) ** 2))
-    assert registration_share(4, 21, 8) < registration_share(2, 21, 8) < 0.5
-    assert registration_share(2, 21, 16) > registration_share(2, 21, 8)
+@pytest.mark.filterwarnings("ignore:refine_reference")
+def test_default_follows_the_reference(movie):
+    """"auto" (the default) measures against the template where the reference is a frame of
+    the series, and says why not elsewhere."""
+    series = movie[0]
+    upd = _run(movie, 0, reference_update=0.9)
+    assert "series_reference" not in upd.info
+    assert "updated" in upd.info["single_reference"]
+    ext = _run(movie, 0, reference=series[0].numpy())
+    assert "series_reference" not in ext.info
+    assert "not one frame" in ext.info["single_reference"]
+    ref = _run(movie, 0, refine_reference=True)
+    assert "series_reference" not in ref.info and "refine_reference" in ref.info
+
+
+def _bump(size: int):
+    c = (size - 1) / 2
+
+    def fn(x, y, t):
+        b = (1 - torch.exp(-t / 8.0)) * torch.exp(-((x - c) ** 2 + (y - c) ** 2)
+                                                  / (2 * 50.0 ** 2))
+        return 0.002 * (x - c) * t / 16 + b, 0.5 * b - 0.02 * t
+    return synth.Custom(fn)
+
+
+def _relaxing(size: int) -> synth.Motion:
+    c = (size - 1) / 2
+
+    def fn(x, y, t):
+        e = 0.004 * (1 - torch.exp(-t / 8.0))
+        return (e * (x - c) + 0.03 * t + 0.2 * (1 - torch.exp(-t / 5.0)),
+                -0.3 * e * (y - c) - 0.02 * t)
+    return synth.Custom(fn)
+
+
+def _movie_error(mot, size: int, n: int, seed: int):
+    mv = synth.synthetic_movie((size, size), n - 1, mot, noise_sigma=2.0, seed=seed)
+    series = torch.cat([mv.ref[None], mv.frames]).double()
+    times = torch.cat([torch.zeros(1, dtype=torch.float64), mv.times])
+
+    def err(m, **kw):
+        res = sts.track(series, config=sts.DICConfig(m=m, subset_size=21), progress=False,
+                        **kw)
+        gt = synth.ground_truth(mot, res.points.double(), times)
+        e = torch.stack([res.u.double()[1:] - gt["u"][1:], res.v.double()[1:] - gt["v"][1:]])
+        return float(e[torch.isfinite(e)].pow(2).mean().sqrt())
+    return err
+
+
+def test_gauge_removes_a_biased_registration(monkeypatch):
+    """A field the local planes cannot follow (a Gaussian bump of 1 px, sigma 50 px) biases
+    the template's registration; the reference frame's measurement against the template
+    sees that bias and removes it (measured in GAUGE_GAIN's comment)."""
+    err = _movie_error(_bump(201), 201, 17, 11)
+    with_gauge = err(2)
+    orig = series_reference._gauge
+
+    def no_gauge(*a, **k):
+        off, left = orig(*a, **k)
+        off.values = {nm: np.zeros_like(v) for nm, v in off.values.items()}
+        return off, left
+    monkeypatch.setattr(series_reference, "_gauge", no_gauge)
+    without = err(2)
+    assert with_gauge <= GAUGE_GAIN * without, (with_gauge, without)
+
+
+#: the gauge's gain on the bump render (with / without): measured 0.44 (STS m=2 with the
+#: gauge 0.74x classical single-reference DIC, without it 1.68x); band 0.7
+GAUGE_GAIN = 0.7
+
+
+def test_relaxing_render_goal():
+    """The issue's goal: a render whose motion is smooth but not linear in time (a stretch
+    relaxing to 0.4 %, a decelerating drift), noise on every image, 31 frames: STS m=2 with
+    defaults <= 0.45x classical DIC against the single reference image (measured 0.42x here,
+    STS against the single reference 0.77x; 0.40x on the 301 px render of
+    scripts/validation/series_reference_floor.py)."""
+    err = _movie_error(_relaxing(201), 201, 31, 3)
+    classical = err(0, series_reference=False)
+    assert err(2) <= 0.45 * classical
 
 
 @pytest.mark.parametrize("kw, match", [
     (dict(series_reference=True, refine_reference=True), "refine_reference"),
     (dict(series_reference=True, reference_update=0.9), "reference_update"),
     (dict(series_reference=0.5), "iterations"),
-    (dict(series_frames=5), "series_frames: only with series_reference"),
+    (dict(series_reference=False, series_frames=5), "series_frames: only with"),
+    (dict(reference_update=0.9, series_frames=5), "does not apply here"),
+    (dict(series_reference="always"), "series_reference"),
     (dict(series_reference=True, series_frames=1), "series_frames"),
 ])
 def test_bad_combinations_are_refused(movie, kw, match):

@@ -199,9 +199,9 @@ def test_jittery_movie_keeps_full_windows_and_beats_classical(tmp_path):
     classical one (refined: <= 0.6x)."""
     movie, motion, times = _jittery_movie()
     kw = dict(step=10, progress=False)
-    cls = sts.track(movie, config=sts.DICConfig(m=0), **kw)
+    cls = sts.track(movie, config=sts.DICConfig(m=0), series_reference=False, **kw)
     cfg = sts.DICConfig(m=2)
-    off = sts.track(movie, config=cfg, shared_motion=None, **kw)
+    off = sts.track(movie, config=cfg, shared_motion=None, series_reference=False, **kw)
     out = tmp_path / "sm.h5"
     on = sts.track(movie, config=cfg, refine_reference=True, out=out, **kw)
     e0, e_off, e_on = (_rms(r, motion, times) for r in (cls, off, on))

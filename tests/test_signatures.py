@@ -26,7 +26,7 @@ def test_track_keeps_its_public_signature():
         ("resume", False, P), ("batch_frames", None, P), ("reference_update", None, P),
         ("smoothing", None, P), ("lost_zncc", 0.8, K), ("checks", True, K),
         ("overwrite", False, K), ("callback", None, K), ("refine_reference", False, K),
-        ("series_reference", False, K), ("series_frames", None, K),
+        ("series_reference", "auto", K), ("series_frames", None, K),
         ("refine_frames", None, K), ("shared_motion", "auto", K), ("find_specimen", True, K),
         ("strain_window", 5, K), ("strain_kind", "green", K), ("scale", None, K),
         ("unit", None, K), ("time_unit", None, K), ("run_estimates", None, K)]

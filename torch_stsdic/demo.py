@@ -222,11 +222,14 @@ def run_demo(
             result.methods.append(
                 _measure(f"{name}{tag}", m, series, reference, result, progress=progress)
             )
+    with_ref = load_series(torch.cat([movie.ref[None], movie.frames]).float(),
+                           timestamps=np.arange(s.frames + 1, dtype=np.float64))
     if s.refined and s.frames + 1 >= 5:  # the reference as series frame 0, offset fitted away
-        with_ref = load_series(torch.cat([movie.ref[None], movie.frames]).float(),
-                               timestamps=np.arange(s.frames + 1, dtype=np.float64))
         result.methods.append(_measure("STS-DIC, refined ref", s.m, with_ref, 0, result,
                                        progress=progress, refine=True))
+    if len(pts) >= 25:  # the reference as series frame 0, the template made from the series
+        result.methods.append(_measure("STS-DIC, series ref", s.m, with_ref, 0, result,
+                                       progress=progress, series_ref=True))
     if out_dir is not None:
         result.files = _write_files(result, _np(movie.ref), Path(out_dir))
     return result
@@ -243,7 +246,7 @@ def _grid(s: DemoSettings) -> np.ndarray:
 
 def _measure(
     label: str, m: int, series: Any, reference: Any, demo: DemoResult, *, progress: bool,
-    refine: bool = False,
+    refine: bool = False, series_ref: bool = False,
 ) -> MethodResult:
     """Track the movie with half window ``m`` against ``reference``; errors and speed."""
     from torch_stsdic.core.config import DICConfig
@@ -253,10 +256,12 @@ def _measure(
     s = demo.settings
     cfg = DICConfig(subset_size=s.subset, m=m, formulation=s.formulation, search_radius=2)
     t1 = time.perf_counter()
-    first = 1 if refine else 0  # with the refined reference, series frame 0 is the reference
+    # with the reference as series frame 0 (refined, or the series reference) the targets
+    # are frames 1..; the other rows measure against the reference image alone
+    first = 1 if refine or series_ref else 0
     res = track(series, reference=reference, frames=list(range(first, first + s.frames)),
                 points=demo.points, config=cfg, device=s.device, progress=progress,
-                refine_reference=refine)  # fmt: skip
+                refine_reference=refine, series_reference=series_ref)  # fmt: skip
     el = time.perf_counter() - t1
     ok = _np(res.status) <= int(Status.MAX_ITER)
     u, v, ut = (np.where(ok, _np(a).astype(np.float64), np.nan) for a in (res.u, res.v, res.ut))
@@ -294,7 +299,8 @@ def _table(d: DemoResult) -> str:
     lines put their u, v and ut ratios under the u, v and ut error columns."""
     rows = d.methods
     refined = [r for r in rows if r.method.endswith("refined ref")]
-    base = [r for r in rows if r not in refined]
+    templ = [r for r in rows if r.method.endswith("series ref")]
+    base = [r for r in rows if r not in refined and r not in templ]
     ratio_rows = [("ratio classical / STS-DIC", d.ratios(0, 1))]
     if len(base) == 4:
         k = d.settings.still_frames
@@ -334,6 +340,12 @@ def _table(d: DemoResult) -> str:
         lines.append("The refined reference (the reference as frame 0 of the series, "
                      "refine_reference=True) fits the\nreference's offset away from the "
                      "trajectory of every point, without still frames.")
+    if templ:
+        lines.append(f"{'classical / STS-DIC series ref':<{width + 3}}"
+                     f"{_ratio(rows[0].rms_u, templ[0].rms_u):>11.2f}x")
+        lines.append("The series reference (the default of 'stsdic run' where the reference is "
+                     "a frame of the series)\nmeasures every frame against a template averaged "
+                     "from the series: no still frames needed.")
     if d.classical.ut_from_finite_differences:
         lines.append("* classical DIC measures no velocity: ut from finite differences of u")
     return "\n".join(lines)

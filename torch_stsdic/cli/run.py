@@ -168,12 +168,21 @@ def _add_frames(p: argparse.ArgumentParser) -> None:
     opt(g, "--refine-frames", type=options.int_min(5), default=None, metavar="N",
         help="most frames of that fit",
         shown="41; fewer where the motion is not smooth")  # fmt: skip
-    opt(g, "--series-reference", type=options.int_min(1), nargs="?", const=2, default=None,
-        metavar="ROUNDS", help="measure against a template made from the series: up to "
-        "--series-frames frames mapped back with their measured subset warps and averaged, "
-        "ROUNDS rounds of template and classical measurement (2 without a number); less "
-        "reference noise at the cost of a classical run of those frames per round "
-        "(docs/validation/series_reference.md)", shown="off: the reference image")  # fmt: skip
+    ref_mode = g.add_mutually_exclusive_group()
+    rounds = options.int_min(1)
+    opt(ref_mode, "--series-reference", type=lambda s: s if s == "auto" else rounds(s),
+        nargs="?", const=2,
+        default="auto", metavar="ROUNDS", help="measure against a template made from the "
+        "series: up to --series-frames frames mapped back with their measured subset warps "
+        "(smoothed by local planes) and averaged, ROUNDS rounds of template and classical "
+        "measurement (2 without a number), zero displacement fixed by the reference frame's "
+        "own measurement; less reference noise at the cost of a classical run of those frames "
+        "per round (docs/validation/series_reference.md)",
+        shown="on, 2 rounds, where the reference is one frame of the series and not updated "
+        "or refined")  # fmt: skip
+    ref_mode.add_argument("--single-reference", action="store_true",
+                          help="measure against the reference image alone (classical DIC's "
+                          "baseline; the template's noise gain is lost)")
     opt(g, "--series-frames", type=options.int_min(2), default=None, metavar="N",
         help="most frames of the template, evenly spread", shown="21")  # fmt: skip
     g.add_argument("--keep-background", action="store_true",
@@ -351,7 +360,8 @@ def execute(args: argparse.Namespace) -> int:
                             shared_motion=args.shared_motion,
                             find_specimen=not args.keep_background)
             set_reference_mode(plan, args.refine_reference, args.refine_frames,
-                               args.series_reference or False, args.series_frames)
+                               False if args.single_reference else args.series_reference,
+                               args.series_frames)
         except ValueError as exc:
             raise CommandError(str(exc)) from None
         sink = _open_sink(plan, args, out)
@@ -617,6 +627,11 @@ def _print_summary(res: Any, args: argparse.Namespace, elapsed: float, ref: str,
               "subsets not on speckle (background, holes, featureless or saturated areas; "
               "--keep-background keeps them)")
     sref = res.info.get("series_reference")
+    single = res.info.get("single_reference")
+    if single and not sref:
+        print(f"reference: the reference image alone ({single}"
+              + ("; --series-reference is off" if single == "asked for" else
+                 "; the reference made from the series does not apply") + ")")
     if sref:
         added = sref.get("added_std_px")
         print(f"reference: a template of {len(sref['frames'])} frames, {sref['iterations']} "

@@ -7,9 +7,11 @@ tests themselves are pure functions in :mod:`torch_stsdic.analysis.quality`."""
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from torch_stsdic.analysis.quality import (
+    RESIDUAL_ZNCC,
     line_mismatch,
     median_test,
     model_mismatch,
@@ -97,6 +99,22 @@ class BlockChecks:
         """(R,) bool: rows ``idx`` whose target is the current reference frame itself (their
         classical solution is the identity)."""
         return self.k.repeat_interleave(self.n)[idx] == self.ref.frame
+
+    def _no_residual(self, idx: torch.Tensor, zncc: torch.Tensor) -> torch.Tensor:
+        """(R,) bool: rows ``idx`` whose classical residual (classical ZNCC ``zncc`` (R,)) is
+        round-off, no measure of the noise: the target is the reference frame itself
+        (:meth:`_own`), or, against a template made from the series (the reference no frame,
+        ``ref.frame`` -1, the plan's reference a frame: ``run.reference_desc`` its index),
+        that frame where the template kept its pixels (no other frame entered it there, e.g.
+        too few POIs for the planes that register it): its classical solution matches at
+        ZNCC >= ``RESIDUAL_ZNCC``."""
+        own = self._own(idx)
+        desc = self.run.reference_desc
+        if self.ref.frame >= 0 or isinstance(desc, bool) or not isinstance(
+                desc, (int, np.integer)):
+            return own
+        at = self.k.repeat_interleave(self.n)[idx] == int(desc)
+        return own | (at & (zncc.to(self.run.dtype) >= RESIDUAL_ZNCC))
 
     def _classical(self, idx: torch.Tensor, solver: SubsetSolver) -> WindowSolution:
         """The classical solutions of rows ``idx`` from their window's solution (with
@@ -211,7 +229,7 @@ class BlockChecks:
         d_all[idx[conv]] = quick.params[conv][:, [cu, cv]].to(run.dtype)
         s_all[idx[conv]] = quick.std[conv][:, [cu, cv]].to(run.dtype)
         # the reference frame as target: its classical residual is round-off, no measure
-        not_ref = ~self._own(idx)
+        not_ref = ~self._no_residual(idx, quick.zncc)
         pixels = run.solver.window.effective_pixels()
         suspect = (quick.status != int(Status.CONVERGED)) | model_mismatch(
             self.params[idx][:, [iu, iv]], quick.params[:, [cu, cv]].to(run.dtype),
@@ -229,6 +247,7 @@ class BlockChecks:
         if bool(redo.any()):
             cls = with_rows(cls, redo, self.solve(idx[redo], cls.params[redo].nan_to_num(0.0),
                                                    m=0))
+            not_ref = ~self._no_residual(idx, cls.zncc)
         ok_c = cls.status <= USABLE
         d_all[idx] = torch.where(ok_c.unsqueeze(1), cls.params[:, [cu, cv]].to(run.dtype),
                                  float("nan"))

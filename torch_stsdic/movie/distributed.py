@@ -206,7 +206,8 @@ def _plan_job(series: Any, plan_args: dict[str, Any], *, chunk_frames: int, out:
     plan = plan_run(series, **plan_args, **{k: extra[k] for k in _PLAN_KW if k in extra})
     mode = {k: extra.get(k) for k in _MODE_KW}
     set_reference_mode(plan, bool(mode["refine_reference"]), mode["refine_frames"],
-                       mode["series_reference"] or False, mode["series_frames"])
+                       "auto" if mode["series_reference"] is None else mode["series_reference"],
+                       mode["series_frames"])
     dist = {"chunk_frames": int(chunk_frames)}
     sink = open_sink(plan, out, resume=resume, overwrite=overwrite,
                      attrs={"distributed": json.dumps(dist)},
@@ -252,7 +253,7 @@ def _finish(job: _Job, chunk_frames: int, workers: int) -> TrackResult:
         "chunks_run": len(job.chunks), "workers": workers, "warm_up": WARM_UP,
         **{k: v for k, v in job.info.items() if k != "worker_pids"},
         "worker_processes": len(job.info.get("worker_pids", ())),
-        **est.summary(),
+        **est.summary(), **job.plan.info(),
     }
     result = job.sink.result(info)
     job.sink.finish(result)

@@ -56,6 +56,15 @@ class RunEstimates:
     offsets: ReferenceOffsets | None = None
     noise_ratio: float | None = None
 
+    @property
+    def row_offsets(self) -> ReferenceOffsets | None:
+        """The per-point offsets every stored row has subtracted: the refined reference's, or
+        the series reference's gauge (its template's registration as the reference frame
+        measured it)."""
+        if self.offsets is not None:
+            return self.offsets
+        return None if self.series_reference is None else self.series_reference.gauge
+
     def summary(self) -> dict[str, Any]:
         """The result's ``info`` entries of these estimates, as a one-process run has them."""
         info: dict[str, Any] = {}

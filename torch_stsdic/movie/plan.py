@@ -83,6 +83,12 @@ class RunPlan:
         """N, the number of POIs."""
         return int(self.points.shape[0])
 
+    def info(self) -> dict[str, Any]:
+        """The result's ``info`` entries the plan's choices make: the specimen found, the
+        smoothing, why the reference image alone is used."""
+        return {k: self.options[k] for k in ("specimen", "smoothing", "single_reference")
+                if self.options.get(k)}
+
     @property
     def row_times(self) -> np.ndarray:
         """(F,) times of the target frames."""

@@ -174,7 +174,7 @@ def measure_offsets(plan: RunPlan, max_frames: int = DEFAULT_MAX_FRAMES,
     opts = {**plan.options, "smoothing": None, "reference_update": None,
             "shared_motion": None}
     opts.pop("refine_reference", None)
-    opts.pop("series_reference", None)
+    opts["series_reference"] = None  # a sub-run: against the plan's reference image
     names = tuple(nm for nm in plan.param_names if nm not in _RATES)
     sub = dataclasses.replace(plan, config=cfg, targets=frames, options=opts,
                               param_names=names)

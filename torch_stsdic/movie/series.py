@@ -106,6 +106,8 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
         cache.put(plan.reference_frame, ref.raw, ref.img)
     run.reference_desc = plan.reference_desc  # its noise ratio is measured on the 1st block
     updates: list[dict[str, Any]] = []
+    if "series_reference" not in plan.options and "single_reference" not in plan.options:
+        set_series_reference(plan, "auto")  # the default of a plan no one chose a reference for
     est = estimates if estimates is not None else measure_run(plan, ref.raw, run=run_plan)
     if est.shared is not None:
         shared = est.shared
@@ -121,7 +123,7 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
             run.reference_var = est.series_reference.added_var.to(device=plan.device)
     if est.noise_ratio is not None:
         run.noise_ratio = est.noise_ratio
-    offsets = est.offsets
+    offsets = est.row_offsets
     bar = tqdm(total=plan.n_rows, unit="frame", file=sys.stderr, disable=not progress,
                desc="STS-DIC" if cfg.m else "DIC", dynamic_ncols=True)
     try:
@@ -140,10 +142,7 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
             **run.stats,
         }
         info.update(est.summary())
-        if plan.options.get("specimen"):
-            info["specimen"] = plan.options["specimen"]
-        if plan.options.get("smoothing"):
-            info["smoothing"] = plan.options["smoothing"]
+        info.update(plan.info())
         result = sink.result(info)
         sink.finish(result)
     except BaseException:
@@ -236,7 +235,7 @@ def track(
     overwrite: bool = False,
     callback: Callable[[int, int], None] | None = None,
     refine_reference: bool = False,
-    series_reference: bool | int = False,
+    series_reference: bool | int | str = "auto",
     series_frames: int | None = None,
     refine_frames: int | None = None,
     shared_motion: str | None = "auto",
@@ -290,12 +289,12 @@ def track(
             polynomial fit in time per point, its value at the reference time (shrunk by
             the offsets' spread) subtracted from every row, the reference's own row set to 0
             (:mod:`torch_stsdic.movie.refine`, ``docs/accuracy.md``); one reference frame.
-        series_reference: measure against a template made from the series
-            (:mod:`torch_stsdic.movie.series_reference`): up to ``series_frames`` frames
-            (default 21) mapped back with their classically measured subset warps and
-            averaged; True for 2 rounds of template and measurement, an integer for that
-            many. Each round costs a classical run of those frames. Not with
-            ``refine_reference`` or ``reference_update``.
+        series_reference: measure against a template of up to ``series_frames`` frames
+            (default 21) mapped back by local fits of their measured warps and averaged
+            (:mod:`torch_stsdic.movie.series_reference`). "auto" (default): 2 rounds where
+            the reference is a frame of the series, without ``reference_update`` or
+            ``refine_reference``; an integer: that many rounds; False: the single reference
+            image (classical DIC's baseline).
         find_specimen: the default grid keeps only points whose subsets lie on speckle in the
             reference image (not on background, holes, featureless or saturated areas;
             :mod:`torch_stsdic.analysis.specimen`); False: the whole grid.
@@ -336,16 +335,21 @@ def track(
 
 
 def set_reference_mode(plan: RunPlan, refine_reference: bool, refine_frames: int | None,
-                       series_reference: bool | int, series_frames: int | None) -> None:
+                       series_reference: bool | int | str, series_frames: int | None) -> None:
     """Record the refined reference or the reference made from the series in ``plan``."""
     if refine_reference:
         set_refinement(plan, refine_frames)
     elif refine_frames is not None:
         raise ValueError("refine_frames: only with refine_reference=True")
-    if series_reference:
+    if series_reference is not None and series_reference is not False:
         set_series_reference(plan, series_reference, series_frames)
+        if series_frames is not None and "series_reference" not in plan.options:
+            raise ValueError(f"series_frames: the reference made from the series does not "
+                             f"apply here ({plan.options['single_reference']})")
     elif series_frames is not None:
         raise ValueError("series_frames: only with series_reference")
+    else:
+        plan.options["single_reference"] = "asked for"
 
 
 def classical_smoothed(series: Any, span: int = 5, **kwargs: Any) -> TrackResult:

@@ -30,18 +30,27 @@ from typing import Any
 import numpy as np
 import torch
 
+from torch_stsdic.analysis.local_fit import LocalFit, local_fit, local_fit_weights
 from torch_stsdic.analysis.result import USABLE, TrackResult
 from torch_stsdic.core.interpolation import BSplineImage
 from torch_stsdic.core.noise import estimate_noise_sigma, interpolation_variance_factor
 from torch_stsdic.movie.plan import RunPlan
+from torch_stsdic.movie.refine import ReferenceOffsets
 
 __all__ = ["SeriesReference", "DEFAULT_FRAMES", "DEFAULT_ITERATIONS", "sample_frames",
-           "build_series_reference", "registration_share", "set_series_reference"]
+           "build_series_reference", "set_series_reference", "single_reason"]
 
 #: frames of the movie sampled for the template (evenly spread over the targets)
 DEFAULT_FRAMES = 21
 #: template / classical-measurement rounds
 DEFAULT_ITERATIONS = 2
+#: POIs of each local plane that registers the template (a 5 x 5 block of the grid; 0: none)
+DEFAULT_NEIGHBOURS = 25
+#: a frame's 1 - ZNCC at a POI beyond this many times the POI's best, or MISFIT_SPREAD times
+#: the frame's median, leaves it out of the template there (:func:`_matched`)
+MISFIT_RATIO, MISFIT_SPREAD = 3.0, 20.0
+#: |plane - quadratic| / its std beyond which a frame is left out of the template at a POI
+PLANE_Z = 5.0
 #: the points whose warps feed the template (grey levels of the pixels: memory per chunk)
 _CHUNK_SAMPLES = 4_000_000
 
@@ -52,32 +61,27 @@ class SeriesReference:
 
     image: torch.Tensor  # (H, W) the template, float64
     noise_ratio: float  # its pixels' noise variance over one frame's
-    added_var: torch.Tensor | None  # (N,) px^2 its registration's variance (registration_share)
+    added_var: torch.Tensor | None  # (N,) px^2 added to u_std^2, v_std^2: registration, noise
     frames: list[int]  # the sampled frames (series indices)
     iterations: int
     coverage: float  # share of the POIs' window pixels averaged over >= 2 frames
     seconds: float
+    plane_share: float | None = None  # share of the frames x POIs registered by a plane
+    fit_share: float | None = None  # ... by a plane or a quadratic (the rest left out)
+    gauge: ReferenceOffsets | None = None  # the template's registration as the reference saw it
 
     def summary(self) -> dict[str, Any]:
         return {"frames": list(self.frames), "iterations": self.iterations,
                 "noise_ratio": round(self.noise_ratio, 4),
                 "added_std_px": (None if self.added_var is None
                                  else round(float(self.added_var.mean().sqrt()), 6)),
-                "coverage": round(self.coverage, 4), "seconds": round(self.seconds, 3)}
-
-
-#: the registration share's fall per round and overlapping window (fitted: a render, subset
-#: 21 px at step 8, 0.35 / 0.20 / 0.14 / 0.10 after 1-4 rounds; DIC Challenge sample 3, step
-#: 16: 0.45 after 2 rounds; scripts/validation/series_reference_gauge.py)
-SHARE_RATE = 0.27
-
-
-def registration_share(iterations: int, subset_size: int, spacing: float) -> float:
-    """The template's registration error variance over a single reference image's, after
-    ``iterations`` rounds: every round averages it over the windows of the POIs that overlap
-    a subset, ``o = (subset / spacing)^2`` of them, so ``1 / (1 + SHARE_RATE k o)``."""
-    overlap = (float(subset_size) / max(float(spacing), 1.0)) ** 2
-    return 1.0 / (1.0 + SHARE_RATE * int(iterations) * overlap)
+                "coverage": round(self.coverage, 4), "seconds": round(self.seconds, 3),
+                "plane_share": (None if self.plane_share is None
+                                else round(self.plane_share, 4)),
+                "fit_share": None if self.fit_share is None else round(self.fit_share, 4),
+                "gauge_rho": None if self.gauge is None else round(float(self.gauge.rho), 4),
+                "gauge_rms_px": (None if self.gauge is None else round(float(np.sqrt(np.mean(
+                    self.gauge.values["u"] ** 2 + self.gauge.values["v"] ** 2) / 2)), 6))}
 
 
 def _unit_variance(res: TrackResult) -> torch.Tensor:
@@ -90,17 +94,6 @@ def _unit_variance(res: TrackResult) -> torch.Tensor:
     var = torch.where(ok, var, torch.nan)
     per_point = torch.nanmean(var, 0) / (1.0 + ratio)
     return torch.nan_to_num(per_point, nan=float(torch.nanmean(per_point)))
-
-
-def _spacing(points: torch.Tensor) -> float:
-    """Median distance px of a POI to its nearest other POI."""
-    p = points.double().cpu()
-    if p.shape[0] < 2:
-        return 1.0
-    sel = p[torch.randperm(p.shape[0], generator=torch.Generator().manual_seed(0))[:2000]]
-    d = torch.cdist(sel, p)
-    d[d == 0] = float("inf")
-    return float(d.min(1).values.median())
 
 
 def sample_frames(plan: RunPlan, max_frames: int = DEFAULT_FRAMES) -> list[int]:
@@ -150,35 +143,74 @@ def _warps(res: TrackResult, j: int, lost_zncc: float) -> tuple[torch.Tensor, to
     return torch.nan_to_num(w), ok
 
 
-def _splat(acc: torch.Tensor, img: BSplineImage, pts: torch.Tensor, warp: torch.Tensor,
-           ok: torch.Tensor, half: int, weight: float) -> None:
-    """Add frame ``img`` mapped back by each trusted POI's warp to ``acc`` (3, H*W): weighted
-    values, weights, squared weights times the interpolated noise's variance factor."""
+def _shifted(warp: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
+    """(n, 6) coefficients of a quadratic ``a + b ox + c oy + q1 ox^2 + q2 ox oy + q3 oy^2``
+    re-expanded about ``delta`` (n, 2) (so that ``o = delta + d``): its value, slopes and the
+    same second-order terms at ``delta``."""
+    a, b, c, q1, q2, q3 = warp.unbind(1)
+    dx, dy = delta.unbind(1)
+    return torch.stack([a + b * dx + c * dy + q1 * dx * dx + q2 * dx * dy + q3 * dy * dy,
+                        b + 2 * q1 * dx + q2 * dy, c + q2 * dx + 2 * q3 * dy, q1, q2, q3], 1)
+
+
+def _splat(acc: torch.Tensor, img: BSplineImage, ref: torch.Tensor, pts: torch.Tensor,
+           warp: torch.Tensor, ok: torch.Tensor, half: int, weight: float, level: float
+           ) -> None:
+    """Add frame ``img`` mapped back by each trusted POI's map (``warp``: (N, 12),
+    :func:`_smooth`) over its window of half-width ``half`` px to ``acc`` (3, H*W): weighted
+    values, weights, and the frame's noise variance share.
+
+    A POI's samples are its window's pixels moved by its map (a polynomial of the offsets:
+    one matrix product for all pixels), brought to the reference's grey levels over the
+    window (``ref``: (H*W,) its pixels; mean and standard deviation matched, as the ZNCC
+    criteria ignore them: a frame that is brighter does not make a patchy template; ``level``:
+    the frame's contrast over the reference's, over the whole image), and weighted by a tent
+    and ``weight`` (the inverse of the frame's noise variance in the reference's grey levels).
+    The POIs whose windows cover a pixel sample the frame at (nearly) the same place, so
+    their noise is one and the same: the share is ``W (sum_i w_i f_i) / weight`` (``W`` the
+    frame's weight sum at the pixel, ``f_i`` the interpolated noise's variance factor at the
+    POI's sub-pixel shift, times its gain squared), not ``sum_i w_i^2 f_i / weight``."""
     h, w = img.height, img.width
     d = torch.arange(-half, half + 1, dtype=torch.float64)
     dy, dx = torch.meshgrid(d, d, indexing="ij")
     dx, dy = dx.reshape(-1), dy.reshape(-1)
-    tent = ((1.0 - dx.abs() / (half + 1)) * (1.0 - dy.abs() / (half + 1)))
+    mono = torch.stack([torch.ones_like(dx), dx, dy, dx * dx, dx * dy, dy * dy], 1)  # (S, 6)
+    tent = ((1.0 - dx.abs() / (half + 1)) * (1.0 - dy.abs() / (half + 1))) * weight
+    offset = (dy * w + dx).long()
     sel = torch.nonzero(ok).flatten()
+    frame = torch.zeros(2, h * w, dtype=torch.float64)
     chunk = max(1, _CHUNK_SAMPLES // dx.numel())
     for s0 in range(0, sel.numel(), chunk):
         i = sel[s0: s0 + chunk]
         c = pts[i].round()
+        delta = c - pts[i]
         x = c[:, :1] + dx  # (n, S) reference-configuration pixels
         y = c[:, 1:] + dy
-        ox, oy = x - pts[i, :1], y - pts[i, 1:]
-        wp = warp[i]
-        xs = x + wp[:, 0:1] + wp[:, 1:2] * ox + wp[:, 2:3] * oy
-        ys = y + wp[:, 3:4] + wp[:, 4:5] * ox + wp[:, 5:6] * oy
+        xs = x + _shifted(warp[i, 0:6], delta) @ mono.T
+        ys = y + _shifted(warp[i, 6:12], delta) @ mono.T
         inside = ((x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1) & (xs >= 0)
                   & (xs <= w - 1) & (ys >= 0) & (ys <= h - 1))
-        vals = img.sample(xs.to(img.dtype), ys.to(img.dtype)).double()
-        fac = interpolation_variance_factor(xs - xs.floor(), ys - ys.floor())
-        wt = (tent * weight).expand_as(x)[inside]
-        idx = (y[inside] * w + x[inside]).long()
-        acc[0].index_add_(0, idx, wt * vals[inside])
-        acc[1].index_add_(0, idx, wt)
-        acc[2].index_add_(0, idx, wt * wt * fac[inside] / weight)
+        vals = torch.nan_to_num(img.sample(xs.to(img.dtype), ys.to(img.dtype)).double())
+        cnt = inside.sum(1, keepdim=True).clamp(min=1)
+        own = ref[((c[:, 1] * w + c[:, 0]).long()[:, None] + offset).clamp(0, h * w - 1)]
+        m_f = torch.where(inside, vals, 0.0).sum(1, keepdim=True) / cnt
+        m_r = torch.where(inside, own, 0.0).sum(1, keepdim=True) / cnt
+        s_f = torch.where(inside, (vals - m_f) ** 2, 0.0).sum(1, keepdim=True).sqrt()
+        s_r = torch.where(inside, (own - m_r) ** 2, 0.0).sum(1, keepdim=True).sqrt()
+        gain = torch.where(s_f > 0, s_r / s_f.clamp(min=1e-12), 1.0)
+        vals = (vals - m_f) * gain + m_r
+        u0, v0 = warp[i, 0], warp[i, 6]
+        fac = interpolation_variance_factor(u0 - u0.floor(), v0 - v0.floor(),
+                                            img.order)  # (n,)
+        wt = torch.where(inside, tent, 0.0)
+        idx = ((c[:, 1] * w + c[:, 0]).long()[:, None] + offset).clamp(0, h * w - 1)
+        idx, wt = idx.reshape(-1), wt.reshape(-1)
+        acc[0].index_add_(0, idx, wt * vals.reshape(-1))
+        frame[0].index_add_(0, idx, wt)
+        frame[1].index_add_(0, idx, (wt.view(len(i), -1) * fac[:, None]
+                                     * (gain * level) ** 2).reshape(-1))
+    acc[1] += frame[0]
+    acc[2] += frame[0] * frame[1] / weight
 
 
 def _frame_noise(plan: RunPlan, frames: list[int]) -> list[float]:
@@ -187,68 +219,246 @@ def _frame_noise(plan: RunPlan, frames: list[int]) -> list[float]:
             for k in frames]
 
 
-def _template(plan: RunPlan, res: TrackResult, frames: list[int], sigmas: list[float],
-              ref_raw: torch.Tensor) -> tuple[torch.Tensor, float, float]:
-    """The template from the measured warps of ``res`` (rows = ``frames``, noise ``sigmas``):
-    image (H, W), its noise variance over one frame's (median over the covered pixels),
-    coverage."""
+def _all_warps(plan: RunPlan, res: TrackResult) -> tuple[torch.Tensor, torch.Tensor]:
+    """(F, N, 6) warps and (F, N) trust of every row of ``res`` (:func:`_warps`)."""
+    lost = float(plan.options.get("lost_zncc", 0.8))
+    pairs = [_warps(res, j, lost) for j in range(res.u.shape[0])]
+    return torch.stack([p[0] for p in pairs]), torch.stack([p[1] for p in pairs])
+
+
+def _matched(res: TrackResult, frames: list[int], reference_frame: int) -> torch.Tensor:
+    """(F, N) whether each frame's subset matched the reference as well as the subset's
+    texture allows: its misfit ``1 - ZNCC`` at most ``MISFIT_RATIO`` times the point's best
+    over the frames (a subset that straddles a crack or a lost region after it opened) and
+    ``MISFIT_SPREAD`` times the frame's median over the points (one that straddles it in
+    every frame; subsets of poor contrast have up to 10x the median's misfit). Such a
+    subset's warp is a compromise of two motions that the local fits can take for a strain."""
+    misfit = (1.0 - res.zncc.double().cpu()).clamp(min=1e-6)
+    own = torch.tensor([k != reference_frame for k in frames])
+    if not bool(own.any()):
+        return torch.ones_like(misfit, dtype=torch.bool)
+    others = torch.where(own[:, None], misfit, torch.inf)
+    best = torch.nan_to_num(others, nan=torch.inf).amin(0)  # (N,)
+    typical = torch.nanmedian(torch.where(own[:, None], misfit, torch.nan), 1).values  # (F,)
+    ok = (misfit <= MISFIT_RATIO * best[None, :]) & (misfit <= MISFIT_SPREAD * typical[:, None])
+    return ~own[:, None] | ok
+
+
+def _fit_degree(fit: LocalFit, warps: torch.Tensor, ok: torch.Tensor, unit: torch.Tensor
+                ) -> torch.Tensor:
+    """(F, N) the degree of the local fit that registers each frame at each POI: 1 (a
+    plane) where it passes its tests against the quadratic (:func:`local_fit` on u and v
+    of that frame measured against the reference image: both images' noise, ``unit``: (N,)
+    one image's share of a classical displacement's variance), else 2 where the quadratic
+    passes against the cubic, else 0: the frame is left out of the template there, and
+    wherever a neighbour is not trusted in that frame (a guard band around a crack, a lost
+    region, the points that straddle them)."""
+    var = (2.0 * unit).expand(2, -1)
+    deg = torch.zeros(ok.shape, dtype=torch.int64)
+    for j in range(warps.shape[0]):
+        vals = torch.where(ok[j], warps[j][:, [0, 3]].T, 0.0)
+        plane = local_fit(fit, vals, var, degree=1, z_limit=PLANE_Z)[0]
+        quad = local_fit(fit, vals, var, degree=2, z_limit=PLANE_Z)[0]
+        deg[j] = torch.where(plane, 1, torch.where(quad, 2, 0)) * ok[j][fit.index].all(1)
+    return deg
+
+
+def _smooth(fit: LocalFit, warps: torch.Tensor, ok: torch.Tensor, degree: torch.Tensor
+            ) -> torch.Tensor:
+    """(F, N, 12) the maps of the frames at the POIs: u, its gradient and its coefficients
+    of dx^2, dx dy, dy^2 (px offsets from the POI), then the same of v; the local fit's of
+    ``degree`` (F, N) (whose neighbours are all trusted, ``ok``), elsewhere the POI's own
+    warp (no second-order terms). The second-order terms matter where the field curves: a
+    gradient of 10 % over 200 px moves a pixel 15 px from the POI by 0.06 px."""
+    f, n = warps.shape[:2]
+    out = torch.zeros(f, n, 12, dtype=torch.float64)
+    out[..., 0:3], out[..., 6:9] = warps[..., 0:3], warps[..., 3:6]
+    for c, o in ((0, 0), (3, 6)):
+        vals = torch.where(ok, warps[..., c], 0.0)  # (F, N)
+        for d in (1, 2):
+            terms = torch.cat([fit.apply(d, vals)[..., None], fit.apply_slopes(d, vals),
+                               fit.apply_quadratic(d, vals)], -1)  # (F, N, 6)
+            use = (degree == d) & fit.posed[d] & torch.isfinite(terms).all(-1)
+            out[..., o:o + 6] = torch.where(use[..., None], terms, out[..., o:o + 6])
+    return out
+
+
+def _template(plan: RunPlan, warps: torch.Tensor, oks: torch.Tensor, frames: list[int],
+              sigmas: list[float], ref_raw: torch.Tensor
+              ) -> tuple[torch.Tensor, float, float, torch.Tensor]:
+    """The template from the warps (F, N, 6) and trust (F, N) of ``frames`` (noise
+    ``sigmas``): image (H, W), its noise variance over one frame's (median over the covered
+    pixels), coverage, and (N,) that ratio at each POI (1 where no frame covers it: the
+    reference image's pixels)."""
     h, w = plan.series.shape
     pts = plan.points.double().cpu()
     half = (plan.config.subset_size - 1) // 2
-    lost = float(plan.options.get("lost_zncc", 0.8))
     acc = torch.zeros(3, h * w, dtype=torch.float64)
+    ref = ref_raw.double().cpu().reshape(-1)
+    spread = float(ref.std().clamp(min=1e-12))
+    norm = []  # each frame's noise in the reference's grey levels
     for j, (k, sigma) in enumerate(zip(frames, sigmas)):
         raw = plan.series.get(k, dtype=torch.float64)
-        warp, ok = _warps(res, j, lost)
-        _splat(acc, BSplineImage(raw), pts, warp, ok, half, 1.0 / sigma ** 2)
-    ref = ref_raw.double().cpu().reshape(-1)
+        img = BSplineImage(raw, order=plan.config.interpolation_order)
+        level = float(raw.std().clamp(min=1e-12)) / spread
+        norm.append(sigma / level)
+        _splat(acc, img, ref, pts, warps[j], oks[j], half, 1.0 / norm[-1] ** 2, level)
     covered = acc[1] > 0
     image = torch.where(covered, acc[0] / acc[1].clamp(min=1e-300), ref).reshape(h, w)
-    # noise variance of a pixel: sum w^2 s^2 f / (sum w)^2 with w = 1/s^2 (acc[2] holds
-    # sum w^2 f / w = sum w f), over one frame's median s^2
-    var = acc[2][covered] / acc[1][covered] ** 2
-    s2 = float(np.median(sigmas)) ** 2
-    ratio = float(var.median()) / s2 if bool(covered.any()) else 1.0
+    # noise variance of a pixel: sum over frames of the frame's share (acc[2]) over the
+    # squared weight sum, over one frame's median s^2
+    s2 = float(np.median(norm)) ** 2
+    pix = torch.where(covered, acc[2] / acc[1].clamp(min=1e-300) ** 2 / s2, 1.0)
+    ratio = float(pix[covered].median()) if bool(covered.any()) else 1.0
     wmax = acc[1][covered].max() if bool(covered.any()) else torch.tensor(1.0)
     multi = (acc[1][covered] > 1.5 * wmax / max(len(frames), 1)).double()
     coverage = float(multi.mean()) if multi.numel() else 0.0
-    return image, ratio, coverage
+    c = pts.round().long()
+    c[:, 0].clamp_(0, w - 1)
+    c[:, 1].clamp_(0, h - 1)
+    return image, ratio, coverage, pix[c[:, 1] * w + c[:, 0]]
 
 
 def build_series_reference(plan: RunPlan, ref_raw: torch.Tensor, *,
                            run: Callable[..., TrackResult],
                            max_frames: int = DEFAULT_FRAMES,
-                           iterations: int = DEFAULT_ITERATIONS) -> SeriesReference:
+                           iterations: int = DEFAULT_ITERATIONS,
+                           neighbours: int = DEFAULT_NEIGHBOURS) -> SeriesReference:
     """The template of ``plan``: ``iterations`` rounds of a classical measurement of the
     sampled frames (:func:`sample_frames`; the first against the plan's reference image
-    ``ref_raw`` (H, W), the others against the last template) and a template from its warps.
+    ``ref_raw`` (H, W), the others against the last template) and a template from their
+    warps, smoothed by each POI's plane over its ``neighbours`` nearest POIs; a frame enters
+    the template at a POI only where its first-round warp passes the plane test
+    (:func:`_plane_test`). Then the template's registration as the reference frame measures
+    it (:func:`_gauge`), where the reference is a frame of the series.
     ``run``: the runner of a plan (:func:`torch_stsdic.movie.series.run_plan`)."""
     if int(iterations) < 1:
         raise ValueError(f"series_reference: iterations must be >= 1, got {iterations!r}")
     t0 = time.perf_counter()
     frames = sample_frames(plan, max_frames)
     sigmas = _frame_noise(plan, frames)  # the same in every round
-    image = None
-    ratio = coverage = 1.0
-    for i in range(int(iterations)):
+    pts = plan.points.double().cpu()
+    fit = local_fit_weights(pts, max(int(neighbours), 10), plan.config.subset_size,
+                            degrees=(1, 2, 3))
+    image = degree = unit = matched = None
+    for _ in range(int(iterations)):
         res = _measure(plan, frames, image, run)
-        if i == 0 and "u" in res.std:
+        warps, trusted = _all_warps(plan, res)
+        if degree is None:  # tested once, against the reference image (a known null)
             unit = _unit_variance(res)
-        image, ratio, coverage = _template(plan, res, frames, sigmas, ref_raw)
-    added = None
-    if "u" in res.std:
-        share = registration_share(int(iterations), plan.config.subset_size,
-                                   _spacing(plan.points))
-        added = share * unit
+            matched = _matched(res, frames, plan.reference_frame)
+            degree = _fit_degree(fit, warps, trusted & matched, unit)
+        trusted = trusted & matched
+        # a frame enters at a POI whose fit passed and whose neighbours are all trusted
+        splat = (degree > 0) & trusted[:, fit.index].all(-1)
+        image, ratio, coverage, point_ratio = _template(
+            plan, _smooth(fit, warps, trusted, degree), splat, frames, sigmas, ref_raw)
+    use = degree > 0
+    own = torch.tensor([k != plan.reference_frame for k in frames])
+    counts = (use & own[:, None]).sum(0)  # (N,) frames besides the reference in the template
+    registered = counts > 0
+    # the template's registration: the planes' error (the reference image's, common to the
+    # frames, and theirs averaged), none where only the reference image is there
+    planes = (degree == 1).double().sum(0) / (degree > 0).double().sum(0).clamp(min=1)
+    factor = (planes * fit.variance_factor(fit.weights[1])
+              + (1 - planes) * fit.variance_factor(fit.weights[2]))
+    prior = factor * (1.0 + 1.0 / counts.clamp(min=1)) * unit
+    added = torch.where(registered, prior, 0.0)
+    gauge = None
+    if plan.reference_frame >= 0:
+        gauge, left = _gauge(plan, fit, image, registered, run)
+        added = torch.where(registered, left, 0.0)
+    # the template's noise beyond the median the solver is told, where fewer frames cover it
+    added = added + (point_ratio - ratio).clamp(min=0.0) * unit
     return SeriesReference(image=image, noise_ratio=ratio, added_var=added, frames=frames,
                            iterations=int(iterations), coverage=coverage,
-                           seconds=time.perf_counter() - t0)
+                           seconds=time.perf_counter() - t0,
+                           plane_share=float((degree[own] == 1).double().mean())
+                           if bool(own.any()) else 0.0,
+                           fit_share=float(use[own].double().mean()) if bool(own.any())
+                           else 0.0, gauge=gauge)
 
 
-def set_series_reference(plan: RunPlan, iterations: int | bool = True,
+def _gauge(plan: RunPlan, fit: LocalFit, image: torch.Tensor, keep: torch.Tensor,
+           run: Callable[..., TrackResult]) -> tuple[ReferenceOffsets, torch.Tensor]:
+    """The template's registration error as the reference frame (zero displacement by
+    definition) measures it against the template, and the variance (N,) px^2 left after
+    subtracting it.
+
+    Classical DIC of the reference frame against the template; its u, v and gradients
+    smoothed by each POI's local plane, 0 where not trusted. The plane value's noise is the
+    reference's own noise through the plane's weights, at the level its plane residuals show
+    (the template's error is smooth: the rough part of the measurement is noise). Where the
+    template was registered by the planes (``keep``) its error is small and smooth, partly
+    below that noise: the measured error is shrunk by ``rho / (1 + rho)``, ``rho`` its variance
+    beyond the noise over the noise (over those POIs; the least-squares weight of a zero-mean
+    error seen through noise); elsewhere (the reference image's own pixels) nothing is
+    subtracted. Subtracted from every row
+    like the refined reference's offsets (:func:`~torch_stsdic.movie.refine.apply_offsets`)."""
+    res = _measure(plan, [plan.reference_frame], image, run)
+    warp, ok = _warps(res, 0, float(plan.options.get("lost_zncc", 0.8)))
+    vals = torch.where(ok[:, None], warp, torch.nan).T  # (6, N)
+    smooth = torch.nan_to_num(fit.apply(1, vals), nan=0.0)
+    # the reference's own noise through the plane, scaled to the noise its plane residuals
+    # show (the template's error is smooth: the rough part of the measurement is noise)
+    resid = (vals[[0, 3]] - smooth[[0, 3]]).pow(2).nanmean(0)  # (N,)
+    own = torch.zeros_like(fit.weights[1])
+    own[:, 0] = 1.0
+    level = float((resid / fit.variance_factor(own - fit.weights[1]).clamp(min=1e-12))
+                  [keep & torch.isfinite(resid)].median()) if bool(keep.any()) else 0.0
+    noise = level * fit.variance_factor(fit.weights[1])
+    # the error's variance beyond the noise, over each POI's neighbourhood (where the
+    # template's registration is biased, by a field its planes missed, it is large there)
+    seen = (smooth[0] ** 2 + smooth[3] ** 2) / 2
+    excess = (seen[fit.index].mean(1) - noise[fit.index].mean(1)).clamp(min=0.0)
+    shrink = torch.where(keep, excess / (excess + noise).clamp(min=1e-30), 0.0)
+    left = torch.where(keep, noise * shrink, 0.0)
+    rho = float((excess[keep] / noise[keep].clamp(min=1e-30)).median()) if bool(keep.any()) \
+        else 0.0
+    names = ("u", "ux", "uy", "v", "vx", "vy")
+    values = {nm: (smooth[i] * shrink).numpy() for i, nm in enumerate(names)
+              if nm in ("u", "v") or nm in plan.param_names}
+    n = smooth.shape[1]
+    return ReferenceOffsets(values=values, frames=np.ones(n, dtype=np.int64),
+                            degree=np.ones(n, dtype=np.int64), sigma=np.zeros(n), seconds=0.0,
+                            shrink=shrink.numpy(), rho=rho,
+                            reference_frame=int(plan.reference_frame)), left
+
+
+def single_reason(plan: RunPlan) -> str | None:
+    """Why the reference made from the series does not apply to ``plan`` by default (None:
+    it does): it needs the reference to be one frame of the series (that frame's own
+    measurement against the template fixes where zero displacement is), one reference
+    configuration, other frames of the series to average, and enough points for the local
+    fits of their warps."""
+    if plan.options.get("reference_update") is not None:
+        return "the reference is updated during the run"
+    if plan.options.get("refine_reference"):
+        return "the refined reference is asked for"
+    if plan.reference_frame < 0:
+        return "the reference is not one frame of the series"
+    if len(set(plan.targets) | {plan.reference_frame}) < 3:
+        return "fewer than 3 frames to average"
+    if plan.n_points < DEFAULT_NEIGHBOURS:
+        return f"fewer than {DEFAULT_NEIGHBOURS} points for the local fits that register it"
+    return None
+
+
+def set_series_reference(plan: RunPlan, iterations: int | bool | str = True,
                          max_frames: int | None = None) -> None:
     """Switch a plan to the reference made from the series (checked; recorded in
-    ``plan.options["series_reference"]``). ``iterations``: True for the default rounds."""
+    ``plan.options["series_reference"]``). ``iterations``: True for the default rounds;
+    "auto": those, where :func:`single_reason` finds nothing against it (else the reason is
+    recorded in ``plan.options["single_reference"]``)."""
+    if isinstance(iterations, str):
+        if iterations != "auto":
+            raise ValueError(f"series_reference: must be True, False, 'auto' or a number of "
+                             f"rounds, got {iterations!r}")
+        reason = single_reason(plan)
+        if reason is not None:
+            plan.options["single_reference"] = reason
+            return
+        iterations = True
     if plan.options.get("reference_update") is not None:
         raise ValueError("series_reference: cannot be combined with reference_update (the "
                          "template is made for one reference configuration)")

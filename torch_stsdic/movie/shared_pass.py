@@ -119,7 +119,7 @@ def estimate_shared_motion(plan: RunPlan, kind: str = "auto",
     opts = {**plan.options, "smoothing": None, "reference_update": None, "checks": False,
             "shared_motion": None}
     opts.pop("refine_reference", None)
-    opts.pop("series_reference", None)
+    opts["series_reference"] = None  # a sub-run: against the plan's reference image
     names = tuple(nm for nm in plan.param_names if nm not in ("ut", "vt"))
     sub = dataclasses.replace(plan, config=cfg, targets=frames, options=opts,
                               param_names=names, points=plan.points[sel])

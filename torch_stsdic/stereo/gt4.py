@@ -104,8 +104,9 @@ def compare_with_dice(data: Path | None = None, m_values=(0, 2), vic_kappa: str 
     out["dice_pairs_triangulated_here_vs_dice_shape_rms_mm"] = _rms(np.linalg.norm(res_d, axis=1))
     out["dice_pairs_reprojection_px_median"] = float(tri_d.reprojection_error.median())
     for m in m_values:
+        # like for like: DICe measures every frame against the reference image
         res = track_stereo(left, right, rig, points=pts, config=DICConfig(subset_size=25, m=m),
-                           progress=progress, max_reprojection=2.0)
+                           progress=progress, max_reprojection=2.0, series_reference=False)
         ok = res.ok.numpy()
         okc = (res.cross.status <= 1).numpy() & (dice["match"][0] == 0)
         key = f"m{m}"

@@ -1,0 +1,124 @@
+"""Local polynomial fits over scattered POIs (analysis.local_fit): exact on fields of their
+degree, the variance of a fitted value as the overlap of subset windows predicts it (checked
+by Monte Carlo), and the plane test that finds curvature."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from torch_stsdic.analysis.local_fit import local_fit, local_fit_weights, overlap_correlation
+
+
+def _grid(step: float = 10.0, n: int = 15) -> torch.Tensor:
+    xs = torch.arange(n, dtype=torch.float64) * step
+    return torch.stack(torch.meshgrid(xs, xs, indexing="xy"), -1).reshape(-1, 2)
+
+
+def test_fits_reproduce_fields_of_their_degree():
+    pts = _grid()
+    x, y = pts[:, 0], pts[:, 1]
+    plane = 0.3 + 0.01 * x - 0.02 * y
+    quad = plane + 1e-4 * x * x - 2e-4 * x * y + 3e-4 * y * y
+    fit = local_fit_weights(pts, 25, 21)
+    assert torch.allclose(fit.apply(1, plane), plane, atol=1e-10)
+    slopes = fit.apply_slopes(1, plane)
+    assert torch.allclose(slopes[:, 0], torch.full_like(x, 0.01), atol=1e-10)
+    assert torch.allclose(slopes[:, 1], torch.full_like(x, -0.02), atol=1e-10)
+    assert torch.allclose(fit.apply(2, quad), quad, atol=1e-9)
+    # the plane misses curvature: its value is off where the quadratic's is not
+    assert float((fit.apply(1, quad) - quad).abs().max()) > 1e-3
+
+
+def test_invalid_points_get_no_weight():
+    pts = _grid()
+    valid = torch.ones(len(pts), dtype=torch.bool)
+    valid[::7] = False
+    fit = local_fit_weights(pts, 25, 21, valid=valid)
+    bad = ~valid
+    cols = bad[fit.index] & fit.posed[1][:, None]
+    assert float(fit.weights[1][cols].abs().max()) < 1e-12
+    vals = torch.where(valid, 1.0 + 0.01 * pts[:, 0], torch.nan)
+    # NaN values of invalid neighbours do not leak into the fits (weight exactly 0 times NaN
+    # would): the caller zeroes them first
+    out = fit.apply(1, torch.nan_to_num(vals))
+    assert torch.allclose(out[valid], vals[valid], atol=1e-9)
+
+
+def test_overlap_correlation():
+    off = torch.tensor([[0.0, 0.0], [10.5, 0.0], [21.0, 3.0], [5.25, 5.25]])
+    want = torch.tensor([1.0, 0.5, 0.0, 0.75 * 0.75])
+    assert torch.allclose(overlap_correlation(off, 21), want)
+
+
+def test_variance_factor_matches_monte_carlo():
+    """Values whose errors are window averages of white noise (correlated as the windows
+    overlap): the empirical variance of the plane's value over one value's equals
+    w^T R w (within 8 %, 1500 draws; it is 0.144 at step 10, subset 21, 25 neighbours,
+    against 0.04 for independent values)."""
+    pts = _grid(step=10.0, n=9)
+    fit = local_fit_weights(pts, 25, 21)
+    g = torch.Generator().manual_seed(1)
+    size = 10 * 8 + 21 + 2
+    noise = torch.randn(1500, 1, size, size, generator=g, dtype=torch.float64)
+    box = torch.nn.functional.avg_pool2d(noise, 21, stride=1)[:, 0]  # (R, H', W')
+    ij = pts.long()
+    vals = box[:, ij[:, 1], ij[:, 0]]  # (R, N): each POI's window average
+    centre = 4 * 9 + 4
+    fitted = fit.apply(1, vals)[:, centre]
+    measured = float(fitted.var() / vals[:, centre].var())
+    predicted = float(fit.variance_factor(fit.weights[1])[centre])
+    assert predicted == pytest.approx(0.144, abs=0.01)
+    assert measured == pytest.approx(predicted, rel=0.08)
+
+
+def _window_noise(pts: torch.Tensor, sigma: float, seed: int) -> torch.Tensor:
+    """(2, N) errors of the POIs' 21 px windows averaging white noise (correlated as the
+    windows overlap, like DIC's), scaled to std ``sigma``."""
+    g = torch.Generator().manual_seed(seed)
+    size = int(pts.max()) + 23
+    box = torch.nn.functional.avg_pool2d(
+        torch.randn(2, 1, size, size, generator=g, dtype=torch.float64), 21, stride=1)[:, 0]
+    ij = pts.long()
+    vals = box[:, ij[:, 1], ij[:, 0]]
+    return sigma * vals / vals.std()
+
+
+def test_plane_test_keeps_planes_and_finds_curvature():
+    pts = _grid(n=21)
+    x, y = pts[:, 0] - 100, pts[:, 1] - 100
+    sigma = 0.01
+    noise = _window_noise(pts, sigma, 2)
+    fit = local_fit_weights(pts, 25, 21, degrees=(1, 2, 3))
+    var = torch.full((2, len(pts)), sigma ** 2, dtype=torch.float64)
+    flat = torch.stack([0.002 * x, -0.001 * y]) + noise
+    keep, factor = local_fit(fit, flat, var, z_limit=5.0)
+    assert float(keep.double().mean()) > 0.97
+    assert float(factor[keep].median()) == pytest.approx(0.144, abs=0.02)
+    bump = torch.exp(-(x ** 2 + y ** 2) / (2 * 30.0 ** 2))
+    keep_b, _ = local_fit(fit, flat + torch.stack([bump, 0.5 * bump]), var, z_limit=5.0)
+    centre = (x.abs() < 15) & (y.abs() < 15)
+    assert not bool(keep_b[centre].any())
+    assert bool(keep_b[(x.abs() > 90) | (y.abs() > 90)].double().mean() > 0.9)
+    # the quadratic follows the bump's centre where the plane does not
+    keep_q, _ = local_fit(fit, flat + torch.stack([bump, 0.5 * bump]), var, degree=2,
+                          z_limit=5.0)
+    assert float(keep_q.double().mean()) > float(keep_b.double().mean())
+
+
+def test_residuals_find_a_jump_the_fitted_values_miss():
+    """A step of 1.5 px (a crack) between two columns of POIs: the plane's and the
+    quadratic's values at a POI next to it can agree (both average across the step), the
+    residuals cannot (z about 80 next to the step, below 5 elsewhere)."""
+    pts = _grid(n=15)
+    sigma = 0.01
+    vals = _window_noise(pts, sigma, 3) + torch.stack(
+        [1.5 * (pts[:, 0] > 70).double(), 0.8 * (pts[:, 0] > 70).double()])
+    fit = local_fit_weights(pts, 25, 21, degrees=(1, 2, 3))
+    var = torch.full_like(vals, sigma ** 2)
+    z = fit.residual_z(1, vals, var).amax(0)
+    near = (pts[:, 0] >= 60) & (pts[:, 0] <= 90)  # neighbourhoods (+-20 px) across it
+    far = (pts[:, 0] <= 40) | (pts[:, 0] >= 110)
+    assert float(z[near].min()) > 20 and float(z[far].max()) < 5
+    keep, _ = local_fit(fit, vals, var, z_limit=5.0)
+    assert not bool(keep[near].any())
