@@ -8,7 +8,10 @@ u = t/20, v = t/40 px, 21x21 subsets, float32:
   skipped when absent), 256x256 crop shifted by Fourier interpolation, then cropped to
   200x200, sigma = 3 added to every image (the camera's own noise is common to all frames).
 
-Schemes: classical (m = 0), STS m = 2, both with ``refine_reference=True``; points on the
+Schemes: classical (m = 0), STS m = 2, against the reference image alone
+(``series_reference=False``), against the reference made from the series
+(``series_reference=True``; predicted ``a sqrt(w + 1/N_t)``, N_t = min(frames, 21) the
+template's images), and with ``refine_reference=True``; points on the
 pixel grid and the same grid moved by (+0.37, -0.41) px. Prediction (first order, docs/
 accuracy.md): with ``a`` the frame-to-frame scatter of classical DIC (the frames' share),
 classical sqrt(2) a, STS sqrt(1 + 1/5) a, refined: ``a`` times the root of the mean over the
@@ -110,16 +113,18 @@ def main(argv=None) -> int:
         for grid_name, off in (("on grid", (0.0, 0.0)), ("off grid", (0.37, -0.41))):
             pts = grid(size, off)
             a = None
-            for m, refine in ((0, False), (2, False), (0, True), (2, True)):
+            for m, mode in ((0, "single"), (2, "single"), (0, "series"), (2, "series"),
+                            (0, "refined"), (2, "refined")):
+                refine = mode == "refined"
                 if grid_name == "off grid" and refine:
                     continue
                 cfg = sts.DICConfig(m=m, dtype="float32")
                 t0 = time.perf_counter()
                 res = sts.track(mv, points=pts, config=cfg, progress=False,
-                                refine_reference=refine)
+                                refine_reference=refine, series_reference=mode == "series")
                 sec = time.perf_counter() - t0
                 err = errors(res, rows)
-                if m == 0 and not refine:
+                if m == 0 and mode == "single":
                     a = err["scatter"]
                     # var(offset) / a^2: the offset's RMS less its share of the frames' noise
                     rho = max(err["offset"] ** 2 - a**2 / (rows.stop - rows.start), 0.0) / a**2
@@ -129,12 +134,14 @@ def main(argv=None) -> int:
                     var = predicted_profile(res.times.numpy(), 0, range(1, n), m, rho,
                                             info.get("shrink", 1.0))
                     pred = a * math.sqrt(float(var[rows].mean()))
+                elif mode == "series":  # the template's noise: 1/N of a frame's (N <= 21)
+                    pred = a * math.sqrt((1.0 if m == 0 else 0.2) + 1.0 / min(n, 21))
                 else:
                     pred = a * math.sqrt(2.0 if m == 0 else 1.2)
                 table.append({
                     "movie": name, "points": grid_name, "scheme": ("classical" if m == 0 else
                                                                    "STS m=2")
-                    + (" refined" if refine else ""),
+                    + {"single": "", "series": " series ref", "refined": " refined"}[mode],
                     "rms_1e-3px": round(err["rms"] * 1e3, 2),
                     "predicted_1e-3px": round(pred * 1e3, 2),
                     "offset_1e-3px": round(err["offset"] * 1e3, 2),
@@ -147,7 +154,7 @@ def main(argv=None) -> int:
                 print(table[-1], flush=True)
     for r in table:  # ratio to classical at the same points (on grid)
         base = next(x for x in table if x["movie"] == r["movie"] and x["points"] == "on grid"
-                    and x["scheme"] == "classical")
+                    and x["scheme"] == "classical")  # against the reference image alone
         r["x_classical_on_grid"] = round(r["rms_1e-3px"] / base["rms_1e-3px"], 3)
     args.out.mkdir(parents=True, exist_ok=True)
     suffix = "_quick" if args.quick else ""
