@@ -36,7 +36,7 @@ from torch_stsdic.core.window import (
 from torch_stsdic.io import ImageSeries, InputError, ResultWriter, load_series, read_results
 from torch_stsdic.kernels.native import set_native
 from torch_stsdic.movie.plan import RunPlan, plan_run
-from torch_stsdic.movie.series import classical_smoothed, run_plan, track
+from torch_stsdic.movie.series import classical_smoothed, run_plan, series_template, track
 from torch_stsdic.movie.sinks import HDF5Sink, MemorySink
 
 __version__ = "0.1.0"
@@ -61,6 +61,7 @@ __all__ = [
     "usable",
     "track",
     "run_plan",
+    "series_template",
     "plan_run",
     "RunPlan",
     "MemorySink",

@@ -57,10 +57,10 @@ from torch_stsdic.movie.frames import FrameCache, default_ahead, frames_in_order
 from torch_stsdic.movie.plan import RunPlan, plan_run
 from torch_stsdic.movie.reference import Reference, maybe_update
 from torch_stsdic.movie.refine import ReferenceOffsets, apply_offsets, set_refinement
-from torch_stsdic.movie.series_reference import set_series_reference
+from torch_stsdic.movie.series_reference import SeriesReference, set_series_reference
 from torch_stsdic.movie.sinks import MemorySink, open_sink
 
-__all__ = ["track", "run_plan", "classical_smoothed", "set_reference_mode"]
+__all__ = ["track", "run_plan", "classical_smoothed", "set_reference_mode", "series_template"]
 
 
 # ---------------------------------------------------------------------------------------
@@ -356,3 +356,35 @@ def classical_smoothed(series: Any, span: int = 5, **kwargs: Any) -> TrackResult
     """Classical DIC (m = 0) of ``series`` smoothed in time over ``span`` frames: shorthand
     for ``track(series, smoothing=span, **kwargs)``."""
     return track(series, smoothing=span, **kwargs)
+
+
+def series_template(series: Any, points: Any = None, *, reference: int = 0, roi=None,
+                    mask=None, step: int = 10, config: DICConfig | None = None,
+                    device: str | torch.device = "cpu", rounds: int = 2,
+                    series_frames: int | None = None, find_specimen: bool = True
+                    ) -> SeriesReference:
+    """The reference made from the series, for a pipeline of its own (e.g.
+    :class:`torch_stsdic.nn.STSDIC`, whose ``ref`` it can be): tensors in, tensors out.
+
+    Args:
+        series: (T, H, W) tensor or array, or anything :func:`~torch_stsdic.load_series`
+            reads; ``reference``: the frame whose configuration is zero displacement.
+        points, roi, mask, step, config, device, find_specimen: as :func:`track`.
+        rounds, series_frames: the template's rounds and most frames (2, 21).
+
+    Returns:
+        :class:`~torch_stsdic.movie.series_reference.SeriesReference`: ``image`` (H, W)
+        float64, the template; ``gauge.values["u"]``, ``["v"]`` (N,) px to subtract from
+        displacements measured against it at ``points`` (the template's registration as the
+        reference frame reads it); ``added_var`` (N,) px^2 its share of their variance;
+        ``noise_ratio`` its noise variance over a frame's.
+    """
+    plan = plan_run(series, reference, None, points, roi, mask, step, config, device, None,
+                    None, find_specimen=find_specimen, shared_motion=None)
+    if isinstance(rounds, bool) or not isinstance(rounds, (int, np.integer)) or rounds < 1:
+        raise ValueError(f"rounds: must be an integer >= 1, got {rounds!r}")
+    set_reference_mode(plan, False, None, int(rounds), series_frames)
+    est = measure_run(plan, run=run_plan)
+    if est.series_reference is None:  # pragma: no cover - set_reference_mode asked for it
+        raise RuntimeError("series_template: no template was made")
+    return est.series_reference
