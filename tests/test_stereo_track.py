@@ -138,8 +138,11 @@ def test_result_file_and_command(movie, tmp_path):
 ])
 def test_each_motion_alone(name, motion):
     mv = _movie(motion, seed=3)
-    _, rms0, pred0, _, _ = _run(mv, 0)
+    _, rms0, pred0, _, _ = _run(mv, 0, series_reference=False)
     ratio = rms0 / pred0
     assert bool(((ratio > 0.8) & (ratio < 1.25)).all()), (name, ratio.tolist())
     _, rms3, _, _, _ = _run(mv, 2, refine_reference=True)
     assert float(rms3.norm() / rms0.norm()) <= 0.7, name
+    # the defaults, the reference made from the series: measured 0.52, 0.44, 0.64
+    _, rms4, _, _, _ = _run(mv, 2)
+    assert float(rms4.norm() / rms0.norm()) <= 0.7, name
