@@ -223,6 +223,10 @@ def test_killed_run_resumes_to_the_same_result(movie, tmp_path):
     a, b = read_results(tmp_path / "full.h5"), read_results(tmp_path / "cut.h5")
     for name in a.fields:
         assert np.array_equal(a.fields[name], b.fields[name], equal_nan=True), name
+    # the file records the template the run measured against, with its summary
+    img, attrs = b.arrays["series_reference"]
+    assert img.shape == movie[0].shape[1:] and attrs["iterations"] == 2
+    assert np.array_equal(img, a.arrays["series_reference"][0])
 
 
 def test_series_template_feeds_the_differentiable_solver(movie):
@@ -252,3 +256,55 @@ def test_series_template_feeds_the_differentiable_solver(movie):
     assert err_t < 0.8 * err_s, (err_t, err_s)
     with pytest.raises(ValueError, match="rounds"):
         sts.series_template(series, res.points, rounds=0)
+
+
+def _vibration(size: int) -> synth.Motion:
+    """A vibration whose phase varies over the specimen (period 4 frames, 0.25 px): the
+    affine-in-time window fits it nowhere, and no shared motion takes it out."""
+    def fn(x, y, t):
+        ph = (x + y) / 15.0
+        a = 0.25 * (torch.sin(2 * np.pi * t / 4.0 + ph) - torch.sin(ph))
+        return a, -0.5 * a
+    return synth.Custom(fn)
+
+
+def test_points_where_the_time_model_fails_are_solved_classically():
+    """Decided once, from the template's classical measurement of the sampled frames: on a
+    vibration the window cannot follow, most points are solved classically (no window, no
+    check; measured 124 of 144 points here, 98 % of their usable rows classical, the rest
+    rescued rows), their rows equal to a classical run's rows; on the relaxing render none
+    is."""
+    mv = synth.synthetic_movie((161, 161), 20, _vibration(161), noise_sigma=2.0, seed=1)
+    series = torch.cat([mv.ref[None], mv.frames]).double()
+    res = sts.track(series, config=sts.DICConfig(m=2), progress=False)
+    info = res.info["series_reference"]
+    cls = info["classical_points"]
+    assert cls >= 0.4 * res.n_points, (cls, res.n_points)
+    holds = sts.series_template(series, res.points, config=sts.DICConfig(m=2)).model_holds
+    assert holds is not None and int((~holds).sum()) == cls
+    rows = res.m[1:, ~holds][res.status[1:, ~holds] <= 1]
+    share = float((rows == 0).double().mean())
+    # the carried rows; a lost row's rescue (FFT, the previous target) uses the run's window
+    assert share >= 0.9, share
+    relax = synth.synthetic_movie((161, 161), 20, _relaxing(161), noise_sigma=2.0, seed=3)
+    series = torch.cat([relax.ref[None], relax.frames]).double()
+    res = sts.track(series, config=sts.DICConfig(m=2), progress=False)
+    assert res.info["series_reference"]["classical_points"] == 0
+
+
+def test_long_movies_sample_runs_of_adjacent_frames():
+    """Over 21 targets, an STS run samples runs of 2m + 3 adjacent frames (three windows each
+    for the time-model test), the reference among them; a classical run spreads them."""
+    from torch_stsdic.movie.plan import plan_run
+    from torch_stsdic.movie.series_reference import sample_frames
+
+    mv = synth.synthetic_movie((61, 61), 40, noise_sigma=1.0, seed=2)
+    series = torch.cat([mv.ref[None], mv.frames]).double()
+    plan = plan_run(series, config=sts.DICConfig(m=2, subset_size=15), step=10)
+    ks = sample_frames(plan, 21)
+    assert len(ks) == 21 and ks[0] == 0
+    runs = np.split(np.array(ks), np.nonzero(np.diff(ks) > 1)[0] + 1)
+    assert [len(r) for r in runs] == [7, 7, 7]
+    plan0 = plan_run(series, config=sts.DICConfig(m=0, subset_size=15), step=10)
+    k0 = sample_frames(plan0, 21)
+    assert len(k0) == 21 and int(np.diff(k0).max()) == 2

@@ -84,7 +84,7 @@ CSV_COLUMNS: tuple[str, ...] = (
     "x", "y", "u", "v", "ut", "vt", "exx", "eyy", "exy", "zncc", "status",
 )  # fmt: skip
 #: run-level arrays (not (F, N) fields) a result file may hold, by dataset name
-RUN_ARRAYS = ("shared_motion",)
+RUN_ARRAYS = ("shared_motion", "series_reference")
 _RESERVED = {"points", "frames", "times", "completed", *RUN_ARRAYS}
 #: result files up to this size (bytes) are made in memory and written in one piece
 SKELETON_IN_MEMORY = 256 << 20
@@ -490,7 +490,10 @@ class ResultWriter(_FieldShape):
         with self._writing():
             if name in f:
                 del f[name]
-            ds = f.create_dataset(name, data=np.asarray(values, dtype=np.float64))
+            ds = f.create_dataset(name, data=np.asarray(values, dtype=np.float64),
+                                  **({"compression": "gzip", "compression_opts": 1}
+                                     if np.ndim(values) == 2 and np.size(values) > 4096
+                                     else {}))
             for k, v in (attrs or {}).items():
                 ds.attrs[k] = v if isinstance(v, (str, int, float, bool)) else json.dumps(v)
             f.flush()

@@ -73,6 +73,9 @@ class BlockContext:
     #: (N,) px^2 the variance the reference adds to u and to v of every row, beyond what the
     #: solver predicts (the registration of a template made from the series; None: none)
     reference_var: torch.Tensor | None = None
+    #: (N,) bool: points solved classically (m = 0, no window solve or check) because the
+    #: time model failed there in the sampled frames (None: none)
+    classical_points: torch.Tensor | None = None
     _checker: SubsetSolver | None = None
 
     def grid_neighbours(self, ref: Reference) -> torch.Tensor:
@@ -523,6 +526,12 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
     guess = None
     if bool(carried.any()):
         guess = torch.where(carried.unsqueeze(1), init, torch.full_like(init, float("nan")))
+    if run.classical_points is not None and run.m > 0:  # the time model failed there
+        cls = carried & run.classical_points.to(dev).repeat(b)
+        if bool(cls.any()):
+            if blk.window_m is None:
+                blk.window_m = torch.full((rows,), run.m, dtype=torch.int8, device=dev)
+            blk.window_m[cls] = 0
     shorter = carried & (blk.window_m < run.m) if blk.window_m is not None else None
     if shorter is not None:  # points leaving the image within their window
         for m in torch.unique(blk.window_m[shorter]).tolist():

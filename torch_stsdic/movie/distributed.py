@@ -225,6 +225,8 @@ def _measure(job: _Job) -> None:
     job.estimates = measure_run(job.plan, run=run_plan, first_noise=True)
     if job.estimates.shared is not None:
         job.sink.write_shared_motion(job.estimates.shared)
+    if job.estimates.series_reference is not None:
+        job.sink.write_series_reference(job.estimates.series_reference)
 
 
 def _accept(job: _Job, result: dict[str, Any]) -> int:

@@ -99,8 +99,9 @@ def measure_run(plan: RunPlan, ref_raw: torch.Tensor | None = None, *, run: RunF
     if plan.options.get("series_reference"):
         opt = plan.options["series_reference"]
         raw = reference_pixels(plan) if ref_raw is None else ref_raw
-        series_ref = build_series_reference(plan, raw, run=run, max_frames=opt["frames"],
-                                            iterations=opt["iterations"])
+        series_ref = build_series_reference(
+            plan, raw, run=run, max_frames=opt["frames"], iterations=opt["iterations"],
+            shared=shared if shared is not None and shared.applied else None)
     offsets = None
     if plan.options.get("refine_reference"):
         offsets = measure_offsets(plan, int(plan.options["refine_reference"]),

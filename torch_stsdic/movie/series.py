@@ -117,10 +117,13 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
             run.segments = segment_bounds(shared.steps, len(plan.series)).to(plan.device)
         sink.write_shared_motion(shared)
     if est.series_reference is not None:
+        sink.write_series_reference(est.series_reference)
         img = est.series_reference.image.to(device=plan.device, dtype=plan.dtype)
         ref = Reference(frame=-1, raw=img, img=solver.prepare(img), points=ref.points)
         if est.series_reference.added_var is not None:
             run.reference_var = est.series_reference.added_var.to(device=plan.device)
+        if est.series_reference.model_holds is not None:
+            run.classical_points = ~est.series_reference.model_holds.to(device=plan.device)
     if est.noise_ratio is not None:
         run.noise_ratio = est.noise_ratio
     offsets = est.row_offsets

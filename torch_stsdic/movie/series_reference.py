@@ -31,14 +31,17 @@ import numpy as np
 import torch
 
 from torch_stsdic.analysis.local_fit import LocalFit, local_fit, local_fit_weights
+from torch_stsdic.analysis.quality import line_mismatch
 from torch_stsdic.analysis.result import USABLE, TrackResult
 from torch_stsdic.core.interpolation import BSplineImage
 from torch_stsdic.core.noise import estimate_noise_sigma, interpolation_variance_factor
+from torch_stsdic.core.shared_motion import SharedMotion
 from torch_stsdic.movie.plan import RunPlan
 from torch_stsdic.movie.refine import ReferenceOffsets
 
 __all__ = ["SeriesReference", "DEFAULT_FRAMES", "DEFAULT_ITERATIONS", "sample_frames",
-           "build_series_reference", "set_series_reference", "single_reason"]
+           "build_series_reference", "set_series_reference", "single_reason",
+           "time_model_holds"]
 
 #: frames of the movie sampled for the template (evenly spread over the targets)
 DEFAULT_FRAMES = 21
@@ -69,6 +72,9 @@ class SeriesReference:
     plane_share: float | None = None  # share of the frames x POIs registered by a plane
     fit_share: float | None = None  # ... by a plane or a quadratic (the rest left out)
     gauge: ReferenceOffsets | None = None  # the template's registration as the reference saw it
+    #: (N,) bool where the STS window's time model held in the sampled frames (None: not
+    #: tested); the run solves the other points classically (:func:`time_model_holds`)
+    model_holds: torch.Tensor | None = None
 
     def summary(self) -> dict[str, Any]:
         return {"frames": list(self.frames), "iterations": self.iterations,
@@ -79,6 +85,8 @@ class SeriesReference:
                 "plane_share": (None if self.plane_share is None
                                 else round(self.plane_share, 4)),
                 "fit_share": None if self.fit_share is None else round(self.fit_share, 4),
+                "classical_points": (None if self.model_holds is None
+                                     else int((~self.model_holds).sum())),
                 "gauge_rho": None if self.gauge is None else round(float(self.gauge.rho), 4),
                 "gauge_rms_px": (None if self.gauge is None else round(float(np.sqrt(np.mean(
                     self.gauge.values["u"] ** 2 + self.gauge.values["v"] ** 2) / 2)), 6))}
@@ -97,13 +105,21 @@ def _unit_variance(res: TrackResult) -> torch.Tensor:
 
 
 def sample_frames(plan: RunPlan, max_frames: int = DEFAULT_FRAMES) -> list[int]:
-    """Up to ``max_frames`` frames evenly spread over the targets, the reference frame (when
-    it is a frame of the series) always among them."""
+    """Up to ``max_frames`` frames spread over the targets, the reference frame (when it is a
+    frame of the series) always among them: for STS windows (m > 0) in runs of 2m + 3
+    adjacent targets (three windows each, for :func:`time_model_holds`), else one by one."""
     if int(max_frames) < 2:
         raise ValueError(f"series_reference: needs >= 2 frames, got {max_frames!r}")
     ks = sorted(set(plan.targets) | ({plan.reference_frame} if plan.reference_frame >= 0
                                      else set()))
-    if len(ks) > max_frames:
+    run = 2 * plan.config.m + 3
+    if len(ks) > max_frames and plan.config.m > 0 and int(max_frames) >= run:
+        starts = np.unique(np.round(np.linspace(0, len(ks) - run, int(max_frames) // run)))
+        chosen = {ks[int(s) + j] for s in starts for j in range(run)}
+        if plan.reference_frame >= 0:
+            chosen.add(plan.reference_frame)
+        ks = sorted(chosen)
+    elif len(ks) > max_frames:
         pick = np.unique(np.round(np.linspace(0, len(ks) - 1, int(max_frames))).astype(int))
         chosen = {ks[i] for i in pick}
         if plan.reference_frame >= 0:
@@ -219,6 +235,50 @@ def _frame_noise(plan: RunPlan, frames: list[int]) -> list[float]:
             for k in frames]
 
 
+def time_model_holds(plan: RunPlan, res: TrackResult, frames: list[int],
+                     shared: SharedMotion | None = None) -> torch.Tensor | None:
+    """(N,) bool: the points where the STS window's affine-in-time model holds, from the
+    classical measurement ``res`` of the sampled ``frames`` against the reference image:
+    every 2m + 1 adjacent sampled frames (not across a load step of ``shared``) whose
+    classical displacements, the shared motion taken out, miss a line by more than the
+    model check could allow (:func:`~torch_stsdic.analysis.quality.line_mismatch`: such a
+    window cannot pass it) count as a failed window. A point where at least three windows
+    were tested and half of them or more failed is solved classically in the run (no
+    window solve, no check: what a classical run costs there); None where no point had
+    three windows (m = 0, checks off, too few adjacent frames). A stricter line test (2.5
+    standard deviations of the line's noise) also caught the windows that pass the model
+    check with a bias, but flagged a third of sample 12's points, whose windows pass."""
+    m = plan.config.m
+    if m == 0 or not plan.options.get("checks", True) or "u" not in res.std:
+        return None
+    pts = plan.points.double().cpu()
+    d = torch.stack([res.u.double().cpu(), res.v.double().cpu()], -1)  # (F, N, 2)
+    if shared is not None and shared.applied:
+        d = d - shared.displacement(pts, torch.as_tensor(frames)).double()
+    sd = torch.stack([res.std["u"].double().cpu(), res.std["v"].double().cpu()], -1)
+    ok = (res.status.cpu() <= USABLE) & torch.isfinite(d).all(-1)
+    t = torch.as_tensor(plan.times[frames], dtype=torch.float64)
+    steps = list(shared.steps) if shared is not None and shared.steps else []
+    n = pts.shape[0]
+    fails = torch.zeros(n, dtype=torch.int64)
+    tests = torch.zeros(n, dtype=torch.int64)
+    for j0 in range(len(frames) - 2 * m):
+        j1 = j0 + 2 * m
+        if frames[j1] - frames[j0] != 2 * m or any(frames[j0] < s <= frames[j1]
+                                                    for s in steps):
+            continue
+        jt = j0 + m
+        disp = d[j0:j1 + 1].permute(1, 0, 2)  # (N, T, 2)
+        dt = (t[j0:j1 + 1] - t[jt]).expand(n, -1)
+        miss = line_mismatch(disp, dt, d[jt], sd[jt])
+        valid = ok[j0:j1 + 1].all(0)
+        fails += (miss & valid).long()
+        tests += valid.long()
+    if int(tests.max()) < 3:
+        return None
+    return ~((tests >= 3) & (2 * fails >= tests))
+
+
 def _all_warps(plan: RunPlan, res: TrackResult) -> tuple[torch.Tensor, torch.Tensor]:
     """(F, N, 6) warps and (F, N) trust of every row of ``res`` (:func:`_warps`)."""
     lost = float(plan.options.get("lost_zncc", 0.8))
@@ -323,7 +383,8 @@ def build_series_reference(plan: RunPlan, ref_raw: torch.Tensor, *,
                            run: Callable[..., TrackResult],
                            max_frames: int = DEFAULT_FRAMES,
                            iterations: int = DEFAULT_ITERATIONS,
-                           neighbours: int = DEFAULT_NEIGHBOURS) -> SeriesReference:
+                           neighbours: int = DEFAULT_NEIGHBOURS,
+                           shared: SharedMotion | None = None) -> SeriesReference:
     """The template of ``plan``: ``iterations`` rounds of a classical measurement of the
     sampled frames (:func:`sample_frames`; the first against the plan's reference image
     ``ref_raw`` (H, W), the others against the last template) and a template from their
@@ -345,6 +406,7 @@ def build_series_reference(plan: RunPlan, ref_raw: torch.Tensor, *,
         res = _measure(plan, frames, image, run)
         warps, trusted = _all_warps(plan, res)
         if degree is None:  # tested once, against the reference image (a known null)
+            holds = time_model_holds(plan, res, frames, shared)
             unit = _unit_variance(res)
             matched = _matched(res, frames, plan.reference_frame)
             degree = _fit_degree(fit, warps, trusted & matched, unit)
@@ -376,7 +438,7 @@ def build_series_reference(plan: RunPlan, ref_raw: torch.Tensor, *,
                            plane_share=float((degree[own] == 1).double().mean())
                            if bool(own.any()) else 0.0,
                            fit_share=float(use[own].double().mean()) if bool(own.any())
-                           else 0.0, gauge=gauge)
+                           else 0.0, gauge=gauge, model_holds=holds)
 
 
 def _gauge(plan: RunPlan, fit: LocalFit, image: torch.Tensor, keep: torch.Tensor,

@@ -82,6 +82,11 @@ class MemorySink:
         """Record the run's shared motion (:class:`~torch_stsdic.core.shared_motion.SharedMotion`)
         as soon as it is measured (memory: kept in the result's info only)."""
 
+    def write_series_reference(self, template: Any) -> None:
+        """Record the template the run measured against
+        (:class:`~torch_stsdic.movie.series_reference.SeriesReference`; memory: kept in the
+        result's info only)."""
+
     def result(self, info: dict[str, Any]) -> TrackResult:
         """The :class:`TrackResult` of the rows held, on the plan's device and dtype."""
         plan, v = self.plan, self.values
@@ -181,6 +186,12 @@ class HDF5Sink(MemorySink):
         attrs["columns"] = list(PARAM_NAMES[:p])
         attrs["units"] = list(PARAM_UNITS[:p])
         self.writer.write_array("shared_motion", shared.params, attrs)
+
+    def write_series_reference(self, template: Any) -> None:
+        attrs = {**template.summary(), "units": "grey levels (the reference's)",
+                 "what": "the template every frame was measured against, (H, W)"}
+        self.writer.write_array("series_reference", template.image.float().cpu().numpy(),
+                                attrs)
 
     def close(self, commit: bool = True) -> None:
         self.writer.close(commit=commit)
