@@ -638,6 +638,9 @@ def _print_summary(res: Any, args: argparse.Namespace, elapsed: float, ref: str,
               f"round(s) ({sref['seconds']:.1f} s); its noise {sref['noise_ratio']:.3f} of a "
               "frame's" + (f", its registration +{added:.4f} px in u_std and v_std"
                            if added else ""))
+        if sref.get("classical_points"):
+            print(f"time model: {sref['classical_points']} of {n_p} points solved classically "
+                  "(their windows missed a line in the template's frames: no velocity there)")
     solved = n_f - kept
     if args.resume:
         print(f"resumed: {kept} of {n_f} frames were finished in the file and kept, "
