@@ -60,10 +60,8 @@ def movie():
     return torch.cat([mv.ref[None], mv.frames]), mv.motion
 
 
-@pytest.fixture(scope="module")
-def sts_run(movie, tmp_path_factory):
-    """STS-DIC (m = 2) in blocks of 3 target frames, written to a file, reads counted."""
-    frames, _ = movie
+def _counted(frames):
+    """The series of ``frames`` and the list its reads (frame indices) are appended to."""
     ser = load_series(frames)
     reads: list[int] = []
     get = ser.get
@@ -73,6 +71,14 @@ def sts_run(movie, tmp_path_factory):
         return get(i, *args, **kwargs)
 
     ser.get = counting_get  # type: ignore[method-assign]
+    return ser, reads
+
+
+@pytest.fixture(scope="module")
+def sts_run(movie, tmp_path_factory):
+    """STS-DIC (m = 2) in blocks of 3 target frames, written to a file, reads counted."""
+    frames, _ = movie
+    ser, reads = _counted(frames)
     reads_at_callback: list[int] = []
     out = tmp_path_factory.mktemp("sts") / "full.h5"
     # shared motion off: its measuring pass reads every frame once more (test_shared_motion)
@@ -115,15 +121,7 @@ def test_template_reads_are_bounded(movie):
     noise, each round's classical measurement and mapping, the reference's measurement
     against the template, then the movie's blocks."""
     frames, _ = movie
-    ser = load_series(frames)
-    reads: list[int] = []
-    get = ser.get
-
-    def counting_get(i, *args, **kwargs):
-        reads.append(int(i))
-        return get(i, *args, **kwargs)
-
-    ser.get = counting_get  # type: ignore[method-assign]
+    ser, reads = _counted(frames)
     res = track(ser, config=CFG, roi=ROI, step=18, progress=False, batch_frames=BATCH,
                 shared_motion=None, series_reference=True)
     assert res.info["series_reference"]["iterations"] == 2
@@ -133,15 +131,7 @@ def test_template_reads_are_bounded(movie):
 
 def test_lazy_reading_bounded_cache(movie):
     frames, _ = movie
-    ser = load_series(frames)
-    reads: list[int] = []
-    get = ser.get
-
-    def counting_get(i, *args, **kwargs):
-        reads.append(int(i))
-        return get(i, *args, **kwargs)
-
-    ser.get = counting_get  # type: ignore[method-assign]
+    ser, reads = _counted(frames)
     reads_at_callback: list[int] = []
     res = track(ser, config=CFG, roi=ROI, step=18, progress=False, batch_frames=BATCH,
                 callback=lambda done, total: reads_at_callback.append(len(reads)),

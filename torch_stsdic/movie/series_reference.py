@@ -1,22 +1,24 @@
 """A reference made from the series: a sample of the movie's images mapped back to the reference
-configuration with each point's measured subset warp and averaged into a template, the movie
-then measured against the template.
+configuration and averaged into a template, the movie then measured against the template.
 
-Each POI's classical solution (u, v and the displacement gradients, the spatial part of the
-shape function) maps the pixels of its subset window in the reference configuration to frame
-t: ``X -> X + u + grad(u) (X - x_poi)``. Frame t sampled there (B-spline) is the reference
-image as frame t saw it; every POI adds it to the pixels of its window with a tent weight (so
-a pixel blends the warps of the POIs around it), for every sampled frame where the POI is
-trusted, weighted by the inverse of the frame's noise variance. Pixels no trusted POI covers
-keep the reference frame's value.
+Each sampled frame is first measured classically against the reference image. Its warps (u,
+v, their gradients) are replaced at every POI by a local plane or quadratic fitted over the
+POI's neighbours (:mod:`torch_stsdic.analysis.local_fit`): the measured warps carry the
+reference image's noise, which averaging frames cannot remove, while the fit averages it
+over the neighbourhood. A frame enters the template at a POI only where its fit passes its
+tests, its subset matched as well as its texture allows, and every neighbour is trusted (a
+guard band around cracks and lost regions). Each POI maps the pixels of its window by its
+fit, samples the frame there (B-spline of the run's order), brings it to the reference's
+grey levels over the window, and adds it with a tent weight and the inverse of the frame's
+noise variance; pixels no frame covers keep the reference frame's value. Rounds of
+"measure against the template, make it again" follow. The reference frame, whose
+displacement is zero by definition, is finally measured against the template: what it reads
+(smoothed by the same planes, shrunk where below its noise) is the template's registration
+error, subtracted from every row (the gauge). The first round also decides where the STS
+window cannot help (:func:`time_model_holds`).
 
-What it gains (docs/validation/series_reference.md, measured): the template's own noise falls
-as 1/N, but its *registration* to the reference configuration comes from the measured warps,
-which carry the single reference image's error; that error is averaged over the overlapping
-windows of neighbouring points at each iteration (template, then a classical measurement
-against it), so its variance falls as ``1 / (k + 1)`` after k iterations, not as 1/N. On a
-render (21 images, noise on every image) classical DIC against the template reads 0.82x,
-0.78x, 0.75x and 0.74x its error against the reference image after 1 to 4 iterations.
+Measured (docs/validation/series_reference.md): STS m=2 at 0.37x classical DIC on DIC
+Challenge sample 3 and 0.40x on renders of 11-41 frames (theory sqrt((1/5 + 1/N) / 2)).
 """
 
 from __future__ import annotations
