@@ -210,7 +210,8 @@ def _splat(acc: torch.Tensor, img: BSplineImage, ref: torch.Tensor, pts: torch.T
                   & (xs <= w - 1) & (ys >= 0) & (ys <= h - 1))
         vals = torch.nan_to_num(img.sample(xs.to(img.dtype), ys.to(img.dtype)).double())
         cnt = inside.sum(1, keepdim=True).clamp(min=1)
-        own = ref[((c[:, 1] * w + c[:, 0]).long()[:, None] + offset).clamp(0, h * w - 1)]
+        idx = ((c[:, 1] * w + c[:, 0]).long()[:, None] + offset).clamp(0, h * w - 1)
+        own = ref[idx]  # (n, S) the reference's pixels of the windows
         m_f = torch.where(inside, vals, 0.0).sum(1, keepdim=True) / cnt
         m_r = torch.where(inside, own, 0.0).sum(1, keepdim=True) / cnt
         s_f = torch.where(inside, (vals - m_f) ** 2, 0.0).sum(1, keepdim=True).sqrt()
@@ -221,7 +222,6 @@ def _splat(acc: torch.Tensor, img: BSplineImage, ref: torch.Tensor, pts: torch.T
         fac = interpolation_variance_factor(u0 - u0.floor(), v0 - v0.floor(),
                                             img.order)  # (n,)
         wt = torch.where(inside, tent, 0.0)
-        idx = ((c[:, 1] * w + c[:, 0]).long()[:, None] + offset).clamp(0, h * w - 1)
         idx, wt = idx.reshape(-1), wt.reshape(-1)
         acc[0].index_add_(0, idx, wt * vals.reshape(-1))
         frame[0].index_add_(0, idx, wt)
@@ -348,10 +348,10 @@ def _smooth(fit: LocalFit, warps: torch.Tensor, ok: torch.Tensor, degree: torch.
 def _template(plan: RunPlan, warps: torch.Tensor, oks: torch.Tensor, frames: list[int],
               sigmas: list[float], ref_raw: torch.Tensor
               ) -> tuple[torch.Tensor, float, float, torch.Tensor]:
-    """The template from the warps (F, N, 6) and trust (F, N) of ``frames`` (noise
-    ``sigmas``): image (H, W), its noise variance over one frame's (median over the covered
-    pixels), coverage, and (N,) that ratio at each POI (1 where no frame covers it: the
-    reference image's pixels)."""
+    """The template from the maps (F, N, 12) (:func:`_smooth`) and trust (F, N) of
+    ``frames`` (noise ``sigmas``): image (H, W), its noise variance over one frame's (median
+    over the covered pixels), coverage, and (N,) that ratio at each POI (1 where no frame
+    covers it: the reference image's pixels)."""
     h, w = plan.series.shape
     pts = plan.points.double().cpu()
     half = (plan.config.subset_size - 1) // 2
@@ -390,10 +390,13 @@ def build_series_reference(plan: RunPlan, ref_raw: torch.Tensor, *,
     """The template of ``plan``: ``iterations`` rounds of a classical measurement of the
     sampled frames (:func:`sample_frames`; the first against the plan's reference image
     ``ref_raw`` (H, W), the others against the last template) and a template from their
-    warps, smoothed by each POI's plane over its ``neighbours`` nearest POIs; a frame enters
-    the template at a POI only where its first-round warp passes the plane test
-    (:func:`_plane_test`). Then the template's registration as the reference frame measures
-    it (:func:`_gauge`), where the reference is a frame of the series.
+    warps, replaced by each POI's local fit over its ``neighbours`` nearest POIs; a frame
+    enters the template at a POI only where its first-round warp matched
+    (:func:`_matched`), its fit passed (:func:`_fit_degree`) and every neighbour is trusted.
+    The first round also decides where the time model holds (:func:`time_model_holds`,
+    with the ``shared`` motion taken out). Then the template's registration as the
+    reference frame measures it (:func:`_gauge`), where the reference is a frame of the
+    series.
     ``run``: the runner of a plan (:func:`torch_stsdic.movie.series.run_plan`)."""
     if int(iterations) < 1:
         raise ValueError(f"series_reference: iterations must be >= 1, got {iterations!r}")
@@ -453,12 +456,13 @@ def _gauge(plan: RunPlan, fit: LocalFit, image: torch.Tensor, keep: torch.Tensor
     smoothed by each POI's local plane, 0 where not trusted. The plane value's noise is the
     reference's own noise through the plane's weights, at the level its plane residuals show
     (the template's error is smooth: the rough part of the measurement is noise). Where the
-    template was registered by the planes (``keep``) its error is small and smooth, partly
-    below that noise: the measured error is shrunk by ``rho / (1 + rho)``, ``rho`` its variance
-    beyond the noise over the noise (over those POIs; the least-squares weight of a zero-mean
-    error seen through noise); elsewhere (the reference image's own pixels) nothing is
-    subtracted. Subtracted from every row
-    like the refined reference's offsets (:func:`~torch_stsdic.movie.refine.apply_offsets`)."""
+    template was registered by the fits (``keep``) its error is small and smooth, partly
+    below that noise: the measured error is shrunk by ``e / (e + noise)``, ``e`` its variance
+    beyond the noise averaged over the POI's neighbourhood (the least-squares weight of a
+    zero-mean error seen through noise; large where a field the fits missed biased the
+    template there); elsewhere (the reference image's own pixels) nothing is subtracted.
+    Subtracted from every row like the refined reference's offsets
+    (:func:`~torch_stsdic.movie.refine.apply_offsets`); ``rho``: the median of ``e / noise``."""
     res = _measure(plan, [plan.reference_frame], image, run)
     warp, ok = _warps(res, 0, float(plan.options.get("lost_zncc", 0.8)))
     vals = torch.where(ok[:, None], warp, torch.nan).T  # (6, N)
