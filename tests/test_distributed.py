@@ -249,7 +249,8 @@ def equality(a, b) -> dict[str, float]:
         d = (x.double() - y.double()).abs()[same]
         both_nan = torch.isnan(x)[same] & torch.isnan(y)[same]
         assert bool((torch.isfinite(d) | both_nan).all()), f"{nm}: NaN in one run only"
-        out[f"max_{nm}"] = float(d[torch.isfinite(d)].max()) if bool(same.any()) else 0.0
+        fin = d[torch.isfinite(d)]  # none: ut, vt of runs whose rows are all classical
+        out[f"max_{nm}"] = float(fin.max()) if fin.numel() else 0.0
     du, dv = (a.u - b.u).abs()[ok], (a.v - b.v).abs()[ok]
     out["all_u"], out["all_v"] = float(du.max()), float(dv.max())
     out["within"] = float(((du <= MAX_DIFF_PX) & (dv <= MAX_DIFF_PX)).float().mean())
@@ -294,8 +295,9 @@ def test_shake_and_load_steps_equal_the_one_process_run(dask_distributed, steppe
 
 
 def test_sample12_equals_the_one_process_run(dask_distributed):
-    """DIC Challenge sample 12 (a loading series with a step before frame 10), defaults but
-    step 20, 2 workers, chunks of 6 (4 s on the 2-core machine). The few
+    """DIC Challenge sample 12 (a loading series with a step before frame 10; its uneven
+    load steps put every point classical), defaults but step 20, 2 workers, chunks of 6
+    (4 s on the 2-core machine). The few
     point-frames whose window length the model check decides at its margin may take
     another window (m): a different estimate, as between two one-process runs with other
     blocks (batch_frames 4 and 8: 0.023 % of them, up to 0.016 px); every other usable

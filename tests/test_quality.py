@@ -440,6 +440,29 @@ def test_rows_left_classical_are_the_classical_solution():
         assert float(d) < 1e-5, (f, float(d))
 
 
+def test_line_offset_is_where_the_window_lands_from_the_target():
+    """The line through a window's displacements at the target minus the target's own: 0 on
+    a line whatever its slope; a bump b at the target of a 5-frame window gives -b (1 - 1/5)
+    (the line's intercept is the mean there); a constant (the reference image's error) is
+    cancelled; the noise factor sum c^2 is 1/5 + (1 - 1/5)^2 + 3/25 = 0.8; an uneven window
+    (the target off its centre) has the line's value at dt = 0."""
+    from torch_stsdic.analysis.quality import line_offset
+
+    dt = torch.tensor([[-2.0, -1.0, 0.0, 1.0, 2.0]], dtype=torch.float64)
+    line = torch.stack([0.3 + 0.2 * dt, -0.1 * dt], -1)  # (1, 5, 2)
+    off, csq = line_offset(line + 7.0, dt)
+    assert torch.allclose(off, torch.zeros(1, 2, dtype=torch.float64), atol=1e-12)
+    assert abs(float(csq) - 0.8) < 1e-12
+    bump = line.clone()
+    bump[0, 2, 0] += 0.05
+    off = line_offset(bump, dt)[0]
+    assert abs(float(off[0, 0]) + 0.05 * 0.8) < 1e-12 and abs(float(off[0, 1])) < 1e-12
+    dt3 = torch.tensor([[0.0, 1.0, 2.0]], dtype=torch.float64)
+    quad = (dt3 ** 2).unsqueeze(-1).expand(-1, -1, 2)  # t^2 at 0, 1, 2: line -1/3 + 2 t
+    assert torch.allclose(line_offset(quad, dt3)[0], torch.full((1, 2), -1 / 3,
+                                                                dtype=torch.float64))
+
+
 def test_line_mismatch_predicts_the_windows_that_would_fail():
     """A window whose frames' classical displacements lie on a line (plus noise) is kept for
     solving; one across a jump of many standard deviations is not; unknown frames never

@@ -284,12 +284,37 @@ def test_points_where_the_time_model_fails_are_solved_classically():
     assert holds is not None and int((~holds).sum()) == cls
     rows = res.m[1:, ~holds][res.status[1:, ~holds] <= 1]
     share = float((rows == 0).double().mean())
-    # the carried rows; a lost row's rescue (FFT, the previous target) uses the run's window
-    assert share >= 0.9, share
+    # the carried rows, and those a window solved first (the first block's FFT start, a
+    # rescue) solved again classically (measured 100 %)
+    assert share >= 0.99, share
     relax = synth.synthetic_movie((161, 161), 20, _relaxing(161), noise_sigma=2.0, seed=3)
     series = torch.cat([relax.ref[None], relax.frames]).double()
     res = sts.track(series, config=sts.DICConfig(m=2), progress=False)
     assert res.info["series_reference"]["classical_points"] == 0
+
+
+def test_no_loss_of_accuracy_where_the_time_model_fails_below_the_check():
+    """A vibration of 0.03 px (period 4 frames, phase varying over the specimen): the
+    windows miss a line by a few standard deviations, which the model check allows, so
+    without the pooled bias test they would stay and carry that bias (1.44x and 1.47x
+    classical DIC's error, seeds 1 and 2, on the code before it). The pooled test puts
+    every point classical here: STS with defaults equals classical DIC (measured 1.000x,
+    both seeds)."""
+    def weak(x, y, t):
+        ph = (x + y) / 15.0
+        a = 0.03 * (torch.sin(2 * np.pi * t / 4.0 + ph) - torch.sin(ph))
+        return a, -0.5 * a
+    mot = synth.Custom(weak)
+    mv = synth.synthetic_movie((161, 161), 20, mot, noise_sigma=2.0, seed=1)
+    series = torch.cat([mv.ref[None], mv.frames]).double()
+    times = torch.cat([torch.zeros(1, dtype=torch.float64), mv.times])
+    errs = []
+    for m in (0, 2):
+        res = sts.track(series, config=sts.DICConfig(m=m), progress=False)
+        gt = synth.ground_truth(mot, res.points.double(), times)
+        e = torch.stack([res.u.double()[1:] - gt["u"][1:], res.v.double()[1:] - gt["v"][1:]])
+        errs.append(float(e[torch.isfinite(e)].pow(2).mean().sqrt()))
+    assert errs[1] <= 1.03 * errs[0], errs
 
 
 def test_long_movies_sample_runs_of_adjacent_frames():

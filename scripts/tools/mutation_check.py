@@ -180,6 +180,17 @@ MUTATIONS: tuple[Mutation, ...] = (
         "return {nm: f[nm][0 : last + 1 - first] for nm in (fields or self.fields)}",
         ("test_series.py", "test_io.py", "test_faults.py"),
         "a resumed run replays the file's first rows instead of the finished block's"),
+    Mutation(
+        "time-model-bias-ignored", "reference", "torch_stsdic/movie/series_reference.py",
+        "biased = excess[nb].sum(1) > gain[nb].sum(1)",
+        "biased = torch.zeros_like(gain, dtype=torch.bool)",
+        ("test_series_reference.py",),
+        "windows that pass the model check with a bias are kept where the time model fails"),
+    Mutation(
+        "classical-points-solved-by-windows", "reference", "torch_stsdic/movie/block.py",
+        "_classical_again(blk, run.classical_points.to(dev).repeat(b))", "None",
+        ("test_series_reference.py",),
+        "rows at points decided classical keep the window a rescue or FFT start gave them"),
 )
 
 

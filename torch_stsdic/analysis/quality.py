@@ -52,7 +52,8 @@ __all__ = [
     "MODEL_Z", "MODEL_TOL", "RESIDUAL_Z", "RESIDUAL_ZNCC", "FIT_RATIO", "FIT_ZNCC_GOOD",
     "FIT_GROWTH",
     "MEDIAN_THRESHOLD", "MEDIAN_EPS_STD", "MEDIAN_EPS_MIN", "MEDIAN_SCATTER", "MEDIAN_ROUNDS",
-    "LINE_Z", "difference_std", "model_mismatch", "line_mismatch", "residual_mismatch", "poor_fit",
+    "LINE_Z", "difference_std", "model_mismatch", "line_offset", "line_mismatch",
+    "residual_mismatch", "poor_fit",
     "neighbours", "carried_neighbours", "median_test", "nanmedian_rows",
 ]
 
@@ -111,15 +112,41 @@ def model_mismatch(d_sts: Tensor, d_cls: Tensor, std_sts: Tensor, std_cls: Tenso
     return ~(z <= MODEL_Z).all(1)  # NaN differences fail
 
 
+def line_offset(disp: Tensor, dt: Tensor) -> tuple[Tensor, Tensor]:
+    """The least-squares line through a window's classical displacements, evaluated at the
+    target (dt = 0), minus the target's own displacement: to within its noise, how far the
+    window's solution (affine in time) lands from the classical one.
+
+    Args:
+        disp: (R, T, 2) classical (u, v) at the window's frames, px.
+        dt: (R, T) the frames' times minus the target's (the target's own frame: the one
+            nearest 0).
+
+    Returns:
+        (R, 2) the offset px; (R, 1) ``sum_k c_k^2``, the offset's noise variance over one
+        frame's (``c``: the offset's weights of the frames, which sum to 0: a displacement
+        error every frame shares, the reference image's, cancels).
+    """
+    d, t = disp.double(), dt.double()
+    n = t.shape[1]
+    tm = t.mean(1, keepdim=True)
+    sxx = ((t - tm) ** 2).sum(1, keepdim=True)
+    a = 1.0 / n - tm * (t - tm) / sxx.clamp(min=1e-12)  # (R, T) weights of the line at 0
+    at = t.abs().argmin(1, keepdim=True)  # the target's own frame in the window
+    c = a - torch.zeros_like(a).scatter_(1, at, 1.0)
+    return (c.unsqueeze(-1) * d).sum(1), (c * c).sum(1, keepdim=True)
+
+
 def line_mismatch(disp: Tensor, dt: Tensor, own: Tensor, std_cls: Tensor) -> Tensor:
     """(R,) bool: a window whose frames' classical displacements are this far off a line
     cannot pass the model check (:func:`model_mismatch`), so it need not be solved.
 
     The window's displacement at the target is, to within its noise, the least-squares line
-    through its frames' displacements evaluated at dt = 0. Where that line misses the
-    classical displacement ``own`` by more than the check's limit (``MODEL_Z`` standard
-    deviations of the difference, the window's variance taken as the classical one over T)
-    plus ``LINE_Z`` standard deviations of the prediction's own noise, the window fails.
+    through its frames' displacements evaluated at dt = 0 (:func:`line_offset`). Where that
+    line misses the classical displacement ``own`` by more than the check's limit
+    (``MODEL_Z`` standard deviations of the difference, the window's variance taken as the
+    classical one over T) plus ``LINE_Z`` standard deviations of the prediction's own noise,
+    the window fails.
 
     Args:
         disp: (R, T, 2) classical (u, v) at the window's frames, px, any known motion the
@@ -128,18 +155,14 @@ def line_mismatch(disp: Tensor, dt: Tensor, own: Tensor, std_cls: Tensor) -> Ten
         own: (R, 2) the classical (u, v) at the target.
         std_cls: (R, 2) its predicted standard deviation, px (taken for every frame).
     """
-    d, t = disp.double(), dt.double()
-    n = t.shape[1]
-    tm = t.mean(1, keepdim=True)
-    sxx = ((t - tm) ** 2).sum(1, keepdim=True)
-    a = 1.0 / n - tm * (t - tm) / sxx.clamp(min=1e-12)  # (R, T) weights of the line at 0
-    line0 = (a.unsqueeze(-1) * d).sum(1)  # (R, 2)
-    at = t.abs().argmin(1, keepdim=True)  # the target's own frame in the window
-    c = a - torch.zeros_like(a).scatter_(1, at, 1.0)  # line0 - own, as weights of the frames
+    n = dt.shape[1]
+    at = dt.abs().argmin(1)
+    off, csq = line_offset(disp, dt)  # the line at 0 minus the target frame's displacement
+    off = off + disp.double()[torch.arange(disp.shape[0]), at] - own.double()
     vc = torch.nan_to_num(std_cls.double(), nan=float("inf")) ** 2
-    sd_pred = (vc * (c * c).sum(1, keepdim=True)).sqrt()
+    sd_pred = (vc * csq).sqrt()
     sd_diff = (torch.maximum(vc * (1.0 - 1.0 / n), 0.2 * vc) + MODEL_TOL**2).sqrt()
-    off = (line0 - own.double()).abs()
+    off = off.abs()
     return ((off > MODEL_Z * sd_diff + LINE_Z * sd_pred) & torch.isfinite(off)).any(1)
 
 

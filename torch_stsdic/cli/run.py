@@ -640,7 +640,8 @@ def _print_summary(res: Any, args: argparse.Namespace, elapsed: float, ref: str,
                            if added else ""))
         if sref.get("classical_points"):
             print(f"time model: {sref['classical_points']} of {n_p} points solved classically "
-                  "(their windows missed a line in the template's frames: no velocity there)")
+                  "(in the template's frames their windows missed a line, or bent it by more "
+                  "than the window saves: no velocity there)")
     solved = n_f - kept
     if args.resume:
         print(f"resumed: {kept} of {n_f} frames were finished in the file and kept, "

@@ -4,6 +4,7 @@ predicted std per POI) and the classical steps a solve may report beside it
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import torch
@@ -77,6 +78,19 @@ class WindowSolution:
 
     def __len__(self) -> int:
         return self.points.shape[0]
+
+    def rows(self, idx: torch.Tensor) -> WindowSolution:
+        """The solution of rows ``idx`` ((R,) long or (N,) bool): every per-row tensor,
+        ``info``'s included, taken at those rows."""
+        n = len(self)
+
+        def take(a):
+            return a[idx] if isinstance(a, torch.Tensor) and a.ndim and a.shape[0] == n else a
+        return dataclasses.replace(
+            self, points=self.points[idx], params=self.params[idx], zncc=self.zncc[idx],
+            status=self.status[idx], iterations=self.iterations[idx], time=take(self.time),
+            std=take(self.std), sigma=take(self.sigma),
+            info={k: take(v) for k, v in self.info.items()})
 
 
 #: info keys of a classical step's columns (gauss_newton.classical_step_columns)

@@ -484,6 +484,21 @@ def _only_identity(run: BlockContext, ref: Reference, carry: Carry) -> bool:
             and carry.vel_known is not None and not bool(carry.vel_known.any()))
 
 
+def _classical_again(blk: Block, classical: torch.Tensor) -> None:
+    """Rows at points solved classically (``classical``: (B*N,) bool) that a window solved
+    all the same (no carried start: the first block's FFT, a rescue) are solved again with
+    the target frame alone, from that solution; kept where the classical solve is usable."""
+    again = torch.nonzero(classical & (blk.m_used > 0) & (blk.status <= USABLE)).flatten()
+    if not again.numel():
+        return
+    sol = blk.solve(again, blk.params[again], m=0)
+    good = torch.nonzero(sol.status <= USABLE).flatten()
+    if good.numel():
+        blk.keep(again[good], sol.rows(good), only_better=False, m=0)
+        blk.run.stats["classical_again_rows"] = blk.run.stats.get(
+            "classical_again_rows", 0) + int(good.numel())
+
+
 def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry | None):
     """Solve all POIs of target frames ``ks`` (B,) in one batched solve, then rescue lost
     rows (from the previous target of the block, their neighbours, then by FFT
@@ -544,6 +559,8 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
     if shorter is not None:
         carried = carried | shorter
     from_prev, by_fft, redone = blk.rescue(carry, carried)
+    if run.classical_points is not None and run.m > 0:
+        _classical_again(blk, run.classical_points.to(dev).repeat(b))
     run.stats["rescued_rows"] = run.stats.get("rescued_rows", 0) + from_prev
     run.stats["fft_rows"] += by_fft
     run.stats["redone_rows"] += redone
