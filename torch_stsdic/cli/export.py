@@ -30,6 +30,14 @@ strains dimensionless; px without a scale). Every field of the file is written.
                 and the time series <stem>.pvd (open this one).
   --format mat  MATLAB: <stem>.mat with (frames, points) arrays u, v, ut, vt, ..., and x, y,
                 frames, times, completed, unit, scale, time_unit, units, status_codes.
+
+A stereo result file ('stsdic stereo', recognised from its content) is written the same way,
+in mm: CSV columns x, y (left reference px), X, Y, Z, U, V, W (mm), Ut, Vt, Wt (mm per
+time unit), their _std, reprojection_error (px), status; VTK points at their 3D position of
+the frame (a point not usable there at its reference position X0 with NaN fields; points
+never triangulated left out), point data every field and the vectors displacement (U, V,
+W), velocity (Ut, Vt, Wt) and reference_position (X0); MATLAB (frames, points) arrays and
+x, y, X0, X0_std, right_points, frames, times, units, status_codes, calibration (JSON).
 """
 
 EPILOG = """\
@@ -39,6 +47,7 @@ examples:
   stsdic export result.h5 --out 'csv/f{frame:04d}.csv' --frames -1
   stsdic export result.h5 --format vtk --out vtk/        # then open vtk/result.pvd
   stsdic export result.h5 --format mat --out mat/        # load('mat/result.mat')
+  stsdic export 3d.h5 --format vtk --out vtk/            # a 'stsdic stereo' file: 3D points
 """
 
 
@@ -46,7 +55,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     """The options of ``stsdic export``."""
     from torch_stsdic.analysis.export import FORMATS
 
-    options.add_result(p)
+    p.add_argument("result", metavar="RESULT.h5",
+                   help="result file written by 'stsdic run' or 'stsdic stereo'")
     p.add_argument(
         "--out", "-o", required=True, metavar="DIR",
         help="output directory, created if missing (csv: or a {frame} pattern)",
@@ -65,9 +75,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     ex.add_argument("--no-comment", action="store_true", help=argparse.SUPPRESS)  # the default
 
 
-def _read_frames(path: str) -> np.ndarray:
-    """The image frame numbers a result file holds (CommandError if it is no result file)."""
+def _read_frames(path: str) -> tuple[np.ndarray, bool]:
+    """The image frame numbers a result file holds, and whether it is a stereo result
+    (CommandError if it is no result file)."""
     import h5py
+
+    from torch_stsdic.stereo.result import is_stereo_file
 
     p = Path(path)
     if not p.exists():
@@ -76,7 +89,7 @@ def _read_frames(path: str) -> np.ndarray:
         with h5py.File(p, "r", locking=False) as f:
             if "frames" not in f:
                 raise CommandError(f"{path} is not a torch_stsdic result file")
-            return f["frames"][()]
+            return f["frames"][()], is_stereo_file(f)
     except OSError as exc:
         raise CommandError(f"{path} is not a readable HDF5 result file: {exc}") from exc
 
@@ -100,11 +113,13 @@ def _select_frames(spec: str, frames: np.ndarray, path: str) -> list[int]:
 
 
 def execute(args: argparse.Namespace) -> int:
-    """``stsdic export``: CSV per frame, VTK per frame + .pvd, or one .mat."""
+    """``stsdic export``: CSV per frame, VTK per frame + .pvd, or one .mat (2-D or stereo
+    result files)."""
     from torch_stsdic.analysis.export import export_results
+    from torch_stsdic.stereo.export import export_stereo
 
     frames = None
-    stored = _read_frames(args.result)
+    stored, stereo = _read_frames(args.result)
     if args.frames is not None:
         frames = _select_frames(args.frames, stored, args.result)
     if args.format != "csv" and "{" in args.out:
@@ -114,7 +129,8 @@ def execute(args: argparse.Namespace) -> int:
     check_folder(folder, f"--out {args.out}")
     kw = {"comment": args.comment} if args.format == "csv" else {}
     try:
-        written = export_results(args.result, args.out, args.format, frames, **kw)
+        export = export_stereo if stereo else export_results
+        written = export(args.result, args.out, args.format, frames, **kw)
     except OSError as exc:  # a full disk: the file named, none left half-written
         done = getattr(exc, "written", None)
         kept = (f"; the {len(done)} file(s) finished before it are whole ({done[0].name} ..)"
@@ -125,7 +141,7 @@ def execute(args: argparse.Namespace) -> int:
         print(f"no finished frame in {args.result}: nothing written")
         return 0
     where = Path(written[0]).parent
-    _say_units(args.result)
+    (_say_stereo_units if stereo else _say_units)(args.result)
     what = {"csv": "CSV", "vtk": "VTK"}.get(args.format)
     if what:
         extra = f"; open {written[-1].name} in ParaView" if args.format == "vtk" else ""
@@ -146,3 +162,14 @@ def _say_units(path: str) -> None:
     scale = f" ({u.scale:g} {u.unit}/px)" if u.scale is not None else " (no --scale in the run)"
     print(f"units: lengths in {u.unit}{scale}, velocities in {u.unit}/{u.time_unit}, "
           "strains dimensionless")
+
+
+def _say_stereo_units(path: str) -> None:
+    """One line: the units of a stereo export."""
+    from torch_stsdic.stereo.export import time_unit
+    from torch_stsdic.stereo.result import open_stereo
+
+    with open_stereo(path) as f:
+        tu = time_unit(f)
+    print(f"units: X, Y, Z, U, V, W in mm (left camera frame), velocities in mm/{tu}, "
+          "reprojection error in px, x, y in left reference px")

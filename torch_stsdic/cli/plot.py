@@ -39,6 +39,17 @@ the sequential one on their range). Unusable points (status not converged/max-it
 ZNCC below --min-zncc) are not drawn: the image shows through. A file whose run has not
 finished (stopped, killed, a full disk) says so in every figure's title and in the
 summary; its 'last' frame is the last finished one other than the reference.
+
+A stereo result file ('stsdic stereo', recognised from its content) gives, in mm:
+  fields_frameNNNNN.png    maps of W (out-of-plane), U, V (or --fields) on the left
+                           reference points
+  shape_frameNNNNN.png     the 3D points (X, Y, Z) at that frame coloured by W, equal axes
+  quality_frameNNNNN.png   status of every point and its reprojection error (px)
+  history_mean.png         mean U, V, W over the usable points with how many points each
+                           mean rests on (left out as above); history_xX_yY.png with --point
+  velocity_history_*.png   the same for Ut, Vt, Wt (m >= 1)
+Usable: status converged / max-iter; --image draws the left reference under the maps;
+--animate and --min-zncc are for 2-D result files.
 """
 
 EPILOG = """\
@@ -47,6 +58,7 @@ examples:
   stsdic plot result.h5 --frame 5 --fields u,exx --out plots/
   stsdic plot result.h5 --point 150 150 --image movie.tif --out plots/
   stsdic plot result.h5 --animate v --out plots/            # plots/v_movie.gif
+  stsdic plot 3d.h5 --out plots/                            # a 'stsdic stereo' file
 """
 
 #: (fields, quantity, file name prefix) of the time-history figures
@@ -56,11 +68,23 @@ HISTORIES = (
     (("exx", "eyy", "exy"), "strain", "strain_history"),
 )
 
+#: the time-history figures of a stereo result file
+STEREO_HISTORIES = (
+    (("U", "V", "W"), "displacement", "history"),
+    (("Ut", "Vt", "Wt"), "velocity", "velocity_history"),
+)
+
+#: the fields mapped by default for a stereo result file
+STEREO_MAPS = ("W", "U", "V")
+
+#: default of --min-zncc (a stereo file has no ZNCC: any other value is refused there)
+MIN_ZNCC = 0.8
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The options of ``stsdic plot``."""
-    options.add_result(p)
+    p.add_argument("result", metavar="RESULT.h5",
+                   help="result file written by 'stsdic run' or 'stsdic stereo'")
     p.add_argument("--out", "-o", required=True, metavar="DIR",
                    help="output directory, created if missing")
     opt = options.add_option
@@ -68,11 +92,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="image frame number of the maps, or 'last' finished frame")  # fmt: skip
     opt(p, "--fields", default=None, metavar="LIST",
         help="comma-separated fields to map, e.g. u,v,exx,eyy,exy,ut,vt,zncc,status",
-        shown="u,v,exx,eyy,exy, those in the file")  # fmt: skip
+        shown="u,v,exx,eyy,exy, those in the file; stereo: W,U,V")  # fmt: skip
     opt(p, "--image", default=None, metavar="INPUT", help="image series for the background",
         shown="the inputs recorded in the file, if they still exist")  # fmt: skip
     opt(p, "--image-frame", default=None, metavar="N", help="frame of the background series",
-        shown="the run's reference frame")  # fmt: skip
+        shown="the run's reference frame; stereo: 0")  # fmt: skip
     p.add_argument("--no-image", action="store_true", help="no background image")
     ex = p.add_mutually_exclusive_group()
     ex.add_argument(
@@ -95,7 +119,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     opt(p, "--animate-format", choices=("gif", "mp4"), default="gif",
         help="mp4 needs ffmpeg (else a GIF is written)")  # fmt: skip
     opt(p, "--fps", type=options.float_pos, default=4.0, help="frames per second of --animate")
-    opt(p, "--min-zncc", type=float, default=0.8, metavar="Z",
+    opt(p, "--min-zncc", type=float, default=MIN_ZNCC, metavar="Z",
         help="hide points whose ZNCC is below Z in the maps, e.g. holes, edges, background",
         shown="%(default)s; -1 shows every converged point")  # fmt: skip
 
@@ -135,10 +159,12 @@ def _row(args: argparse.Namespace, res: Any) -> int:
     return int(hits[0])
 
 
-def _field_names(args: argparse.Namespace, res: Any) -> list[str]:
-    """The fields to map: ``--fields``, checked against the file, or the default ones."""
+def _field_names(args: argparse.Namespace, res: Any,
+                 default: tuple[str, ...] = ("u", "v", "exx", "eyy", "exy")) -> list[str]:
+    """The fields to map: ``--fields``, checked against the file, or the ``default`` ones
+    the file has."""
     if args.fields is None:
-        return [f for f in ("u", "v", "exx", "eyy", "exy") if f in res.fields]
+        return [f for f in default if f in res.fields]
     names = [s.strip() for s in args.fields.split(",") if s.strip()]
     bad = [s for s in names if s not in res.fields]
     if bad or not names:
@@ -311,21 +337,29 @@ def _history_pick(args: argparse.Namespace, res: Any, valid: np.ndarray
     return point, f"point {k} at ({px:g}, {py:g})", f"x{px:g}_y{py:g}"
 
 
-def _plot_histories(args: argparse.Namespace, res: Any, valid: np.ndarray, out: Path
-                    ) -> tuple[list[Path], list[str]]:
-    """The time-history PNGs that have data, their paths, and what the summary says of the
-    frames left out of the means."""
+def _plot_histories(args: argparse.Namespace, res: Any, valid: np.ndarray, out: Path,
+                    groups: tuple[tuple[tuple[str, ...], str, str], ...] = HISTORIES, *,
+                    convert: Callable[[str, np.ndarray], np.ndarray] | None = None,
+                    label: Callable[[str, str], str] | None = None,
+                    time_label: str | None = None) -> tuple[list[Path], list[str]]:
+    """The time-history PNGs (``groups``: (fields, quantity, file prefix)) that have data,
+    their paths, and what the summary says of the frames left out of the means. ``convert``
+    (name, values) -> values in the figure's unit, ``label`` (name, quantity) -> axis label
+    and ``time_label``: by default those of the file's calibration (``res.units``)."""
     from torch_stsdic.plot import plot_history
 
+    if convert is None or label is None or time_label is None:
+        units = res.units
+        convert, label, time_label = units.convert, units.label, units.time_label
     pick, what, tag = _history_pick(args, res, valid)
     done = res.completed.astype(bool)
-    units, need = res.units, min_points(res.n_points)
+    need = min_points(res.n_points)
     name, note = Path(args.result).name, incomplete(res)
     written, lines = [], []
-    for keys, quantity, prefix in HISTORIES:
+    for keys, quantity, prefix in groups:
         curves, counts = {}, None
         for key in (k for k in keys if k in res.fields):
-            vals, n = pick(units.convert(key, res.fields[key]))
+            vals, n = pick(convert(key, res.fields[key]))
             if np.isfinite(vals[done]).any():
                 curves[key] = np.where(done, vals, np.nan)
                 counts = n if counts is None else np.minimum(counts, n)
@@ -341,8 +375,8 @@ def _plot_histories(args: argparse.Namespace, res: Any, valid: np.ndarray, out: 
             if gone:
                 lines.append(f"{path.name}: frame(s) {span(gone)} left out, the mean there "
                              f"resting on fewer than {need} of {res.n_points} points")
-        plot_history(res.times, curves, ylabel=units.label(next(iter(curves)), quantity),
-                     xlabel=units.time_label, title=title, path=path, dpi=args.dpi, **kw)
+        plot_history(res.times, curves, ylabel=label(next(iter(curves)), quantity),
+                     xlabel=time_label, title=title, path=path, dpi=args.dpi, **kw)
         written.append(path)
     return written, lines
 
@@ -487,6 +521,8 @@ def execute(args: argparse.Namespace) -> int:
     p = Path(args.result)
     if not p.exists():
         raise CommandError(f"result file not found: {args.result}")
+    if _is_stereo(p):
+        return _execute_stereo(args, p)
     res = read_results(p)
     if res.n_frames == 0 or res.n_points == 0:
         raise CommandError(f"{args.result}: the result file holds no frame or no point")
@@ -516,3 +552,183 @@ def execute(args: argparse.Namespace) -> int:
     for line in lines:
         print(line)
     return 0
+
+
+# ----------------------------------------------------------------------------------------
+# stereo result files ('stsdic stereo')
+# ----------------------------------------------------------------------------------------
+
+
+def _is_stereo(path: Path) -> bool:
+    """Whether ``path`` is a stereo result file (False for anything else: the 2-D reader
+    then says what it is)."""
+    import h5py
+
+    from torch_stsdic.stereo.result import is_stereo_file
+
+    try:
+        with h5py.File(path, "r", locking=False) as f:
+            return is_stereo_file(f)
+    except OSError:
+        return False
+
+
+class _Stereo:
+    """A stereo result file, shaped as the 2-D figures read a file: ``points`` (N, 2) left
+    reference px, ``frames``, ``times`` (F,), ``fields`` name -> (F, N) (mm, mm per time
+    unit, px, status), every row finished, no reference frame recorded (row 0 is taken)."""
+
+    def __init__(self, path: Path) -> None:
+        from torch_stsdic.stereo.export import COLUMNS, stereo_units, time_unit
+        from torch_stsdic.stereo.result import open_stereo
+
+        with open_stereo(path) as f:
+            self.points = f["points"][()]
+            self.frames = f["frames"][()]
+            self.times = f["times"][()]
+            names = [c for c in COLUMNS if c not in ("x", "y") and c in f]
+            self.fields = {nm: f[nm][()] for nm in names}
+            self.unit = stereo_units(f, names)
+            self.time_unit = time_unit(f)
+        self.path = path
+        self.completed = np.ones(len(self.frames), dtype=bool)
+        self.config: dict[str, Any] = {}
+        self.inputs: list[str] = []
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.frames)
+
+    @property
+    def n_points(self) -> int:
+        return len(self.points)
+
+    def label(self, name: str, quantity: str | None = None) -> str:
+        """'W (mm)', 'displacement (mm)', 'status'."""
+        u = self.unit.get(name, "")
+        return f"{quantity or name} ({u})" if u else (quantity or name)
+
+    def when(self, row: int) -> str:
+        """'frame 7', or 'frame 7 (t = 0.35)' when the times are not frame numbers."""
+        text = f"frame {int(self.frames[row])}"
+        return text if self.time_unit == "frame" else f"{text} (t = {self.times[row]:g})"
+
+
+def _execute_stereo(args: argparse.Namespace, path: Path) -> int:
+    """``stsdic plot`` of a stereo result file: U, V, W maps, the 3D shape and the status at
+    one frame, mean (or --point) histories of U, V, W and Ut, Vt, Wt."""
+    from torch_stsdic.core.status import usable
+
+    if args.animate is not None:
+        raise UsageError(f"--animate {args.animate}: for 2-D result files ('stsdic run'); "
+                         f"{args.result} is a stereo result ('stsdic stereo')")
+    if args.min_zncc != MIN_ZNCC:
+        raise UsageError(f"--min-zncc: {args.result} is a stereo result, which has no ZNCC "
+                         "(points are shown where their status is converged or max-iter)")
+    res = _Stereo(path)
+    if res.n_frames == 0 or res.n_points == 0:
+        raise CommandError(f"{args.result}: the result file holds no frame or no point")
+    row = _row(args, res)
+    names = _field_names(args, res, STEREO_MAPS)
+    out = Path(args.out)
+    check_folder(out, f"--out {args.out}")
+    if args.point is not None:
+        _nearest_point(args, res)
+    pos = np.stack([res.fields[k] for k in ("X", "Y", "Z")], -1)
+    valid = usable(res.fields["status"]) & np.isfinite(pos).all(-1)
+    image = _background(args, res)
+    out.mkdir(parents=True, exist_ok=True)
+    written = _plot_stereo_frame(args, res, row, names, valid, image, out)
+    written.append(_plot_stereo_shape(args, res, row, valid, out))
+    paths, lines = _plot_histories(
+        args, res, valid, out, STEREO_HISTORIES, convert=lambda _k, a: np.asarray(a),
+        label=res.label, time_label=f"time ({res.time_unit})")
+    for p in written + paths:
+        print(f"wrote {p}")
+    for line in lines:
+        print(line)
+    return 0
+
+
+def _plot_stereo_frame(args: argparse.Namespace, res: _Stereo, row: int, names: list[str],
+                       valid: np.ndarray, image: np.ndarray | None, out: Path) -> list[Path]:
+    """The field maps and the quality map (status, reprojection error) of one row."""
+    from matplotlib.figure import Figure
+
+    from torch_stsdic.plot import (
+        panel_extent,
+        panel_layout,
+        plot_field,
+        plot_fields,
+        plot_status,
+        save_figure,
+    )
+
+    frame, name, when = int(res.frames[row]), Path(args.result).name, res.when(row)
+    maps, notes = {}, {}
+    for nm in names:
+        vals = np.asarray(res.fields[nm][row], dtype=np.float64)
+        maps[nm] = vals if nm == "status" else np.where(valid[row], vals, np.nan)
+        if nm != "status" and not np.isfinite(maps[nm]).any():
+            notes[nm] = ("no value at any usable point" + (": classical DIC (--m 0) has no "
+                         "velocity" if nm.removesuffix("_std") in ("Ut", "Vt", "Wt") else ""))
+    written = []
+    if maps:
+        path = out / f"fields_frame{frame:05d}.png"
+        plot_fields(image, res.points, maps, path, dpi=args.dpi,
+                    labels={nm: res.label(nm) for nm in maps}, notes=notes,
+                    suptitle=f"{name}: {when}, on the left reference points (mm; axes in "
+                    "px); unusable points not drawn")
+        written.append(path)
+    w, h = panel_extent(image, res.points)
+    _, _, (fw, fh) = panel_layout(2, w / h, 2, height=4.2 if w <= h else 3.2)
+    fig = Figure(figsize=(fw + 1.3, fh), layout="constrained")  # + the status names
+    axes = fig.subplots(1, 2, squeeze=False).ravel()
+    plot_status(image, res.points, res.fields["status"][row], ax=axes[0],
+                title="status (usable: converged, max_iter)")
+    err = np.asarray(res.fields["reprojection_error"][row], dtype=np.float64)
+    plot_field(image, res.points, err, ax=axes[1], title="reprojection error",
+               label=res.label("reprojection_error", "reprojection error"))
+    fig.suptitle(f"{name}: quality at {when}")
+    path = out / f"quality_frame{frame:05d}.png"
+    save_figure(fig, path, dpi=args.dpi)
+    written.append(path)
+    return written
+
+
+def _plot_stereo_shape(args: argparse.Namespace, res: _Stereo, row: int, valid: np.ndarray,
+                       out: Path) -> Path:
+    """``shape_frameNNNNN.png``: the usable points at their 3D position (X, Y, Z mm, left
+    camera frame, Y down) of one row, coloured by W, on equal axes."""
+    from matplotlib.figure import Figure
+    from matplotlib.ticker import MaxNLocator
+
+    from torch_stsdic.plot import _norm, save_figure
+
+    frame = int(res.frames[row])
+    ok = valid[row]
+    xyz = np.stack([res.fields[k][row][ok] for k in ("X", "Y", "Z")], -1)
+    w = np.asarray(res.fields["W"][row][ok], dtype=np.float64)
+    fig = Figure(figsize=(7.0, 5.6), layout="constrained")
+    ax = fig.add_subplot(projection="3d")
+    if len(xyz):
+        sc = ax.scatter(xyz[:, 0], xyz[:, 2], xyz[:, 1], c=w, cmap="viridis",
+                        norm=_norm(w, None, None, False), s=18, depthshade=False)
+        fig.colorbar(sc, ax=ax, shrink=0.6, pad=0.06, label=res.label("W"))
+        ax.set_aspect("equal")
+        ax.invert_zaxis()  # Y points down
+    else:
+        ax.text2D(0.5, 0.5, "no usable point at this frame", transform=ax.transAxes,
+                  ha="center")
+    for axis, n in ((ax.xaxis, 4), (ax.yaxis, 3), (ax.zaxis, 4)):  # Z (depth) is short
+        axis.set_major_locator(MaxNLocator(n))
+    ax.set_xlabel(res.label("X"))
+    ax.set_ylabel(res.label("Z"), labelpad=8)
+    ax.set_zlabel(res.label("Y"))
+    ax.view_init(elev=25, azim=-50)
+    ax.set_title(f"{Path(args.result).name}: 3D points at {res.when(row)}\n"
+                 f"{int(ok.sum())} of {res.n_points} usable, coloured by W; left camera "
+                 "frame, equal axes", fontsize=10)
+    path = out / f"shape_frame{frame:05d}.png"
+    save_figure(fig, path, dpi=args.dpi)
+    return path

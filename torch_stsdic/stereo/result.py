@@ -3,14 +3,23 @@
 from __future__ import annotations
 
 import json
+import os
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["StereoResult", "best_fit_plane", "FIELDS"]
+__all__ = ["StereoResult", "best_fit_plane", "FIELDS", "STEREO_FORMAT", "is_stereo_file",
+           "open_stereo"]
+
+#: the ``format`` attribute of a stereo result file (files written before it existed are
+#: recognised by their ``kind`` attribute or their datasets W and X0: :func:`is_stereo_file`)
+STEREO_FORMAT = "torch_stsdic-stereo-results"
+STEREO_FORMAT_VERSION = 1
+_KIND = "torch_stsdic stereo result"
 
 #: the (F, N) fields of a result and their units
 FIELDS = {"X": "mm", "Y": "mm", "Z": "mm", "U": "mm", "V": "mm", "W": "mm",
@@ -84,10 +93,17 @@ class StereoResult:
     def to_hdf5(self, path, overwrite: bool = False) -> None:
         """Write ``points`` (N, 2), ``right_points``, ``frames``, ``times``, X, Y, Z, U, V, W,
         Ut, Vt, Wt, their ``*_std``, ``reprojection_error``, ``status`` (F, N), ``X0``
-        (N, 3) with ``units`` attributes, and the calibration summary (JSON attribute)."""
+        (N, 3) with ``units`` attributes, and the calibration summary (JSON attribute); root
+        attributes ``format`` (:data:`STEREO_FORMAT`), ``version``, ``software_version``."""
         import h5py
+
+        from torch_stsdic.io.run_record import software_version
+
         with h5py.File(path, "w" if overwrite else "w-") as f:
-            f.attrs["kind"] = "torch_stsdic stereo result"
+            f.attrs["format"] = STEREO_FORMAT
+            f.attrs["version"] = STEREO_FORMAT_VERSION
+            f.attrs["software_version"] = software_version()
+            f.attrs["kind"] = _KIND
             f.attrs["frame"] = "left camera: X right, Y down, Z along the optical axis"
             f.attrs["calibration"] = json.dumps(self.calibration, default=str)
             f.attrs["info"] = json.dumps(self.info, default=str)
@@ -110,6 +126,53 @@ class StereoResult:
             d = f.create_dataset("status", data=self.status.cpu().numpy().astype(np.int8))
             d.attrs["codes"] = "0 converged, 1 max_iter, 2 diverged, 3 outside, 4 low texture, " \
                 "5 not computed, 6 poor fit, 7 inconsistent"
+
+    @classmethod
+    def from_hdf5(cls, path: str | os.PathLike[str]) -> StereoResult:
+        """Read a file written by :meth:`to_hdf5` (tensors float64 on the CPU, status int8;
+        ``left``, ``right``, ``cross`` are not stored: None). ValueError (one line) for a
+        file that is no stereo result, FileNotFoundError for a missing one."""
+        with open_stereo(path) as f:
+            t = {k: torch.as_tensor(f[k][()]) for k in
+                 ("points", "right_points", "frames", "times", "X0", "X0_std", *FIELDS)}
+            std = {k: torch.as_tensor(f[f"{k}_std"][()]) for k in FIELDS if f"{k}_std" in f}
+            status = torch.as_tensor(f["status"][()].astype(np.int8))
+            cal = json.loads(f.attrs.get("calibration", "{}"))
+            info = json.loads(f.attrs.get("info", "{}"))
+        return cls(**t, std=std, status=status, calibration=cal, info=info)
+
+
+def is_stereo_file(f: Any) -> bool:
+    """Whether the open HDF5 file ``f`` is a stereo result: its ``format`` attribute, else
+    (files written before it) its ``kind`` attribute or the datasets W and X0."""
+    return (f.attrs.get("format") == STEREO_FORMAT or f.attrs.get("kind") == _KIND
+            or ("W" in f and "X0" in f))
+
+
+def open_stereo(path: str | os.PathLike[str]) -> Any:
+    """Open a stereo result file read-only (an ``h5py.File``). One-line errors:
+    FileNotFoundError for a missing file, ValueError for one that is not HDF5, a 2-D result
+    ('stsdic run') or another file."""
+    import h5py
+
+    from torch_stsdic.io.results import RESULTS_FORMAT
+
+    p = Path(path)
+    if not p.exists():
+        raise FileNotFoundError(f"result file not found: {p}")
+    try:
+        f = h5py.File(p, "r", locking=False)
+    except OSError as exc:
+        raise ValueError(f"{p} is not a readable HDF5 result file: {exc}") from None
+    if is_stereo_file(f):
+        return f
+    two_d = f.attrs.get("format") == RESULTS_FORMAT
+    f.close()
+    if two_d:
+        raise ValueError(f"{p} is a 2-D result file ('stsdic run'), not a stereo result "
+                         "('stsdic stereo'): it has no X, Y, Z, U, V, W")
+    raise ValueError(f"{p} is not a torch_stsdic stereo result file (written by 'stsdic "
+                     "stereo')")
 
 
 def best_fit_plane(points: Tensor, valid: Tensor | None = None) -> tuple[Tensor, Tensor]:

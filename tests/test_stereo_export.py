@@ -1,0 +1,254 @@
+"""Stereo result files out of the file: ``stsdic export --format csv|vtk|mat`` and ``stsdic
+plot`` on a file written by ``stsdic stereo`` (a tiny rendered movie: 6 frames, step 20),
+read back and compared number by number with the HDF5 datasets; the one-line errors."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+import tifffile
+import torch
+
+import torch_stsdic.plot as plot_module
+from torch_stsdic.cli import main
+from torch_stsdic.core.status import Status
+from torch_stsdic.io.results import ResultWriter
+from torch_stsdic.stereo.export import COLUMNS, export_stereo
+from torch_stsdic.stereo.render import SurfaceMotion, make_rig, make_scene, render_stereo
+from torch_stsdic.stereo.result import STEREO_FORMAT, StereoResult, is_stereo_file
+
+MOTION = SurfaceMotion(translation=(0.004, -0.003, 0.01), exx=2e-4, eyy=-1e-4, bulge=0.004,
+                       bulge_radius=6.0)
+#: points made unusable (POOR_FIT) at frame BAD_FRAME in the "holes" copy
+BAD_FRAME = 3
+
+
+@pytest.fixture(scope="module")
+def stereo_h5(tmp_path_factory) -> Path:
+    """``stsdic stereo --m 1 --step 20`` on a 6-frame render (48 points, 12 never matched)."""
+    d = tmp_path_factory.mktemp("stereo")
+    rig = make_rig((140, 180))
+    scene = make_scene(rig, MOTION, seed=0, max_time=6)
+    left, right = render_stereo(scene, np.arange(6.0), noise_sigma=2.0, seed=1, quadrature=2,
+                                cutoff=5)
+    for name, movie in (("left", left), ("right", right)):
+        tifffile.imwrite(d / f"{name}.tif", movie.clamp(0, 255).round().to(torch.uint8).numpy())
+    rig.save_opencv(d / "cal.yml")
+    out = d / "r.h5"
+    assert main(["stereo", "--left", str(d / "left.tif"), "--right", str(d / "right.tif"),
+                 "--calibration", str(d / "cal.yml"), "--m", "1", "--step", "20", "--roi",
+                 "20", "20", "160", "120", "--out", str(out), "--no-progress"]) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def holes_h5(stereo_h5, tmp_path_factory) -> Path:
+    """A copy whose frame BAD_FRAME has 2/3 of its triangulated points POOR_FIT (their
+    values kept, as a run keeps them)."""
+    p = tmp_path_factory.mktemp("holes") / "h.h5"
+    shutil.copy(stereo_h5, p)
+    with h5py.File(p, "r+") as f:
+        ok = np.flatnonzero(np.isfinite(f["X0"][()]).all(1))
+        st = f["status"][()]
+        st[BAD_FRAME, ok[: 2 * len(ok) // 3]] = int(Status.POOR_FIT)
+        f["status"][...] = st
+    return p
+
+
+def _data(path: Path) -> dict[str, np.ndarray]:
+    with h5py.File(path, "r") as f:
+        return {k: f[k][()] for k in f}
+
+
+def _run(capsys, *argv: str) -> tuple[int, str, str]:
+    code = main(list(argv))
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_file_is_recognised_and_reads_back(stereo_h5, tmp_path):
+    with h5py.File(stereo_h5, "r") as f:
+        assert f.attrs["format"] == STEREO_FORMAT and is_stereo_file(f)
+        n = f["points"].shape[0]
+        assert n == 48 and int(np.isnan(f["X0"][()]).any(1).sum()) == 12
+    res = StereoResult.from_hdf5(stereo_h5)
+    d = _data(stereo_h5)
+    for k in ("W", "Ut", "X0", "points", "status", "reprojection_error"):
+        np.testing.assert_array_equal(getattr(res, k).numpy(), d[k])
+    np.testing.assert_array_equal(res.std["W"].numpy(), d["W_std"])
+    assert res.calibration["baseline_mm"] > 100
+    # a file written before the format attribute: recognised by its kind, then its datasets
+    old = tmp_path / "old.h5"
+    shutil.copy(stereo_h5, old)
+    with h5py.File(old, "r+") as f:
+        del f.attrs["format"], f.attrs["version"], f.attrs["kind"]
+    written = export_stereo(old, tmp_path / "csv", "csv", frames=[2])
+    assert [w.name for w in written] == ["old_frame00002.csv"]
+
+
+def test_csv_columns_are_the_file_values(stereo_h5, tmp_path, capsys):
+    code, said, err = _run(capsys, "export", str(stereo_h5), "--out", str(tmp_path))
+    assert code == 0, err
+    assert "wrote 6 CSV file(s)" in said and "mm" in said
+    d = _data(stereo_h5)
+    for k in range(6):
+        path = tmp_path / f"r_frame{k:05d}.csv"
+        lines = path.read_text().splitlines()
+        assert lines[0] == ",".join(COLUMNS)
+        a = np.genfromtxt(path, delimiter=",", names=True)
+        np.testing.assert_array_equal(a["x"], d["points"][:, 0])
+        for name in ("W", "U", "Z", "Wt", "W_std", "reprojection_error"):
+            np.testing.assert_allclose(a[name], d[name][k], rtol=1e-8, equal_nan=True)
+        np.testing.assert_array_equal(a["status"], d["status"][k])
+        # NaN <-> an empty cell, exactly where the file holds NaN
+        w_cells = np.array([ln.split(",")[COLUMNS.index("W")] for ln in lines[1:]])
+        np.testing.assert_array_equal(w_cells == "", np.isnan(d["W"][k]))
+        assert (w_cells == "").sum() == 12
+    meta = json.loads((tmp_path / "r_csv.json").read_text())
+    assert meta["kind"] == "stereo" and meta["columns"] == list(COLUMNS)
+    u = meta["units"]
+    assert (u["x"], u["X"], u["W"], u["W_std"], u["reprojection_error"], u["status"]) == \
+        ("px", "mm", "mm", "mm", "px", "")
+    assert u["Ut"] == u["Wt_std"] == "mm/frame" and meta["time_unit"] == "frame"
+    assert [e["frame"] for e in meta["files"]] == list(range(6))
+    assert meta["status_codes"]["inconsistent"] == 7 and meta["usable_status"] == [0, 1]
+    assert meta["calibration"]["source"].startswith("OpenCV")
+
+
+def test_frames_and_pattern_and_comment(stereo_h5, tmp_path, capsys):
+    d = _data(stereo_h5)
+    pattern = str(tmp_path / "p" / "f{frame:02d}.csv")
+    code, _, err = _run(capsys, "export", str(stereo_h5), "--out", pattern, "--frames", "1,4",
+                        "--comment")
+    assert code == 0, err
+    assert sorted(p.name for p in (tmp_path / "p").glob("*.csv")) == ["f01.csv", "f04.csv"]
+    for k in (1, 4):
+        text = (tmp_path / "p" / f"f{k:02d}.csv").read_text()
+        assert text.startswith(f"# torch_stsdic stereo results r.h5: frame={k} ")
+        a = np.genfromtxt(tmp_path / "p" / f"f{k:02d}.csv", delimiter=",", names=True,
+                          skip_header=1)  # the comment line
+        np.testing.assert_allclose(a["V"], d["V"][k], rtol=1e-8, equal_nan=True)
+    code, _, err = _run(capsys, "export", str(stereo_h5), "--out", str(tmp_path / "last"),
+                        "--frames", "-1")
+    assert code == 0, err
+    assert [p.name for p in (tmp_path / "last").glob("*.csv")] == ["r_frame00005.csv"]
+
+
+def test_vtk_points_at_their_3d_position_and_x0_where_unusable(holes_h5, tmp_path, capsys):
+    meshio = pytest.importorskip("meshio")
+    code, said, err = _run(capsys, "export", str(holes_h5), "--format", "vtk", "--out",
+                           str(tmp_path), "--frames", f"0,{BAD_FRAME},5")
+    assert code == 0, err
+    assert "open h.pvd" in said
+    d = _data(holes_h5)
+    keep = np.isfinite(d["X0"]).all(1)
+    pvd = (tmp_path / "h.pvd").read_text()
+    assert pvd.count("<DataSet") == 3 and f'timestep="{float(BAD_FRAME)!r}"' in pvd
+    for k in (0, BAD_FRAME, 5):
+        mesh = meshio.read(tmp_path / f"h_frame{k:05d}.vtu")
+        ok = (d["status"][k] <= 1)[keep]
+        xyz = np.stack([d[c][k] for c in "XYZ"], -1)[keep]
+        assert len(mesh.points) == int(keep.sum()) == 36
+        np.testing.assert_allclose(mesh.points[ok], xyz[ok], rtol=1e-12)
+        np.testing.assert_allclose(mesh.points[~ok], d["X0"][keep][~ok], rtol=1e-12)
+        pd = mesh.point_data
+        np.testing.assert_array_equal(pd["status"], d["status"][k][keep])
+        np.testing.assert_allclose(pd["W"][ok], d["W"][k][keep][ok], rtol=1e-12)
+        assert np.isnan(pd["W"][~ok]).all() and np.isnan(pd["displacement"][~ok]).all()
+        np.testing.assert_allclose(pd["displacement"][ok],
+                                   np.stack([d[c][k] for c in "UVW"], -1)[keep][ok])
+        np.testing.assert_allclose(pd["reference_position"], d["X0"][keep])
+        np.testing.assert_array_equal(pd["x"], d["points"][keep, 0])
+        assert pd["velocity"].shape == (36, 3)
+        # the left grid's quads: 6 x 6 triangulated points -> 25 quads
+        assert [c.type for c in mesh.cells] == ["quad"] and len(mesh.cells[0].data) == 25
+    assert (~((d["status"][BAD_FRAME] <= 1)[keep])).sum() == 24
+
+
+def test_mat_arrays_are_the_file_arrays(stereo_h5, tmp_path, capsys):
+    sio = pytest.importorskip("scipy.io")
+    code, said, err = _run(capsys, "export", str(stereo_h5), "--format", "mat", "--out",
+                           str(tmp_path), "--frames", "2:4")
+    assert code == 0, err
+    m = sio.loadmat(tmp_path / "r.mat", squeeze_me=True)
+    d = _data(stereo_h5)
+    np.testing.assert_array_equal(m["frames"], [2, 3])
+    for name in ("X", "W", "Ut", "W_std", "reprojection_error", "status"):
+        np.testing.assert_array_equal(m[name], d[name][2:4])
+    np.testing.assert_array_equal(m["x"], d["points"][:, 0])
+    np.testing.assert_array_equal(m["X0"], d["X0"])
+    np.testing.assert_array_equal(m["times"], d["times"][2:4])
+    assert m["units"]["W"] == "mm" and m["units"]["Wt"] == "mm/frame"
+    assert int(m["status_codes"]["outside"]) == int(Status.OUTSIDE)
+    assert json.loads(str(m["calibration"]))["baseline_mm"] > 100
+
+
+def test_plot_maps_shape_and_histories(holes_h5, tmp_path, capsys, monkeypatch):
+    seen = {}
+    real = plot_module.plot_history
+
+    def keep(times, series, **kw):
+        seen[Path(kw["path"]).name] = (dict(series), kw)
+        return real(times, series, **kw)
+
+    monkeypatch.setattr(plot_module, "plot_history", keep)
+    code, said, err = _run(capsys, "plot", str(holes_h5), "--out", str(tmp_path), "--dpi",
+                           "50")
+    assert code == 0, err
+    names = {"fields_frame00005.png", "quality_frame00005.png", "shape_frame00005.png",
+             "history_mean.png", "velocity_history_mean.png"}
+    assert {p.name for p in tmp_path.glob("*.png")} == names
+    assert all((tmp_path / n).stat().st_size > 8000 for n in names)
+    # the mean W rests on the usable points; frame BAD_FRAME (12 of 48) is left out
+    d = _data(holes_h5)
+    ok = d["status"] <= 1
+    curves, kw = seen["history_mean.png"]
+    np.testing.assert_array_equal(kw["counts"], ok.sum(1))
+    assert kw["min_count"] == 20 and kw["ylabel"] == "displacement (mm)"
+    mean_w = np.nanmean(np.where(ok, d["W"], np.nan), axis=1)
+    np.testing.assert_allclose(curves["W"], mean_w)
+    assert f"frame(s) {BAD_FRAME} left out" in said
+    assert seen["velocity_history_mean.png"][1]["ylabel"] == "velocity (mm/frame)"
+    # --frame, --fields, --point
+    code, said, err = _run(capsys, "plot", str(holes_h5), "--out", str(tmp_path / "b"),
+                           "--frame", "2", "--fields", "Z,reprojection_error", "--point",
+                           "100", "60", "--dpi", "40")
+    assert code == 0, err
+    assert (tmp_path / "b" / "fields_frame00002.png").stat().st_size > 5000
+    assert "history_x100_y60.png" in said
+
+
+def test_one_line_errors(stereo_h5, tmp_path, capsys):
+    missing = str(tmp_path / "nope.h5")
+    for cmd in (["export", missing, "--out", str(tmp_path)], ["plot", missing, "--out",
+                                                               str(tmp_path)]):
+        code, _, err = _run(capsys, *cmd)
+        assert code == 1 and err.strip() == f"stsdic: error: result file not found: {missing}"
+    # a stereo file on a 2-D-only path
+    code, _, err = _run(capsys, "plot", str(stereo_h5), "--out", str(tmp_path), "--animate",
+                        "W")
+    assert code == 2 and "--animate W: for 2-D result files" in err
+    assert err.count("\n") == 1
+    code, _, err = _run(capsys, "plot", str(stereo_h5), "--out", str(tmp_path), "--min-zncc",
+                        "0.5")
+    assert code == 2 and "no ZNCC" in err
+    # a 2-D file where a stereo one is needed
+    two_d = tmp_path / "2d.h5"
+    ResultWriter(two_d, points=np.array([[10.0, 10.0], [20.0, 10.0]]), frames=np.arange(2),
+                 times=np.arange(2.0), config={}, inputs=[]).close()
+    for call in (lambda: export_stereo(two_d, tmp_path / "x"),
+                 lambda: StereoResult.from_hdf5(two_d)):
+        with pytest.raises(ValueError, match="is a 2-D result file") as e:
+            call()
+        assert "\n" not in str(e.value)
+    with pytest.raises(FileNotFoundError, match="result file not found"):
+        export_stereo(missing, tmp_path / "x", "vtk")
+    not_h5 = tmp_path / "a.h5"
+    not_h5.write_text("no")
+    with pytest.raises(ValueError, match="not a readable HDF5"):
+        StereoResult.from_hdf5(not_h5)
