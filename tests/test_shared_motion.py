@@ -357,3 +357,30 @@ def test_fit_falls_back_to_frame_by_frame_when_no_point_lasts():
     fit, _, used, _ = fit_frame_motion(pts, disp, valid, "affine")
     assert torch.allclose(fit[:, :2], shift, atol=3e-3)
     assert bool((used == valid.sum(1)).all())
+
+
+def test_fit_does_not_jump_where_the_field_departs_from_it():
+    """A field far from quadratic (a tanh stretch of 30 px over 40 frames, smooth in time)
+    with a wrong peak at a few points in every frame (a different few each frame): the
+    entries the fit rejects are filled in from the points' other frames, with their points'
+    weights, so the fitted motion stays smooth in time. Before, their weight was 0 in those
+    frames only, and the fit moved by the field's departure from it (on the hourglass
+    without a region: jumps of 1-3 px in the translation, spurious load steps, no full
+    window after frame 20). Measured here: max |second difference| of the translation
+    0.003 px (the code before: 5.6 px)."""
+    g = torch.Generator().manual_seed(3)
+    ys, xs = torch.meshgrid(torch.arange(0.0, 700, 25), torch.arange(0.0, 1000, 25),
+                            indexing="ij")
+    pts = torch.stack([xs.flatten(), ys.flatten()], 1).double()
+    f, n = 40, pts.shape[0]
+    t = torch.arange(f, dtype=torch.float64)[:, None]
+    v = -30.0 * (t / f) * (1 + torch.tanh((pts[:, 1] - 350) / 60.0))[None, :]
+    u = 0.004 * (t / f) * (pts[:, 0] - 500)[None, :]
+    disp = torch.stack([u, v], -1) + 0.01 * torch.randn(f, n, 2, generator=g, dtype=torch.float64)
+    for k in range(1, f):
+        bad = torch.randperm(n, generator=g)[:6]
+        disp[k, bad, 1] += 4.0  # a wrong peak at 6 points of this frame
+    valid = torch.ones(f, n, dtype=torch.bool)
+    par = fit_frame_motion(pts, disp, valid, "quadratic")[0]
+    second = (par[2:, :2] - 2 * par[1:-1, :2] + par[:-2, :2]).abs().max()
+    assert float(second) < 0.05, float(second)

@@ -406,8 +406,12 @@ def _consistent_fit(x: Tensor, d: Tensor, ok: Tensor, eye: Tensor
         dev = (jump - torch.nan_to_num(shared).unsqueeze(1)).norm(dim=-1)
         scale = torch.nanmedian(torch.where(use, dev, torch.nan)).clamp(min=1e-9)
         limit = torch.clamp(10.0 * scale, min=_GROSS_PX)
-        w = w_pt * (dev <= limit).double()
-        full = torch.where(use.unsqueeze(-1), d, x @ coef + rf)
+        # such an entry is filled in from the point's other frames, as a gap is, and keeps
+        # its point's weight: a weight that changed from frame to frame would move the fit
+        # by the deformation's departure from it (px on the hourglass without a region)
+        good = use & (dev <= limit)
+        w = w_pt.expand(d.shape[0], -1)
+        full = torch.where(good.unsqueeze(-1), d, x @ coef + _fill_in_time(r, good))
         coef = _wls(x, torch.nan_to_num(full), w, eye)
     return coef, w, use
 

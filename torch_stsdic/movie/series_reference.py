@@ -100,12 +100,14 @@ class SeriesReference:
 def _unit_variance(res: TrackResult) -> torch.Tensor:
     """(N,) px^2 one image's share of a classical displacement's variance per POI, from a
     classical measurement's predicted std (both images noisy: half the variance when the
-    reference is one frame; divided by 1 + its noise ratio otherwise)."""
+    reference is one frame; divided by 1 + its noise ratio otherwise): the median over the
+    frames (a frame whose solve was nearly singular there predicts thousands of px^2; the
+    mean made u_std 21 px at a well-matched point of the hourglass without a region)."""
     ratio = float(res.info.get("reference_noise_ratio") or 1.0)
     var = (res.std["u"].double().cpu().pow(2) + res.std["v"].double().cpu().pow(2)) / 2
     ok = res.status.cpu() <= USABLE
     var = torch.where(ok, var, torch.nan)
-    per_point = torch.nanmean(var, 0) / (1.0 + ratio)
+    per_point = torch.nanmedian(var, 0).values / (1.0 + ratio)
     return torch.nan_to_num(per_point, nan=float(torch.nanmean(per_point)))
 
 
@@ -271,9 +273,12 @@ def time_model_holds(plan: RunPlan, res: TrackResult, frames: list[int],
     if shared is not None and shared.applied:
         d = d - shared.displacement(pts, torch.as_tensor(frames)).double()
     sd = torch.stack([res.std["u"].double().cpu(), res.std["v"].double().cpu()], -1)
-    # one frame's share of a classical displacement's variance (both images noisy)
-    own_var = sd ** 2 / (1.0 + float(res.info.get("reference_noise_ratio") or 1.0))
     ok = (res.status.cpu() <= USABLE) & torch.isfinite(d).all(-1)
+    # one frame's share of a classical displacement's variance (both images noisy), (N, 2):
+    # the median over the frames (:func:`_unit_variance`: a nearly singular solve in one
+    # frame must not set the point's noise, nor its neighbourhood's pooled sums)
+    own_var = torch.nanmedian(torch.where(ok[..., None], sd ** 2, torch.nan), 0).values / (
+        1.0 + float(res.info.get("reference_noise_ratio") or 1.0))
     t = torch.as_tensor(plan.times[frames], dtype=torch.float64)
     steps = list(shared.steps) if shared is not None and shared.steps else []
     n = pts.shape[0]
@@ -294,8 +299,8 @@ def time_model_holds(plan: RunPlan, res: TrackResult, frames: list[int],
         fails += (miss & valid).long()
         tests += valid.long()
         off, csq = line_offset(disp, dt)
-        kept = valid & ~miss & torch.isfinite(own_var[jt]).all(-1)
-        v = torch.where(kept[:, None], own_var[jt], 0.0)
+        kept = valid & ~miss & torch.isfinite(own_var).all(-1)
+        v = torch.where(kept[:, None], own_var, 0.0)
         excess += torch.where(kept, (off.nan_to_num() ** 2 - v * csq).sum(-1), 0.0)
         gain += (v * (2 * m / (2 * m + 1))).sum(-1)
     if int(tests.max()) < 3:
