@@ -128,7 +128,8 @@ def straddles_zero(values: np.ndarray, share: float = 0.2) -> bool:
     return lo < 0 < hi and min(-lo, hi) >= share * max(-lo, hi)
 
 
-def _norm(values: np.ndarray, vmin: float | None, vmax: float | None, symmetric: bool) -> Normalize:
+def colour_norm(values: np.ndarray, vmin: float | None, vmax: float | None,
+                symmetric: bool) -> Normalize:
     """Colour limits: robust percentiles of the finite ``values`` (any shape: pass every panel
     that shares the limits), symmetric about 0 when ``symmetric``."""
     values = np.asarray(values, dtype=np.float64)
@@ -260,7 +261,7 @@ def plot_field(
     else:
         fig = ax.get_figure()
     m = _draw_field(ax, image, p, v, cmap=cmap, alpha=alpha, marker_size=marker_size,
-                    norm=norm if norm is not None else _norm(v, vmin, vmax, symmetric),
+                    norm=norm if norm is not None else colour_norm(v, vmin, vmax, symmetric),
                     units=units)
     cb = colorbar(fig, ax, m)
     if label:
@@ -365,7 +366,7 @@ def plot_fields(
             both = np.concatenate([np.ravel(_np(fields[nm])) for nm in names])
             shared = any(is_diverging(nm) or nm in diverging for nm in names) and \
                 straddles_zero(both)
-            norms.update({nm: _norm(both, None, None, shared) for nm in names})
+            norms.update({nm: colour_norm(both, None, None, shared) for nm in names})
             sym.update({nm: shared for nm in names})
     for ax, (name, vals) in zip(axes, fields.items()):
         default = units.label(name) if units.dims(name) is not None else None
@@ -625,7 +626,7 @@ def animate_field(
         raise ValueError(f"values must have shape (F, N) = (F, {len(p)}), got {vals.shape}")
     n_rows = vals.shape[0]
     symmetric = symmetric and straddles_zero(vals)
-    norm = _norm(vals, None, None, symmetric)
+    norm = colour_norm(vals, None, None, symmetric)
     cmap = cmap or ("RdBu_r" if symmetric else "viridis")
     first = None if frame_image is None else _np(frame_image(0))
     w, h = panel_extent(first, p)

@@ -44,7 +44,7 @@ Frames = int | Sequence[int] | None
 # ----------------------------------------------------------------------------------------
 
 
-def _rows(f: h5py.File, frames: Frames, path: Path) -> list[int]:
+def frame_rows(f: h5py.File, frames: Frames, path: Path) -> list[int]:
     """Result rows of image frames ``frames`` (default: every completed row)."""
     all_frames = f["frames"][()]
     if frames is None:
@@ -104,7 +104,11 @@ def _describe(f: h5py.File, src: Path, units: Units, columns: Sequence[str]) -> 
 # ----------------------------------------------------------------------------------------
 
 
-def _fmt(a: np.ndarray, spec: str) -> np.ndarray:
+def format_column(a: np.ndarray, spec: str | None = None) -> np.ndarray:
+    """(N,) values as CSV cells: integers (and booleans) with ``%d``, the rest with ``%.9g``
+    (or ``spec``); NaN and infinities as empty cells."""
+    if spec is None:
+        spec = "%d" if a.dtype.kind in "iub" else "%.9g"
     s = np.char.mod(spec, a)
     if a.dtype.kind == "f":
         s[~np.isfinite(a)] = ""
@@ -137,7 +141,7 @@ def export_csv(
     with open_results(p) as f:
         all_frames, times = f["frames"][()], f["times"][()]
         completed = f["completed"][()]
-        rows = _rows(f, frames, p)
+        rows = frame_rows(f, frames, p)
         units = units_of(f.attrs)
         columns = _columns(f, fixed=True)
         pts = f["points"][()]
@@ -157,11 +161,11 @@ def export_csv(
             seen.add(target)
             target.parent.mkdir(parents=True, exist_ok=True)
             vals = _row_values(f, r, columns, units, pts)
-            cols = [_fmt(a, "%d" if a.dtype.kind in "iub" else "%.9g") for a in vals.values()]
+            cols = [format_column(a) for a in vals.values()]
             head = (f"# torch_stsdic results {p.name}: frame={fr} time={t!r} row={r} "
                     f"completed={bool(completed[r])} unit={units.unit} "
                     f"time_unit={units.time_unit}\n") if comment else ""
-            with _keeping(written), written_atomically(target) as tmp, \
+            with keeping_written(written), written_atomically(target) as tmp, \
                     open(tmp, "w", encoding="utf-8", newline="") as fh:
                 fh.write(head + ",".join(columns) + "\n")
                 for line in zip(*cols):
@@ -172,13 +176,13 @@ def export_csv(
         if sidecar and written:
             meta = {**_describe(f, p, units, columns), "files": listing}
             side = written[0].parent / f"{p.stem}_csv.json"
-            with _keeping(written), written_atomically(side) as tmp:
+            with keeping_written(written), written_atomically(side) as tmp:
                 tmp.write_text(json.dumps(meta, indent=1) + "\n", encoding="utf-8")
     return written
 
 
 @contextlib.contextmanager
-def _keeping(written: list[Path]) -> Iterator[None]:
+def keeping_written(written: list[Path]) -> Iterator[None]:
     """A :class:`WriteError` inside the block lists the files finished before it."""
     try:
         yield
@@ -198,7 +202,7 @@ _VTK_TYPES = {
 _VTK_VERTEX, _VTK_QUAD = 1, 9
 
 
-def _cells(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def grid_cells(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(connectivity, offsets, types) of the cells over ``points`` (N, 2): on a regular grid
     one quad per grid cell whose four corners are points (a surface in ParaView), and a
     vertex for every point in no quad; scattered points are vertices."""
@@ -237,11 +241,11 @@ def _data_array(name: str, a: np.ndarray, components: int = 1) -> str:
 def write_vtu(path: Path, points: np.ndarray, point_data: dict[str, np.ndarray],
               cells: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> None:
     """A VTK XML UnstructuredGrid: ``points`` (N, 2) or (N, 3), point data name -> (N,) or
-    (N, 3) arrays, ``cells`` from :func:`_cells` (default: computed)."""
+    (N, 3) arrays, ``cells`` from :func:`grid_cells` (default: computed)."""
     pts = np.asarray(points, dtype=np.float64)
     if pts.shape[1] == 2:
         pts = np.column_stack([pts, np.zeros(len(pts))])
-    conn, offsets, types = cells if cells is not None else _cells(pts[:, :2])
+    conn, offsets, types = cells if cells is not None else grid_cells(pts[:, :2])
     arrays = [_data_array(nm, a, 1 if a.ndim == 1 else a.shape[1])
               for nm, a in point_data.items()]  # fmt: skip
     text = "\n".join([
@@ -278,15 +282,15 @@ def export_vtk(path_h5: str | os.PathLike[str], out_dir: str | os.PathLike[str],
         names = [c for c in _columns(f) if c not in ("x", "y")]
         xy = units.convert("x", f["points"][()])  # x and y are both lengths
         pts = f["points"][()]
-        cells = _cells(pts)
-        for r in _rows(f, frames, p):
+        cells = grid_cells(pts)
+        for r in frame_rows(f, frames, p):
             vals = _row_values(f, r, names, units, pts)
             for vec, (a, b) in (("displacement", ("u", "v")), ("velocity", ("ut", "vt"))):
                 if a in vals and b in vals:
                     vals[vec] = np.column_stack([vals[a], vals[b], np.zeros_like(vals[a])])
             fr = int(f["frames"][r])
             target = out / f"{p.stem}_frame{fr:05d}.vtu"
-            with _keeping(written):
+            with keeping_written(written):
                 write_vtu(target, xy, vals, cells)
             written.append(target)
             steps.append((float(f["times"][r]), target.name))
@@ -297,7 +301,7 @@ def export_vtk(path_h5: str | os.PathLike[str], out_dir: str | os.PathLike[str],
     lines += [f'<DataSet timestep="{t!r}" group="" part="0" file={quoteattr(n)}/>'
               for t, n in steps]  # fmt: skip
     lines += ["</Collection>", "</VTKFile>", ""]
-    with _keeping(written), written_atomically(pvd) as tmp:
+    with keeping_written(written), written_atomically(pvd) as tmp:
         tmp.write_text("\n".join(lines), encoding="utf-8")
     return [*written, pvd]
 
@@ -322,7 +326,7 @@ def export_mat(path_h5: str | os.PathLike[str], out_dir: str | os.PathLike[str],
     out.mkdir(parents=True, exist_ok=True)
     with open_results(p) as f:
         units = units_of(f.attrs)
-        rows = sorted(set(_rows(f, frames, p)))
+        rows = sorted(set(frame_rows(f, frames, p)))
         names = [c for c in _columns(f) if c not in ("x", "y")]
         pts = f["points"][()]
         data: dict[str, Any] = {

@@ -25,7 +25,13 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
-from torch_stsdic.analysis.export import _cells, _fmt, _keeping, _rows, write_vtu
+from torch_stsdic.analysis.export import (
+    format_column,
+    frame_rows,
+    grid_cells,
+    keeping_written,
+    write_vtu,
+)
 from torch_stsdic.core.status import Status, usable
 from torch_stsdic.io.run_record import written_atomically
 from torch_stsdic.stereo.result import FIELDS, open_stereo
@@ -69,7 +75,7 @@ def stereo_units(f: Any, names: Sequence[str]) -> dict[str, str]:
 def _all_rows(f: Any, frames: Frames, path: Path) -> list[int]:
     """Rows of image frames ``frames`` (default: every row; a stereo file holds no
     unfinished row)."""
-    return list(range(len(f["frames"]))) if frames is None else _rows(f, frames, path)
+    return list(range(len(f["frames"]))) if frames is None else frame_rows(f, frames, path)
 
 
 def _row_values(f: Any, r: int, names: Sequence[str], points: np.ndarray
@@ -142,10 +148,10 @@ def export_stereo_csv(path_h5: str | os.PathLike[str],
             seen.add(target)
             target.parent.mkdir(parents=True, exist_ok=True)
             vals = _row_values(f, r, COLUMNS, pts)
-            cols = [_fmt(a, "%d" if a.dtype.kind in "iub" else "%.9g") for a in vals.values()]
+            cols = [format_column(a) for a in vals.values()]
             head = (f"# torch_stsdic stereo results {p.name}: frame={fr} time={t!r} row={r} "
                     f"unit=mm time_unit={tu.replace(' ', '_')}\n") if comment else ""
-            with _keeping(written), written_atomically(target) as tmp, \
+            with keeping_written(written), written_atomically(target) as tmp, \
                     open(tmp, "w", encoding="utf-8", newline="") as fh:
                 fh.write(head + ",".join(COLUMNS) + "\n")
                 fh.writelines(",".join(line) + "\n" for line in zip(*cols))
@@ -154,7 +160,7 @@ def export_stereo_csv(path_h5: str | os.PathLike[str],
         if sidecar and written:
             meta = {**_describe(f, p, COLUMNS), "files": listing}
             side = written[0].parent / f"{p.stem}_csv.json"
-            with _keeping(written), written_atomically(side) as tmp:
+            with keeping_written(written), written_atomically(side) as tmp:
                 tmp.write_text(json.dumps(meta, indent=1) + "\n", encoding="utf-8")
     return written
 
@@ -181,7 +187,7 @@ def export_stereo_vtk(path_h5: str | os.PathLike[str], out_dir: str | os.PathLik
     with open_stereo(p) as f:
         pts, x0 = f["points"][()], f["X0"][()]
         keep = np.isfinite(x0).all(axis=1)
-        cells = _cells(pts[keep])
+        cells = grid_cells(pts[keep])
         for r in _all_rows(f, frames, p):
             vals = _row_values(f, r, names, pts)
             pos = np.column_stack([vals["X"], vals["Y"], vals["Z"]])
@@ -194,7 +200,7 @@ def export_stereo_vtk(path_h5: str | os.PathLike[str], out_dir: str | os.PathLik
             data["reference_position"] = x0[keep]
             fr = int(f["frames"][r])
             target = out / f"{p.stem}_frame{fr:05d}.vtu"
-            with _keeping(written):
+            with keeping_written(written):
                 write_vtu(target, np.where(ok[:, None], pos, x0)[keep], data, cells)
             written.append(target)
             steps.append((float(f["times"][r]), target.name))
@@ -205,7 +211,7 @@ def export_stereo_vtk(path_h5: str | os.PathLike[str], out_dir: str | os.PathLik
     lines += [f'<DataSet timestep="{t!r}" group="" part="0" file={quoteattr(n)}/>'
               for t, n in steps]  # fmt: skip
     lines += ["</Collection>", "</VTKFile>", ""]
-    with _keeping(written), written_atomically(pvd) as tmp:
+    with keeping_written(written), written_atomically(pvd) as tmp:
         tmp.write_text("\n".join(lines), encoding="utf-8")
     return [*written, pvd]
 
