@@ -152,25 +152,11 @@ def export_csv(
         seen: set[Path] = set()
         for r in rows:
             fr, t = int(all_frames[r]), float(times[r])
-            if is_pattern:
-                target = Path(out.format(frame=fr, row=r, time=t))
-            else:
-                target = Path(out) / f"{p.stem}_frame{fr:05d}.csv"
-            if target in seen:
-                raise ValueError(f"output pattern {out!r} gives the same file {target} twice")
-            seen.add(target)
-            target.parent.mkdir(parents=True, exist_ok=True)
-            vals = _row_values(f, r, columns, units, pts)
-            cols = [format_column(a) for a in vals.values()]
+            target = csv_target(out, is_pattern, p.stem, fr, r, t, seen)
             head = (f"# torch_stsdic results {p.name}: frame={fr} time={t!r} row={r} "
                     f"completed={bool(completed[r])} unit={units.unit} "
                     f"time_unit={units.time_unit}\n") if comment else ""
-            with keeping_written(written), written_atomically(target) as tmp, \
-                    open(tmp, "w", encoding="utf-8", newline="") as fh:
-                fh.write(head + ",".join(columns) + "\n")
-                for line in zip(*cols):
-                    fh.write(",".join(line) + "\n")
-            written.append(target)
+            write_csv(target, head, _row_values(f, r, columns, units, pts), written)
             listing.append({"file": target.name, "frame": fr, "time": t, "row": r,
                             "completed": bool(completed[r])})  # fmt: skip
         if sidecar and written:
@@ -179,6 +165,46 @@ def export_csv(
             with keeping_written(written), written_atomically(side) as tmp:
                 tmp.write_text(json.dumps(meta, indent=1) + "\n", encoding="utf-8")
     return written
+
+
+def csv_target(out: str, is_pattern: bool, stem: str, frame: int, row: int, time: float,
+               seen: set[Path]) -> Path:
+    """The CSV file of one frame: ``out`` formatted with ``frame``, ``row``, ``time`` (a
+    pattern) or ``<out>/<stem>_frame<NNNNN>.csv``; its folder made. ``seen``: the files so far
+    (a pattern that gives one file twice is refused)."""
+    target = (Path(out.format(frame=frame, row=row, time=time)) if is_pattern
+              else Path(out) / f"{stem}_frame{frame:05d}.csv")
+    if target in seen:
+        raise ValueError(f"output pattern {out!r} gives the same file {target} twice")
+    seen.add(target)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    return target
+
+
+def write_csv(target: Path, head: str, values: dict[str, np.ndarray], written: list[Path]
+              ) -> None:
+    """One frame's CSV (written atomically): ``head`` (a comment line or ""), the header of
+    ``values``' names, then one line per point (:func:`format_column`); ``target`` is added
+    to ``written``."""
+    cols = [format_column(a) for a in values.values()]
+    with keeping_written(written), written_atomically(target) as tmp, \
+            open(tmp, "w", encoding="utf-8", newline="") as fh:
+        fh.write(head + ",".join(values) + "\n")
+        fh.writelines(",".join(line) + "\n" for line in zip(*cols))
+    written.append(target)
+
+
+def write_pvd(pvd: Path, steps: list[tuple[float, str]], written: list[Path]) -> Path:
+    """ParaView's time series ``pvd`` of the (time, .vtu file name) ``steps``; returns it."""
+    lines = ['<?xml version="1.0"?>',
+             '<VTKFile type="Collection" version="0.1" byte_order="LittleEndian">',
+             "<Collection>"]  # fmt: skip
+    lines += [f'<DataSet timestep="{t!r}" group="" part="0" file={quoteattr(n)}/>'
+              for t, n in steps]  # fmt: skip
+    lines += ["</Collection>", "</VTKFile>", ""]
+    with keeping_written(written), written_atomically(pvd) as tmp:
+        tmp.write_text("\n".join(lines), encoding="utf-8")
+    return pvd
 
 
 @contextlib.contextmanager
@@ -294,16 +320,7 @@ def export_vtk(path_h5: str | os.PathLike[str], out_dir: str | os.PathLike[str],
                 write_vtu(target, xy, vals, cells)
             written.append(target)
             steps.append((float(f["times"][r]), target.name))
-    pvd = out / f"{p.stem}.pvd"
-    lines = ['<?xml version="1.0"?>',
-             '<VTKFile type="Collection" version="0.1" byte_order="LittleEndian">',
-             "<Collection>"]  # fmt: skip
-    lines += [f'<DataSet timestep="{t!r}" group="" part="0" file={quoteattr(n)}/>'
-              for t, n in steps]  # fmt: skip
-    lines += ["</Collection>", "</VTKFile>", ""]
-    with keeping_written(written), written_atomically(pvd) as tmp:
-        tmp.write_text("\n".join(lines), encoding="utf-8")
-    return [*written, pvd]
+    return [*written, write_pvd(out / f"{p.stem}.pvd", steps, written)]
 
 
 # ----------------------------------------------------------------------------------------

@@ -21,15 +21,16 @@ import os
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
-from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
 from torch_stsdic.analysis.export import (
-    format_column,
+    csv_target,
     frame_rows,
     grid_cells,
     keeping_written,
+    write_csv,
+    write_pvd,
     write_vtu,
 )
 from torch_stsdic.core.status import Status, usable
@@ -141,21 +142,10 @@ def export_stereo_csv(path_h5: str | os.PathLike[str],
         listing, seen = [], set()
         for r in rows:
             fr, t = int(all_frames[r]), float(times[r])
-            target = (Path(out.format(frame=fr, row=r, time=t)) if is_pattern
-                      else Path(out) / f"{p.stem}_frame{fr:05d}.csv")
-            if target in seen:
-                raise ValueError(f"output pattern {out!r} gives the same file {target} twice")
-            seen.add(target)
-            target.parent.mkdir(parents=True, exist_ok=True)
-            vals = _row_values(f, r, COLUMNS, pts)
-            cols = [format_column(a) for a in vals.values()]
+            target = csv_target(out, is_pattern, p.stem, fr, r, t, seen)
             head = (f"# torch_stsdic stereo results {p.name}: frame={fr} time={t!r} row={r} "
                     f"unit=mm time_unit={tu.replace(' ', '_')}\n") if comment else ""
-            with keeping_written(written), written_atomically(target) as tmp, \
-                    open(tmp, "w", encoding="utf-8", newline="") as fh:
-                fh.write(head + ",".join(COLUMNS) + "\n")
-                fh.writelines(",".join(line) + "\n" for line in zip(*cols))
-            written.append(target)
+            write_csv(target, head, _row_values(f, r, COLUMNS, pts), written)
             listing.append({"file": target.name, "frame": fr, "time": t, "row": r})
         if sidecar and written:
             meta = {**_describe(f, p, COLUMNS), "files": listing}
@@ -204,16 +194,7 @@ def export_stereo_vtk(path_h5: str | os.PathLike[str], out_dir: str | os.PathLik
                 write_vtu(target, np.where(ok[:, None], pos, x0)[keep], data, cells)
             written.append(target)
             steps.append((float(f["times"][r]), target.name))
-    pvd = out / f"{p.stem}.pvd"
-    lines = ['<?xml version="1.0"?>',
-             '<VTKFile type="Collection" version="0.1" byte_order="LittleEndian">',
-             "<Collection>"]  # fmt: skip
-    lines += [f'<DataSet timestep="{t!r}" group="" part="0" file={quoteattr(n)}/>'
-              for t, n in steps]  # fmt: skip
-    lines += ["</Collection>", "</VTKFile>", ""]
-    with keeping_written(written), written_atomically(pvd) as tmp:
-        tmp.write_text("\n".join(lines), encoding="utf-8")
-    return [*written, pvd]
+    return [*written, write_pvd(out / f"{p.stem}.pvd", steps, written)]
 
 
 # ----------------------------------------------------------------------------------------
