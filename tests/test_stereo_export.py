@@ -252,3 +252,81 @@ def test_one_line_errors(stereo_h5, tmp_path, capsys):
     not_h5.write_text("no")
     with pytest.raises(ValueError, match="not a readable HDF5"):
         StereoResult.from_hdf5(not_h5)
+
+
+def test_plane_frame_is_a_rigid_change_of_frame(stereo_h5, tmp_path):
+    """``in_plane_frame`` (``stsdic stereo --coordinates plane``): the reference shape's
+    best-fit plane becomes Z = 0 (the usable X0's centroid at the origin, their Z the plane
+    residuals), lengths and the displacement's norm are kept, and mapping back with the
+    stored origin and rotation gives the camera frame's X, Y, Z; the file says which frame."""
+    cam = StereoResult.from_hdf5(stereo_h5)
+    pl = cam.in_plane_frame()
+    origin, rot = cam.plane()
+    assert torch.allclose(rot @ rot.T, torch.eye(3, dtype=rot.dtype), atol=1e-12)
+    ok0 = torch.isfinite(cam.X0).all(1) & cam.ok.any(0)
+    x0 = pl.X0[ok0]
+    assert float(x0.mean(0).abs().max()) < 1e-9
+    # Z is the normal: its spread is the shape's departure from a plane, far below X, Y's
+    assert float(x0[:, 2].std()) < 0.05 * float(x0[:, :2].std(0).min())
+    both = cam.ok & torch.isfinite(cam.U)
+    n_cam = cam.displacement.norm(dim=-1)[both]
+    n_pl = pl.displacement.norm(dim=-1)[both]
+    assert torch.allclose(n_cam, n_pl, atol=1e-12)
+    back = torch.stack([pl.X, pl.Y, pl.Z], -1) @ rot.to(pl.X.dtype) + origin.to(pl.X.dtype)
+    assert torch.allclose(back[both], torch.stack([cam.X, cam.Y, cam.Z], -1)[both], atol=1e-9)
+    with pytest.raises(ValueError, match="already"):
+        pl.in_plane_frame()
+    out = tmp_path / "plane.h5"
+    pl.to_hdf5(out)
+    with h5py.File(out, "r") as f:
+        assert f.attrs["frame"].startswith("best-fit plane")
+        np.testing.assert_allclose(f["plane_rotation"][()], rot.numpy(), atol=1e-12)
+        np.testing.assert_allclose(f["plane_origin"][()], origin.numpy(), atol=1e-12)
+        np.testing.assert_allclose(f["W"][()], pl.W.numpy())
+    assert StereoResult.from_hdf5(out).frame == pl.frame
+
+
+def test_command_writes_the_plane_frame(stereo_h5, tmp_path):
+    """``stsdic stereo --coordinates plane`` writes the plane frame's fields; the CSV sidecar
+    names that frame."""
+    d = stereo_h5.parent
+    out = tmp_path / "p.h5"
+    assert main(["stereo", "--left", str(d / "left.tif"), "--right", str(d / "right.tif"),
+                 "--calibration", str(d / "cal.yml"), "--m", "1", "--step", "20", "--roi",
+                 "20", "20", "160", "120", "--coordinates", "plane", "--out", str(out),
+                 "--no-progress"]) == 0
+    want = StereoResult.from_hdf5(stereo_h5).in_plane_frame()
+    got = StereoResult.from_hdf5(out)
+    assert got.frame == want.frame
+    assert torch.allclose(got.W, want.W, equal_nan=True, atol=1e-9)
+    export_stereo(out, tmp_path / "csv", "csv")
+    meta = json.loads(next((tmp_path / "csv").glob("*_csv.json")).read_text())
+    assert "best-fit plane" in json.dumps(meta)
+
+
+def test_stereo_input_guards_are_one_line(stereo_h5, tmp_path, capsys):
+    """Bad input to ``stsdic stereo`` gives one line naming the problem, exit code 1, no
+    file: series of other lengths, a non-finite pixel, too few frames for the window, a
+    region off the image, a reference frame out of range, a missing file."""
+    d = stereo_h5.parent
+    right = tifffile.imread(d / "right.tif")
+    tifffile.imwrite(tmp_path / "short.tif", right[:4], photometric="minisblack")
+    nan = right.astype(np.float32)
+    nan[2, 40, 40] = np.nan
+    tifffile.imwrite(tmp_path / "nan.tif", nan, photometric="minisblack")
+    base = ["stereo", "--left", str(d / "left.tif"), "--calibration", str(d / "cal.yml"),
+            "--step", "20", "--no-progress"]
+    cases = [
+        (["--right", str(tmp_path / "short.tif")], "differ in length: 6 and 4"),
+        (["--right", str(tmp_path / "nan.tif")], "non-finite pixel"),
+        (["--right", str(d / "right.tif"), "--m", "4"], "fewer than the 2m+1 = 9"),
+        (["--right", str(d / "right.tif"), "--roi", "500", "500", "600", "600"], "off the image"),
+        (["--right", str(d / "right.tif"), "--reference", "9"], "out of range"),
+        (["--right", str(tmp_path / "missing.tif")], "not found"),
+    ]
+    for extra, msg in cases:
+        out = tmp_path / "o.h5"
+        code = main([*base, *extra, "--out", str(out)])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == 1 and msg in err[-1] and err[-1].startswith("stsdic: error:"), (extra, err)
+        assert not out.exists()

@@ -591,6 +591,7 @@ class _Stereo:
             self.fields = {nm: f[nm][()] for nm in names}
             self.unit = stereo_units(f, names)
             self.time_unit = time_unit(f)
+            self.plane_frame = str(f.attrs.get("frame", "")).startswith("best-fit plane")
         self.path = path
         self.completed = np.ones(len(self.frames), dtype=bool)
         self.config: dict[str, Any] = {}

@@ -67,6 +67,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                        help="subset warp of the left -> right match")
     options.add_option(p, "--max-reprojection", type=float, default=1.0,
                        help="px; points beyond are flagged INCONSISTENT")
+    options.add_option(p, "--coordinates", choices=("camera", "plane"), default="camera",
+                       help="frame of X..W in the file: the left camera's, or the best-fit "
+                       "plane of the reference shape (X, Y in the plane, Z its normal; the "
+                       "plane's origin and rotation are stored)")
     options.add_option(p, "--device", default="cpu", help="torch device")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
@@ -97,6 +101,8 @@ def execute(args: argparse.Namespace) -> int:
                        reference=ref, device=args.device, progress=not args.no_progress,
                        cross_shape=args.cross_shape, max_reprojection=args.max_reprojection,
                        refine_reference=args.refine_reference)
+    if args.coordinates == "plane":
+        res = res.in_plane_frame()
     res.to_hdf5(args.out, overwrite=args.overwrite)
     ok = res.ok
     print(f"stereo: {res.points.shape[0]} points x {res.frames.numel()} frames, "

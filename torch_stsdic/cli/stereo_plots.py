@@ -79,7 +79,8 @@ def stereo_shape_figure(args: argparse.Namespace, res: Any, row: int, valid: np.
                         norm=colour_norm(w, None, None, False), s=18, depthshade=False)
         fig.colorbar(sc, ax=ax, shrink=0.6, pad=0.06, label=res.label("W"))
         ax.set_aspect("equal")
-        ax.invert_zaxis()  # Y points down
+        if not getattr(res, "plane_frame", False):
+            ax.invert_zaxis()  # the camera's Y points down
     else:
         ax.text2D(0.5, 0.5, "no usable point at this frame", transform=ax.transAxes,
                   ha="center")
@@ -90,8 +91,9 @@ def stereo_shape_figure(args: argparse.Namespace, res: Any, row: int, valid: np.
     ax.set_zlabel(res.label("Y"))
     ax.view_init(elev=25, azim=-50)
     ax.set_title(f"{Path(args.result).name}: 3D points at {res.when(row)}\n"
-                 f"{int(ok.sum())} of {res.n_points} usable, coloured by W; left camera "
-                 "frame, equal axes", fontsize=10)
+                 f"{int(ok.sum())} of {res.n_points} usable, coloured by W; "
+                 f"{'best-fit plane' if getattr(res, 'plane_frame', False) else 'left camera'}"
+                 " frame, equal axes", fontsize=10)
     path = out / f"shape_frame{frame:05d}.png"
     save_figure(fig, path, dpi=args.dpi)
     return path

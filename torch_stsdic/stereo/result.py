@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 from dataclasses import dataclass, field
@@ -13,13 +14,20 @@ import torch
 from torch import Tensor
 
 __all__ = ["StereoResult", "best_fit_plane", "FIELDS", "STEREO_FORMAT", "is_stereo_file",
-           "open_stereo"]
+           "open_stereo", "CAMERA_FRAME", "PLANE_FRAME"]
 
 #: the ``format`` attribute of a stereo result file (files written before it existed are
 #: recognised by their ``kind`` attribute or their datasets W and X0: :func:`is_stereo_file`)
 STEREO_FORMAT = "torch_stsdic-stereo-results"
 STEREO_FORMAT_VERSION = 1
 _KIND = "torch_stsdic stereo result"
+
+#: the coordinate frames of a result: the left camera's, or the best-fit plane of the
+#: reference shape's (:meth:`StereoResult.in_plane_frame`)
+CAMERA_FRAME = "left camera: X right, Y down, Z along the optical axis"
+PLANE_FRAME = ("best-fit plane of the reference shape: X, Y in the plane (X along the left "
+               "camera's x as far as the plane allows), Z its normal towards the camera; "
+               "origin the usable reference points' centroid")
 
 #: the (F, N) fields of a result and their units
 FIELDS = {"X": "mm", "Y": "mm", "Z": "mm", "U": "mm", "V": "mm", "W": "mm",
@@ -75,6 +83,11 @@ class StereoResult:
     cross: Any = None
     calibration: dict[str, Any] = field(default_factory=dict)
     info: dict[str, Any] = field(default_factory=dict)
+    #: the coordinate frame of X..Wt and X0 (:data:`CAMERA_FRAME` or :data:`PLANE_FRAME`)
+    frame: str = field(default="")
+
+    def __post_init__(self) -> None:
+        self.frame = self.frame or CAMERA_FRAME
 
     @property
     def ok(self) -> Tensor:
@@ -85,6 +98,52 @@ class StereoResult:
     def displacement(self) -> Tensor:
         """(F, N, 3) U, V, W mm."""
         return torch.stack([self.U, self.V, self.W], -1)
+
+    def plane(self) -> tuple[Tensor, Tensor]:
+        """The best-fit plane of the reference shape (the usable points of X0), in the left
+        camera frame: origin (3,) mm and rotation (3, 3) (:func:`best_fit_plane`). Computed
+        from this result's X0: call it on a camera-frame result."""
+        ok0 = torch.isfinite(self.X0).all(1) & self.ok.any(0)
+        if int(ok0.sum()) < 3:
+            raise ValueError(f"best-fit plane: {int(ok0.sum())} usable reference points, 3 "
+                             "or more needed")
+        return best_fit_plane(self.X0.double(), ok0)
+
+    def in_plane_frame(self) -> StereoResult:
+        """The same result with X, Y, Z, U, V, W, their velocities, X0 and the stds in the
+        best-fit plane's frame (:meth:`plane`): positions ``(p - origin) @ R.T``, vectors
+        ``d @ R.T``. The stds are rotated as independent components (each axis's variance
+        ``R**2 @ var``), a first-order approximation that leaves out the correlation of the
+        camera frame's X, Y, Z errors."""
+        if self.frame != CAMERA_FRAME:
+            raise ValueError(f"in_plane_frame: the result is already in the {self.frame!r} "
+                             "frame")
+        origin, rot = self.plane()
+        rot_t = rot.T.to(self.X.dtype)
+
+        def vec(a: Tensor, b: Tensor, c: Tensor, shift: bool = False) -> tuple[Tensor, ...]:
+            v = torch.stack([a, b, c], -1)
+            out = (v - origin.to(v.dtype)) @ rot_t if shift else v @ rot_t
+            return out.unbind(-1)
+
+        def var_rot(names: tuple[str, str, str]) -> dict[str, Tensor]:
+            if not all(k in self.std for k in names):
+                return {}
+            var = torch.stack([self.std[k] ** 2 for k in names], -1)
+            return dict(zip(names, (var @ (rot_t ** 2)).clamp(min=0).sqrt().unbind(-1)))
+
+        X, Y, Z = vec(self.X, self.Y, self.Z, shift=True)
+        U, V, W = vec(self.U, self.V, self.W)
+        Ut, Vt, Wt = vec(self.Ut, self.Vt, self.Wt)
+        x0 = (self.X0 - origin.to(self.X0.dtype)) @ rot.T.to(self.X0.dtype)
+        x0_std = ((self.X0_std ** 2) @ (rot.T.to(self.X0.dtype) ** 2)).sqrt()
+        std = {**self.std, **var_rot(("X", "Y", "Z")), **var_rot(("U", "V", "W")),
+               **var_rot(("Ut", "Vt", "Wt"))}
+        info = {**self.info, "plane_origin_mm": origin.tolist(),
+                "plane_rotation": rot.tolist()}
+        return dataclasses.replace(self, X=X, Y=Y, Z=Z, U=U, V=V, W=W, Ut=Ut, Vt=Vt, Wt=Wt,
+                                   X0=x0, X0_std=x0_std, std=std, info=info,
+                                   frame=PLANE_FRAME)
 
     def __repr__(self) -> str:
         return (f"<StereoResult {self.frames.numel()} frames x {self.points.shape[0]} points, "
@@ -104,7 +163,7 @@ class StereoResult:
             f.attrs["version"] = STEREO_FORMAT_VERSION
             f.attrs["software_version"] = software_version()
             f.attrs["kind"] = _KIND
-            f.attrs["frame"] = "left camera: X right, Y down, Z along the optical axis"
+            f.attrs["frame"] = self.frame
             f.attrs["calibration"] = json.dumps(self.calibration, default=str)
             f.attrs["info"] = json.dumps(self.info, default=str)
             d = f.create_dataset("points", data=self.points.cpu().numpy())
@@ -123,6 +182,15 @@ class StereoResult:
             d.attrs["units"] = "mm"
             d = f.create_dataset("X0_std", data=self.X0_std.cpu().numpy())
             d.attrs["units"] = "mm"
+            if "plane_origin_mm" in self.info:
+                d = f.create_dataset("plane_origin", data=np.asarray(
+                    self.info["plane_origin_mm"], dtype=np.float64))
+                d.attrs["units"] = "mm"
+                d.attrs["what"] = "the best-fit plane's origin in the left camera frame"
+                d = f.create_dataset("plane_rotation", data=np.asarray(
+                    self.info["plane_rotation"], dtype=np.float64))
+                d.attrs["what"] = ("rows: the plane frame's axes in the left camera frame; "
+                                   "camera -> plane: (p - plane_origin) @ plane_rotation.T")
             d = f.create_dataset("status", data=self.status.cpu().numpy().astype(np.int8))
             d.attrs["codes"] = "0 converged, 1 max_iter, 2 diverged, 3 outside, 4 low texture, " \
                 "5 not computed, 6 poor fit, 7 inconsistent"
@@ -139,7 +207,8 @@ class StereoResult:
             status = torch.as_tensor(f["status"][()].astype(np.int8))
             cal = json.loads(f.attrs.get("calibration", "{}"))
             info = json.loads(f.attrs.get("info", "{}"))
-        return cls(**t, std=std, status=status, calibration=cal, info=info)
+            frame = str(f.attrs.get("frame", CAMERA_FRAME))
+        return cls(**t, std=std, status=status, calibration=cal, info=info, frame=frame)
 
 
 def is_stereo_file(f: Any) -> bool:
