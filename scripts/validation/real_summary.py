@@ -27,7 +27,9 @@ def summary(path: str, reference: int = 0) -> dict[str, float]:
     r = read_results(path)
     f = r.fields
     ok = f["status"] <= 1
-    m_run = int(np.nanmax(f["m"])) if f["m"].size else 0
+    # the run's window (its config; the file's largest m where none is recorded: a run whose
+    # points were all solved classically has m = 0 everywhere)
+    m_run = int(r.config.get("m", np.nanmax(f["m"]) if f["m"].size else 0))
     not_ref = (r.frames != reference)[:, None] & ok
     err = np.concatenate([f["u_std"][not_ref], f["v_std"][not_ref]])
     return {
@@ -53,6 +55,10 @@ def main() -> None:
         first = read_results(args.files[0]).fields
         for p in args.files[1:]:
             other = read_results(p).fields
+            if other["status"].shape != first["status"].shape:
+                print(f"{Path(p).name}: other points or frames than {Path(args.files[0]).name}"
+                      " (not compared row by row)")
+                continue
             st = int((first["status"] != other["status"]).sum())
             mm = int((first["m"] != other["m"]).sum())
             du = np.nanmax(np.abs(first["u"] - other["u"]))

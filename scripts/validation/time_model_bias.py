@@ -70,7 +70,7 @@ def pair_row(sts_file: str, classical_file: str) -> dict:
     from torch_stsdic.io import read_results
     a, b = read_results(sts_file), read_results(classical_file)
     fa, fb = a.fields, b.fields
-    m = int(np.nanmax(fa["m"]))
+    m = int(a.config.get("m", np.nanmax(fa["m"])))
     sel = (fa["m"] == m) & (fa["status"] <= 1) & (fb["status"] <= 1) & (m > 0)
     sel[a.frames == 0] = False
     row = {"sts": sts_file, "classical": classical_file, "rows": int(sel.sum())}
