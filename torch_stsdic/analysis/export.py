@@ -190,7 +190,8 @@ def write_csv(target: Path, head: str, values: dict[str, np.ndarray], written: l
     with keeping_written(written), written_atomically(target) as tmp, \
             open(tmp, "w", encoding="utf-8", newline="") as fh:
         fh.write(head + ",".join(values) + "\n")
-        fh.writelines(",".join(line) + "\n" for line in zip(*cols))
+        for line in zip(*cols):
+            fh.write(",".join(line) + "\n")
     written.append(target)
 
 
