@@ -46,7 +46,7 @@ FORMATS = ("csv", "vtk", "mat")
 _VALUES = ("X", "Y", "Z", "U", "V", "W", "Ut", "Vt", "Wt")
 #: the CSV columns, in order: x, y (left reference px), then the (F, N) fields
 COLUMNS: tuple[str, ...] = ("x", "y", *_VALUES, *(f"{k}_std" for k in _VALUES),
-                            "reprojection_error", "status")
+                            "exx", "eyy", "exy", "reprojection_error", "status")
 
 Frames = int | Sequence[int] | None
 

@@ -85,6 +85,10 @@ class StereoResult:
     info: dict[str, Any] = field(default_factory=dict)
     #: the coordinate frame of X..Wt and X0 (:data:`CAMERA_FRAME` or :data:`PLANE_FRAME`)
     frame: str = field(default="")
+    #: surface strain "exx", "eyy", "exy" (F, N), dimensionless: Green-Lagrange in the
+    #: reference tangent plane, b1 along the frame's X axis projected onto it
+    #: (:func:`~torch_stsdic.stereo.strain.surface_strain`); empty where not computed
+    strain: dict[str, Tensor] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.frame = self.frame or CAMERA_FRAME
@@ -108,6 +112,17 @@ class StereoResult:
             raise ValueError(f"best-fit plane: {int(ok0.sum())} usable reference points, 3 "
                              "or more needed")
         return best_fit_plane(self.X0.double(), ok0)
+
+    def surface_strain(self, subset_size: float | None = None, k: int = 9
+                       ) -> dict[str, Tensor]:
+        """Green-Lagrange surface strain (F, N) of the usable points
+        (:func:`~torch_stsdic.stereo.strain.surface_strain`): b1 along this result's X axis
+        (the camera's x, or the plane frame's X) projected onto each tangent plane."""
+        from torch_stsdic.stereo.strain import surface_strain
+
+        size = subset_size if subset_size is not None else self.info.get("subset_size", 21)
+        u = torch.where(self.ok[..., None], self.displacement.double(), torch.nan)
+        return surface_strain(self.points, self.X0, u, float(size), k=k)
 
     def in_plane_frame(self) -> StereoResult:
         """The same result with X, Y, Z, U, V, W, their velocities, X0 and the stds in the
@@ -141,9 +156,12 @@ class StereoResult:
                **var_rot(("Ut", "Vt", "Wt"))}
         info = {**self.info, "plane_origin_mm": origin.tolist(),
                 "plane_rotation": rot.tolist()}
-        return dataclasses.replace(self, X=X, Y=Y, Z=Z, U=U, V=V, W=W, Ut=Ut, Vt=Vt, Wt=Wt,
-                                   X0=x0, X0_std=x0_std, std=std, info=info,
-                                   frame=PLANE_FRAME)
+        out = dataclasses.replace(self, X=X, Y=Y, Z=Z, U=U, V=V, W=W, Ut=Ut, Vt=Vt, Wt=Wt,
+                                  X0=x0, X0_std=x0_std, std=std, info=info,
+                                  frame=PLANE_FRAME, strain={})
+        if self.strain:  # b1 now follows the plane's X
+            out.strain = out.surface_strain()
+        return out
 
     def __repr__(self) -> str:
         return (f"<StereoResult {self.frames.numel()} frames x {self.points.shape[0]} points, "
@@ -178,6 +196,12 @@ class StereoResult:
                 if name in self.std:
                     d = f.create_dataset(f"{name}_std", data=self.std[name].cpu().numpy())
                     d.attrs["units"] = unit
+            for name, a in self.strain.items():
+                d = f.create_dataset(name, data=a.cpu().numpy())
+                d.attrs["units"] = "1"
+                d.attrs["what"] = ("Green-Lagrange surface strain in the reference tangent "
+                                   "plane (b1: the frame's X axis projected onto it); exy: "
+                                   "tensor shear")
             d = f.create_dataset("X0", data=self.X0.cpu().numpy())
             d.attrs["units"] = "mm"
             d = f.create_dataset("X0_std", data=self.X0_std.cpu().numpy())
@@ -205,10 +229,12 @@ class StereoResult:
                  ("points", "right_points", "frames", "times", "X0", "X0_std", *FIELDS)}
             std = {k: torch.as_tensor(f[f"{k}_std"][()]) for k in FIELDS if f"{k}_std" in f}
             status = torch.as_tensor(f["status"][()].astype(np.int8))
+            strain = {k: torch.as_tensor(f[k][()]) for k in ("exx", "eyy", "exy") if k in f}
             cal = json.loads(f.attrs.get("calibration", "{}"))
             info = json.loads(f.attrs.get("info", "{}"))
             frame = str(f.attrs.get("frame", CAMERA_FRAME))
-        return cls(**t, std=std, status=status, calibration=cal, info=info, frame=frame)
+        return cls(**t, std=std, status=status, calibration=cal, info=info, frame=frame,
+                   strain=strain)
 
 
 def is_stereo_file(f: Any) -> bool:

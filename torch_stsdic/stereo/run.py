@@ -126,12 +126,14 @@ def track_stereo(left: Any, right: Any, calibration: StereoCalibration | str, *,
             "cross_repaired": int(cross.repaired.sum()),
             "reference_reprojection_px": float(tri0.reprojection_error[okc].median()),
             "max_reprojection": max_reprojection}
-    return StereoResult(
+    res = StereoResult(
         points=pts, right_points=right0, frames=lres.frames.cpu(), times=lres.times.cpu(),
         X=X[..., 0], Y=X[..., 1], Z=X[..., 2], U=U[..., 0], V=U[..., 1], W=U[..., 2],
         Ut=vel[..., 0], Vt=vel[..., 1], Wt=vel[..., 2], X0=X0, X0_std=x0_std, std=std,
         reprojection_error=tri.reprojection_error, status=status, left=lres, right=rres,
         cross=cross, calibration=rig.summary(), info=info)
+    res.strain = res.surface_strain()
+    return res
 
 
 def _three_d(rig: StereoCalibration, pts: torch.Tensor, cross, okc: torch.Tensor, lres, rres,
