@@ -26,7 +26,7 @@ import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.colors import BoundaryNorm, ListedColormap, Normalize
 from matplotlib.figure import Figure
-from matplotlib.ticker import FuncFormatter, MaxNLocator
+from matplotlib.ticker import FuncFormatter, MaxNLocator, ScalarFormatter
 
 from torch_stsdic.analysis.strain import detect_grid
 from torch_stsdic.core.signatures import POSITIONAL, bind, param, signature_like
@@ -279,7 +279,13 @@ def colorbar(fig: Figure, ax: Axes, mappable: Any, **kwargs: Any) -> Any:
     aspect = abs(x1 - x0) / max(abs(y1 - y0), 1e-12)  # panel width / height (equal aspect)
     width = float(np.clip(0.05 / min(aspect, 1.0), 0.05, 0.2))
     cax = ax.inset_axes((1.0 + 0.4 * width, 0.0, width, 1.0))
-    return fig.colorbar(mappable, cax=cax, **kwargs)
+    cb = fig.colorbar(mappable, cax=cax, **kwargs)
+    if "format" not in kwargs:  # small values (strains) as "-2 ... x 10^-4", not "-0.00020":
+        fmt = ScalarFormatter(useMathText=True)  # long tick labels ran into the next panel
+        fmt.set_powerlimits((-3, 4))
+        cb.formatter = fmt
+        cb.update_ticks()
+    return cb
 
 
 def panel_extent(image: Any, points: np.ndarray) -> tuple[float, float]:

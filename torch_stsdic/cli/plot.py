@@ -606,9 +606,9 @@ class _Stereo:
         return len(self.points)
 
     def label(self, name: str, quantity: str | None = None) -> str:
-        """'W (mm)', 'displacement (mm)', 'status'."""
+        """'W (mm)', 'displacement (mm)', 'status', 'exx' (dimensionless: no unit)."""
         u = self.unit.get(name, "")
-        return f"{quantity or name} ({u})" if u else (quantity or name)
+        return f"{quantity or name} ({u})" if u and u != "1" else (quantity or name)
 
     def when(self, row: int) -> str:
         """'frame 7', or 'frame 7 (t = 0.35)' when the times are not frame numbers."""

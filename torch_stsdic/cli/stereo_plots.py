@@ -12,6 +12,8 @@ import numpy as np
 
 __all__ = ["stereo_frame_figures", "stereo_shape_figure"]
 
+STRAINS = ("exx", "eyy", "exy")
+
 
 def stereo_frame_figures(args: argparse.Namespace, res: Any, row: int, names: list[str],
                          valid: np.ndarray, image: np.ndarray | None, out: Path) -> list[Path]:
@@ -40,8 +42,9 @@ def stereo_frame_figures(args: argparse.Namespace, res: Any, row: int, names: li
         path = out / f"fields_frame{frame:05d}.png"
         plot_fields(image, res.points, maps, path, dpi=args.dpi,
                     labels={nm: res.label(nm) for nm in maps}, notes=notes,
-                    suptitle=f"{name}: {when}, on the left reference points (mm; axes in "
-                    "px); unusable points not drawn")
+                    suptitle=f"{name}: {when}, on the left reference points (mm"
+                    f"{', strains dimensionless' if any(n in maps for n in STRAINS) else ''}; "
+                    "axes in px); unusable points not drawn")
         written.append(path)
     w, h = panel_extent(image, res.points)
     _, _, (fw, fh) = panel_layout(2, w / h, 2, height=4.2 if w <= h else 3.2)
