@@ -252,6 +252,13 @@ def test_one_line_errors(stereo_h5, tmp_path, capsys):
     not_h5.write_text("no")
     with pytest.raises(ValueError, match="not a readable HDF5"):
         StereoResult.from_hdf5(not_h5)
+    # ... and a stereo file given to the 2-D reader names the stereo one
+    from torch_stsdic.io import read_results
+    from torch_stsdic.io.results import ResultFileError
+
+    with pytest.raises(ResultFileError, match="is a stereo result") as e:
+        read_results(stereo_h5)
+    assert "StereoResult.from_hdf5" in str(e.value) and "\n" not in str(e.value)
 
 
 def test_plane_frame_is_a_rigid_change_of_frame(stereo_h5, tmp_path):

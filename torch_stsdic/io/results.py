@@ -77,6 +77,9 @@ class ResultFileError(ValueError):
 # ----------------------------------------------------------------------------------------
 
 RESULTS_FORMAT = "torch_stsdic-results"
+#: the ``format`` attribute of a stereo result file (``stsdic stereo``,
+#: :mod:`torch_stsdic.stereo.result`): named here so that the 2-D reader can point to it
+STEREO_FORMAT = "torch_stsdic-stereo-results"
 RESULTS_FORMAT_VERSION = 1
 DEFAULT_FIELDS: tuple[str, ...] = ("u", "v", "ut", "vt", "zncc", "status")
 STRAIN_FIELDS: tuple[str, ...] = ("exx", "eyy", "exy")
@@ -614,7 +617,13 @@ def open_results(path: Path) -> h5py.File:
     except OSError as exc:
         raise ResultFileError(f"{path} is not a readable HDF5 result file: {exc}") from exc
     if f.attrs.get("format") != RESULTS_FORMAT:
+        stereo = f.attrs.get("format") == STEREO_FORMAT or ("W" in f and "X0" in f)
         f.close()
+        if stereo:
+            raise ResultFileError(
+                f"{path} is a stereo result ('stsdic stereo'), not a 2-D one: read it with "
+                "torch_stsdic.stereo.StereoResult.from_hdf5, export it with "
+                "torch_stsdic.stereo.export.export_stereo (or 'stsdic export')")
         raise ResultFileError(f"{path} is not a {RESULTS_FORMAT} file")
     return f
 

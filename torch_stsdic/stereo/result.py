@@ -13,12 +13,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torch_stsdic.io.results import STEREO_FORMAT
+
 __all__ = ["StereoResult", "best_fit_plane", "FIELDS", "STEREO_FORMAT", "is_stereo_file",
            "open_stereo", "CAMERA_FRAME", "PLANE_FRAME"]
 
-#: the ``format`` attribute of a stereo result file (files written before it existed are
-#: recognised by their ``kind`` attribute or their datasets W and X0: :func:`is_stereo_file`)
-STEREO_FORMAT = "torch_stsdic-stereo-results"
+#: the version of the stereo file format (its ``format`` attribute, STEREO_FORMAT, is named
+#: in :mod:`torch_stsdic.io.results`; files written before it existed are recognised by
+#: their ``kind`` attribute or their datasets W and X0: :func:`is_stereo_file`)
 STEREO_FORMAT_VERSION = 1
 _KIND = "torch_stsdic stereo result"
 
