@@ -67,7 +67,7 @@ def stereo_shape_figure(args: argparse.Namespace, res: Any, row: int, valid: np.
     """``shape_frameNNNNN.png``: the usable points at their 3D position (X, Y, Z mm, left
     camera frame, Y down) of one row, coloured by W, on equal axes."""
     from matplotlib.figure import Figure
-    from matplotlib.ticker import MaxNLocator
+    from matplotlib.ticker import FixedLocator, MaxNLocator
 
     from torch_stsdic.plot import colour_norm, save_figure
 
@@ -87,8 +87,13 @@ def stereo_shape_figure(args: argparse.Namespace, res: Any, row: int, valid: np.
     else:
         ax.text2D(0.5, 0.5, "no usable point at this frame", transform=ax.transAxes,
                   ha="center")
-    for axis, n in ((ax.xaxis, 4), (ax.yaxis, 3), (ax.zaxis, 4)):  # Z (depth) is short
+    # Z (depth) is short; in the plane frame it is the flatness alone (hundredths of a mm
+    # on equal axes): one tick there, or the labels run into each other
+    extent = np.ptp(xyz, 0) if len(xyz) else np.ones(3)
+    for axis, n in ((ax.xaxis, 4), (ax.yaxis, 3), (ax.zaxis, 4)):
         axis.set_major_locator(MaxNLocator(n))
+    if len(xyz) and extent[2] < 0.1 * max(extent[0], extent[1]):
+        ax.yaxis.set_major_locator(FixedLocator([float(np.round(np.median(xyz[:, 2]), 2))]))
     ax.set_xlabel(res.label("X"))
     ax.set_ylabel(res.label("Z"), labelpad=8)
     ax.set_zlabel(res.label("Y"))
