@@ -46,7 +46,8 @@ FORMATS = ("csv", "vtk", "mat")
 _VALUES = ("X", "Y", "Z", "U", "V", "W", "Ut", "Vt", "Wt")
 #: the CSV columns, in order: x, y (left reference px), then the (F, N) fields
 COLUMNS: tuple[str, ...] = ("x", "y", *_VALUES, *(f"{k}_std" for k in _VALUES),
-                            "exx", "eyy", "exy", "reprojection_error", "status")
+                            "exx", "eyy", "exy", "exx_std", "eyy_std", "exy_std",
+                            "reprojection_error", "status")
 
 Frames = int | Sequence[int] | None
 

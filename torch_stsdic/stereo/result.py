@@ -88,7 +88,8 @@ class StereoResult:
     #: the coordinate frame of X..Wt and X0 (:data:`CAMERA_FRAME` or :data:`PLANE_FRAME`)
     frame: str = field(default="")
     #: surface strain "exx", "eyy", "exy" (F, N), dimensionless: Green-Lagrange in the
-    #: reference tangent plane, b1 along the frame's X axis projected onto it
+    #: reference tangent plane, b1 along the frame's X axis projected onto it; with their
+    #: predicted std "exx_std", ... where the displacement's std is known
     #: (:func:`~torch_stsdic.stereo.strain.surface_strain`); empty where not computed
     strain: dict[str, Tensor] = field(default_factory=dict)
 
@@ -124,7 +125,9 @@ class StereoResult:
 
         size = subset_size if subset_size is not None else self.info.get("subset_size", 21)
         u = torch.where(self.ok[..., None], self.displacement.double(), torch.nan)
-        return surface_strain(self.points, self.X0, u, float(size), k=k)
+        sd = (torch.stack([self.std[c] for c in "UVW"], -1)
+              if all(c in self.std for c in "UVW") else None)
+        return surface_strain(self.points, self.X0, u, float(size), k=k, U_std=sd)
 
     def in_plane_frame(self) -> StereoResult:
         """The same result with X, Y, Z, U, V, W, their velocities, X0 and the stds in the
@@ -201,9 +204,10 @@ class StereoResult:
             for name, a in self.strain.items():
                 d = f.create_dataset(name, data=a.cpu().numpy())
                 d.attrs["units"] = "1"
-                d.attrs["what"] = ("Green-Lagrange surface strain in the reference tangent "
-                                   "plane (b1: the frame's X axis projected onto it); exy: "
-                                   "tensor shear")
+                d.attrs["what"] = ("predicted std (first order) of " if name.endswith("_std")
+                                   else "") + ("Green-Lagrange surface strain in the "
+                                               "reference tangent plane (b1: the frame's X "
+                                               "axis projected onto it); exy: tensor shear")
             d = f.create_dataset("X0", data=self.X0.cpu().numpy())
             d.attrs["units"] = "mm"
             d = f.create_dataset("X0_std", data=self.X0_std.cpu().numpy())
@@ -231,7 +235,8 @@ class StereoResult:
                  ("points", "right_points", "frames", "times", "X0", "X0_std", *FIELDS)}
             std = {k: torch.as_tensor(f[f"{k}_std"][()]) for k in FIELDS if f"{k}_std" in f}
             status = torch.as_tensor(f["status"][()].astype(np.int8))
-            strain = {k: torch.as_tensor(f[k][()]) for k in ("exx", "eyy", "exy") if k in f}
+            strain = {k: torch.as_tensor(f[k][()]) for k in
+                      ("exx", "eyy", "exy", "exx_std", "eyy_std", "exy_std") if k in f}
             cal = json.loads(f.attrs.get("calibration", "{}"))
             info = json.loads(f.attrs.get("info", "{}"))
             frame = str(f.attrs.get("frame", CAMERA_FRAME))

@@ -26,7 +26,8 @@ STRAIN_FIELDS = {"exx": "1", "eyy": "1", "exy": "1"}
 
 
 def surface_strain(points: Tensor, X0: Tensor, U: Tensor, subset_size: float, *,
-                   axis: Tensor | None = None, k: int = 9) -> dict[str, Tensor]:
+                   axis: Tensor | None = None, k: int = 9, U_std: Tensor | None = None
+                   ) -> dict[str, Tensor]:
     """Green-Lagrange surface strain at every point and frame.
 
     Args:
@@ -37,10 +38,15 @@ def surface_strain(points: Tensor, X0: Tensor, U: Tensor, subset_size: float, *,
         axis: (3,) the direction b1 follows (projected onto each tangent plane; default the
             camera's x, (1, 0, 0)).
         k: points per local fit (the point and its nearest neighbours; 9: a 3 x 3 block).
+        U_std: (F, N, 3) the displacement's predicted std per component, mm (optional).
 
     Returns:
         "exx", "eyy", "exy": (F, N) float64; NaN where the point or a neighbour is not
-        usable in that frame, or its neighbourhood is degenerate.
+        usable in that frame, or its neighbourhood is degenerate. With ``U_std`` also
+        "exx_std", "eyy_std", "exy_std": to first order in the strain, each is a weighted
+        sum of the neighbours' displacements along b1 or b2; its variance is ``w^T R w``
+        (R: the neighbours' error correlation, their subsets' overlap) times the
+        neighbourhood's mean variance along that direction (components taken independent).
     """
     pts = points.double().cpu()
     x0 = X0.double().cpu()
@@ -71,6 +77,20 @@ def surface_strain(points: Tensor, X0: Tensor, U: Tensor, subset_size: float, *,
     e = 0.5 * (c - torch.eye(2, dtype=c.dtype))
     keep = good[None] & ~bad & torch.isfinite(u).all(-1)
     nan = torch.tensor(float("nan"), dtype=torch.float64)
-    return {"exx": torch.where(keep, e[..., 0, 0], nan),
-            "eyy": torch.where(keep, e[..., 1, 1], nan),
-            "exy": torch.where(keep, e[..., 0, 1], nan)}
+    out = {"exx": torch.where(keep, e[..., 0, 0], nan),
+           "eyy": torch.where(keep, e[..., 1, 1], nan),
+           "exy": torch.where(keep, e[..., 0, 1], nan)}
+    if U_std is not None:
+        # E ~ sym(B^T dU/d(s,t) A^-1): E11 = sum_j (b1 . U_j) w1_j, w_i = slopes_j @ A^-1[:, i]
+        w = slopes @ inv  # (N, k, 2)
+        f1 = fit.variance_factor(w[..., 0])  # (N,) w1^T R w1
+        f2 = fit.variance_factor(w[..., 1])
+        var = torch.nan_to_num(U_std.double().cpu() ** 2, nan=0.0)  # (F, N, 3)
+        along = torch.stack([(var * basis[None, :, :, i] ** 2).sum(-1) for i in (0, 1)],
+                            -1)  # (F, N, 2): variance along b1, b2
+        nb = along[:, fit.index].mean(2)  # (F, N, 2) the neighbourhood's mean
+        out["exx_std"] = torch.where(keep, (f1 * nb[..., 0]).sqrt(), nan)
+        out["eyy_std"] = torch.where(keep, (f2 * nb[..., 1]).sqrt(), nan)
+        out["exy_std"] = torch.where(keep, (0.25 * (f2 * nb[..., 0] + f1 * nb[..., 1])).sqrt(),
+                                     nan)
+    return out
