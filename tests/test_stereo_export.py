@@ -337,3 +337,37 @@ def test_stereo_input_guards_are_one_line(stereo_h5, tmp_path, capsys):
         err = capsys.readouterr().err.strip().splitlines()
         assert code == 1 and msg in err[-1] and err[-1].startswith("stsdic: error:"), (extra, err)
         assert not out.exists()
+
+
+def test_interrupted_run_resumes_to_the_same_file(stereo_h5, tmp_path, capsys, monkeypatch):
+    """``stsdic stereo`` writes each camera's track as it goes (``<out>.left.h5``,
+    ``<out>.right.h5``); stopped during the right camera, it says what is kept (exit 130)
+    and ``--resume`` keeps the left camera's frames and writes the file an uninterrupted run
+    writes; the cameras' files are removed once the result is written."""
+    import torch_stsdic.stereo.run as stereo_run
+
+    d = stereo_h5.parent
+    out = tmp_path / "r.h5"
+    argv = ["stereo", "--left", str(d / "left.tif"), "--right", str(d / "right.tif"),
+            "--calibration", str(d / "cal.yml"), "--m", "1", "--step", "20", "--roi", "20",
+            "20", "160", "120", "--out", str(out), "--no-progress"]
+    real, calls, stop = stereo_run.track, [], [True]
+
+    def stop_on_right(*a, **k):
+        calls.append(k.get("resume"))
+        if stop[0] and len(calls) == 2:  # the right camera
+            raise KeyboardInterrupt
+        return real(*a, **k)
+    monkeypatch.setattr(stereo_run, "track", stop_on_right)
+    assert main(argv) == 130
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "left camera 6 frame(s) in r.left.h5" in err and "--resume" in err, err
+    assert not out.exists() and (tmp_path / "r.left.h5").exists()
+    calls.clear()
+    stop[0] = False
+    assert main([*argv, "--resume"]) == 0
+    assert calls == [True, False]  # the left camera's file continued, the right one new
+    assert not (tmp_path / "r.left.h5").exists() and not (tmp_path / "r.right.h5").exists()
+    with h5py.File(out, "r") as a, h5py.File(stereo_h5, "r") as b:
+        for k in ("X", "Y", "Z", "U", "V", "W", "status", "exx"):
+            np.testing.assert_array_equal(a[k][()], b[k][()], err_msg=k)

@@ -15,6 +15,7 @@ import sys
 import time
 
 from torch_stsdic.cli import options
+from torch_stsdic.cli.signals import Interrupted
 from torch_stsdic.core.config import DICConfig
 
 NAME = "stereo"
@@ -73,6 +74,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                        "plane's origin and rotation are stored)")
     options.add_option(p, "--device", default="cpu", help="torch device")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out")
+    p.add_argument("--resume", action="store_true",
+                   help="continue an interrupted run: the frames its two cameras finished "
+                   "(in <out>.left.h5, <out>.right.h5, written as the run goes and removed "
+                   "once --out is written) are kept")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
@@ -82,10 +87,11 @@ def _series(items: list[str]):
 
 def execute(args: argparse.Namespace) -> int:
     from torch_stsdic.stereo.calibration import load_calibration
-    from torch_stsdic.stereo.run import track_stereo
+    from torch_stsdic.stereo.run import track_stereo, work_files
 
     if os.path.exists(args.out) and not args.overwrite:
-        raise ValueError(f"--out: {args.out} exists (use --overwrite to replace it)")
+        raise ValueError(f"--out: {args.out} exists (use --overwrite to replace it)"
+                         + (": that run is complete" if args.resume else ""))
     if args.subset < 3 or args.subset % 2 == 0:
         raise ValueError(f"--subset must be an odd number >= 3, got {args.subset}")
     if args.m < 0:
@@ -96,17 +102,46 @@ def execute(args: argparse.Namespace) -> int:
     print(rig.describe(), file=sys.stderr)
     ref = int(args.reference) if args.reference.lstrip("-").isdigit() else args.reference
     t0 = time.perf_counter()
-    res = track_stereo(_series(args.left), _series(args.right), rig, roi=args.roi,
-                       step=args.step, config=DICConfig(subset_size=args.subset, m=args.m),
-                       reference=ref, device=args.device, progress=not args.no_progress,
-                       cross_shape=args.cross_shape, max_reprojection=args.max_reprojection,
-                       refine_reference=args.refine_reference)
+    try:
+        res = _track(args, rig, ref, track_stereo)
+    except KeyboardInterrupt as exc:  # say what the cameras' files keep
+        stop = exc if isinstance(exc, Interrupted) else Interrupted()
+        raise stop.with_detail(_kept(args.out, work_files)) from None
     if args.coordinates == "plane":
         res = res.in_plane_frame()
     res.to_hdf5(args.out, overwrite=args.overwrite)
+    for f in work_files(args.out):  # the cameras' files: the result now holds what they did
+        f.unlink(missing_ok=True)
     ok = res.ok
     print(f"stereo: {res.points.shape[0]} points x {res.frames.numel()} frames, "
           f"{int(res.info['cross_ok'])} matched left -> right, {float(ok.float().mean()):.1%} "
           f"usable, reference reprojection {res.info['reference_reprojection_px']:.3f} px "
           f"(median), {time.perf_counter() - t0:.1f} s -> {args.out}", file=sys.stderr)
     return 0
+
+
+def _track(args: argparse.Namespace, rig, ref, track_stereo):
+    """The stereo run of the command's options (its cameras' files beside ``--out``)."""
+    return track_stereo(_series(args.left), _series(args.right), rig, roi=args.roi,
+                        step=args.step, config=DICConfig(subset_size=args.subset, m=args.m),
+                        reference=ref, device=args.device, progress=not args.no_progress,
+                        cross_shape=args.cross_shape, max_reprojection=args.max_reprojection,
+                        refine_reference=args.refine_reference, work=args.out,
+                        resume=args.resume)
+
+
+def _kept(out: str, work_files) -> str:
+    """What an interrupted run keeps: the finished frames of each camera's file."""
+    import h5py
+
+    parts = []
+    for name, f in zip(("left", "right"), work_files(out)):
+        done = 0
+        if f.exists():
+            try:
+                with h5py.File(f, "r", locking=False) as h:
+                    done = int(h["completed"][()].sum()) if "completed" in h else 0
+            except OSError:
+                done = 0
+        parts.append(f"{name} camera {done} frame(s) in {f.name}")
+    return ", ".join(parts) + "; continue with the same command and --resume"

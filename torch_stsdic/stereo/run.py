@@ -14,7 +14,9 @@
 
 from __future__ import annotations
 
+import os
 import time as _time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -31,9 +33,17 @@ from .matching import match_stereo
 from .result import StereoResult
 from .triangulation import propagate_std, triangulate
 
-__all__ = ["track_stereo"]
+__all__ = ["track_stereo", "work_files"]
 
 DTYPE = torch.float64
+
+
+def work_files(work: str | os.PathLike[str]) -> tuple[Path, Path]:
+    """The two cameras' result files of a stereo run whose work stem is ``work``
+    (``3d.h5`` -> ``3d.left.h5``, ``3d.right.h5``)."""
+    p = Path(work)
+    stem = p.with_suffix("") if p.suffix == ".h5" else p
+    return stem.with_name(stem.name + ".left.h5"), stem.with_name(stem.name + ".right.h5")
 
 
 def _reference_image(series, reference, which: str) -> torch.Tensor:
@@ -51,7 +61,8 @@ def track_stereo(left: Any, right: Any, calibration: StereoCalibration | str, *,
                  config: DICConfig | None = None, reference: Any = 0, frames: Any = None,
                  times: Any = None, device: str | torch.device = "cpu", progress: bool = False,
                  cross_shape: str = "affine", depth_range=None,
-                 max_reprojection: float = 1.0, **track_kwargs: Any) -> StereoResult:
+                 max_reprojection: float = 1.0, work: str | os.PathLike[str] | None = None,
+                 resume: bool = False, **track_kwargs: Any) -> StereoResult:
     """Stereo STS-DIC: 3D shape, displacement and velocity of points over a stereo movie.
 
     Args:
@@ -69,6 +80,11 @@ def track_stereo(left: Any, right: Any, calibration: StereoCalibration | str, *,
         cross_shape: subset warp of the cross-camera match, "affine" or "quadratic".
         depth_range: (min, max) depth mm of the epipolar search (default: any).
         max_reprojection: px; rows whose reprojection error exceeds it are INCONSISTENT.
+        work: the stem of the two cameras' result files, written as the tracks go
+            (``<work>.left.h5``, ``<work>.right.h5``: 2-D result files; a killed run keeps
+            every finished frame of them). None: in memory only.
+        resume: continue the tracks in the ``work`` files (frames finished there are kept,
+            as ``stsdic run --resume`` keeps them); else they are replaced.
         **track_kwargs: passed to both :func:`torch_stsdic.track` calls
             (``refine_reference``, ``shared_motion``, ``checks`` ...).
 
@@ -114,8 +130,15 @@ def track_stereo(left: Any, right: Any, calibration: StereoCalibration | str, *,
     common = dict(frames=frames, config=cfg, device=device, times=times, progress=progress,
                   **track_kwargs)
     t0 = _time.perf_counter()
-    lres = track(ls, reference=ref_l, points=pts, **common)
-    rres = track(rs, reference=ref_r, points=cross.right[okc], **common)
+    files = work_files(work) if work is not None else (None, None)
+
+    def camera(series, ref, p, f: Path | None):  # the track of one camera, into its file
+        return track(series, reference=ref, points=p, out=f,
+                     resume=bool(resume and f is not None and f.exists()),
+                     overwrite=f is not None and not resume, **common)
+
+    lres = camera(ls, ref_l, pts, files[0])
+    rres = camera(rs, ref_r, cross.right[okc], files[1])
     t_track = _time.perf_counter() - t0
     d = _three_d(rig, pts, cross, okc, lres, rres, cfg, max_reprojection)
     X, U, vel, std, X0, x0_std = d["X"], d["U"], d["vel"], d["std"], d["X0"], d["x0_std"]
