@@ -24,6 +24,9 @@ import torch
 import torch_stsdic as sts
 from torch_stsdic.io.images import load_series
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from series_reference_floor import errors  # noqa: E402  (the same statistics)
+
 ROOT = Path(__file__).resolve().parents[2]
 
 
@@ -49,11 +52,8 @@ def main(argv: list[str] | None = None) -> int:
                             roi=(40, 40, 471, 471), progress=False,
                             series_reference="auto" if ref == "series" else False)
             sec = time.perf_counter() - t0
-            e = torch.stack([res.u.double()[1:] - truth[1:], res.v.double()[1:] - truth[1:]])
-            pred = torch.stack([res.std["u"].double()[1:], res.std["v"].double()[1:]])
-            rms = float(e.pow(2).nanmean().sqrt())
-            rand = float((e - e.nanmean(-1, keepdim=True)).pow(2).nanmean().sqrt())
-            p = float(pred.pow(2).nanmean().sqrt())
+            err = errors(res, {"u": truth.expand_as(res.u), "v": truth.expand_as(res.v)})
+            rms, rand, p = err["rms"], err["random"], err["predicted"]
             base = rms if base is None else base
             lines.append(f"| {m} | {ref} | {rms * 1e3:.2f} | {rms / base:.3f} | "
                          f"{rand * 1e3:.2f} | {p * 1e3:.2f} | {rand / p:.2f} | {sec:.1f} |")

@@ -581,7 +581,7 @@ class _Stereo:
 
     def __init__(self, path: Path) -> None:
         from torch_stsdic.stereo.export import COLUMNS, stereo_units, time_unit
-        from torch_stsdic.stereo.result import open_stereo
+        from torch_stsdic.stereo.result import PLANE_FRAME, open_stereo
 
         with open_stereo(path) as f:
             self.points = f["points"][()]
@@ -591,7 +591,7 @@ class _Stereo:
             self.fields = {nm: f[nm][()] for nm in names}
             self.unit = stereo_units(f, names)
             self.time_unit = time_unit(f)
-            self.plane_frame = str(f.attrs.get("frame", "")).startswith("best-fit plane")
+            self.plane_frame = f.attrs.get("frame") == PLANE_FRAME
         self.path = path
         self.completed = np.ones(len(self.frames), dtype=bool)
         self.config: dict[str, Any] = {}
