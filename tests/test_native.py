@@ -595,6 +595,8 @@ def test_failing_chunk_raises_naming_its_rows():
 
 
 _INTERRUPT_CHILD = """
+import faulthandler
+import signal
 import sys
 import torch
 from torch_stsdic.kernels import native
@@ -602,6 +604,7 @@ from torch_stsdic.core.interpolation import BSplineImage
 from torch_stsdic.core.shape import AffineShape
 
 rounds = int(sys.argv[1])
+faulthandler.register(signal.SIGUSR1, all_threads=True)  # the stacks, should it hang
 torch.set_num_threads(2)
 g = torch.Generator().manual_seed(0)
 img = BSplineImage(torch.rand(3, 256, 256, generator=g, dtype=torch.float64) * 255, 3)
@@ -695,13 +698,15 @@ def _interrupt_children(tmp_path, children: int, interrupts: int, seed: int) -> 
                         break
             rc = ch.wait(timeout=30)
         except subprocess.TimeoutExpired:
+            ch.send_signal(signal.SIGUSR1)  # every thread's stack to stderr
+            time.sleep(2)
             ch.kill()
             rc = "hung"
         err = ch.stderr.read()
         if rc != 130 or got[-1:] != [f"interrupted {interrupts} exit"] or \
                 any(not (x or "").endswith(("ok", "exit")) for x in got) or \
                 "Exception ignored" in err or "Traceback" in err:
-            problems.append(f"exit code {rc}, lines {got}, stderr {err[-600:]!r}")
+            problems.append(f"exit code {rc}, lines {got}, stderr {err[-3000:]!r}")
 
     burner = subprocess.Popen([sys.executable, "-c", "while True: pass"])
     try:
@@ -733,6 +738,91 @@ def test_ctrl_c_never_crashes_in_the_kernels_long(tmp_path):
     for seed in range(5):
         problems += _interrupt_children(tmp_path, children=2, interrupts=10, seed=100 + seed)
     assert not problems, problems
+
+
+_INJECT_CHILD = """
+import dis, faulthandler, sys
+import torch
+from torch_stsdic.kernels import native
+from torch_stsdic.core.interpolation import BSplineImage
+torch.set_num_threads(2)
+g = torch.Generator().manual_seed(0)
+img = BSplineImage(torch.rand(1, 64, 64, generator=g, dtype=torch.float64) * 255, 3)
+a = img.kernel_args()
+n = 25000
+x = torch.rand(n, 1, generator=g, dtype=torch.float64) * 40 + 10
+y = torch.rand(n, 1, generator=g, dtype=torch.float64) * 40 + 10
+z = torch.zeros(n, 1, dtype=torch.long)
+call = lambda: native.sample(a, 3, x, y, z, False)
+want = call()
+_ops = {}
+CHECKS = {"CALL", "CALL_FUNCTION_EX", "JUMP_BACKWARD"}
+
+def opname(code, off):
+    m = _ops.get(code)
+    if m is None:
+        m = _ops[code] = {i.offset: i.opname for i in dis.get_instructions(code)}
+    return m.get(off)
+
+class Inject:
+    def __init__(self, at): self.at, self.k, self.prev = at, 0, {}
+    def __call__(self, frame, event, arg):
+        f = frame.f_code.co_filename
+        if not f.endswith(("rows.py", "threading.py", "thread.py", "_base.py", "queue.py")):
+            return None
+        frame.f_trace_opcodes = True
+        point = False
+        if event == "call":
+            point = True
+        elif event == "opcode":
+            point = self.prev.get(id(frame)) in CHECKS
+            self.prev[id(frame)] = opname(frame.f_code, frame.f_lasti)
+        if point:
+            self.k += 1
+            if self.k == self.at:
+                raise KeyboardInterrupt
+        return self
+
+count = Inject(-1); sys.settrace(count); call(); sys.settrace(None)
+total = count.k
+print("points", total, flush=True)
+hits = 0
+for at in range(1, total + 1):
+    faulthandler.dump_traceback_later(20, exit=True)
+    sys.settrace(Inject(at))
+    try:
+        call()
+    except KeyboardInterrupt:
+        hits += 1
+    finally:
+        sys.settrace(None)
+    got = call()
+    faulthandler.cancel_dump_traceback_later()
+    assert all(torch.equal(u, v) for u, v in zip(got, want))
+print("ok", hits, "interrupts of", total, flush=True)
+"""
+
+
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2 if hasattr(os, "sched_getaffinity")
+                    else True, reason="the row runner hands out chunks only with 2+ CPUs")
+def test_an_interrupt_at_any_signal_check_never_wedges_the_row_runner(tmp_path):
+    """A KeyboardInterrupt injected (by a trace function) at every point where CPython checks
+    for signals in the calling thread - function entries, right after each call returns,
+    backward jumps - of the row runner and the stdlib code it calls: the next call finishes,
+    with the same numbers. A lock taken in Python code (threading.Event/Condition,
+    ThreadPoolExecutor's semaphore) is left taken by an interrupt right after its acquire
+    returns, and the next call waits forever: the runner of 841b173 hangs at the 69th
+    point (in ThreadPoolExecutor.submit); the CI run of 841b173 hung that way once, in
+    test_ctrl_c_never_crashes_in_the_kernels."""
+    script = tmp_path / "inject.py"
+    script.write_text(_INJECT_CHILD)
+    root = str(Path(sts.__file__).resolve().parents[1])
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([root, os.environ.get("PYTHONPATH", "")])}
+    r = subprocess.run([sys.executable, str(script)], env=env, capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 0 and "\nok " in r.stdout, (r.returncode, r.stdout[-500:],
+                                                       r.stderr[-3000:])
+    assert int(r.stdout.split("interrupts of")[1]) > 30  # the points were found
 
 
 @pytest.mark.parametrize("p", [1, 6, 8, 12])

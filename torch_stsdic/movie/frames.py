@@ -84,7 +84,11 @@ def default_ahead(batch_frames: int, m: int) -> int:
 
 
 class _Reader(threading.Thread):
-    """Decodes, uploads and prefilters the frames ``order`` in turn into a bounded queue."""
+    """Decodes, uploads and prefilters the frames ``order`` in turn into a bounded queue.
+
+    The consumer's side (:meth:`take`, :meth:`close`, on the calling thread) uses only a
+    ``queue.SimpleQueue`` (C) and plain attributes: a Ctrl-C there cannot leave a lock taken
+    for good (``queue.Queue`` and ``threading.Event`` take theirs in Python code)."""
 
     _DONE = object()
 
@@ -92,8 +96,11 @@ class _Reader(threading.Thread):
         super().__init__(name="stsdic-frames", daemon=True)
         self.cache, self.order = cache, order
         self.pos = {i: p for p, i in enumerate(order)}
-        self.q: queue.Queue = queue.Queue(maxsize=max(1, ahead))
-        self.stop = threading.Event()
+        self.q: queue.SimpleQueue = queue.SimpleQueue()
+        self.ahead = max(1, ahead)
+        self.queued = 0  # producer: items put
+        self.taken = 0  # consumer: items taken
+        self.stopped = False
         self.next_pos = 0  # consumer: position in ``order`` of the next item in the queue
         self.read_s = self.prefilter_s = 0.0  # this thread's own time
         dev = torch.device(cache.device)
@@ -103,7 +110,7 @@ class _Reader(threading.Thread):
         c = self.cache
         try:
             for p, i in enumerate(self.order):
-                if self.stop.is_set():
+                if self.stopped:
                     return
                 t0 = time.perf_counter()
                 cpu = c.series.get(i, dtype=c.dtype)
@@ -128,12 +135,13 @@ class _Reader(threading.Thread):
             self._put(self._DONE)
 
     def _put(self, item) -> None:
-        while not self.stop.is_set():
-            try:
-                self.q.put(item, timeout=0.1)
+        """Into the queue once it holds fewer than ``ahead`` items (or never, once stopped)."""
+        while not self.stopped:
+            if self.queued - self.taken < self.ahead:
+                self.q.put(item)
+                self.queued += 1
                 return
-            except queue.Full:
-                continue
+            time.sleep(0.002)
 
     def take(self, i: int):
         """(raw, prepared) of frame ``i``, or None if it is not (any more) ahead in the queue."""
@@ -146,6 +154,7 @@ class _Reader(threading.Thread):
                 self.next_pos = len(self.order)
                 self.q.put(item)  # stays done
                 return None
+            self.taken += 1
             if isinstance(item, BaseException):
                 raise item
             pos, _, raw, prep, ev = item
@@ -159,8 +168,8 @@ class _Reader(threading.Thread):
                 return raw, prep
 
     def close(self) -> None:
-        self.stop.set()
-        while True:  # unblock a put in progress
+        self.stopped = True  # a put in progress gives up within 2 ms
+        while True:
             try:
                 self.q.get_nowait()
             except queue.Empty:

@@ -9,9 +9,10 @@ never interrupted.
 
 from __future__ import annotations
 
+import _thread
 import os
+import queue
 import threading
-from concurrent.futures import ThreadPoolExecutor
 
 import torch
 
@@ -19,9 +20,6 @@ from torch_stsdic.kernels.native.declarations import Kernel
 
 __all__ = ["run_rows", "run_shared", "threads"]
 
-_POOL: ThreadPoolExecutor | None = None
-_POOL_SIZE = 0
-_POOL_PID = 0
 # below this many samples a call runs on the calling thread (thread hand-off costs ~50 us)
 _PARALLEL_MIN = 20_000
 
@@ -38,14 +36,45 @@ def threads() -> int:
         return n
 
 
-def _pool(n: int) -> ThreadPoolExecutor:
+class _Pool:
+    """``size`` helper threads taking tasks from a queue.
+
+    Made of the primitives a Ctrl-C cannot wedge: a ``queue.SimpleQueue`` (C) and threads
+    started by ``_thread.start_new_thread``. (``threading.Event``, ``Condition``,
+    ``queue.Queue`` and ``ThreadPoolExecutor`` take a lock in Python code; a KeyboardInterrupt
+    raised in the calling thread just after that lock is taken leaves it taken for good, and
+    the next call waits forever: seen once in CI and within ~2,000 interrupts in a stress
+    loop.)"""
+
+    def __init__(self, size: int) -> None:
+        self.size, self.pid = size, os.getpid()
+        self.tasks: queue.SimpleQueue = queue.SimpleQueue()
+        for _ in range(size):
+            _thread.start_new_thread(self._work, (self.tasks,))
+
+    @staticmethod
+    def _work(tasks: queue.SimpleQueue) -> None:
+        while (task := tasks.get()) is not None:
+            task()  # _Rows.helper: catches everything itself
+
+    def submit(self, task) -> None:
+        self.tasks.put(task)
+
+    def close(self) -> None:
+        for _ in range(self.size):
+            self.tasks.put(None)
+
+
+_POOL: _Pool | None = None
+
+
+def _pool(n: int) -> _Pool:
     """The helper threads (made again after a fork: a forked child has none of them)."""
-    global _POOL, _POOL_SIZE, _POOL_PID
-    if _POOL is None or _POOL_SIZE != n or _POOL_PID != os.getpid():
-        if _POOL is not None and _POOL_PID == os.getpid():
-            _POOL.shutdown(wait=False)  # idle: every call waits for its helpers
-        _POOL = ThreadPoolExecutor(max_workers=n, thread_name_prefix="stsdic")
-        _POOL_SIZE, _POOL_PID = n, os.getpid()
+    global _POOL
+    if _POOL is None or _POOL.size != n or _POOL.pid != os.getpid():
+        if _POOL is not None and _POOL.pid == os.getpid():
+            _POOL.close()  # idle: every call waits for its helpers
+        _POOL = _Pool(n)
     return _POOL
 
 
@@ -58,13 +87,14 @@ class _Rows:
     or by an exception (KeyboardInterrupt included), while a helper is inside the kernel: an
     exception in the calling thread stops the hand-out of chunks and waits for the chunks
     under way (at most one per helper; an interrupt during that wait is held back and the
-    first exception propagates)."""
+    first exception propagates). The calling thread only ever takes ``lock`` in a ``with``
+    (a C-level enter and exit) and waits on ``done``, a bare lock that the last helper to
+    leave releases: an interrupt at any moment leaves nothing taken for good."""
 
     def __init__(self, kernel: Kernel, raw: list, keep: list, edges: list[int]):
         self.kernel, self.raw, self.keep, self.edges = kernel, raw, keep, edges
         self.lock = threading.Lock()
-        self.idle = threading.Event()
-        self.idle.set()
+        self.done = _thread.allocate_lock()  # released by the last helper out
         self.next = 0
         self.busy = 0  # helpers inside the loop below
         self.stop = False
@@ -89,11 +119,10 @@ class _Rows:
     def helper(self) -> None:
         """A pool thread's part (signals are handled on the main thread only: no
         KeyboardInterrupt here)."""
-        with self.lock:  # registered as busy before the calling thread can see idle
+        with self.lock:  # registered as busy before the calling thread can see it idle
             if self.stop or self.next >= len(self.edges) - 1:
                 return
             self.busy += 1
-            self.idle.clear()
         try:
             while (j := self._take()) is not None:
                 self._chunk(j)
@@ -103,8 +132,8 @@ class _Rows:
         finally:
             with self.lock:
                 self.busy -= 1
-                if not self.busy:
-                    self.idle.set()
+                if not self.busy and self.done.locked():
+                    self.done.release()
 
     def _wait(self) -> BaseException | None:
         """Until no helper is inside the kernel; returns an exception (e.g. a second Ctrl-C)
@@ -113,21 +142,20 @@ class _Rows:
         while True:
             try:
                 with self.lock:  # a helper past its stop check is counted in busy now
-                    pass
-                self.idle.wait()
-                return held
+                    if not self.busy:
+                        return held
+                # the first pass takes ``done`` at once, the next waits for the last helper
+                # to release it (the timeout: a safety net, never needed)
+                self.done.acquire(True, 0.05)
             except BaseException as exc:
                 held = held or exc
                 self.stop = True
 
-    def run(self, pool: ThreadPoolExecutor, helpers: int) -> None:
+    def run(self, pool: _Pool, helpers: int) -> None:
         done = False
         try:
             for _ in range(helpers):
-                try:
-                    pool.submit(self.helper)
-                except RuntimeError:  # interpreter shutting down: no new threads
-                    break
+                pool.submit(self.helper)
             while (j := self._take()) is not None:
                 self._chunk(j)
             done = True
