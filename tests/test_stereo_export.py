@@ -275,10 +275,25 @@ def test_plane_frame_is_a_rigid_change_of_frame(stereo_h5, tmp_path):
     assert float(x0.mean(0).abs().max()) < 1e-9
     # Z is the normal: its spread is the shape's departure from a plane, far below X, Y's
     assert float(x0[:, 2].std()) < 0.05 * float(x0[:, :2].std(0).min())
+    # X is the camera's x projected onto the plane (as docs/stereo.md says)
+    ex = torch.tensor([1.0, 0.0, 0.0], dtype=rot.dtype)
+    want = ex - (ex @ rot[2]) * rot[2]
+    assert torch.allclose(rot[0], want / want.norm(), atol=1e-12)
     both = cam.ok & torch.isfinite(cam.U)
     n_cam = cam.displacement.norm(dim=-1)[both]
     n_pl = pl.displacement.norm(dim=-1)[both]
     assert torch.allclose(n_cam, n_pl, atol=1e-12)
+    # the displacement's covariance (read back from the file) turns as R C R^T, and the
+    # plane frame's stds of U, V, W (and X, Y, Z) are its diagonal
+    assert cam.U_cov is not None and cam.U_cov.shape == (*cam.U.shape, 3, 3)
+    torch.testing.assert_close(torch.diagonal(cam.U_cov, dim1=-2, dim2=-1).sqrt(),
+                               torch.stack([cam.std[c] for c in "UVW"], -1), equal_nan=True)
+    torch.testing.assert_close(pl.U_cov, rot @ cam.U_cov @ rot.T, equal_nan=True)
+    for a, b, i in (("U", "X", 0), ("V", "Y", 1), ("W", "Z", 2)):
+        want = pl.U_cov[..., i, i].sqrt()
+        torch.testing.assert_close(pl.std[a], want, equal_nan=True)
+        torch.testing.assert_close(pl.std[b], want, equal_nan=True)
+    assert not torch.allclose(pl.std["W"][both], cam.std["W"][both])  # W: the plane normal
     back = torch.stack([pl.X, pl.Y, pl.Z], -1) @ rot.to(pl.X.dtype) + origin.to(pl.X.dtype)
     assert torch.allclose(back[both], torch.stack([cam.X, cam.Y, cam.Z], -1)[both], atol=1e-9)
     with pytest.raises(ValueError, match="already"):
@@ -290,7 +305,10 @@ def test_plane_frame_is_a_rigid_change_of_frame(stereo_h5, tmp_path):
         np.testing.assert_allclose(f["plane_rotation"][()], rot.numpy(), atol=1e-12)
         np.testing.assert_allclose(f["plane_origin"][()], origin.numpy(), atol=1e-12)
         np.testing.assert_allclose(f["W"][()], pl.W.numpy())
-    assert StereoResult.from_hdf5(out).frame == pl.frame
+        assert f["U_cov"].shape == (*pl.U.shape, 6) and f["U_cov"].attrs["units"] == "mm^2"
+    back_pl = StereoResult.from_hdf5(out)
+    assert back_pl.frame == pl.frame
+    torch.testing.assert_close(back_pl.U_cov, pl.U_cov, equal_nan=True)
 
 
 def test_command_writes_the_plane_frame(stereo_h5, tmp_path):

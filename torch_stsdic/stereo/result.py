@@ -31,6 +31,9 @@ PLANE_FRAME = ("best-fit plane of the reference shape: X, Y in the plane (X alon
                "camera's x as far as the plane allows), Z its normal towards the camera; "
                "origin the usable reference points' centroid")
 
+#: the entries of a covariance stored in a file: UU, VV, WW, UV, UW, VW
+_COV_PAIRS = ([0, 1, 2, 0, 0, 1], [0, 1, 2, 1, 2, 2])
+
 #: the (F, N) fields of a result and their units
 FIELDS = {"X": "mm", "Y": "mm", "Z": "mm", "U": "mm", "V": "mm", "W": "mm",
           "Ut": "mm per time unit", "Vt": "mm per time unit", "Wt": "mm per time unit",
@@ -53,6 +56,10 @@ class StereoResult:
             noise carried through the triangulation).
         std: name -> (F, N) predicted standard deviation of "X", "Y", "Z", "U", "V", "W",
             "Ut", "Vt", "Wt" (pixel stds of both cameras carried through the triangulation).
+        U_cov: (F, N, 3, 3) mm^2 the displacement's predicted covariance in this result's
+            frame (its diagonal: the squares of std "U", "V", "W"; the off-diagonal terms:
+            the correlation of a point's errors along the lines of sight); None where the
+            stds are not known (files written before it).
         reprojection_error: (F, N) px, RMS over the two cameras.
         status: (F, N) int8 :class:`torch_stsdic.Status` (the worst of the left track, the
             right track and the cross-camera match; INCONSISTENT where the reprojection error
@@ -92,6 +99,7 @@ class StereoResult:
     #: predicted std "exx_std", ... where the displacement's std is known
     #: (:func:`~torch_stsdic.stereo.strain.surface_strain`); empty where not computed
     strain: dict[str, Tensor] = field(default_factory=dict)
+    U_cov: Tensor | None = None
 
     def __post_init__(self) -> None:
         self.frame = self.frame or CAMERA_FRAME
@@ -127,14 +135,16 @@ class StereoResult:
         u = torch.where(self.ok[..., None], self.displacement.double(), torch.nan)
         sd = (torch.stack([self.std[c] for c in "UVW"], -1)
               if all(c in self.std for c in "UVW") else None)
-        return surface_strain(self.points, self.X0, u, float(size), k=k, U_std=sd)
+        return surface_strain(self.points, self.X0, u, float(size), k=k, U_std=sd,
+                              U_cov=self.U_cov)
 
     def in_plane_frame(self) -> StereoResult:
         """The same result with X, Y, Z, U, V, W, their velocities, X0 and the stds in the
         best-fit plane's frame (:meth:`plane`): positions ``(p - origin) @ R.T``, vectors
-        ``d @ R.T``. The stds are rotated as independent components (each axis's variance
-        ``R**2 @ var``), a first-order approximation that leaves out the correlation of the
-        camera frame's X, Y, Z errors."""
+        ``d @ R.T``. The displacement's covariance turns exactly (``R C R^T``), and the stds
+        of X, Y, Z, U, V, W are its diagonal's square roots; the other stds (velocity, X0,
+        and all of them where no covariance is known) are rotated as independent components
+        (each axis's variance ``R**2 @ var``), which leaves out their correlation."""
         if self.frame != CAMERA_FRAME:
             raise ValueError(f"in_plane_frame: the result is already in the {self.frame!r} "
                              "frame")
@@ -159,11 +169,19 @@ class StereoResult:
         x0_std = ((self.X0_std ** 2) @ (rot.T.to(self.X0.dtype) ** 2)).sqrt()
         std = {**self.std, **var_rot(("X", "Y", "Z")), **var_rot(("U", "V", "W")),
                **var_rot(("Ut", "Vt", "Wt"))}
+        u_cov = None
+        if self.U_cov is not None:
+            r = rot.to(self.U_cov.dtype)
+            u_cov = r @ self.U_cov @ r.T
+            sd = torch.diagonal(u_cov, dim1=-2, dim2=-1).clamp(min=0).sqrt()
+            for i, (a, b) in enumerate(zip("XYZ", "UVW")):
+                if b in std:  # the reference's error cancels: X's std is U's
+                    std[a] = std[b] = sd[..., i]
         info = {**self.info, "plane_origin_mm": origin.tolist(),
                 "plane_rotation": rot.tolist()}
         out = dataclasses.replace(self, X=X, Y=Y, Z=Z, U=U, V=V, W=W, Ut=Ut, Vt=Vt, Wt=Wt,
                                   X0=x0, X0_std=x0_std, std=std, info=info,
-                                  frame=PLANE_FRAME, strain={})
+                                  frame=PLANE_FRAME, strain={}, U_cov=u_cov)
         if self.strain:  # b1 now follows the plane's X
             out.strain = out.surface_strain()
         return out
@@ -208,6 +226,12 @@ class StereoResult:
                                    else "") + ("Green-Lagrange surface strain in the "
                                                "reference tangent plane (b1: the frame's X "
                                                "axis projected onto it); exy: tensor shear")
+            if self.U_cov is not None:
+                i, j = _COV_PAIRS
+                d = f.create_dataset("U_cov", data=self.U_cov[..., i, j].cpu().numpy())
+                d.attrs["units"] = "mm^2"
+                d.attrs["what"] = ("the displacement's predicted covariance, (F, N, 6): "
+                                   "UU, VV, WW, UV, UW, VW")
             d = f.create_dataset("X0", data=self.X0.cpu().numpy())
             d.attrs["units"] = "mm"
             d = f.create_dataset("X0_std", data=self.X0_std.cpu().numpy())
@@ -240,8 +264,15 @@ class StereoResult:
             cal = json.loads(f.attrs.get("calibration", "{}"))
             info = json.loads(f.attrs.get("info", "{}"))
             frame = str(f.attrs.get("frame", CAMERA_FRAME))
+            u_cov = None
+            if "U_cov" in f:
+                packed = torch.as_tensor(f["U_cov"][()])
+                i, j = _COV_PAIRS
+                u_cov = packed.new_zeros(*packed.shape[:-1], 3, 3)
+                u_cov[..., i, j] = packed
+                u_cov[..., j, i] = packed
         return cls(**t, std=std, status=status, calibration=cal, info=info, frame=frame,
-                   strain=strain)
+                   strain=strain, U_cov=u_cov)
 
 
 def is_stereo_file(f: Any) -> bool:
@@ -279,8 +310,9 @@ def open_stereo(path: str | os.PathLike[str]) -> Any:
 
 def best_fit_plane(points: Tensor, valid: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """Least-squares plane through (N, 3) points: (origin (3,), rotation (3, 3)) whose rows
-    are the plane's axes (x, y in the plane, z its normal, towards the left camera); a point's
-    plane coordinates are ``(p - origin) @ rotation.T``."""
+    are the plane's axes (x: the camera's x projected onto the plane, y in the plane, z its
+    normal, towards the left camera); a point's plane coordinates are
+    ``(p - origin) @ rotation.T``."""
     p = points if valid is None else points[valid]
     p = p[torch.isfinite(p).all(1)]
     c = p.mean(0)
@@ -288,7 +320,11 @@ def best_fit_plane(points: Tensor, valid: Tensor | None = None) -> tuple[Tensor,
     n = vh[2]
     if float(n @ (-c)) < 0:  # normal towards the camera (at the origin)
         n = -n
-    x = vh[0] - (vh[0] @ n) * n
+    ex = torch.zeros_like(n)
+    ex[0] = 1.0
+    x = ex - (ex @ n) * n
+    if float(torch.linalg.norm(x)) < 1e-6:  # the plane seen edge-on along x: its long axis
+        x = vh[0] - (vh[0] @ n) * n
     x = x / torch.linalg.norm(x)
     if float(x[0]) < 0:
         x = -x

@@ -31,7 +31,7 @@ from torch_stsdic.movie.series import track
 from .calibration import StereoCalibration, load_calibration
 from .matching import match_stereo
 from .result import StereoResult
-from .triangulation import propagate_std, triangulate
+from .triangulation import propagate_cov, propagate_std, triangulate
 
 __all__ = ["track_stereo", "work_files"]
 
@@ -143,6 +143,7 @@ def track_stereo(left: Any, right: Any, calibration: StereoCalibration | str, *,
     d = _three_d(rig, pts, cross, okc, lres, rres, cfg, max_reprojection)
     X, U, vel, std, X0, x0_std = d["X"], d["U"], d["vel"], d["std"], d["X0"], d["x0_std"]
     tri, tri0, right0, status = d["tri"], d["tri0"], d["right0"], d["status"]
+    u_cov = d["U_cov"]
     info = {"cross_s": t_cross, "track_s": t_track,
             "total_s": _time.perf_counter() - t_start, "m": cfg.m,
             "subset_size": cfg.subset_size, "cross_ok": int(okc.sum()), "points": n,
@@ -154,7 +155,7 @@ def track_stereo(left: Any, right: Any, calibration: StereoCalibration | str, *,
         X=X[..., 0], Y=X[..., 1], Z=X[..., 2], U=U[..., 0], V=U[..., 1], W=U[..., 2],
         Ut=vel[..., 0], Vt=vel[..., 1], Wt=vel[..., 2], X0=X0, X0_std=x0_std, std=std,
         reprojection_error=tri.reprojection_error, status=status, left=lres, right=rres,
-        cross=cross, calibration=rig.summary(), info=info)
+        cross=cross, calibration=rig.summary(), info=info, U_cov=u_cov)
     res.strain = res.surface_strain()
     return res
 
@@ -187,10 +188,12 @@ def _three_d(rig: StereoCalibration, pts: torch.Tensor, cross, okc: torch.Tensor
     s_l = [lres.std.get(k) for k in ("u", "v")]
     s_r = [rres.std.get(k) for k in ("u", "v")]
     std: dict[str, torch.Tensor] = {}
+    u_cov = None
     if all(s is not None for s in s_l + s_r):
         std4 = torch.stack([s_l[0].to(DTYPE).cpu(), s_l[1].to(DTYPE).cpu(), full(s_r[0]),
                             full(s_r[1])], -1)
         sd = propagate_std(tri.sensitivity, std4)
+        u_cov = propagate_cov(tri.sensitivity, std4)
         for i, k in enumerate("XYZ"):
             std[k] = sd[..., i]
         for i, k in enumerate("UVW"):
@@ -225,5 +228,7 @@ def _three_d(rig: StereoCalibration, pts: torch.Tensor, cross, okc: torch.Tensor
         a[nan] = float("nan")
     for k in std:
         std[k][nan] = float("nan")
+    if u_cov is not None:
+        u_cov[nan] = float("nan")
     return {"X": X, "U": U, "vel": vel, "std": std, "X0": X0, "x0_std": x0_std, "tri": tri,
-            "tri0": tri0, "right0": right0, "status": status}
+            "tri0": tri0, "right0": right0, "status": status, "U_cov": u_cov}

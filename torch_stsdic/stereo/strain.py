@@ -26,8 +26,8 @@ STRAIN_FIELDS = {"exx": "1", "eyy": "1", "exy": "1"}
 
 
 def surface_strain(points: Tensor, X0: Tensor, U: Tensor, subset_size: float, *,
-                   axis: Tensor | None = None, k: int = 9, U_std: Tensor | None = None
-                   ) -> dict[str, Tensor]:
+                   axis: Tensor | None = None, k: int = 9, U_std: Tensor | None = None,
+                   U_cov: Tensor | None = None) -> dict[str, Tensor]:
     """Green-Lagrange surface strain at every point and frame.
 
     Args:
@@ -39,6 +39,8 @@ def surface_strain(points: Tensor, X0: Tensor, U: Tensor, subset_size: float, *,
             camera's x, (1, 0, 0)).
         k: points per local fit (the point and its nearest neighbours; 9: a 3 x 3 block).
         U_std: (F, N, 3) the displacement's predicted std per component, mm (optional).
+        U_cov: (F, N, 3, 3) its predicted covariance, mm^2 (optional; used instead of
+            ``U_std``: a point's error along b1 or b2 is ``b^T C b``).
 
     Returns:
         "exx", "eyy", "exy": (F, N) float64; NaN where the point or a neighbour is not
@@ -46,7 +48,8 @@ def surface_strain(points: Tensor, X0: Tensor, U: Tensor, subset_size: float, *,
         "exx_std", "eyy_std", "exy_std": to first order in the strain, each is a weighted
         sum of the neighbours' displacements along b1 or b2; its variance is ``w^T R w``
         (R: the neighbours' error correlation, their subsets' overlap) times the
-        neighbourhood's mean variance along that direction (components taken independent).
+        neighbourhood's mean variance along that direction (``b^T C b`` with ``U_cov``, else
+        the components taken independent).
     """
     pts = points.double().cpu()
     x0 = X0.double().cpu()
@@ -80,14 +83,18 @@ def surface_strain(points: Tensor, X0: Tensor, U: Tensor, subset_size: float, *,
     out = {"exx": torch.where(keep, e[..., 0, 0], nan),
            "eyy": torch.where(keep, e[..., 1, 1], nan),
            "exy": torch.where(keep, e[..., 0, 1], nan)}
-    if U_std is not None:
+    if U_std is not None or U_cov is not None:
         # E ~ sym(B^T dU/d(s,t) A^-1): E11 = sum_j (b1 . U_j) w1_j, w_i = slopes_j @ A^-1[:, i]
         w = slopes @ inv  # (N, k, 2)
         f1 = fit.variance_factor(w[..., 0])  # (N,) w1^T R w1
         f2 = fit.variance_factor(w[..., 1])
-        var = torch.nan_to_num(U_std.double().cpu() ** 2, nan=0.0)  # (F, N, 3)
-        along = torch.stack([(var * basis[None, :, :, i] ** 2).sum(-1) for i in (0, 1)],
-                            -1)  # (F, N, 2): variance along b1, b2
+        if U_cov is not None:  # b^T C b
+            cov = torch.nan_to_num(U_cov.double().cpu(), nan=0.0)  # (F, N, 3, 3)
+            along = torch.einsum("nci,fncd,ndi->fni", basis, cov, basis)
+        else:  # the components taken independent
+            var = torch.nan_to_num(U_std.double().cpu() ** 2, nan=0.0)  # (F, N, 3)
+            along = torch.einsum("fnc,nci->fni", var, basis ** 2)
+        # along: (F, N, 2) the variance along b1, b2
         nb = along[:, fit.index].mean(2)  # (F, N, 2) the neighbourhood's mean
         out["exx_std"] = torch.where(keep, (f1 * nb[..., 0]).sqrt(), nan)
         out["eyy_std"] = torch.where(keep, (f2 * nb[..., 1]).sqrt(), nan)

@@ -23,6 +23,7 @@ from torch import Tensor
 from .calibration import Camera, StereoCalibration
 
 __all__ = ["project", "undistort", "triangulate", "Triangulated", "propagate_std",
+           "propagate_cov",
            "distort"]
 
 DTYPE = torch.float64
@@ -180,5 +181,14 @@ def _residual(rig, X, obs, R, T):
 
 def propagate_std(sensitivity: Tensor, std4: Tensor) -> Tensor:
     """Standard deviations (..., 3) mm of ``A @ p`` for independent pixel errors of std
-    ``std4`` (..., 4) (xL, yL, xR, yR), with ``A = sensitivity`` (..., 3, 4)."""
+    ``std4`` (..., 4) (xL, yL, xR, yR), with ``A = sensitivity`` (..., 3, 4): the square
+    roots of :func:`propagate_cov`'s diagonal."""
     return torch.sqrt(((sensitivity ** 2) * (std4[..., None, :] ** 2)).sum(-1))
+
+
+def propagate_cov(sensitivity: Tensor, std4: Tensor) -> Tensor:
+    """Covariance (..., 3, 3) mm^2 of ``A @ p`` for independent pixel errors of std ``std4``
+    (..., 4): ``A diag(std4^2) A^T``. Its off-diagonal terms matter: a point's depth error
+    lies along the lines of sight, so its X, Y and Z errors are correlated."""
+    a = sensitivity * std4[..., None, :]
+    return a @ a.transpose(-1, -2)
