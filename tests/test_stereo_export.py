@@ -294,6 +294,13 @@ def test_plane_frame_is_a_rigid_change_of_frame(stereo_h5, tmp_path):
         torch.testing.assert_close(pl.std[a], want, equal_nan=True)
         torch.testing.assert_close(pl.std[b], want, equal_nan=True)
     assert not torch.allclose(pl.std["W"][both], cam.std["W"][both])  # W: the plane normal
+    # a strain has its predicted std wherever it has a value (the never-matched points, whose
+    # X0 is NaN, next to matched ones are left out of the neighbourhood's variance)
+    for r in (cam, pl):
+        st = r.surface_strain()
+        for k in ("exx", "eyy", "exy"):
+            assert torch.equal(torch.isfinite(st[k]), torch.isfinite(st[k + "_std"])), k
+            assert int(torch.isfinite(st[k]).sum()) > 0
     back = torch.stack([pl.X, pl.Y, pl.Z], -1) @ rot.to(pl.X.dtype) + origin.to(pl.X.dtype)
     assert torch.allclose(back[both], torch.stack([cam.X, cam.Y, cam.Z], -1)[both], atol=1e-9)
     with pytest.raises(ValueError, match="already"):

@@ -111,10 +111,10 @@ def test_classical_error_matches_prediction_and_sts_beats_it(movie):
         assert torch.allclose(eig, want, atol=1.5e-4), (tag, eig.tolist(), want.tolist())
         spread[tag] = float((e[good][:, 0, 0] + e[good][:, 1, 1]).std())
         # the predicted std against the scatter about each frame's mean (a homogeneous
-        # stretch), from the displacement's full covariance: measured/predicted 1.07, 0.93,
-        # 0.93 (classical), 1.22, 0.96, 0.97 (STS: its U is under-predicted 1.24x, above).
+        # stretch), from the displacement's full covariance: measured/predicted 1.05, 0.95,
+        # 0.94 (classical), 1.20, 0.97, 0.95 (STS: its U is under-predicted 1.24x, above).
         # With the components taken independent (no covariance: files written before it)
-        # 0.66, 0.93, 0.70 and 0.76, 0.96, 0.73: the depth error along the lines of sight is
+        # 0.65, 0.95, 0.71 and 0.74, 0.97, 0.72: the depth error along the lines of sight is
         # correlated with x and y, and a tilted surface's b1 takes both
         for k in ("exx", "eyy", "exy"):
             a, sd = r.strain[k][1:], r.strain[k + "_std"][1:]

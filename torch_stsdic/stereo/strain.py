@@ -95,7 +95,10 @@ def surface_strain(points: Tensor, X0: Tensor, U: Tensor, subset_size: float, *,
             var = torch.nan_to_num(U_std.double().cpu() ** 2, nan=0.0)  # (F, N, 3)
             along = torch.einsum("fnc,nci->fni", var, basis ** 2)
         # along: (F, N, 2) the variance along b1, b2
-        nb = along[:, fit.index].mean(2)  # (F, N, 2) the neighbourhood's mean
+        # (F, N, 2) the mean over the neighbours the fit uses (one without a 3D point has
+        # no tangent basis: NaN, and no weight)
+        usedf = used.double()[None, ..., None]
+        nb = (torch.nan_to_num(along[:, fit.index]) * usedf).sum(2) / usedf.sum(2).clamp(min=1)
         out["exx_std"] = torch.where(keep, (f1 * nb[..., 0]).sqrt(), nan)
         out["eyy_std"] = torch.where(keep, (f2 * nb[..., 1]).sqrt(), nan)
         out["exy_std"] = torch.where(keep, (0.25 * (f2 * nb[..., 0] + f1 * nb[..., 1])).sqrt(),
