@@ -57,6 +57,8 @@ DEFAULT_NEIGHBOURS = 25
 MISFIT_RATIO, MISFIT_SPREAD = 3.0, 20.0
 #: POIs over which a point's time-model bias is pooled (:func:`time_model_holds`)
 POOL_POINTS = 25
+#: the most a point's own excess counts in its neighbours' pools, in units of its own gain
+POOL_CLIP = 3.0
 #: |plane - quadratic| / its std beyond which a frame is left out of the template at a POI
 PLANE_Z = 5.0
 #: the points whose warps feed the template (grey levels of the pixels: memory per chunk)
@@ -260,9 +262,12 @@ def time_model_holds(plan: RunPlan, res: TrackResult, frames: list[int],
       window saves: over the point's ``POOL_POINTS`` nearest POIs (a smooth field: the bias
       varies slowly), the offsets' mean square less its noise (one frame's variance times
       ``sum c^2``) exceeds the variance the window takes off the target's displacement
-      (one frame's times 2m / (2m + 1)). Such windows pass the model check, whose limit
-      is some standard deviations, and would leave the point less accurate than a
-      classical solve (a load series whose steps are not even: DIC Challenge sample 12).
+      (one frame's times 2m / (2m + 1)); each point's own excess counts up to
+      ``POOL_CLIP`` times its own gain, so that one gross mismatch (a wrong peak in a few
+      frames) does not turn its neighbours classical. Such windows pass the model check,
+      whose limit is some standard deviations, and would leave the point less accurate
+      than a classical solve (a load series whose steps are not even: DIC Challenge
+      sample 12).
 
     None where no point had three windows (m = 0, checks off, too few adjacent frames)."""
     m = plan.config.m
@@ -306,6 +311,9 @@ def time_model_holds(plan: RunPlan, res: TrackResult, frames: list[int],
     if int(tests.max()) < 3:
         return None
     nb = nearest_points(pts, min(POOL_POINTS, n))[1]
+    # a point's own excess counts up to POOL_CLIP times its own gain: a gross mismatch at one
+    # point (a wrong peak in a few frames) must not decide for all its neighbours
+    excess = torch.minimum(excess, POOL_CLIP * gain)
     biased = excess[nb].sum(1) > gain[nb].sum(1)
     return ~(((tests >= 3) & (2 * fails >= tests)) | biased)
 
