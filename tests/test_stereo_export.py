@@ -89,6 +89,17 @@ def test_file_is_recognised_and_reads_back(stereo_h5, tmp_path):
         del f.attrs["format"], f.attrs["version"], f.attrs["kind"]
     written = export_stereo(old, tmp_path / "csv", "csv", frames=[2])
     assert [w.name for w in written] == ["old_frame00002.csv"]
+    # ... and one written before U_cov: read without it, its strain std from the stds alone
+    # (the components taken independent), finite where the strain is
+    with h5py.File(old, "r+") as f:
+        del f["U_cov"]
+    no_cov = StereoResult.from_hdf5(old)
+    assert no_cov.U_cov is None and res.U_cov is not None
+    st, st_cov = no_cov.surface_strain(), res.surface_strain()
+    for k in ("exx", "eyy", "exy"):
+        torch.testing.assert_close(st[k], st_cov[k], equal_nan=True)
+        assert torch.equal(torch.isfinite(st[k + "_std"]), torch.isfinite(st[k]))
+    assert not torch.allclose(st["exx_std"].nan_to_num(), st_cov["exx_std"].nan_to_num())
 
 
 def test_csv_columns_are_the_file_values(stereo_h5, tmp_path, capsys):
