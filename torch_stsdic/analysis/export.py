@@ -160,10 +160,8 @@ def export_csv(
             listing.append({"file": target.name, "frame": fr, "time": t, "row": r,
                             "completed": bool(completed[r])})  # fmt: skip
         if sidecar and written:
-            meta = {**_describe(f, p, units, columns), "files": listing}
-            side = written[0].parent / f"{p.stem}_csv.json"
-            with keeping_written(written), written_atomically(side) as tmp:
-                tmp.write_text(json.dumps(meta, indent=1) + "\n", encoding="utf-8")
+            write_sidecar({**_describe(f, p, units, columns), "files": listing}, p.stem,
+                          written)
     return written
 
 
@@ -193,6 +191,15 @@ def write_csv(target: Path, head: str, values: dict[str, np.ndarray], written: l
         for line in zip(*cols):
             fh.write(",".join(line) + "\n")
     written.append(target)
+
+
+def write_sidecar(meta: dict[str, Any], stem: str, written: list[Path]) -> Path:
+    """The CSV export's JSON sidecar ``<stem>_csv.json`` beside the first file written,
+    atomically; the files written so far are removed if it fails (:func:`keeping_written`)."""
+    side = written[0].parent / f"{stem}_csv.json"
+    with keeping_written(written), written_atomically(side) as tmp:
+        tmp.write_text(json.dumps(meta, indent=1) + "\n", encoding="utf-8")
+    return side
 
 
 def write_pvd(pvd: Path, steps: list[tuple[float, str]], written: list[Path]) -> Path:
@@ -336,10 +343,6 @@ def export_mat(path_h5: str | os.PathLike[str], out_dir: str | os.PathLike[str],
     ``x``, ``y`` (1, N) reference coordinates, ``frames``, ``times``, ``completed`` (1, F),
     ``unit``, ``scale`` (1 with unit "px"), ``time_unit``, ``units`` (a struct: field ->
     unit) and ``status_codes`` (a struct)."""
-    try:
-        from scipy.io import savemat
-    except ImportError as exc:  # pragma: no cover - scipy comes with the test extra
-        raise ImportError("MATLAB export needs scipy: pip install scipy") from exc
     p, out = Path(path_h5), Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     with open_results(p) as f:
@@ -358,22 +361,36 @@ def export_mat(path_h5: str | os.PathLike[str], out_dir: str | os.PathLike[str],
             units={nm: units.unit_of(nm) for nm in ["x", "y", *names]},
             status_codes={s.name.lower(): int(s) for s in Status},
         )  # fmt: skip
-    target = out / f"{p.stem}.mat"
+    return [write_mat(out / f"{p.stem}.mat", data)]
+
+
+def write_mat(target: Path, data: dict[str, Any]) -> Path:
+    """``data`` as one MATLAB file (:func:`scipy.io.savemat`, compressed, 1-D arrays as rows),
+    written atomically."""
+    try:
+        from scipy.io import savemat
+    except ImportError as exc:  # pragma: no cover - scipy comes with the test extra
+        raise ImportError("MATLAB export needs scipy: pip install scipy") from exc
     with written_atomically(target) as tmp:
         savemat(tmp, data, do_compression=True, oned_as="row")
-    return [target]
+    return target
+
+
+def export_as(fmt: str, writers: dict[str, Any], path_h5: str | os.PathLike[str],
+              out: str | os.PathLike[str], frames: Frames, kwargs: dict[str, Any]
+              ) -> list[Path]:
+    """Call the writer of format ``fmt`` (``writers``: "csv", "vtk", "mat" -> a function of
+    (path_h5, out, frames, **kwargs)); only CSV takes options."""
+    if fmt not in writers:
+        raise ValueError(f"format: {fmt!r} is not one of {', '.join(FORMATS)}")
+    if fmt != "csv" and kwargs:
+        raise TypeError(f"{fmt} export takes no options {sorted(kwargs)}")
+    return writers[fmt](path_h5, out, frames, **kwargs)
 
 
 def export_results(path_h5: str | os.PathLike[str], out: str | os.PathLike[str],
                    fmt: str = "csv", frames: Frames = None, **kwargs: Any) -> list[Path]:
     """Export a result file in format ``fmt`` (one of :data:`FORMATS`) into ``out``; the
     paths written. ``kwargs`` go to :func:`export_csv`."""
-    if fmt == "csv":
-        return export_csv(path_h5, out, frames, **kwargs)
-    if kwargs:
-        raise TypeError(f"{fmt} export takes no options {sorted(kwargs)}")
-    if fmt == "vtk":
-        return export_vtk(path_h5, out, frames)
-    if fmt == "mat":
-        return export_mat(path_h5, out, frames)
-    raise ValueError(f"format: {fmt!r} is not one of {', '.join(FORMATS)}")
+    return export_as(fmt, {"csv": export_csv, "vtk": export_vtk, "mat": export_mat},
+                     path_h5, out, frames, kwargs)

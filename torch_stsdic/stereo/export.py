@@ -26,15 +26,17 @@ import numpy as np
 
 from torch_stsdic.analysis.export import (
     csv_target,
+    export_as,
     frame_rows,
     grid_cells,
     keeping_written,
     write_csv,
+    write_mat,
     write_pvd,
+    write_sidecar,
     write_vtu,
 )
 from torch_stsdic.core.status import Status, usable
-from torch_stsdic.io.run_record import written_atomically
 from torch_stsdic.stereo.result import FIELDS, open_stereo
 
 __all__ = ["FORMATS", "COLUMNS", "export_stereo", "export_stereo_csv", "export_stereo_mat",
@@ -149,10 +151,7 @@ def export_stereo_csv(path_h5: str | os.PathLike[str],
             write_csv(target, head, _row_values(f, r, COLUMNS, pts), written)
             listing.append({"file": target.name, "frame": fr, "time": t, "row": r})
         if sidecar and written:
-            meta = {**_describe(f, p, COLUMNS), "files": listing}
-            side = written[0].parent / f"{p.stem}_csv.json"
-            with keeping_written(written), written_atomically(side) as tmp:
-                tmp.write_text(json.dumps(meta, indent=1) + "\n", encoding="utf-8")
+            write_sidecar({**_describe(f, p, COLUMNS), "files": listing}, p.stem, written)
     return written
 
 
@@ -211,10 +210,6 @@ def export_stereo_mat(path_h5: str | os.PathLike[str], out_dir: str | os.PathLik
     ``unit`` ("mm"), ``time_unit``, ``units`` and ``status_codes`` (structs),
     ``usable_status``, ``calibration`` (JSON text: ``jsondecode(calibration)``),
     ``coordinate_frame``, ``source``."""
-    try:
-        from scipy.io import savemat
-    except ImportError as exc:  # pragma: no cover - scipy comes with the test extra
-        raise ImportError("MATLAB export needs scipy: pip install scipy") from exc
     p, out = Path(path_h5), Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     names = [c for c in COLUMNS if c not in ("x", "y")]
@@ -238,22 +233,12 @@ def export_stereo_mat(path_h5: str | os.PathLike[str], out_dir: str | os.PathLik
             calibration=str(f.attrs.get("calibration", "{}")),
             coordinate_frame=str(f.attrs.get("frame", "left camera")), source=str(p),
         )  # fmt: skip
-    target = out / f"{p.stem}.mat"
-    with written_atomically(target) as tmp:
-        savemat(tmp, data, do_compression=True, oned_as="row")
-    return [target]
+    return [write_mat(out / f"{p.stem}.mat", data)]
 
 
 def export_stereo(path_h5: str | os.PathLike[str], out: str | os.PathLike[str],
                   fmt: str = "csv", frames: Frames = None, **kwargs: Any) -> list[Path]:
     """Export a stereo result file in format ``fmt`` (one of :data:`FORMATS`) into ``out``;
     the paths written. ``kwargs`` go to :func:`export_stereo_csv`."""
-    if fmt == "csv":
-        return export_stereo_csv(path_h5, out, frames, **kwargs)
-    if kwargs:
-        raise TypeError(f"{fmt} export takes no options {sorted(kwargs)}")
-    if fmt == "vtk":
-        return export_stereo_vtk(path_h5, out, frames)
-    if fmt == "mat":
-        return export_stereo_mat(path_h5, out, frames)
-    raise ValueError(f"format: {fmt!r} is not one of {', '.join(FORMATS)}")
+    return export_as(fmt, {"csv": export_stereo_csv, "vtk": export_stereo_vtk,
+                           "mat": export_stereo_mat}, path_h5, out, frames, kwargs)
