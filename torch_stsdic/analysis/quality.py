@@ -137,7 +137,8 @@ def line_offset(disp: Tensor, dt: Tensor) -> tuple[Tensor, Tensor]:
     return (c.unsqueeze(-1) * d).sum(1), (c * c).sum(1, keepdim=True)
 
 
-def line_mismatch(disp: Tensor, dt: Tensor, own: Tensor, std_cls: Tensor) -> Tensor:
+def line_mismatch(disp: Tensor, dt: Tensor, own: Tensor, std_cls: Tensor,
+                  line: tuple[Tensor, Tensor] | None = None) -> Tensor:
     """(R,) bool: a window whose frames' classical displacements are this far off a line
     cannot pass the model check (:func:`model_mismatch`), so it need not be solved.
 
@@ -154,10 +155,12 @@ def line_mismatch(disp: Tensor, dt: Tensor, own: Tensor, std_cls: Tensor) -> Ten
         dt: (R, T) the frames' times minus the target's.
         own: (R, 2) the classical (u, v) at the target.
         std_cls: (R, 2) its predicted standard deviation, px (taken for every frame).
+        line: :func:`line_offset` of (disp, dt), where the caller has it already.
     """
     n = dt.shape[1]
     at = dt.abs().argmin(1)
-    off, csq = line_offset(disp, dt)  # the line at 0 minus the target frame's displacement
+    # the line at 0 minus the target frame's displacement
+    off, csq = line_offset(disp, dt) if line is None else line
     off = off + disp.double()[torch.arange(disp.shape[0]), at] - own.double()
     vc = torch.nan_to_num(std_cls.double(), nan=float("inf")) ** 2
     sd_pred = (vc * csq).sqrt()

@@ -299,11 +299,11 @@ def time_model_holds(plan: RunPlan, res: TrackResult, frames: list[int],
         jt = j0 + m
         disp = d[j0:j1 + 1].permute(1, 0, 2)  # (N, T, 2)
         dt = (t[j0:j1 + 1] - t[jt]).expand(n, -1)
-        miss = line_mismatch(disp, dt, d[jt], sd[jt])
+        off, csq = line_offset(disp, dt)
+        miss = line_mismatch(disp, dt, d[jt], sd[jt], line=(off, csq))
         valid = ok[j0:j1 + 1].all(0)
         fails += (miss & valid).long()
         tests += valid.long()
-        off, csq = line_offset(disp, dt)
         kept = valid & ~miss & torch.isfinite(own_var).all(-1)
         v = torch.where(kept[:, None], own_var, 0.0)
         excess += torch.where(kept, (off.nan_to_num() ** 2 - v * csq).sum(-1), 0.0)
