@@ -167,10 +167,11 @@ class StereoResult:
         Ut, Vt, Wt = vec(self.Ut, self.Vt, self.Wt)
         x0 = (self.X0 - origin.to(self.X0.dtype)) @ rot.T.to(self.X0.dtype)
         x0_std = ((self.X0_std ** 2) @ (rot.T.to(self.X0.dtype) ** 2)).sqrt()
-        std = {**self.std, **var_rot(("X", "Y", "Z")), **var_rot(("U", "V", "W")),
-               **var_rot(("Ut", "Vt", "Wt"))}
+        std = {**self.std, **var_rot(("Ut", "Vt", "Wt"))}
         u_cov = None
-        if self.U_cov is not None:
+        if self.U_cov is None:
+            std.update(**var_rot(("X", "Y", "Z")), **var_rot(("U", "V", "W")))
+        else:
             r = rot.to(self.U_cov.dtype)
             u_cov = r @ self.U_cov @ r.T
             sd = torch.diagonal(u_cov, dim1=-2, dim2=-1).clamp(min=0).sqrt()

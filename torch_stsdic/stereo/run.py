@@ -192,8 +192,8 @@ def _three_d(rig: StereoCalibration, pts: torch.Tensor, cross, okc: torch.Tensor
     if all(s is not None for s in s_l + s_r):
         std4 = torch.stack([s_l[0].to(DTYPE).cpu(), s_l[1].to(DTYPE).cpu(), full(s_r[0]),
                             full(s_r[1])], -1)
-        sd = propagate_std(tri.sensitivity, std4)
         u_cov = propagate_cov(tri.sensitivity, std4)
+        sd = torch.diagonal(u_cov, dim1=-2, dim2=-1).sqrt()
         for i, k in enumerate("XYZ"):
             std[k] = sd[..., i]
         for i, k in enumerate("UVW"):
