@@ -329,9 +329,9 @@ def test_plane_frame_is_a_rigid_change_of_frame(stereo_h5, tmp_path):
     torch.testing.assert_close(back_pl.U_cov, pl.U_cov, equal_nan=True)
 
 
-def test_command_writes_the_plane_frame(stereo_h5, tmp_path):
+def test_command_writes_the_plane_frame(stereo_h5, tmp_path, capsys):
     """``stsdic stereo --coordinates plane`` writes the plane frame's fields; the CSV sidecar
-    names that frame."""
+    and ``stsdic export``'s units line name that frame."""
     d = stereo_h5.parent
     out = tmp_path / "p.h5"
     assert main(["stereo", "--left", str(d / "left.tif"), "--right", str(d / "right.tif"),
@@ -345,6 +345,12 @@ def test_command_writes_the_plane_frame(stereo_h5, tmp_path):
     export_stereo(out, tmp_path / "csv", "csv")
     meta = json.loads(next((tmp_path / "csv").glob("*_csv.json")).read_text())
     assert "best-fit plane" in json.dumps(meta)
+    capsys.readouterr()
+    code, said, err = _run(capsys, "export", str(out), "--out", str(tmp_path / "csv2"))
+    assert code == 0, err
+    assert "(best-fit plane of the reference shape frame)" in said and "left camera" not in said
+    code, said, err = _run(capsys, "export", str(stereo_h5), "--out", str(tmp_path / "csv3"))
+    assert "(left camera frame)" in said
 
 
 def test_stereo_input_guards_are_one_line(stereo_h5, tmp_path, capsys):

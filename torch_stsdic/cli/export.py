@@ -171,5 +171,6 @@ def _say_stereo_units(path: str) -> None:
 
     with open_stereo(path) as f:
         tu = time_unit(f)
-    print(f"units: X, Y, Z, U, V, W in mm (left camera frame), velocities in mm/{tu}, "
+        frame = str(f.attrs.get("frame", "left camera")).split(":")[0]
+    print(f"units: X, Y, Z, U, V, W in mm ({frame} frame), velocities in mm/{tu}, "
           "reprojection error in px, x, y in left reference px")
