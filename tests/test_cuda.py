@@ -63,6 +63,21 @@ def _to(sol_field, device="cpu"):
     return sol_field.detach().to(device)
 
 
+def _gap(name, a, b, ok=None) -> float:
+    """max |a - b| (over ok); with STSDIC_GAP_LOG set, also appended to that file (the
+    measured CPU/GPU gaps the tolerances here are set from)."""
+    d = (torch.as_tensor(a).double().cpu() - torch.as_tensor(b).double().cpu()).abs()
+    if ok is not None:
+        d = d[torch.as_tensor(ok).cpu()]
+    gap = float(d.max()) if d.numel() else 0.0
+    log = os.environ.get("STSDIC_GAP_LOG")
+    if log:
+        with open(log, "a") as fh:
+            test = os.environ.get("PYTEST_CURRENT_TEST", "?").split(" ")[0]
+            fh.write(f"{test} {name} {gap:.3e}\n")
+    return gap
+
+
 @pytest.mark.parametrize("m", [0, 2])
 def test_solve_window_on_cuda_equals_cpu_and_truth(window, m):
     ref, frames, pts, motion = window
@@ -77,8 +92,8 @@ def test_solve_window_on_cuda_equals_cpu_and_truth(window, m):
     ok = (cpu.status == 0) & (_to(gpu.status) == 0)
     assert float(ok.float().mean()) > 0.95
     # float32 sampling and sums in another order: well inside the noise (~0.01 px)
-    assert float((cpu.u - _to(gpu.u))[ok].abs().max()) < 2e-3
-    assert float((cpu.v - _to(gpu.v))[ok].abs().max()) < 2e-3
+    assert _gap("u", cpu.u, gpu.u, ok) < 2e-3
+    assert _gap("v", cpu.v, gpu.v, ok) < 2e-3
     truth_u = 0.4 + 0.12 * 3
     assert abs(float(_to(gpu.u)[ok].median()) - truth_u) < 5e-3
     if m:
@@ -101,8 +116,8 @@ def test_triton_and_torch_step_agree_on_cuda(window, monkeypatch):
         kernels.set_triton("auto")
     ok = (a.status == 0) & (b.status == 0)
     assert float(ok.float().mean()) > 0.95
-    assert float((a.u - b.u)[ok].abs().max()) < 2e-3
-    assert float((a.ut - b.ut)[ok].abs().max()) < 2e-3
+    assert _gap("u", a.u, b.u, ok) < 2e-3
+    assert _gap("ut", a.ut, b.ut, ok) < 2e-3
 
 
 def test_shared_motion_and_off_centre_subsets_on_cuda(window):
@@ -120,8 +135,8 @@ def test_shared_motion_and_off_centre_subsets_on_cuda(window):
     cpu, gpu = _both(run)
     ok = (cpu.status <= 1) & (_to(gpu.status) <= 1)
     assert float(ok.float().mean()) > 0.9
-    assert float((cpu.u - _to(gpu.u))[ok].abs().max()) < 5e-3
-    assert float((cpu.vt - _to(gpu.vt))[ok].abs().max()) < 5e-3
+    assert _gap("u", cpu.u, gpu.u, ok) < 5e-3
+    assert _gap("vt", cpu.vt, gpu.vt, ok) < 5e-3
 
 
 def _cpu_result(res):
@@ -144,15 +159,16 @@ def test_track_on_cuda_equals_cpu(tmp_path):
     both = (cpu.status <= 1) & (gpu.status <= 1)
     assert float(both[1:].float().mean()) > 0.9
     assert float((cpu.status == gpu.status).float().mean()) > 0.98
-    assert float((cpu.u - gpu.u)[both].abs().max()) < 5e-3
-    assert float((cpu.v - gpu.v)[both].abs().max()) < 5e-3
+    _gap("status_differ_share", (cpu.status != gpu.status).float().mean(), 0.0)
+    assert _gap("u", cpu.u, gpu.u, both) < 5e-3
+    assert _gap("v", cpu.v, gpu.v, both) < 5e-3
     gt = ground_truth(motion, gpu.points.double(), times)
     err = (gpu.u.double() - gt["u"])[1:][both[1:]]
     assert float(err.pow(2).mean().sqrt()) < 0.02
     if cpu.shared_motion is not None:
         assert gpu.shared_motion is not None
-        assert np.abs(np.asarray(cpu.shared_motion.params)
-                      - np.asarray(gpu.shared_motion.params)).max() < 5e-3
+        assert _gap("shared_motion", np.asarray(cpu.shared_motion.params),
+                    np.asarray(gpu.shared_motion.params)) < 5e-3
     stored = read_results(tmp_path / "g.h5").fields
     assert np.array_equal(stored["u"], gpu.u.numpy(), equal_nan=True)
 
@@ -177,8 +193,8 @@ def test_nn_module_forward_and_backward_on_cuda(window):
     fc = frames[None, 1:4].double().requires_grad_(True)
     outc = mod.forward_full(ref[None].double(), fc, pts[:20].double())
     outc.disp.sum().backward()
-    assert float((outc.disp - out.disp.detach().cpu()).abs().max()) < 1e-6
-    assert float((fc.grad - f.grad.cpu()).abs().max()) < 1e-6 * float(fc.grad.abs().max()) + 1e-9
+    assert _gap("disp", outc.disp, out.disp.detach()) < 1e-6
+    assert _gap("grad", fc.grad, f.grad) < 1e-6 * float(fc.grad.abs().max()) + 1e-9
 
 
 def test_cli_run_on_cuda(tmp_path):
@@ -199,4 +215,5 @@ def test_cli_run_on_cuda(tmp_path):
     a, b = outs["cpu"].fields, outs[DEV].fields
     ok = (a["status"] <= 1) & (b["status"] <= 1)
     assert ok.mean() > 0.9
-    assert np.abs(a["u"] - b["u"])[ok].max() < 5e-3
+    _gap("status_differ_share", float((a["status"] != b["status"]).mean()), 0.0)
+    assert _gap("u", a["u"], b["u"], ok) < 5e-3

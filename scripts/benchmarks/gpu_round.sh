@@ -10,7 +10,7 @@
 set -uo pipefail
 OUT=${OUT:-$PWD/gpu-out}
 mkdir -p "$OUT"
-export OUT PYTHONUNBUFFERED=1 OMP_WAIT_POLICY=PASSIVE
+export OUT PYTHONUNBUFFERED=1 OMP_WAIT_POLICY=PASSIVE STSDIC_GAP_LOG=$OUT/gaps.txt
 t0=$SECONDS
 TESTS="tests/test_cuda.py tests/test_triton.py" bash scripts/benchmarks/gpu_check.sh tests,movie \
   2>&1 | tail -40
