@@ -66,7 +66,8 @@ def _to(sol_field, device="cpu"):
 def _gap(name, a, b, ok=None) -> float:
     """max |a - b| (over ok); with STSDIC_GAP_LOG set, also appended to that file (the
     measured CPU/GPU gaps the tolerances here are set from)."""
-    d = (torch.as_tensor(a).double().cpu() - torch.as_tensor(b).double().cpu()).abs()
+    d = (torch.as_tensor(a).detach().double().cpu()
+         - torch.as_tensor(b).detach().double().cpu()).abs()
     if ok is not None:
         d = d[torch.as_tensor(ok).cpu()]
     gap = float(d.max()) if d.numel() else 0.0
@@ -91,9 +92,10 @@ def test_solve_window_on_cuda_equals_cpu_and_truth(window, m):
     assert gpu.u.device.type == torch.device(DEV).type
     ok = (cpu.status == 0) & (_to(gpu.status) == 0)
     assert float(ok.float().mean()) > 0.95
-    # float32 sampling and sums in another order: well inside the noise (~0.01 px)
-    assert _gap("u", cpu.u, gpu.u, ok) < 2e-3
-    assert _gap("v", cpu.v, gpu.v, ok) < 2e-3
+    # float32 sampling and sums in another order. Measured on an H200 (2026-11-27, torch
+    # 2.11): u 4.0e-6 / 8.6e-5 px (m = 0 / 2), v 4.4e-6 / 3.8e-6; band about 6x the largest
+    assert _gap("u", cpu.u, gpu.u, ok) < 5e-4
+    assert _gap("v", cpu.v, gpu.v, ok) < 5e-4
     truth_u = 0.4 + 0.12 * 3
     assert abs(float(_to(gpu.u)[ok].median()) - truth_u) < 5e-3
     if m:
@@ -116,8 +118,9 @@ def test_triton_and_torch_step_agree_on_cuda(window, monkeypatch):
         kernels.set_triton("auto")
     ok = (a.status == 0) & (b.status == 0)
     assert float(ok.float().mean()) > 0.95
-    assert _gap("u", a.u, b.u, ok) < 2e-3
-    assert _gap("ut", a.ut, b.ut, ok) < 2e-3
+    # measured on an H200: u 8.6e-5 px, ut 2.9e-5 px/frame; band about 6x
+    assert _gap("u", a.u, b.u, ok) < 5e-4
+    assert _gap("ut", a.ut, b.ut, ok) < 2e-4
 
 
 def test_shared_motion_and_off_centre_subsets_on_cuda(window):
@@ -135,8 +138,9 @@ def test_shared_motion_and_off_centre_subsets_on_cuda(window):
     cpu, gpu = _both(run)
     ok = (cpu.status <= 1) & (_to(gpu.status) <= 1)
     assert float(ok.float().mean()) > 0.9
-    assert _gap("u", cpu.u, gpu.u, ok) < 5e-3
-    assert _gap("vt", cpu.vt, gpu.vt, ok) < 5e-3
+    # measured on an H200: u 6.3e-6 px, vt 2.9e-6 px/frame; band about 15x
+    assert _gap("u", cpu.u, gpu.u, ok) < 1e-4
+    assert _gap("vt", cpu.vt, gpu.vt, ok) < 5e-5
 
 
 def _cpu_result(res):
@@ -158,17 +162,18 @@ def test_track_on_cuda_equals_cpu(tmp_path):
     assert gpu.u.shape == cpu.u.shape
     both = (cpu.status <= 1) & (gpu.status <= 1)
     assert float(both[1:].float().mean()) > 0.9
-    assert float((cpu.status == gpu.status).float().mean()) > 0.98
-    _gap("status_differ_share", (cpu.status != gpu.status).float().mean(), 0.0)
-    assert _gap("u", cpu.u, gpu.u, both) < 5e-3
-    assert _gap("v", cpu.v, gpu.v, both) < 5e-3
+    # measured on an H200: every status equal, u 5.9e-8 / v 5.2e-8 px (the file's float32
+    # rounding: the run itself is float64); bands leave room for a flip at a threshold
+    assert _gap("status_differ_share", (cpu.status != gpu.status).float().mean(), 0.0) < 2e-3
+    assert _gap("u", cpu.u, gpu.u, both) < 1e-5
+    assert _gap("v", cpu.v, gpu.v, both) < 1e-5
     gt = ground_truth(motion, gpu.points.double(), times)
     err = (gpu.u.double() - gt["u"])[1:][both[1:]]
     assert float(err.pow(2).mean().sqrt()) < 0.02
     if cpu.shared_motion is not None:
         assert gpu.shared_motion is not None
         assert _gap("shared_motion", np.asarray(cpu.shared_motion.params),
-                    np.asarray(gpu.shared_motion.params)) < 5e-3
+                    np.asarray(gpu.shared_motion.params)) < 1e-6  # measured: 0
     stored = read_results(tmp_path / "g.h5").fields
     assert np.array_equal(stored["u"], gpu.u.numpy(), equal_nan=True)
 
@@ -193,8 +198,9 @@ def test_nn_module_forward_and_backward_on_cuda(window):
     fc = frames[None, 1:4].double().requires_grad_(True)
     outc = mod.forward_full(ref[None].double(), fc, pts[:20].double())
     outc.disp.sum().backward()
-    assert _gap("disp", outc.disp, out.disp.detach()) < 1e-6
-    assert _gap("grad", fc.grad, f.grad) < 1e-6 * float(fc.grad.abs().max()) + 1e-9
+    # measured on an H200 (float64): disp 7.6e-15 px, gradient 2.1e-17
+    assert _gap("disp", outc.disp, out.disp.detach()) < 1e-10
+    assert _gap("grad", fc.grad, f.grad) < 1e-10 * float(fc.grad.abs().max()) + 1e-15
 
 
 def test_cli_run_on_cuda(tmp_path):
@@ -215,5 +221,6 @@ def test_cli_run_on_cuda(tmp_path):
     a, b = outs["cpu"].fields, outs[DEV].fields
     ok = (a["status"] <= 1) & (b["status"] <= 1)
     assert ok.mean() > 0.9
-    _gap("status_differ_share", float((a["status"] != b["status"]).mean()), 0.0)
-    assert _gap("u", a["u"], b["u"], ok) < 5e-3
+    # measured on an H200: every status equal, u 9.1e-6 px; band about 10x
+    assert _gap("status_differ_share", float((a["status"] != b["status"]).mean()), 0.0) < 2e-3
+    assert _gap("u", a["u"], b["u"], ok) < 1e-4

@@ -28,7 +28,8 @@ import torch
 
 from torch_stsdic.analysis.points import nearest_points
 
-__all__ = ["LocalFit", "local_fit_weights", "overlap_correlation", "local_fit"]
+__all__ = ["LocalFit", "local_fit_weights", "overlap_correlation", "local_fit",
+           "local_fit_passes"]
 
 _CHUNK = 1 << 22  # elements of the (n, k, k) work arrays per chunk of POIs
 
@@ -61,9 +62,10 @@ class LocalFit:
     used: torch.Tensor
     subset_size: float
 
-    def _chunks(self) -> range:
+    def _chunks(self, rows: int = 1) -> range:
+        """Chunks of POIs whose (n, k, k) and (rows, n, k) work arrays hold ~_CHUNK each."""
         k = self.index.shape[1]
-        return range(0, self.index.shape[0], max(1, _CHUNK // (k * k)))
+        return range(0, self.index.shape[0], max(1, _CHUNK // (k * max(k, rows))))
 
     def correlation(self, sl: slice) -> torch.Tensor:
         """(n, k, k) the error correlation of the neighbours of the POIs ``sl``."""
@@ -104,8 +106,9 @@ class LocalFit:
         nb_var = variance[:, self.index].mean(-1).clamp(min=1e-30)  # (C, N)
         eye = torch.eye(k, dtype=torch.float64)
         scale = float(self.offsets.norm(dim=-1).max().clamp(min=1.0))
-        for s0 in self._chunks():
-            sl = slice(s0, s0 + self._chunks().step)
+        chunks = self._chunks(c)
+        for s0 in chunks:
+            sl = slice(s0, s0 + chunks.step)
             u = self.used[sl]
             a = _design(self.offsets[sl] / scale, degree) * u[..., None]  # (n, k, P)
             ata = a.transpose(1, 2) @ a
@@ -187,6 +190,22 @@ def local_fit_weights(points: torch.Tensor, k: int, subset_size: float,
                     posed=posed, offsets=d, used=wk, subset_size=float(subset_size))
 
 
+def local_fit_passes(fit: LocalFit, values: torch.Tensor, variance: torch.Tensor, *,
+                     degree: int = 1, z_limit: float = 3.0) -> torch.Tensor:
+    """(C, N) bool: where the fit of ``degree`` holds for each component of ``values``
+    (C, N) (error variances ``variance``: (C, N) px^2): its value within ``z_limit``
+    standard deviations of the next degree's, every residual within ``z_limit`` of its own
+    (:meth:`LocalFit.residual_z`), and both fits well posed. The weights' geometry is worked
+    out once for all C components, so the C rows (every frame's u and v) cost about one."""
+    d = fit.weights[degree] - fit.weights[degree + 1]
+    var_d = fit.variance_factor(d).clamp(min=1e-12)  # (N,)
+    nb_var = variance[:, fit.index].mean(-1)  # (C, N) the neighbourhood's mean variance
+    diff = fit.apply(degree, values) - fit.apply(degree + 1, values)
+    z = diff.abs() / (var_d * nb_var).sqrt()
+    resid = fit.residual_z(degree, values, variance)
+    return (z < z_limit) & (resid < z_limit) & fit.posed[degree] & fit.posed[degree + 1]
+
+
 def local_fit(fit: LocalFit, values: torch.Tensor, variance: torch.Tensor, *,
               degree: int = 1, z_limit: float = 3.0) -> tuple[torch.Tensor, torch.Tensor]:
     """Where the fit of ``degree`` holds (its value does not differ significantly from the
@@ -195,7 +214,7 @@ def local_fit(fit: LocalFit, values: torch.Tensor, variance: torch.Tensor, *,
     Args:
         fit: :func:`local_fit_weights` with ``degree`` and ``degree + 1``.
         values: (C, N) the values to test together (e.g. u and v): the fit is kept where
-            every component passes.
+            every component passes (:func:`local_fit_passes`).
         variance: (C, N) each value's error variance (px^2).
         degree: the degree tested (1: the plane against the quadratic).
         z_limit: the largest |value - next degree's value| / its standard deviation accepted.
@@ -204,13 +223,7 @@ def local_fit(fit: LocalFit, values: torch.Tensor, variance: torch.Tensor, *,
         (N,) bool whether the fit is kept; (N,) its value's variance over one value's
         (``w^T R w``; 1 where it is not kept).
     """
-    d = fit.weights[degree] - fit.weights[degree + 1]
-    var_d = fit.variance_factor(d).clamp(min=1e-12)  # (N,)
-    nb_var = variance[:, fit.index].mean(-1)  # (C, N) the neighbourhood's mean variance
-    diff = fit.apply(degree, values) - fit.apply(degree + 1, values)
-    z = diff.abs() / (var_d * nb_var).sqrt()
-    resid = fit.residual_z(degree, values, variance)
-    keep = ((z < z_limit) & (resid < z_limit)).all(0) & fit.posed[degree] \
-        & fit.posed[degree + 1]
-    factor = torch.where(keep, fit.variance_factor(fit.weights[degree]), torch.ones_like(var_d))
+    keep = local_fit_passes(fit, values, variance, degree=degree, z_limit=z_limit).all(0)
+    factor = torch.where(keep, fit.variance_factor(fit.weights[degree]),
+                         torch.ones(keep.shape, dtype=torch.float64))
     return keep, factor

@@ -386,6 +386,17 @@ predicted_std.__signature__ = signature_like(  # type: ignore[attr-defined]
     predicted_covariance, returns="dict[str, torch.Tensor]")
 
 
+def _quantile(x: torch.Tensor, q: float) -> float:
+    """``torch.quantile(x, q)`` of a 1-D tensor (linear interpolation) by a partial sort
+    (``numpy.partition``: O(n), where a megapixel's full sort takes 0.15 s)."""
+    a = x.detach().cpu().numpy()
+    pos = q * (a.size - 1)
+    lo = int(np.floor(pos))
+    hi = min(lo + 1, a.size - 1)
+    part = np.partition(a, [lo, hi])
+    return float(part[lo] + (part[hi] - part[lo]) * (pos - lo))
+
+
 def _immerkaer(img: torch.Tensor, flat_fraction: float | None) -> float:
     from kornia.filters import filter2d, get_sobel_kernel2d
 
@@ -396,8 +407,8 @@ def _immerkaer(img: torch.Tensor, flat_fraction: float | None) -> float:
     if flat_fraction is not None:
         sob = get_sobel_kernel2d(dtype=img.dtype)  # (2, 3, 3): d/dx, d/dy
         g = sum(filter2d(x, sob[i : i + 1], padding="valid").abs() for i in range(2))[0, 0]
-        keep = g <= torch.quantile(g.reshape(-1)[:: max(1, g.numel() // 2_000_000)],
-                                   float(flat_fraction))
+        keep = g <= _quantile(g.reshape(-1)[:: max(1, g.numel() // 2_000_000)],
+                              float(flat_fraction))
         a = a[keep]
     # E|N * noise| = sigma sqrt(36) sqrt(2/pi): sum of squared weights is 36
     return float(math.sqrt(math.pi / 2.0) * a.mean() / 6.0)

@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from torch_stsdic.analysis.local_fit import LocalFit, local_fit, local_fit_weights
+from torch_stsdic.analysis.local_fit import LocalFit, local_fit_passes, local_fit_weights
 from torch_stsdic.analysis.points import nearest_points
 from torch_stsdic.analysis.quality import line_mismatch, line_offset
 from torch_stsdic.analysis.result import USABLE, TrackResult
@@ -352,14 +352,13 @@ def _fit_degree(fit: LocalFit, warps: torch.Tensor, ok: torch.Tensor, unit: torc
     passes against the cubic, else 0: the frame is left out of the template there, and
     wherever a neighbour is not trusted in that frame (a guard band around a crack, a lost
     region, the points that straddle them)."""
-    var = (2.0 * unit).expand(2, -1)
-    deg = torch.zeros(ok.shape, dtype=torch.int64)
-    for j in range(warps.shape[0]):
-        vals = torch.where(ok[j], warps[j][:, [0, 3]].T, 0.0)
-        plane = local_fit(fit, vals, var, degree=1, z_limit=PLANE_Z)[0]
-        quad = local_fit(fit, vals, var, degree=2, z_limit=PLANE_Z)[0]
-        deg[j] = torch.where(plane, 1, torch.where(quad, 2, 0)) * ok[j][fit.index].all(1)
-    return deg
+    f, n = ok.shape
+    # every frame's u and v as the rows of one test: (2F, N), rows u_0, v_0, u_1, v_1, ...
+    vals = torch.where(ok[..., None], warps[..., [0, 3]], 0.0).transpose(1, 2).reshape(2 * f, n)
+    var = (2.0 * unit).expand(2 * f, -1)
+    plane = local_fit_passes(fit, vals, var, degree=1, z_limit=PLANE_Z).view(f, 2, n).all(1)
+    quad = local_fit_passes(fit, vals, var, degree=2, z_limit=PLANE_Z).view(f, 2, n).all(1)
+    return torch.where(plane, 1, torch.where(quad, 2, 0)) * ok[:, fit.index].all(-1)
 
 
 def _smooth(fit: LocalFit, warps: torch.Tensor, ok: torch.Tensor, degree: torch.Tensor
