@@ -40,21 +40,9 @@ from torch_stsdic.io.run_record import (
 )
 from torch_stsdic.io.units import Units, units_of
 
-__all__ = [
-    "CSV_COLUMNS",
-    "DEFAULT_FIELDS",
-    "RESULTS_FORMAT",
-    "RESULTS_FORMAT_VERSION",
-    "STRAIN_FIELDS",
-    "ResultFileError",
-    "ResultWriter",
-    "Results",
-    "add_fields",
-    "as_stored",
-    "field_names",
-    "open_results",
-    "read_results",
-]
+__all__ = ["CSV_COLUMNS", "DEFAULT_FIELDS", "RESULTS_FORMAT", "RESULTS_FORMAT_VERSION",
+           "STRAIN_FIELDS", "ResultFileError", "ResultWriter", "Results", "add_fields",
+           "as_stored", "field_names", "open_results", "read_results"]
 
 
 class ResultFileError(ValueError):
@@ -83,19 +71,16 @@ STEREO_FORMAT = "torch_stsdic-stereo-results"
 RESULTS_FORMAT_VERSION = 1
 DEFAULT_FIELDS: tuple[str, ...] = ("u", "v", "ut", "vt", "zncc", "status")
 STRAIN_FIELDS: tuple[str, ...] = ("exx", "eyy", "exy")
-CSV_COLUMNS: tuple[str, ...] = (
-    "x", "y", "u", "v", "ut", "vt", "exx", "eyy", "exy", "zncc", "status",
-)  # fmt: skip
-#: run-level arrays (not (F, N) fields) a result file may hold, by dataset name
+CSV_COLUMNS: tuple[str, ...] = ("x", "y", "u", "v", "ut", "vt", "exx", "eyy", "exy", "zncc",
+                                 "status")
+#: run-level arrays (not (F, N) fields) and groups (of arrays by path) a result file may hold
 RUN_ARRAYS = ("shared_motion", "series_reference")
-_RESERVED = {"points", "frames", "times", "completed", *RUN_ARRAYS}
+RUN_GROUPS = ("run_estimates",)
+_RESERVED = {"points", "frames", "times", "completed", *RUN_ARRAYS, *RUN_GROUPS}
 #: result files up to this size (bytes) are made in memory and written in one piece
 SKELETON_IN_MEMORY = 256 << 20
-_INT_FIELDS: dict[str, tuple[type, int]] = {
-    "status": (np.int8, int(Status.NOT_COMPUTED)),
-    "iterations": (np.int16, -1),
-    "m": (np.int8, -1),
-}
+_INT_FIELDS: dict[str, tuple[type, int]] = {"status": (np.int8, int(Status.NOT_COMPUTED)),
+                                             "iterations": (np.int16, -1), "m": (np.int8, -1)}
 
 
 def _field_dtype(name: str) -> tuple[type, float | int]:
@@ -484,22 +469,33 @@ class ResultWriter(_FieldShape):
 
     def write_array(self, name: str, values: Any, attrs: Mapping[str, Any] | None = None
                     ) -> None:
-        """Write (or replace) the run-level array ``name`` (one of ``RUN_ARRAYS``, e.g. the
-        shared motion, (T_series, 6)) with its own attributes (JSON strings for nested
-        values), flushed at once."""
-        if name not in RUN_ARRAYS:
-            raise ValueError(f"{name!r} is not a run-level array ({RUN_ARRAYS})")
+        """Write (or replace) the run-level array ``name`` (``RUN_ARRAYS``, e.g. the shared
+        motion, (T_series, 6), float64) or group (``RUN_GROUPS``: ``values`` maps paths in it,
+        ``"a/b"``, to arrays kept in their dtypes) and then its attributes (JSON strings for
+        nested values: a group that has them is whole), flushed."""
+        if name not in RUN_ARRAYS + RUN_GROUPS:
+            raise ValueError(f"{name!r} is not a run-level array or group")
         f = self._h5()
         with self._writing():
-            if name in f:
-                del f[name]
-            ds = f.create_dataset(name, data=np.asarray(values, dtype=np.float64),
-                                  **({"compression": "gzip", "compression_opts": 1}
-                                     if np.ndim(values) == 2 and np.size(values) > 4096
-                                     else {}))
-            for k, v in (attrs or {}).items():
-                ds.attrs[k] = v if isinstance(v, (str, int, float, bool)) else json.dumps(v)
+            f.pop(name, None)  # replaced
+            if name in RUN_GROUPS:
+                obj = f.create_group(name)
+                for path, a in values.items():
+                    obj.create_dataset(path, data=np.asarray(a))
+            else:
+                obj = f.create_dataset(name, data=np.asarray(values, dtype=np.float64),
+                                       **({"compression": "gzip", "compression_opts": 1}
+                                          if np.ndim(values) == 2 and np.size(values) > 4096
+                                          else {}))
             f.flush()
+            for k, v in (attrs or {}).items():
+                obj.attrs[k] = v if isinstance(v, (str, int, float, bool)) else json.dumps(v)
+            f.flush()
+
+    def read_run(self, name: str) -> tuple[Any, dict[str, Any]] | None:
+        """A run-level array or group and its attributes (None: not in the file)."""
+        f = self._h5()
+        return _run_item(f, name) if name in RUN_ARRAYS + RUN_GROUPS and name in f else None
 
     def attrs(self) -> dict[str, Any]:
         """The file's root attributes (a copy)."""
@@ -632,6 +628,15 @@ def _py(v: Any) -> Any:
     return v.item() if isinstance(v, np.generic) else v
 
 
+def _run_item(f: h5py.File, name: str) -> tuple[Any, dict[str, Any]]:
+    """A run-level array's values, or a run-level group's arrays by path, and attributes."""
+    obj, arrays = f[name], {}
+    if isinstance(obj, h5py.Dataset):
+        return obj[()], {k: _py(v) for k, v in obj.attrs.items()}
+    obj.visititems(lambda p, o: arrays.update({p: o[()]} if isinstance(o, h5py.Dataset) else {}))
+    return arrays, {k: _py(v) for k, v in obj.attrs.items()}
+
+
 def field_names(f: h5py.File) -> list[str]:
     """The (F, N) field names of an open result file, in their stored order."""
     try:
@@ -653,8 +658,7 @@ def read_results(path: str | os.PathLike[str], fields: Sequence[str] | None = No
                 raise KeyError(f"field(s) {bad} not in {p} (has {names})")
             names = list(fields)
         attrs = {k: _py(f.attrs[k]) for k in f.attrs}
-        arrays = {nm: (f[nm][()], {k: _py(f[nm].attrs[k]) for k in f[nm].attrs})
-                  for nm in RUN_ARRAYS if nm in f}
+        arrays = {nm: _run_item(f, nm) for nm in RUN_ARRAYS if nm in f}
         return Results(
             path=p,
             points=f["points"][()],

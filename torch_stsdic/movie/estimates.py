@@ -10,10 +10,20 @@ and, for a reference given as an image, its noise ratio. :func:`measure_run` mea
 them measured already: the distributed runner (:mod:`torch_stsdic.movie.distributed`)
 measures them once on the whole movie and hands them to every chunk, so that a chunk's
 windows and decisions are those of the one-process run.
+
+A run with a result file records them there (:func:`record_estimates`: the shared motion and
+the template as the file's run-level arrays, everything else a run uses in its group
+``run_estimates``, exactly: float64, int64, bool), and a resumed run reads them back
+(:func:`stored_or_measured`) instead of measuring them again: the pending blocks get the
+very numbers the interrupted run had. A file written before they were recorded, or one
+whose first block is unfinished where the shared motion's first guess (not stored) is
+needed, is measured again, as the run's ``info["run_estimates"]`` says.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import json
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -29,8 +39,10 @@ from torch_stsdic.movie.reference import noise_ratio
 from torch_stsdic.movie.refine import ReferenceOffsets, measure_offsets
 from torch_stsdic.movie.series_reference import SeriesReference, build_series_reference
 from torch_stsdic.movie.shared_pass import estimate_shared_motion
+from torch_stsdic.movie.sinks import MemorySink
 
-__all__ = ["RunEstimates", "measure_run", "reference_pixels"]
+__all__ = ["RunEstimates", "measure_run", "reference_pixels", "record_estimates",
+           "stored_or_measured", "FROM_FILE"]
 
 #: runs a plan to its result (the signature of :func:`torch_stsdic.movie.series.run_plan`)
 RunFunction = Callable[..., TrackResult]
@@ -49,12 +61,15 @@ class RunEstimates:
         offsets: the refined reference's per-point offsets.
         noise_ratio: the reference's noise variance over a frame's (None: the first block
             measures it, as a one-process run does).
+        source: where a resumed run took them (:data:`FROM_FILE`, or why they were measured
+            again); None: measured for a new run, or handed over.
     """
 
     shared: SharedMotion | None = None
     series_reference: SeriesReference | None = None
     offsets: ReferenceOffsets | None = None
     noise_ratio: float | None = None
+    source: str | None = None
 
     @property
     def row_offsets(self) -> ReferenceOffsets | None:
@@ -74,6 +89,8 @@ class RunEstimates:
             info["series_reference"] = self.series_reference.summary()
         if self.shared is not None:
             info["shared_motion"] = self.shared.summary()
+        if self.source is not None:
+            info["run_estimates"] = self.source
         return info
 
 
@@ -128,3 +145,160 @@ def _first_block_noise(plan: RunPlan, ref_raw: torch.Tensor | None,
     frames = torch.stack([plan.series.get(int(i), dtype=plan.dtype).to(plan.device)
                           for i in torch.unique(win).tolist()])
     return noise_ratio(desc, raw, frames)
+
+
+# ---------------------------------------------------------------------------------------
+# in the result file
+# ---------------------------------------------------------------------------------------
+#: ``source`` of the estimates a resumed run read from its result file
+FROM_FILE = "read from the result file"
+#: the layout of the group ``run_estimates`` (its ``meta`` attribute's ``version``)
+LAYOUT_VERSION = 1
+#: the group of the result file that holds them (besides its run-level arrays)
+GROUP = "run_estimates"
+#: fields not stored: the measuring pass's sample (only the first block's guess: a resumed
+#: run whose first block is finished replays it) and the provenance
+_SKIP = {"SharedMotion": ("sample",), "RunEstimates": ("source",)}
+#: fields that the file's run-level arrays hold (not stored twice): field -> array
+_ROOT = {("SharedMotion", "params"): "shared_motion",
+         ("SeriesReference", "image"): "series_reference"}
+_CLASSES = {c.__name__: c for c in (RunEstimates, SharedMotion, SeriesReference,
+                                    ReferenceOffsets)}
+
+
+def record_estimates(est: RunEstimates, sink: MemorySink) -> None:
+    """Record ``est`` in ``sink``'s file as soon as they are measured: the shared motion and
+    the template as its run-level arrays (``shared_motion``, ``series_reference``), every
+    other field a run uses in the group ``run_estimates`` (:func:`_flatten`); nothing where
+    they were read from that file."""
+    if est.source == FROM_FILE:
+        return
+    if est.shared is not None:
+        sink.write_shared_motion(est.shared)
+    if est.series_reference is not None:
+        sink.write_series_reference(est.series_reference)
+    if sink.path is not None:
+        arrays: dict[str, np.ndarray] = {}
+        desc = {"version": LAYOUT_VERSION, "estimates": _flatten(est, "", arrays)}
+        sink.write_run_estimates(arrays, json.dumps(desc, default=_plain))
+
+
+def stored_or_measured(plan: RunPlan, sink: MemorySink, ref_raw: torch.Tensor | None = None,
+                       *, run: RunFunction) -> RunEstimates:
+    """The run-level estimates of ``plan``: those an earlier run of it recorded in ``sink``'s
+    file (:func:`record_estimates`; a resumed run), where it holds all that ``plan`` asks
+    for, else measured (:func:`measure_run`). On a resumed run ``source`` says which."""
+    stored, done = sink.read_run(GROUP), sink.completed_rows()
+    if stored is None and not done:
+        return measure_run(plan, ref_raw, run=run)  # a new run
+    why = "the result file holds none (written before they were recorded)"
+    if stored is not None:
+        try:
+            est = _from_file(stored, sink)
+            why = _unusable(plan, est, done)
+        except (KeyError, ValueError, TypeError, IndexError) as exc:
+            why = f"the result file's could not be read ({type(exc).__name__}: {exc})"
+        if why is None:
+            est.source = FROM_FILE
+            return est
+    est = measure_run(plan, ref_raw, run=run)
+    est.source = f"measured again: {why}"
+    return est
+
+
+def _unusable(plan: RunPlan, est: RunEstimates, done: set[int]) -> str | None:
+    """Why the file's estimates ``est`` cannot stand for ``plan``'s (None: they can)."""
+    asked = {"shared motion": (plan.options.get("shared_motion"), est.shared),
+             "reference made from the series": (plan.options.get("series_reference"),
+                                                est.series_reference),
+             "refined reference": (plan.options.get("refine_reference"), est.offsets)}
+    for what, (want, have) in asked.items():
+        if bool(want) != (have is not None):
+            return f"the file's {what} is not this run's"
+    ref = est.series_reference
+    if ref is not None and (tuple(ref.image.shape) != tuple(plan.series.shape) or any(
+            a is not None and len(a) != plan.n_points for a in (ref.added_var, ref.model_holds))):
+        return "the file's reference made from the series is not this run's"
+    row_of = plan.row_of()
+    if est.shared is not None and not all(row_of[k] in done for k in plan.blocks[0]):
+        return "its first block is unfinished (the shared motion's first guess is not stored)"
+    return None
+
+
+def _flatten(obj: Any, prefix: str, arrays: dict[str, np.ndarray]) -> dict[str, Any]:
+    """The description (JSON) of dataclass ``obj``: its class and, per field, ``["value",
+    v]``, ``["array"]`` / ``["tensor"]`` (stored at ``prefix + name``), ``["arrays", keys]``
+    (a dict of arrays, at ``prefix + name/key``), ``["dataclass", description]`` or
+    ``["root", array, kind]`` (a run-level array of the file); its arrays put in ``arrays``
+    as they are (exact: float64, int64, bool)."""
+    cls = type(obj).__name__
+    fields: dict[str, Any] = {}
+    for f in dataclasses.fields(obj):
+        v, path = getattr(obj, f.name), prefix + f.name
+        if f.name in _SKIP.get(cls, ()):
+            continue
+        if (cls, f.name) in _ROOT:
+            fields[f.name] = ["root", _ROOT[cls, f.name],
+                              "tensor" if isinstance(v, torch.Tensor) else "array"]
+        elif isinstance(v, torch.Tensor):
+            arrays[path] = v.detach().cpu().numpy()
+            fields[f.name] = ["tensor"]
+        elif isinstance(v, np.ndarray):
+            arrays[path] = v
+            fields[f.name] = ["array"]
+        elif dataclasses.is_dataclass(v):
+            fields[f.name] = ["dataclass", _flatten(v, path + "/", arrays)]
+        elif isinstance(v, dict) and v and all(isinstance(a, np.ndarray) for a in v.values()):
+            arrays.update({f"{path}/{k}": a for k, a in v.items()})
+            fields[f.name] = ["arrays", list(v)]
+        else:
+            fields[f.name] = ["value", v]
+    return {"class": cls, "fields": fields}
+
+
+def _unflatten(desc: dict[str, Any], prefix: str, arrays: dict[str, np.ndarray],
+               root: dict[str, np.ndarray]) -> Any:
+    """The dataclass that :func:`_flatten` described as ``desc``."""
+    kw: dict[str, Any] = {}
+    for name, (kind, *rest) in desc["fields"].items():
+        path = prefix + name
+        if kind == "value":
+            kw[name] = rest[0]
+        elif kind in ("array", "tensor"):
+            kw[name] = arrays[path] if kind == "array" else torch.from_numpy(arrays[path])
+        elif kind == "arrays":
+            kw[name] = {k: arrays[f"{path}/{k}"] for k in rest[0]}
+        elif kind == "dataclass":
+            kw[name] = _unflatten(rest[0], path + "/", arrays, root)
+        elif kind == "root":
+            a = root[rest[0]]
+            kw[name] = torch.from_numpy(a) if rest[1] == "tensor" else a
+        else:
+            raise ValueError(f"unknown kind {kind!r} of {path}")
+    return _CLASSES[desc["class"]](**kw)
+
+
+def _from_file(stored: tuple[dict[str, np.ndarray], dict[str, Any]],
+               sink: MemorySink) -> RunEstimates:
+    """The estimates of the group ``run_estimates`` (``stored``: its arrays and attributes)
+    and of the run-level arrays of ``sink``'s file."""
+    arrays, attrs = stored
+    desc = json.loads(attrs["meta"])
+    if desc.get("version") != LAYOUT_VERSION:
+        raise ValueError(f"layout version {desc.get('version')!r}, not {LAYOUT_VERSION}")
+    root = {}
+    for name in set(_ROOT.values()):
+        item = sink.read_run(name)
+        if item is not None:
+            root[name] = item[0]
+    est = _unflatten(desc["estimates"], "", arrays, root)
+    if not isinstance(est, RunEstimates):
+        raise TypeError(f"{type(est).__name__}, not RunEstimates")
+    return est
+
+
+def _plain(obj: Any) -> Any:
+    """A numpy scalar as a Python number, for JSON."""
+    if isinstance(obj, np.generic):
+        return obj.item()
+    raise TypeError(f"{type(obj).__name__} is not JSON serialisable")

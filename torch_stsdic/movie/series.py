@@ -52,7 +52,12 @@ from torch_stsdic.core.status import Status
 from torch_stsdic.io.results import as_stored
 from torch_stsdic.movie.block import BlockContext, solve_block
 from torch_stsdic.movie.carry import Carry, make_carry, rows_numpy
-from torch_stsdic.movie.estimates import RunEstimates, measure_run
+from torch_stsdic.movie.estimates import (
+    RunEstimates,
+    measure_run,
+    record_estimates,
+    stored_or_measured,
+)
 from torch_stsdic.movie.frames import FrameCache, default_ahead, frames_in_order, segment_bounds
 from torch_stsdic.movie.plan import RunPlan, plan_run
 from torch_stsdic.movie.reference import Reference, maybe_update
@@ -76,8 +81,9 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
     HDF5 file keeps every finished block and can be resumed. ``estimates``: the run-level
     estimates (:class:`~torch_stsdic.movie.estimates.RunEstimates`: shared motion, load
     steps, first guess, reference made from the series, refined reference's offsets)
-    measured already, e.g. on the whole movie of which ``plan`` is a piece; default: measured
-    here (:func:`~torch_stsdic.movie.estimates.measure_run`). ``warm_up``: the first block
+    measured already, e.g. on the whole movie of which ``plan`` is a piece; default: those
+    ``sink``'s file recorded (a resumed run), else measured here
+    (:func:`~torch_stsdic.movie.estimates.stored_or_measured`). ``warm_up``: the first block
     only seeds the carry of the next (the distributed runner's rows before a chunk): the rows
     its fit check made POOR_FIT without their point's history (the last trusted row's ZNCC)
     are carried on as trusted, as the one-process run carries a point whose fit worsens
@@ -108,16 +114,16 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
     updates: list[dict[str, Any]] = []
     if "series_reference" not in plan.options and "single_reference" not in plan.options:
         set_series_reference(plan, "auto")  # the default of a plan no one chose a reference for
-    est = estimates if estimates is not None else measure_run(plan, ref.raw, run=run_plan)
+    est = estimates if estimates is not None else stored_or_measured(plan, sink, ref.raw,
+                                                                     run=run_plan)
+    record_estimates(est, sink)  # for a resumed run (not where they were read from the file)
     if est.shared is not None:
         shared = est.shared
         run.shared = shared if shared.applied else None
         run.first_guess = shared.sample  # the first block starts from the pass's solutions
         if shared.steps:
             run.segments = segment_bounds(shared.steps, len(plan.series)).to(plan.device)
-        sink.write_shared_motion(shared)
     if est.series_reference is not None:
-        sink.write_series_reference(est.series_reference)
         img = est.series_reference.image.to(device=plan.device, dtype=plan.dtype)
         ref = Reference(frame=-1, raw=img, img=solver.prepare(img), points=ref.points)
         if est.series_reference.added_var is not None:

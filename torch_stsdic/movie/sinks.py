@@ -87,6 +87,16 @@ class MemorySink:
         (:class:`~torch_stsdic.movie.series_reference.SeriesReference`; memory: kept in the
         result's info only)."""
 
+    def write_run_estimates(self, arrays: dict[str, np.ndarray], meta: str) -> None:
+        """Record what a resumed run needs of the run-level estimates besides the shared
+        motion and the template (:func:`~torch_stsdic.movie.estimates.record_estimates`):
+        ``arrays`` by their paths, ``meta`` their description, JSON (memory: nothing)."""
+
+    def read_run(self, name: str) -> tuple[Any, dict[str, Any]] | None:
+        """A run-level array or group (``"run_estimates"``) an earlier run of the plan wrote,
+        with its attributes (:meth:`torch_stsdic.io.ResultWriter.read_run`; memory: None)."""
+        return None
+
     def result(self, info: dict[str, Any]) -> TrackResult:
         """The :class:`TrackResult` of the rows held, on the plan's device and dtype."""
         plan, v = self.plan, self.values
@@ -190,8 +200,17 @@ class HDF5Sink(MemorySink):
     def write_series_reference(self, template: Any) -> None:
         attrs = {**template.summary(), "units": "grey levels (the reference's)",
                  "what": "the template every frame was measured against, (H, W)"}
-        self.writer.write_array("series_reference", template.image.float().cpu().numpy(),
-                                attrs)
+        # at the run's precision (float32 or float64): the image a resumed run reads back
+        image = template.image.to(self.plan.dtype).cpu().numpy()
+        self.writer.write_array("series_reference", image, attrs)
+
+    def write_run_estimates(self, arrays: dict[str, np.ndarray], meta: str) -> None:
+        self.writer.write_array("run_estimates", arrays, {
+            "meta": meta, "what": "the run-level estimates a resumed run reads instead of "
+            "measuring them again (docs/io.md)"})
+
+    def read_run(self, name: str) -> tuple[Any, dict[str, Any]] | None:
+        return self.writer.read_run(name)
 
     def close(self, commit: bool = True) -> None:
         self.writer.close(commit=commit)
