@@ -615,6 +615,8 @@ def run_movie_case(spec: dict[str, Any]) -> dict[str, Any]:
         w0, c0 = clock.now()
         plan = plan_run(spec["tiff"], 0, None, pts, None, None, 10, cfg, dev, None,
                         spec.get("batch_frames"))
+        if spec.get("single_reference"):  # the baseline: frame 0 as the reference image
+            plan.options["single_reference"] = "asked for (--movie-single-reference)"
         sink = open_sink(plan, out_h5, overwrite=True)
         sink.write_rows = timed(sink.write_rows, t_write)
         sink.finish = timed(sink.finish, t_finish)
@@ -634,6 +636,10 @@ def run_movie_case(spec: dict[str, Any]) -> dict[str, Any]:
     }
     # the rest: planning, the reference, carry, rows to numpy, everything else in the loop
     split["other_s"] = wall - t_solve[0] - split["write_s"]  # the reference's read included
+    # of which the run-level estimates: the template made from the series, the shared motion
+    split["series_reference_s"] = float(
+        (res.info.get("series_reference") or {}).get("seconds") or 0.0)
+    split["shared_motion_s"] = float((res.info.get("shared_motion") or {}).get("seconds") or 0.0)
     # the TIFF moves by u = 0.01 t, v = -0.005 t px; a run on a GPU keeps its result there
     truth_u = 0.01 * res.times.cpu().view(-1, 1)
     ok = res.ok.cpu()
@@ -714,7 +720,8 @@ def _case_name(spec: dict[str, Any]) -> str:
         return (f"movie {spec['frames']}x{spec['size']} {spec['points']} POIs {stsname} "
                 f"{spec['device']}" + (f" batch_frames={spec['batch_frames']}"
                                        if spec.get("batch_frames") else "")
-                + (f" read_ahead={ra}" if ra is not None else ""))
+                + (f" read_ahead={ra}" if ra is not None else "")
+                + (" single-reference" if spec.get("single_reference") else ""))
     return (f"memory track {stsname} {spec['device']} memory_mb="
             f"{spec.get('memory_mb') or 512:g}")
 
@@ -963,7 +970,8 @@ def run_movie_preset(args, device: str) -> list[dict[str, Any]]:
                         "points": args.movie_points, "frames": n_frames, "dtype": "float32",
                         "device": device, "threads": args.thread_list[0], "tiff": str(tiff),
                         "workdir": str(workdir), "batch_frames": args.movie_batch_frames,
-                        "read_ahead": ra, "memory_mb": args.memory_mb}
+                        "read_ahead": ra, "memory_mb": args.memory_mb,
+                        "single_reference": args.movie_single_reference}
                 res = run_case(spec, args.isolate, args.case_timeout)
                 runs.setdefault(res["name"], []).append(res)
                 print(_one_line(res), file=sys.stderr, flush=True)
@@ -1388,6 +1396,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="--movie: target frames per block (default: track's)")
     p.add_argument("--movie-read-ahead", type=int, default=None,
                    help="--movie: frames read ahead (default: track's; 0 = off)")
+    p.add_argument("--movie-single-reference", action="store_true",
+                   help="--movie: measure against frame 0 alone (no template made from the "
+                        "series): the baseline of the default")
     p.add_argument("--movie-compare", action="store_true",
                    help="--movie: also run without read-ahead (before/after)")
     p.add_argument("--_child", default=None, help=argparse.SUPPRESS)

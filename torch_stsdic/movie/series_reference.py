@@ -239,9 +239,18 @@ def _splat(acc: torch.Tensor, img: BSplineImage, ref: torch.Tensor, pts: torch.T
 
 
 def _frame_noise(plan: RunPlan, frames: list[int]) -> list[float]:
-    """The image noise sigma (grey levels) of each of ``frames`` (Immerkaer's estimate)."""
-    return [max(float(estimate_noise_sigma(plan.series.get(k, dtype=torch.float64))), 1e-6)
-            for k in frames]
+    """The image noise sigma (grey levels) of each of ``frames`` (Immerkaer's estimate) over
+    the box that the POIs' subsets cover (the pixels the template is made of; a background
+    or a frame's border would only add work, and its own noise)."""
+    h, w = plan.series.shape
+    pts = plan.points.double().cpu()
+    pad = (plan.config.subset_size - 1) // 2 + 2
+    x0, y0 = (pts.amin(0).floor() - pad).long().clamp(min=0).tolist()
+    x1, y1 = (pts.amax(0).ceil() + pad + 1).long().tolist()
+    x1, y1 = min(max(x1, x0 + 8), w), min(max(y1, y0 + 8), h)
+    x0, y0 = min(x0, max(w - 8, 0)), min(y0, max(h - 8, 0))
+    return [max(float(estimate_noise_sigma(
+        plan.series.get(k, dtype=torch.float64)[y0:y1, x0:x1])), 1e-6) for k in frames]
 
 
 def time_model_holds(plan: RunPlan, res: TrackResult, frames: list[int],
