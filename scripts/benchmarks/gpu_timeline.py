@@ -31,7 +31,8 @@ def _sync(device: str) -> None:
         torch.cuda.synchronize()
 
 
-def one_run(tiff: Path, n_points: int, device: str, batch_frames: int | None, out_h5: Path):
+def one_run(tiff: Path, n_points: int, device: str, batch_frames: int | None, out_h5: Path,
+            single_reference: bool = False):
     import torch_stsdic as sts
     from torch_stsdic.movie.plan import plan_run
     from torch_stsdic.movie.series import run_plan
@@ -46,6 +47,8 @@ def one_run(tiff: Path, n_points: int, device: str, batch_frames: int | None, ou
     _sync(device)
     t0 = time.perf_counter()
     plan = plan_run(str(tiff), 0, None, pts, None, None, 10, cfg, device, None, batch_frames)
+    if single_reference:  # the blocks' own work, without the template made from the series
+        plan.options["single_reference"] = "asked for (--single-reference)"
     sink = open_sink(plan, out_h5, overwrite=True)
     res = run_plan(plan, sink, progress=False)
     _sync(device)
@@ -60,27 +63,31 @@ def main() -> int:
     ap.add_argument("--batch-frames", type=int, default=None)
     ap.add_argument("--out", type=Path, default=Path("timeline.txt"))
     ap.add_argument("--device", default="cuda")
+    ap.add_argument("--single-reference", action="store_true",
+                    help="measure against frame 0 alone (the blocks' work without the template)")
     args = ap.parse_args()
     dev = args.device
     tiff = bm.movie_tiff_path(args.frames, 1024)
     if not tiff.exists():
         bm.write_tiff_movie(tiff, args.frames, 1024)
     h5 = Path("/tmp/timeline.h5")
-    lines = []
+    args.out.write_text("")
 
-    def say(s=""):
+    def say(s=""):  # printed and written as it comes: a run stopped at its limit keeps it
         print(s, flush=True)
-        lines.append(s)
+        with args.out.open("a") as fh:
+            fh.write(s + "\n")
 
-    res, wall, nb = one_run(tiff, args.points, dev, args.batch_frames, h5)
+    case = (tiff, args.points, dev, args.batch_frames, h5, args.single_reference)
+    res, wall, nb = one_run(*case)
     say(f"cold: {wall:.2f} s, {args.frames / wall:.1f} frames/s, {nb} blocks")
-    res, wall, nb = one_run(tiff, args.points, dev, args.batch_frames, h5)
+    res, wall, nb = one_run(*case)
     say(f"warm: {wall:.2f} s, {args.frames / wall:.1f} frames/s, {nb} blocks, "
         f"usable {float(res.ok.float().mean()):.4f}")
     from torch.profiler import ProfilerActivity, profile
     acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if dev.startswith("cuda") else [])
     with profile(activities=acts) as prof:
-        res, wall_p, nb = one_run(tiff, args.points, dev, args.batch_frames, h5)
+        res, wall_p, nb = one_run(*case)
     ka = prof.key_averages()
     dev_us = sum(e.self_device_time_total for e in ka if e.device_type.name == "CUDA")
     say(f"profiled: {wall_p:.2f} s wall, device kernels {dev_us / 1e6:.2f} s "
@@ -100,13 +107,12 @@ def main() -> int:
         say(ka.table(sort_by="self_cuda_time_total", row_limit=15, max_name_column_width=60))
     pr = cProfile.Profile()
     pr.enable()
-    _, wall_c, _ = one_run(tiff, args.points, dev, args.batch_frames, h5)
+    _, wall_c, _ = one_run(*case)
     pr.disable()
     s = io.StringIO()
     pstats.Stats(pr, stream=s).sort_stats("cumulative").print_stats(45)
     say(f"\ncProfile: {wall_c:.2f} s wall")
     say(s.getvalue())
-    args.out.write_text("\n".join(lines))
     return 0
 
 
