@@ -366,3 +366,32 @@ def test_long_movies_sample_runs_of_adjacent_frames():
     plan0 = plan_run(series, config=sts.DICConfig(m=0, subset_size=15), step=10)
     k0 = sample_frames(plan0, 21)
     assert len(k0) == 21 and int(np.diff(k0).max()) == 2
+
+
+def test_splat_with_and_without_the_image_border_mask_agree():
+    """Windows wholly inside the image skip the border mask (_splat's fast path); a chunk
+    with one window over the border takes the masked path for all its windows. Both must
+    give the same sums at the inner windows' pixels."""
+    from torch_stsdic.core.interpolation import BSplineImage
+
+    size, half = 96, 7
+    img = synth.render(synth.make_speckle((size, size), seed=3), (size, size)).double()
+    frame = BSplineImage(img, order=3)
+    ref = img.reshape(-1)
+    pts = torch.tensor([[30.0, 30.0], [50.3, 41.7], [66.0, 60.0], [3.0, 40.0]],
+                       dtype=torch.float64)
+    warp = torch.zeros(4, 12, dtype=torch.float64)
+    warp[:, 0], warp[:, 1], warp[:, 6], warp[:, 8] = 0.3, 0.01, -0.2, -0.02
+
+    def splat(ok):
+        acc = torch.zeros(3, size * size, dtype=torch.float64)
+        series_reference._splat(acc, frame, ref, pts, warp, ok, half, 1.0, 1.0)
+        return acc
+
+    inner = splat(torch.tensor([True, True, True, False]))  # no border: fast path
+    border = splat(torch.tensor([False, False, False, True]))
+    both = splat(torch.tensor([True, True, True, True]))  # one chunk, masked path
+    assert float(inner[1].sum()) > 0 and float(border[1].sum()) > 0
+    torch.testing.assert_close(both, inner + border, rtol=1e-12, atol=1e-9)
+    # the border window lost its columns left of the image: fewer weights than an inner one
+    assert float(border[1].sum()) < 0.9 * float(inner[1].sum()) / 3  # 54 against 64

@@ -280,9 +280,8 @@ def track(
             strains exx, eyy, exy and their rates).
         resume: continue the run recorded in ``out`` (same settings); the result equals
             an uninterrupted run. overwrite: replace an existing ``out``.
-        batch_frames: target frames solved together per block (default from
-            ``config.memory_mb``, at most 8; on a GPU at most 32 within a frames' budget
-            of at least 2 GiB: :func:`~torch_stsdic.movie.plan.default_batch_frames`).
+        batch_frames: target frames solved together per block (default: at most 8, 32 on a
+            GPU: :func:`~torch_stsdic.movie.plan.default_batch_frames`).
         reference_update: ZNCC threshold in (0, 1): when the mean ZNCC of a block's last
             frame drops below it, that frame becomes the new reference (see docs).
         smoothing: odd span (frames): run classical DIC (config.m = 0) and smooth u, v in

@@ -178,6 +178,11 @@ def _shifted(warp: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
                         b + 2 * q1 * dx + q2 * dy, c + q2 * dx + 2 * q3 * dy, q1, q2, q3], 1)
 
 
+def _masked(a: torch.Tensor, inside: torch.Tensor | None) -> torch.Tensor:
+    """``a`` where ``inside`` (None: everywhere), else 0."""
+    return a if inside is None else torch.where(inside, a, 0.0)
+
+
 def _splat(acc: torch.Tensor, img: BSplineImage, ref: torch.Tensor, pts: torch.Tensor,
            warp: torch.Tensor, ok: torch.Tensor, half: int, weight: float, level: float
            ) -> None:
@@ -213,22 +218,28 @@ def _splat(acc: torch.Tensor, img: BSplineImage, ref: torch.Tensor, pts: torch.T
         y = c[:, 1:] + dy
         xs = x + _shifted(warp[i, 0:6], delta) @ mono.T
         ys = y + _shifted(warp[i, 6:12], delta) @ mono.T
-        inside = ((x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1) & (xs >= 0)
-                  & (xs <= w - 1) & (ys >= 0) & (ys <= h - 1))
+        # a window wholly inside the image (both configurations) needs no mask: most do
+        whole = bool((c.amin() >= half) & (c[:, 0].amax() <= w - 1 - half)
+                     & (c[:, 1].amax() <= h - 1 - half) & (xs.amin() >= 0)
+                     & (xs.amax() <= w - 1) & (ys.amin() >= 0) & (ys.amax() <= h - 1))
+        inside = None if whole else (
+            (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1) & (xs >= 0) & (xs <= w - 1)
+            & (ys >= 0) & (ys <= h - 1))
         vals = torch.nan_to_num(img.sample(xs.to(img.dtype), ys.to(img.dtype)).double())
-        cnt = inside.sum(1, keepdim=True).clamp(min=1)
+        cnt = (torch.full((len(i), 1), float(dx.numel()), dtype=torch.float64) if inside is None
+               else inside.sum(1, keepdim=True).clamp(min=1))
         idx = ((c[:, 1] * w + c[:, 0]).long()[:, None] + offset).clamp(0, h * w - 1)
         own = ref[idx]  # (n, S) the reference's pixels of the windows
-        m_f = torch.where(inside, vals, 0.0).sum(1, keepdim=True) / cnt
-        m_r = torch.where(inside, own, 0.0).sum(1, keepdim=True) / cnt
-        s_f = torch.where(inside, (vals - m_f) ** 2, 0.0).sum(1, keepdim=True).sqrt()
-        s_r = torch.where(inside, (own - m_r) ** 2, 0.0).sum(1, keepdim=True).sqrt()
+        m_f = _masked(vals, inside).sum(1, keepdim=True) / cnt
+        m_r = _masked(own, inside).sum(1, keepdim=True) / cnt
+        s_f = _masked((vals - m_f) ** 2, inside).sum(1, keepdim=True).sqrt()
+        s_r = _masked((own - m_r) ** 2, inside).sum(1, keepdim=True).sqrt()
         gain = torch.where(s_f > 0, s_r / s_f.clamp(min=1e-12), 1.0)
         vals = (vals - m_f) * gain + m_r
         u0, v0 = warp[i, 0], warp[i, 6]
         fac = interpolation_variance_factor(u0 - u0.floor(), v0 - v0.floor(),
                                             img.order)  # (n,)
-        wt = torch.where(inside, tent, 0.0)
+        wt = _masked(tent.expand(len(i), -1), inside)
         idx, wt = idx.reshape(-1), wt.reshape(-1)
         acc[0].index_add_(0, idx, wt * vals.reshape(-1))
         frame[0].index_add_(0, idx, wt)
