@@ -120,6 +120,9 @@ def test_resumed_run_says_so_and_counts_only_what_it_solved(capsys, monkeypatch,
     code, text, err = _run(capsys, "run", movie, *RUN, "--out", out, "--resume", *FAST)
     assert code == 0, err
     assert "resumed: 3 of 12 frames were finished in the file and kept, 9 solved now" in text
+    # the run-level estimates came from the file, and the template's line says so
+    assert "the run's estimates read from the result file" in text, text
+    assert "(read from the result file, made in" in text, text
     m = re.search(r"time: .*? (\d+) POI/s \(frames solved now\)", text)
     assert m, text
     # a second --resume has nothing left to solve and says so
@@ -129,3 +132,4 @@ def test_resumed_run_says_so_and_counts_only_what_it_solved(capsys, monkeypatch,
     # a fresh run says nothing of resuming
     code, text, _ = _run(capsys, "run", movie, *RUN, "--out", tmp_path / "b.h5", *FAST)
     assert code == 0 and "resumed:" not in text and "POI/s   (" in text, text
+    assert "read from the result file" not in text and "a template of" in text, text

@@ -632,10 +632,16 @@ def _print_summary(res: Any, args: argparse.Namespace, elapsed: float, ref: str,
         print(f"reference: the reference image alone ({single}"
               + ("; --series-reference is off" if single == "asked for" else
                  "; the reference made from the series does not apply") + ")")
+    from torch_stsdic.movie.estimates import FROM_FILE
+
+    source = res.info.get("run_estimates")  # set on resumed runs only
+    from_file = source == FROM_FILE
     if sref:
         added = sref.get("added_std_px")
+        made = (f"{FROM_FILE}, made in {sref['seconds']:.1f} s" if from_file
+                else f"{sref['seconds']:.1f} s")
         print(f"reference: a template of {len(sref['frames'])} frames, {sref['iterations']} "
-              f"round(s) ({sref['seconds']:.1f} s); its noise {sref['noise_ratio']:.3f} of a "
+              f"round(s) ({made}); its noise {sref['noise_ratio']:.3f} of a "
               "frame's" + (f", its registration +{added:.4f} px in u_std and v_std"
                            if added else ""))
         if sref.get("classical_points"):
@@ -645,7 +651,7 @@ def _print_summary(res: Any, args: argparse.Namespace, elapsed: float, ref: str,
     solved = n_f - kept
     if args.resume:
         print(f"resumed: {kept} of {n_f} frames were finished in the file and kept, "
-              f"{solved} solved now")
+              f"{solved} solved now" + (f"; the run's estimates {source}" if source else ""))
     device = args.device
     on_cpu = str(device).startswith("cpu")
     kernels = dispatch.describe("cpu" if on_cpu else "cuda")
