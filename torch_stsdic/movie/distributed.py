@@ -15,11 +15,15 @@ Every run-level estimate is measured once, by the driver, on the whole movie
 (:func:`~torch_stsdic.movie.estimates.measure_run`: the shared motion and its load steps,
 the measuring pass's solutions that are the first block's guess, the reference made from the
 series, the refined reference's offsets, the reference's noise ratio), recorded in the result
-file as a one-process run records them, and handed to every chunk
+file as a one-process run records them (its group ``run_estimates`` included, so that a
+one-process ``resume`` of the file reads them), and handed to every chunk
 (``run_plan(estimates=...)``): a chunk's windows, segments, reference and blocks are those of
-the one-process run. Guesses are not carried across chunks; instead a chunk other than the
-first solves the ``WARM_UP`` targets before it (from the measuring pass's guess, as a first
-block starts) and carries its guesses on from those rows, which are then dropped: its first
+the one-process run. A resumed run reads them back from its file
+(:func:`~torch_stsdic.movie.estimates.stored_or_measured`), but measures them again where
+chunks are left to run with a shared motion (they start from its first guess, not stored).
+Guesses are not carried across chunks; instead a chunk other than the first solves the
+``WARM_UP`` targets before it (from the measuring pass's guess, as a first block starts) and
+carries its guesses on from those rows, which are then dropped: its first
 block starts, like the one-process run's, from a carried prediction, with the fit check's
 baselines of the rows just before it (a warm-up row that the fit check made POOR_FIT for
 its residual alone, without the point's history, is carried on as trusted). A point that
@@ -58,7 +62,7 @@ from tqdm import tqdm
 
 from torch_stsdic.analysis.result import TrackResult
 from torch_stsdic.core.signatures import POSITIONAL, param, signature_like
-from torch_stsdic.movie.estimates import RunEstimates, measure_run
+from torch_stsdic.movie.estimates import RunEstimates, record_estimates, stored_or_measured
 from torch_stsdic.movie.plan import RunPlan, plan_run
 from torch_stsdic.movie.series import run_plan, set_reference_mode
 from torch_stsdic.movie.sinks import MemorySink, open_sink
@@ -220,13 +224,17 @@ def _plan_job(series: Any, plan_args: dict[str, Any], *, chunk_frames: int, out:
 
 
 def _measure(job: _Job) -> None:
-    """The run-level estimates of the whole movie, measured here once, recorded in the
-    result as the one-process run records them."""
-    job.estimates = measure_run(job.plan, run=run_plan, first_noise=True)
-    if job.estimates.shared is not None:
-        job.sink.write_shared_motion(job.estimates.shared)
-    if job.estimates.series_reference is not None:
-        job.sink.write_series_reference(job.estimates.series_reference)
+    """The run-level estimates of the whole movie, measured here once (with the reference's
+    noise ratio), recorded in the result file as the one-process run records them
+    (:func:`~torch_stsdic.movie.estimates.record_estimates`: its run-level arrays and the
+    group ``run_estimates``), so that a later resume, distributed or one-process, reads them
+    back. A resumed job reads them from its file
+    (:func:`~torch_stsdic.movie.estimates.stored_or_measured`) but where it has chunks to
+    run with a shared motion: each starts from the shared motion's first guess, which the
+    file does not hold, so they are measured again."""
+    job.estimates = stored_or_measured(job.plan, job.sink, run=run_plan, first_noise=True,
+                                       guess_needed=bool(job.chunks))
+    record_estimates(job.estimates, job.sink)
 
 
 def _accept(job: _Job, result: dict[str, Any]) -> int:
@@ -516,8 +524,9 @@ def track_distributed(series: Any, *, out: Any = None, **kwargs: Any) -> TrackRe
             strain_window, strain_kind, scale, unit, time_unit). ``reference_update`` and
             ``smoothing`` are not supported (ValueError). The run-level estimates (shared
             motion, load steps, first guess, the reference made from the series, the
-            refined reference's offsets) are measured once, here, on the whole movie, and
-            handed to every chunk.
+            refined reference's offsets) are measured once, here, on the whole movie,
+            recorded in ``out`` (read back on ``resume`` where no chunk left to run needs
+            the shared motion's first guess) and handed to every chunk.
 
     Returns:
         :class:`~torch_stsdic.movie.series.TrackResult` over all targets; ``info["chunks"]``,

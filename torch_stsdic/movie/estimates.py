@@ -107,7 +107,8 @@ def measure_run(plan: RunPlan, ref_raw: torch.Tensor | None = None, *, run: RunF
     movie. ``ref_raw``: the reference image (default :func:`reference_pixels`); ``run``: the
     runner of a plan (:func:`torch_stsdic.movie.series.run_plan`, which calls this
     function). ``first_noise``: also the reference's noise ratio, on the frames of the plan's
-    first block as that block measures it (a runner whose pieces start elsewhere)."""
+    first block as that block measures it (a runner whose pieces start elsewhere, or a run
+    that records it in its result file for a resumed run to read)."""
     shared = None
     if plan.options.get("shared_motion"):
         kind = plan.options["shared_motion"]
@@ -184,30 +185,43 @@ def record_estimates(est: RunEstimates, sink: MemorySink) -> None:
 
 
 def stored_or_measured(plan: RunPlan, sink: MemorySink, ref_raw: torch.Tensor | None = None,
-                       *, run: RunFunction) -> RunEstimates:
+                       *, run: RunFunction, first_noise: bool = False,
+                       guess_needed: bool | None = None) -> RunEstimates:
     """The run-level estimates of ``plan``: those an earlier run of it recorded in ``sink``'s
     file (:func:`record_estimates`; a resumed run), where it holds all that ``plan`` asks
-    for, else measured (:func:`measure_run`). On a resumed run ``source`` says which."""
+    for, else measured (:func:`measure_run`). On a resumed run ``source`` says which.
+
+    ``first_noise``: the reference's noise ratio too, as the plan's first block measures it
+    (:func:`measure_run`; read back like the rest, and measured so where a file recorded
+    none), so that a resumed run's blocks scale their predicted std as the interrupted
+    run's did, not by a ratio measured on its first pending block. ``guess_needed``: whether
+    work still to do starts from the shared motion's first guess, which the file does not
+    hold (default: where the plan's first block is unfinished; the distributed runner: where
+    any chunk is pending, each starting from it)."""
     stored, done = sink.read_run(GROUP), sink.completed_rows()
     if stored is None and not done:
-        return measure_run(plan, ref_raw, run=run)  # a new run
+        return measure_run(plan, ref_raw, run=run, first_noise=first_noise)  # a new run
     why = "the result file holds none (written before they were recorded)"
     if stored is not None:
         try:
             est = _from_file(stored, sink)
-            why = _unusable(plan, est, done)
+            why = _unusable(plan, est, done, guess_needed)
         except (KeyError, ValueError, TypeError, IndexError) as exc:
             why = f"the result file's could not be read ({type(exc).__name__}: {exc})"
         if why is None:
             est.source = FROM_FILE
+            if first_noise and est.noise_ratio is None:  # recorded before it was
+                est.noise_ratio = _first_block_noise(plan, ref_raw, est.shared)
             return est
-    est = measure_run(plan, ref_raw, run=run)
+    est = measure_run(plan, ref_raw, run=run, first_noise=first_noise)
     est.source = f"measured again: {why}"
     return est
 
 
-def _unusable(plan: RunPlan, est: RunEstimates, done: set[int]) -> str | None:
-    """Why the file's estimates ``est`` cannot stand for ``plan``'s (None: they can)."""
+def _unusable(plan: RunPlan, est: RunEstimates, done: set[int],
+              guess_needed: bool | None = None) -> str | None:
+    """Why the file's estimates ``est`` cannot stand for ``plan``'s (None: they can);
+    ``guess_needed`` as for :func:`stored_or_measured`."""
     asked = {"shared motion": (plan.options.get("shared_motion"), est.shared),
              "reference made from the series": (plan.options.get("series_reference"),
                                                 est.series_reference),
@@ -219,9 +233,15 @@ def _unusable(plan: RunPlan, est: RunEstimates, done: set[int]) -> str | None:
     if ref is not None and (tuple(ref.image.shape) != tuple(plan.series.shape) or any(
             a is not None and len(a) != plan.n_points for a in (ref.added_var, ref.model_holds))):
         return "the file's reference made from the series is not this run's"
-    row_of = plan.row_of()
-    if est.shared is not None and not all(row_of[k] in done for k in plan.blocks[0]):
-        return "its first block is unfinished (the shared motion's first guess is not stored)"
+    if est.shared is None:
+        return None
+    if guess_needed is None:
+        row_of = plan.row_of()
+        if not all(row_of[k] in done for k in plan.blocks[0]):
+            return ("its first block is unfinished (the shared motion's first guess is not "
+                    "stored)")
+    elif guess_needed:
+        return "chunks still to run start from the shared motion's first guess (not stored)"
     return None
 
 

@@ -114,8 +114,11 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
     updates: list[dict[str, Any]] = []
     if "series_reference" not in plan.options and "single_reference" not in plan.options:
         set_series_reference(plan, "auto")  # the default of a plan no one chose a reference for
-    est = estimates if estimates is not None else stored_or_measured(plan, sink, ref.raw,
-                                                                     run=run_plan)
+    # with a result file, the noise ratio is measured now (on the first block's frames, as
+    # that block would) and recorded: a resumed run reads it back, not measuring it anew on
+    # its first pending block
+    est = estimates if estimates is not None else stored_or_measured(
+        plan, sink, ref.raw, run=run_plan, first_noise=sink.path is not None)
     record_estimates(est, sink)  # for a resumed run (not where they were read from the file)
     if est.shared is not None:
         shared = est.shared
