@@ -293,6 +293,27 @@ def test_points_where_the_time_model_fails_are_solved_classically():
     assert res.info["series_reference"]["classical_points"] == 0
 
 
+def test_single_reference_runs_decide_the_time_model_too():
+    """Against the reference image alone (no template) an STS run makes the same decision
+    from its own classical measurement of the sampled frames: on the vibration the points
+    are solved classically (measured 144 of 144, every usable row m = 0), on the relaxing
+    render none (99.97 % of the rows full windows); the result says so in
+    info["time_model"]."""
+    mv = synth.synthetic_movie((161, 161), 20, _vibration(161), noise_sigma=2.0, seed=1)
+    series = torch.cat([mv.ref[None], mv.frames]).double()
+    res = sts.track(series, config=sts.DICConfig(m=2), progress=False, series_reference=False)
+    assert "series_reference" not in res.info
+    cls = res.info["time_model"]["classical_points"]
+    assert cls >= 0.4 * res.n_points, (cls, res.n_points)
+    classical = (res.m[1:] == 0) & (res.status[1:] <= 1)
+    assert float(classical.double().sum() / (res.status[1:] <= 1).sum()) >= 0.95
+    relax = synth.synthetic_movie((161, 161), 20, _relaxing(161), noise_sigma=2.0, seed=3)
+    series = torch.cat([relax.ref[None], relax.frames]).double()
+    res = sts.track(series, config=sts.DICConfig(m=2), progress=False, series_reference=False)
+    assert res.info["time_model"] == {"classical_points": 0, "points": res.n_points}
+    assert float((res.m[1:] == 2).double().mean()) > 0.95
+
+
 def test_no_loss_of_accuracy_where_the_time_model_fails_below_the_check():
     """A vibration of 0.03 px (period 4 frames, phase varying over the specimen): the
     windows miss a line by a few standard deviations, which the model check allows, so

@@ -644,10 +644,14 @@ def _print_summary(res: Any, args: argparse.Namespace, elapsed: float, ref: str,
               f"round(s) ({made}); its noise {sref['noise_ratio']:.3f} of a "
               "frame's" + (f", its registration +{added:.4f} px in u_std and v_std"
                            if added else ""))
-        if sref.get("classical_points"):
-            print(f"time model: {sref['classical_points']} of {n_p} points solved classically "
-                  "(in the template's frames their windows missed a line, or bent it by more "
-                  "than the window saves: no velocity there)")
+
+    classical = (sref or {}).get("classical_points") or (
+        res.info.get("time_model") or {}).get("classical_points")
+    if classical:
+        where = "the template's frames" if sref else "the sampled frames"
+        print(f"time model: {classical} of {n_p} points solved classically (in {where} their "
+              "windows missed a line, or bent it by more than the window saves: no velocity "
+              "there)")
     solved = n_f - kept
     if args.resume:
         print(f"resumed: {kept} of {n_f} frames were finished in the file and kept, "

@@ -37,7 +37,12 @@ from torch_stsdic.movie.frames import segment_bounds, window_frames
 from torch_stsdic.movie.plan import RunPlan
 from torch_stsdic.movie.reference import noise_ratio
 from torch_stsdic.movie.refine import ReferenceOffsets, measure_offsets
-from torch_stsdic.movie.series_reference import SeriesReference, build_series_reference
+from torch_stsdic.movie.series_reference import (
+    SeriesReference,
+    build_series_reference,
+    measure_time_model,
+    wants_time_model,
+)
 from torch_stsdic.movie.shared_pass import estimate_shared_motion
 from torch_stsdic.movie.sinks import MemorySink
 
@@ -61,6 +66,9 @@ class RunEstimates:
         offsets: the refined reference's per-point offsets.
         noise_ratio: the reference's noise variance over a frame's (None: the first block
             measures it, as a one-process run does).
+        time_model: (N,) bool, where the time model holds, for an STS run against its
+            reference image alone (:func:`~torch_stsdic.movie.series_reference.
+            measure_time_model`; with a template its ``model_holds`` says it).
         source: where a resumed run took them (:data:`FROM_FILE`, or why they were measured
             again); None: measured for a new run, or handed over.
     """
@@ -69,7 +77,16 @@ class RunEstimates:
     series_reference: SeriesReference | None = None
     offsets: ReferenceOffsets | None = None
     noise_ratio: float | None = None
+    time_model: torch.Tensor | None = None
     source: str | None = None
+
+    @property
+    def model_holds(self) -> torch.Tensor | None:
+        """(N,) bool where the time model holds (None: everywhere): the template's decision,
+        or the single reference's own."""
+        if self.series_reference is not None:
+            return self.series_reference.model_holds
+        return self.time_model
 
     @property
     def row_offsets(self) -> ReferenceOffsets | None:
@@ -89,6 +106,9 @@ class RunEstimates:
             info["series_reference"] = self.series_reference.summary()
         if self.shared is not None:
             info["shared_motion"] = self.shared.summary()
+        if self.time_model is not None:
+            info["time_model"] = {"classical_points": int((~self.time_model).sum()),
+                                  "points": int(self.time_model.numel())}
         if self.source is not None:
             info["run_estimates"] = self.source
         return info
@@ -125,8 +145,15 @@ def measure_run(plan: RunPlan, ref_raw: torch.Tensor | None = None, *, run: RunF
         offsets = measure_offsets(plan, int(plan.options["refine_reference"]),
                                   shared if shared is not None and shared.applied else None,
                                   run=run)
+    holds = None
+    if series_ref is None and wants_time_model(plan):
+        holds = measure_time_model(plan, run, shared if shared is not None and shared.applied
+                                   else None)
+        if holds is None:  # no point had three windows: decided, the model everywhere
+            holds = torch.ones(plan.n_points, dtype=torch.bool)
     est = RunEstimates(shared=shared, series_reference=series_ref, offsets=offsets,
-                       noise_ratio=None if series_ref is None else series_ref.noise_ratio)
+                       noise_ratio=None if series_ref is None else series_ref.noise_ratio,
+                       time_model=holds)
     if first_noise and est.noise_ratio is None:
         est.noise_ratio = _first_block_noise(plan, ref_raw, shared)
     return est
@@ -229,6 +256,9 @@ def _unusable(plan: RunPlan, est: RunEstimates, done: set[int],
     for what, (want, have) in asked.items():
         if bool(want) != (have is not None):
             return f"the file's {what} is not this run's"
+    if est.series_reference is None and wants_time_model(plan) and (
+            est.time_model is None or len(est.time_model) != plan.n_points):
+        return "the file holds no time-model decision for this run"
     ref = est.series_reference
     if ref is not None and (tuple(ref.image.shape) != tuple(plan.series.shape) or any(
             a is not None and len(a) != plan.n_points for a in (ref.added_var, ref.model_holds))):

@@ -131,8 +131,8 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
         ref = Reference(frame=-1, raw=img, img=solver.prepare(img), points=ref.points)
         if est.series_reference.added_var is not None:
             run.reference_var = est.series_reference.added_var.to(device=plan.device)
-        if est.series_reference.model_holds is not None:
-            run.classical_points = ~est.series_reference.model_holds.to(device=plan.device)
+    if est.model_holds is not None:  # the time model failed at the other points
+        run.classical_points = ~est.model_holds.to(device=plan.device)
     if est.noise_ratio is not None:
         run.noise_ratio = est.noise_ratio
     offsets = est.row_offsets

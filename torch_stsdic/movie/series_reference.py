@@ -549,6 +549,28 @@ def _gauge(plan: RunPlan, fit: LocalFit, image: torch.Tensor, keep: torch.Tensor
                             reference_frame=int(plan.reference_frame)), left
 
 
+def wants_time_model(plan: RunPlan) -> bool:
+    """Whether a run without a template decides its time model from its own classical
+    measurement (:func:`measure_time_model`): STS windows with the trust checks, one
+    reference configuration and no refined reference (which models the motion next to the
+    reference itself)."""
+    return (plan.config.m > 0 and bool(plan.options.get("checks", True))
+            and plan.options.get("reference_update") is None
+            and not plan.options.get("refine_reference")
+            and not plan.options.get("series_reference"))
+
+
+def measure_time_model(plan: RunPlan, run: Callable[..., TrackResult],
+                       shared: SharedMotion | None = None,
+                       max_frames: int = DEFAULT_FRAMES) -> torch.Tensor | None:
+    """(N,) bool: where the time model holds (:func:`time_model_holds`) for a run against
+    its reference image alone: the same classical measurement of the sampled frames
+    (:func:`sample_frames`) that a template's first round makes, against the plan's
+    reference. None where no point had three windows."""
+    frames = sample_frames(plan, max_frames)
+    return time_model_holds(plan, _measure(plan, frames, None, run), frames, shared)
+
+
 def single_reason(plan: RunPlan) -> str | None:
     """Why the reference made from the series does not apply to ``plan`` by default (None:
     it does): it needs the reference to be one frame of the series (that frame's own
