@@ -12,6 +12,7 @@ import h5py
 import numpy as np
 import pytest
 import torch
+from test_resume_estimates import _no_measuring  # every measurement raises (tests/ on the path)
 
 import torch_stsdic.movie.estimates as estimates
 from torch_stsdic import DICConfig, synth
@@ -44,16 +45,6 @@ def dist(dask_distributed, movie, tmp_path_factory):
     res = track_distributed(movie, out=out, shared_motion="affine", **KW, **DIST)
     assert res.info["chunks"] == 3 and "series_reference" in res.info
     return res, out
-
-
-def _no_measuring(monkeypatch):
-    """Every estimate's measurement raises."""
-    def refuse(*args, **kwargs):
-        raise AssertionError("the run-level estimates were measured again")
-
-    for name in ("measure_run", "build_series_reference", "estimate_shared_motion",
-                 "measure_offsets"):
-        monkeypatch.setattr(estimates, name, refuse)
 
 
 def _unfinish(path, row):

@@ -56,7 +56,7 @@ def _no_measuring(monkeypatch):
         raise AssertionError("the run-level estimates were measured again")
 
     for name in ("measure_run", "build_series_reference", "estimate_shared_motion",
-                 "measure_offsets"):
+                 "measure_offsets", "measure_time_model"):
         monkeypatch.setattr(estimates, name, refuse)
 
 

@@ -312,6 +312,10 @@ def test_single_reference_runs_decide_the_time_model_too():
     res = sts.track(series, config=sts.DICConfig(m=2), progress=False, series_reference=False)
     assert res.info["time_model"] == {"classical_points": 0, "points": res.n_points}
     assert float((res.m[1:] == 2).double().mean()) > 0.95
+    # fewer points than the pooled test's neighbourhood: windows and the model check only
+    few = sts.track(series, config=sts.DICConfig(m=2), progress=False, series_reference=False,
+                    step=40)
+    assert few.n_points < 25 and "time_model" not in few.info
 
 
 def test_no_loss_of_accuracy_where_the_time_model_fails_below_the_check():

@@ -552,9 +552,11 @@ def _gauge(plan: RunPlan, fit: LocalFit, image: torch.Tensor, keep: torch.Tensor
 def wants_time_model(plan: RunPlan) -> bool:
     """Whether a run without a template decides its time model from its own classical
     measurement (:func:`measure_time_model`): STS windows with the trust checks, one
-    reference configuration and no refined reference (which models the motion next to the
-    reference itself)."""
+    reference configuration, no refined reference (which models the motion next to the
+    reference itself) and at least ``POOL_POINTS`` points (the pooled bias test's
+    neighbourhood; fewer, as with the template, keep their windows and the model check)."""
     return (plan.config.m > 0 and bool(plan.options.get("checks", True))
+            and plan.n_points >= POOL_POINTS
             and plan.options.get("reference_update") is None
             and not plan.options.get("refine_reference")
             and not plan.options.get("series_reference"))
