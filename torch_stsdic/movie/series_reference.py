@@ -59,6 +59,10 @@ MISFIT_RATIO, MISFIT_SPREAD = 3.0, 20.0
 POOL_POINTS = 25
 #: the most a point's own excess counts in its neighbours' pools, in units of its own gain
 POOL_CLIP = 3.0
+#: px: the least standard deviation the time-model test grants a classical displacement:
+#: the interpolation bias every solution carries alike (a cubic B-spline on a noise-free
+#: speckle moving 0.3 px a frame: 3.7e-4 px RMS, 2.7x its u_std) is no time-model failure
+BIAS_FLOOR_PX = 1e-3
 #: |plane - quadratic| / its std beyond which a frame is left out of the template at a POI
 PLANE_Z = 5.0
 #: the points whose warps feed the template (grey levels of the pixels: memory per chunk)
@@ -289,6 +293,10 @@ def time_model_holds(plan: RunPlan, res: TrackResult, frames: list[int],
       than a classical solve (a load series whose steps are not even: DIC Challenge
       sample 12).
 
+    A displacement's standard deviation counts as at least ``BIAS_FLOOR_PX`` here: on
+    noise-free images the interpolation bias, which the classical solution carries too,
+    would otherwise pass for a time-model failure.
+
     None where no point had three windows (m = 0, checks off, too few adjacent frames)."""
     m = plan.config.m
     if m == 0 or not plan.options.get("checks", True) or "u" not in res.std:
@@ -297,7 +305,8 @@ def time_model_holds(plan: RunPlan, res: TrackResult, frames: list[int],
     d = torch.stack([res.u.double().cpu(), res.v.double().cpu()], -1)  # (F, N, 2)
     if shared is not None and shared.applied:
         d = d - shared.displacement(pts, torch.as_tensor(frames)).double()
-    sd = torch.stack([res.std["u"].double().cpu(), res.std["v"].double().cpu()], -1)
+    sd = torch.stack([res.std["u"].double().cpu(), res.std["v"].double().cpu()],
+                     -1).clamp(min=BIAS_FLOOR_PX)
     ok = (res.status.cpu() <= USABLE) & torch.isfinite(d).all(-1)
     # one frame's share of a classical displacement's variance (both images noisy), (N, 2):
     # the median over the frames (:func:`_unit_variance`: a nearly singular solve in one
