@@ -133,3 +133,33 @@ def test_resumed_run_says_so_and_counts_only_what_it_solved(capsys, monkeypatch,
     code, text, _ = _run(capsys, "run", movie, *RUN, "--out", tmp_path / "b.h5", *FAST)
     assert code == 0 and "resumed:" not in text and "POI/s   (" in text, text
     assert "read from the result file" not in text and "a template of" in text, text
+
+
+def test_a_run_stopped_before_its_first_frame_keeps_its_estimates(capsys, monkeypatch, movie,
+                                                                  tmp_path):
+    """The run-level estimates (template, shared motion) are recorded before the first block:
+    a run that fails there keeps its file for --resume, which reads them instead of
+    measuring them again; with nothing recorded the file is removed as before."""
+    out = tmp_path / "r.h5"
+    real = ResultWriter.write_rows
+
+    def failing(self, rows, values, *, mark_completed=True):
+        if mark_completed:
+            raise self._write_error(OSError(errno.ENOSPC, "No space left on device"))
+        return real(self, rows, values, mark_completed=mark_completed)
+
+    monkeypatch.setattr(ResultWriter, "write_rows", failing)
+    code, _, err = _run(capsys, "run", movie, *RUN, "--out", out, *FAST)
+    assert code == 1 and "no frame finished; the run's estimates" in err, err
+    assert out.exists() and "--resume" in err
+    monkeypatch.setattr(ResultWriter, "write_rows", real)
+    code, text, err = _run(capsys, "run", movie, *RUN, "--out", out, "--resume", *FAST)
+    assert code == 0, err
+    assert "resumed: 0 of 12 frames" in text, text
+    assert "the run's estimates read from the result file" in text, text
+    # a single reference, classical: nothing run-level to keep, so no file is left behind
+    out2 = tmp_path / "c.h5"
+    monkeypatch.setattr(ResultWriter, "write_rows", failing)
+    code, _, err = _run(capsys, "run", movie, *RUN, "--m", "0", "--single-reference",
+                        "--shared-motion", "none", "--out", out2, *FAST)
+    assert code == 1 and "nothing was written yet" in err and not out2.exists(), err

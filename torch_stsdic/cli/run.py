@@ -508,9 +508,12 @@ def _written_file(out: Path, args: argparse.Namespace) -> Path:
 
 
 def _discard_unfinished(sink: Any, out: Path, args: argparse.Namespace) -> None:
-    """After a failed run: close the result file and remove it if this run created it and
-    no frame was finished (a file of 0 frames only invites a --resume that fails again)."""
+    """After a failed run: close the result file and remove it if this run created it, no
+    frame was finished and it holds no run-level estimates (a file of 0 frames only invites
+    a --resume that fails again; one with the estimates saves a --resume their time)."""
     import h5py
+
+    from torch_stsdic.movie.estimates import GROUP
 
     sink.close(commit=False)
     if args.resume:  # the user's file: kept as it was
@@ -519,15 +522,17 @@ def _discard_unfinished(sink: Any, out: Path, args: argparse.Namespace) -> None:
     try:
         with h5py.File(path, "r", locking=False) as f:
             done = int(np.asarray(f["completed"][()]).sum())
+            estimates = GROUP in f and len(f[GROUP]) > 0  # measured, not only a ratio
     except Exception:  # noqa: BLE001 - not ours or not there: leave it
         return
-    if done == 0:
+    if done == 0 and not estimates:
         path.unlink(missing_ok=True)
 
 
 def _kept(out: Path, args: argparse.Namespace, plan: Any) -> str:
     """What an interrupted or failed run left: the finished frames and how to continue."""
     from torch_stsdic.io.results import RESULTS_FORMAT, open_results
+    from torch_stsdic.movie.estimates import GROUP
 
     partial = out.with_name(out.name + ".partial")
     path = partial if (args.overwrite or args.resume) and partial.exists() else out
@@ -537,11 +542,15 @@ def _kept(out: Path, args: argparse.Namespace, plan: Any) -> str:
         with open_results(path) as f:
             done = f["completed"][()]
             ours = f.attrs.get("format") == RESULTS_FORMAT
+            estimates = GROUP in f and len(f[GROUP]) > 0  # measured, not only a ratio
     except Exception:  # noqa: BLE001 - only for the message
         return "nothing was written yet"
     if not ours or (plan is not None and len(done) != plan.n_rows):
         return f"{path} is unchanged"
     n, k = len(done), int(done.sum())
+    if k == 0 and estimates:
+        return (f"no frame finished; the run's estimates (reference, shared motion) are kept "
+                f"in {path}: continue with the same command and --resume")
     if k == n:
         return (f"all {n} frames are finished in {path}; run the same command with --resume "
                 "to complete what may be missing (strains)")
