@@ -159,32 +159,18 @@ class AffineShape(ShapeFunction):
         W_dp gives M = (I + D)(I + dD)^-1, b' = b - M db, bt' = bt - M dbt: still affine in
         space and linear in time, so the family is closed."""
         k = self.n_basis
-        D = torch.stack(
-            [torch.stack([params[:, 1], params[:, 2]], -1),
-             torch.stack([params[:, k + 1], params[:, k + 2]], -1)], -2)
-        dD = torch.stack(
-            [torch.stack([dp[:, 1], dp[:, 2]], -1),
-             torch.stack([dp[:, k + 1], dp[:, k + 2]], -1)], -2)
+        # (N, 2, k) views: row 0 the u coefficients (1, x, y[, t]), row 1 the v ones; D = the
+        # x, y columns (the displacement gradient), the 1 and t columns (0::3) the offsets
+        p3, dp3 = params.reshape(-1, 2, k), dp.reshape(-1, 2, k)
         eye = torch.eye(2, dtype=params.dtype, device=params.device)
-        A = eye + dD
-        det = A[:, 0, 0] * A[:, 1, 1] - A[:, 0, 1] * A[:, 1, 0]
-        inv = torch.stack(
-            [torch.stack([A[:, 1, 1], -A[:, 0, 1]], -1),
-             torch.stack([-A[:, 1, 0], A[:, 0, 0]], -1)], -2) / det.view(-1, 1, 1)
-        M = (eye + D) @ inv
-        b = torch.stack([params[:, 0], params[:, k]], -1)
-        db = torch.stack([dp[:, 0], dp[:, k]], -1)
-        nb = b - (M @ db.unsqueeze(-1)).squeeze(-1)
-        Dn = M - eye
-        out = torch.empty_like(params)
-        out[:, 0], out[:, 1], out[:, 2] = nb[:, 0], Dn[:, 0, 0], Dn[:, 0, 1]
-        out[:, k], out[:, k + 1], out[:, k + 2] = nb[:, 1], Dn[:, 1, 0], Dn[:, 1, 1]
-        if self.use_temporal:
-            bt = torch.stack([params[:, 3], params[:, k + 3]], -1)
-            dbt = torch.stack([dp[:, 3], dp[:, k + 3]], -1)
-            nbt = bt - (M @ dbt.unsqueeze(-1)).squeeze(-1)
-            out[:, 3], out[:, k + 3] = nbt[:, 0], nbt[:, 1]
-        return out
+        a = eye + dp3[:, :, 1:3]
+        det = a[:, 0, 0] * a[:, 1, 1] - a[:, 0, 1] * a[:, 1, 0]
+        adj = torch.stack([a[:, 1, 1], -a[:, 0, 1], -a[:, 1, 0], a[:, 0, 0]], -1)
+        m = (eye + p3[:, :, 1:3]) @ (adj.view(-1, 2, 2) / det.view(-1, 1, 1))
+        out = torch.empty_like(p3)
+        out[:, :, 1:3] = m - eye
+        out[:, :, 0::3] = p3[:, :, 0::3] - m @ dp3[:, :, 0::3]  # b - M db (and bt - M dbt)
+        return out.reshape(params.shape)
 
 
 class QuadraticShape(ShapeFunction):
