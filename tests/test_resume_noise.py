@@ -15,18 +15,12 @@ import h5py
 import numpy as np
 import pytest
 import torch
+from test_resume_estimates import MOTION, N_FRAMES, Crash  # the same movie (tests/ on the path)
 
 import torch_stsdic as sts
 import torch_stsdic.movie.estimates as estimates
 from torch_stsdic import synth
 from torch_stsdic.io import read_results
-
-N_FRAMES = 15
-MOTION = synth.QuadraticInTime(au=0.11, bu=-0.003, av=-0.06, bv=0.002)
-
-
-class Crash(Exception):
-    pass
 
 
 @pytest.fixture(scope="module")
