@@ -549,8 +549,8 @@ def _kept(out: Path, args: argparse.Namespace, plan: Any) -> str:
         return f"{path} is unchanged"
     n, k = len(done), int(done.sum())
     if k == 0 and estimates:
-        return (f"no frame finished; the run's estimates (reference, shared motion) are kept "
-                f"in {path}: continue with the same command and --resume")
+        return (f"no frame finished; the run's estimates (template, shared motion, time "
+                f"model) are kept in {path}: continue with the same command and --resume")
     if k == n:
         return (f"all {n} frames are finished in {path}; run the same command with --resume "
                 "to complete what may be missing (strains)")
