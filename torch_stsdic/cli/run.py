@@ -507,13 +507,19 @@ def _written_file(out: Path, args: argparse.Namespace) -> Path:
     return out.with_name(out.name + ".partial") if args.overwrite else out
 
 
+def _holds_estimates(f: Any) -> bool:
+    """Whether the open result file ``f`` holds measured run-level estimates (a template, a
+    shared motion, a time model: its group ``run_estimates`` has arrays), not only a ratio."""
+    from torch_stsdic.movie.estimates import GROUP
+
+    return GROUP in f and len(f[GROUP]) > 0
+
+
 def _discard_unfinished(sink: Any, out: Path, args: argparse.Namespace) -> None:
     """After a failed run: close the result file and remove it if this run created it, no
     frame was finished and it holds no run-level estimates (a file of 0 frames only invites
     a --resume that fails again; one with the estimates saves a --resume their time)."""
     import h5py
-
-    from torch_stsdic.movie.estimates import GROUP
 
     sink.close(commit=False)
     if args.resume:  # the user's file: kept as it was
@@ -522,7 +528,7 @@ def _discard_unfinished(sink: Any, out: Path, args: argparse.Namespace) -> None:
     try:
         with h5py.File(path, "r", locking=False) as f:
             done = int(np.asarray(f["completed"][()]).sum())
-            estimates = GROUP in f and len(f[GROUP]) > 0  # measured, not only a ratio
+            estimates = _holds_estimates(f)
     except Exception:  # noqa: BLE001 - not ours or not there: leave it
         return
     if done == 0 and not estimates:
@@ -532,7 +538,6 @@ def _discard_unfinished(sink: Any, out: Path, args: argparse.Namespace) -> None:
 def _kept(out: Path, args: argparse.Namespace, plan: Any) -> str:
     """What an interrupted or failed run left: the finished frames and how to continue."""
     from torch_stsdic.io.results import RESULTS_FORMAT, open_results
-    from torch_stsdic.movie.estimates import GROUP
 
     partial = out.with_name(out.name + ".partial")
     path = partial if (args.overwrite or args.resume) and partial.exists() else out
@@ -542,7 +547,7 @@ def _kept(out: Path, args: argparse.Namespace, plan: Any) -> str:
         with open_results(path) as f:
             done = f["completed"][()]
             ours = f.attrs.get("format") == RESULTS_FORMAT
-            estimates = GROUP in f and len(f[GROUP]) > 0  # measured, not only a ratio
+            estimates = _holds_estimates(f)
     except Exception:  # noqa: BLE001 - only for the message
         return "nothing was written yet"
     if not ours or (plan is not None and len(done) != plan.n_rows):
