@@ -12,6 +12,7 @@ from __future__ import annotations
 import torch
 
 from torch_stsdic.core.interpolation import window_view
+from torch_stsdic.core.pyramid import PyramidStack
 
 __all__ = ["fft_cross_correlation", "coarse_to_fine", "linear_fit_in_time", "seed_cells",
            "carry_from_seed", "retry_weak_peaks", "walk_weak_frames"]
@@ -192,17 +193,6 @@ def fft_cross_correlation(
     return disp, score
 
 
-def _pyramid(img: torch.Tensor, levels: int) -> list[torch.Tensor]:
-    """[img, img / 2, img / 4, ...] (each (F, H_l, W_l)) by Gaussian blur + decimation
-    (kornia's ``pyrdown``)."""
-    from kornia.geometry.transform import pyrdown
-
-    out = [img]
-    for _ in range(levels):
-        out.append(pyrdown(out[-1].unsqueeze(1)).squeeze(1))
-    return out
-
-
 @torch.no_grad()
 def coarse_to_fine(
     ref: torch.Tensor,
@@ -215,21 +205,37 @@ def coarse_to_fine(
     frame_index: torch.Tensor | None = None,
     ref_index: torch.Tensor | None = None,
     refine_radius: int = 3,
+    pyramids: tuple[PyramidStack, PyramidStack] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """:func:`fft_cross_correlation` over an image pyramid, for large motions.
 
     At the coarsest of ``levels`` halvings the subsets (``subset_size`` px there, i.e. a
     region 2^levels times wider) are searched within ``search_radius`` px, reaching
     ``search_radius * 2^levels`` px at full resolution; every finer level searches
-    ``refine_radius`` px around the doubled estimate of the level above. Returns
+    ``refine_radius`` px around the doubled estimate of the level above. ``pyramids``: the
+    pyramids of ``ref`` and ``images`` (:class:`~torch_stsdic.core.pyramid.PyramidStack`, in
+    their order) kept by the caller, so that an image's levels are built once however often
+    it is searched; default: built here. Only the images the POIs read are stacked. Returns
     (disp (N, T, 2) px, zncc (N, T)) at full resolution, as :func:`fft_cross_correlation`.
     """
     if images.dim() == 2:
         images = images.unsqueeze(0)
     if ref.dim() == 2:
         ref = ref.unsqueeze(0)
-    dtype = torch.float32 if images.dtype != torch.float64 else torch.float64
-    refs, imgs = _pyramid(ref.to(dtype), levels), _pyramid(images.to(dtype), levels)
+    n, dev = points.shape[0], images.device
+    if frame_index is None:
+        frame_index = torch.arange(images.shape[0], device=dev).expand(n, -1)
+    if ref_index is None:
+        ref_index = torch.zeros(n, dtype=torch.long, device=dev)
+    ref_pyr, img_pyr = pyramids if pyramids is not None else (PyramidStack.of(ref),
+                                                               PyramidStack.of(images))
+    if len(ref_pyr) != ref.shape[0] or len(img_pyr) != images.shape[0]:
+        raise ValueError(f"coarse_to_fine: pyramids of {len(ref_pyr)} and {len(img_pyr)} "
+                         f"images for {ref.shape[0]} and {images.shape[0]}")
+    # the images read, once each, and the POIs' indices into them
+    f_used, f_idx = torch.unique(frame_index, return_inverse=True)
+    r_used, r_idx = torch.unique(ref_index, return_inverse=True)
+    refs, imgs = ref_pyr.levels(levels, r_used), img_pyr.levels(levels, f_used)
     disp = None
     score = None
     for lev in range(levels, -1, -1):
@@ -238,7 +244,7 @@ def coarse_to_fine(
         prior = None if disp is None else torch.round(2.0 * disp)
         disp, score = fft_cross_correlation(
             refs[lev], imgs[lev], pts, subset_size, search_radius if disp is None else
-            refine_radius, frame_index=frame_index, ref_index=ref_index, prior=prior)
+            refine_radius, frame_index=f_idx, ref_index=r_idx, prior=prior)
     return disp, score
 
 
@@ -308,12 +314,15 @@ def carry_from_seed(shape, params: torch.Tensor, offset: torch.Tensor) -> torch.
 def retry_weak_peaks(d: torch.Tensor, score: torch.Tensor, ref_pixels: torch.Tensor,
                      frame_pixels: torch.Tensor, points: torch.Tensor,
                      frame_index: torch.Tensor, ref_index: torch.Tensor, subset_size: int,
-                     search_radius: int) -> tuple[torch.Tensor, torch.Tensor]:
+                     search_radius: int,
+                     pyramids: tuple[PyramidStack, PyramidStack] | None = None
+                     ) -> tuple[torch.Tensor, torch.Tensor]:
     """Where the full-resolution search found no clear peak (ZNCC < 0.8, or the peak on
     the border of the search area: the motion may be larger than ``search_radius``),
-    search again over an image pyramid (:func:`~torch_stsdic.core.initial.coarse_to_fine`)
-    and keep the better peak of the two. ``d`` (N, T, 2) displacements, ``score``
-    (N, T) their ZNCC; returns both updated."""
+    search again over an image pyramid (:func:`~torch_stsdic.core.initial.coarse_to_fine`;
+    ``pyramids`` those of the reference and frame images, as there) and keep the better
+    peak of the two. ``d`` (N, T, 2) displacements, ``score`` (N, T) their ZNCC; returns
+    both updated."""
     rad = search_radius
     weak = (score < 0.8) | (d.abs() >= rad - 0.5).any(-1)
     h, w = frame_pixels.shape[-2:]
@@ -325,7 +334,7 @@ def retry_weak_peaks(d: torch.Tensor, score: torch.Tensor, ref_pixels: torch.Ten
         return d, score
     d2, s2 = coarse_to_fine(ref_pixels, frame_pixels, points[rows], subset_size, rad,
                             levels, frame_index=frame_index[rows],
-                            ref_index=ref_index[rows])
+                            ref_index=ref_index[rows], pyramids=pyramids)
     better = s2 > score[rows]
     d, score = d.clone(), score.clone()
     d[rows] = torch.where(better.unsqueeze(-1), d2.to(d.dtype), d[rows])

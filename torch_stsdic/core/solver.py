@@ -52,6 +52,7 @@ from torch_stsdic.core.initial import (
 )
 from torch_stsdic.core.interpolation import BSplineImage
 from torch_stsdic.core.offgrid import carry_params, carry_solution, snap_points
+from torch_stsdic.core.pyramid import PyramidStack
 from torch_stsdic.core.shape import ShapeFunction, make_shape
 from torch_stsdic.core.shared_motion import known_window_motion
 from torch_stsdic.core.solution import (
@@ -119,6 +120,7 @@ class SubsetSolver:
         centres: torch.Tensor | None = None,
         classical_step: bool = False,
         init_step: torch.Tensor | None = None,
+        pyramids: tuple[PyramidStack, PyramidStack] | None = None,
     ) -> WindowSolution:
         """Solve many POIs, each against its own window of frames.
 
@@ -158,6 +160,10 @@ class SubsetSolver:
                 none): the first step's convergence test then predicts the next increment
                 from the rate between the two, as it does between later steps, so a point
                 whose first step here shrank enough stops after it.
+            pyramids: the Gaussian pyramids of ``ref_pixels`` and ``frame_pixels``
+                (:class:`~torch_stsdic.core.pyramid.PyramidStack`) for the coarse-to-fine
+                search of weak peaks, kept by a caller that solves the same images again
+                (default: built when a search needs them).
         """
         moved = None
         if centres is not None:
@@ -175,7 +181,7 @@ class SubsetSolver:
                              ref_index=ref_index, init=init, ref_pixels=ref_pixels,
                              frame_pixels=frame_pixels, time=time, noise_ratio=noise_ratio,
                              motion=motion, classical_step=classical_step,
-                             init_step=init_step)
+                             init_step=init_step, pyramids=pyramids)
             if classical_step:  # known at the subset centre only
                 off = (offset != 0).any(1, keepdim=True)
                 sol.info.update(classical_step_info(packed_classical_step(sol.info).masked_fill(
@@ -183,12 +189,12 @@ class SubsetSolver:
             return carry_solution(sol, points, offset)
         return self._solve_on_grid(ref, frames, points, dt, frame_index, ref_index, init,
                                    ref_pixels, frame_pixels, time, noise_ratio, motion,
-                                   classical_step, init_step)
+                                   classical_step, init_step, pyramids)
 
     def _solve_on_grid(self, ref: BSplineImage, frames: BSplineImage, points: torch.Tensor,
                        dt, frame_index, ref_index, init, ref_pixels, frame_pixels, time,
-                       noise_ratio: float, motion, classical_step: bool, init_step
-                       ) -> WindowSolution:
+                       noise_ratio: float, motion, classical_step: bool, init_step,
+                       pyramids=None) -> WindowSolution:
         """:meth:`solve` for POIs on the pixel grid with centred subsets."""
         n = points.shape[0]
         dt, frame_index, ref_index = _per_point(points, dt, frame_index, ref_index)
@@ -202,10 +208,10 @@ class SubsetSolver:
             if plan is not None:
                 return self._solve_seeded(
                     plan, ref, frames, points, dt, frame_index, ref_index, ref_pixels,
-                    frame_pixels, time, inside, noise_ratio, motion, classical_step,
+                    frame_pixels, time, inside, noise_ratio, motion, classical_step, pyramids,
                 )
         p0, t_fft = self._initial_params(shape, init, inside, points, dt, frame_index,
-                                         ref_index, ref_pixels, frame_pixels, motion)
+                                         ref_index, ref_pixels, frame_pixels, motion, pyramids)
         if init_step is not None:
             init_step = torch.as_tensor(init_step).to(device=points.device, dtype=points.dtype)
             if init_step.numel() != n:
@@ -219,8 +225,8 @@ class SubsetSolver:
 
     def _initial_params(self, shape: ShapeFunction, init, inside: torch.Tensor,
                         points: torch.Tensor, dt: torch.Tensor, frame_index: torch.Tensor,
-                        ref_index: torch.Tensor, ref_pixels, frame_pixels, motion
-                        ) -> tuple[torch.Tensor, float]:
+                        ref_index: torch.Tensor, ref_pixels, frame_pixels, motion,
+                        pyramids=None) -> tuple[torch.Tensor, float]:
         """The starting parameters (N, P) of a solve, and the seconds the FFT guess took:
         ``init`` checked and expanded to ``shape``, or FFT cross-correlation (init None)."""
         device, dtype = points.device, points.dtype
@@ -232,7 +238,7 @@ class SubsetSolver:
                 p0[inside] = self.initial_guess(
                     shape, ref_pixels, frame_pixels, points[inside], dt[inside],
                     frame_index[inside], ref_index[inside],
-                    motion=None if motion is None else motion[inside],
+                    motion=None if motion is None else motion[inside], pyramids=pyramids,
                 )
             return p0, _clock(device) - t_fft
         p0 = torch.as_tensor(init).to(device=device, dtype=dtype)
@@ -337,7 +343,7 @@ class SubsetSolver:
 
     def _solve_seeded(self, plan, ref, frames, points, dt, frame_index, ref_index, ref_pixels,
                       frame_pixels, time, inside, noise_ratio, motion=None,
-                      classical_step=False) -> WindowSolution:
+                      classical_step=False, pyramids=None) -> WindowSolution:
         """Seeds by FFT cross-correlation and Gauss-Newton; every other POI starts from its
         cell's seed solution (:func:`carry_from_seed`); POIs that then fail (not converged, or
         ZNCC more than 0.1 below the best of their cell) are solved again from FFT cross-correlation
@@ -353,7 +359,8 @@ class SubsetSolver:
             return self.solve(ref, frames, points[rows], dt[rows], frame_index=frame_index[rows],
                               ref_index=ref_index[rows], init=init, ref_pixels=ref_pixels,
                               frame_pixels=frame_pixels, time=time, noise_ratio=noise_ratio,
-                              motion=rows_of(motion, rows), classical_step=classical_step)
+                              motion=rows_of(motion, rows), classical_step=classical_step,
+                              pyramids=pyramids)
 
         fft_s = [0.0]
 
@@ -361,7 +368,7 @@ class SubsetSolver:
             t0 = _clock(points.device)
             p0 = self.initial_guess(shape, ref_pixels, frame_pixels, points[rows], dt[rows],
                                     frame_index[rows], ref_index[rows],
-                                    motion=rows_of(motion, rows))
+                                    motion=rows_of(motion, rows), pyramids=pyramids)
             fft_s[0] += _clock(points.device) - t0
             return p0
 
@@ -449,11 +456,13 @@ class SubsetSolver:
         )
 
     def initial_guess(
-        self, shape, ref_pixels, frame_pixels, points, dt, frame_index, ref_index, motion=None
+        self, shape, ref_pixels, frame_pixels, points, dt, frame_index, ref_index, motion=None,
+        pyramids: tuple[PyramidStack, PyramidStack] | None = None,
     ) -> torch.Tensor:
         """FFT cross-correlation on every frame of each POI's window, then a line in time:
         (N, P) parameters (displacement at dt = 0 and velocity; gradients zero) of the motion
-        besides the known ``motion`` (N, T, 2) (None: none)."""
+        besides the known ``motion`` (N, T, 2) (None: none); ``pyramids`` as for
+        :meth:`solve`."""
         cfg = self.config
         d, score = fft_cross_correlation(
             ref_pixels, frame_pixels, points, cfg.subset_size, cfg.search_radius,
@@ -461,7 +470,7 @@ class SubsetSolver:
         )
         cfg = self.config
         d, score = retry_weak_peaks(d, score, ref_pixels, frame_pixels, points, frame_index,
-                                    ref_index, cfg.subset_size, cfg.search_radius)
+                                    ref_index, cfg.subset_size, cfg.search_radius, pyramids)
         if d.shape[1] > 1:
             d, score = walk_weak_frames(d, score, dt, ref_pixels, frame_pixels, points,
                                         frame_index, ref_index, cfg.subset_size,

@@ -113,7 +113,9 @@ class Block(BlockChecks):
         self.k = torch.tensor(ks, dtype=torch.long, device=dev)
         win = self.windows(run.m)
         self.needed = torch.unique(win)  # sorted; only the windows' frames
-        self.raw, self.img = run.cache.load(self.needed.tolist())
+        needed = self.needed.tolist()
+        self.raw, self.img = run.cache.load(needed)
+        self.pyramids = run.cache.pyramids(needed)  # each built on first use (weak peaks)
         ref.ensure(run.cache)
         if run.noise_ratio is None:
             run.noise_ratio = noise_ratio(run.reference_desc, ref.raw, self.raw)
@@ -204,6 +206,7 @@ class Block(BlockChecks):
         return (solver or run.solver).solve(
             ref.img, self.img, self.pts[idx], dt, frame_index=fidx,
             init=init, ref_pixels=ref.raw.unsqueeze(0), frame_pixels=self.raw,
+            pyramids=(ref.pyramids(), self.pyramids),
             noise_ratio=run.noise_ratio, motion=None if motion is None else motion[idx],
             centres=None if self.centres is None else self.centres[idx],
             # the model check's first classical step, from the window solve's last step

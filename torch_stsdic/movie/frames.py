@@ -2,7 +2,11 @@
 
 A sliding window reads every frame 2m+1 times; :class:`FrameCache` reads and prefilters each
 frame once while consecutive blocks of windows overlap, and drops it after, so memory is
-bounded by the block, not by the movie length.
+bounded by the block, not by the movie length. The passes of one run (the shared-motion pass,
+the template's rounds, the time-model pass, the blocks) read the same frames again: a
+:class:`FrameStore` shared by their caches keeps each prepared frame (pixels, B-spline
+coefficients, Gaussian pyramid) within a memory budget, so that a frame is prepared once per
+run while it stays in the budget.
 
 Read-ahead: given the frames a run will need in order (:meth:`FrameCache.schedule`, from
 :func:`frames_in_order`), a background thread (:class:`_Reader`) decodes the next frames,
@@ -19,17 +23,19 @@ import os
 import queue
 import threading
 import time
-from collections import OrderedDict
+from collections import Counter, OrderedDict
 from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
 
 import torch
 
 from torch_stsdic.core.interpolation import BSplineImage
+from torch_stsdic.core.pyramid import ImagePyramid, PyramidStack
 from torch_stsdic.core.solver import SubsetSolver
 from torch_stsdic.io import ImageSeries
 
-__all__ = ["FrameCache", "window_frames", "segment_bounds", "frames_in_order",
-           "default_ahead"]
+__all__ = ["FrameCache", "FrameStore", "PreparedFrame", "window_frames", "segment_bounds",
+           "frames_in_order", "default_ahead"]
 
 
 def window_frames(ks: torch.Tensor, m: int, n_series: int,
@@ -81,6 +87,74 @@ def default_ahead(batch_frames: int, m: int) -> int:
     if env:
         return max(0, int(env))
     return max(4, int(batch_frames) + 2 * int(m))
+
+
+@dataclass
+class PreparedFrame:
+    """Frame ``index`` as the solver reads it: pixels (H, W), B-spline coefficients, and its
+    Gaussian pyramid (built on first use, :meth:`pyramid`; each ``pyrdown`` counted in
+    ``builds``, per frame index, where given)."""
+
+    index: int
+    raw: torch.Tensor
+    prep: BSplineImage
+    builds: Counter[int] | None = field(default=None, repr=False)
+    _pyramid: ImagePyramid | None = field(default=None, repr=False)
+
+    def pyramid(self) -> ImagePyramid:
+        if self._pyramid is None:
+            count = self.builds
+            self._pyramid = ImagePyramid(self.raw, on_build=None if count is None else (
+                lambda: count.update((self.index,))))
+        return self._pyramid
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held: pixels, coefficients and (counted in advance) a pyramid's levels."""
+        px = self.raw.numel() * self.raw.element_size()
+        return px + self.prep.coeffs.numel() * self.prep.coeffs.element_size() + px // 3
+
+
+class FrameStore:
+    """The prepared frames of one run, shared by the frame caches of all its passes (see the
+    module docstring), least recently used dropped first beyond ``budget_mb`` MiB (0: none
+    kept beyond a cache's own block). Thread-safe.
+
+    ``reads``, ``prefiltered`` and ``pyramid_builds`` count per frame index how often it was
+    read from the series and prepared in the run (B-spline prefilters, ``pyrdown`` calls: one
+    per pyramid level), ``hits`` the frames a cache took from the store, ``times`` the
+    seconds of the caches that finished (:meth:`FrameCache.times`, added up)."""
+
+    def __init__(self, budget_mb: float) -> None:
+        self.budget = int(max(0.0, float(budget_mb)) * 2**20)
+        self._frames: OrderedDict[tuple, PreparedFrame] = OrderedDict()
+        self._lock = threading.Lock()
+        self.reads: Counter[int] = Counter()
+        self.prefiltered: Counter[int] = Counter()
+        self.pyramid_builds: Counter[int] = Counter()
+        self.hits = 0
+        self.times: Counter[str] = Counter()
+
+    def get(self, key: tuple) -> PreparedFrame | None:
+        with self._lock:
+            got = self._frames.get(key)
+            if got is not None:
+                self._frames.move_to_end(key)
+                self.hits += 1
+            return got
+
+    def put(self, key: tuple, frame: PreparedFrame) -> None:
+        with self._lock:
+            self._frames[key] = frame
+            self._frames.move_to_end(key)
+            held = sum(f.nbytes for f in self._frames.values())
+            while held > self.budget and self._frames:
+                _, old = self._frames.popitem(last=False)
+                held -= old.nbytes
+
+    def __contains__(self, key: tuple) -> bool:
+        with self._lock:
+            return key in self._frames
 
 
 class _Reader(threading.Thread):
@@ -178,27 +252,44 @@ class _Reader(threading.Thread):
 
 
 class FrameCache:
-    """Frames of the current block: raw pixels and prefiltered coefficients, by index.
+    """Frames of the current block: raw pixels, prefiltered coefficients and pyramids, by
+    index.
 
     ``load`` keeps exactly the frames asked for (older ones are dropped), so a frame is read
     and prefiltered once while consecutive blocks overlap. After :meth:`schedule` a background
-    thread reads ahead (see the module docstring); :meth:`close` stops it.
+    thread reads ahead (see the module docstring); :meth:`close` stops it. With a ``store``
+    (:class:`FrameStore`, shared by the caches of one run's passes) a frame another pass
+    prepared is taken from there, and every frame prepared here is put there.
 
     :meth:`times` reports seconds spent on frames (see there)."""
 
     def __init__(self, series: ImageSeries, solver: SubsetSolver, dtype, device,
-                 ahead: int = 0) -> None:
+                 ahead: int = 0, store: FrameStore | None = None) -> None:
         self.series, self.solver = series, solver
         self.dtype, self.device = dtype, device
         self.ahead = int(ahead)
-        self.raw: OrderedDict[int, torch.Tensor] = OrderedDict()
-        self.prep: dict[int, BSplineImage] = {}
+        self.store = store if store is not None else FrameStore(0)
+        self.entries: OrderedDict[int, PreparedFrame] = OrderedDict()
         self.reads = 0
         self.prefiltered = 0
         self.max_cached = 0
         self._t = {"read_s": 0.0, "prefilter_s": 0.0, "wait_s": 0.0}
         self._reader: _Reader | None = None
         self._ahead_s = [0.0, 0.0]  # read, prefilter time of finished readers
+        self._order = int(solver.config.interpolation_order)
+
+    @property
+    def raw(self) -> dict[int, torch.Tensor]:
+        """Pixels (H, W) of the frames held, by index."""
+        return {i: e.raw for i, e in self.entries.items()}
+
+    @property
+    def prep(self) -> dict[int, BSplineImage]:
+        """B-spline coefficients of the frames held, by index."""
+        return {i: e.prep for i, e in self.entries.items()}
+
+    def _key(self, i: int) -> tuple:
+        return (int(i), str(self.dtype), str(torch.device(self.device)), self._order)
 
     def times(self) -> dict[str, float]:
         """Seconds spent on frames: ``read_s`` / ``prefilter_s`` in the calling thread
@@ -213,9 +304,10 @@ class FrameCache:
 
     def schedule(self, order: list[int]) -> None:
         """Read the frames ``order`` ahead in the background, in this order (no-op when
-        ``ahead`` is 0 or nothing is to be read)."""
+        ``ahead`` is 0 or nothing is to be read; frames held here or in the store are not
+        read)."""
         self.close()
-        order = [i for i in order if i not in self.raw]  # held already (the reference)
+        order = [i for i in order if i not in self.entries and self._key(i) not in self.store]
         if self.ahead > 0 and order:
             self._reader = _Reader(self, list(order), self.ahead)
             self._reader.start()
@@ -228,45 +320,79 @@ class FrameCache:
             self._ahead_s[1] += self._reader.prefilter_s
             self._reader = None
 
-    def put(self, i: int, raw: torch.Tensor, prep: BSplineImage) -> None:
-        """Hold frame ``i`` already read and prepared (the reference frame): a block that
+    def finish(self) -> dict[str, float]:
+        """:meth:`close`, and add this cache's :meth:`times` to the store's: returns the
+        store's (the run's, over the passes finished so far)."""
+        self.close()
+        self.store.times.update(self.times())
+        return dict(self.store.times)
+
+    def hold(self, i: int) -> PreparedFrame:
+        """Frame ``i`` prepared (:meth:`frame`) and held (the reference frame): a block that
         needs it takes it from here, and :meth:`schedule` does not read it again."""
-        self.raw[i], self.prep[i] = raw, prep
-        self.prefiltered += 1
+        entry = self.frame(i)
+        self.entries[i] = entry
+        return entry
 
     def read(self, i: int) -> torch.Tensor:
-        """(H, W) frame ``i`` from the cache or the series (counted)."""
-        if i in self.raw:
-            return self.raw[i]
-        self.reads += 1
+        """(H, W) frame ``i`` from the cache, the store or the series (counted)."""
+        if i in self.entries:
+            return self.entries[i].raw
+        got = self.store.get(self._key(i))
+        if got is not None:
+            return got.raw
+        self._count_read(i)
         t0 = time.perf_counter()
         out = self.series.get(i, dtype=self.dtype).to(self.device)
         self._t["read_s"] += time.perf_counter() - t0
         return out
 
-    def _fetch(self, i: int) -> tuple[torch.Tensor, BSplineImage]:
-        got = self._reader.take(i) if self._reader is not None else None
+    def frame(self, i: int) -> PreparedFrame:
+        """Frame ``i`` prepared (held here, from the store, or read and prepared now), without
+        holding it in the block's frames (the reference: :meth:`put`)."""
+        return self.entries.get(i) or self._fetch(i)
+
+    def _count_read(self, i: int) -> None:
+        self.reads += 1
+        self.store.reads.update((int(i),))
+
+    def _prepared(self, i: int, raw: torch.Tensor, prep: BSplineImage) -> PreparedFrame:
+        """A frame prepared by this cache: counted, and put in the store."""
+        entry = PreparedFrame(int(i), raw, prep, builds=self.store.pyramid_builds)
+        self.prefiltered += 1
+        self.store.prefiltered.update((int(i),))
+        self.store.put(self._key(i), entry)
+        return entry
+
+    def _fetch(self, i: int) -> PreparedFrame:
+        got = self.store.get(self._key(i))
         if got is not None:
-            self.reads += 1
             return got
+        ahead = self._reader.take(i) if self._reader is not None else None
+        if ahead is not None:
+            self._count_read(i)
+            return self._prepared(i, *ahead)
         raw = self.read(i)
         t0 = time.perf_counter()
         prep = self.solver.prepare(raw)
         self._t["prefilter_s"] += time.perf_counter() - t0
-        return raw, prep
+        return self._prepared(i, raw, prep)
 
     def load(self, idx: list[int]) -> tuple[torch.Tensor, BSplineImage]:
         """Frames ``idx``: raw (L, H, W) and a prepared L-frame stack."""
         keep = set(idx)
-        for k in [k for k in self.raw if k not in keep]:
-            del self.raw[k]
-            del self.prep[k]
+        for k in [k for k in self.entries if k not in keep]:
+            del self.entries[k]
         t0 = time.perf_counter()
         for i in idx:
-            if i not in self.raw:
-                self.raw[i], self.prep[i] = self._fetch(i)
-                self.prefiltered += 1
+            if i not in self.entries:
+                self.entries[i] = self._fetch(i)
         self._t["wait_s"] += time.perf_counter() - t0
-        self.max_cached = max(self.max_cached, len(self.raw))
-        raw = torch.stack([self.raw[i] for i in idx])
-        return raw, BSplineImage.stack([self.prep[i] for i in idx])
+        self.max_cached = max(self.max_cached, len(self.entries))
+        raw = torch.stack([self.entries[i].raw for i in idx])
+        return raw, BSplineImage.stack([self.entries[i].prep for i in idx])
+
+    def pyramids(self, idx: list[int]) -> PyramidStack:
+        """The Gaussian pyramids of the held frames ``idx`` (as :meth:`load` stacks them),
+        each built on first use and kept with its frame."""
+        return PyramidStack([self.entries[i].pyramid() for i in idx])

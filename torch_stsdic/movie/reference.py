@@ -16,6 +16,7 @@ import torch
 from torch_stsdic.analysis.result import USABLE
 from torch_stsdic.core.interpolation import BSplineImage
 from torch_stsdic.core.noise import estimate_noise_sigma
+from torch_stsdic.core.pyramid import ImagePyramid, PyramidStack
 from torch_stsdic.movie.frames import FrameCache
 
 __all__ = ["Reference", "GRADIENTS", "compose_gradients", "to_relative", "to_total",
@@ -34,11 +35,18 @@ class Reference:
     img: BSplineImage | None
     points: torch.Tensor  # (N, 2)
     acc: dict[str, torch.Tensor] | None = None  # u, v (+ ux, uy, vx, vy) (N,)
+    pyramid: ImagePyramid | None = None  # its Gaussian pyramid, built on first use
 
     def ensure(self, cache: FrameCache) -> None:
         if self.raw is None:
-            self.raw = cache.read(self.frame)
-            self.img = cache.solver.prepare(self.raw)
+            got = cache.frame(self.frame)
+            self.raw, self.img, self.pyramid = got.raw, got.prep, got.pyramid()
+
+    def pyramids(self) -> PyramidStack:
+        """The reference's pyramid as a one-image stack (the coarse-to-fine search's)."""
+        if self.pyramid is None:
+            self.pyramid = ImagePyramid(self.raw)
+        return PyramidStack([self.pyramid])
 
 
 def noise_ratio(desc, raw: torch.Tensor, frames: torch.Tensor) -> float:
@@ -140,8 +148,10 @@ def maybe_update(ref: Reference, stored: dict[str, np.ndarray], frame: int, thr:
     acc = idw_fill(acc, valid, pts0)
     updates.append({"frame": int(frame), "row": int(row), "mean_zncc": float(z.mean()),
                     "interpolated_points": int((~valid).sum())})
-    raw = cache.raw.get(frame)
+    held = cache.entries.get(frame)
     return Reference(
-        frame=int(frame), raw=raw, img=cache.prep.get(frame) if raw is not None else None,
+        frame=int(frame), raw=None if held is None else held.raw,
+        img=None if held is None else held.prep,
         points=pts0 + torch.stack([acc["u"], acc["v"]], 1), acc=acc,
+        pyramid=None if held is None else held.pyramid(),
     )

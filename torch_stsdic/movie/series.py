@@ -34,6 +34,7 @@ with the same numbers as an uninterrupted run.
 
 from __future__ import annotations
 
+import functools
 import os
 import sys
 from collections.abc import Callable, Sequence
@@ -58,7 +59,13 @@ from torch_stsdic.movie.estimates import (
     record_estimates,
     stored_or_measured,
 )
-from torch_stsdic.movie.frames import FrameCache, default_ahead, frames_in_order, segment_bounds
+from torch_stsdic.movie.frames import (
+    FrameCache,
+    FrameStore,
+    default_ahead,
+    frames_in_order,
+    segment_bounds,
+)
 from torch_stsdic.movie.plan import RunPlan, plan_run
 from torch_stsdic.movie.reference import Reference, maybe_update
 from torch_stsdic.movie.refine import ReferenceOffsets, apply_offsets, set_refinement
@@ -73,7 +80,8 @@ __all__ = ["track", "run_plan", "classical_smoothed", "set_reference_mode", "ser
 # ---------------------------------------------------------------------------------------
 def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = True,
              callback: Callable[[int, int], None] | None = None,
-             estimates: RunEstimates | None = None, warm_up: bool = False) -> TrackResult:
+             estimates: RunEstimates | None = None, warm_up: bool = False,
+             frames: FrameStore | None = None) -> TrackResult:
     """Execute ``plan`` block by block into ``sink`` (default: memory) and return the result.
 
     Blocks the sink already holds (an interrupted run being resumed) are replayed from it, not
@@ -87,7 +95,9 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
     only seeds the carry of the next (the distributed runner's rows before a chunk): the rows
     its fit check made POOR_FIT without their point's history (the last trusted row's ZNCC)
     are carried on as trusted, as the one-process run carries a point whose fit worsens
-    gradually."""
+    gradually. ``frames``: the prepared frames of the run of which ``plan`` is a pass
+    (:class:`~torch_stsdic.movie.frames.FrameStore`; default: a new store, within the
+    plan's ``memory_mb``)."""
     sink = sink if sink is not None else MemorySink(plan)
     cfg = plan.config
     solver = SubsetSolver(cfg)
@@ -95,21 +105,26 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
         # the points are solved again (windows and their checks, later blocks): their
         # reference subsets are sampled once, within the working-memory budget
         solver.reference_cache = ReferenceCache(cfg.memory_mb, expected=len(plan.points))
+    # the prepared frames of this run, kept across its passes (the shared-motion pass, the
+    # template's rounds, the time-model pass: the sub-runs given ``frames``) and its blocks
+    store = frames if frames is not None else FrameStore(cfg.memory_mb)
     cache = FrameCache(plan.series, solver, plan.dtype, plan.device,
-                       ahead=default_ahead(plan.batch_frames, cfg.m))
+                       ahead=default_ahead(plan.batch_frames, cfg.m), store=store)
     run = BlockContext(solver=solver, cache=cache,
                ts=torch.from_numpy(plan.times).to(device=plan.device, dtype=torch.float64),
                n_series=len(plan.series), m=cfg.m, dtype=plan.dtype, device=plan.device,
                lost_zncc=float(plan.options.get("lost_zncc", 0.8)), names=plan.param_names,
                checks=bool(plan.options.get("checks", True)),
                stats={"fft_rows": 0, "redone_rows": 0})
-    ref_raw = plan.reference_image
-    ref_raw = cache.read(plan.reference_frame) if ref_raw is None else ref_raw.to(
-        device=plan.device, dtype=plan.dtype)
-    ref = Reference(frame=plan.reference_frame, raw=ref_raw, img=solver.prepare(ref_raw),
-                    points=plan.points.to(device=plan.device, dtype=plan.dtype))
+    pts = plan.points.to(device=plan.device, dtype=plan.dtype)
     if plan.reference_image is None:  # a frame of the series: read and prepared once
-        cache.put(plan.reference_frame, ref.raw, ref.img)
+        held = cache.hold(plan.reference_frame)
+        ref = Reference(frame=plan.reference_frame, raw=held.raw, img=held.prep, points=pts,
+                        pyramid=held.pyramid())
+    else:
+        ref_raw = plan.reference_image.to(device=plan.device, dtype=plan.dtype)
+        ref = Reference(frame=plan.reference_frame, raw=ref_raw, img=solver.prepare(ref_raw),
+                        points=pts)
     run.reference_desc = plan.reference_desc  # its noise ratio is measured on the 1st block
     updates: list[dict[str, Any]] = []
     if "series_reference" not in plan.options and "single_reference" not in plan.options:
@@ -118,7 +133,8 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
     # that block would) and recorded: a resumed run reads it back, not measuring it anew on
     # its first pending block
     est = estimates if estimates is not None else stored_or_measured(
-        plan, sink, ref.raw, run=run_plan, first_noise=sink.path is not None)
+        plan, sink, ref.raw, run=functools.partial(run_plan, frames=store),
+        first_noise=sink.path is not None)
     record_estimates(est, sink)  # for a resumed run (not where they were read from the file)
     if est.shared is not None:
         shared = est.shared
@@ -142,14 +158,17 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
         try:
             _run_blocks(plan, sink, run, ref, updates, bar, callback, offsets, warm_up)
         finally:
-            cache.close()
+            frame_times = cache.finish()
         if plan.options.get("smoothing"):
             _smooth(plan, sink)
         info: dict[str, Any] = {
             "batch_frames": plan.batch_frames, "blocks": len(plan.blocks),
-            "frames_read": cache.reads, "prefiltered": cache.prefiltered,
+            # over the whole run, its passes included (they share the store)
+            "frames_read": sum(store.reads.values()),
+            "prefiltered": sum(store.prefiltered.values()),
+            "pyramid_levels": sum(store.pyramid_builds.values()),
             "max_cached_frames": cache.max_cached, "reference": plan.reference_desc,
-            "frame_times_s": cache.times(),
+            "frame_times_s": frame_times,
             "reference_updates": updates, "reference_noise_ratio": run.noise_ratio,
             **run.stats,
         }
