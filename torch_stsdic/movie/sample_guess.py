@@ -63,6 +63,24 @@ class MeasuredSample:
         self.points = self.points.double()
         self.disp, self.grad = self.disp.double(), self.grad.double()
 
+    @classmethod
+    def from_result(cls, res, points: torch.Tensor, valid: torch.Tensor) -> MeasuredSample:
+        """The trusted solutions (``valid`` (F, n)) of a classical result ``res``
+        (:class:`~torch_stsdic.analysis.result.TrackResult`) at its points ``points`` (n, 2)
+        (gradients zero for a translation-only shape)."""
+        nan = torch.tensor(float("nan"), dtype=torch.float64)
+        disp = torch.stack([res.u, res.v], -1).double().cpu()
+        grads = res.gradients
+        if all(nm in grads for nm in ("ux", "uy", "vx", "vy")):
+            g = torch.stack([torch.stack([grads["ux"], grads["uy"]], -1),
+                             torch.stack([grads["vx"], grads["vy"]], -1)], -2).double().cpu()
+        else:
+            g = torch.zeros(*disp.shape, 2, dtype=torch.float64)
+        ok = valid.cpu()
+        return cls(points=points, frames=res.frames.cpu().long(),
+                   disp=torch.where(ok.unsqueeze(-1), disp, nan),
+                   grad=torch.where(ok.view(*ok.shape, 1, 1), g, nan))
+
     def guess(self, points: torch.Tensor, windows: torch.Tensor, dt: torch.Tensor
               ) -> dict[str, torch.Tensor]:
         """Initial guesses of the rows (target j, POI i) of a block, row = j * N + i.

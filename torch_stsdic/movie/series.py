@@ -69,6 +69,7 @@ from torch_stsdic.movie.frames import (
 from torch_stsdic.movie.plan import RunPlan, plan_run
 from torch_stsdic.movie.reference import Reference, maybe_update
 from torch_stsdic.movie.refine import ReferenceOffsets, apply_offsets, set_refinement
+from torch_stsdic.movie.sample_guess import MeasuredSample
 from torch_stsdic.movie.series_reference import SeriesReference, set_series_reference
 from torch_stsdic.movie.sinks import MemorySink, open_sink
 
@@ -81,7 +82,8 @@ __all__ = ["track", "run_plan", "classical_smoothed", "set_reference_mode", "ser
 def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = True,
              callback: Callable[[int, int], None] | None = None,
              estimates: RunEstimates | None = None, warm_up: bool = False,
-             frames: FrameStore | None = None) -> TrackResult:
+             frames: FrameStore | None = None,
+             first_guess: MeasuredSample | None = None) -> TrackResult:
     """Execute ``plan`` block by block into ``sink`` (default: memory) and return the result.
 
     Blocks the sink already holds (an interrupted run being resumed) are replayed from it, not
@@ -97,7 +99,10 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
     are carried on as trusted, as the one-process run carries a point whose fit worsens
     gradually. ``frames``: the prepared frames of the run of which ``plan`` is a pass
     (:class:`~torch_stsdic.movie.frames.FrameStore`; default: a new store, within the
-    plan's ``memory_mb``)."""
+    plan's ``memory_mb``). ``first_guess``: solutions of an earlier measurement of the plan's
+    frames (:class:`~torch_stsdic.movie.sample_guess.MeasuredSample`) that the first block
+    starts from instead of FFT cross-correlation (a template's later rounds, its gauge);
+    default: the shared-motion pass's, where there is one."""
     sink = sink if sink is not None else MemorySink(plan)
     cfg = plan.config
     solver = SubsetSolver(cfg)
@@ -142,6 +147,8 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
         run.first_guess = shared.sample  # the first block starts from the pass's solutions
         if shared.steps:
             run.segments = segment_bounds(shared.steps, len(plan.series)).to(plan.device)
+    if first_guess is not None:
+        run.first_guess = first_guess
     if est.series_reference is not None:
         img = est.series_reference.image.to(device=plan.device, dtype=plan.dtype)
         ref = Reference(frame=-1, raw=img, img=solver.prepare(img), points=ref.points)

@@ -41,6 +41,7 @@ from torch_stsdic.core.noise import estimate_noise_sigma, interpolation_variance
 from torch_stsdic.core.shared_motion import SharedMotion
 from torch_stsdic.movie.plan import RunPlan
 from torch_stsdic.movie.refine import ReferenceOffsets
+from torch_stsdic.movie.sample_guess import MeasuredSample
 
 __all__ = ["SeriesReference", "DEFAULT_FRAMES", "DEFAULT_ITERATIONS", "sample_frames",
            "build_series_reference", "set_series_reference", "single_reason",
@@ -142,9 +143,11 @@ def sample_frames(plan: RunPlan, max_frames: int = DEFAULT_FRAMES) -> list[int]:
 
 
 def _measure(plan: RunPlan, frames: list[int], image: torch.Tensor | None,
-             run: Callable[..., TrackResult]) -> TrackResult:
+             run: Callable[..., TrackResult], guess: MeasuredSample | None = None
+             ) -> TrackResult:
     """Classical DIC (checks off) of ``frames`` at all the plan's POIs, against the plan's
-    reference or against ``image``."""
+    reference or against ``image``; its first block starts from ``guess`` (an earlier
+    round's solutions; None: FFT cross-correlation)."""
     opts = {**plan.options, "smoothing": None, "reference_update": None, "checks": False,
             "shared_motion": None, "series_reference": None}
     opts.pop("refine_reference", None)
@@ -154,7 +157,15 @@ def _measure(plan: RunPlan, frames: list[int], image: torch.Tensor | None,
     if image is not None:
         sub = dataclasses.replace(sub, reference_image=image, reference_frame=-1,
                                   reference_desc="array:series-template")
-    return run(sub, progress=False)
+    return run(sub, progress=False, **({} if guess is None else {"first_guess": guess}))
+
+
+def _round_guess(plan: RunPlan, res: TrackResult) -> MeasuredSample:
+    """A round's trusted solutions at all the plan's POIs, where the next round (against the
+    template, which the fits registered to the reference configuration: the same warps but
+    for the noise) and the gauge start."""
+    ok = (res.status <= USABLE) & (res.zncc >= float(plan.options.get("lost_zncc", 0.8)))
+    return MeasuredSample.from_result(res, plan.points.double().cpu(), ok)
 
 
 def _warps(res: TrackResult, j: int, lost_zncc: float) -> tuple[torch.Tensor, torch.Tensor]:
@@ -471,9 +482,10 @@ def build_series_reference(plan: RunPlan, ref_raw: torch.Tensor, *,
     pts = plan.points.double().cpu()
     fit = local_fit_weights(pts, max(int(neighbours), 10), plan.config.subset_size,
                             degrees=(1, 2, 3))
-    image = degree = unit = matched = None
+    image = degree = unit = matched = guess = None
     for _ in range(int(iterations)):
-        res = _measure(plan, frames, image, run)
+        res = _measure(plan, frames, image, run, guess)
+        guess = _round_guess(plan, res)
         warps, trusted = _all_warps(plan, res)
         if degree is None:  # tested once, against the reference image (a known null)
             holds = time_model_holds(plan, res, frames, shared)
@@ -498,7 +510,7 @@ def build_series_reference(plan: RunPlan, ref_raw: torch.Tensor, *,
     added = torch.where(registered, prior, 0.0)
     gauge = None
     if plan.reference_frame >= 0:
-        gauge, left = _gauge(plan, fit, image, registered, run)
+        gauge, left = _gauge(plan, fit, image, registered, run, guess)
         added = torch.where(registered, left, 0.0)
     # the template's noise beyond the median the solver is told, where fewer frames cover it
     added = added + (point_ratio - ratio).clamp(min=0.0) * unit
@@ -512,7 +524,8 @@ def build_series_reference(plan: RunPlan, ref_raw: torch.Tensor, *,
 
 
 def _gauge(plan: RunPlan, fit: LocalFit, image: torch.Tensor, keep: torch.Tensor,
-           run: Callable[..., TrackResult]) -> tuple[ReferenceOffsets, torch.Tensor]:
+           run: Callable[..., TrackResult], guess: MeasuredSample | None = None
+           ) -> tuple[ReferenceOffsets, torch.Tensor]:
     """The template's registration error as the reference frame (zero displacement by
     definition) measures it against the template, and the variance (N,) px^2 left after
     subtracting it.
@@ -527,8 +540,9 @@ def _gauge(plan: RunPlan, fit: LocalFit, image: torch.Tensor, keep: torch.Tensor
     zero-mean error seen through noise; large where a field the fits missed biased the
     template there); elsewhere (the reference image's own pixels) nothing is subtracted.
     Subtracted from every row like the refined reference's offsets
-    (:func:`~torch_stsdic.movie.refine.apply_offsets`); ``rho``: the median of ``e / noise``."""
-    res = _measure(plan, [plan.reference_frame], image, run)
+    (:func:`~torch_stsdic.movie.refine.apply_offsets`); ``rho``: the median of ``e / noise``.
+    ``guess``: where the solve starts (the last round's solutions; None: FFT)."""
+    res = _measure(plan, [plan.reference_frame], image, run, guess)
     warp, ok = _warps(res, 0, float(plan.options.get("lost_zncc", 0.8)))
     vals = torch.where(ok[:, None], warp, torch.nan).T  # (6, N)
     smooth = torch.nan_to_num(fit.apply(1, vals), nan=0.0)

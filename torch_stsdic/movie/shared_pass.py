@@ -45,22 +45,6 @@ def _fill(params: np.ndarray, times: np.ndarray) -> np.ndarray:
     return out
 
 
-def _measured_sample(res, pts: torch.Tensor, valid: torch.Tensor) -> MeasuredSample:
-    """The pass's trusted solutions (``valid`` (F, n)) at its sample points ``pts`` (n, 2)."""
-    nan = torch.tensor(float("nan"), dtype=torch.float64)
-    disp = torch.stack([res.u, res.v], -1).double().cpu()
-    grads = res.gradients
-    if all(nm in grads for nm in ("ux", "uy", "vx", "vy")):
-        g = torch.stack([torch.stack([grads["ux"], grads["uy"]], -1),
-                         torch.stack([grads["vx"], grads["vy"]], -1)], -2).double().cpu()
-    else:  # a translation-only shape: no gradients, zero
-        g = torch.zeros(*disp.shape, 2, dtype=torch.float64)
-    ok = valid.cpu()
-    return MeasuredSample(points=pts, frames=res.frames.cpu().long(),
-                          disp=torch.where(ok.unsqueeze(-1), disp, nan),
-                          grad=torch.where(ok.view(*ok.shape, 1, 1), g, nan))
-
-
 #: "auto" fits the quadratic shared motion where the sample has at least this many points
 #: (its estimate then adds at most ~0.2 of the classical noise to a window), else the affine
 QUADRATIC_POINTS = 500
@@ -151,7 +135,7 @@ def estimate_shared_motion(plan: RunPlan, kind: str = "auto",
     sigma = (torch.nanmedian(torch.where(valid, noise, torch.nan), dim=1).values
              if noise is not None else torch.zeros(len(frames)))
     out.steps = detect_steps(disp - g, valid, sigma, frames)
-    out.sample = _measured_sample(res, pts, valid)
+    out.sample = MeasuredSample.from_result(res, pts, valid)
     if auto:
         z = out.significance()
         out.applied = bool(np.isfinite(z) and z > SIGNIFICANT)
