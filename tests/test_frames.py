@@ -146,3 +146,58 @@ def test_read_ahead_is_bounded():
     time.sleep(0.2)  # and the reader would go on if it were not bounded
     assert 3 + 2 <= len(series.count) <= 3 + 2 + 1
     cache.close()
+
+
+def test_coarse_to_fine_with_kept_pyramids_equals_fresh_ones_and_builds_once():
+    from torch_stsdic.core.initial import coarse_to_fine
+    from torch_stsdic.core.pyramid import PyramidStack
+
+    mv = synth.synthetic_movie((96, 96), 4, synth.Translation(ut=3.0, vt=-2.0), seed=3,
+                               noise_sigma=1.0)
+    frames = mv.frames.float()
+    ref = frames[:1]
+    pts = torch.tensor([[40.0, 48.0], [56.0, 40.0], [48.0, 56.0]])
+    fidx = torch.tensor([[1, 2], [2, 3], [3, 1]])
+    want = coarse_to_fine(ref, frames, pts, 11, 3, 2, frame_index=fidx)
+    pyr = (PyramidStack.of(ref), PyramidStack.of(frames))
+    for _ in range(3):  # the same images searched again: their levels are not built again
+        got = coarse_to_fine(ref, frames, pts, 11, 3, 2, frame_index=fidx, pyramids=pyr)
+        assert torch.equal(got[0], want[0]) and torch.equal(got[1], want[1])
+    assert [p.builds for p in pyr[0].pyramids] == [2]
+    assert [p.builds for p in pyr[1].pyramids] == [0, 2, 2, 2]  # frame 0 is never read
+    err = want[0] - torch.tensor([[3.0, -2.0]]) * fidx.unsqueeze(-1).float()
+    assert float(err.abs().max()) < 0.5
+
+
+def test_a_run_prepares_each_frame_once_across_its_passes():
+    """The shared-motion pass, the time-model pass and the blocks read the same frames:
+    each is read, prefiltered and its pyramid levels built once in the run (the store), and
+    once per pass without it."""
+    from torch_stsdic.movie.frames import FrameStore
+    from torch_stsdic.movie.plan import plan_run
+    from torch_stsdic.movie.series import run_plan
+
+    n = 9
+    # the first target (frame 4) is 8 px from the reference frame, beyond the search
+    # radius: the first block of every pass searches its weak peaks on the pyramids
+    mv = synth.synthetic_movie((112, 112), n, synth.Translation(ut=2.0, vt=-1.0), seed=2,
+                               noise_sigma=1.0, margin=24)
+    cfg = sts.DICConfig(subset_size=15, m=1, search_radius=4)
+
+    def run(store):
+        plan = plan_run(mv.frames, 0, list(range(4, n)), None, None, None, 12, cfg, "cpu",
+                        None, 3)
+        return run_plan(plan, progress=False, frames=store)
+
+    res = run(None)
+    assert res.info["shared_motion"] and res.info["series_reference"]
+    read = len(range(3, n)) + 1  # the windows of 4..8 (m = 1) and the reference frame 0
+    assert res.info["frames_read"] == res.info["prefiltered"] == read
+    assert 0 < res.info["pyramid_levels"] <= 3 * read  # at most 3 levels a frame
+    err = (res.u - 2.0 * (mv.times[4:] - mv.times[0]).view(-1, 1))[res.ok]
+    # (the points of the last column leave the image)
+    assert res.ok.float().mean() > 0.85 and float(err.abs().max()) < 0.05
+    again = run(FrameStore(0))  # no store across passes: every pass prepares its frames
+    assert again.info["prefiltered"] > 2 * read
+    assert again.info["pyramid_levels"] > res.info["pyramid_levels"]
+    torch.testing.assert_close(again.u, res.u, rtol=0, atol=0, equal_nan=True)

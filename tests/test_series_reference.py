@@ -374,8 +374,8 @@ def test_one_bad_point_does_not_turn_its_neighbours_classical(monkeypatch):
     measure = sr._measure
     hit = {}
 
-    def measure_with_a_bad_point(plan, frames, image, run):
-        res = measure(plan, frames, image, run)
+    def measure_with_a_bad_point(plan, frames, image, run, guess=None):
+        res = measure(plan, frames, image, run, guess)
         if image is None:  # the classical measurement the time-model test reads
             k = int(torch.argmin((plan.points.double() - 80.0).norm(dim=1)))
             e = 6.0 * float(res.std["u"][1:, k].median())

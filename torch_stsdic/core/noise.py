@@ -397,16 +397,33 @@ def _quantile(x: torch.Tensor, q: float) -> float:
     return float(part[lo] + (part[hi] - part[lo]) * (pos - lo))
 
 
-def _immerkaer(img: torch.Tensor, flat_fraction: float | None) -> float:
-    from kornia.filters import filter2d, get_sobel_kernel2d
+def _second_difference(x: torch.Tensor, dim: int) -> torch.Tensor:
+    """``[1, -2, 1]`` along ``dim`` of ``x`` ("valid": 2 shorter there)."""
+    n = x.shape[dim]
+    return x.narrow(dim, 0, n - 2) - 2.0 * x.narrow(dim, 1, n - 2) + x.narrow(dim, 2, n - 2)
 
-    x = img.view(1, 1, *img.shape)
-    k = torch.tensor([[[1.0, -2.0, 1.0], [-2.0, 4.0, -2.0], [1.0, -2.0, 1.0]]],
-                     dtype=img.dtype)
-    a = filter2d(x, k, padding="valid")[0, 0].abs()  # Immerkaer's Laplacian difference
+
+def _central_difference(x: torch.Tensor, dim: int) -> torch.Tensor:
+    """``[-1, 0, 1]`` along ``dim`` of ``x`` ("valid")."""
+    n = x.shape[dim]
+    return x.narrow(dim, 2, n - 2) - x.narrow(dim, 0, n - 2)
+
+
+def _smoothing(x: torch.Tensor, dim: int) -> torch.Tensor:
+    """``[1, 2, 1]`` along ``dim`` of ``x`` ("valid")."""
+    n = x.shape[dim]
+    return x.narrow(dim, 0, n - 2) + 2.0 * x.narrow(dim, 1, n - 2) + x.narrow(dim, 2, n - 2)
+
+
+def _immerkaer(img: torch.Tensor, flat_fraction: float | None) -> float:
+    """Immerkaer's estimate of an (H, W) image; the 3x3 kernels (the Laplacian difference,
+    Sobel's) applied as their separable 1-D factors ("valid"): a float64 megapixel in tens
+    of ms, where a float64 ``conv2d`` on the CPU takes 0.15 s a kernel."""
+    a = _second_difference(_second_difference(img, 1), 0).abs()  # Immerkaer's Laplacian
     if flat_fraction is not None:
-        sob = get_sobel_kernel2d(dtype=img.dtype)  # (2, 3, 3): d/dx, d/dy
-        g = sum(filter2d(x, sob[i : i + 1], padding="valid").abs() for i in range(2))[0, 0]
+        # Sobel's |d/dx| + |d/dy|
+        g = (_smoothing(_central_difference(img, 1), 0).abs()
+             + _smoothing(_central_difference(img, 0), 1).abs())
         keep = g <= _quantile(g.reshape(-1)[:: max(1, g.numel() // 2_000_000)],
                               float(flat_fraction))
         a = a[keep]
