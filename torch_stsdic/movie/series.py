@@ -75,6 +75,11 @@ from torch_stsdic.movie.sinks import MemorySink, open_sink
 
 __all__ = ["track", "run_plan", "classical_smoothed", "set_reference_mode", "series_template"]
 
+#: the prepared frames a run keeps across its passes: up to this many times ``memory_mb``
+#: (512 MiB by default: the 40 frames of the hourglass, 754 x 1273, each with its
+#: coefficients and pyramid, or a 21-frame template's sample of a 1024 x 1024 movie)
+STORE_BUDGETS = 2.0
+
 
 # ---------------------------------------------------------------------------------------
 # running a plan
@@ -112,7 +117,7 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
         solver.reference_cache = ReferenceCache(cfg.memory_mb, expected=len(plan.points))
     # the prepared frames of this run, kept across its passes (the shared-motion pass, the
     # template's rounds, the time-model pass: the sub-runs given ``frames``) and its blocks
-    store = frames if frames is not None else FrameStore(cfg.memory_mb)
+    store = frames if frames is not None else FrameStore(STORE_BUDGETS * cfg.memory_mb)
     cache = FrameCache(plan.series, solver, plan.dtype, plan.device,
                        ahead=default_ahead(plan.batch_frames, cfg.m), store=store)
     run = BlockContext(solver=solver, cache=cache,
