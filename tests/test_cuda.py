@@ -180,6 +180,19 @@ def test_track_on_cuda_equals_cpu(tmp_path):
     assert np.array_equal(stored["u"], gpu.u.numpy(), equal_nan=True)
 
 
+def test_series_template_on_cuda_equals_cpu():
+    """The template made from the series, its splats on the device (deterministic
+    accumulation: the same image twice on CUDA), against the CPU's."""
+    movie, _, _ = _jittery_movie(frames=12, size=SIZE)
+    kw = dict(step=12, config=sts.DICConfig(m=2))
+    cpu = sts.series_template(movie, device="cpu", **kw)
+    gpu = sts.series_template(movie, device=DEV, **kw)
+    again = sts.series_template(movie, device=DEV, **kw)
+    assert torch.equal(gpu.image.cpu(), again.image.cpu())
+    assert _gap("template", cpu.image, gpu.image) < 1e-3  # grey levels
+    assert _gap("gauge_u", cpu.gauge.values["u"], gpu.gauge.values["u"]) < 1e-5
+
+
 def test_nn_module_forward_and_backward_on_cuda(window):
     """Tensors in, tensors out on the device; gradients reach the points and the pixels."""
     from torch_stsdic.nn import STSDIC

@@ -216,14 +216,15 @@ def _splat(acc: torch.Tensor, img: BSplineImage, ref: torch.Tensor, pts: torch.T
     frame's weight sum at the pixel, ``f_i`` the interpolated noise's variance factor at the
     POI's sub-pixel shift, times its gain squared), not ``sum_i w_i^2 f_i / weight``."""
     h, w = img.height, img.width
-    d = torch.arange(-half, half + 1, dtype=torch.float64)
+    dev = acc.device
+    d = torch.arange(-half, half + 1, dtype=torch.float64, device=dev)
     dy, dx = torch.meshgrid(d, d, indexing="ij")
     dx, dy = dx.reshape(-1), dy.reshape(-1)
     mono = torch.stack([torch.ones_like(dx), dx, dy, dx * dx, dx * dy, dy * dy], 1)  # (S, 6)
     tent = ((1.0 - dx.abs() / (half + 1)) * (1.0 - dy.abs() / (half + 1))) * weight
     offset = (dy * w + dx).long()
     sel = torch.nonzero(ok).flatten()
-    frame = torch.zeros(2, h * w, dtype=torch.float64)
+    frame = torch.zeros(2, h * w, dtype=torch.float64, device=dev)
     chunk = max(1, _CHUNK_SAMPLES // dx.numel())
     for s0 in range(0, sel.numel(), chunk):
         i = sel[s0: s0 + chunk]
@@ -241,8 +242,8 @@ def _splat(acc: torch.Tensor, img: BSplineImage, ref: torch.Tensor, pts: torch.T
             (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1) & (xs >= 0) & (xs <= w - 1)
             & (ys >= 0) & (ys <= h - 1))
         vals = torch.nan_to_num(img.sample(xs.to(img.dtype), ys.to(img.dtype)).double())
-        cnt = (torch.full((len(i), 1), float(dx.numel()), dtype=torch.float64) if inside is None
-               else inside.sum(1, keepdim=True).clamp(min=1))
+        cnt = (torch.full((len(i), 1), float(dx.numel()), dtype=torch.float64, device=dev)
+               if inside is None else inside.sum(1, keepdim=True).clamp(min=1))
         idx = ((c[:, 1] * w + c[:, 0]).long()[:, None] + offset).clamp(0, h * w - 1)
         own = ref[idx]  # (n, S) the reference's pixels of the windows
         m_f = _masked(vals, inside).sum(1, keepdim=True) / cnt
@@ -255,11 +256,13 @@ def _splat(acc: torch.Tensor, img: BSplineImage, ref: torch.Tensor, pts: torch.T
         fac = interpolation_variance_factor(u0 - u0.floor(), v0 - v0.floor(),
                                             img.order)  # (n,)
         wt = _masked(tent.expand(len(i), -1), inside)
-        idx, wt = idx.reshape(-1), wt.reshape(-1)
-        acc[0].index_add_(0, idx, wt * vals.reshape(-1))
-        frame[0].index_add_(0, idx, wt)
-        frame[1].index_add_(0, idx, (wt.view(len(i), -1) * fac[:, None]
-                                     * (gain * level) ** 2).reshape(-1))
+        # accumulated in index order (deterministic on every device, unlike CUDA's
+        # index_add_, whose atomic adds sum in any order)
+        idx, wt = (idx.reshape(-1),), wt.reshape(-1)
+        acc[0].index_put_(idx, wt * vals.reshape(-1), accumulate=True)
+        frame[0].index_put_(idx, wt, accumulate=True)
+        frame[1].index_put_(idx, (wt.view(len(i), -1) * fac[:, None]
+                                  * (gain * level) ** 2).reshape(-1), accumulate=True)
     acc[1] += frame[0]
     acc[2] += frame[0] * frame[1] / weight
 
@@ -429,18 +432,21 @@ def _template(plan: RunPlan, warps: torch.Tensor, oks: torch.Tensor, frames: lis
     over the covered pixels), coverage, and (N,) that ratio at each POI (1 where no frame
     covers it: the reference image's pixels)."""
     h, w = plan.series.shape
-    pts = plan.points.double().cpu()
+    dev = torch.device(plan.device)
+    pts = plan.points.double().to(dev)
     half = (plan.config.subset_size - 1) // 2
-    acc = torch.zeros(3, h * w, dtype=torch.float64)
-    ref = ref_raw.double().cpu().reshape(-1)
+    acc = torch.zeros(3, h * w, dtype=torch.float64, device=dev)  # on the run's device
+    ref = ref_raw.double().to(dev).reshape(-1)
     spread = float(ref.std().clamp(min=1e-12))
     norm = []  # each frame's noise in the reference's grey levels
     for j, (k, sigma) in enumerate(zip(frames, sigmas)):
-        raw = plan.series.get(k, dtype=torch.float64)
+        raw = plan.series.get(k, dtype=torch.float64).to(dev)
         img = BSplineImage(raw, order=plan.config.interpolation_order)
         level = float(raw.std().clamp(min=1e-12)) / spread
         norm.append(sigma / level)
-        _splat(acc, img, ref, pts, warps[j], oks[j], half, 1.0 / norm[-1] ** 2, level)
+        _splat(acc, img, ref, pts, warps[j].to(dev), oks[j].to(dev), half,
+               1.0 / norm[-1] ** 2, level)
+    acc, ref, pts = acc.cpu(), ref.cpu(), pts.cpu()  # what follows is per pixel, once
     covered = acc[1] > 0
     image = torch.where(covered, acc[0] / acc[1].clamp(min=1e-300), ref).reshape(h, w)
     # noise variance of a pixel: sum over frames of the frame's share (acc[2]) over the
