@@ -302,7 +302,10 @@ class _Source:
         img = None if self.images is None else {"height": self.images.shape[0],
                                                 "width": self.images.shape[1],
                                                 "frames": len(self.images)}
+        grid_info = None if grid is None else {"nx": int(grid.nx), "ny": int(grid.ny),
+                                               "ix": grid.ix.tolist(), "iy": grid.iy.tolist()}
         return {"mode": "result", "kind": self.kind, "file": self.path.name,
+                "grid": grid_info,
                 "n_points": self.n_points, "n_rows": self.n_rows,
                 "points": self.points.astype(np.float32).ravel().tolist(),
                 "cell": cell, "frames": self.frames.tolist(), "times": _finite_list(self.times),

@@ -189,7 +189,11 @@ STS.ResultPage = class {
     }
   }
 
-  setField(name) { this.field = name; this.lim = null; this.reload(true); }
+  setField(name) {
+    this.field = name; this.lim = null;
+    document.getElementById("field").value = name;
+    this.reload(true);
+  }
   setScope(k) { this.scope = k; this.lim = null; this.markScope(); this.reload(false); }
   setDeformed(on) { this.deformed = on; this.markScope(); this.reload(false); }
   markScope() {
@@ -266,6 +270,7 @@ STS.ResultPage = class {
       if (token !== this.token) return; // a later request wins
       this.values = vals;
       this.pos = pos;
+      this.cells = pos ? this.cellEdges(pos) : null;
       this.img = img === null ? this.img : img;
       if (lim && !(lim instanceof Float32Array) && lim.cmap) this.setLimits(lim);
       this.fillStats(stats);
@@ -354,6 +359,7 @@ STS.ResultPage = class {
     if (!this.values || !lim) return;
     const [cw, ch] = m.cell, pw = cw * v.s, ph = ch * v.s;
     const pts = this.deformed && this.pos ? this.pos : this.ref;
+    const cells = this.deformed && this.pos ? this.cells : null;
     ctx.globalAlpha = this.opacity;
     const cache = new Map();
     for (let i = 0; i < this.n; i++) {
@@ -369,7 +375,17 @@ STS.ResultPage = class {
         cache.set(key, col);
       }
       ctx.fillStyle = col;
-      ctx.fillRect(cx - pw / 2, cy - ph / 2, pw + 0.5, ph + 0.5);
+      if (cells) { // the cell as the motion deformed it: a parallelogram
+        const ax = cells[4 * i] * v.s / 2, ay = cells[4 * i + 1] * v.s / 2;
+        const bx = cells[4 * i + 2] * v.s / 2, by = cells[4 * i + 3] * v.s / 2;
+        ctx.beginPath();
+        ctx.moveTo(cx - ax - bx, cy - ay - by); ctx.lineTo(cx + ax - bx, cy + ay - by);
+        ctx.lineTo(cx + ax + bx, cy + ay + by); ctx.lineTo(cx - ax + bx, cy - ay + by);
+        ctx.closePath(); ctx.fill();
+        ctx.strokeStyle = col; ctx.lineWidth = 0.6; ctx.stroke();
+      } else {
+        ctx.fillRect(cx - pw / 2, cy - ph / 2, pw + 0.5, ph + 0.5);
+      }
     }
     ctx.globalAlpha = 1;
     // picked points and the point under the pointer
@@ -381,6 +397,36 @@ STS.ResultPage = class {
     }
     const note = document.getElementById("stage-note");
     note.textContent = this.completed[this.row] === "1" ? "" : "this frame is not finished yet";
+  }
+
+  /* the deformed cell of every grid point: its edge vectors (px) along the grid's x and y,
+     from the neighbours' positions (central differences; one-sided at the edge; the
+     reference cell where there is no neighbour) */
+  cellEdges(pos) {
+    const g = this.meta.grid, [sx, sy] = this.meta.cell, out = new Float32Array(4 * this.n);
+    if (!g) {
+      for (let i = 0; i < this.n; i++) { out[4 * i] = sx; out[4 * i + 3] = sy; }
+      return out;
+    }
+    if (!this.gridIndex) {
+      this.gridIndex = new Int32Array(g.nx * g.ny).fill(-1);
+      for (let i = 0; i < this.n; i++) this.gridIndex[g.iy[i] * g.nx + g.ix[i]] = i;
+    }
+    const at = (ix, iy) => (ix < 0 || iy < 0 || ix >= g.nx || iy >= g.ny) ? -1 : this.gridIndex[iy * g.nx + ix];
+    const edge = (i, a, b, step, k) => { // (pos[b] - pos[a]) / (index distance), component k
+      const d = (a === i || b === i) ? 1 : 2;
+      return (pos[2 * b + k] - pos[2 * a + k]) / d;
+    };
+    for (let i = 0; i < this.n; i++) {
+      const ix = g.ix[i], iy = g.iy[i];
+      const l = at(ix - 1, iy), r = at(ix + 1, iy), u = at(ix, iy - 1), d = at(ix, iy + 1);
+      const xa = l >= 0 ? l : i, xb = r >= 0 ? r : i, ya = u >= 0 ? u : i, yb = d >= 0 ? d : i;
+      if (xa !== xb) { out[4 * i] = edge(i, xa, xb, sx, 0); out[4 * i + 1] = edge(i, xa, xb, sx, 1); }
+      else { out[4 * i] = sx; out[4 * i + 1] = 0; }
+      if (ya !== yb) { out[4 * i + 2] = edge(i, ya, yb, sy, 0); out[4 * i + 3] = edge(i, ya, yb, sy, 1); }
+      else { out[4 * i + 2] = 0; out[4 * i + 3] = sy; }
+    }
+    return out;
   }
 
   mark(ctx, pts, k, colour, label) {
