@@ -192,11 +192,17 @@ class _Source:
         self._check(name)
         row = self._check_row(row)
         with self._file() as f:
-            vals = self.convert(name, f[name][row].astype(np.float64))
-            if name not in QUALITY_FIELDS:
-                vals = np.where(self._valid(f, row, slice(None), min_zncc), vals, np.nan)
-            if name == "status" and "completed" in f and not f["completed"][row]:
-                vals = np.full_like(vals, np.nan)
+            return self._values(f, name, np.array([row]), min_zncc)[0]
+
+    def _values(self, f: h5py.File, name: str, rows: np.ndarray, min_zncc: float
+                ) -> np.ndarray:
+        """(len(rows), N) float32 of :meth:`row_values` for increasing ``rows``, read at once."""
+        sel = rows.tolist()
+        vals = self.convert(name, f[name][sel].astype(np.float64))
+        if name not in QUALITY_FIELDS:
+            vals = np.where(self._valid(f, sel, slice(None), min_zncc), vals, np.nan)
+        if name == "status" and "completed" in f:
+            vals = np.where(f["completed"][()][rows][:, None], vals, np.nan)
         return vals.astype(np.float32)
 
     def positions(self, row: int) -> np.ndarray:
@@ -265,8 +271,11 @@ class _Source:
                                       .round().astype(int))] if done.size else done
             else:
                 pick = np.array([self._check_row(row)])
-            vals = np.stack([self.row_values(name, int(r), min_zncc) for r in pick]) \
-                if pick.size else np.zeros((0, self.n_points))
+            if pick.size:
+                with self._file() as f:
+                    vals = self._values(f, name, pick, min_zncc)
+            else:
+                vals = np.zeros((0, self.n_points))
             sym = is_diverging(name) and straddles_zero(vals)
             norm = colour_norm(vals, None, 1.0 if name == "zncc" else None, sym)
             lo, hi = float(norm.vmin), float(norm.vmax)

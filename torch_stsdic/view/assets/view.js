@@ -486,9 +486,12 @@ STS.ResultPage = class {
         tip.textContent = `#${k} (${STS.fmt(this.ref[2 * k])}, ${STS.fmt(this.ref[2 * k + 1])}) px  ` +
           `${this.field} = ${this.field === "status" ? this.statusName(val) : STS.fmt(val)}` +
           (f && f.unit && f.unit !== "-" && this.field !== "status" ? ` ${f.unit}` : "");
-        tip.style.left = `${ev.clientX - r.left + 14}px`;
-        tip.style.top = `${ev.clientY - r.top + 12}px`;
         tip.classList.remove("hidden");
+        const px = ev.clientX - r.left, py = ev.clientY - r.top; // kept inside the stage
+        const left = px + 14 + tip.offsetWidth > r.width ? px - 14 - tip.offsetWidth : px + 14;
+        const top = py + 12 + tip.offsetHeight > r.height ? py - 12 - tip.offsetHeight : py + 12;
+        tip.style.left = `${Math.max(0, left)}px`;
+        tip.style.top = `${Math.max(0, top)}px`;
       }
       if (k !== this.hoverPoint) {
         this.hoverPoint = k;
