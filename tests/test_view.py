@@ -369,3 +369,32 @@ def test_command_errors_are_one_line(capsys, result, tmp_path):
         assert main(["view", str(path), "--port", str(taken), "--no-browser"]) == 1
         err = capsys.readouterr().err
         assert f"cannot serve on 127.0.0.1:{taken}" in err and err.count("\n") == 1
+
+
+def test_without_no_browser_it_opens_the_page_in_the_browser(capsys, monkeypatch, result):
+    """The address printed is the one given to the browser; Ctrl-C (here: a KeyboardInterrupt
+    once the browser was asked) ends it with 0."""
+    import threading
+    import webbrowser
+
+    from torch_stsdic.view.server import ViewServer
+
+    _, path = result
+    opened: list[str] = []
+    asked = threading.Event()
+
+    def fake_open(url, *a, **k):
+        opened.append(url)
+        asked.set()
+        return True
+
+    def serve(self, poll_interval=0.5):
+        assert asked.wait(20)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(webbrowser, "open", fake_open)
+    monkeypatch.setattr(ViewServer, "serve_forever", serve)
+    assert main(["view", str(path)]) == 0
+    out, err = capsys.readouterr()
+    assert opened and opened[0] in out and opened[0].startswith("http://127.0.0.1:")
+    assert "stopped" in err

@@ -116,8 +116,8 @@ def test_page_loads_slider_and_keys_change_the_frame(page, result, request):
     valid = usable(d["status"]) & (np.nan_to_num(d["zncc"], nan=-1) >= 0.8)
     with serving_result(path) as server:
         open_page(page, server)
-        assert shown_row(page) == 0
-        assert "frame 0" in page.inner_text("#frame-label")
+        assert shown_row(page) == 6  # the last finished frame
+        assert "frame 6" in page.inner_text("#frame-label")
         assert page.input_value("#field") == "u"
         page.fill("#slider", "4")  # a range input: sets the value, fires 'input'
         wait_row(page, 4)
@@ -205,6 +205,7 @@ def test_a_file_still_being_written_grows_in_the_page(page, tmp_path, request):
     with writing(path) as run, serving_result(path) as server:
         open_page(page, server)
         page.wait_for_selector("#badge[data-finished='2']")
+        assert shown_row(page) == 1
         assert "2 of 6 frames finished" in page.inner_text("#badge")
         page.fill("#slider", "3")
         wait_row(page, 3)

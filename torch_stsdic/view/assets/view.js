@@ -38,8 +38,8 @@ STS.ResultPage = class {
     window.addEventListener("resize", () => { this.view.fit(); this.draw(); this.drawChart(); });
     document.addEventListener("keydown", (ev) => this.key(ev));
     await this.pollProgress();
-    const first = this.completed.indexOf("1");
-    await this.setRow(first >= 0 ? first : 0);
+    const last = this.completed.lastIndexOf("1"); // the last finished frame, as 'stsdic plot'
+    await this.setRow(last >= 0 ? last : 0);
     document.body.dataset.ready = "1";
     this.timer = setInterval(() => this.pollProgress(), 2000);
   }
@@ -175,7 +175,7 @@ STS.ResultPage = class {
     this.completed = p.completed;
     const badge = document.getElementById("badge");
     const live = p.finished < p.n_rows;
-    badge.textContent = live ? `${p.finished} of ${p.n_rows} frames finished — updating`
+    badge.textContent = live ? `${p.finished} of ${p.n_rows} frames finished — following the file`
       : `${p.n_rows} frames`;
     badge.className = "badge " + (live ? "live" : "done");
     badge.dataset.finished = String(p.finished);
