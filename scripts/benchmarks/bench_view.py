@@ -6,7 +6,9 @@ Makes, in --workdir, a 1,000-frame result (a 40 x 30 grid, every row finished) w
 1,000-frame 420 x 320 TIFF movie, and a 10,000-frame result without images; then, --repeats
 times, interleaved: builds the viewer's source for each file (:func:`open_source`: what
 ``stsdic view`` does before it serves) and times a fresh browser page from ``goto`` to its
-first frame drawn (image and field: ``body[data-ready]``). Writes docs/bench/view.json::
+first frame drawn (image and field: ``body[data-ready]``); and the command's own start, from
+``python -m torch_stsdic view`` to its address printed, next to ``stsdic --version`` (Python
+and torch's import, which every command pays). Writes docs/bench/view.json::
 
     python scripts/benchmarks/bench_view.py                 # -> docs/bench/view.json
     python scripts/benchmarks/bench_view.py --repeats 2 --out /tmp/view.json
@@ -81,6 +83,27 @@ def first_frame_seconds(browser, url: str) -> float:
     return dt
 
 
+def command_start_seconds(args: list[str]) -> float:
+    """Seconds from starting ``python -m torch_stsdic ARGS`` to the page's address printed
+    (then it is stopped with Ctrl-C); for ``view``. With ``--version``: to its exit."""
+    import signal
+
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    t0 = time.perf_counter()
+    proc = subprocess.Popen([sys.executable, "-m", "torch_stsdic", *args], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    if "--version" in args:
+        proc.communicate()
+        return time.perf_counter() - t0
+    for line in proc.stdout:
+        if "http://127.0.0.1:" in line:
+            break
+    dt = time.perf_counter() - t0
+    proc.send_signal(signal.SIGINT)
+    proc.communicate(timeout=60)
+    return dt
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--workdir", default="/tmp/stsdic-bench-view")
@@ -121,9 +144,16 @@ def main() -> None:
                 runs.append({"file": name, "repeat": rep, "open_s": round(t_open, 4),
                              "first_frame_s": round(t_page, 4)})
                 print(runs[-1], flush=True)
+            # the command's own start (Python, torch), next to 'stsdic --version'
+            t_cmd = command_start_seconds(["view", str(r1k), "--no-browser"])
+            t_ver = command_start_seconds(["--version"])
+            runs.append({"file": "command start", "repeat": rep,
+                         "view_address_printed_s": round(t_cmd, 3),
+                         "version_s": round(t_ver, 3)})
+            print(runs[-1], flush=True)
         browser.close()
     summary = {}
-    for name in {r["file"] for r in runs}:
+    for name in {r["file"] for r in runs} - {"command start"}:
         rs = [r for r in runs if r["file"] == name]
         summary[name] = {"open_s_median": statistics.median(r["open_s"] for r in rs),
                          "first_frame_s_median": statistics.median(r["first_frame_s"]
@@ -137,6 +167,11 @@ def main() -> None:
               "chromium": subprocess.run([exe, "--version"], capture_output=True,
                                          text=True).stdout.strip(),
               "points": 1200, "file_bytes": sizes, "summary": summary, "runs": runs}
+    starts = [r for r in runs if r["file"] == "command start"]
+    summary["command start"] = {
+        "view_address_printed_s_median": statistics.median(r["view_address_printed_s"]
+                                                          for r in starts),
+        "version_s_median": statistics.median(r["version_s"] for r in starts)}
     Path(args.out).write_text(json.dumps(record, indent=1) + "\n")
     print(json.dumps(summary, indent=1))
 

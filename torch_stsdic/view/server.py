@@ -313,8 +313,8 @@ def draw_api(images: Any, reference: int, inputs: list[str], mask_out: Any,
         reg = Region.from_json(body, (h, w))
         step = int(body.get("step") or 10)
         subset = int(body.get("subset") or 21)
-        if not (1 <= step <= 10_000 and 3 <= subset <= 10_001):
-            raise BadRequest("step or subset out of range")
+        if not (1 <= step <= 10_000 and 5 <= subset <= 10_001 and subset % 2):
+            raise BadRequest("step: expected 1 .. 10000 px; subset: an odd number >= 5 px")
         mask = rasterise(reg, (h, w)) if reg.has_mask else None
         if mask is not None and not mask.any():
             raise BadRequest("the mask is empty: the holes cover every region")

@@ -67,6 +67,7 @@ class ImageSource:
         self._keep = keep
         self._range: tuple[float, float] | None = None
         self._lock = threading.Lock()
+        self._read = threading.Lock()
 
     def __len__(self) -> int:
         return len(self.series)
@@ -79,7 +80,7 @@ class ImageSource:
 
     def grey(self, k: int) -> np.ndarray:
         """Frame ``k`` (H, W) as float32 grey levels."""
-        with warnings.catch_warnings():
+        with self._read, warnings.catch_warnings():  # one reader of the files at a time
             warnings.simplefilter("ignore")
             return self.series.numpy(int(k))
 
@@ -386,17 +387,6 @@ class ResultSource(_Source):
             d = np.stack([f["u"][row], f["v"][row]], 1).astype(np.float64)
         d = np.where(np.isfinite(d).all(1, keepdims=True), d, 0.0)
         return (self.points + d).astype(np.float32)
-
-    def reference_frame(self) -> int:
-        """The series frame the run's reference was (the first of an averaged one), else the
-        first row's."""
-        ref = (self.config.get("track") or {}).get("reference", 0)
-        try:
-            return int(ref)
-        except (TypeError, ValueError):
-            txt = str(ref).split(":")[-1].split(",")[0]
-            return int(txt) if txt.strip().isdigit() else int(self.frames[0]) if len(
-                self.frames) else 0
 
     def summary(self) -> list[list[str]]:
         """(label, text) lines of the run: what it measured and how."""
