@@ -339,10 +339,19 @@ class _Source:
 
 
 def _spacing(points: np.ndarray) -> float:
-    """The points' spacing px (:func:`torch_stsdic.cli.plot._point_spacing`)."""
-    from torch_stsdic.cli.plot import _point_spacing
+    """The points' spacing px (:func:`torch_stsdic.cli.plot._point_spacing`; without scipy,
+    the median nearest-neighbour distance of up to 500 of them)."""
+    if len(points) < 2:
+        return 10.0
+    try:
+        from torch_stsdic.cli.plot import _point_spacing
 
-    return _point_spacing(points) if len(points) > 1 else 10.0
+        return _point_spacing(points)
+    except ImportError:  # scipy (scattered points only)
+        pick = points[np.random.default_rng(0).permutation(len(points))[:500]]
+        d = np.hypot(*(pick[:, None, :] - points[None, :, :]).transpose(2, 0, 1))
+        d[d == 0] = np.inf
+        return float(np.median(d.min(1)))
 
 
 class ResultSource(_Source):
