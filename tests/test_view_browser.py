@@ -377,3 +377,40 @@ def test_hourglass_result_page(page, hourglass, request):
         page.mouse.click(*client_xy(page, *at))
         page.wait_for_selector(f"#chart[data-points='{k}']")
         shot(page, request, "hourglass")
+
+
+def test_controls_without_images(page, result, request):
+    """No image (--no-image): the points' extent is drawn; the status field gets its codes'
+    colours, typed limits are used as typed, the reference configuration draws the points
+    where they were, a lower min ZNCC shows more points."""
+    _, path = result
+    d = _file(path)
+    with serving_result(path, no_image=True) as server:
+        open_page(page, server)
+        assert page.evaluate("window.stsdicView.meta.image") is None
+        page.select_option("#field", "status")
+        page.wait_for_selector("#stage[data-field='status']")
+        assert page.evaluate("window.stsdicView.lim.cmap") == "status"
+        shown = page.evaluate("Array.from(window.stsdicView.values)")
+        np.testing.assert_array_equal(shown, d["status"][shown_row(page)])
+        page.select_option("#field", "v")
+        page.wait_for_selector("#stage[data-field='v']")
+        page.click("#scope button[data-scope='frame']")
+        until(page, "window.stsdicView.lim && window.stsdicView.lim.rows === 1")
+        page.fill("#lim-lo", "-0.5")
+        page.fill("#lim-hi", "0.25")
+        page.press("#lim-hi", "Enter")
+        until(page, "window.stsdicView.scope === 'manual'")
+        assert page.evaluate("[window.stsdicView.limits().lo, window.stsdicView.limits().hi]") \
+            == [-0.5, 0.25]
+        page.click("#cfg-ref")
+        until(page, "window.stsdicView.deformed === false")
+        k = 7
+        page.mouse.move(*client_xy(page, *d["points"][k]))  # at its reference position
+        page.wait_for_selector(f"#point-table[data-point='{k}']", timeout=10_000)
+        page.fill("#min-zncc", "-1")
+        page.press("#min-zncc", "Enter")
+        until(page, "window.stsdicView.minZncc === -1")
+        page.set_viewport_size({"width": 1100, "height": 700})
+        page.click("text=fit view")
+        shot(page, request, "no_image_manual_limits")

@@ -194,12 +194,18 @@ STS.ResultPage = class {
     document.getElementById("field").value = name;
     this.reload(true);
   }
-  setScope(k) { this.scope = k; this.lim = null; this.markScope(); this.reload(false); }
+  setScope(k) {
+    this.scope = k;
+    if (k !== "manual") this.lim = null; // typed limits start from the ones shown
+    this.markScope();
+    this.reload(false);
+  }
   setDeformed(on) { this.deformed = on; this.markScope(); this.reload(false); }
   markScope() {
     for (const b of document.querySelectorAll("#scope button")) {
       b.classList.toggle("on", b.dataset.scope === this.scope);
     }
+    if (this.scope === "manual") document.getElementById("lim-note").textContent = "typed";
     const d = document.getElementById("cfg-def"), r = document.getElementById("cfg-ref");
     if (d) { d.classList.toggle("on", this.deformed); r.classList.toggle("on", !this.deformed); }
   }
@@ -580,7 +586,9 @@ STS.ResultPage = class {
     ctx.font = "11px system-ui, sans-serif";
     ctx.fillStyle = "#8d97a5";
     if (!picks.length) {
-      ctx.fillText("click a point on the field to plot its history", b.l, (b.t + b.b) / 2);
+      ctx.textAlign = "center";
+      ctx.fillText("click a point on the field to plot its history", b.W / 2, b.H / 2);
+      ctx.textAlign = "left";
       this.chartX = null;
       return;
     }
