@@ -170,6 +170,25 @@ def test_requests_outside_the_served_files_are_refused(result, target):
     assert secret not in data and b"root:" not in data
 
 
+def test_the_drawing_page_refuses_them_too(result, tmp_path):
+    movie, _ = result
+    secret = (ROOT / "pyproject.toml").read_bytes()[:40]
+    get, post = draw_api(ImageSource(load_series(str(movie))), 0, [str(movie)],
+                         tmp_path / "m.png")
+    with serving(get, post) as server:
+        for target in OUTSIDE:
+            status, data, _ = _get(server, target)
+            assert status in (400, 404) and secret not in data, target
+            status, data, _ = _get(server, target, method="POST", body=b"{}",
+                                   headers={"Content-Type": "application/json"})
+            assert status in (400, 404) and secret not in data, target
+        assert _get(server, "/api/region", method="POST", body=b"{}", host="evil.example:1",
+                    headers={"Content-Type": "application/json"})[0] == 403
+        assert _get(server, "/api/region", method="POST", body=b"roi",
+                    headers={"Content-Type": "text/plain"})[0] == 415
+    assert not (tmp_path / "m.png").exists()
+
+
 def test_absolute_form_and_other_hosts_are_refused(result):
     _, path = result
     with serving_result(path) as server:
