@@ -202,7 +202,7 @@ class _Source:
         vals = self.convert(name, f[name][sel].astype(np.float64))
         if name not in QUALITY_FIELDS:
             vals = np.where(self._valid(f, sel, slice(None), min_zncc), vals, np.nan)
-        if name == "status" and "completed" in f:
+        if "completed" in f:  # an unfinished row holds the fill values: nothing to show
             vals = np.where(f["completed"][()][rows][:, None], vals, np.nan)
         return vals.astype(np.float32)
 
@@ -339,19 +339,16 @@ class _Source:
 
 
 def _spacing(points: np.ndarray) -> float:
-    """The points' spacing px (:func:`torch_stsdic.cli.plot._point_spacing`; without scipy,
-    the median nearest-neighbour distance of up to 500 of them)."""
+    """The median distance px from a scattered point to its nearest neighbour (10 for a
+    single point): the size of the squares the page draws."""
+    import torch
+
+    from torch_stsdic.analysis.points import nearest_points
+
     if len(points) < 2:
         return 10.0
-    try:
-        from torch_stsdic.cli.plot import _point_spacing
-
-        return _point_spacing(points)
-    except ImportError:  # scipy (scattered points only)
-        pick = points[np.random.default_rng(0).permutation(len(points))[:500]]
-        d = np.hypot(*(pick[:, None, :] - points[None, :, :]).transpose(2, 0, 1))
-        d[d == 0] = np.inf
-        return float(np.median(d.min(1)))
+    dist, _ = nearest_points(torch.as_tensor(points, dtype=torch.float64), 2)
+    return float(dist[:, 1].median())
 
 
 class ResultSource(_Source):
@@ -527,15 +524,20 @@ def open_source(path: Path, image: Sequence[str] | None = None,
                 no_image: bool = False) -> _Source:
     """The source of a result file (2-D or stereo, by its content), with the image series
     ``image`` (default: the inputs the file records, where they still exist)."""
-    from torch_stsdic.cli.plot import _is_stereo
     from torch_stsdic.io import load_series
+    from torch_stsdic.stereo.result import is_stereo_file
 
     series = None
     if image and not no_image:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             series = load_series(image[0] if len(image) == 1 else list(image))
-    if _is_stereo(path):
+    try:
+        with h5py.File(path, "r", locking=False) as f:
+            stereo = is_stereo_file(f)
+    except OSError:  # not HDF5: the 2-D reader says what it is
+        stereo = False
+    if stereo:
         return StereoSource(path, ImageSource(series) if series is not None else None)
     src = ResultSource(path)
     if series is None and not no_image:
