@@ -417,3 +417,24 @@ def test_without_no_browser_it_opens_the_page_in_the_browser(capsys, monkeypatch
     out, err = capsys.readouterr()
     assert opened and opened[0] in out and opened[0].startswith("http://127.0.0.1:")
     assert "stopped" in err
+
+
+def test_port_option_is_the_port_served(capsys, monkeypatch, result):
+    import socket
+
+    from torch_stsdic.view.server import ViewServer
+
+    _, path = result
+    with socket.socket() as s:  # a port free a moment ago
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    seen = []
+
+    def serve(self, poll_interval=0.5):
+        seen.append(self.server_address)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(ViewServer, "serve_forever", serve)
+    assert main(["view", str(path), "--port", str(port), "--no-browser"]) == 0
+    assert seen == [("127.0.0.1", port)]
+    assert f"http://127.0.0.1:{port}/" in capsys.readouterr().out
