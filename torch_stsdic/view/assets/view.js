@@ -419,7 +419,7 @@ STS.ResultPage = class {
       for (let i = 0; i < this.n; i++) this.gridIndex[g.iy[i] * g.nx + g.ix[i]] = i;
     }
     const at = (ix, iy) => (ix < 0 || iy < 0 || ix >= g.nx || iy >= g.ny) ? -1 : this.gridIndex[iy * g.nx + ix];
-    const edge = (i, a, b, step, k) => { // (pos[b] - pos[a]) / (index distance), component k
+    const edge = (i, a, b, k) => { // (pos[b] - pos[a]) / (index distance), component k
       const d = (a === i || b === i) ? 1 : 2;
       return (pos[2 * b + k] - pos[2 * a + k]) / d;
     };
@@ -427,9 +427,9 @@ STS.ResultPage = class {
       const ix = g.ix[i], iy = g.iy[i];
       const l = at(ix - 1, iy), r = at(ix + 1, iy), u = at(ix, iy - 1), d = at(ix, iy + 1);
       const xa = l >= 0 ? l : i, xb = r >= 0 ? r : i, ya = u >= 0 ? u : i, yb = d >= 0 ? d : i;
-      if (xa !== xb) { out[4 * i] = edge(i, xa, xb, sx, 0); out[4 * i + 1] = edge(i, xa, xb, sx, 1); }
+      if (xa !== xb) { out[4 * i] = edge(i, xa, xb, 0); out[4 * i + 1] = edge(i, xa, xb, 1); }
       else { out[4 * i] = sx; out[4 * i + 1] = 0; }
-      if (ya !== yb) { out[4 * i + 2] = edge(i, ya, yb, sy, 0); out[4 * i + 3] = edge(i, ya, yb, sy, 1); }
+      if (ya !== yb) { out[4 * i + 2] = edge(i, ya, yb, 0); out[4 * i + 3] = edge(i, ya, yb, 1); }
       else { out[4 * i + 2] = 0; out[4 * i + 3] = sy; }
     }
     return out;
