@@ -277,7 +277,7 @@ STS.ResultPage = class {
       this.values = vals;
       this.pos = pos;
       this.cells = pos ? this.cellEdges(pos) : null;
-      this.img = img === null ? this.img : img;
+      if (img !== null) this.img = img || null; // a failed load keeps the last image
       if (lim && !(lim instanceof Float32Array) && lim.cmap) this.setLimits(lim);
       this.fillStats(stats);
       this.draw();
@@ -319,7 +319,7 @@ STS.ResultPage = class {
     const m = this.meta;
     if (!m.image) return null;
     const k = m.frames[row];
-    if (k < 0 || k >= m.image.frames) return null;
+    if (k < 0 || k >= m.image.frames) return undefined; // no image of this frame: none drawn
     const img = await STS.loadImage(`/api/image?frame=${k}`);
     // the next frame's image, fetched ahead for playback
     const nxt = m.frames[row + 1];
