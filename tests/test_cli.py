@@ -16,7 +16,7 @@ from torch_stsdic.cli import main
 
 # one torch thread: the tests run on small, busy machines where competing threads are slow
 FAST = ["--threads", "1"]
-SUBCOMMANDS = ["run", "export", "plot", "synth", "demo"]
+SUBCOMMANDS = ["run", "export", "plot", "view", "synth", "demo"]
 
 
 def _run(capsys, *argv: str) -> tuple[int, str, str]:

@@ -18,7 +18,7 @@ PKG = ROOT / "torch_stsdic"
 PAGE = ROOT / "docs" / "architecture.md"
 BEGIN, END = "<!-- tree: scripts/tools/architecture_tree.py -->", "<!-- /tree -->"
 #: top-level units from the bottom layer up (the faces last)
-ORDER = ["kernels", "core", "io", "synth", "analysis", "movie", "stereo", "cli"]
+ORDER = ["kernels", "core", "io", "synth", "analysis", "movie", "stereo", "cli", "view"]
 
 
 def _summary(path: Path) -> str:
@@ -52,7 +52,7 @@ def tree() -> str:
         layer = "faces" if unit == "cli" else f"layer {min(i, 6) if unit != 'synth' else 2}"
         layer = {"kernels": "layer 0", "core": "layer 1", "io": "layer 2", "synth": "layer 2",
                  "analysis": "layer 3", "movie": "layer 4", "stereo": "layer 5",
-                 "cli": "faces"}[unit]
+                 "cli": "faces", "view": "faces"}[unit]
         lines.append(f"    {unit}/  [{layer}] {_summary(d / '__init__.py')}")
         lines += _lines(d, 2)
     faces = sorted(p for p in PKG.glob("*.py") if p.name not in ("__init__.py", "__main__.py"))

@@ -18,7 +18,7 @@ import traceback
 from collections.abc import Sequence
 from typing import Any
 
-from torch_stsdic.cli import demo, export, options, plot, run, stereo, synth
+from torch_stsdic.cli import demo, export, options, plot, run, stereo, synth, view
 from torch_stsdic.cli.demo import DEMO_TIME
 from torch_stsdic.cli.errors import (
     PROG,
@@ -31,7 +31,7 @@ from torch_stsdic.cli.errors import (
 from torch_stsdic.cli.signals import Interrupted, stop_on_signals
 
 #: the sub-command modules, in the order of ``stsdic --help``
-COMMANDS = (run, stereo, export, plot, synth, demo)
+COMMANDS = (run, stereo, export, plot, view, synth, demo)
 
 DESCRIPTION = """\
 STS-DIC: short-time-series digital image correlation (Wang & Ma) in PyTorch.
@@ -49,6 +49,7 @@ examples:
   stsdic run movie/movie.tif --scale 0.02 --unit mm --out result_mm.h5   # calibrated
   stsdic export result.h5 --out csv/            # or --format vtk (ParaView) / mat (MATLAB)
   stsdic plot result.h5 --frame last --out plots/
+  stsdic view result.h5                         # in the browser: scrub, click points
 
 Run 'stsdic COMMAND --help' for the options of a command. Coordinates are pixels with
 x = column (right), y = row (down), 0-based; times are frame numbers unless --timestamps.
