@@ -315,7 +315,7 @@ def _ic_solve_kernel(flat_ptr, p_ptr, px_ptr, py_ptr, dx_ptr, dy_ptr, basis_ptr,
         fidx = tl.arange(0, 8)
         for t in range(NT):
             tl.store(bf_ptr + (i * NT + t) * 7 + fidx, tl.full([8], float("nan"), tl.float64),
-                     mask=(fidx < 7) & ran_out)
+                     mask=(fidx < 7) & (fidx * 0 + st == C_MAXIT))
 
 
 def ic_solve_triton(img_args: tuple, p, px, py, dx, dy, basis, dt, frame_off, ft, fnorm, gx,
