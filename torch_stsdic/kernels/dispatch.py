@@ -83,7 +83,8 @@ def describe(device: str) -> str:
     if device == "cpu":
         return "fused C++ kernels" if native.available() else "torch kernels"
     if fused_step.available() and fused_step.triton_mode() != "0":
-        return "fused Triton kernel"
+        # affine stages: the whole-stage solver, unless TORCH_STSDIC_PER_POINT=0
+        return "fused Triton solver" if native.per_point_enabled() else "fused Triton kernel"
     return "torch kernels"
 
 
