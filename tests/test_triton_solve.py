@@ -132,9 +132,9 @@ def test_triton_solve_equals_the_native_solve(m, dtype, criterion, atol):
 
 @needs_device
 def test_triton_solve_shared_motion_max_iter_and_ref_rows():
-    """The shared motion carried in every warp; max_iter (the last iterate, NaN last step)
-    and diverged/outside statuses; reference subsets read through ``ref_rows`` (shuffled
-    rows: the same numbers as without)."""
+    """The shared motion carried in every warp; max_iter (the last iterate, NaN last step);
+    reference subsets read through ``ref_rows`` (shuffled rows: the same numbers as without);
+    the previous increments of the convergence rate."""
     calls = _native_calls(2, "float64", "znssd", shared=True)
     a, k = calls[-1]
     assert k.get("motion") is not None
@@ -156,6 +156,17 @@ def test_triton_solve_shared_motion_max_iter_and_ref_rows():
     got3 = _triton(a3, k2, ref_rows=perm)
     for x, y in zip(got[:4], got3[:4]):
         assert torch.equal(x.nan_to_num(), y.nan_to_num())
+    # a start 1e-3 px from the solution with a previous increment given (a step before it):
+    # the convergence rate's first ratio uses it (converged one step earlier than without)
+    a4 = list(a)
+    a4[2] = native.ic_solve(*a, **k)[0].clone()
+    a4[2][:, [0, a[17]]] += 1e-3  # u, v
+    a4[22] = torch.zeros_like(a[22])
+    without = native.ic_solve(*a4, **k)
+    a4[22] = torch.full_like(a[22], 0.5)
+    want4 = native.ic_solve(*a4, **k)
+    assert (want4[3] < without[3]).any()  # the previous increment is used
+    _assert_same(want4, _triton(a4, k), 1e-11)
 
 
 @pytest.mark.skipif(not INTERPRET, reason="CPU check through Triton's interpreter")
