@@ -18,7 +18,9 @@ iterations: one launch per stage instead of a right-hand-side launch, a dozen to
 host check per iteration (:mod:`torch_stsdic.core.gauss_newton`'s batched loop).
 
 The arithmetic follows the C++ kernel's order (warp origin in float64, tap weights, frame sums
-of the right-hand side in float64) so that both give the same iterations and statuses and
+of the right-hand side in float64; IEEE-rounded divisions and square roots where float32
+``/`` and ``tl.sqrt`` would compile to approximate ones) so that both give the same
+iterations and statuses and
 parameters equal to float rounding (``tests/test_triton_solve.py``, through Triton's
 interpreter). Affine shapes (Ks = 3, with or without the time term), cubic splines, float32 or
 float64. Imported only where Triton is installed; ``TRITON_INTERPRET=1`` before the first
@@ -51,6 +53,24 @@ def _weights(f, sixth, two3):
 @triton.jit
 def _finite(x):
     return (x == x) & (tl.abs(x) < float("inf"))
+
+
+@triton.jit
+def _div(a, b):
+    """a / b rounded as IEEE (float32 ``/`` compiles to an approximate division on CUDA)."""
+    if a.dtype == tl.float32:
+        return tl.div_rn(a, b)
+    else:
+        return a / b
+
+
+@triton.jit
+def _sqrt(x):
+    """sqrt(x) rounded as IEEE (float32 ``tl.sqrt`` is an approximate one on CUDA)."""
+    if x.dtype == tl.float32:
+        return tl.sqrt_rn(x)
+    else:
+        return tl.sqrt(x)
 
 
 @triton.jit
@@ -181,7 +201,7 @@ def _ic_solve_kernel(flat_ptr, p_ptr, px_ptr, py_ptr, dx_ptr, dy_ptr, basis_ptr,
             g = tl.where(m, g, 0.0)
             sgg = tl.sum(w * g * g, axis=0)
             sfg = tl.sum(w * ft * g, axis=0)
-            gn = tl.sqrt(tl.maximum(sgg.to(tl.float64), 1e-30))
+            gn = tl.sqrt(tl.maximum(sgg.to(tl.float64), 1e-30))  # float64: IEEE
             zt = sfg.to(tl.float64) / (fn * gn)
             zsum += zt
             if ZNSSD:
@@ -238,10 +258,10 @@ def _ic_solve_kernel(flat_ptr, p_ptr, px_ptr, py_ptr, dx_ptr, dy_ptr, basis_ptr,
         a10 = dv1
         a11 = 1.0 + dv2
         det = a00 * a11 - a01 * a10
-        i00 = a11 / det
-        i01 = -a01 / det
-        i10 = -a10 / det
-        i11 = a00 / det
+        i00 = _div(a11, det)
+        i01 = _div(-a01, det)
+        i10 = _div(-a10, det)
+        i11 = _div(a00, det)
         e00 = 1.0 + pu1
         e01 = pu2
         e10 = pv1
@@ -266,11 +286,11 @@ def _ic_solve_kernel(flat_ptr, p_ptr, px_ptr, py_ptr, dx_ptr, dy_ptr, basis_ptr,
             nvt = pvt
         it += 1
         d = dpv * sc
-        norm = tl.sqrt(tl.sum(d * d, axis=0))
+        norm = _sqrt(tl.sum(d * d, axis=0))
         finite = (_finite(norm) & _finite(nu0) & _finite(nu1) & _finite(nu2) & _finite(nut)
                   & _finite(nv0) & _finite(nv1) & _finite(nv2) & _finite(nvt))
         bad = (~finite) | (norm > div_norm)
-        rate = tl.where(prev > 0, norm / tl.where(prev > 0, prev, 1.0), 1.0)
+        rate = tl.where(prev > 0, _div(norm, tl.where(prev > 0, prev, 1.0)), 1.0)
         rate = tl.minimum(tl.maximum(rate, rate_floor), 1.0)
         conv = finite & (norm * rate < tol) & (~outside)
         prev = norm
