@@ -33,7 +33,7 @@ import torch
 import triton
 import triton.language as tl
 
-from torch_stsdic.kernels.triton_ic import MAX_SUBSET_PIXELS, _tap_row
+from torch_stsdic.kernels.triton_ic import MAX_SUBSET_PIXELS, tap_row
 
 __all__ = ["ic_solve_triton", "MAX_SUBSET_PIXELS"]
 
@@ -192,10 +192,10 @@ def _ic_solve_kernel(flat_ptr, p_ptr, px_ptr, py_ptr, dx_ptr, dy_ptr, basis_ptr,
             wy0, wy1, wy2, wy3 = _weights(ys - y0, sixth, two3)
             foff = tl.load(foff_ptr + i * NT + t)
             base = (y0.to(tl.int64) + shift) * wp + (x0.to(tl.int64) + shift) + foff
-            g = _tap_row(flat_ptr, base, m, wx0, wx1, wx2, wx3) * wy0
-            g += _tap_row(flat_ptr, base + wp, m, wx0, wx1, wx2, wx3) * wy1
-            g += _tap_row(flat_ptr, base + 2 * wp, m, wx0, wx1, wx2, wx3) * wy2
-            g += _tap_row(flat_ptr, base + 3 * wp, m, wx0, wx1, wx2, wx3) * wy3
+            g = tap_row(flat_ptr, base, m, wx0, wx1, wx2, wx3) * wy0
+            g += tap_row(flat_ptr, base + wp, m, wx0, wx1, wx2, wx3) * wy1
+            g += tap_row(flat_ptr, base + 2 * wp, m, wx0, wx1, wx2, wx3) * wy2
+            g += tap_row(flat_ptr, base + 3 * wp, m, wx0, wx1, wx2, wx3) * wy3
             if ZNSSD:
                 g = g - tl.sum(w * g, axis=0) * inv_wsum
             g = tl.where(m, g, 0.0)
