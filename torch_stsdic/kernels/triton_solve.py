@@ -80,6 +80,169 @@ def _pick(vec, idx, a):
 
 
 @triton.jit
+def _frame(flat_ptr, ox, oy, dxu, dyv, m, foff, x_lo, x_hi, y_lo, y_hi, shift, wp, sixth,
+           two3, w, ft, gx, gy, b0, b1, b2, fn, inv_wsum, ZNSSD: tl.constexpr,
+           HAS_TIME: tl.constexpr):
+    """One frame of a point's right-hand side: the subset sampled at origin (ox, oy) (float64)
+    plus (dxu, dyv), its ZNSSD/SSD residual against ft, and the frame's sums (float64):
+    spatial b (x0s, x1s, x2s, y0s, y1s, y2s), the time column's sums (sx, sy; 0 without time)
+    and the frame's ZNCC."""
+    xs = ox.to(dxu.dtype) + dxu
+    ys = oy.to(dxu.dtype) + dyv
+    xs = tl.minimum(tl.maximum(xs, x_lo), x_hi)
+    ys = tl.minimum(tl.maximum(ys, y_lo), y_hi)
+    x0 = tl.floor(xs)
+    y0 = tl.floor(ys)
+    wx0, wx1, wx2, wx3 = _weights(xs - x0, sixth, two3)
+    wy0, wy1, wy2, wy3 = _weights(ys - y0, sixth, two3)
+    base = (y0.to(tl.int64) + shift) * wp + (x0.to(tl.int64) + shift) + foff
+    g = tap_row(flat_ptr, base, m, wx0, wx1, wx2, wx3) * wy0
+    g += tap_row(flat_ptr, base + wp, m, wx0, wx1, wx2, wx3) * wy1
+    g += tap_row(flat_ptr, base + 2 * wp, m, wx0, wx1, wx2, wx3) * wy2
+    g += tap_row(flat_ptr, base + 3 * wp, m, wx0, wx1, wx2, wx3) * wy3
+    if ZNSSD:
+        g = g - tl.sum(w * g, axis=0) * inv_wsum
+    g = tl.where(m, g, 0.0)
+    sgg = tl.sum(w * g * g, axis=0)
+    sfg = tl.sum(w * ft * g, axis=0)
+    gn = tl.sqrt(tl.maximum(sgg.to(tl.float64), 1e-30))  # float64: IEEE
+    zt = sfg.to(tl.float64) / (fn * gn)
+    if ZNSSD:
+        a = (fn / gn).to(g.dtype)
+        e = w * (ft - a * g)
+    else:
+        e = w * (ft - g)
+    ex = gx * e
+    ey = gy * e
+    if HAS_TIME:
+        sx = tl.sum(ex, axis=0).to(tl.float64)
+        sy = tl.sum(ey, axis=0).to(tl.float64)
+    else:
+        sx = zt * 0.0
+        sy = zt * 0.0
+    return (tl.sum(ex * b0, axis=0).to(tl.float64), tl.sum(ex * b1, axis=0).to(tl.float64),
+            tl.sum(ex * b2, axis=0).to(tl.float64), tl.sum(ey * b0, axis=0).to(tl.float64),
+            tl.sum(ey * b1, axis=0).to(tl.float64), tl.sum(ey * b2, axis=0).to(tl.float64),
+            sx, sy, zt)
+
+
+@triton.jit
+def _rhs(flat_ptr, dt_ptr, mo_ptr, foff_ptr, bf_ptr, i, NT, px, py, ut, vt, dxu, dyv, m,
+         w_img, h, x_lo, x_hi, y_lo, y_hi, shift, wp, sixth, two3, w, ft, gx, gy, b0, b1, b2,
+         fn, inv_wsum, ZNSSD: tl.constexpr, HAS_TIME: tl.constexpr, HAS_MOTION: tl.constexpr,
+         FRAME_RHS: tl.constexpr):
+    """The joint right-hand side of point ``i`` over its NT frames (float64: u terms, then v,
+    each spatial then time), the sum of the frames' ZNCC and whether a warped subset leaves
+    the image; with FRAME_RHS each frame's own spatial b and ZNCC into ``bf_ptr``."""
+    big = 3.0e38
+    xmn = tl.min(tl.where(m, dxu, big), axis=0).to(tl.float64)
+    xmx = tl.max(tl.where(m, dxu, -big), axis=0).to(tl.float64)
+    ymn = tl.min(tl.where(m, dyv, big), axis=0).to(tl.float64)
+    ymx = tl.max(tl.where(m, dyv, -big), axis=0).to(tl.float64)
+    zero = fn * 0.0
+    bu0, bu1, bu2, but, bv0, bv1, bv2, bvt = zero, zero, zero, zero, zero, zero, zero, zero
+    zsum = zero
+    outside = zero < 0  # false
+    for t in range(NT):
+        dti = tl.load(dt_ptr + i * NT + t).to(tl.float64)
+        ox = px + ut * dti
+        oy = py + vt * dti
+        if HAS_MOTION:  # the known (shared) motion of this row's frame t
+            ox += tl.load(mo_ptr + (i * NT + t) * 2).to(tl.float64)
+            oy += tl.load(mo_ptr + (i * NT + t) * 2 + 1).to(tl.float64)
+        outside = (outside | (ox + xmn < 0) | (ox + xmx > w_img - 1) | (oy + ymn < 0)
+                   | (oy + ymx > h - 1))
+        x0s, x1s, x2s, y0s, y1s, y2s, sx, sy, zt = _frame(
+            flat_ptr, ox, oy, dxu, dyv, m, tl.load(foff_ptr + i * NT + t), x_lo, x_hi, y_lo,
+            y_hi, shift, wp, sixth, two3, w, ft, gx, gy, b0, b1, b2, fn, inv_wsum, ZNSSD,
+            HAS_TIME)
+        zsum += zt
+        bu0 += x0s
+        bu1 += x1s
+        bu2 += x2s
+        bv0 += y0s
+        bv1 += y1s
+        bv2 += y2s
+        if FRAME_RHS:  # frame t's own spatial right-hand side and its ZNCC
+            bf = bf_ptr + (i * NT + t) * 7
+            tl.store(bf, x0s)
+            tl.store(bf + 1, x1s)
+            tl.store(bf + 2, x2s)
+            tl.store(bf + 3, y0s)
+            tl.store(bf + 4, y1s)
+            tl.store(bf + 5, y2s)
+            tl.store(bf + 6, zt)
+        if HAS_TIME:
+            but += dti * sx
+            bvt += dti * sy
+    return bu0, bu1, bu2, but, bv0, bv1, bv2, bvt, zsum, outside
+
+
+@triton.jit
+def _step(hinv, pidx, bu0, bu1, bu2, but, bv0, bv1, bv2, bvt, HAS_TIME: tl.constexpr):
+    """dp = -(Hinv b) (8,) in float64, b in the parameters' order (padded with zeros)."""
+    if HAS_TIME:
+        bvec = tl.where(pidx == 0, bu0, tl.where(pidx == 1, bu1, tl.where(
+            pidx == 2, bu2, tl.where(pidx == 3, but, tl.where(pidx == 4, bv0, tl.where(
+                pidx == 5, bv1, tl.where(pidx == 6, bv2, bvt)))))))
+    else:
+        bvec = tl.where(pidx == 0, bu0, tl.where(pidx == 1, bu1, tl.where(
+            pidx == 2, bu2, tl.where(pidx == 3, bv0, tl.where(pidx == 4, bv1, tl.where(
+                pidx == 5, bv2, bu0 * 0.0))))))
+    return -tl.sum(hinv * bvec[None, :], axis=1)
+
+
+@triton.jit
+def _compose(pu0, pu1, pu2, put, pv0, pv1, pv2, pvt, dpv, pidx, K: tl.constexpr,
+             HAS_TIME: tl.constexpr):
+    """p o dp^-1 of the affine warp (the C++ affine_compose, AffineShape.compose_inverse):
+    M = (I + D)(I + dD)^-1, b' = b - M db, bt' = bt - M dbt."""
+    du0 = _pick(dpv, pidx, 0)
+    dv0 = _pick(dpv, pidx, K)
+    a00 = 1.0 + _pick(dpv, pidx, 1)
+    a01 = _pick(dpv, pidx, 2)
+    a10 = _pick(dpv, pidx, K + 1)
+    a11 = 1.0 + _pick(dpv, pidx, K + 2)
+    det = a00 * a11 - a01 * a10
+    i00 = _div(a11, det)
+    i01 = _div(-a01, det)
+    i10 = _div(-a10, det)
+    i11 = _div(a00, det)
+    e00 = 1.0 + pu1
+    e11 = 1.0 + pv2
+    m00 = e00 * i00 + pu2 * i10
+    m01 = e00 * i01 + pu2 * i11
+    m10 = pv1 * i00 + e11 * i10
+    m11 = pv1 * i01 + e11 * i11
+    nu0 = pu0 - (m00 * du0 + m01 * dv0)
+    nv0 = pv0 - (m10 * du0 + m11 * dv0)
+    if HAS_TIME:
+        dut = _pick(dpv, pidx, 3)
+        dvt = _pick(dpv, pidx, 2 * K - 1)
+        nut = put - (m00 * dut + m01 * dvt)
+        nvt = pvt - (m10 * dut + m11 * dvt)
+    else:
+        nut = put
+        nvt = pvt
+    return nu0, m00 - 1.0, m01, nut, nv0, m10, m11 - 1.0, nvt
+
+
+@triton.jit
+def _store_params(ptr, pu0, pu1, pu2, put, pv0, pv1, pv2, pvt, K: tl.constexpr,
+                  HAS_TIME: tl.constexpr):
+    """The parameters (u terms, then v; each spatial then time) at ``ptr``."""
+    tl.store(ptr, pu0)
+    tl.store(ptr + 1, pu1)
+    tl.store(ptr + 2, pu2)
+    tl.store(ptr + K, pv0)
+    tl.store(ptr + K + 1, pv1)
+    tl.store(ptr + K + 2, pv2)
+    if HAS_TIME:
+        tl.store(ptr + 3, put)
+        tl.store(ptr + K + 3, pvt)
+
+
+@triton.jit
 def _ic_solve_kernel(flat_ptr, p_ptr, px_ptr, py_ptr, dx_ptr, dy_ptr, basis_ptr, dt_ptr,
                      foff_ptr, ft_ptr, fnorm_ptr, gx_ptr, gy_ptr, w_ptr, ref_ptr, mo_ptr,
                      hinv_ptr, scale_ptr, prev_ptr, consts_ptr, zn_ptr, st_ptr, used_ptr,
@@ -111,13 +274,6 @@ def _ic_solve_kernel(flat_ptr, p_ptr, px_ptr, py_ptr, dx_ptr, dy_ptr, basis_ptr,
     tol = tl.load(consts_ptr)
     div_norm = tl.load(consts_ptr + 1)
     rate_floor = tl.load(consts_ptr + 2)
-    inv_wsum = tl.load(consts_ptr + 3)
-    x_lo = tl.load(consts_ptr + 4)
-    x_hi = tl.load(consts_ptr + 5)
-    y_lo = tl.load(consts_ptr + 6)
-    y_hi = tl.load(consts_ptr + 7)
-    sixth = tl.load(consts_ptr + 8)
-    two3 = tl.load(consts_ptr + 9)
     fn = tl.load(fnorm_ptr + i).to(tl.float64)
     px = tl.load(px_ptr + i).to(tl.float64)
     py = tl.load(py_ptr + i).to(tl.float64)
@@ -129,12 +285,8 @@ def _ic_solve_kernel(flat_ptr, p_ptr, px_ptr, py_ptr, dx_ptr, dy_ptr, basis_ptr,
     sc = tl.load(scale_ptr + i * NP + pidx, mask=pidx < NP, other=0.0)
     pj = p_ptr + i * NP
     # the parameters: u = (u, ux, uy[, ut]), v likewise
-    pu0 = tl.load(pj)
-    pu1 = tl.load(pj + 1)
-    pu2 = tl.load(pj + 2)
-    pv0 = tl.load(pj + K)
-    pv1 = tl.load(pj + K + 1)
-    pv2 = tl.load(pj + K + 2)
+    pu0, pu1, pu2 = tl.load(pj), tl.load(pj + 1), tl.load(pj + 2)
+    pv0, pv1, pv2 = tl.load(pj + K), tl.load(pj + K + 1), tl.load(pj + K + 2)
     if HAS_TIME:
         put = tl.load(pj + 3)
         pvt = tl.load(pj + K + 3)
@@ -158,132 +310,17 @@ def _ic_solve_kernel(flat_ptr, p_ptr, px_ptr, py_ptr, dx_ptr, dy_ptr, basis_ptr,
         dyv += pv2 * b2
         dxu += dx
         dyv += dy
-        big = 3.0e38
-        xmn = tl.min(tl.where(m, dxu, big), axis=0).to(tl.float64)
-        xmx = tl.max(tl.where(m, dxu, -big), axis=0).to(tl.float64)
-        ymn = tl.min(tl.where(m, dyv, big), axis=0).to(tl.float64)
-        ymx = tl.max(tl.where(m, dyv, -big), axis=0).to(tl.float64)
-        ut = put.to(tl.float64)
-        vt = pvt.to(tl.float64)
-        zero = fn * 0.0
-        bu0, bu1, bu2, but, bv0, bv1, bv2, bvt = zero, zero, zero, zero, zero, zero, zero, zero
-        zsum = zero
-        outside = it < 0  # false
-        for t in range(NT):
-            dti = tl.load(dt_ptr + i * NT + t).to(tl.float64)
-            if HAS_TIME:
-                ox = px + ut * dti
-                oy = py + vt * dti
-            else:
-                ox = px
-                oy = py
-            if HAS_MOTION:  # the known (shared) motion of this row's frame t
-                ox += tl.load(mo_ptr + (i * NT + t) * 2).to(tl.float64)
-                oy += tl.load(mo_ptr + (i * NT + t) * 2 + 1).to(tl.float64)
-            outside = (outside | (ox + xmn < 0) | (ox + xmx > w_img - 1) | (oy + ymn < 0)
-                       | (oy + ymx > h - 1))
-            xs = ox.to(dxu.dtype) + dxu
-            ys = oy.to(dxu.dtype) + dyv
-            xs = tl.minimum(tl.maximum(xs, x_lo), x_hi)
-            ys = tl.minimum(tl.maximum(ys, y_lo), y_hi)
-            x0 = tl.floor(xs)
-            y0 = tl.floor(ys)
-            wx0, wx1, wx2, wx3 = _weights(xs - x0, sixth, two3)
-            wy0, wy1, wy2, wy3 = _weights(ys - y0, sixth, two3)
-            foff = tl.load(foff_ptr + i * NT + t)
-            base = (y0.to(tl.int64) + shift) * wp + (x0.to(tl.int64) + shift) + foff
-            g = tap_row(flat_ptr, base, m, wx0, wx1, wx2, wx3) * wy0
-            g += tap_row(flat_ptr, base + wp, m, wx0, wx1, wx2, wx3) * wy1
-            g += tap_row(flat_ptr, base + 2 * wp, m, wx0, wx1, wx2, wx3) * wy2
-            g += tap_row(flat_ptr, base + 3 * wp, m, wx0, wx1, wx2, wx3) * wy3
-            if ZNSSD:
-                g = g - tl.sum(w * g, axis=0) * inv_wsum
-            g = tl.where(m, g, 0.0)
-            sgg = tl.sum(w * g * g, axis=0)
-            sfg = tl.sum(w * ft * g, axis=0)
-            gn = tl.sqrt(tl.maximum(sgg.to(tl.float64), 1e-30))  # float64: IEEE
-            zt = sfg.to(tl.float64) / (fn * gn)
-            zsum += zt
-            if ZNSSD:
-                a = (fn / gn).to(g.dtype)
-                e = w * (ft - a * g)
-            else:
-                e = w * (ft - g)
-            ex = gx * e
-            ey = gy * e
-            x0s = tl.sum(ex * b0, axis=0).to(tl.float64)
-            x1s = tl.sum(ex * b1, axis=0).to(tl.float64)
-            x2s = tl.sum(ex * b2, axis=0).to(tl.float64)
-            y0s = tl.sum(ey * b0, axis=0).to(tl.float64)
-            y1s = tl.sum(ey * b1, axis=0).to(tl.float64)
-            y2s = tl.sum(ey * b2, axis=0).to(tl.float64)
-            bu0 += x0s
-            bu1 += x1s
-            bu2 += x2s
-            bv0 += y0s
-            bv1 += y1s
-            bv2 += y2s
-            if FRAME_RHS:  # frame t's own spatial right-hand side and its ZNCC
-                bf = bf_ptr + (i * NT + t) * 7
-                tl.store(bf, x0s)
-                tl.store(bf + 1, x1s)
-                tl.store(bf + 2, x2s)
-                tl.store(bf + 3, y0s)
-                tl.store(bf + 4, y1s)
-                tl.store(bf + 5, y2s)
-                tl.store(bf + 6, zt)
-            if HAS_TIME:
-                but += dti * tl.sum(ex, axis=0).to(tl.float64)
-                bvt += dti * tl.sum(ey, axis=0).to(tl.float64)
+        bu0, bu1, bu2, but, bv0, bv1, bv2, bvt, zsum, outside = _rhs(
+            flat_ptr, dt_ptr, mo_ptr, foff_ptr, bf_ptr, i, NT, px, py, put.to(tl.float64),
+            pvt.to(tl.float64), dxu, dyv, m, w_img, h, tl.load(consts_ptr + 4),
+            tl.load(consts_ptr + 5), tl.load(consts_ptr + 6), tl.load(consts_ptr + 7), shift,
+            wp, tl.load(consts_ptr + 8), tl.load(consts_ptr + 9), w, ft, gx, gy, b0, b1, b2,
+            fn, tl.load(consts_ptr + 3), ZNSSD, HAS_TIME, HAS_MOTION, FRAME_RHS)
         zn = (zsum / NT).to(zn.dtype)
-        # b in the parameters' order, dp = -(Hinv b) in float64, then the data's dtype
-        if HAS_TIME:
-            bvec = tl.where(pidx == 0, bu0, tl.where(pidx == 1, bu1, tl.where(
-                pidx == 2, bu2, tl.where(pidx == 3, but, tl.where(pidx == 4, bv0, tl.where(
-                    pidx == 5, bv1, tl.where(pidx == 6, bv2, bvt)))))))
-        else:
-            bvec = tl.where(pidx == 0, bu0, tl.where(pidx == 1, bu1, tl.where(
-                pidx == 2, bu2, tl.where(pidx == 3, bv0, tl.where(pidx == 4, bv1, tl.where(
-                    pidx == 5, bv2, zero))))))
-        dpv = (-tl.sum(hinv * bvec[None, :], axis=1)).to(pu0.dtype)
-        du0 = _pick(dpv, pidx, 0)
-        du1 = _pick(dpv, pidx, 1)
-        du2 = _pick(dpv, pidx, 2)
-        dv0 = _pick(dpv, pidx, K)
-        dv1 = _pick(dpv, pidx, K + 1)
-        dv2 = _pick(dpv, pidx, K + 2)
-        # p o dp^-1: M = (I + D)(I + dD)^-1, b' = b - M db, bt' = bt - M dbt (affine_compose)
-        a00 = 1.0 + du1
-        a01 = du2
-        a10 = dv1
-        a11 = 1.0 + dv2
-        det = a00 * a11 - a01 * a10
-        i00 = _div(a11, det)
-        i01 = _div(-a01, det)
-        i10 = _div(-a10, det)
-        i11 = _div(a00, det)
-        e00 = 1.0 + pu1
-        e01 = pu2
-        e10 = pv1
-        e11 = 1.0 + pv2
-        m00 = e00 * i00 + e01 * i10
-        m01 = e00 * i01 + e01 * i11
-        m10 = e10 * i00 + e11 * i10
-        m11 = e10 * i01 + e11 * i11
-        nu0 = pu0 - (m00 * du0 + m01 * dv0)
-        nv0 = pv0 - (m10 * du0 + m11 * dv0)
-        nu1 = m00 - 1.0
-        nu2 = m01
-        nv1 = m10
-        nv2 = m11 - 1.0
-        if HAS_TIME:
-            dut = _pick(dpv, pidx, 3)
-            dvt = _pick(dpv, pidx, 2 * K - 1)
-            nut = put - (m00 * dut + m01 * dvt)
-            nvt = pvt - (m10 * dut + m11 * dvt)
-        else:
-            nut = put
-            nvt = pvt
+        # dp = -(Hinv b) in float64, then the data's dtype; p o dp^-1
+        dpv = _step(hinv, pidx, bu0, bu1, bu2, but, bv0, bv1, bv2, bvt, HAS_TIME).to(pu0.dtype)
+        nu0, nu1, nu2, nut, nv0, nv1, nv2, nvt = _compose(pu0, pu1, pu2, put, pv0, pv1, pv2,
+                                                          pvt, dpv, pidx, K, HAS_TIME)
         it += 1
         d = dpv * sc
         norm = _sqrt(tl.sum(d * d, axis=0))
@@ -296,42 +333,26 @@ def _ic_solve_kernel(flat_ptr, p_ptr, px_ptr, py_ptr, dx_ptr, dy_ptr, basis_ptr,
         prev = norm
         ou0, ou1, ou2, out_ = pu0, pu1, pu2, put
         ov0, ov1, ov2, ovt = pv0, pv1, pv2, pvt
-        pu0 = tl.where(finite, nu0, pu0)
-        pu1 = tl.where(finite, nu1, pu1)
-        pu2 = tl.where(finite, nu2, pu2)
-        put = tl.where(finite, nut, put)
-        pv0 = tl.where(finite, nv0, pv0)
-        pv1 = tl.where(finite, nv1, pv1)
-        pv2 = tl.where(finite, nv2, pv2)
-        pvt = tl.where(finite, nvt, pvt)
+        pu0, pu1, pu2 = tl.where(finite, nu0, pu0), tl.where(finite, nu1, pu1), tl.where(
+            finite, nu2, pu2)
+        pv0, pv1, pv2 = tl.where(finite, nv0, pv0), tl.where(finite, nv1, pv1), tl.where(
+            finite, nv2, pv2)
+        put, pvt = tl.where(finite, nut, put), tl.where(finite, nvt, pvt)
         ended = conv | bad | outside
         st = tl.where(ended, tl.where(bad, C_DIV, tl.where(outside, C_OUT, C_CONV)), st)
         going = (~ended) & (it < max_iter)
-    tl.store(pj, pu0)
-    tl.store(pj + 1, pu1)
-    tl.store(pj + 2, pu2)
-    tl.store(pj + K, pv0)
-    tl.store(pj + K + 1, pv1)
-    tl.store(pj + K + 2, pv2)
-    if HAS_TIME:
-        tl.store(pj + 3, put)
-        tl.store(pj + K + 3, pvt)
+    _store_params(pj, pu0, pu1, pu2, put, pv0, pv1, pv2, pvt, K, HAS_TIME)
     tl.store(zn_ptr + i, zn)
     tl.store(st_ptr + i, st.to(tl.int8))
     tl.store(used_ptr + i, it)
     if FRAME_RHS:  # the last step's parameters; NaN (and NaN right-hand sides) at max_iter
         ran_out = st == C_MAXIT
         nan = pu0 * float("nan")
-        pl = plast_ptr + i * NP
-        tl.store(pl, tl.where(ran_out, nan, ou0))
-        tl.store(pl + 1, tl.where(ran_out, nan, ou1))
-        tl.store(pl + 2, tl.where(ran_out, nan, ou2))
-        tl.store(pl + K, tl.where(ran_out, nan, ov0))
-        tl.store(pl + K + 1, tl.where(ran_out, nan, ov1))
-        tl.store(pl + K + 2, tl.where(ran_out, nan, ov2))
-        if HAS_TIME:
-            tl.store(pl + 3, tl.where(ran_out, nan, out_))
-            tl.store(pl + K + 3, tl.where(ran_out, nan, ovt))
+        _store_params(plast_ptr + i * NP, tl.where(ran_out, nan, ou0),
+                      tl.where(ran_out, nan, ou1), tl.where(ran_out, nan, ou2),
+                      tl.where(ran_out, nan, out_), tl.where(ran_out, nan, ov0),
+                      tl.where(ran_out, nan, ov1), tl.where(ran_out, nan, ov2),
+                      tl.where(ran_out, nan, ovt), K, HAS_TIME)
         fidx = tl.arange(0, 8)
         for t in range(NT):
             tl.store(bf_ptr + (i * NT + t) * 7 + fidx, tl.full([8], float("nan"), tl.float64),
