@@ -110,3 +110,21 @@ def test_opencorr_bench_says_how_to_build_when_the_harness_is_missing(tmp_path):
     msg = (proc.stdout + proc.stderr).strip().splitlines()
     assert proc.returncode == 1 and len(msg) == 1, proc.stdout + proc.stderr
     assert "scripts/opencorr/build.sh" in msg[0] and not out.exists()
+
+
+def test_cuda_targets_compare_the_triton_solver_with_the_batched_loop():
+    """On CUDA the targets preset also times the batched Gauss-Newton loop (per_point=0, the
+    path before the whole-stage Triton solver) at 38,809 and 250,000 POIs, classical and
+    STS(5), as comparison cases (left out of the targets' verdicts); the child sets the
+    switch."""
+    bench = _load()
+    args = bench.parse_args(["--targets", "--device", "cuda", "--threads", "1"])
+    cases = bench.preset_cases(args, "cuda")
+    loop = [c for c in cases if c.get("per_point") == "0"]
+    got = {(c["m"], c["n"] ** 2 if c.get("step") else c["n"]) for c in loop}
+    assert got == {(0, 38_809), (2, 38_809), (0, 250_000), (2, 250_000)}
+    assert all(c["compare"] and "per_point=0" in bench.case_name(c) for c in loop)
+    same = {(c["m"], c["n"], c.get("step")) for c in cases
+            if c["kind"] == "solve" and not c.get("compare")}
+    assert {(c["m"], c["n"], c.get("step")) for c in loop} <= same  # the solver's own rows
+    assert not any(c.get("per_point") for c in bench.preset_cases(args, "cpu"))

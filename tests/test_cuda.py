@@ -103,7 +103,8 @@ def test_solve_window_on_cuda_equals_cpu_and_truth(window, m):
 
 
 def test_triton_and_torch_step_agree_on_cuda(window, monkeypatch):
-    """The fused Triton step (default on CUDA) against the plain torch step."""
+    """The fused Triton path (default on CUDA: the whole-stage solver, kernels/triton_solve.py)
+    against the plain torch step."""
     if not kernels.available():
         pytest.skip("triton is not importable")
     ref, frames, pts, _ = window

@@ -257,7 +257,10 @@ def test_op_is_a_torch_operator():
 
 @pytest.mark.skipif(not INTERPRET, reason="CPU check through Triton's interpreter")
 def test_solver_with_fused_step_matches_torch_code(monkeypatch):
-    """A whole STS(3) solve with the Triton step (interpreted) equals the torch code's."""
+    """A whole STS(3) solve with the Triton step (interpreted) equals the torch code's (the
+    batched loop, one step of all points at a time: TORCH_STSDIC_PER_POINT=0; the whole-stage
+    solver is tests/test_triton_solve.py's)."""
+    monkeypatch.setenv("TORCH_STSDIC_PER_POINT", "0")
     mv = synth.synthetic_movie((48, 48), 3, synth.Translation(ut=0.2, vt=-0.1), seed=2)
     mod = fused_step.triton_module()
     launches = []
@@ -285,7 +288,9 @@ def test_solver_with_fused_step_matches_torch_code(monkeypatch):
 @pytest.mark.parametrize("m", [1, 0])
 def test_solver_with_shared_motion_through_the_fused_step(monkeypatch, m):
     """A whole solve with the shared motion (STS(m) and classical) through the Triton step
-    (interpreted) equals the torch code's; the dispatcher picks Triton with the motion."""
+    (interpreted) equals the torch code's; the dispatcher picks Triton with the motion (the
+    batched loop's step: TORCH_STSDIC_PER_POINT=0)."""
+    monkeypatch.setenv("TORCH_STSDIC_PER_POINT", "0")
     mv = synth.synthetic_movie((48, 48), 2 * m + 1, synth.Translation(ut=0.2, vt=-0.1), seed=2)
     mod = fused_step.triton_module()
     launches = []

@@ -679,6 +679,8 @@ def child_main(spec_json: str) -> None:
         os.environ["TORCH_STSDIC_NATIVE"] = spec["native"]
     if spec.get("read_ahead") is not None:
         os.environ["TORCH_STSDIC_READ_AHEAD"] = str(spec["read_ahead"])
+    if spec.get("per_point"):  # "0": the batched Gauss-Newton loop, not the per-point solver
+        os.environ["TORCH_STSDIC_PER_POINT"] = spec["per_point"]
     importlib.import_module("torch_stsdic")  # first: its OpenMP defaults precede torch's load
     import torch
 
@@ -709,7 +711,8 @@ def _case_name(spec: dict[str, Any]) -> str:
                 + (f" step{spec['step']}" if spec.get("step") else "")
                 + (f" compile={spec['compile']}" if spec.get("compile") else "")
                 + (f" init={spec['initial_guess']}" if spec.get("initial_guess") else "")
-                + (f" native={spec['native']}" if spec.get("native") else ""))
+                + (f" native={spec['native']}" if spec.get("native") else "")
+                + (f" per_point={spec['per_point']}" if spec.get("per_point") else ""))
     comp = (f" compile={spec['compile']}" if spec.get("compile") else "") + (
         f" native={spec['native']}" if spec.get("native") else "")
     if k == "track":
@@ -821,6 +824,13 @@ def _preset_cases(args, device: str, th: int) -> list[dict[str, Any]]:
                 for n in (100_000, 250_000):
                     cases.append(_solve(m, 21, n, "float32", dev, th, r,
                                         memory_mb=args.memory_mb, compile=args.compile))
+            # for comparison: the batched Gauss-Newton loop (a Triton right-hand side and torch
+            # ops per iteration) instead of the whole-stage Triton solver (kernels.triton_solve)
+            for m in (0, 2):
+                cases.append(_solve(m, 21, 197, "float32", dev, th, rb, step=5, per_point="0",
+                                    memory_mb=args.memory_mb, compare=True))
+                cases.append(_solve(m, 21, 250_000, "float32", dev, th, r, per_point="0",
+                                    memory_mb=args.memory_mb, compare=True))
         return cases
     if args.preset == "full":
         r = r or 3

@@ -3,7 +3,7 @@
 # tifffile; kornia travels as wheels in .whl/, the benchmark inputs in .benchcache/).
 #
 #   bash scripts/benchmarks/gpu_check.sh [steps]   # steps: any of tests,kernels,targets,cli,
-#                                                  # cli2,movie,profile,movie32,warm
+#                                                  # cli2,movie,profile,movie32,warm,solver
 #
 # Writes its logs and JSON records under $OUT (default ./gpu-out). Each step has its own
 # time limit, so one that hangs cannot take the others with it.
@@ -28,7 +28,7 @@ t0=$SECONDS
 step() { [[ ",$STEPS," == *",$1,"* ]]; }
 if step tests; then
   timeout 150 python3 -m pytest -q -p no:cacheprovider --maxfail=8 \
-    ${TESTS:-tests/test_cuda.py tests/test_triton.py tests/test_frames.py} 2>&1 | tee -a "$OUT/log.txt" | tail -40
+    ${TESTS:-tests/test_cuda.py tests/test_triton.py tests/test_triton_solve.py tests/test_frames.py} 2>&1 | tee -a "$OUT/log.txt" | tail -40
   echo "## tests: $((SECONDS - t0)) s"
 fi
 if step kernels; then
@@ -38,7 +38,7 @@ if step kernels; then
 fi
 if step targets; then
   timeout 130 python3 scripts/benchmarks/benchmark.py --targets --device cuda --repeats 3 --no-isolate \
-    --no-update-doc --only '^(?!.*(native=0|init=fft))' --out "$OUT/targets-cuda.json" \
+    --no-update-doc --only '^(?!.*(native=0|init=fft|per_point=0))' --out "$OUT/targets-cuda.json" \
     2>&1 | tee -a "$OUT/log.txt" | tail -25
   echo "## targets: $((SECONDS - t0)) s"
 fi
@@ -94,4 +94,15 @@ for dev in ("cuda", "cuda", "cuda"):
     print(f"## stsdic run --device {dev} in one process: {time.perf_counter() - t:.3f} s (rc {rc})")
 PY
   echo "## warm: $((SECONDS - t0)) s"
+fi
+if step solver; then  # the whole-stage Triton solver (kernels/triton_solve.py) against the
+  # batched loop (per_point=0: a Triton right-hand side and torch ops per iteration), classical
+  # and STS(5) at 38,809 and 250,000 POIs (~2 min); then its tests on the GPU
+  timeout 240 python3 scripts/benchmarks/benchmark.py --targets --device cuda --repeats 3 --no-isolate \
+    --no-update-doc --only '^solve .*N~(38809|250000) float32 cuda( step5)?( per_point=0)? [0-9]+t$' \
+    --out "$OUT/solver-cuda.json" 2>&1 | tee -a "$OUT/log.txt" | tail -14
+  echo "## solver: $((SECONDS - t0)) s"
+  timeout 120 python3 -m pytest -q -p no:cacheprovider tests/test_triton_solve.py 2>&1 \
+    | tee -a "$OUT/log.txt" | tail -8
+  echo "## solver tests: $((SECONDS - t0)) s"
 fi

@@ -12,7 +12,7 @@ OUT=${OUT:-$PWD/gpu-out}
 mkdir -p "$OUT"
 export OUT PYTHONUNBUFFERED=1 OMP_WAIT_POLICY=PASSIVE STSDIC_GAP_LOG=$OUT/gaps.txt
 t0=$SECONDS
-TESTS="tests/test_cuda.py tests/test_triton.py" bash scripts/benchmarks/gpu_check.sh tests,movie \
+TESTS="tests/test_cuda.py tests/test_triton.py tests/test_triton_solve.py" bash scripts/benchmarks/gpu_check.sh tests,movie \
   2>&1 | tail -40
 export PYTHONPATH=/tmp/site:$PWD STSDIC_BENCH_CACHE=${STSDIC_BENCH_CACHE:-$PWD/.benchcache}
 for bf in default 64; do
@@ -22,7 +22,7 @@ for bf in default 64; do
   echo "## timeline $bf: $((SECONDS - t0)) s"
 done
 timeout 120 python3 scripts/benchmarks/benchmark.py --targets --device cuda --repeats 3 \
-  --no-isolate --no-update-doc --only '^(?!.*(native=0|init=fft))' \
+  --no-isolate --no-update-doc --only '^(?!.*(native=0|init=fft|per_point=0))' \
   --out "$OUT/targets-cuda.json" 2>&1 | tail -12
 echo "## targets: $((SECONDS - t0)) s"
 if [[ -d ${HG:-} ]]; then

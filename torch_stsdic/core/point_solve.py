@@ -1,14 +1,18 @@
-"""A Gauss-Newton stage point by point: every point iterated to its end in one C++ call.
+"""A Gauss-Newton stage point by point: every point iterated to its end in one kernel call.
 
 :func:`torch_stsdic.core.gauss_newton.solve_batch` runs each stage either as a batched loop
 (one step of all live points at a time, then the update, the convergence test and the
 compaction in torch: a parallel region and its barrier per iteration) or, where
 :func:`torch_stsdic.kernels.dispatch.ic_solve` allows (the joint IC formulation with an
-affine shape, CPU, native kernels, no autograd), through :func:`solve_stage`: threads take
-chunks of points and iterate each one to convergence with no barrier between iterations
-(``sts_ic_solve``), so one descheduled thread no longer stalls the others every iteration.
+affine shape, no autograd), through :func:`solve_stage`: on the CPU threads take chunks of
+points and iterate each one to convergence with no barrier between iterations (C++
+``sts_ic_solve``), so one descheduled thread no longer stalls the others every iteration; on
+CUDA one Triton launch runs the whole stage, a program per point
+(:mod:`torch_stsdic.kernels.triton_solve`), instead of a launch, a dozen torch ops and a host
+check per iteration.
 The same steps, update, convergence rule, statuses and iteration counts as the batched loop;
-the results equal it to float rounding (``tests/test_native_solve.py``).
+the results equal it to float rounding (``tests/test_native_solve.py``,
+``tests/test_triton_solve.py``).
 """
 
 from __future__ import annotations
@@ -19,7 +23,7 @@ from torch import Tensor
 from torch_stsdic.core.formulations import JointIC, SubsetData
 from torch_stsdic.core.shape import AffineShape
 from torch_stsdic.core.status import Status
-from torch_stsdic.kernels import dispatch, native
+from torch_stsdic.kernels import dispatch, fused_step, native
 
 __all__ = ["applies", "solve_stage"]
 
@@ -30,10 +34,17 @@ CODES = (int(Status.CONVERGED), int(Status.MAX_ITER), int(Status.DIVERGED),
 
 def applies(ctx, form, params: Tensor, data: SubsetData) -> bool:
     """Whether :func:`solve_stage` runs this stage (else the batched loop)."""
+    return _backend(ctx, form, params, data) != "torch"
+
+
+def _backend(ctx, form, params: Tensor, data: SubsetData) -> str:
+    """Which solver runs the stage point by point: "native" (C++, CPU), "triton" (CUDA) or
+    "torch" (none: the batched loop)."""
     geo = ctx.geo
-    return (type(form) is JointIC and isinstance(geo.shape, AffineShape)
-            and dispatch.ic_solve(ctx.frames.kernel_args(), params, data.ft, geo.ks,
-                                  geo.shape.inverse_compositional) == "native")
+    if not (type(form) is JointIC and isinstance(geo.shape, AffineShape)):
+        return "torch"
+    return dispatch.ic_solve(ctx.frames.kernel_args(), params, data.ft, geo.ks,
+                             geo.shape.inverse_compositional, ctx.frames.order)
 
 
 def start_stage(form, geo, params: Tensor, data: SubsetData, live: Tensor):
@@ -70,7 +81,8 @@ def solve_stage(ctx, form, params: Tensor, data: SubsetData, live: Tensor, frame
     ``RATE_FLOOR``) and returns: params, zncc (N,), status (N,), iterations (N,) and, with
     ``frame_rhs``, (the parameters of each converged point's last step, that step's
     frame-by-frame spatial right-hand sides and ZNCCs (N, T, 2 Ks + 1); NaN rows: none)."""
-    if not applies(ctx, form, params, data):
+    backend = _backend(ctx, form, params, data)
+    if backend == "torch":
         return None
     cfg, geo, frames = ctx.cfg, ctx.geo, ctx.frames
     n = params.shape[0]
@@ -82,7 +94,8 @@ def solve_stage(ctx, form, params: Tensor, data: SubsetData, live: Tensor, frame
     prev = (torch.zeros(rows.numel(), dtype=dtype, device=device) if step0 is None
             else step0[rows].to(dtype).nan_to_num(0.0))
     ka = frames.kernel_args()
-    p, zn, st, it, last_rows = native.ic_solve(
+    solve = native.ic_solve if backend == "native" else fused_step.ic_solve
+    p, zn, st, it, last_rows = solve(
         ka, frames.order, params[rows], data.px, data.py, geo.dx, geo.dy, geo.spatial,
         data.dt, data.fidx * ka[-1], data.ft, data.fnorm, data.gx, data.gy, geo.w,
         frames.width, frames.height, geo.k, geo.shape.has_time, geo.znssd, data.hinv, scale,

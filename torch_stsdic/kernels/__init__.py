@@ -3,7 +3,8 @@ backend that runs it.
 
 - :mod:`.native`: the fused C++ CPU kernels (source ``native/dic_kernels.cpp``, built on
   first use), with their loader and :func:`~.native.usable` rule.
-- :mod:`.triton_ic`: the fused Triton step on CUDA.
+- :mod:`.triton_ic`: the fused Triton step on CUDA; :mod:`.triton_solve`: a whole
+  Gauss-Newton stage in one Triton launch (every point iterated to its end).
 - :mod:`.bspline`, :mod:`.ic_step`: the torch code of the same operations (any device,
   autograd), :mod:`.compile` its torch.compile policy.
 - :mod:`.fused_step`: the joint IC right-hand side op (Triton, else torch; the C++ kernel is

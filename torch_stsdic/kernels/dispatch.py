@@ -83,16 +83,25 @@ def describe(device: str) -> str:
     if device == "cpu":
         return "fused C++ kernels" if native.available() else "torch kernels"
     if fused_step.available() and fused_step.triton_mode() != "0":
-        return "fused Triton kernel"
+        # affine stages: the whole-stage solver, unless TORCH_STSDIC_PER_POINT=0
+        return "fused Triton solver" if native.per_point_enabled() else "fused Triton kernel"
     return "torch kernels"
 
 
-def ic_solve(kernel_args: tuple, p: Tensor, ft: Tensor, ks: int, affine: bool) -> str:
-    """A whole joint IC-GN stage (every point iterated to its end): the C++ per-point solver
-    on the CPU (threads take chunks of points and run each to convergence, no barrier per
-    iteration) for affine shapes (``ks`` = 3 spatial terms) outside autograd, with the image's
-    dtype; else ``"torch"``: the batched loop, one step of all points at a time (GPU,
-    autograd, other shapes). ``TORCH_STSDIC_PER_POINT=0`` keeps the batched loop."""
-    ok = (affine and ks == 3 and native.per_point_enabled() and p.dtype == kernel_args[0].dtype
-          and native.usable_image(kernel_args, p, ft))
-    return NATIVE if ok else TORCH
+def ic_solve(kernel_args: tuple, p: Tensor, ft: Tensor, ks: int, affine: bool, order: int = 3
+             ) -> str:
+    """A whole joint IC-GN stage (every point iterated to its end) for affine shapes (``ks`` =
+    3 spatial terms) outside autograd, with the image's dtype: the C++ per-point solver on the
+    CPU (threads take chunks of points and run each to convergence, no barrier per iteration),
+    the Triton solver on CUDA (one launch per stage, a program per point iterating to its end:
+    :mod:`torch_stsdic.kernels.triton_solve`; cubic splines, :func:`fused_step.usable`); else
+    ``"torch"``: the batched loop, one step of all points at a time (autograd, other shapes).
+    ``TORCH_STSDIC_PER_POINT=0`` keeps the batched loop (on CUDA with the fused Triton step)."""
+    if not (affine and ks == 3 and native.per_point_enabled()
+            and p.dtype == kernel_args[0].dtype):
+        return TORCH
+    if native.usable_image(kernel_args, p, ft):
+        return NATIVE
+    if fused_step.usable(kernel_args[0], order, ft.shape[1], p, ft):
+        return TRITON
+    return TORCH

@@ -25,7 +25,8 @@ from torch import Tensor
 
 from torch_stsdic.kernels.ic_step import ic_rhs_kernel
 
-__all__ = ["available", "set_triton", "triton_mode", "triton_module", "usable", "ic_rhs"]
+__all__ = ["available", "set_triton", "triton_mode", "triton_module", "usable", "ic_rhs",
+           "ic_solve"]
 
 _MODE = os.environ.get("TORCH_STSDIC_TRITON", "auto").lower()
 
@@ -171,3 +172,34 @@ def ic_rhs(img_args: tuple, order: int, p, px, py, dx, dy, basis, dt, frame_off,
     compiling = getattr(torch.compiler, "is_compiling", lambda: False)()  # torch >= 2.3
     call = torch.ops.torch_stsdic.ic_rhs if compiling else _ic_rhs_impl
     return call(*args, int(order), motion)
+
+
+@functools.lru_cache(maxsize=1)
+def _solve_module():
+    """The Triton solver module (:mod:`torch_stsdic.kernels.triton_solve`), or None."""
+    if triton_module() is None:
+        return None
+    try:
+        from torch_stsdic.kernels import triton_solve
+    except Exception:  # a broken Triton install: the batched loop serves
+        return None
+    return triton_solve
+
+
+def ic_solve(img_args: tuple, order: int, p, px, py, dx, dy, basis, dt, frame_off, ft, fnorm,
+             gx, gy, w, w_img: int, h: int, k: int, has_time: bool, znssd: bool, hinv, scale,
+             prev, tol: float, max_iter: int, div_norm: float, rate_floor: float,
+             codes: tuple[int, int, int, int], motion=None, ref_rows=None,
+             frame_rhs: bool = False):
+    """Every point's joint IC-GN stage to its end in one Triton launch
+    (:func:`torch_stsdic.kernels.triton_solve.ic_solve_triton`): the arguments and results of
+    ``native.ic_solve``. Where :func:`usable` (ValueError otherwise: the caller asks
+    ``dispatch.ic_solve`` first)."""
+    mod = _solve_module()
+    if mod is None or not usable(img_args[0], order, basis.shape[0], p, ft):
+        raise ValueError("kernels.ic_solve: the Triton solver does not serve this call "
+                         "(CUDA tensors, Triton, cubic splines; dispatch.ic_solve decides)")
+    return mod.ic_solve_triton(img_args, p, px, py, dx, dy, basis, dt, frame_off, ft, fnorm, gx,
+                               gy, w, w_img, h, k, has_time, znssd, hinv, scale, prev, tol,
+                               max_iter, div_norm, rate_floor, codes, motion=motion,
+                               ref_rows=ref_rows, frame_rhs=frame_rhs)

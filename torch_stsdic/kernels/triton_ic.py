@@ -27,7 +27,7 @@ import torch
 import triton
 import triton.language as tl
 
-__all__ = ["ic_rhs_triton", "MAX_SUBSET_PIXELS"]
+__all__ = ["ic_rhs_triton", "tap_row", "MAX_SUBSET_PIXELS"]
 
 #: largest subset (pixels) one program holds in registers (41x41 = 1681 fits in 2048 lanes)
 MAX_SUBSET_PIXELS = 4096
@@ -44,7 +44,9 @@ def _cubic_weights(f):
 
 
 @triton.jit
-def _tap_row(flat_ptr, base, m, w0, w1, w2, w3):
+def tap_row(flat_ptr, base, m, w0, w1, w2, w3):
+    """One row of 4 taps of the coefficients at ``base`` (the block's lanes, mask ``m``)
+    weighted by the x weights ``w0`` .. ``w3`` (shared with :mod:`.triton_solve`)."""
     c0 = tl.load(flat_ptr + base, mask=m, other=0.0)
     c1 = tl.load(flat_ptr + base + 1, mask=m, other=0.0)
     c2 = tl.load(flat_ptr + base + 2, mask=m, other=0.0)
@@ -119,10 +121,10 @@ def _ic_rhs_kernel(flat_ptr, p_ptr, px_ptr, py_ptr, dx_ptr, dy_ptr, basis_ptr, d
         wy0, wy1, wy2, wy3 = _cubic_weights(yc - y0)
         foff = tl.load(foff_ptr + i * NT + t)
         base = (y0.to(tl.int64) + shift) * wp + (x0.to(tl.int64) + shift) + foff
-        g = _tap_row(flat_ptr, base, m, wx0, wx1, wx2, wx3) * wy0
-        g += _tap_row(flat_ptr, base + wp, m, wx0, wx1, wx2, wx3) * wy1
-        g += _tap_row(flat_ptr, base + 2 * wp, m, wx0, wx1, wx2, wx3) * wy2
-        g += _tap_row(flat_ptr, base + 3 * wp, m, wx0, wx1, wx2, wx3) * wy3
+        g = tap_row(flat_ptr, base, m, wx0, wx1, wx2, wx3) * wy0
+        g += tap_row(flat_ptr, base + wp, m, wx0, wx1, wx2, wx3) * wy1
+        g += tap_row(flat_ptr, base + 2 * wp, m, wx0, wx1, wx2, wx3) * wy2
+        g += tap_row(flat_ptr, base + 3 * wp, m, wx0, wx1, wx2, wx3) * wy3
         if ZNSSD:
             g = g - tl.sum(g * w, axis=0) / wsum
         gg = tl.maximum(tl.sum(g * g * w, axis=0), 1e-30)
