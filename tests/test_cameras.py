@@ -320,3 +320,27 @@ def test_a_lossy_video_is_read_with_a_warning(tmp_path):
         s = load_series(path)
     assert (len(s), s.shape, s.dtype_name, s.frame_rate) == (3, (32, 32), "uint8", 25.0)
     assert abs(float(s.numpy(2).mean()) - s.numpy(2)[0, 0]) < 1  # a flat luma plane
+
+
+@pytest.mark.parametrize("rate, ext", [(30000.0, "mkv"), (24.0, "mkv"), (1000.0, "avi")])
+def test_video_frames_in_any_order(tmp_path, rate, ext):
+    """Matroska's 1 ms ticks do not tell 30,000 /s frames apart: no seeking by them there."""
+    pytest.importorskip("av")
+    from torch_stsdic.io.video import write_video
+
+    rng = np.random.default_rng(5)
+    frames = rng.integers(0, 256, (60, 12, 20)).astype(np.uint8)
+    s = load_series(write_video(tmp_path / f"v.{ext}", frames, rate))
+    assert (len(s), s.frame_rate) == (60, rate)
+    order = [59, 0, 30, 31, 29, 5, 58, 2, 40, 41, 42, 10, *rng.integers(0, 60, 40).tolist()]
+    for i in order:
+        np.testing.assert_array_equal(s.numpy(i), frames[i].astype(np.float32))
+
+
+def test_an_avi_rate_the_container_cannot_store_is_refused(tmp_path):
+    pytest.importorskip("av")
+    from torch_stsdic.io.video import write_video
+
+    with pytest.raises(ValueError, match="does not store 2500 frames/s.*write a .mkv"):
+        write_video(tmp_path / "v.avi", np.zeros((3, 8, 8), np.uint8), 2500.0)
+    assert not (tmp_path / "v.avi").exists()

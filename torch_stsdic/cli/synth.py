@@ -310,7 +310,7 @@ def execute(args: argparse.Namespace) -> int:
 
         try:
             _write_movie(out, files, data, args.format, args.fps)
-        except InputError as exc:  # PyAV missing
+        except (InputError, ValueError) as exc:  # PyAV missing, a rate AVI cannot store
             raise CommandError(str(exc)) from None
     elif args.layout == "multipage":
         _write_tiff_atomic(out / files[0], data)

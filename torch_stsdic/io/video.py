@@ -103,19 +103,26 @@ class VideoReader:
         self._stream = stream
         self._frames = self._container.decode(stream)
         self._next = 0
+        # time stamps tell frames apart (seeking by them is safe): a tick of one frame or
+        # less (Matroska's 1 ms ticks do not, at 30,000 frames/s)
+        rate = self.head.frame_rate
+        self._stamped = bool(rate) and float(stream.time_base) * rate <= 1.0 + 1e-9
 
     def _index(self, frame: Any) -> int | None:
         """The frame number of a decoded frame from its time stamp (None without one)."""
         pts = frame.pts if frame.pts is not None else frame.dts
-        if pts is None or not self.head.frame_rate:
+        if pts is None:
             return None
         start = self._stream.start_time or 0
         return int(round(float((pts - start) * self._stream.time_base) * self.head.frame_rate))
 
     def _seek(self, j: int) -> None:
-        """Position the decoder before frame ``j`` (the key frame at or before it)."""
-        if j == 0 or not self.head.frame_rate:
-            self._open()
+        """Position the decoder before frame ``j``: the key frame at or before it where the
+        time stamps tell frames apart, else the start of the stream (backwards) or where the
+        decoder is (forwards)."""
+        if not self._stamped:
+            if j < self._next:
+                self._open()
             return
         stream = self._stream
         start = stream.start_time or 0
@@ -129,19 +136,16 @@ class VideoReader:
         if j in self._cache:
             self._cache.move_to_end(j)
             return self._cache[j]
-        if self._container is None or (self._next >= 0 and not 0 <= j - self._next <= 2 * _CACHED):
-            if self._container is None:
-                self._open()
-            if j != self._next:
-                self._seek(j)
+        if self._container is None:
+            self._open()
+        if self._next < 0 or not 0 <= j - self._next <= 2 * _CACHED:  # not a short step on
+            self._seek(j)
         for attempt in range(2):
             for frame in self._frames:
-                k = self._index(frame) if self._next < 0 else self._next
-                if k is None:
-                    k = self._next
+                k = self._next if self._next >= 0 else self._index(frame)
+                if k is None or k > j:  # no stamp, or the seek went past: from the start
+                    break
                 self._next = k + 1
-                if k > j:
-                    break  # the seek went past the frame: decode from the start
                 if k >= j - _CACHED:
                     self._keep(k, _frame_array(frame, self.head))
                 if k == j:
@@ -204,13 +208,23 @@ def write_video(path: Path, frames: np.ndarray, frame_rate: float) -> Path:
                          f"{frames.shape} {frames.dtype}")
     fmt = "gray" if frames.dtype == np.uint8 else "gray16le"
     rate = Fraction(frame_rate).limit_denominator(10**6)
-    with av.open(str(path), "w") as container:
-        stream = container.add_stream("ffv1", rate=rate)
-        stream.width, stream.height = frames.shape[2], frames.shape[1]
-        stream.pix_fmt = fmt
-        for k, img in enumerate(frames):
-            frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(img), format=fmt)
-            frame.pts, frame.time_base = k, 1 / rate
-            container.mux(stream.encode(frame))
-        container.mux(stream.encode(None))
+    refused = ValueError(f"{path}: its container does not store {frame_rate:g} frames/s (the "
+                         "AVI muxer takes rates up to 1000 /s): write a .mkv file instead")
+    try:
+        with av.open(str(path), "w") as container:
+            stream = container.add_stream("ffv1", rate=rate)
+            stream.width, stream.height = frames.shape[2], frames.shape[1]
+            stream.pix_fmt = fmt
+            for k, img in enumerate(frames):
+                frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(img), format=fmt)
+                frame.pts, frame.time_base = k, 1 / rate
+                container.mux(stream.encode(frame))
+            container.mux(stream.encode(None))
+    except av.error.ArgumentError:
+        path.unlink(missing_ok=True)
+        raise refused from None
+    with av.open(str(path)) as container:  # AVI stores some rates as others
+        if container.streams.video[0].average_rate != rate:
+            path.unlink(missing_ok=True)
+            raise refused
     return path
