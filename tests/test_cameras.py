@@ -344,3 +344,14 @@ def test_an_avi_rate_the_container_cannot_store_is_refused(tmp_path):
     with pytest.raises(ValueError, match="does not store 2500 frames/s.*write a .mkv"):
         write_video(tmp_path / "v.avi", np.zeros((3, 8, 8), np.uint8), 2500.0)
     assert not (tmp_path / "v.avi").exists()
+
+
+def test_a_time_unit_other_than_the_movies_is_refused(speckle, tmp_path, capsys):
+    _, frames = speckle
+    _, cih = write_mraw(tmp_path / "m.mraw", frames, 2000.0)
+    code = main(["run", str(cih), *RUN, "--time-unit", "ms", "--out", str(tmp_path / "r.h5"),
+                 *FAST])
+    err = capsys.readouterr().err
+    assert code != 0
+    assert "time_unit: the times are in s, from the frame rate 2000 /s of m.cih; give " \
+        "timestamps for another unit" in err

@@ -203,7 +203,9 @@ def plan_run(
                          "at least 2 frames (or a reference image as an array)")
     ts_np = resolve_times(times, ser)
     if times is None and getattr(ser, "time_source", None):  # a movie's frame rate: seconds
-        units.setdefault("time_unit", ser.time_unit)
+        if units.setdefault("time_unit", ser.time_unit) != ser.time_unit:
+            raise ValueError(f"time_unit: the times are in {ser.time_unit}, from the "
+                             f"{ser.time_source}; give timestamps for another unit")
         units["time_source"] = ser.time_source
     if "time_unit" not in units:
         frames_as_time = np.array_equal(ts_np, np.arange(n_series, dtype=np.float64))
