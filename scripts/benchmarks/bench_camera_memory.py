@@ -49,14 +49,39 @@ def _peak_mb(cmd: list[str]) -> tuple[float, float]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--sizes", type=int, nargs="+", default=[500, 5000])
+    ap.add_argument("--sizes", type=int, nargs="*", default=[500, 5000])
     ap.add_argument("--size", type=int, default=64, help="frame size, px (square)")
     ap.add_argument("--step", type=int, default=20, help="grid step of the run, px")
+    ap.add_argument("--reader-sizes", type=int, nargs="*", default=[],
+                    help="also: the reader alone on movies of these frame counts of "
+                    "--reader-px square random 16-bit frames (no run)")
+    ap.add_argument("--reader-px", type=int, default=512)
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args()
     stsdic = [sys.executable, "-m", "torch_stsdic"]
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
+        for n in args.reader_sizes:
+            import numpy as np
+
+            from torch_stsdic.io.photron import write_mraw
+
+            d = Path(tmp) / f"big{n}"
+            d.mkdir()
+            px = args.reader_px
+            frame = np.random.default_rng(0).integers(0, 4096, (1, px, px), dtype=np.uint16)
+            _, cih = write_mraw(d / "movie.mraw", frame, 1000.0)
+            with open(d / "movie.mraw", "ab") as fh:  # the same frame n times
+                for _ in range(n - 1):
+                    frame.tofile(fh)
+            text = cih.read_text().replace("Total Frame : 1\n", f"Total Frame : {n}\n")
+            cih.write_text(text)
+            mb, sec = _peak_mb([sys.executable, "-c", READ_ALL, str(cih)])
+            row = {"frames": n, "size": px, "mraw_mb": round(n * px * px * 2 / 2**20, 1),
+                   "reader_peak_rss_mb": round(mb, 1), "reader_s": round(sec, 1)}
+            print(json.dumps(row), flush=True)
+            rows.append(row)
+            (d / "movie.mraw").unlink()
         for n in args.sizes:
             d = Path(tmp) / f"m{n}"
             subprocess.run([*stsdic, "synth", "--out", str(d), "--format", "mraw", "--bits",
