@@ -244,17 +244,13 @@ def _probe_tiff_header(path: Path, log: list[str]) -> FileInfo:
 
 
 def probe_file(path: Path) -> FileInfo:
-    """The header of the image file ``path`` (a camera movie by its extension, TIFF by its
-    magic bytes, else PIL); InputError naming the file if it is missing, a directory or
-    unreadable."""
+    """The header of the image file ``path`` (TIFF by its magic bytes, else PIL); InputError
+    naming the file if it is missing, a directory or unreadable. (Camera movies:
+    :func:`torch_stsdic.io.movies.probe_movie`.)"""
     if not path.exists():
         raise InputError(f"image file not found: {path}")
     if path.is_dir():
         raise InputError(f"expected an image file, got a directory: {path}")
-    from torch_stsdic.io.movies import is_movie, probe_movie
-
-    if is_movie(path):
-        return probe_movie(path)
     return _probe_tiff(path) if _is_tiff(path) else _probe_pil(path)
 
 

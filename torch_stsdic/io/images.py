@@ -38,6 +38,7 @@ from torch_stsdic.io.imagefile import (
     read_tiff_page,
     to_grey,
 )
+from torch_stsdic.io.movies import is_movie, probe_movie
 from torch_stsdic.io.specs import InputError, natural_sort_key, parse_frame_spec
 
 __all__ = [
@@ -518,7 +519,7 @@ def load_series(source: Any, *, timestamps: Any = None) -> ImageSeries:
     infos: list[FileInfo] = []
     warned_dtype = False
     for p in paths:
-        info = probe_file(p)
+        info = probe_movie(p) if is_movie(p) else probe_file(p)
         if infos and info.shape != infos[0].shape:
             (h0, w0), (h, w) = infos[0].shape, info.shape
             raise InputError(

@@ -12,6 +12,7 @@ from pathlib import Path
 from torch_stsdic.io.imagefile import FileInfo
 from torch_stsdic.io.phantom import CINE_EXTENSIONS, read_cine_header
 from torch_stsdic.io.photron import PHOTRON_EXTENSIONS, read_photron_header
+from torch_stsdic.io.specs import InputError
 from torch_stsdic.io.video import VIDEO_EXTENSIONS, read_video_header
 
 __all__ = ["MOVIE_EXTENSIONS", "is_movie", "probe_movie"]
@@ -26,7 +27,11 @@ def is_movie(path: Path) -> bool:
 
 def probe_movie(path: Path) -> FileInfo:
     """The header of the movie file ``path`` (format by extension) as a ``FileInfo`` of
-    kind "movie"; InputError naming the file where it cannot be read."""
+    kind "movie"; InputError naming the file where it is missing or cannot be read."""
+    if not path.exists():
+        raise InputError(f"movie file not found: {path}")
+    if path.is_dir():
+        raise InputError(f"expected a movie file, got a directory: {path}")
     ext = path.suffix.lower()
     if ext in PHOTRON_EXTENSIONS:
         head = read_photron_header(path)
