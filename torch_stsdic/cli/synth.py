@@ -29,7 +29,9 @@ Frame 0 is the reference (t = 0, no motion); frames 1..N are at t = 1..N. Gaussi
 noise (sigma in 8-bit grey levels) is added to every frame, then the images are
 quantised to --bits (16 bits: the 8-bit scale times 257; 0: float32, no quantisation).
 
-Files in DIR: movie.tif (multi-page TIFF) or frame_00000.tif ... (--layout files);
+Files in DIR: movie.tif (multi-page TIFF) or frame_00000.tif ... (--layout files), or
+a camera movie (--format mraw: movie.mraw + movie.cih, Photron; --format avi: movie.avi,
+lossless FFV1) whose frame rate --fps makes the run's times k/fps s;
 times.csv (frame, time); truth.csv (frame, time, x, y, u, v, ut, vt, dudx, dudy, dvdx,
 dvdy at a grid of points every --truth-step px); motion.json (the motion and all settings).
 
@@ -50,6 +52,7 @@ examples:
   stsdic synth --out movie --motion strain --exx 0.002 --noise 2 --bits 16
   stsdic synth --out movie --motion jump --x0 150 --du 0.5 --layout files
   stsdic synth --out small --size 81 --frames 8 --noise 0 --seed 3
+  stsdic synth --out cam --format mraw --bits 12 --fps 5000   # a Photron movie (pyMRAW's layout)
 """
 
 #: the motion parameters: option, unit (metavar), type, default, help
@@ -98,6 +101,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="mean speckle spot radius (Gaussian std) in px")  # fmt: skip
     opt(p, "--layout", choices=("multipage", "files"), default="multipage",
         help="one multi-page TIFF (movie.tif) or one TIFF per frame")  # fmt: skip
+    opt(p, "--format", choices=("tiff", "mraw", "avi"), default="tiff",
+        help="tiff (see --layout), mraw (Photron movie.mraw + movie.cih, 8 or 16-bit words) "
+        "or avi (lossless FFV1; needs PyAV, the cameras extra)")  # fmt: skip
+    opt(p, "--fps", type=options.float_pos, default=1000.0, metavar="RATE",
+        help="mraw/avi: the frame rate written in the movie's header, frames/s")  # fmt: skip
     opt(p, "--truth-step", type=options.int_min(1), default=10, metavar="PX",
         help="grid spacing of the ground-truth points in truth.csv")  # fmt: skip
     p.add_argument("--overwrite", action="store_true", help="replace existing files in DIR")
@@ -161,8 +169,25 @@ def _max_border_motion(motion: Any, w: int, h: int, times: np.ndarray) -> float:
 # ----------------------------------------------------------------------------------------
 
 
-def _image_files(layout: str, n: int) -> list[str]:
+def _image_files(layout: str, n: int, fmt: str = "tiff") -> list[str]:
+    if fmt == "mraw":
+        return ["movie.cih", "movie.mraw"]
+    if fmt == "avi":
+        return ["movie.avi"]
     return ["movie.tif"] if layout == "multipage" else [f"frame_{k:05d}.tif" for k in range(n)]
+
+
+def _write_movie(out: Path, files: list[str], data: np.ndarray, fmt: str, fps: float) -> None:
+    """``data`` (T, H, W) as the camera movie ``files`` (``fmt`` "mraw" or "avi")."""
+    from torch_stsdic.io.photron import write_mraw
+    from torch_stsdic.io.video import write_video
+
+    if fmt == "mraw":
+        write_mraw(out / files[1], data, fps)
+    else:
+        tmp = out / "movie.partial.avi"
+        write_video(tmp, data, fps)
+        os.replace(tmp, out / files[0])
 
 
 def _check_targets(out: Path, images: list[str], overwrite: bool) -> None:
@@ -233,6 +258,8 @@ def _metadata(args: argparse.Namespace, motion: Any, params: dict, extra: dict) 
         "speckle_radius": args.radius,
         "pattern_margin": extra["margin"],
         "layout": args.layout,
+        "format": args.format,
+        "fps": args.fps if args.format != "tiff" else None,
         "files": extra["files"],
         "truth": {
             "file": "truth.csv",
@@ -263,7 +290,10 @@ def execute(args: argparse.Namespace) -> int:
     n = args.frames
     out = Path(args.out)
     check_folder(out, f"--out {args.out}")
-    files = _image_files(args.layout, n + 1)
+    if args.format != "tiff" and args.bits == 0:
+        raise UsageError(f"--format {args.format} stores integer grey levels: give --bits 8 to "
+                         "16 (float frames: --format tiff)")
+    files = _image_files(args.layout, n + 1, args.format)
     _check_targets(out, files, args.overwrite)
     times = np.arange(0, n + 1, dtype=np.float64)
     motion, params = _make_motion(args, w, h, n)
@@ -275,7 +305,14 @@ def execute(args: argparse.Namespace) -> int:
     )  # fmt: skip
     data = _to_dtype(torch.cat([movie.ref[None], movie.frames], 0), args.bits)
     out.mkdir(parents=True, exist_ok=True)
-    if args.layout == "multipage":
+    if args.format != "tiff":
+        from torch_stsdic.io import InputError
+
+        try:
+            _write_movie(out, files, data, args.format, args.fps)
+        except (InputError, ValueError) as exc:  # PyAV missing, a rate AVI cannot store
+            raise CommandError(str(exc)) from None
+    elif args.layout == "multipage":
         _write_tiff_atomic(out / files[0], data)
     else:
         for k, name in enumerate(files):

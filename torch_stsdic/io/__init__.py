@@ -1,8 +1,10 @@
 """Files in and out: image series (:mod:`.images`; one image file's header and pixels in
 :mod:`.imagefile`), frame specifications (:mod:`.specs`),
 users' small tables (:mod:`.tables`),
-HDF5 result files (:mod:`.results`). Exports for other tools (CSV, MATLAB, VTK, with
-strains) sit a layer up, in :mod:`torch_stsdic.analysis.export`."""
+HDF5 result files (:mod:`.results`). Camera movies (Photron MRAW,
+Phantom CINE, video files) are image series too (:mod:`.movies`). Exports for other
+tools (CSV, MATLAB, VTK, with strains) sit a layer up, in
+:mod:`torch_stsdic.analysis.export`."""
 
 from torch_stsdic.io.images import IMAGE_EXTENSIONS, ImageSeries, load_series
 from torch_stsdic.io.results import (

@@ -13,6 +13,7 @@ import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import tifffile
@@ -35,7 +36,7 @@ class FileInfo:
     """Header information of one image file (nothing decoded)."""
 
     path: Path
-    kind: str  # "tiff" | "pil"
+    kind: str  # "tiff" | "pil" | "movie"
     n_frames: int
     shape: tuple[int, int]
     dtype: np.dtype
@@ -45,6 +46,8 @@ class FileInfo:
     planar: bool = False  # TIFF planar-separate samples (S, H, W)
     pil_mode: str = ""
     planes: bool = False  # one planar RGB(A) page whose sample planes are the frames
+    frame_rate: float | None = None  # frames per second, from a movie file's header
+    movie: Any = None  # a movie file's header (torch_stsdic.io.movies): open() -> reader
 
 
 def _is_tiff(path: Path) -> bool:
@@ -242,7 +245,8 @@ def _probe_tiff_header(path: Path, log: list[str]) -> FileInfo:
 
 def probe_file(path: Path) -> FileInfo:
     """The header of the image file ``path`` (TIFF by its magic bytes, else PIL); InputError
-    naming the file if it is missing, a directory or unreadable."""
+    naming the file if it is missing, a directory or unreadable. (Camera movies:
+    :func:`torch_stsdic.io.movies.probe_movie`.)"""
     if not path.exists():
         raise InputError(f"image file not found: {path}")
     if path.is_dir():

@@ -1,11 +1,15 @@
-"""Image-series input: lazy, memory-bounded frames from TIFF stacks, folders, globs or arrays.
+"""Image-series input: lazy, memory-bounded frames from TIFF stacks, folders, globs, camera
+movies or arrays.
 
 :func:`load_series` turns a multi-page TIFF, a directory, a glob pattern, a list of image
-files or a ``(T, H, W)`` array/tensor into an :class:`ImageSeries`. Only image *headers* are
-read up front (sizes, dtypes, page counts); pixels are decoded one frame at a time when asked
-for, so memory is bounded by what is requested, not by the movie length. Frames come back as
-``(H, W)`` float tensors in their native grey-level scale (8-bit: 0..255, 16-bit: 0..65535);
-colour images are converted to grey. One file's header and pixels: :mod:`.imagefile`.
+files, a camera movie (Photron ``.cih``/``.cihx``/``.mraw``, Phantom ``.cine``, a video
+file; :mod:`.movies`) or a ``(T, H, W)`` array/tensor into an :class:`ImageSeries`. Only
+image *headers* are read up front (sizes, dtypes, page counts); pixels are decoded one frame
+at a time when asked for, so memory is bounded by what is requested, not by the movie
+length. Frames come back as ``(H, W)`` float tensors in their native grey-level scale (8-bit:
+0..255, 16-bit: 0..65535); colour images are converted to grey. One file's header and
+pixels: :mod:`.imagefile`. A movie's frame rate becomes the series' times in seconds
+(``k / fps``) unless timestamps are given.
 """
 
 from __future__ import annotations
@@ -34,6 +38,7 @@ from torch_stsdic.io.imagefile import (
     read_tiff_page,
     to_grey,
 )
+from torch_stsdic.io.movies import is_movie, probe_movie
 from torch_stsdic.io.specs import InputError, natural_sort_key, parse_frame_spec
 
 __all__ = [
@@ -80,8 +85,8 @@ class ImageSeries:
 
     Build it with :func:`load_series`. ``series[i]`` decodes frame ``i`` only and returns an
     ``(H, W)`` float32 tensor in the native grey scale. ``times`` is ``(T,)`` float64 (the
-    timestamps given, else ``0..T-1``). Safe to share between threads and picklable (open
-    file handles are not pickled).
+    timestamps given, else ``k / fps`` s from a movie file's frame rate, else ``0..T-1``).
+    Safe to share between threads and picklable (open file handles are not pickled).
     """
 
     def __init__(
@@ -118,6 +123,10 @@ class ImageSeries:
             self._bits = first.bits
             self._float = first.dtype.kind == "f"
             self._offsets = np.cumsum([0] + [f.n_frames for f in self._files])
+        self._frame_rate = _common_rate(self._files)
+        self._times_from_rate = timestamps is None and self._frame_rate is not None
+        if self._times_from_rate:
+            timestamps = np.arange(self._n, dtype=np.float64) / self._frame_rate
         self._times = _check_times(timestamps, self._n)
         self._lock = threading.RLock()
         self._handles: OrderedDict[Path, tifffile.TiffFile] = OrderedDict()
@@ -158,6 +167,26 @@ class ImageSeries:
         return self._times.copy()
 
     @property
+    def frame_rate(self) -> float | None:
+        """Frames per second from the movie file(s) header (None for images and arrays, or
+        movies of different rates)."""
+        return self._frame_rate
+
+    @property
+    def time_unit(self) -> str | None:
+        """"s" where :attr:`times` come from the movie's frame rate, else None (frame indices,
+        or timestamps given in the user's unit)."""
+        return "s" if self._times_from_rate else None
+
+    @property
+    def time_source(self) -> str | None:
+        """Where the times come from when a movie's frame rate gives them, for summaries and
+        result files (e.g. "frame rate 30000 /s of ball.cihx"), else None."""
+        if not self._times_from_rate:
+            return None
+        return f"frame rate {self._frame_rate:g} /s of {self._files[0].path.name}"
+
+    @property
     def sources(self) -> list[str]:
         """Input names for result-file attributes: one per file, or an array description."""
         if self._array is not None:
@@ -176,7 +205,8 @@ class ImageSeries:
         k = int(np.searchsorted(self._offsets, i, side="right") - 1)
         f = self._files[k]
         if f.n_frames > 1:
-            return f"{f.path} (page {i - int(self._offsets[k])})"
+            what = "frame" if f.kind == "movie" else "page"
+            return f"{f.path} ({what} {i - int(self._offsets[k])})"
         return str(f.path)
 
     def describe(self) -> str:
@@ -191,6 +221,8 @@ class ImageSeries:
         col = ", colour->grey" if self._colour else ""
         t = self._times
         tr = f", t={t[0]:g}..{t[-1]:g}" if len(t) else ""
+        if len(t) and self._times_from_rate:
+            tr += f" s ({self.time_source})"
         return (
             f"ImageSeries: {self._n} frames of {h}x{w} (HxW), {self._dtype_name} "
             f"({self._bits}-bit){col}{tr}; from {origin}"
@@ -239,13 +271,14 @@ class ImageSeries:
         try:
             if info.kind == "pil":
                 return read_pil(info)
-            return self._read_tiff(info, j)
+            return self._read_open(info, j)
         except InputError:
             raise
         except Exception as exc:
             raise InputError(f"cannot decode {self.frame_name(i)}: {exc}") from exc
 
-    def _read_tiff(self, info: FileInfo, j: int) -> np.ndarray:
+    def _read_open(self, info: FileInfo, j: int) -> np.ndarray:
+        """Frame ``j`` of a TIFF or movie file, through a cache of open files."""
         if self._pid != os.getpid():  # forked worker: never share file offsets with the parent
             self._lock = threading.RLock()
             self._handles = OrderedDict()
@@ -253,7 +286,7 @@ class ImageSeries:
         with self._lock:
             tif = self._handles.get(info.path)
             if tif is None:
-                tif = tifffile.TiffFile(info.path)
+                tif = info.movie.open() if info.kind == "movie" else tifffile.TiffFile(info.path)
                 if info.n_frames > 1:
                     self._handles[info.path] = tif
                     while len(self._handles) > _OPEN_TIFF_CACHE:
@@ -261,7 +294,7 @@ class ImageSeries:
             else:
                 self._handles.move_to_end(info.path)
             try:
-                return read_tiff_page(tif, info, j)
+                return tif.frame(j) if info.kind == "movie" else read_tiff_page(tif, info, j)
             finally:
                 if info.n_frames <= 1:
                     tif.close()
@@ -327,7 +360,7 @@ class ImageSeries:
 
     # -- resources ------------------------------------------------------------------------
     def close(self) -> None:
-        """Close cached TIFF file handles (they reopen on demand)."""
+        """Close cached TIFF and movie file handles (they reopen on demand)."""
         with self._lock:
             while self._handles:
                 self._handles.popitem()[1].close()
@@ -355,6 +388,15 @@ class ImageSeries:
         self._lock = threading.RLock()
         self._handles = OrderedDict()
         self._pid = os.getpid()
+
+
+def _common_rate(files: list[FileInfo]) -> float | None:
+    """The frame rate all ``files`` share (movies of one rate), else None."""
+    rates = {f.frame_rate for f in files}
+    if not files or len(rates) != 1:
+        return None
+    (rate,) = rates
+    return float(rate) if rate else None
 
 
 def _check_times(timestamps: Any, n: int) -> np.ndarray:
@@ -441,7 +483,10 @@ def load_series(source: Any, *, timestamps: Any = None) -> ImageSeries:
     with a warning), a ``(T, H, W)``
     or ``(T, H, W, 3|4)`` numpy array / torch tensor (a 2-D array is one frame), or an
     existing :class:`ImageSeries` (returned as is, with new timestamps if given).
-    ``timestamps``: ``(T,)`` strictly increasing times, default ``0..T-1``.
+    A camera movie (Photron ``.cih``/``.cihx``/``.mraw``, Phantom ``.cine``, a video file
+    such as ``.avi``) is read lazily, frame by frame; its frame rate gives the times.
+    ``timestamps``: ``(T,)`` strictly increasing times, default ``k / fps`` seconds for a
+    movie with a frame rate, else ``0..T-1``.
 
     Headers are checked up front (existence, readability, equal sizes); pixels are decoded
     on demand. Raises :class:`InputError` naming the offending file or argument.
@@ -451,6 +496,7 @@ def load_series(source: Any, *, timestamps: Any = None) -> ImageSeries:
             return source
         new = copy.copy(source)
         new._times = _check_times(timestamps, len(source))
+        new._times_from_rate = False
         return new
     if isinstance(source, (np.ndarray, torch.Tensor)):
         return _series_from_array(source, timestamps)
@@ -473,7 +519,7 @@ def load_series(source: Any, *, timestamps: Any = None) -> ImageSeries:
     infos: list[FileInfo] = []
     warned_dtype = False
     for p in paths:
-        info = probe_file(p)
+        info = probe_movie(p) if is_movie(p) else probe_file(p)
         if infos and info.shape != infos[0].shape:
             (h0, w0), (h, w) = infos[0].shape, info.shape
             raise InputError(

@@ -165,7 +165,8 @@ def plan_run(
         reference_update/smoothing/scale/unit.
 
     ``scale`` (length ``unit``s per px, e.g. 0.02 with ``unit="mm"``) and ``time_unit``
-    (default "frame", or "time unit" for timestamps) are recorded, not applied.
+    (default "frame", "s" for a movie whose frame rate gives the times, with ``time_source``
+    saying so, or "time unit" for timestamps) are recorded, not applied.
 
     ``find_specimen`` (default True): the default grid keeps only the points whose subsets lie
     on speckle in the reference image (:func:`torch_stsdic.analysis.specimen.on_specimen`:
@@ -201,6 +202,11 @@ def plan_run(
         raise ValueError(f"series: {n_series} frame, nothing to match against itself: give "
                          "at least 2 frames (or a reference image as an array)")
     ts_np = resolve_times(times, ser)
+    if times is None and getattr(ser, "time_source", None):  # a movie's frame rate: seconds
+        if units.setdefault("time_unit", ser.time_unit) != ser.time_unit:
+            raise ValueError(f"time_unit: the times are in {ser.time_unit}, from the "
+                             f"{ser.time_source}; give timestamps for another unit")
+        units["time_source"] = ser.time_source
     if "time_unit" not in units:
         frames_as_time = np.array_equal(ts_np, np.arange(n_series, dtype=np.float64))
         units["time_unit"] = "frame" if frames_as_time else "time unit"

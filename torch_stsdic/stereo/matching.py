@@ -35,7 +35,7 @@ from .calibration import StereoCalibration
 from .triangulation import project, undistort
 
 __all__ = ["epipolar_candidates", "epipolar_search", "robust_homography", "repair_outliers",
-           "match_stereo", "CrossMatch"]
+           "match_stereo", "CrossMatch", "epipolar_offsets", "calibration_mismatch"]
 
 DTYPE = torch.float64
 
@@ -184,6 +184,86 @@ def epipolar_search(rig: StereoCalibration, left_ref: Tensor, right_ref: Tensor,
     zb = zb.to(DTYPE)
     zb[no] = float("nan")
     return pos, zb
+
+
+def epipolar_offsets(rig: StereoCalibration, left_ref: Tensor, right_ref: Tensor,
+                     left_pts: Tensor, subset_size: int = 21, reach: int | None = None,
+                     most: int = 32, min_zncc: float = 0.7, stride: int = 3,
+                     budget: int = 1 << 23) -> tuple[Tensor, Tensor, Tensor]:
+    """How far off the calibration's epipolar curves the right reference's matches lie: a
+    2-D search free of the epipolar constraint, in a band ``reach`` px either side of each
+    curve (default a quarter of the larger image side, 32..160 px), for up to ``most`` left
+    points spread over ``left_pts``.
+
+    Returns the points searched (K,) indices into ``left_pts``, their distance off the curve
+    (K,) px (NaN where the band holds no subset) and the best ZNCC (K,); a match is a ZNCC
+    of at least ``min_zncc``."""
+    left = torch.as_tensor(left_ref, dtype=torch.float32)
+    right = torch.as_tensor(right_ref, dtype=torch.float32)
+    pts = torch.as_tensor(left_pts, dtype=DTYPE)
+    idx = torch.unique(torch.linspace(0, len(pts) - 1, min(most, len(pts))).round().long())
+    pts = pts[idx]
+    h, w = right.shape[-2:]
+    reach = 2 * (int(reach if reach is not None else min(160, max(32, max(h, w) // 4))) // 2)
+    half = subset_size // 2
+    cand, valid = epipolar_candidates(rig, pts, right.shape, 0.0, 2.0)  # on the curve, 2 px
+    if cand.shape[1] < 2:  # a curve of one sample has no direction
+        return idx, torch.full((len(idx),), float("nan"), dtype=DTYPE), \
+            torch.full((len(idx),), float("nan"), dtype=DTYPE)
+    tangent = torch.gradient(cand, dim=1)[0]
+    normal = torch.stack([-tangent[..., 1], tangent[..., 0]], -1)
+    normal = normal / normal.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    off = torch.arange(-reach, reach + 1, 2, dtype=DTYPE)  # (D,) px across the curve
+    pos = cand[:, :, None, :] + off[None, None, :, None] * normal[:, :, None, :]  # (K,C,D,2)
+    inside = valid[:, :, None] & torch.isfinite(pos).all(-1) & (pos[..., 0] >= half + 1) & \
+        (pos[..., 0] <= w - 2 - half) & (pos[..., 1] >= half + 1) & (pos[..., 1] <= h - 2 - half)
+    k, C, D = pos.shape[:3]
+    pos, inside = pos.reshape(k, C * D, 2), inside.reshape(k, C * D)
+    o = torch.arange(-half, half + 1, max(1, int(stride)), dtype=DTYPE)
+    sub = torch.stack(torch.meshgrid(o, o, indexing="xy"), -1).reshape(-1, 2)
+    f = _znorm(_sample(left, pts[:, None, :] + sub[None]))  # (K, S2)
+    score = torch.full((k, C * D), -2.0, dtype=torch.float32)
+    per = max(1, budget // max(1, C * D * sub.shape[0]))
+    for s0 in range(0, k, per):
+        c = pos[s0:s0 + per].nan_to_num(0.0)
+        g = _znorm(_sample(right, c[:, :, None, :] + sub[None, None]))
+        score[s0:s0 + per] = (g * f[s0:s0 + per, None, :]).sum(-1)
+    score[~inside] = -2.0
+    best = score.argmax(1)
+    zncc = score[torch.arange(k), best].to(DTYPE)
+    dist = off[best % D].abs()
+    none = ~inside.any(1)
+    dist[none], zncc[none] = float("nan"), float("nan")
+    return idx, dist, zncc
+
+
+def calibration_mismatch(rig: StereoCalibration, left_ref: Tensor, right_ref: Tensor,
+                         left_pts: Tensor, subset_size: int = 21, tol: float = 3.0,
+                         min_zncc: float = 0.6) -> str | None:
+    """The one-line diagnosis of a calibration that does not fit the images, from
+    :func:`epipolar_offsets`: the matches found (ZNCC at least ``min_zncc`` and within 0.1 of
+    the best tenth's) lie more than ``tol`` px (median) off their epipolar curves, or the
+    curves miss the right image. None where the matches lie on the curves (the calibration
+    fits) or no match is found at all."""
+    idx, dist, z = epipolar_offsets(rig, left_ref, right_ref, left_pts, subset_size)
+    if bool(torch.isnan(dist).all()):
+        return ("the calibration does not fit these images: the epipolar lines of the left "
+                "points miss the right image (check that the calibration belongs to this "
+                "set-up and the image order)")
+    zf = z[torch.isfinite(z)]
+    floor = max(min_zncc, float(torch.quantile(zf, 0.9)) - 0.1)
+    found = torch.isfinite(z) & (z >= floor)
+    if int(found.sum()) < 3:
+        return None
+    d = dist[found]
+    if float(d.median()) <= tol:
+        return None
+    lo, hi = (float(torch.quantile(d, q)) for q in (0.1, 0.9))
+    span = f"{lo:.0f}" if round(lo) == round(hi) else f"{lo:.0f}-{hi:.0f}"
+    return (f"the calibration does not fit these images: matches lie {span} px off "
+            f"its epipolar lines (median {float(d.median()):.0f} px, {int(found.sum())} of "
+            f"{len(idx)} points found by a search free of the epipolar constraint); check "
+            "that the calibration belongs to this set-up and the image order")
 
 
 def robust_homography(src: Tensor, dst: Tensor, weights: Tensor | None = None,

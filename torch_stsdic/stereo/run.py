@@ -29,7 +29,7 @@ from torch_stsdic.io import load_series
 from torch_stsdic.movie.series import track
 
 from .calibration import StereoCalibration, load_calibration
-from .matching import match_stereo
+from .matching import calibration_mismatch, match_stereo
 from .result import StereoResult
 from .triangulation import propagate_cov, propagate_std, triangulate
 
@@ -121,6 +121,10 @@ def track_stereo(left: Any, right: Any, calibration: StereoCalibration | str, *,
     cross = match_stereo(rig, lref, rref, pts, cfg, shape=cross_shape, depth_range=depth_range)
     t_cross = _time.perf_counter() - t0
     okc = cross.status <= int(Status.MAX_ITER)
+    if float(okc.double().mean()) < 0.5:  # most points unmatched: does the calibration fit?
+        mismatch = calibration_mismatch(rig, lref, rref, pts, cfg.subset_size)
+        if mismatch is not None:
+            raise ValueError(f"cross-camera match: {mismatch}")
     if not bool(okc.any()):
         raise ValueError("cross-camera match: no point of the left reference was found in the "
                          "right reference (check the calibration and the image order)")
