@@ -29,6 +29,7 @@ fixed point exactly the ZNCC maximum.
 
 from __future__ import annotations
 
+import functools
 import time as _time
 
 import torch
@@ -62,8 +63,22 @@ from torch_stsdic.core.solution import (
 from torch_stsdic.core.status import Status
 from torch_stsdic.core.validation import as_image, as_points, as_series, as_times, check_init
 from torch_stsdic.core.window import make_window
+from torch_stsdic.kernels.native.rows import own_threads
 
 __all__ = ["WindowSolution", "SubsetSolver", "solve_window", "subset_inside"]
+
+
+def _on_own_threads(solve):
+    """``solve(self, ref, frames, points, ...)`` in :func:`own_threads` for ``points``'
+    device: on the CPU torch runs on one thread and the library's parallel work on its own
+    pool, whatever torch's OpenMP settings (issue 46)."""
+
+    @functools.wraps(solve)
+    def scoped(self, ref, frames, points, *args, **kwargs):
+        with own_threads(points.device):
+            return solve(self, ref, frames, points, *args, **kwargs)
+
+    return scoped
 
 
 class SubsetSolver:
@@ -87,7 +102,8 @@ class SubsetSolver:
 
     def prepare(self, images: torch.Tensor) -> BSplineImage:
         """Prefilter (T, H, W) or (H, W) images into B-spline coefficients."""
-        return BSplineImage(images, order=self.config.interpolation_order)
+        with own_threads(images.device):
+            return BSplineImage(images, order=self.config.interpolation_order)
 
     def stages_for(self, shape: ShapeFunction) -> list[Formulation]:
         """The Gauss-Newton stages (formulations) run for ``shape`` (see :func:`shape_for`)."""
@@ -101,6 +117,7 @@ class SubsetSolver:
         return self.shape.spatial()
 
     # ------------------------------------------------------------------------------------
+    @_on_own_threads
     def solve(
         self,
         ref: BSplineImage,
