@@ -161,7 +161,7 @@ def main() -> None:
     ap.add_argument("--orders", default="lib,torch",
                     help="import orders: lib (torch_stsdic first), torch (torch first)")
     ap.add_argument("--order-record", action="store_true",
-                    help="issue 46's record: --repeats 5 --loads 0,1,2 --threads 1,2 --m 0 "
+                    help="issue 46's record: --loads 0,1,2 --threads 1,2 --m 0 "
                          "--variants ours,nn --orders lib,torch "
                          "--out docs/bench/load-order-cpu.json")
     ap.add_argument("--old", help="another source tree, run as the variant 'old'")
@@ -176,7 +176,7 @@ def main() -> None:
               flush=True)
         return
     if args.order_record:
-        args.repeats, args.loads, args.threads, args.m = 5, "0,1,2", "1,2", "0"
+        args.loads, args.threads, args.m = "0,1,2", "1,2", "0"
         args.variants, args.orders = "ours,nn", "lib,torch"
         args.out = str(REPO / "docs" / "bench" / "load-order-cpu.json")
     import bench_cli as bc
