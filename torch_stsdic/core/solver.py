@@ -29,7 +29,6 @@ fixed point exactly the ZNCC maximum.
 
 from __future__ import annotations
 
-import functools
 import time as _time
 
 import torch
@@ -63,22 +62,9 @@ from torch_stsdic.core.solution import (
 from torch_stsdic.core.status import Status
 from torch_stsdic.core.validation import as_image, as_points, as_series, as_times, check_init
 from torch_stsdic.core.window import make_window
-from torch_stsdic.kernels.native.rows import own_threads
+from torch_stsdic.kernels.native.rows import in_own_threads, own_threads
 
 __all__ = ["WindowSolution", "SubsetSolver", "solve_window", "subset_inside"]
-
-
-def _on_own_threads(solve):
-    """``solve(self, ref, frames, points, ...)`` in :func:`own_threads` for ``points``'
-    device: on the CPU torch runs on one thread and the library's parallel work on its own
-    pool, whatever torch's OpenMP settings (issue 46)."""
-
-    @functools.wraps(solve)
-    def scoped(self, ref, frames, points, *args, **kwargs):
-        with own_threads(points.device):
-            return solve(self, ref, frames, points, *args, **kwargs)
-
-    return scoped
 
 
 class SubsetSolver:
@@ -117,7 +103,7 @@ class SubsetSolver:
         return self.shape.spatial()
 
     # ------------------------------------------------------------------------------------
-    @_on_own_threads
+    @in_own_threads(3, "points")  # on the CPU: torch on one thread, the work on the pool
     def solve(
         self,
         ref: BSplineImage,

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import _thread
 import contextlib
+import functools
 import os
 import queue
 import threading
@@ -29,7 +30,7 @@ import torch
 
 from torch_stsdic.kernels.native.declarations import Kernel
 
-__all__ = ["run_rows", "run_shared", "run_tasks", "threads", "own_threads"]
+__all__ = ["run_rows", "run_shared", "run_tasks", "threads", "own_threads", "in_own_threads"]
 
 # below this many samples a call runs on the calling thread (thread hand-off costs ~50 us)
 _PARALLEL_MIN = 20_000
@@ -222,6 +223,22 @@ def own_threads(device: torch.device | str | None = "cpu") -> Iterator[None]:
                 if torch.get_num_threads() != _Scope.torch_threads:
                     torch.set_num_threads(_Scope.torch_threads)
                 _Scope.threads = None
+
+
+def in_own_threads(index: int, name: str) -> Callable:
+    """Decorator: the function runs in :func:`own_threads` for the device of its argument at
+    position ``index`` or keyword ``name`` (a tensor; CPU where absent)."""
+
+    def decorate(fn: Callable) -> Callable:
+        @functools.wraps(fn)
+        def scoped(*args, **kwargs):
+            t = args[index] if len(args) > index else kwargs.get(name)
+            with own_threads(getattr(t, "device", "cpu")):
+                return fn(*args, **kwargs)
+
+        return scoped
+
+    return decorate
 
 
 class _Tasks(_Rows):
