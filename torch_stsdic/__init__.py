@@ -11,7 +11,9 @@ import os as _os
 # competes for the cores (measured here: a 15-point Gauss-Newton step took 0.2 s instead of
 # 2 ms with 2 threads on a busy 2-core machine). Passive waiting costs next to nothing when
 # the machine is idle. This only takes effect if torch_stsdic is imported before torch (the
-# `stsdic` command is); set OMP_WAIT_POLICY=PASSIVE yourself otherwise.
+# `stsdic` command is). A CPU solve does not depend on it: it runs torch on one thread and its
+# parallel work on the library's own pool, whose idle threads block (issue 46,
+# kernels/native/rows.own_threads); it still spares torch code outside the solve.
 _os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 from torch_stsdic.allocator import keep_freed_memory  # noqa: E402

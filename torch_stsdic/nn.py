@@ -61,6 +61,7 @@ from torch_stsdic.core.shared_motion import known_window_motion
 from torch_stsdic.core.solver import SubsetSolver, WindowSolution
 from torch_stsdic.core.status import Status
 from torch_stsdic.core.validation import check_pixels
+from torch_stsdic.kernels.native.rows import in_own_threads
 
 __all__ = [
     "STSDIC",
@@ -374,6 +375,7 @@ class STSDIC(nn.Module):
         """(B, N, 2) displacement (u, v) at the centre frame (see the class docstring)."""
         return self.forward_full(ref, frames, points, init, shared_motion).disp
 
+    @in_own_threads(1, "ref")  # on the CPU: torch on one thread, the solve's work on the pool
     def forward_full(
         self, ref: Tensor, frames: Tensor, points: Tensor, init: Tensor | None = None,
         shared_motion: Tensor | None = None,

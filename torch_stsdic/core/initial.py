@@ -9,10 +9,13 @@ and scale between images do not matter.
 
 from __future__ import annotations
 
+from functools import partial
+
 import torch
 
 from torch_stsdic.core.interpolation import window_view
 from torch_stsdic.core.pyramid import PyramidStack
+from torch_stsdic.kernels.native.rows import own_threads, run_tasks, threads
 
 __all__ = ["fft_cross_correlation", "coarse_to_fine", "linear_fit_in_time", "seed_cells",
            "carry_from_seed", "retry_weak_peaks", "walk_weak_frames"]
@@ -80,6 +83,18 @@ def _fast_size(n: int) -> int:
         if k == 1:
             return m
         m += 1
+
+
+def _batch_size(n: int, most: int, device: torch.device) -> int:
+    """POIs per FFT batch: at most ``most``, and on the CPU, for the library's threads
+    (:func:`~torch_stsdic.kernels.native.rows.run_tasks`), a multiple of that many batches of
+    at least 64 POIs (each POI's numbers do not depend on its batch)."""
+    k = threads() if device.type == "cpu" else 1
+    if k == 1 or n < 128:
+        return min(n, most) if n else most
+    batches = -(-n // most)
+    batches = min(-(-batches // k) * k, max(1, n // 64))
+    return max(1, -(-n // batches))
 
 
 def _at(flat, iy, ix, di: int, dj: int, k: int) -> torch.Tensor:
@@ -151,9 +166,9 @@ def fft_cross_correlation(
     disp = torch.zeros(n, t_count, 2, dtype=dtype, device=images.device)
     score = torch.full((n, t_count), -1.0, dtype=dtype, device=images.device)
     shifts = torch.arange(-rad, rad + 1, device=images.device)
-    per_batch = max(1, batch // max(1, t_count))
-    for s0 in range(0, n, per_batch):
-        sl = slice(s0, min(n, s0 + per_batch))
+    per_batch = _batch_size(n, max(1, batch // max(1, t_count)), dev)
+
+    def one(sl: slice) -> None:
         bx, by = cx[sl], cy[sl]
         f = _regions(ref, ref_index[sl].view(-1, 1), bx - half, by - half, subset_size)[:, 0]
         f = f - f.mean(dim=(-1, -2), keepdim=True)
@@ -190,6 +205,10 @@ def fft_cross_correlation(
         disp[sl, :, 0] = (ix - rad + qx).to(dtype) + sub_x
         disp[sl, :, 1] = (iy - rad + qy).to(dtype) + sub_y
         score[sl] = torch.where(peak > -1.5, peak, torch.full_like(peak, -1.0))
+
+    with own_threads(dev):
+        run_tasks([partial(one, slice(s0, min(n, s0 + per_batch)))
+                   for s0 in range(0, n, per_batch)])
     return disp, score
 
 

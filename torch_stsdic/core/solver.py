@@ -63,6 +63,7 @@ from torch_stsdic.core.solution import (
 from torch_stsdic.core.status import Status
 from torch_stsdic.core.validation import as_image, as_points, as_series, as_times, check_init
 from torch_stsdic.core.window import make_window
+from torch_stsdic.kernels.native.rows import in_own_threads, own_threads
 
 __all__ = ["WindowSolution", "SubsetSolver", "solve_window", "subset_inside"]
 
@@ -88,7 +89,8 @@ class SubsetSolver:
 
     def prepare(self, images: torch.Tensor) -> BSplineImage:
         """Prefilter (T, H, W) or (H, W) images into B-spline coefficients."""
-        return BSplineImage(images, order=self.config.interpolation_order)
+        with own_threads(images.device):
+            return BSplineImage(images, order=self.config.interpolation_order)
 
     def stages_for(self, shape: ShapeFunction) -> list[Formulation]:
         """The Gauss-Newton stages (formulations) run for ``shape`` (see :func:`shape_for`)."""
@@ -102,6 +104,7 @@ class SubsetSolver:
         return self.shape.spatial()
 
     # ------------------------------------------------------------------------------------
+    @in_own_threads(3, "points")  # on the CPU: torch on one thread, the work on the pool
     def solve(
         self,
         ref: BSplineImage,

@@ -27,8 +27,10 @@ prefilter.
   (ValueError for a range) naming the kernel, the parameter's index, name and declaration.
   Not checked: that the tensors are as large as the kernel assumes.
 * Threads: ctypes releases the GIL, so a call's rows are split over
-  ``torch.get_num_threads()`` threads; a call returns or raises (KeyboardInterrupt
-  included) only once no helper thread is inside the kernel.
+  ``torch.get_num_threads()`` threads of the library's own pool (idle threads block); a call
+  returns or raises (KeyboardInterrupt included) only once no helper thread is inside the
+  kernel. A CPU solve runs in :func:`.rows.own_threads`: torch on one thread, the pool with
+  the thread count torch had (issue 46: no OpenMP thread spins in the solve).
 * Used for CPU tensors of float32/float64 outside autograd (nothing requiring gradients
   while grad mode is on). Everything else (CUDA, autograd through the sampler) uses the
   torch code, which the tests compare with these kernels. Without a compiler the torch code

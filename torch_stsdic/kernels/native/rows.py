@@ -1,35 +1,59 @@
-"""The row-parallel runner: one kernel call over rows [0, n) on several threads.
+"""The row-parallel runner: one kernel call over rows [0, n) on several threads, and the
+library's thread scope.
 
-ctypes releases the GIL, so a call's rows are split over ``torch.get_num_threads()``
-threads, the calling thread and pool threads taking chunks in turn. No tensor whose pointer
-goes to C is freed while C may still use it, and a call returns or raises (KeyboardInterrupt
-included) only once no pool thread is inside the kernel (:class:`_Rows`); C code itself is
-never interrupted.
+ctypes releases the GIL, so a call's rows are split over :func:`threads` threads, the
+calling thread and pool threads taking chunks in turn. No tensor whose pointer goes to C is
+freed while C may still use it, and a call returns or raises (KeyboardInterrupt included)
+only once no pool thread is inside the kernel (:class:`_Rows`); C code itself is never
+interrupted. The pool's idle threads block (``queue.SimpleQueue.get``): they cost nothing
+on a busy machine, whatever torch's OpenMP settings.
+
+:func:`own_threads` (the scope a CPU solve runs in) keeps torch's intra-op (OpenMP) threads
+out of the solve: inside it torch runs on one thread, and the library's parallel work (the
+kernels here, :func:`run_tasks` for batches of torch work) on its own pool with the thread
+count torch had. OpenMP threads that spin while waiting (libgomp's default unless
+``OMP_WAIT_POLICY=PASSIVE`` was set before torch was imported) then never wake up in the
+solve (issue 46).
 """
 
 from __future__ import annotations
 
 import _thread
+import contextlib
+import functools
 import os
 import queue
 import threading
+from collections.abc import Callable, Iterator
 
 import torch
 
 from torch_stsdic.kernels.native.declarations import Kernel
 
-__all__ = ["run_rows", "run_shared", "threads"]
+__all__ = ["run_rows", "run_shared", "run_tasks", "threads", "own_threads", "in_own_threads"]
 
 # below this many samples a call runs on the calling thread (thread hand-off costs ~50 us)
 _PARALLEL_MIN = 20_000
 
 
+class _Scope:
+    """The state of :func:`own_threads`: how many scopes are open (in any thread), the
+    library's threads inside them, and torch's thread count to restore."""
+
+    lock = threading.Lock()
+    depth = 0
+    threads: int | None = None
+    torch_threads = 1
+
+
 def threads() -> int:
     """The kernels' threads: ``torch.get_num_threads()`` (``--threads``, ``OMP_NUM_THREADS``,
-    else torch's default: the physical cores), at most the CPUs the scheduler lets this process
-    run on (``os.sched_getaffinity``: a ``taskset``, a container's or a batch job's share;
-    more threads than those only wait for each other)."""
-    n = max(1, torch.get_num_threads())
+    else torch's default: the physical cores; inside :func:`own_threads`, the count torch had
+    when the scope opened), at most the CPUs the scheduler lets this process run on
+    (``os.sched_getaffinity``: a ``taskset``, a container's or a batch job's share; more
+    threads than those only wait for each other)."""
+    own = _Scope.threads
+    n = max(1, own if own is not None else torch.get_num_threads())
     try:
         return max(1, min(n, len(os.sched_getaffinity(0))))
     except (AttributeError, OSError):  # not on Linux
@@ -169,6 +193,77 @@ class _Rows:
             if isinstance(f, BaseException):
                 raise f
             raise RuntimeError(f"{self.kernel.name} returned {f[2]} for rows [{f[0]}, {f[1]})")
+
+
+@contextlib.contextmanager
+def own_threads(device: torch.device | str | None = "cpu") -> Iterator[None]:
+    """The scope of a CPU solve: torch's intra-op threads set to 1 inside, the library's
+    parallel work (:func:`run_rows`, :func:`run_shared`, :func:`run_tasks`) on
+    :func:`threads` threads of its own pool, as many as torch had on entry. Re-entrant and
+    shared by threads: the first scope to open sets torch to one thread, the last to close
+    restores its count. Does nothing for another device than the CPU.
+
+    While a scope is open, torch ops of other Python threads also run on one thread."""
+    if device is not None and torch.device(device).type != "cpu":
+        yield
+        return
+    with _Scope.lock:
+        if _Scope.depth == 0:
+            n = torch.get_num_threads()
+            _Scope.threads, _Scope.torch_threads = max(1, n), n
+            if n != 1:
+                torch.set_num_threads(1)
+        _Scope.depth += 1
+    try:
+        yield
+    finally:
+        with _Scope.lock:
+            _Scope.depth -= 1
+            if _Scope.depth == 0:
+                if torch.get_num_threads() != _Scope.torch_threads:
+                    torch.set_num_threads(_Scope.torch_threads)
+                _Scope.threads = None
+
+
+def in_own_threads(index: int, name: str) -> Callable:
+    """Decorator: the function runs in :func:`own_threads` for the device of its argument at
+    position ``index`` or keyword ``name`` (a tensor; CPU where absent)."""
+
+    def decorate(fn: Callable) -> Callable:
+        @functools.wraps(fn)
+        def scoped(*args, **kwargs):
+            t = args[index] if len(args) > index else kwargs.get(name)
+            with own_threads(getattr(t, "device", "cpu")):
+                return fn(*args, **kwargs)
+
+        return scoped
+
+    return decorate
+
+
+class _Tasks(_Rows):
+    """Python callables (torch work on disjoint outputs, which releases the GIL) taken in turn
+    by the calling thread and pool threads, with :class:`_Rows`' guarantees: the call returns
+    or raises only once no helper runs a task; the first exception propagates."""
+
+    def __init__(self, tasks: list[Callable[[], None]]):
+        super().__init__(None, [], [], list(range(len(tasks) + 1)))  # type: ignore[arg-type]
+        self.tasks = tasks
+
+    def _chunk(self, j: int) -> None:
+        self.tasks[j]()
+
+
+def run_tasks(tasks: list[Callable[[], None]]) -> None:
+    """Run ``tasks`` (each writes its own part of the outputs) on :func:`threads` threads of
+    the library's pool inside :func:`own_threads` (torch on one thread per task); outside
+    it, one after the other on the calling thread (torch's own threads split each)."""
+    n = min(threads(), len(tasks))
+    if n <= 1 or _Scope.depth == 0:
+        for task in tasks:
+            task()
+        return
+    _Tasks(tasks).run(_pool(threads() - 1), n - 1)
 
 
 def run_rows(kernel: Kernel, n_rows: int, work_per_row: int, args: dict) -> None:
