@@ -65,7 +65,8 @@ from torch_stsdic.movie.refine import ReferenceOffsets, apply_offsets, set_refin
 from torch_stsdic.movie.series_reference import SeriesReference, set_series_reference
 from torch_stsdic.movie.sinks import MemorySink, open_sink
 
-__all__ = ["track", "run_plan", "classical_smoothed", "set_reference_mode", "series_template"]
+__all__ = ["track", "run_plan", "classical_smoothed", "set_reference_mode", "series_template",
+           "set_window_length"]
 
 
 # ---------------------------------------------------------------------------------------
@@ -133,6 +134,8 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
             run.reference_var = est.series_reference.added_var.to(device=plan.device)
     if est.model_holds is not None:  # the time model failed at the other points
         run.classical_points = ~est.model_holds.to(device=plan.device)
+    if est.window_m is not None:  # each point's window as long as its motion allows
+        run.window_lengths = est.window_m.to(device=plan.device)
     if est.noise_ratio is not None:
         run.noise_ratio = est.noise_ratio
     offsets = est.row_offsets
@@ -258,6 +261,7 @@ def track(
     unit: str | None = None,
     time_unit: str | None = None,
     run_estimates: RunEstimates | None = None,
+    window_length: str = "fixed",
 ) -> TrackResult:
     """Track POIs through a movie with STS-DIC (sliding windows of 2m+1 frames).
 
@@ -326,6 +330,11 @@ def track(
         run_estimates: the distributed runner's hook: the run-level estimates of the whole
             movie (:func:`~torch_stsdic.movie.estimates.measure_run`), used instead of
             measuring them on this run's frames.
+        window_length: "fixed" (default): every window of half-width ``config.m`` (shorter
+            only where the model check rejects it); "auto": ``config.m`` is the longest,
+            and each point and target gets the longest half-width up to it that its
+            measured motion supports (:mod:`~torch_stsdic.movie.window_length`; recorded in
+            ``result.m``).
 
     Returns:
         :class:`TrackResult` with (F, N) fields. With ``out`` the values are those stored in
@@ -341,6 +350,7 @@ def track(
                     lost_zncc=lost_zncc, checks=checks, scale=scale, unit=unit,
                     time_unit=time_unit, shared_motion=shared_motion, find_specimen=find_specimen)
     set_reference_mode(plan, refine_reference, refine_frames, series_reference, series_frames)
+    set_window_length(plan, window_length)
     sink = open_sink(plan, out, resume=resume, overwrite=overwrite,
                      strain_window=strain_window, strain_kind=strain_kind)
     return run_plan(plan, sink, progress=progress, callback=callback, estimates=run_estimates)
@@ -362,6 +372,16 @@ def set_reference_mode(plan: RunPlan, refine_reference: bool, refine_frames: int
         raise ValueError("series_frames: only with series_reference")
     else:
         plan.options["single_reference"] = "asked for"
+
+
+def set_window_length(plan: RunPlan, window_length: str) -> None:
+    """Record how ``plan``'s windows get their lengths: "fixed" (``config.m``) or "auto"
+    (chosen per point and target up to ``config.m``; recorded in
+    ``plan.options["window_length"]`` where the run has STS windows)."""
+    if window_length not in ("fixed", "auto"):
+        raise ValueError(f"window_length: must be 'fixed' or 'auto', got {window_length!r}")
+    if window_length == "auto" and plan.config.m > 0:
+        plan.options["window_length"] = "auto"
 
 
 def classical_smoothed(series: Any, span: int = 5, **kwargs: Any) -> TrackResult:

@@ -126,7 +126,8 @@ def sample_frames(plan: RunPlan, max_frames: int = DEFAULT_FRAMES) -> list[int]:
     ks = sorted(set(plan.targets) | ({plan.reference_frame} if plan.reference_frame >= 0
                                      else set()))
     run = 2 * plan.config.m + 3
-    if len(ks) > max_frames and plan.config.m > 0 and int(max_frames) >= run:
+    auto = plan.options.get("window_length") == "auto"  # its own test: evenly spread
+    if len(ks) > max_frames and plan.config.m > 0 and int(max_frames) >= run and not auto:
         starts = np.unique(np.round(np.linspace(0, len(ks) - run, int(max_frames) // run)))
         chosen = {ks[int(s) + j] for s in starts for j in range(run)}
         if plan.reference_frame >= 0:
