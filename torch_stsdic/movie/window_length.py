@@ -53,9 +53,12 @@ DEFAULT_MAX_M = 6
 #: the most frames the classical pass measures (beyond: runs of adjacent frames)
 TEST_FRAMES = 64
 #: the squared bias accepted, in units of the window's own noise variance
-GAMMA = 1.0
+GAMMA = 0.5
 #: standard errors of the pooled bias estimate below which a bias is not told from noise
 Z = 3.0
+#: the pooled mean offset's noise variance over that of independent offsets (neighbouring
+#: subsets share pixels, windows of adjacent targets frames)
+DESIGN = 3.0
 
 
 def auto_max_m(n_frames: int, max_m: int = DEFAULT_MAX_M) -> int:
@@ -150,11 +153,22 @@ def window_lengths(plan: RunPlan, res: TrackResult, frames: list[int],
         cnt = wt @ use[:, nb].sum(-1)
         bias2 = s1 / cnt.clamp(min=1)
         se = ((s2 / cnt.clamp(min=1) - bias2 ** 2).clamp(min=0) / cnt.clamp(min=1)).sqrt()
+        # the signed offsets pooled first: a bias smooth over the pool adds up, the noise
+        # averages out (far more power where the field is smooth; none where the bias
+        # changes sign within the pool, which the squares above catch)
+        offs = torch.where((valid & ~miss)[..., None], off.nan_to_num(), 0.0)
+        mean_off = torch.einsum("kj,jnc->knc", wt, offs[:, nb].sum(2)) / cnt.clamp(min=1)[
+            ..., None]
+        noise_mean = (wt @ torch.where(valid & ~miss, noise.sum(-1), 0.0)[:, nb].sum(-1)
+                      ) / cnt.clamp(min=1) ** 2 * DESIGN  # (K, N) its noise variance
+        signed = mean_off.pow(2).sum(-1) - noise_mean
         h = (1.0 - csq)  # (K, N) the window's intercept variance over one frame's
         fails = wt @ (miss & valid).double()  # the point's own windows
         tests = wt @ valid.double()
         limit = torch.minimum(GAMMA * h, 1.0 - h) * vsum
-        good = ((bias2 <= torch.maximum(limit, Z * se)) & (2 * fails < tests)
+        good = ((bias2 <= torch.maximum(limit, Z * se))
+                & (signed <= torch.maximum(limit, Z * 2 ** 0.5 * noise_mean))
+                & (2 * fails < tests)
                 & have[:, None] & (cnt > 0))
         accepted &= good
         out = torch.where(accepted, m, out).to(torch.int8)
