@@ -112,3 +112,30 @@ def test_auto_windows_on_a_render_beat_the_fixed_window():
             assert float((res.m[1:][ok] == 6).double().mean()) > 0.9
             assert res.info["window_length"]["max_m"] == 6
     assert rms["auto"] < 0.85 * rms["fixed"]
+
+
+def test_chosen_windows_are_recorded_and_a_resumed_run_reads_them(tmp_path):
+    """A run with chosen windows stopped after its first blocks and resumed ends with the
+    numbers of an uninterrupted run: the decision is read back from the file, not made
+    again; the result's m never exceeds the decision."""
+    mot = synth.Translation(ut=0.1, vt=0.05)
+    mv = synth.synthetic_movie((81, 81), 11, mot, noise_sigma=2.0, seed=2)
+    series = torch.cat([mv.ref[None], mv.frames]).double()
+    kw = {"config": sts.DICConfig(m=3, subset_size=15), "step": 8, "progress": False,
+          "window_length": "auto", "batch_frames": 2}
+    whole = sts.track(series, out=tmp_path / "a.h5", **kw)
+
+    class Stop(Exception):
+        pass
+
+    def stop(done, total):
+        if done >= 3:
+            raise Stop
+
+    with pytest.raises(Stop):
+        sts.track(series, out=tmp_path / "b.h5", callback=stop, **kw)
+    again = sts.track(series, out=tmp_path / "b.h5", resume=True, **kw)
+    assert again.info["run_estimates"] == "read from the result file"
+    assert torch.equal(again.u, whole.u) and torch.equal(again.m, whole.m)
+    assert int(whole.m.max()) <= 3 and float((whole.m[1:] == 3).double().mean()) > 0.5
+    assert whole.info["window_length"]["max_m"] <= 3
