@@ -90,6 +90,12 @@ def test_track_rejects_a_bad_window_length():
     mv = np.zeros((5, 40, 40))
     with pytest.raises(ValueError, match="window_length"):
         sts.track(mv, window_length="long", progress=False)
+    movie = synth.synthetic_movie((61, 61), 6, synth.Translation(ut=0.1), noise_sigma=1.0,
+                                  seed=1)
+    series = torch.cat([movie.ref[None], movie.frames]).double()
+    with pytest.raises(ValueError, match="reference_update"):
+        sts.track(series, config=sts.DICConfig(m=3, subset_size=15), step=10,
+                  reference_update=0.9, window_length="auto", progress=False)
 
 
 @pytest.mark.slow

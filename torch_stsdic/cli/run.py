@@ -296,6 +296,8 @@ def _track_arguments(args: argparse.Namespace) -> dict[str, Any]:
             f"{name} holds {n} frame: a run needs a reference and at least one more frame "
             "(give a folder, a glob, several files or a multi-page TIFF)"
         )
+    if args.m is None and args.reference_update is not None:
+        args.m = 2  # windows are chosen for one reference configuration: the fixed default
     args.window_length = "auto" if args.m is None else "fixed"
     if args.m is None:  # the longest window tried: up to 6, as the movie allows
         from torch_stsdic.movie.window_length import auto_max_m

@@ -380,6 +380,9 @@ def set_window_length(plan: RunPlan, window_length: str) -> None:
     ``plan.options["window_length"]`` where the run has STS windows)."""
     if window_length not in ("fixed", "auto"):
         raise ValueError(f"window_length: must be 'fixed' or 'auto', got {window_length!r}")
+    if window_length == "auto" and plan.options.get("reference_update") is not None:
+        raise ValueError("window_length: 'auto' chooses windows for one reference "
+                         "configuration; not with reference_update")
     if window_length == "auto" and plan.config.m > 0:
         plan.options["window_length"] = "auto"
 
