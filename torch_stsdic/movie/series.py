@@ -260,8 +260,7 @@ def track(
     scale: float | None = None,
     unit: str | None = None,
     time_unit: str | None = None,
-    run_estimates: RunEstimates | None = None,
-    window_length: str = "fixed",
+    run_estimates: RunEstimates | None = None, window_length: str = "fixed",
 ) -> TrackResult:
     """Track POIs through a movie with STS-DIC (sliding windows of 2m+1 frames).
 
@@ -302,9 +301,8 @@ def track(
         callback: called as ``callback(rows_done, n_rows)`` after each block.
         refine_reference: remove the noisy reference's constant per-point offset: classical
             DIC of up to ``refine_frames`` frames around the reference (default 41), a
-            polynomial fit in time per point, its value at the reference time (shrunk by
-            the offsets' spread) subtracted from every row, the reference's own row set to 0
-            (:mod:`torch_stsdic.movie.refine`, ``docs/accuracy.md``); one reference frame.
+            polynomial fit in time per point, its value at the reference time (shrunk by the
+            offsets' spread) subtracted from every row, the reference's row 0 (``refine``).
         series_reference: measure against a template of up to ``series_frames`` frames
             (default 21) mapped back by local fits of their measured warps and averaged
             (:mod:`torch_stsdic.movie.series_reference`). "auto" (default): 2 rounds where
@@ -327,14 +325,9 @@ def track(
             ``result.info["units"]``): ``scale`` length ``unit``s per px (e.g. 0.02, "mm"),
             ``time_unit`` of ``times`` (default "frame", "time unit" with timestamps). The
             values stay in px; exports and figures convert (:mod:`torch_stsdic.io.units`).
-        run_estimates: the distributed runner's hook: the run-level estimates of the whole
-            movie (:func:`~torch_stsdic.movie.estimates.measure_run`), used instead of
-            measuring them on this run's frames.
-        window_length: "fixed" (default): every window of half-width ``config.m`` (shorter
-            only where the model check rejects it); "auto": ``config.m`` is the longest,
-            and each point and target gets the longest half-width up to it that its
-            measured motion supports (:mod:`~torch_stsdic.movie.window_length`; recorded in
-            ``result.m``).
+        run_estimates: the distributed runner's hook: the whole movie's run-level estimates
+            (:func:`~torch_stsdic.movie.estimates.measure_run`), not measured on its frames.
+        window_length: "fixed" or "auto" (``config.m`` the longest): :func:`set_window_length`.
 
     Returns:
         :class:`TrackResult` with (F, N) fields. With ``out`` the values are those stored in
@@ -375,9 +368,11 @@ def set_reference_mode(plan: RunPlan, refine_reference: bool, refine_frames: int
 
 
 def set_window_length(plan: RunPlan, window_length: str) -> None:
-    """Record how ``plan``'s windows get their lengths: "fixed" (``config.m``) or "auto"
-    (chosen per point and target up to ``config.m``; recorded in
-    ``plan.options["window_length"]`` where the run has STS windows)."""
+    """Record how ``plan``'s windows get their lengths: "fixed" (default): every window of
+    half-width ``config.m`` (shorter only where the model check rejects it); "auto":
+    ``config.m`` is the longest, and each point and target gets the longest half-width up to
+    it that its measured motion supports (:mod:`~torch_stsdic.movie.window_length`; in
+    ``result.m``). Recorded in ``plan.options["window_length"]`` for STS windows."""
     if window_length not in ("fixed", "auto"):
         raise ValueError(f"window_length: must be 'fixed' or 'auto', got {window_length!r}")
     if window_length == "auto" and plan.options.get("reference_update") is not None:

@@ -44,7 +44,7 @@ from torch_stsdic.movie.refine import ReferenceOffsets
 
 __all__ = ["SeriesReference", "DEFAULT_FRAMES", "DEFAULT_ITERATIONS", "sample_frames",
            "build_series_reference", "set_series_reference", "single_reason",
-           "time_model_holds"]
+           "time_model_holds", "measure_classical"]
 
 #: frames of the movie sampled for the template (evenly spread over the targets)
 DEFAULT_FRAMES = 21
@@ -156,6 +156,13 @@ def _measure(plan: RunPlan, frames: list[int], image: torch.Tensor | None,
         sub = dataclasses.replace(sub, reference_image=image, reference_frame=-1,
                                   reference_desc="array:series-template")
     return run(sub, progress=False)
+
+
+def measure_classical(plan: RunPlan, frames: list[int], run: Callable[..., TrackResult]
+                      ) -> TrackResult:
+    """Classical DIC (checks off) of ``frames`` at all the plan's POIs against its reference
+    image: the template's first-round measurement (:func:`_measure`)."""
+    return _measure(plan, frames, None, run)
 
 
 def _warps(res: TrackResult, j: int, lost_zncc: float) -> tuple[torch.Tensor, torch.Tensor]:

@@ -42,8 +42,12 @@ from torch_stsdic.analysis.result import USABLE, TrackResult
 from torch_stsdic.core.shared_motion import SharedMotion
 from torch_stsdic.movie.frames import segment_bounds, window_frames
 from torch_stsdic.movie.plan import RunPlan
-from torch_stsdic.movie.series_reference import BIAS_FLOOR_PX, POOL_CLIP, POOL_POINTS
-from torch_stsdic.movie.series_reference import _measure as classical_measure
+from torch_stsdic.movie.series_reference import (
+    BIAS_FLOOR_PX,
+    POOL_CLIP,
+    POOL_POINTS,
+    measure_classical,
+)
 
 __all__ = ["DEFAULT_MAX_M", "TEST_FRAMES", "wants_window_lengths", "measured_frames",
            "measure_window_lengths", "window_lengths", "auto_max_m"]
@@ -183,7 +187,7 @@ def measure_window_lengths(plan: RunPlan, run: Callable[..., TrackResult],
     classical pass over :func:`measured_frames` against the plan's reference image."""
     seg = _segments(plan, shared)
     frames = measured_frames(plan, seg)
-    res = classical_measure(plan, frames, None, run)
+    res = measure_classical(plan, frames, run)
     return window_lengths(plan, res, frames, shared)
 
 
