@@ -29,7 +29,8 @@ def test_track_keeps_its_public_signature():
         ("series_reference", "auto", K), ("series_frames", None, K),
         ("refine_frames", None, K), ("shared_motion", "auto", K), ("find_specimen", True, K),
         ("strain_window", 5, K), ("strain_kind", "green", K), ("scale", None, K),
-        ("unit", None, K), ("time_unit", None, K), ("run_estimates", None, K)]
+        ("unit", None, K), ("time_unit", None, K), ("run_estimates", None, K),
+        ("window_length", "fixed", K)]
     with pytest.raises(TypeError):
         series.track("x", nonsense=1)
     with pytest.raises(ValueError, match="resume: needs out"):

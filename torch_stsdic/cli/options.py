@@ -103,13 +103,20 @@ def add_compute(g: Group) -> None:
     add_threads(g)
 
 
-def add_dic(g: Group, *, min_m: int = 0) -> None:
-    """``--subset``, ``--m``, ``--formulation``: the settings every (STS-)DIC run has."""
+def add_dic(g: Group, *, min_m: int = 0, auto_m: bool = False) -> None:
+    """``--subset``, ``--m``, ``--formulation``: the settings every (STS-)DIC run has
+    (``auto_m``: without ``--m`` each point's window is chosen from its motion)."""
     add_option(g, "--subset", type=odd_int(5), default=21, metavar="PX",
                help="subset width in px, odd")  # fmt: skip
     classical = "; 0 = classical DIC" if min_m == 0 else ""
-    add_option(g, "--m", type=int_min(min_m), default=2,
-               help=f"half window: each solve uses 2m+1 frames{classical}")  # fmt: skip
+    if auto_m:
+        add_option(g, "--m", type=int_min(min_m), default=None,
+                   help=f"half window: each solve uses 2m+1 frames{classical}; without it, "
+                   "each point and frame gets the longest window its measured motion "
+                   "supports, up to m = 6", shown="chosen per point and frame")  # fmt: skip
+    else:
+        add_option(g, "--m", type=int_min(min_m), default=2,
+                   help=f"half window: each solve uses 2m+1 frames{classical}")  # fmt: skip
     add_option(g, "--formulation", choices=FORMULATIONS, default="auto", help=FORMULATION_HELP)
 
 
@@ -132,7 +139,7 @@ SOLVER_CHOICES: tuple[tuple[str, tuple[str, ...], str], ...] = (
 def add_solver(p: argparse.ArgumentParser) -> None:
     """The 'solver' group: subset, window, formulation, criterion, shape ... batch size."""
     g = p.add_argument_group("solver")
-    add_dic(g)
+    add_dic(g, auto_m=True)
     for flag, choices, text in SOLVER_CHOICES:
         add_option(g, flag, choices=choices, default=choices[0], help=text)
     _add_initial_guess(g)

@@ -296,6 +296,13 @@ def _track_arguments(args: argparse.Namespace) -> dict[str, Any]:
             f"{name} holds {n} frame: a run needs a reference and at least one more frame "
             "(give a folder, a glob, several files or a multi-page TIFF)"
         )
+    if args.m is None and args.reference_update is not None:
+        args.m = 2  # windows are chosen for one reference configuration: the fixed default
+    args.window_length = "auto" if args.m is None else "fixed"
+    if args.m is None:  # the longest window tried: up to 6, as the movie allows
+        from torch_stsdic.movie.window_length import auto_max_m
+
+        args.m = auto_max_m(n)
     if n < 2 * args.m + 1:
         raise UsageError(
             f"--m {args.m} needs at least 2m+1 = {2 * args.m + 1} frames, but {name} has "
@@ -343,7 +350,7 @@ def execute(args: argparse.Namespace) -> int:
 
     from torch_stsdic.io import InputError
     from torch_stsdic.movie.plan import plan_run
-    from torch_stsdic.movie.series import set_reference_mode
+    from torch_stsdic.movie.series import set_reference_mode, set_window_length
 
     series = kwargs.pop("series")
     print(series.describe(), flush=True)
@@ -362,6 +369,7 @@ def execute(args: argparse.Namespace) -> int:
             set_reference_mode(plan, args.refine_reference, args.refine_frames,
                                False if args.single_reference else args.series_reference,
                                args.series_frames)
+            set_window_length(plan, args.window_length)
         except ValueError as exc:
             raise CommandError(str(exc)) from None
         sink = _open_sink(plan, args, out)
@@ -610,7 +618,9 @@ def _print_summary(res: Any, args: argparse.Namespace, elapsed: float, ref: str,
     n_f, n_p = status.shape
     st = _status_summary(status)
     bad = sum(v for k, v in st.items() if k not in ("converged", "max_iter"))
-    print(f"points: {n_p}   frames: {n_f}   reference: {args.reference} ({ref})   m: {args.m}")
+    m_text = (f"<= {args.m} (chosen)" if getattr(args, "window_length", "fixed") == "auto"
+              else str(args.m))
+    print(f"points: {n_p}   frames: {n_f}   reference: {args.reference} ({ref})   m: {m_text}")
     print(
         f"converged: {_pct(st['converged'])} %   max-iter: {_pct(st['max_iter'])} %   "
         f"not trusted: {_pct(bad)} % "
@@ -619,7 +629,17 @@ def _print_summary(res: Any, args: argparse.Namespace, elapsed: float, ref: str,
         f"poor fit {_pct(st['poor_fit'])}, inconsistent {_pct(st['inconsistent'])})"
     )
     m_used = res.m
-    if args.m and m_used is not None:
+    auto = getattr(args, "window_length", "fixed") == "auto"
+    if args.m and m_used is not None and auto:
+        mu = to_numpy(m_used)
+        ok = status <= 1
+        if ok.any():
+            share = ", ".join(f"{m}: {_pct(100.0 * (mu[ok] == m).mean())} %"
+                              for m in range(args.m, -1, -1))
+            print(f"window: chosen per point and frame up to m = {args.m}, of the trusted "
+                  f"results at m = {share} (shorter where the measured motion is not affine "
+                  "in time over a longer window; classical at m = 0: no velocity there)")
+    elif args.m and m_used is not None:
         mu = to_numpy(m_used)
         ok = status <= 1
         if ok.any():

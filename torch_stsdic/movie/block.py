@@ -76,6 +76,9 @@ class BlockContext:
     #: (N,) bool: points solved classically (m = 0, no window solve or check) because the
     #: time model failed there in the sampled frames (None: none)
     classical_points: torch.Tensor | None = None
+    #: (T_series, N) int8: the longest half-width of each frame's window (as a target) at
+    #: each point (:mod:`~torch_stsdic.movie.window_length`; None: ``m`` everywhere)
+    window_lengths: torch.Tensor | None = None
     _checker: SubsetSolver | None = None
 
     def grid_neighbours(self, ref: Reference) -> torch.Tensor:
@@ -502,6 +505,21 @@ def _classical_again(blk: Block, classical: torch.Tensor) -> None:
             "classical_again_rows", 0) + int(good.numel())
 
 
+def _shorter_again(blk: Block, cap: torch.Tensor) -> None:
+    """Rows solved with a longer window than their point's motion supports at their target
+    (``cap``: (B*N,) the longest half-width; a first block's FFT start, a rescue) are solved
+    again with that half-width from their solution; kept where usable."""
+    over = (blk.m_used > cap) & (blk.status <= USABLE)
+    for m in torch.unique(cap[over]).tolist():
+        again = torch.nonzero(over & (cap == m)).flatten()
+        sol = blk.solve(again, blk.params[again], m=m)
+        good = torch.nonzero(sol.status <= USABLE).flatten()
+        if good.numel():
+            blk.keep(again[good], sol.rows(good), only_better=False, m=m)
+            blk.run.stats["shorter_again_rows"] = blk.run.stats.get(
+                "shorter_again_rows", 0) + int(good.numel())
+
+
 def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry | None):
     """Solve all POIs of target frames ``ks`` (B,) in one batched solve, then rescue lost
     rows (from the previous target of the block, their neighbours, then by FFT
@@ -550,6 +568,11 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
             if blk.window_m is None:
                 blk.window_m = torch.full((rows,), run.m, dtype=torch.int8, device=dev)
             blk.window_m[cls] = 0
+    cap = None if run.window_lengths is None or run.m == 0 else run.window_lengths[
+        blk.k].reshape(-1).to(device=dev, dtype=torch.int8)  # (B*N,) each row's longest
+    if cap is not None:
+        blk.window_m = cap.clone() if blk.window_m is None else torch.minimum(blk.window_m,
+                                                                              cap)
     shorter = carried & (blk.window_m < run.m) if blk.window_m is not None else None
     if shorter is not None:  # points leaving the image within their window
         for m in torch.unique(blk.window_m[shorter]).tolist():
@@ -564,6 +587,8 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
     from_prev, by_fft, redone = blk.rescue(carry, carried)
     if run.classical_points is not None and run.m > 0:
         _classical_again(blk, run.classical_points.to(dev).repeat(b))
+    if cap is not None:
+        _shorter_again(blk, cap)
     run.stats["rescued_rows"] = run.stats.get("rescued_rows", 0) + from_prev
     run.stats["fft_rows"] += by_fft
     run.stats["redone_rows"] += redone

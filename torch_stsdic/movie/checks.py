@@ -267,10 +267,13 @@ class BlockChecks:
         for j, nm in enumerate(cls.param_names):
             init[:, run.names.index(nm)] = p_cls[:, j].to(run.dtype)
         shortened = 0
+        first_m = self.m_used[idx].long()  # each row's window: only shorter ones are tried
         for m in range(run.m - 1, 0, -1):
             if not bool(fail.any()):
                 break
-            sel = torch.nonzero(fail).flatten()
+            sel = torch.nonzero(fail & (first_m > m)).flatten()
+            if sel.numel() == 0:
+                continue
             # a window whose frames' classical solutions miss a line would fail: not solved
             off, vel = self._off_a_line(idx[sel], m, d_all, s_all)
             sel, vel = sel[~off], vel[~off]

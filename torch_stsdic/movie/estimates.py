@@ -45,6 +45,7 @@ from torch_stsdic.movie.series_reference import (
 )
 from torch_stsdic.movie.shared_pass import estimate_shared_motion
 from torch_stsdic.movie.sinks import MemorySink
+from torch_stsdic.movie.window_length import measure_window_lengths, wants_window_lengths
 
 __all__ = ["RunEstimates", "measure_run", "reference_pixels", "record_estimates",
            "stored_or_measured", "FROM_FILE"]
@@ -69,6 +70,10 @@ class RunEstimates:
         time_model: (N,) bool, where the time model holds, for an STS run against its
             reference image alone (:func:`~torch_stsdic.movie.series_reference.
             measure_time_model`; with a template its ``model_holds`` says it).
+        window_m: (T_series, N) int8, the longest window half-width the measured motion
+            supports at each point with each frame as target, for a run that chooses its
+            windows' lengths (:mod:`~torch_stsdic.movie.window_length`; it then decides
+            where the time model holds: ``model_holds`` is None).
         source: where a resumed run took them (:data:`FROM_FILE`, or why they were measured
             again); None: measured for a new run, or handed over.
     """
@@ -79,11 +84,14 @@ class RunEstimates:
     noise_ratio: float | None = None
     time_model: torch.Tensor | None = None
     source: str | None = None
+    window_m: torch.Tensor | None = None
 
     @property
     def model_holds(self) -> torch.Tensor | None:
         """(N,) bool where the time model holds (None: everywhere): the template's decision,
-        or the single reference's own."""
+        or the single reference's own; None where the windows' lengths decide it."""
+        if self.window_m is not None:
+            return None
         if self.series_reference is not None:
             return self.series_reference.model_holds
         return self.time_model
@@ -109,6 +117,12 @@ class RunEstimates:
         if self.time_model is not None:
             info["time_model"] = {"classical_points": int((~self.time_model).sum()),
                                   "points": int(self.time_model.numel())}
+        if self.window_m is not None:
+            wm = self.window_m.long()
+            info["window_length"] = {"max_m": int(wm.max()) if wm.numel() else 0,
+                                     "chosen_m": {int(m): round(float((wm == m).double()
+                                                                      .mean()), 4)
+                                                  for m in torch.unique(wm).tolist()}}
         if self.source is not None:
             info["run_estimates"] = self.source
         return info
@@ -145,15 +159,21 @@ def measure_run(plan: RunPlan, ref_raw: torch.Tensor | None = None, *, run: RunF
         offsets = measure_offsets(plan, int(plan.options["refine_reference"]),
                                   shared if shared is not None and shared.applied else None,
                                   run=run)
+    window_m = None
+    if wants_window_lengths(plan):
+        window_m = measure_window_lengths(plan, run, shared if shared is not None
+                                          and shared.applied else None)
+        if series_ref is not None:  # its test was of the longest window alone
+            series_ref.model_holds = None
     holds = None
-    if series_ref is None and wants_time_model(plan):
+    if series_ref is None and window_m is None and wants_time_model(plan):
         holds = measure_time_model(plan, run, shared if shared is not None and shared.applied
                                    else None)
         if holds is None:  # no point had three windows: decided, the model everywhere
             holds = torch.ones(plan.n_points, dtype=torch.bool)
     est = RunEstimates(shared=shared, series_reference=series_ref, offsets=offsets,
                        noise_ratio=None if series_ref is None else series_ref.noise_ratio,
-                       time_model=holds)
+                       time_model=holds, window_m=window_m)
     if first_noise and est.noise_ratio is None:
         est.noise_ratio = _first_block_noise(plan, ref_raw, shared)
     return est
@@ -256,7 +276,12 @@ def _unusable(plan: RunPlan, est: RunEstimates, done: set[int],
     for what, (want, have) in asked.items():
         if bool(want) != (have is not None):
             return f"the file's {what} is not this run's"
-    if est.series_reference is None and wants_time_model(plan) and (
+    if wants_window_lengths(plan) != (est.window_m is not None) or (
+            est.window_m is not None and tuple(est.window_m.shape) != (len(plan.series),
+                                                                     plan.n_points)):
+        return "the file's window lengths are not this run's"
+    if est.series_reference is None and not wants_window_lengths(plan) and wants_time_model(
+            plan) and (
             est.time_model is None or len(est.time_model) != plan.n_points):
         return "the file holds no time-model decision for this run"
     ref = est.series_reference

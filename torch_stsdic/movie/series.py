@@ -73,7 +73,8 @@ from torch_stsdic.movie.sample_guess import MeasuredSample
 from torch_stsdic.movie.series_reference import SeriesReference, set_series_reference
 from torch_stsdic.movie.sinks import MemorySink, open_sink
 
-__all__ = ["track", "run_plan", "classical_smoothed", "set_reference_mode", "series_template"]
+__all__ = ["track", "run_plan", "classical_smoothed", "set_reference_mode", "series_template",
+           "set_window_length"]
 
 #: the prepared frames a run keeps across its passes: up to this many times ``memory_mb``
 #: (512 MiB by default: the 40 frames of the hourglass, 754 x 1273, each with its
@@ -161,6 +162,8 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
             run.reference_var = est.series_reference.added_var.to(device=plan.device)
     if est.model_holds is not None:  # the time model failed at the other points
         run.classical_points = ~est.model_holds.to(device=plan.device)
+    if est.window_m is not None:  # each point's window as long as its motion allows
+        run.window_lengths = est.window_m.to(device=plan.device)
     if est.noise_ratio is not None:
         run.noise_ratio = est.noise_ratio
     offsets = est.row_offsets
@@ -288,7 +291,7 @@ def track(
     scale: float | None = None,
     unit: str | None = None,
     time_unit: str | None = None,
-    run_estimates: RunEstimates | None = None,
+    run_estimates: RunEstimates | None = None, window_length: str = "fixed",
 ) -> TrackResult:
     """Track POIs through a movie with STS-DIC (sliding windows of 2m+1 frames).
 
@@ -329,9 +332,8 @@ def track(
         callback: called as ``callback(rows_done, n_rows)`` after each block.
         refine_reference: remove the noisy reference's constant per-point offset: classical
             DIC of up to ``refine_frames`` frames around the reference (default 41), a
-            polynomial fit in time per point, its value at the reference time (shrunk by
-            the offsets' spread) subtracted from every row, the reference's own row set to 0
-            (:mod:`torch_stsdic.movie.refine`, ``docs/accuracy.md``); one reference frame.
+            polynomial fit in time per point, its value at the reference time (shrunk by the
+            offsets' spread) subtracted from every row, the reference's row 0 (``refine``).
         series_reference: measure against a template of up to ``series_frames`` frames
             (default 21) mapped back by local fits of their measured warps and averaged
             (:mod:`torch_stsdic.movie.series_reference`). "auto" (default): 2 rounds where
@@ -354,9 +356,9 @@ def track(
             ``result.info["units"]``): ``scale`` length ``unit``s per px (e.g. 0.02, "mm"),
             ``time_unit`` of ``times`` (default "frame", "time unit" with timestamps). The
             values stay in px; exports and figures convert (:mod:`torch_stsdic.io.units`).
-        run_estimates: the distributed runner's hook: the run-level estimates of the whole
-            movie (:func:`~torch_stsdic.movie.estimates.measure_run`), used instead of
-            measuring them on this run's frames.
+        run_estimates: the distributed runner's hook: the whole movie's run-level estimates
+            (:func:`~torch_stsdic.movie.estimates.measure_run`), not measured on its frames.
+        window_length: "fixed" or "auto" (``config.m`` the longest): :func:`set_window_length`.
 
     Returns:
         :class:`TrackResult` with (F, N) fields. With ``out`` the values are those stored in
@@ -372,6 +374,7 @@ def track(
                     lost_zncc=lost_zncc, checks=checks, scale=scale, unit=unit,
                     time_unit=time_unit, shared_motion=shared_motion, find_specimen=find_specimen)
     set_reference_mode(plan, refine_reference, refine_frames, series_reference, series_frames)
+    set_window_length(plan, window_length)
     sink = open_sink(plan, out, resume=resume, overwrite=overwrite,
                      strain_window=strain_window, strain_kind=strain_kind)
     return run_plan(plan, sink, progress=progress, callback=callback, estimates=run_estimates)
@@ -393,6 +396,21 @@ def set_reference_mode(plan: RunPlan, refine_reference: bool, refine_frames: int
         raise ValueError("series_frames: only with series_reference")
     else:
         plan.options["single_reference"] = "asked for"
+
+
+def set_window_length(plan: RunPlan, window_length: str) -> None:
+    """Record how ``plan``'s windows get their lengths: "fixed" (default): every window of
+    half-width ``config.m`` (shorter only where the model check rejects it); "auto":
+    ``config.m`` is the longest, and each point and target gets the longest half-width up to
+    it that its measured motion supports (:mod:`~torch_stsdic.movie.window_length`; in
+    ``result.m``). Recorded in ``plan.options["window_length"]`` for STS windows."""
+    if window_length not in ("fixed", "auto"):
+        raise ValueError(f"window_length: must be 'fixed' or 'auto', got {window_length!r}")
+    if window_length == "auto" and plan.options.get("reference_update") is not None:
+        raise ValueError("window_length: 'auto' chooses windows for one reference "
+                         "configuration; not with reference_update")
+    if window_length == "auto" and plan.config.m > 0:
+        plan.options["window_length"] = "auto"
 
 
 def classical_smoothed(series: Any, span: int = 5, **kwargs: Any) -> TrackResult:

@@ -45,7 +45,7 @@ from torch_stsdic.movie.sample_guess import MeasuredSample
 
 __all__ = ["SeriesReference", "DEFAULT_FRAMES", "DEFAULT_ITERATIONS", "sample_frames",
            "build_series_reference", "set_series_reference", "single_reason",
-           "time_model_holds"]
+           "time_model_holds", "measure_classical"]
 
 #: frames of the movie sampled for the template (evenly spread over the targets)
 DEFAULT_FRAMES = 21
@@ -127,7 +127,8 @@ def sample_frames(plan: RunPlan, max_frames: int = DEFAULT_FRAMES) -> list[int]:
     ks = sorted(set(plan.targets) | ({plan.reference_frame} if plan.reference_frame >= 0
                                      else set()))
     run = 2 * plan.config.m + 3
-    if len(ks) > max_frames and plan.config.m > 0 and int(max_frames) >= run:
+    auto = plan.options.get("window_length") == "auto"  # its own test: evenly spread
+    if len(ks) > max_frames and plan.config.m > 0 and int(max_frames) >= run and not auto:
         starts = np.unique(np.round(np.linspace(0, len(ks) - run, int(max_frames) // run)))
         chosen = {ks[int(s) + j] for s in starts for j in range(run)}
         if plan.reference_frame >= 0:
@@ -166,6 +167,13 @@ def _round_guess(plan: RunPlan, res: TrackResult) -> MeasuredSample:
     for the noise) and the gauge start."""
     ok = (res.status <= USABLE) & (res.zncc >= float(plan.options.get("lost_zncc", 0.8)))
     return MeasuredSample.from_result(res, plan.points.double().cpu(), ok)
+
+
+def measure_classical(plan: RunPlan, frames: list[int], run: Callable[..., TrackResult]
+                      ) -> TrackResult:
+    """Classical DIC (checks off) of ``frames`` at all the plan's POIs against its reference
+    image: the template's first-round measurement (:func:`_measure`)."""
+    return _measure(plan, frames, None, run)
 
 
 def _warps(res: TrackResult, j: int, lost_zncc: float) -> tuple[torch.Tensor, torch.Tensor]:
