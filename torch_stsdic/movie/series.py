@@ -216,8 +216,8 @@ def _smooth(plan: RunPlan, sink: MemorySink) -> None:
     """The "direct smoothing" baseline: u, v of the classical rows smoothed in time."""
     span = plan.options["smoothing"]
     t_rows = plan.row_times
-    su, sut = smooth_in_time(sink.values["u"], span, t_rows, return_rate=True)
-    sv, svt = smooth_in_time(sink.values["v"], span, t_rows, return_rate=True)
+    su, sut = smooth_in_time(sink.field_values("u"), span, t_rows, return_rate=True)
+    sv, svt = smooth_in_time(sink.field_values("v"), span, t_rows, return_rate=True)
     sink.write_smoothed({"u": su, "v": sv, "ut": sut, "vt": svt})
 
 

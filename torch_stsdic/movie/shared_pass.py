@@ -26,6 +26,7 @@ from torch_stsdic.core.shared_motion import (
 from torch_stsdic.movie.frames import frames_in_order
 from torch_stsdic.movie.plan import RunPlan
 from torch_stsdic.movie.sample_guess import MeasuredSample
+from torch_stsdic.movie.sinks import MemorySink
 
 #: runs a plan to its result (the signature of :func:`torch_stsdic.movie.series.run_plan`)
 RunFunction = Callable[..., TrackResult]
@@ -97,7 +98,8 @@ def implausible(disp: torch.Tensor, fitted: torch.Tensor, valid: torch.Tensor,
 
 def estimate_shared_motion(plan: RunPlan, kind: str = "auto",
                            max_points: int = DEFAULT_MAX_POINTS,
-                           auto: bool = False, *, run: RunFunction) -> SharedMotion:
+                           auto: bool = False, *, run: RunFunction,
+                           guess_blocks: list[list[int]] | None = None) -> SharedMotion:
     """Measure the shared motion of a run: classical DIC (checks off) of every series frame
     that a window of the run uses, at up to ``max_points`` of the run's POIs, then
     :func:`fit_frame_motion` per frame. The reference frame's motion is exactly zero. With
@@ -107,7 +109,11 @@ def estimate_shared_motion(plan: RunPlan, kind: str = "auto",
     "quadratic" where the sample holds ``QUADRATIC_POINTS`` points, else "affine" (sample 12:
     full windows at 77 % of the trusted results with the quadratic kind, 71 % with the
     affine one; the hourglass: 94.5 % and 94.9 %). ``run``: the runner of a plan
-    (:func:`torch_stsdic.movie.series.run_plan`, which calls this function)."""
+    (:func:`torch_stsdic.movie.series.run_plan`, which calls this function).
+    ``guess_blocks``: the blocks that start without a carry, from the pass's solutions
+    (``sample``, kept at their frames only: :meth:`MeasuredSample.near_blocks`); default the
+    plan's first block (classical windows, m = 0: every frame, a block after the reference
+    frame's own row starts so too)."""
 
     t0 = time.perf_counter()
     n_series = len(plan.series)
@@ -123,7 +129,12 @@ def estimate_shared_motion(plan: RunPlan, kind: str = "auto",
     names = tuple(nm for nm in plan.param_names if nm not in ("ut", "vt"))
     sub = dataclasses.replace(plan, config=cfg, targets=frames, options=opts,
                               param_names=names, points=plan.points[sel])
-    res = run(sub, progress=False)
+    # only what the fit and the first guess use, at the run's precision (a long movie: the
+    # pass measures every frame)
+    keep = ("u", "v", "zncc", "status", *(nm for nm in ("ux", "uy", "vx", "vy")
+                                          if nm in sub.param_names), *(
+        ("u_std",) if "u_std" in sub.fields else ()))
+    res = run(sub, MemorySink(sub, keep=keep), progress=False)
     disp = torch.stack([res.u, res.v], -1).double().cpu()  # (F, n, 2)
     valid = (res.status <= USABLE).cpu() & (res.zncc.cpu() >= float(
         plan.options.get("lost_zncc", 0.8)))
@@ -152,6 +163,10 @@ def estimate_shared_motion(plan: RunPlan, kind: str = "auto",
              if noise is not None else torch.zeros(len(frames)))
     out.steps = detect_steps(disp - g, valid, sigma, frames)
     out.sample = _measured_sample(res, pts, valid)
+    if guess_blocks is None and plan.config.m > 0:
+        guess_blocks = plan.blocks[:1]
+    if guess_blocks is not None:
+        out.sample = out.sample.near_blocks(guess_blocks, plan.config.m)
     if auto:
         z = out.significance()
         out.applied = bool(np.isfinite(z) and z > SIGNIFICANT)
