@@ -83,8 +83,25 @@ class StoredTrackResult(TrackResult):
                                  device)
         return obj
 
-    def __getattr__(self, name: str) -> Any:  # only for attributes not held
-        lazy = self.__dict__.get("_fields")
-        if lazy is not None and name in LAZY:
-            return lazy[name] if name in lazy else None
-        raise AttributeError(f"{type(self).__name__} has no attribute {name!r}")
+
+
+def _lazy(name: str) -> property:
+    """The attribute ``name`` of a :class:`StoredTrackResult`: a value set on it (e.g. by
+    ``dataclasses.replace``), else its field read from the file (None where the file has
+    none)."""
+
+    def get(self: StoredTrackResult) -> Any:
+        held = self.__dict__
+        if name in held:
+            return held[name]
+        lazy = held.get("_fields")
+        return lazy[name] if lazy is not None and name in lazy else None
+
+    def put(self: StoredTrackResult, value: Any) -> None:
+        self.__dict__[name] = value
+
+    return property(get, put, doc=f"(F, N) {name}, read from the result file when first used")
+
+
+for _name in LAZY:
+    setattr(StoredTrackResult, _name, _lazy(_name))
