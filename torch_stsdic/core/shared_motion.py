@@ -303,7 +303,7 @@ def fit_frame_motion(points: Tensor, disp: Tensor, valid: Tensor, kind: str = "a
 #: (frame, point) entries of the intermediate arrays of a series' fit at a time: a long
 #: movie's fit (every frame measured) works through its frames, or its points, in pieces of
 #: this size, each as the whole series would be (the same numbers, bounded memory)
-FIT_CHUNK = 1 << 18
+FIT_CHUNK = 1 << 16
 
 
 def _frame_chunks(f: int, n: int) -> list[slice]:
@@ -332,24 +332,25 @@ def _spread(x: Tensor, d: Tensor, ok: Tensor, coef: Tensor, w: Tensor, eye: Tens
         r = (d0 - x @ coef[sl]).norm(dim=-1)
         # 2-D residuals of std s per component: |r| is Rayleigh, median 1.1774 s
         s[sl] = torch.nanmedian(torch.where(okc, r, torch.nan), dim=1).values / 1.1774
-    xw = x.unsqueeze(0) * w.unsqueeze(-1)
-    inv = torch.linalg.inv(xw.transpose(1, 2) @ x + eye)
+    xwt = x.T.unsqueeze(0) * w.unsqueeze(1)  # (F, C, N): (x w)^T, made contiguous once
+    inv = torch.linalg.inv(xwt @ x + eye)
     if noise is None:
-        var0 = (inv @ (xw.transpose(1, 2) @ xw) @ inv)[:, 0, 0] * s * s
+        var0 = (inv @ (xwt @ xwt.transpose(1, 2)) @ inv)[:, 0, 0] * s * s
     else:  # sandwich with each row's own noise variance
         nv = torch.where(ok, torch.nan_to_num(noise.double(), nan=0.0) ** 2, torch.zeros_like(w))
-        xw *= nv.sqrt().unsqueeze(-1)  # xn
-        var0 = (inv @ (xw.transpose(1, 2) @ xw) @ inv)[:, 0, 0]
+        xwt *= nv.sqrt().unsqueeze(1)  # (x_n)^T
+        var0 = (inv @ (xwt @ xwt.transpose(1, 2)) @ inv)[:, 0, 0]
     return s, var0
 
 
 def _wls(x: Tensor, d: Tensor, w: Tensor, eye: Tensor) -> Tensor:
     """(F, C, 2) per-frame weighted least squares of d (F, N, 2) on x (N, C), weights w
     (F, N) or (N,)."""
-    # over every frame at once: the batched product's rounding depends on the batch
+    # over every frame at once: the batched product's rounding depends on the batch; (x w)^T
+    # made contiguous (F, C, N), as the product would copy it (the same numbers)
     w = w.expand(d.shape[0], -1) if w.dim() == 1 else w
-    xw = x.unsqueeze(0) * w.unsqueeze(-1)
-    return torch.linalg.solve(xw.transpose(1, 2) @ x + eye, xw.transpose(1, 2) @ d)
+    xwt = x.T.unsqueeze(0) * w.unsqueeze(1)
+    return torch.linalg.solve(xwt @ x + eye, xwt @ d)
 
 
 def _frame_fit(x: Tensor, d: Tensor, ok: Tensor, eye: Tensor) -> tuple[Tensor, Tensor]:

@@ -63,17 +63,18 @@ class MeasuredSample:
         self.points = self.points.double()
         self.disp, self.grad = self.disp.double(), self.grad.double()
 
-    def near_blocks(self, blocks: list[list[int]], m: int) -> MeasuredSample:
-        """The sample at the frames the windows of targets ``blocks`` can use (within 2m
-        frames of a block's targets: a window is shifted, never stretched, at the ends of
-        the series or of a load segment): all that :meth:`guess` needs for those blocks,
-        and bounded by their number whatever the movie's length."""
-        keep = torch.zeros(len(self.frames), dtype=torch.bool)
+    @staticmethod
+    def near_frames(frames: torch.Tensor, blocks: list[list[int]], m: int) -> torch.Tensor:
+        """(F,) bool: which of the series frames ``frames`` (F,) the windows of targets
+        ``blocks`` can use (within 2m frames of a block's targets: a window is shifted,
+        never stretched, at the ends of the series or of a load segment): all that
+        :meth:`guess` needs for those blocks, bounded by their number whatever the movie's
+        length."""
+        keep = torch.zeros(len(frames), dtype=torch.bool)
         for b in blocks:
             if len(b):
-                keep |= (self.frames >= min(b) - 2 * m) & (self.frames <= max(b) + 2 * m)
-        return MeasuredSample(points=self.points, frames=self.frames[keep],
-                              disp=self.disp[keep], grad=self.grad[keep])
+                keep |= (frames >= min(b) - 2 * m) & (frames <= max(b) + 2 * m)
+        return keep
 
     def guess(self, points: torch.Tensor, windows: torch.Tensor, dt: torch.Tensor
               ) -> dict[str, torch.Tensor]:

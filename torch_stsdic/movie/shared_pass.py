@@ -46,18 +46,22 @@ def _fill(params: np.ndarray, times: np.ndarray) -> np.ndarray:
     return out
 
 
-def _measured_sample(res, pts: torch.Tensor, valid: torch.Tensor) -> MeasuredSample:
-    """The pass's trusted solutions (``valid`` (F, n)) at its sample points ``pts`` (n, 2)."""
+def _measured_sample(res, pts: torch.Tensor, valid: torch.Tensor,
+                     rows: torch.Tensor | None = None) -> MeasuredSample:
+    """The pass's trusted solutions (``valid`` (F, n)) at its sample points ``pts`` (n, 2),
+    at its rows ``rows`` (default all)."""
     nan = torch.tensor(float("nan"), dtype=torch.float64)
-    disp = torch.stack([res.u, res.v], -1).double().cpu()
+    rows = torch.arange(res.n_frames) if rows is None else rows
+    disp = torch.stack([res.u[rows], res.v[rows]], -1).double().cpu()
     grads = res.gradients
     if all(nm in grads for nm in ("ux", "uy", "vx", "vy")):
-        g = torch.stack([torch.stack([grads["ux"], grads["uy"]], -1),
-                         torch.stack([grads["vx"], grads["vy"]], -1)], -2).double().cpu()
+        g = torch.stack([torch.stack([grads["ux"][rows], grads["uy"][rows]], -1),
+                         torch.stack([grads["vx"][rows], grads["vy"][rows]], -1)],
+                        -2).double().cpu()
     else:  # a translation-only shape: no gradients, zero
         g = torch.zeros(*disp.shape, 2, dtype=torch.float64)
-    ok = valid.cpu()
-    return MeasuredSample(points=pts, frames=res.frames.cpu().long(),
+    ok = valid[rows].cpu()
+    return MeasuredSample(points=pts, frames=res.frames[rows].cpu().long(),
                           disp=torch.where(ok.unsqueeze(-1), disp, nan),
                           grad=torch.where(ok.view(*ok.shape, 1, 1), g, nan))
 
@@ -111,7 +115,7 @@ def estimate_shared_motion(plan: RunPlan, kind: str = "auto",
     affine one; the hourglass: 94.5 % and 94.9 %). ``run``: the runner of a plan
     (:func:`torch_stsdic.movie.series.run_plan`, which calls this function).
     ``guess_blocks``: the blocks that start without a carry, from the pass's solutions
-    (``sample``, kept at their frames only: :meth:`MeasuredSample.near_blocks`); default the
+    (``sample``, kept at their frames only: :meth:`MeasuredSample.near_frames`); default the
     plan's first block (classical windows, m = 0: every frame, a block after the reference
     frame's own row starts so too)."""
 
@@ -141,6 +145,14 @@ def estimate_shared_motion(plan: RunPlan, kind: str = "auto",
     pts = plan.points[sel].double().cpu()
     origin = plan.points.double().mean(0).cpu()
     noise = res.std["u"].double().cpu() if "u" in res.std else None
+    if guess_blocks is None and plan.config.m > 0:
+        guess_blocks = plan.blocks[:1]
+    rows = None  # the sample where blocks start from it (:meth:`MeasuredSample.near_frames`)
+    if guess_blocks is not None:
+        rows = torch.nonzero(MeasuredSample.near_frames(
+            res.frames.cpu().long(), guess_blocks, plan.config.m)).flatten()
+    sample = _measured_sample(res, pts, valid, rows)
+    del res  # the pass's fields: only what the fit uses is kept
     par, scat, used, se_t = fit_frame_motion(pts, disp, valid, kind, origin=origin,
                                              noise=noise)
     se_t = se_t * overlap_factor(pts, plan.config.subset_size)
@@ -162,11 +174,7 @@ def estimate_shared_motion(plan: RunPlan, kind: str = "auto",
     sigma = (torch.nanmedian(torch.where(valid, noise, torch.nan), dim=1).values
              if noise is not None else torch.zeros(len(frames)))
     out.steps = detect_steps(disp - g, valid, sigma, frames)
-    out.sample = _measured_sample(res, pts, valid)
-    if guess_blocks is None and plan.config.m > 0:
-        guess_blocks = plan.blocks[:1]
-    if guess_blocks is not None:
-        out.sample = out.sample.near_blocks(guess_blocks, plan.config.m)
+    out.sample = sample
     if auto:
         z = out.significance()
         out.applied = bool(np.isfinite(z) and z > SIGNIFICANT)

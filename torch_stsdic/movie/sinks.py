@@ -154,8 +154,8 @@ class MemorySink:
             if name not in v:  # not kept: NaN, without memory
                 return torch.full((), float("nan"), dtype=plan.dtype,
                                   device=plan.device).expand(f, n)
-            return torch.from_numpy(np.asarray(v[name], dtype=np.float64)).to(
-                device=plan.device, dtype=plan.dtype)
+            # the held values, converted only where the precision differs (a kept field)
+            return torch.from_numpy(v[name]).to(device=plan.device, dtype=plan.dtype)
 
         def it(name: str, fill: int, dtype: np.dtype, tdt: torch.dtype) -> torch.Tensor:
             if name not in v:
