@@ -3,8 +3,10 @@
 A sink receives the result rows of a :class:`~torch_stsdic.movie.plan.RunPlan` block by block
 (:meth:`MemorySink.write_rows`), can give back rows finished by an earlier, interrupted run
 (:meth:`completed_rows`, :meth:`read_rows`), completes the output when the run ends
-(:meth:`finish`: an HDF5 file gets its strain fields) and builds the
-:class:`~torch_stsdic.analysis.result.TrackResult`. The HDF5 layout itself is
+(:meth:`finish`: a smoothed run's strains) and builds the
+:class:`~torch_stsdic.analysis.result.TrackResult`. An HDF5 file gets every block's strain
+fields with the block, and its sink holds nothing of size frames x points: a long movie's
+run needs the memory of a short one. The HDF5 layout itself is
 :mod:`torch_stsdic.io.results`'s business; :class:`HDF5Sink` is the only writer of it, so
 ``track(out=...)``, the distributed runner and ``stsdic run`` write the same file.
 """
