@@ -4,6 +4,11 @@
     python scripts/benchmarks/bench_memory_length.py                 # the issue's cases
     python scripts/benchmarks/bench_memory_length.py --cases 256:120,256:1200 \\
         --json docs/bench/memory-length-cpu.json
+    # cases run side by side (one process each), then one record:
+    python scripts/benchmarks/bench_memory_length.py --cases 256:120 --json /tmp/a.json &
+    ...
+    python scripts/benchmarks/bench_memory_length.py --merge /tmp/a.json /tmp/b.json \\
+        --json docs/bench/memory-length-cpu.json
 
 Each case ``SIZE:FRAMES`` is a translation movie rendered as ``stsdic synth`` renders it
 (SIZE x SIZE px, FRAMES frames, its defaults: u = 0.05 t px, noise 5, 8 bits; written a
@@ -146,7 +151,13 @@ def main() -> None:
                     help="the movie's velocity along x, px per frame (default: stsdic synth's)")
     ap.add_argument("--run-args", default="", help="extra stsdic run options")
     ap.add_argument("--json", type=Path, default=REPO / "docs/bench/memory-length-cpu.json")
+    ap.add_argument("--merge", type=Path, nargs="+",
+                    help="records of this script to merge into --json (nothing is run)")
+    ap.add_argument("--note", help="a note recorded with a merged record")
     args = ap.parse_args()
+    if args.merge:
+        merge(args.merge, args.json, args.note)
+        return
     cases = [tuple(int(x) for x in c.split(":")) for c in args.cases.split(",") if c]
     args.data.mkdir(parents=True, exist_ok=True)
     results = []
@@ -159,19 +170,47 @@ def main() -> None:
               f"{rec['wall_s']:7.1f} s  {rec['summary'][:1]}", flush=True)
         results.append(rec)
         shutil.rmtree(out.parent, ignore_errors=True)
-    ratios = {}
+    write_record(args.json, results, bench.machine_info([args.threads], "cpu"))
+
+
+def ratios_of(results: list[dict[str, Any]]) -> dict[str, float]:
+    """Per image size, the peak of the longest case over that of the shortest."""
+    out = {}
     for size in sorted({r["size"] for r in results}):
         same = sorted((r for r in results if r["size"] == size), key=lambda r: r["frames"])
         if len(same) > 1:
-            ratios[f"{size}: {same[-1]['frames']} / {same[0]['frames']} frames"] = round(
+            out[f"{size}: {same[-1]['frames']} / {same[0]['frames']} frames"] = round(
                 same[-1]["peak_rss_mb"] / same[0]["peak_rss_mb"], 3)
-    record = {"preset": "memory-length", "machine": bench.machine_info([args.threads], "cpu"),
-              "ratios": ratios, "results": results}
-    args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(json.dumps(record, indent=1) + "\n")
-    for k, v in ratios.items():
+    return out
+
+
+def write_record(path: Path, results: list[dict[str, Any]], machine: dict[str, Any],
+                 note: str | None = None) -> None:
+    """The record (cases, ratios, machine) as JSON at ``path``, and the ratios printed."""
+    record = {"preset": "memory-length", "machine": machine, "ratios": ratios_of(results),
+              "results": results}
+    if note:
+        record["note"] = note
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(record, indent=1) + "\n")
+    for k, v in record["ratios"].items():
         print(f"peak ratio {k}: {v}")
-    print(f"-> {args.json}")
+    print(f"-> {path}")
+
+
+def merge(paths: list[Path], out: Path, note: str | None) -> None:
+    """One record of the cases of several (e.g. run side by side, one case each): the
+    machine of the first, each case keeping its own start time and load."""
+    results, machine = [], None
+    for p in paths:
+        rec = json.loads(p.read_text())
+        machine = machine or rec["machine"]
+        for r in rec["results"]:
+            r.setdefault("load_average", rec["machine"].get("load_average"))
+            r.setdefault("started", rec["machine"].get("date"))
+            results.append(r)
+    results.sort(key=lambda r: (r["size"], r["frames"]))
+    write_record(out, results, machine or {}, note)
 
 
 if __name__ == "__main__":
