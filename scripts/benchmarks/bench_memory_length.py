@@ -28,6 +28,7 @@ import argparse
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
@@ -94,9 +95,11 @@ def ensure_movie(data: Path, size: int, frames: int, ut: float) -> Path:
 
 
 def run_case(movie: Path, out: Path, threads: int, interval: float,
-             run_args: list[str]) -> dict[str, Any]:
+             run_args: list[str], max_seconds: float | None = None) -> dict[str, Any]:
     """``stsdic run`` of ``movie`` in a fresh process: its peak RSS (wait4), sampled RSS
-    timeline, wall time and printed summary."""
+    timeline, wall time and printed summary. After ``max_seconds`` the run is interrupted
+    (SIGINT: it keeps its finished frames) and the record says how many frames it
+    finished (``complete`` False)."""
     import psutil
 
     cmd = [sys.executable, "-m", "torch_stsdic", "run", str(movie), "--out", str(out),
@@ -108,7 +111,11 @@ def run_case(movie: Path, out: Path, threads: int, interval: float,
     reader = threading.Thread(target=lambda: output.extend(proc.stdout), daemon=True)
     reader.start()
     ps = psutil.Process(proc.pid)
+    stopped = False
     while True:
+        if max_seconds is not None and not stopped and time.perf_counter() - t0 > max_seconds:
+            proc.send_signal(signal.SIGINT)
+            stopped = True
         try:
             rss = ps.memory_info().rss
         except psutil.Error:
@@ -124,15 +131,25 @@ def run_case(movie: Path, out: Path, threads: int, interval: float,
     wall = time.perf_counter() - t0
     reader.join(timeout=10)
     code = os.waitstatus_to_exitcode(status)
-    if code != 0:
+    if code != 0 and not stopped:
         raise RuntimeError(f"{' '.join(cmd)} failed ({code}):\n{''.join(output)[-2000:]}")
     step = max(1, len(samples) // 200)
+    done = None
+    if stopped:
+        import h5py
+
+        for f in (out, out.with_name(out.name + ".partial")):
+            if f.exists():
+                with h5py.File(f, "r") as h:
+                    done = int(h["completed"][()].sum())
     return {
+        "complete": not stopped, "frames_finished": done,
+        "tail": [ln.rstrip() for ln in output[-3:]] if stopped else [],
         "command": " ".join(["stsdic", *cmd[3:]]),
         "peak_rss_mb": round(usage.ru_maxrss / 1024, 1),  # kB on Linux
         "sampled_peak_mb": max((s[1] for s in samples), default=None),
         "wall_s": round(wall, 1),
-        "result_file_mb": round(out.stat().st_size / 1e6, 1),
+        "result_file_mb": round(out.stat().st_size / 1e6, 1) if out.exists() else None,
         "summary": [ln.rstrip() for ln in output if ln.startswith(("points:", "time:",
                                                                     "converged:"))],
         "timeline_s_mb": samples[::step],
@@ -151,6 +168,8 @@ def main() -> None:
                     help="the movie's velocity along x, px per frame (default: stsdic synth's)")
     ap.add_argument("--run-args", default="", help="extra stsdic run options")
     ap.add_argument("--json", type=Path, default=REPO / "docs/bench/memory-length-cpu.json")
+    ap.add_argument("--max-seconds", type=float,
+                    help="interrupt a run after this long (the record says how far it got)")
     ap.add_argument("--merge", type=Path, nargs="+",
                     help="records of this script to merge into --json (nothing is run)")
     ap.add_argument("--note", help="a note recorded with a merged record")
@@ -164,7 +183,8 @@ def main() -> None:
     for size, frames in cases:
         movie = ensure_movie(args.data, size, frames, args.ut)
         out = Path(tempfile.mkdtemp(dir=args.data)) / f"r_{size}_{frames}.h5"
-        rec = run_case(movie, out, args.threads, args.interval, args.run_args.split())
+        rec = run_case(movie, out, args.threads, args.interval, args.run_args.split(),
+                       args.max_seconds)
         rec.update({"size": size, "frames": frames})
         print(f"{size}x{size} {frames:6d} frames: peak {rec['peak_rss_mb']:7.1f} MB, "
               f"{rec['wall_s']:7.1f} s  {rec['summary'][:1]}", flush=True)
