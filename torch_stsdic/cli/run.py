@@ -619,10 +619,13 @@ def _print_summary(res: Any, args: argparse.Namespace, elapsed: float, ref: str,
 
     from torch_stsdic.kernels import dispatch
 
-    n_f, n_p = res.n_frames, res.n_points
-    counts = res.info.get("row_counts")
-    if counts is None:  # a result held in memory: counted from its fields
-        counts = _row_counts(to_numpy(res.status), None if res.m is None else to_numpy(res.m))
+    counts = res.info.get("row_counts")  # the run's own count: no (F, N) field read
+    if counts is None:  # counted from the result's fields
+        status = to_numpy(res.status)
+        n_f, n_p = status.shape
+        counts = _row_counts(status, None if res.m is None else to_numpy(res.m))
+    else:
+        n_f, n_p = res.n_frames, res.n_points
     st = _status_summary(counts["status"])
     bad = sum(v for k, v in st.items() if k not in ("converged", "max_iter"))
     print(f"points: {n_p}   frames: {n_f}   reference: {args.reference} ({ref})   m: {args.m}")

@@ -46,22 +46,26 @@ def _fill(params: np.ndarray, times: np.ndarray) -> np.ndarray:
     return out
 
 
-def _measured_sample(res, pts: torch.Tensor, valid: torch.Tensor,
-                     rows: torch.Tensor | None = None) -> MeasuredSample:
+def _measured_sample(sink: MemorySink, pts: torch.Tensor, valid: torch.Tensor
+                     ) -> MeasuredSample:
     """The pass's trusted solutions (``valid`` (F, n)) at its sample points ``pts`` (n, 2),
-    at its rows ``rows`` (default all)."""
+    at the rows ``sink`` holds its gradients (``sink.sparse_rows``)."""
     nan = torch.tensor(float("nan"), dtype=torch.float64)
-    rows = torch.arange(res.n_frames) if rows is None else rows
-    disp = torch.stack([res.u[rows], res.v[rows]], -1).double().cpu()
-    grads = res.gradients
+    rows = sink.sparse_rows
+    v = sink.values
+    disp = torch.stack([torch.from_numpy(v["u"][rows]), torch.from_numpy(v["v"][rows])],
+                       -1).double()
+    grads = sink.sparse
     if all(nm in grads for nm in ("ux", "uy", "vx", "vy")):
-        g = torch.stack([torch.stack([grads["ux"][rows], grads["uy"][rows]], -1),
-                         torch.stack([grads["vx"][rows], grads["vy"][rows]], -1)],
-                        -2).double().cpu()
+        g = torch.stack([torch.stack([torch.from_numpy(grads["ux"]),
+                                      torch.from_numpy(grads["uy"])], -1),
+                         torch.stack([torch.from_numpy(grads["vx"]),
+                                      torch.from_numpy(grads["vy"])], -1)], -2).double()
     else:  # a translation-only shape: no gradients, zero
         g = torch.zeros(*disp.shape, 2, dtype=torch.float64)
-    ok = valid[rows].cpu()
-    return MeasuredSample(points=pts, frames=res.frames[rows].cpu().long(),
+    ok = valid[torch.from_numpy(rows)].cpu()
+    frames = torch.as_tensor(sink.plan.targets, dtype=torch.long)[torch.from_numpy(rows)]
+    return MeasuredSample(points=pts, frames=frames,
                           disp=torch.where(ok.unsqueeze(-1), disp, nan),
                           grad=torch.where(ok.view(*ok.shape, 1, 1), g, nan))
 
@@ -133,26 +137,25 @@ def estimate_shared_motion(plan: RunPlan, kind: str = "auto",
     names = tuple(nm for nm in plan.param_names if nm not in ("ut", "vt"))
     sub = dataclasses.replace(plan, config=cfg, targets=frames, options=opts,
                               param_names=names, points=plan.points[sel])
-    # only what the fit and the first guess use, at the run's precision (a long movie: the
-    # pass measures every frame)
-    keep = ("u", "v", "zncc", "status", *(nm for nm in ("ux", "uy", "vx", "vy")
-                                          if nm in sub.param_names), *(
-        ("u_std",) if "u_std" in sub.fields else ()))
-    res = run(sub, MemorySink(sub, keep=keep), progress=False)
+    # only what the fit uses, at the run's precision (a long movie: the pass measures every
+    # frame), and the gradients of the first guess only where blocks start from it
+    if guess_blocks is None and plan.config.m > 0:
+        guess_blocks = plan.blocks[:1]
+    near = torch.ones(len(frames), dtype=torch.bool) if guess_blocks is None else \
+        MeasuredSample.near_frames(torch.as_tensor(frames, dtype=torch.long), guess_blocks,
+                                   plan.config.m)
+    grads = tuple(nm for nm in ("ux", "uy", "vx", "vy") if nm in sub.param_names)
+    keep = ("u", "v", "zncc", "status", *(("u_std",) if "u_std" in sub.fields else ()))
+    sink = MemorySink(sub, keep=keep, at_rows=(grads, torch.nonzero(near).flatten().numpy()))
+    res = run(sub, sink, progress=False)
     disp = torch.stack([res.u, res.v], -1).double().cpu()  # (F, n, 2)
     valid = (res.status <= USABLE).cpu() & (res.zncc.cpu() >= float(
         plan.options.get("lost_zncc", 0.8)))
     pts = plan.points[sel].double().cpu()
     origin = plan.points.double().mean(0).cpu()
     noise = res.std["u"].double().cpu() if "u" in res.std else None
-    if guess_blocks is None and plan.config.m > 0:
-        guess_blocks = plan.blocks[:1]
-    rows = None  # the sample where blocks start from it (:meth:`MeasuredSample.near_frames`)
-    if guess_blocks is not None:
-        rows = torch.nonzero(MeasuredSample.near_frames(
-            res.frames.cpu().long(), guess_blocks, plan.config.m)).flatten()
-    sample = _measured_sample(res, pts, valid, rows)
-    del res  # the pass's fields: only what the fit uses is kept
+    sample = _measured_sample(sink, pts, valid)  # the first guess: near the blocks' frames
+    del res, sink  # the pass's fields: only what the fit uses is kept
     par, scat, used, se_t = fit_frame_motion(pts, disp, valid, kind, origin=origin,
                                              noise=noise)
     se_t = se_t * overlap_factor(pts, plan.config.subset_size)

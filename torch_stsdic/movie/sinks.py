@@ -45,13 +45,25 @@ class MemorySink:
     only a few (the shared motion's measuring pass) holds those alone, at the plan's
     precision (float32 values of a float32 run are held exactly in float32); the others
     read NaN (status NOT_COMPUTED, iterations 0, m -1) in its :meth:`result`, taking no
-    memory."""
+    memory. ``at_rows`` (names, rows): fields held only at those rows (:attr:`sparse`)."""
 
     path: str | None = None
 
-    def __init__(self, plan: RunPlan, keep: Sequence[str] | None = None) -> None:
+    def __init__(self, plan: RunPlan, keep: Sequence[str] | None = None,
+                 at_rows: tuple[Sequence[str], np.ndarray] | None = None) -> None:
         self.plan = plan
         self.values: dict[str, np.ndarray] = {}
+        #: ``at_rows`` (names, rows): fields held only at those rows (sorted), (R, N) each,
+        #: in ``sparse`` (not in the result, which reads them NaN)
+        self.sparse: dict[str, np.ndarray] = {}
+        self.sparse_rows = np.zeros(0, dtype=np.int64)
+        self._pos = np.full(plan.n_rows, -1, dtype=np.int64)
+        if at_rows is not None:
+            self.sparse_rows = np.asarray(at_rows[1], dtype=np.int64)
+            self._pos[self.sparse_rows] = np.arange(len(self.sparse_rows))
+            real = np.float32 if plan.dtype == torch.float32 else np.float64
+            self.sparse = {nm: np.full((len(self.sparse_rows), plan.n_points), np.nan,
+                                       dtype=real) for nm in at_rows[0]}
         self.reference_frames = np.full(plan.n_rows, plan.reference_frame, dtype=np.int64)
         self.raw: dict[str, np.ndarray] = {}
         #: per status code, the rows written or replayed; per window half-width, the
@@ -108,6 +120,11 @@ class MemorySink:
         """Hold rows ``rows`` of the fields kept; returns the rows as held."""
         for nm, a in self.values.items():
             a[list(rows)] = values[nm]
+        if self.sparse:
+            pos = self._pos[np.asarray(rows, dtype=np.int64)]
+            at = pos >= 0
+            for nm, a in self.sparse.items():
+                a[pos[at]] = np.asarray(values[nm])[at]
         return values
 
     def field_values(self, name: str) -> np.ndarray:
