@@ -114,3 +114,30 @@ def test_smoothed_run_strains_from_the_smoothed_fields(frames, tmp_path):
     for name in STRAINS:
         np.testing.assert_allclose(stored.fields[name], whole[name], rtol=0, atol=1e-7,
                                    equal_nan=True, err_msg=name)
+
+
+def test_file_run_holds_no_rows_and_the_pass_keeps_few(frames, tmp_path, monkeypatch):
+    """The file's sink holds no (F, N) array; the shared motion's measuring pass keeps the
+    first guess only at the frames the first block's windows can use."""
+    from torch_stsdic.movie import sinks
+
+    made: list = []
+    real_init = sinks.MemorySink.__init__
+
+    def spy(self, *args, **kwargs):
+        real_init(self, *args, **kwargs)
+        made.append(self)
+
+    monkeypatch.setattr(sinks.MemorySink, "__init__", spy)
+    kw = {**KW, "shared_motion": "affine"}
+    res = track(frames, out=tmp_path / "r.h5", **kw)
+    file_sink = [s for s in made if isinstance(s, sinks.HDF5Sink)]
+    assert len(file_sink) == 1 and file_sink[0].values == {}  # nothing of size F x N
+    assert res.info.get("shared_motion")  # the run measured a shared motion
+    passes = [s for s in made if not isinstance(s, sinks.HDF5Sink) and s.sparse]
+    assert passes, "the measuring pass keeps its gradients at a few rows"
+    m = CFG.m
+    first = res.frames[0].item()
+    kept = np.asarray(passes[0].plan.targets)[passes[0].sparse_rows]
+    assert kept.max() <= first + 2 * m and len(kept) < len(passes[0].plan.targets)
+    assert set(passes[0].values) == {"u", "v", "zncc", "status", "u_std"}
