@@ -141,3 +141,28 @@ def test_file_run_holds_no_rows_and_the_pass_keeps_few(frames, tmp_path, monkeyp
     kept = np.asarray(passes[0].plan.targets)[passes[0].sparse_rows]
     assert kept.max() <= first + 2 * m and len(kept) < len(passes[0].plan.targets)
     assert set(passes[0].values) == {"u", "v", "zncc", "status", "u_std"}
+
+
+@pytest.mark.parametrize("kind", ["translation", "affine", "quadratic"])
+def test_fit_in_chunks_equals_the_whole_series(kind, monkeypatch):
+    """The shared motion's fit of a long series, taken in chunks of frames and points
+    (bounded memory), gives the very numbers of the fit over the whole series at once."""
+    from torch_stsdic.core import shared_motion as sm
+
+    g = torch.Generator().manual_seed(3)
+    f, n = 600, 120
+    pts = torch.rand(n, 2, generator=g, dtype=torch.float64) * 300
+    t = torch.arange(f, dtype=torch.float64)[:, None, None]
+    disp = 0.05 * t + 1e-4 * pts[None] * t + 0.01 * torch.randn(f, n, 2, generator=g,
+                                                                 dtype=torch.float64)
+    disp[torch.rand(f, n, generator=g) < 0.01] += 3.0  # wrong peaks
+    disp[torch.rand(f, n, generator=g) < 0.005] = float("nan")
+    valid = torch.rand(f, n, generator=g) > 0.05
+    noise = 0.02 * torch.rand(f, n, generator=g, dtype=torch.float64)
+    chunked = sm.fit_frame_motion(pts, disp, valid, kind, noise=noise)
+    assert len(sm._wls_chunks(f)) > 1
+    monkeypatch.setattr(sm, "FIT_CHUNK", 1 << 40)
+    monkeypatch.setattr(sm, "WLS_FRAMES", 1 << 40)
+    whole = sm.fit_frame_motion(pts, disp, valid, kind, noise=noise)
+    for a, b in zip(chunked, whole):
+        assert torch.equal(a.nan_to_num(-9.0), b.nan_to_num(-9.0))

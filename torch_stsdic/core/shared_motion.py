@@ -318,12 +318,29 @@ def _point_chunks(f: int, n: int) -> list[slice]:
     return [slice(i, min(i + step, n)) for i in range(0, n, step)]
 
 
+#: the normal equations of a long series are made over chunks of at least this many frames:
+#: each chunk's batched product then rounds as the whole series' does (below ~100 frames a
+#: BLAS takes its small-matrix path, which rounds differently; checked on every shape of
+#: tests/test_long_movies.py::test_fit_in_chunks_equals_the_whole_series)
+WLS_FRAMES = 256
+
+
+def _wls_chunks(f: int) -> list[slice]:
+    """Consecutive frames in chunks of ``WLS_FRAMES`` to ``2 * WLS_FRAMES - 1`` (one chunk
+    where ``f`` is shorter than two)."""
+    if f < 2 * WLS_FRAMES:
+        return [slice(0, f)]
+    cuts = list(range(0, f, WLS_FRAMES))
+    if f - cuts[-1] < WLS_FRAMES:
+        cuts.pop()
+    return [slice(a, b) for a, b in zip(cuts, cuts[1:] + [f])]
+
+
 def _spread(x: Tensor, d: Tensor, ok: Tensor, coef: Tensor, w: Tensor, eye: Tensor,
             noise: Tensor | None) -> tuple[Tensor, Tensor]:
     """Per frame: the robust scatter of the residuals (F,) px (frame chunk by frame chunk)
     and the variance (F,) of the translation coefficient (sandwich with ``noise``, else from
-    the scatter; over every frame at once: a batched product's rounding depends on the
-    batch)."""
+    the scatter; chunks of :data:`WLS_FRAMES`)."""
     f = d.shape[0]
     s = torch.empty(f, dtype=torch.float64, device=d.device)
     for sl in _frame_chunks(f, d.shape[1]):
@@ -332,25 +349,31 @@ def _spread(x: Tensor, d: Tensor, ok: Tensor, coef: Tensor, w: Tensor, eye: Tens
         r = (d0 - x @ coef[sl]).norm(dim=-1)
         # 2-D residuals of std s per component: |r| is Rayleigh, median 1.1774 s
         s[sl] = torch.nanmedian(torch.where(okc, r, torch.nan), dim=1).values / 1.1774
-    xwt = x.T.unsqueeze(0) * w.unsqueeze(1)  # (F, C, N): (x w)^T, made contiguous once
-    inv = torch.linalg.inv(xwt @ x + eye)
-    if noise is None:
-        var0 = (inv @ (xwt @ xwt.transpose(1, 2)) @ inv)[:, 0, 0] * s * s
-    else:  # sandwich with each row's own noise variance
-        nv = torch.where(ok, torch.nan_to_num(noise.double(), nan=0.0) ** 2, torch.zeros_like(w))
-        xwt *= nv.sqrt().unsqueeze(1)  # (x_n)^T
-        var0 = (inv @ (xwt @ xwt.transpose(1, 2)) @ inv)[:, 0, 0]
+    var0 = torch.empty_like(s)
+    for sl in _wls_chunks(f):
+        xwt = x.T.unsqueeze(0) * w[sl].unsqueeze(1)  # (F, C, N): (x w)^T, made contiguous
+        inv = torch.linalg.inv(xwt @ x + eye)
+        if noise is None:
+            var0[sl] = (inv @ (xwt @ xwt.transpose(1, 2)) @ inv)[:, 0, 0] * s[sl] * s[sl]
+        else:  # sandwich with each row's own noise variance
+            nv = torch.where(ok[sl], torch.nan_to_num(noise[sl].double(), nan=0.0) ** 2,
+                             torch.zeros_like(w[sl]))
+            xwt *= nv.sqrt().unsqueeze(1)  # (x_n)^T
+            var0[sl] = (inv @ (xwt @ xwt.transpose(1, 2)) @ inv)[:, 0, 0]
     return s, var0
 
 
 def _wls(x: Tensor, d: Tensor, w: Tensor, eye: Tensor) -> Tensor:
     """(F, C, 2) per-frame weighted least squares of d (F, N, 2) on x (N, C), weights w
     (F, N) or (N,)."""
-    # over every frame at once: the batched product's rounding depends on the batch; (x w)^T
-    # made contiguous (F, C, N), as the product would copy it (the same numbers)
+    # (x w)^T made contiguous (F, C, N), as the product would copy it (the same numbers),
+    # chunks of frames that round as the whole series (:data:`WLS_FRAMES`)
     w = w.expand(d.shape[0], -1) if w.dim() == 1 else w
-    xwt = x.T.unsqueeze(0) * w.unsqueeze(1)
-    return torch.linalg.solve(xwt @ x + eye, xwt @ d)
+    out = torch.empty(d.shape[0], x.shape[1], d.shape[2], dtype=d.dtype, device=d.device)
+    for sl in _wls_chunks(d.shape[0]):
+        xwt = x.T.unsqueeze(0) * w[sl].unsqueeze(1)
+        out[sl] = torch.linalg.solve(xwt @ x + eye, xwt @ d[sl])
+    return out
 
 
 def _frame_fit(x: Tensor, d: Tensor, ok: Tensor, eye: Tensor) -> tuple[Tensor, Tensor]:
