@@ -179,6 +179,7 @@ def main() -> None:
         return
     cases = [tuple(int(x) for x in c.split(":")) for c in args.cases.split(",") if c]
     args.data.mkdir(parents=True, exist_ok=True)
+    machine = bench.machine_info([args.threads], "cpu")  # the code as the runs start
     results = []
     for size, frames in cases:
         movie = ensure_movie(args.data, size, frames, args.ut)
@@ -190,7 +191,8 @@ def main() -> None:
               f"{rec['wall_s']:7.1f} s  {rec['summary'][:1]}", flush=True)
         results.append(rec)
         shutil.rmtree(out.parent, ignore_errors=True)
-    write_record(args.json, results, bench.machine_info([args.threads], "cpu"))
+    machine["load_average_end"] = list(os.getloadavg())
+    write_record(args.json, results, machine)
 
 
 def ratios_of(results: list[dict[str, Any]]) -> dict[str, float]:
