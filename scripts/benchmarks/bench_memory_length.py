@@ -196,13 +196,15 @@ def main() -> None:
 
 
 def ratios_of(results: list[dict[str, Any]]) -> dict[str, float]:
-    """Per image size, the peak of the longest case over that of the shortest."""
+    """Per image size, the peak of every longer finished case over that of the shortest
+    (an interrupted run has no ratio: its peak is of the part it ran)."""
     out = {}
-    for size in sorted({r["size"] for r in results}):
-        same = sorted((r for r in results if r["size"] == size), key=lambda r: r["frames"])
-        if len(same) > 1:
-            out[f"{size}: {same[-1]['frames']} / {same[0]['frames']} frames"] = round(
-                same[-1]["peak_rss_mb"] / same[0]["peak_rss_mb"], 3)
+    done = [r for r in results if r.get("complete", True)]
+    for size in sorted({r["size"] for r in done}):
+        same = sorted((r for r in done if r["size"] == size), key=lambda r: r["frames"])
+        for r in same[1:]:
+            out[f"{size}: {r['frames']} / {same[0]['frames']} frames"] = round(
+                r["peak_rss_mb"] / same[0]["peak_rss_mb"], 3)
     return out
 
 
