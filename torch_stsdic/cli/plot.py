@@ -524,7 +524,7 @@ def execute(args: argparse.Namespace) -> int:
         raise CommandError(f"result file not found: {args.result}")
     if _is_stereo(p):
         return _execute_stereo(args, p)
-    res = read_results(p)
+    res = read_results(p, lazy=True)  # the fields drawn are read, not all of them
     if res.n_frames == 0 or res.n_points == 0:
         raise CommandError(f"{args.result}: the result file holds no frame or no point")
     row = _row(args, res)

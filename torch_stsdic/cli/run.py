@@ -591,13 +591,26 @@ def shared_motion_lines(rec: dict[str, Any] | None) -> list[str]:
     return lines
 
 
-def _status_summary(status: np.ndarray) -> dict[str, float]:
-    """Percent of the (frame, point) results with each status, by lower-case status name."""
+def _row_counts(status: np.ndarray, m: np.ndarray | None) -> dict[str, dict[str, int]]:
+    """The (frame, point) results by status code and the usable ones by window half-width
+    (the layout of ``TrackResult.info["row_counts"]``), from (F, N) fields."""
+    s = np.asarray(status).astype(np.int64)
+    codes, n = np.unique(s, return_counts=True)
+    out = {"status": {str(c): int(k) for c, k in zip(codes.tolist(), n.tolist())},
+           "m_usable": {}}
+    if m is not None:
+        mc, mn = np.unique(np.asarray(m).astype(np.int64)[s <= 1], return_counts=True)
+        out["m_usable"] = {str(c): int(k) for c, k in zip(mc.tolist(), mn.tolist())}
+    return out
+
+
+def _status_summary(counts: dict[str, int]) -> dict[str, float]:
+    """Percent of the (frame, point) results with each status, by lower-case status name
+    (``counts``: results by status code, as in ``info["row_counts"]["status"]``)."""
     from torch_stsdic.core.status import Status
 
-    s = np.asarray(status).astype(np.int64)
-    total = max(1, s.size)
-    return {st.name.lower(): 100.0 * float((s == int(st)).sum()) / total for st in Status}
+    total = max(1, sum(counts.values()))
+    return {st.name.lower(): 100.0 * counts.get(str(int(st)), 0) / total for st in Status}
 
 
 def _pct(share: float) -> str:
@@ -614,9 +627,14 @@ def _print_summary(res: Any, args: argparse.Namespace, elapsed: float, ref: str,
 
     from torch_stsdic.kernels import dispatch
 
-    status = to_numpy(res.status)
-    n_f, n_p = status.shape
-    st = _status_summary(status)
+    counts = res.info.get("row_counts")  # the run's own count: no (F, N) field read
+    if counts is None:  # counted from the result's fields
+        status = to_numpy(res.status)
+        n_f, n_p = status.shape
+        counts = _row_counts(status, None if res.m is None else to_numpy(res.m))
+    else:
+        n_f, n_p = res.n_frames, res.n_points
+    st = _status_summary(counts["status"])
     bad = sum(v for k, v in st.items() if k not in ("converged", "max_iter"))
     m_text = (f"<= {args.m} (chosen)" if getattr(args, "window_length", "fixed") == "auto"
               else str(args.m))
@@ -628,26 +646,20 @@ def _print_summary(res: Any, args: argparse.Namespace, elapsed: float, ref: str,
         f"low texture {_pct(st['low_texture'])}, not computed {_pct(st['not_computed'])}, "
         f"poor fit {_pct(st['poor_fit'])}, inconsistent {_pct(st['inconsistent'])})"
     )
-    m_used = res.m
-    auto = getattr(args, "window_length", "fixed") == "auto"
-    if args.m and m_used is not None and auto:
-        mu = to_numpy(m_used)
-        ok = status <= 1
-        if ok.any():
-            share = ", ".join(f"{m}: {_pct(100.0 * (mu[ok] == m).mean())} %"
-                              for m in range(args.m, -1, -1))
-            print(f"window: chosen per point and frame up to m = {args.m}, of the trusted "
-                  f"results at m = {share} (shorter where the measured motion is not affine "
-                  "in time over a longer window; classical at m = 0: no velocity there)")
-    elif args.m and m_used is not None:
-        mu = to_numpy(m_used)
-        ok = status <= 1
-        if ok.any():
-            print(f"window: m = {args.m} at {_pct(100.0 * (mu[ok] == args.m).mean())} % of the "
-                  f"trusted results, shorter where the motion is not affine in time or the "
-                  f"point leaves the image within the window (classical at "
-                  f"{_pct(100.0 * (mu[ok] == 0).mean())} %: no velocity there, ut and vt are "
-                  "NaN)")
+    m_ok = {int(k): c for k, c in counts["m_usable"].items()}
+    usable = sum(m_ok.values())
+    if args.m and usable and getattr(args, "window_length", "fixed") == "auto":
+        share = ", ".join(f"{m}: {_pct(100.0 * m_ok.get(m, 0) / usable)} %"
+                          for m in range(args.m, -1, -1))
+        print(f"window: chosen per point and frame up to m = {args.m}, of the trusted "
+              f"results at m = {share} (shorter where the measured motion is not affine "
+              "in time over a longer window; classical at m = 0: no velocity there)")
+    elif args.m and usable:
+        print(f"window: m = {args.m} at {_pct(100.0 * m_ok.get(args.m, 0) / usable)} % of the "
+              f"trusted results, shorter where the motion is not affine in time or the "
+              f"point leaves the image within the window (classical at "
+              f"{_pct(100.0 * m_ok.get(0, 0) / usable)} %: no velocity there, ut and vt are "
+              "NaN)")
     off = int(res.info.get("off_centre_rows", 0) or 0)
     if off:
         print(f"border: {_pct(100.0 * off / max(1, n_f * n_p))} % of the point-frames solved "

@@ -280,19 +280,8 @@ def fit_frame_motion(points: Tensor, disp: Tensor, valid: Tensor, kind: str = "a
         coef, w, ok = _consistent_fit(x, d, ok, eye)
     else:
         coef, w = _frame_fit(x, d, ok, eye)
-    d0 = torch.where(ok.unsqueeze(-1), d, torch.zeros_like(d))
-    r = (d0 - x @ coef).norm(dim=-1)
-    # 2-D residuals of std s per component: |r| is Rayleigh, median 1.1774 s
-    s = torch.nanmedian(torch.where(ok, r, torch.nan), dim=1).values / 1.1774
+    s, var0 = _spread(x, d, ok, coef, w, eye, noise)
     used = ok.sum(1)
-    xw = x.unsqueeze(0) * w.unsqueeze(-1)
-    inv = torch.linalg.inv(xw.transpose(1, 2) @ x + eye)
-    if noise is None:
-        var0 = (inv @ (xw.transpose(1, 2) @ xw) @ inv)[:, 0, 0] * s * s
-    else:  # sandwich with each row's own noise variance
-        nv = torch.where(ok, torch.nan_to_num(noise.double(), nan=0.0) ** 2, torch.zeros_like(w))
-        xn = xw * nv.sqrt().unsqueeze(-1)
-        var0 = (inv @ (xn.transpose(1, 2) @ xn) @ inv)[:, 0, 0]
     se = var0.clamp(min=0).sqrt()
     out = torch.zeros(f, 12 if kind == "quadratic" else 6, dtype=torch.float64, device=p.device)
     out[:, 0], out[:, 1] = coef[:, 0, 0], coef[:, 0, 1]
@@ -311,12 +300,80 @@ def fit_frame_motion(points: Tensor, disp: Tensor, valid: Tensor, kind: str = "a
     return out, s, used, torch.where(few, torch.nan, se)
 
 
+#: (frame, point) entries of the intermediate arrays of a series' fit at a time: a long
+#: movie's fit (every frame measured) works through its frames, or its points, in pieces of
+#: this size, each as the whole series would be (the same numbers, bounded memory)
+FIT_CHUNK = 1 << 16
+
+
+def _frame_chunks(f: int, n: int) -> list[slice]:
+    """Consecutive frames, about ``FIT_CHUNK`` entries of ``n`` points each."""
+    step = max(1, FIT_CHUNK // max(n, 1))
+    return [slice(i, min(i + step, f)) for i in range(0, f, step)]
+
+
+def _point_chunks(f: int, n: int) -> list[slice]:
+    """Consecutive points, about ``FIT_CHUNK`` entries of ``f`` frames each."""
+    step = max(1, FIT_CHUNK // max(f, 1))
+    return [slice(i, min(i + step, n)) for i in range(0, n, step)]
+
+
+#: the normal equations of a long series are made over chunks of at least this many frames:
+#: each chunk's batched product then rounds as the whole series' does (below ~100 frames a
+#: BLAS takes its small-matrix path, which rounds differently; checked on every shape of
+#: tests/test_long_movies.py::test_fit_in_chunks_equals_the_whole_series)
+WLS_FRAMES = 256
+
+
+def _wls_chunks(f: int) -> list[slice]:
+    """Consecutive frames in chunks of ``WLS_FRAMES`` to ``2 * WLS_FRAMES - 1`` (one chunk
+    where ``f`` is shorter than two)."""
+    if f < 2 * WLS_FRAMES:
+        return [slice(0, f)]
+    cuts = list(range(0, f, WLS_FRAMES))
+    if f - cuts[-1] < WLS_FRAMES:
+        cuts.pop()
+    return [slice(a, b) for a, b in zip(cuts, cuts[1:] + [f])]
+
+
+def _spread(x: Tensor, d: Tensor, ok: Tensor, coef: Tensor, w: Tensor, eye: Tensor,
+            noise: Tensor | None) -> tuple[Tensor, Tensor]:
+    """Per frame: the robust scatter of the residuals (F,) px (frame chunk by frame chunk)
+    and the variance (F,) of the translation coefficient (sandwich with ``noise``, else from
+    the scatter; chunks of :data:`WLS_FRAMES`)."""
+    f = d.shape[0]
+    s = torch.empty(f, dtype=torch.float64, device=d.device)
+    for sl in _frame_chunks(f, d.shape[1]):
+        okc = ok[sl]
+        d0 = torch.where(okc.unsqueeze(-1), d[sl], torch.zeros_like(d[sl]))
+        r = (d0 - x @ coef[sl]).norm(dim=-1)
+        # 2-D residuals of std s per component: |r| is Rayleigh, median 1.1774 s
+        s[sl] = torch.nanmedian(torch.where(okc, r, torch.nan), dim=1).values / 1.1774
+    var0 = torch.empty_like(s)
+    for sl in _wls_chunks(f):
+        xwt = x.T.unsqueeze(0) * w[sl].unsqueeze(1)  # (F, C, N): (x w)^T, made contiguous
+        inv = torch.linalg.inv(xwt @ x + eye)
+        if noise is None:
+            var0[sl] = (inv @ (xwt @ xwt.transpose(1, 2)) @ inv)[:, 0, 0] * s[sl] * s[sl]
+        else:  # sandwich with each row's own noise variance
+            nv = torch.where(ok[sl], torch.nan_to_num(noise[sl].double(), nan=0.0) ** 2,
+                             torch.zeros_like(w[sl]))
+            xwt *= nv.sqrt().unsqueeze(1)  # (x_n)^T
+            var0[sl] = (inv @ (xwt @ xwt.transpose(1, 2)) @ inv)[:, 0, 0]
+    return s, var0
+
+
 def _wls(x: Tensor, d: Tensor, w: Tensor, eye: Tensor) -> Tensor:
     """(F, C, 2) per-frame weighted least squares of d (F, N, 2) on x (N, C), weights w
     (F, N) or (N,)."""
+    # (x w)^T made contiguous (F, C, N), as the product would copy it (the same numbers),
+    # chunks of frames that round as the whole series (:data:`WLS_FRAMES`)
     w = w.expand(d.shape[0], -1) if w.dim() == 1 else w
-    xw = x.unsqueeze(0) * w.unsqueeze(-1)
-    return torch.linalg.solve(xw.transpose(1, 2) @ x + eye, xw.transpose(1, 2) @ d)
+    out = torch.empty(d.shape[0], x.shape[1], d.shape[2], dtype=d.dtype, device=d.device)
+    for sl in _wls_chunks(d.shape[0]):
+        xwt = x.T.unsqueeze(0) * w[sl].unsqueeze(1)
+        out[sl] = torch.linalg.solve(xwt @ x + eye, xwt @ d[sl])
+    return out
 
 
 def _frame_fit(x: Tensor, d: Tensor, ok: Tensor, eye: Tensor) -> tuple[Tensor, Tensor]:
@@ -325,10 +382,14 @@ def _frame_fit(x: Tensor, d: Tensor, ok: Tensor, eye: Tensor) -> tuple[Tensor, T
     w = ok.double()
     coef = _wls(x, d0, w, eye)
     for _ in range(_IRLS_STEPS):
-        r = (d0 - x @ coef).norm(dim=-1)
-        s = torch.nanmedian(torch.where(ok, r, torch.nan), dim=1).values / 1.1774
-        k = (_HUBER * s).clamp(min=1e-6).unsqueeze(1)
-        w = torch.where(ok, torch.clamp(k / r.clamp(min=1e-12), max=1.0), torch.zeros_like(r))
+        w = torch.empty(ok.shape, dtype=d0.dtype, device=d0.device)
+        for sl in _frame_chunks(*ok.shape):  # the weights frame chunk by frame chunk
+            okc = ok[sl]
+            r = (d0[sl] - x @ coef[sl]).norm(dim=-1)
+            s = torch.nanmedian(torch.where(okc, r, torch.nan), dim=1).values / 1.1774
+            k = (_HUBER * s).clamp(min=1e-6).unsqueeze(1)
+            w[sl] = torch.where(okc, torch.clamp(k / r.clamp(min=1e-12), max=1.0),
+                                torch.zeros_like(r))
         coef = _wls(x, d0, w, eye)
     return coef, w
 
@@ -336,7 +397,18 @@ def _frame_fit(x: Tensor, d: Tensor, ok: Tensor, eye: Tensor) -> tuple[Tensor, T
 def _fill_in_time(r: Tensor, ok: Tensor) -> Tensor:
     """(F, N, 2) ``r`` with the entries not ``ok`` interpolated linearly in time between the
     point's nearest valid frames (the nearest one before its first or after its last; 0 for
-    a point never valid)."""
+    a point never valid); point chunk by point chunk."""
+    chunks = _point_chunks(*ok.shape)
+    if len(chunks) == 1:
+        return _fill_points(r, ok)
+    out = torch.empty_like(r)
+    for sl in chunks:
+        out[:, sl] = _fill_points(r[:, sl], ok[:, sl])
+    return out
+
+
+def _fill_points(r: Tensor, ok: Tensor) -> Tensor:
+    """:func:`_fill_in_time` of a few points."""
     f = r.shape[0]
     t = torch.arange(f, device=r.device).unsqueeze(1).expand_as(ok)
     prev = torch.where(ok, t, torch.full_like(t, -1)).cummax(0).values
@@ -391,28 +463,48 @@ def _consistent_fit(x: Tensor, d: Tensor, ok: Tensor, eye: Tensor
     use = ok & keep
     coef, _ = _frame_fit(x, d, use, eye)  # a robust start, frame by frame
     w = keep.double().expand(d.shape[0], -1)
+    f, n = use.shape
+    fr, pt = _frame_chunks(f, n), _point_chunks(f, n)
     for _ in range(3):
-        r = torch.where(use.unsqueeze(-1), d - x @ coef, torch.zeros_like(d))
-        rf = _fill_in_time(r, use)
-        rough = (rf[2:] - 2 * rf[1:-1] + rf[:-2]).norm(dim=-1).median(0).values  # (N,)
+        r = torch.empty_like(d)
+        for sl in fr:
+            r[sl] = torch.where(use[sl].unsqueeze(-1), d[sl] - x @ coef[sl],
+                                torch.zeros_like(d[sl]))
+        # per point (its frames in time): the roughness of its residual and, a wrong peak
+        # in single frames, how far each frame is from what its neighbouring frames predict
+        rough = torch.empty(n, dtype=d.dtype, device=d.device)
+        jump = torch.empty_like(d)
+        for sl in pt:
+            rf = _fill_points(r[:, sl], use[:, sl])
+            rough[sl] = (rf[2:] - 2 * rf[1:-1] + rf[:-2]).norm(dim=-1).median(0).values
+            jump[:, sl] = rf - _neighbours_line(rf)
+        del rf
         s_r = torch.nanmedian(torch.where(keep, rough, torch.nan)).clamp(min=1e-9)
         w_pt = torch.where(keep & (rough <= 10.0 * s_r),
                            torch.clamp(3.0 * s_r / rough.clamp(min=1e-12), max=1.0),
                            torch.zeros_like(rough))
-        # a wrong peak in single frames: far from what the point's neighbouring frames
-        # predict (what all points share there is the shared motion's own error)
-        jump = rf - _neighbours_line(rf)
-        shared = torch.nanmedian(torch.where(use.unsqueeze(-1), jump, torch.nan), 1).values
-        dev = (jump - torch.nan_to_num(shared).unsqueeze(1)).norm(dim=-1)
+        # (what all points share at a frame is the shared motion's own error)
+        dev = torch.empty(f, n, dtype=d.dtype, device=d.device)
+        for sl in fr:
+            shared = torch.nanmedian(torch.where(use[sl].unsqueeze(-1), jump[sl], torch.nan),
+                                     1).values
+            dev[sl] = (jump[sl] - torch.nan_to_num(shared).unsqueeze(1)).norm(dim=-1)
+        del jump
         scale = torch.nanmedian(torch.where(use, dev, torch.nan)).clamp(min=1e-9)
         limit = torch.clamp(10.0 * scale, min=_GROSS_PX)
         # such an entry is filled in from the point's other frames, as a gap is, and keeps
         # its point's weight: a weight that changed from frame to frame would move the fit
         # by the deformation's departure from it (px on the hourglass without a region)
         good = use & (dev <= limit)
+        del dev
         w = w_pt.expand(d.shape[0], -1)
-        full = torch.where(good.unsqueeze(-1), d, x @ coef + _fill_in_time(r, good))
-        coef = _wls(x, torch.nan_to_num(full), w, eye)
+        full = _fill_in_time(r, good)  # in place of r's entries, chunk by chunk
+        del r
+        for sl in fr:
+            full[sl] = torch.nan_to_num(torch.where(good[sl].unsqueeze(-1), d[sl],
+                                                    x @ coef[sl] + full[sl]))
+        coef = _wls(x, full, w, eye)
+        del full
     return coef, w, use
 
 

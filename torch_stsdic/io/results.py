@@ -77,8 +77,9 @@ CSV_COLUMNS: tuple[str, ...] = ("x", "y", "u", "v", "ut", "vt", "exx", "eyy", "e
 RUN_ARRAYS = ("shared_motion", "series_reference")
 RUN_GROUPS = ("run_estimates",)
 _RESERVED = {"points", "frames", "times", "completed", *RUN_ARRAYS, *RUN_GROUPS}
-#: result files up to this size (bytes) are made in memory and written in one piece
-SKELETON_IN_MEMORY = 256 << 20
+#: result files up to this size (bytes) are made in memory and written in one piece (larger
+#: ones on disk: a long movie's file image would add its size to the run's peak memory)
+SKELETON_IN_MEMORY = 32 << 20
 _INT_FIELDS: dict[str, tuple[type, int]] = {"status": (np.int8, int(Status.NOT_COMPUTED)),
                                              "iterations": (np.int16, -1), "m": (np.int8, -1)}
 
@@ -555,7 +556,7 @@ class Results(_FieldShape):
     frames: np.ndarray  # (F,) int64 image indices
     times: np.ndarray  # (F,) float64
     completed: np.ndarray  # (F,) bool
-    fields: dict[str, np.ndarray]  # name -> (F, N)
+    fields: Mapping[str, np.ndarray]  # name -> (F, N) (a dict, or FileFields: read lazily)
     config: dict[str, Any]
     inputs: list[str]
     attrs: dict[str, Any] = field(default_factory=dict)
@@ -646,9 +647,35 @@ def field_names(f: h5py.File) -> list[str]:
         return [k for k in f if k not in skip and f[k].ndim == 2]
 
 
-def read_results(path: str | os.PathLike[str], fields: Sequence[str] | None = None) -> Results:
+class FileFields(Mapping[str, np.ndarray]):
+    """name -> (F, N) field of result file ``path``, read when first asked for (and kept):
+    :func:`read_results` with ``lazy=True`` (a figure of a long movie reads the fields it
+    draws, not all of them)."""
+
+    def __init__(self, path: Path, names: Sequence[str]) -> None:
+        self.path, self.names = path, list(names)
+        self._held: dict[str, np.ndarray] = {}
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        if name not in self._held:
+            if name not in self.names:
+                raise KeyError(name)
+            with open_results(self.path) as f:
+                self._held[name] = f[name][()]
+        return self._held[name]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self.names)
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+
+def read_results(path: str | os.PathLike[str], fields: Sequence[str] | None = None, *,
+                 lazy: bool = False) -> Results:
     """Load a result file (all fields, or only ``fields``). Works on a file still being
-    written or left by a killed run: rows with ``completed`` False hold NaN / NOT_COMPUTED."""
+    written or left by a killed run: rows with ``completed`` False hold NaN / NOT_COMPUTED.
+    ``lazy``: each field is read when first used (:class:`FileFields`)."""
     p = Path(path)
     with open_results(p) as f:
         names = field_names(f)
@@ -665,7 +692,7 @@ def read_results(path: str | os.PathLike[str], fields: Sequence[str] | None = No
             frames=f["frames"][()],
             times=f["times"][()],
             completed=f["completed"][()].astype(bool),
-            fields={n: f[n][()] for n in names},
+            fields=FileFields(p, names) if lazy else {n: f[n][()] for n in names},
             config=json.loads(attrs.pop("config", "{}")),
             inputs=list(json.loads(attrs.pop("inputs", "[]"))),
             attrs=attrs, arrays=arrays,

@@ -232,8 +232,10 @@ def _measure(job: _Job) -> None:
     (:func:`~torch_stsdic.movie.estimates.stored_or_measured`) but where it has chunks to
     run with a shared motion: each starts from the shared motion's first guess, which the
     file does not hold, so they are measured again."""
-    job.estimates = stored_or_measured(job.plan, job.sink, run=run_plan, first_noise=True,
-                                       guess_needed=bool(job.chunks))
+    job.estimates = stored_or_measured(
+        job.plan, job.sink, run=run_plan, first_noise=True, guess_needed=bool(job.chunks),
+        # each chunk starts from the first guess: the pass's solutions kept at their frames
+        guess_blocks=[ch["warm"] or ch["blocks"][0] for ch in job.chunks])
     record_estimates(job.estimates, job.sink)
 
 

@@ -136,17 +136,21 @@ def reference_pixels(plan: RunPlan) -> torch.Tensor:
 
 
 def measure_run(plan: RunPlan, ref_raw: torch.Tensor | None = None, *, run: RunFunction,
-                first_noise: bool = False) -> RunEstimates:
+                first_noise: bool = False, guess_blocks: list[list[int]] | None = None
+                ) -> RunEstimates:
     """Measure the run-level estimates of ``plan`` (those its options ask for) on the whole
     movie. ``ref_raw``: the reference image (default :func:`reference_pixels`); ``run``: the
     runner of a plan (:func:`torch_stsdic.movie.series.run_plan`, which calls this
     function). ``first_noise``: also the reference's noise ratio, on the frames of the plan's
     first block as that block measures it (a runner whose pieces start elsewhere, or a run
-    that records it in its result file for a resumed run to read)."""
+    that records it in its result file for a resumed run to read). ``guess_blocks``: the
+    blocks that start from the shared motion's first guess (default the plan's first;
+    :func:`~torch_stsdic.movie.shared_pass.estimate_shared_motion`)."""
     shared = None
     if plan.options.get("shared_motion"):
         kind = plan.options["shared_motion"]
-        shared = estimate_shared_motion(plan, kind, auto=kind == "auto", run=run)
+        shared = estimate_shared_motion(plan, kind, auto=kind == "auto", run=run,
+                                        guess_blocks=guess_blocks)
     series_ref = None
     if plan.options.get("series_reference"):
         opt = plan.options["series_reference"]
@@ -233,7 +237,8 @@ def record_estimates(est: RunEstimates, sink: MemorySink) -> None:
 
 def stored_or_measured(plan: RunPlan, sink: MemorySink, ref_raw: torch.Tensor | None = None,
                        *, run: RunFunction, first_noise: bool = False,
-                       guess_needed: bool | None = None) -> RunEstimates:
+                       guess_needed: bool | None = None,
+                       guess_blocks: list[list[int]] | None = None) -> RunEstimates:
     """The run-level estimates of ``plan``: those an earlier run of it recorded in ``sink``'s
     file (:func:`record_estimates`; a resumed run), where it holds all that ``plan`` asks
     for, else measured (:func:`measure_run`). On a resumed run ``source`` says which.
@@ -244,10 +249,12 @@ def stored_or_measured(plan: RunPlan, sink: MemorySink, ref_raw: torch.Tensor | 
     run's did, not by a ratio measured on its first pending block. ``guess_needed``: whether
     work still to do starts from the shared motion's first guess, which the file does not
     hold (default: where the plan's first block is unfinished; the distributed runner: where
-    any chunk is pending, each starting from it)."""
+    any chunk is pending, each starting from it); ``guess_blocks``: the blocks that start
+    from it (:func:`measure_run`)."""
     stored, done = sink.read_run(GROUP), sink.completed_rows()
     if stored is None and not done:
-        return measure_run(plan, ref_raw, run=run, first_noise=first_noise)  # a new run
+        return measure_run(plan, ref_raw, run=run, first_noise=first_noise,  # a new run
+                           guess_blocks=guess_blocks)
     why = "the result file holds none (written before they were recorded)"
     if stored is not None:
         try:
@@ -260,7 +267,8 @@ def stored_or_measured(plan: RunPlan, sink: MemorySink, ref_raw: torch.Tensor | 
             if first_noise and est.noise_ratio is None:  # recorded before it was
                 est.noise_ratio = _first_block_noise(plan, ref_raw, est.shared)
             return est
-    est = measure_run(plan, ref_raw, run=run, first_noise=first_noise)
+    est = measure_run(plan, ref_raw, run=run, first_noise=first_noise,
+                      guess_blocks=guess_blocks)
     est.source = f"measured again: {why}"
     return est
 

@@ -64,22 +64,43 @@ class MeasuredSample:
         self.disp, self.grad = self.disp.double(), self.grad.double()
 
     @classmethod
-    def from_result(cls, res, points: torch.Tensor, valid: torch.Tensor) -> MeasuredSample:
-        """The trusted solutions (``valid`` (F, n)) of a classical result ``res``
-        (:class:`~torch_stsdic.analysis.result.TrackResult`) at its points ``points`` (n, 2)
-        (gradients zero for a translation-only shape)."""
+    def from_fields(cls, points: torch.Tensor, frames: torch.Tensor, u: torch.Tensor,
+                    v: torch.Tensor, grads: dict[str, torch.Tensor], valid: torch.Tensor
+                    ) -> MeasuredSample:
+        """The trusted solutions (``valid`` (F, n)) of a classical measurement of series
+        ``frames`` (F,) at ``points`` (n, 2): its ``u``, ``v`` (F, n) and gradients ``grads``
+        (``ux``, ``uy``, ``vx``, ``vy`` (F, n); zero where absent: a translation-only
+        shape)."""
         nan = torch.tensor(float("nan"), dtype=torch.float64)
-        disp = torch.stack([res.u, res.v], -1).double().cpu()
-        grads = res.gradients
+        disp = torch.stack([u, v], -1).double().cpu()
         if all(nm in grads for nm in ("ux", "uy", "vx", "vy")):
             g = torch.stack([torch.stack([grads["ux"], grads["uy"]], -1),
                              torch.stack([grads["vx"], grads["vy"]], -1)], -2).double().cpu()
         else:
             g = torch.zeros(*disp.shape, 2, dtype=torch.float64)
         ok = valid.cpu()
-        return cls(points=points, frames=res.frames.cpu().long(),
+        return cls(points=points, frames=frames.cpu().long(),
                    disp=torch.where(ok.unsqueeze(-1), disp, nan),
                    grad=torch.where(ok.view(*ok.shape, 1, 1), g, nan))
+
+    @classmethod
+    def from_result(cls, res, points: torch.Tensor, valid: torch.Tensor) -> MeasuredSample:
+        """:meth:`from_fields` of a classical result ``res``
+        (:class:`~torch_stsdic.analysis.result.TrackResult`) at its points ``points``."""
+        return cls.from_fields(points, res.frames, res.u, res.v, res.gradients, valid)
+
+    @staticmethod
+    def near_frames(frames: torch.Tensor, blocks: list[list[int]], m: int) -> torch.Tensor:
+        """(F,) bool: which of the series frames ``frames`` (F,) the windows of targets
+        ``blocks`` can use (within 2m frames of a block's targets: a window is shifted,
+        never stretched, at the ends of the series or of a load segment): all that
+        :meth:`guess` needs for those blocks, bounded by their number whatever the movie's
+        length."""
+        keep = torch.zeros(len(frames), dtype=torch.bool)
+        for b in blocks:
+            if len(b):
+                keep |= (frames >= min(b) - 2 * m) & (frames <= max(b) + 2 * m)
+        return keep
 
     def guess(self, points: torch.Tensor, windows: torch.Tensor, dt: torch.Tensor
               ) -> dict[str, torch.Tensor]:

@@ -250,8 +250,8 @@ def _smooth(plan: RunPlan, sink: MemorySink) -> None:
     """The "direct smoothing" baseline: u, v of the classical rows smoothed in time."""
     span = plan.options["smoothing"]
     t_rows = plan.row_times
-    su, sut = smooth_in_time(sink.values["u"], span, t_rows, return_rate=True)
-    sv, svt = smooth_in_time(sink.values["v"], span, t_rows, return_rate=True)
+    su, sut = smooth_in_time(sink.field_values("u"), span, t_rows, return_rate=True)
+    sv, svt = smooth_in_time(sink.field_values("v"), span, t_rows, return_rate=True)
     sink.write_smoothed({"u": su, "v": sv, "ut": sut, "vt": svt})
 
 
@@ -313,8 +313,8 @@ def track(
             timestamps, else frame indices. Velocities are px per this time unit.
         progress: tqdm progress bar on stderr (frames/s, ETA).
         out: HDF5 result path, written block by block (:class:`~torch_stsdic.movie.sinks.HDF5Sink`;
-            fields u, v, ut, vt, zncc, status, iterations, ux, uy, vx, vy, and at the end the
-            strains exx, eyy, exy and their rates).
+            fields u, v, ut, vt, zncc, status, iterations, ux, uy, vx, vy, and with every
+            block its strains exx, eyy, exy and their rates).
         resume: continue the run recorded in ``out`` (same settings); the result equals
             an uninterrupted run. overwrite: replace an existing ``out``.
         batch_frames: target frames solved together per block (default: at most 8, 32 on a
@@ -362,7 +362,9 @@ def track(
 
     Returns:
         :class:`TrackResult` with (F, N) fields. With ``out`` the values are those stored in
-        the file (float32 precision), so a resumed run returns the same numbers.
+        the file (float32 precision), so a resumed run returns the same numbers, read from
+        the file when first used (:class:`~torch_stsdic.io.stored_result.StoredTrackResult`:
+        the run itself holds nothing of size frames x points).
 
     Raises:
         ValueError naming the argument (see :func:`~torch_stsdic.movie.plan.plan_run`).

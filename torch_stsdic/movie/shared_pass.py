@@ -26,6 +26,7 @@ from torch_stsdic.core.shared_motion import (
 from torch_stsdic.movie.frames import frames_in_order
 from torch_stsdic.movie.plan import RunPlan
 from torch_stsdic.movie.sample_guess import MeasuredSample
+from torch_stsdic.movie.sinks import MemorySink
 
 #: runs a plan to its result (the signature of :func:`torch_stsdic.movie.series.run_plan`)
 RunFunction = Callable[..., TrackResult]
@@ -43,6 +44,18 @@ def _fill(params: np.ndarray, times: np.ndarray) -> np.ndarray:
     for j in range(out.shape[1]):
         out[~ok, j] = np.interp(times[~ok], times[ok], out[ok, j])
     return out
+
+
+def _measured_sample(sink: MemorySink, pts: torch.Tensor, valid: torch.Tensor
+                     ) -> MeasuredSample:
+    """The pass's trusted solutions (``valid`` (F, n)) at its sample points ``pts`` (n, 2),
+    at the rows ``sink`` holds its gradients (``sink.sparse_rows``)."""
+    rows = sink.sparse_rows
+    at = torch.from_numpy(rows)
+    return MeasuredSample.from_fields(
+        pts, torch.as_tensor(sink.plan.targets, dtype=torch.long)[at],
+        torch.from_numpy(sink.values["u"][rows]), torch.from_numpy(sink.values["v"][rows]),
+        {nm: torch.from_numpy(a) for nm, a in sink.sparse.items()}, valid[at])
 
 
 #: "auto" fits the quadratic shared motion where the sample has at least this many points
@@ -81,7 +94,8 @@ def implausible(disp: torch.Tensor, fitted: torch.Tensor, valid: torch.Tensor,
 
 def estimate_shared_motion(plan: RunPlan, kind: str = "auto",
                            max_points: int = DEFAULT_MAX_POINTS,
-                           auto: bool = False, *, run: RunFunction) -> SharedMotion:
+                           auto: bool = False, *, run: RunFunction,
+                           guess_blocks: list[list[int]] | None = None) -> SharedMotion:
     """Measure the shared motion of a run: classical DIC (checks off) of every series frame
     that a window of the run uses, at up to ``max_points`` of the run's POIs, then
     :func:`fit_frame_motion` per frame. The reference frame's motion is exactly zero. With
@@ -91,7 +105,11 @@ def estimate_shared_motion(plan: RunPlan, kind: str = "auto",
     "quadratic" where the sample holds ``QUADRATIC_POINTS`` points, else "affine" (sample 12:
     full windows at 77 % of the trusted results with the quadratic kind, 71 % with the
     affine one; the hourglass: 94.5 % and 94.9 %). ``run``: the runner of a plan
-    (:func:`torch_stsdic.movie.series.run_plan`, which calls this function)."""
+    (:func:`torch_stsdic.movie.series.run_plan`, which calls this function).
+    ``guess_blocks``: the blocks that start without a carry, from the pass's solutions
+    (``sample``, kept at their frames only: :meth:`MeasuredSample.near_frames`); default the
+    plan's first block (classical windows, m = 0: every frame, a block after the reference
+    frame's own row starts so too)."""
 
     t0 = time.perf_counter()
     n_series = len(plan.series)
@@ -107,13 +125,25 @@ def estimate_shared_motion(plan: RunPlan, kind: str = "auto",
     names = tuple(nm for nm in plan.param_names if nm not in ("ut", "vt"))
     sub = dataclasses.replace(plan, config=cfg, targets=frames, options=opts,
                               param_names=names, points=plan.points[sel])
-    res = run(sub, progress=False)
+    # only what the fit uses, at the run's precision (a long movie: the pass measures every
+    # frame), and the gradients of the first guess only where blocks start from it
+    if guess_blocks is None and plan.config.m > 0:
+        guess_blocks = plan.blocks[:1]
+    near = torch.ones(len(frames), dtype=torch.bool) if guess_blocks is None else \
+        MeasuredSample.near_frames(torch.as_tensor(frames, dtype=torch.long), guess_blocks,
+                                   plan.config.m)
+    grads = tuple(nm for nm in ("ux", "uy", "vx", "vy") if nm in sub.param_names)
+    keep = ("u", "v", "zncc", "status", *(("u_std",) if "u_std" in sub.fields else ()))
+    sink = MemorySink(sub, keep=keep, at_rows=(grads, torch.nonzero(near).flatten().numpy()))
+    res = run(sub, sink, progress=False)
     disp = torch.stack([res.u, res.v], -1).double().cpu()  # (F, n, 2)
     valid = (res.status <= USABLE).cpu() & (res.zncc.cpu() >= float(
         plan.options.get("lost_zncc", 0.8)))
     pts = plan.points[sel].double().cpu()
     origin = plan.points.double().mean(0).cpu()
     noise = res.std["u"].double().cpu() if "u" in res.std else None
+    sample = _measured_sample(sink, pts, valid)  # the first guess: near the blocks' frames
+    del res, sink  # the pass's fields: only what the fit uses is kept
     par, scat, used, se_t = fit_frame_motion(pts, disp, valid, kind, origin=origin,
                                              noise=noise)
     se_t = se_t * overlap_factor(pts, plan.config.subset_size)
@@ -135,7 +165,7 @@ def estimate_shared_motion(plan: RunPlan, kind: str = "auto",
     sigma = (torch.nanmedian(torch.where(valid, noise, torch.nan), dim=1).values
              if noise is not None else torch.zeros(len(frames)))
     out.steps = detect_steps(disp - g, valid, sigma, frames)
-    out.sample = MeasuredSample.from_result(res, pts, valid)
+    out.sample = sample
     if auto:
         z = out.significance()
         out.applied = bool(np.isfinite(z) and z > SIGNIFICANT)

@@ -3,8 +3,10 @@
 A sink receives the result rows of a :class:`~torch_stsdic.movie.plan.RunPlan` block by block
 (:meth:`MemorySink.write_rows`), can give back rows finished by an earlier, interrupted run
 (:meth:`completed_rows`, :meth:`read_rows`), completes the output when the run ends
-(:meth:`finish`: an HDF5 file gets its strain fields) and builds the
-:class:`~torch_stsdic.analysis.result.TrackResult`. The HDF5 layout itself is
+(:meth:`finish`: a smoothed run's strains) and builds the
+:class:`~torch_stsdic.analysis.result.TrackResult`. An HDF5 file gets every block's strain
+fields with the block, and its sink holds nothing of size frames x points: a long movie's
+run needs the memory of a short one. The HDF5 layout itself is
 :mod:`torch_stsdic.io.results`'s business; :class:`HDF5Sink` is the only writer of it, so
 ``track(out=...)``, the distributed runner and ``stsdic run`` write the same file.
 """
@@ -20,31 +22,81 @@ import numpy as np
 import torch
 
 from torch_stsdic.analysis.result import TrackResult
+from torch_stsdic.analysis.strain import compute_strain
 from torch_stsdic.core.shared_motion import PARAM_NAMES, PARAM_UNITS
 from torch_stsdic.core.status import Status
 from torch_stsdic.io.results import STRAIN_FIELDS, ResultWriter, as_stored
+from torch_stsdic.io.stored_result import LazyFields, StoredTrackResult
 from torch_stsdic.movie.plan import RunPlan
 
 __all__ = ["MemorySink", "HDF5Sink", "open_sink", "SMOOTHED"]
+
+#: rows whose strains a smoothed run computes at a time (:meth:`HDF5Sink.finish`)
+STRAIN_ROWS = 64
 
 #: fields that ``smoothing`` replaces (the file keeps the raw ones and adds ``<name>_smooth``)
 SMOOTHED = ("u", "v", "ut", "vt")
 
 
 class MemorySink:
-    """Keeps the (F, N) rows of a run in memory (numpy, full precision)."""
+    """Keeps the (F, N) rows of a run in memory (numpy, full precision).
+
+    ``keep``: the fields to hold (default every field of the plan): a sub-run that needs
+    only a few (the shared motion's measuring pass) holds those alone, at the plan's
+    precision (float32 values of a float32 run are held exactly in float32); the others
+    read NaN (status NOT_COMPUTED, iterations 0, m -1) in its :meth:`result`, taking no
+    memory. ``at_rows`` (names, rows): fields held only at those rows (:attr:`sparse`)."""
 
     path: str | None = None
 
-    def __init__(self, plan: RunPlan) -> None:
+    def __init__(self, plan: RunPlan, keep: Sequence[str] | None = None,
+                 at_rows: tuple[Sequence[str], np.ndarray] | None = None) -> None:
         self.plan = plan
-        f, n = plan.n_rows, plan.n_points
-        self.values: dict[str, np.ndarray] = {nm: np.full((f, n), np.nan) for nm in plan.fields}
-        self.values["status"] = np.full((f, n), int(Status.NOT_COMPUTED), dtype=np.int8)
-        self.values["iterations"] = np.zeros((f, n), dtype=np.int64)
-        self.values["m"] = np.full((f, n), -1, dtype=np.int8)
-        self.reference_frames = np.full(f, plan.reference_frame, dtype=np.int64)
+        self.values: dict[str, np.ndarray] = {}
+        #: ``at_rows`` (names, rows): fields held only at those rows (sorted), (R, N) each,
+        #: in ``sparse`` (not in the result, which reads them NaN)
+        self.sparse: dict[str, np.ndarray] = {}
+        self.sparse_rows = np.zeros(0, dtype=np.int64)
+        self._pos = np.full(plan.n_rows, -1, dtype=np.int64)
+        if at_rows is not None:
+            self.sparse_rows = np.asarray(at_rows[1], dtype=np.int64)
+            self._pos[self.sparse_rows] = np.arange(len(self.sparse_rows))
+            real = np.float32 if plan.dtype == torch.float32 else np.float64
+            self.sparse = {nm: np.full((len(self.sparse_rows), plan.n_points), np.nan,
+                                       dtype=real) for nm in at_rows[0]}
+        self.reference_frames = np.full(plan.n_rows, plan.reference_frame, dtype=np.int64)
         self.raw: dict[str, np.ndarray] = {}
+        #: per status code, the rows written or replayed; per window half-width, the
+        #: usable rows (``row_counts``: a run's summary without its (F, N) fields)
+        self.status_counts = np.zeros(256, dtype=np.int64)
+        self.m_counts = np.zeros(256, dtype=np.int64)
+        self._allocate(keep)
+
+    def _allocate(self, keep: Sequence[str] | None) -> None:
+        """The (F, N) arrays of the fields held (``keep``; None: all)."""
+        plan = self.plan
+        f, n = plan.n_rows, plan.n_points
+        names = (*plan.fields, "status", "iterations", "m") if keep is None else tuple(keep)
+        real = np.float64 if keep is None or plan.dtype == torch.float64 else np.float32
+        fills = {"status": (int(Status.NOT_COMPUTED), np.int8), "iterations": (0, np.int64),
+                 "m": (-1, np.int8)}
+        for nm in dict.fromkeys(names):
+            fill, dt = fills.get(nm, (np.nan, real))
+            self.values[nm] = np.full((f, n), fill, dtype=dt)
+
+    def row_counts(self) -> dict[str, dict[str, int]]:
+        """The rows held by status code and the usable rows by window half-width m
+        (``info["row_counts"]``): what a summary needs, without the (F, N) fields."""
+        return {"status": {str(i - 128): int(c) for i, c in enumerate(self.status_counts) if c},
+                "m_usable": {str(i - 128): int(c) for i, c in enumerate(self.m_counts) if c}}
+
+    def _count(self, stored: dict[str, np.ndarray]) -> None:
+        """Add the rows ``stored`` (a block written or replayed) to :meth:`row_counts`."""
+        st = np.asarray(stored["status"]).astype(np.int64).ravel()
+        self.status_counts += np.bincount(st + 128, minlength=256)[:256]
+        if "m" in stored:
+            m = np.asarray(stored["m"]).astype(np.int64).ravel()[st <= int(Status.MAX_ITER)]
+            self.m_counts += np.bincount(m + 128, minlength=256)[:256]
 
     def completed_rows(self) -> set[int]:
         """Rows finished by an earlier run (none in memory)."""
@@ -52,23 +104,38 @@ class MemorySink:
 
     def read_rows(self, rows: Sequence[int]) -> dict[str, np.ndarray]:
         """The stored values of consecutive finished rows ``rows``."""
-        return {nm: a[rows[0] : rows[-1] + 1] for nm, a in self.values.items()}
+        out = {nm: a[rows[0] : rows[-1] + 1] for nm, a in self.values.items()}
+        self._count(out)
+        return out
 
     def write_rows(self, rows: Sequence[int], values: dict[str, np.ndarray],
                    reference_frame: int | None = None) -> None:
         """Store rows ``rows`` (k,) of every field, each (k, N)."""
-        self._keep(rows, values)
+        self._count(self._keep(rows, values))
         if reference_frame is not None:
             self.reference_frames[list(rows)] = reference_frame
 
-    def _keep(self, rows: Sequence[int], values: dict[str, np.ndarray]) -> None:
-        for nm in self.plan.fields:
-            self.values[nm][list(rows)] = values[nm]
+    def _keep(self, rows: Sequence[int], values: dict[str, np.ndarray]
+              ) -> dict[str, np.ndarray]:
+        """Hold rows ``rows`` of the fields kept; returns the rows as held."""
+        for nm, a in self.values.items():
+            a[list(rows)] = values[nm]
+        if self.sparse:
+            pos = self._pos[np.asarray(rows, dtype=np.int64)]
+            at = pos >= 0
+            for nm, a in self.sparse.items():
+                a[pos[at]] = np.asarray(values[nm])[at]
+        return values
+
+    def field_values(self, name: str) -> np.ndarray:
+        """(F, N) every row of field ``name`` (for a step over the whole result: the
+        smoothing in time)."""
+        return self.values[name]
 
     def write_smoothed(self, values: dict[str, np.ndarray]) -> None:
         """The temporally smoothed u, v, ut, vt (F, N) replace the result's fields (the raw
         ones stay in ``raw``)."""
-        self.raw = {nm: self.values[nm].copy() for nm in ("u", "v")}
+        self.raw = {nm: self.field_values(nm).copy() for nm in ("u", "v")}
         for nm in SMOOTHED:
             self.values[nm] = np.asarray(values[nm], dtype=np.float64)
 
@@ -100,26 +167,36 @@ class MemorySink:
     def result(self, info: dict[str, Any]) -> TrackResult:
         """The :class:`TrackResult` of the rows held, on the plan's device and dtype."""
         plan, v = self.plan, self.values
+        f, n = plan.n_rows, plan.n_points
 
-        def ft(a: np.ndarray) -> torch.Tensor:
-            return torch.from_numpy(np.asarray(a, dtype=np.float64)).to(device=plan.device,
-                                                                          dtype=plan.dtype)
+        def ft(name: str) -> torch.Tensor:
+            if name not in v:  # not kept: NaN, without memory
+                return torch.full((), float("nan"), dtype=plan.dtype,
+                                  device=plan.device).expand(f, n)
+            # the held values, converted only where the precision differs (a kept field)
+            return torch.from_numpy(v[name]).to(device=plan.device, dtype=plan.dtype)
 
-        info = {**info, "units": dict(plan.units)}
+        def it(name: str, fill: int, dtype: np.dtype, tdt: torch.dtype) -> torch.Tensor:
+            if name not in v:
+                return torch.full((), fill, dtype=tdt).expand(f, n)
+            return torch.from_numpy(np.nan_to_num(v[name], nan=fill).astype(dtype))
+
+        info = {**info, "units": dict(plan.units), "row_counts": self.row_counts()}
         if self.raw:
-            info["raw"] = {k: ft(a) for k, a in self.raw.items()}
+            info["raw"] = {k: torch.from_numpy(np.asarray(a, dtype=np.float64)).to(
+                device=plan.device, dtype=plan.dtype) for k, a in self.raw.items()}
         if self.path is not None:
             info["out"] = str(self.path)
         return TrackResult(
             points=plan.points.to(device=plan.device, dtype=plan.dtype),
             frames=torch.tensor(plan.targets, dtype=torch.long),
             times=torch.from_numpy(plan.row_times.copy()),
-            u=ft(v["u"]), v=ft(v["v"]), ut=ft(v["ut"]), vt=ft(v["vt"]), zncc=ft(v["zncc"]),
-            status=torch.from_numpy(v["status"].astype(np.int8)),
-            iterations=torch.from_numpy(v["iterations"].astype(np.int32)),
-            gradients={nm: ft(v[nm]) for nm in plan.gradients},
-            m=torch.from_numpy(np.nan_to_num(v["m"], nan=-1).astype(np.int8)),
-            std={nm[:-4]: ft(v[nm]) for nm in plan.fields if nm.endswith("_std")},
+            u=ft("u"), v=ft("v"), ut=ft("ut"), vt=ft("vt"), zncc=ft("zncc"),
+            status=it("status", int(Status.NOT_COMPUTED), np.int8, torch.int8),
+            iterations=it("iterations", 0, np.int32, torch.int32),
+            gradients={nm: ft(nm) for nm in plan.gradients},
+            m=it("m", -1, np.int8, torch.int8),
+            std={nm[:-4]: ft(nm) for nm in plan.fields if nm.endswith("_std")},
             reference_frames=torch.from_numpy(self.reference_frames.copy()),
             config=plan.config, info=info,
         )
@@ -127,15 +204,18 @@ class MemorySink:
 
 class HDF5Sink(MemorySink):
     """Writes every block to an HDF5 result file as it comes (:class:`~torch_stsdic.io.
-    ResultWriter`), keeping in memory the values as stored (float32), so that a resumed run
-    returns the same numbers as an uninterrupted one. :meth:`finish` adds the strain fields
-    (``strain_window`` grid points per side, ``strain_kind`` "green" or "small"; None: no
-    strains)."""
+    ResultWriter`), with its strain fields (``strain_window`` grid points per side of the
+    plane fit, ``strain_kind`` "green" or "small"; None: no strains), computed from the
+    block's rows as stored (float32): a frame's plane fits need only that frame. Nothing of
+    size frames x points stays in memory: the result (:meth:`result`) reads its fields from
+    the file when asked (:class:`~torch_stsdic.io.stored_result.StoredTrackResult`), so a resumed
+    run returns the same numbers as an uninterrupted one. A smoothed run (``smoothing``)
+    gets its strains at :meth:`finish`, from the smoothed fields, a few frames at a time."""
 
     def __init__(self, plan: RunPlan, path: str | os.PathLike[str], *, resume: bool = False,
                  overwrite: bool = False, strain_window: int | None = 5,
                  strain_kind: str = "green", attrs: dict[str, Any] | None = None) -> None:
-        super().__init__(plan)
+        super().__init__(plan, keep=())
         self.path = str(path)
         self.strain_window, self.strain_kind = strain_window, strain_kind
         extra = tuple(f"{nm}_smooth" for nm in SMOOTHED) if plan.options.get("smoothing") else ()
@@ -153,41 +233,100 @@ class HDF5Sink(MemorySink):
         )
         # the calibration is recorded, not compared on resume (values stay in px)
         self.writer.add_fields({}, dict(plan.units))
+        self.smoothed = False
 
     def completed_rows(self) -> set[int]:
         return set(self.writer.completed_rows().tolist())
 
     def read_rows(self, rows: Sequence[int]) -> dict[str, np.ndarray]:
         stored = self.writer.read_rows(rows[0], rows[-1])
-        super()._keep(rows, stored)
+        self._count(stored)
+        self._write_strain(rows, stored)  # a file of an older run may have none yet
         return stored
 
-    def _keep(self, rows: Sequence[int], values: dict[str, np.ndarray]) -> None:
+    def _keep(self, rows: Sequence[int], values: dict[str, np.ndarray]
+              ) -> dict[str, np.ndarray]:
         stored = as_stored({nm: values[nm] for nm in self.plan.fields})
         self.writer.write_rows(np.asarray(rows), stored)
-        super()._keep(rows, stored)
+        self._write_strain(rows, stored)
+        return stored
+
+    def field_values(self, name: str) -> np.ndarray:
+        return self.writer.read_rows(0, self.plan.n_rows - 1, [name])[name]
+
+    def _strain_of(self, stored: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """The strain fields (k, N) of rows ``stored`` (u, v, ut, vt, status as stored),
+        computed as :meth:`TrackResult.strain` computes them on the whole result: from the
+        values at the plan's precision, rates wherever the file has rate fields."""
+        plan = self.plan
+
+        def ft(a: np.ndarray) -> torch.Tensor:
+            return torch.from_numpy(np.asarray(a, dtype=np.float64)).to(device=plan.device,
+                                                                          dtype=plan.dtype)
+
+        rates = any(nm.endswith("_rate") for nm in self.strain_fields)
+        valid = torch.from_numpy(np.asarray(stored["status"]).astype(np.int8)) <= int(
+            Status.MAX_ITER)
+        strain = compute_strain(
+            plan.points.to(device=plan.device, dtype=plan.dtype), ft(stored["u"]),
+            ft(stored["v"]), window=self.strain_window, kind=self.strain_kind,
+            valid=valid.to(plan.device), ut=ft(stored["ut"]) if rates else None,
+            vt=ft(stored["vt"]) if rates else None)
+        return {k: np.asarray(a.detach().cpu()) for k, a in strain.items()
+                if k in self.strain_fields}
+
+    def _write_strain(self, rows: Sequence[int], stored: dict[str, np.ndarray]) -> None:
+        """Write the strains of rows ``rows`` (their fields ``stored``), unless the run is
+        smoothed (its strains come from the smoothed fields, at :meth:`finish`)."""
+        if self.strain_window is None or self.plan.options.get("smoothing"):
+            return
+        self.writer.write_rows(np.asarray(rows), self._strain_of(stored),
+                               mark_completed=False)
 
     def write_smoothed(self, values: dict[str, np.ndarray]) -> None:
         stored = as_stored({f"{nm}_smooth": values[nm] for nm in SMOOTHED})
         self.writer.write_rows(np.arange(self.plan.n_rows), stored, mark_completed=False)
-        super().write_smoothed({nm: stored[f"{nm}_smooth"] for nm in SMOOTHED})
+        self.smoothed = True
 
     def finish(self, result: TrackResult) -> None:
         if self.strain_window is None:
             return
-        strain = result.strain(window=self.strain_window, kind=self.strain_kind)
-        shape = tuple(result.u.shape)
-        fields = {k: np.asarray(v.detach().cpu() if isinstance(v, torch.Tensor) else v)
-                  for k, v in strain.items()}
-        fields = {k: a for k, a in fields.items() if a.shape == shape}
-        known = {k: a for k, a in fields.items() if k in self.strain_fields}
-        self.writer.write_rows(np.arange(self.plan.n_rows), known, mark_completed=False)
-        new = {k: a for k, a in fields.items() if k not in self.strain_fields}
+        if self.plan.options.get("smoothing"):  # from the smoothed fields, chunk by chunk
+            src = {nm: f"{nm}_smooth" if self.smoothed else nm for nm in SMOOTHED}
+            step = STRAIN_ROWS
+            for r0 in range(0, self.plan.n_rows, step):
+                r1 = min(r0 + step, self.plan.n_rows) - 1
+                got = self.writer.read_rows(r0, r1, [*src.values(), "status"])
+                stored = {nm: got[src[nm]] for nm in SMOOTHED}
+                stored["status"] = got["status"]
+                self.writer.write_rows(np.arange(r0, r1 + 1), self._strain_of(stored),
+                                       mark_completed=False)
         settings = json.dumps({"window": self.strain_window, "kind": self.strain_kind})
-        if new or self.writer.attrs().get("strain") != settings:
-            # not foreseen when the file was made (a resume with other strain options):
-            # the only case where finishing changes the file's metadata
-            self.writer.add_fields(new, {"strain": settings})
+        if self.writer.attrs().get("strain") != settings:
+            # a resume with other strain options: every row's strains were computed with
+            # these (replayed blocks included); the only case where finishing changes the
+            # file's metadata
+            self.writer.add_fields({}, {"strain": settings})
+
+    def result(self, info: dict[str, Any]) -> TrackResult:
+        """The run's :class:`TrackResult`, its (F, N) fields read from the file when first
+        asked for (:class:`~torch_stsdic.io.stored_result.StoredTrackResult`)."""
+        plan = self.plan
+        info = {**info, "units": dict(plan.units), "row_counts": self.row_counts(),
+                "out": str(self.path)}
+        names = {nm: nm for nm in plan.fields}
+        if self.smoothed:  # the smoothed fields stand for the raw ones
+            names.update({nm: f"{nm}_smooth" for nm in SMOOTHED})
+            info["raw"] = LazyFields(self.path, {"u": "u", "v": "v"}, plan.dtype, plan.device)
+        return StoredTrackResult.open(
+            self.path, names, dtype=plan.dtype, device=plan.device,
+            points=plan.points.to(device=plan.device, dtype=plan.dtype),
+            frames=torch.tensor(plan.targets, dtype=torch.long),
+            times=torch.from_numpy(plan.row_times.copy()),
+            gradients=plan.gradients,
+            std=tuple(nm[:-4] for nm in plan.fields if nm.endswith("_std")),
+            reference_frames=torch.from_numpy(self.reference_frames.copy()),
+            config=plan.config, info=info)
 
     def write_shared_motion(self, shared: Any) -> None:
         rec = shared.summary()

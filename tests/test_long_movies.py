@@ -1,0 +1,168 @@
+"""A run that writes a file keeps nothing of size frames x points (issue 50): strains
+written block by block equal those of the whole result, resume included; the returned
+result reads its fields from the file when asked."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from torch_stsdic import DICConfig
+from torch_stsdic.io import read_results
+from torch_stsdic.io.stored_result import StoredTrackResult
+from torch_stsdic.movie.series import track
+from torch_stsdic.synth import HomogeneousStrain, synthetic_movie
+
+CFG = DICConfig(subset_size=17, m=2, tol=1e-6)
+KW = dict(config=CFG, roi=(16, 16, 84, 84), step=11, progress=False, batch_frames=3,
+          shared_motion=None, series_reference=False)
+STRAINS = ("exx", "eyy", "exy", "exx_rate", "eyy_rate", "exy_rate")
+
+
+class Crash(RuntimeError):
+    pass
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module")
+def frames():
+    """11 frames of a homogeneous strain growing in time (non-zero strains and rates)."""
+    mv = synthetic_movie((101, 101), 10, HomogeneousStrain(exx=0.002, eyy=-0.001, exy=0.0005),
+                         noise_sigma=1.0, seed=4)
+    return torch.cat([mv.ref[None], mv.frames])
+
+
+@pytest.fixture(scope="module")
+def in_memory(frames):
+    """The run without a file: every field held, strains from the whole result."""
+    res = track(frames, **KW)
+    return res, res.strain(window=5, kind="green")
+
+
+def _whole_result_strains(res) -> dict[str, np.ndarray]:
+    """The strains of a run's result computed over the whole (F, N) result at once, as the
+    run computed them before it wrote them block by block (``TrackResult.strain``)."""
+    return {k: np.asarray(v) for k, v in res.strain(window=5, kind="green").items()}
+
+
+def test_block_strains_equal_the_whole_result_computation(frames, in_memory, tmp_path):
+    res = track(frames, out=tmp_path / "r.h5", **KW)
+    assert isinstance(res, StoredTrackResult)
+    assert not res._fields._held  # nothing read from the file yet
+    stored = read_results(tmp_path / "r.h5")
+    for name in ("u", "v", "ut", "vt", "zncc", "status", "m"):
+        want = torch.from_numpy(stored.fields[name]).to(getattr(res, name).dtype)
+        assert torch.equal(getattr(res, name), want), name
+    assert res.iterations.dtype == torch.int32 and res.status.dtype == torch.int8
+    mem, mem_strain = in_memory  # the run held in memory: full precision, the same rows
+    assert torch.equal(res.status, mem.status) and torch.equal(res.m, mem.m)
+    torch.testing.assert_close(res.u, mem.u, rtol=0, atol=1e-5)
+    assert set(res.gradients) == set(mem.gradients) and set(res.std) == set(mem.std)
+    whole = _whole_result_strains(res)
+    assert np.nanmax(np.abs(stored.exx)) > 5e-4  # strains, not zeros
+    for name in STRAINS:
+        assert np.array_equal(np.isnan(stored.fields[name]), np.isnan(whole[name])), name
+        np.testing.assert_allclose(stored.fields[name], whole[name], rtol=0, atol=1e-7,
+                                   equal_nan=True, err_msg=name)
+    counts = res.info["row_counts"]["status"]
+    st = mem.status.numpy()
+    assert counts == {str(c): int((st == c).sum()) for c in np.unique(st)}
+
+
+def test_resumed_run_writes_the_same_strains(frames, tmp_path):
+    full = track(frames, out=tmp_path / "full.h5", **KW)
+
+    def crash(done, total):
+        if done >= 4:  # after the blocks [0] and [1, 2, 3]
+            raise Crash
+
+    with pytest.raises(Crash):
+        track(frames, out=tmp_path / "cut.h5", callback=crash, **KW)
+    part = read_results(tmp_path / "cut.h5")
+    assert part.completed.tolist() == [True] * 4 + [False] * 7
+    assert np.isfinite(part.exx[:4]).any() and np.isnan(part.exx[4:]).all()  # per block
+    res = track(frames, out=tmp_path / "cut.h5", resume=True, **KW)
+    a, b = read_results(tmp_path / "full.h5"), read_results(tmp_path / "cut.h5")
+    for name in a.fields:
+        assert np.array_equal(a.fields[name], b.fields[name], equal_nan=True), name
+    whole = _whole_result_strains(res)
+    for name in STRAINS:
+        np.testing.assert_allclose(b.fields[name], whole[name], rtol=0, atol=1e-7,
+                                   equal_nan=True, err_msg=name)
+    assert torch.equal(res.u, full.u) and torch.equal(res.status, full.status)
+    assert res.info["row_counts"] == full.info["row_counts"]
+
+
+def test_smoothed_run_strains_from_the_smoothed_fields(frames, tmp_path):
+    kw = {**KW, "config": CFG.replace(m=0)}
+    res = track(frames, out=tmp_path / "s.h5", smoothing=5, **kw)
+    mem = track(frames, smoothing=5, **kw)  # held in memory: full precision
+    torch.testing.assert_close(res.u, mem.u, rtol=0, atol=1e-5)
+    torch.testing.assert_close(res.info["raw"]["u"], mem.info["raw"]["u"], rtol=0, atol=1e-5)
+    stored = read_results(tmp_path / "s.h5")
+    assert torch.equal(res.u, torch.from_numpy(stored.u_smooth).to(res.u.dtype))
+    assert torch.equal(res.info["raw"]["u"], torch.from_numpy(stored.u).to(res.u.dtype))
+    whole = _whole_result_strains(res)
+    for name in STRAINS:
+        np.testing.assert_allclose(stored.fields[name], whole[name], rtol=0, atol=1e-7,
+                                   equal_nan=True, err_msg=name)
+
+
+def test_file_run_holds_no_rows_and_the_pass_keeps_few(frames, tmp_path, monkeypatch):
+    """The file's sink holds no (F, N) array; the shared motion's measuring pass keeps the
+    first guess only at the frames the first block's windows can use."""
+    from torch_stsdic.movie import sinks
+
+    made: list = []
+    real_init = sinks.MemorySink.__init__
+
+    def spy(self, *args, **kwargs):
+        real_init(self, *args, **kwargs)
+        made.append(self)
+
+    monkeypatch.setattr(sinks.MemorySink, "__init__", spy)
+    kw = {**KW, "shared_motion": "affine"}
+    res = track(frames, out=tmp_path / "r.h5", **kw)
+    file_sink = [s for s in made if isinstance(s, sinks.HDF5Sink)]
+    assert len(file_sink) == 1 and file_sink[0].values == {}  # nothing of size F x N
+    assert res.info.get("shared_motion")  # the run measured a shared motion
+    passes = [s for s in made if not isinstance(s, sinks.HDF5Sink) and s.sparse]
+    assert passes, "the measuring pass keeps its gradients at a few rows"
+    m = CFG.m
+    first = res.frames[0].item()
+    kept = np.asarray(passes[0].plan.targets)[passes[0].sparse_rows]
+    assert kept.max() <= first + 2 * m and len(kept) < len(passes[0].plan.targets)
+    assert set(passes[0].values) == {"u", "v", "zncc", "status", "u_std"}
+
+
+@pytest.mark.parametrize("kind", ["translation", "affine", "quadratic"])
+def test_fit_in_chunks_equals_the_whole_series(kind, monkeypatch):
+    """The shared motion's fit of a long series, taken in chunks of frames and points
+    (bounded memory), gives the very numbers of the fit over the whole series at once."""
+    from torch_stsdic.core import shared_motion as sm
+
+    g = torch.Generator().manual_seed(3)
+    f, n = 600, 120
+    pts = torch.rand(n, 2, generator=g, dtype=torch.float64) * 300
+    t = torch.arange(f, dtype=torch.float64)[:, None, None]
+    disp = 0.05 * t + 1e-4 * pts[None] * t + 0.01 * torch.randn(f, n, 2, generator=g,
+                                                                 dtype=torch.float64)
+    disp[torch.rand(f, n, generator=g) < 0.01] += 3.0  # wrong peaks
+    disp[torch.rand(f, n, generator=g) < 0.005] = float("nan")
+    valid = torch.rand(f, n, generator=g) > 0.05
+    noise = 0.02 * torch.rand(f, n, generator=g, dtype=torch.float64)
+    chunked = sm.fit_frame_motion(pts, disp, valid, kind, noise=noise)
+    assert len(sm._wls_chunks(f)) > 1
+    monkeypatch.setattr(sm, "FIT_CHUNK", 1 << 40)
+    monkeypatch.setattr(sm, "WLS_FRAMES", 1 << 40)
+    whole = sm.fit_frame_motion(pts, disp, valid, kind, noise=noise)
+    for a, b in zip(chunked, whole):
+        assert torch.equal(a.nan_to_num(-9.0), b.nan_to_num(-9.0))

@@ -1,0 +1,107 @@
+"""A run's :class:`~torch_stsdic.analysis.result.TrackResult` backed by its result file: the
+(F, N) fields are read from the file when first asked for, so a run that writes a file keeps
+none of them in memory (a long movie: frames x points)."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from torch_stsdic.analysis.result import TrackResult
+from torch_stsdic.io.results import open_results
+
+__all__ = ["LazyFields", "StoredTrackResult"]
+
+#: the (F, N) attributes of a TrackResult read from the file (besides ``gradients``, ``std``)
+LAZY = ("u", "v", "ut", "vt", "zncc", "status", "iterations", "m")
+#: integer fields as a TrackResult holds them (on the CPU, as an in-memory run gives them)
+_INT = {"status": torch.int8, "iterations": torch.int32, "m": torch.int8}
+
+
+def read_field(path: str | Path, stored: str, name: str, dtype: torch.dtype,
+               device: torch.device | str) -> torch.Tensor:
+    """(F, N) field ``stored`` of result file ``path`` as the TrackResult attribute ``name``
+    holds it: floats at ``dtype`` on ``device`` (the stored float32 values exactly),
+    integers on the CPU."""
+    with open_results(Path(path)) as f:
+        a = f[stored][()]
+    if name in _INT:
+        return torch.from_numpy(np.ascontiguousarray(a)).to(_INT[name])
+    return torch.from_numpy(np.ascontiguousarray(a)).to(device=device, dtype=dtype)
+
+
+class LazyFields(Mapping[str, torch.Tensor]):
+    """name -> (F, N) tensor, read from result file ``path`` (dataset ``names[name]``) on
+    first access and kept (what the caller asks for)."""
+
+    def __init__(self, path: str | Path, names: Mapping[str, str], dtype: torch.dtype,
+                 device: torch.device | str) -> None:
+        self.path, self.names = str(path), dict(names)
+        self.dtype, self.device = dtype, device
+        self._held: dict[str, torch.Tensor] = {}
+
+    def __getitem__(self, name: str) -> torch.Tensor:
+        if name not in self._held:
+            if name not in self.names:
+                raise KeyError(name)
+            self._held[name] = read_field(self.path, self.names[name], name, self.dtype,
+                                          self.device)
+        return self._held[name]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self.names)
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    def __repr__(self) -> str:
+        return f"<LazyFields {sorted(self.names)} of {self.path} ({len(self._held)} read)>"
+
+
+class StoredTrackResult(TrackResult):
+    """A :class:`TrackResult` whose (F, N) fields (u, v, ut, vt, zncc, status, iterations,
+    m, the gradients and the std) are read from its result file when first used (then
+    kept); everything else (points, frames, times, reference frames, config, info) is held.
+    The numbers are those of an in-memory result of the same rows as stored."""
+
+    @classmethod
+    def open(cls, path: str | Path, names: Mapping[str, str], *, dtype: torch.dtype,
+             device: torch.device | str, gradients: tuple[str, ...], std: tuple[str, ...],
+             **held: Any) -> StoredTrackResult:
+        """The result of file ``path``: attribute or field name -> its dataset
+        (``names``), the gradient and std names, and the held attributes ``held``."""
+        obj = cls.__new__(cls)
+        for k, v in held.items():
+            object.__setattr__(obj, k, v)
+        obj.gradients = LazyFields(path, {g: names[g] for g in gradients}, dtype, device)
+        obj.std = LazyFields(path, {s: names[f"{s}_std"] for s in std}, dtype, device)
+        obj._fields = LazyFields(path, {nm: names[nm] for nm in LAZY if nm in names}, dtype,
+                                 device)
+        return obj
+
+
+
+def _lazy(name: str) -> property:
+    """The attribute ``name`` of a :class:`StoredTrackResult`: a value set on it (e.g. by
+    ``dataclasses.replace``), else its field read from the file (None where the file has
+    none)."""
+
+    def get(self: StoredTrackResult) -> Any:
+        held = self.__dict__
+        if name in held:
+            return held[name]
+        lazy = held.get("_fields")
+        return lazy[name] if lazy is not None and name in lazy else None
+
+    def put(self: StoredTrackResult, value: Any) -> None:
+        self.__dict__[name] = value
+
+    return property(get, put, doc=f"(F, N) {name}, read from the result file when first used")
+
+
+for _name in LAZY:
+    setattr(StoredTrackResult, _name, _lazy(_name))
