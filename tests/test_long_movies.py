@@ -9,8 +9,8 @@ import pytest
 import torch
 
 from torch_stsdic import DICConfig
+from torch_stsdic.analysis.stored_result import StoredTrackResult
 from torch_stsdic.io import read_results
-from torch_stsdic.io.stored_result import StoredTrackResult
 from torch_stsdic.movie.series import track
 from torch_stsdic.synth import HomogeneousStrain, synthetic_movie
 

@@ -107,8 +107,8 @@ MUTATIONS: tuple[Mutation, ...] = (
         "strain rates of a run from ut and vt swapped"),
     Mutation(
         "strain-window-ignored", "strain", "torch_stsdic/movie/sinks.py",
-        "result.strain(window=self.strain_window, kind=self.strain_kind)",
-        "result.strain(window=5, kind=self.strain_kind)",
+        "window=self.strain_window, kind=self.strain_kind,",
+        "window=5, kind=self.strain_kind,",
         (OPTIONS, STRAIN),
         "the result file's strains always over 5x5 points (strain_window ignored)"),
     Mutation(

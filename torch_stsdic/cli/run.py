@@ -591,19 +591,6 @@ def shared_motion_lines(rec: dict[str, Any] | None) -> list[str]:
     return lines
 
 
-def _row_counts(status: np.ndarray, m: np.ndarray | None) -> dict[str, dict[str, int]]:
-    """The (frame, point) results by status code and the usable ones by window half-width
-    (the layout of ``TrackResult.info["row_counts"]``), from (F, N) fields."""
-    s = np.asarray(status).astype(np.int64)
-    codes, n = np.unique(s, return_counts=True)
-    out = {"status": {str(c): int(k) for c, k in zip(codes.tolist(), n.tolist())},
-           "m_usable": {}}
-    if m is not None:
-        mc, mn = np.unique(np.asarray(m).astype(np.int64)[s <= 1], return_counts=True)
-        out["m_usable"] = {str(c): int(k) for c, k in zip(mc.tolist(), mn.tolist())}
-    return out
-
-
 def _status_summary(counts: dict[str, int]) -> dict[str, float]:
     """Percent of the (frame, point) results with each status, by lower-case status name
     (``counts``: results by status code, as in ``info["row_counts"]["status"]``)."""
@@ -626,12 +613,13 @@ def _print_summary(res: Any, args: argparse.Namespace, elapsed: float, ref: str,
     import torch
 
     from torch_stsdic.kernels import dispatch
+    from torch_stsdic.movie.sinks import row_counts
 
     counts = res.info.get("row_counts")  # the run's own count: no (F, N) field read
     if counts is None:  # counted from the result's fields
         status = to_numpy(res.status)
         n_f, n_p = status.shape
-        counts = _row_counts(status, None if res.m is None else to_numpy(res.m))
+        counts = row_counts(status, None if res.m is None else to_numpy(res.m))
     else:
         n_f, n_p = res.n_frames, res.n_points
     st = _status_summary(counts["status"])

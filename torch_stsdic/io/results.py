@@ -25,6 +25,7 @@ import h5py
 import numpy as np
 
 from torch_stsdic.core.status import Status
+from torch_stsdic.io.file_fields import FileFields
 from torch_stsdic.io.run_record import (
     OS_REASONS,
     WriteError,
@@ -643,32 +644,7 @@ def field_names(f: h5py.File) -> list[str]:
     try:
         return list(json.loads(f.attrs["fields"]))
     except (KeyError, json.JSONDecodeError):
-        skip = _RESERVED
-        return [k for k in f if k not in skip and f[k].ndim == 2]
-
-
-class FileFields(Mapping[str, np.ndarray]):
-    """name -> (F, N) field of result file ``path``, read when first asked for (and kept):
-    :func:`read_results` with ``lazy=True`` (a figure of a long movie reads the fields it
-    draws, not all of them)."""
-
-    def __init__(self, path: Path, names: Sequence[str]) -> None:
-        self.path, self.names = path, list(names)
-        self._held: dict[str, np.ndarray] = {}
-
-    def __getitem__(self, name: str) -> np.ndarray:
-        if name not in self._held:
-            if name not in self.names:
-                raise KeyError(name)
-            with open_results(self.path) as f:
-                self._held[name] = f[name][()]
-        return self._held[name]
-
-    def __iter__(self) -> Iterator[str]:
-        return iter(self.names)
-
-    def __len__(self) -> int:
-        return len(self.names)
+        return [k for k in f if k not in _RESERVED and f[k].ndim == 2]
 
 
 def read_results(path: str | os.PathLike[str], fields: Sequence[str] | None = None, *,
@@ -687,10 +663,7 @@ def read_results(path: str | os.PathLike[str], fields: Sequence[str] | None = No
         attrs = {k: _py(f.attrs[k]) for k in f.attrs}
         arrays = {nm: _run_item(f, nm) for nm in RUN_ARRAYS if nm in f}
         return Results(
-            path=p,
-            points=f["points"][()],
-            frames=f["frames"][()],
-            times=f["times"][()],
+            path=p, points=f["points"][()], frames=f["frames"][()], times=f["times"][()],
             completed=f["completed"][()].astype(bool),
             fields=FileFields(p, names) if lazy else {n: f[n][()] for n in names},
             config=json.loads(attrs.pop("config", "{}")),

@@ -361,10 +361,8 @@ def track(
         window_length: "fixed" or "auto" (``config.m`` the longest): :func:`set_window_length`.
 
     Returns:
-        :class:`TrackResult` with (F, N) fields. With ``out`` the values are those stored in
-        the file (float32 precision), so a resumed run returns the same numbers, read from
-        the file when first used (:class:`~torch_stsdic.io.stored_result.StoredTrackResult`:
-        the run itself holds nothing of size frames x points).
+        :class:`TrackResult` with (F, N) fields; with ``out`` those of the file (float32),
+        read when first used (:class:`~torch_stsdic.analysis.stored_result.StoredTrackResult`).
 
     Raises:
         ValueError naming the argument (see :func:`~torch_stsdic.movie.plan.plan_run`).

@@ -22,14 +22,14 @@ import numpy as np
 import torch
 
 from torch_stsdic.analysis.result import TrackResult
+from torch_stsdic.analysis.stored_result import StoredTrackResult, lazy_fields
 from torch_stsdic.analysis.strain import compute_strain
 from torch_stsdic.core.shared_motion import PARAM_NAMES, PARAM_UNITS
 from torch_stsdic.core.status import Status
 from torch_stsdic.io.results import STRAIN_FIELDS, ResultWriter, as_stored
-from torch_stsdic.io.stored_result import LazyFields, StoredTrackResult
 from torch_stsdic.movie.plan import RunPlan
 
-__all__ = ["MemorySink", "HDF5Sink", "open_sink", "SMOOTHED"]
+__all__ = ["MemorySink", "HDF5Sink", "open_sink", "SMOOTHED", "row_counts"]
 
 #: rows whose strains a smoothed run computes at a time (:meth:`HDF5Sink.finish`)
 STRAIN_ROWS = 64
@@ -208,9 +208,10 @@ class HDF5Sink(MemorySink):
     plane fit, ``strain_kind`` "green" or "small"; None: no strains), computed from the
     block's rows as stored (float32): a frame's plane fits need only that frame. Nothing of
     size frames x points stays in memory: the result (:meth:`result`) reads its fields from
-    the file when asked (:class:`~torch_stsdic.io.stored_result.StoredTrackResult`), so a resumed
-    run returns the same numbers as an uninterrupted one. A smoothed run (``smoothing``)
-    gets its strains at :meth:`finish`, from the smoothed fields, a few frames at a time."""
+    the file when asked (:class:`~torch_stsdic.analysis.stored_result.StoredTrackResult`), so
+    a resumed run returns the same numbers as an uninterrupted one. A smoothed run
+    (``smoothing``) gets its strains at :meth:`finish`, from the smoothed fields, a few
+    frames at a time."""
 
     def __init__(self, plan: RunPlan, path: str | os.PathLike[str], *, resume: bool = False,
                  overwrite: bool = False, strain_window: int | None = 5,
@@ -310,14 +311,14 @@ class HDF5Sink(MemorySink):
 
     def result(self, info: dict[str, Any]) -> TrackResult:
         """The run's :class:`TrackResult`, its (F, N) fields read from the file when first
-        asked for (:class:`~torch_stsdic.io.stored_result.StoredTrackResult`)."""
+        asked for (:class:`~torch_stsdic.analysis.stored_result.StoredTrackResult`)."""
         plan = self.plan
         info = {**info, "units": dict(plan.units), "row_counts": self.row_counts(),
                 "out": str(self.path)}
         names = {nm: nm for nm in plan.fields}
         if self.smoothed:  # the smoothed fields stand for the raw ones
             names.update({nm: f"{nm}_smooth" for nm in SMOOTHED})
-            info["raw"] = LazyFields(self.path, {"u": "u", "v": "v"}, plan.dtype, plan.device)
+            info["raw"] = lazy_fields(self.path, {"u": "u", "v": "v"}, plan.dtype, plan.device)
         return StoredTrackResult.open(
             self.path, names, dtype=plan.dtype, device=plan.device,
             points=plan.points.to(device=plan.device, dtype=plan.dtype),
@@ -370,3 +371,16 @@ def open_sink(plan: RunPlan, out: str | os.PathLike[str] | None, *, resume: bool
             raise ValueError("resume: needs out (the result file to continue)")
         return MemorySink(plan)
     return HDF5Sink(plan, out, resume=resume, overwrite=overwrite, **kwargs)
+
+
+def row_counts(status: np.ndarray, m: np.ndarray | None) -> dict[str, dict[str, int]]:
+    """The (frame, point) results by status code and the usable ones by window half-width
+    (the layout of ``TrackResult.info["row_counts"]``), from (F, N) fields."""
+    s = np.asarray(status).astype(np.int64)
+    codes, n = np.unique(s, return_counts=True)
+    out = {"status": {str(c): int(k) for c, k in zip(codes.tolist(), n.tolist())},
+           "m_usable": {}}
+    if m is not None:
+        mc, mn = np.unique(np.asarray(m).astype(np.int64)[s <= 1], return_counts=True)
+        out["m_usable"] = {str(c): int(k) for c, k in zip(mc.tolist(), mn.tolist())}
+    return out

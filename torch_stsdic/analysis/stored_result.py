@@ -4,7 +4,7 @@ none of them in memory (a long movie: frames x points)."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Mapping
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -12,9 +12,9 @@ import numpy as np
 import torch
 
 from torch_stsdic.analysis.result import TrackResult
-from torch_stsdic.io.results import open_results
+from torch_stsdic.io.file_fields import FileFields
 
-__all__ = ["LazyFields", "StoredTrackResult"]
+__all__ = ["lazy_fields", "StoredTrackResult"]
 
 #: the (F, N) attributes of a TrackResult read from the file (besides ``gradients``, ``std``)
 LAZY = ("u", "v", "ut", "vt", "zncc", "status", "iterations", "m")
@@ -22,44 +22,22 @@ LAZY = ("u", "v", "ut", "vt", "zncc", "status", "iterations", "m")
 _INT = {"status": torch.int8, "iterations": torch.int32, "m": torch.int8}
 
 
-def read_field(path: str | Path, stored: str, name: str, dtype: torch.dtype,
-               device: torch.device | str) -> torch.Tensor:
-    """(F, N) field ``stored`` of result file ``path`` as the TrackResult attribute ``name``
-    holds it: floats at ``dtype`` on ``device`` (the stored float32 values exactly),
-    integers on the CPU."""
-    with open_results(Path(path)) as f:
-        a = f[stored][()]
-    if name in _INT:
-        return torch.from_numpy(np.ascontiguousarray(a)).to(_INT[name])
-    return torch.from_numpy(np.ascontiguousarray(a)).to(device=device, dtype=dtype)
+def _as_held(dtype: torch.dtype, device: torch.device | str):
+    """``convert`` of :class:`~torch_stsdic.io.file_fields.FileFields` that gives a stored
+    field as the TrackResult attribute of its name holds it: floats at ``dtype`` on
+    ``device`` (the stored float32 values exactly), integers on the CPU."""
+
+    def convert(name: str, a: np.ndarray) -> torch.Tensor:
+        t = torch.from_numpy(np.ascontiguousarray(a))
+        return t.to(_INT[name]) if name in _INT else t.to(device=device, dtype=dtype)
+    return convert
 
 
-class LazyFields(Mapping[str, torch.Tensor]):
+def lazy_fields(path: str | Path, names: Mapping[str, str], dtype: torch.dtype,
+               device: torch.device | str) -> FileFields:
     """name -> (F, N) tensor, read from result file ``path`` (dataset ``names[name]``) on
     first access and kept (what the caller asks for)."""
-
-    def __init__(self, path: str | Path, names: Mapping[str, str], dtype: torch.dtype,
-                 device: torch.device | str) -> None:
-        self.path, self.names = str(path), dict(names)
-        self.dtype, self.device = dtype, device
-        self._held: dict[str, torch.Tensor] = {}
-
-    def __getitem__(self, name: str) -> torch.Tensor:
-        if name not in self._held:
-            if name not in self.names:
-                raise KeyError(name)
-            self._held[name] = read_field(self.path, self.names[name], name, self.dtype,
-                                          self.device)
-        return self._held[name]
-
-    def __iter__(self) -> Iterator[str]:
-        return iter(self.names)
-
-    def __len__(self) -> int:
-        return len(self.names)
-
-    def __repr__(self) -> str:
-        return f"<LazyFields {sorted(self.names)} of {self.path} ({len(self._held)} read)>"
+    return FileFields(path, names, _as_held(dtype, device))
 
 
 class StoredTrackResult(TrackResult):
@@ -77,9 +55,9 @@ class StoredTrackResult(TrackResult):
         obj = cls.__new__(cls)
         for k, v in held.items():
             object.__setattr__(obj, k, v)
-        obj.gradients = LazyFields(path, {g: names[g] for g in gradients}, dtype, device)
-        obj.std = LazyFields(path, {s: names[f"{s}_std"] for s in std}, dtype, device)
-        obj._fields = LazyFields(path, {nm: names[nm] for nm in LAZY if nm in names}, dtype,
+        obj.gradients = lazy_fields(path, {g: names[g] for g in gradients}, dtype, device)
+        obj.std = lazy_fields(path, {s: names[f"{s}_std"] for s in std}, dtype, device)
+        obj._fields = lazy_fields(path, {nm: names[nm] for nm in LAZY if nm in names}, dtype,
                                  device)
         return obj
 
