@@ -9,7 +9,7 @@ work (preparing images, initial guesses, Gauss-Newton, checks, the rest of the p
         ../shared/data/mudic-hourglass --roi 150 20 1120 734 --subset 31 --step 20
 
 Arguments after ``--`` are ``stsdic run``'s (default: the muDIC hourglass with its documented
-region). Each case runs in a fresh process (``--repeats`` times, interleaved with the baseline;
+region, windows chosen per point: ``--m M`` for a fixed one). Each case runs in a fresh process (``--repeats`` times, interleaved with the baseline;
 medians reported): the whole process's wall time (imports included), and inside it the
 seconds of each (pass, kind), every second counted once, in the innermost kind it was spent
 in (a Gauss-Newton solve inside an initial guess counts as Gauss-Newton). On CUDA the device
@@ -39,6 +39,7 @@ PROBES = [
     ("torch_stsdic.movie.shared_pass", "estimate_shared_motion", "pass:shared motion"),
     ("torch_stsdic.movie.series_reference", "build_series_reference", "pass:template"),
     ("torch_stsdic.movie.series_reference", "measure_time_model", "pass:time model"),
+    ("torch_stsdic.movie.window_length", "measure_window_lengths", "pass:window lengths"),
     ("torch_stsdic.movie.refine", "measure_offsets", "pass:refined reference"),
     ("torch_stsdic.movie.sinks", "HDF5Sink.finish", "pass:strains + writing"),
     ("torch_stsdic.io.images", "ImageSeries.get", "kind:preparing images"),
