@@ -9,8 +9,9 @@ work (preparing images, initial guesses, Gauss-Newton, checks, the rest of the p
         ../shared/data/mudic-hourglass --roi 150 20 1120 734 --subset 31 --step 20
 
 Arguments after ``--`` are ``stsdic run``'s (default: the muDIC hourglass with its documented
-region, windows chosen per point: ``--m M`` for a fixed one). Each case runs in a fresh process (``--repeats`` times, interleaved with the baseline;
-medians reported): the whole process's wall time (imports included), and inside it the
+region, windows chosen per point: ``--m M`` for a fixed one). Each case runs in a fresh
+process (``--repeats`` times, interleaved with the baseline; medians reported): the whole
+process's wall time (imports included), and inside it the
 seconds of each (pass, kind), every second counted once, in the innermost kind it was spent
 in (a Gauss-Newton solve inside an initial guess counts as Gauss-Newton). On CUDA the device
 is synchronised at every boundary, which slows the run down: use it for shares, not speed.
