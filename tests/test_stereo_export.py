@@ -28,10 +28,9 @@ MOTION = SurfaceMotion(translation=(0.004, -0.003, 0.01), exx=2e-4, eyy=-1e-4, b
 BAD_FRAME = 3
 
 
-@pytest.fixture(scope="module")
-def stereo_h5(tmp_path_factory) -> Path:
-    """``stsdic stereo --m 1 --step 20`` on a 6-frame render (48 points, 12 never matched)."""
-    d = tmp_path_factory.mktemp("stereo")
+def write_stereo_run(d: Path) -> Path:
+    """``stsdic stereo --m 1 --step 20`` on a 6-frame render (48 points, 12 never matched),
+    its movies ``left.tif``, ``right.tif`` and calibration in folder ``d``: the result file."""
     rig = make_rig((140, 180))
     scene = make_scene(rig, MOTION, seed=0, max_time=6)
     left, right = render_stereo(scene, np.arange(6.0), noise_sigma=2.0, seed=1, quadrature=2,
@@ -44,6 +43,12 @@ def stereo_h5(tmp_path_factory) -> Path:
                  "--calibration", str(d / "cal.yml"), "--m", "1", "--step", "20", "--roi",
                  "20", "20", "160", "120", "--out", str(out), "--no-progress"]) == 0
     return out
+
+
+@pytest.fixture(scope="module")
+def stereo_h5(tmp_path_factory) -> Path:
+    """:func:`write_stereo_run` in a folder of its own."""
+    return write_stereo_run(tmp_path_factory.mktemp("stereo"))
 
 
 @pytest.fixture(scope="module")

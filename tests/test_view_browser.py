@@ -223,26 +223,10 @@ def test_a_file_still_being_written_grows_in_the_page(page, tmp_path, request):
 @pytest.fixture(scope="module")
 def stereo_h5(tmp_path_factory) -> tuple[Path, Path]:
     """A small 'stsdic stereo' result (the one of test_stereo_export) and its left movie."""
-    import tifffile
-    import torch
-
-    from torch_stsdic.stereo.render import SurfaceMotion, make_rig, make_scene, render_stereo
+    from test_stereo_export import write_stereo_run  # tests/ on the path
 
     d = tmp_path_factory.mktemp("stereo_view")
-    motion = SurfaceMotion(translation=(0.004, -0.003, 0.01), exx=2e-4, eyy=-1e-4, bulge=0.004,
-                           bulge_radius=6.0)
-    rig = make_rig((140, 180))
-    scene = make_scene(rig, motion, seed=0, max_time=6)
-    left, right = render_stereo(scene, np.arange(6.0), noise_sigma=2.0, seed=1, quadrature=2,
-                                cutoff=5)
-    for name, movie in (("left", left), ("right", right)):
-        tifffile.imwrite(d / f"{name}.tif", movie.clamp(0, 255).round().to(torch.uint8).numpy())
-    rig.save_opencv(d / "cal.yml")
-    out = d / "r.h5"
-    assert main(["stereo", "--left", str(d / "left.tif"), "--right", str(d / "right.tif"),
-                 "--calibration", str(d / "cal.yml"), "--m", "1", "--step", "20", "--roi",
-                 "20", "20", "160", "120", "--out", str(out), "--no-progress"]) == 0
-    return out, d / "left.tif"
+    return write_stereo_run(d), d / "left.tif"
 
 
 def test_stereo_page_shows_u_v_w_and_the_shape(page, stereo_h5, request):
