@@ -117,16 +117,18 @@ class PreparedFrame:
 
 class FrameStore:
     """The prepared frames of one run, shared by the frame caches of all its passes (see the
-    module docstring), least recently used dropped first beyond ``budget_mb`` MiB (0: none
-    kept beyond a cache's own block). Thread-safe.
+    module docstring), least recently used dropped first beyond ``budget_mb`` MiB or beyond
+    ``max_frames`` frames (0: none kept beyond a cache's own block; a count, not only bytes,
+    so that a long movie of small frames holds no more than a short one). Thread-safe.
 
     ``reads``, ``prefiltered`` and ``pyramid_builds`` count per frame index how often it was
     read from the series and prepared in the run (B-spline prefilters, ``pyrdown`` calls: one
     per pyramid level), ``hits`` the frames a cache took from the store, ``times`` the
     seconds of the caches that finished (:meth:`FrameCache.times`, added up)."""
 
-    def __init__(self, budget_mb: float) -> None:
+    def __init__(self, budget_mb: float, max_frames: int | None = None) -> None:
         self.budget = int(max(0.0, float(budget_mb)) * 2**20)
+        self.max_frames = max_frames
         self._frames: OrderedDict[tuple, PreparedFrame] = OrderedDict()
         self._lock = threading.Lock()
         self.reads: Counter[int] = Counter()
@@ -148,7 +150,8 @@ class FrameStore:
             self._frames[key] = frame
             self._frames.move_to_end(key)
             held = sum(f.nbytes for f in self._frames.values())
-            while held > self.budget and self._frames:
+            most = len(self._frames) if self.max_frames is None else self.max_frames
+            while (held > self.budget or len(self._frames) > most) and self._frames:
                 _, old = self._frames.popitem(last=False)
                 held -= old.nbytes
 

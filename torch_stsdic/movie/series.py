@@ -78,8 +78,13 @@ __all__ = ["track", "run_plan", "classical_smoothed", "set_reference_mode", "ser
 
 #: the prepared frames a run keeps across its passes: up to this many times ``memory_mb``
 #: (512 MiB by default: the 40 frames of the hourglass, 754 x 1273, each with its
-#: coefficients and pyramid, or a 21-frame template's sample of a 1024 x 1024 movie)
+#: coefficients and pyramid, or a 21-frame template's sample of a 1024 x 1024 movie) ...
 STORE_BUDGETS = 2.0
+#: ... for a movie of at most this many frames beyond two blocks' windows (the template's
+#: and the window-length pass's samples); a longer movie keeps none beyond its blocks (its
+#: passes read mostly other frames, and frames kept and dropped over a long run grow the
+#: process's heap: a 1,200-frame 256 x 256 run peaked at 820 MB with them, 489 MB without)
+STORE_FRAMES = 64
 
 
 # ---------------------------------------------------------------------------------------
@@ -118,7 +123,9 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
         solver.reference_cache = ReferenceCache(cfg.memory_mb, expected=len(plan.points))
     # the prepared frames of this run, kept across its passes (the shared-motion pass, the
     # template's rounds, the time-model pass: the sub-runs given ``frames``) and its blocks
-    store = frames if frames is not None else FrameStore(STORE_BUDGETS * cfg.memory_mb)
+    most = 2 * (plan.batch_frames + 2 * cfg.m) + STORE_FRAMES
+    store = frames if frames is not None else FrameStore(
+        STORE_BUDGETS * cfg.memory_mb if len(plan.series) <= most else 0.0, max_frames=most)
     cache = FrameCache(plan.series, solver, plan.dtype, plan.device,
                        ahead=default_ahead(plan.batch_frames, cfg.m), store=store)
     run = BlockContext(solver=solver, cache=cache,
