@@ -24,14 +24,6 @@ class Crash(RuntimeError):
     pass
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 @pytest.fixture(scope="module")
 def frames():
     """11 frames of a homogeneous strain growing in time (non-zero strains and rates)."""

@@ -25,18 +25,23 @@ def _restore_mode():
         os.environ["TORCH_STSDIC_PER_POINT"] = old
 
 
-def _movie(m: int, n: int = 96):
+def _movie(m: int, n: int = 96, margin: float = 12.0, every: float = 3.0,
+           edge: tuple = ((10.2, 40.0), (10.6, 50.0))):
+    """A rendered speckle movie (homogeneous strain and a translation moving in time), its
+    2m + 1 frames, points on a grid ``every`` px apart ``margin`` px inside, and two (``edge``:
+    (x, y) from the left and (x from the right, y)) whose subsets leave the image once moved
+    (OUTSIDE statuses)."""
     pattern = synth.make_speckle((n, n), seed=5)
     motion = synth.HomogeneousStrain(exx=0.01, eyy=-0.004, exy=0.003, center=(n / 2, n / 2)) \
         + synth.Translation(0.4, -0.3, ut=0.05, vt=0.02)
     times = torch.arange(0.0, 2 * m + 1, dtype=torch.float64)
     ref, frames = synth.render_series(pattern, (n, n), motion, times, noise_sigma=1.0, seed=3,
                                       reference_time=None)
-    c = torch.arange(12.0, n - 12.0, 3.0, dtype=torch.float64)
+    c = torch.arange(margin, n - margin, every, dtype=torch.float64)
     yy, xx = torch.meshgrid(c, c, indexing="ij")
-    # the last points' subsets leave the image once moved: some OUTSIDE statuses
+    (x0, y0), (x1, y1) = edge
     pts = torch.cat([torch.stack([xx.reshape(-1), yy.reshape(-1)], 1),
-                     torch.tensor([[10.2, 40.0], [n - 10.6, 50.0]], dtype=torch.float64)])
+                     torch.tensor([[x0, y0], [n - x1, y1]], dtype=torch.float64)])
     return ref, (frames if m else frames[0]), pts, times
 
 

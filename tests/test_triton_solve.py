@@ -14,8 +14,10 @@ import torch
 if not torch.cuda.is_available():  # no GPU: Triton's interpreter, before Triton is imported
     os.environ.setdefault("TRITON_INTERPRET", "1")
 
+from test_native_solve import _movie as native_movie  # tests/ on the path
+
 import torch_stsdic as sts
-from torch_stsdic import kernels, synth
+from torch_stsdic import kernels
 from torch_stsdic.core import point_solve
 from torch_stsdic.kernels import dispatch, fused_step, native
 
@@ -36,20 +38,8 @@ def _modes(monkeypatch):
 
 
 def _movie(m: int, n: int = 44, every: int = 12):
-    """A rendered speckle movie (homogeneous strain and a translation moving in time), its
-    2m + 1 frames, and points on a grid plus two whose subsets leave the image once moved
-    (OUTSIDE statuses)."""
-    pattern = synth.make_speckle((n, n), seed=5)
-    motion = synth.HomogeneousStrain(exx=0.01, eyy=-0.004, exy=0.003, center=(n / 2, n / 2)) \
-        + synth.Translation(0.4, -0.3, ut=0.05, vt=0.02)
-    times = torch.arange(0.0, 2 * m + 1, dtype=torch.float64)
-    ref, frames = synth.render_series(pattern, (n, n), motion, times, noise_sigma=1.0, seed=3,
-                                      reference_time=None)
-    c = torch.arange(8.0, n - 8.0, every, dtype=torch.float64)
-    yy, xx = torch.meshgrid(c, c, indexing="ij")
-    pts = torch.cat([torch.stack([xx.reshape(-1), yy.reshape(-1)], 1),
-                     torch.tensor([[5.2, 20.0], [n - 5.6, 24.0]], dtype=torch.float64)])
-    return ref, (frames if m else frames[0]), pts, times
+    """:func:`test_native_solve._movie` at the interpreter's size: 44 px, a coarser grid."""
+    return native_movie(m, n, 8.0, float(every), ((5.2, 20.0), (5.6, 24.0)))
 
 
 def _native_calls(m, dtype, criterion, shared=False, **cfg):

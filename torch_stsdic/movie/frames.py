@@ -123,7 +123,7 @@ class FrameStore:
 
     ``reads``, ``prefiltered`` and ``pyramid_builds`` count per frame index how often it was
     read from the series and prepared in the run (B-spline prefilters, ``pyrdown`` calls: one
-    per pyramid level), ``hits`` the frames a cache took from the store, ``times`` the
+    per pyramid level), ``times`` the
     seconds of the caches that finished (:meth:`FrameCache.times`, added up)."""
 
     def __init__(self, budget_mb: float, max_frames: int | None = None) -> None:
@@ -134,7 +134,6 @@ class FrameStore:
         self.reads: Counter[int] = Counter()
         self.prefiltered: Counter[int] = Counter()
         self.pyramid_builds: Counter[int] = Counter()
-        self.hits = 0
         self.times: Counter[str] = Counter()
 
     def get(self, key: tuple) -> PreparedFrame | None:
@@ -142,7 +141,6 @@ class FrameStore:
             got = self._frames.get(key)
             if got is not None:
                 self._frames.move_to_end(key)
-                self.hits += 1
             return got
 
     def put(self, key: tuple, frame: PreparedFrame) -> None:
@@ -280,16 +278,6 @@ class FrameCache:
         self._reader: _Reader | None = None
         self._ahead_s = [0.0, 0.0]  # read, prefilter time of finished readers
         self._order = int(solver.config.interpolation_order)
-
-    @property
-    def raw(self) -> dict[int, torch.Tensor]:
-        """Pixels (H, W) of the frames held, by index."""
-        return {i: e.raw for i, e in self.entries.items()}
-
-    @property
-    def prep(self) -> dict[int, BSplineImage]:
-        """B-spline coefficients of the frames held, by index."""
-        return {i: e.prep for i, e in self.entries.items()}
 
     def _key(self, i: int) -> tuple:
         return (int(i), str(self.dtype), str(torch.device(self.device)), self._order)
