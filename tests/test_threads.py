@@ -39,6 +39,39 @@ def test_own_threads_sets_torch_to_one_thread_and_restores_it():
         torch.set_num_threads(1)
 
 
+def test_scopes_of_another_thread_leave_this_threads_count_alone():
+    """A frame prefetcher's scope that outlives the main thread's must not leave the main
+    thread (torch's count is per thread) on one thread: before the fix every later solve of a
+    `stsdic run` ran its kernels on one thread ("1 threads" in its summary)."""
+    import threading
+
+    torch.set_num_threads(2)
+    want = min(2, len(os.sched_getaffinity(0)))
+    entered, leave = threading.Event(), threading.Event()
+
+    def prefetch():
+        with rows.own_threads():
+            entered.set()
+            leave.wait(10)
+
+    try:
+        with rows.own_threads():
+            worker = threading.Thread(target=prefetch)
+            worker.start()
+            assert entered.wait(10)
+        assert torch.get_num_threads() == 2  # main's scope closed first
+        with rows.own_threads():  # the prefetcher's scope still open
+            assert rows.threads() == want
+        leave.set()
+        worker.join(10)
+        assert torch.get_num_threads() == 2
+        with rows.own_threads():
+            assert rows.threads() == want
+    finally:
+        leave.set()
+        torch.set_num_threads(1)
+
+
 def test_a_cpu_solve_runs_torch_on_one_thread(monkeypatch):
     """Inside SubsetSolver.solve torch has one thread and the kernels the caller's two."""
     seen = []

@@ -37,13 +37,14 @@ _PARALLEL_MIN = 20_000
 
 
 class _Scope:
-    """The state of :func:`own_threads`: how many scopes are open (in any thread), the
-    library's threads inside them, and torch's thread count to restore."""
+    """The state of :func:`own_threads`: how many scopes are open (in any thread) and the
+    library's threads inside them. Each thread's own torch count (OpenMP's is per thread)
+    is saved and restored by that thread (``_Scope.local``)."""
 
     lock = threading.Lock()
     depth = 0
     threads: int | None = None
-    torch_threads = 1
+    local = threading.local()  # .depth, .torch_threads: this thread's scopes
 
 
 def threads() -> int:
@@ -199,20 +200,24 @@ class _Rows:
 def own_threads(device: torch.device | str | None = "cpu") -> Iterator[None]:
     """The scope of a CPU solve: torch's intra-op threads set to 1 inside, the library's
     parallel work (:func:`run_rows`, :func:`run_shared`, :func:`run_tasks`) on
-    :func:`threads` threads of its own pool, as many as torch had on entry. Re-entrant and
-    shared by threads: the first scope to open sets torch to one thread, the last to close
-    restores its count. Does nothing for another device than the CPU.
-
-    While a scope is open, torch ops of other Python threads also run on one thread."""
+    :func:`threads` threads of its own pool, as many as the threads that opened the open
+    scopes had for torch (the most of them). Re-entrant and safe across threads: torch's
+    count is per thread (OpenMP's), so each thread sets its own to 1 on its first scope and
+    restores it on leaving its last, whatever other threads (a frame prefetcher) do in
+    between. Does nothing for another device than the CPU."""
     if device is not None and torch.device(device).type != "cpu":
         yield
         return
+    local = _Scope.local
+    first = getattr(local, "depth", 0) == 0
+    if first:
+        local.torch_threads = torch.get_num_threads()
+        if local.torch_threads != 1:
+            torch.set_num_threads(1)
+    local.depth = getattr(local, "depth", 0) + 1
     with _Scope.lock:
-        if _Scope.depth == 0:
-            n = torch.get_num_threads()
-            _Scope.threads, _Scope.torch_threads = max(1, n), n
-            if n != 1:
-                torch.set_num_threads(1)
+        n = max(1, local.torch_threads)
+        _Scope.threads = n if _Scope.depth == 0 else max(n, _Scope.threads or 1)
         _Scope.depth += 1
     try:
         yield
@@ -220,9 +225,10 @@ def own_threads(device: torch.device | str | None = "cpu") -> Iterator[None]:
         with _Scope.lock:
             _Scope.depth -= 1
             if _Scope.depth == 0:
-                if torch.get_num_threads() != _Scope.torch_threads:
-                    torch.set_num_threads(_Scope.torch_threads)
                 _Scope.threads = None
+        local.depth -= 1
+        if local.depth == 0 and torch.get_num_threads() != local.torch_threads:
+            torch.set_num_threads(local.torch_threads)
 
 
 def in_own_threads(index: int, name: str) -> Callable:
