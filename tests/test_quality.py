@@ -570,3 +570,29 @@ def test_native_neighbour_round_is_the_torch_round():
             assert torch.equal(out, ref) and 0 < int(out.sum()) < out.numel() // 4
     with pytest.raises(ValueError, match="native.neighbour_test: eps must be"):
         native.neighbour_test(nb, valid, vals, pts, eps[:, :-1], None, None)
+
+
+def test_carried_neighbours_and_guess_at_some_points_equal_the_whole_answer_rows():
+    """``at=`` computes only the asked rows (the carry's fill of lost points): the same numbers
+    as those rows of the whole answer, the plane-fitted gradients at lost points included."""
+    from torch_stsdic.analysis.quality import carried_neighbours, neighbours
+    from torch_stsdic.movie.carry import neighbour_guess
+
+    g = torch.Generator().manual_seed(3)
+    ys, xs = torch.meshgrid(torch.arange(12.0) * 8, torch.arange(15.0) * 8, indexing="ij")
+    pts = torch.stack([xs.flatten(), ys.flatten()], 1)
+    n = pts.shape[0]
+    nb = neighbours(pts)
+    names = ["u", "v", "ux", "uy", "vx", "vy", "ut"]
+    params = torch.randn(2, n, len(names), generator=g, dtype=torch.float64) * 0.1
+    params[..., 0] += 1e-3 * pts[:, 0] ** 2  # a curved field, gradients from it
+    params[..., 2] = 2e-3 * pts[:, 0]
+    ok = torch.rand(2, n, generator=g) > 0.3
+    at = torch.nonzero(~ok[0]).flatten()
+    whole = neighbour_guess(params, ok, names, nb, pts)
+    some = neighbour_guess(params, ok, names, nb, pts, at=at)
+    torch.testing.assert_close(some, whole[:, at], equal_nan=True, rtol=0, atol=0)
+    grads = params[..., 2:6].reshape(2, n, 2, 2)
+    whole = carried_neighbours(params[..., :2], ok, nb, pts, grads)
+    some = carried_neighbours(params[..., :2], ok, nb, pts, grads, at=at)
+    torch.testing.assert_close(some, whole[:, at], equal_nan=True, rtol=0, atol=0)

@@ -331,11 +331,12 @@ def nanmedian_rows(x: Tensor) -> Tensor:
 
 
 def carried_neighbours(values: Tensor, valid: Tensor, nb: Tensor, points: Tensor | None = None,
-                       gradients: Tensor | None = None) -> Tensor:
+                       gradients: Tensor | None = None, at: Tensor | None = None) -> Tensor:
     """(B, N, k, C): the ``valid`` (B, N) neighbours ``nb`` (N, k) of every point, their
     (B, N, C) ``values`` carried to the point by ``gradients`` (B, N, C, 2) (d/dx, d/dy of
     each component; positions ``points`` (N, 2) px), NaN where there is no valid neighbour.
-    Without gradients the neighbours' values as they are.
+    Without gradients the neighbours' values as they are. ``at`` (M,) long: only those
+    points, (B, M, k, C) (the same numbers as the rows ``at`` of the whole answer).
 
     The carry is the trapezoid rule: the mean of the neighbour's gradient and the gradient at
     the point, so a quadratic field (a strain that changes along the specimen) is carried
@@ -344,16 +345,21 @@ def carried_neighbours(values: Tensor, valid: Tensor, nb: Tensor, points: Tensor
     far above the noise). The gradient at the point is its own where that is like its
     neighbours' (the point being judged, or a lost one, may be wrong), else the plane fitted
     to its valid neighbours' gradients (:func:`_gradient_at`)."""
-    n = values.shape[1]
+    if at is not None:
+        nb = nb[at]
+    n = nb.shape[0]
     safe, has = nb.clamp(min=0), (nb >= 0).view(1, n, -1)
     use = valid[:, safe] & has  # (B, N, k)
     v = torch.where(valid.unsqueeze(-1), values.double(), torch.nan)
     vn = v[:, safe]  # (B, N, k, C)
     if points is not None and gradients is not None:
         p = points.double()
-        d = (p.unsqueeze(1) - p[safe]).view(1, n, -1, 1, 2)  # (1, N, k, 1, 2) to the point
+        d = (p[at if at is not None else slice(None)].unsqueeze(1) - p[safe]).view(1, n, -1, 1, 2)
         g = gradients.double()
-        gs, use5 = g[:, safe], use.view(*use.shape, 1, 1)  # (B, N, k, C, 2)
+        gs = g[:, safe]  # (B, N, k, C, 2)
+        if at is not None:
+            g, valid = g[:, at], valid[:, at]
+        use5 = use.view(*use.shape, 1, 1)
         gn = torch.where(use5, gs, 0.0)
         # the point's own gradient where it is one of its neighbours' (within 3 of their
         # median absolute deviations from their median, + GRADIENT_TOL): no extrapolation
@@ -362,13 +368,13 @@ def carried_neighbours(values: Tensor, valid: Tensor, nb: Tensor, points: Tensor
         med = nanmedian_rows(gm)
         mad = nanmedian_rows((gm - med.unsqueeze(-1)).abs_())
         own = valid.view(*valid.shape, 1, 1) & ((g - med).abs() <= 3.0 * mad + GRADIENT_TOL)
-        at = g.clone()
+        g_at = g.clone()  # the gradient at each point
         fit = ~own.flatten(-2).all(-1)  # (B, N): the plane fit of the neighbours is needed
         if bool(fit.any()):
             dd = d.view(1, n, -1, 2).expand(g.shape[0], -1, -1, -1)[fit]  # (M, k, 2)
             plane = _gradient_at(gn[fit].unsqueeze(0), use[fit].unsqueeze(0), dd.unsqueeze(0))[0]
-            at[fit] = torch.where(own[fit], g[fit], plane)
-        vn = vn + (0.5 * (torch.nan_to_num(gn) + at.unsqueeze(2)) * d).sum(-1)
+            g_at[fit] = torch.where(own[fit], g[fit], plane)
+        vn = vn + (0.5 * (torch.nan_to_num(gn) + g_at.unsqueeze(2)) * d).sum(-1)
     return torch.where(use.unsqueeze(-1), vn, torch.nan)
 
 

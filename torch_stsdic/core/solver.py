@@ -30,6 +30,7 @@ fixed point exactly the ZNCC maximum.
 from __future__ import annotations
 
 import time as _time
+import weakref
 
 import torch
 
@@ -86,11 +87,25 @@ class SubsetSolver:
         #: the reference subsets kept between this solver's solves
         #: (:class:`~torch_stsdic.core.gauss_newton.ReferenceCache`; set by a run, None: none)
         self.reference_cache: ReferenceCache | None = None
+        self._grey_memo: tuple | None = None  # (weakref to the pixels, their version, range)
 
     def prepare(self, images: torch.Tensor) -> BSplineImage:
         """Prefilter (T, H, W) or (H, W) images into B-spline coefficients."""
         with own_threads(images.device):
             return BSplineImage(images, order=self.config.interpolation_order)
+
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "_grey_memo": None}  # a weak reference does not pickle
+
+    def _grey_range_of(self, grey: torch.Tensor) -> float:
+        """:func:`_grey_range` of the reference's pixels, kept for the same unchanged tensor
+        (a run solves hundreds of times against one reference: 1.4 ms a call on 1 Mpx)."""
+        memo = self._grey_memo
+        if memo is not None and memo[0]() is grey and memo[1] == grey._version:
+            return memo[2]
+        value = _grey_range(grey)
+        self._grey_memo = (weakref.ref(grey), grey._version, value)
+        return value
 
     def stages_for(self, shape: ShapeFunction) -> list[Formulation]:
         """The Gauss-Newton stages (formulations) run for ``shape`` (see :func:`shape_for`)."""
@@ -274,7 +289,8 @@ class SubsetSolver:
         geo = Geometry.make(shape, self.window, cfg.criterion, dtype, device)
         ctx = BatchContext(
             geo=geo, ref=ref, frames=frames, cfg=cfg, stages=self.stages_for(shape),
-            grey_range=_grey_range(grey), work=int(todo.numel()) * t_count * int(geo.w.numel()),
+            grey_range=self._grey_range_of(grey),
+            work=int(todo.numel()) * t_count * int(geo.w.numel()),
             noise_ratio=float(noise_ratio), cache=self.reference_cache,
             classical_step=classical_step,
         )

@@ -55,13 +55,16 @@ class Carry:
         stack = torch.stack([self.vals[nm] for nm in names] + [self.vel_u, self.vel_v], 1)
         ok = self.valid.clone()
         for _ in range(rounds):
+            need = torch.nonzero(~ok).flatten()  # only those: ~0.2 of the work when 7 % are lost
+            if need.numel() == 0:
+                break
             guess = neighbour_guess(stack.unsqueeze(0), ok.unsqueeze(0),
-                                    names + ["vel_u", "vel_v"], nb, points)[0]
-            fill = ~ok & torch.isfinite(guess).all(1)
+                                    names + ["vel_u", "vel_v"], nb, points, at=need)[0]
+            fill = torch.isfinite(guess).all(1)
             if not bool(fill.any()):
                 break
-            stack = torch.where(fill.unsqueeze(1), guess.to(stack.dtype), stack)
-            ok |= fill
+            stack[need[fill]] = guess[fill].to(stack.dtype)
+            ok[need[fill]] = True
         filled = ok & ~self.valid
         if not bool(filled.any()):
             return self, 0
@@ -72,20 +75,21 @@ class Carry:
 
 
 def neighbour_guess(params: torch.Tensor, ok: torch.Tensor, names, nb: torch.Tensor,
-                    points: torch.Tensor, min_count: int = 2) -> torch.Tensor:
+                    points: torch.Tensor, min_count: int = 2,
+                    at: torch.Tensor | None = None) -> torch.Tensor:
     """(B, N, P) every point's parameters from its ``ok`` (B, N) grid neighbours ``nb``
     (N, k) in ``params`` (B, N, P) (names ``names``): the median over them, u and v first
     carried to the point by each neighbour's own gradients (positions ``points`` (N, 2) px,
     :func:`~torch_stsdic.analysis.quality.carried_neighbours`); NaN where fewer than ``min_count``
     neighbours are ``ok``. Parameters NaN at every neighbour (a classical row's ut) stay
-    NaN."""
-    vn = carried_neighbours(params, ok, nb)  # (B, N, k, P)
+    NaN. ``at`` (M,) long: only those points' guesses, (B, M, P)."""
+    vn = carried_neighbours(params, ok, nb, at=at)  # (B, N, k, P)
     iu, iv = names.index("u"), names.index("v")
     if all(nm in names for nm in ("ux", "uy", "vx", "vy")):
         b, n = params.shape[:2]
         gi = [names.index(nm) for nm in ("ux", "uy", "vx", "vy")]
         uv = carried_neighbours(params[..., [iu, iv]], ok, nb, points,
-                                params[..., gi].reshape(b, n, 2, 2))
+                                params[..., gi].reshape(b, n, 2, 2), at=at)
         vn[..., iu], vn[..., iv] = uv[..., 0], uv[..., 1]
     out = nanmedian_rows(vn.transpose(-1, -2))  # (B, N, P)
     few = (~torch.isnan(vn[..., iu])).sum(-1) < min_count
