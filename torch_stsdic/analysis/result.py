@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -101,6 +102,26 @@ class TrackResult:
         if hit.numel() == 0:
             raise KeyError(f"frame {frame} is not a target frame of this result")
         return int(hit[0])
+
+    def select(self, frames: list[int] | None = None, points: torch.Tensor | None = None
+               ) -> TrackResult:
+        """The rows of series ``frames`` (in that order; None: all) at ``points`` (POI
+        indices; None: all), as a result of their own (the same tensors' entries, copied)."""
+        rows = (slice(None) if frames is None
+                else torch.as_tensor([self.row_of(k) for k in frames], dtype=torch.long))
+        cols = slice(None) if points is None else torch.as_tensor(points, dtype=torch.long)
+
+        def pick(a: torch.Tensor) -> torch.Tensor:
+            return a[rows][:, cols]
+
+        return dataclasses.replace(
+            self, points=self.points[cols], frames=self.frames[rows], times=self.times[rows],
+            u=pick(self.u), v=pick(self.v), ut=pick(self.ut), vt=pick(self.vt),
+            zncc=pick(self.zncc), status=pick(self.status), iterations=pick(self.iterations),
+            gradients={k: pick(a) for k, a in self.gradients.items()},
+            reference_frames=self.reference_frames[rows], info=dict(self.info),
+            m=None if self.m is None else pick(self.m),
+            std={k: pick(a) for k, a in self.std.items()})
 
     @property
     def shared_motion(self) -> SharedMotion | None:

@@ -33,6 +33,7 @@ import torch
 
 from torch_stsdic.analysis.result import TrackResult
 from torch_stsdic.core.shared_motion import SharedMotion
+from torch_stsdic.movie.classical_pass import ClassicalPass
 from torch_stsdic.movie.frames import segment_bounds, window_frames
 from torch_stsdic.movie.plan import RunPlan
 from torch_stsdic.movie.reference import noise_ratio
@@ -41,17 +42,26 @@ from torch_stsdic.movie.series_reference import (
     SeriesReference,
     build_series_reference,
     measure_time_model,
+    sample_frames,
     wants_time_model,
 )
-from torch_stsdic.movie.shared_pass import estimate_shared_motion
+from torch_stsdic.movie.shared_pass import estimate_shared_motion, shared_frames
 from torch_stsdic.movie.sinks import MemorySink
-from torch_stsdic.movie.window_length import measure_window_lengths, wants_window_lengths
+from torch_stsdic.movie.window_length import (
+    measure_window_lengths,
+    measured_frames,
+    wants_window_lengths,
+)
 
 __all__ = ["RunEstimates", "measure_run", "reference_pixels", "record_estimates",
            "stored_or_measured", "FROM_FILE"]
 
 #: runs a plan to its result (the signature of :func:`torch_stsdic.movie.series.run_plan`)
 RunFunction = Callable[..., TrackResult]
+
+#: the shared-motion pass takes its rows from the run's shared classical pass where it
+#: measures at most this many frames (twice the window-length pass's: a short movie)
+SHARED_FRAMES_HELD = 128
 
 
 @dataclass(eq=False)
@@ -146,18 +156,20 @@ def measure_run(plan: RunPlan, ref_raw: torch.Tensor | None = None, *, run: RunF
     that records it in its result file for a resumed run to read). ``guess_blocks``: the
     blocks that start from the shared motion's first guess (default the plan's first;
     :func:`~torch_stsdic.movie.shared_pass.estimate_shared_motion`)."""
+    measured = _classical_pass(plan, run)
     shared = None
     if plan.options.get("shared_motion"):
         kind = plan.options["shared_motion"]
         shared = estimate_shared_motion(plan, kind, auto=kind == "auto", run=run,
-                                        guess_blocks=guess_blocks)
+                                        guess_blocks=guess_blocks, measured=measured)
     series_ref = None
     if plan.options.get("series_reference"):
         opt = plan.options["series_reference"]
         raw = reference_pixels(plan) if ref_raw is None else ref_raw
         series_ref = build_series_reference(
             plan, raw, run=run, max_frames=opt["frames"], iterations=opt["iterations"],
-            shared=shared if shared is not None and shared.applied else None)
+            shared=shared if shared is not None and shared.applied else None,
+            measured=measured)
     offsets = None
     if plan.options.get("refine_reference"):
         offsets = measure_offsets(plan, int(plan.options["refine_reference"]),
@@ -166,7 +178,7 @@ def measure_run(plan: RunPlan, ref_raw: torch.Tensor | None = None, *, run: RunF
     window_m = None
     if wants_window_lengths(plan):
         window_m = measure_window_lengths(plan, run, shared if shared is not None
-                                          and shared.applied else None)
+                                          and shared.applied else None, measured=measured)
         if series_ref is not None:  # its test was of the longest window alone
             series_ref.model_holds = None
     holds = None
@@ -181,6 +193,27 @@ def measure_run(plan: RunPlan, ref_raw: torch.Tensor | None = None, *, run: RunF
     if first_noise and est.noise_ratio is None:
         est.noise_ratio = _first_block_noise(plan, ref_raw, shared)
     return est
+
+
+def _classical_pass(plan: RunPlan, run: RunFunction) -> ClassicalPass | None:
+    """The classical pass that the shared-motion pass, the template's first round and the
+    window-length pass share (:mod:`~torch_stsdic.movie.classical_pass`), over the frames
+    they will ask for (the shared-motion pass's only where they are at most
+    ``SHARED_FRAMES_HELD``: a long movie's pass measures every frame, at a sample of the
+    points, and holds only what its fit needs); None where fewer than two of them run."""
+    users, frames = 0, set()
+    if plan.options.get("shared_motion"):
+        users += 1
+        own = shared_frames(plan)
+        if len(own) <= SHARED_FRAMES_HELD:
+            frames |= set(own)
+    if plan.options.get("series_reference"):
+        users += 1
+        frames |= set(sample_frames(plan, plan.options["series_reference"]["frames"]))
+    if wants_window_lengths(plan):
+        users += 1
+        frames |= set(measured_frames(plan))
+    return ClassicalPass(plan, run, frames) if users >= 2 else None
 
 
 def _first_block_noise(plan: RunPlan, ref_raw: torch.Tensor | None,

@@ -39,6 +39,7 @@ from torch_stsdic.analysis.result import USABLE, TrackResult
 from torch_stsdic.core.interpolation import BSplineImage
 from torch_stsdic.core.noise import estimate_noise_sigma, interpolation_variance_factor
 from torch_stsdic.core.shared_motion import SharedMotion
+from torch_stsdic.movie.classical_pass import ClassicalPass, classical_subplan
 from torch_stsdic.movie.plan import RunPlan
 from torch_stsdic.movie.refine import ReferenceOffsets
 from torch_stsdic.movie.sample_guess import MeasuredSample
@@ -149,12 +150,7 @@ def _measure(plan: RunPlan, frames: list[int], image: torch.Tensor | None,
     """Classical DIC (checks off) of ``frames`` at all the plan's POIs, against the plan's
     reference or against ``image``; its first block starts from ``guess`` (an earlier
     round's solutions; None: FFT cross-correlation)."""
-    opts = {**plan.options, "smoothing": None, "reference_update": None, "checks": False,
-            "shared_motion": None, "series_reference": None}
-    opts.pop("refine_reference", None)
-    names = tuple(nm for nm in plan.param_names if nm not in ("ut", "vt"))
-    sub = dataclasses.replace(plan, config=plan.config.replace(m=0), targets=frames,
-                              options=opts, param_names=names)
+    sub = classical_subplan(plan, frames)
     if image is not None:
         sub = dataclasses.replace(sub, reference_image=image, reference_frame=-1,
                                   reference_desc="array:series-template")
@@ -476,7 +472,8 @@ def build_series_reference(plan: RunPlan, ref_raw: torch.Tensor, *,
                            max_frames: int = DEFAULT_FRAMES,
                            iterations: int = DEFAULT_ITERATIONS,
                            neighbours: int = DEFAULT_NEIGHBOURS,
-                           shared: SharedMotion | None = None) -> SeriesReference:
+                           shared: SharedMotion | None = None,
+                           measured: ClassicalPass | None = None) -> SeriesReference:
     """The template of ``plan``: ``iterations`` rounds of a classical measurement of the
     sampled frames (:func:`sample_frames`; the first against the plan's reference image
     ``ref_raw`` (H, W), the others against the last template) and a template from their
@@ -487,7 +484,9 @@ def build_series_reference(plan: RunPlan, ref_raw: torch.Tensor, *,
     with the ``shared`` motion taken out). Then the template's registration as the
     reference frame measures it (:func:`_gauge`), where the reference is a frame of the
     series.
-    ``run``: the runner of a plan (:func:`torch_stsdic.movie.series.run_plan`)."""
+    ``run``: the runner of a plan (:func:`torch_stsdic.movie.series.run_plan`);
+    ``measured``: the run's shared classical pass (the first round's rows where it has
+    them)."""
     if int(iterations) < 1:
         raise ValueError(f"series_reference: iterations must be >= 1, got {iterations!r}")
     t0 = time.perf_counter()
@@ -498,7 +497,9 @@ def build_series_reference(plan: RunPlan, ref_raw: torch.Tensor, *,
                             degrees=(1, 2, 3))
     image = degree = unit = matched = guess = None
     for _ in range(int(iterations)):
-        res = _measure(plan, frames, image, run, guess)
+        res = measured.result(frames) if image is None and measured is not None else None
+        if res is None:
+            res = _measure(plan, frames, image, run, guess)
         guess = _round_guess(plan, res)
         warps, trusted = _all_warps(plan, res)
         if degree is None:  # tested once, against the reference image (a known null)

@@ -5,7 +5,6 @@ sample of the run's POIs (:func:`estimate_shared_motion`)."""
 
 from __future__ import annotations
 
-import dataclasses
 import time
 import warnings
 from collections.abc import Callable
@@ -23,6 +22,7 @@ from torch_stsdic.core.shared_motion import (
     overlap_factor,
     sample_points,
 )
+from torch_stsdic.movie.classical_pass import ClassicalPass, classical_subplan
 from torch_stsdic.movie.frames import frames_in_order
 from torch_stsdic.movie.plan import RunPlan
 from torch_stsdic.movie.sample_guess import MeasuredSample
@@ -31,7 +31,7 @@ from torch_stsdic.movie.sinks import MemorySink
 #: runs a plan to its result (the signature of :func:`torch_stsdic.movie.series.run_plan`)
 RunFunction = Callable[..., TrackResult]
 
-__all__ = ["estimate_shared_motion"]
+__all__ = ["estimate_shared_motion", "shared_frames"]
 
 
 def _fill(params: np.ndarray, times: np.ndarray) -> np.ndarray:
@@ -92,10 +92,17 @@ def implausible(disp: torch.Tensor, fitted: torch.Tensor, valid: torch.Tensor,
     return None
 
 
+def shared_frames(plan: RunPlan) -> list[int]:
+    """The series frames the shared-motion pass measures: every frame a window of the run
+    uses."""
+    return sorted(set(frames_in_order(plan.blocks, plan.config.m, len(plan.series))))
+
+
 def estimate_shared_motion(plan: RunPlan, kind: str = "auto",
                            max_points: int = DEFAULT_MAX_POINTS,
                            auto: bool = False, *, run: RunFunction,
-                           guess_blocks: list[list[int]] | None = None) -> SharedMotion:
+                           guess_blocks: list[list[int]] | None = None,
+                           measured: ClassicalPass | None = None) -> SharedMotion:
     """Measure the shared motion of a run: classical DIC (checks off) of every series frame
     that a window of the run uses, at up to ``max_points`` of the run's POIs, then
     :func:`fit_frame_motion` per frame. The reference frame's motion is exactly zero. With
@@ -109,22 +116,16 @@ def estimate_shared_motion(plan: RunPlan, kind: str = "auto",
     ``guess_blocks``: the blocks that start without a carry, from the pass's solutions
     (``sample``, kept at their frames only: :meth:`MeasuredSample.near_frames`); default the
     plan's first block (classical windows, m = 0: every frame, a block after the reference
-    frame's own row starts so too)."""
+    frame's own row starts so too). ``measured``: the run's shared classical pass (its rows
+    where it holds the pass's frames, at the sample points)."""
 
     t0 = time.perf_counter()
     n_series = len(plan.series)
-    frames = sorted(set(frames_in_order(plan.blocks, plan.config.m, n_series)))
+    frames = shared_frames(plan)
     sel = sample_points(plan.points, max_points)
     if kind == "auto":
         kind = "quadratic" if sel.numel() >= QUADRATIC_POINTS else "affine"
-    cfg = plan.config.replace(m=0)
-    opts = {**plan.options, "smoothing": None, "reference_update": None, "checks": False,
-            "shared_motion": None}
-    opts.pop("refine_reference", None)
-    opts["series_reference"] = None  # a sub-run: against the plan's reference image
-    names = tuple(nm for nm in plan.param_names if nm not in ("ut", "vt"))
-    sub = dataclasses.replace(plan, config=cfg, targets=frames, options=opts,
-                              param_names=names, points=plan.points[sel])
+    sub = classical_subplan(plan, frames, sel)
     # only what the fit uses, at the run's precision (a long movie: the pass measures every
     # frame), and the gradients of the first guess only where blocks start from it
     if guess_blocks is None and plan.config.m > 0:
@@ -132,17 +133,25 @@ def estimate_shared_motion(plan: RunPlan, kind: str = "auto",
     near = torch.ones(len(frames), dtype=torch.bool) if guess_blocks is None else \
         MeasuredSample.near_frames(torch.as_tensor(frames, dtype=torch.long), guess_blocks,
                                    plan.config.m)
-    grads = tuple(nm for nm in ("ux", "uy", "vx", "vy") if nm in sub.param_names)
-    keep = ("u", "v", "zncc", "status", *(("u_std",) if "u_std" in sub.fields else ()))
-    sink = MemorySink(sub, keep=keep, at_rows=(grads, torch.nonzero(near).flatten().numpy()))
-    res = run(sub, sink, progress=False)
+    pts = plan.points[sel].double().cpu()
+    res = None if measured is None else measured.result(frames, sel)
+    if res is None:
+        grads = tuple(nm for nm in ("ux", "uy", "vx", "vy") if nm in sub.param_names)
+        keep = ("u", "v", "zncc", "status", *(("u_std",) if "u_std" in sub.fields else ()))
+        sink = MemorySink(sub, keep=keep,
+                          at_rows=(grads, torch.nonzero(near).flatten().numpy()))
+        res = run(sub, sink, progress=False)
+    else:
+        sink = None
     disp = torch.stack([res.u, res.v], -1).double().cpu()  # (F, n, 2)
     valid = (res.status <= USABLE).cpu() & (res.zncc.cpu() >= float(
         plan.options.get("lost_zncc", 0.8)))
-    pts = plan.points[sel].double().cpu()
     origin = plan.points.double().mean(0).cpu()
     noise = res.std["u"].double().cpu() if "u" in res.std else None
-    sample = _measured_sample(sink, pts, valid)  # the first guess: near the blocks' frames
+    # the first guess: near the blocks' frames
+    sample = (_measured_sample(sink, pts, valid) if sink is not None else
+              MeasuredSample.from_result(res.select(res.frames[near].tolist()), pts,
+                                         valid[near]))
     del res, sink  # the pass's fields: only what the fit uses is kept
     par, scat, used, se_t = fit_frame_motion(pts, disp, valid, kind, origin=origin,
                                              noise=noise)

@@ -40,6 +40,7 @@ from torch_stsdic.analysis.points import nearest_points
 from torch_stsdic.analysis.quality import line_mismatch, line_offset
 from torch_stsdic.analysis.result import USABLE, TrackResult
 from torch_stsdic.core.shared_motion import SharedMotion
+from torch_stsdic.movie.classical_pass import ClassicalPass
 from torch_stsdic.movie.frames import segment_bounds, window_frames
 from torch_stsdic.movie.plan import RunPlan
 from torch_stsdic.movie.series_reference import (
@@ -182,12 +183,16 @@ def window_lengths(plan: RunPlan, res: TrackResult, frames: list[int],
 
 
 def measure_window_lengths(plan: RunPlan, run: Callable[..., TrackResult],
-                           shared: SharedMotion | None = None) -> torch.Tensor:
+                           shared: SharedMotion | None = None,
+                           measured: ClassicalPass | None = None) -> torch.Tensor:
     """(T_series, N) int8 the window half-widths of ``plan`` (:func:`window_lengths`) from a
-    classical pass over :func:`measured_frames` against the plan's reference image."""
+    classical pass over :func:`measured_frames` against the plan's reference image (the
+    run's shared one, ``measured``, where it holds those frames)."""
     seg = _segments(plan, shared)
     frames = measured_frames(plan, seg)
-    res = measure_classical(plan, frames, run)
+    res = None if measured is None else measured.result(frames)
+    if res is None:
+        res = measure_classical(plan, frames, run)
     return window_lengths(plan, res, frames, shared)
 
 
