@@ -70,6 +70,9 @@ class BlockContext:
     #: the measuring pass's solutions (:class:`~torch_stsdic.movie.sample_guess.MeasuredSample`):
     #: the initial guess of a block that has no carry (None: FFT cross-correlation)
     first_guess: MeasuredSample | None = None
+    #: every block starts from ``first_guess`` where it has a trusted solution there (an
+    #: earlier round's of the same frames: the template's later rounds), not only the first
+    guess_every_block: bool = False
     #: (N,) px^2 the variance the reference adds to u and to v of every row, beyond what the
     #: solver predicts (the registration of a template made from the series; None: none)
     reference_var: torch.Tensor | None = None
@@ -552,11 +555,24 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
         pred = to_relative(carry.predict(run.ts[blk.k].to(run.dtype)), ref.acc)
         init = blk.init_rows({nm: v.reshape(-1) for nm, v in pred.items()})
         carried = carry.valid.repeat(b) & torch.isfinite(init).all(1)
+        has = None
+        if run.guess_every_block and run.first_guess is not None and ref.acc is None:
+            # an earlier round's solution of the row's own frames: closer than the carry
+            # moved on over the frames between (the template's sampled frames are apart)
+            g = blk.init_rows({nm: v.to(device=dev, dtype=run.dtype) for nm, v in
+                               run.first_guess.guess(ref.points, blk.windows(run.m),
+                                                     blk.dt[::n]).items()})
+            has = torch.isfinite(g).all(1)
+            init = torch.where(has.unsqueeze(1), g, init)
+            carried |= has
+            run.stats["first_guess_rows"] = run.stats.get("first_guess_rows", 0) + int(
+                has.sum())
         last = {nm: v.repeat(b) for nm, v in to_relative(dict(carry.vals), ref.acc).items()}
         carried &= ~blk.keep_outside((init, blk.init_rows(last)), carried)
         if carry.vel_known is not None:  # without a velocity the carry predicts only the
             later = torch.arange(b, device=dev).repeat_interleave(n) > 0  # first target:
-            carried &= ~later | carry.vel_known.repeat(b)  # the later ones start from it
+            keep = ~later | carry.vel_known.repeat(b)  # the later ones start from it
+            carried &= keep if has is None else keep | has
     ident = blk.keep_identity()
     carried &= ~ident
     guess = None

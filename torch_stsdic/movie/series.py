@@ -94,7 +94,8 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
              callback: Callable[[int, int], None] | None = None,
              estimates: RunEstimates | None = None, warm_up: bool = False,
              frames: FrameStore | None = None,
-             first_guess: MeasuredSample | None = None) -> TrackResult:
+             first_guess: MeasuredSample | None = None,
+             guess_every_block: bool = False) -> TrackResult:
     """Execute ``plan`` block by block into ``sink`` (default: memory) and return the result.
 
     Blocks the sink already holds (an interrupted run being resumed) are replayed from it, not
@@ -113,7 +114,9 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
     plan's ``memory_mb``). ``first_guess``: solutions of an earlier measurement of the plan's
     frames (:class:`~torch_stsdic.movie.sample_guess.MeasuredSample`) that the first block
     starts from instead of FFT cross-correlation (a template's later rounds, its gauge);
-    default: the shared-motion pass's, where there is one."""
+    default: the shared-motion pass's, where there is one. ``guess_every_block``: every
+    block starts from ``first_guess`` where it has the row's solution (an earlier round of
+    the same frames), not only the first."""
     sink = sink if sink is not None else MemorySink(plan)
     cfg = plan.config
     solver = SubsetSolver(cfg)
@@ -162,6 +165,7 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
             run.segments = segment_bounds(shared.steps, len(plan.series)).to(plan.device)
     if first_guess is not None:
         run.first_guess = first_guess
+        run.guess_every_block = bool(guess_every_block)
     if est.series_reference is not None:
         img = est.series_reference.image.to(device=plan.device, dtype=plan.dtype)
         ref = Reference(frame=-1, raw=img, img=solver.prepare(img), points=ref.points)

@@ -154,7 +154,8 @@ def _measure(plan: RunPlan, frames: list[int], image: torch.Tensor | None,
     if image is not None:
         sub = dataclasses.replace(sub, reference_image=image, reference_frame=-1,
                                   reference_desc="array:series-template")
-    return run(sub, progress=False, **({} if guess is None else {"first_guess": guess}))
+    return run(sub, progress=False, **({} if guess is None else
+                                       {"first_guess": guess, "guess_every_block": True}))
 
 
 def _round_guess(plan: RunPlan, res: TrackResult) -> MeasuredSample:
