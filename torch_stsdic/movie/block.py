@@ -552,7 +552,12 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
         if not bool(carry.valid.all()):
             carry, filled = carry.from_neighbours(run.grid_neighbours(ref), pts0)
             run.stats["neighbour_rows"] = run.stats.get("neighbour_rows", 0) + filled * b
-        pred = to_relative(carry.predict(run.ts[blk.k].to(run.dtype)), ref.acc)
+        pred = carry.predict(run.ts[blk.k].to(run.dtype))
+        if run.shared is not None and ref.acc is None:  # the shake between the frames
+            step = carry.shared_step(run.shared, ref.points, blk.k, run.ts, run.segments)
+            pred["u"] = pred["u"] + step[..., 0].to(pred["u"])
+            pred["v"] = pred["v"] + step[..., 1].to(pred["v"])
+        pred = to_relative(pred, ref.acc)
         init = blk.init_rows({nm: v.reshape(-1) for nm, v in pred.items()})
         carried = carry.valid.repeat(b) & torch.isfinite(init).all(1)
         has = None

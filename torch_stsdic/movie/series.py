@@ -245,7 +245,7 @@ def _run_blocks(plan: RunPlan, sink: MemorySink, run: BlockContext, ref: Referen
                 seed = {**stored, "status": np.where(poor, int(Status.CONVERGED),
                                                      stored["status"]).astype(np.int8)}
             carry = make_carry(seed, plan.times[block], plan.param_names, carry,
-                               plan.dtype, plan.device)
+                               plan.dtype, plan.device, frames=block)
         if thr is not None:
             ref = maybe_update(ref, stored, block[-1], float(thr), pts0, plan.param_names,
                                run.cache, plan.dtype, plan.device, updates, rs[-1])
