@@ -59,3 +59,25 @@ def test_the_pre_passes_share_one_classical_measurement(monkeypatch):
         d = (alone.field(nm) - shared.field(nm))[both]
         assert float(d.pow(2).mean().sqrt()) < 2e-3
     assert np.array_equal(alone.m.numpy() >= 0, shared.m.numpy() >= 0)
+
+
+def test_a_single_reference_run_shares_it_with_the_time_model_pass(monkeypatch):
+    """Without a template (``series_reference=False``) the time model is decided from a
+    classical pass of its own: the shared-motion pass's serves it."""
+    subs: list[tuple] = []
+    inner = series.run_plan
+
+    def recording(plan, *args, **kwargs):
+        if plan.config.m == 0 and not plan.options.get("checks", True):
+            subs.append(tuple(plan.targets))
+        return inner(plan, *args, **kwargs)
+
+    monkeypatch.setattr(series, "run_plan", recording)
+    called = []
+    orig = estimates.measure_time_model
+    monkeypatch.setattr(estimates, "measure_time_model",
+                        lambda *a, **k: called.append(k.get("measured")) or orig(*a, **k))
+    sts.track(_movie(), step=6, config=sts.DICConfig(m=2), series_reference=False,
+              progress=False)
+    assert called and called[0] is not None and called[0].served >= 2
+    assert len(subs) == 1

@@ -2,7 +2,8 @@
 frames at the run's POIs against its reference image, measured once.
 
 The shared-motion pass (:mod:`.shared_pass`), the template's first round
-(:mod:`.series_reference`) and the window-length pass (:mod:`.window_length`) each measured
+(:mod:`.series_reference`), the window-length pass (:mod:`.window_length`) and, without a
+template, the time-model pass (:func:`.series_reference.measure_time_model`) each measured
 the same thing, each for its own frames (and the shared-motion pass at a sample of the
 points): on the muDIC hourglass (40 frames, 1,666 POIs) three classical passes over the
 movie before its first block. :class:`ClassicalPass` measures the union of the frames they

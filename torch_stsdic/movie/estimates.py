@@ -184,7 +184,7 @@ def measure_run(plan: RunPlan, ref_raw: torch.Tensor | None = None, *, run: RunF
     holds = None
     if series_ref is None and window_m is None and wants_time_model(plan):
         holds = measure_time_model(plan, run, shared if shared is not None and shared.applied
-                                   else None)
+                                   else None, measured=measured)
         if holds is None:  # no point had three windows: decided, the model everywhere
             holds = torch.ones(plan.n_points, dtype=torch.bool)
     est = RunEstimates(shared=shared, series_reference=series_ref, offsets=offsets,
@@ -196,9 +196,10 @@ def measure_run(plan: RunPlan, ref_raw: torch.Tensor | None = None, *, run: RunF
 
 
 def _classical_pass(plan: RunPlan, run: RunFunction) -> ClassicalPass | None:
-    """The classical pass that the shared-motion pass, the template's first round and the
-    window-length pass share (:mod:`~torch_stsdic.movie.classical_pass`), over the frames
-    they will ask for (the shared-motion pass's only where they are at most
+    """The classical pass that the shared-motion pass, the template's first round, the
+    window-length pass and the time-model pass share
+    (:mod:`~torch_stsdic.movie.classical_pass`), over the frames they will ask for (the
+    shared-motion pass's only where they are at most
     ``SHARED_FRAMES_HELD``: a long movie's pass measures every frame, at a sample of the
     points, and holds only what its fit needs); None where fewer than two of them run."""
     users, frames = 0, set()
@@ -213,6 +214,9 @@ def _classical_pass(plan: RunPlan, run: RunFunction) -> ClassicalPass | None:
     if wants_window_lengths(plan):
         users += 1
         frames |= set(measured_frames(plan))
+    elif not plan.options.get("series_reference") and wants_time_model(plan):
+        users += 1  # the time model decided from its own classical pass
+        frames |= set(sample_frames(plan))
     return ClassicalPass(plan, run, frames) if users >= 2 else None
 
 

@@ -603,13 +603,18 @@ def wants_time_model(plan: RunPlan) -> bool:
 
 def measure_time_model(plan: RunPlan, run: Callable[..., TrackResult],
                        shared: SharedMotion | None = None,
-                       max_frames: int = DEFAULT_FRAMES) -> torch.Tensor | None:
+                       max_frames: int = DEFAULT_FRAMES,
+                       measured: ClassicalPass | None = None) -> torch.Tensor | None:
     """(N,) bool: where the time model holds (:func:`time_model_holds`) for a run against
     its reference image alone: the same classical measurement of the sampled frames
     (:func:`sample_frames`) that a template's first round makes, against the plan's
-    reference. None where no point had three windows."""
+    reference (the run's shared one, ``measured``, where it holds them). None where no
+    point had three windows."""
     frames = sample_frames(plan, max_frames)
-    return time_model_holds(plan, _measure(plan, frames, None, run), frames, shared)
+    res = None if measured is None else measured.result(frames)
+    if res is None:
+        res = _measure(plan, frames, None, run)
+    return time_model_holds(plan, res, frames, shared)
 
 
 def single_reason(plan: RunPlan) -> str | None:
