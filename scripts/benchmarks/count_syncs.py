@@ -1,0 +1,126 @@
+#!/usr/bin/env python
+"""How often a ``stsdic run`` block would wait for the device: the torch operations of each
+block that force a host synchronisation on a GPU, counted on any device (the CPU included).
+
+    python scripts/benchmarks/count_syncs.py                     # the hourglass, defaults
+    python scripts/benchmarks/count_syncs.py --out docs/bench/syncs-hourglass-cpu.json -- \\
+        ../shared/data/mudic-hourglass --roi 150 20 1120 734 --subset 31 --step 20 --m 2
+
+Counted through a ``TorchDispatchMode`` (every aten call of the process, in the calling
+thread): a value read on the host (``.item()``, ``bool()``, ``int()``, ``float()`` of a
+tensor: ``aten._local_scalar_dense``), and the operations whose output size depends on the
+data (``nonzero``, ``masked_select``, boolean-mask indexing, ``unique``, ``repeat_interleave``
+with a tensor of repeats): on CUDA each waits for the device. Copies to the host
+(``.cpu()``, ``.numpy()``, ``.tolist()``) do not pass the dispatcher on a CPU run and are not
+counted, so on the CPU this is a lower bound. Per block of the run itself (its passes' blocks
+apart), the median over the blocks; the run is slowed down by the counting (use it for
+counts, not for speed).
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import statistics
+import sys
+import tempfile
+from pathlib import Path
+
+import torch
+from torch.utils._python_dispatch import TorchDispatchMode
+
+REPO = Path(__file__).resolve().parents[2]
+HOURGLASS = [str(REPO.parent / "shared/data/mudic-hourglass"), "--roi", "150", "20", "1120",
+             "734", "--subset", "31", "--step", "20"]
+
+#: aten operations that make the host wait for the device (by their overload packet name)
+SYNCING = {"_local_scalar_dense": "host read", "nonzero": "data-dependent size",
+           "masked_select": "data-dependent size", "unique_dim": "data-dependent size",
+           "_unique2": "data-dependent size", "unique_consecutive": "data-dependent size",
+           "repeat_interleave": "data-dependent size"}
+
+
+class SyncCounter(TorchDispatchMode):
+    """Counts the syncing operations (:data:`SYNCING`) by name, and boolean-mask indexing."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.counts: collections.Counter[str] = collections.Counter()
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        name = func.overloadpacket.__name__
+        if name in SYNCING:
+            self.counts[name] += 1
+        elif name in ("index", "index_put_", "index_put") and any(
+                isinstance(t, torch.Tensor) and t.dtype == torch.bool
+                for t in (args[1] if len(args) > 1 and isinstance(args[1], (list, tuple))
+                          else ())):
+            self.counts[f"{name} (bool mask)"] += 1
+        return func(*args, **(kwargs or {}))
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    run_args = argv[argv.index("--") + 1:] if "--" in argv else HOURGLASS
+    own = argv[:argv.index("--")] if "--" in argv else argv
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, default=None, help="JSON record")
+    args = ap.parse_args(own)
+
+    import torch_stsdic.movie.block as block
+    import torch_stsdic.movie.series as series
+    from torch_stsdic.cli.app import main as cli_main
+
+    counter = SyncCounter()
+    per_block: list[dict[str, int]] = []
+    depth = {"runs": 0}
+    run_plan, solve_block = series.run_plan, block.solve_block
+
+    def counted_run(plan, *a, **k):  # the run itself is the outermost run_plan
+        depth["runs"] += 1
+        try:
+            return run_plan(plan, *a, **k)
+        finally:
+            depth["runs"] -= 1
+
+    def counted_block(*a, **k):
+        before = collections.Counter(counter.counts)
+        out = solve_block(*a, **k)
+        if depth["runs"] == 1:
+            per_block.append(dict(counter.counts - before))
+        return out
+
+    series.run_plan, series.solve_block = counted_run, counted_block
+    with tempfile.TemporaryDirectory() as tmp, counter:
+        rc = cli_main(["run", *run_args, "--out", str(Path(tmp) / "r.h5"), "--overwrite",
+                       "--no-progress"])
+    if rc:
+        return rc
+    kinds = sorted({k for b in per_block for k in b})
+    med = {k: statistics.median(b.get(k, 0) for b in per_block) for k in kinds}
+    total = [sum(b.values()) for b in per_block]
+    rec = {"args": run_args, "device": "cpu", "blocks": len(per_block),
+           "per_block_median": med, "per_block_total_median": statistics.median(total),
+           "per_block_total_range": [min(total), max(total)],
+           "run_total": dict(counter.counts), "commit": _commit()}
+    print(f"{len(per_block)} blocks; syncing operations a block (median): "
+          f"{rec['per_block_total_median']:.0f} (range {min(total)}-{max(total)})")
+    for k in kinds:
+        print(f"  {k:<28} {med[k]:>6.0f}")
+    if args.out is not None:
+        args.out.write_text(json.dumps(rec, indent=1) + "\n")
+    return 0
+
+
+def _commit() -> str:
+    import subprocess
+    try:
+        return subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"],
+                              capture_output=True, text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+if __name__ == "__main__":
+    sys.exit(main())
