@@ -189,9 +189,28 @@ def test_a_run_prepares_each_frame_once_across_its_passes():
                         None, 3)
         return run_plan(plan, progress=False, frames=store)
 
-    res = run(None)
+    # every B-spline prefilter of a movie frame in the run, the template's splats included
+    from torch_stsdic.core import interpolation
+
+    frames = mv.frames.float()
+    made: list[int] = []
+    init = interpolation.BSplineImage.__init__
+
+    def counted(self, images, *a, **k):
+        if tuple(images.shape[-2:]) == tuple(frames.shape[-2:]):  # whole frames
+            for img in images.reshape(-1, *images.shape[-2:]):
+                same = (frames == img.float().cpu()).flatten(1).all(1)
+                made.extend(torch.nonzero(same).flatten().tolist())
+        init(self, images, *a, **k)
+
+    interpolation.BSplineImage.__init__ = counted
+    try:
+        res = run(None)
+    finally:
+        interpolation.BSplineImage.__init__ = init
     assert res.info["shared_motion"] and res.info["series_reference"]
     read = len(range(3, n)) + 1  # the windows of 4..8 (m = 1) and the reference frame 0
+    assert sorted(made) == sorted(set(made)) and len(made) == read  # each frame once
     assert res.info["frames_read"] == res.info["prefiltered"] == read
     assert 0 < res.info["pyramid_levels"] <= 3 * read  # at most 3 levels a frame
     err = (res.u - 2.0 * (mv.times[4:] - mv.times[0]).view(-1, 1))[res.ok]

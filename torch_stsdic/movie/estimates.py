@@ -34,7 +34,7 @@ import torch
 from torch_stsdic.analysis.result import TrackResult
 from torch_stsdic.core.shared_motion import SharedMotion
 from torch_stsdic.movie.classical_pass import ClassicalPass
-from torch_stsdic.movie.frames import segment_bounds, window_frames
+from torch_stsdic.movie.frames import FrameStore, segment_bounds, window_frames
 from torch_stsdic.movie.plan import RunPlan
 from torch_stsdic.movie.reference import noise_ratio
 from torch_stsdic.movie.refine import ReferenceOffsets, measure_offsets
@@ -146,8 +146,8 @@ def reference_pixels(plan: RunPlan) -> torch.Tensor:
 
 
 def measure_run(plan: RunPlan, ref_raw: torch.Tensor | None = None, *, run: RunFunction,
-                first_noise: bool = False, guess_blocks: list[list[int]] | None = None
-                ) -> RunEstimates:
+                first_noise: bool = False, guess_blocks: list[list[int]] | None = None,
+                frames: FrameStore | None = None) -> RunEstimates:
     """Measure the run-level estimates of ``plan`` (those its options ask for) on the whole
     movie. ``ref_raw``: the reference image (default :func:`reference_pixels`); ``run``: the
     runner of a plan (:func:`torch_stsdic.movie.series.run_plan`, which calls this
@@ -155,7 +155,9 @@ def measure_run(plan: RunPlan, ref_raw: torch.Tensor | None = None, *, run: RunF
     first block as that block measures it (a runner whose pieces start elsewhere, or a run
     that records it in its result file for a resumed run to read). ``guess_blocks``: the
     blocks that start from the shared motion's first guess (default the plan's first;
-    :func:`~torch_stsdic.movie.shared_pass.estimate_shared_motion`)."""
+    :func:`~torch_stsdic.movie.shared_pass.estimate_shared_motion`). ``frames``: the run's
+    prepared frames (:class:`~torch_stsdic.movie.frames.FrameStore`), which the template's
+    images are taken from and added to (None: its own)."""
     measured = _classical_pass(plan, run)
     shared = None
     if plan.options.get("shared_motion"):
@@ -169,7 +171,7 @@ def measure_run(plan: RunPlan, ref_raw: torch.Tensor | None = None, *, run: RunF
         series_ref = build_series_reference(
             plan, raw, run=run, max_frames=opt["frames"], iterations=opt["iterations"],
             shared=shared if shared is not None and shared.applied else None,
-            measured=measured)
+            measured=measured, frames=frames)
     offsets = None
     if plan.options.get("refine_reference"):
         offsets = measure_offsets(plan, int(plan.options["refine_reference"]),
@@ -275,7 +277,8 @@ def record_estimates(est: RunEstimates, sink: MemorySink) -> None:
 def stored_or_measured(plan: RunPlan, sink: MemorySink, ref_raw: torch.Tensor | None = None,
                        *, run: RunFunction, first_noise: bool = False,
                        guess_needed: bool | None = None,
-                       guess_blocks: list[list[int]] | None = None) -> RunEstimates:
+                       guess_blocks: list[list[int]] | None = None,
+                       frames: FrameStore | None = None) -> RunEstimates:
     """The run-level estimates of ``plan``: those an earlier run of it recorded in ``sink``'s
     file (:func:`record_estimates`; a resumed run), where it holds all that ``plan`` asks
     for, else measured (:func:`measure_run`). On a resumed run ``source`` says which.
@@ -287,11 +290,11 @@ def stored_or_measured(plan: RunPlan, sink: MemorySink, ref_raw: torch.Tensor | 
     work still to do starts from the shared motion's first guess, which the file does not
     hold (default: where the plan's first block is unfinished; the distributed runner: where
     any chunk is pending, each starting from it); ``guess_blocks``: the blocks that start
-    from it (:func:`measure_run`)."""
+    from it (:func:`measure_run`); ``frames``: the run's prepared frames (:func:`measure_run`)."""
     stored, done = sink.read_run(GROUP), sink.completed_rows()
     if stored is None and not done:
         return measure_run(plan, ref_raw, run=run, first_noise=first_noise,  # a new run
-                           guess_blocks=guess_blocks)
+                           guess_blocks=guess_blocks, frames=frames)
     why = "the result file holds none (written before they were recorded)"
     if stored is not None:
         try:
@@ -305,7 +308,7 @@ def stored_or_measured(plan: RunPlan, sink: MemorySink, ref_raw: torch.Tensor | 
                 est.noise_ratio = _first_block_noise(plan, ref_raw, est.shared)
             return est
     est = measure_run(plan, ref_raw, run=run, first_noise=first_noise,
-                      guess_blocks=guess_blocks)
+                      guess_blocks=guess_blocks, frames=frames)
     est.source = f"measured again: {why}"
     return est
 

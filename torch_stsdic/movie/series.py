@@ -155,7 +155,7 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
     # its first pending block
     est = estimates if estimates is not None else stored_or_measured(
         plan, sink, ref.raw, run=functools.partial(run_plan, frames=store),
-        first_noise=sink.path is not None)
+        first_noise=sink.path is not None, frames=store)
     record_estimates(est, sink)  # for a resumed run (not where they were read from the file)
     if est.shared is not None:
         shared = est.shared

@@ -39,7 +39,9 @@ from torch_stsdic.analysis.result import USABLE, TrackResult
 from torch_stsdic.core.interpolation import BSplineImage
 from torch_stsdic.core.noise import estimate_noise_sigma, interpolation_variance_factor
 from torch_stsdic.core.shared_motion import SharedMotion
+from torch_stsdic.core.solver import SubsetSolver
 from torch_stsdic.movie.classical_pass import ClassicalPass, classical_subplan
+from torch_stsdic.movie.frames import FrameCache, FrameStore
 from torch_stsdic.movie.plan import RunPlan
 from torch_stsdic.movie.refine import ReferenceOffsets
 from torch_stsdic.movie.sample_guess import MeasuredSample
@@ -272,10 +274,11 @@ def _splat(acc: torch.Tensor, img: BSplineImage, ref: torch.Tensor, pts: torch.T
     acc[2] += frame[0] * frame[1] / weight
 
 
-def _frame_noise(plan: RunPlan, frames: list[int]) -> list[float]:
+def _frame_noise(plan: RunPlan, frames: list[int], cache: FrameCache) -> list[float]:
     """The image noise sigma (grey levels) of each of ``frames`` (Immerkaer's estimate) over
     the box that the POIs' subsets cover (the pixels the template is made of; a background
-    or a frame's border would only add work, and its own noise)."""
+    or a frame's border would only add work, and its own noise); the frames read by
+    ``cache`` (the run's)."""
     h, w = plan.series.shape
     pts = plan.points.double().cpu()
     pad = (plan.config.subset_size - 1) // 2 + 2
@@ -284,7 +287,7 @@ def _frame_noise(plan: RunPlan, frames: list[int]) -> list[float]:
     x1, y1 = min(max(x1, x0 + 8), w), min(max(y1, y0 + 8), h)
     x0, y0 = min(x0, max(w - 8, 0)), min(y0, max(h - 8, 0))
     return [max(float(estimate_noise_sigma(
-        plan.series.get(k, dtype=torch.float64)[y0:y1, x0:x1])), 1e-6) for k in frames]
+        cache.read(k)[y0:y1, x0:x1].double().cpu())), 1e-6) for k in frames]
 
 
 def time_model_holds(plan: RunPlan, res: TrackResult, frames: list[int],
@@ -430,12 +433,12 @@ def _smooth(fit: LocalFit, warps: torch.Tensor, ok: torch.Tensor, degree: torch.
 
 
 def _template(plan: RunPlan, warps: torch.Tensor, oks: torch.Tensor, frames: list[int],
-              sigmas: list[float], ref_raw: torch.Tensor
+              sigmas: list[float], ref_raw: torch.Tensor, cache: FrameCache
               ) -> tuple[torch.Tensor, float, float, torch.Tensor]:
     """The template from the maps (F, N, 12) (:func:`_smooth`) and trust (F, N) of
-    ``frames`` (noise ``sigmas``): image (H, W), its noise variance over one frame's (median
-    over the covered pixels), coverage, and (N,) that ratio at each POI (1 where no frame
-    covers it: the reference image's pixels)."""
+    ``frames`` (noise ``sigmas``; prepared by ``cache``): image (H, W), its noise variance
+    over one frame's (median over the covered pixels), coverage, and (N,) that ratio at each
+    POI (1 where no frame covers it: the reference image's pixels)."""
     h, w = plan.series.shape
     dev = torch.device(plan.device)
     pts = plan.points.double().to(dev)
@@ -445,9 +448,9 @@ def _template(plan: RunPlan, warps: torch.Tensor, oks: torch.Tensor, frames: lis
     spread = float(ref.std().clamp(min=1e-12))
     norm = []  # each frame's noise in the reference's grey levels
     for j, (k, sigma) in enumerate(zip(frames, sigmas)):
-        raw = plan.series.get(k, dtype=torch.float64).to(dev)
-        img = BSplineImage(raw, order=plan.config.interpolation_order)
-        level = float(raw.std().clamp(min=1e-12)) / spread
+        prepared = cache.frame(k)  # the run's: read and prefiltered once
+        img, raw = prepared.prep, prepared.raw.to(dev)
+        level = float(raw.double().std().clamp(min=1e-12)) / spread
         norm.append(sigma / level)
         _splat(acc, img, ref, pts, warps[j].to(dev), oks[j].to(dev), half,
                1.0 / norm[-1] ** 2, level)
@@ -474,7 +477,8 @@ def build_series_reference(plan: RunPlan, ref_raw: torch.Tensor, *,
                            iterations: int = DEFAULT_ITERATIONS,
                            neighbours: int = DEFAULT_NEIGHBOURS,
                            shared: SharedMotion | None = None,
-                           measured: ClassicalPass | None = None) -> SeriesReference:
+                           measured: ClassicalPass | None = None,
+                           frames: FrameStore | None = None) -> SeriesReference:
     """The template of ``plan``: ``iterations`` rounds of a classical measurement of the
     sampled frames (:func:`sample_frames`; the first against the plan's reference image
     ``ref_raw`` (H, W), the others against the last template) and a template from their
@@ -487,12 +491,16 @@ def build_series_reference(plan: RunPlan, ref_raw: torch.Tensor, *,
     series.
     ``run``: the runner of a plan (:func:`torch_stsdic.movie.series.run_plan`);
     ``measured``: the run's shared classical pass (the first round's rows where it has
-    them)."""
+    them); ``frames``: the run's prepared frames (the sampled frames' pixels and B-spline
+    coefficients are taken from there, and put there: each frame is prepared once per
+    run)."""
     if int(iterations) < 1:
         raise ValueError(f"series_reference: iterations must be >= 1, got {iterations!r}")
     t0 = time.perf_counter()
+    cache = FrameCache(plan.series, SubsetSolver(plan.config), plan.dtype, plan.device,
+                       store=frames)
     frames = sample_frames(plan, max_frames)
-    sigmas = _frame_noise(plan, frames)  # the same in every round
+    sigmas = _frame_noise(plan, frames, cache)  # the same in every round
     pts = plan.points.double().cpu()
     fit = local_fit_weights(pts, max(int(neighbours), 10), plan.config.subset_size,
                             degrees=(1, 2, 3))
@@ -512,7 +520,7 @@ def build_series_reference(plan: RunPlan, ref_raw: torch.Tensor, *,
         # a frame enters at a POI whose fit passed and whose neighbours are all trusted
         splat = (degree > 0) & trusted[:, fit.index].all(-1)
         image, ratio, coverage, point_ratio = _template(
-            plan, _smooth(fit, warps, trusted, degree), splat, frames, sigmas, ref_raw)
+            plan, _smooth(fit, warps, trusted, degree), splat, frames, sigmas, ref_raw, cache)
     use = degree > 0
     own = torch.tensor([k != plan.reference_frame for k in frames])
     counts = (use & own[:, None]).sum(0)  # (N,) frames besides the reference in the template
