@@ -171,13 +171,11 @@ def solve_batch(ctx: BatchContext, pts, p0, dt, fidx, ridx, motion=None, step0=N
     cfg, geo = ctx.cfg, ctx.geo
     n = pts.shape[0]
     device, dtype = pts.device, pts.dtype
-    w = geo.w
-    wsum_w = w.sum()
     data = _reference_data(ctx, pts, dt, fidx, ridx)
     data.motion = motion
     status = torch.full((n,), int(Status.NOT_COMPUTED), dtype=torch.int8, device=device)
     low = data.texture < cfg.texture_threshold * ctx.grey_range**2
-    low |= data.fnorm < 1e-6 * ctx.grey_range * math.sqrt(float(wsum_w))
+    low |= data.fnorm < 1e-6 * ctx.grey_range * math.sqrt(geo.w_sum)
     status.masked_fill_(low, int(Status.LOW_TEXTURE))  # no host sync (boolean indexing)
     params = p0.clone()
     zncc = torch.full((n,), float("nan"), dtype=dtype, device=device)
@@ -277,8 +275,7 @@ def _classical_step(ctx: BatchContext, data: SubsetData, p_last: Tensor, frame: 
                      device=out.device)
     est[:, cols["params"]] = out
     est[:, cols["size"]] = size.unsqueeze(1)
-    w = geo.w
-    if geo.znssd and bool((w * w == w).all()):
+    if geo.znssd and geo.w_binary:
         # the model's decrease and the energy before the step, both over 2 |f~|^2
         drop = (-(b * dp).sum(1)) / (2.0 * data.fnorm.double().square().clamp(min=1e-30))
         zncc = zf + drop

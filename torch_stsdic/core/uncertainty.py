@@ -36,7 +36,6 @@ from torch import Tensor
 from torch_stsdic.core.formulations import Geometry, SubsetData, centred_gram, gram
 from torch_stsdic.core.interpolation import BSplineImage
 from torch_stsdic.core.noise import gradient_noise_factor, interpolation_variance_factor
-from torch_stsdic.core.window import effective_pixels
 from torch_stsdic.kernels import dispatch, native
 from torch_stsdic.kernels.linalg import spd_inverse
 
@@ -81,7 +80,7 @@ def residual_from_zncc(geo: Geometry, data: SubsetData, zncc: Tensor) -> Tensor:
     window's mean ZNCC, without sampling the frames again:
     ``sum_s w e_t^2 = 2 |f~|^2 (1 - ZNCC_t)`` (``|f~|^2 = sum_s w f~^2``), grey levels^2."""
     f2 = data.fnorm.double() ** 2
-    return (2.0 * f2 * (1.0 - zncc.double()).clamp(min=0.0) / float(geo.w.sum())).unsqueeze(1)
+    return (2.0 * f2 * (1.0 - zncc.double()).clamp(min=0.0) / geo.w_sum).unsqueeze(1)
 
 
 def noise_model(geo: Geometry, residual: Tensor, p: Tensor, data: SubsetData, rho: float,
@@ -89,8 +88,7 @@ def noise_model(geo: Geometry, residual: Tensor, p: Tensor, data: SubsetData, rh
     """Noise variances from a solution's weighted residual variance ``residual`` (N, T) per
     frame, or (N, 1) its mean over the frames, at parameters ``p`` (N, P) (see the module
     docstring); ``rho`` = sigma_f^2 / sigma_g^2."""
-    w = geo.w
-    s_eff = effective_pixels(w)
+    s_eff = geo.w_effective
     t = data.dt.shape[1]
     dof = 1.0 - (2.0 + p.shape[1] / t) / s_eff  # mean, scale and a share of P per frame
     zero = torch.zeros(1, dtype=geo.dx.dtype, device=geo.dx.device)
@@ -174,7 +172,7 @@ def _moments(geo: Geometry, data: SubsetData
     w = geo.w
     g1 = data.gram if data.gram is not None else centred_gram(geo, data.gx, data.gy)
     bw = _basis_moments(geo, w)
-    if bool(((w * w) == w).all()):  # a 0/1 window: the w^2-moments are the w-moments
+    if geo.w_binary:  # a 0/1 window: the w^2-moments are the w-moments
         return g1, None, bw, bw
     _, mw = gram(data.gx, data.gy, geo.spatial, w)
     gww, mww = gram(data.gx, data.gy, geo.spatial, w * w)

@@ -38,8 +38,11 @@ class SubsetWindow(nn.Module):
         raise NotImplementedError
 
     def effective_pixels(self) -> float:
-        """:func:`effective_pixels` of this window's weights."""
-        return effective_pixels(self.offsets_and_weights()[1])
+        """:func:`effective_pixels` of this window's weights (worked out once: the checks ask
+        for it in every block)."""
+        if getattr(self, "_effective", None) is None:
+            self._effective = effective_pixels(self.offsets_and_weights()[1])
+        return self._effective
 
     def extra_repr(self) -> str:
         return f"size={self.size}"

@@ -59,15 +59,39 @@ class Geometry:
     w: Tensor
     znssd: bool
     half: float
+    #: (S,) float64 the weights on the host: the numbers of them a solve needs (their sum,
+    #: whether they are 0/1, the effective pixels) read without waiting for the device
+    w_host: Tensor | None = None
 
     @classmethod
     def make(cls, shape: ShapeFunction, window: SubsetWindow, criterion: str,
              dtype: torch.dtype, device: torch.device | str | None) -> Geometry:
         """The geometry of ``window``'s subset for ``shape`` in ``dtype`` on ``device``."""
         offsets, weights = window.offsets_and_weights(dtype, device)
+        host = window.offsets_and_weights(torch.float64, "cpu")[1]
         return cls(shape=shape, spatial=shape.spatial_basis(offsets[:, 0], offsets[:, 1]),
                    dx=offsets[:, 0], dy=offsets[:, 1], w=weights,
-                   znssd=criterion == "znssd", half=float(window.half))
+                   znssd=criterion == "znssd", half=float(window.half), w_host=host)
+
+    def _host(self) -> Tensor:
+        return self.w_host if self.w_host is not None else self.w.detach().double().cpu()
+
+    @property
+    def w_sum(self) -> float:
+        """The sum of the window's weights (a host number)."""
+        return float(self._host().sum())
+
+    @property
+    def w_binary(self) -> bool:
+        """Whether the weights are 0 or 1 (their squares are themselves)."""
+        h = self._host()
+        return bool(((h * h) == h).all())
+
+    @property
+    def w_effective(self) -> float:
+        """``(sum w)^2 / sum w^2`` (:func:`~torch_stsdic.core.window.effective_pixels`)."""
+        h = self._host()
+        return float(h.sum() ** 2 / (h * h).sum())
 
     @property
     def ks(self) -> int:
