@@ -96,3 +96,46 @@ def test_flat_region_in_a_movie_is_low_texture_with_nan_std():
     assert int(sol.status[0]) == int(Status.LOW_TEXTURE)
     assert torch.isnan(sol.std[0]).all()
     assert int(sol.status[1]) == int(Status.CONVERGED) and torch.isfinite(sol.std[1]).all()
+
+
+def _shared_frame_case(seed: int):
+    """A window of frames 2..8 of 10 (target 3: shifted), a template of frames 0..8
+    (unequal weights) registered to frame 0."""
+    g = torch.Generator().manual_seed(seed)
+    n_series, win, target = 10, torch.arange(2, 9), 3
+    a = torch.zeros(n_series, dtype=torch.float64)
+    a[:9] = torch.rand(9, generator=g, dtype=torch.float64) + 0.5
+    a /= a.sum()
+    return n_series, win, target, a
+
+
+@pytest.mark.parametrize("reg_points", [0, 4, 16])
+def test_shared_frame_factors_match_a_monte_carlo_of_the_noise(reg_points):
+    """The template averages frames of the window (and is registered to frame 0 by fits
+    over ``reg_points`` points): simulated displacements' and velocities' variances against
+    what the independent-noise prediction, with its noise estimated from the residuals,
+    says times :func:`shared_frame_factors` (the prediction alone is off by 25-45 %)."""
+    n_series, win, target, a = _shared_frame_case(0)
+    trials, j = 40_000, max(reg_points, 1)
+    g = torch.Generator().manual_seed(1)
+    nu = torch.randn(trials, j, n_series, generator=g, dtype=torch.float64)  # point 0: own
+    dt = (win - target).double()
+    z = torch.stack([torch.ones_like(dt), dt], 1)  # (T, 2)
+    w = torch.linalg.solve(z.T @ z, z.T)  # (2, T): intercept and slope weights
+    tmpl = nu @ a  # (trials, J) the template's noise
+    d = tmpl[:, :1] - nu[:, 0, win]  # (trials, T) each frame's displacement noise
+    if reg_points:
+        d = d + (nu[..., 0] - tmpl).mean(1, keepdim=True)  # registration to frame 0
+    est = d @ w.T  # (trials, 2)
+    rho = float((a * a).sum())
+    # the old prediction: sigma^2 from the residuals' mean variance over (rho + 1)
+    resid = (tmpl[:, :1] - nu[:, 0, win]).var(0).mean()
+    s2 = resid / (rho + 1.0)
+    old = torch.stack([s2 * (rho + (w[0] ** 2).sum()), s2 * (w[1] ** 2).sum()])
+    fac = uncertainty.shared_frame_factors(
+        dt[None], a[win][None], (a * a).sum()[None], rho,
+        reference=(win == 0)[None], registration=torch.tensor([1.0 / j if reg_points else 0.0],
+                                                              dtype=torch.float64))[0]
+    measured = est.var(0)
+    torch.testing.assert_close(old * fac, measured, rtol=0.04, atol=0)
+    assert float((old[0] / measured[0] - 1).abs()) > 0.25

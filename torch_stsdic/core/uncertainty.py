@@ -24,6 +24,9 @@ The noise comes from the solution itself: the weighted residual variance of fram
 position, ``dof`` the fitted share of the pixels); the split between reference and frame noise
 is the reference protocol's ``rho = sigma_f^2 / sigma_g^2`` (1 for one frame, 1/K for a mean
 of K frames).
+
+A reference that averages frames of the window (a template made from the series) shares their
+noise: :func:`shared_frame_factors` gives the factors of the predicted variances then.
 """
 
 from __future__ import annotations
@@ -41,7 +44,7 @@ from torch_stsdic.kernels.linalg import spd_inverse
 
 __all__ = ["NoiseModel", "Response", "frame_residuals", "residual_from_zncc", "noise_model",
            "response", "covariance", "cross_covariance", "solution_noise", "solution_response",
-           "std_of", "predicted_std"]
+           "std_of", "predicted_std", "intercept_weights", "shared_frame_factors"]
 
 
 def frame_residuals(geo: Geometry, frames: BSplineImage, data: SubsetData, p: Tensor
@@ -277,3 +280,66 @@ def predicted_std(geo: Geometry, data: SubsetData, noise: NoiseModel, order: int
                                 noise.ref.double(), noise.frame.double(),
                                 gradient_noise_factor(order))
     return std_of(response(geo, data, noise, order))
+
+
+def intercept_weights(dt: Tensor) -> Tensor:
+    """(N, T) the weights ``c_t`` of the least-squares line through a window's frames at
+    times ``dt`` (N, T) evaluated at ``dt = 0`` (``sum_t c_t = 1``; ``1 / T`` where the frames
+    do not fix a slope, e.g. one frame): ``c_t = [Z^-1 z_t]_0``, ``z_t = (1, dt_t)``,
+    ``Z = sum_t z_t z_t^T``."""
+    d = dt.double()
+    t = float(d.shape[1])
+    s1, s2 = d.sum(1, keepdim=True), (d * d).sum(1, keepdim=True)
+    det = t * s2 - s1 * s1
+    flat = det <= 1e-12 * t * s2.clamp(min=1e-300)
+    c = (s2 - s1 * d) / torch.where(flat, 1.0, det)
+    return torch.where(flat, 1.0 / t, c)
+
+
+def shared_frame_factors(dt: Tensor, share: Tensor, share_sq: Tensor, rho: float | Tensor,
+                         reference: Tensor | None = None, registration: Tensor | None = None
+                         ) -> Tensor:
+    """(N, 2) the factors of the predicted variances of the displacement (u, v) and of the
+    velocity (ut, vt) of windows at frame times ``dt`` (N, T) measured against a template
+    that averages frames of the series: ``share`` (N, T) the weight of each window frame in
+    the template (0: not in it), ``share_sq`` (N,) the sum of all its frames' squared
+    weights, ``rho`` the template's noise variance over a frame's as the solver was told it
+    (the prediction's ``sigma_f^2 / sigma_g^2``); ``reference`` (N, T) bool where a window
+    frame is the frame the template was registered to and ``registration`` (N,) ``phi``,
+    the variance factor of the local fits that registered the frames (None: no
+    registration noise).
+
+    Derivation (per component; ``nu_k`` the noise of frame k as a classical displacement
+    sees it, variance ``s^2`` each, independent): the window's displacement is its frames'
+    least-squares line at ``dt = 0`` (:func:`intercept_weights` ``c_t``), its noise
+    ``sum_k (a_k - c_k) nu_k`` (``a_k`` the template's weights, ``c_k`` = 0 off the window)
+    where :func:`covariance` takes ``rho nu_R - sum_t c_t nu_t`` with ``nu_R`` independent of
+    the frames: ``s^2 (rho + sum c^2)``. The template's registration adds the local fits of
+    the frames' classical warps against the reference frame 0, ``phi``-smoothed
+    ``sum_k (delta_k0 - a_k) nu_k``, correlated with the former at the point by ``phi``. So
+    the displacement's variance is
+
+        s^2 [sum a^2 + sum c^2 - 2 sum a c + phi (1 - 2 c_0 - sum a^2 + 2 sum a c)]
+
+    (``phi = 1``: ``sum_k (delta_k0 - c_k)^2``, the line's error against frame 0, as
+    classical DIC against it). Neither enters the velocity (common to every frame). Both
+    predictions rest on ``s^2`` estimated from the residuals ``n_R - n_t``, whose mean
+    variance is ``s^2 (rho + 1 - 2 mean_t a_t)``, not ``s^2 (rho + 1)`` (interpolation
+    factors taken as 1): low by that ratio. So
+
+        var(u) *= [...] / (rho + sum c^2) * (rho + 1) / (rho + 1 - 2 mean a),
+        var(ut) *= (rho + 1) / (rho + 1 - 2 mean a).
+
+    A template of the K frames of a window of K frames centred on its target (``a = c =
+    1/K``) leaves only the registration's noise in the displacement."""
+    a = share.double()
+    c = intercept_weights(dt)
+    r = torch.as_tensor(rho, dtype=torch.float64, device=a.device)
+    csq, ac, asq = (c * c).sum(1), (c * a).sum(1), share_sq.double()
+    noise = (r + 1.0) / (r + 1.0 - 2.0 * a.mean(1)).clamp(min=1e-3 * (r + 1.0))
+    var = asq + csq - 2.0 * ac
+    if registration is not None and reference is not None:
+        c0 = (c * reference.double()).sum(1)
+        var = var + registration.double() * (1.0 - 2.0 * c0 - asq + 2.0 * ac)
+    disp = var.clamp(min=0.0) / (r + csq)
+    return torch.stack([disp * noise, noise], 1)

@@ -39,6 +39,7 @@ from torch_stsdic.movie.checks import CHECK_ITER, CHECK_TOL, BlockChecks
 from torch_stsdic.movie.frames import FrameCache, window_frames
 from torch_stsdic.movie.reference import Reference, noise_ratio, to_relative, to_total
 from torch_stsdic.movie.sample_guess import MeasuredSample
+from torch_stsdic.movie.template_noise import TemplateShares
 
 #: px beyond the image border a carried prediction must put a subset before the row is
 #: OUTSIDE without a solve
@@ -76,6 +77,9 @@ class BlockContext:
     #: (N,) px^2 the variance the reference adds to u and to v of every row, beyond what the
     #: solver predicts (the registration of a template made from the series; None: none)
     reference_var: torch.Tensor | None = None
+    #: the sampled frames' weights in that template (their noise is shared with the
+    #: windows': :mod:`~torch_stsdic.movie.template_noise`; None: no template)
+    template_shares: TemplateShares | None = None
     #: (N,) bool: points solved classically (m = 0, no window solve or check) because the
     #: time model failed there in the sampled frames (None: none)
     classical_points: torch.Tensor | None = None
@@ -627,9 +631,13 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
     out["status"] = blk.status.reshape(b, n)
     out["iterations"] = blk.iters.reshape(b, n)
     out["m"] = blk.m_used.reshape(b, n)
+    fac = None if run.template_shares is None else run.template_shares.variance_factors(
+        blk.k, out["m"], run.ts, float(run.noise_ratio or 1.0), run.segments)
     for j, nm in enumerate(run.names):
         if nm in STD_OF:
             std = blk.std[:, j].reshape(b, n)
+            if fac is not None:  # the template's noise shared with the frames
+                std = std * fac[..., int(nm in ("ut", "vt"))].sqrt().to(std)
             if run.reference_var is not None and nm in ("u", "v"):
                 std = (std.pow(2) + run.reference_var.to(std)).sqrt()
             out[STD_OF[nm]] = std

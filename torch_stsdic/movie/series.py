@@ -72,6 +72,7 @@ from torch_stsdic.movie.refine import ReferenceOffsets, apply_offsets, set_refin
 from torch_stsdic.movie.sample_guess import MeasuredSample
 from torch_stsdic.movie.series_reference import SeriesReference, set_series_reference
 from torch_stsdic.movie.sinks import MemorySink, open_sink
+from torch_stsdic.movie.template_noise import TemplateShares
 
 __all__ = ["track", "run_plan", "classical_smoothed", "set_reference_mode", "series_template",
            "set_window_length"]
@@ -171,6 +172,11 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
         ref = Reference(frame=-1, raw=img, img=solver.prepare(img), points=ref.points)
         if est.series_reference.added_var is not None:
             run.reference_var = est.series_reference.added_var.to(device=plan.device)
+        if est.series_reference.shares is not None:
+            sref = est.series_reference
+            run.template_shares = TemplateShares.make(sref.frames, sref.shares,
+                                                      len(plan.series), plan.reference_frame,
+                                                      sref.registration)
     if est.model_holds is not None:  # the time model failed at the other points
         run.classical_points = ~est.model_holds.to(device=plan.device)
     if est.window_m is not None:  # each point's window as long as its motion allows

@@ -90,6 +90,12 @@ class SeriesReference:
     #: (N,) bool where the STS window's time model held in the sampled frames (None: not
     #: tested); the run solves the other points classically (:func:`time_model_holds`)
     model_holds: torch.Tensor | None = None
+    #: (F, N) each sampled frame's weight in the template at each POI (summing to 1): the
+    #: noise it shares with the windows' frames (:mod:`~torch_stsdic.movie.template_noise`)
+    shares: torch.Tensor | None = None
+    #: (N,) the variance factor of the local fits that registered the frames to the
+    #: reference frame (0 where none did; None: no reference frame, ``added_var`` holds it)
+    registration: torch.Tensor | None = None
 
     def summary(self) -> dict[str, Any]:
         return {"frames": list(self.frames), "iterations": self.iterations,
@@ -544,7 +550,21 @@ def build_series_reference(plan: RunPlan, ref_raw: torch.Tensor, *,
                            plane_share=float((degree[own] == 1).double().mean())
                            if bool(own.any()) else 0.0,
                            fit_share=float(use[own].double().mean()) if bool(own.any())
-                           else 0.0, gauge=gauge, model_holds=holds)
+                           else 0.0, gauge=gauge, model_holds=holds,
+                           shares=_shares(splat, sigmas, frames, plan.reference_frame),
+                           registration=(torch.where(registered, factor, 0.0)
+                                         if plan.reference_frame >= 0 else None))
+
+
+def _shares(splat: torch.Tensor, sigmas: list[float], frames: list[int], reference_frame: int
+            ) -> torch.Tensor:
+    """(F, N) each frame's weight in the template at each POI: its inverse noise variance
+    where it entered there (``splat`` (F, N)), normalised; where none did, the reference
+    frame's pixels (weight 1 where it is a sampled frame)."""
+    w = splat.double() / torch.tensor(sigmas, dtype=torch.float64)[:, None] ** 2
+    tot = w.sum(0, keepdim=True)
+    own = torch.tensor([k == reference_frame for k in frames], dtype=torch.float64)[:, None]
+    return torch.where(tot > 0, w / tot.clamp(min=1e-300), own.expand_as(w))
 
 
 def _gauge(plan: RunPlan, fit: LocalFit, image: torch.Tensor, keep: torch.Tensor,
