@@ -165,6 +165,8 @@ def main() -> None:
                          "--variants ours,nn --orders lib,torch "
                          "--out docs/bench/load-order-cpu.json")
     ap.add_argument("--old", help="another source tree, run as the variant 'old'")
+    ap.add_argument("--note", help="what the variants stand for (e.g. what --old is), kept in "
+                    "the record")
     ap.add_argument("--opencorr-bin", default="/tmp/opencorr/build/bench_native")
     ap.add_argument("--out", default=str(REPO / "docs" / "bench" / "load-cpu.json"))
     ap.add_argument("--seed", type=int, default=0)
@@ -229,6 +231,7 @@ def main() -> None:
         record = {"what": "issues 35, 46: POI/s idle and with competing busy processes, "
                           "both import orders",
                   "command": " ".join(sys.argv), "date": time.strftime("%Y-%m-%d %H:%M"),
+                  **({"note": args.note} if args.note else {}),
                   "machine": machine, "uptime": uptime, "n_points": N_POINTS,
                   "summary": summary, "ratios": ratios(summary), "runs": runs}
         Path(args.out).write_text(json.dumps(record, indent=1))
