@@ -170,12 +170,20 @@ def main() -> None:
     ap.add_argument("--opencorr-bin", default="/tmp/opencorr/build/bench_native")
     ap.add_argument("--out", default=str(REPO / "docs" / "bench" / "load-cpu.json"))
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--summarise", metavar="RECORD",
+                    help="print the table, ratios and round pairs of a record; run nothing")
     ap.add_argument("--child", nargs=7, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
         tree, folder, pts_csv, m, th, order, kind = args.child
         print(TAG + json.dumps(child(tree, folder, pts_csv, int(m), int(th), order, kind)),
               flush=True)
+        return
+    if args.summarise:
+        rec = json.loads(Path(args.summarise).read_text())
+        print_table(rec["summary"])
+        for r in ratios(rec["summary"]) + pair_ratios(rec["runs"]):
+            print(r)
         return
     if args.order_record:
         args.loads, args.threads, args.m = "0,1,2", "1,2", "0"
@@ -233,10 +241,11 @@ def main() -> None:
                   "command": " ".join(sys.argv), "date": time.strftime("%Y-%m-%d %H:%M"),
                   **({"note": args.note} if args.note else {}),
                   "machine": machine, "uptime": uptime, "n_points": N_POINTS,
-                  "summary": summary, "ratios": ratios(summary), "runs": runs}
+                  "summary": summary, "ratios": ratios(summary),
+                  "pairs": pair_ratios(runs), "runs": runs}
         Path(args.out).write_text(json.dumps(record, indent=1))
     print_table(summary)
-    for r in ratios(summary):
+    for r in ratios(summary) + pair_ratios(runs):
         print(r)
     print(f"-> {args.out}")
 
@@ -285,6 +294,37 @@ def ratios(summary) -> list[str]:
         if v != "opencorr" and t == 2 and (load, m, v, 1, o) in med:
             out.append(f"busy {load} m={m} {v} {o}-first: 2 thr / 1 thr time "
                        f"{sec / med[(load, m, v, 1, o)]:.2f}")
+    return out
+
+
+def pair_ratios(runs) -> list[str]:
+    """The comparisons of :func:`ratios` made within each round (the runs of one round are
+    minutes apart at most, so a shared machine's load changes less between them): the median
+    and range over the rounds of the per-round time ratio."""
+    t = {(r["load"], r["m"], r["round"], r["variant"], r.get("order", "lib"), r["threads"]):
+         r["time_s"] for r in runs}
+    keys = {(k[0], k[1], k[3], k[4], k[5]) for k in t}
+    rounds = sorted({k[2] for k in t})
+    combos = []  # (label, numerator, denominator) as (variant, order, threads)
+    for (load, m, v, o, th) in sorted(keys):
+        if o == "torch" and (load, m, v, "lib", th) in keys:
+            combos.append((load, m, f"{v} {th} thr: torch-first / lib-first", (v, o, th),
+                           (v, "lib", th)))
+        if v == "ours" and (load, m, "opencorr", "-", th) in keys:
+            combos.append((load, m, f"{o}-first {th} thr: OpenCorr / ours (x OpenCorr)",
+                           ("opencorr", "-", th), (v, o, th)))
+        if v == "ours" and (load, m, "old", o, th) in keys:
+            combos.append((load, m, f"{o}-first {th} thr: ours / old", (v, o, th),
+                           ("old", o, th)))
+        if th == 2 and (load, m, v, o, 1) in keys:
+            combos.append((load, m, f"{v} {o}: 2 thr / 1 thr", (v, o, 2), (v, o, 1)))
+    out = []
+    for load, m, label, num, den in combos:
+        rs = [t[(load, m, r) + num] / t[(load, m, r) + den] for r in rounds
+              if (load, m, r) + num in t and (load, m, r) + den in t]
+        if rs:
+            out.append(f"pairs busy {load} m={m} {label}: median {statistics.median(rs):.2f} "
+                       f"({min(rs):.2f}-{max(rs):.2f}, {len(rs)} rounds)")
     return out
 
 
