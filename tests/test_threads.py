@@ -63,6 +63,31 @@ def test_a_cpu_solve_runs_torch_on_one_thread(monkeypatch):
     assert torch.allclose(sol.v[ok], torch.full_like(sol.v[ok], -0.6), atol=0.02)
 
 
+def test_solve_window_converts_its_inputs_on_one_thread(monkeypatch):
+    """solve_window's own torch work before the solve (the inputs' conversion to the config's
+    dtype) runs in the scope too: outside it, a torch-first process's spinning OpenMP threads
+    cost it up to 0.09 s a call under load."""
+    from torch_stsdic.core import solver as solver_module
+
+    seen = []
+    inner = solver_module.as_image
+
+    def spy(*args, **kwargs):
+        seen.append(torch.get_num_threads())
+        return inner(*args, **kwargs)
+
+    monkeypatch.setattr(solver_module, "as_image", spy)
+    ref, cur = _pair(96, 1.3, -0.6)  # float64: converted to float32
+    torch.set_num_threads(2)
+    try:
+        sol = sts.solve_window(ref, cur, _points(96), sts.DICConfig(subset_size=21, m=0))
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(1)
+    assert seen == [1]
+    assert torch.allclose(sol.u[sol.ok], torch.full_like(sol.u[sol.ok], 1.3), atol=0.02)
+
+
 def test_run_tasks_runs_every_task_once_and_raises_the_first_error():
     torch.set_num_threads(2)
     try:
