@@ -26,7 +26,9 @@ per iteration, as before issue 35), ``old`` (``--old TREE``: that tree's code) a
 ``opencorr`` (``scripts/opencorr``'s harness, FFT-CC + IC-GN1 at every POI, when its binary
 is there: ``--opencorr-bin``, default ``/tmp/opencorr/build/bench_native``; m = 0 only) and
 ``nn`` (this tree's ``torch_stsdic.nn.STSDIC`` forward, B = 1, the same POIs, under
-``torch.no_grad()``: a learning pipeline's path; prefilter included).
+``torch.no_grad()``: a learning pipeline's path; prefilter included) and ``window``
+(``solve_window`` called on the 8-bit images as ``tifffile`` reads them, as a user's script
+does: the conversion of its inputs included; ``--old-kind window`` times that in the old tree).
 Load: ``--loads 0,1,2`` competing processes (``python -c "while True: pass"``), started
 before a level's runs and killed (by pid) after them. Within a level, every round runs every
 (variant, threads, m) once, in a shuffled order; medians over the rounds. The load average
@@ -54,7 +56,8 @@ N_POINTS = 38809
 
 def child(tree: str, folder: str, pts_csv: str, m: int, threads: int, order: str = "lib",
           kind: str = "solve") -> dict[str, Any]:
-    """One timed solve (``kind`` "solve": ``SubsetSolver``; "nn": ``nn.STSDIC`` forward) in
+    """One timed solve (``kind`` "solve": ``SubsetSolver``; "nn": ``nn.STSDIC`` forward;
+    "window": ``solve_window`` on the 8-bit images as tifffile reads them, a user's call) in
     this process, with the torch_stsdic of ``tree`` imported before (``order`` "lib") or after
     (``order`` "torch") torch."""
     import importlib
@@ -82,6 +85,22 @@ def child(tree: str, folder: str, pts_csv: str, m: int, threads: int, order: str
     dt = (torch.arange(t_count, dtype=torch.float32) - m).view(1, -1).expand(len(pts), -1)
     fidx = torch.arange(t_count).expand(len(pts), -1)
     cfg = DICConfig(subset_size=21, m=m, dtype="float32")
+    if kind == "window":
+        import glob
+
+        import tifffile
+
+        from torch_stsdic import solve_window
+
+        names = sorted(glob.glob(os.path.join(folder, "*.tif")))
+        ref8 = tifffile.imread(names[0])
+        frames8 = np.stack([tifffile.imread(n) for n in names[1:]])
+        c0, t0 = time.process_time(), time.perf_counter()
+        sol = solve_window(ref8, frames8[0] if m == 0 else frames8, pts, cfg)
+        t2 = time.perf_counter()
+        return {"time_s": t2 - t0, "cpu_s": time.process_time() - c0, "n_points": len(pts),
+                "converged": float(sol.ok.float().mean()), "u": float(sol.u.median()),
+                "v": float(sol.v.median()), "threads": torch.get_num_threads()}
     if kind == "nn":
         from torch_stsdic.nn import STSDIC
 
@@ -156,7 +175,7 @@ def main() -> None:
     ap.add_argument("--loads", default="0,1,2")
     ap.add_argument("--threads", default="1,2")
     ap.add_argument("--m", default="0,2")
-    ap.add_argument("--variants", default="ours,batched", help="ours, batched, nn (old and "
+    ap.add_argument("--variants", default="ours,batched", help="ours, batched, nn, window (old and "
                     "opencorr join by --old and when OpenCorr's binary is there)")
     ap.add_argument("--orders", default="lib,torch",
                     help="import orders: lib (torch_stsdic first), torch (torch first)")
@@ -165,6 +184,8 @@ def main() -> None:
                          "--variants ours,nn --orders lib,torch "
                          "--out docs/bench/load-order-cpu.json")
     ap.add_argument("--old", help="another source tree, run as the variant 'old'")
+    ap.add_argument("--old-kind", default="solve", choices=["solve", "nn", "window"],
+                    help="what the variant 'old' times (that of ours, nn or window)")
     ap.add_argument("--note", help="what the variants stand for (e.g. what --old is), kept in "
                     "the record")
     ap.add_argument("--opencorr-bin", default="/tmp/opencorr/build/bench_native")
@@ -225,8 +246,10 @@ def main() -> None:
                         rec = run_opencorr(oc_bin, t)
                     else:
                         tree = Path(args.old) if v == "old" else REPO
+                        kind = (args.old_kind if v == "old" else
+                                v if v in ("nn", "window") else "solve")
                         rec = run_ours(tree, data[m], m, t, per_point=v != "batched", order=o,
-                                       kind="nn" if v == "nn" else "solve")
+                                       kind=kind)
                     rec.update(variant=v, threads=t, m=m, order=o, load=load, round=rnd,
                                loadavg=la)
                     runs.append(rec)
