@@ -96,6 +96,31 @@ def test_a_cpu_solve_runs_torch_on_one_thread(monkeypatch):
     assert torch.allclose(sol.v[ok], torch.full_like(sol.v[ok], -0.6), atol=0.02)
 
 
+def test_solve_window_converts_its_inputs_on_one_thread(monkeypatch):
+    """solve_window's own torch work before the solve (the inputs' conversion to the config's
+    dtype) runs in the scope too: outside it, a torch-first process's spinning OpenMP threads
+    cost it up to 0.09 s a call under load."""
+    from torch_stsdic.core import solver as solver_module
+
+    seen = []
+    inner = solver_module.as_image
+
+    def spy(*args, **kwargs):
+        seen.append(torch.get_num_threads())
+        return inner(*args, **kwargs)
+
+    monkeypatch.setattr(solver_module, "as_image", spy)
+    ref, cur = _pair(96, 1.3, -0.6)  # float64: converted to float32
+    torch.set_num_threads(2)
+    try:
+        sol = sts.solve_window(ref, cur, _points(96), sts.DICConfig(subset_size=21, m=0))
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(1)
+    assert seen == [1]
+    assert torch.allclose(sol.u[sol.ok], torch.full_like(sol.u[sol.ok], 1.3), atol=0.02)
+
+
 def test_run_tasks_runs_every_task_once_and_raises_the_first_error():
     torch.set_num_threads(2)
     try:
@@ -133,6 +158,39 @@ def test_fft_cross_correlation_on_the_pool_equals_one_thread():
     assert torch.equal(got[0], want[0]) and torch.equal(got[1], want[1])
     assert torch.allclose(want[0][:, 0].median(0).values, torch.tensor([2.4, -1.7]).to(ref),
                           atol=0.2)
+
+
+def test_bench_load_pairs_are_ratios_within_each_round(tmp_path):
+    """scripts/benchmarks/bench_load.py's "pairs": per-round time ratios, their median and
+    range; --summarise prints them from a record without running anything."""
+    sys.path.insert(0, str(REPO / "scripts" / "benchmarks"))
+    import bench_load
+
+    def run(variant, order, threads, rnd, t):
+        return {"load": 2, "m": 0, "round": rnd, "variant": variant, "order": order,
+                "threads": threads, "time_s": t, "loadavg": 1.0}
+
+    runs = [run("ours", "lib", 2, 0, 1.0), run("ours", "torch", 2, 0, 1.1),
+            run("ours", "lib", 2, 1, 2.0), run("ours", "torch", 2, 1, 1.8),
+            run("ours", "lib", 2, 2, 4.0), run("ours", "torch", 2, 2, 4.0),
+            run("opencorr", "-", 2, 0, 3.0), run("opencorr", "-", 2, 1, 4.0),
+            run("opencorr", "-", 2, 2, 12.0)]
+    pairs = bench_load.pair_ratios(runs)
+    assert ("pairs busy 2 m=0 ours 2 thr: torch-first / lib-first: median 1.00 "
+            "(0.90-1.10, 3 rounds)") in pairs
+    assert ("pairs busy 2 m=0 lib-first 2 thr: OpenCorr / ours (x OpenCorr): median 3.00 "
+            "(2.00-3.00, 3 rounds)") in pairs
+    assert ("pairs busy 2 m=0 torch-first 2 thr: OpenCorr / ours (x OpenCorr): median 2.73 "
+            "(2.22-3.00, 3 rounds)") in pairs
+    summary = bench_load.summarise(runs, [2], [2], [0], ["ours", "opencorr"])
+    rec = tmp_path / "rec.json"
+    rec.write_text(json.dumps({"summary": summary, "runs": runs}))
+    out = subprocess.run([sys.executable, str(REPO / "scripts" / "benchmarks" / "bench_load.py"),
+                          "--summarise", str(rec)], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    # the ratio of the medians (4.0 s / 1.8 s) and the pairs' median differ
+    assert "busy 2 m=0 torch-first 2 thr: 2.22x OpenCorr" in out.stdout
+    assert all(line in out.stdout for line in pairs)
 
 
 @pytest.mark.slow  # 6 fresh processes under a busy process: 1-4 min on a loaded 2-core VM

@@ -26,7 +26,9 @@ per iteration, as before issue 35), ``old`` (``--old TREE``: that tree's code) a
 ``opencorr`` (``scripts/opencorr``'s harness, FFT-CC + IC-GN1 at every POI, when its binary
 is there: ``--opencorr-bin``, default ``/tmp/opencorr/build/bench_native``; m = 0 only) and
 ``nn`` (this tree's ``torch_stsdic.nn.STSDIC`` forward, B = 1, the same POIs, under
-``torch.no_grad()``: a learning pipeline's path; prefilter included).
+``torch.no_grad()``: a learning pipeline's path; prefilter included) and ``window``
+(``solve_window`` called on the 8-bit images as ``tifffile`` reads them, as a user's script
+does: the conversion of its inputs included; ``--old-kind window`` times that in the old tree).
 Load: ``--loads 0,1,2`` competing processes (``python -c "while True: pass"``), started
 before a level's runs and killed (by pid) after them. Within a level, every round runs every
 (variant, threads, m) once, in a shuffled order; medians over the rounds. The load average
@@ -54,7 +56,8 @@ N_POINTS = 38809
 
 def child(tree: str, folder: str, pts_csv: str, m: int, threads: int, order: str = "lib",
           kind: str = "solve") -> dict[str, Any]:
-    """One timed solve (``kind`` "solve": ``SubsetSolver``; "nn": ``nn.STSDIC`` forward) in
+    """One timed solve (``kind`` "solve": ``SubsetSolver``; "nn": ``nn.STSDIC`` forward;
+    "window": ``solve_window`` on the 8-bit images as tifffile reads them, a user's call) in
     this process, with the torch_stsdic of ``tree`` imported before (``order`` "lib") or after
     (``order`` "torch") torch."""
     import importlib
@@ -82,6 +85,22 @@ def child(tree: str, folder: str, pts_csv: str, m: int, threads: int, order: str
     dt = (torch.arange(t_count, dtype=torch.float32) - m).view(1, -1).expand(len(pts), -1)
     fidx = torch.arange(t_count).expand(len(pts), -1)
     cfg = DICConfig(subset_size=21, m=m, dtype="float32")
+    if kind == "window":
+        import glob
+
+        import tifffile
+
+        from torch_stsdic import solve_window
+
+        names = sorted(glob.glob(os.path.join(folder, "*.tif")))
+        ref8 = tifffile.imread(names[0])
+        frames8 = np.stack([tifffile.imread(n) for n in names[1:]])
+        c0, t0 = time.process_time(), time.perf_counter()
+        sol = solve_window(ref8, frames8[0] if m == 0 else frames8, pts, cfg)
+        t2 = time.perf_counter()
+        return {"time_s": t2 - t0, "cpu_s": time.process_time() - c0, "n_points": len(pts),
+                "converged": float(sol.ok.float().mean()), "u": float(sol.u.median()),
+                "v": float(sol.v.median()), "threads": torch.get_num_threads()}
     if kind == "nn":
         from torch_stsdic.nn import STSDIC
 
@@ -156,7 +175,7 @@ def main() -> None:
     ap.add_argument("--loads", default="0,1,2")
     ap.add_argument("--threads", default="1,2")
     ap.add_argument("--m", default="0,2")
-    ap.add_argument("--variants", default="ours,batched", help="ours, batched, nn (old and "
+    ap.add_argument("--variants", default="ours,batched", help="ours, batched, nn, window (old and "
                     "opencorr join by --old and when OpenCorr's binary is there)")
     ap.add_argument("--orders", default="lib,torch",
                     help="import orders: lib (torch_stsdic first), torch (torch first)")
@@ -165,15 +184,27 @@ def main() -> None:
                          "--variants ours,nn --orders lib,torch "
                          "--out docs/bench/load-order-cpu.json")
     ap.add_argument("--old", help="another source tree, run as the variant 'old'")
+    ap.add_argument("--old-kind", default="solve", choices=["solve", "nn", "window"],
+                    help="what the variant 'old' times (that of ours, nn or window)")
+    ap.add_argument("--note", help="what the variants stand for (e.g. what --old is), kept in "
+                    "the record")
     ap.add_argument("--opencorr-bin", default="/tmp/opencorr/build/bench_native")
     ap.add_argument("--out", default=str(REPO / "docs" / "bench" / "load-cpu.json"))
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--summarise", metavar="RECORD",
+                    help="print the table, ratios and round pairs of a record; run nothing")
     ap.add_argument("--child", nargs=7, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
         tree, folder, pts_csv, m, th, order, kind = args.child
         print(TAG + json.dumps(child(tree, folder, pts_csv, int(m), int(th), order, kind)),
               flush=True)
+        return
+    if args.summarise:
+        rec = json.loads(Path(args.summarise).read_text())
+        print_table(rec["summary"])
+        for r in ratios(rec["summary"]) + pair_ratios(rec["runs"]):
+            print(r)
         return
     if args.order_record:
         args.loads, args.threads, args.m = "0,1,2", "1,2", "0"
@@ -215,8 +246,10 @@ def main() -> None:
                         rec = run_opencorr(oc_bin, t)
                     else:
                         tree = Path(args.old) if v == "old" else REPO
+                        kind = (args.old_kind if v == "old" else
+                                v if v in ("nn", "window") else "solve")
                         rec = run_ours(tree, data[m], m, t, per_point=v != "batched", order=o,
-                                       kind="nn" if v == "nn" else "solve")
+                                       kind=kind)
                     rec.update(variant=v, threads=t, m=m, order=o, load=load, round=rnd,
                                loadavg=la)
                     runs.append(rec)
@@ -229,11 +262,13 @@ def main() -> None:
         record = {"what": "issues 35, 46: POI/s idle and with competing busy processes, "
                           "both import orders",
                   "command": " ".join(sys.argv), "date": time.strftime("%Y-%m-%d %H:%M"),
+                  **({"note": args.note} if args.note else {}),
                   "machine": machine, "uptime": uptime, "n_points": N_POINTS,
-                  "summary": summary, "ratios": ratios(summary), "runs": runs}
+                  "summary": summary, "ratios": ratios(summary),
+                  "pairs": pair_ratios(runs), "runs": runs}
         Path(args.out).write_text(json.dumps(record, indent=1))
     print_table(summary)
-    for r in ratios(summary):
+    for r in ratios(summary) + pair_ratios(runs):
         print(r)
     print(f"-> {args.out}")
 
@@ -282,6 +317,37 @@ def ratios(summary) -> list[str]:
         if v != "opencorr" and t == 2 and (load, m, v, 1, o) in med:
             out.append(f"busy {load} m={m} {v} {o}-first: 2 thr / 1 thr time "
                        f"{sec / med[(load, m, v, 1, o)]:.2f}")
+    return out
+
+
+def pair_ratios(runs) -> list[str]:
+    """The comparisons of :func:`ratios` made within each round (the runs of one round are
+    minutes apart at most, so a shared machine's load changes less between them): the median
+    and range over the rounds of the per-round time ratio."""
+    t = {(r["load"], r["m"], r["round"], r["variant"], r.get("order", "lib"), r["threads"]):
+         r["time_s"] for r in runs}
+    keys = {(k[0], k[1], k[3], k[4], k[5]) for k in t}
+    rounds = sorted({k[2] for k in t})
+    combos = []  # (label, numerator, denominator) as (variant, order, threads)
+    for (load, m, v, o, th) in sorted(keys):
+        if o == "torch" and (load, m, v, "lib", th) in keys:
+            combos.append((load, m, f"{v} {th} thr: torch-first / lib-first", (v, o, th),
+                           (v, "lib", th)))
+        if v == "ours" and (load, m, "opencorr", "-", th) in keys:
+            combos.append((load, m, f"{o}-first {th} thr: OpenCorr / ours (x OpenCorr)",
+                           ("opencorr", "-", th), (v, o, th)))
+        if v == "ours" and (load, m, "old", o, th) in keys:
+            combos.append((load, m, f"{o}-first {th} thr: ours / old", (v, o, th),
+                           ("old", o, th)))
+        if th == 2 and (load, m, v, o, 1) in keys:
+            combos.append((load, m, f"{v} {o}: 2 thr / 1 thr", (v, o, 2), (v, o, 1)))
+    out = []
+    for load, m, label, num, den in combos:
+        rs = [t[(load, m, r) + num] / t[(load, m, r) + den] for r in rounds
+              if (load, m, r) + num in t and (load, m, r) + den in t]
+        if rs:
+            out.append(f"pairs busy {load} m={m} {label}: median {statistics.median(rs):.2f} "
+                       f"({min(rs):.2f}-{max(rs):.2f}, {len(rs)} rounds)")
     return out
 
 

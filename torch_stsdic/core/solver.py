@@ -595,6 +595,9 @@ def subset_inside(points: torch.Tensor, half: float, h: int, w: int) -> torch.Te
 
 
 # ---------------------------------------------------------------------------------------
+# on the CPU the inputs' conversion runs in the scope too: outside it, torch's spinning OpenMP
+# threads (torch imported first) under load made it cost ~0.09 s a call (issue 46)
+@in_own_threads(0, "ref")
 def solve_window(
     ref,
     frames,
