@@ -220,3 +220,29 @@ def test_a_run_prepares_each_frame_once_across_its_passes():
     assert again.info["prefiltered"] > 2 * read
     assert again.info["pyramid_levels"] > res.info["pyramid_levels"]
     torch.testing.assert_close(again.u, res.u, rtol=0, atol=0, equal_nan=True)
+
+
+def test_a_dropped_frame_with_its_pyramid_is_freed_at_once():
+    """A prepared frame whose pyramid was built (its levels counted in the store) is freed
+    when dropped, not left in a reference cycle for Python's cyclic collector (a long run's
+    peak memory grew with its length while such frames waited for a full collection)."""
+    import gc
+    import weakref
+    from collections import Counter
+
+    from torch_stsdic.movie.frames import PreparedFrame
+
+    raw = torch.rand(64, 64)
+    builds: Counter[int] = Counter()
+    frame = PreparedFrame(7, raw, SubsetSolver(sts.DICConfig()).prepare(raw), builds=builds)
+    frame.pyramid().level(1)  # builds a level: counted for frame 7
+    assert builds == Counter({7: 1})
+    gone = weakref.ref(frame)
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        del frame
+        assert gone() is None  # freed by its reference count alone
+    finally:
+        if enabled:
+            gc.enable()
