@@ -162,3 +162,46 @@ def test_fit_in_chunks_equals_the_whole_series(kind, monkeypatch):
     whole = sm.fit_frame_motion(pts, disp, valid, kind, noise=noise)
     for a, b in zip(chunked, whole):
         assert torch.equal(a.nan_to_num(-9.0), b.nan_to_num(-9.0))
+
+
+def test_step_detection_in_chunks_equals_the_whole_series(monkeypatch):
+    """The load steps of a long series found frame chunk by frame chunk (bounded memory)
+    are those of the whole series at once, the increments' medians the very numbers."""
+    from torch_stsdic.core import shared_motion as sm
+
+    g = torch.Generator().manual_seed(5)
+    f, n = 400, 90
+    resid = 0.01 * torch.randn(f, n, 2, generator=g, dtype=torch.float64)
+    resid[150:] += 0.3  # a load step into frame 150 (and 320 of the series below)
+    resid[260:] -= 0.4
+    resid[torch.rand(f, n, generator=g) < 0.005] = float("nan")
+    valid = torch.rand(f, n, generator=g) > 0.05
+    sigma = torch.full((f,), 0.01, dtype=torch.float64)
+    frames = list(range(f))
+    frames[200:] = [k + 60 for k in frames[200:]]  # a gap: frames 200.. are not adjacent
+    monkeypatch.setattr(sm, "FIT_CHUNK", 7 * n)  # chunks of 7 frames
+    chunked = sm.detect_steps(resid, valid, sigma, frames)
+    monkeypatch.setattr(sm, "FIT_CHUNK", 1 << 40)
+    whole = sm.detect_steps(resid, valid, sigma, frames)
+    assert chunked == whole == [150, 320]
+
+
+def test_shared_pass_in_chunks_equals_the_whole_series(frames, monkeypatch):
+    """The shared-motion pass's fitted motion, load steps, scatter and standard errors are
+    the same taken frame chunk by frame chunk (its fit, the fitted motion at the sample,
+    the noise per frame, the steps) as over the whole series at once."""
+    from torch_stsdic.core import shared_motion as sm
+    from torch_stsdic.movie.plan import plan_run
+    from torch_stsdic.movie.series import run_plan
+    from torch_stsdic.movie.shared_pass import estimate_shared_motion
+
+    plan = plan_run(frames, 0, None, None, (16, 16, 84, 84), None, 11, CFG, "cpu", None, 3)
+    monkeypatch.setattr(sm, "FIT_CHUNK", 2 * plan.n_points)  # chunks of 2 frames
+    chunked = estimate_shared_motion(plan, "affine", run=run_plan)
+    monkeypatch.setattr(sm, "FIT_CHUNK", 1 << 40)
+    whole = estimate_shared_motion(plan, "affine", run=run_plan)
+    for name in ("params", "scatter", "se", "points", "measured"):
+        np.testing.assert_array_equal(getattr(chunked, name), getattr(whole, name),
+                                      err_msg=name)
+    assert chunked.steps == whole.steps
+    assert np.isfinite(chunked.se[1:]).all() and (chunked.se[1:] > 0).all()

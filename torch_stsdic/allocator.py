@@ -15,6 +15,13 @@ it once itself: it changes the process, so the library never does so on import (
 from the environment, for any program: ``MALLOC_MMAP_MAX_=0
 MALLOC_TRIM_THRESHOLD_=1073741824``, both; either alone leaves most of the faults). Where
 glibc is not the C library (macOS, Windows, musl) it does nothing.
+
+Memory kept so is fragmented by a run's passes (the shared-motion pass over every frame,
+the template's rounds, the window-length pass), each freeing what it held in pieces that the
+next pass's blocks do not fit exactly: :func:`release_freed_memory` hands the free pages
+back to the system (``malloc_trim``) between passes, so that the blocks start from what is
+in use; a long movie's passes left more behind (1,200 frames of 256 x 256: 404 MB peak
+against 390 MB with it; 120 frames: 389 and 386 MB).
 """
 
 from __future__ import annotations
@@ -24,13 +31,14 @@ import ctypes.util
 import os
 import sys
 
-__all__ = ["keep_freed_memory"]
+__all__ = ["keep_freed_memory", "release_freed_memory"]
 
 _M_TRIM_THRESHOLD = -1  # glibc's mallopt parameter numbers (malloc.h)
 _M_MMAP_MAX = -4
 TRIM_BYTES = 1 << 30  #: free memory at the top of the heap above which it is given back
 
 _done: bool | None = None
+_trim = None  # glibc's malloc_trim, once looked up (False: not available)
 
 
 def keep_freed_memory() -> bool:
@@ -53,3 +61,22 @@ def keep_freed_memory() -> bool:
     except (OSError, AttributeError):
         _done = False
     return _done
+
+
+def release_freed_memory() -> bool:
+    """Give the free pages of the process's heap back to the system (glibc's
+    ``malloc_trim(0)``: every free chunk's whole pages, not only the heap's top), e.g.
+    between a run's passes; a few ms. Returns whether any memory was released; does nothing
+    where glibc is not the C library."""
+    global _trim
+    if _trim is None:
+        _trim = False
+        if sys.platform.startswith("linux"):
+            try:
+                libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+                if hasattr(libc, "gnu_get_libc_version"):
+                    _trim = libc.malloc_trim
+                    _trim.argtypes, _trim.restype = [ctypes.c_size_t], ctypes.c_int
+            except (OSError, AttributeError):
+                _trim = False
+    return bool(_trim(0)) if _trim else False

@@ -560,10 +560,13 @@ def detect_steps(residual: Tensor, valid: Tensor, sigma: Tensor, frames: Sequenc
     if f < 3:
         return []
     fr = torch.as_tensor(list(frames))
-    both = valid[1:] & valid[:-1]
-    inc = (residual[1:] - residual[:-1]).norm(dim=-1)
-    inc = torch.where(both & torch.isfinite(inc), inc, torch.nan)
-    s = torch.nanmedian(inc, dim=1).values  # (F-1,) increment into frames[1:]
+    s = torch.empty(f - 1, dtype=residual.dtype, device=residual.device)
+    for sl in _frame_chunks(f - 1, residual.shape[1]):  # bounded memory, the same numbers
+        a, b = sl.start, sl.stop
+        both = valid[a + 1:b + 1] & valid[a:b]
+        inc = (residual[a + 1:b + 1] - residual[a:b]).norm(dim=-1)
+        inc = torch.where(both & torch.isfinite(inc), inc, torch.nan)
+        s[sl] = torch.nanmedian(inc, dim=1).values  # increment into frames[1:]
     adjacent = (fr[1:] - fr[:-1]) == 1
     noise = 1.1774 * torch.maximum(sigma[1:], sigma[:-1])
     out = []

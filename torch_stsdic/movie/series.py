@@ -44,6 +44,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from torch_stsdic.allocator import release_freed_memory
 from torch_stsdic.analysis.result import TrackResult
 from torch_stsdic.analysis.smoothing import smooth_in_time
 from torch_stsdic.core.config import DICConfig
@@ -158,6 +159,9 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
         plan, sink, ref.raw, run=functools.partial(run_plan, frames=store),
         first_noise=sink.path is not None, frames=store)
     record_estimates(est, sink)  # for a resumed run (not where they were read from the file)
+    # the passes before the blocks freed what they held: its pages back to the system, so
+    # that what a long movie's passes left fragmented does not stay resident under the blocks
+    release_freed_memory()
     if est.shared is not None:
         shared = est.shared
         run.shared = shared if shared.applied else None

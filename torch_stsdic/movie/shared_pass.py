@@ -17,6 +17,7 @@ from torch_stsdic.core.shared_motion import (
     DEFAULT_MAX_POINTS,
     SIGNIFICANT,
     SharedMotion,
+    _frame_chunks,
     detect_steps,
     fit_frame_motion,
     overlap_factor,
@@ -147,7 +148,8 @@ def estimate_shared_motion(plan: RunPlan, kind: str = "auto",
     valid = (res.status <= USABLE).cpu() & (res.zncc.cpu() >= float(
         plan.options.get("lost_zncc", 0.8)))
     origin = plan.points.double().mean(0).cpu()
-    noise = res.std["u"].double().cpu() if "u" in res.std else None
+    # (F, n) at the pass's precision: made float64 frame chunk by frame chunk where used
+    noise = res.std["u"].cpu() if "u" in res.std else None
     # the first guess: near the blocks' frames
     sample = (_measured_sample(sink, pts, valid) if sink is not None else
               MeasuredSample.from_result(res.select(res.frames[near].tolist()), pts,
@@ -170,15 +172,25 @@ def estimate_shared_motion(plan: RunPlan, kind: str = "auto",
     out = SharedMotion(kind=kind, params=params, origin=origin.numpy(), scatter=scatter,
                        points=count, measured=measured, se=se,
                        times=np.asarray(plan.times, dtype=np.float64))
-    g = out.displacement(pts, torch.as_tensor(frames)).double()  # (F, n, 2)
-    sigma = (torch.nanmedian(torch.where(valid, noise, torch.nan), dim=1).values
-             if noise is not None else torch.zeros(len(frames)))
-    out.steps = detect_steps(disp - g, valid, sigma, frames)
+    # the fitted motion at the sample (F, n, 2), the typical noise of each frame, the fit's
+    # plausibility, then the residual in place of ``disp``: frame chunk by frame chunk, a
+    # long movie's pass holds no more (F, n) arrays than its fit did
+    fidx = torch.as_tensor(frames)
+    g = torch.empty_like(disp)
+    sigma = torch.zeros(len(frames), dtype=torch.float64)
+    for sl in _frame_chunks(*valid.shape):
+        g[sl] = out.displacement(pts, fidx[sl]).double()
+        if noise is not None:
+            sigma[sl] = torch.nanmedian(torch.where(valid[sl], noise[sl].double(), torch.nan),
+                                        dim=1).values
+    reason = implausible(disp, g, valid, frames)
+    disp -= g
+    del g
+    out.steps = detect_steps(disp, valid, sigma, frames)
     out.sample = sample
     if auto:
         z = out.significance()
         out.applied = bool(np.isfinite(z) and z > SIGNIFICANT)
-    reason = implausible(disp, g, valid, frames)
     if reason is not None:
         out.applied = False
         out.steps = []
