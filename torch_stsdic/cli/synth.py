@@ -7,6 +7,7 @@ import json
 import math
 import os
 import time
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
@@ -177,16 +178,18 @@ def _image_files(layout: str, n: int, fmt: str = "tiff") -> list[str]:
     return ["movie.tif"] if layout == "multipage" else [f"frame_{k:05d}.tif" for k in range(n)]
 
 
-def _write_movie(out: Path, files: list[str], data: np.ndarray, fmt: str, fps: float) -> None:
-    """``data`` (T, H, W) as the camera movie ``files`` (``fmt`` "mraw" or "avi")."""
+def _write_movie(out: Path, files: list[str], images: Iterable[np.ndarray], fmt: str,
+                 fps: float) -> None:
+    """The frames ``images`` (each (H, W), written as they come) as the camera movie
+    ``files`` (``fmt`` "mraw" or "avi")."""
     from torch_stsdic.io.photron import write_mraw
     from torch_stsdic.io.video import write_video
 
     if fmt == "mraw":
-        write_mraw(out / files[1], data, fps)
+        write_mraw(out / files[1], images, fps)
     else:
         tmp = out / "movie.partial.avi"
-        write_video(tmp, data, fps)
+        write_video(tmp, images, fps)
         os.replace(tmp, out / files[0])
 
 
@@ -211,6 +214,18 @@ def _write_tiff_atomic(path: Path, data: np.ndarray) -> None:
     os.replace(tmp, path)
 
 
+def _write_multipage(path: Path, images: Iterable[np.ndarray]) -> None:
+    """The frames ``images`` (each (H, W)) as one multi-page TIFF, page by page as they come
+    (one series of shape (T, H, W), as ``tifffile.imwrite`` of the whole stack stores it)."""
+    import tifffile
+
+    tmp = path.with_name(path.name + ".partial")
+    with tifffile.TiffWriter(tmp) as tw:
+        for img in images:
+            tw.write(img, photometric="minisblack", contiguous=True)
+    os.replace(tmp, path)
+
+
 def _to_dtype(img: Any, bits: int) -> np.ndarray:
     """Images quantised to ``bits`` (uint8 / uint16), or float32 for ``bits`` 0."""
     from torch_stsdic.synth import quantize
@@ -221,19 +236,34 @@ def _to_dtype(img: Any, bits: int) -> np.ndarray:
     return q.astype(np.uint8 if bits == 8 else np.uint16)
 
 
-def _write_truth(path: Path, motion: Any, pts: np.ndarray, times: np.ndarray) -> dict:
-    """truth.csv at ``pts`` (N, 2) px and ``times`` (F,); the truth arrays by name (F, N)."""
+#: (frame, point) entries of the ground truth computed at a time (truth.csv is written frame
+#: chunk by frame chunk: a long movie's truth is never held whole)
+TRUTH_CHUNK = 1 << 16
+
+
+def _write_truth(path: Path, motion: Any, pts: np.ndarray, times: np.ndarray
+                 ) -> tuple[float, float]:
+    """truth.csv at ``pts`` (N, 2) px and ``times`` (F,), a few frames at a time; returns
+    the largest |u| and |v| px."""
     from torch_stsdic.synth import ground_truth
 
-    truth = ground_truth(motion, pts, times)
-    tr = {k: to_numpy(truth[k]) for k in TRUTH_KEYS}
-    lines = ["frame,time,x,y," + ",".join(TRUTH_KEYS)]
-    for f in range(len(times)):
-        for j in range(len(pts)):
-            vals = ",".join(f"{tr[k][f, j]:.10g}" for k in TRUTH_KEYS)
-            lines.append(f"{f},{times[f]:g},{pts[j, 0]:g},{pts[j, 1]:g},{vals}")
-    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
-    return tr
+    step = max(1, TRUTH_CHUNK // max(len(pts), 1))
+    umax = vmax = 0.0
+    with open(path, "w", encoding="utf-8") as fh:
+        fh.write("frame,time,x,y," + ",".join(TRUTH_KEYS) + "\n")
+        for f0 in range(0, len(times), step):
+            truth = ground_truth(motion, pts, times[f0:f0 + step])
+            tr = {k: to_numpy(truth[k]) for k in TRUTH_KEYS}
+            umax = max(umax, float(np.abs(tr["u"]).max(initial=0.0)))
+            vmax = max(vmax, float(np.abs(tr["v"]).max(initial=0.0)))
+            lines = []
+            for i in range(tr["u"].shape[0]):
+                f = f0 + i
+                for j in range(len(pts)):
+                    vals = ",".join(f"{tr[k][i, j]:.10g}" for k in TRUTH_KEYS)
+                    lines.append(f"{f},{times[f]:g},{pts[j, 0]:g},{pts[j, 1]:g},{vals}\n")
+            fh.write("".join(lines))
+    return umax, vmax
 
 
 def _metadata(args: argparse.Namespace, motion: Any, params: dict, extra: dict) -> dict:
@@ -280,8 +310,6 @@ def _metadata(args: argparse.Namespace, motion: Any, params: dict, extra: dict) 
 
 def execute(args: argparse.Namespace) -> int:
     """``stsdic synth``: synthetic speckle movie + ground truth."""
-    import torch
-
     from torch_stsdic import synth
 
     if len(args.size) > 2:
@@ -299,31 +327,33 @@ def execute(args: argparse.Namespace) -> int:
     motion, params = _make_motion(args, w, h, n)
     margin = max(16.0, 8.0 * args.radius) + math.ceil(_max_border_motion(motion, w, h, times))
     t0 = time.perf_counter()
-    movie = synth.synthetic_movie(
+    # the reference and every frame rendered, quantised and written one at a time: a long
+    # movie is never held whole (2,001 frames of 512 x 512 took 23 GB as one stack)
+    _, _, rendered = synth.synthetic_images(
         (h, w), n, motion, noise_sigma=args.noise, seed=args.seed, radius=args.radius,
         margin=margin,
     )  # fmt: skip
-    data = _to_dtype(torch.cat([movie.ref[None], movie.frames], 0), args.bits)
+    images = (_to_dtype(img, args.bits) for img in rendered)
     out.mkdir(parents=True, exist_ok=True)
     if args.format != "tiff":
         from torch_stsdic.io import InputError
 
         try:
-            _write_movie(out, files, data, args.format, args.fps)
+            _write_movie(out, files, images, args.format, args.fps)
         except (InputError, ValueError) as exc:  # PyAV missing, a rate AVI cannot store
             raise CommandError(str(exc)) from None
     elif args.layout == "multipage":
-        _write_tiff_atomic(out / files[0], data)
+        _write_multipage(out / files[0], images)
     else:
-        for k, name in enumerate(files):
-            _write_tiff_atomic(out / name, data[k])
+        for name, img in zip(files, images):
+            _write_tiff_atomic(out / name, img)
 
     # ground truth on a grid
     xs = np.arange(0, w, args.truth_step, dtype=np.float64)
     ys = np.arange(0, h, args.truth_step, dtype=np.float64)
     gx, gy = np.meshgrid(xs, ys)
     pts = np.stack([gx.ravel(), gy.ravel()], 1)
-    tr = _write_truth(out / "truth.csv", motion, pts, times)
+    umax, vmax = _write_truth(out / "truth.csv", motion, pts, times)
     (out / "times.csv").write_text(
         "frame,time\n" + "".join(f"{k},{t:g}\n" for k, t in enumerate(times)), encoding="utf-8"
     )
@@ -333,7 +363,6 @@ def execute(args: argparse.Namespace) -> int:
     meta = _metadata(args, motion, params, extra)
     (out / "motion.json").write_text(json.dumps(meta, indent=2) + "\n", encoding="utf-8")
     el = time.perf_counter() - t0
-    umax, vmax = float(np.abs(tr["u"]).max()), float(np.abs(tr["v"]).max())
     print(
         f"wrote {n + 1} frames of {w}x{h} px ({dtype}, noise {args.noise:g}) to "
         f"{out / files[0]}{' ..' if len(files) > 1 else ''} in {fmt_time(el)}"

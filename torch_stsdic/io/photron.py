@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import warnings
 import xml.etree.ElementTree as ET
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -188,20 +189,41 @@ def read_photron_header(path: Path) -> PhotronHeader:
     return out
 
 
-def write_mraw(path: Path, frames: np.ndarray, frame_rate: float,
+def write_mraw(path: Path, frames: np.ndarray | Iterable[np.ndarray], frame_rate: float,
                info: dict[str, Any] | None = None) -> tuple[Path, Path]:
-    """Write ``frames`` ``(T, H, W)`` (uint8 or uint16) as ``path`` (``.mraw``) and its text
-    ``.cih`` header (16-bit: 12 effective bits unless a sample needs more) at ``frame_rate``
-    frames/s; returns (mraw, cih)."""
-    frames = np.asarray(frames)
-    if frames.ndim != 3 or frames.dtype not in (np.uint8, np.uint16):
-        raise ValueError(f"frames: expected (T, H, W) uint8 or uint16, got "
-                         f"{frames.shape} {frames.dtype}")
-    stored = frames.dtype.itemsize * 8
-    eff = 8 if stored == 8 else (12 if int(frames.max(initial=0)) < 4096 else 16)
+    """Write ``frames`` ``(T, H, W)`` (uint8 or uint16; or an iterable of (H, W) frames,
+    each written as it comes) as ``path`` (``.mraw``) and its text ``.cih`` header (16-bit:
+    12 effective bits unless a sample needs more) at ``frame_rate`` frames/s; returns
+    (mraw, cih)."""
     mraw, cih = path.with_suffix(".mraw"), path.with_suffix(".cih")
-    frames.astype(frames.dtype.newbyteorder("<"), copy=False).tofile(mraw)
-    n, h, w = frames.shape
+    if isinstance(frames, np.ndarray) or not isinstance(frames, Iterable):
+        frames = np.asarray(frames)
+        if frames.ndim != 3 or frames.dtype not in (np.uint8, np.uint16):
+            raise ValueError(f"frames: expected (T, H, W) uint8 or uint16, got "
+                             f"{frames.shape} {frames.dtype}")
+        n, h, w = frames.shape
+        dtype = frames.dtype
+    n, top, first = 0, 0, None
+    with open(mraw, "wb") as fh:
+        for img in frames:
+            img = np.asarray(img)
+            if first is None:
+                first = (img.shape, img.dtype)
+                if img.ndim != 2 or img.dtype not in (np.uint8, np.uint16):
+                    raise ValueError(f"frames: expected (H, W) uint8 or uint16 frames, got "
+                                     f"{img.shape} {img.dtype}")
+            elif (img.shape, img.dtype) != first:
+                raise ValueError(f"frames: frame {n} is {img.shape} {img.dtype}, the first "
+                                 f"{first[0]} {first[1]}")
+            img.astype(img.dtype.newbyteorder("<"), copy=False).tofile(fh)
+            top = max(top, int(img.max(initial=0)))
+            n += 1
+    if first is not None:
+        (h, w), dtype = first
+    elif not isinstance(frames, np.ndarray):
+        raise ValueError("frames: no frame to write")
+    stored = dtype.itemsize * 8
+    eff = 8 if stored == 8 else (12 if top < 4096 else 16)
     fields = {"Record Rate(fps)": f"{frame_rate:g}", "Shutter Speed(s)": f"{frame_rate:g}",
               "Total Frame": n, "Original Total Frame": n, "Start Frame": 0,
               "Image Width": w, "Image Height": h, "Color Type": "Mono", "Color Bit": stored,

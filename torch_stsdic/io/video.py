@@ -10,8 +10,10 @@ codecs (H.264, MPEG-4, MJPEG ...) blur and block speckle: they are read, with a 
 
 from __future__ import annotations
 
+import itertools
 import warnings
 from collections import OrderedDict
+from collections.abc import Iterable
 from dataclasses import dataclass
 from fractions import Fraction
 from pathlib import Path
@@ -198,24 +200,39 @@ def read_video_header(path: Path) -> VideoHeader:
     return head
 
 
-def write_video(path: Path, frames: np.ndarray, frame_rate: float) -> Path:
-    """Write ``frames`` ``(T, H, W)`` (uint8 or uint16) to ``path`` losslessly (FFV1, grey
-    8 or 16 bit) at ``frame_rate`` frames/s."""
+def write_video(path: Path, frames: np.ndarray | Iterable[np.ndarray],
+                frame_rate: float) -> Path:
+    """Write ``frames`` ``(T, H, W)`` (uint8 or uint16; or an iterable of (H, W) frames,
+    each encoded as it comes) to ``path`` losslessly (FFV1, grey 8 or 16 bit) at
+    ``frame_rate`` frames/s."""
     av = _av()
-    frames = np.asarray(frames)
-    if frames.ndim != 3 or frames.dtype not in (np.uint8, np.uint16):
-        raise ValueError(f"frames: expected (T, H, W) uint8 or uint16, got "
-                         f"{frames.shape} {frames.dtype}")
-    fmt = "gray" if frames.dtype == np.uint8 else "gray16le"
+    if isinstance(frames, np.ndarray) or not isinstance(frames, Iterable):
+        frames = np.asarray(frames)
+        if frames.ndim != 3 or frames.dtype not in (np.uint8, np.uint16):
+            raise ValueError(f"frames: expected (T, H, W) uint8 or uint16, got "
+                             f"{frames.shape} {frames.dtype}")
+    it = iter(frames)
+    first = next(it, None)
+    if first is None:
+        raise ValueError("frames: no frame to write")
+    first = np.asarray(first)
+    if first.ndim != 2 or first.dtype not in (np.uint8, np.uint16):
+        raise ValueError(f"frames: expected (H, W) uint8 or uint16 frames, got "
+                         f"{first.shape} {first.dtype}")
+    fmt = "gray" if first.dtype == np.uint8 else "gray16le"
     rate = Fraction(frame_rate).limit_denominator(10**6)
     refused = ValueError(f"{path}: its container does not store {frame_rate:g} frames/s (the "
                          "AVI muxer takes rates up to 1000 /s): write a .mkv file instead")
     try:
         with av.open(str(path), "w") as container:
             stream = container.add_stream("ffv1", rate=rate)
-            stream.width, stream.height = frames.shape[2], frames.shape[1]
+            stream.width, stream.height = first.shape[1], first.shape[0]
             stream.pix_fmt = fmt
-            for k, img in enumerate(frames):
+            for k, img in enumerate(itertools.chain([first], it)):
+                img = np.asarray(img)
+                if (img.shape, img.dtype) != (first.shape, first.dtype):
+                    raise ValueError(f"frames: frame {k} is {img.shape} {img.dtype}, the "
+                                     f"first {first.shape} {first.dtype}")
                 frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(img), format=fmt)
                 frame.pts, frame.time_base = k, 1 / rate
                 container.mux(stream.encode(frame))

@@ -52,9 +52,11 @@ from torch_stsdic.synth.render import (
     Movie,
     add_noise,
     ground_truth,
+    iter_series,
     quantize,
     render,
     render_series,
+    synthetic_images,
     synthetic_movie,
 )
 
@@ -77,7 +79,9 @@ __all__ = [
     "add_noise",
     "quantize",
     "render_series",
+    "iter_series",
     "ground_truth",
     "Movie",
     "synthetic_movie",
+    "synthetic_images",
 ]

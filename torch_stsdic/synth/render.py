@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from collections.abc import Iterator
 from typing import NamedTuple
 
 import numpy as np
@@ -14,8 +15,8 @@ from torch import Tensor
 from torch_stsdic.synth.motion import Motion, Translation
 from torch_stsdic.synth.pattern import DTYPE, ArrayLike, SpecklePattern, as_float64, make_speckle
 
-__all__ = ["render", "add_noise", "quantize", "render_series", "ground_truth", "Movie",
-           "synthetic_movie"]
+__all__ = ["render", "add_noise", "quantize", "render_series", "iter_series", "ground_truth",
+           "Movie", "synthetic_movie", "synthetic_images"]
 
 
 
@@ -257,7 +258,8 @@ def render_series(
     motion), every frame at its time; then independent Gaussian noise of std ``noise_sigma``
     [8-bit grey levels] is added to *all* images (reference first, then frames in order, from
     one generator seeded with ``seed``), and finally, if ``bits`` is given, they are quantised
-    with :func:`quantize` (16 bits: values scaled by 257).
+    with :func:`quantize` (16 bits: values scaled by 257). :func:`iter_series` gives the same
+    images one at a time (a long movie).
 
     The ground truth relative to the reference is ``ground_truth(motion, X, times)`` when
     ``U(X, reference_time) = 0`` (true at t = 0 for every time-dependent motion here); otherwise
@@ -266,7 +268,37 @@ def render_series(
     Returns:
         ``(ref, frames)``: ``(H, W)`` and ``(T, H, W)`` float64.
     """
+    images = iter_series(pattern, shape, motion, times, noise_sigma=noise_sigma, bits=bits,
+                         seed=seed, reference_time=reference_time, quadrature=quadrature)
+    ref = next(images)
+    frames = list(images)
+    return ref, torch.stack(frames) if frames else torch.empty((0, *shape), dtype=DTYPE)
+
+
+def iter_series(
+    pattern: SpecklePattern,
+    shape: tuple[int, int],
+    motion: Motion | None,
+    times: ArrayLike,
+    *,
+    noise_sigma: float = 0.0,
+    bits: int | None = None,
+    seed: int | torch.Generator | None = 0,
+    reference_time: float | None = 0.0,
+    quadrature: int = 4,
+) -> Iterator[Tensor]:
+    """The images of :func:`render_series` one at a time, each rendered, given its noise and
+    quantised as it is asked for: the reference, then the frame of every time of ``times``,
+    each (H, W) float64, the very numbers of :func:`render_series` (its noise drawn from one
+    generator in the same order) with one image in memory."""
     tt = as_float64(times).reshape(-1)
+    g = _generator(seed) if noise_sigma > 0 else None
+
+    def finish(img: Tensor) -> Tensor:
+        if g is not None:
+            img = add_noise(img, noise_sigma, generator=g)
+        return img if bits is None else quantize(img, bits)
+
     if reference_time is None:
         ref = render(pattern, shape, None, quadrature=quadrature)
     else:
@@ -281,18 +313,11 @@ def render_series(
                     "reference image is itself deformed; the truth relative to it is "
                     f"ground_truth(..., reference_time={reference_time}) (or pass "
                     "reference_time=None to use the undeformed pattern as reference)",
-                    stacklevel=2)
+                    stacklevel=3)
         ref = render(pattern, shape, motion, float(reference_time), quadrature=quadrature)
-    frames = torch.stack([render(pattern, shape, motion, float(ti), quadrature=quadrature)
-                          for ti in tt]) if tt.numel() else torch.empty((0, *shape), dtype=DTYPE)
-    if noise_sigma > 0:
-        g = _generator(seed)
-        ref = add_noise(ref, noise_sigma, generator=g)
-        frames = torch.stack([add_noise(f, noise_sigma, generator=g) for f in frames]) \
-            if tt.numel() else frames
-    if bits is not None:
-        ref, frames = quantize(ref, bits), quantize(frames, bits)
-    return ref, frames
+    yield finish(ref)
+    for ti in tt:
+        yield finish(render(pattern, shape, motion, float(ti), quadrature=quadrature))
 
 
 def ground_truth(
@@ -384,11 +409,37 @@ def synthetic_movie(
     Default: a 301 x 301 speckle, reference at t = 0 and 9 frames at t = 1..9 moving by
     ``u = t / 20`` px (``Translation(ut=0.05)``), noise ``noise_sigma`` on all 10 images.
     The pattern uses ``seed``; the noise uses an independent seed derived from it.
+    :func:`synthetic_images` gives the same images one at a time (a long movie).
 
     Returns:
         ``Movie(ref, frames, times, motion)``; truth via ``ground_truth(movie.motion, pts,
         movie.times)``.
     """
+    motion, tt, images = synthetic_images(shape, n_frames, motion, times=times,
+                                          noise_sigma=noise_sigma, bits=bits, seed=seed,
+                                          radius=radius, density=density, margin=margin)
+    ref = next(images)
+    frames = list(images)
+    return Movie(ref, torch.stack(frames) if frames else torch.empty((0, *shape), dtype=DTYPE),
+                 tt, motion)
+
+
+def synthetic_images(
+    shape: tuple[int, int] = (301, 301),
+    n_frames: int = 9,
+    motion: Motion | None = None,
+    *,
+    times: ArrayLike | None = None,
+    noise_sigma: float = 0.0,
+    bits: int | None = None,
+    seed: int = 0,
+    radius: float = 2.0,
+    density: float | None = None,
+    margin: float | None = None,
+) -> tuple[Motion, Tensor, Iterator[Tensor]]:
+    """:func:`synthetic_movie`'s images one at a time (``stsdic synth`` writes each as it is
+    rendered): its motion, its frames' times (T,) and an iterator of the reference and then
+    the T frames, each (H, W) float64, the very numbers of :func:`synthetic_movie`."""
     if motion is None:
         motion = Translation(ut=1.0 / 20.0)
     if times is None:
@@ -397,7 +448,5 @@ def synthetic_movie(
         tt = as_float64(times).reshape(-1)
     pattern = make_speckle(shape, density=density, radius=radius, seed=seed, margin=margin)
     noise_seed = (int(seed) * 1_000_003 + 7_919) % (2**63)
-    ref, frames = render_series(pattern, shape, motion, tt, noise_sigma=noise_sigma, bits=bits,
-                                seed=noise_seed)
-    return Movie(ref, frames, tt, motion)
-
+    return motion, tt, iter_series(pattern, shape, motion, tt, noise_sigma=noise_sigma,
+                                   bits=bits, seed=noise_seed)
