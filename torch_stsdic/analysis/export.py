@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import base64
 import contextlib
+import itertools
 import json
 import os
 from collections.abc import Iterator, Sequence
@@ -342,7 +343,8 @@ def export_mat(path_h5: str | os.PathLike[str], out_dir: str | os.PathLike[str],
     field as a (frames, points) array (``u``, ``v``, ``ut``, ...; NaN for failed points),
     ``x``, ``y`` (1, N) reference coordinates, ``frames``, ``times``, ``completed`` (1, F),
     ``unit``, ``scale`` (1 with unit "px"), ``time_unit``, ``units`` (a struct: field ->
-    unit) and ``status_codes`` (a struct)."""
+    unit) and ``status_codes`` (a struct). The fields are read and written a block of points
+    at a time (:func:`write_mat`): a long file's export holds none of them whole."""
     p, out = Path(path_h5), Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     with open_results(p) as f:
@@ -350,10 +352,9 @@ def export_mat(path_h5: str | os.PathLike[str], out_dir: str | os.PathLike[str],
         rows = sorted(set(frame_rows(f, frames, p)))
         names = [c for c in _columns(f) if c not in ("x", "y")]
         pts = f["points"][()]
-        data: dict[str, Any] = {
-            nm: units.convert(nm, f[nm][rows] if rows else np.zeros((0, len(pts)))) for nm in names
-        }
-        data.update(
+        fields = {nm: MatField((len(rows), len(pts)), stored_columns(
+            f[nm], rows, lambda a, nm=nm: units.convert(nm, a))) for nm in names}
+        data: dict[str, Any] = dict(
             x=units.convert("x", pts[:, 0]), y=units.convert("y", pts[:, 1]),
             frames=f["frames"][()][rows].astype(np.float64), times=f["times"][()][rows],
             completed=f["completed"][()][rows], unit=units.unit,
@@ -361,18 +362,121 @@ def export_mat(path_h5: str | os.PathLike[str], out_dir: str | os.PathLike[str],
             units={nm: units.unit_of(nm) for nm in ["x", "y", *names]},
             status_codes={s.name.lower(): int(s) for s in Status},
         )  # fmt: skip
-    return [write_mat(out / f"{p.stem}.mat", data)]
+        return [write_mat(out / f"{p.stem}.mat", data, fields)]
 
 
-def write_mat(target: Path, data: dict[str, Any]) -> Path:
+# ----------------------------------------------------------------------------------------
+# MATLAB files, their (frames, points) fields a block of points at a time
+# ----------------------------------------------------------------------------------------
+#: bytes of a (frames, points) field read and written at a time into a MATLAB file (its
+#: points' values over every frame: MATLAB stores an array column by column)
+MAT_BLOCK_BYTES = 32 << 20
+
+
+class MatField:
+    """A (F, N) array of a MATLAB file read a block of columns at a time: ``read(cols)`` the
+    (F, n) values of the columns ``cols`` (a slice)."""
+
+    def __init__(self, shape: tuple[int, int], read: Any) -> None:
+        self.shape, self.read = (int(shape[0]), int(shape[1])), read
+
+
+def stored_columns(ds: h5py.Dataset, rows: list[int], convert: Any) -> Any:
+    """The reader of a :class:`MatField`: the rows ``rows`` (sorted) of the (F, N) dataset
+    ``ds``, a block of its columns at a time, through ``convert``."""
+    def read(cols: slice) -> np.ndarray:
+        if not rows:
+            return convert(np.zeros((0, cols.stop - cols.start)))
+        whole = len(rows) == ds.shape[0]
+        return convert(ds[:, cols] if whole else ds[rows, cols])
+    return read
+
+
+#: MATLAB's class and element type codes of the arrays a field may hold (MAT-file format,
+#: level 5): numpy dtype -> (mxCLASS, miTYPE)
+_MAT_TYPES = {np.dtype(np.float64): (6, 9), np.dtype(np.float32): (7, 7),
+              np.dtype(np.int8): (8, 1), np.dtype(np.uint8): (9, 2),
+              np.dtype(np.int16): (10, 3), np.dtype(np.uint16): (11, 4),
+              np.dtype(np.int32): (12, 5), np.dtype(np.uint32): (13, 6),
+              np.dtype(np.int64): (14, 12), np.dtype(np.uint64): (15, 13)}
+
+
+def _mat_element(kind: int, payload: bytes) -> bytes:
+    """A level-5 data element: its tag and ``payload`` padded to 8 bytes (the small format,
+    4 bytes in the tag, for 1 to 4 bytes, as MATLAB and scipy write a short name)."""
+    if 0 < len(payload) <= 4:
+        return np.array([len(payload) << 16 | kind], "<u4").tobytes() + payload.ljust(4, b"\0")
+    pad = -len(payload) % 8
+    return np.array([kind, len(payload)], "<u4").tobytes() + payload + b"\0" * pad
+
+
+def _append_mat_array(fh: Any, name: str, field: MatField) -> None:
+    """Append (F, N) ``field`` as the compressed MATLAB array ``name`` to the level-5 file
+    ``fh`` (open for writing at its end): its columns read and compressed a block at a time,
+    the element's compressed length written in its tag last."""
+    import zlib
+
+    f, n = field.shape
+    step = max(1, MAT_BLOCK_BYTES // (8 * max(f, 1)))
+    blocks = (field.read(slice(c, min(c + step, n))) for c in range(0, n, step))
+    first = next(blocks)
+    dtype = np.dtype(first.dtype).newbyteorder("=")
+    if dtype not in _MAT_TYPES:
+        raise TypeError(f"{name}: a {dtype} array is not written block by block")
+    cls, mi = _MAT_TYPES[dtype]
+    nbytes = f * n * dtype.itemsize
+    head = (_mat_element(6, np.array([cls, 0], "<u4").tobytes())  # array flags
+            + _mat_element(5, np.array([f, n], "<i4").tobytes())  # dimensions
+            + _mat_element(1, name.encode("ascii")))  # array name
+    body = np.array([mi, nbytes], "<u4").tobytes()  # the real part's tag; its data follows
+    matrix = head + body
+    size = len(matrix) + nbytes + (-nbytes % 8)
+    z = zlib.compressobj()
+    start = fh.tell()
+    fh.write(np.array([15, 0], "<u4").tobytes())  # miCOMPRESSED, length written below
+    out = z.compress(np.array([14, size], "<u4").tobytes() + matrix)  # miMATRIX
+    written = 0
+    for block in itertools.chain([first], blocks):  # column-major: each point's frames
+        if np.dtype(block.dtype).newbyteorder("=") != dtype:
+            raise TypeError(f"{name}: its blocks differ in type ({block.dtype}, {dtype})")
+        raw = np.ascontiguousarray(block.T, dtype=dtype.newbyteorder("<")).tobytes()
+        written += len(raw)
+        out += z.compress(raw)
+        fh.write(out)
+        out = b""
+    if written != nbytes:
+        raise ValueError(f"{name}: {written} bytes read, {nbytes} expected")
+    fh.write(out + z.compress(b"\0" * (-nbytes % 8)) + z.flush())
+    end = fh.tell()
+    fh.seek(start + 4)
+    fh.write(np.array([end - start - 8], "<u4").tobytes())
+    fh.seek(end)
+
+
+def write_mat(target: Path, data: dict[str, Any], fields: dict[str, MatField] | None = None
+              ) -> Path:
     """``data`` as one MATLAB file (:func:`scipy.io.savemat`, compressed, 1-D arrays as rows),
-    written atomically."""
+    written atomically; ``fields``: (F, N) arrays appended to it a block of columns at a
+    time (:class:`MatField`; what ``scipy.io.loadmat`` reads back is what ``savemat`` of the
+    whole arrays gives), so that a long result is never held whole."""
     try:
         from scipy.io import savemat
     except ImportError as exc:  # pragma: no cover - scipy comes with the test extra
         raise ImportError("MATLAB export needs scipy: pip install scipy") from exc
+    data = dict(data)
+    streamed = {}
+    for name, fld in (fields or {}).items():
+        if fld.shape[0] * fld.shape[1] == 0:  # nothing to stream: as savemat writes it
+            data[name] = fld.read(slice(0, fld.shape[1]))
+        else:
+            streamed[name] = fld
     with written_atomically(target) as tmp:
         savemat(tmp, data, do_compression=True, oned_as="row")
+        if streamed:
+            with open(tmp, "r+b") as fh:
+                fh.seek(0, os.SEEK_END)
+                for name, fld in streamed.items():
+                    _append_mat_array(fh, name, fld)
     return target
 
 

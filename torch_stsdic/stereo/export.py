@@ -25,11 +25,13 @@ from typing import Any
 import numpy as np
 
 from torch_stsdic.analysis.export import (
+    MatField,
     csv_target,
     export_as,
     frame_rows,
     grid_cells,
     keeping_written,
+    stored_columns,
     write_csv,
     write_mat,
     write_pvd,
@@ -202,6 +204,13 @@ def export_stereo_vtk(path_h5: str | os.PathLike[str], out_dir: str | os.PathLik
 # ----------------------------------------------------------------------------------------
 
 
+def _nan_columns(n_rows: int):
+    """The reader of a field the file does not hold: NaN, ``n_rows`` rows."""
+    def read(cols: slice) -> np.ndarray:
+        return np.full((n_rows, cols.stop - cols.start), np.nan)
+    return read
+
+
 def export_stereo_mat(path_h5: str | os.PathLike[str], out_dir: str | os.PathLike[str],
                       frames: Frames = None) -> list[Path]:
     """One MATLAB file ``<stem>.mat``: every field as a (frames, points) array as stored (X,
@@ -217,11 +226,10 @@ def export_stereo_mat(path_h5: str | os.PathLike[str], out_dir: str | os.PathLik
         rows = sorted(set(_all_rows(f, frames, p)))
         pts = f["points"][()]
         n = len(pts)
-        data: dict[str, Any] = {
-            nm: (f[nm][rows] if nm in f else np.full((len(rows), n), np.nan)) if rows
-            else np.zeros((0, n)) for nm in names
-        }
-        data.update(
+        # the (frames, points) fields a block of points at a time (NaN where not stored)
+        fields = {nm: MatField((len(rows), n), stored_columns(f[nm], rows, np.asarray)
+                               if nm in f else _nan_columns(len(rows))) for nm in names}
+        data: dict[str, Any] = dict(
             x=pts[:, 0], y=pts[:, 1], X0=f["X0"][()], X0_std=f["X0_std"][()],
             right_points=f["right_points"][()],
             frames=f["frames"][()][rows].astype(np.float64), times=f["times"][()][rows],
@@ -233,7 +241,7 @@ def export_stereo_mat(path_h5: str | os.PathLike[str], out_dir: str | os.PathLik
             calibration=str(f.attrs.get("calibration", "{}")),
             coordinate_frame=str(f.attrs.get("frame", "left camera")), source=str(p),
         )  # fmt: skip
-    return [write_mat(out / f"{p.stem}.mat", data)]
+        return [write_mat(out / f"{p.stem}.mat", data, fields)]
 
 
 def export_stereo(path_h5: str | os.PathLike[str], out: str | os.PathLike[str],
