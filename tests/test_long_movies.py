@@ -205,3 +205,22 @@ def test_shared_pass_in_chunks_equals_the_whole_series(frames, monkeypatch):
                                       err_msg=name)
     assert chunked.steps == whole.steps
     assert np.isfinite(chunked.se[1:]).all() and (chunked.se[1:] > 0).all()
+
+
+def test_stored_result_rows_read_alone_equal_the_whole_results(frames, tmp_path):
+    """A file-backed result's rows (any order, a subset of points) read from the file alone
+    are those of the whole result's ``select``, and no whole field is read."""
+    from torch_stsdic.analysis.result import TrackResult
+
+    res = track(frames, out=tmp_path / "r.h5", **KW)
+    ks = [int(res.frames[i]) for i in (5, 2, 3)]
+    pts = torch.tensor([0, 3, 4])
+    for fields in (res._fields, res.std, res.gradients):  # as a result opened afresh
+        fields._held.clear()
+    part = res.select(ks, pts)
+    assert not (res._fields._held or res.std._held or res.gradients._held)  # none read whole
+    want = TrackResult.select(res, ks, pts)  # through the whole fields
+    assert part.frames.tolist() == ks and part.u.shape == (3, 3)
+    for name in ("u", "v", "ut", "vt", "zncc", "status", "iterations", "m", "ux", "u_std"):
+        a, b = part.field(name), want.field(name)
+        assert a.dtype == b.dtype and torch.equal(a.nan_to_num(-9), b.nan_to_num(-9)), name

@@ -63,6 +63,40 @@ class StoredTrackResult(TrackResult):
 
 
 
+    def select(self, frames: list[int] | None = None, points: torch.Tensor | None = None
+               ) -> TrackResult:
+        """The rows of series ``frames`` (in that order; None: all) at ``points`` (POI
+        indices; None: all), as an in-memory :class:`TrackResult` of their own: only those
+        rows are read from the file (a long movie's result a few frames at a time), the
+        numbers those of :meth:`TrackResult.select` of the whole result."""
+        rows = (list(range(int(self.frames.numel()))) if frames is None
+                else [self.row_of(k) for k in frames])
+
+        def get(name: str) -> Any:
+            held = self.__dict__
+            if name in held:  # set on the result: its rows
+                return None if held[name] is None else held[name][rows]
+            lazy = held.get("_fields")
+            return lazy.read_rows(name, rows) if lazy is not None and name in lazy else None
+
+        at = torch.as_tensor(rows, dtype=torch.long)
+        part = TrackResult(
+            points=self.points, frames=self.frames[at], times=self.times[at], u=get("u"),
+            v=get("v"), ut=get("ut"), vt=get("vt"), zncc=get("zncc"), status=get("status"),
+            iterations=get("iterations"), m=get("m"),
+            gradients=_rows_of(self.gradients, rows), std=_rows_of(self.std, rows),
+            reference_frames=self.reference_frames[at], config=self.config,
+            info=dict(self.info))
+        return part if points is None else part.select(None, points)
+
+
+def _rows_of(fields: Mapping[str, Any], rows: list[int]) -> dict[str, Any]:
+    """Rows ``rows`` of every field of ``fields`` (file-backed: only those rows read)."""
+    if isinstance(fields, FileFields):
+        return {k: fields.read_rows(k, rows) for k in fields}
+    return {k: a[rows] for k, a in fields.items()}
+
+
 def _lazy(name: str) -> property:
     """The attribute ``name`` of a :class:`StoredTrackResult`: a value set on it (e.g. by
     ``dataclasses.replace``), else its field read from the file (None where the file has

@@ -87,7 +87,7 @@ def _series(items: list[str]):
 
 def execute(args: argparse.Namespace) -> int:
     from torch_stsdic.stereo.calibration import load_calibration
-    from torch_stsdic.stereo.run import track_stereo, work_files
+    from torch_stsdic.stereo.run import work_files, write_stereo
 
     if os.path.exists(args.out) and not args.overwrite:
         raise ValueError(f"--out: {args.out} exists (use --overwrite to replace it)"
@@ -103,27 +103,26 @@ def execute(args: argparse.Namespace) -> int:
     ref = int(args.reference) if args.reference.lstrip("-").isdigit() else args.reference
     t0 = time.perf_counter()
     try:
-        res = _track(args, rig, ref, track_stereo)
+        info = _track(args, rig, ref, write_stereo)
     except KeyboardInterrupt as exc:  # say what the cameras' files keep
         stop = exc if isinstance(exc, Interrupted) else Interrupted()
         raise stop.with_detail(_kept(args.out, work_files)) from None
-    if args.coordinates == "plane":
-        res = res.in_plane_frame()
-    res.to_hdf5(args.out, overwrite=args.overwrite)
     for f in work_files(args.out):  # the cameras' files: the result now holds what they did
         f.unlink(missing_ok=True)
-    ok = res.ok
-    print(f"stereo: {res.points.shape[0]} points x {res.frames.numel()} frames, "
-          f"{int(res.info['cross_ok'])} matched left -> right, {float(ok.float().mean()):.1%} "
-          f"usable, reference reprojection {res.info['reference_reprojection_px']:.3f} px "
+    print(f"stereo: {info['points']} points x {info['frames']} frames, "
+          f"{int(info['cross_ok'])} matched left -> right, {info['usable']:.1%} "
+          f"usable, reference reprojection {info['reference_reprojection_px']:.3f} px "
           f"(median), {time.perf_counter() - t0:.1f} s -> {args.out}", file=sys.stderr)
     return 0
 
 
-def _track(args: argparse.Namespace, rig, ref, track_stereo):
-    """The stereo run of the command's options (its cameras' files beside ``--out``)."""
-    return track_stereo(_series(args.left), _series(args.right), rig, roi=args.roi,
-                        step=args.step, config=DICConfig(subset_size=args.subset, m=args.m),
+def _track(args: argparse.Namespace, rig, ref, write_stereo):
+    """The stereo run of the command's options into ``--out`` (its cameras' files beside it;
+    the 3-D stage a few frames at a time: :func:`~torch_stsdic.stereo.run.write_stereo`)."""
+    return write_stereo(args.out, _series(args.left), _series(args.right), rig,
+                        coordinates=args.coordinates, overwrite=args.overwrite,
+                        roi=args.roi, step=args.step,
+                        config=DICConfig(subset_size=args.subset, m=args.m),
                         reference=ref, device=args.device, progress=not args.no_progress,
                         cross_shape=args.cross_shape, max_reprojection=args.max_reprojection,
                         refine_reference=args.refine_reference, work=args.out,

@@ -35,6 +35,30 @@ class FileFields(Mapping[str, Any]):
             self._held[name] = a if self._convert is None else self._convert(name, a)
         return self._held[name]
 
+    def read_rows(self, name: str, rows: Sequence[int]) -> Any:
+        """Rows ``rows`` (in that order) of field ``name``, as ``convert`` gives them: read
+        from the file without keeping the field (the held field's rows where it was read)."""
+        if name not in self.names:
+            raise KeyError(name)
+        rows = [int(r) for r in rows]
+        if name in self._held:
+            return self._held[name][rows]
+        uniq = sorted(set(rows))
+        with h5py.File(self.path, "r", locking=False) as f:
+            ds = f[self.names[name]]
+            if uniq and uniq == list(range(uniq[0], uniq[-1] + 1)):
+                a = ds[uniq[0]:uniq[-1] + 1]
+            else:
+                a = ds[uniq] if uniq else ds[0:0]
+        if uniq != rows:
+            at = {r: i for i, r in enumerate(uniq)}
+            a = a[[at[r] for r in rows]]
+        return a if self._convert is None else self._convert(name, a)
+
+    def __contains__(self, name: object) -> bool:
+        # by name, reading nothing (Mapping's own test would read the field)
+        return name in self.names
+
     def __iter__(self) -> Iterator[str]:
         return iter(self.names)
 

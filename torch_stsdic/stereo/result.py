@@ -15,8 +15,8 @@ from torch import Tensor
 
 from torch_stsdic.io.results import STEREO_FORMAT
 
-__all__ = ["StereoResult", "best_fit_plane", "FIELDS", "STEREO_FORMAT", "is_stereo_file",
-           "open_stereo", "CAMERA_FRAME", "PLANE_FRAME"]
+__all__ = ["StereoResult", "StereoFile", "best_fit_plane", "FIELDS", "STEREO_FORMAT",
+           "is_stereo_file", "open_stereo", "CAMERA_FRAME", "PLANE_FRAME"]
 
 #: the version of the stereo file format (its ``format`` attribute, STEREO_FORMAT, is named
 #: in :mod:`torch_stsdic.io.results`; files written before it existed are recognised by
@@ -138,17 +138,18 @@ class StereoResult:
         return surface_strain(self.points, self.X0, u, float(size), k=k, U_std=sd,
                               U_cov=self.U_cov)
 
-    def in_plane_frame(self) -> StereoResult:
+    def in_plane_frame(self, plane: tuple[Tensor, Tensor] | None = None) -> StereoResult:
         """The same result with X, Y, Z, U, V, W, their velocities, X0 and the stds in the
-        best-fit plane's frame (:meth:`plane`): positions ``(p - origin) @ R.T``, vectors
-        ``d @ R.T``. The displacement's covariance turns exactly (``R C R^T``), and the stds
+        best-fit plane's frame (:meth:`plane`; ``plane``: its (origin, rotation) given, e.g.
+        the whole result's for a part of its frames): positions ``(p - origin) @ R.T``,
+        vectors ``d @ R.T``. The displacement's covariance turns exactly (``R C R^T``), and the stds
         of X, Y, Z, U, V, W are its diagonal's square roots; the other stds (velocity, X0,
         and all of them where no covariance is known) are rotated as independent components
         (each axis's variance ``R**2 @ var``), which leaves out their correlation."""
         if self.frame != CAMERA_FRAME:
             raise ValueError(f"in_plane_frame: the result is already in the {self.frame!r} "
                              "frame")
-        origin, rot = self.plane()
+        origin, rot = self.plane() if plane is None else plane
         rot_t = rot.T.to(self.X.dtype)
 
         def vec(a: Tensor, b: Tensor, c: Tensor, shift: bool = False) -> tuple[Tensor, ...]:
@@ -195,60 +196,13 @@ class StereoResult:
         """Write ``points`` (N, 2), ``right_points``, ``frames``, ``times``, X, Y, Z, U, V, W,
         Ut, Vt, Wt, their ``*_std``, ``reprojection_error``, ``status`` (F, N), ``X0``
         (N, 3) with ``units`` attributes, and the calibration summary (JSON attribute); root
-        attributes ``format`` (:data:`STEREO_FORMAT`), ``version``, ``software_version``."""
-        import h5py
-
-        from torch_stsdic.io.run_record import software_version
-
-        with h5py.File(path, "w" if overwrite else "w-") as f:
-            f.attrs["format"] = STEREO_FORMAT
-            f.attrs["version"] = STEREO_FORMAT_VERSION
-            f.attrs["software_version"] = software_version()
-            f.attrs["kind"] = _KIND
-            f.attrs["frame"] = self.frame
-            f.attrs["calibration"] = json.dumps(self.calibration, default=str)
-            f.attrs["info"] = json.dumps(self.info, default=str)
-            d = f.create_dataset("points", data=self.points.cpu().numpy())
-            d.attrs["units"] = "px"
-            d = f.create_dataset("right_points", data=self.right_points.cpu().numpy())
-            d.attrs["units"] = "px"
-            f.create_dataset("frames", data=self.frames.cpu().numpy())
-            f.create_dataset("times", data=self.times.cpu().numpy())
-            for name, unit in FIELDS.items():
-                d = f.create_dataset(name, data=getattr(self, name).cpu().numpy())
-                d.attrs["units"] = unit
-                if name in self.std:
-                    d = f.create_dataset(f"{name}_std", data=self.std[name].cpu().numpy())
-                    d.attrs["units"] = unit
-            for name, a in self.strain.items():
-                d = f.create_dataset(name, data=a.cpu().numpy())
-                d.attrs["units"] = "1"
-                d.attrs["what"] = ("predicted std (first order) of " if name.endswith("_std")
-                                   else "") + ("Green-Lagrange surface strain in the "
-                                               "reference tangent plane (b1: the frame's X "
-                                               "axis projected onto it); exy: tensor shear")
-            if self.U_cov is not None:
-                i, j = _COV_PAIRS
-                d = f.create_dataset("U_cov", data=self.U_cov[..., i, j].cpu().numpy())
-                d.attrs["units"] = "mm^2"
-                d.attrs["what"] = ("the displacement's predicted covariance, (F, N, 6): "
-                                   "UU, VV, WW, UV, UW, VW")
-            d = f.create_dataset("X0", data=self.X0.cpu().numpy())
-            d.attrs["units"] = "mm"
-            d = f.create_dataset("X0_std", data=self.X0_std.cpu().numpy())
-            d.attrs["units"] = "mm"
-            if "plane_origin_mm" in self.info:
-                d = f.create_dataset("plane_origin", data=np.asarray(
-                    self.info["plane_origin_mm"], dtype=np.float64))
-                d.attrs["units"] = "mm"
-                d.attrs["what"] = "the best-fit plane's origin in the left camera frame"
-                d = f.create_dataset("plane_rotation", data=np.asarray(
-                    self.info["plane_rotation"], dtype=np.float64))
-                d.attrs["what"] = ("rows: the plane frame's axes in the left camera frame; "
-                                   "camera -> plane: (p - plane_origin) @ plane_rotation.T")
-            d = f.create_dataset("status", data=self.status.cpu().numpy().astype(np.int8))
-            d.attrs["codes"] = "0 converged, 1 max_iter, 2 diverged, 3 outside, 4 low texture, " \
-                "5 not computed, 6 poor fit, 7 inconsistent"
+        attributes ``format`` (:data:`STEREO_FORMAT`), ``version``, ``software_version``
+        (:class:`StereoFile`, which also writes a long run a few frames at a time)."""
+        out = StereoFile(path, self, overwrite=overwrite)
+        try:
+            out.write_rows(self, 0)
+        finally:
+            out.close()
 
     @classmethod
     def from_hdf5(cls, path: str | os.PathLike[str]) -> StereoResult:
@@ -274,6 +228,104 @@ class StereoResult:
                 u_cov[..., j, i] = packed
         return cls(**t, std=std, status=status, calibration=cal, info=info, frame=frame,
                    strain=strain, U_cov=u_cov)
+
+
+class StereoFile:
+    """A stereo result file (the layout of :meth:`StereoResult.to_hdf5`) written a few frames
+    at a time: made from ``first`` (a result of some of the run's frames, or all of them:
+    its per-point arrays, calibration, frame and fields), for ``frames`` and ``times`` (the
+    run's, default ``first``'s); :meth:`write_rows` writes a part's (F, N) rows from row
+    ``row0``, :meth:`close` the run's ``info`` (default ``first``'s)."""
+
+    def __init__(self, path: str | os.PathLike[str], first: StereoResult, *,
+                 frames: Tensor | None = None, times: Tensor | None = None,
+                 overwrite: bool = False) -> None:
+        import h5py
+
+        from torch_stsdic.io.run_record import software_version
+
+        frames = first.frames if frames is None else frames
+        times = first.times if times is None else times
+        n_f = int(frames.numel())
+        self.info = first.info
+        self.f = f = h5py.File(path, "w" if overwrite else "w-")
+        try:
+            f.attrs["format"] = STEREO_FORMAT
+            f.attrs["version"] = STEREO_FORMAT_VERSION
+            f.attrs["software_version"] = software_version()
+            f.attrs["kind"] = _KIND
+            f.attrs["frame"] = first.frame
+            f.attrs["calibration"] = json.dumps(first.calibration, default=str)
+            d = f.create_dataset("points", data=first.points.cpu().numpy())
+            d.attrs["units"] = "px"
+            d = f.create_dataset("right_points", data=first.right_points.cpu().numpy())
+            d.attrs["units"] = "px"
+            f.create_dataset("frames", data=frames.cpu().numpy())
+            f.create_dataset("times", data=times.cpu().numpy())
+
+            def rows(name: str, a: Tensor, unit: str, **attrs: str) -> None:
+                d = f.create_dataset(name, shape=(n_f, *a.shape[1:]), dtype=np.dtype(
+                    a.cpu().numpy().dtype))
+                d.attrs["units"] = unit
+                for k, v in attrs.items():
+                    d.attrs[k] = v
+
+            for name, (a, unit, attrs) in self._fields(first).items():
+                rows(name, a, unit, **attrs)
+            d = f.create_dataset("X0", data=first.X0.cpu().numpy())
+            d.attrs["units"] = "mm"
+            d = f.create_dataset("X0_std", data=first.X0_std.cpu().numpy())
+            d.attrs["units"] = "mm"
+            if "plane_origin_mm" in first.info:
+                d = f.create_dataset("plane_origin", data=np.asarray(
+                    first.info["plane_origin_mm"], dtype=np.float64))
+                d.attrs["units"] = "mm"
+                d.attrs["what"] = "the best-fit plane's origin in the left camera frame"
+                d = f.create_dataset("plane_rotation", data=np.asarray(
+                    first.info["plane_rotation"], dtype=np.float64))
+                d.attrs["what"] = ("rows: the plane frame's axes in the left camera frame; "
+                                   "camera -> plane: (p - plane_origin) @ plane_rotation.T")
+        except BaseException:
+            f.close()
+            raise
+
+    @staticmethod
+    def _fields(res: StereoResult) -> dict[str, tuple[Tensor, str, dict[str, str]]]:
+        """The (F, ...) datasets of ``res``: name -> (values, unit, other attributes)."""
+        out: dict[str, tuple[Tensor, str, dict[str, str]]] = {}
+        for name, unit in FIELDS.items():
+            out[name] = (getattr(res, name), unit, {})
+            if name in res.std:
+                out[f"{name}_std"] = (res.std[name], unit, {})
+        for name, a in res.strain.items():
+            out[name] = (a, "1", {"what": ("predicted std (first order) of " if
+                                           name.endswith("_std") else "")
+                                  + ("Green-Lagrange surface strain in the reference tangent "
+                                     "plane (b1: the frame's X axis projected onto it); exy: "
+                                     "tensor shear")})
+        if res.U_cov is not None:
+            i, j = _COV_PAIRS
+            out["U_cov"] = (res.U_cov[..., i, j], "mm^2", {
+                "what": "the displacement's predicted covariance, (F, N, 6): UU, VV, WW, UV, "
+                        "UW, VW"})
+        out["status"] = (res.status.to(torch.int8), "", {
+            "codes": "0 converged, 1 max_iter, 2 diverged, 3 outside, 4 low texture, "
+                     "5 not computed, 6 poor fit, 7 inconsistent"})
+        return out
+
+    def write_rows(self, part: StereoResult, row0: int) -> None:
+        """The (F, N) rows of ``part`` (a result of frames ``row0 ..`` of the run)."""
+        fields = self._fields(part)
+        for name in self.f:
+            if name in fields:
+                a = fields[name][0].cpu().numpy()
+                self.f[name][row0:row0 + a.shape[0]] = a
+
+    def close(self, info: dict[str, Any] | None = None) -> None:
+        """Write the run's ``info`` (default the first part's) and close the file."""
+        if self.f.id.valid:
+            self.f.attrs["info"] = json.dumps(self.info if info is None else info, default=str)
+            self.f.close()
 
 
 def is_stereo_file(f: Any) -> bool:

@@ -30,10 +30,10 @@ from torch_stsdic.movie.series import track
 
 from .calibration import StereoCalibration, load_calibration
 from .matching import calibration_mismatch, match_stereo
-from .result import StereoResult
+from .result import StereoFile, StereoResult, best_fit_plane
 from .triangulation import propagate_cov, propagate_std, triangulate
 
-__all__ = ["track_stereo", "work_files"]
+__all__ = ["track_stereo", "write_stereo", "work_files"]
 
 DTYPE = torch.float64
 
@@ -95,6 +95,97 @@ def track_stereo(left: Any, right: Any, calibration: StereoCalibration | str, *,
         ValueError (one line) for a calibration that does not fit the images, series of
         different lengths, and the input errors of :func:`torch_stsdic.track`.
     """
+    run = _stereo_tracks(left, right, calibration, points=points, roi=roi, mask=mask,
+                         step=step, config=config, reference=reference, frames=frames,
+                         times=times, device=device, progress=progress,
+                         cross_shape=cross_shape, depth_range=depth_range, work=work,
+                         resume=resume, **track_kwargs)
+    res = _result(run, run["lres"], run["rres"], max_reprojection)
+    res.info["total_s"] = _time.perf_counter() - run["t_start"]
+    res.strain = res.surface_strain()
+    return res
+
+
+#: (frame, point) entries of the 3-D stage a file-writing stereo run takes at a time
+#: (:func:`write_stereo`: triangulation, covariances, surface strain, ~1 kB an entry)
+STEREO_ROWS = 1 << 15
+
+
+def write_stereo(path: str | os.PathLike[str], left: Any, right: Any,
+                 calibration: StereoCalibration | str, *, coordinates: str = "camera",
+                 overwrite: bool = False, max_reprojection: float = 1.0,
+                 **kwargs: Any) -> dict[str, Any]:
+    """:func:`track_stereo` into the stereo result file ``path``, its 3-D stage a few
+    frames at a time (:data:`STEREO_ROWS` entries: the two cameras' tracks read from their
+    ``work`` files by rows), so that a long movie's run never holds its (F, N) fields whole:
+    the file :meth:`StereoResult.to_hdf5` writes of :func:`track_stereo`'s result (with
+    ``coordinates`` "plane": of its :meth:`~StereoResult.in_plane_frame`, the plane fitted
+    to the points usable in any frame, found by a first pass over the frames).
+
+    Returns:
+        the run's ``info`` and ``usable``: the share of usable (frame, point) results.
+    """
+    if coordinates not in ("camera", "plane"):
+        raise ValueError(f"coordinates: 'camera' or 'plane', got {coordinates!r}")
+    run = _stereo_tracks(left, right, calibration, **kwargs)
+    lres, rres = run["lres"], run["rres"]
+    frames = lres.frames.cpu()
+    n_f, n = int(frames.numel()), int(run["pts"].shape[0])
+    step = max(1, STEREO_ROWS // max(n, 1))
+    chunks = [frames[i:i + step].tolist() for i in range(0, n_f, step)] or [[]]
+
+    def part(ks: list[int]) -> StereoResult:
+        return _result(run, lres.select(ks), rres.select(ks), max_reprojection)
+
+    plane = None
+    if coordinates == "plane":  # the plane of the points usable in any frame
+        usable = torch.zeros(n, dtype=torch.bool)
+        for ks in chunks:
+            usable |= part(ks).ok.any(0)
+        x0 = part(chunks[0][:1]).X0.double()
+        ok0 = torch.isfinite(x0).all(1) & usable
+        if int(ok0.sum()) < 3:
+            raise ValueError(f"best-fit plane: {int(ok0.sum())} usable reference points, 3 "
+                             "or more needed")
+        plane = best_fit_plane(x0, ok0)
+    out = None
+    ok = 0
+    tmp = Path(str(path) + ".partial")  # renamed when complete: no half-written result
+    try:
+        for i, ks in enumerate(chunks):
+            res = part(ks)
+            if plane is not None:
+                res = res.in_plane_frame(plane)
+            res.strain = res.surface_strain()
+            info = res.info
+            if out is None:
+                if not overwrite and Path(path).exists():
+                    raise ValueError(f"{path} exists (overwrite=True replaces it)")
+                out = StereoFile(tmp, res, frames=frames, times=lres.times.cpu(),
+                                 overwrite=True)
+            out.write_rows(res, i * step)
+            ok += int(res.ok.sum())
+    except BaseException:
+        if out is not None:
+            out.close()
+        tmp.unlink(missing_ok=True)
+        raise
+    info["total_s"] = _time.perf_counter() - run["t_start"]
+    out.close(info)
+    os.replace(tmp, path)
+    return {**info, "usable": ok / max(n_f * n, 1), "frames": n_f}
+
+
+def _stereo_tracks(left: Any, right: Any, calibration: StereoCalibration | str, *,
+                   points: Any = None, roi=None, mask=None, step: int = 10,
+                   config: DICConfig | None = None, reference: Any = 0, frames: Any = None,
+                   times: Any = None, device: str | torch.device = "cpu",
+                   progress: bool = False, cross_shape: str = "affine", depth_range=None,
+                   work: str | os.PathLike[str] | None = None, resume: bool = False,
+                   **track_kwargs: Any) -> dict[str, Any]:
+    """Steps 1 and 2 of :func:`track_stereo` (module docstring): the cross-camera match and
+    the two cameras' tracks, with what the 3-D stage needs (``rig``, ``pts``, ``cross``,
+    ``okc``, ``lres``, ``rres``, ``cfg``, ``info``, ``t_start``)."""
     t_start = _time.perf_counter()
     rig = calibration if isinstance(calibration, StereoCalibration) else \
         load_calibration(calibration)
@@ -144,24 +235,29 @@ def track_stereo(left: Any, right: Any, calibration: StereoCalibration | str, *,
     lres = camera(ls, ref_l, pts, files[0])
     rres = camera(rs, ref_r, cross.right[okc], files[1])
     t_track = _time.perf_counter() - t0
+    info = {"cross_s": t_cross, "track_s": t_track, "m": cfg.m,
+            "subset_size": cfg.subset_size, "cross_ok": int(okc.sum()), "points": n,
+            "cross_repaired": int(cross.repaired.sum())}
+    return {"rig": rig, "pts": pts, "cross": cross, "okc": okc, "lres": lres, "rres": rres,
+            "cfg": cfg, "info": info, "t_start": t_start}
+
+
+def _result(run: dict[str, Any], lres, rres, max_reprojection: float) -> StereoResult:
+    """The stereo result of the rows of the left and right tracks ``lres``, ``rres`` (the
+    run's, or some of their frames: every quantity of a frame is the frame's own)."""
+    rig, pts, cross, okc, cfg = (run[k] for k in ("rig", "pts", "cross", "okc", "cfg"))
     d = _three_d(rig, pts, cross, okc, lres, rres, cfg, max_reprojection)
     X, U, vel, std, X0, x0_std = d["X"], d["U"], d["vel"], d["std"], d["X0"], d["x0_std"]
     tri, tri0, right0, status = d["tri"], d["tri0"], d["right0"], d["status"]
-    u_cov = d["U_cov"]
-    info = {"cross_s": t_cross, "track_s": t_track,
-            "total_s": _time.perf_counter() - t_start, "m": cfg.m,
-            "subset_size": cfg.subset_size, "cross_ok": int(okc.sum()), "points": n,
-            "cross_repaired": int(cross.repaired.sum()),
+    info = {**run["info"],
             "reference_reprojection_px": float(tri0.reprojection_error[okc].median()),
             "max_reprojection": max_reprojection}
-    res = StereoResult(
+    return StereoResult(
         points=pts, right_points=right0, frames=lres.frames.cpu(), times=lres.times.cpu(),
         X=X[..., 0], Y=X[..., 1], Z=X[..., 2], U=U[..., 0], V=U[..., 1], W=U[..., 2],
         Ut=vel[..., 0], Vt=vel[..., 1], Wt=vel[..., 2], X0=X0, X0_std=x0_std, std=std,
         reprojection_error=tri.reprojection_error, status=status, left=lres, right=rres,
-        cross=cross, calibration=rig.summary(), info=info, U_cov=u_cov)
-    res.strain = res.surface_strain()
-    return res
+        cross=cross, calibration=rig.summary(), info=info, U_cov=d["U_cov"])
 
 
 def _three_d(rig: StereoCalibration, pts: torch.Tensor, cross, okc: torch.Tensor, lres, rres,
