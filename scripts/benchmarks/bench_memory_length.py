@@ -52,9 +52,8 @@ def write_movie(movie: Path, size: int, frames: int, ut: float, noise: float = 5
     2 px: the defaults of ``stsdic synth``). A strip of speckle as wide as the motion is
     rendered once by :mod:`torch_stsdic.synth`; every frame is its window at the frame's
     whole-pixel offset moved by the fraction of a pixel with a Fourier shift (exact for the
-    band-limited speckle). ``stsdic synth`` itself renders and holds the whole movie (about
-    23 GB at 2,000 frames of 512 x 512, 4 GB at 1,200 of 256 x 256) and takes ~0.25 s a
-    frame here: too much for 10,000 frames."""
+    band-limited speckle). ``stsdic synth`` writes a frame at a time too, but renders each
+    one analytically (~0.25 s a frame here): too slow for 10,000 frames."""
     import numpy as np
     import tifffile
 
