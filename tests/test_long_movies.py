@@ -224,3 +224,19 @@ def test_stored_result_rows_read_alone_equal_the_whole_results(frames, tmp_path)
     for name in ("u", "v", "ut", "vt", "zncc", "status", "iterations", "m", "ux", "u_std"):
         a, b = part.field(name), want.field(name)
         assert a.dtype == b.dtype and torch.equal(a.nan_to_num(-9), b.nan_to_num(-9)), name
+
+
+def test_window_share_counted_in_rows_equals_the_whole_array():
+    """The run's summary of its windows' half-widths, counted a few rows at a time (a long
+    movie's (T, N) array not copied whole), is that of the whole array."""
+    from torch_stsdic.movie.estimates import _window_share
+
+    g = torch.Generator().manual_seed(1)
+    for shape in [(2000, 211), (7, 3), (1, 1)]:
+        wm = torch.randint(0, 7, shape, generator=g).to(torch.int8)
+        wm[wm == 3] = 5
+        whole = wm.long()
+        want = {"max_m": int(whole.max()),
+                "chosen_m": {int(m): round(float((whole == m).double().mean()), 4)
+                             for m in torch.unique(whole).tolist()}}
+        assert _window_share(wm) == want

@@ -128,14 +128,26 @@ class RunEstimates:
             info["time_model"] = {"classical_points": int((~self.time_model).sum()),
                                   "points": int(self.time_model.numel())}
         if self.window_m is not None:
-            wm = self.window_m.long()
-            info["window_length"] = {"max_m": int(wm.max()) if wm.numel() else 0,
-                                     "chosen_m": {int(m): round(float((wm == m).double()
-                                                                      .mean()), 4)
-                                                  for m in torch.unique(wm).tolist()}}
+            info["window_length"] = _window_share(self.window_m)
         if self.source is not None:
             info["run_estimates"] = self.source
         return info
+
+
+def _window_share(window_m: torch.Tensor) -> dict[str, Any]:
+    """The longest half-width of ``window_m`` (T_series, N) and the share of each, counted a
+    few rows at a time (a long movie's (T_series, N) array is not copied whole)."""
+    n = window_m.numel()
+    if n == 0:
+        return {"max_m": 0, "chosen_m": {}}
+    lo, hi = int(window_m.min()), int(window_m.max())
+    counts = torch.zeros(hi - lo + 1, dtype=torch.int64)
+    step = max(1, (1 << 16) // max(window_m.shape[-1], 1))
+    for r0 in range(0, window_m.shape[0], step):
+        part = window_m[r0:r0 + step].flatten().to(torch.int64) - lo
+        counts += torch.bincount(part, minlength=hi - lo + 1)
+    return {"max_m": hi, "chosen_m": {lo + i: round(int(c) / n, 4)
+                                      for i, c in enumerate(counts.tolist()) if c}}
 
 
 def reference_pixels(plan: RunPlan) -> torch.Tensor:
