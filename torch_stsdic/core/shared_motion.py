@@ -44,7 +44,7 @@ from torch import Tensor
 
 __all__ = ["SharedMotion", "SHARED_MOTION_KINDS", "PARAM_NAMES", "PARAM_UNITS",
            "fit_frame_motion", "window_offsets", "known_window_motion", "overlap_factor",
-           "sample_points",
+           "sample_points", "frame_chunks",
            "detect_steps", "DEFAULT_MAX_POINTS", "SIGNIFICANT", "STEP_Z", "STEP_RATIO", "SE_FLOOR"]
 
 #: kinds of shared motion: a translation per frame (2 numbers), an affine motion (6), or a
@@ -306,7 +306,7 @@ def fit_frame_motion(points: Tensor, disp: Tensor, valid: Tensor, kind: str = "a
 FIT_CHUNK = 1 << 16
 
 
-def _frame_chunks(f: int, n: int) -> list[slice]:
+def frame_chunks(f: int, n: int) -> list[slice]:
     """Consecutive frames, about ``FIT_CHUNK`` entries of ``n`` points each."""
     step = max(1, FIT_CHUNK // max(n, 1))
     return [slice(i, min(i + step, f)) for i in range(0, f, step)]
@@ -343,7 +343,7 @@ def _spread(x: Tensor, d: Tensor, ok: Tensor, coef: Tensor, w: Tensor, eye: Tens
     the scatter; chunks of :data:`WLS_FRAMES`)."""
     f = d.shape[0]
     s = torch.empty(f, dtype=torch.float64, device=d.device)
-    for sl in _frame_chunks(f, d.shape[1]):
+    for sl in frame_chunks(f, d.shape[1]):
         okc = ok[sl]
         d0 = torch.where(okc.unsqueeze(-1), d[sl], torch.zeros_like(d[sl]))
         r = (d0 - x @ coef[sl]).norm(dim=-1)
@@ -383,7 +383,7 @@ def _frame_fit(x: Tensor, d: Tensor, ok: Tensor, eye: Tensor) -> tuple[Tensor, T
     coef = _wls(x, d0, w, eye)
     for _ in range(_IRLS_STEPS):
         w = torch.empty(ok.shape, dtype=d0.dtype, device=d0.device)
-        for sl in _frame_chunks(*ok.shape):  # the weights frame chunk by frame chunk
+        for sl in frame_chunks(*ok.shape):  # the weights frame chunk by frame chunk
             okc = ok[sl]
             r = (d0[sl] - x @ coef[sl]).norm(dim=-1)
             s = torch.nanmedian(torch.where(okc, r, torch.nan), dim=1).values / 1.1774
@@ -464,7 +464,7 @@ def _consistent_fit(x: Tensor, d: Tensor, ok: Tensor, eye: Tensor
     coef, _ = _frame_fit(x, d, use, eye)  # a robust start, frame by frame
     w = keep.double().expand(d.shape[0], -1)
     f, n = use.shape
-    fr, pt = _frame_chunks(f, n), _point_chunks(f, n)
+    fr, pt = frame_chunks(f, n), _point_chunks(f, n)
     for _ in range(3):
         r = torch.empty_like(d)
         for sl in fr:
@@ -561,7 +561,7 @@ def detect_steps(residual: Tensor, valid: Tensor, sigma: Tensor, frames: Sequenc
         return []
     fr = torch.as_tensor(list(frames))
     s = torch.empty(f - 1, dtype=residual.dtype, device=residual.device)
-    for sl in _frame_chunks(f - 1, residual.shape[1]):  # bounded memory, the same numbers
+    for sl in frame_chunks(f - 1, residual.shape[1]):  # bounded memory, the same numbers
         a, b = sl.start, sl.stop
         both = valid[a + 1:b + 1] & valid[a:b]
         inc = (residual[a + 1:b + 1] - residual[a:b]).norm(dim=-1)

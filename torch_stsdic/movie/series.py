@@ -44,7 +44,6 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from torch_stsdic.allocator import release_freed_memory
 from torch_stsdic.analysis.result import TrackResult
 from torch_stsdic.analysis.smoothing import smooth_in_time
 from torch_stsdic.core.config import DICConfig
@@ -52,6 +51,7 @@ from torch_stsdic.core.gauss_newton import ReferenceCache
 from torch_stsdic.core.solver import SubsetSolver
 from torch_stsdic.core.status import Status
 from torch_stsdic.io.results import as_stored
+from torch_stsdic.kernels.allocator import release_freed_memory
 from torch_stsdic.movie.block import BlockContext, solve_block
 from torch_stsdic.movie.carry import Carry, make_carry, rows_numpy
 from torch_stsdic.movie.estimates import (
@@ -162,31 +162,7 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
     # the passes before the blocks freed what they held: its pages back to the system, so
     # that what a long movie's passes left fragmented does not stay resident under the blocks
     release_freed_memory()
-    if est.shared is not None:
-        shared = est.shared
-        run.shared = shared if shared.applied else None
-        run.first_guess = shared.sample  # the first block starts from the pass's solutions
-        if shared.steps:
-            run.segments = segment_bounds(shared.steps, len(plan.series)).to(plan.device)
-    if first_guess is not None:
-        run.first_guess = first_guess
-        run.guess_every_block = bool(guess_every_block)
-    if est.series_reference is not None:
-        img = est.series_reference.image.to(device=plan.device, dtype=plan.dtype)
-        ref = Reference(frame=-1, raw=img, img=solver.prepare(img), points=ref.points)
-        if est.series_reference.added_var is not None:
-            run.reference_var = est.series_reference.added_var.to(device=plan.device)
-        if est.series_reference.shares is not None:
-            sref = est.series_reference
-            run.template_shares = TemplateShares.make(sref.frames, sref.shares,
-                                                      len(plan.series), plan.reference_frame,
-                                                      sref.registration)
-    if est.model_holds is not None:  # the time model failed at the other points
-        run.classical_points = ~est.model_holds.to(device=plan.device)
-    if est.window_m is not None:  # each point's window as long as its motion allows
-        run.window_lengths = est.window_m.to(device=plan.device)
-    if est.noise_ratio is not None:
-        run.noise_ratio = est.noise_ratio
+    ref = _apply_estimates(run, est, plan, ref, first_guess, guess_every_block)
     offsets = est.row_offsets
     bar = tqdm(total=plan.n_rows, unit="frame", file=sys.stderr, disable=not progress,
                desc="STS-DIC" if cfg.m else "DIC", dynamic_ncols=True)
@@ -219,6 +195,41 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
     bar.close()
     sink.close()
     return result
+
+
+def _apply_estimates(run: BlockContext, est: RunEstimates, plan: RunPlan, ref: Reference,
+                     first_guess: MeasuredSample | None, guess_every_block: bool) -> Reference:
+    """Set the run-level estimates ``est`` on the blocks' context ``run`` (shared motion,
+    load segments, first guesses, the template's variance and shares, the time model, the
+    window lengths, the noise ratio); returns the reference the blocks measure against (the
+    template made from the series, where there is one)."""
+    solver = run.solver
+    if est.shared is not None:
+        shared = est.shared
+        run.shared = shared if shared.applied else None
+        run.first_guess = shared.sample  # the first block starts from the pass's solutions
+        if shared.steps:
+            run.segments = segment_bounds(shared.steps, len(plan.series)).to(plan.device)
+    if first_guess is not None:
+        run.first_guess = first_guess
+        run.guess_every_block = bool(guess_every_block)
+    if est.series_reference is not None:
+        img = est.series_reference.image.to(device=plan.device, dtype=plan.dtype)
+        ref = Reference(frame=-1, raw=img, img=solver.prepare(img), points=ref.points)
+        if est.series_reference.added_var is not None:
+            run.reference_var = est.series_reference.added_var.to(device=plan.device)
+        if est.series_reference.shares is not None:
+            sref = est.series_reference
+            run.template_shares = TemplateShares.make(sref.frames, sref.shares,
+                                                      len(plan.series), plan.reference_frame,
+                                                      sref.registration)
+    if est.model_holds is not None:  # the time model failed at the other points
+        run.classical_points = ~est.model_holds.to(device=plan.device)
+    if est.window_m is not None:  # each point's window as long as its motion allows
+        run.window_lengths = est.window_m.to(device=plan.device)
+    if est.noise_ratio is not None:
+        run.noise_ratio = est.noise_ratio
+    return ref
 
 
 def _run_blocks(plan: RunPlan, sink: MemorySink, run: BlockContext, ref: Reference,

@@ -17,9 +17,9 @@ from torch_stsdic.core.shared_motion import (
     DEFAULT_MAX_POINTS,
     SIGNIFICANT,
     SharedMotion,
-    _frame_chunks,
     detect_steps,
     fit_frame_motion,
+    frame_chunks,
     overlap_factor,
     sample_points,
 )
@@ -178,7 +178,7 @@ def estimate_shared_motion(plan: RunPlan, kind: str = "auto",
     fidx = torch.as_tensor(frames)
     g = torch.empty_like(disp)
     sigma = torch.zeros(len(frames), dtype=torch.float64)
-    for sl in _frame_chunks(*valid.shape):
+    for sl in frame_chunks(*valid.shape):
         g[sl] = out.displacement(pts, fidx[sl]).double()
         if noise is not None:
             sigma[sl] = torch.nanmedian(torch.where(valid[sl], noise[sl].double(), torch.nan),
