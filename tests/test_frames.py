@@ -246,3 +246,26 @@ def test_a_dropped_frame_with_its_pyramid_is_freed_at_once():
     finally:
         if enabled:
             gc.enable()
+
+
+def test_a_block_holds_the_frames_of_every_shorter_window_inside_a_load_segment():
+    """Load steps at frames 10 and 22 leave a 12-frame segment: the longest window (m = 6)
+    does not fit it and is not shifted, a shorter one (m = 4) is, and reaches frames 13, 14
+    outside the longest's 15 .. 27. A block must hold them (it held the longest window's
+    frames only: its rows solved with m = 4 read the wrong frames, or crashed the native
+    kernel with a frame index past its frames, as a 10,000-frame run did)."""
+    from torch_stsdic.movie.frames import block_frames, segment_bounds, window_frames
+
+    seg = segment_bounds([10, 22], 40)
+    ks = torch.tensor([21])
+    longest = set(window_frames(ks, 6, 40, seg).flatten().tolist())
+    assert {13, 14} <= set(window_frames(ks, 4, 40, seg).flatten().tolist()) - longest
+    held = block_frames(ks, 6, 40, seg)
+    assert torch.equal(held, torch.unique(held))  # sorted, once each
+    for m in range(7):
+        assert set(window_frames(ks, m, 40, seg).flatten().tolist()) <= set(held.tolist())
+    # without load steps the longest window holds every shorter one: nothing more is read
+    for k in (0, 3, 20, 36, 39):
+        kk = torch.tensor([k])
+        torch.testing.assert_close(block_frames(kk, 6, 40),
+                                   torch.unique(window_frames(kk, 6, 40)))

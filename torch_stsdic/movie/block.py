@@ -36,7 +36,7 @@ from torch_stsdic.core.solver import (
 from torch_stsdic.core.status import Status
 from torch_stsdic.movie.carry import Carry, neighbour_guess
 from torch_stsdic.movie.checks import CHECK_ITER, CHECK_TOL, BlockChecks
-from torch_stsdic.movie.frames import FrameCache, window_frames
+from torch_stsdic.movie.frames import FrameCache, block_frames, window_frames
 from torch_stsdic.movie.reference import Reference, noise_ratio, to_relative, to_total
 from torch_stsdic.movie.sample_guess import MeasuredSample
 from torch_stsdic.movie.template_noise import TemplateShares
@@ -122,7 +122,9 @@ class Block(BlockChecks):
         dev = run.device
         self.k = torch.tensor(ks, dtype=torch.long, device=dev)
         win = self.windows(run.m)
-        self.needed = torch.unique(win)  # sorted; only the windows' frames
+        seg = run.segments
+        self.needed = block_frames(  # sorted; every half-width's windows' frames
+            self.k, run.m, run.n_series, None if seg is None else seg.to(self.k.device))
         needed = self.needed.tolist()
         self.raw, self.img = run.cache.load(needed)
         self.pyramids = run.cache.pyramids(needed)  # each built on first use (weak peaks)

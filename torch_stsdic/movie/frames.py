@@ -35,8 +35,8 @@ from torch_stsdic.core.pyramid import ImagePyramid, PyramidStack
 from torch_stsdic.core.solver import SubsetSolver
 from torch_stsdic.io import ImageSeries
 
-__all__ = ["FrameCache", "FrameStore", "PreparedFrame", "window_frames", "segment_bounds",
-           "frames_in_order", "default_ahead"]
+__all__ = ["FrameCache", "FrameStore", "PreparedFrame", "window_frames", "block_frames",
+           "segment_bounds", "frames_in_order", "default_ahead"]
 
 
 def window_frames(ks: torch.Tensor, m: int, n_series: int,
@@ -54,6 +54,17 @@ def window_frames(ks: torch.Tensor, m: int, n_series: int,
         inside = torch.minimum(torch.maximum(ks - m, lo), hi - 2 * m)
         start = torch.where(fits, inside, start)
     return start.unsqueeze(1) + torch.arange(n_win, device=ks.device)
+
+
+def block_frames(ks: torch.Tensor, m: int, n_series: int,
+                 segments: torch.Tensor | None = None) -> torch.Tensor:
+    """Sorted series frames of the windows of targets ``ks`` for every half-width 0 .. ``m``
+    (:func:`window_frames`): what a block whose rows may be solved with shorter windows
+    needs. Inside a load segment too short for the longest window, a shorter one is shifted
+    to stay in the segment and can reach frames the longest does not (a segment of 12
+    frames, a target at its end: m = 4 starts 8 frames before it, m = 6 6 before)."""
+    return torch.unique(torch.cat([window_frames(ks, h, n_series, segments).reshape(-1)
+                                   for h in range(int(m) + 1)]))
 
 
 def segment_bounds(steps: Sequence[int], n_series: int) -> torch.Tensor:
