@@ -264,6 +264,12 @@ def test_a_block_holds_the_frames_of_every_shorter_window_inside_a_load_segment(
     assert torch.equal(held, torch.unique(held))  # sorted, once each
     for m in range(7):
         assert set(window_frames(ks, m, 40, seg).flatten().tolist()) <= set(held.tolist())
+    # a target at the segment's start: m = 4 reaches past the longest window's last frame
+    # (the frame index one past the block's frames that crashed the native kernel)
+    first = torch.tensor([10])
+    past = set(window_frames(first, 4, 40, seg).flatten().tolist()) - set(
+        window_frames(first, 6, 40, seg).flatten().tolist())
+    assert past == {17, 18} and past <= set(block_frames(first, 6, 40, seg).tolist())
     # without load steps the longest window holds every shorter one: nothing more is read
     for k in (0, 3, 20, 36, 39):
         kk = torch.tensor([k])
