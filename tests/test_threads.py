@@ -82,13 +82,7 @@ def test_a_cpu_solve_runs_torch_on_one_thread(monkeypatch):
         return inner(self, *args, **kwargs)
 
     monkeypatch.setattr(SubsetSolver, "_solve_on_grid", spy)
-    ref, cur = _pair(96, 1.3, -0.6)
-    torch.set_num_threads(2)
-    try:
-        sol = sts.solve_window(ref, cur, _points(96), sts.DICConfig(subset_size=21, m=0))
-        assert torch.get_num_threads() == 2
-    finally:
-        torch.set_num_threads(1)
+    sol = _solve_on_two_threads()
     assert seen and all(s == (1, min(2, len(os.sched_getaffinity(0)))) for s in seen)
     ok = sol.ok
     assert ok.float().mean() > 0.9
@@ -110,13 +104,7 @@ def test_solve_window_converts_its_inputs_on_one_thread(monkeypatch):
         return inner(*args, **kwargs)
 
     monkeypatch.setattr(solver_module, "as_image", spy)
-    ref, cur = _pair(96, 1.3, -0.6)  # float64: converted to float32
-    torch.set_num_threads(2)
-    try:
-        sol = sts.solve_window(ref, cur, _points(96), sts.DICConfig(subset_size=21, m=0))
-        assert torch.get_num_threads() == 2
-    finally:
-        torch.set_num_threads(1)
+    sol = _solve_on_two_threads()  # float64 images: converted to float32
     assert seen == [1]
     assert torch.allclose(sol.u[sol.ok], torch.full_like(sol.u[sol.ok], 1.3), atol=0.02)
 
@@ -241,6 +229,19 @@ for _ in range(3):
 assert float(sol.ok.float().mean()) > 0.9
 print(json.dumps({"s": sorted(ts)[1]}))
 """
+
+
+def _solve_on_two_threads():
+    """solve_window of the 96 px pair (u, v = 1.3, -0.6) with torch at 2 threads, which it
+    must leave at 2 (restored to the suite's 1 after)."""
+    ref, cur = _pair(96, 1.3, -0.6)
+    torch.set_num_threads(2)
+    try:
+        sol = sts.solve_window(ref, cur, _points(96), sts.DICConfig(subset_size=21, m=0))
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(1)
+    return sol
 
 
 def _pair(size: int, u: float, v: float) -> tuple[torch.Tensor, torch.Tensor]:

@@ -529,6 +529,13 @@ def _shorter_again(blk: Block, cap: torch.Tensor) -> None:
                 "shorter_again_rows", 0) + int(good.numel())
 
 
+def _first_guess_rows(run: BlockContext, blk: Block, ref: Reference) -> torch.Tensor:
+    """(B*N, P) the block's rows from ``run.first_guess`` (NaN rows where it has none)."""
+    guess = run.first_guess.guess(ref.points, blk.windows(run.m), blk.dt[::blk.n])
+    return blk.init_rows({nm: v.to(device=run.device, dtype=run.dtype)
+                          for nm, v in guess.items()})
+
+
 def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry | None):
     """Solve all POIs of target frames ``ks`` (B,) in one batched solve, then rescue lost
     rows (from the previous target of the block, their neighbours, then by FFT
@@ -543,9 +550,7 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
         carry = None  # the reference frame's own row, no velocity: it predicts nothing
     if carry is None and run.first_guess is not None and ref.acc is None:
         # no carry (the first block): start from the measuring pass's solutions
-        init = blk.init_rows({nm: v.to(device=dev, dtype=run.dtype) for nm, v in
-                              run.first_guess.guess(ref.points, blk.windows(run.m),
-                                                    blk.dt[::n]).items()})
+        init = _first_guess_rows(run, blk, ref)
         carried = torch.isfinite(init).all(1)
         carried &= ~blk.keep_outside((init,), carried)
         run.stats["first_guess_rows"] = run.stats.get("first_guess_rows", 0) + int(
@@ -570,9 +575,7 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
         if run.guess_every_block and run.first_guess is not None and ref.acc is None:
             # an earlier round's solution of the row's own frames: closer than the carry
             # moved on over the frames between (the template's sampled frames are apart)
-            g = blk.init_rows({nm: v.to(device=dev, dtype=run.dtype) for nm, v in
-                               run.first_guess.guess(ref.points, blk.windows(run.m),
-                                                     blk.dt[::n]).items()})
+            g = _first_guess_rows(run, blk, ref)
             has = torch.isfinite(g).all(1)
             init = torch.where(has.unsqueeze(1), g, init)
             carried |= has
