@@ -275,3 +275,32 @@ def test_a_block_holds_the_frames_of_every_shorter_window_inside_a_load_segment(
         kk = torch.tensor([k])
         torch.testing.assert_close(block_frames(kk, 6, 40),
                                    torch.unique(window_frames(kk, 6, 40)))
+
+
+def test_the_ring_copies_each_frame_once_and_its_planes_hold_the_frames_asked_for():
+    """Sliding blocks through FrameCache.in_ring: every frame copied into the shared stack
+    once while it stays in use (not 2m+1 times), each plane the frame asked for (pixels and
+    coefficients equal to a fresh stack's), planes freed and reused, the stack grown when a
+    block needs more frames than it has planes."""
+    frames = _frames(n=12)
+    series = load_series(frames)
+    solver = SubsetSolver(sts.DICConfig(m=1))
+    cache = FrameCache(series, solver, torch.float32, "cpu")
+    plain = FrameCache(series, solver, torch.float32, "cpu")
+    blocks = [[0], [1], [2], [3, 4], [5], [6, 7, 8], [9], [10], [11]]
+    for b in blocks:
+        idx = torch.unique(window_frames(torch.tensor(b), 1, 12)).tolist()
+        view = cache.in_ring(idx)
+        raw, img = plain.load(idx)
+        planes = torch.tensor(view.planes)
+        assert torch.equal(view.raw[planes], raw)
+        assert torch.equal(view.img.coeffs[planes], img.coeffs)
+        assert torch.equal(view.frames_raw(), raw)
+        assert len(set(view.planes)) == len(idx) and max(view.planes) < view.img.n_frames
+        assert view.img.n_frames == view.raw.shape[0] == len(view.pyramids)
+        # the pyramid of each plane is its frame's
+        lev = view.pyramids.levels(1, planes)
+        ref = sts.core.pyramid.PyramidStack.of(raw).levels(1)
+        assert all(torch.equal(a, b) for a, b in zip(lev, ref))
+    assert cache._ring.capacity == 5  # grew to the longest block (frames 5..9)
+    assert cache._ring.copies == 12  # each frame once (the planes kept when it grew)

@@ -44,19 +44,35 @@ SYNCING = {"_local_scalar_dense": "host read", "nonzero": "data-dependent size",
 class SyncCounter(TorchDispatchMode):
     """Counts the syncing operations (:data:`SYNCING`) by name, and boolean-mask indexing."""
 
-    def __init__(self) -> None:
+    def __init__(self, where: bool = False) -> None:
         super().__init__()
         self.counts: collections.Counter[str] = collections.Counter()
+        self.where: collections.Counter[str] | None = collections.Counter() if where else None
+
+    def _place(self) -> str:
+        """The innermost line of the package's own code on the calling stack."""
+        frame = sys._getframe(2)
+        while frame is not None:
+            path = frame.f_code.co_filename
+            if "torch_stsdic" in path and "count_syncs" not in path:
+                short = path[path.rindex("torch_stsdic"):]
+                return f"{short}:{frame.f_lineno} {frame.f_code.co_name}"
+            frame = frame.f_back
+        return "(outside the package)"
 
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
         name = func.overloadpacket.__name__
         if name in SYNCING:
             self.counts[name] += 1
+            if self.where is not None:
+                self.where[self._place()] += 1
         elif name in ("index", "index_put_", "index_put") and any(
                 isinstance(t, torch.Tensor) and t.dtype == torch.bool
                 for t in (args[1] if len(args) > 1 and isinstance(args[1], (list, tuple))
                           else ())):
             self.counts[f"{name} (bool mask)"] += 1
+            if self.where is not None:
+                self.where[self._place()] += 1
         return func(*args, **(kwargs or {}))
 
 
@@ -66,13 +82,15 @@ def main(argv: list[str] | None = None) -> int:
     own = argv[:argv.index("--")] if "--" in argv else argv
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=None, help="JSON record")
+    ap.add_argument("--where", type=int, default=0, metavar="N",
+                    help="also list the N lines of the package that sync most (whole run)")
     args = ap.parse_args(own)
 
     import torch_stsdic.movie.block as block
     import torch_stsdic.movie.series as series
     from torch_stsdic.cli.app import main as cli_main
 
-    counter = SyncCounter()
+    counter = SyncCounter(where=args.where > 0)
     per_block: list[dict[str, int]] = []
     depth = {"runs": 0}
     run_plan, solve_block = series.run_plan, block.solve_block
@@ -108,6 +126,11 @@ def main(argv: list[str] | None = None) -> int:
           f"{rec['per_block_total_median']:.0f} (range {min(total)}-{max(total)})")
     for k in kinds:
         print(f"  {k:<28} {med[k]:>6.0f}")
+    if counter.where is not None:
+        rec["where_run_total"] = dict(counter.where.most_common(args.where))
+        print(f"where (whole run, top {args.where}):")
+        for place, n in counter.where.most_common(args.where):
+            print(f"  {n:>7d}  {place}")
     if args.out is not None:
         args.out.write_text(json.dumps(rec, indent=1) + "\n")
     return 0

@@ -125,12 +125,13 @@ class Block(BlockChecks):
         seg = run.segments
         self.needed = block_frames(  # sorted; every half-width's windows' frames
             self.k, run.m, run.n_series, None if seg is None else seg.to(self.k.device))
-        needed = self.needed.tolist()
-        self.raw, self.img = run.cache.load(needed)
-        self.pyramids = run.cache.pyramids(needed)  # each built on first use (weak peaks)
+        ring = run.cache.in_ring(self.needed.tolist())  # only new frames copied
+        # the frames' stack, addressed by plane (self.planes[j]: frame self.needed[j])
+        self.raw, self.img, self.pyramids = ring.raw, ring.img, ring.pyramids
+        self.planes = torch.as_tensor(ring.planes, dtype=torch.long, device=dev)
         ref.ensure(run.cache)
         if run.noise_ratio is None:
-            run.noise_ratio = noise_ratio(run.reference_desc, ref.raw, self.raw)
+            run.noise_ratio = noise_ratio(run.reference_desc, ref.raw, ring.frames_raw())
         self.b, self.n = len(ks), ref.points.shape[0]
         self.pts = ref.points.repeat(self.b, 1)  # (B*N, 2)
         self.fidx, self.dt = self.frames_of(win)
@@ -192,9 +193,9 @@ class Block(BlockChecks):
                              None if seg is None else seg.to(self.k.device))
 
     def frames_of(self, win: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Per row: indices into the loaded frames (B*N, T) and dt (B*N, T)."""
+        """Per row: the planes of the block's frame stack (B*N, T) and dt (B*N, T)."""
         run = self.run
-        fidx = torch.searchsorted(self.needed, win).repeat_interleave(self.n, 0)
+        fidx = self.planes[torch.searchsorted(self.needed, win)].repeat_interleave(self.n, 0)
         dt = (run.ts[win] - run.ts[self.k].unsqueeze(1)).to(run.dtype)
         return fidx, dt.repeat_interleave(self.n, 0)
 

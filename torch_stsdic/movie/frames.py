@@ -31,9 +31,10 @@ from dataclasses import dataclass, field
 import torch
 
 from torch_stsdic.core.interpolation import BSplineImage
-from torch_stsdic.core.pyramid import ImagePyramid, PyramidStack
+from torch_stsdic.core.pyramid import ImagePyramid
 from torch_stsdic.core.solver import SubsetSolver
 from torch_stsdic.io import ImageSeries
+from torch_stsdic.movie.frame_ring import FrameRing, RingView
 
 __all__ = ["FrameCache", "FrameStore", "PreparedFrame", "window_frames", "block_frames",
            "segment_bounds", "frames_in_order", "default_ahead"]
@@ -294,6 +295,7 @@ class FrameCache:
         self._reader: _Reader | None = None
         self._ahead_s = [0.0, 0.0]  # read, prefilter time of finished readers
         self._order = int(solver.config.interpolation_order)
+        self._ring = FrameRing()
 
     def _key(self, i: int) -> tuple:
         return (int(i), str(self.dtype), str(torch.device(self.device)), self._order)
@@ -385,8 +387,8 @@ class FrameCache:
         self._t["prefilter_s"] += time.perf_counter() - t0
         return self._prepared(i, raw, prep)
 
-    def load(self, idx: list[int]) -> tuple[torch.Tensor, BSplineImage]:
-        """Frames ``idx``: raw (L, H, W) and a prepared L-frame stack."""
+    def _hold_only(self, idx: list[int]) -> None:
+        """Hold exactly the frames ``idx`` (older ones dropped, new ones fetched)."""
         keep = set(idx)
         for k in [k for k in self.entries if k not in keep]:
             del self.entries[k]
@@ -396,10 +398,16 @@ class FrameCache:
                 self.entries[i] = self._fetch(i)
         self._t["wait_s"] += time.perf_counter() - t0
         self.max_cached = max(self.max_cached, len(self.entries))
+
+    def load(self, idx: list[int]) -> tuple[torch.Tensor, BSplineImage]:
+        """Frames ``idx``: raw (L, H, W) and a prepared L-frame stack (new tensors)."""
+        self._hold_only(idx)
         raw = torch.stack([self.entries[i].raw for i in idx])
         return raw, BSplineImage.stack([self.entries[i].prep for i in idx])
 
-    def pyramids(self, idx: list[int]) -> PyramidStack:
-        """The Gaussian pyramids of the held frames ``idx`` (as :meth:`load` stacks them),
-        each built on first use and kept with its frame."""
-        return PyramidStack([self.entries[i].pyramid() for i in idx])
+    def in_ring(self, idx: list[int]) -> RingView:
+        """Frames ``idx`` held, in the stack that consecutive blocks share
+        (:class:`~torch_stsdic.movie.frame_ring.FrameRing`: only frames new since the last
+        call are copied; address them by :attr:`RingView.planes`)."""
+        self._hold_only(idx)
+        return self._ring.fill(self.entries, idx)

@@ -1,0 +1,126 @@
+"""The frames a block reads, as one stack that consecutive blocks share.
+
+The solver reads a block's frames from one stack: pixels (C, H, W) and B-spline coefficients
+(C, H', W'), each frame a plane of it. Consecutive blocks of a sliding window share all but a
+frame or two, so :class:`FrameRing` keeps the stack between blocks and writes only the frames
+that are new into the planes that frames no longer needed leave free: a frame is copied into
+the stack once while it stays in use, instead of every block copying all of its 2m+1 (or
+more) frames again (on a 754 x 1273 movie with 13-frame windows that was 100 MB a block).
+
+A block then addresses its frames by *plane* (:attr:`RingView.planes`), not by position in its
+list of frames.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Protocol
+
+import torch
+
+from torch_stsdic.core.interpolation import BSplineImage
+from torch_stsdic.core.pyramid import ImagePyramid, PyramidStack
+
+__all__ = ["FrameRing", "RingView"]
+
+
+class _Prepared(Protocol):  # movie.frames.PreparedFrame (not imported: no cycle)
+    raw: torch.Tensor
+    prep: BSplineImage
+
+    def pyramid(self) -> ImagePyramid: ...
+
+
+@dataclass(frozen=True)
+class RingView:
+    """A block's frames in the ring: ``raw`` (C, H, W) pixels and ``img`` the C-plane
+    coefficient stack (every plane, those of other frames or empty ones included), ``planes``
+    the plane of each frame asked for (in the order asked), ``pyramids`` the Gaussian
+    pyramids by plane (an empty plane's is None)."""
+
+    raw: torch.Tensor
+    img: BSplineImage
+    planes: list[int]
+    pyramids: PyramidStack
+
+    def frames_raw(self) -> torch.Tensor:
+        """(L, H, W) the pixels of the frames asked for, in their order (a copy)."""
+        return self.raw[torch.as_tensor(self.planes, device=self.raw.device)]
+
+
+class FrameRing:
+    """Planes of a stack kept from block to block (see the module docstring). ``fill``
+    gives a block its frames; the stack grows (and is rebuilt) only when a block needs more
+    frames than it has planes, or when the frames' size, type or device change."""
+
+    def __init__(self) -> None:
+        self.slot: dict[int, int] = {}  # frame index -> plane
+        self.raw: torch.Tensor | None = None  # (C, H, W)
+        self.coeffs: torch.Tensor | None = None  # (C, H', W')
+        self.template: BSplineImage | None = None
+        self.by_plane: list[_Prepared | None] = []
+        self.copies = 0  # frames copied into a plane (a test counts them)
+
+    @property
+    def capacity(self) -> int:
+        return 0 if self.raw is None else int(self.raw.shape[0])
+
+    def _same_kind(self, first: _Prepared) -> bool:
+        raw, co = first.raw, first.prep.coeffs
+        return (self.raw is not None and self.coeffs is not None
+                and self.raw.shape[1:] == raw.shape and self.raw.dtype == raw.dtype
+                and self.raw.device == raw.device and self.coeffs.shape[1:] == co.shape[1:]
+                and self.coeffs.dtype == co.dtype and self.coeffs.device == co.device)
+
+    def _allocate(self, first: _Prepared, n: int) -> None:
+        """``n`` planes for frames like ``first``: the planes held kept where they are when
+        the frames are of the same kind (the stack grows), else all freed."""
+        raw, co = first.raw, first.prep.coeffs
+        new_raw = torch.empty((n, *raw.shape), dtype=raw.dtype, device=raw.device)
+        new_co = torch.empty((n, *co.shape[1:]), dtype=co.dtype, device=co.device)
+        if self._same_kind(first):
+            c = self.capacity
+            new_raw[:c].copy_(self.raw)
+            new_co[:c].copy_(self.coeffs)
+            self.by_plane += [None] * (n - c)
+        else:
+            self.slot, self.by_plane = {}, [None] * n
+        self.raw, self.coeffs = new_raw, new_co
+
+    def fill(self, entries: Mapping[int, _Prepared], idx: Sequence[int]) -> RingView:
+        """The frames ``idx`` (each in ``entries``, prepared single-frame images of one size)
+        in the ring: the planes of frames not in ``idx`` are freed, the new ones copied in."""
+        idx = [int(i) for i in idx]
+        first = entries[idx[0]]
+        if not self._same_kind(first) or len(idx) > self.capacity:
+            self._allocate(first, len(idx))
+        keep = set(idx)
+        for i in [i for i in self.slot if i not in keep]:
+            self.by_plane[self.slot.pop(i)] = None
+        free = iter([p for p, e in enumerate(self.by_plane) if e is None])
+        for i in idx:
+            if i in self.slot:
+                continue
+            p = next(free)
+            entry = entries[i]
+            self.raw[p].copy_(entry.raw)
+            self.coeffs[p].copy_(entry.prep.coeffs[0])
+            self.slot[i], self.by_plane[p] = p, entry
+            self.copies += 1
+        self.template = first.prep
+        img = _stack_view(first.prep, self.coeffs)
+        pyramids = PyramidStack([None if e is None else e.pyramid() for e in self.by_plane])
+        return RingView(self.raw, img, [self.slot[i] for i in idx], pyramids)
+
+
+def _stack_view(like: BSplineImage, coeffs: torch.Tensor) -> BSplineImage:
+    """A :class:`BSplineImage` of ``like``'s size and settings over ``coeffs`` (C, H', W')
+    (no copy; its per-pixel grid not made: the planes change between blocks)."""
+    out = BSplineImage.__new__(BSplineImage)
+    out.__dict__.update(like.__dict__)
+    out.__dict__.pop("_grid", None)
+    out.coeffs = coeffs
+    out.n_frames = int(coeffs.shape[0])
+    out._flat = coeffs.reshape(-1)
+    return out
