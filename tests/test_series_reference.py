@@ -12,6 +12,7 @@ import torch
 
 import torch_stsdic as sts
 import torch_stsdic.movie.series_reference as series_reference
+import torch_stsdic.movie.template_image as template_image
 from torch_stsdic import synth
 
 N_FRAMES = 17
@@ -258,6 +259,30 @@ def test_series_template_feeds_the_differentiable_solver(movie):
         sts.series_template(series, res.points, rounds=0)
 
 
+def test_the_template_made_frame_by_frame_equals_the_one_made_in_batches(movie, monkeypatch):
+    """On the CPU the template's frames are splatted one by one, on a GPU in groups (one
+    stack of coefficients, FrameCache.in_ring): the same template either way."""
+    series, _, _ = movie
+    res = _run(movie, 2)
+    kw = dict(config=sts.DICConfig(m=2, subset_size=21), rounds=1)
+    one = sts.series_template(series, res.points, **kw)
+    groups, sizes = template_image.frame_groups, []
+    monkeypatch.setattr(template_image, "frame_groups", lambda f, p, batched=True: [
+        list(range(a, min(a + 5, f))) for a in range(0, f, 5)])  # groups of 5 frames
+    take = template_image._group_frames
+    monkeypatch.setattr(template_image, "_group_frames",
+                        lambda cache, frames, dev: sizes.append(len(frames)) or take(
+                            cache, frames, dev))
+    batched = sts.series_template(series, res.points, **kw)
+    assert len(sizes) >= 2 and max(sizes) > 1 and sum(sizes) == len(one.frames), sizes
+    torch.testing.assert_close(batched.image, one.image, rtol=0, atol=1e-9)
+    assert abs(batched.noise_ratio - one.noise_ratio) < 1e-12
+    # the groups' size: each frame's two float64 sums over the covered pixels in budget
+    assert groups(10, 2**20 // 16, batched=False) == [[j] for j in range(10)]
+    per = int(template_image._GROUP_MB)  # frames of 2**20 / 16 covered pixels in the budget
+    assert [len(g) for g in groups(2 * per + 3, 2**20 // 16)] == [per, per, 3]
+
+
 def _vibration(size: int) -> synth.Motion:
     """A vibration whose phase varies over the specimen (period 4 frames, 0.25 px): the
     affine-in-time window fits it nowhere, and no shared motion takes it out."""
@@ -426,7 +451,9 @@ def test_splat_with_and_without_the_image_border_mask_agree():
 
     def splat(ok):
         acc = torch.zeros(3, size * size, dtype=torch.float64)
-        series_reference._splat(acc, frame, ref, pts, warp, ok, half, 1.0, 1.0)
+        one = torch.ones(1, dtype=torch.float64)
+        template_image.splat(acc, frame, torch.tensor([0]), ref, pts, warp[None],
+                                ok[None], half, one, one)
         return acc
 
     inner = splat(torch.tensor([True, True, True, False]))  # no border: fast path
@@ -436,6 +463,38 @@ def test_splat_with_and_without_the_image_border_mask_agree():
     torch.testing.assert_close(both, inner + border, rtol=1e-12, atol=1e-9)
     # the border window lost its columns left of the image: fewer weights than an inner one
     assert float(border[1].sum()) < 0.9 * float(inner[1].sum()) / 3  # 54 against 64
+
+
+def test_splat_of_frames_at_once_equals_the_sum_of_each_frame_alone():
+    """_splat takes a group of frames (planes of one stack) in one batch: its sums equal
+    those of each frame splatted alone and added, the noise share included (a product of
+    each frame's own per-pixel sums: summing the frames' weights first would differ)."""
+    from torch_stsdic.core.interpolation import BSplineImage
+
+    size, half = 80, 6
+    imgs = torch.stack([synth.render(synth.make_speckle((size, size), seed=s),
+                                     (size, size)).double() for s in (4, 5, 6)])
+    stack = BSplineImage(imgs, order=3)
+    ref = imgs[0].reshape(-1)
+    g = torch.Generator().manual_seed(1)
+    pts = torch.rand(30, 2, generator=g, dtype=torch.float64) * (size - 20) + 10
+    warp = (torch.rand(3, 30, 12, generator=g, dtype=torch.float64) - 0.5) * 0.02
+    warp[..., 0] += torch.tensor([0.3, -0.4, 1.2], dtype=torch.float64)[:, None]
+    ok = torch.rand(3, 30, generator=g) > 0.2
+    weight = torch.tensor([1.0, 0.5, 2.0], dtype=torch.float64)
+    level = torch.tensor([1.0, 1.3, 0.8], dtype=torch.float64)
+    planes = torch.tensor([2, 0, 1])  # frame j in plane planes[j]
+    together = torch.zeros(3, size * size, dtype=torch.float64)
+    template_image.splat(together, stack, planes, ref, pts, warp, ok, half, weight, level)
+    alone = torch.zeros_like(together)
+    for j in range(3):  # each frame its own single-frame image
+        own = BSplineImage(imgs[int(planes[j])], order=3)
+        template_image.splat(alone, own, torch.tensor([0]), ref, pts, warp[j:j + 1],
+                                ok[j:j + 1], half, weight[j:j + 1], level[j:j + 1])
+    assert float(together[2].sum()) > 0
+    torch.testing.assert_close(together, alone, rtol=1e-12, atol=1e-12)
+    # the share is per frame: the frames' weights summed before the product would differ
+    assert not torch.allclose(together[2], together[1] ** 2 / weight.sum(), rtol=1e-3)
 
 
 def test_a_later_round_starts_every_row_from_the_earlier_rounds_solution(movie, monkeypatch):

@@ -22,7 +22,7 @@ import benchmark as bm  # noqa: E402
 import torch  # noqa: E402
 
 STAGES = ("_measure", "_frame_noise", "local_fit_weights", "time_model_holds", "_fit_degree",
-          "_smooth", "_template", "_splat", "_gauge")
+          "_smooth", "template_image", "_gauge")
 
 
 def main() -> int:

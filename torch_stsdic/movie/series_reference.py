@@ -36,8 +36,7 @@ from torch_stsdic.analysis.local_fit import LocalFit, local_fit_passes, local_fi
 from torch_stsdic.analysis.points import nearest_points
 from torch_stsdic.analysis.quality import line_mismatch, line_offset
 from torch_stsdic.analysis.result import USABLE, TrackResult
-from torch_stsdic.core.interpolation import BSplineImage
-from torch_stsdic.core.noise import estimate_noise_sigma, interpolation_variance_factor
+from torch_stsdic.core.noise import estimate_noise_sigma
 from torch_stsdic.core.shared_motion import SharedMotion
 from torch_stsdic.core.solver import SubsetSolver
 from torch_stsdic.movie.classical_pass import ClassicalPass, classical_subplan
@@ -45,6 +44,7 @@ from torch_stsdic.movie.frames import FrameCache, FrameStore
 from torch_stsdic.movie.plan import RunPlan
 from torch_stsdic.movie.refine import ReferenceOffsets
 from torch_stsdic.movie.sample_guess import MeasuredSample
+from torch_stsdic.movie.template_image import template_image
 
 __all__ = ["SeriesReference", "DEFAULT_FRAMES", "DEFAULT_ITERATIONS", "sample_frames",
            "build_series_reference", "set_series_reference", "single_reason",
@@ -69,8 +69,6 @@ POOL_CLIP = 3.0
 BIAS_FLOOR_PX = 1e-3
 #: |plane - quadratic| / its std beyond which a frame is left out of the template at a POI
 PLANE_Z = 5.0
-#: the points whose warps feed the template (grey levels of the pixels: memory per chunk)
-_CHUNK_SAMPLES = 4_000_000
 
 
 @dataclass
@@ -194,90 +192,6 @@ def _warps(res: TrackResult, j: int, lost_zncc: float) -> tuple[torch.Tensor, to
     ok = ((res.status[j].cpu() <= USABLE) & torch.isfinite(w).all(1)
           & (res.zncc[j].double().cpu() >= lost_zncc))
     return torch.nan_to_num(w), ok
-
-
-def _shifted(warp: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
-    """(n, 6) coefficients of a quadratic ``a + b ox + c oy + q1 ox^2 + q2 ox oy + q3 oy^2``
-    re-expanded about ``delta`` (n, 2) (so that ``o = delta + d``): its value, slopes and the
-    same second-order terms at ``delta``."""
-    a, b, c, q1, q2, q3 = warp.unbind(1)
-    dx, dy = delta.unbind(1)
-    return torch.stack([a + b * dx + c * dy + q1 * dx * dx + q2 * dx * dy + q3 * dy * dy,
-                        b + 2 * q1 * dx + q2 * dy, c + q2 * dx + 2 * q3 * dy, q1, q2, q3], 1)
-
-
-def _masked(a: torch.Tensor, inside: torch.Tensor | None) -> torch.Tensor:
-    """``a`` where ``inside`` (None: everywhere), else 0."""
-    return a if inside is None else torch.where(inside, a, 0.0)
-
-
-def _splat(acc: torch.Tensor, img: BSplineImage, ref: torch.Tensor, pts: torch.Tensor,
-           warp: torch.Tensor, ok: torch.Tensor, half: int, weight: float, level: float
-           ) -> None:
-    """Add frame ``img`` mapped back by each trusted POI's map (``warp``: (N, 12),
-    :func:`_smooth`) over its window of half-width ``half`` px to ``acc`` (3, H*W): weighted
-    values, weights, and the frame's noise variance share.
-
-    A POI's samples are its window's pixels moved by its map (a polynomial of the offsets:
-    one matrix product for all pixels), brought to the reference's grey levels over the
-    window (``ref``: (H*W,) its pixels; mean and standard deviation matched, as the ZNCC
-    criteria ignore them: a frame that is brighter does not make a patchy template; ``level``:
-    the frame's contrast over the reference's, over the whole image), and weighted by a tent
-    and ``weight`` (the inverse of the frame's noise variance in the reference's grey levels).
-    The POIs whose windows cover a pixel sample the frame at (nearly) the same place, so
-    their noise is one and the same: the share is ``W (sum_i w_i f_i) / weight`` (``W`` the
-    frame's weight sum at the pixel, ``f_i`` the interpolated noise's variance factor at the
-    POI's sub-pixel shift, times its gain squared), not ``sum_i w_i^2 f_i / weight``."""
-    h, w = img.height, img.width
-    dev = acc.device
-    d = torch.arange(-half, half + 1, dtype=torch.float64, device=dev)
-    dy, dx = torch.meshgrid(d, d, indexing="ij")
-    dx, dy = dx.reshape(-1), dy.reshape(-1)
-    mono = torch.stack([torch.ones_like(dx), dx, dy, dx * dx, dx * dy, dy * dy], 1)  # (S, 6)
-    tent = ((1.0 - dx.abs() / (half + 1)) * (1.0 - dy.abs() / (half + 1))) * weight
-    offset = (dy * w + dx).long()
-    sel = torch.nonzero(ok).flatten()
-    frame = torch.zeros(2, h * w, dtype=torch.float64, device=dev)
-    chunk = max(1, _CHUNK_SAMPLES // dx.numel())
-    for s0 in range(0, sel.numel(), chunk):
-        i = sel[s0: s0 + chunk]
-        c = pts[i].round()
-        delta = c - pts[i]
-        x = c[:, :1] + dx  # (n, S) reference-configuration pixels
-        y = c[:, 1:] + dy
-        xs = x + _shifted(warp[i, 0:6], delta) @ mono.T
-        ys = y + _shifted(warp[i, 6:12], delta) @ mono.T
-        # a window wholly inside the image (both configurations) needs no mask: most do
-        whole = bool((c.amin() >= half) & (c[:, 0].amax() <= w - 1 - half)
-                     & (c[:, 1].amax() <= h - 1 - half) & (xs.amin() >= 0)
-                     & (xs.amax() <= w - 1) & (ys.amin() >= 0) & (ys.amax() <= h - 1))
-        inside = None if whole else (
-            (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1) & (xs >= 0) & (xs <= w - 1)
-            & (ys >= 0) & (ys <= h - 1))
-        vals = torch.nan_to_num(img.sample(xs.to(img.dtype), ys.to(img.dtype)).double())
-        cnt = (torch.full((len(i), 1), float(dx.numel()), dtype=torch.float64, device=dev)
-               if inside is None else inside.sum(1, keepdim=True).clamp(min=1))
-        idx = ((c[:, 1] * w + c[:, 0]).long()[:, None] + offset).clamp(0, h * w - 1)
-        own = ref[idx]  # (n, S) the reference's pixels of the windows
-        m_f = _masked(vals, inside).sum(1, keepdim=True) / cnt
-        m_r = _masked(own, inside).sum(1, keepdim=True) / cnt
-        s_f = _masked((vals - m_f) ** 2, inside).sum(1, keepdim=True).sqrt()
-        s_r = _masked((own - m_r) ** 2, inside).sum(1, keepdim=True).sqrt()
-        gain = torch.where(s_f > 0, s_r / s_f.clamp(min=1e-12), 1.0)
-        vals = (vals - m_f) * gain + m_r
-        u0, v0 = warp[i, 0], warp[i, 6]
-        fac = interpolation_variance_factor(u0 - u0.floor(), v0 - v0.floor(),
-                                            img.order)  # (n,)
-        wt = _masked(tent.expand(len(i), -1), inside)
-        # accumulated in index order (deterministic on every device, unlike CUDA's
-        # index_add_, whose atomic adds sum in any order)
-        idx, wt = (idx.reshape(-1),), wt.reshape(-1)
-        acc[0].index_put_(idx, wt * vals.reshape(-1), accumulate=True)
-        frame[0].index_put_(idx, wt, accumulate=True)
-        frame[1].index_put_(idx, (wt.view(len(i), -1) * fac[:, None]
-                                  * (gain * level) ** 2).reshape(-1), accumulate=True)
-    acc[1] += frame[0]
-    acc[2] += frame[0] * frame[1] / weight
 
 
 def _frame_noise(plan: RunPlan, frames: list[int], cache: FrameCache) -> list[float]:
@@ -438,45 +352,6 @@ def _smooth(fit: LocalFit, warps: torch.Tensor, ok: torch.Tensor, degree: torch.
     return out
 
 
-def _template(plan: RunPlan, warps: torch.Tensor, oks: torch.Tensor, frames: list[int],
-              sigmas: list[float], ref_raw: torch.Tensor, cache: FrameCache
-              ) -> tuple[torch.Tensor, float, float, torch.Tensor]:
-    """The template from the maps (F, N, 12) (:func:`_smooth`) and trust (F, N) of
-    ``frames`` (noise ``sigmas``; prepared by ``cache``): image (H, W), its noise variance
-    over one frame's (median over the covered pixels), coverage, and (N,) that ratio at each
-    POI (1 where no frame covers it: the reference image's pixels)."""
-    h, w = plan.series.shape
-    dev = torch.device(plan.device)
-    pts = plan.points.double().to(dev)
-    half = (plan.config.subset_size - 1) // 2
-    acc = torch.zeros(3, h * w, dtype=torch.float64, device=dev)  # on the run's device
-    ref = ref_raw.double().to(dev).reshape(-1)
-    spread = float(ref.std().clamp(min=1e-12))
-    norm = []  # each frame's noise in the reference's grey levels
-    for j, (k, sigma) in enumerate(zip(frames, sigmas)):
-        prepared = cache.frame(k)  # the run's: read and prefiltered once
-        img, raw = prepared.prep, prepared.raw.to(dev)
-        level = float(raw.double().std().clamp(min=1e-12)) / spread
-        norm.append(sigma / level)
-        _splat(acc, img, ref, pts, warps[j].to(dev), oks[j].to(dev), half,
-               1.0 / norm[-1] ** 2, level)
-    acc, ref, pts = acc.cpu(), ref.cpu(), pts.cpu()  # what follows is per pixel, once
-    covered = acc[1] > 0
-    image = torch.where(covered, acc[0] / acc[1].clamp(min=1e-300), ref).reshape(h, w)
-    # noise variance of a pixel: sum over frames of the frame's share (acc[2]) over the
-    # squared weight sum, over one frame's median s^2
-    s2 = float(np.median(norm)) ** 2
-    pix = torch.where(covered, acc[2] / acc[1].clamp(min=1e-300) ** 2 / s2, 1.0)
-    ratio = float(pix[covered].median()) if bool(covered.any()) else 1.0
-    wmax = acc[1][covered].max() if bool(covered.any()) else torch.tensor(1.0)
-    multi = (acc[1][covered] > 1.5 * wmax / max(len(frames), 1)).double()
-    coverage = float(multi.mean()) if multi.numel() else 0.0
-    c = pts.round().long()
-    c[:, 0].clamp_(0, w - 1)
-    c[:, 1].clamp_(0, h - 1)
-    return image, ratio, coverage, pix[c[:, 1] * w + c[:, 0]]
-
-
 def build_series_reference(plan: RunPlan, ref_raw: torch.Tensor, *,
                            run: Callable[..., TrackResult],
                            max_frames: int = DEFAULT_FRAMES,
@@ -525,7 +400,7 @@ def build_series_reference(plan: RunPlan, ref_raw: torch.Tensor, *,
         trusted = trusted & matched
         # a frame enters at a POI whose fit passed and whose neighbours are all trusted
         splat = (degree > 0) & trusted[:, fit.index].all(-1)
-        image, ratio, coverage, point_ratio = _template(
+        image, ratio, coverage, point_ratio = template_image(
             plan, _smooth(fit, warps, trusted, degree), splat, frames, sigmas, ref_raw, cache)
     use = degree > 0
     own = torch.tensor([k != plan.reference_frame for k in frames])

@@ -1,0 +1,208 @@
+"""The template image: the sampled frames mapped back to the reference configuration by each
+POI's local map, brought to the reference's grey levels over the POI's window and averaged with
+tent weights and the inverse of each frame's noise variance (:mod:`.series_reference` decides
+which frame enters where and makes the maps). Every frame is sampled from the run's prepared
+frames (:class:`~torch_stsdic.movie.frames.FrameCache`: B-spline coefficients made once per run),
+a group of frames at a time in one batch, the sums scattered on the run's device in a fixed
+order (:func:`~torch_stsdic.kernels.scatter.scatter_add_`)."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from torch_stsdic.core.interpolation import BSplineImage
+from torch_stsdic.core.noise import interpolation_variance_factor
+from torch_stsdic.kernels.scatter import scatter_add_
+from torch_stsdic.movie.frames import FrameCache
+from torch_stsdic.movie.plan import RunPlan
+
+__all__ = ["template_image", "splat", "frame_groups", "window_pixels"]
+
+#: the points whose warps feed the template (grey levels of the pixels: memory per chunk)
+_CHUNK_SAMPLES = 1_000_000
+
+
+def _shifted(warp: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
+    """(n, 6) coefficients of a quadratic ``a + b ox + c oy + q1 ox^2 + q2 ox oy + q3 oy^2``
+    re-expanded about ``delta`` (n, 2) (so that ``o = delta + d``): its value, slopes and the
+    same second-order terms at ``delta``."""
+    a, b, c, q1, q2, q3 = warp.unbind(1)
+    dx, dy = delta.unbind(1)
+    return torch.stack([a + b * dx + c * dy + q1 * dx * dx + q2 * dx * dy + q3 * dy * dy,
+                        b + 2 * q1 * dx + q2 * dy, c + q2 * dx + 2 * q3 * dy, q1, q2, q3], 1)
+
+
+def _masked(a: torch.Tensor, inside: torch.Tensor | None) -> torch.Tensor:
+    """``a`` where ``inside`` (None: everywhere), else 0."""
+    return a if inside is None else torch.where(inside, a, 0.0)
+
+
+def window_pixels(pts: torch.Tensor, half: int, height: int, width: int
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The pixels the POIs' windows (half-width ``half`` px about each rounded POI of ``pts``
+    (N, 2)) reach, as :func:`splat` indexes them (flat, clamped to the image; a window over
+    the border reaches pixels it masks out): (C,) their flat indices, sorted, and (H*W,)
+    each pixel's position among them (-1: none)."""
+    pixels = torch.unique(_window_index(pts.round(), half, width, height * width))
+    slot = torch.full((height * width,), -1, dtype=torch.long, device=pts.device)
+    slot[pixels] = torch.arange(pixels.numel(), device=pts.device)
+    return pixels, slot
+
+
+def _window_index(c: torch.Tensor, half: int, width: int, size: int) -> torch.Tensor:
+    """(n, S) flat pixel indices of the windows about the whole-pixel centres ``c`` (n, 2),
+    row-major offsets, clamped to ``[0, size)``."""
+    d = torch.arange(-half, half + 1, device=c.device)
+    offset = (d[:, None] * width + d[None, :]).reshape(-1)
+    return ((c[:, 1] * width + c[:, 0]).long()[:, None] + offset).clamp(0, size - 1)
+
+
+def splat(acc: torch.Tensor, img: BSplineImage, planes: torch.Tensor, ref: torch.Tensor,
+          pts: torch.Tensor, warp: torch.Tensor, ok: torch.Tensor, half: int,
+          weight: torch.Tensor, level: torch.Tensor,
+          cover: tuple[torch.Tensor, torch.Tensor] | None = None) -> None:
+    """Add G frames, planes ``planes`` (G,) of the stack ``img``, each mapped back by each
+    trusted POI's map (``warp``: (G, N, 12), the local fits' of the series reference;
+    ``ok``: (G, N)) over its window of half-width ``half`` px, to ``acc`` (3, H*W): weighted
+    values, weights, and the frames' noise variance share. All frames' POIs in one batch (chunks of
+    ``_CHUNK_SAMPLES`` samples), no loop over the frames.
+
+    A POI's samples are its window's pixels moved by its map (a polynomial of the offsets:
+    one matrix product for all pixels), brought to the reference's grey levels over the
+    window (``ref``: (H*W,) its pixels; mean and standard deviation matched, as the ZNCC
+    criteria ignore them: a frame that is brighter does not make a patchy template;
+    ``level`` (G,): each frame's contrast over the reference's, over the whole image), and
+    weighted by a tent and ``weight`` (G,) (the inverse of the frame's noise variance in the
+    reference's grey levels). The POIs whose windows cover a pixel sample the frame at
+    (nearly) the same place, so their noise is one and the same: a frame's share is
+    ``W (sum_i w_i f_i) / weight`` (``W`` the frame's weight sum at the pixel, ``f_i`` the
+    interpolated noise's variance factor at the POI's sub-pixel shift, times its gain
+    squared), not ``sum_i w_i^2 f_i / weight``: it is summed per frame (a (G, C) pair over
+    the C pixels the windows cover, ``cover``: :func:`window_pixels` of ``pts``, made here
+    where not given)
+    before the frames are added up."""
+    h, w = img.height, img.width
+    g_count, n = ok.shape
+    dev = acc.device
+    d = torch.arange(-half, half + 1, dtype=torch.float64, device=dev)
+    dy, dx = torch.meshgrid(d, d, indexing="ij")
+    dx, dy = dx.reshape(-1), dy.reshape(-1)
+    mono = torch.stack([torch.ones_like(dx), dx, dy, dx * dx, dx * dy, dy * dy], 1)  # (S, 6)
+    tent = (1.0 - dx.abs() / (half + 1)) * (1.0 - dy.abs() / (half + 1))
+    sel = torch.nonzero(ok.reshape(-1)).flatten()  # (frame, POI) pairs, frame-major
+    pixels, slot = window_pixels(pts, half, h, w) if cover is None else cover
+    n_px = pixels.numel()
+    sums = torch.zeros(3, n_px, dtype=torch.float64, device=dev)  # values, weights, share
+    per_frame = torch.zeros(2, g_count * n_px, dtype=torch.float64, device=dev)
+    chunk = max(1, _CHUNK_SAMPLES // dx.numel())
+    for s0 in range(0, sel.numel(), chunk):
+        f, i = sel[s0: s0 + chunk] // n, sel[s0: s0 + chunk] % n
+        c = pts[i].round()
+        delta = c - pts[i]
+        x = c[:, :1] + dx  # (n, S) reference-configuration pixels
+        y = c[:, 1:] + dy
+        xs = x + _shifted(warp[f, i, 0:6], delta) @ mono.T
+        ys = y + _shifted(warp[f, i, 6:12], delta) @ mono.T
+        # a window wholly inside the image (both configurations) needs no mask: most do
+        whole = bool((c.amin() >= half) & (c[:, 0].amax() <= w - 1 - half)
+                     & (c[:, 1].amax() <= h - 1 - half) & (xs.amin() >= 0)
+                     & (xs.amax() <= w - 1) & (ys.amin() >= 0) & (ys.amax() <= h - 1))
+        inside = None if whole else (
+            (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1) & (xs >= 0) & (xs <= w - 1)
+            & (ys >= 0) & (ys <= h - 1))
+        vals = torch.nan_to_num(img.sample(xs.to(img.dtype), ys.to(img.dtype),
+                                           frame=planes[f].unsqueeze(1)).double())
+        cnt = (torch.full((len(i), 1), float(dx.numel()), dtype=torch.float64, device=dev)
+               if inside is None else inside.sum(1, keepdim=True).clamp(min=1))
+        idx = _window_index(c, half, w, h * w)
+        own = ref[idx]  # (n, S) the reference's pixels of the windows
+        m_f = _masked(vals, inside).sum(1, keepdim=True) / cnt
+        m_r = _masked(own, inside).sum(1, keepdim=True) / cnt
+        s_f = _masked((vals - m_f) ** 2, inside).sum(1, keepdim=True).sqrt()
+        s_r = _masked((own - m_r) ** 2, inside).sum(1, keepdim=True).sqrt()
+        gain = torch.where(s_f > 0, s_r / s_f.clamp(min=1e-12), 1.0)
+        vals = (vals - m_f) * gain + m_r
+        u0, v0 = warp[f, i, 0], warp[f, i, 6]
+        fac = interpolation_variance_factor(u0 - u0.floor(), v0 - v0.floor(),
+                                            img.order)  # (n,)
+        wt = _masked(tent * weight[f, None], inside)
+        # summed in a fixed order (the same template on every run and device)
+        px = slot[idx]  # (n, S) the pixels among the covered ones
+        scatter_add_(sums[0], px, wt * vals)
+        at = f[:, None] * n_px + px  # the pixel in its frame's share
+        scatter_add_(per_frame[0], at, wt)
+        scatter_add_(per_frame[1], at, wt * (fac[:, None] * (gain * level[f, None]) ** 2))
+    weights, shares = per_frame.view(2, g_count, n_px).unbind(0)
+    sums[1] = weights.sum(0)
+    sums[2] = (weights * shares / weight[:, None]).sum(0)
+    acc[:, pixels] += sums
+
+
+#: MiB of the per-frame sums a group of the template's frames holds (:func:`frame_groups`)
+_GROUP_MB = 64.0
+
+
+def frame_groups(frames: int, pixels: int, batched: bool = True) -> list[list[int]]:
+    """The template's frames (0 .. ``frames`` - 1) in the groups that :func:`splat` takes at
+    once: with ``batched``, each frame's two sums (float64) over the ``pixels`` the windows
+    cover within ``_GROUP_MB``; else one frame a group (the CPU: there a batch of frames
+    is no faster, measured on the hourglass, and its stack is a copy of the frames)."""
+    size = max(1, int(_GROUP_MB * 2**20 // (16 * max(pixels, 1)))) if batched else 1
+    return [list(range(a, min(a + size, frames))) for a in range(0, frames, size)]
+
+
+def _group_frames(cache: FrameCache, frames: list[int], dev: torch.device
+                  ) -> tuple[BSplineImage, torch.Tensor, torch.Tensor]:
+    """The prepared ``frames``: their coefficients as one stack, each frame's plane in it
+    (G,), and their pixels (G, H, W) float64 on ``dev`` (a single frame: its own image, no
+    copy; several: the cache's :meth:`~torch_stsdic.movie.frames.FrameCache.in_ring`)."""
+    if len(frames) == 1:
+        prepared = cache.frame(frames[0])  # the run's: read and prefiltered once
+        return (prepared.prep, torch.zeros(1, dtype=torch.long, device=dev),
+                prepared.raw.to(dev).double().unsqueeze(0))
+    view = cache.in_ring(frames)
+    planes = torch.as_tensor(view.planes, device=dev)
+    return view.img, planes, view.raw[planes.to(view.raw.device)].to(dev).double()
+
+
+def template_image(plan: RunPlan, warps: torch.Tensor, oks: torch.Tensor, frames: list[int],
+                   sigmas: list[float], ref_raw: torch.Tensor, cache: FrameCache
+                   ) -> tuple[torch.Tensor, float, float, torch.Tensor]:
+    """The template from the maps (F, N, 12) (the local fits' of the series reference) and
+    trust (F, N) of ``frames`` (noise ``sigmas``; prepared by ``cache``): image (H, W), its
+    noise variance over one frame's (median over the covered pixels), coverage, and (N,) that
+    ratio at each POI (1 where no frame covers it: the reference image's pixels)."""
+    h, w = plan.series.shape
+    dev = torch.device(plan.device)
+    pts = plan.points.double().to(dev)
+    half = (plan.config.subset_size - 1) // 2
+    acc = torch.zeros(3, h * w, dtype=torch.float64, device=dev)  # on the run's device
+    ref = ref_raw.double().to(dev).reshape(-1)
+    spread = float(ref.std().clamp(min=1e-12))
+    norm = []  # each frame's noise in the reference's grey levels
+    cover = window_pixels(pts, half, h, w)
+    for group in frame_groups(len(frames), cover[0].numel(), batched=dev.type != "cpu"):
+        img, planes, raw = _group_frames(cache, [frames[j] for j in group], dev)
+        level = raw.flatten(1).std(1).clamp(min=1e-12) / spread  # (G,) contrast ratios
+        g_norm = torch.as_tensor([sigmas[j] for j in group], dtype=torch.float64,
+                                 device=dev) / level
+        norm += g_norm.tolist()
+        g_idx = torch.as_tensor(group, device=warps.device)
+        splat(acc, img, planes, ref, pts, warps[g_idx].to(dev), oks[g_idx].to(dev), half,
+              1.0 / g_norm ** 2, level, cover)
+    acc, ref, pts = acc.cpu(), ref.cpu(), pts.cpu()  # what follows is per pixel, once
+    covered = acc[1] > 0
+    image = torch.where(covered, acc[0] / acc[1].clamp(min=1e-300), ref).reshape(h, w)
+    # noise variance of a pixel: sum over frames of the frame's share (acc[2]) over the
+    # squared weight sum, over one frame's median s^2
+    s2 = float(np.median(norm)) ** 2
+    pix = torch.where(covered, acc[2] / acc[1].clamp(min=1e-300) ** 2 / s2, 1.0)
+    ratio = float(pix[covered].median()) if bool(covered.any()) else 1.0
+    wmax = acc[1][covered].max() if bool(covered.any()) else torch.tensor(1.0)
+    multi = (acc[1][covered] > 1.5 * wmax / max(len(frames), 1)).double()
+    coverage = float(multi.mean()) if multi.numel() else 0.0
+    c = pts.round().long()
+    c[:, 0].clamp_(0, w - 1)
+    c[:, 1].clamp_(0, h - 1)
+    return image, ratio, coverage, pix[c[:, 1] * w + c[:, 0]]
