@@ -59,8 +59,9 @@ def _blocks(cache, blocks, m, n):
     out = []
     for b in blocks:
         idx = torch.unique(window_frames(torch.tensor(b), m, n)).tolist()
-        raw, img = cache.load(idx)
-        out.append((idx, raw.clone(), img.coeffs.clone()))
+        view = cache.in_ring(idx)
+        planes = torch.tensor(view.planes)
+        out.append((idx, view.raw[planes].clone(), view.img.coeffs[planes].clone()))
     return out
 
 
@@ -95,9 +96,9 @@ def test_out_of_order_frames_are_read_on_the_spot():
     series = _Counting(frames)
     cache = FrameCache(series, solver, torch.float32, "cpu", ahead=3)
     cache.schedule([0, 1, 2, 3, 4])
-    raw, _ = cache.load([3, 4])  # 0..2 skipped (e.g. blocks replayed from a file)
+    raw = cache.in_ring([3, 4]).frames_raw()  # 0..2 skipped (e.g. blocks replayed from a file)
     assert torch.equal(raw[0], torch.from_numpy(frames[3]))
-    raw, _ = cache.load([1, 7])  # behind the reader / not scheduled: read directly
+    raw = cache.in_ring([1, 7]).frames_raw()  # behind the reader / not scheduled: read directly
     assert torch.equal(raw[1], torch.from_numpy(frames[7]))
     assert torch.equal(cache.read(8), torch.from_numpy(frames[8]))
     cache.close()
@@ -108,9 +109,9 @@ def test_reader_errors_reach_the_caller():
     solver = SubsetSolver(sts.DICConfig(m=1))
     cache = FrameCache(_Counting(_frames(), fail_at=2), solver, torch.float32, "cpu", ahead=2)
     cache.schedule([0, 1, 2, 3])
-    cache.load([0, 1])
+    cache.in_ring([0, 1])
     with pytest.raises(OSError, match="cannot decode frame 2"):
-        cache.load([1, 2])
+        cache.in_ring([1, 2])
     cache.close()
 
 
@@ -139,7 +140,7 @@ def test_read_ahead_is_bounded():
     series = _Counting(_frames(n=12))
     cache = FrameCache(series, SubsetSolver(sts.DICConfig(m=1)), torch.float32, "cpu", ahead=2)
     cache.schedule(list(range(12)))
-    cache.load([0, 1, 2])
+    cache.in_ring([0, 1, 2])
     deadline = time.monotonic() + 20.0
     while len(series.count) < 3 + 2 and time.monotonic() < deadline:  # the queue fills up
         time.sleep(0.01)
@@ -291,10 +292,11 @@ def test_the_ring_copies_each_frame_once_and_its_planes_hold_the_frames_asked_fo
     for b in blocks:
         idx = torch.unique(window_frames(torch.tensor(b), 1, 12)).tolist()
         view = cache.in_ring(idx)
-        raw, img = plain.load(idx)
+        raw = torch.stack([plain.frame(i).raw for i in idx])  # each frame prepared alone
+        coeffs = torch.cat([plain.frame(i).prep.coeffs for i in idx])
         planes = torch.tensor(view.planes)
         assert torch.equal(view.raw[planes], raw)
-        assert torch.equal(view.img.coeffs[planes], img.coeffs)
+        assert torch.equal(view.img.coeffs[planes], coeffs)
         assert torch.equal(view.frames_raw(), raw)
         assert len(set(view.planes)) == len(idx) and max(view.planes) < view.img.n_frames
         assert view.img.n_frames == view.raw.shape[0] == len(view.pyramids)

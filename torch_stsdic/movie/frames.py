@@ -273,7 +273,7 @@ class FrameCache:
     """Frames of the current block: raw pixels, prefiltered coefficients and pyramids, by
     index.
 
-    ``load`` keeps exactly the frames asked for (older ones are dropped), so a frame is read
+    ``in_ring`` keeps exactly the frames asked for (older ones are dropped), so a frame is read
     and prefiltered once while consecutive blocks overlap. After :meth:`schedule` a background
     thread reads ahead (see the module docstring); :meth:`close` stops it. With a ``store``
     (:class:`FrameStore`, shared by the caches of one run's passes) a frame another pass
@@ -304,7 +304,7 @@ class FrameCache:
         """Seconds spent on frames: ``read_s`` / ``prefilter_s`` in the calling thread
         (decoding + copy to the device / B-spline prefilter; on CUDA the kernel launches),
         ``ahead_read_s`` / ``ahead_prefilter_s`` the same in the read-ahead thread (overlapped
-        with the solve), and ``wait_s``: the time :meth:`load` spent getting frames (reading
+        with the solve), and ``wait_s``: the time :meth:`in_ring` spent getting frames (reading
         them itself or waiting for the reader), i.e. what frames cost the calling thread."""
         r = self._reader
         ahead = [self._ahead_s[0] + (r.read_s if r else 0.0),
@@ -398,12 +398,6 @@ class FrameCache:
                 self.entries[i] = self._fetch(i)
         self._t["wait_s"] += time.perf_counter() - t0
         self.max_cached = max(self.max_cached, len(self.entries))
-
-    def load(self, idx: list[int]) -> tuple[torch.Tensor, BSplineImage]:
-        """Frames ``idx``: raw (L, H, W) and a prepared L-frame stack (new tensors)."""
-        self._hold_only(idx)
-        raw = torch.stack([self.entries[i].raw for i in idx])
-        return raw, BSplineImage.stack([self.entries[i].prep for i in idx])
 
     def in_ring(self, idx: list[int]) -> RingView:
         """Frames ``idx`` held, in the stack that consecutive blocks share
