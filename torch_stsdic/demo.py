@@ -261,7 +261,7 @@ def _measure(
     first = 1 if refine or series_ref else 0
     res = track(series, reference=reference, frames=list(range(first, first + s.frames)),
                 points=demo.points, config=cfg, device=s.device, progress=progress,
-                refine_reference=refine, series_reference=series_ref)  # fmt: skip
+                refine_reference=refine, series_reference=series_ref or refine)  # fmt: skip
     el = time.perf_counter() - t1
     ok = _np(res.status) <= int(Status.MAX_ITER)
     u, v, ut = (np.where(ok, _np(a).astype(np.float64), np.nan) for a in (res.u, res.v, res.ut))
