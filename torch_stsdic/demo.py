@@ -338,8 +338,8 @@ def _table(d: DemoResult) -> str:
         lines.append(f"{'classical / STS-DIC refined ref':<{width + 3}}"
                      f"{_ratio(rows[0].rms_u, refined[0].rms_u):>11.2f}x")
         lines.append("The refined reference (the reference as frame 0 of the series, "
-                     "refine_reference=True) fits the\nreference's offset away from the "
-                     "trajectory of every point, without still frames.")
+                     "refine_reference=True): the template\nmade from the series, its zero "
+                     "displacement from the trajectory of every point.")
     if templ:
         lines.append(f"{'classical / STS-DIC series ref':<{width + 3}}"
                      f"{_ratio(rows[0].rms_u, templ[0].rms_u):>11.2f}x")

@@ -17,14 +17,21 @@ classical DIC with the single reference image, ``2 s^2`` (reference and frame eq
 Reported: the median over the targets 1.. and points of the square root of that ratio (the
 run's predicted error over classical DIC's, as ``real_summary.py`` takes medians), with the
 windows chosen, with every window at its longest (m = 6 where the movie allows), without the
-registration term, and with a template of equal weights over all frames.
+registration term, and with a template of equal weights over all frames; and how many
+frames entered the template at each POI.
 
     python scripts/validation/hourglass_floor.py [--data ../shared/data]
+        [--neighbours 25] [--plane-z 5]
+
+``--neighbours``, ``--plane-z``: the template's local fits made over that many POIs, and the
+z limit of their tests (the library's ``DEFAULT_NEIGHBOURS``, ``PLANE_Z``), for a study of
+what lets more frames into the template; the library is not changed.
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import sys
 import warnings
 from pathlib import Path
@@ -34,6 +41,7 @@ import torch
 import torch_stsdic as sts
 from torch_stsdic.core.uncertainty import intercept_weights
 from torch_stsdic.io.images import load_series
+from torch_stsdic.movie import estimates, series_reference
 from torch_stsdic.movie.estimates import measure_run
 from torch_stsdic.movie.frames import window_frames
 from torch_stsdic.movie.plan import plan_run
@@ -71,7 +79,12 @@ def bracket(shares: TemplateShares, ks: torch.Tensor, m_used: torch.Tensor, n_se
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data")
+    ap.add_argument("--neighbours", type=int, default=series_reference.DEFAULT_NEIGHBOURS)
+    ap.add_argument("--plane-z", type=float, default=series_reference.PLANE_Z)
     args = ap.parse_args(argv)
+    series_reference.PLANE_Z = args.plane_z
+    estimates.build_series_reference = functools.partial(
+        series_reference.build_series_reference, neighbours=args.neighbours)
     folder = args.data / "mudic-hourglass"
     if not folder.is_dir():
         print(f"skipped: {folder} not found")
@@ -105,6 +118,12 @@ def main(argv: list[str] | None = None) -> int:
           f"{float(shares.share_sq.median()):.3f}; median phi' "
           f"{float(REGISTRATION_GAIN * ref.registration.median()):.3f}; chosen m shares: "
           + " ".join(f"{k}:{float((chosen == k).double().mean()):.2f}" for k in range(7)))
+    entered = (ref.shares > 0).sum(0).double()  # frames entering the template at each POI
+    print(f"frames entering the template at a POI: median {float(entered.median()):.0f} of "
+          f"{len(ref.frames)}, effective (1 / sum a^2) median "
+          f"{float((1 / shares.share_sq).median()):.1f}; registered by a plane / a fit: "
+          f"{ref.plane_share:.2f} / {ref.fit_share:.2f} of the frames x POIs; coverage "
+          f"{ref.coverage:.2f}")
     print("\n| case | predicted / classical (median) | template | window | shared | "
           "registration |\n|---|---:|---:|---:|---:|---:|")
     for name, (sh, mu, reg) in cases.items():
