@@ -76,11 +76,56 @@ def bracket(shares: TemplateShares, ks: torch.Tensor, m_used: torch.Tensor, n_se
     return out
 
 
+def diagnose(plan) -> None:
+    """Per sampled frame, which of the template's fit tests keeps it out at the POIs: the
+    plane's value against the quadratic's, the plane's largest residual, and the same of the
+    quadratic against the cubic (z against the noise the solver predicts; shares of the POIs
+    above ``PLANE_Z``), and the median residual z (~1 where the noise is what the solver
+    says and the fit describes the field)."""
+    from torch_stsdic.analysis.local_fit import local_fit_weights
+    from torch_stsdic.movie.series_reference import (
+        _all_warps,
+        _matched,
+        _unit_variance,
+        measure_classical,
+        sample_frames,
+    )
+
+    frames = sample_frames(plan)
+    res = measure_classical(plan, frames, run_plan)
+    warps, trusted = _all_warps(plan, res)
+    ok = trusted & _matched(res, frames, plan.reference_frame)
+    unit = _unit_variance(res)
+    fit = local_fit_weights(plan.points.double().cpu(), series_reference.DEFAULT_NEIGHBOURS,
+                            plan.config.subset_size, degrees=(1, 2, 3))
+    lim = series_reference.PLANE_Z
+    print(f"\n| frame | trusted | plane: value z > {lim:g} | plane: residual z > {lim:g} | "
+          f"quadratic: value z > {lim:g} | quadratic: residual z > {lim:g} | median plane "
+          "residual z |\n|---:|---:|---:|---:|---:|---:|---:|")
+    for j, k in enumerate(frames):
+        vals = torch.where(ok[j][:, None], warps[j][:, [0, 3]], 0.0).T  # (2, N)
+        var = (2.0 * unit).expand(2, -1)
+        good = ok[j][fit.index].all(-1) & fit.posed[1] & fit.posed[2]
+        row = [f"{float(good.double().mean()):.2f}"]
+        for d in (1, 2):
+            diff = fit.apply(d, vals) - fit.apply(d + 1, vals)
+            var_d = fit.variance_factor(fit.weights[d] - fit.weights[d + 1]).clamp(min=1e-12)
+            z = (diff.abs() / (var_d * var[:, fit.index].mean(-1)).sqrt()).amax(0)
+            rz = fit.residual_z(d, vals, var).amax(0)
+            row += [f"{float((z[good] > lim).double().mean()):.2f}",
+                    f"{float((rz[good] > lim).double().mean()):.2f}"]
+            if d == 1:
+                med = float(rz[good].median()) if bool(good.any()) else float("nan")
+        print(f"| {k} | " + " | ".join(row) + f" | {med:.1f} |", flush=True)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data")
     ap.add_argument("--neighbours", type=int, default=series_reference.DEFAULT_NEIGHBOURS)
     ap.add_argument("--plane-z", type=float, default=series_reference.PLANE_Z)
+    ap.add_argument("--diagnose", action="store_true",
+                    help="only which fit test keeps each sampled frame out (no estimates)")
     args = ap.parse_args(argv)
     series_reference.PLANE_Z = args.plane_z
     estimates.build_series_reference = functools.partial(
@@ -94,6 +139,9 @@ def main(argv: list[str] | None = None) -> int:
                     sts.DICConfig(subset_size=31, m=6))
     set_reference_mode(plan, False, None, "auto", None)
     set_window_length(plan, "auto")
+    if args.diagnose:
+        diagnose(plan)
+        return 0
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         est = measure_run(plan, run=run_plan)
