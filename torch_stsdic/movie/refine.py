@@ -205,17 +205,17 @@ def _reference_noise_ratio(template: Any, reference_frame: int) -> float:
     """The reference frame's image noise variance over the template's other frames' (their
     median), from the template's weights: each frame entered a POI with the inverse of its
     noise variance (``template.shares``); the median over the POIs where the reference frame
-    entered. 1 where the template does not say."""
+    and another frame entered. 1 where the template does not say."""
     shares, frames = template.shares, list(template.frames)
     if shares is None or reference_frame not in frames or len(frames) < 2:
         return 1.0
     i = frames.index(reference_frame)
     own = shares[i].double()
     rest = torch.cat([shares[:i], shares[i + 1:]]).double()
-    ok = own > 0
-    if not bool(ok.any()):
-        return 1.0
-    return float((rest[:, ok].median(0).values / own[ok]).median())
+    rest = torch.where(rest > 0, rest, torch.nan).nanmedian(0).values  # (N,) entered only
+    ratio = rest / torch.where(own > 0, own, torch.nan)
+    ratio = ratio[torch.isfinite(ratio)]
+    return float(ratio.median()) if ratio.numel() else 1.0
 
 
 def images_rho(t: np.ndarray, ys: dict[str, np.ndarray], pred: dict[str, np.ndarray],
