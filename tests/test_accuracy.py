@@ -1,4 +1,5 @@
-"""Accuracy beyond the single-reference floor: refined reference, off-grid points."""
+"""Accuracy beyond the single-reference floor: the template's gauge from the trajectories
+(``refine_reference``), off-grid points."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import torch
 
 import torch_stsdic as sts
 from torch_stsdic.core.offgrid import carry_params
-from torch_stsdic.movie.refine import fit_intercepts, predicted_profile
+from torch_stsdic.movie.refine import fit_intercepts
 from torch_stsdic.synth import (
     HomogeneousStrain,
     Translation,
@@ -97,62 +98,48 @@ def test_fit_intercepts_unusable_points_get_no_offset():
 
 
 def test_refined_reference_lifts_the_floor():
-    """STS m=2 with the refined reference below 0.6x classical (0.77x is the single-reference
-    floor, ~0.35x predicted), no bias; without refinement the test fails (> 0.7x)."""
+    """The template's gauge from the trajectories (``refine_reference=True``) on a 41-frame
+    movie linear in time, STS m = 2: measured 0.37x classical DIC against the single
+    reference, the template alone 0.49x (its registration, common to every frame, is what
+    the trajectories' fits take out); without the fits' gauge the test fails (> 0.42x)."""
     motion = Translation(ut=0.05)
     movie = _movie(41, motion)
     pts = _grid()
     cfg0, cfg2 = sts.DICConfig(m=0, dtype="float32"), sts.DICConfig(m=2, dtype="float32")
-    single = dict(series_reference=False)  # the refined reference against the single one
-    classical = sts.track(movie, points=pts, config=cfg0, progress=False, **single)
-    plain = sts.track(movie, points=pts, config=cfg2, progress=False, **single)
+    classical = sts.track(movie, points=pts, config=cfg0, progress=False,
+                          series_reference=False)
+    plain = sts.track(movie, points=pts, config=cfg2, progress=False)  # the template
     refined = sts.track(movie, points=pts, config=cfg2, progress=False, refine_reference=True)
     e0, e_plain, e_ref = (_rms(r, motion, pts) for r in (classical, plain, refined))
-    assert e_plain > 0.7 * e0  # the single-reference floor
-    assert e_ref < 0.6 * e0
+    assert e_plain > 0.45 * e0  # the template's registration floor (0.49x measured)
+    assert e_ref < 0.42 * e0, (e_ref / e0, e_plain / e0)
+    assert e_ref < 0.85 * e_plain
     truth = ground_truth(motion, pts, refined.times.numpy())["u"].numpy()
-    # no bias: the mean over 81 points of per-point offsets of ~10e-3 px has a std of ~1.1e-3
-    # px (one movie), so 4e-3 is a 3.5 sigma bound; the bias study over seeds and crops is
-    # scripts/validation/refined_reference.py (docs/accuracy.md)
-    assert abs(float(np.mean(refined.u.numpy() - truth))) < 4e-3
+    # mean error over the 81 points (of one movie): -4.1e-3 px measured (the template alone
+    # -7.4e-3: its registration is smooth in space, so the mean over a 121 px image keeps it)
+    assert abs(float(np.mean(refined.u.numpy() - truth))) < 6e-3
     info = refined.info["refine_reference"]
     assert info["refined"] == len(pts) and info["frames_median"] == 40  # all but the reference
-    # velocities have no reference offset: unchanged
-    np.testing.assert_allclose(refined.ut.numpy(), plain.ut.numpy(), atol=5e-5)  # solver tol
-    # the reference's own row is the truth (zero displacement, gradients, std), not minus the
-    # fitted offset (~15e-3 px RMS before)
+    assert 0.3 < info["shrink"] < 0.7 and 0.1 < info["rho"] < 0.5, info  # 0.48, 0.25
+    # velocities have no offset: as the template measured them
+    same = np.isfinite(plain.ut.numpy()) & np.isfinite(refined.ut.numpy())
+    assert same[1:].mean() > 0.95
+    np.testing.assert_allclose(refined.ut.numpy()[same], plain.ut.numpy()[same], atol=5e-5)
+    # the reference's own row is the truth (zero displacement, gradients, std)
     assert refined.ok[0].all()
     for name in ("u", "v", "ux", "uy", "vx", "vy", "u_std", "v_std"):
         assert np.all(refined.field(name).numpy()[0] == 0.0), name
-    # the error grows away from the reference as the first-order theory says (the offset's
-    # error shares the frames' noise: lower near the reference, higher at the far end of the
-    # fitted line), and no more: a term in the displacement (e.g. a gain error from the noisy
-    # reference gradient) would show here. Bands of 8 frames, ratio far / near.
-    err = np.stack([refined.u.numpy() - truth, refined.v.numpy()])  # (2, T, N)
-    near, far = slice(3, 11), slice(30, 38)
-    e0 = np.stack([classical.u.numpy() - truth, classical.v.numpy()])[:, 1:]
-    a_f2 = np.mean(np.var(e0, axis=1, ddof=1))
-    rho = (np.mean(e0.mean(1) ** 2) - a_f2 / e0.shape[1]) / a_f2  # var(offset) / a_f^2
-    var = predicted_profile(refined.times.numpy(), 0, range(1, 41), 2, rho, info["shrink"])
-    ratio = np.sqrt(np.mean(err[:, far] ** 2) / np.mean(err[:, near] ** 2))
-    pred = np.sqrt(var[far].mean() / var[near].mean())  # ~1.5
-    assert 0.75 < ratio / pred < 1.33, (ratio, pred)
-    # and the level: within 25 % of the prediction over frames 3..37
-    level = np.sqrt(np.mean(err[:, 3:-3] ** 2) / (a_f2 * var[3:-3].mean()))
-    assert 0.8 < level < 1.25, level
-    # the stored predicted std follows: the refined error, not the unrefined one (2.4x
-    # higher), in every band of frames, growing with them
-    std = np.stack([refined.field("u_std").numpy(), refined.field("v_std").numpy()])
-    for band in (slice(1, 3), near, slice(15, 25), far):
-        r = np.sqrt(np.mean(err[:, band] ** 2) / np.mean(std[:, band] ** 2))
-        assert 0.75 < r < 1.33, (band, r)
-    assert np.sqrt(np.mean(std[:, far] ** 2) / np.mean(std[:, near] ** 2)) > 1.2
+    # the predicted std is the template's (it counts the registration in full): measured
+    # error / predicted 0.91 (the template alone 1.21)
+    std = np.stack([refined.field("u_std").numpy(), refined.field("v_std").numpy()])[:, 3:-3]
+    assert 0.75 < e_ref / np.sqrt(np.mean(std**2)) < 1.1
 
 
 def test_refined_reference_with_a_noisier_reference():
-    """Noise std 5 on the reference, 1 on the frames: the reference's offset is nearly all of
-    the error, and the refinement removes it (the offset's variance over the points, rho ~ 25
-    per-frame variances, is estimated: no shrink). The reference's own zero kept in the fit
+    """Noise std 5 on the reference, 1 on the frames: the template's registration to the
+    reference frame carries that frame's noise (0.42x the single reference's error, measured),
+    and the trajectories' fits remove it (0.15x: rho 1.9 per-frame variances, below the 3.0
+    the reference's noise allows, shrink 0.9). The reference's own zero kept in the fit
     made a step no line passed (short quadratic fits: 0.53x the unrefined error here, 0.9x
     with clean frames)."""
     motion = Translation(ut=0.05)
@@ -165,11 +152,13 @@ def test_refined_reference_with_a_noisier_reference():
     pts = _grid()
     cfg = sts.DICConfig(m=2, dtype="float32")
     plain = sts.track(movie, points=pts, config=cfg, progress=False, series_reference=False)
+    template = sts.track(movie, points=pts, config=cfg, progress=False)
     refined = sts.track(movie, points=pts, config=cfg, progress=False, refine_reference=True)
     e_plain, e_ref = _rms(plain, motion, pts), _rms(refined, motion, pts)
     assert e_ref < 0.3 * e_plain, (e_ref, e_plain)
+    assert e_ref < 0.5 * _rms(template, motion, pts)
     info = refined.info["refine_reference"]
-    assert info["rho"] is None or info["rho"] > 5 and info["shrink"] > 0.95
+    assert info["rho"] > 1.0 and info["shrink"] > 0.8, info
 
 
 def test_refine_reference_refuses_what_it_cannot_do():

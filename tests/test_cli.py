@@ -485,8 +485,8 @@ def test_debug_shows_traceback(capsys, tmp_path):
 
 
 def test_run_refine_reference(capsys, movie, tmp_path):
-    out = tmp_path / "rr.h5"
-    base = ["run", movie / "movie.tif", "--subset", "17", "--step", "25", "--m", "1",
+    out = tmp_path / "rr.h5"  # step 8: 36 points (the template's local fits need 25)
+    base = ["run", movie / "movie.tif", "--subset", "17", "--step", "8", "--m", "1",
             "--out", out, "--no-progress", *FAST]  # fmt: skip
     code, _, err = _run(capsys, *base, "--refine-reference", "--refine-frames", "6")
     assert code == 0, err
@@ -494,6 +494,9 @@ def test_run_refine_reference(capsys, movie, tmp_path):
         assert np.isfinite(f["u"][()]).all()
     code, _, err = _run(capsys, *base, "--overwrite", "--refine-reference", "--reference", "0:2")
     _assert_one_line_error(code, err, "refine_reference")
+    # a setting of the template: not without it
+    code, _, err = _run(capsys, *base, "--overwrite", "--refine-reference", "--single-reference")
+    _assert_one_line_error(code, err, "refine_reference: sets the gauge of the template")
 
 
 def test_run_formulation_average_is_deprecated(capsys, movie, tmp_path):

@@ -136,7 +136,7 @@ def test_failed_refine_pre_pass_leaves_no_empty_file(capsys, movie, tmp_path, mo
     if overwrite:
         out.write_bytes(b"old result")
     extra = ["--overwrite"] if overwrite else []
-    code, _, err = _run(capsys, "run", movie, "--subset", "15", "--step", "20",
+    code, _, err = _run(capsys, "run", movie, "--subset", "15", "--step", "5",
                         "--refine-reference", "--out", out, *extra, *FAST)  # fmt: skip
     _one_line(code, err, "Singular matrix")
     assert sorted(p.name for p in tmp_path.iterdir()) == (["r.h5"] if overwrite else [])

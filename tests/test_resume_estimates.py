@@ -56,7 +56,7 @@ def _no_measuring(monkeypatch):
         raise AssertionError("the run-level estimates were measured again")
 
     for name in ("measure_run", "build_series_reference", "estimate_shared_motion",
-                 "measure_offsets", "measure_time_model"):
+                 "measure_trajectory_gauge", "measure_time_model"):
         monkeypatch.setattr(estimates, name, refuse)
 
 
@@ -103,8 +103,8 @@ def test_resume_reads_the_estimates_from_the_file(movie, tmp_path, monkeypatch, 
 
 @pytest.mark.filterwarnings("ignore:refine_reference")  # this motion decelerates
 def test_refined_reference_offsets_are_read_too(movie, tmp_path, monkeypatch):
-    """The refined reference's offsets (the other kind of reference estimate) come back from
-    the file as they were measured."""
+    """The template's gauge from the trajectories (``refine_reference``) comes back from the
+    file as it was measured."""
     kw = {"refine_reference": True, "refine_frames": 9, "shared_motion": None}
     full = _run(movie, out=tmp_path / "full.h5", **kw)
     _cut(movie, tmp_path / "cut.h5", **kw)

@@ -261,7 +261,7 @@ def _measure(
     first = 1 if refine or series_ref else 0
     res = track(series, reference=reference, frames=list(range(first, first + s.frames)),
                 points=demo.points, config=cfg, device=s.device, progress=progress,
-                refine_reference=refine, series_reference=series_ref)  # fmt: skip
+                refine_reference=refine, series_reference=series_ref or refine)  # fmt: skip
     el = time.perf_counter() - t1
     ok = _np(res.status) <= int(Status.MAX_ITER)
     u, v, ut = (np.where(ok, _np(a).astype(np.float64), np.nan) for a in (res.u, res.v, res.ut))
@@ -338,8 +338,8 @@ def _table(d: DemoResult) -> str:
         lines.append(f"{'classical / STS-DIC refined ref':<{width + 3}}"
                      f"{_ratio(rows[0].rms_u, refined[0].rms_u):>11.2f}x")
         lines.append("The refined reference (the reference as frame 0 of the series, "
-                     "refine_reference=True) fits the\nreference's offset away from the "
-                     "trajectory of every point, without still frames.")
+                     "refine_reference=True): the template\nmade from the series, its zero "
+                     "displacement from the trajectory of every point.")
     if templ:
         lines.append(f"{'classical / STS-DIC series ref':<{width + 3}}"
                      f"{_ratio(rows[0].rms_u, templ[0].rms_u):>11.2f}x")

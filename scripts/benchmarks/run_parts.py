@@ -41,7 +41,7 @@ PROBES = [
     ("torch_stsdic.movie.series_reference", "build_series_reference", "pass:template"),
     ("torch_stsdic.movie.series_reference", "measure_time_model", "pass:time model"),
     ("torch_stsdic.movie.window_length", "measure_window_lengths", "pass:window lengths"),
-    ("torch_stsdic.movie.refine", "measure_offsets", "pass:refined reference"),
+    ("torch_stsdic.movie.refine", "measure_trajectory_gauge", "pass:trajectory gauge"),
     ("torch_stsdic.movie.sinks", "HDF5Sink.finish", "pass:strains + writing"),
     ("torch_stsdic.io.images", "ImageSeries.get", "kind:preparing images"),
     ("torch_stsdic.core.solver", "SubsetSolver.prepare", "kind:preparing images"),

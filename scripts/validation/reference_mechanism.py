@@ -1,18 +1,16 @@
-"""One reference mechanism: the template made from the series (the default) against the
-refined reference (``refine_reference=True``: the single reference image, each point's
-constant offset fitted from its classical trajectory and subtracted), on DIC Challenge
-sample 3, the relaxing-stretch render of ``window_length.py`` (noise sigma 2 on every image,
-31 frames) and ``linear41``, the render of ``refined_reference.py`` (161 px, 41 frames, u =
-t/20, v = t/40, noise sigma 5 on every image: where the refined reference beat the template
-at m = 2), with m = 2 and the windows chosen from the data (``window_length="auto"``).
+"""One reference mechanism: the template made from the series (the default) against the same
+with its zero displacement from the trajectories (``refine_reference=True``: each point's
+classical trajectory against the template fitted in time, its shrunk value at the reference
+time subtracted with the template's gauge; until 2026-11-28 a mechanism of its own against
+the single reference image), on DIC Challenge sample 3, the relaxing-stretch render of
+``window_length.py`` (noise sigma 2 on every image, 31 frames) and ``linear41``, the render
+of ``refined_reference.py`` (161 px, 41 frames, u = t/20, v = t/40, noise sigma 5 on every
+image: where the old refined reference beat the template at m = 2), with m = 2 and the
+windows chosen from the data (``window_length="auto"``).
 
 Per run: RMS error of u, v against the truth over frames 1.. and its ratio to classical DIC
 against the single reference image, the random error (each frame's mean error taken out),
-the RMS predicted u_std / v_std and the ratio, the RMS velocity error. ``--prototype`` adds
-the refinement as a setting of the template, outside the library: the intercepts that
-:func:`~torch_stsdic.movie.refine.fit_intercepts` fits to every point's classical
-trajectory against the template (frames 1..), subtracted from the template run with the
-chosen windows (its gauge replaced; no predicted error).
+the RMS predicted u_std / v_std and the ratio, the RMS velocity error.
 
     python scripts/validation/reference_mechanism.py [--cases sample3 stretch linear41]
         [--data ../shared/data]
@@ -31,7 +29,6 @@ import torch
 import torch_stsdic as sts
 from torch_stsdic import synth
 from torch_stsdic.io.images import load_series
-from torch_stsdic.movie.refine import fit_intercepts, images_rho
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from series_reference_floor import errors  # noqa: E402
@@ -42,9 +39,9 @@ ROOT = Path(__file__).resolve().parents[2]
 #: (label, m, window_length, keyword arguments)
 RUNS = (("classical, single reference", 0, "fixed", {"series_reference": False}),
         ("template, m = 2", 2, "fixed", {}),
-        ("refined, m = 2", 2, "fixed", {"refine_reference": True}),
+        ("trajectory gauge, m = 2", 2, "fixed", {"refine_reference": True}),
         ("template, chosen", 6, "auto", {}),
-        ("refined, chosen", 6, "auto", {"refine_reference": True}))
+        ("trajectory gauge, chosen", 6, "auto", {"refine_reference": True}))
 
 
 def case(name: str, data: Path):
@@ -76,29 +73,12 @@ def case(name: str, data: Path):
     return series, {"step": 10}, truth
 
 
-def trajectory_gauge(series, kw: dict, chosen) -> tuple[torch.Tensor, torch.Tensor]:
-    """u, v (T, N) of the run ``chosen`` less the intercepts fitted at t = 0 to every point's
-    classical trajectory against the template (the prototype of ``--prototype``)."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        cls = sts.track(series, config=sts.DICConfig(m=0, subset_size=21), progress=False,
-                        **kw)
-    t = (cls.times.double() - cls.times.double()[0]).numpy()[1:]
-    ys = {k: getattr(cls, k).double().numpy()[1:] for k in ("u", "v")}
-    pred = {k: cls.std[k].double().numpy()[1:] ** 2 for k in ("u", "v")}
-    off = fit_intercepts(t, ys, min_frames=5, rho_images=images_rho(t, ys, pred))
-    return (chosen.u.double() - torch.from_numpy(off.values["u"])[None],
-            chosen.v.double() - torch.from_numpy(off.values["v"])[None])
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", nargs="+", default=["sample3", "stretch", "linear41"])
     ap.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data")
     ap.add_argument("--runs", nargs="*", type=int, default=None,
                     help="indices into RUNS (default all; 0, the baseline, always runs)")
-    ap.add_argument("--prototype", action="store_true",
-                    help="also the trajectory gauge on the template (after 'template, chosen')")
     args = ap.parse_args(argv)
     runs = RUNS if args.runs is None else tuple(RUNS[i] for i in sorted({0, *args.runs}))
     print("| case | run | RMS 1e-3 px | x classical | random 1e-3 px | predicted 1e-3 px | "
@@ -126,12 +106,6 @@ def main(argv: list[str] | None = None) -> int:
                   f"{err['random'] * 1e3:.2f} | {err['predicted'] * 1e3:.2f} | "
                   f"{err['random'] / err['predicted']:.2f} | "
                   + ("-" if vel != vel else f"{vel * 1e3:.2f}") + f" | {sec:.1f} |", flush=True)
-            if args.prototype and label == "template, chosen":
-                u, v = trajectory_gauge(series, kw, res)
-                e = torch.stack([u[1:] - gt["u"][1:], v[1:] - gt["v"][1:]])
-                rms = float(e[torch.isfinite(e)].pow(2).mean().sqrt())
-                print(f"| {name} | template, chosen, trajectory gauge (prototype) | "
-                      f"{rms * 1e3:.2f} | {rms / base:.3f} | - | - | - | - | - |", flush=True)
     return 0
 
 

@@ -11,14 +11,11 @@ u = t/20, v = t/40 px, 21x21 subsets, float32:
 Schemes: classical (m = 0), STS m = 2, against the reference image alone
 (``series_reference=False``), against the reference made from the series
 (``series_reference=True``; predicted ``a sqrt(w + 1/N_t)``, N_t = min(frames, 21) the
-template's images), and with ``refine_reference=True``; points on the
-pixel grid and the same grid moved by (+0.37, -0.41) px. Prediction (first order, docs/
-accuracy.md): with ``a`` the frame-to-frame scatter of classical DIC (the frames' share),
-classical sqrt(2) a, STS sqrt(1 + 1/5) a, refined: ``a`` times the root of the mean over the
-frames of :func:`torch_stsdic.movie.refine.predicted_profile` (a line through the L frames after the
-reference, shrunk as the run reports; var(offset) / a^2 from the classical run), about
-sqrt(w + d) a with w = 1 (classical) or 1/5 (STS) and d = 1/L + ((L + 1) / 2)^2 / S_tt the
-intercept variance of that line.
+template's images), and with ``refine_reference=True`` (the template, its gauge from the
+trajectories: predicted as the template, whose registration neither prediction counts);
+points on the pixel grid and the same grid moved by (+0.37, -0.41) px. Prediction (first
+order, docs/accuracy.md): with ``a`` the frame-to-frame scatter of classical DIC (the
+frames' share), classical sqrt(2) a, STS sqrt(1 + 1/5) a.
 
     python scripts/validation/refined_reference.py            # a few minutes on 2 loaded cores
     python scripts/validation/refined_reference.py --quick    # smoke run (21 frames)
@@ -37,7 +34,6 @@ import tifffile
 import torch
 
 import torch_stsdic as sts
-from torch_stsdic.movie.refine import predicted_profile
 from torch_stsdic.synth import Translation, make_speckle, render_series
 
 REPO = Path(__file__).resolve().parents[2]
@@ -121,20 +117,15 @@ def main(argv=None) -> int:
                 cfg = sts.DICConfig(m=m, dtype="float32")
                 t0 = time.perf_counter()
                 res = sts.track(mv, points=pts, config=cfg, progress=False,
-                                refine_reference=refine, series_reference=mode == "series")
+                                refine_reference=refine,
+                                series_reference=mode in ("series", "refined"))
                 sec = time.perf_counter() - t0
                 err = errors(res, rows)
                 if m == 0 and mode == "single":
                     a = err["scatter"]
-                    # var(offset) / a^2: the offset's RMS less its share of the frames' noise
-                    rho = max(err["offset"] ** 2 - a**2 / (rows.stop - rows.start), 0.0) / a**2
                 info = res.info.get("refine_reference") or {}
                 frames_l = info.get("frames_median", 0)
-                if refine:
-                    var = predicted_profile(res.times.numpy(), 0, range(1, n), m, rho,
-                                            info.get("shrink", 1.0))
-                    pred = a * math.sqrt(float(var[rows].mean()))
-                elif mode == "series":  # the template's noise: 1/N of a frame's (N <= 21)
+                if mode in ("series", "refined"):  # the template's noise: 1/N of a frame's
                     pred = a * math.sqrt((1.0 if m == 0 else 0.2) + 1.0 / min(n, 21))
                 else:
                     pred = a * math.sqrt(2.0 if m == 0 else 1.2)

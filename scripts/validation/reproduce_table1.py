@@ -17,9 +17,10 @@ Reference-noise protocols (sigma > 0):
 * ``noisy``: independent noise on every image, reference included (the paper's stated protocol);
 * ``clean``: a noise-free reference, noisy frames;
 * ``mean8``: the reference is the mean of 8 still noisy frames (sigma / sqrt(8));
-* ``refined``: as ``noisy``, with the noisy reference as frame 0 (t = 0) of the series and
-  ``refine_reference=True`` (its per-point offset fitted away over the 10 frames, see
-  docs/accuracy.md); no predicted floor.
+
+(The ``refined`` protocol, the single-reference refinement of ``refine_reference=True``,
+was removed on 2026-11-28: ``refine_reference`` is now a setting of the template made from the
+series, which needs 25 points and 3 frames; docs/accuracy.md.)
 
 The ``average`` formulation is retired (it runs as ``joint+average``) and not in the table.
 
@@ -53,7 +54,7 @@ PAPER_SIGMA5 = {1: 10.7272, 3: 5.5453, 5: 4.7422, 7: 4.4291, 9: 3.7261}  # e-3 p
 PAPER_SIGMA0 = {1: 1.1779, 3: 1.6364, 5: 1.6434, 7: 1.8627, 9: 1.7438}
 PAPER_TIME = {1: 2.9742, 3: 53.2310, 5: 95.7100, 7: 120.7580, 9: 143.8548}  # s
 VELOCITY = 1.0 / 20.0
-PROTOCOLS = ("noisy", "clean", "mean8", "refined")
+PROTOCOLS = ("noisy", "clean", "mean8")
 FORM_LABEL = {"auto": "auto (joint)", "joint": "joint", "joint+average": "joint+average"}
 
 
@@ -74,7 +75,7 @@ def noisy_inputs(ref, frames, sigma, seed, protocol, n_still=8):
     nf = sigma * torch.randn(frames.shape, generator=gen, dtype=torch.float64)
     nr = sigma * torch.randn(ref.shape, generator=gen, dtype=torch.float64)
     still = sigma * torch.randn((n_still, *ref.shape), generator=gen, dtype=torch.float64)
-    if protocol in ("noisy", "refined"):
+    if protocol == "noisy":
         r = ref + nr
     elif protocol == "clean":
         r = ref
@@ -86,8 +87,7 @@ def noisy_inputs(ref, frames, sigma, seed, protocol, n_still=8):
 
 
 def sigma_ref_of(protocol: str, sigma: float, n_still: int = 8) -> float:
-    return {"noisy": sigma, "clean": 0.0, "mean8": sigma / math.sqrt(n_still),
-            "refined": sigma}[protocol]
+    return {"noisy": sigma, "clean": 0.0, "mean8": sigma / math.sqrt(n_still)}[protocol]
 
 
 def rms(x: torch.Tensor) -> float:
@@ -95,22 +95,10 @@ def rms(x: torch.Tensor) -> float:
     return float(x.pow(2).mean().sqrt()) if x.numel() else math.nan
 
 
-def run_window(ref, frames, times, pts, cfg, centre, mode, refine=False):
-    """Solve and return (u, ut, truth_u, truth_ut, seconds, mean iterations); ``refine``:
-    the reference is prepended to the series (t = 0) and refined."""
+def run_window(ref, frames, times, pts, cfg, centre, mode):
+    """Solve and return (u, ut, truth_u, truth_ut, seconds, mean iterations)."""
     m = cfg.m
     t0 = time.perf_counter()
-    if refine:
-        series = torch.cat([ref[None], frames])
-        t_all = torch.cat([torch.zeros(1, dtype=times.dtype), times])
-        targets = [centre + 1] if mode == "centre" else list(range(1, len(t_all)))
-        res = sts.track(series, reference=0, frames=targets, points=pts, config=cfg,
-                        times=t_all, progress=False, refine_reference=True)
-        dt = time.perf_counter() - t0
-        tt = res.times.view(-1, 1).expand_as(res.u)
-        return (res.u.reshape(-1), res.ut.reshape(-1), (tt * VELOCITY).reshape(-1),
-                torch.full_like(res.u.reshape(-1), VELOCITY), dt,
-                float(res.iterations.float().mean()))
     if mode == "centre":
         sl = slice(centre - m, centre + m + 1)
         sol = sts.solve_window(ref, frames[sl], pts, config=cfg, times=times[sl])
@@ -206,16 +194,14 @@ def main(argv=None) -> int:
                     for s in range(args.seeds):
                         r, f = noisy_inputs(ref0, frames0, sigma, s, protocol)
                         u, ut, tu, tut, sec, it = run_window(r, f, times, pts, cfg, centre,
-                                                             args.mode, protocol == "refined")
+                                                             args.mode)
                         errs.append(u - tu)
                         errt.append(ut - tut)
                         rand.append(u - clean_cache[key])
                         secs.append(sec)
                         its.append(it)
                     e, et, rr = torch.cat(errs), torch.cat(errt), torch.cat(rand)
-                    if protocol == "refined":
-                        pred_u = pred_ut = math.nan
-                    elif sigma > 0:
+                    if sigma > 0:
                         pred_u, pred_ut = predict(ref0, pts, cfg, protocol, sigma, times,
                                                   centre, args.mode)
                     else:

@@ -161,9 +161,9 @@ def _add_frames(p: argparse.ArgumentParser) -> None:
     g.add_argument(
         "--refine-reference",
         action="store_true",
-        help="remove the noisy reference's constant per-point offset: classical DIC of the "
-        "frames around the reference, a polynomial fit in time per point, its value at the "
-        "reference time subtracted (needs --reference to be one frame; docs/accuracy.md)",
+        help="the template's zero displacement from the trajectories: classical DIC of the "
+        "frames around the reference against it, a fit in time per point, its value at the "
+        "reference time subtracted; pays on long smooth movies (docs/accuracy.md)",
     )
     opt(g, "--refine-frames", type=options.int_min(5), default=None, metavar="N",
         help="most frames of that fit",
@@ -178,8 +178,8 @@ def _add_frames(p: argparse.ArgumentParser) -> None:
         "measurement (2 without a number), zero displacement fixed by the reference frame's "
         "own measurement; less reference noise at the cost of a classical run of those frames "
         "per round (docs/validation/series_reference.md)",
-        shown="on, 2 rounds, where the reference is one frame of the series and not updated "
-        "or refined")  # fmt: skip
+        shown="on, 2 rounds, where the reference is one frame of the series and not "
+        "updated")  # fmt: skip
     ref_mode.add_argument("--single-reference", action="store_true",
                           help="measure against the reference image alone (classical DIC's "
                           "baseline; the template's noise gain is lost)")

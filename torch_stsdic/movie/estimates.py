@@ -4,7 +4,7 @@ A run measures, from the whole movie, a few things every block then uses: the sp
 shared motion and its load steps with the measuring pass's solutions (the first block's
 guess; :func:`~torch_stsdic.movie.shared_pass.estimate_shared_motion`), the reference made
 from the series (:func:`~torch_stsdic.movie.series_reference.build_series_reference`), the
-refined reference's per-point offsets (:func:`~torch_stsdic.movie.refine.measure_offsets`)
+template's gauge from the trajectories (:func:`~torch_stsdic.movie.refine.measure_trajectory_gauge`)
 and, for a reference given as an image, its noise ratio. :func:`measure_run` measures them
 (:class:`RunEstimates`); :func:`~torch_stsdic.movie.series.run_plan` does so itself, or takes
 them measured already: the distributed runner (:mod:`torch_stsdic.movie.distributed`)
@@ -37,7 +37,7 @@ from torch_stsdic.movie.classical_pass import ClassicalPass
 from torch_stsdic.movie.frames import FrameStore, segment_bounds, window_frames
 from torch_stsdic.movie.plan import RunPlan
 from torch_stsdic.movie.reference import noise_ratio
-from torch_stsdic.movie.refine import ReferenceOffsets, measure_offsets
+from torch_stsdic.movie.refine import ReferenceOffsets, measure_trajectory_gauge
 from torch_stsdic.movie.series_reference import (
     SeriesReference,
     build_series_reference,
@@ -74,7 +74,8 @@ class RunEstimates:
             of a block without a carry); carried in the windows where ``applied``.
         series_reference: the reference made from the series (its image, noise ratio and
             added variance).
-        offsets: the refined reference's per-point offsets.
+        offsets: the template's gauge from the trajectories (``refine_reference``), which
+            every row has subtracted in place of the template's own.
         noise_ratio: the reference's noise variance over a frame's (None: the first block
             measures it, as a one-process run does).
         time_model: (N,) bool, where the time model holds, for an STS run against its
@@ -185,10 +186,10 @@ def measure_run(plan: RunPlan, ref_raw: torch.Tensor | None = None, *, run: RunF
             shared=shared if shared is not None and shared.applied else None,
             measured=measured, frames=frames)
     offsets = None
-    if plan.options.get("refine_reference"):
-        offsets = measure_offsets(plan, int(plan.options["refine_reference"]),
-                                  shared if shared is not None and shared.applied else None,
-                                  run=run)
+    if plan.options.get("refine_reference") and series_ref is not None:
+        offsets = measure_trajectory_gauge(
+            plan, series_ref, int(plan.options["refine_reference"]),
+            shared if shared is not None and shared.applied else None, run=run)
     window_m = None
     if wants_window_lengths(plan):
         window_m = measure_window_lengths(plan, run, shared if shared is not None

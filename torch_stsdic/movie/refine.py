@@ -1,41 +1,33 @@
-"""Refined reference: lift the single-reference noise floor by re-zeroing every trajectory.
+"""The template's zero displacement from the trajectories (``refine_reference=True``): a
+setting of the reference made from the series (:mod:`~torch_stsdic.movie.series_reference`).
 
-With a noisy reference ``f = f0 + n_ref`` every Gauss-Newton solve of a point sees the same
-reference subset, so to first order its error is ``P (n_t - n_ref)``: a part ``c = -P n_ref``
-that is the *same* for every frame and window of the point (a constant offset in time), and
-the frames' part ``s_t = P n_t`` that the STS window averages. The window cannot remove the
-offset; averaging warped frames into a new reference does not either (such a template
-inherits the offset it was warped with). What removes it is the definition of zero
-displacement: the truth is 0 at the reference time, so the offset is the value a *fit over
-many frames* of the point's own trajectory takes at the reference time.
+Measured against the template, a point's classical displacement at every frame carries one
+and the same error: the template's registration (the local fits that mapped the sampled
+frames back to the reference frame carry that frame's noise, smoothed over the fit's
+neighbourhood) less the gauge the reference frame read for it. The window cannot remove a
+constant; the truth is 0 at the reference time, so the constant is what a *fit over many
+frames* of the point's own trajectory says at the reference time.
 
-:func:`measure_offsets` runs classical DIC (every frame alone against the reference) on up to
-``max_frames`` frames around the reference -- the reference itself left out: matched against
-itself it gives exactly 0, which says nothing about ``c`` -- then per point fits polynomials in
-time to the per-frame values over nested windows and keeps the fit with the smallest predicted
-intercept variance among those whose next-higher term is not significant (|t| below Student's
-t quantile of the normal's 3 at the degrees of freedom of the noise, which comes from the
-trajectory's own third differences): long linear fits where the motion is smooth, short or
-quadratic ones where it is not. The intercepts are then shrunk towards 0 by
-``rho / (rho + d)`` (``d``: the fit's intercept variance in units of the per-frame variance;
-``rho``: var(c) / var(s_t), estimated over all points), the least-squares estimate of ``c``
-given that the offsets are zero-mean with that variance (empirical Bayes; rho ~ 1 where every
-image has the same noise, large where the frames are much cleaner than the reference).
+:func:`measure_trajectory_gauge` measures up to ``max_frames`` frames around the reference
+classically against the template (the reference itself left out: its measurement is the
+gauge), subtracts the template's gauge, and per point fits polynomials in time over nested
+windows (:func:`fit_intercepts`): the fit with the smallest predicted intercept variance
+among those whose next-higher term is not significant (|t| below Student's t quantile of the
+normal's 3 at the degrees of freedom of the noise, which comes from the trajectory's own
+third differences). The intercepts are shrunk towards 0 by ``rho / (rho + d)`` (``d``: the
+fit's intercept variance in units of the per-frame variance; ``rho``: var(offset) /
+var(per-frame error), estimated over all points, capped by what the images' noise and the
+template's registration allow, :func:`images_rho`): the least-squares estimate of the
+offset given its spread. The template's gauge plus these intercepts are subtracted from
+every row (:func:`apply_offsets`); the reference frame's own row is set to the truth.
 
-:func:`apply_offsets` subtracts the intercepts (u, v and the displacement gradients;
-velocities have no offset) from result rows, sets the reference frame's own row to the
-truth (zero displacement and gradients, and their predicted std; the velocity as measured),
-and scales the other rows' u_std, v_std by :func:`std_factor` (the first-order ratio of the
-refined to the unrefined error at that frame).
-
-What remains is ``s_bar(t) - dc`` (``s_bar``: the window's average of the frames' errors, ``dc``:
-the intercept's error), which is *not* the same at every frame: ``dc`` is a weighted sum of
-the same frames' errors (positive weights near the reference, negative at the far end of a
-line's span), so its covariance with ``s_bar(t)`` lowers the error near the reference and
-raises it far from it; per point the remainder is ``db t + (local residual)``, ``db`` the fitted
-slope's error. Measured on renders, this first-order profile is the whole story (no term in
-the displacement from the noisy reference gradient): ``docs/accuracy.md``,
-``scripts/refine_drift.py``.
+Where it pays: a long movie whose motion is smooth near the reference (41 frames, linear:
+0.27x classical DIC against the template's 0.37x); where the trajectory is short (11
+frames) the intercepts are noisier than the registration they correct (DIC Challenge sample
+3: 0.29x against 0.25x), and where the motion decelerates next to the reference the shrink
+leaves it as the template had it (docs/validation/reference_mechanism.md). The predicted
+u_std, v_std stay the template's (they count the registration in full: high by up to the
+share removed).
 """
 
 from __future__ import annotations
@@ -45,18 +37,19 @@ import time
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
 
 from torch_stsdic.analysis.result import USABLE, TrackResult
 from torch_stsdic.core.shared_motion import SharedMotion
-from torch_stsdic.movie.frames import window_frames
+from torch_stsdic.movie.classical_pass import classical_subplan
 from torch_stsdic.movie.plan import RunPlan
+from torch_stsdic.movie.template_noise import REGISTRATION_GAIN
 
-__all__ = ["ReferenceOffsets", "check_refinable", "fit_frames", "measure_offsets",
-           "fit_intercepts", "apply_offsets", "predicted_profile", "std_factor",
-           "set_refinement",
+__all__ = ["ReferenceOffsets", "check_refinable", "fit_frames", "measure_trajectory_gauge",
+           "fit_intercepts", "images_rho", "apply_offsets", "set_refinement",
            "DEFAULT_MAX_FRAMES"]
 
 DEFAULT_MAX_FRAMES = 41
@@ -85,7 +78,7 @@ class ReferenceOffsets:
         t_fit: (L,) times of the fitted frames minus the reference time; min_frames: the
             shortest window tried (with ``frames``, they give each point's fitted window).
         fit: (L,) series indices of the fitted frames; times: (T,) series times; m: the run's
-            window half-width (set by :func:`measure_offsets`; used to rescale u_std, v_std).
+            window half-width (set by :func:`measure_trajectory_gauge`).
         excess: variance of the intercepts beyond the reference's noise and the fits' errors,
             in units of the per-frame variance (0: none): motion near the reference that no
             accepted fit describes (:func:`_shrink`); the subtracted share of it is error.
@@ -152,59 +145,77 @@ def fit_frames(plan: RunPlan, max_frames: int) -> list[int]:
     return list(range(start, start + count))
 
 
-def measure_offsets(plan: RunPlan, max_frames: int = DEFAULT_MAX_FRAMES,
-                    shared: SharedMotion | None = None, *,
-                    run: Callable[..., TrackResult]) -> ReferenceOffsets:
-    """Classical DIC of the frames around the reference, then :func:`fit_intercepts`.
+def measure_trajectory_gauge(plan: RunPlan, template: Any,
+                             max_frames: int = DEFAULT_MAX_FRAMES,
+                             shared: SharedMotion | None = None, *,
+                             run: Callable[..., TrackResult]) -> ReferenceOffsets:
+    """The template's gauge from the trajectories: classical DIC of the frames around the
+    reference against the ``template``'s image (a :class:`~torch_stsdic.movie.
+    series_reference.SeriesReference`), its gauge subtracted, then
+    :func:`fit_intercepts`; returned with the gauge added back (what every row has
+    subtracted in its place). The images' cap on the offsets' spread (:func:`images_rho`)
+    counts the template's registration noise beside the solver's predicted variance and the
+    template's ``added_var``: ``REGISTRATION_GAIN`` times its fits' variance factor, in units
+    of the reference frame's noise variance (the frames were registered to it;
+    :func:`_reference_noise_ratio`).
 
-    With the specimen's ``shared`` motion (:mod:`torch_stsdic.core.shared_motion`) the fits are
-    of each trajectory *minus* it: a specimen that shakes as a whole leaves smooth
-    trajectories, so the long fits pass their test; the shared motion is zero at the
-    reference, so the intercepts are the same offsets."""
+    With the specimen's ``shared`` motion (:mod:`torch_stsdic.core.shared_motion`) the fits
+    are of each trajectory *minus* it (zero at the reference: the same offsets)."""
     check_refinable(plan)
     if int(max_frames) < 5:
         raise ValueError(f"refine_frames: must be >= 5, got {max_frames!r}")
     t0 = time.perf_counter()
-    # the reference against itself gives exactly 0, whatever its offset: left out of the fit
-    # (and any frame stamped with the reference's time, which fit_intercepts drops too)
+    # the reference's own measurement is the gauge: left out of the fit (and any frame
+    # stamped with the reference's time, which fit_intercepts drops too)
     t_ref = plan.times[plan.reference_frame]
     frames = [k for k in fit_frames(plan, max_frames)
               if k != plan.reference_frame and plan.times[k] != t_ref]
-    cfg = plan.config.replace(m=0)
-    opts = {**plan.options, "smoothing": None, "reference_update": None,
-            "shared_motion": None}
-    opts.pop("refine_reference", None)
-    opts["series_reference"] = None  # a sub-run: against the plan's reference image
-    names = tuple(nm for nm in plan.param_names if nm not in _RATES)
-    sub = dataclasses.replace(plan, config=cfg, targets=frames, options=opts,
-                              param_names=names)
+    sub = dataclasses.replace(classical_subplan(plan, frames), reference_image=template.image,
+                              reference_frame=-1, reference_desc="array:series-template")
     res = run(sub, progress=False)
     vals = {"u": res.u, "v": res.v, **res.gradients}
     ys = {k: np.asarray(v.detach().cpu().numpy(), dtype=np.float64) for k, v in vals.items()}
     usable = (res.status <= USABLE).cpu().numpy()
+    base = {} if template.gauge is None else template.gauge.values
     for k in ys:
-        ys[k] = np.where(usable, ys[k], np.nan)
+        ys[k] = np.where(usable, ys[k] - base.get(k, 0.0), np.nan)
     if shared is not None:
         _remove_shared(ys, shared, plan, frames)
     t = plan.times[frames] - plan.times[plan.reference_frame]
-    pred = {k: np.where(usable, np.asarray(res.std[k].detach().cpu().numpy(), np.float64) ** 2,
-                        np.nan) for k in ("u", "v") if k in res.std}
+    added = (0.0 if template.added_var is None
+             else template.added_var.double().cpu().numpy()[None])
+    gain = (0.0 if template.registration is None else REGISTRATION_GAIN
+            * template.registration.double().cpu().numpy()[None]
+            * _reference_noise_ratio(template, plan.reference_frame)
+            / (1 + template.noise_ratio))
+    pred = {k: np.where(usable, np.asarray(res.std[k].detach().cpu().numpy(), np.float64) ** 2
+                        * (1 + gain) + added, np.nan) for k in ("u", "v") if k in res.std}
     rho_img = images_rho(t, ys, pred) if len(pred) == 2 else float("nan")
     out = fit_intercepts(t, ys, min_frames=max(5, plan.config.n_frames), rho_images=rho_img)
-    if out.excess > 0:
-        warnings.warn(
-            f"refine_reference: the intercepts of the trajectories vary "
-            f"{out.rho + out.excess:.3g} per-frame variances, the images' noise allows "
-            f"{rho_img:.3g}: the motion next to the reference is not what the fits say "
-            f"(it decelerates, or moves in load steps), so little is subtracted (median shrink "
-            f"{float(np.median(out.shrink[out.frames > 0])) if (out.frames > 0).any() else 1:.3g})",
-            RuntimeWarning, stacklevel=2)
+    out.values = {k: v + base.get(k, 0.0) for k, v in out.values.items()}
     out.seconds = time.perf_counter() - t0
     out.reference_frame = int(plan.reference_frame)
     out.fit = np.asarray(frames, dtype=np.int64)
     out.times = np.asarray(plan.times, dtype=np.float64)
     out.m = int(plan.config.m)
     return out
+
+
+def _reference_noise_ratio(template: Any, reference_frame: int) -> float:
+    """The reference frame's image noise variance over the template's other frames' (their
+    median), from the template's weights: each frame entered a POI with the inverse of its
+    noise variance (``template.shares``); the median over the POIs where the reference frame
+    and another frame entered. 1 where the template does not say."""
+    shares, frames = template.shares, list(template.frames)
+    if shares is None or reference_frame not in frames or len(frames) < 2:
+        return 1.0
+    i = frames.index(reference_frame)
+    own = shares[i].double()
+    rest = torch.cat([shares[:i], shares[i + 1:]]).double()
+    rest = torch.where(rest > 0, rest, torch.nan).nanmedian(0).values  # (N,) entered only
+    ratio = rest / torch.where(own > 0, own, torch.nan)
+    ratio = ratio[torch.isfinite(ratio)]
+    return float(ratio.median()) if ratio.numel() else 1.0
 
 
 def images_rho(t: np.ndarray, ys: dict[str, np.ndarray], pred: dict[str, np.ndarray],
@@ -540,9 +551,7 @@ def apply_offsets(rows: dict[str, np.ndarray], offsets: ReferenceOffsets,
     """Rows (name -> (B, N)) with the offsets subtracted (names without an offset, and the
     velocities, unchanged). With ``frames`` (B,) (the rows' series frames), the reference
     frame's row reports the truth where it was solved (status usable): displacement and
-    gradients 0, and so their predicted std (u_std, v_std); the velocity stays as measured. The
-    other rows' u_std, v_std (predicted for the unrefined solution, the reference's noise
-    included) are scaled by :func:`std_factor`."""
+    gradients 0, and so their predicted std (u_std, v_std); the velocity stays as measured."""
     out = dict(rows)
     for k, off in offsets.values.items():
         if k in out and k not in _RATES:
@@ -550,16 +559,6 @@ def apply_offsets(rows: dict[str, np.ndarray], offsets: ReferenceOffsets,
     if frames is None:
         return out
     frames = [int(f) for f in frames]
-    stds = [k for k in ("u_std", "v_std") if k in out]
-    if stds and offsets.fit is not None and offsets.times is not None:
-        m_rows = out["m"] if "m" in out else np.full(out[stds[0]].shape, offsets.m)
-        for k in stds:
-            out[k] = out[k].copy()
-        for i, fr in enumerate(frames):
-            if fr != offsets.reference_frame:
-                factor = std_factor(offsets, fr, np.asarray(m_rows[i]))
-                for k in stds:
-                    out[k][i] = out[k][i] * factor
     if offsets.reference_frame not in frames:
         return out
     i = frames.index(offsets.reference_frame)
@@ -572,106 +571,10 @@ def apply_offsets(rows: dict[str, np.ndarray], offsets: ReferenceOffsets,
     return out
 
 
-def _window_weights(t: np.ndarray, k: int, m: int) -> np.ndarray:
-    """(T,) weights of the STS value at frame k on the frames: the line of its window
-    (``window_frames``: k-m .. k+m, shifted at the ends) evaluated at ``t[k]``."""
-    n = len(t)
-    w = window_frames(torch.tensor([k]), int(m), n)[0].numpy()
-    lam = np.zeros(n)
-    lam[w] = np.linalg.pinv(np.stack([np.ones(len(w)), t[w] - t[k]], 1))[0]
-    return lam
-
-
-def _intercept_weights(t: np.ndarray, fit: np.ndarray, degree: int) -> np.ndarray:
-    """(T,) weights of the intercept at t = 0 of a polynomial of ``degree`` fitted to the frames
-    ``fit`` (series indices)."""
-    om = np.zeros(len(t))
-    om[fit] = np.linalg.pinv(np.vander(t[fit], degree + 1, increasing=True))[0]
-    return om
-
-
-def _error_var(lam: np.ndarray, om: np.ndarray, ref: int, rho: float,
-               shrink: np.ndarray | float, excess: float = 0.0
-               ) -> tuple[np.ndarray, np.ndarray]:
-    """First-order variances, in units of a^2, of the STS value with weights ``lam`` minus
-    ``shrink`` (k) times the intercept with weights ``om``, both on the classical errors
-    ``e_j = c + s_j`` (``e_ref = 0``; var(c) = rho a^2, var(s_j) = a^2):
-    ``rho (1 - lam_ref - k sum om)^2 + sum_j (lam_j - k om_j)^2`` (j != ref); and the unrefined
-    variance *as* :mod:`torch_stsdic.core.uncertainty` *predicts it* (u_std): ``rho + sum_j
-    lam_j^2``
-    over all frames, i.e. a reference frame inside the window counted as one more independent
-    frame (it is not: its ``n_t - n_ref`` is 0, so that prediction is too high for the first m
-    rows; dividing by it keeps the rescaled u_std right there). rho = inf: both divided by
-    rho. ``excess``: the intercept's variance that the offset does not share (motion next to
-    the reference that the fit missed, :func:`_shrink`), ``k^2 excess`` more."""
-    k = np.asarray(shrink, dtype=np.float64)
-    rest = np.arange(len(lam)) != ref
-    a, b, c = np.sum(lam[rest] ** 2), np.sum(lam[rest] * om[rest]), np.sum(om[rest] ** 2)
-    coef = 1.0 - lam[ref] - k * om[rest].sum()
-    frames_part = a - 2 * k * b + k * k * c
-    if excess > 0:
-        frames_part = frames_part + np.where(k > 0, k * k * excess, 0.0)
-    if np.isinf(rho):
-        return coef**2 + 0 * frames_part, 1.0 + 0 * k
-    return rho * coef**2 + frames_part, rho + np.sum(lam**2) + 0 * k
-
-
-def predicted_profile(times: np.ndarray, reference_frame: int, fit: Sequence[int], m: int,
-                      rho: float, shrink: float = 1.0, excess: float = 0.0) -> np.ndarray:
-    """(T,) first-order variance of the refined STS error at every frame of a series, in units
-    of the per-frame variance ``a^2`` of classical DIC, for an offset from a straight line.
-
-    Frame ``k``'s STS value is the line of its window (``window_frames``: k-m .. k+m, shifted at
-    the ends) evaluated at ``t_k``, weights ``lam_k``, on the classical errors ``e_j = c + s_j``
-    (``e_ref = 0``: the reference against itself); the offset subtracted is ``sum_j om_j e_j``
-    (``om``: ``shrink`` times the intercept weights of the line through ``fit``). So the error is
-    ``c (1 - lam_k,ref - sum om) + sum_j (lam_kj - om_j) s_j``, with ``var(c) = rho a^2`` and
-    ``var(s_j) = a^2``; the reference's own row is exact (0).
-
-    Args:
-        times: (T,) series times; reference_frame: its index; fit: series indices of the fit's
-        frames (the reference excluded); m: window half-width (0: classical); rho, shrink,
-        excess: as in :class:`ReferenceOffsets`.
-    """
-    t = np.asarray(times, dtype=np.float64) - float(times[reference_frame])
-    fit_idx = np.asarray([j for j in fit if j != reference_frame], dtype=np.int64)
-    om = _intercept_weights(t, fit_idx, 1)
-    out = np.zeros(len(t))
-    for k in range(len(t)):
-        if k != reference_frame:
-            out[k] = float(_error_var(_window_weights(t, k, m), om, reference_frame, rho,
-                                      shrink, excess)[0])
-    return out
-
-
-def std_factor(offsets: ReferenceOffsets, frame: int, m_row: np.ndarray) -> np.ndarray:
-    """(N,) first-order std of the refined u (or v) at series ``frame`` over the unrefined
-    one that u_std predicts (:func:`_error_var`), per point: its kept fit (window and degree;
-    the bias terms left out) and shrink, the row's window half-width ``m_row`` (N,) (-1: not
-    solved, factor 1), and rho. Multiplies the predicted u_std, v_std (which hold the
-    reference's share) of refined rows: about 0.3-0.55 at 40 fitted frames, lowest near the
-    reference, so the stored std follows the per-frame profile (``docs/accuracy.md``)."""
-    n = len(m_row)
-    out = np.ones(n)
-    t = offsets.times - offsets.times[offsets.reference_frame]
-    ref = offsets.reference_frame
-    cands = {len(idx): offsets.fit[idx] for idx in _candidates(offsets.t_fit, offsets.min_frames)}
-    shrink = offsets.shrink if offsets.shrink is not None else np.ones(n)
-    for mm in np.unique(m_row[m_row >= 0]):
-        lam = _window_weights(t, frame, int(mm))
-        for count, fit in cands.items():
-            for deg in (1, 2):
-                sel = (m_row == mm) & (offsets.frames == count) & (offsets.degree == deg)
-                if not sel.any() or len(fit) <= deg:
-                    continue
-                var, var0 = _error_var(lam, _intercept_weights(t, fit, deg), ref, offsets.rho,
-                                       shrink[sel], offsets.excess)
-                out[sel] = np.sqrt(np.where(var0 > 0, var / np.where(var0 > 0, var0, 1.0), 1.0))
-    return out
-
-
 def set_refinement(plan: RunPlan, max_frames: int | None = None) -> None:
-    """Switch a plan to the refined reference (checked; recorded in ``plan.options``)."""
+    """Ask ``plan`` for the template's gauge from the trajectories (checked; recorded in
+    ``plan.options["refine_reference"]``: the most frames of the fits). The template itself
+    is set by :func:`~torch_stsdic.movie.series_reference.set_series_reference`."""
     check_refinable(plan)
     count = DEFAULT_MAX_FRAMES if max_frames is None else max_frames
     if not isinstance(count, (int, np.integer)) or count < 5:

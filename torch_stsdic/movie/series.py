@@ -362,16 +362,16 @@ def track(
             window against the classical solution, shorter windows where the motion is not affine
             in time, fit and neighbour checks). False: every converged point is reported so.
         callback: called as ``callback(rows_done, n_rows)`` after each block.
-        refine_reference: remove the noisy reference's constant per-point offset: classical
-            DIC of up to ``refine_frames`` frames around the reference (default 41), a
-            polynomial fit in time per point, its value at the reference time (shrunk by the
-            offsets' spread) subtracted from every row, the reference's row 0 (``refine``).
+        refine_reference: the template's zero displacement from the trajectories: classical
+            DIC of up to ``refine_frames`` (41) frames against the template, a fit in time per
+            point, its (shrunk) value at the reference time subtracted from every row
+            (:mod:`~torch_stsdic.movie.refine`; pays on long movies smooth in time).
         series_reference: measure against a template of up to ``series_frames`` frames
             (default 21) mapped back by local fits of their measured warps and averaged
             (:mod:`torch_stsdic.movie.series_reference`). "auto" (default): 2 rounds where
-            the reference is a frame of the series, without ``reference_update`` or
-            ``refine_reference``; an integer: that many rounds; False: the single reference
-            image (classical DIC's baseline).
+            the reference is a frame of the series, without ``reference_update``; an
+            integer: that many rounds; False: the single reference image (classical DIC's
+            baseline).
         find_specimen: the default grid keeps only points whose subsets lie on speckle in the
             reference image (not on background, holes, featureless or saturated areas;
             :mod:`torch_stsdic.analysis.specimen`); False: the whole grid.
@@ -414,13 +414,21 @@ def track(
 
 def set_reference_mode(plan: RunPlan, refine_reference: bool, refine_frames: int | None,
                        series_reference: bool | int | str, series_frames: int | None) -> None:
-    """Record the refined reference or the reference made from the series in ``plan``."""
+    """Record the reference made from the series (and its gauge from the trajectories,
+    ``refine_reference``) in ``plan``."""
     if refine_reference:
+        if series_reference is None or series_reference is False:
+            raise ValueError("refine_reference: sets the gauge of the template made from the "
+                             "series; not with series_reference=False (--single-reference)")
         set_refinement(plan, refine_frames)
     elif refine_frames is not None:
         raise ValueError("refine_frames: only with refine_reference=True")
     if series_reference is not None and series_reference is not False:
         set_series_reference(plan, series_reference, series_frames)
+        if refine_reference and "series_reference" not in plan.options:
+            raise ValueError(f"refine_reference: sets the gauge of the template made from the "
+                             f"series, which does not apply here "
+                             f"({plan.options['single_reference']})")
         if series_frames is not None and "series_reference" not in plan.options:
             raise ValueError(f"series_frames: the reference made from the series does not "
                              f"apply here ({plan.options['single_reference']})")

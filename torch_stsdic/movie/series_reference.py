@@ -528,8 +528,6 @@ def single_reason(plan: RunPlan) -> str | None:
     fits of their warps."""
     if plan.options.get("reference_update") is not None:
         return "the reference is updated during the run"
-    if plan.options.get("refine_reference"):
-        return "the refined reference is asked for"
     if plan.reference_frame < 0:
         return "the reference is not one frame of the series"
     if len(set(plan.targets) | {plan.reference_frame}) < 3:
@@ -557,9 +555,6 @@ def set_series_reference(plan: RunPlan, iterations: int | bool | str = True,
     if plan.options.get("reference_update") is not None:
         raise ValueError("series_reference: cannot be combined with reference_update (the "
                          "template is made for one reference configuration)")
-    if plan.options.get("refine_reference"):
-        raise ValueError("series_reference: cannot be combined with refine_reference; choose "
-                         "one")
     k = DEFAULT_ITERATIONS if iterations is True else iterations
     if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1:
         raise ValueError(f"series_reference: iterations must be an integer >= 1 or True, got "
