@@ -50,6 +50,16 @@ def window_pixels(pts: torch.Tensor, half: int, height: int, width: int
     return pixels, slot
 
 
+def reference_window_stats(ref: torch.Tensor, pts: torch.Tensor, half: int, height: int,
+                           width: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(N, 1) the mean and (N, 1) the root of the summed squared deviations of the
+    reference's pixels ``ref`` (H*W,) over each POI's whole window (as :func:`splat` reads
+    them where no window of a chunk crosses a border): the same for every frame."""
+    own = ref[_window_index(pts.round(), half, width, height * width)]  # (N, S)
+    mean = own.sum(1, keepdim=True) / float(own.shape[1])
+    return mean, ((own - mean) ** 2).sum(1, keepdim=True).sqrt()
+
+
 def _window_index(c: torch.Tensor, half: int, width: int, size: int) -> torch.Tensor:
     """(n, S) flat pixel indices of the windows about the whole-pixel centres ``c`` (n, 2),
     row-major offsets, clamped to ``[0, size)``."""
@@ -61,7 +71,8 @@ def _window_index(c: torch.Tensor, half: int, width: int, size: int) -> torch.Te
 def splat(acc: torch.Tensor, img: BSplineImage, planes: torch.Tensor, ref: torch.Tensor,
           pts: torch.Tensor, warp: torch.Tensor, ok: torch.Tensor, half: int,
           weight: torch.Tensor, level: torch.Tensor,
-          cover: tuple[torch.Tensor, torch.Tensor] | None = None) -> None:
+          cover: tuple[torch.Tensor, torch.Tensor] | None = None,
+          ref_stats: tuple[torch.Tensor, torch.Tensor] | None = None) -> None:
     """Add G frames, planes ``planes`` (G,) of the stack ``img``, each mapped back by each
     trusted POI's map (``warp``: (G, N, 12), the local fits' of the series reference;
     ``ok``: (G, N)) over its window of half-width ``half`` px, to ``acc`` (3, H*W): weighted
@@ -79,8 +90,9 @@ def splat(acc: torch.Tensor, img: BSplineImage, planes: torch.Tensor, ref: torch
     ``W (sum_i w_i f_i) / weight`` (``W`` the frame's weight sum at the pixel, ``f_i`` the
     interpolated noise's variance factor at the POI's sub-pixel shift, times its gain
     squared), not ``sum_i w_i^2 f_i / weight``: it is summed per frame (a (G, C) pair over
-    the C pixels the windows cover, ``cover``: :func:`window_pixels` of ``pts``, made here
-    where not given)
+    the C pixels the windows cover, ``cover``: :func:`window_pixels` of ``pts``; the
+    reference's statistics over whole windows ``ref_stats``:
+    :func:`reference_window_stats`; each made here where not given)
     before the frames are added up."""
     h, w = img.height, img.width
     g_count, n = ok.shape
@@ -92,6 +104,8 @@ def splat(acc: torch.Tensor, img: BSplineImage, planes: torch.Tensor, ref: torch
     tent = (1.0 - dx.abs() / (half + 1)) * (1.0 - dy.abs() / (half + 1))
     sel = torch.nonzero(ok.reshape(-1)).flatten()  # (frame, POI) pairs, frame-major
     pixels, slot = window_pixels(pts, half, h, w) if cover is None else cover
+    if ref_stats is None:
+        ref_stats = reference_window_stats(ref, pts, half, h, w)
     n_px = pixels.numel()
     sums = torch.zeros(3, n_px, dtype=torch.float64, device=dev)  # values, weights, share
     per_frame = torch.zeros(2, g_count * n_px, dtype=torch.float64, device=dev)
@@ -116,11 +130,14 @@ def splat(acc: torch.Tensor, img: BSplineImage, planes: torch.Tensor, ref: torch
         cnt = (torch.full((len(i), 1), float(dx.numel()), dtype=torch.float64, device=dev)
                if inside is None else inside.sum(1, keepdim=True).clamp(min=1))
         idx = _window_index(c, half, w, h * w)
-        own = ref[idx]  # (n, S) the reference's pixels of the windows
         m_f = _masked(vals, inside).sum(1, keepdim=True) / cnt
-        m_r = _masked(own, inside).sum(1, keepdim=True) / cnt
         s_f = _masked((vals - m_f) ** 2, inside).sum(1, keepdim=True).sqrt()
-        s_r = _masked((own - m_r) ** 2, inside).sum(1, keepdim=True).sqrt()
+        if inside is None:  # whole windows: the reference's statistics, frame-independent
+            m_r, s_r = ref_stats[0][i], ref_stats[1][i]
+        else:
+            own = ref[idx]  # (n, S) the reference's pixels of the windows
+            m_r = _masked(own, inside).sum(1, keepdim=True) / cnt
+            s_r = _masked((own - m_r) ** 2, inside).sum(1, keepdim=True).sqrt()
         gain = torch.where(s_f > 0, s_r / s_f.clamp(min=1e-12), 1.0)
         vals = (vals - m_f) * gain + m_r
         u0, v0 = warp[f, i, 0], warp[f, i, 6]
@@ -182,6 +199,7 @@ def template_image(plan: RunPlan, warps: torch.Tensor, oks: torch.Tensor, frames
     spread = float(ref.std().clamp(min=1e-12))
     norm = []  # each frame's noise in the reference's grey levels
     cover = window_pixels(pts, half, h, w)
+    ref_stats = reference_window_stats(ref, pts, half, h, w)
     for group in frame_groups(len(frames), cover[0].numel(), batched=dev.type != "cpu"):
         img, planes, raw = _group_frames(cache, [frames[j] for j in group], dev)
         level = raw.flatten(1).std(1).clamp(min=1e-12) / spread  # (G,) contrast ratios
@@ -190,7 +208,7 @@ def template_image(plan: RunPlan, warps: torch.Tensor, oks: torch.Tensor, frames
         norm += g_norm.tolist()
         g_idx = torch.as_tensor(group, device=warps.device)
         splat(acc, img, planes, ref, pts, warps[g_idx].to(dev), oks[g_idx].to(dev), half,
-              1.0 / g_norm ** 2, level, cover)
+              1.0 / g_norm ** 2, level, cover, ref_stats)
     acc, ref, pts = acc.cpu(), ref.cpu(), pts.cpu()  # what follows is per pixel, once
     covered = acc[1] > 0
     image = torch.where(covered, acc[0] / acc[1].clamp(min=1e-300), ref).reshape(h, w)
