@@ -42,12 +42,11 @@ def window_pixels(pts: torch.Tensor, half: int, height: int, width: int
                   ) -> tuple[torch.Tensor, torch.Tensor]:
     """The pixels the POIs' windows (half-width ``half`` px about each rounded POI of ``pts``
     (N, 2)) reach, as :func:`splat` indexes them (flat, clamped to the image; a window over
-    the border reaches pixels it masks out): (C,) their flat indices, sorted, and (H*W,)
-    each pixel's position among them (-1: none)."""
-    pixels = torch.unique(_window_index(pts.round(), half, width, height * width))
-    slot = torch.full((height * width,), -1, dtype=torch.long, device=pts.device)
-    slot[pixels] = torch.arange(pixels.numel(), device=pts.device)
-    return pixels, slot
+    the border reaches pixels it masks out): (C,) their flat indices, sorted, and (N, S)
+    each window pixel's position among them."""
+    flat = _window_index(pts.round(), half, width, height * width)  # (N, S)
+    pixels, local = torch.unique(flat, return_inverse=True)
+    return pixels, local
 
 
 def reference_window_stats(ref: torch.Tensor, pts: torch.Tensor, half: int, height: int,
@@ -103,7 +102,7 @@ def splat(acc: torch.Tensor, img: BSplineImage, planes: torch.Tensor, ref: torch
     mono = torch.stack([torch.ones_like(dx), dx, dy, dx * dx, dx * dy, dy * dy], 1)  # (S, 6)
     tent = (1.0 - dx.abs() / (half + 1)) * (1.0 - dy.abs() / (half + 1))
     sel = torch.nonzero(ok.reshape(-1)).flatten()  # (frame, POI) pairs, frame-major
-    pixels, slot = window_pixels(pts, half, h, w) if cover is None else cover
+    pixels, local = window_pixels(pts, half, h, w) if cover is None else cover
     if ref_stats is None:
         ref_stats = reference_window_stats(ref, pts, half, h, w)
     n_px = pixels.numel()
@@ -129,13 +128,12 @@ def splat(acc: torch.Tensor, img: BSplineImage, planes: torch.Tensor, ref: torch
                                            frame=planes[f].unsqueeze(1)).double())
         cnt = (torch.full((len(i), 1), float(dx.numel()), dtype=torch.float64, device=dev)
                if inside is None else inside.sum(1, keepdim=True).clamp(min=1))
-        idx = _window_index(c, half, w, h * w)
         m_f = _masked(vals, inside).sum(1, keepdim=True) / cnt
         s_f = _masked((vals - m_f) ** 2, inside).sum(1, keepdim=True).sqrt()
         if inside is None:  # whole windows: the reference's statistics, frame-independent
             m_r, s_r = ref_stats[0][i], ref_stats[1][i]
         else:
-            own = ref[idx]  # (n, S) the reference's pixels of the windows
+            own = ref[pixels[local[i]]]  # (n, S) the reference's pixels of the windows
             m_r = _masked(own, inside).sum(1, keepdim=True) / cnt
             s_r = _masked((own - m_r) ** 2, inside).sum(1, keepdim=True).sqrt()
         gain = torch.where(s_f > 0, s_r / s_f.clamp(min=1e-12), 1.0)
@@ -145,7 +143,7 @@ def splat(acc: torch.Tensor, img: BSplineImage, planes: torch.Tensor, ref: torch
                                             img.order)  # (n,)
         wt = _masked(tent * weight[f, None], inside)
         # summed in a fixed order (the same template on every run and device)
-        px = slot[idx]  # (n, S) the pixels among the covered ones
+        px = local[i]  # (n, S) the window pixels among the covered ones
         scatter_add_(sums[0], px, wt * vals)
         at = f[:, None] * n_px + px  # the pixel in its frame's share
         scatter_add_(per_frame[0], at, wt)
