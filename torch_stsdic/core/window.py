@@ -44,6 +44,15 @@ class SubsetWindow(nn.Module):
             self._effective = effective_pixels(self.offsets_and_weights()[1])
         return self._effective
 
+    def weight_stats(self) -> tuple[float, bool, float]:
+        """(sum of the weights, whether they are all 0 or 1, :meth:`effective_pixels`): host
+        numbers every solve asks for, worked out once."""
+        if getattr(self, "_weight_stats", None) is None:
+            w = self.offsets_and_weights()[1].double()
+            self._weight_stats = (float(w.sum()), bool(((w * w) == w).all()),
+                                  self.effective_pixels())
+        return self._weight_stats
+
     def extra_repr(self) -> str:
         return f"size={self.size}"
 

@@ -62,6 +62,9 @@ class Geometry:
     #: (S,) float64 the weights on the host: the numbers of them a solve needs (their sum,
     #: whether they are 0/1, the effective pixels) read without waiting for the device
     w_host: Tensor | None = None
+    #: (sum w, w binary, effective pixels) worked out once by the window
+    #: (:meth:`~torch_stsdic.core.window.SubsetWindow.weight_stats`), or None: from ``w_host``
+    w_stats: tuple[float, bool, float] | None = None
 
     @classmethod
     def make(cls, shape: ShapeFunction, window: SubsetWindow, criterion: str,
@@ -71,7 +74,8 @@ class Geometry:
         host = window.offsets_and_weights(torch.float64, "cpu")[1]
         return cls(shape=shape, spatial=shape.spatial_basis(offsets[:, 0], offsets[:, 1]),
                    dx=offsets[:, 0], dy=offsets[:, 1], w=weights,
-                   znssd=criterion == "znssd", half=float(window.half), w_host=host)
+                   znssd=criterion == "znssd", half=float(window.half), w_host=host,
+                   w_stats=window.weight_stats())
 
     def _host(self) -> Tensor:
         return self.w_host if self.w_host is not None else self.w.detach().double().cpu()
@@ -79,17 +83,23 @@ class Geometry:
     @property
     def w_sum(self) -> float:
         """The sum of the window's weights (a host number)."""
+        if self.w_stats is not None:
+            return self.w_stats[0]
         return float(self._host().sum())
 
     @property
     def w_binary(self) -> bool:
         """Whether the weights are 0 or 1 (their squares are themselves)."""
+        if self.w_stats is not None:
+            return self.w_stats[1]
         h = self._host()
         return bool(((h * h) == h).all())
 
     @property
     def w_effective(self) -> float:
         """``(sum w)^2 / sum w^2`` (:func:`~torch_stsdic.core.window.effective_pixels`)."""
+        if self.w_stats is not None:
+            return self.w_stats[2]
         h = self._host()
         return float(h.sum() ** 2 / (h * h).sum())
 
