@@ -14,7 +14,9 @@ with a tensor of repeats): on CUDA each waits for the device. Copies to the host
 (``.cpu()``, ``.numpy()``, ``.tolist()``) do not pass the dispatcher on a CPU run and are not
 counted, so on the CPU this is a lower bound. Per block of the run itself (its passes' blocks
 apart), the median over the blocks; the run is slowed down by the counting (use it for
-counts, not for speed).
+counts, not for speed). Of those, the ones in the C++ CPU kernels' argument checks
+(``kernels/native``) are shown apart: a GPU run takes other kernels. ``--where N`` lists the
+N lines of the package that sync most over the whole run.
 """
 
 from __future__ import annotations
@@ -41,6 +43,12 @@ SYNCING = {"_local_scalar_dense": "host read", "nonzero": "data-dependent size",
            "repeat_interleave": "data-dependent size"}
 
 
+#: where the C++ CPU kernels check their arguments on the host (a GPU run takes other paths)
+NATIVE = "torch_stsdic/kernels/native"
+#: the counter of those (a part of the others, not added to a block's total)
+CPU_ONLY = "of which in the CPU kernels' checks"
+
+
 class SyncCounter(TorchDispatchMode):
     """Counts the syncing operations (:data:`SYNCING`) by name, and boolean-mask indexing."""
 
@@ -64,8 +72,11 @@ class SyncCounter(TorchDispatchMode):
         name = func.overloadpacket.__name__
         if name in SYNCING:
             self.counts[name] += 1
+            place = self._place()
+            if place.startswith(NATIVE):
+                self.counts[CPU_ONLY] += 1
             if self.where is not None:
-                self.where[self._place()] += 1
+                self.where[place] += 1
         elif name in ("index", "index_put_", "index_put") and any(
                 isinstance(t, torch.Tensor) and t.dtype == torch.bool
                 for t in (args[1] if len(args) > 1 and isinstance(args[1], (list, tuple))
@@ -117,15 +128,19 @@ def main(argv: list[str] | None = None) -> int:
         return rc
     kinds = sorted({k for b in per_block for k in b})
     med = {k: statistics.median(b.get(k, 0) for b in per_block) for k in kinds}
-    total = [sum(b.values()) for b in per_block]
+    total = [sum(v for k, v in b.items() if k != CPU_ONLY) for b in per_block]
+    rest = [t - b.get(CPU_ONLY, 0) for t, b in zip(total, per_block)]
     rec = {"args": run_args, "device": "cpu", "blocks": len(per_block),
            "per_block_median": med, "per_block_total_median": statistics.median(total),
            "per_block_total_range": [min(total), max(total)],
+           "per_block_outside_cpu_kernels_median": statistics.median(rest),
            "run_total": dict(counter.counts), "commit": _commit()}
     print(f"{len(per_block)} blocks; syncing operations a block (median): "
           f"{rec['per_block_total_median']:.0f} (range {min(total)}-{max(total)})")
     for k in kinds:
         print(f"  {k:<28} {med[k]:>6.0f}")
+    print(f"  outside the CPU kernels' checks (what a GPU run's path may keep): "
+          f"{statistics.median(rest):.0f} a block (median)")
     if counter.where is not None:
         rec["where_run_total"] = dict(counter.where.most_common(args.where))
         print(f"where (whole run, top {args.where}):")
