@@ -45,7 +45,8 @@ from torch import Tensor
 __all__ = ["SharedMotion", "SHARED_MOTION_KINDS", "PARAM_NAMES", "PARAM_UNITS",
            "fit_frame_motion", "window_offsets", "known_window_motion", "overlap_factor",
            "sample_points", "frame_chunks",
-           "detect_steps", "DEFAULT_MAX_POINTS", "SIGNIFICANT", "STEP_Z", "STEP_RATIO", "SE_FLOOR"]
+           "detect_steps", "step_increments", "steps_from_increments",
+           "DEFAULT_MAX_POINTS", "SIGNIFICANT", "STEP_Z", "STEP_RATIO", "SE_FLOOR"]
 
 #: kinds of shared motion: a translation per frame (2 numbers), an affine motion (6), or a
 #: quadratic one (12: also the second derivatives, as a tilt of the specimen out of the
@@ -243,7 +244,8 @@ def fit_frame_motion(points: Tensor, disp: Tensor, valid: Tensor, kind: str = "a
 
     Args:
         points: (N, 2) POIs (x, y) px.
-        disp: (F, N, 2) displacements (u, v) px of every point in every frame.
+        disp: (F, N, 2) displacements (u, v) px of every point in every frame (float32 or
+            float64; the fit is in float64, frame chunk by frame chunk).
         valid: (F, N) bool, the measurements to use (NaN displacements are never used).
         kind: "translation", "affine" or "quadratic".
         origin: (2,) the point the translation refers to (default: the points' mean).
@@ -261,7 +263,8 @@ def fit_frame_motion(points: Tensor, disp: Tensor, valid: Tensor, kind: str = "a
         raise ValueError(f"shared motion kind must be one of {SHARED_MOTION_KINDS}, got "
                          f"{kind!r}")
     p = points.double()
-    d = disp.double()
+    # a float32 pass's displacements stay float32, made float64 frame chunk by frame chunk
+    d = disp if disp.dtype in (torch.float32, torch.float64) else disp.double()
     ok = valid.bool() & torch.isfinite(d).all(-1)
     o = p.mean(0) if origin is None else torch.as_tensor(origin, dtype=torch.float64,
                                                           device=p.device)
@@ -345,7 +348,8 @@ def _spread(x: Tensor, d: Tensor, ok: Tensor, coef: Tensor, w: Tensor, eye: Tens
     s = torch.empty(f, dtype=torch.float64, device=d.device)
     for sl in frame_chunks(f, d.shape[1]):
         okc = ok[sl]
-        d0 = torch.where(okc.unsqueeze(-1), d[sl], torch.zeros_like(d[sl]))
+        dc = _rows(d, sl)
+        d0 = torch.where(okc.unsqueeze(-1), dc, torch.zeros_like(dc))
         r = (d0 - x @ coef[sl]).norm(dim=-1)
         # 2-D residuals of std s per component: |r| is Rayleigh, median 1.1774 s
         s[sl] = torch.nanmedian(torch.where(okc, r, torch.nan), dim=1).values / 1.1774
@@ -376,62 +380,167 @@ def _wls(x: Tensor, d: Tensor, w: Tensor, eye: Tensor) -> Tensor:
     return out
 
 
-def _frame_fit(x: Tensor, d: Tensor, ok: Tensor, eye: Tensor) -> tuple[Tensor, Tensor]:
-    """Huber IRLS per frame (for fewer than 3 frames): coefficients, weights (F, N)."""
-    d0 = torch.where(ok.unsqueeze(-1), d, torch.zeros_like(d))
-    w = ok.double()
-    coef = _wls(x, d0, w, eye)
-    for _ in range(_IRLS_STEPS):
-        w = torch.empty(ok.shape, dtype=d0.dtype, device=d0.device)
-        for sl in frame_chunks(*ok.shape):  # the weights frame chunk by frame chunk
-            okc = ok[sl]
-            r = (d0[sl] - x @ coef[sl]).norm(dim=-1)
-            s = torch.nanmedian(torch.where(okc, r, torch.nan), dim=1).values / 1.1774
-            k = (_HUBER * s).clamp(min=1e-6).unsqueeze(1)
-            w[sl] = torch.where(okc, torch.clamp(k / r.clamp(min=1e-12), max=1.0),
-                                torch.zeros_like(r))
-        coef = _wls(x, d0, w, eye)
-    return coef, w
+def _rows(d: Tensor, sl: slice) -> Tensor:
+    """Rows ``sl`` of the displacements ``d`` (F, N, 2) in float64 (a float32 pass's values
+    exactly: a long movie's fit holds its measurements at their own precision)."""
+    return d[sl].double()
 
 
-def _fill_in_time(r: Tensor, ok: Tensor) -> Tensor:
-    """(F, N, 2) ``r`` with the entries not ``ok`` interpolated linearly in time between the
-    point's nearest valid frames (the nearest one before its first or after its last; 0 for
-    a point never valid); point chunk by point chunk."""
-    chunks = _point_chunks(*ok.shape)
-    if len(chunks) == 1:
-        return _fill_points(r, ok)
-    out = torch.empty_like(r)
-    for sl in chunks:
-        out[:, sl] = _fill_points(r[:, sl], ok[:, sl])
-    return out
+def _frame_fit(x: Tensor, d: Tensor, ok: Tensor, eye: Tensor, weights: bool = True
+               ) -> tuple[Tensor, Tensor | None]:
+    """Huber IRLS per frame: coefficients (F, C, 2) and, with ``weights``, the weights
+    (F, N); each chunk of :func:`_wls_chunks` on its own (a frame's fit is its own)."""
+    f, n = ok.shape
+    coef = torch.empty(f, x.shape[1], 2, dtype=torch.float64, device=ok.device)
+    w_all = torch.empty(f, n, dtype=torch.float64, device=ok.device) if weights else None
+    for ch in _wls_chunks(f):
+        okc, dc = ok[ch], _rows(d, ch)
+        d0 = torch.where(okc.unsqueeze(-1), dc, torch.zeros_like(dc))
+        w = okc.double()
+        cf = _wls(x, d0, w, eye)
+        for _ in range(_IRLS_STEPS):
+            w = torch.empty(okc.shape, dtype=d0.dtype, device=d0.device)
+            for sl in frame_chunks(*okc.shape):  # the weights frame chunk by frame chunk
+                oks = okc[sl]
+                r = (d0[sl] - x @ cf[sl]).norm(dim=-1)
+                s = torch.nanmedian(torch.where(oks, r, torch.nan), dim=1).values / 1.1774
+                k = (_HUBER * s).clamp(min=1e-6).unsqueeze(1)
+                w[sl] = torch.where(oks, torch.clamp(k / r.clamp(min=1e-12), max=1.0),
+                                    torch.zeros_like(r))
+            cf = _wls(x, d0, w, eye)
+        coef[ch] = cf
+        if w_all is not None:
+            w_all[ch] = w
+    return coef, w_all
 
 
-def _fill_points(r: Tensor, ok: Tensor) -> Tensor:
-    """:func:`_fill_in_time` of a few points."""
-    f = r.shape[0]
-    t = torch.arange(f, device=r.device).unsqueeze(1).expand_as(ok)
-    prev = torch.where(ok, t, torch.full_like(t, -1)).cummax(0).values
-    nxt = torch.where(ok, t, torch.full_like(t, f)).flip(0).cummin(0).values.flip(0)
+#: the frames around a chunk that its gap filling and neighbours' line read (2: the line
+#: at the series' first frame is extrapolated from the next two)
+_HALO = 2
+
+
+def _blocks(sls: list[slice], f: int) -> list[tuple[int, int]]:
+    """The frames (lo, hi) each chunk of ``sls`` reads: itself and ``_HALO`` around it."""
+    return [(max(0, sl.start - _HALO), min(f, sl.stop + _HALO)) for sl in sls]
+
+
+def _bounds(mask: Tensor, blocks: list[tuple[int, int]]) -> list[tuple[Tensor, Tensor]]:
+    """Per block (lo, hi): (N,) each point's last frame before ``lo`` where ``mask`` (F, N)
+    holds (-1: none) and its first frame from ``hi`` on (F: none); one scan forward and one
+    backward, frame chunk by frame chunk."""
+    f, n = mask.shape
+    t_all = torch.arange(f, device=mask.device)
+    before: dict[int, Tensor] = {0: torch.full((n,), -1, dtype=torch.long)}
+    after: dict[int, Tensor] = {f: torch.full((n,), f, dtype=torch.long)}
+    los, his = {lo for lo, _ in blocks}, {hi for _, hi in blocks}
+    chunks = frame_chunks(f, n)
+    last = before[0]
+    for sl in chunks:  # last[p - 1 - start]: the last frame <= p - 1 where it holds
+        t = t_all[sl].unsqueeze(1)
+        upto = torch.maximum(torch.where(mask[sl], t, -1).cummax(0).values, last)
+        for p in los:
+            if sl.start < p <= sl.stop:
+                before[p] = upto[p - 1 - sl.start].clone()
+        last = upto[-1].clone()
+    first = after[f]
+    for sl in reversed(chunks):
+        t = t_all[sl].unsqueeze(1)
+        onward = torch.minimum(torch.where(mask[sl], t, f).flip(0).cummin(0).values.flip(0),
+                               first)
+        for p in his:
+            if sl.start <= p < sl.stop:
+                after[p] = onward[p - sl.start].clone()
+        first = onward[0].clone()
+    return [(before[lo], after[hi]) for lo, hi in blocks]
+
+
+def _residual_at(x: Tensor, d: Tensor, coef: Tensor, at: Tensor) -> Tensor:
+    """(N, 2) each point's residual ``d - x coef`` at its own frame ``at`` (N,) (0 where
+    ``at`` is outside the series: -1 or F)."""
+    f, n = d.shape[0], d.shape[1]
+    inside = (at >= 0) & (at < f)
+    k = at.clamp(0, f - 1)
+    frames, which = torch.unique(k, return_inverse=True)
+    pts = torch.arange(n, device=at.device)
+    fit = (x @ coef[frames])[which, pts]
+    r = d[k, pts].double() - fit
+    return torch.where(inside.unsqueeze(-1), r, torch.zeros_like(r))
+
+
+def _filled(x: Tensor, d: Tensor, coef: Tensor, mask: Tensor, lo: int, hi: int,
+            bounds: tuple[Tensor, Tensor], alive: Tensor) -> Tensor:
+    """(hi - lo, N, 2) frames lo..hi-1 of the residuals ``d - x coef`` where ``mask`` (F, N)
+    holds, linearly interpolated in time elsewhere between the point's nearest frames where
+    it holds (the nearest one before its first or after its last; 0 where ``alive`` (N,) is
+    False: it never holds). ``bounds``: each point's last frame before ``lo`` and first from
+    ``hi`` where ``mask`` holds (:func:`_bounds`), so a chunk reads as the whole series."""
+    f = mask.shape[0]
+    m = mask[lo:hi]
+    r = torch.where(m.unsqueeze(-1), _rows(d, slice(lo, hi)) - x @ coef[lo:hi],
+                    torch.zeros(1, dtype=torch.float64, device=m.device))
+    t = torch.arange(lo, hi, device=m.device).unsqueeze(1).expand_as(m)
+    before, after = bounds
+    prev = torch.maximum(torch.where(m, t, -1).cummax(0).values, before)
+    nxt = torch.minimum(torch.where(m, t, f).flip(0).cummin(0).values.flip(0), after)
     a = torch.where(prev >= 0, prev, nxt).clamp(0, f - 1)
     b = torch.where(nxt < f, nxt, prev).clamp(0, f - 1)
-    ra = torch.gather(r, 0, a.unsqueeze(-1).expand(-1, -1, 2))
-    rb = torch.gather(r, 0, b.unsqueeze(-1).expand(-1, -1, 2))
+    ext = torch.cat([_residual_at(x, d, coef, before).unsqueeze(0), r,
+                     _residual_at(x, d, coef, after).unsqueeze(0)])
+
+    def row(k: Tensor) -> Tensor:  # a frame's row of ``ext``
+        at = torch.where(k < lo, 0, torch.where(k >= hi, hi - lo + 1, k - lo + 1))
+        return torch.gather(ext, 0, at.unsqueeze(-1).expand(-1, -1, 2))
+
+    ra, rb = row(a), row(b)
     span = (b - a).clamp(min=1).to(r.dtype)
     frac = ((t - a).to(r.dtype) / span).clamp(0, 1).unsqueeze(-1)
     out = ra + (rb - ra) * frac
-    return torch.where(ok.any(0, keepdim=True).unsqueeze(-1), out, torch.zeros_like(out))
+    return torch.where(alive.view(1, -1, 1), out, torch.zeros_like(out))
 
 
-def _neighbours_line(r: Tensor) -> Tensor:
-    """(F, N, 2) each frame's value as its neighbours predict it: the mean of the frames
-    before and after, extrapolated from the next two (previous two) at the first (last)
-    frame; a wrong peak in one frame stands out, a trend or an acceleration does not."""
-    out = torch.empty_like(r)
-    out[1:-1] = 0.5 * (r[:-2] + r[2:])
-    out[0] = 2 * r[1] - r[2]
-    out[-1] = 2 * r[-2] - r[-3]
+def _neighbours_line(rf: Tensor, lo: int, sl: slice, f: int) -> Tensor:
+    """(len(sl), N, 2) each frame of ``sl`` as its neighbours predict it, from ``rf`` (frames
+    lo.. of a series of ``f`` >= 3 frames): the mean of the frames before and after,
+    extrapolated from the next two (previous two) at the first (last) frame; a wrong peak
+    in one frame stands out, a trend or an acceleration does not."""
+    a, b = sl.start, sl.stop
+    out = torch.empty(b - a, *rf.shape[1:], dtype=rf.dtype, device=rf.device)
+    i, j = max(a, 1), min(b, f - 1)
+    if i < j:
+        out[i - a:j - a] = 0.5 * (rf[i - 1 - lo:j - 1 - lo] + rf[i + 1 - lo:j + 1 - lo])
+    if a == 0:
+        out[0] = 2 * rf[1 - lo] - rf[2 - lo]
+    if b == f:
+        out[f - 1 - a] = 2 * rf[f - 2 - lo] - rf[f - 3 - lo]
     return out
+
+
+def _valid_share(ok: Tensor) -> Tensor:
+    """(N,) the share of frames where each point is valid (``ok`` (F, N)), point chunk by
+    point chunk."""
+    out = torch.empty(ok.shape[1], dtype=torch.float64, device=ok.device)
+    for sl in _point_chunks(*ok.shape):
+        out[sl] = ok[:, sl].double().mean(0)
+    return out
+
+
+def _lower_median(v: Tensor) -> Tensor:
+    """``torch.nanmedian(v)`` of values >= 0 (or NaN): the lower median of the non-NaN
+    entries, NaN where none; without a copy of ``v`` (a bisection on the float64 bit
+    patterns, which order values >= 0 as the values: 63 counts over ``v``)."""
+    n_ok = int((v >= 0).sum())
+    if n_ok == 0:
+        return torch.tensor(float("nan"), dtype=torch.float64)
+    rank = (n_ok - 1) // 2
+    lo, hi = 0, 0x7FF0000000000000  # +0.0 and +inf
+    while lo < hi:
+        mid = (lo + hi) // 2
+        at = torch.tensor([mid], dtype=torch.int64).view(torch.float64).to(v.device)
+        if int((v <= at).sum()) > rank:
+            hi = mid
+        else:
+            lo = mid + 1
+    return torch.tensor([lo], dtype=torch.int64).view(torch.float64)[0]
 
 
 def _consistent_fit(x: Tensor, d: Tensor, ok: Tensor, eye: Tensor
@@ -451,60 +560,69 @@ def _consistent_fit(x: Tensor, d: Tensor, ok: Tensor, eye: Tensor
     from the shared motion (median |second difference|): a wrong or background point
     jitters on its own; an entry's weight is 0 where it is far (10x the median, at least
     0.5 px) from what the point's neighbouring frames predict: a wrong peak in one frame.
-    Returns
+
+    Whole-series statistics (a point's median over all frames, the median over all
+    entries), taken frame chunk by frame chunk: besides ``d`` and ``ok`` it holds one
+    (F, N) float64 array at a time (the roughness terms, then the deviations). Returns
     coefficients (F, C, 2), weights (F, N) and the entries used (F, N)."""
+    f, n = ok.shape
     valid_pts = ok.any(0)
     keep = ok.all(0)
     if int(keep.sum()) < max(3 * x.shape[1], int(0.5 * int(valid_pts.sum()))):
-        keep = ok.double().mean(0) >= _VALID_SHARE
+        keep = _valid_share(ok) >= _VALID_SHARE
     if int(keep.sum()) < 3 * x.shape[1]:  # too few points tracked throughout: per frame
         coef, w = _frame_fit(x, d, ok, eye)
         return coef, w, ok
     use = ok & keep
-    coef, _ = _frame_fit(x, d, use, eye)  # a robust start, frame by frame
-    w = keep.double().expand(d.shape[0], -1)
-    f, n = use.shape
-    fr, pt = frame_chunks(f, n), _point_chunks(f, n)
+    coef, _ = _frame_fit(x, d, use, eye, weights=False)  # a robust start, frame by frame
+    w = keep.double().expand(f, -1)
+    fr = frame_chunks(f, n)
+    blocks = _blocks(fr, f)
+    alive = use.any(0)
+    bounds = _bounds(use, blocks)
+    wls = _wls_chunks(f)
     for _ in range(3):
-        r = torch.empty_like(d)
-        for sl in fr:
-            r[sl] = torch.where(use[sl].unsqueeze(-1), d[sl] - x @ coef[sl],
-                                torch.zeros_like(d[sl]))
-        # per point (its frames in time): the roughness of its residual and, a wrong peak
-        # in single frames, how far each frame is from what its neighbouring frames predict
-        rough = torch.empty(n, dtype=d.dtype, device=d.device)
-        jump = torch.empty_like(d)
-        for sl in pt:
-            rf = _fill_points(r[:, sl], use[:, sl])
-            rough[sl] = (rf[2:] - 2 * rf[1:-1] + rf[:-2]).norm(dim=-1).median(0).values
-            jump[:, sl] = rf - _neighbours_line(rf)
-        del rf
+        # per point (its frames in time): the roughness of its residual (gaps filled)
+        d2 = torch.empty(f - 2, n, dtype=torch.float64, device=ok.device)
+        for sl, (lo, hi), bd in zip(fr, blocks, bounds):
+            a, b = max(sl.start, 1), min(sl.stop, f - 1)  # frames with a second difference
+            if a < b:
+                c = _filled(x, d, coef, use, lo, hi, bd, alive)[a - 1 - lo:b + 1 - lo]
+                d2[a - 1:b - 1] = (c[2:] - 2 * c[1:-1] + c[:-2]).norm(dim=-1)
+        rough = torch.empty(n, dtype=torch.float64, device=ok.device)
+        for sl in _point_chunks(f, n):
+            rough[sl] = d2[:, sl].median(0).values
+        del d2
         s_r = torch.nanmedian(torch.where(keep, rough, torch.nan)).clamp(min=1e-9)
         w_pt = torch.where(keep & (rough <= 10.0 * s_r),
                            torch.clamp(3.0 * s_r / rough.clamp(min=1e-12), max=1.0),
                            torch.zeros_like(rough))
-        # (what all points share at a frame is the shared motion's own error)
-        dev = torch.empty(f, n, dtype=d.dtype, device=d.device)
-        for sl in fr:
-            shared = torch.nanmedian(torch.where(use[sl].unsqueeze(-1), jump[sl], torch.nan),
+        # a wrong peak in single frames: how far each frame is from what its neighbouring
+        # frames predict, less what all points share there (the shared motion's own error)
+        dev = torch.empty(f, n, dtype=torch.float64, device=ok.device)
+        for sl, (lo, hi), bd in zip(fr, blocks, bounds):
+            rf = _filled(x, d, coef, use, lo, hi, bd, alive)
+            jump = rf[sl.start - lo:sl.stop - lo] - _neighbours_line(rf, lo, sl, f)
+            shared = torch.nanmedian(torch.where(use[sl].unsqueeze(-1), jump, torch.nan),
                                      1).values
-            dev[sl] = (jump[sl] - torch.nan_to_num(shared).unsqueeze(1)).norm(dim=-1)
-        del jump
-        scale = torch.nanmedian(torch.where(use, dev, torch.nan)).clamp(min=1e-9)
+            dev[sl] = torch.where(use[sl], (jump - torch.nan_to_num(shared).unsqueeze(1))
+                                  .norm(dim=-1), torch.nan)
+        scale = _lower_median(dev).clamp(min=1e-9)
         limit = torch.clamp(10.0 * scale, min=_GROSS_PX)
         # such an entry is filled in from the point's other frames, as a gap is, and keeps
         # its point's weight: a weight that changed from frame to frame would move the fit
         # by the deformation's departure from it (px on the hourglass without a region)
         good = use & (dev <= limit)
         del dev
-        w = w_pt.expand(d.shape[0], -1)
-        full = _fill_in_time(r, good)  # in place of r's entries, chunk by chunk
-        del r
-        for sl in fr:
-            full[sl] = torch.nan_to_num(torch.where(good[sl].unsqueeze(-1), d[sl],
-                                                    x @ coef[sl] + full[sl]))
-        coef = _wls(x, full, w, eye)
-        del full
+        w = w_pt.expand(f, -1)
+        alive_good = good.any(0)
+        new = torch.empty_like(coef)
+        for sl, bd in zip(wls, _bounds(good, [(s.start, s.stop) for s in wls])):
+            filled = _filled(x, d, coef, good, sl.start, sl.stop, bd, alive_good)
+            full = torch.nan_to_num(torch.where(good[sl].unsqueeze(-1), _rows(d, sl),
+                                                x @ coef[sl] + filled))
+            new[sl] = _wls(x, full, w[sl], eye)
+        coef = new
     return coef, w, use
 
 
@@ -556,17 +674,37 @@ def detect_steps(residual: Tensor, valid: Tensor, sigma: Tensor, frames: Sequenc
 
     Returns:
         series frames that begin a new segment (ascending)."""
-    f = residual.shape[0]
-    if f < 3:
+    if residual.shape[0] < 3:
         return []
-    fr = torch.as_tensor(list(frames))
-    s = torch.empty(f - 1, dtype=residual.dtype, device=residual.device)
+    return steps_from_increments(step_increments(residual, valid), sigma, frames, z, ratio,
+                                 reach)
+
+
+def step_increments(residual: Tensor, valid: Tensor) -> Tensor:
+    """(F - 1,) px the median over the points valid in both frames of each point's increment
+    ``|r_i(t+1) - r_i(t)|`` into frames 1.. of ``residual`` (F, N, 2) (``valid`` (F, N));
+    frame chunk by frame chunk (each increment's median is its own: a caller may give the
+    rows of a long series a chunk at a time, each with one frame more)."""
+    f = residual.shape[0]
+    s = torch.empty(max(f - 1, 0), dtype=residual.dtype, device=residual.device)
     for sl in frame_chunks(f - 1, residual.shape[1]):  # bounded memory, the same numbers
         a, b = sl.start, sl.stop
         both = valid[a + 1:b + 1] & valid[a:b]
         inc = (residual[a + 1:b + 1] - residual[a:b]).norm(dim=-1)
         inc = torch.where(both & torch.isfinite(inc), inc, torch.nan)
         s[sl] = torch.nanmedian(inc, dim=1).values  # increment into frames[1:]
+    return s
+
+
+def steps_from_increments(s: Tensor, sigma: Tensor, frames: Sequence[int],
+                          z: float = STEP_Z, ratio: float = STEP_RATIO, reach: int = 5
+                          ) -> list[int]:
+    """The load steps of :func:`detect_steps` from the median increments ``s`` (F - 1,)
+    (:func:`step_increments`), the noise ``sigma`` (F,) and the series frames (F,)."""
+    f = len(frames)
+    if f < 3:
+        return []
+    fr = torch.as_tensor(list(frames))
     adjacent = (fr[1:] - fr[:-1]) == 1
     noise = 1.1774 * torch.maximum(sigma[1:], sigma[:-1])
     out = []
