@@ -284,7 +284,7 @@ def fit_frame_motion(points: Tensor, disp: Tensor, valid: Tensor, kind: str = "a
     else:
         coef, w = _frame_fit(x, d, ok, eye)
     s, var0 = _spread(x, d, ok, coef, w, eye, noise)
-    used = ok.sum(1)
+    used = torch.count_nonzero(ok, dim=1)  # (a sum would copy ok as int64)
     se = var0.clamp(min=0).sqrt()
     out = torch.zeros(f, 12 if kind == "quadratic" else 6, dtype=torch.float64, device=p.device)
     out[:, 0], out[:, 1] = coef[:, 0, 0], coef[:, 0, 1]
@@ -528,7 +528,7 @@ def _lower_median(v: Tensor) -> Tensor:
     """``torch.nanmedian(v)`` of values >= 0 (or NaN): the lower median of the non-NaN
     entries, NaN where none; without a copy of ``v`` (a bisection on the float64 bit
     patterns, which order values >= 0 as the values: 63 counts over ``v``)."""
-    n_ok = int((v >= 0).sum())
+    n_ok = int(torch.count_nonzero(v >= 0))
     if n_ok == 0:
         return torch.tensor(float("nan"), dtype=torch.float64)
     rank = (n_ok - 1) // 2
@@ -536,7 +536,7 @@ def _lower_median(v: Tensor) -> Tensor:
     while lo < hi:
         mid = (lo + hi) // 2
         at = torch.tensor([mid], dtype=torch.int64).view(torch.float64).to(v.device)
-        if int((v <= at).sum()) > rank:
+        if int(torch.count_nonzero(v <= at)) > rank:
             hi = mid
         else:
             lo = mid + 1
@@ -580,7 +580,6 @@ def _consistent_fit(x: Tensor, d: Tensor, ok: Tensor, eye: Tensor
     blocks = _blocks(fr, f)
     alive = use.any(0)
     bounds = _bounds(use, blocks)
-    wls = _wls_chunks(f)
     for _ in range(3):
         # per point (its frames in time): the roughness of its residual (gaps filled)
         d2 = torch.empty(f - 2, n, dtype=torch.float64, device=ok.device)
@@ -615,15 +614,31 @@ def _consistent_fit(x: Tensor, d: Tensor, ok: Tensor, eye: Tensor
         good = use & (dev <= limit)
         del dev
         w = w_pt.expand(f, -1)
-        alive_good = good.any(0)
-        new = torch.empty_like(coef)
-        for sl, bd in zip(wls, _bounds(good, [(s.start, s.stop) for s in wls])):
-            filled = _filled(x, d, coef, good, sl.start, sl.stop, bd, alive_good)
-            full = torch.nan_to_num(torch.where(good[sl].unsqueeze(-1), _rows(d, sl),
-                                                x @ coef[sl] + filled))
-            new[sl] = _wls(x, full, w[sl], eye)
-        coef = new
+        coef = _refit(x, d, coef, good, w, eye, fr)
     return coef, w, use
+
+
+def _refit(x: Tensor, d: Tensor, coef: Tensor, good: Tensor, w: Tensor, eye: Tensor,
+           fr: list[slice]) -> Tensor:
+    """(F, C, 2) the weighted least squares (weights ``w`` (F, N)) of the displacements
+    ``d`` where ``good`` (F, N) holds, elsewhere the fit ``x coef`` plus the residual filled
+    in time from the point's good frames: chunks of :func:`_wls_chunks`, each assembled from
+    the frame chunks ``fr`` within it (bounded work arrays)."""
+    f, n = good.shape
+    alive = good.any(0)
+    wls = _wls_chunks(f)
+    parts = [[slice(max(ch.start, sl.start), min(ch.stop, sl.stop)) for sl in fr
+              if sl.start < ch.stop and sl.stop > ch.start] for ch in wls]
+    bounds = iter(_bounds(good, [(p.start, p.stop) for ps in parts for p in ps]))
+    new = torch.empty_like(coef)
+    for ch, ps in zip(wls, parts):
+        full = torch.empty(ch.stop - ch.start, n, 2, dtype=torch.float64, device=good.device)
+        for sl in ps:
+            filled = _filled(x, d, coef, good, sl.start, sl.stop, next(bounds), alive)
+            full[sl.start - ch.start:sl.stop - ch.start] = torch.nan_to_num(torch.where(
+                good[sl].unsqueeze(-1), _rows(d, sl), x @ coef[sl] + filled))
+        new[ch] = _wls(x, full, w[ch], eye)
+    return new
 
 
 def window_offsets(g: Tensor, dt: Tensor) -> Tensor:
