@@ -137,6 +137,11 @@ def test_file_run_holds_no_rows_and_the_pass_keeps_few(frames, tmp_path, monkeyp
     kept = np.asarray(passes[0].plan.targets)[passes[0].sparse_rows]
     assert kept.max() <= first + 2 * m and len(kept) < len(passes[0].plan.targets)
     assert set(passes[0].values) == {"u", "v", "zncc", "status", "u_std"}
+    # u and v side by side in one (F, n, 2) array: the fit reads it without a copy
+    pair = passes[0].paired
+    assert pair is not None and pair.shape[-1] == 2 and np.isfinite(pair).any()
+    assert np.shares_memory(pair, passes[0].values["u"]) and np.array_equal(
+        pair[..., 1], passes[0].values["v"], equal_nan=True)
 
 
 @pytest.mark.parametrize("kind", ["translation", "affine", "quadratic"])

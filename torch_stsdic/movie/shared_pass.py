@@ -140,14 +140,15 @@ def estimate_shared_motion(plan: RunPlan, kind: str = "auto",
     if res is None:
         grads = tuple(nm for nm in ("ux", "uy", "vx", "vy") if nm in sub.param_names)
         keep = ("u", "v", "zncc", "status", *(("u_std",) if "u_std" in sub.fields else ()))
-        sink = MemorySink(sub, keep=keep,
+        sink = MemorySink(sub, keep=keep, pair=("u", "v"),
                           at_rows=(grads, torch.nonzero(near).flatten().numpy()))
         res = run(sub, sink, progress=False)
     else:
         sink = None
     # (F, n, 2) at the pass's precision (float32: exact in the fit's float64, frame chunk by
-    # frame chunk)
-    disp = torch.stack([res.u, res.v], -1).cpu()
+    # frame chunk), the sink's own array where it measured them
+    disp = (torch.from_numpy(sink.paired) if sink is not None and sink.paired is not None
+            else torch.stack([res.u, res.v], -1).cpu())
     valid = (res.status <= USABLE).cpu() & (res.zncc.cpu() >= float(
         plan.options.get("lost_zncc", 0.8)))
     origin = plan.points.double().mean(0).cpu()
