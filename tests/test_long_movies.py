@@ -311,6 +311,40 @@ def test_shared_pass_in_chunks_equals_the_whole_series(frames, monkeypatch):
     assert np.isfinite(chunked.se[1:]).all() and (chunked.se[1:] > 0).all()
 
 
+def test_shared_pass_with_shake_and_load_steps_in_chunks_equals_the_whole_series(
+        monkeypatch):
+    """A render with a shared shake and load steps: the pass's fitted motion, standard
+    errors and load steps taken two frames at a time (its fit from float32 measurements,
+    its increments a chunk at a time) are those of the whole series at once."""
+    from torch_stsdic.core import shared_motion as sm
+    from torch_stsdic.movie.plan import plan_run
+    from torch_stsdic.movie.series import run_plan
+    from torch_stsdic.movie.shared_pass import estimate_shared_motion
+    from torch_stsdic.synth import Custom, RigidJitter, make_speckle, render_series
+
+    size, times = 111, torch.arange(0.0, 19)
+
+    def fn(x, y, t):
+        a = 0.3 * torch.floor((t + 0.5) / 6.0)  # load states 0-5, 6-11, 12-17, 18
+        return a * torch.sin(2 * np.pi * x / 120.0), -0.5 * a * torch.cos(2 * np.pi * y / 150.0)
+
+    c = ((size - 1) / 2, (size - 1) / 2)
+    motion = Custom(fn) + RigidJitter.random(times, 0.15, 0.0, center=c, seed=2)
+    ref, fr = render_series(make_speckle((size, size), seed=4), (size, size), motion,
+                            times[1:], noise_sigma=3.0, seed=5)
+    movie = torch.cat([ref[None], fr])
+    plan = plan_run(movie, 0, None, None, None, None, 10, DICConfig(m=2), "cpu", None, 3)
+    monkeypatch.setattr(sm, "FIT_CHUNK", 2 * plan.n_points)  # chunks of 2 frames
+    chunked = estimate_shared_motion(plan, "affine", run=run_plan)
+    monkeypatch.setattr(sm, "FIT_CHUNK", 1 << 40)
+    whole = estimate_shared_motion(plan, "affine", run=run_plan)
+    assert chunked.steps == whole.steps == [6, 12, 18]
+    for name in ("params", "scatter", "se", "points", "measured"):
+        np.testing.assert_array_equal(getattr(chunked, name), getattr(whole, name),
+                                      err_msg=name)
+    assert float(np.abs(chunked.params[1:, :2]).max()) > 0.1  # the shake was measured
+
+
 def test_stored_result_rows_read_alone_equal_the_whole_results(frames, tmp_path):
     """A file-backed result's rows (any order, a subset of points) read from the file alone
     are those of the whole result's ``select``, and no whole field is read."""
