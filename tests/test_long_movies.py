@@ -148,7 +148,7 @@ def test_file_run_holds_no_rows_and_the_pass_keeps_few(frames, tmp_path, monkeyp
 def test_fit_in_chunks_equals_the_whole_series(kind, monkeypatch):
     """The shared motion's fit of a long series, taken in chunks of frames and points
     (bounded memory), gives the very numbers of the fit over the whole series at once."""
-    from torch_stsdic.core import shared_motion as sm
+    from torch_stsdic.core import shared_fit as sm
 
     g = torch.Generator().manual_seed(3)
     f, n = 600, 120
@@ -172,7 +172,7 @@ def test_fit_in_chunks_equals_the_whole_series(kind, monkeypatch):
 def _whole_series_fit(x, d, ok, eye):
     """The series fit of ``fit_frame_motion`` over whole (F, N) arrays, as it was written
     before it went frame chunk by frame chunk (issue 50): the oracle of the chunked one."""
-    from torch_stsdic.core import shared_motion as sm
+    from torch_stsdic.core import shared_fit as sm
 
     def fill(r, m):
         f = r.shape[0]
@@ -225,7 +225,7 @@ def test_series_fit_frame_chunk_by_frame_chunk_equals_the_whole_arrays(f, n, chu
     from float32 measurements (the pass's precision; one (F, N) float64 array at a time),
     gives the very numbers of the fit over whole float64 arrays: long gaps, a point never
     valid, wrong peaks and points valid in only part of the frames included."""
-    from torch_stsdic.core import shared_motion as sm
+    from torch_stsdic.core import shared_fit as sm
 
     g = torch.Generator().manual_seed(f + n)
     pts = torch.rand(n, 2, generator=g, dtype=torch.float64) * 300
@@ -255,7 +255,7 @@ def test_series_fit_frame_chunk_by_frame_chunk_equals_the_whole_arrays(f, n, chu
 
 def test_lower_median_is_torch_nanmedian():
     """The median of all entries taken without a copy is ``torch.nanmedian``'s."""
-    from torch_stsdic.core import shared_motion as sm
+    from torch_stsdic.core import shared_fit as sm
 
     g = torch.Generator().manual_seed(2)
     for n in (1, 2, 5, 1000, 1001):
@@ -271,7 +271,8 @@ def test_lower_median_is_torch_nanmedian():
 def test_step_detection_in_chunks_equals_the_whole_series(monkeypatch):
     """The load steps of a long series found frame chunk by frame chunk (bounded memory)
     are those of the whole series at once, the increments' medians the very numbers."""
-    from torch_stsdic.core import shared_motion as sm
+    from torch_stsdic.core import shared_fit as sm
+    from torch_stsdic.core.shared_motion import detect_steps
 
     g = torch.Generator().manual_seed(5)
     f, n = 400, 90
@@ -284,9 +285,9 @@ def test_step_detection_in_chunks_equals_the_whole_series(monkeypatch):
     frames = list(range(f))
     frames[200:] = [k + 60 for k in frames[200:]]  # a gap: frames 200.. are not adjacent
     monkeypatch.setattr(sm, "FIT_CHUNK", 7 * n)  # chunks of 7 frames
-    chunked = sm.detect_steps(resid, valid, sigma, frames)
+    chunked = detect_steps(resid, valid, sigma, frames)
     monkeypatch.setattr(sm, "FIT_CHUNK", 1 << 40)
-    whole = sm.detect_steps(resid, valid, sigma, frames)
+    whole = detect_steps(resid, valid, sigma, frames)
     assert chunked == whole == [150, 320]
 
 
@@ -294,7 +295,7 @@ def test_shared_pass_in_chunks_equals_the_whole_series(frames, monkeypatch):
     """The shared-motion pass's fitted motion, load steps, scatter and standard errors are
     the same taken frame chunk by frame chunk (its fit, the fitted motion at the sample,
     the noise per frame, the steps) as over the whole series at once."""
-    from torch_stsdic.core import shared_motion as sm
+    from torch_stsdic.core import shared_fit as sm
     from torch_stsdic.movie.plan import plan_run
     from torch_stsdic.movie.series import run_plan
     from torch_stsdic.movie.shared_pass import estimate_shared_motion
@@ -316,7 +317,7 @@ def test_shared_pass_with_shake_and_load_steps_in_chunks_equals_the_whole_series
     """A render with a shared shake and load steps: the pass's fitted motion, standard
     errors and load steps taken two frames at a time (its fit from float32 measurements,
     its increments a chunk at a time) are those of the whole series at once."""
-    from torch_stsdic.core import shared_motion as sm
+    from torch_stsdic.core import shared_fit as sm
     from torch_stsdic.movie.plan import plan_run
     from torch_stsdic.movie.series import run_plan
     from torch_stsdic.movie.shared_pass import estimate_shared_motion
