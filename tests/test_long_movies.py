@@ -137,13 +137,18 @@ def test_file_run_holds_no_rows_and_the_pass_keeps_few(frames, tmp_path, monkeyp
     kept = np.asarray(passes[0].plan.targets)[passes[0].sparse_rows]
     assert kept.max() <= first + 2 * m and len(kept) < len(passes[0].plan.targets)
     assert set(passes[0].values) == {"u", "v", "zncc", "status", "u_std"}
+    # u and v side by side in one (F, n, 2) array: the fit reads it without a copy
+    pair = passes[0].paired
+    assert pair is not None and pair.shape[-1] == 2 and np.isfinite(pair).any()
+    assert np.shares_memory(pair, passes[0].values["u"]) and np.array_equal(
+        pair[..., 1], passes[0].values["v"], equal_nan=True)
 
 
 @pytest.mark.parametrize("kind", ["translation", "affine", "quadratic"])
 def test_fit_in_chunks_equals_the_whole_series(kind, monkeypatch):
     """The shared motion's fit of a long series, taken in chunks of frames and points
     (bounded memory), gives the very numbers of the fit over the whole series at once."""
-    from torch_stsdic.core import shared_motion as sm
+    from torch_stsdic.core import shared_fit as sm
 
     g = torch.Generator().manual_seed(3)
     f, n = 600, 120
@@ -164,10 +169,110 @@ def test_fit_in_chunks_equals_the_whole_series(kind, monkeypatch):
         assert torch.equal(a.nan_to_num(-9.0), b.nan_to_num(-9.0))
 
 
+def _whole_series_fit(x, d, ok, eye):
+    """The series fit of ``fit_frame_motion`` over whole (F, N) arrays, as it was written
+    before it went frame chunk by frame chunk (issue 50): the oracle of the chunked one."""
+    from torch_stsdic.core import shared_fit as sm
+
+    def fill(r, m):
+        f = r.shape[0]
+        t = torch.arange(f).unsqueeze(1).expand_as(m)
+        prev = torch.where(m, t, torch.full_like(t, -1)).cummax(0).values
+        nxt = torch.where(m, t, torch.full_like(t, f)).flip(0).cummin(0).values.flip(0)
+        a = torch.where(prev >= 0, prev, nxt).clamp(0, f - 1)
+        b = torch.where(nxt < f, nxt, prev).clamp(0, f - 1)
+        ra = torch.gather(r, 0, a.unsqueeze(-1).expand(-1, -1, 2))
+        rb = torch.gather(r, 0, b.unsqueeze(-1).expand(-1, -1, 2))
+        frac = ((t - a).double() / (b - a).clamp(min=1).double()).clamp(0, 1).unsqueeze(-1)
+        out = ra + (rb - ra) * frac
+        return torch.where(m.any(0, keepdim=True).unsqueeze(-1), out, torch.zeros_like(out))
+
+    def line(r):
+        out = torch.empty_like(r)
+        out[1:-1] = 0.5 * (r[:-2] + r[2:])
+        out[0], out[-1] = 2 * r[1] - r[2], 2 * r[-2] - r[-3]
+        return out
+
+    d = d.double()
+    keep = ok.all(0)
+    if int(keep.sum()) < max(3 * x.shape[1], int(0.5 * int(ok.any(0).sum()))):
+        keep = ok.double().mean(0) >= sm._VALID_SHARE
+    use = ok & keep
+    coef, _ = sm._frame_fit(x, d, use, eye)
+    for _ in range(3):
+        r = torch.where(use.unsqueeze(-1), d - x @ coef, torch.zeros_like(d))
+        rf = fill(r, use)
+        rough = (rf[2:] - 2 * rf[1:-1] + rf[:-2]).norm(dim=-1).median(0).values
+        jump = rf - line(rf)
+        s_r = torch.nanmedian(torch.where(keep, rough, torch.nan)).clamp(min=1e-9)
+        w_pt = torch.where(keep & (rough <= 10.0 * s_r),
+                           torch.clamp(3.0 * s_r / rough.clamp(min=1e-12), max=1.0),
+                           torch.zeros_like(rough))
+        shared = torch.nanmedian(torch.where(use.unsqueeze(-1), jump, torch.nan), 1).values
+        dev = (jump - torch.nan_to_num(shared).unsqueeze(1)).norm(dim=-1)
+        scale = torch.nanmedian(torch.where(use, dev, torch.nan)).clamp(min=1e-9)
+        good = use & (dev <= torch.clamp(10.0 * scale, min=sm._GROSS_PX))
+        w = w_pt.expand(d.shape[0], -1)
+        full = torch.nan_to_num(torch.where(good.unsqueeze(-1), d, x @ coef + fill(r, good)))
+        coef = sm._wls(x, full, w, eye)
+    return coef, w, use
+
+
+@pytest.mark.parametrize("f, n, chunk", [(700, 60, 7), (41, 30, 1), (3, 25, 1), (300, 90, 300)])
+def test_series_fit_frame_chunk_by_frame_chunk_equals_the_whole_arrays(f, n, chunk,
+                                                                       monkeypatch):
+    """The series fit of a long movie's shared-motion pass, taken frame chunk by frame chunk
+    from float32 measurements (the pass's precision; one (F, N) float64 array at a time),
+    gives the very numbers of the fit over whole float64 arrays: long gaps, a point never
+    valid, wrong peaks and points valid in only part of the frames included."""
+    from torch_stsdic.core import shared_fit as sm
+
+    g = torch.Generator().manual_seed(f + n)
+    pts = torch.rand(n, 2, generator=g, dtype=torch.float64) * 300
+    t = torch.arange(f, dtype=torch.float64)[:, None, None]
+    disp = (0.05 * t + 1e-4 * pts[None] * t + 0.01 * torch.randn(
+        f, n, 2, generator=g, dtype=torch.float64)).float()
+    disp[torch.rand(f, n, generator=g) < 0.01] += 3.0  # wrong peaks
+    disp[torch.rand(f, n, generator=g) < 0.005] = float("nan")
+    ok = (torch.rand(f, n, generator=g) > 0.01) & torch.isfinite(disp).all(-1)
+    ok[f // 3:2 * f // 3, :n // 6] = False  # long gaps: the fill reaches across chunks
+    ok[:, -1] = False  # never valid
+    ok[: f // 2, 1] = False  # valid in half of the frames only
+    x = torch.stack([torch.ones(n, dtype=torch.float64), pts[:, 0] / 300, pts[:, 1] / 300], 1)
+    eye = 1e-12 * torch.eye(3, dtype=torch.float64)
+    monkeypatch.setattr(sm, "FIT_CHUNK", chunk * n)  # chunks of ``chunk`` frames
+    got = sm._consistent_fit(x, disp, ok, eye)
+    want = _whole_series_fit(x, disp, ok, eye)
+    assert len(sm.frame_chunks(f, n)) == -(-f // chunk)
+    for a, b in zip(got, want):
+        assert torch.equal(a, b)
+    ok[:, : n // 2] &= torch.rand(f, n // 2, generator=g) > 0.2  # few points valid throughout
+    got = sm._consistent_fit(x, disp, ok, eye)
+    want = _whole_series_fit(x, disp, ok, eye)
+    for a, b in zip(got, want):
+        assert torch.equal(a, b)
+
+
+def test_lower_median_is_torch_nanmedian():
+    """The median of all entries taken without a copy is ``torch.nanmedian``'s."""
+    from torch_stsdic.core import shared_fit as sm
+
+    g = torch.Generator().manual_seed(2)
+    for n in (1, 2, 5, 1000, 1001):
+        v = torch.rand(n, 3, generator=g, dtype=torch.float64) ** 3
+        v[torch.rand(n, 3, generator=g) < 0.3] = torch.nan
+        v[0, 0] = 0.0
+        want = torch.nanmedian(v)
+        assert torch.equal(sm._lower_median(v), want) or (want.isnan() and
+                                                          sm._lower_median(v).isnan())
+    assert sm._lower_median(torch.full((4, 2), torch.nan, dtype=torch.float64)).isnan()
+
+
 def test_step_detection_in_chunks_equals_the_whole_series(monkeypatch):
     """The load steps of a long series found frame chunk by frame chunk (bounded memory)
     are those of the whole series at once, the increments' medians the very numbers."""
-    from torch_stsdic.core import shared_motion as sm
+    from torch_stsdic.core import shared_fit as sm
+    from torch_stsdic.core.shared_motion import detect_steps
 
     g = torch.Generator().manual_seed(5)
     f, n = 400, 90
@@ -180,9 +285,9 @@ def test_step_detection_in_chunks_equals_the_whole_series(monkeypatch):
     frames = list(range(f))
     frames[200:] = [k + 60 for k in frames[200:]]  # a gap: frames 200.. are not adjacent
     monkeypatch.setattr(sm, "FIT_CHUNK", 7 * n)  # chunks of 7 frames
-    chunked = sm.detect_steps(resid, valid, sigma, frames)
+    chunked = detect_steps(resid, valid, sigma, frames)
     monkeypatch.setattr(sm, "FIT_CHUNK", 1 << 40)
-    whole = sm.detect_steps(resid, valid, sigma, frames)
+    whole = detect_steps(resid, valid, sigma, frames)
     assert chunked == whole == [150, 320]
 
 
@@ -190,7 +295,7 @@ def test_shared_pass_in_chunks_equals_the_whole_series(frames, monkeypatch):
     """The shared-motion pass's fitted motion, load steps, scatter and standard errors are
     the same taken frame chunk by frame chunk (its fit, the fitted motion at the sample,
     the noise per frame, the steps) as over the whole series at once."""
-    from torch_stsdic.core import shared_motion as sm
+    from torch_stsdic.core import shared_fit as sm
     from torch_stsdic.movie.plan import plan_run
     from torch_stsdic.movie.series import run_plan
     from torch_stsdic.movie.shared_pass import estimate_shared_motion
@@ -205,6 +310,40 @@ def test_shared_pass_in_chunks_equals_the_whole_series(frames, monkeypatch):
                                       err_msg=name)
     assert chunked.steps == whole.steps
     assert np.isfinite(chunked.se[1:]).all() and (chunked.se[1:] > 0).all()
+
+
+def test_shared_pass_with_shake_and_load_steps_in_chunks_equals_the_whole_series(
+        monkeypatch):
+    """A render with a shared shake and load steps: the pass's fitted motion, standard
+    errors and load steps taken two frames at a time (its fit from float32 measurements,
+    its increments a chunk at a time) are those of the whole series at once."""
+    from torch_stsdic.core import shared_fit as sm
+    from torch_stsdic.movie.plan import plan_run
+    from torch_stsdic.movie.series import run_plan
+    from torch_stsdic.movie.shared_pass import estimate_shared_motion
+    from torch_stsdic.synth import Custom, RigidJitter, make_speckle, render_series
+
+    size, times = 111, torch.arange(0.0, 19)
+
+    def fn(x, y, t):
+        a = 0.3 * torch.floor((t + 0.5) / 6.0)  # load states 0-5, 6-11, 12-17, 18
+        return a * torch.sin(2 * np.pi * x / 120.0), -0.5 * a * torch.cos(2 * np.pi * y / 150.0)
+
+    c = ((size - 1) / 2, (size - 1) / 2)
+    motion = Custom(fn) + RigidJitter.random(times, 0.15, 0.0, center=c, seed=2)
+    ref, fr = render_series(make_speckle((size, size), seed=4), (size, size), motion,
+                            times[1:], noise_sigma=3.0, seed=5)
+    movie = torch.cat([ref[None], fr])
+    plan = plan_run(movie, 0, None, None, None, None, 10, DICConfig(m=2), "cpu", None, 3)
+    monkeypatch.setattr(sm, "FIT_CHUNK", 2 * plan.n_points)  # chunks of 2 frames
+    chunked = estimate_shared_motion(plan, "affine", run=run_plan)
+    monkeypatch.setattr(sm, "FIT_CHUNK", 1 << 40)
+    whole = estimate_shared_motion(plan, "affine", run=run_plan)
+    assert chunked.steps == whole.steps == [6, 12, 18]
+    for name in ("params", "scatter", "se", "points", "measured"):
+        np.testing.assert_array_equal(getattr(chunked, name), getattr(whole, name),
+                                      err_msg=name)
+    assert float(np.abs(chunked.params[1:, :2]).max()) > 0.1  # the shake was measured
 
 
 def test_stored_result_rows_read_alone_equal_the_whole_results(frames, tmp_path):

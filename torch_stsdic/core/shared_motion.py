@@ -42,15 +42,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torch_stsdic.core.shared_fit import SHARED_MOTION_KINDS, fit_frame_motion, frame_chunks
+
 __all__ = ["SharedMotion", "SHARED_MOTION_KINDS", "PARAM_NAMES", "PARAM_UNITS",
            "fit_frame_motion", "window_offsets", "known_window_motion", "overlap_factor",
            "sample_points", "frame_chunks",
-           "detect_steps", "DEFAULT_MAX_POINTS", "SIGNIFICANT", "STEP_Z", "STEP_RATIO", "SE_FLOOR"]
+           "detect_steps", "step_increments", "steps_from_increments",
+           "DEFAULT_MAX_POINTS", "SIGNIFICANT", "STEP_Z", "STEP_RATIO", "SE_FLOOR"]
 
-#: kinds of shared motion: a translation per frame (2 numbers), an affine motion (6), or a
-#: quadratic one (12: also the second derivatives, as a tilt of the specimen out of the
-#: image plane or a bending shake gives)
-SHARED_MOTION_KINDS = ("translation", "affine", "quadratic")
 #: the columns of ``SharedMotion.params`` (px, px/px, px/px^2): u = a_x + du/dx dx + du/dy dy
 #: + d2u/dx2 dx^2 / 2 + d2u/dxdy dx dy + d2u/dy2 dy^2 / 2 (dx, dy from the origin), v alike
 PARAM_NAMES = ("a_x", "a_y", "du/dx", "du/dy", "dv/dx", "dv/dy", "d2u/dx2", "d2u/dxdy",
@@ -59,11 +58,6 @@ PARAM_UNITS = ("px", "px", "px/px", "px/px", "px/px", "px/px", "px/px^2", "px/px
                "px/px^2", "px/px^2", "px/px^2", "px/px^2")
 #: POIs of the classical pass that measures the shared motion
 DEFAULT_MAX_POINTS = 1000
-_HUBER = 2.0  # Huber threshold in robust (MAD) standard deviations
-_IRLS_STEPS = 8
-_MIN_POINTS = 8  # fewer usable points in a frame: no estimate there (interpolated)
-_VALID_SHARE = 0.9  # a series' fit uses the points valid in at least this share of frames
-_GROSS_PX = 0.5  # an entry this far (or 10x the median) from its neighbours: a wrong peak
 #: "auto" applies the shared motion where its significance (jitter variance over estimation
 #: variance) exceeds this: a jitter of 5 times the estimate's standard error. (A motion
 #: affine in time gives ~1, and up to ~6 where the sub-pixel interpolation bias, the same at
@@ -236,278 +230,6 @@ class SharedMotion:
                    extra={k: v for k, v in rec.items() if k not in known})
 
 
-def fit_frame_motion(points: Tensor, disp: Tensor, valid: Tensor, kind: str = "affine",
-                     origin: Tensor | None = None, noise: Tensor | None = None
-                     ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Robust per-frame fit of a shared motion to measured displacements.
-
-    Args:
-        points: (N, 2) POIs (x, y) px.
-        disp: (F, N, 2) displacements (u, v) px of every point in every frame.
-        valid: (F, N) bool, the measurements to use (NaN displacements are never used).
-        kind: "translation", "affine" or "quadratic".
-        origin: (2,) the point the translation refers to (default: the points' mean).
-        noise: (F, N) each measurement's noise std per component, px (e.g. the classical
-            predicted std), for the standard error; None: the fit's robust scatter (which
-            also counts the deformation's departure from the affine motion).
-
-    Returns:
-        params (F, 6) float64, (F, 12) for "quadratic" (columns ``PARAM_NAMES``; NaN where a
-        frame has fewer than 8 valid points, 18 for "quadratic"), robust scatter (F,) px,
-        points used (F,), and the standard error (F,) px of the translation (per component:
-        from ``noise`` or the scatter, through the weighted least-squares factor).
-    """
-    if kind not in SHARED_MOTION_KINDS:
-        raise ValueError(f"shared motion kind must be one of {SHARED_MOTION_KINDS}, got "
-                         f"{kind!r}")
-    p = points.double()
-    d = disp.double()
-    ok = valid.bool() & torch.isfinite(d).all(-1)
-    o = p.mean(0) if origin is None else torch.as_tensor(origin, dtype=torch.float64,
-                                                          device=p.device)
-    rel = p - o
-    scale = float(rel.abs().max().clamp(min=1.0))  # conditioning: columns of order 1
-    xs, ys = rel[:, 0] / scale, rel[:, 1] / scale
-    cols = [torch.ones_like(xs)]
-    if kind in ("affine", "quadratic"):
-        cols += [xs, ys]
-    if kind == "quadratic":
-        cols += [0.5 * xs * xs, xs * ys, 0.5 * ys * ys]
-    x = torch.stack(cols, 1)  # (N, C)
-    f, c = d.shape[0], x.shape[1]
-    eye = 1e-12 * torch.eye(c, dtype=torch.float64, device=p.device)
-    if f >= 3:
-        coef, w, ok = _consistent_fit(x, d, ok, eye)
-    else:
-        coef, w = _frame_fit(x, d, ok, eye)
-    s, var0 = _spread(x, d, ok, coef, w, eye, noise)
-    used = ok.sum(1)
-    se = var0.clamp(min=0).sqrt()
-    out = torch.zeros(f, 12 if kind == "quadratic" else 6, dtype=torch.float64, device=p.device)
-    out[:, 0], out[:, 1] = coef[:, 0, 0], coef[:, 0, 1]
-    if c >= 3:
-        out[:, 2], out[:, 3] = coef[:, 1, 0] / scale, coef[:, 2, 0] / scale
-        out[:, 4], out[:, 5] = coef[:, 1, 1] / scale, coef[:, 2, 1] / scale
-    if c == 6:
-        s2 = scale * scale
-        out[:, 6], out[:, 7], out[:, 8] = (coef[:, 3, 0] / s2, coef[:, 4, 0] / s2,
-                                           coef[:, 5, 0] / s2)
-        out[:, 9], out[:, 10], out[:, 11] = (coef[:, 3, 1] / s2, coef[:, 4, 1] / s2,
-                                             coef[:, 5, 1] / s2)
-    few = used < max(_MIN_POINTS, 3 * c)
-    out[few] = float("nan")
-    s = torch.where(few, torch.nan, s)
-    return out, s, used, torch.where(few, torch.nan, se)
-
-
-#: (frame, point) entries of the intermediate arrays of a series' fit at a time: a long
-#: movie's fit (every frame measured) works through its frames, or its points, in pieces of
-#: this size, each as the whole series would be (the same numbers, bounded memory)
-FIT_CHUNK = 1 << 16
-
-
-def frame_chunks(f: int, n: int) -> list[slice]:
-    """Consecutive frames, about ``FIT_CHUNK`` entries of ``n`` points each."""
-    step = max(1, FIT_CHUNK // max(n, 1))
-    return [slice(i, min(i + step, f)) for i in range(0, f, step)]
-
-
-def _point_chunks(f: int, n: int) -> list[slice]:
-    """Consecutive points, about ``FIT_CHUNK`` entries of ``f`` frames each."""
-    step = max(1, FIT_CHUNK // max(f, 1))
-    return [slice(i, min(i + step, n)) for i in range(0, n, step)]
-
-
-#: the normal equations of a long series are made over chunks of at least this many frames:
-#: each chunk's batched product then rounds as the whole series' does (below ~100 frames a
-#: BLAS takes its small-matrix path, which rounds differently; checked on every shape of
-#: tests/test_long_movies.py::test_fit_in_chunks_equals_the_whole_series)
-WLS_FRAMES = 256
-
-
-def _wls_chunks(f: int) -> list[slice]:
-    """Consecutive frames in chunks of ``WLS_FRAMES`` to ``2 * WLS_FRAMES - 1`` (one chunk
-    where ``f`` is shorter than two)."""
-    if f < 2 * WLS_FRAMES:
-        return [slice(0, f)]
-    cuts = list(range(0, f, WLS_FRAMES))
-    if f - cuts[-1] < WLS_FRAMES:
-        cuts.pop()
-    return [slice(a, b) for a, b in zip(cuts, cuts[1:] + [f])]
-
-
-def _spread(x: Tensor, d: Tensor, ok: Tensor, coef: Tensor, w: Tensor, eye: Tensor,
-            noise: Tensor | None) -> tuple[Tensor, Tensor]:
-    """Per frame: the robust scatter of the residuals (F,) px (frame chunk by frame chunk)
-    and the variance (F,) of the translation coefficient (sandwich with ``noise``, else from
-    the scatter; chunks of :data:`WLS_FRAMES`)."""
-    f = d.shape[0]
-    s = torch.empty(f, dtype=torch.float64, device=d.device)
-    for sl in frame_chunks(f, d.shape[1]):
-        okc = ok[sl]
-        d0 = torch.where(okc.unsqueeze(-1), d[sl], torch.zeros_like(d[sl]))
-        r = (d0 - x @ coef[sl]).norm(dim=-1)
-        # 2-D residuals of std s per component: |r| is Rayleigh, median 1.1774 s
-        s[sl] = torch.nanmedian(torch.where(okc, r, torch.nan), dim=1).values / 1.1774
-    var0 = torch.empty_like(s)
-    for sl in _wls_chunks(f):
-        xwt = x.T.unsqueeze(0) * w[sl].unsqueeze(1)  # (F, C, N): (x w)^T, made contiguous
-        inv = torch.linalg.inv(xwt @ x + eye)
-        if noise is None:
-            var0[sl] = (inv @ (xwt @ xwt.transpose(1, 2)) @ inv)[:, 0, 0] * s[sl] * s[sl]
-        else:  # sandwich with each row's own noise variance
-            nv = torch.where(ok[sl], torch.nan_to_num(noise[sl].double(), nan=0.0) ** 2,
-                             torch.zeros_like(w[sl]))
-            xwt *= nv.sqrt().unsqueeze(1)  # (x_n)^T
-            var0[sl] = (inv @ (xwt @ xwt.transpose(1, 2)) @ inv)[:, 0, 0]
-    return s, var0
-
-
-def _wls(x: Tensor, d: Tensor, w: Tensor, eye: Tensor) -> Tensor:
-    """(F, C, 2) per-frame weighted least squares of d (F, N, 2) on x (N, C), weights w
-    (F, N) or (N,)."""
-    # (x w)^T made contiguous (F, C, N), as the product would copy it (the same numbers),
-    # chunks of frames that round as the whole series (:data:`WLS_FRAMES`)
-    w = w.expand(d.shape[0], -1) if w.dim() == 1 else w
-    out = torch.empty(d.shape[0], x.shape[1], d.shape[2], dtype=d.dtype, device=d.device)
-    for sl in _wls_chunks(d.shape[0]):
-        xwt = x.T.unsqueeze(0) * w[sl].unsqueeze(1)
-        out[sl] = torch.linalg.solve(xwt @ x + eye, xwt @ d[sl])
-    return out
-
-
-def _frame_fit(x: Tensor, d: Tensor, ok: Tensor, eye: Tensor) -> tuple[Tensor, Tensor]:
-    """Huber IRLS per frame (for fewer than 3 frames): coefficients, weights (F, N)."""
-    d0 = torch.where(ok.unsqueeze(-1), d, torch.zeros_like(d))
-    w = ok.double()
-    coef = _wls(x, d0, w, eye)
-    for _ in range(_IRLS_STEPS):
-        w = torch.empty(ok.shape, dtype=d0.dtype, device=d0.device)
-        for sl in frame_chunks(*ok.shape):  # the weights frame chunk by frame chunk
-            okc = ok[sl]
-            r = (d0[sl] - x @ coef[sl]).norm(dim=-1)
-            s = torch.nanmedian(torch.where(okc, r, torch.nan), dim=1).values / 1.1774
-            k = (_HUBER * s).clamp(min=1e-6).unsqueeze(1)
-            w[sl] = torch.where(okc, torch.clamp(k / r.clamp(min=1e-12), max=1.0),
-                                torch.zeros_like(r))
-        coef = _wls(x, d0, w, eye)
-    return coef, w
-
-
-def _fill_in_time(r: Tensor, ok: Tensor) -> Tensor:
-    """(F, N, 2) ``r`` with the entries not ``ok`` interpolated linearly in time between the
-    point's nearest valid frames (the nearest one before its first or after its last; 0 for
-    a point never valid); point chunk by point chunk."""
-    chunks = _point_chunks(*ok.shape)
-    if len(chunks) == 1:
-        return _fill_points(r, ok)
-    out = torch.empty_like(r)
-    for sl in chunks:
-        out[:, sl] = _fill_points(r[:, sl], ok[:, sl])
-    return out
-
-
-def _fill_points(r: Tensor, ok: Tensor) -> Tensor:
-    """:func:`_fill_in_time` of a few points."""
-    f = r.shape[0]
-    t = torch.arange(f, device=r.device).unsqueeze(1).expand_as(ok)
-    prev = torch.where(ok, t, torch.full_like(t, -1)).cummax(0).values
-    nxt = torch.where(ok, t, torch.full_like(t, f)).flip(0).cummin(0).values.flip(0)
-    a = torch.where(prev >= 0, prev, nxt).clamp(0, f - 1)
-    b = torch.where(nxt < f, nxt, prev).clamp(0, f - 1)
-    ra = torch.gather(r, 0, a.unsqueeze(-1).expand(-1, -1, 2))
-    rb = torch.gather(r, 0, b.unsqueeze(-1).expand(-1, -1, 2))
-    span = (b - a).clamp(min=1).to(r.dtype)
-    frac = ((t - a).to(r.dtype) / span).clamp(0, 1).unsqueeze(-1)
-    out = ra + (rb - ra) * frac
-    return torch.where(ok.any(0, keepdim=True).unsqueeze(-1), out, torch.zeros_like(out))
-
-
-def _neighbours_line(r: Tensor) -> Tensor:
-    """(F, N, 2) each frame's value as its neighbours predict it: the mean of the frames
-    before and after, extrapolated from the next two (previous two) at the first (last)
-    frame; a wrong peak in one frame stands out, a trend or an acceleration does not."""
-    out = torch.empty_like(r)
-    out[1:-1] = 0.5 * (r[:-2] + r[2:])
-    out[0] = 2 * r[1] - r[2]
-    out[-1] = 2 * r[-2] - r[-3]
-    return out
-
-
-def _consistent_fit(x: Tensor, d: Tensor, ok: Tensor, eye: Tensor
-                    ) -> tuple[Tensor, Tensor, Tensor]:
-    """The fit of :func:`fit_frame_motion` for a series (>= 3 frames): the same points with
-    the same weights in every frame, so the shared motion does not jump from frame to frame
-    where the deformation departs from it (a per-frame robust fit re-weights the points of a
-    non-uniform field differently in each frame: on the hourglass its 5-frame line misfit
-    was 7x that of this fit).
-
-    The points are those valid in every frame (a point lost in some frames is usually wrong
-    in others: on the hourglass, adding the 3 % valid in >= 90 % of the frames, with their
-    gaps interpolated, doubled the misfit); where fewer than half the valid points are, those
-    valid in >= 90 % of the frames, gaps interpolated in time (where even those are fewer
-    than 3 per coefficient: the robust fit frame by frame). Each point's weight is a
-    Huber weight (3x the median; 0 beyond 10x) on the roughness in time of its residual
-    from the shared motion (median |second difference|): a wrong or background point
-    jitters on its own; an entry's weight is 0 where it is far (10x the median, at least
-    0.5 px) from what the point's neighbouring frames predict: a wrong peak in one frame.
-    Returns
-    coefficients (F, C, 2), weights (F, N) and the entries used (F, N)."""
-    valid_pts = ok.any(0)
-    keep = ok.all(0)
-    if int(keep.sum()) < max(3 * x.shape[1], int(0.5 * int(valid_pts.sum()))):
-        keep = ok.double().mean(0) >= _VALID_SHARE
-    if int(keep.sum()) < 3 * x.shape[1]:  # too few points tracked throughout: per frame
-        coef, w = _frame_fit(x, d, ok, eye)
-        return coef, w, ok
-    use = ok & keep
-    coef, _ = _frame_fit(x, d, use, eye)  # a robust start, frame by frame
-    w = keep.double().expand(d.shape[0], -1)
-    f, n = use.shape
-    fr, pt = frame_chunks(f, n), _point_chunks(f, n)
-    for _ in range(3):
-        r = torch.empty_like(d)
-        for sl in fr:
-            r[sl] = torch.where(use[sl].unsqueeze(-1), d[sl] - x @ coef[sl],
-                                torch.zeros_like(d[sl]))
-        # per point (its frames in time): the roughness of its residual and, a wrong peak
-        # in single frames, how far each frame is from what its neighbouring frames predict
-        rough = torch.empty(n, dtype=d.dtype, device=d.device)
-        jump = torch.empty_like(d)
-        for sl in pt:
-            rf = _fill_points(r[:, sl], use[:, sl])
-            rough[sl] = (rf[2:] - 2 * rf[1:-1] + rf[:-2]).norm(dim=-1).median(0).values
-            jump[:, sl] = rf - _neighbours_line(rf)
-        del rf
-        s_r = torch.nanmedian(torch.where(keep, rough, torch.nan)).clamp(min=1e-9)
-        w_pt = torch.where(keep & (rough <= 10.0 * s_r),
-                           torch.clamp(3.0 * s_r / rough.clamp(min=1e-12), max=1.0),
-                           torch.zeros_like(rough))
-        # (what all points share at a frame is the shared motion's own error)
-        dev = torch.empty(f, n, dtype=d.dtype, device=d.device)
-        for sl in fr:
-            shared = torch.nanmedian(torch.where(use[sl].unsqueeze(-1), jump[sl], torch.nan),
-                                     1).values
-            dev[sl] = (jump[sl] - torch.nan_to_num(shared).unsqueeze(1)).norm(dim=-1)
-        del jump
-        scale = torch.nanmedian(torch.where(use, dev, torch.nan)).clamp(min=1e-9)
-        limit = torch.clamp(10.0 * scale, min=_GROSS_PX)
-        # such an entry is filled in from the point's other frames, as a gap is, and keeps
-        # its point's weight: a weight that changed from frame to frame would move the fit
-        # by the deformation's departure from it (px on the hourglass without a region)
-        good = use & (dev <= limit)
-        del dev
-        w = w_pt.expand(d.shape[0], -1)
-        full = _fill_in_time(r, good)  # in place of r's entries, chunk by chunk
-        del r
-        for sl in fr:
-            full[sl] = torch.nan_to_num(torch.where(good[sl].unsqueeze(-1), d[sl],
-                                                    x @ coef[sl] + full[sl]))
-        coef = _wls(x, full, w, eye)
-        del full
-    return coef, w, use
-
-
 def window_offsets(g: Tensor, dt: Tensor) -> Tensor:
     """The known motion of every frame of a window: the shared motion's jitter about its own
     line through the window (module docstring).
@@ -556,17 +278,37 @@ def detect_steps(residual: Tensor, valid: Tensor, sigma: Tensor, frames: Sequenc
 
     Returns:
         series frames that begin a new segment (ascending)."""
-    f = residual.shape[0]
-    if f < 3:
+    if residual.shape[0] < 3:
         return []
-    fr = torch.as_tensor(list(frames))
-    s = torch.empty(f - 1, dtype=residual.dtype, device=residual.device)
+    return steps_from_increments(step_increments(residual, valid), sigma, frames, z, ratio,
+                                 reach)
+
+
+def step_increments(residual: Tensor, valid: Tensor) -> Tensor:
+    """(F - 1,) px the median over the points valid in both frames of each point's increment
+    ``|r_i(t+1) - r_i(t)|`` into frames 1.. of ``residual`` (F, N, 2) (``valid`` (F, N));
+    frame chunk by frame chunk (each increment's median is its own: a caller may give the
+    rows of a long series a chunk at a time, each with one frame more)."""
+    f = residual.shape[0]
+    s = torch.empty(max(f - 1, 0), dtype=residual.dtype, device=residual.device)
     for sl in frame_chunks(f - 1, residual.shape[1]):  # bounded memory, the same numbers
         a, b = sl.start, sl.stop
         both = valid[a + 1:b + 1] & valid[a:b]
         inc = (residual[a + 1:b + 1] - residual[a:b]).norm(dim=-1)
         inc = torch.where(both & torch.isfinite(inc), inc, torch.nan)
         s[sl] = torch.nanmedian(inc, dim=1).values  # increment into frames[1:]
+    return s
+
+
+def steps_from_increments(s: Tensor, sigma: Tensor, frames: Sequence[int],
+                          z: float = STEP_Z, ratio: float = STEP_RATIO, reach: int = 5
+                          ) -> list[int]:
+    """The load steps of :func:`detect_steps` from the median increments ``s`` (F - 1,)
+    (:func:`step_increments`), the noise ``sigma`` (F,) and the series frames (F,)."""
+    f = len(frames)
+    if f < 3:
+        return []
+    fr = torch.as_tensor(list(frames))
     adjacent = (fr[1:] - fr[:-1]) == 1
     noise = 1.1774 * torch.maximum(sigma[1:], sigma[:-1])
     out = []

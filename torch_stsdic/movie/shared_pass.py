@@ -17,11 +17,12 @@ from torch_stsdic.core.shared_motion import (
     DEFAULT_MAX_POINTS,
     SIGNIFICANT,
     SharedMotion,
-    detect_steps,
     fit_frame_motion,
     frame_chunks,
     overlap_factor,
     sample_points,
+    step_increments,
+    steps_from_increments,
 )
 from torch_stsdic.movie.classical_pass import ClassicalPass, classical_subplan
 from torch_stsdic.movie.frames import frames_in_order
@@ -139,12 +140,15 @@ def estimate_shared_motion(plan: RunPlan, kind: str = "auto",
     if res is None:
         grads = tuple(nm for nm in ("ux", "uy", "vx", "vy") if nm in sub.param_names)
         keep = ("u", "v", "zncc", "status", *(("u_std",) if "u_std" in sub.fields else ()))
-        sink = MemorySink(sub, keep=keep,
+        sink = MemorySink(sub, keep=keep, pair=("u", "v"),
                           at_rows=(grads, torch.nonzero(near).flatten().numpy()))
         res = run(sub, sink, progress=False)
     else:
         sink = None
-    disp = torch.stack([res.u, res.v], -1).double().cpu()  # (F, n, 2)
+    # (F, n, 2) at the pass's precision (float32: exact in the fit's float64, frame chunk by
+    # frame chunk), the sink's own array where it measured them
+    disp = (torch.from_numpy(sink.paired) if sink is not None and sink.paired is not None
+            else torch.stack([res.u, res.v], -1).cpu())
     valid = (res.status <= USABLE).cpu() & (res.zncc.cpu() >= float(
         plan.options.get("lost_zncc", 0.8)))
     origin = plan.points.double().mean(0).cpu()
@@ -172,21 +176,26 @@ def estimate_shared_motion(plan: RunPlan, kind: str = "auto",
     out = SharedMotion(kind=kind, params=params, origin=origin.numpy(), scatter=scatter,
                        points=count, measured=measured, se=se,
                        times=np.asarray(plan.times, dtype=np.float64))
-    # the fitted motion at the sample (F, n, 2), the typical noise of each frame, the fit's
-    # plausibility, then the residual in place of ``disp``: frame chunk by frame chunk, a
-    # long movie's pass holds no more (F, n) arrays than its fit did
-    fidx = torch.as_tensor(frames)
-    g = torch.empty_like(disp)
-    sigma = torch.zeros(len(frames), dtype=torch.float64)
+    # the fitted motion at the sample, the residual from it, the typical noise of each
+    # frame, the fit's plausibility and the increments the load steps are found from: frame
+    # chunk by frame chunk (each with one frame more, the increment into the next chunk), a
+    # long movie's pass holds no (F, n) array besides its measurements
+    fidx, f = torch.as_tensor(frames), len(frames)
+    sigma = torch.zeros(f, dtype=torch.float64)
+    incs = torch.empty(max(f - 1, 0), dtype=torch.float64)
+    reason = None
     for sl in frame_chunks(*valid.shape):
-        g[sl] = out.displacement(pts, fidx[sl]).double()
+        a, b = sl.start, min(sl.stop + 1, f)
+        g = out.displacement(pts, fidx[a:b]).double()
+        d = disp[a:b].double()
+        if reason is None:
+            reason = implausible(d[:sl.stop - a], g[:sl.stop - a], valid[sl], frames[sl])
         if noise is not None:
             sigma[sl] = torch.nanmedian(torch.where(valid[sl], noise[sl].double(), torch.nan),
                                         dim=1).values
-    reason = implausible(disp, g, valid, frames)
-    disp -= g
-    del g
-    out.steps = detect_steps(disp, valid, sigma, frames)
+        incs[a:b - 1] = step_increments(d - g, valid[a:b])
+    del disp
+    out.steps = steps_from_increments(incs, sigma, frames)
     out.sample = sample
     if auto:
         z = out.significance()

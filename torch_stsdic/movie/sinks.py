@@ -45,14 +45,20 @@ class MemorySink:
     only a few (the shared motion's measuring pass) holds those alone, at the plan's
     precision (float32 values of a float32 run are held exactly in float32); the others
     read NaN (status NOT_COMPUTED, iterations 0, m -1) in its :meth:`result`, taking no
-    memory. ``at_rows`` (names, rows): fields held only at those rows (:attr:`sparse`)."""
+    memory. ``at_rows`` (names, rows): fields held only at those rows (:attr:`sparse`).
+    ``pair`` (two kept fields, e.g. ("u", "v")): held side by side in one (F, N, 2) array
+    (:attr:`paired`; ``values`` holds its two views), which a fit over both reads without a
+    copy (the shared-motion pass)."""
 
     path: str | None = None
 
     def __init__(self, plan: RunPlan, keep: Sequence[str] | None = None,
-                 at_rows: tuple[Sequence[str], np.ndarray] | None = None) -> None:
+                 at_rows: tuple[Sequence[str], np.ndarray] | None = None,
+                 pair: tuple[str, str] | None = None) -> None:
         self.plan = plan
         self.values: dict[str, np.ndarray] = {}
+        #: (F, N, 2) the ``pair`` fields side by side (None: no pair)
+        self.paired: np.ndarray | None = None
         #: ``at_rows`` (names, rows): fields held only at those rows (sorted), (R, N) each,
         #: in ``sparse`` (not in the result, which reads them NaN)
         self.sparse: dict[str, np.ndarray] = {}
@@ -70,19 +76,25 @@ class MemorySink:
         #: usable rows (``row_counts``: a run's summary without its (F, N) fields)
         self.status_counts = np.zeros(256, dtype=np.int64)
         self.m_counts = np.zeros(256, dtype=np.int64)
-        self._allocate(keep)
+        self._allocate(keep, pair)
 
-    def _allocate(self, keep: Sequence[str] | None) -> None:
-        """The (F, N) arrays of the fields held (``keep``; None: all)."""
+    def _allocate(self, keep: Sequence[str] | None, pair: tuple[str, str] | None = None
+                  ) -> None:
+        """The (F, N) arrays of the fields held (``keep``; None: all), the ``pair`` as views
+        of one (F, N, 2) array."""
         plan = self.plan
         f, n = plan.n_rows, plan.n_points
         names = (*plan.fields, "status", "iterations", "m") if keep is None else tuple(keep)
         real = np.float64 if keep is None or plan.dtype == torch.float64 else np.float32
         fills = {"status": (int(Status.NOT_COMPUTED), np.int8), "iterations": (0, np.int64),
                  "m": (-1, np.int8)}
+        if pair is not None and set(pair) <= set(names) and not set(pair) & set(fills):
+            self.paired = np.full((f, n, 2), np.nan, dtype=real)
+            self.values[pair[0]], self.values[pair[1]] = self.paired[..., 0], self.paired[..., 1]
         for nm in dict.fromkeys(names):
-            fill, dt = fills.get(nm, (np.nan, real))
-            self.values[nm] = np.full((f, n), fill, dtype=dt)
+            if nm not in self.values:
+                fill, dt = fills.get(nm, (np.nan, real))
+                self.values[nm] = np.full((f, n), fill, dtype=dt)
 
     def row_counts(self) -> dict[str, dict[str, int]]:
         """The rows held by status code and the usable rows by window half-width m
