@@ -107,7 +107,9 @@ def estimate_shared_motion(plan: RunPlan, kind: str = "auto",
                            measured: ClassicalPass | None = None) -> SharedMotion:
     """Measure the shared motion of a run: classical DIC (checks off) of every series frame
     that a window of the run uses, at up to ``max_points`` of the run's POIs, then
-    :func:`fit_frame_motion` per frame. The reference frame's motion is exactly zero. With
+    :func:`fit_frame_motion` over the series (one motion per frame, its robust weights from
+    statistics over all frames; worked frame chunk by frame chunk). The reference frame's
+    motion is exactly zero. With
     ``auto`` it is applied (``SharedMotion.applied``) only where its departure from a line in
     time is significant (:meth:`SharedMotion.significance` above ``SIGNIFICANT``): where it
     is not, carrying it would only add its estimation noise to every window. ``kind`` "auto":
