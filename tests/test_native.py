@@ -731,7 +731,7 @@ def test_ctrl_c_never_crashes_in_the_kernels(tmp_path):
     0-4 failed 5 times: 15 of 15 children ended in a segfault.)
 
     Open (2026-11-28): on an oversubscribed CPU a child sometimes stops answering SIGINT
-    (2 of 5 full-suite runs that day; in one, 3 of 4 children): its stacks show the main
+    (2 of the 4 full-suite runs that day; in one, 3 of 4 children): its stacks show the main
     thread inside a torch op right after an interrupt (``torch.clone``, an OpenMP region)
     or two threads inside native kernel calls; or it aborts at exit ("terminate called
     without an active exception"). Run with ``pytest -m slow``."""
