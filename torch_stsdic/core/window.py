@@ -6,7 +6,7 @@ import torch
 from torch import nn
 
 __all__ = ["SubsetWindow", "SquareWindow", "CircularWindow", "GaussianWindow", "make_window",
-           "effective_pixels"]
+           "effective_pixels", "weight_stats"]
 
 
 def effective_pixels(weights: torch.Tensor) -> float:
@@ -14,6 +14,14 @@ def effective_pixels(weights: torch.Tensor) -> float:
     much as the weights ``weights`` (S,) do (S for a square window)."""
     w = weights.double()
     return float(w.sum() ** 2 / (w * w).sum())
+
+
+def weight_stats(weights: torch.Tensor) -> tuple[float, bool, float]:
+    """Host numbers of the weights ``weights`` (S,) that every solve asks for: their sum,
+    whether they are all 0 or 1 (their squares are themselves), and
+    :func:`effective_pixels`."""
+    w = weights.detach().double().cpu()
+    return float(w.sum()), bool(((w * w) == w).all()), effective_pixels(w)
 
 
 class SubsetWindow(nn.Module):
@@ -40,17 +48,12 @@ class SubsetWindow(nn.Module):
     def effective_pixels(self) -> float:
         """:func:`effective_pixels` of this window's weights (worked out once: the checks ask
         for it in every block)."""
-        if getattr(self, "_effective", None) is None:
-            self._effective = effective_pixels(self.offsets_and_weights()[1])
-        return self._effective
+        return self.weight_stats()[2]
 
     def weight_stats(self) -> tuple[float, bool, float]:
-        """(sum of the weights, whether they are all 0 or 1, :meth:`effective_pixels`): host
-        numbers every solve asks for, worked out once."""
+        """:func:`weight_stats` of this window's weights, worked out once."""
         if getattr(self, "_weight_stats", None) is None:
-            w = self.offsets_and_weights()[1].double()
-            self._weight_stats = (float(w.sum()), bool(((w * w) == w).all()),
-                                  self.effective_pixels())
+            self._weight_stats = weight_stats(self.offsets_and_weights()[1])
         return self._weight_stats
 
     def extra_repr(self) -> str:

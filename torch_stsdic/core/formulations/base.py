@@ -29,7 +29,7 @@ from torch import Tensor
 
 from torch_stsdic.core.interpolation import BSplineImage
 from torch_stsdic.core.shape import ShapeFunction
-from torch_stsdic.core.window import SubsetWindow
+from torch_stsdic.core.window import SubsetWindow, weight_stats
 
 __all__ = ["Geometry", "SubsetData", "Formulation", "reference_subsets", "wsum"]
 
@@ -59,11 +59,9 @@ class Geometry:
     w: Tensor
     znssd: bool
     half: float
-    #: (S,) float64 the weights on the host: the numbers of them a solve needs (their sum,
-    #: whether they are 0/1, the effective pixels) read without waiting for the device
-    w_host: Tensor | None = None
-    #: (sum w, w binary, effective pixels) worked out once by the window
-    #: (:meth:`~torch_stsdic.core.window.SubsetWindow.weight_stats`), or None: from ``w_host``
+    #: (sum w, w binary, effective pixels) on the host, worked out once by the window
+    #: (:meth:`~torch_stsdic.core.window.SubsetWindow.weight_stats`: read without waiting
+    #: for the device); None: from ``w``
     w_stats: tuple[float, bool, float] | None = None
 
     @classmethod
@@ -71,37 +69,28 @@ class Geometry:
              dtype: torch.dtype, device: torch.device | str | None) -> Geometry:
         """The geometry of ``window``'s subset for ``shape`` in ``dtype`` on ``device``."""
         offsets, weights = window.offsets_and_weights(dtype, device)
-        host = window.offsets_and_weights(torch.float64, "cpu")[1]
         return cls(shape=shape, spatial=shape.spatial_basis(offsets[:, 0], offsets[:, 1]),
                    dx=offsets[:, 0], dy=offsets[:, 1], w=weights,
-                   znssd=criterion == "znssd", half=float(window.half), w_host=host,
+                   znssd=criterion == "znssd", half=float(window.half),
                    w_stats=window.weight_stats())
 
-    def _host(self) -> Tensor:
-        return self.w_host if self.w_host is not None else self.w.detach().double().cpu()
+    def _stats(self) -> tuple[float, bool, float]:
+        return self.w_stats if self.w_stats is not None else weight_stats(self.w)
 
     @property
     def w_sum(self) -> float:
         """The sum of the window's weights (a host number)."""
-        if self.w_stats is not None:
-            return self.w_stats[0]
-        return float(self._host().sum())
+        return self._stats()[0]
 
     @property
     def w_binary(self) -> bool:
         """Whether the weights are 0 or 1 (their squares are themselves)."""
-        if self.w_stats is not None:
-            return self.w_stats[1]
-        h = self._host()
-        return bool(((h * h) == h).all())
+        return self._stats()[1]
 
     @property
     def w_effective(self) -> float:
         """``(sum w)^2 / sum w^2`` (:func:`~torch_stsdic.core.window.effective_pixels`)."""
-        if self.w_stats is not None:
-            return self.w_stats[2]
-        h = self._host()
-        return float(h.sum() ** 2 / (h * h).sum())
+        return self._stats()[2]
 
     @property
     def ks(self) -> int:
