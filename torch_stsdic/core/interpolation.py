@@ -246,30 +246,26 @@ class BSplineImage:
             pad - self.lo, self.padded_height * self.padded_width,
         )
 
+    def with_coeffs(self, coeffs: torch.Tensor) -> BSplineImage:
+        """An image of this one's size and settings over the coefficients ``coeffs``
+        (T, H', W') (no copy; no per-pixel grid: ``coeffs`` are other numbers)."""
+        out = BSplineImage.__new__(BSplineImage)
+        out.__dict__.update(self.__dict__)
+        out.__dict__.pop("_grid", None)
+        out.coeffs = coeffs
+        out.n_frames = int(coeffs.shape[0])
+        out._flat = coeffs.reshape(-1)
+        return out
+
     @classmethod
     def stack(cls, images: list[BSplineImage]) -> BSplineImage:
         """Join prepared single- or multi-frame images (same size and order) into one stack,
         without prefiltering again (a sliding window reuses each frame's coefficients)."""
-        first = images[0]
-        out = cls.__new__(cls)
-        out.__dict__.update(first.__dict__)
-        out.coeffs = torch.cat([im.coeffs for im in images], dim=0)
-        out.n_frames = out.coeffs.shape[0]
-        out._flat = out.coeffs.reshape(-1)
-        return out
+        return images[0].with_coeffs(torch.cat([im.coeffs for im in images], dim=0))
 
     def frame(self, i: int) -> BSplineImage:
         """Frame i as its own single-frame BSplineImage (shares memory)."""
-        out = BSplineImage.__new__(BSplineImage)
-        out.__dict__.update(self.__dict__)
-        out.coeffs = self.coeffs[i : i + 1]
-        out.n_frames = 1
-        out._flat = out.coeffs.reshape(-1)
-        return out
+        return self.with_coeffs(self.coeffs[i : i + 1])
 
     def to(self, device=None, dtype=None) -> BSplineImage:
-        out = BSplineImage.__new__(BSplineImage)
-        out.__dict__.update(self.__dict__)
-        out.coeffs = self.coeffs.to(device=device, dtype=dtype)
-        out._flat = out.coeffs.reshape(-1)
-        return out
+        return self.with_coeffs(self.coeffs.to(device=device, dtype=dtype))

@@ -58,7 +58,6 @@ class FrameRing:
         self.slot: dict[int, int] = {}  # frame index -> plane
         self.raw: torch.Tensor | None = None  # (C, H, W)
         self.coeffs: torch.Tensor | None = None  # (C, H', W')
-        self.template: BSplineImage | None = None
         self.by_plane: list[_Prepared | None] = []
         self.copies = 0  # frames copied into a plane (a test counts them)
 
@@ -108,19 +107,6 @@ class FrameRing:
             self.coeffs[p].copy_(entry.prep.coeffs[0])
             self.slot[i], self.by_plane[p] = p, entry
             self.copies += 1
-        self.template = first.prep
-        img = _stack_view(first.prep, self.coeffs)
+        img = first.prep.with_coeffs(self.coeffs)  # every plane, no copy
         pyramids = PyramidStack([None if e is None else e.pyramid() for e in self.by_plane])
         return RingView(self.raw, img, [self.slot[i] for i in idx], pyramids)
-
-
-def _stack_view(like: BSplineImage, coeffs: torch.Tensor) -> BSplineImage:
-    """A :class:`BSplineImage` of ``like``'s size and settings over ``coeffs`` (C, H', W')
-    (no copy; its per-pixel grid not made: the planes change between blocks)."""
-    out = BSplineImage.__new__(BSplineImage)
-    out.__dict__.update(like.__dict__)
-    out.__dict__.pop("_grid", None)
-    out.coeffs = coeffs
-    out.n_frames = int(coeffs.shape[0])
-    out._flat = coeffs.reshape(-1)
-    return out
