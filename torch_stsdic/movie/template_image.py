@@ -49,12 +49,14 @@ def window_pixels(pts: torch.Tensor, half: int, height: int, width: int
     return pixels, local
 
 
-def reference_window_stats(ref: torch.Tensor, pts: torch.Tensor, half: int, height: int,
-                           width: int) -> tuple[torch.Tensor, torch.Tensor]:
+def reference_window_stats(ref: torch.Tensor, cover: tuple[torch.Tensor, torch.Tensor]
+                           ) -> tuple[torch.Tensor, torch.Tensor]:
     """(N, 1) the mean and (N, 1) the root of the summed squared deviations of the
-    reference's pixels ``ref`` (H*W,) over each POI's whole window (as :func:`splat` reads
-    them where no window of a chunk crosses a border): the same for every frame."""
-    own = ref[_window_index(pts.round(), half, width, height * width)]  # (N, S)
+    reference's pixels ``ref`` (H*W,) over each POI's whole window (``cover``:
+    :func:`window_pixels`; as :func:`splat` reads them where no window of a chunk crosses a
+    border): the same for every frame."""
+    pixels, local = cover
+    own = ref[pixels[local]]  # (N, S)
     mean = own.sum(1, keepdim=True) / float(own.shape[1])
     return mean, ((own - mean) ** 2).sum(1, keepdim=True).sqrt()
 
@@ -102,9 +104,10 @@ def splat(acc: torch.Tensor, img: BSplineImage, planes: torch.Tensor, ref: torch
     mono = torch.stack([torch.ones_like(dx), dx, dy, dx * dx, dx * dy, dy * dy], 1)  # (S, 6)
     tent = (1.0 - dx.abs() / (half + 1)) * (1.0 - dy.abs() / (half + 1))
     sel = torch.nonzero(ok.reshape(-1)).flatten()  # (frame, POI) pairs, frame-major
-    pixels, local = window_pixels(pts, half, h, w) if cover is None else cover
+    cover = window_pixels(pts, half, h, w) if cover is None else cover
+    pixels, local = cover
     if ref_stats is None:
-        ref_stats = reference_window_stats(ref, pts, half, h, w)
+        ref_stats = reference_window_stats(ref, cover)
     n_px = pixels.numel()
     sums = torch.zeros(3, n_px, dtype=torch.float64, device=dev)  # values, weights, share
     per_frame = torch.zeros(2, g_count * n_px, dtype=torch.float64, device=dev)
@@ -197,7 +200,7 @@ def template_image(plan: RunPlan, warps: torch.Tensor, oks: torch.Tensor, frames
     spread = float(ref.std().clamp(min=1e-12))
     norm = []  # each frame's noise in the reference's grey levels
     cover = window_pixels(pts, half, h, w)
-    ref_stats = reference_window_stats(ref, pts, half, h, w)
+    ref_stats = reference_window_stats(ref, cover)
     for group in frame_groups(len(frames), cover[0].numel(), batched=dev.type != "cpu"):
         img, planes, raw = _group_frames(cache, [frames[j] for j in group], dev)
         level = raw.flatten(1).std(1).clamp(min=1e-12) / spread  # (G,) contrast ratios
