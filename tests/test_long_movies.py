@@ -317,23 +317,14 @@ def test_shared_pass_with_shake_and_load_steps_in_chunks_equals_the_whole_series
     """A render with a shared shake and load steps: the pass's fitted motion, standard
     errors and load steps taken two frames at a time (its fit from float32 measurements,
     its increments a chunk at a time) are those of the whole series at once."""
+    from test_shared_motion import load_step_movie  # tests/ on the path
+
     from torch_stsdic.core import shared_fit as sm
     from torch_stsdic.movie.plan import plan_run
     from torch_stsdic.movie.series import run_plan
     from torch_stsdic.movie.shared_pass import estimate_shared_motion
-    from torch_stsdic.synth import Custom, RigidJitter, make_speckle, render_series
 
-    size, times = 111, torch.arange(0.0, 19)
-
-    def fn(x, y, t):
-        a = 0.3 * torch.floor((t + 0.5) / 6.0)  # load states 0-5, 6-11, 12-17, 18
-        return a * torch.sin(2 * np.pi * x / 120.0), -0.5 * a * torch.cos(2 * np.pi * y / 150.0)
-
-    c = ((size - 1) / 2, (size - 1) / 2)
-    motion = Custom(fn) + RigidJitter.random(times, 0.15, 0.0, center=c, seed=2)
-    ref, fr = render_series(make_speckle((size, size), seed=4), (size, size), motion,
-                            times[1:], noise_sigma=3.0, seed=5)
-    movie = torch.cat([ref[None], fr])
+    movie = load_step_movie()[0]
     plan = plan_run(movie, 0, None, None, None, None, 10, DICConfig(m=2), "cpu", None, 3)
     monkeypatch.setattr(sm, "FIT_CHUNK", 2 * plan.n_points)  # chunks of 2 frames
     chunked = estimate_shared_motion(plan, "affine", run=run_plan)

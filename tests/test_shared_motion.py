@@ -260,11 +260,11 @@ def test_summary_round_trip():
     assert torch.allclose(d[0, 1], torch.tensor([0.06 + 0.08, 0.07 + 0.10]))
 
 
-def test_load_steps_are_detected_and_windows_stay_inside_a_load_state():
-    """A deformation that grows in load steps (holds of 6 images), with a shake: the steps
-    are found from the data, every window stays inside its load state, and the full windows
-    come back (without the detection a window across a step fails the model check)."""
-    size, times = 111, torch.arange(0.0, 19)
+def load_step_movie(size: int = 111):
+    """A deformation that grows in load steps (load states 0-5, 6-11, 12-17, 18) with a
+    rigid shake of 0.15 px, noise 3 grey levels on every image: the movie (19, size, size),
+    its motion and the frames' times (19,)."""
+    times = torch.arange(0.0, 19)
 
     def fn(x, y, t):
         a = 0.3 * torch.floor((t + 0.5) / 6.0)  # load states 0-5, 6-11, 12-17, 18
@@ -274,7 +274,14 @@ def test_load_steps_are_detected_and_windows_stay_inside_a_load_state():
     motion = Custom(fn) + RigidJitter.random(times, 0.15, 0.0, center=c, seed=2)
     ref, fr = render_series(make_speckle((size, size), seed=4), (size, size), motion, times[1:],
                             noise_sigma=3.0, seed=5)
-    movie = torch.cat([ref[None], fr])
+    return torch.cat([ref[None], fr]), motion, times
+
+
+def test_load_steps_are_detected_and_windows_stay_inside_a_load_state():
+    """A deformation that grows in load steps (holds of 6 images), with a shake: the steps
+    are found from the data, every window stays inside its load state, and the full windows
+    come back (without the detection a window across a step fails the model check)."""
+    movie, motion, times = load_step_movie()
     kw = dict(config=sts.DICConfig(m=2), step=10, progress=False)
     res = sts.track(movie, **kw)
     sm = res.shared_motion

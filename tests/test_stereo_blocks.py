@@ -7,28 +7,22 @@ from __future__ import annotations
 import h5py
 import numpy as np
 import pytest
-import tifffile
-import torch
+from test_stereo_export import write_stereo_movies  # tests/ on the path
 
 from torch_stsdic import DICConfig
 from torch_stsdic.stereo import run as stereo_run
-from torch_stsdic.stereo.render import SurfaceMotion, make_rig, make_scene, render_stereo
+from torch_stsdic.stereo.render import SurfaceMotion
 
 MOTION = SurfaceMotion(translation=(0.004, -0.003, 0.01), exx=2e-4, eyy=-1e-4, bulge=0.004,
                        bulge_radius=25.0)
+
 KW = dict(roi=(20, 20, 160, 120), step=20, config=DICConfig(subset_size=21, m=1))
 
 
 @pytest.fixture(scope="module")
 def movies(tmp_path_factory):
     d = tmp_path_factory.mktemp("stereo_blocks")
-    rig = make_rig((140, 180))
-    scene = make_scene(rig, MOTION, seed=0, max_time=6)
-    left, right = render_stereo(scene, np.arange(6.0), noise_sigma=2.0, seed=1, quadrature=2,
-                                cutoff=5)
-    for name, movie in (("left", left), ("right", right)):
-        tifffile.imwrite(d / f"{name}.tif", movie.clamp(0, 255).round().to(torch.uint8).numpy())
-    rig.save_opencv(d / "cal.yml")
+    write_stereo_movies(d, MOTION)  # test_stereo_export's render, a wider bulge
     return d
 
 

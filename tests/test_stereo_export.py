@@ -28,16 +28,22 @@ MOTION = SurfaceMotion(translation=(0.004, -0.003, 0.01), exx=2e-4, eyy=-1e-4, b
 BAD_FRAME = 3
 
 
-def write_stereo_run(d: Path) -> Path:
-    """``stsdic stereo --m 1 --step 20`` on a 6-frame render (48 points, 12 never matched),
-    its movies ``left.tif``, ``right.tif`` and calibration in folder ``d``: the result file."""
+def write_stereo_movies(d: Path, motion: SurfaceMotion = MOTION) -> None:
+    """A 6-frame stereo render of ``motion`` in folder ``d``: ``left.tif``, ``right.tif`` (8
+    bits) and the rig's calibration ``cal.yml``."""
     rig = make_rig((140, 180))
-    scene = make_scene(rig, MOTION, seed=0, max_time=6)
+    scene = make_scene(rig, motion, seed=0, max_time=6)
     left, right = render_stereo(scene, np.arange(6.0), noise_sigma=2.0, seed=1, quadrature=2,
                                 cutoff=5)
     for name, movie in (("left", left), ("right", right)):
         tifffile.imwrite(d / f"{name}.tif", movie.clamp(0, 255).round().to(torch.uint8).numpy())
     rig.save_opencv(d / "cal.yml")
+
+
+def write_stereo_run(d: Path) -> Path:
+    """``stsdic stereo --m 1 --step 20`` on a 6-frame render (48 points, 12 never matched),
+    its movies ``left.tif``, ``right.tif`` and calibration in folder ``d``: the result file."""
+    write_stereo_movies(d)
     out = d / "r.h5"
     assert main(["stereo", "--left", str(d / "left.tif"), "--right", str(d / "right.tif"),
                  "--calibration", str(d / "cal.yml"), "--m", "1", "--step", "20", "--roi",
