@@ -79,8 +79,9 @@ def splat(acc: torch.Tensor, img: BSplineImage, planes: torch.Tensor, ref: torch
     ``ok``: (G, N)) over its window of half-width ``half`` px, to ``acc``: weighted
     values, weights, and the frames' noise variance share, either (3, H*W) over the image or
     (3, C) over the C pixels the windows cover (``cover``'s; no scatter into the image: a
-    template of many frames adds them up there and maps the sums to the image once). All frames' POIs in one batch (chunks of
-    ``_CHUNK_SAMPLES`` samples), no loop over the frames.
+    template of many frames adds them up there and maps the sums to the image once). All
+    frames' POIs in one batch (chunks of ``_CHUNK_SAMPLES`` samples), no loop over the
+    frames.
 
     A POI's samples are its window's pixels moved by its map (a polynomial of the offsets:
     one matrix product for all pixels), brought to the reference's grey levels over the
