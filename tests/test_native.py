@@ -585,6 +585,85 @@ def test_interrupted_call_waits_for_its_helpers():
     assert 1 <= state["chunks"] <= 3  # the helpers' first chunks only: no hand-out after it
 
 
+def test_a_second_interrupt_anywhere_still_waits_for_the_helpers():
+    """A second KeyboardInterrupt (a second Ctrl-C under a handler that raises each time)
+    injected at every point where CPython checks for signals in the calling thread while
+    the runner handles the first one: the call still raises only once no helper is inside the
+    kernel. (Before: a second interrupt at the entry of ``_wait`` or at its loop's backward
+    jump left the call with helpers still inside, on memory the caller then freed.)"""
+    import dis
+
+    main = threading.get_ident()
+    lock = threading.Lock()
+    state = {"inside": 0}
+
+    def fn(i0, i1):
+        if threading.get_ident() == main:
+            time.sleep(0.005)
+            raise KeyboardInterrupt("first")  # as a Ctrl-C raised once C returned
+        with lock:
+            state["inside"] += 1
+        time.sleep(0.03)  # the helpers are still inside while the caller handles it
+        with lock:
+            state["inside"] -= 1
+        return 0
+
+    kernel = SimpleNamespace(name="fake", fn=fn, i0=0, i1=1)
+    ops_at: dict = {}
+
+    class Second:
+        """Raises KeyboardInterrupt at the ``at``-th signal check of rows.py's frames."""
+
+        def __init__(self, at):
+            self.at, self.k, self.prev = at, 0, {}
+
+        def __call__(self, frame, event, arg):
+            if not frame.f_code.co_filename.endswith("rows.py"):
+                return None
+            frame.f_trace_opcodes = True
+            point = event == "call"
+            if event == "exception":  # a call that raised: CPython checks nothing after it
+                self.prev[id(frame)] = None
+            if event == "opcode":
+                point = self.prev.get(id(frame)) in ("CALL", "CALL_FUNCTION_EX",
+                                                     "JUMP_BACKWARD")
+                code = frame.f_code
+                names = ops_at.setdefault(code, {i.offset: i.opname
+                                                 for i in dis.get_instructions(code)})
+                self.prev[id(frame)] = names.get(frame.f_lasti)
+            if point:
+                self.k += 1
+                if self.k == self.at:
+                    raise KeyboardInterrupt("second")
+            return self
+
+    pool = native_rows._Pool(2)
+    try:
+        def inside_at_raise(trace) -> int:
+            rows = native_rows._Rows(kernel, [None, None], [], list(range(9)))
+            sys.settrace(trace)
+            try:
+                rows.run(pool, 2)
+            except KeyboardInterrupt:
+                return state["inside"]
+            finally:
+                sys.settrace(None)
+            raise AssertionError("no KeyboardInterrupt")
+
+        count = Second(-1)
+        assert inside_at_raise(count) == 0
+        assert count.k > 15, count.k  # the points were found
+        late = []
+        for at in range(1, count.k + 1):
+            if inside_at_raise(Second(at)):
+                late.append(at)
+            while state["inside"]:  # (only after a failure: let the helpers leave)
+                time.sleep(0.01)
+        assert not late, f"returned with a helper inside at points {late} of {count.k}"
+    finally:
+        pool.close()
+
+
 def test_failing_chunk_raises_naming_its_rows():
     kernel = SimpleNamespace(name="fake", fn=lambda i0, i1: 7 if i0 == 4 else 0, i0=0, i1=1)
     from concurrent.futures import ThreadPoolExecutor
