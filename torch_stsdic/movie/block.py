@@ -87,6 +87,16 @@ class BlockContext:
     #: each point (:mod:`~torch_stsdic.movie.window_length`; None: ``m`` everywhere)
     window_lengths: torch.Tensor | None = None
     _checker: SubsetSolver | None = None
+    _on_grid: tuple[torch.Tensor, bool] | None = None  # (the points, whole pixels)
+
+    def points_on_grid(self, ref: Reference) -> bool:
+        """The reference's POIs are whole pixels (a grid's): read once per set of points,
+        then every solve of the run is told (:meth:`SubsetSolver.solve`'s ``on_grid``)
+        instead of testing it on the host."""
+        if self._on_grid is None or self._on_grid[0] is not ref.points:
+            pts = ref.points
+            self._on_grid = (pts, bool((pts == pts.round()).all()))
+        return self._on_grid[1]
 
     def grid_neighbours(self, ref: Reference) -> torch.Tensor:
         """(N, k) the POIs' grid neighbours (:func:`~torch_stsdic.analysis.quality.neighbours`),
@@ -215,7 +225,8 @@ class Block(BlockChecks):
         if m == 0 and run.m > 0 and init is not None and init.shape[1] == len(run.names):
             spatial = run.solver.shape.spatial().param_names
             init = init[:, [run.names.index(nm) for nm in spatial]]
-        motion = self.motion_of(run.m if m is None else m)
+        m_eff = run.m if m is None else m
+        motion = self.motion_of(m_eff)
         return (solver or run.solver).solve(
             ref.img, self.img, self.pts[idx], dt, frame_index=fidx,
             init=init, ref_pixels=ref.raw.unsqueeze(0), frame_pixels=self.raw,
@@ -223,8 +234,11 @@ class Block(BlockChecks):
             noise_ratio=run.noise_ratio, motion=None if motion is None else motion[idx],
             centres=None if self.centres is None else self.centres[idx],
             # the model check's first classical step, from the window solve's last step
-            classical_step=run.checks and (run.m if m is None else m) > 0 and solver is None,
+            classical_step=run.checks and m_eff > 0 and solver is None,
             init_step=init_step,
+            # known per run: the POIs' grid (the centres are whole pixels from them) and
+            # the shape (a window of 2m+1 frames at distinct times has temporal terms)
+            on_grid=run.points_on_grid(ref), has_time=m_eff > 0,
         )
 
     def keep(self, idx: torch.Tensor, sol: WindowSolution, only_better: bool,
@@ -428,7 +442,7 @@ class Block(BlockChecks):
         still lost, from FFT cross-correlation; keep the better result (windows of
         half-width ``m``, default the run's). ``carried``: rows that started from the
         carried guess. Returns the rows restarted from a neighbour target, by FFT, and by
-        FFT after a carried start."""
+        FFT after a carried start (an int, or a 0-d tensor read with the block's counts)."""
         run, n = self.run, self.n
         names = run.names
         from_prev = by_fft = redone = from_nb = 0
@@ -443,7 +457,8 @@ class Block(BlockChecks):
                 prev = rows - n
                 lost = self.lost()
                 cand = lost[rows] & (self.status[prev] <= USABLE) & ~lost[prev]
-                if bool(cand.any()):
+                cand = torch.nonzero(cand).flatten()  # one index for all (one sync)
+                if cand.numel():
                     r, pr = rows[cand], prev[cand]
                     d = (run.ts[self.k[j]] - run.ts[self.k[j - 1]]).to(run.dtype)
                     vals = {nm: self.params[pr, i] for i, nm in enumerate(names)}
@@ -453,17 +468,17 @@ class Block(BlockChecks):
                     init = self.init_rows(vals)
                     if m == 0:
                         init = init.nan_to_num(0.0)  # a classical row has no ut, vt
-                    ok = torch.isfinite(init).all(1)
-                    if bool(ok.any()):
+                    ok = torch.nonzero(torch.isfinite(init).all(1)).flatten()
+                    if ok.numel():
                         self.keep(r[ok], self.solve(r[ok], init[ok], m=m), only_better=True,
                                   m=m)
-                        from_prev += int(ok.sum())
+                        from_prev += ok.numel()
             from_nb += self._rescue_from_neighbours(rows, m)
-            r = rows[self.lost()[rows]]
+            r = rows[torch.nonzero(self.lost()[rows]).flatten()]
             if r.numel():
                 self.keep(r, self.solve(r, None, m=m), only_better=True, m=m)
-                by_fft += int(r.numel())
-                redone += int(carried[r].sum())
+                by_fft += r.numel()
+                redone = redone + carried[r].sum()  # read with the block's counts
         run.stats["neighbour_rescued_rows"] = run.stats.get("neighbour_rescued_rows", 0) + from_nb
         return from_prev, by_fft, redone
 
@@ -472,10 +487,9 @@ class Block(BlockChecks):
         neighbours' solutions at the same target (:func:`neighbour_guess`); the better
         result is kept. Returns the rows tried."""
         lost = self.lost()[rows]
-        if not bool(lost.any()):
-            return 0
         ok = (self.status[rows] <= USABLE) & ~lost
-        if int(ok.sum()) < 2:
+        n_lost, n_ok = torch.stack([lost.sum(), ok.sum()]).tolist()  # one read for both
+        if not n_lost or n_ok < 2:
             return 0
         guess = neighbour_guess(self.params[rows].unsqueeze(0), ok.unsqueeze(0),
                                 self.run.names, self.run.grid_neighbours(self.ref),
@@ -484,11 +498,11 @@ class Block(BlockChecks):
             if nm in self.run.names:
                 i = self.run.names.index(nm)
                 guess[:, i] = guess[:, i].nan_to_num(0.0)
-        try_ = lost & torch.isfinite(guess).all(1)
+        try_ = torch.nonzero(lost & torch.isfinite(guess).all(1)).flatten()
         r = rows[try_]
         if r.numel():
             self.keep(r, self.solve(r, guess[try_], m=m), only_better=True, m=m)
-        return int(r.numel())
+        return r.numel()
 
 
 def _only_identity(run: BlockContext, ref: Reference, carry: Carry) -> bool:
@@ -547,6 +561,11 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
     blk = Block(run, ks, ref)
     b, n, dev = blk.b, blk.n, run.device
     rows = b * n
+    counts: dict[str, torch.Tensor] = {}  # run.stats counted on the device, read at the end
+
+    def count(name: str, value: torch.Tensor | int) -> None:
+        value = torch.as_tensor(value, device=dev)
+        counts[name] = counts[name] + value if name in counts else value
     if carry is not None and _only_identity(run, ref, carry):
         carry = None  # the reference frame's own row, no velocity: it predicts nothing
     if carry is None and run.first_guess is not None and ref.acc is None:
@@ -554,8 +573,7 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
         init = _first_guess_rows(run, blk, ref)
         carried = torch.isfinite(init).all(1)
         carried &= ~blk.keep_outside((init,), carried)
-        run.stats["first_guess_rows"] = run.stats.get("first_guess_rows", 0) + int(
-            carried.sum())
+        count("first_guess_rows", carried.sum())
     elif carry is None:
         carried = torch.zeros(rows, dtype=torch.bool, device=dev)
     else:
@@ -580,8 +598,7 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
             has = torch.isfinite(g).all(1)
             init = torch.where(has.unsqueeze(1), g, init)
             carried |= has
-            run.stats["first_guess_rows"] = run.stats.get("first_guess_rows", 0) + int(
-                has.sum())
+            count("first_guess_rows", has.sum())
         last = {nm: v.repeat(b) for nm, v in to_relative(dict(carry.vals), ref.acc).items()}
         carried &= ~blk.keep_outside((init, blk.init_rows(last)), carried)
         if carry.vel_known is not None:  # without a velocity the carry predicts only the
@@ -622,15 +639,19 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
         _shorter_again(blk, cap)
     run.stats["rescued_rows"] = run.stats.get("rescued_rows", 0) + from_prev
     run.stats["fft_rows"] += by_fft
-    run.stats["redone_rows"] += redone
+    count("redone_rows", redone)
     if run.checks and not bool(ident.all()):  # the identity cannot fail
         shortened, classical = blk.check_model()
         classical += blk.rescue_classical(guess, carry) if run.m > 0 else 0
         stats = run.stats
         stats["shortened_rows"] = stats.get("shortened_rows", 0) + shortened
         stats["classical_rows"] = stats.get("classical_rows", 0) + classical
-        stats["poor_fit_rows"] = stats.get("poor_fit_rows", 0) + blk.check_fit(carry)
-        stats["inconsistent_rows"] = stats.get("inconsistent_rows", 0) + blk.check_neighbours()
+        count("poor_fit_rows", blk.check_fit(carry))
+        count("inconsistent_rows", blk.check_neighbours())
+    if counts:  # one read for all of them
+        for name, v in zip(counts, torch.stack([c.reshape(()).to(torch.int64)
+                                                for c in counts.values()]).tolist()):
+            run.stats[name] = run.stats.get(name, 0) + v
     rel = {nm: blk.params[:, j].reshape(b, n) for j, nm in enumerate(run.names)}
     out = to_total(rel, ref.acc)
     out["zncc"] = blk.zncc.reshape(b, n)
