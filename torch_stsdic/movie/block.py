@@ -366,7 +366,9 @@ class Block(BlockChecks):
         left = carried.clone()  # carried rows without a window that stays in view yet
         shift = torch.zeros_like(self.pts)
         for m in range(run.m, -1, -1):
-            if not bool(left.any()):
+            # one host read a shorter window (none for the run's: a block whose carried
+            # rows all stay in view reads once here)
+            if m < run.m and not bool(left.any()):
                 break
             if m == run.m:
                 dt = self.dt
@@ -375,23 +377,22 @@ class Block(BlockChecks):
             fit, d = self._placement(inits, dt, self.motion_of(m))
             fit &= left
             shift = torch.where(fit.unsqueeze(1), d, shift)
-            if m < run.m and bool(fit.any()):
+            if m < run.m:  # (no test: an unused window_m is the run's m everywhere)
                 if self.window_m is None:
                     self.window_m = torch.full((rows,), run.m, dtype=torch.int8,
                                                device=run.device)
-                self.window_m[fit] = m
+                self.window_m.masked_fill_(fit, m)
             left &= ~fit
         out = left
-        if bool(out.any()):
-            self.status[out] = int(Status.OUTSIDE)
-            self.gone |= out
+        self.status.masked_fill_(out, int(Status.OUTSIDE))
+        self.gone |= out
         moved = (shift != 0).any(1) & ~out
-        if bool(moved.any()):
+        n_moved = int(moved.sum())  # one read: whether any subset moves, and how many
+        if n_moved:
             whole = torch.sign(shift) * shift.abs().ceil()  # whole px, away from the border
             self.centres = self.pts + torch.where(moved.unsqueeze(1), whole, 0.0)
             self._motion = {}  # the shared motion at the subsets' centres
-            run.stats["off_centre_rows"] = run.stats.get("off_centre_rows", 0) \
-                + int(moved.sum())
+            run.stats["off_centre_rows"] = run.stats.get("off_centre_rows", 0) + n_moved
         return out
 
     def _placement(self, inits: Sequence[torch.Tensor], dt: torch.Tensor,
@@ -534,7 +535,7 @@ def _shorter_again(blk: Block, cap: torch.Tensor) -> None:
     (``cap``: (B*N,) the longest half-width; a first block's FFT start, a rescue) are solved
     again with that half-width from their solution; kept where usable."""
     over = (blk.m_used > cap) & (blk.status <= USABLE)
-    for m in torch.unique(cap[over]).tolist():
+    for m in _half_widths(cap, over, blk.run.m):
         again = torch.nonzero(over & (cap == m)).flatten()
         sol = blk.solve(again, blk.params[again], m=m)
         good = torch.nonzero(sol.status <= USABLE).flatten()
@@ -542,6 +543,14 @@ def _shorter_again(blk: Block, cap: torch.Tensor) -> None:
             blk.keep(again[good], sol.rows(good), only_better=False, m=m)
             blk.run.stats["shorter_again_rows"] = blk.run.stats.get(
                 "shorter_again_rows", 0) + int(good.numel())
+
+
+def _half_widths(m_of: torch.Tensor, rows: torch.Tensor, m_max: int) -> list[int]:
+    """The half-widths 0 .. ``m_max`` that ``m_of`` (R,) takes at the ``rows`` (R,) bool, in
+    increasing order: one host read (a count of each), not a ``unique`` and a copy."""
+    counts = torch.bincount(torch.where(rows, m_of.long().clamp(0, m_max), m_max + 1),
+                            minlength=m_max + 2)[:m_max + 1]
+    return [m for m, c in enumerate(counts.tolist()) if c]
 
 
 def _first_guess_rows(run: BlockContext, blk: Block, ref: Reference) -> torch.Tensor:
@@ -576,6 +585,7 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
         count("first_guess_rows", carried.sum())
     elif carry is None:
         carried = torch.zeros(rows, dtype=torch.bool, device=dev)
+        init = None
     else:
         pts0 = ref.points if ref.acc is None else ref.points - torch.stack(
             [ref.acc["u"], ref.acc["v"]], 1)
@@ -607,15 +617,14 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
             carried &= keep if has is None else keep | has
     ident = blk.keep_identity()
     carried &= ~ident
-    guess = None
-    if bool(carried.any()):
+    guess = None  # the carried rows' guesses (NaN: none; no test whether there are any)
+    if init is not None:
         guess = torch.where(carried.unsqueeze(1), init, torch.full_like(init, float("nan")))
     if run.classical_points is not None and run.m > 0:  # the time model failed there
         cls = carried & run.classical_points.to(dev).repeat(b)
-        if bool(cls.any()):
-            if blk.window_m is None:
-                blk.window_m = torch.full((rows,), run.m, dtype=torch.int8, device=dev)
-            blk.window_m[cls] = 0
+        if blk.window_m is None:
+            blk.window_m = torch.full((rows,), run.m, dtype=torch.int8, device=dev)
+        blk.window_m.masked_fill_(cls, 0)
     cap = None if run.window_lengths is None or run.m == 0 else run.window_lengths[
         blk.k].reshape(-1).to(device=dev, dtype=torch.int8)  # (B*N,) each row's longest
     if cap is not None:
@@ -623,7 +632,7 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
                                                                               cap)
     shorter = carried & (blk.window_m < run.m) if blk.window_m is not None else None
     if shorter is not None:  # points leaving the image within their window
-        for m in torch.unique(blk.window_m[shorter]).tolist():
+        for m in _half_widths(blk.window_m, shorter, run.m):
             r = torch.nonzero(shorter & (blk.window_m == m)).flatten()
             blk.keep(r, blk.solve(r, init[r], m=m), only_better=False, m=m)
         carried = carried & ~shorter
@@ -640,7 +649,8 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
     run.stats["rescued_rows"] = run.stats.get("rescued_rows", 0) + from_prev
     run.stats["fft_rows"] += by_fft
     count("redone_rows", redone)
-    if run.checks and not bool(ident.all()):  # the identity cannot fail
+    # the identity cannot fail (rows are the identity only where m = 0: no read otherwise)
+    if run.checks and not (run.m == 0 and bool(ident.all())):
         shortened, classical = blk.check_model()
         classical += blk.rescue_classical(guess, carry) if run.m > 0 else 0
         stats = run.stats
@@ -659,7 +669,7 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
     out["iterations"] = blk.iters.reshape(b, n)
     out["m"] = blk.m_used.reshape(b, n)
     fac = None if run.template_shares is None else run.template_shares.variance_factors(
-        blk.k, out["m"], run.ts, float(run.noise_ratio or 1.0), run.segments)
+        blk.k, out["m"], run.ts, float(run.noise_ratio or 1.0), run.segments, m_max=run.m)
     for j, nm in enumerate(run.names):
         if nm in STD_OF:
             std = blk.std[:, j].reshape(b, n)
