@@ -146,6 +146,7 @@ class SubsetSolver:
         pyramids: tuple[PyramidStack, PyramidStack] | None = None,
         on_grid: bool = False,
         has_time: bool | None = None,
+        all_inside: bool = False,
     ) -> WindowSolution:
         """Solve many POIs, each against its own window of frames.
 
@@ -195,6 +196,9 @@ class SubsetSolver:
                 unchanged). False: tested.
             has_time: the shape has temporal terms (:meth:`shape_for`; known to a caller
                 that knows its window's length); None: decided from ``dt``'s values.
+            all_inside: the caller knows that every subset (at ``centres`` where given)
+                lies inside ``ref`` (:func:`subset_inside`): the rows are not chosen on the
+                host. False: the subsets outside are found and left OUTSIDE.
         """
         moved = None
         if centres is not None:
@@ -206,7 +210,8 @@ class SubsetSolver:
         if on_grid and centres is None:  # the caller's fact: no offset to test
             return self._solve_on_grid(ref, frames, points, dt, frame_index, ref_index, init,
                                        ref_pixels, frame_pixels, time, noise_ratio, motion,
-                                       classical_step, init_step, pyramids, has_time)
+                                       classical_step, init_step, pyramids, has_time,
+                                       all_inside)
         grid, _ = snap_points(points if centres is None else centres)
         offset = points - grid
         # off the pixel grid (known where the caller says so): solve on it, carry the result
@@ -219,7 +224,7 @@ class SubsetSolver:
                              frame_pixels=frame_pixels, time=time, noise_ratio=noise_ratio,
                              motion=motion, classical_step=classical_step,
                              init_step=init_step, pyramids=pyramids, on_grid=True,
-                             has_time=has_time)
+                             has_time=has_time, all_inside=all_inside)
             if classical_step:  # known at the subset centre only
                 off = (offset != 0).any(1, keepdim=True)
                 sol.info.update(classical_step_info(packed_classical_step(sol.info).masked_fill(
@@ -228,12 +233,13 @@ class SubsetSolver:
             return carry_solution(sol, points, offset, snapped=0 if on_grid else None)
         return self._solve_on_grid(ref, frames, points, dt, frame_index, ref_index, init,
                                    ref_pixels, frame_pixels, time, noise_ratio, motion,
-                                   classical_step, init_step, pyramids, has_time)
+                                   classical_step, init_step, pyramids, has_time, all_inside)
 
     def _solve_on_grid(self, ref: BSplineImage, frames: BSplineImage, points: torch.Tensor,
                        dt, frame_index, ref_index, init, ref_pixels, frame_pixels, time,
                        noise_ratio: float, motion, classical_step: bool, init_step,
-                       pyramids=None, has_time: bool | None = None) -> WindowSolution:
+                       pyramids=None, has_time: bool | None = None,
+                       all_inside: bool = False) -> WindowSolution:
         """:meth:`solve` for POIs on the pixel grid with centred subsets."""
         n = points.shape[0]
         dt, frame_index, ref_index = _per_point(points, dt, frame_index, ref_index)
@@ -260,7 +266,7 @@ class SubsetSolver:
         guess = {"method": "fft" if init is None else "given", "fft_s": t_fft}
         return self._solve_batches(ref, frames, shape, points, dt, frame_index, ref_index,
                                    inside, p0, motion, init_step, ref_pixels, time,
-                                   noise_ratio, classical_step, guess)
+                                   noise_ratio, classical_step, guess, all_inside)
 
     def _initial_params(self, shape: ShapeFunction, init, inside: torch.Tensor,
                         points: torch.Tensor, dt: torch.Tensor, frame_index: torch.Tensor,
@@ -292,7 +298,8 @@ class SubsetSolver:
                        points: torch.Tensor, dt: torch.Tensor, frame_index: torch.Tensor,
                        ref_index: torch.Tensor, inside: torch.Tensor, p0: torch.Tensor,
                        motion, init_step, ref_pixels, time, noise_ratio: float,
-                       classical_step: bool, guess: dict) -> WindowSolution:
+                       classical_step: bool, guess: dict, all_inside: bool = False
+                       ) -> WindowSolution:
         """Gauss-Newton from ``p0`` for the POIs ``inside``, in batches within the memory
         budget (:func:`~torch_stsdic.core.gauss_newton.solve_batch`); the others OUTSIDE."""
         cfg = self.config
@@ -304,7 +311,9 @@ class SubsetSolver:
         iters = torch.zeros(n, dtype=torch.int32, device=device)
         status.masked_fill_(~inside, int(Status.OUTSIDE))  # no host sync (boolean indexing)
 
-        todo = torch.nonzero(inside).flatten()
+        # every row where the caller knows all subsets inside (no host synchronisation)
+        todo = (torch.arange(n, device=device) if all_inside
+                else torch.nonzero(inside).flatten())
         first_stage = torch.full_like(params, float("nan"))
         grey = ref_pixels if ref_pixels is not None else ref.coeffs
         geo = Geometry.make(shape, self.window, cfg.criterion, dtype, device)

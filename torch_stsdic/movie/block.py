@@ -87,16 +87,27 @@ class BlockContext:
     #: each point (:mod:`~torch_stsdic.movie.window_length`; None: ``m`` everywhere)
     window_lengths: torch.Tensor | None = None
     _checker: SubsetSolver | None = None
-    _on_grid: tuple[torch.Tensor, bool] | None = None  # (the points, whole pixels)
+    _on_grid: tuple[torch.Tensor, bool, bool] | None = None  # (points, whole px, inside)
 
     def points_on_grid(self, ref: Reference) -> bool:
         """The reference's POIs are whole pixels (a grid's): read once per set of points,
         then every solve of the run is told (:meth:`SubsetSolver.solve`'s ``on_grid``)
         instead of testing it on the host."""
+        return self._point_facts(ref)[0]
+
+    def points_inside(self, ref: Reference) -> bool:
+        """Every POI's centred subset lies inside the reference image (read with
+        :meth:`points_on_grid`, once per set of points)."""
+        return self._point_facts(ref)[1]
+
+    def _point_facts(self, ref: Reference) -> tuple[bool, bool]:
         if self._on_grid is None or self._on_grid[0] is not ref.points:
             pts = ref.points
-            self._on_grid = (pts, bool((pts == pts.round()).all()))
-        return self._on_grid[1]
+            inside = subset_inside(pts, float(self.solver.window.half), ref.img.height,
+                                   ref.img.width)
+            grid, all_in = torch.stack([(pts == pts.round()).all(), inside.all()]).tolist()
+            self._on_grid = (pts, bool(grid), bool(all_in))
+        return self._on_grid[1], self._on_grid[2]
 
     def grid_neighbours(self, ref: Reference) -> torch.Tensor:
         """(N, k) the POIs' grid neighbours (:func:`~torch_stsdic.analysis.quality.neighbours`),
@@ -169,6 +180,9 @@ class Block(BlockChecks):
         #: (B*N,) int8 the half-window a row is first solved with, or None: the run's m
         #: everywhere (:meth:`keep_outside` shortens it where the point leaves the image)
         self.window_m: torch.Tensor | None = None
+        #: every row's subset (at :attr:`centres` where moved) lies inside the reference
+        #: image: the solves need not find the others (made with the centres)
+        self.centres_inside = True
         self._motion: dict[int, torch.Tensor] = {}
 
     def motion_of(self, m: int) -> torch.Tensor | None:
@@ -239,6 +253,7 @@ class Block(BlockChecks):
             # known per run: the POIs' grid (the centres are whole pixels from them) and
             # the shape (a window of 2m+1 frames at distinct times has temporal terms)
             on_grid=run.points_on_grid(ref), has_time=m_eff > 0,
+            all_inside=run.points_inside(ref) and self.centres_inside,
         )
 
     def keep(self, idx: torch.Tensor, sol: WindowSolution, only_better: bool,
@@ -391,6 +406,9 @@ class Block(BlockChecks):
         if n_moved:
             whole = torch.sign(shift) * shift.abs().ceil()  # whole px, away from the border
             self.centres = self.pts + torch.where(moved.unsqueeze(1), whole, 0.0)
+            self.centres_inside = bool(subset_inside(  # once a block, not once a solve
+                self.centres, float(run.solver.window.half), self.ref.img.height,
+                self.ref.img.width).all())
             self._motion = {}  # the shared motion at the subsets' centres
             run.stats["off_centre_rows"] = run.stats.get("off_centre_rows", 0) + n_moved
         return out
