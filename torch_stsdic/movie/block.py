@@ -199,11 +199,12 @@ class Block(BlockChecks):
             g = run.shared.displacement(pts, win.reshape(-1)).to(run.dtype)  # (B*T, N, 2)
             g = g.reshape(b, t, -1, 2).permute(0, 2, 1, 3)  # (B, N, T, 2)
             if self.centres is not None:  # off-centre subsets: the motion at their centres
-                moved = (self.centres != self.pts).any(1).reshape(b, -1)
-                for j in torch.nonzero(moved.any(1)).flatten().tolist():
-                    i = torch.nonzero(moved[j]).flatten()
-                    c = self.centres.reshape(b, -1, 2)[j, i]
-                    g[j, i] = run.shared.displacement(c, win[j]).to(run.dtype).transpose(0, 1)
+                # (at every point of every target, taken where moved: no host read)
+                moved = (self.centres != self.pts).any(1).reshape(b, -1, 1, 1)
+                cen = self.centres.reshape(b, -1, 2)
+                for j in range(b):
+                    gj = run.shared.displacement(cen[j], win[j]).to(run.dtype).transpose(0, 1)
+                    g[j] = torch.where(moved[j], gj, g[j])
             dt = (run.ts[win] - run.ts[self.k].unsqueeze(1)).to(run.dtype)  # (B, T)
             o = window_offsets(g, dt.unsqueeze(1).expand(-1, g.shape[1], -1))
             self._motion[m] = o.reshape(-1, t, 2).contiguous()
