@@ -183,6 +183,8 @@ class Block(BlockChecks):
         #: every row's subset (at :attr:`centres` where moved) lies inside the reference
         #: image: the solves need not find the others (made with the centres)
         self.centres_inside = True
+        #: (target, (M,) its points) whose subsets :meth:`keep_outside` moved
+        self._moved: list[tuple[int, torch.Tensor]] = []
         self._motion: dict[int, torch.Tensor] = {}
 
     def motion_of(self, m: int) -> torch.Tensor | None:
@@ -199,12 +201,10 @@ class Block(BlockChecks):
             g = run.shared.displacement(pts, win.reshape(-1)).to(run.dtype)  # (B*T, N, 2)
             g = g.reshape(b, t, -1, 2).permute(0, 2, 1, 3)  # (B, N, T, 2)
             if self.centres is not None:  # off-centre subsets: the motion at their centres
-                # (at every point of every target, taken where moved: no host read)
-                moved = (self.centres != self.pts).any(1).reshape(b, -1, 1, 1)
                 cen = self.centres.reshape(b, -1, 2)
-                for j in range(b):
-                    gj = run.shared.displacement(cen[j], win[j]).to(run.dtype).transpose(0, 1)
-                    g[j] = torch.where(moved[j], gj, g[j])
+                for j, i in self._moved:  # (chosen once a block: no host read here)
+                    g[j, i] = run.shared.displacement(cen[j, i], win[j]).to(
+                        run.dtype).transpose(0, 1)
             dt = (run.ts[win] - run.ts[self.k].unsqueeze(1)).to(run.dtype)  # (B, T)
             o = window_offsets(g, dt.unsqueeze(1).expand(-1, g.shape[1], -1))
             self._motion[m] = o.reshape(-1, t, 2).contiguous()
@@ -403,8 +403,12 @@ class Block(BlockChecks):
         self.status.masked_fill_(out, int(Status.OUTSIDE))
         self.gone |= out
         moved = (shift != 0).any(1) & ~out
-        n_moved = int(moved.sum())  # one read: whether any subset moves, and how many
+        per_target = moved.reshape(self.b, -1).sum(1).tolist()  # one read: which targets
+        n_moved = sum(per_target)
         if n_moved:
+            # each target's moved points, for the shared motion at their centres (one index)
+            at = torch.nonzero(moved.reshape(self.b, -1)).split(per_target)
+            self._moved = [(j, a[:, 1]) for j, a in enumerate(at) if per_target[j]]
             whole = torch.sign(shift) * shift.abs().ceil()  # whole px, away from the border
             self.centres = self.pts + torch.where(moved.unsqueeze(1), whole, 0.0)
             self.centres_inside = bool(subset_inside(  # once a block, not once a solve
