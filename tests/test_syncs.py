@@ -18,10 +18,10 @@ SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "benchmarks" / "count
 
 #: syncing operations a block, median over the blocks, outside the CPU kernels (host reads,
 #: data-dependent sizes, boolean-mask indexing, ``tolist``/``numpy`` copies) on the movie
-#: below: 222 at 78130a9, 97 after issue 45 item 3 (about 10 solve calls a block at 2 each,
+#: below: 222 at 78130a9, 83 after issue 45 item 3 (about 10 solve calls a block at 2 each,
 #: the rest the rescue and the model check choosing rows); a little room for noise-free
 #: changes of the path
-MAX_PER_BLOCK = 105
+MAX_PER_BLOCK = 90
 
 
 def _counter_module():
