@@ -89,18 +89,10 @@ class BlockContext:
     _checker: SubsetSolver | None = None
     _on_grid: tuple[torch.Tensor, bool, bool] | None = None  # (points, whole px, inside)
 
-    def points_on_grid(self, ref: Reference) -> bool:
-        """The reference's POIs are whole pixels (a grid's): read once per set of points,
-        then every solve of the run is told (:meth:`SubsetSolver.solve`'s ``on_grid``)
-        instead of testing it on the host."""
-        return self._point_facts(ref)[0]
-
-    def points_inside(self, ref: Reference) -> bool:
-        """Every POI's centred subset lies inside the reference image (read with
-        :meth:`points_on_grid`, once per set of points)."""
-        return self._point_facts(ref)[1]
-
-    def _point_facts(self, ref: Reference) -> tuple[bool, bool]:
+    def point_facts(self, ref: Reference) -> tuple[bool, bool]:
+        """Whether the reference's POIs are whole pixels (a grid's) and their centred subsets
+        all inside the reference image: read once per set of points, then every solve is
+        told (:meth:`SubsetSolver.solve`'s ``on_grid``, ``all_inside``), not testing it."""
         if self._on_grid is None or self._on_grid[0] is not ref.points:
             pts = ref.points
             inside = subset_inside(pts, float(self.solver.window.half), ref.img.height,
@@ -242,6 +234,7 @@ class Block(BlockChecks):
             init = init[:, [run.names.index(nm) for nm in spatial]]
         m_eff = run.m if m is None else m
         motion = self.motion_of(m_eff)
+        on_grid, inside = run.point_facts(ref)
         return (solver or run.solver).solve(
             ref.img, self.img, self.pts[idx], dt, frame_index=fidx,
             init=init, ref_pixels=ref.raw.unsqueeze(0), frame_pixels=self.raw,
@@ -253,8 +246,7 @@ class Block(BlockChecks):
             init_step=init_step,
             # known per run: the POIs' grid (the centres are whole pixels from them) and
             # the shape (a window of 2m+1 frames at distinct times has temporal terms)
-            on_grid=run.points_on_grid(ref), has_time=m_eff > 0,
-            all_inside=run.points_inside(ref) and self.centres_inside,
+            on_grid=on_grid, has_time=m_eff > 0, all_inside=inside and self.centres_inside,
         )
 
     def keep(self, idx: torch.Tensor, sol: WindowSolution, only_better: bool,
