@@ -6,11 +6,11 @@ reached, so that a check or a solve that reads the device again fails here."""
 
 from __future__ import annotations
 
-import importlib.util
 import statistics
 from pathlib import Path
 
 import torch
+from repo_scripts import load_script  # tests/ on the path
 
 from torch_stsdic.cli import main
 
@@ -25,10 +25,7 @@ MAX_PER_BLOCK = 90
 
 
 def _counter_module():
-    spec = importlib.util.spec_from_file_location("count_syncs", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script(SCRIPT, "count_syncs")
 
 
 def test_the_counter_counts_what_waits_for_the_device():
