@@ -112,7 +112,9 @@ def splat(acc: torch.Tensor, img: BSplineImage, planes: torch.Tensor, ref: torch
     if ref_stats is None:
         ref_stats = reference_window_stats(ref, cover)
     n_px = pixels.numel()
-    on_cover = acc.shape[1] == n_px  # (3, C): add in place, else sums mapped to the image
+    # (3, C): add in place, else sums mapped to the image (C = H*W only where the windows
+    # cover every pixel: then the covered pixels, sorted, are the image's, the same layout)
+    on_cover = acc.shape[1] == n_px
     sums = acc if on_cover else torch.zeros(3, n_px, dtype=torch.float64, device=dev)
     per_frame = torch.zeros(2, g_count * n_px, dtype=torch.float64, device=dev)
     chunk = max(1, _CHUNK_SAMPLES // dx.numel())
