@@ -22,7 +22,7 @@ show it (:meth:`LocalFit.residual_z`).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 
@@ -61,6 +61,8 @@ class LocalFit:
     offsets: torch.Tensor
     used: torch.Tensor
     subset_size: float
+    #: (N, k, k) the neighbours' correlations, kept while :meth:`keep_correlation` asks
+    _corr: torch.Tensor | None = field(default=None, repr=False)
 
     def _chunks(self, rows: int = 1) -> range:
         """Chunks of POIs whose (n, k, k) and (rows, n, k) work arrays hold ~_CHUNK each."""
@@ -69,8 +71,19 @@ class LocalFit:
 
     def correlation(self, sl: slice) -> torch.Tensor:
         """(n, k, k) the error correlation of the neighbours of the POIs ``sl``."""
+        if self._corr is not None:
+            return self._corr[sl]
         d = self.offsets[sl]
         return overlap_correlation(d[:, :, None, :] - d[:, None, :, :], self.subset_size)
+
+    def keep_correlation(self, keep: bool = True, budget_mb: float = 128.0) -> None:
+        """Keep every POI's (k, k) correlation (float64) between calls, where they fit
+        in ``budget_mb``: several tests of one fit then make them once, not per call;
+        ``keep=False`` lets them go."""
+        n, k = self.index.shape
+        self._corr = None
+        if keep and n * k * k * 8 <= budget_mb * 2**20:
+            self._corr = self.correlation(slice(0, n))
 
     def apply(self, degree: int, values: torch.Tensor) -> torch.Tensor:
         """(..., N) values -> (..., N) fitted values at the POIs."""
@@ -142,6 +155,8 @@ def _design(d: torch.Tensor, degree: int) -> torch.Tensor:
         cols += [x * x, x * y, y * y]
     if degree >= 3:
         cols += [x ** 3, x * x * y, x * y * y, y ** 3]
+    if degree >= 4:
+        cols += [x ** 4, x ** 3 * y, x * x * y * y, x * y ** 3, y ** 4]
     return torch.stack(cols, -1)
 
 

@@ -69,6 +69,13 @@ POOL_CLIP = 3.0
 BIAS_FLOOR_PX = 1e-3
 #: |plane - quadratic| / its std beyond which a frame is left out of the template at a POI
 PLANE_Z = 5.0
+#: the neighbourhoods (POIs: 5 x 5, 7 x 7, 9 x 9 blocks of a grid) whose local fits may
+#: register a frame at a POI, beyond the run's ``neighbours`` (the smallest): at each frame
+#: and POI the passing fit of least variance (:class:`RegistrationFits`). The template's
+#: registration error, common to every row, is the reference image's noise through the
+#: fits (docs/validation/window_length.md): a plane over 81 POIs passes a third of a plane
+#: over 25's variance where the field allows it
+NEIGHBOURHOODS = (25, 49, 81)
 
 
 @dataclass
@@ -314,40 +321,108 @@ def _matched(res: TrackResult, frames: list[int], reference_frame: int) -> torch
     return ~own[:, None] | ok
 
 
-def _fit_degree(fit: LocalFit, warps: torch.Tensor, ok: torch.Tensor, unit: torch.Tensor
-                ) -> torch.Tensor:
-    """(F, N) the degree of the local fit that registers each frame at each POI: 1 (a
-    plane) where it passes its tests against the quadratic (:func:`local_fit` on u and v
-    of that frame measured against the reference image: both images' noise, ``unit``: (N,)
-    one image's share of a classical displacement's variance), else 2 where the quadratic
-    passes against the cubic, else 0: the frame is left out of the template there, and
-    wherever a neighbour is not trusted in that frame (a guard band around a crack, a lost
-    region, the points that straddle them)."""
+@dataclass
+class RegistrationFits:
+    """The local fits that may register a frame at a POI (:func:`_fit_choice`): every
+    (neighbourhood, degree) of ``NEIGHBOURHOODS`` (from the run's ``neighbours`` up; a plane
+    or a quadratic, tested against the next degree) and a cubic over the smallest (against
+    the quartic: a field that bends more than a quadratic over it, as a specimen's load
+    grows), with each one's variance factor at each POI (``w^T R w``: the share of one
+    POI's noise its fitted value keeps)."""
+
+    fits: list[LocalFit]  # one per neighbourhood, degrees 1 .. 3 (the smallest: .. 4)
+    candidates: list[tuple[int, int]]  # (index into fits, degree)
+    factor: torch.Tensor  # (C, N) float64 each candidate's variance factor
+
+    @classmethod
+    def make(cls, pts: torch.Tensor, neighbours: int, subset_size: float) -> RegistrationFits:
+        """The fits of the POIs ``pts`` (N, 2) over ``neighbours`` POIs and the larger
+        ``NEIGHBOURHOODS`` the POIs allow."""
+        n = pts.shape[0]
+        small = max(int(neighbours), 10)
+        sizes = [small] + [k for k in NEIGHBOURHOODS if small < k <= n]
+        fits = [local_fit_weights(pts, k, subset_size, degrees=(1, 2, 3, 4) if i == 0
+                                  else (1, 2, 3)) for i, k in enumerate(sizes)]
+        for fit in fits:  # tested several times each (:func:`_fit_choice`)
+            fit.keep_correlation()
+        candidates = [(i, d) for i in range(len(fits)) for d in (1, 2)] + [(0, 3)]
+        factor = torch.stack([fits[i].variance_factor(fits[i].weights[d])
+                              for i, d in candidates])
+        return cls(fits=fits, candidates=candidates, factor=factor)
+
+    def degree(self, choice: torch.Tensor) -> torch.Tensor:
+        """(F, N) the degree (1 .. 3; 0: none) of the fits ``choice`` (F, N) (0: none, c + 1:
+        candidate c)."""
+        deg = torch.tensor([0] + [d for _, d in self.candidates])
+        return deg[choice]
+
+    def variance(self, choice: torch.Tensor) -> torch.Tensor:
+        """(F, N) the variance factor of the fits ``choice`` (0 where none)."""
+        f = torch.cat([torch.zeros(1, self.factor.shape[1], dtype=torch.float64),
+                       self.factor])  # (C + 1, N)
+        return f.gather(0, choice.long())
+
+    def guard(self, choice: torch.Tensor, ok: torch.Tensor) -> torch.Tensor:
+        """(F, N) where the fit ``choice`` was made and every one of its neighbours is
+        trusted (``ok`` (F, N)): a guard band around cracks and lost regions."""
+        out = torch.zeros_like(choice, dtype=torch.bool)
+        for c, (i, _) in enumerate(self.candidates):
+            here = choice == c + 1
+            if bool(here.any()):
+                out |= here & ok[:, self.fits[i].index].all(-1)
+        return out
+
+
+def _fit_choice(reg: RegistrationFits, warps: torch.Tensor, ok: torch.Tensor,
+                unit: torch.Tensor) -> torch.Tensor:
+    """(F, N) the local fit that registers each frame at each POI (0: none, c + 1: candidate
+    c of ``reg``): of the fits that pass their tests against the next degree
+    (:func:`~torch_stsdic.analysis.local_fit.local_fit_passes` on u and v of that frame
+    measured against the reference image: both images' noise, ``unit``: (N,) one image's
+    share of a classical displacement's variance) and whose neighbours are all trusted
+    (``ok``: a guard band around a crack, a lost region, the points that straddle them),
+    the one of least variance factor: a larger neighbourhood where the field allows it, a
+    plane before a quadratic over the same POIs; none: the frame is left out of the
+    template there."""
     f, n = ok.shape
     # every frame's u and v as the rows of one test: (2F, N), rows u_0, v_0, u_1, v_1, ...
     vals = torch.where(ok[..., None], warps[..., [0, 3]], 0.0).transpose(1, 2).reshape(2 * f, n)
     var = (2.0 * unit).expand(2 * f, -1)
-    plane = local_fit_passes(fit, vals, var, degree=1, z_limit=PLANE_Z).view(f, 2, n).all(1)
-    quad = local_fit_passes(fit, vals, var, degree=2, z_limit=PLANE_Z).view(f, 2, n).all(1)
-    return torch.where(plane, 1, torch.where(quad, 2, 0)) * ok[:, fit.index].all(-1)
+    best = torch.full((f, n), torch.inf, dtype=torch.float64)
+    choice = torch.zeros(f, n, dtype=torch.long)
+    for c, (i, d) in enumerate(reg.candidates):
+        fit = reg.fits[i]
+        passes = (local_fit_passes(fit, vals, var, degree=d, z_limit=PLANE_Z).view(f, 2, n)
+                  .all(1) & ok[:, fit.index].all(-1))
+        better = passes & (reg.factor[c][None] < best)
+        best = torch.where(better, reg.factor[c][None], best)
+        choice = torch.where(better, c + 1, choice)
+    for fit in reg.fits:
+        fit.keep_correlation(False)
+    return choice
 
 
-def _smooth(fit: LocalFit, warps: torch.Tensor, ok: torch.Tensor, degree: torch.Tensor
-            ) -> torch.Tensor:
+def _smooth(reg: RegistrationFits, warps: torch.Tensor, ok: torch.Tensor,
+            choice: torch.Tensor) -> torch.Tensor:
     """(F, N, 12) the maps of the frames at the POIs: u, its gradient and its coefficients
-    of dx^2, dx dy, dy^2 (px offsets from the POI), then the same of v; the local fit's of
-    ``degree`` (F, N) (whose neighbours are all trusted, ``ok``), elsewhere the POI's own
-    warp (no second-order terms). The second-order terms matter where the field curves: a
-    gradient of 10 % over 200 px moves a pixel 15 px from the POI by 0.06 px."""
+    of dx^2, dx dy, dy^2 (px offsets from the POI), then the same of v; the local fit
+    ``choice`` (F, N) of ``reg`` (:func:`_fit_choice`; its neighbours trusted, ``ok``),
+    elsewhere the POI's own warp (no second-order terms). The second-order terms matter
+    where the field curves: a gradient of 10 % over 200 px moves a pixel 15 px from the POI
+    by 0.06 px."""
     f, n = warps.shape[:2]
     out = torch.zeros(f, n, 12, dtype=torch.float64)
     out[..., 0:3], out[..., 6:9] = warps[..., 0:3], warps[..., 3:6]
     for c, o in ((0, 0), (3, 6)):
         vals = torch.where(ok, warps[..., c], 0.0)  # (F, N)
-        for d in (1, 2):
+        for k, (i, d) in enumerate(reg.candidates):
+            here = choice == k + 1
+            if not bool(here.any()):
+                continue
+            fit = reg.fits[i]
             terms = torch.cat([fit.apply(d, vals)[..., None], fit.apply_slopes(d, vals),
                                fit.apply_quadratic(d, vals)], -1)  # (F, N, 6)
-            use = (degree == d) & fit.posed[d] & torch.isfinite(terms).all(-1)
+            use = here & fit.posed[d] & torch.isfinite(terms).all(-1)
             out[..., o:o + 6] = torch.where(use[..., None], terms, out[..., o:o + 6])
     return out
 
@@ -365,7 +440,8 @@ def build_series_reference(plan: RunPlan, ref_raw: torch.Tensor, *,
     ``ref_raw`` (H, W), the others against the last template) and a template from their
     warps, replaced by each POI's local fit over its ``neighbours`` nearest POIs; a frame
     enters the template at a POI only where its first-round warp matched
-    (:func:`_matched`), its fit passed (:func:`_fit_degree`) and every neighbour is trusted.
+    (:func:`_matched`), one of its fits passed (:func:`_fit_choice`: over ``neighbours`` POIs
+    or a larger neighbourhood of ``NEIGHBOURHOODS``) and every neighbour of it is trusted.
     The first round also decides where the time model holds (:func:`time_model_holds`,
     with the ``shared`` motion taken out). Then the template's registration as the
     reference frame measures it (:func:`_gauge`), where the reference is a frame of the
@@ -383,34 +459,34 @@ def build_series_reference(plan: RunPlan, ref_raw: torch.Tensor, *,
     frames = sample_frames(plan, max_frames)
     sigmas = _frame_noise(plan, frames, cache)  # the same in every round
     pts = plan.points.double().cpu()
-    fit = local_fit_weights(pts, max(int(neighbours), 10), plan.config.subset_size,
-                            degrees=(1, 2, 3))
-    image = degree = unit = matched = guess = None
+    reg = RegistrationFits.make(pts, neighbours, plan.config.subset_size)
+    fit = reg.fits[0]  # the smallest neighbourhood: the gauge's planes
+    image = choice = unit = matched = guess = None
     for _ in range(int(iterations)):
         res = measured.result(frames) if image is None and measured is not None else None
         if res is None:
             res = _measure(plan, frames, image, run, guess)
         guess = _round_guess(plan, res)
         warps, trusted = _all_warps(plan, res)
-        if degree is None:  # tested once, against the reference image (a known null)
+        if choice is None:  # tested once, against the reference image (a known null)
             holds = time_model_holds(plan, res, frames, shared)
             unit = _unit_variance(res)
             matched = _matched(res, frames, plan.reference_frame)
-            degree = _fit_degree(fit, warps, trusted & matched, unit)
+            choice = _fit_choice(reg, warps, trusted & matched, unit)
         trusted = trusted & matched
-        # a frame enters at a POI whose fit passed and whose neighbours are all trusted
-        splat = (degree > 0) & trusted[:, fit.index].all(-1)
+        # a frame enters at a POI whose fit passed and whose fit's neighbours are all trusted
+        splat = reg.guard(choice, trusted)
         image, ratio, coverage, point_ratio = template_image(
-            plan, _smooth(fit, warps, trusted, degree), splat, frames, sigmas, ref_raw, cache)
+            plan, _smooth(reg, warps, trusted, choice), splat, frames, sigmas, ref_raw, cache)
+    degree = reg.degree(choice)
     use = degree > 0
     own = torch.tensor([k != plan.reference_frame for k in frames])
     counts = (use & own[:, None]).sum(0)  # (N,) frames besides the reference in the template
     registered = counts > 0
-    # the template's registration: the planes' error (the reference image's, common to the
-    # frames, and theirs averaged), none where only the reference image is there
-    planes = (degree == 1).double().sum(0) / (degree > 0).double().sum(0).clamp(min=1)
-    factor = (planes * fit.variance_factor(fit.weights[1])
-              + (1 - planes) * fit.variance_factor(fit.weights[2]))
+    # the template's registration: the fits' error (the reference image's, common to the
+    # frames, and theirs averaged; the mean variance factor of the frames' fits), none
+    # where only the reference image is there
+    factor = reg.variance(choice).sum(0) / use.double().sum(0).clamp(min=1)
     prior = factor * (1.0 + 1.0 / counts.clamp(min=1)) * unit
     added = torch.where(registered, prior, 0.0)
     gauge = None
