@@ -543,12 +543,15 @@ def test_the_registration_takes_the_largest_neighbourhood_the_field_allows():
     5 x 5 POIs a cubic over 25; an untrusted POI keeps the fits that would
     include it out (a smaller neighbourhood is taken around it)."""
     torch.manual_seed(0)
-    pts = _fit_grid()
+    pts = _fit_grid(19)
     n = len(pts)
-    x, y = pts[:, 0], pts[:, 1]
+    x, y = pts[:, 0] - 20, pts[:, 1] - 20  # the grid's centre at 70, 70
     reg = series_reference.RegistrationFits.make(pts, 25, 21)
     assert [f.index.shape[1] for f in reg.fits] == [25, 49, 81]
-    centre = 7 * 15 + 7
+    # a grid of 225 POIs: 81 is over a third of them, not local
+    assert [f.index.shape[1] for f in series_reference.RegistrationFits.make(
+        _fit_grid(15), 25, 21).fits] == [25, 49]
+    centre = 9 * 19 + 9
     plane25 = reg.factor[reg.candidates.index((0, 1)), centre]
     plane81 = reg.factor[reg.candidates.index((2, 1)), centre]
     assert abs(float(plane25) - 0.1437) < 2e-3 and abs(float(plane81) - 0.0493) < 2e-3
@@ -560,7 +563,7 @@ def test_the_registration_takes_the_largest_neighbourhood_the_field_allows():
     u = torch.stack([linear, curved, linear, cubic]) + noise[:, 0]
     v = torch.stack([-0.5 * linear, curved, -0.5 * linear, -cubic]) + noise[:, 1]
     ok = torch.ones(4, n, dtype=torch.bool)
-    bad = 7 * 15 + 10  # three columns right of the centre: inside its 7 x 7 block
+    bad = centre + 3  # three columns right of the centre: inside its 7 x 7 block
     ok[2, bad] = False
     choice = series_reference._fit_choice(reg, _warps_of(u, v), ok, unit)
     assert reg.candidates[int(choice[0, centre]) - 1] == (2, 1)  # a plane over 81
@@ -583,11 +586,11 @@ def test_the_larger_neighbourhoods_lower_the_templates_registration_error(monkey
     """The error every row shares is the reference image's noise seen through the fits that
     registered the frames: with only the reference frame noisy (the other frames nearly
     noise-free), classical DIC against the template errs by each point's registration
-    error. Fits over 25 .. 81 POIs (the default) against fits over 25 only: measured 0.58x
-    (1.82e-3 / 3.11e-3 px RMS over the frames and points; variance factors 0.049 / 0.144 at
-    the grid's centre, more at its edges); band 0.75."""
-    mot = synth.Custom(lambda x, y, t: (0.05 * t + 0.0004 * t * (x - 80), -0.03 * t))
-    mv = synth.synthetic_movie((161, 161), 10, mot, noise_sigma=0.0, seed=3)
+    error. Fits over 25 .. 81 POIs (the default) against fits over 25 only: measured 0.70x
+    (2.18e-3 / 3.10e-3 px RMS over the frames and points; variance factors 0.049 / 0.144 at
+    the grid's centre, more at its edges); band 0.8."""
+    mot = synth.Custom(lambda x, y, t: (0.05 * t + 0.0004 * t * (x - 100), -0.03 * t))
+    mv = synth.synthetic_movie((201, 201), 10, mot, noise_sigma=0.0, seed=3)
     clean = torch.cat([mv.ref[None], mv.frames]).double()
     times = torch.cat([torch.zeros(1, dtype=torch.float64), mv.times])
     gen = torch.Generator().manual_seed(5)
@@ -604,4 +607,4 @@ def test_the_larger_neighbourhoods_lower_the_templates_registration_error(monkey
     ladder = err()
     monkeypatch.setattr(series_reference, "NEIGHBOURHOODS", (25,))
     small = err()
-    assert ladder <= 0.75 * small, (ladder, small)
+    assert ladder <= 0.8 * small, (ladder, small)

@@ -337,10 +337,12 @@ class RegistrationFits:
     @classmethod
     def make(cls, pts: torch.Tensor, neighbours: int, subset_size: float) -> RegistrationFits:
         """The fits of the POIs ``pts`` (N, 2) over ``neighbours`` POIs and the larger
-        ``NEIGHBOURHOODS`` the POIs allow."""
+        ``NEIGHBOURHOODS`` of at most N / 3 POIs."""
         n = pts.shape[0]
         small = max(int(neighbours), 10)
-        sizes = [small] + [k for k in NEIGHBOURHOODS if small < k <= n]
+        # a larger neighbourhood only where it is local: at most a third of the POIs (over
+        # nearly all, every POI's registration error would be one and the same field)
+        sizes = [small] + [k for k in NEIGHBOURHOODS if small < k <= n // 3]
         fits = [local_fit_weights(pts, k, subset_size, degrees=(1, 2, 3, 4) if i == 0
                                   else (1, 2, 3)) for i, k in enumerate(sizes)]
         for fit in fits:  # tested several times each (:func:`_fit_choice`)
