@@ -4,7 +4,8 @@ Importing torch takes seconds; a Ctrl-C (or SIGTERM) in that time would otherwis
 Python traceback. This module (outside the package, so that nothing heavy is imported with
 it) makes such a signal a one-line message and the shell's exit code (128 + signal number),
 then runs :func:`torch_stsdic.cli.main`, which handles signals during the command itself,
-and ignores signals while the interpreter shuts down.
+and ignores signals while the interpreter shuts down. An interrupted command's process ends
+without that shutdown (:func:`torch_stsdic.cli.signals.leave_if_interrupted`).
 """
 
 from __future__ import annotations
@@ -36,6 +37,9 @@ def main() -> int:
         started = True
         code = cli_main()  # handles its own signals while the command runs
         _ignore()
+        from torch_stsdic.cli.signals import leave_if_interrupted
+
+        leave_if_interrupted(code)  # interrupted: exits here, without the shutdown
     except KeyboardInterrupt as exc:  # before the command started, or just after it ended
         _ignore()
         num = exc.args[0] if exc.args and isinstance(exc.args[0], int) else signal.SIGINT

@@ -3,21 +3,19 @@ regenerate."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
 import subprocess
 import sys
 from pathlib import Path
 
+from repo_scripts import load_script  # tests/ on the path
+
 SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "benchmarks" / "benchmark.py"
 
 
 def _load():
-    spec = importlib.util.spec_from_file_location("stsdic_benchmark", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script(SCRIPT, "stsdic_benchmark")
 
 
 def test_quick_preset_runs_and_records(tmp_path):

@@ -200,14 +200,9 @@ def test_refined_reference_row():
 
 
 def _docs_script():
-    import importlib.util
-    from pathlib import Path
+    from repo_scripts import load_script  # tests/ on the path
 
-    path = Path(__file__).resolve().parents[1] / "scripts" / "tools" / "regenerate_docs.py"
-    spec = importlib.util.spec_from_file_location("regenerate_docs", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("scripts/tools/regenerate_docs.py", "regenerate_docs")
 
 
 def test_docs_quote_the_program():

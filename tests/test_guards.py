@@ -322,13 +322,9 @@ def test_os_errors_are_one_line_without_errno(capsys, result, tmp_path):
 
 
 def _docs_script():
-    import importlib.util
+    from repo_scripts import load_script  # tests/ on the path
 
-    path = Path(__file__).resolve().parents[1] / "scripts" / "tools" / "regenerate_docs.py"
-    spec = importlib.util.spec_from_file_location("regenerate_docs_guards", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("scripts/tools/regenerate_docs.py", "regenerate_docs_guards")
 
 
 def test_cli_reference_is_generated_and_current():

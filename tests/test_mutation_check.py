@@ -4,22 +4,18 @@ checks, not a part of it)."""
 
 from __future__ import annotations
 
-import importlib.util
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+from repo_scripts import load_script  # tests/ on the path
 
 SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "tools" / "mutation_check.py"
 
 
 def _module():
-    spec = importlib.util.spec_from_file_location("mutation_check", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules.setdefault("mutation_check", mod)  # dataclasses look their module up
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script(SCRIPT, "mutation_check")
 
 
 def test_every_mutation_still_applies():

@@ -608,3 +608,36 @@ def test_the_larger_neighbourhoods_lower_the_templates_registration_error(monkey
     monkeypatch.setattr(series_reference, "NEIGHBOURHOODS", (25,))
     small = err()
     assert ladder <= 0.8 * small, (ladder, small)
+
+
+def test_splat_over_the_covered_pixels_equals_the_splat_into_the_image():
+    """template_image adds every frame's sums over the pixels the windows cover and maps
+    them to the image once (``acc`` (3, C)); splat into the whole image (``acc`` (3, H*W))
+    gives the same sums at those pixels and nothing elsewhere, border windows included."""
+    from torch_stsdic.core.interpolation import BSplineImage
+
+    size, half = 72, 5
+    imgs = torch.stack([synth.render(synth.make_speckle((size, size), seed=s),
+                                     (size, size)).double() for s in (7, 8)])
+    stack = BSplineImage(imgs, order=3)
+    ref = imgs[0].reshape(-1)
+    g = torch.Generator().manual_seed(2)
+    pts = torch.rand(20, 2, generator=g, dtype=torch.float64) * (size - 10) + 5
+    pts[0] = torch.tensor([2.0, 30.0], dtype=torch.float64)  # a window over the border
+    warp = (torch.rand(2, 20, 12, generator=g, dtype=torch.float64) - 0.5) * 0.02
+    warp[..., 0] += 0.4
+    ok = torch.ones(2, 20, dtype=torch.bool)
+    weight = torch.tensor([1.0, 0.7], dtype=torch.float64)
+    level = torch.tensor([1.0, 1.1], dtype=torch.float64)
+    planes = torch.tensor([0, 1])
+    cover = template_image.window_pixels(pts, half, size, size)
+    image = torch.zeros(3, size * size, dtype=torch.float64)
+    on_cover = torch.zeros(3, cover[0].numel(), dtype=torch.float64)
+    for j in range(2):  # frame by frame, as template_image on the CPU
+        for acc in (image, on_cover):
+            template_image.splat(acc, stack, planes[j:j + 1], ref, pts, warp[j:j + 1],
+                                 ok[j:j + 1], half, weight[j:j + 1], level[j:j + 1], cover)
+    mapped = torch.zeros_like(image)
+    mapped[:, cover[0]] = on_cover
+    assert float(on_cover[1].sum()) > 0 and float(on_cover[2].sum()) > 0
+    torch.testing.assert_close(mapped, image, rtol=1e-12, atol=1e-9)

@@ -107,3 +107,23 @@ def test_run_with_defaults_on_a_specimen_converges(frames):
     assert float(ok.double().mean()) > 0.99
     t = res.times[1:].double().view(-1, 1)
     assert float((res.u[1:].double() - 0.2 * t)[ok].abs().max()) < 0.05
+
+
+def test_square_morphology_as_row_and_column_equals_the_full_square():
+    """speckle_mask closes and erodes with a square as a row then a column
+    (specimen._square): the same mask as kornia's morphology with the whole square, at the
+    image's borders too (geodesic: pixels outside the image ignored)."""
+    import kornia
+
+    from torch_stsdic.analysis.specimen import _square
+
+    g = torch.Generator().manual_seed(3)
+    mask = (torch.rand(1, 1, 61, 47, generator=g) > 0.7).float()
+    for size in (3, 7, 11):
+        full = torch.ones(size, size)
+        for op in (kornia.morphology.dilation, kornia.morphology.erosion):
+            assert torch.equal(_square(op, mask, size), op(mask, full)), (op.__name__, size)
+        closed = _square(kornia.morphology.erosion,
+                         _square(kornia.morphology.dilation, mask, size), size)
+        assert torch.equal(closed, kornia.morphology.closing(mask, full))
+        assert not torch.equal(closed, mask)  # the closing did something

@@ -12,7 +12,10 @@ tensor: ``aten._local_scalar_dense``), and the operations whose output size depe
 data (``nonzero``, ``masked_select``, boolean-mask indexing, ``unique``, ``repeat_interleave``
 with a tensor of repeats): on CUDA each waits for the device. Copies to the host
 (``.cpu()``, ``.numpy()``, ``.tolist()``) do not pass the dispatcher on a CPU run and are not
-counted, so on the CPU this is a lower bound. Per block of the run itself (its passes' blocks
+counted by the dispatcher; they are counted apart (``host copy``: ``.tolist()`` and
+``.numpy()`` called in the counting thread, patched in while counting; on a GPU each of a
+device tensor waits for it; on the CPU some of them read host tensors a GPU run keeps on
+the host too, so they are an upper bound there). Per block of the run itself (its passes' blocks
 apart), the median over the blocks; the run is slowed down by the counting (use it for
 counts, not for speed). Of those, the ones in the C++ CPU kernels' argument checks
 (``kernels/native``) are shown apart: a GPU run takes other kernels. ``--where N`` lists the
@@ -27,6 +30,7 @@ import json
 import statistics
 import sys
 import tempfile
+import threading
 from pathlib import Path
 
 import torch
@@ -47,6 +51,8 @@ SYNCING = {"_local_scalar_dense": "host read", "nonzero": "data-dependent size",
 NATIVE = "torch_stsdic/kernels/native"
 #: the counter of those (a part of the others, not added to a block's total)
 CPU_ONLY = "of which in the CPU kernels' checks"
+#: the counter of the copies to the host outside the dispatcher (``.tolist()``, ``.numpy()``)
+HOST_COPY = "host copy (tolist, numpy)"
 
 
 class SyncCounter(TorchDispatchMode):
@@ -56,6 +62,33 @@ class SyncCounter(TorchDispatchMode):
         super().__init__()
         self.counts: collections.Counter[str] = collections.Counter()
         self.where: collections.Counter[str] | None = collections.Counter() if where else None
+        self._saved: dict[str, object] = {}
+        #: the places of the run's own blocks only (filled by :func:`count_run`)
+        self.block_where: collections.Counter[str] = collections.Counter()
+
+    def __enter__(self):
+        """Also count ``.tolist()`` and ``.numpy()`` of the entering thread (they do not pass
+        the dispatcher on the CPU)."""
+        me = threading.get_ident()
+        for name in ("tolist", "numpy"):
+            orig = getattr(torch.Tensor, name)
+            self._saved[name] = orig
+
+            def counted(t, *a, _orig=orig, **k):
+                if threading.get_ident() == me:
+                    self.counts[HOST_COPY] += 1
+                    if self.where is not None:
+                        self.where[self._place()] += 1
+                return _orig(t, *a, **k)
+
+            setattr(torch.Tensor, name, counted)
+        return super().__enter__()
+
+    def __exit__(self, *exc):
+        for name, orig in self._saved.items():
+            setattr(torch.Tensor, name, orig)
+        self._saved = {}
+        return super().__exit__(*exc)
 
     def _place(self) -> str:
         """The innermost line of the package's own code on the calling stack."""
@@ -96,12 +129,63 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--where", type=int, default=0, metavar="N",
                     help="also list the N lines of the package that sync most (whole run)")
     args = ap.parse_args(own)
+    rc, per_block, counter = count_run(run_args, where=args.where > 0)
+    if rc:
+        return rc
+    kinds = sorted({k for b in per_block for k in b})
+    med = {k: statistics.median(b.get(k, 0) for b in per_block) for k in kinds}
+    total = [block_total(b) for b in per_block]
+    rest = [block_total(b, cpu_kernels=False) for b in per_block]
+    old = [block_total(b, cpu_kernels=False, copies=False) for b in per_block]
+    rec = {"args": run_args, "device": "cpu", "blocks": len(per_block),
+           "per_block_median": med, "per_block_total_median": statistics.median(total),
+           "per_block_total_range": [min(total), max(total)],
+           "per_block_outside_cpu_kernels_median": statistics.median(rest),
+           "per_block_outside_cpu_kernels_range": [min(rest), max(rest)],
+           "per_block_outside_cpu_kernels_without_copies_median": statistics.median(old),
+           "run_total": dict(counter.counts), "commit": _commit()}
+    print(f"{len(per_block)} blocks; syncing operations a block (median): "
+          f"{rec['per_block_total_median']:.0f} (range {min(total)}-{max(total)})")
+    for k in kinds:
+        print(f"  {k:<28} {med[k]:>6.0f}")
+    print(f"  outside the CPU kernels' checks (what a GPU run's path may keep): "
+          f"{statistics.median(rest):.0f} a block (median; range {min(rest)}-{max(rest)}); "
+          f"without the host copies {statistics.median(old):.0f}")
+    if counter.where is not None:
+        rec["where_run_total"] = dict(counter.where.most_common(args.where))
+        rec["where_blocks"] = dict(counter.block_where.most_common(args.where))
+        print(f"where (whole run, top {args.where}):")
+        for place, n in counter.where.most_common(args.where):
+            print(f"  {n:>7d}  {place}")
+        print(f"where (the run's {len(per_block)} blocks only, top {args.where}):")
+        for place, n in counter.block_where.most_common(args.where):
+            print(f"  {n:>7d}  {place}")
+    if args.out is not None:
+        args.out.write_text(json.dumps(rec, indent=1) + "\n")
+    return 0
 
+
+def block_total(counts: dict[str, int], cpu_kernels: bool = True, copies: bool = True) -> int:
+    """A block's syncing operations (``counts`` by kind): all, or without those in the CPU
+    kernels' checks (``cpu_kernels`` False) or without the host copies (``copies`` False)."""
+    out = sum(v for k, v in counts.items() if k != CPU_ONLY)
+    if not cpu_kernels:
+        out -= counts.get(CPU_ONLY, 0)
+    if not copies:
+        out -= counts.get(HOST_COPY, 0)
+    return out
+
+
+def count_run(run_args: list[str], where: bool = False
+              ) -> tuple[int, list[dict[str, int]], SyncCounter]:
+    """``stsdic run`` with ``run_args`` (the output to a temporary file) under a
+    :class:`SyncCounter`: its exit code, the counts of each block of the run itself (its
+    passes' blocks apart) and the counter (whole run)."""
     import torch_stsdic.movie.block as block
     import torch_stsdic.movie.series as series
     from torch_stsdic.cli.app import main as cli_main
 
-    counter = SyncCounter(where=args.where > 0)
+    counter = SyncCounter(where=where)
     per_block: list[dict[str, int]] = []
     depth = {"runs": 0}
     run_plan, solve_block = series.run_plan, block.solve_block
@@ -115,40 +199,22 @@ def main(argv: list[str] | None = None) -> int:
 
     def counted_block(*a, **k):
         before = collections.Counter(counter.counts)
+        where_before = collections.Counter(counter.where or {})
         out = solve_block(*a, **k)
         if depth["runs"] == 1:
             per_block.append(dict(counter.counts - before))
+            if counter.where is not None:
+                counter.block_where.update(counter.where - where_before)
         return out
 
     series.run_plan, series.solve_block = counted_run, counted_block
-    with tempfile.TemporaryDirectory() as tmp, counter:
-        rc = cli_main(["run", *run_args, "--out", str(Path(tmp) / "r.h5"), "--overwrite",
-                       "--no-progress"])
-    if rc:
-        return rc
-    kinds = sorted({k for b in per_block for k in b})
-    med = {k: statistics.median(b.get(k, 0) for b in per_block) for k in kinds}
-    total = [sum(v for k, v in b.items() if k != CPU_ONLY) for b in per_block]
-    rest = [t - b.get(CPU_ONLY, 0) for t, b in zip(total, per_block)]
-    rec = {"args": run_args, "device": "cpu", "blocks": len(per_block),
-           "per_block_median": med, "per_block_total_median": statistics.median(total),
-           "per_block_total_range": [min(total), max(total)],
-           "per_block_outside_cpu_kernels_median": statistics.median(rest),
-           "run_total": dict(counter.counts), "commit": _commit()}
-    print(f"{len(per_block)} blocks; syncing operations a block (median): "
-          f"{rec['per_block_total_median']:.0f} (range {min(total)}-{max(total)})")
-    for k in kinds:
-        print(f"  {k:<28} {med[k]:>6.0f}")
-    print(f"  outside the CPU kernels' checks (what a GPU run's path may keep): "
-          f"{statistics.median(rest):.0f} a block (median)")
-    if counter.where is not None:
-        rec["where_run_total"] = dict(counter.where.most_common(args.where))
-        print(f"where (whole run, top {args.where}):")
-        for place, n in counter.where.most_common(args.where):
-            print(f"  {n:>7d}  {place}")
-    if args.out is not None:
-        args.out.write_text(json.dumps(rec, indent=1) + "\n")
-    return 0
+    try:
+        with tempfile.TemporaryDirectory() as tmp, counter:
+            rc = cli_main(["run", *run_args, "--out", str(Path(tmp) / "r.h5"), "--overwrite",
+                           "--no-progress"])
+    finally:
+        series.run_plan, series.solve_block = run_plan, solve_block
+    return rc, per_block, counter
 
 
 def _commit() -> str:

@@ -1,37 +1,67 @@
 #!/usr/bin/env bash
-# One lent-GPU round for the long-movie issue, in one call (about 8 minutes on an H100/H200):
-# the CUDA tests, the 500-frame movie record, where a block's time goes (gpu_timeline.py, with
-# the default block and with 64 targets a block), the classical targets at 250,000 POIs, and a
-# whole `stsdic run --device cuda` of the hourglass (fresh processes, first and second).
+# Issue 45's GPU round in one call (about 7 minutes on an H200): the CUDA tests (the whole-stage
+# Triton solver's among them), the solver at 38,809 and 250,000 POIs (Triton solver and the
+# batched loop), the 500-frame movie with defaults and against frame 0 alone, and the hourglass
+# with `stsdic run --device cuda` split by pass and kind of work (run_parts.py, with the
+# classical baseline). `gpu_round.sh timeline` adds the device's busy share and the syncs.
 #
-#   HG=.gpu/hourglass bash scripts/benchmarks/gpu_round.sh      # logs and records in $OUT
+#   HG=.gpu/hourglass bash scripts/benchmarks/gpu_round.sh [steps]   # logs and records in $OUT
+#                                              # steps: tests,solver,movie,parts,timeline,syncs
 #
 # Needs kornia's wheels in .whl/ (README: GPU) and, for the hourglass, its images in $HG.
 set -uo pipefail
 OUT=${OUT:-$PWD/gpu-out}
 mkdir -p "$OUT"
+STEPS=${1:-tests,solver,movie,parts}
 export OUT PYTHONUNBUFFERED=1 OMP_WAIT_POLICY=PASSIVE STSDIC_GAP_LOG=$OUT/gaps.txt
-t0=$SECONDS
-TESTS="tests/test_cuda.py tests/test_triton.py tests/test_triton_solve.py" bash scripts/benchmarks/gpu_check.sh tests,movie \
-  2>&1 | tail -40
+if ls .whl/*.whl >/dev/null 2>&1; then
+  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
+    --target /tmp/site .whl/*.whl || exit 1
+fi
 export PYTHONPATH=/tmp/site:$PWD STSDIC_BENCH_CACHE=${STSDIC_BENCH_CACHE:-$PWD/.benchcache}
-for bf in default 64; do
-  extra=""; [[ $bf != default ]] && extra="--batch-frames $bf"
-  timeout 100 python3 scripts/benchmarks/gpu_timeline.py --frames 120 $extra \
-    --out "$OUT/timeline-$bf.txt" 2>&1 | head -4
-  echo "## timeline $bf: $((SECONDS - t0)) s"
-done
-timeout 120 python3 scripts/benchmarks/benchmark.py --targets --device cuda --repeats 3 \
-  --no-isolate --no-update-doc --only '^(?!.*(native=0|init=fft|per_point=0))' \
-  --out "$OUT/targets-cuda.json" 2>&1 | tail -12
-echo "## targets: $((SECONDS - t0)) s"
-if [[ -d ${HG:-} ]]; then
-  for i in 1 2; do
-    s=$(date +%s.%N)
-    timeout 90 python3 -m torch_stsdic run "$HG" --subset 31 --step 20 --roi 150 20 1120 734 \
-      --m 2 --device cuda --out /tmp/hg.h5 --overwrite --no-progress 2>&1 | tail -4
-    echo "## hourglass stsdic run --device cuda, process $i: $(python3 -c \
-      "print(round($(date +%s.%N) - $s, 2))") s"
+mkdir -p "$STSDIC_BENCH_CACHE"
+step() { [[ ",$STEPS," == *",$1,"* ]]; }
+log() { echo "$*" | tee -a "$OUT/log.txt"; }
+t0=$SECONDS
+nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee -a "$OUT/log.txt"
+python3 -c "import torch, triton, kornia, sys; print(sys.version.split()[0], torch.__version__,
+triton.__version__, kornia.__version__)" | tee -a "$OUT/log.txt"
+git log -1 --format='code %h %s' 2>/dev/null | cut -c1-80 | tee -a "$OUT/log.txt"
+if step tests; then
+  timeout ${TESTS_S:-130} python3 -m pytest -q -p no:cacheprovider --maxfail=6 \
+    tests/test_triton_solve.py tests/test_cuda.py tests/test_triton.py 2>&1 \
+    | tee "$OUT/tests.txt" | tail -25
+  log "## tests: $((SECONDS - t0)) s"
+fi
+if step solver; then
+  timeout ${SOLVER_S:-100} python3 scripts/benchmarks/benchmark.py --targets --device cuda --repeats 3 \
+    --no-isolate --no-update-doc \
+    --only '^solve .*N~(38809|250000) float32 cuda( step5)?( per_point=0)? [0-9]+t$' \
+    --out "$OUT/solver-cuda.json" 2>&1 | tee -a "$OUT/log.txt" | tail -12
+  log "## solver: $((SECONDS - t0)) s"
+fi
+if step movie; then
+  for sr in "" "--movie-single-reference"; do
+    timeout ${MOVIE_S:-60} python3 scripts/benchmarks/benchmark.py --movie --device cuda \
+      --movie-frames 500 --no-update-doc $sr --out "$OUT/movie-cuda${sr:+-single}.json" 2>&1 \
+      | tee -a "$OUT/log.txt" | grep -E "^movie|Error|error" | cut -c1-300
+    log "## movie $sr: $((SECONDS - t0)) s"
   done
 fi
-echo "## total: $((SECONDS - t0)) s"
+if step parts && [[ -d ${HG:-} ]]; then
+  timeout ${PARTS_S:-90} python3 scripts/benchmarks/run_parts.py --baseline --repeats ${PARTS_REPEATS:-1} \
+    --out "$OUT/parts-hourglass-cuda.json" -- "$HG" --roi 150 20 1120 734 --subset 31 --step 20 \
+    --device cuda 2>&1 | tee -a "$OUT/log.txt" | tail -30
+  log "## parts: $((SECONDS - t0)) s"
+fi
+if step timeline; then
+  timeout ${TIMELINE_S:-70} python3 scripts/benchmarks/gpu_timeline.py --frames 60 --single-reference \
+    --out "$OUT/timeline.txt" 2>&1 | head -14
+  log "## timeline: $((SECONDS - t0)) s"
+fi
+if step syncs && [[ -d ${HG:-} ]]; then
+  timeout ${SYNCS_S:-60} python3 scripts/benchmarks/count_syncs.py --out "$OUT/syncs-hourglass-cuda.json" \
+    -- "$HG" --roi 150 20 1120 734 --subset 31 --step 20 --device cuda 2>&1 | tail -8
+  log "## syncs: $((SECONDS - t0)) s"
+fi
+log "## total: $((SECONDS - t0)) s"

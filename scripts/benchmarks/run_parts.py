@@ -140,6 +140,9 @@ def _case(args: list[str], out_dir: Path) -> dict:
     if p.returncode != 0 or not line:
         raise SystemExit(f"run failed ({p.returncode}):\n{p.stdout[-2000:]}\n{p.stderr[-3000:]}")
     rec = json.loads(line[-1][len(TAG):])
+    if rec.get("rc"):  # the command failed (its error caught): no time to record
+        raise SystemExit(f"stsdic run failed (rc {rec['rc']}):\n{p.stdout[-2000:]}\n"
+                         f"{p.stderr[-3000:]}")
     rec["process_s"] = wall
     return rec
 

@@ -54,7 +54,8 @@ MUTATIONS: tuple[Mutation, ...] = (
         "Gauss-Newton stops 1000x too early by default (DICConfig.tol 0.1 px)"),
     Mutation(
         "solver-drops-time-terms", "solver", "torch_stsdic/core/solver.py",
-        "if dt.shape[-1] > 1 and float(dt.abs().max()) > 0:", "if False:",
+        "return self.shape if has_time else self.shape.spatial()",
+        "return self.shape.spatial()",
         (HEADLINE, OPTIONS, "test_solver.py"),
         "STS-DIC windows solved without the temporal terms (no velocity, frames not "
         "joined in time)"),

@@ -213,13 +213,17 @@ def poor_fit(sigma: Tensor, zncc: Tensor, solved: Tensor, zncc_floor: float,
     bad = solved & ~(zncc >= zncc_floor)
     have = solved & torch.isfinite(sigma) & ~(zncc >= RESIDUAL_ZNCC)
     g = torch.zeros_like(sigma, dtype=torch.long) if group is None else group.long()
-    if not bool(have.any()):
+    if group is None and sigma.numel() == 0:
         return bad
-    s, gs = sigma[have], g[have]
-    counts = torch.bincount(gs, minlength=int(g.max()) + 1)
-    if counts.numel() == 1:  # one group: the lower middle value, without a sort
-        med = torch.kthvalue(s, (s.numel() - 1) // 2 + 1).values.reshape(1)
+    if group is None:  # one group: its lower middle value, with no host synchronisation
+        counts = have.sum().reshape(1)
+        ranked = torch.where(have, sigma, torch.inf).sort().values  # the judged ones first
+        med = ranked.gather(0, ((counts - 1) // 2).clamp(min=0))  # none: not enough
+    elif not bool(have.any()):
+        return bad
     else:
+        s, gs = sigma[have], g[have]
+        counts = torch.bincount(gs, minlength=int(g.max()) + 1)
         order = torch.argsort(s, stable=True)
         order = order[torch.argsort(gs[order], stable=True)]  # by group, then by sigma
         first = torch.cumsum(counts, 0) - counts

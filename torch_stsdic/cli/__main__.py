@@ -3,6 +3,7 @@
 import sys
 
 from torch_stsdic.cli import main
+from torch_stsdic.cli.signals import leave_if_interrupted
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(leave_if_interrupted(main()))

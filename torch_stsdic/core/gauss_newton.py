@@ -141,6 +141,10 @@ class BatchContext:
     #: solution at the target frame (dt = 0), from the last step's frame-by-frame
     #: right-hand sides (:func:`_classical_step`; the model check starts there)
     classical_step: bool = False
+    #: the points are whole pixels (:meth:`SubsetSolver.solve
+    #: <torch_stsdic.core.solver.SubsetSolver.solve>` snaps the others first): not tested
+    #: on the host; False: tested
+    on_grid: bool = False
 
     def batch_size(self, t: int) -> int:
         """POIs per batch within ``cfg.memory_mb``."""
@@ -305,12 +309,12 @@ def _reference_data(ctx: BatchContext, pts, dt, fidx, ridx) -> SubsetData:
     # points are on the pixel grid here (solve snaps off-grid points): one integer key each
     ij = pts.detach().round()
     key = (ridx * ctx.ref.height + ij[:, 1].long()) * ctx.ref.width + ij[:, 0].long()
-    uniq, inv = torch.unique(key, return_inverse=True)
-    on_grid = bool((ij == pts).all())
+    on_grid = ctx.on_grid or bool((ij == pts).all())
     if on_grid and ctx.cache is not None and ctx.cache.applies(ctx.ref, geo):
-        data = _cached_reference_data(ctx, pts, dt, fidx, ridx, key, uniq, inv)
+        data = _cached_reference_data(ctx, pts, dt, fidx, ridx, key)
         if data is not None:
             return data
+    uniq, inv = torch.unique(key, return_inverse=True)
     # few repeats: sampling them is cheaper than the gather
     repeats = uniq.shape[0] <= 0.75 * n and on_grid
     sel = _first_rows(inv, uniq.shape[0]) if repeats else slice(None)
@@ -343,7 +347,7 @@ def _shared_subsets(ctx: BatchContext) -> bool:
     w = ctx.geo.w
     return (ctx.geo.znssd and all(isinstance(f, JointIC) for f in ctx.stages)
             and dispatch.sample(ctx.frames.kernel_args(), w) == "native"
-            and bool((w * w == w).all()))
+            and ctx.geo.w_binary)
 
 
 def _rows_of(ctx: BatchContext, data: SubsetData, rows: torch.Tensor, pts, dt, fidx
@@ -357,20 +361,22 @@ def _rows_of(ctx: BatchContext, data: SubsetData, rows: torch.Tensor, pts, dt, f
     return out if _shared_subsets(ctx) else out.direct()
 
 
-def _cached_reference_data(ctx: BatchContext, pts, dt, fidx, ridx, key, uniq, inv):
+def _cached_reference_data(ctx: BatchContext, pts, dt, fidx, ridx, key):
     """:func:`_reference_data` through ``ctx.cache``: the distinct points not kept yet are
     sampled (as there) and kept, then every row takes its point's kept subsets. None where
-    they would exceed the cache's budget (the cache is then off)."""
+    they would exceed the cache's budget (the cache is then off). One host read where every
+    point is kept (the rows' count of misses); the distinct points only where some miss."""
     cache, geo = ctx.cache, ctx.geo
-    slot_u = cache.slot[uniq]
-    miss = slot_u < 0
-    n_miss = int(miss.sum())
-    if n_miss:
+    miss_rows = cache.slot[key] < 0
+    if int(miss_rows.sum()):
+        # the distinct points among the rows that miss (sorted, as over all the rows)
+        rows = torch.nonzero(miss_rows).flatten()
+        uniq, inv = torch.unique(key[rows], return_inverse=True)
         s = int(geo.w.numel())
-        if not cache.fits(n_miss, s, ctx.ref.coeffs.element_size(), 2 * (geo.ks + 1)):
+        if not cache.fits(uniq.shape[0], s, ctx.ref.coeffs.element_size(), 2 * (geo.ks + 1)):
             return None
-        cache.add(uniq[miss], _sampled(ctx, pts, dt, fidx, ridx,
-                                       _first_rows(inv, uniq.shape[0])[miss]))
+        cache.add(uniq, _sampled(ctx, pts, dt, fidx, ridx,
+                                 rows[_first_rows(inv, uniq.shape[0])]))
     kept = cache.rows
     data = SubsetData(px=pts, py=pts, dt=dt, fidx=fidx, ft=kept["ft"], fnorm=kept["fnorm"],
                       gx=kept["gx"], gy=kept["gy"], gram=kept["gram"], texture=kept["texture"])

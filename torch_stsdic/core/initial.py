@@ -268,14 +268,17 @@ def coarse_to_fine(
 
 
 def linear_fit_in_time(
-    disp: torch.Tensor, dt: torch.Tensor, weights: torch.Tensor | None = None
+    disp: torch.Tensor, dt: torch.Tensor, weights: torch.Tensor | None = None,
+    spread: bool = False,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Least-squares line through per-frame displacements.
 
     disp (N, T, 2), dt (T,) or (N, T) frame times relative to the expansion time. Returns
-    the displacement at dt = 0 (N, 2) and the velocity (N, 2) in px per time unit."""
+    the displacement at dt = 0 (N, 2) and the velocity (N, 2) in px per time unit.
+    ``spread``: the caller knows that every row's times differ (a window of distinct
+    frames), so they are not tested on the host."""
     dt = dt.expand(disp.shape[0], -1) if dt.dim() == 1 else dt
-    if disp.shape[1] == 1 or float((dt.amax(1) - dt.amin(1)).min()) == 0.0:
+    if disp.shape[1] == 1 or (not spread and float((dt.amax(1) - dt.amin(1)).min()) == 0.0):
         return disp[:, 0], torch.zeros_like(disp[:, 0])
     w = torch.ones_like(disp[..., 0]) if weights is None else weights.clamp(min=1e-6)
     sw = w.sum(1)

@@ -196,13 +196,26 @@ class BSplineImage:
         if (self.n_frames > self.GRID_FRAMES or px.requires_grad or py.requires_grad
                 or self._flat.requires_grad or px.numel() == 0):
             return None
-        if not (bool((px == px.round()).all()) and bool((py == py.round()).all())
-                and bool((dx == dx.round()).all()) and bool((dy == dy.round()).all())):
+        # every test's numbers in one host read (whole pixels, the reach, the bounds, and
+        # whether the offsets are the full square in raster order)
+        hx_t, hy_t = dx.abs().max(), dy.abs().max()
+        wx_t = 2 * hx_t.round() + 1
+        col_t = (dy.round() + hy_t.round()) * wx_t + dx.round() + hx_t.round()
+        s_count = dx.numel()
+        full_t = (col_t == torch.arange(s_count, device=col_t.device, dtype=col_t.dtype)).all()
+        full_t &= (wx_t * (2 * hy_t.round() + 1)) == s_count
+        whole = ((px == px.round()).all() & (py == py.round()).all()
+                 & (dx == dx.round()).all() & (dy == dy.round()).all())
+        (whole, hx, hy, pxmin, pxmax, pymin, pymax, full) = torch.stack([
+            t.to(device=px.device, dtype=torch.float64).reshape(())
+            for t in (whole, hx_t, hy_t, px.min(), px.max(), py.min(), py.max(), full_t)
+        ]).tolist()
+        if not whole:
             return None
-        hx, hy = int(dx.abs().max()), int(dy.abs().max())
+        hx, hy = int(hx), int(hy)
         x0, y0 = px.long().reshape(-1) - hx, py.long().reshape(-1) - hy
-        if (int(x0.min()) < 0 or int(y0.min()) < 0 or int(x0.max()) + 2 * hx >= self.width
-                or int(y0.max()) + 2 * hy >= self.height):
+        if (int(pxmin) - hx < 0 or int(pymin) - hy < 0 or int(pxmax) - hx + 2 * hx >= self.width
+                or int(pymax) - hy + 2 * hy >= self.height):
             return None
         if self._grid is None:
             pixels = self.n_frames * self.height * self.width
@@ -212,8 +225,6 @@ class BSplineImage:
         grid = self._pixel_grid()  # 3 x (T, H, W)
         wx, wy = 2 * hx + 1, 2 * hy + 1
         col = ((dy.round().long() + hy) * wx + dx.round().long() + hx).to(self.device)
-        full = col.numel() == wx * wy and bool((col == torch.arange(wx * wy,
-                                                                   device=col.device)).all())
         f = frame_t.reshape(-1).expand(x0.numel())
         out = []
         for g in grid:

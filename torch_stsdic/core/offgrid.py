@@ -70,18 +70,22 @@ def carry_std(std: torch.Tensor, names: Sequence[str], offset: torch.Tensor) -> 
     return torch.stack(cols, 1)
 
 
-def carry_solution(sol, points: torch.Tensor, offset: torch.Tensor):
+def carry_solution(sol, points: torch.Tensor, offset: torch.Tensor,
+                   snapped: int | None = None):
     """A :class:`~torch_stsdic.core.solver.WindowSolution` solved at subset centres, carried to
     ``points`` (N, 2) = centres + ``offset``: parameters (also the first-stage and initial
     ones in ``info``) re-expanded, the predicted std carried (:func:`carry_std`; for a
-    snap to the pixel grid, |offset| <= 0.5 px, a second-order share)."""
+    snap to the pixel grid, |offset| <= 0.5 px, a second-order share). ``snapped``: the
+    count of points snapped to a pixel (``info["snapped_to_pixels"]``) where the caller
+    knows it (None: the points with an offset, read on the host)."""
     names = sol.param_names
     info = dict(sol.info)
     for key in ("first_stage_params", "initial_params"):
         val = info.get(key)
         if isinstance(val, torch.Tensor) and val.shape == sol.params.shape:
             info[key] = carry_params(val, names, offset)
-    info["snapped_to_pixels"] = int((offset != 0).any(1).sum())
+    info["snapped_to_pixels"] = (int((offset != 0).any(1).sum()) if snapped is None
+                                 else int(snapped))
     std = None if sol.std is None else carry_std(sol.std, names, offset)
     return dataclasses.replace(sol, points=points, params=carry_params(sol.params, names, offset),
                                std=std, info=info)

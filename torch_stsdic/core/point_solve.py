@@ -53,23 +53,23 @@ def start_stage(form, geo, params: Tensor, data: SubsetData, live: Tensor):
     until decided), ZNCC and iteration counts, the live rows' data prepared by the
     formulation (Hessian), rows whose Hessian is singular LOW_TEXTURE and dropped. Returns
     params (a copy), zncc, status, used, rows (the rows to iterate), data (theirs); data is
-    None where no row is live (params then the given tensor)."""
+    None where no row is live (params then the given tensor). The formulation prepares
+    every row (a row's numbers do not depend on the others: in a stage all rows are
+    usually live), so the rows to iterate are chosen by one index (one host
+    synchronisation), not one for the live rows and another for the singular ones."""
     n = params.shape[0]
     device, dtype = params.device, params.dtype
     status = torch.full((n,), int(Status.MAX_ITER), dtype=torch.int8, device=device)
     zncc = torch.full((n,), float("nan"), dtype=dtype, device=device)
     used = torch.zeros(n, dtype=torch.int32, device=device)
-    rows = torch.nonzero(live).flatten()
+    sing = form.prepare(geo, data)
+    status.masked_fill_(live & sing, int(Status.LOW_TEXTURE))
+    rows = torch.nonzero(live & ~sing).flatten()  # one index for all (one sync)
     if rows.numel() == 0:
         return params, zncc, status, used, rows, None
     params = params.clone()
     if rows.numel() < n:
         data = data.take(rows)
-    sing = form.prepare(geo, data)
-    if sing.any():
-        status[rows[sing]] = int(Status.LOW_TEXTURE)
-        keep = torch.nonzero(~sing).flatten()  # one index for all (a mask syncs per tensor)
-        rows, data = rows[keep], data.take(keep)
     return params, zncc, status, used, rows, data
 
 

@@ -114,12 +114,14 @@ class SubsetSolver:
         """The Gauss-Newton stages (formulations) run for ``shape`` (see :func:`shape_for`)."""
         return formulations.stages(self.config.formulation, shape)
 
-    def shape_for(self, dt: torch.Tensor) -> ShapeFunction:
+    def shape_for(self, dt: torch.Tensor, has_time: bool | None = None) -> ShapeFunction:
         """The shape function used for frame offsets ``dt``: without temporal terms when all
-        frames are at the same time (one frame, m = 0: classical DIC)."""
-        if dt.shape[-1] > 1 and float(dt.abs().max()) > 0:
-            return self.shape
-        return self.shape.spatial()
+        frames are at the same time (one frame, m = 0: classical DIC). ``has_time``: that
+        answer known to the caller (a movie's window of 2m+1 frames has distinct times
+        where m > 0), so ``dt`` is not read on the host (None: read)."""
+        if has_time is None:
+            has_time = dt.shape[-1] > 1 and float(dt.abs().max()) > 0
+        return self.shape if has_time else self.shape.spatial()
 
     # ------------------------------------------------------------------------------------
     @in_own_threads(3, "points")  # on the CPU: torch on one thread, the work on the pool
@@ -142,6 +144,9 @@ class SubsetSolver:
         classical_step: bool = False,
         init_step: torch.Tensor | None = None,
         pyramids: tuple[PyramidStack, PyramidStack] | None = None,
+        on_grid: bool = False,
+        has_time: bool | None = None,
+        all_inside: bool = False,
     ) -> WindowSolution:
         """Solve many POIs, each against its own window of frames.
 
@@ -185,6 +190,15 @@ class SubsetSolver:
                 (:class:`~torch_stsdic.core.pyramid.PyramidStack`) for the coarse-to-fine
                 search of weak peaks, kept by a caller that solves the same images again
                 (default: built when a search needs them).
+            on_grid: the caller knows that ``points`` (and ``centres``) are whole pixels
+                (a run's grid of POIs): they are not tested on the host; with ``centres``
+                every POI goes the off-centre way (a zero offset carries a solution
+                unchanged). False: tested.
+            has_time: the shape has temporal terms (:meth:`shape_for`; known to a caller
+                that knows its window's length); None: decided from ``dt``'s values.
+            all_inside: the caller knows that every subset (at ``centres`` where given)
+                lies inside ``ref`` (:func:`subset_inside`): the rows are not chosen on the
+                host. False: the subsets outside are found and left OUTSIDE.
         """
         moved = None
         if centres is not None:
@@ -193,34 +207,44 @@ class SubsetSolver:
                 raise ValueError(f"centres must be (N, 2) like points {tuple(points.shape)}, "
                                  f"got {tuple(centres.shape)}")
             moved = (centres != points).any(1, keepdim=True)
+        if on_grid and centres is None:  # the caller's fact: no offset to test
+            return self._solve_on_grid(ref, frames, points, dt, frame_index, ref_index, init,
+                                       ref_pixels, frame_pixels, time, noise_ratio, motion,
+                                       classical_step, init_step, pyramids, has_time,
+                                       all_inside)
         grid, _ = snap_points(points if centres is None else centres)
         offset = points - grid
-        if bool((offset != 0).any()):  # off the pixel grid: solve on it, carry the result
-            if moved is not None and init is not None and bool(moved.any()):
-                init = self._init_at(init, dt, torch.where(moved, grid - points, 0.0))
+        # off the pixel grid (known where the caller says so): solve on it, carry the result
+        if on_grid or bool((offset != 0).any()):
+            if moved is not None and init is not None and (on_grid or bool(moved.any())):
+                init = self._init_at(init, dt, torch.where(moved, grid - points, 0.0),
+                                     has_time)
             sol = self.solve(ref, frames, grid, dt, frame_index=frame_index,
                              ref_index=ref_index, init=init, ref_pixels=ref_pixels,
                              frame_pixels=frame_pixels, time=time, noise_ratio=noise_ratio,
                              motion=motion, classical_step=classical_step,
-                             init_step=init_step, pyramids=pyramids)
+                             init_step=init_step, pyramids=pyramids, on_grid=True,
+                             has_time=has_time, all_inside=all_inside)
             if classical_step:  # known at the subset centre only
                 off = (offset != 0).any(1, keepdim=True)
                 sol.info.update(classical_step_info(packed_classical_step(sol.info).masked_fill(
                     off, float("nan"))))
-            return carry_solution(sol, points, offset)
+            # points on the grid moved to off-centre subsets: none snapped to a pixel
+            return carry_solution(sol, points, offset, snapped=0 if on_grid else None)
         return self._solve_on_grid(ref, frames, points, dt, frame_index, ref_index, init,
                                    ref_pixels, frame_pixels, time, noise_ratio, motion,
-                                   classical_step, init_step, pyramids)
+                                   classical_step, init_step, pyramids, has_time, all_inside)
 
     def _solve_on_grid(self, ref: BSplineImage, frames: BSplineImage, points: torch.Tensor,
                        dt, frame_index, ref_index, init, ref_pixels, frame_pixels, time,
                        noise_ratio: float, motion, classical_step: bool, init_step,
-                       pyramids=None) -> WindowSolution:
+                       pyramids=None, has_time: bool | None = None,
+                       all_inside: bool = False) -> WindowSolution:
         """:meth:`solve` for POIs on the pixel grid with centred subsets."""
         n = points.shape[0]
         dt, frame_index, ref_index = _per_point(points, dt, frame_index, ref_index)
         motion = _per_point_motion(motion, n, dt.shape[-1], points)
-        shape = self.shape_for(dt)
+        shape = self.shape_for(dt, has_time)
         inside = subset_inside(points, float(self.window.half), ref.height, ref.width)
         if init is None:
             if ref_pixels is None or frame_pixels is None:
@@ -242,7 +266,7 @@ class SubsetSolver:
         guess = {"method": "fft" if init is None else "given", "fft_s": t_fft}
         return self._solve_batches(ref, frames, shape, points, dt, frame_index, ref_index,
                                    inside, p0, motion, init_step, ref_pixels, time,
-                                   noise_ratio, classical_step, guess)
+                                   noise_ratio, classical_step, guess, all_inside)
 
     def _initial_params(self, shape: ShapeFunction, init, inside: torch.Tensor,
                         points: torch.Tensor, dt: torch.Tensor, frame_index: torch.Tensor,
@@ -274,7 +298,8 @@ class SubsetSolver:
                        points: torch.Tensor, dt: torch.Tensor, frame_index: torch.Tensor,
                        ref_index: torch.Tensor, inside: torch.Tensor, p0: torch.Tensor,
                        motion, init_step, ref_pixels, time, noise_ratio: float,
-                       classical_step: bool, guess: dict) -> WindowSolution:
+                       classical_step: bool, guess: dict, all_inside: bool = False
+                       ) -> WindowSolution:
         """Gauss-Newton from ``p0`` for the POIs ``inside``, in batches within the memory
         budget (:func:`~torch_stsdic.core.gauss_newton.solve_batch`); the others OUTSIDE."""
         cfg = self.config
@@ -286,7 +311,9 @@ class SubsetSolver:
         iters = torch.zeros(n, dtype=torch.int32, device=device)
         status.masked_fill_(~inside, int(Status.OUTSIDE))  # no host sync (boolean indexing)
 
-        todo = torch.nonzero(inside).flatten()
+        # every row where the caller knows all subsets inside (no host synchronisation)
+        todo = (torch.arange(n, device=device) if all_inside
+                else torch.nonzero(inside).flatten())
         first_stage = torch.full_like(params, float("nan"))
         grey = ref_pixels if ref_pixels is not None else ref.coeffs
         geo = Geometry.make(shape, self.window, cfg.criterion, dtype, device)
@@ -295,7 +322,7 @@ class SubsetSolver:
             grey_range=self._grey_range_of(grey),
             work=int(todo.numel()) * t_count * int(geo.w.numel()),
             noise_ratio=float(noise_ratio), cache=self.reference_cache,
-            classical_step=classical_step,
+            classical_step=classical_step, on_grid=True,  # reached with grid points only
         )
         std = torch.full_like(params, float("nan"))
         sigma = torch.full_like(zncc, float("nan"))
@@ -331,11 +358,11 @@ class SubsetSolver:
             },
         )
 
-    def _init_at(self, init: torch.Tensor, dt: torch.Tensor, offset: torch.Tensor
-                 ) -> torch.Tensor:
+    def _init_at(self, init: torch.Tensor, dt: torch.Tensor, offset: torch.Tensor,
+                 has_time: bool | None = None) -> torch.Tensor:
         """An initial guess (N, P') at the POIs carried by ``offset`` (N, 2) px to the
         subset centres (in the parameters of the shape solved for ``dt``)."""
-        shape = self.shape_for(torch.as_tensor(dt))
+        shape = self.shape_for(torch.as_tensor(dt), has_time)
         p0 = torch.as_tensor(init).to(offset)
         if p0.shape[1] != shape.n_params:
             p0 = _expand_init(p0, shape, self.shape)

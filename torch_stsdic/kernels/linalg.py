@@ -19,9 +19,7 @@ def spd_inverse(h: Tensor) -> tuple[Tensor, Tensor]:
     if dispatch.spd_inverse(h) == "native":
         return native.spd_inverse(h)
     chol, info = torch.linalg.cholesky_ex(h)
-    bad = info != 0
-    if not bool(bad.any()):
-        return torch.cholesky_inverse(chol), bad
+    bad = info != 0  # singular rows replaced by the identity (no host synchronisation)
     eye = torch.eye(h.shape[-1], dtype=h.dtype, device=h.device)
     inv = torch.cholesky_inverse(torch.where(bad.view(-1, 1, 1), eye, chol))
     return inv.masked_fill(bad.view(-1, 1, 1), float("nan")), bad

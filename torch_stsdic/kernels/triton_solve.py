@@ -293,8 +293,13 @@ def _ic_solve_kernel(flat_ptr, p_ptr, px_ptr, py_ptr, dx_ptr, dy_ptr, basis_ptr,
     else:
         put = pu0 * 0.0
         pvt = pu0 * 0.0
-    ou0, ou1, ou2, out_ = pu0, pu1, pu2, put  # the parameters of the last step
-    ov0, ov1, ov2, ovt = pv0, pv1, pv2, pvt
+    # the parameters of the last step: values of their own before the loop, never another
+    # variable's (Triton's compiler finds a loop's carried variables by whether a name's value
+    # changes in the loop body: ``ou0 = pu0`` inside the loop, with ou0 = pu0 before it, reads
+    # as unchanged, and after the loop ou0 would be the parameters the solve started from; the
+    # interpreter runs Python and does not show it). Every point takes at least one step.
+    nan = pu0 * float("nan")
+    ou0, ou1, ou2, out_, ov0, ov1, ov2, ovt = nan, nan, nan, nan, nan, nan, nan, nan
     prev = tl.load(prev_ptr + i)
     zn = prev * float("nan")
     st = tl.full([], C_MAXIT, tl.int32)
@@ -347,7 +352,6 @@ def _ic_solve_kernel(flat_ptr, p_ptr, px_ptr, py_ptr, dx_ptr, dy_ptr, basis_ptr,
     tl.store(used_ptr + i, it)
     if FRAME_RHS:  # the last step's parameters; NaN (and NaN right-hand sides) at max_iter
         ran_out = st == C_MAXIT
-        nan = pu0 * float("nan")
         _store_params(plast_ptr + i * NP, tl.where(ran_out, nan, ou0),
                       tl.where(ran_out, nan, ou1), tl.where(ran_out, nan, ou2),
                       tl.where(ran_out, nan, out_), tl.where(ran_out, nan, ov0),

@@ -87,6 +87,19 @@ class BlockContext:
     #: each point (:mod:`~torch_stsdic.movie.window_length`; None: ``m`` everywhere)
     window_lengths: torch.Tensor | None = None
     _checker: SubsetSolver | None = None
+    _on_grid: tuple[torch.Tensor, bool, bool] | None = None  # (points, whole px, inside)
+
+    def point_facts(self, ref: Reference) -> tuple[bool, bool]:
+        """Whether the reference's POIs are whole pixels (a grid's) and their centred subsets
+        all inside the reference image: read once per set of points, then every solve is
+        told (:meth:`SubsetSolver.solve`'s ``on_grid``, ``all_inside``), not testing it."""
+        if self._on_grid is None or self._on_grid[0] is not ref.points:
+            pts = ref.points
+            inside = subset_inside(pts, float(self.solver.window.half), ref.img.height,
+                                   ref.img.width)
+            grid, all_in = torch.stack([(pts == pts.round()).all(), inside.all()]).tolist()
+            self._on_grid = (pts, bool(grid), bool(all_in))
+        return self._on_grid[1], self._on_grid[2]
 
     def grid_neighbours(self, ref: Reference) -> torch.Tensor:
         """(N, k) the POIs' grid neighbours (:func:`~torch_stsdic.analysis.quality.neighbours`),
@@ -159,6 +172,11 @@ class Block(BlockChecks):
         #: (B*N,) int8 the half-window a row is first solved with, or None: the run's m
         #: everywhere (:meth:`keep_outside` shortens it where the point leaves the image)
         self.window_m: torch.Tensor | None = None
+        #: every row's subset (at :attr:`centres` where moved) lies inside the reference
+        #: image: the solves need not find the others (made with the centres)
+        self.centres_inside = True
+        #: (target, (M,) its points) whose subsets :meth:`keep_outside` moved
+        self._moved: list[tuple[int, torch.Tensor]] = []
         self._motion: dict[int, torch.Tensor] = {}
 
     def motion_of(self, m: int) -> torch.Tensor | None:
@@ -175,11 +193,10 @@ class Block(BlockChecks):
             g = run.shared.displacement(pts, win.reshape(-1)).to(run.dtype)  # (B*T, N, 2)
             g = g.reshape(b, t, -1, 2).permute(0, 2, 1, 3)  # (B, N, T, 2)
             if self.centres is not None:  # off-centre subsets: the motion at their centres
-                moved = (self.centres != self.pts).any(1).reshape(b, -1)
-                for j in torch.nonzero(moved.any(1)).flatten().tolist():
-                    i = torch.nonzero(moved[j]).flatten()
-                    c = self.centres.reshape(b, -1, 2)[j, i]
-                    g[j, i] = run.shared.displacement(c, win[j]).to(run.dtype).transpose(0, 1)
+                cen = self.centres.reshape(b, -1, 2)
+                for j, i in self._moved:  # (chosen once a block: no host read here)
+                    g[j, i] = run.shared.displacement(cen[j, i], win[j]).to(
+                        run.dtype).transpose(0, 1)
             dt = (run.ts[win] - run.ts[self.k].unsqueeze(1)).to(run.dtype)  # (B, T)
             o = window_offsets(g, dt.unsqueeze(1).expand(-1, g.shape[1], -1))
             self._motion[m] = o.reshape(-1, t, 2).contiguous()
@@ -215,7 +232,9 @@ class Block(BlockChecks):
         if m == 0 and run.m > 0 and init is not None and init.shape[1] == len(run.names):
             spatial = run.solver.shape.spatial().param_names
             init = init[:, [run.names.index(nm) for nm in spatial]]
-        motion = self.motion_of(run.m if m is None else m)
+        m_eff = run.m if m is None else m
+        motion = self.motion_of(m_eff)
+        on_grid, inside = run.point_facts(ref)
         return (solver or run.solver).solve(
             ref.img, self.img, self.pts[idx], dt, frame_index=fidx,
             init=init, ref_pixels=ref.raw.unsqueeze(0), frame_pixels=self.raw,
@@ -223,8 +242,11 @@ class Block(BlockChecks):
             noise_ratio=run.noise_ratio, motion=None if motion is None else motion[idx],
             centres=None if self.centres is None else self.centres[idx],
             # the model check's first classical step, from the window solve's last step
-            classical_step=run.checks and (run.m if m is None else m) > 0 and solver is None,
+            classical_step=run.checks and m_eff > 0 and solver is None,
             init_step=init_step,
+            # known per run: the POIs' grid (the centres are whole pixels from them) and
+            # the shape (a window of 2m+1 frames at distinct times has temporal terms)
+            on_grid=on_grid, has_time=m_eff > 0, all_inside=inside and self.centres_inside,
         )
 
     def keep(self, idx: torch.Tensor, sol: WindowSolution, only_better: bool,
@@ -352,7 +374,9 @@ class Block(BlockChecks):
         left = carried.clone()  # carried rows without a window that stays in view yet
         shift = torch.zeros_like(self.pts)
         for m in range(run.m, -1, -1):
-            if not bool(left.any()):
+            # one host read a shorter window (none for the run's: a block whose carried
+            # rows all stay in view reads once here)
+            if m < run.m and not bool(left.any()):
                 break
             if m == run.m:
                 dt = self.dt
@@ -361,23 +385,29 @@ class Block(BlockChecks):
             fit, d = self._placement(inits, dt, self.motion_of(m))
             fit &= left
             shift = torch.where(fit.unsqueeze(1), d, shift)
-            if m < run.m and bool(fit.any()):
+            if m < run.m:  # (no test: an unused window_m is the run's m everywhere)
                 if self.window_m is None:
                     self.window_m = torch.full((rows,), run.m, dtype=torch.int8,
                                                device=run.device)
-                self.window_m[fit] = m
+                self.window_m.masked_fill_(fit, m)
             left &= ~fit
         out = left
-        if bool(out.any()):
-            self.status[out] = int(Status.OUTSIDE)
-            self.gone |= out
+        self.status.masked_fill_(out, int(Status.OUTSIDE))
+        self.gone |= out
         moved = (shift != 0).any(1) & ~out
-        if bool(moved.any()):
+        per_target = moved.reshape(self.b, -1).sum(1).tolist()  # one read: which targets
+        n_moved = sum(per_target)
+        if n_moved:
+            # each target's moved points, for the shared motion at their centres (one index)
+            at = torch.nonzero(moved.reshape(self.b, -1)).split(per_target)
+            self._moved = [(j, a[:, 1]) for j, a in enumerate(at) if per_target[j]]
             whole = torch.sign(shift) * shift.abs().ceil()  # whole px, away from the border
             self.centres = self.pts + torch.where(moved.unsqueeze(1), whole, 0.0)
+            self.centres_inside = bool(subset_inside(  # once a block, not once a solve
+                self.centres, float(run.solver.window.half), self.ref.img.height,
+                self.ref.img.width).all())
             self._motion = {}  # the shared motion at the subsets' centres
-            run.stats["off_centre_rows"] = run.stats.get("off_centre_rows", 0) \
-                + int(moved.sum())
+            run.stats["off_centre_rows"] = run.stats.get("off_centre_rows", 0) + n_moved
         return out
 
     def _placement(self, inits: Sequence[torch.Tensor], dt: torch.Tensor,
@@ -428,7 +458,7 @@ class Block(BlockChecks):
         still lost, from FFT cross-correlation; keep the better result (windows of
         half-width ``m``, default the run's). ``carried``: rows that started from the
         carried guess. Returns the rows restarted from a neighbour target, by FFT, and by
-        FFT after a carried start."""
+        FFT after a carried start (an int, or a 0-d tensor read with the block's counts)."""
         run, n = self.run, self.n
         names = run.names
         from_prev = by_fft = redone = from_nb = 0
@@ -443,7 +473,8 @@ class Block(BlockChecks):
                 prev = rows - n
                 lost = self.lost()
                 cand = lost[rows] & (self.status[prev] <= USABLE) & ~lost[prev]
-                if bool(cand.any()):
+                cand = torch.nonzero(cand).flatten()  # one index for all (one sync)
+                if cand.numel():
                     r, pr = rows[cand], prev[cand]
                     d = (run.ts[self.k[j]] - run.ts[self.k[j - 1]]).to(run.dtype)
                     vals = {nm: self.params[pr, i] for i, nm in enumerate(names)}
@@ -453,17 +484,17 @@ class Block(BlockChecks):
                     init = self.init_rows(vals)
                     if m == 0:
                         init = init.nan_to_num(0.0)  # a classical row has no ut, vt
-                    ok = torch.isfinite(init).all(1)
-                    if bool(ok.any()):
+                    ok = torch.nonzero(torch.isfinite(init).all(1)).flatten()
+                    if ok.numel():
                         self.keep(r[ok], self.solve(r[ok], init[ok], m=m), only_better=True,
                                   m=m)
-                        from_prev += int(ok.sum())
+                        from_prev += ok.numel()
             from_nb += self._rescue_from_neighbours(rows, m)
-            r = rows[self.lost()[rows]]
+            r = rows[torch.nonzero(self.lost()[rows]).flatten()]
             if r.numel():
                 self.keep(r, self.solve(r, None, m=m), only_better=True, m=m)
-                by_fft += int(r.numel())
-                redone += int(carried[r].sum())
+                by_fft += r.numel()
+                redone = redone + carried[r].sum()  # read with the block's counts
         run.stats["neighbour_rescued_rows"] = run.stats.get("neighbour_rescued_rows", 0) + from_nb
         return from_prev, by_fft, redone
 
@@ -472,10 +503,9 @@ class Block(BlockChecks):
         neighbours' solutions at the same target (:func:`neighbour_guess`); the better
         result is kept. Returns the rows tried."""
         lost = self.lost()[rows]
-        if not bool(lost.any()):
-            return 0
         ok = (self.status[rows] <= USABLE) & ~lost
-        if int(ok.sum()) < 2:
+        n_lost, n_ok = torch.stack([lost.sum(), ok.sum()]).tolist()  # one read for both
+        if not n_lost or n_ok < 2:
             return 0
         guess = neighbour_guess(self.params[rows].unsqueeze(0), ok.unsqueeze(0),
                                 self.run.names, self.run.grid_neighbours(self.ref),
@@ -484,11 +514,11 @@ class Block(BlockChecks):
             if nm in self.run.names:
                 i = self.run.names.index(nm)
                 guess[:, i] = guess[:, i].nan_to_num(0.0)
-        try_ = lost & torch.isfinite(guess).all(1)
+        try_ = torch.nonzero(lost & torch.isfinite(guess).all(1)).flatten()
         r = rows[try_]
         if r.numel():
             self.keep(r, self.solve(r, guess[try_], m=m), only_better=True, m=m)
-        return int(r.numel())
+        return r.numel()
 
 
 def _only_identity(run: BlockContext, ref: Reference, carry: Carry) -> bool:
@@ -520,7 +550,7 @@ def _shorter_again(blk: Block, cap: torch.Tensor) -> None:
     (``cap``: (B*N,) the longest half-width; a first block's FFT start, a rescue) are solved
     again with that half-width from their solution; kept where usable."""
     over = (blk.m_used > cap) & (blk.status <= USABLE)
-    for m in torch.unique(cap[over]).tolist():
+    for m in _half_widths(cap, over, blk.run.m):
         again = torch.nonzero(over & (cap == m)).flatten()
         sol = blk.solve(again, blk.params[again], m=m)
         good = torch.nonzero(sol.status <= USABLE).flatten()
@@ -528,6 +558,14 @@ def _shorter_again(blk: Block, cap: torch.Tensor) -> None:
             blk.keep(again[good], sol.rows(good), only_better=False, m=m)
             blk.run.stats["shorter_again_rows"] = blk.run.stats.get(
                 "shorter_again_rows", 0) + int(good.numel())
+
+
+def _half_widths(m_of: torch.Tensor, rows: torch.Tensor, m_max: int) -> list[int]:
+    """The half-widths 0 .. ``m_max`` that ``m_of`` (R,) takes at the ``rows`` (R,) bool, in
+    increasing order: one host read (a count of each), not a ``unique`` and a copy."""
+    counts = torch.bincount(torch.where(rows, m_of.long().clamp(0, m_max), m_max + 1),
+                            minlength=m_max + 2)[:m_max + 1]
+    return [m for m, c in enumerate(counts.tolist()) if c]
 
 
 def _first_guess_rows(run: BlockContext, blk: Block, ref: Reference) -> torch.Tensor:
@@ -547,6 +585,11 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
     blk = Block(run, ks, ref)
     b, n, dev = blk.b, blk.n, run.device
     rows = b * n
+    counts: dict[str, torch.Tensor] = {}  # run.stats counted on the device, read at the end
+
+    def count(name: str, value: torch.Tensor | int) -> None:
+        value = torch.as_tensor(value, device=dev)
+        counts[name] = counts[name] + value if name in counts else value
     if carry is not None and _only_identity(run, ref, carry):
         carry = None  # the reference frame's own row, no velocity: it predicts nothing
     if carry is None and run.first_guess is not None and ref.acc is None:
@@ -554,10 +597,10 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
         init = _first_guess_rows(run, blk, ref)
         carried = torch.isfinite(init).all(1)
         carried &= ~blk.keep_outside((init,), carried)
-        run.stats["first_guess_rows"] = run.stats.get("first_guess_rows", 0) + int(
-            carried.sum())
+        count("first_guess_rows", carried.sum())
     elif carry is None:
         carried = torch.zeros(rows, dtype=torch.bool, device=dev)
+        init = None
     else:
         pts0 = ref.points if ref.acc is None else ref.points - torch.stack(
             [ref.acc["u"], ref.acc["v"]], 1)
@@ -580,8 +623,7 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
             has = torch.isfinite(g).all(1)
             init = torch.where(has.unsqueeze(1), g, init)
             carried |= has
-            run.stats["first_guess_rows"] = run.stats.get("first_guess_rows", 0) + int(
-                has.sum())
+            count("first_guess_rows", has.sum())
         last = {nm: v.repeat(b) for nm, v in to_relative(dict(carry.vals), ref.acc).items()}
         carried &= ~blk.keep_outside((init, blk.init_rows(last)), carried)
         if carry.vel_known is not None:  # without a velocity the carry predicts only the
@@ -590,15 +632,14 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
             carried &= keep if has is None else keep | has
     ident = blk.keep_identity()
     carried &= ~ident
-    guess = None
-    if bool(carried.any()):
+    guess = None  # the carried rows' guesses (NaN: none; no test whether there are any)
+    if init is not None:
         guess = torch.where(carried.unsqueeze(1), init, torch.full_like(init, float("nan")))
     if run.classical_points is not None and run.m > 0:  # the time model failed there
         cls = carried & run.classical_points.to(dev).repeat(b)
-        if bool(cls.any()):
-            if blk.window_m is None:
-                blk.window_m = torch.full((rows,), run.m, dtype=torch.int8, device=dev)
-            blk.window_m[cls] = 0
+        if blk.window_m is None:
+            blk.window_m = torch.full((rows,), run.m, dtype=torch.int8, device=dev)
+        blk.window_m.masked_fill_(cls, 0)
     cap = None if run.window_lengths is None or run.m == 0 else run.window_lengths[
         blk.k].reshape(-1).to(device=dev, dtype=torch.int8)  # (B*N,) each row's longest
     if cap is not None:
@@ -606,7 +647,7 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
                                                                               cap)
     shorter = carried & (blk.window_m < run.m) if blk.window_m is not None else None
     if shorter is not None:  # points leaving the image within their window
-        for m in torch.unique(blk.window_m[shorter]).tolist():
+        for m in _half_widths(blk.window_m, shorter, run.m):
             r = torch.nonzero(shorter & (blk.window_m == m)).flatten()
             blk.keep(r, blk.solve(r, init[r], m=m), only_better=False, m=m)
         carried = carried & ~shorter
@@ -622,15 +663,20 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
         _shorter_again(blk, cap)
     run.stats["rescued_rows"] = run.stats.get("rescued_rows", 0) + from_prev
     run.stats["fft_rows"] += by_fft
-    run.stats["redone_rows"] += redone
-    if run.checks and not bool(ident.all()):  # the identity cannot fail
+    count("redone_rows", redone)
+    # the identity cannot fail (rows are the identity only where m = 0: no read otherwise)
+    if run.checks and not (run.m == 0 and bool(ident.all())):
         shortened, classical = blk.check_model()
         classical += blk.rescue_classical(guess, carry) if run.m > 0 else 0
         stats = run.stats
         stats["shortened_rows"] = stats.get("shortened_rows", 0) + shortened
         stats["classical_rows"] = stats.get("classical_rows", 0) + classical
-        stats["poor_fit_rows"] = stats.get("poor_fit_rows", 0) + blk.check_fit(carry)
-        stats["inconsistent_rows"] = stats.get("inconsistent_rows", 0) + blk.check_neighbours()
+        count("poor_fit_rows", blk.check_fit(carry))
+        count("inconsistent_rows", blk.check_neighbours())
+    if counts:  # one read for all of them
+        for name, v in zip(counts, torch.stack([c.reshape(()).to(torch.int64)
+                                                for c in counts.values()]).tolist()):
+            run.stats[name] = run.stats.get(name, 0) + v
     rel = {nm: blk.params[:, j].reshape(b, n) for j, nm in enumerate(run.names)}
     out = to_total(rel, ref.acc)
     out["zncc"] = blk.zncc.reshape(b, n)
@@ -638,7 +684,7 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
     out["iterations"] = blk.iters.reshape(b, n)
     out["m"] = blk.m_used.reshape(b, n)
     fac = None if run.template_shares is None else run.template_shares.variance_factors(
-        blk.k, out["m"], run.ts, float(run.noise_ratio or 1.0), run.segments)
+        blk.k, out["m"], run.ts, float(run.noise_ratio or 1.0), run.segments, m_max=run.m)
     for j, nm in enumerate(run.names):
         if nm in STD_OF:
             std = blk.std[:, j].reshape(b, n)

@@ -132,14 +132,16 @@ class BlockChecks:
             have = (torch.isfinite(p0).all(1) & torch.isfinite(size)).unsqueeze(1)
             start = torch.where(have, p0, start[:, spatial])
             step = torch.where(have.squeeze(1), size, 0.0)
-        if not bool(own.any()):
+        n_own = int(own.sum())  # one read for both tests
+        if not n_own:
             return self.solve(idx, start, m=0, solver=solver, init_step=step)
         ident = self.identity_solution(idx)
-        if bool(own.all()):
+        if n_own == idx.numel():
             return ident
-        return with_rows(ident, ~own, self.solve(
-            idx[~own], start[~own], m=0, solver=solver,
-            init_step=None if step is None else step[~own]))
+        other = torch.nonzero(~own).flatten()
+        return with_rows(ident, other, self.solve(
+            idx[other], start[other], m=0, solver=solver,
+            init_step=None if step is None else step[other]))
 
     def _screen(self, idx: torch.Tensor) -> tuple[torch.Tensor | None, WindowSolution | None]:
         """(R,) bool: rows ``idx`` that pass the model check from their window's free
@@ -191,7 +193,7 @@ class BlockChecks:
         if off is not None:
             d = d - off[rows]
         _, dt = self.frames_of(win)
-        _, vel = linear_fit_in_time(d, dt[rows])
+        _, vel = linear_fit_in_time(d, dt[rows], spread=True)  # m > 0: distinct times
         return line_mismatch(d, dt[rows], disp[rows], std[rows]), vel
 
     def check_model(self) -> tuple[int, int]:
@@ -216,10 +218,12 @@ class BlockChecks:
         # others take a few classical steps from there; rows that do not converge in them,
         # or disagree, are solved classically in full before they are judged
         screened, quick = self._screen(idx)
-        if screened is None or not bool(screened.all()):
-            rest = None if screened is None else ~screened
-            solved = self._classical(idx if rest is None else idx[rest], run.check_solver())
-            quick = solved if rest is None else with_rows(quick, rest, solved)
+        if screened is None:
+            quick = self._classical(idx, run.check_solver())
+        else:
+            rest = torch.nonzero(~screened).flatten()  # one index for all (one sync)
+            if rest.numel():
+                quick = with_rows(quick, rest, self._classical(idx[rest], run.check_solver()))
         cu, cv = quick.param_names.index("u"), quick.param_names.index("v")
         # every row's classical (u, v) and std (NaN: none), for the shorter windows below
         d_all = torch.full((self.b * self.n, 2), float("nan"), dtype=run.dtype,
@@ -244,9 +248,10 @@ class BlockChecks:
         # takes the same steps); only the others go on
         cls = solution_rows(quick, suspect)
         redo = cls.status != int(Status.CONVERGED)
-        if bool(redo.any()):
-            cls = with_rows(cls, redo, self.solve(idx[redo], cls.params[redo].nan_to_num(0.0),
-                                                   m=0))
+        redo_i = torch.nonzero(redo).flatten()  # one index for all (one sync)
+        if redo_i.numel():
+            cls = with_rows(cls, redo_i, self.solve(
+                idx[redo_i], cls.params[redo_i].nan_to_num(0.0), m=0))
             not_ref = ~self._no_residual(idx, cls.zncc)
         ok_c = cls.status <= USABLE
         d_all[idx] = torch.where(ok_c.unsqueeze(1), cls.params[:, [cu, cv]].to(run.dtype),
@@ -268,15 +273,15 @@ class BlockChecks:
             init[:, run.names.index(nm)] = p_cls[:, j].to(run.dtype)
         shortened = 0
         first_m = self.m_used[idx].long()  # each row's window: only shorter ones are tried
-        for m in range(run.m - 1, 0, -1):
-            if not bool(fail.any()):
-                break
+        for m in range(run.m - 1, 0, -1) if bool(fail.any()) else ():
+            # one host read a half-width: the rows to try (none: the next one)
             sel = torch.nonzero(fail & (first_m > m)).flatten()
             if sel.numel() == 0:
                 continue
             # a window whose frames' classical solutions miss a line would fail: not solved
             off, vel = self._off_a_line(idx[sel], m, d_all, s_all)
-            sel, vel = sel[~off], vel[~off]
+            on = torch.nonzero(~off).flatten()  # one index for both (one sync)
+            sel, vel = sel[on], vel[on]
             if sel.numel() == 0:
                 continue
             start = init[sel]  # the velocity of the classical solutions' line, where known
@@ -291,20 +296,22 @@ class BlockChecks:
             good &= ~model_mismatch(d, d_cls[sel], sol.std[:, [iu, iv]], s_cls[sel])
             good &= ~(not_ref[sel] & residual_mismatch(sol.sigma, sig_cls[sel], pixels,
                                                        sol.zncc))
+            good = torch.nonzero(good).flatten()  # one index for all (one sync)
             self.keep(idx[sel][good], solution_rows(sol, good), only_better=False, m=m)
-            shortened += int(good.sum())
+            shortened += good.numel()
             fail[sel[good]] = False
+        fail = torch.nonzero(fail).flatten()  # one index for all (one sync)
         pick = ok_i[fail]
         kept = solution_rows(cls, pick)
-        loose = ~redo[pick] if bool(redo.any()) else torch.ones_like(pick, dtype=torch.bool)
-        if bool(loose.any()):  # converged to CHECK_TOL only: on to the run's tol
+        # converged to CHECK_TOL only: on to the run's tol
+        loose = (torch.nonzero(~redo[pick]).flatten() if redo_i.numel()
+                 else torch.arange(pick.numel(), device=pick.device))
+        if loose.numel():
             pol = self.solve(idx[fail][loose], kept.params[loose].nan_to_num(0.0), m=0)
-            good = pol.status <= USABLE
-            better = loose.clone()
-            better[loose] = good
-            kept = with_rows(kept, better, solution_rows(pol, good))
+            good = torch.nonzero(pol.status <= USABLE).flatten()  # (one sync)
+            kept = with_rows(kept, loose[good], solution_rows(pol, good))
         self.keep(idx[fail], kept, only_better=False, m=0)
-        return shortened, int(fail.sum())
+        return shortened, fail.numel()
 
     def rescue_classical(self, guess: torch.Tensor | None, carry: Carry | None) -> int:
         """Rows a window could not solve (still lost after :meth:`rescue`) are solved
@@ -320,11 +327,12 @@ class BlockChecks:
         self.rescue(carry, torch.zeros_like(lost), m=0)
         return int((lost & ~self.lost()).sum())
 
-    def check_fit(self, carry: Carry | None = None) -> int:
+    def check_fit(self, carry: Carry | None = None) -> torch.Tensor:
         """Usable rows whose residual is not the image noise, or whose ZNCC is below the
         floor, become POOR_FIT (:func:`~torch_stsdic.analysis.quality.poor_fit`), each compared with
         the rows of its own target and with its point's last trusted row (``carry``, then
-        the block's targets in time order). Returns their number."""
+        the block's targets in time order). Returns their number (a 0-d tensor: read with
+        the block's other counts)."""
         n, count = self.n, 0
         run = self.run
         base = torch.full((n,), float("nan"), dtype=run.dtype, device=run.device)
@@ -337,12 +345,12 @@ class BlockChecks:
             self.status[sl].masked_fill_(bad, int(Status.POOR_FIT))  # a view: no host sync
             count = count + bad.sum()
             base = torch.where(self.status[sl] <= USABLE, self.zncc[sl], base)
-        return int(count)
+        return torch.as_tensor(count)
 
-    def check_neighbours(self) -> int:
+    def check_neighbours(self) -> torch.Tensor | int:
         """Usable rows that are outliers among their grid neighbours become INCONSISTENT
         (:func:`~torch_stsdic.analysis.quality.median_test` on u and v per target). Returns their
-        number."""
+        number (a 0-d tensor: read with the block's other counts)."""
         run = self.run
         nb = run.grid_neighbours(self.ref)
         b, n = self.b, self.n
@@ -370,7 +378,7 @@ class BlockChecks:
         out = median_test(uv, ok, nb, eps, points=self.ref.points, gradients=grads)
         self.status[rows] = self.status[rows].masked_fill(out.reshape(-1),
                                                           int(Status.INCONSISTENT))
-        return int(out.sum())
+        return out.sum()
 
     def _velocity(self, j: int, cand: torch.Tensor, carry: Carry | None):
         """Velocity (u, v) of target j-1 for the rows ``cand`` of a target: the measured

@@ -175,7 +175,9 @@ def _round_guess(plan: RunPlan, res: TrackResult) -> MeasuredSample:
     """A round's trusted solutions at all the plan's POIs, where the next round (against the
     template, which the fits registered to the reference configuration: the same warps but
     for the noise) and the gauge start."""
-    ok = (res.status <= USABLE) & (res.zncc >= float(plan.options.get("lost_zncc", 0.8)))
+    # a TrackResult holds its integer fields on the CPU, the others on the run's device
+    ok = (res.status.cpu() <= USABLE) & (res.zncc.cpu() >= float(plan.options.get("lost_zncc",
+                                                                                   0.8)))
     return MeasuredSample.from_result(res, plan.points.double().cpu(), ok)
 
 

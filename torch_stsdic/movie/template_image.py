@@ -76,9 +76,12 @@ def splat(acc: torch.Tensor, img: BSplineImage, planes: torch.Tensor, ref: torch
           ref_stats: tuple[torch.Tensor, torch.Tensor] | None = None) -> None:
     """Add G frames, planes ``planes`` (G,) of the stack ``img``, each mapped back by each
     trusted POI's map (``warp``: (G, N, 12), the local fits' of the series reference;
-    ``ok``: (G, N)) over its window of half-width ``half`` px, to ``acc`` (3, H*W): weighted
-    values, weights, and the frames' noise variance share. All frames' POIs in one batch (chunks of
-    ``_CHUNK_SAMPLES`` samples), no loop over the frames.
+    ``ok``: (G, N)) over its window of half-width ``half`` px, to ``acc``: weighted
+    values, weights, and the frames' noise variance share, either (3, H*W) over the image or
+    (3, C) over the C pixels the windows cover (``cover``'s; no scatter into the image: a
+    template of many frames adds them up there and maps the sums to the image once). All
+    frames' POIs in one batch (chunks of ``_CHUNK_SAMPLES`` samples), no loop over the
+    frames.
 
     A POI's samples are its window's pixels moved by its map (a polynomial of the offsets:
     one matrix product for all pixels), brought to the reference's grey levels over the
@@ -109,30 +112,41 @@ def splat(acc: torch.Tensor, img: BSplineImage, planes: torch.Tensor, ref: torch
     if ref_stats is None:
         ref_stats = reference_window_stats(ref, cover)
     n_px = pixels.numel()
-    sums = torch.zeros(3, n_px, dtype=torch.float64, device=dev)  # values, weights, share
+    # (3, C): add in place, else sums mapped to the image (C = H*W only where the windows
+    # cover every pixel: then the covered pixels, sorted, are the image's, the same layout)
+    on_cover = acc.shape[1] == n_px
+    sums = acc if on_cover else torch.zeros(3, n_px, dtype=torch.float64, device=dev)
     per_frame = torch.zeros(2, g_count * n_px, dtype=torch.float64, device=dev)
     chunk = max(1, _CHUNK_SAMPLES // dx.numel())
     for s0 in range(0, sel.numel(), chunk):
         f, i = sel[s0: s0 + chunk] // n, sel[s0: s0 + chunk] % n
         c = pts[i].round()
         delta = c - pts[i]
-        x = c[:, :1] + dx  # (n, S) reference-configuration pixels
-        y = c[:, 1:] + dy
-        xs = x + _shifted(warp[f, i, 0:6], delta) @ mono.T
-        ys = y + _shifted(warp[f, i, 6:12], delta) @ mono.T
+        # the window's pixels moved by the map: one matrix product a coordinate, the
+        # window's centre and offset folded into the polynomial's value and slope
+        px_map, py_map = _shifted(warp[f, i, 0:6], delta), _shifted(warp[f, i, 6:12], delta)
+        px_map[:, 0] += c[:, 0]
+        px_map[:, 1] += 1.0
+        py_map[:, 0] += c[:, 1]
+        py_map[:, 2] += 1.0
+        xs, ys = px_map @ mono.T, py_map @ mono.T  # (n, S) px in the frame
         # a window wholly inside the image (both configurations) needs no mask: most do
+        (xlo, xhi), (ylo, yhi) = torch.aminmax(xs), torch.aminmax(ys)
         whole = bool((c.amin() >= half) & (c[:, 0].amax() <= w - 1 - half)
-                     & (c[:, 1].amax() <= h - 1 - half) & (xs.amin() >= 0)
-                     & (xs.amax() <= w - 1) & (ys.amin() >= 0) & (ys.amax() <= h - 1))
-        inside = None if whole else (
-            (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1) & (xs >= 0) & (xs <= w - 1)
-            & (ys >= 0) & (ys <= h - 1))
+                     & (c[:, 1].amax() <= h - 1 - half) & (xlo >= 0) & (xhi <= w - 1)
+                     & (ylo >= 0) & (yhi <= h - 1))
+        inside = None
+        if not whole:
+            x, y = c[:, :1] + dx, c[:, 1:] + dy  # (n, S) reference-configuration pixels
+            inside = ((x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1) & (xs >= 0)
+                      & (xs <= w - 1) & (ys >= 0) & (ys <= h - 1))
         vals = torch.nan_to_num(img.sample(xs.to(img.dtype), ys.to(img.dtype),
                                            frame=planes[f].unsqueeze(1)).double())
         cnt = (torch.full((len(i), 1), float(dx.numel()), dtype=torch.float64, device=dev)
                if inside is None else inside.sum(1, keepdim=True).clamp(min=1))
         m_f = _masked(vals, inside).sum(1, keepdim=True) / cnt
-        s_f = _masked((vals - m_f) ** 2, inside).sum(1, keepdim=True).sqrt()
+        vals -= m_f  # centred over the window
+        s_f = torch.linalg.vector_norm(_masked(vals, inside), dim=1, keepdim=True)
         if inside is None:  # whole windows: the reference's statistics, frame-independent
             m_r, s_r = ref_stats[0][i], ref_stats[1][i]
         else:
@@ -140,21 +154,26 @@ def splat(acc: torch.Tensor, img: BSplineImage, planes: torch.Tensor, ref: torch
             m_r = _masked(own, inside).sum(1, keepdim=True) / cnt
             s_r = _masked((own - m_r) ** 2, inside).sum(1, keepdim=True).sqrt()
         gain = torch.where(s_f > 0, s_r / s_f.clamp(min=1e-12), 1.0)
-        vals = (vals - m_f) * gain + m_r
         u0, v0 = warp[f, i, 0], warp[f, i, 6]
         fac = interpolation_variance_factor(u0 - u0.floor(), v0 - v0.floor(),
                                             img.order)  # (n,)
         wt = _masked(tent * weight[f, None], inside)
         # summed in a fixed order (the same template on every run and device)
         px = local[i]  # (n, S) the window pixels among the covered ones
-        scatter_add_(sums[0], px, wt * vals)
-        at = f[:, None] * n_px + px  # the pixel in its frame's share
+        scatter_add_(sums[0], px, vals.mul_(gain).add_(m_r).mul_(wt))  # in the ref's levels
+        at = px if g_count == 1 else f[:, None] * n_px + px  # the pixel in its frame's share
         scatter_add_(per_frame[0], at, wt)
-        scatter_add_(per_frame[1], at, wt * (fac[:, None] * (gain * level[f, None]) ** 2))
+        scatter_add_(per_frame[1], at, wt.mul_(fac[:, None] * (gain * level[f, None]) ** 2))
     weights, shares = per_frame.view(2, g_count, n_px).unbind(0)
-    sums[1] = weights.sum(0)
-    sums[2] = (weights * shares / weight[:, None]).sum(0)
-    acc[:, pixels] += sums
+    shares.div_(weight[:, None]).mul_(weights)  # each frame's share of the noise
+    if g_count == 1:
+        sums[1] += weights[0]
+        sums[2] += shares[0]
+    else:
+        sums[1] += weights.sum(0)
+        sums[2] += shares.sum(0)
+    if not on_cover:
+        acc[:, pixels] += sums
 
 
 #: MiB of the per-frame sums a group of the template's frames holds (:func:`frame_groups`)
@@ -195,12 +214,13 @@ def template_image(plan: RunPlan, warps: torch.Tensor, oks: torch.Tensor, frames
     dev = torch.device(plan.device)
     pts = plan.points.double().to(dev)
     half = (plan.config.subset_size - 1) // 2
-    acc = torch.zeros(3, h * w, dtype=torch.float64, device=dev)  # on the run's device
     ref = ref_raw.double().to(dev).reshape(-1)
     spread = float(ref.std().clamp(min=1e-12))
     norm = []  # each frame's noise in the reference's grey levels
     cover = window_pixels(pts, half, h, w)
     ref_stats = reference_window_stats(ref, cover)
+    # the sums over the covered pixels, on the run's device, mapped to the image at the end
+    on_cover = torch.zeros(3, cover[0].numel(), dtype=torch.float64, device=dev)
     for group in frame_groups(len(frames), cover[0].numel(), batched=dev.type != "cpu"):
         img, planes, raw = _group_frames(cache, [frames[j] for j in group], dev)
         level = raw.flatten(1).std(1).clamp(min=1e-12) / spread  # (G,) contrast ratios
@@ -208,9 +228,11 @@ def template_image(plan: RunPlan, warps: torch.Tensor, oks: torch.Tensor, frames
                                  device=dev) / level
         norm += g_norm.tolist()
         g_idx = torch.as_tensor(group, device=warps.device)
-        splat(acc, img, planes, ref, pts, warps[g_idx].to(dev), oks[g_idx].to(dev), half,
-              1.0 / g_norm ** 2, level, cover, ref_stats)
-    acc, ref, pts = acc.cpu(), ref.cpu(), pts.cpu()  # what follows is per pixel, once
+        splat(on_cover, img, planes, ref, pts, warps[g_idx].to(dev), oks[g_idx].to(dev),
+              half, 1.0 / g_norm ** 2, level, cover, ref_stats)
+    acc = torch.zeros(3, h * w, dtype=torch.float64)  # what follows is per pixel, once
+    acc[:, cover[0].cpu()] = on_cover.cpu()
+    ref, pts = ref.cpu(), pts.cpu()
     covered = acc[1] > 0
     image = torch.where(covered, acc[0] / acc[1].clamp(min=1e-300), ref).reshape(h, w)
     # noise variance of a pixel: sum over frames of the frame's share (acc[2]) over the

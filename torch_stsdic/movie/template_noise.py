@@ -64,17 +64,32 @@ class TemplateShares:
         return torch.where((r >= 0)[..., None], vals, 0.0).permute(0, 2, 1)
 
     def variance_factors(self, ks: torch.Tensor, m_used: torch.Tensor, times: torch.Tensor,
-                         rho: float, segments: torch.Tensor | None = None) -> torch.Tensor:
+                         rho: float, segments: torch.Tensor | None = None,
+                         m_max: int | None = None) -> torch.Tensor:
         """(B, N, 2) the factors of the predicted variances of u, v and of ut, vt of the
         results at targets ``ks`` (B,) (series indices) solved with half-widths ``m_used``
         (B, N) (< 0: none, factor 1), ``times`` (T_series,) the series' frame times, ``rho``
-        the noise ratio the solver was told."""
+        the noise ratio the solver was told. ``m_max``: the longest half-width there can be
+        (the run's m): every half-width 0 .. m_max is worked out for all rows and each row
+        takes its own, with no host synchronisation (None: only the half-widths present,
+        read on the host)."""
         b, n = m_used.shape
         dev = m_used.device
         out = torch.ones(b, n, 2, dtype=torch.float64, device=dev)
         sq = self.share_sq.to(dev)
         reg = None if self.registration is None else REGISTRATION_GAIN * self.registration.to(dev)
         ks, times = ks.to(dev), times.to(dev)
+        if m_max is not None:
+            for m in range(int(m_max) + 1):
+                win = window_frames(ks, m, int(self.rows.shape[0]),
+                                    None if segments is None else segments.to(dev))
+                dt = (times[win] - times[ks][:, None]).double()  # (B, T)
+                f = shared_frame_factors(
+                    dt.repeat_interleave(n, 0), self.of(win).reshape(b * n, -1), sq.repeat(b),
+                    rho, reference=(win == self.reference_frame).repeat_interleave(n, 0),
+                    registration=None if reg is None else reg.repeat(b))
+                out = torch.where((m_used == m).unsqueeze(-1), f.reshape(b, n, 2), out)
+            return out
         for m in torch.unique(m_used[m_used >= 0]).tolist():
             win = window_frames(ks, int(m), int(self.rows.shape[0]),
                                 None if segments is None else segments.to(dev))

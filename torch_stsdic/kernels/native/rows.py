@@ -79,8 +79,13 @@ class _Pool:
 
     @staticmethod
     def _work(tasks: queue.SimpleQueue) -> None:
-        while (task := tasks.get()) is not None:
+        while True:
+            task = tasks.get()
+            if task is None:
+                return
             task()  # _Rows.helper: catches everything itself
+            # an idle thread holds no call (nor the tensors it points to) while it waits
+            task = None
 
     def submit(self, task) -> None:
         self.tasks.put(task)
@@ -160,24 +165,26 @@ class _Rows:
                 if not self.busy and self.done.locked():
                     self.done.release()
 
-    def _wait(self) -> BaseException | None:
-        """Until no helper is inside the kernel; returns an exception (e.g. a second Ctrl-C)
-        that arrived meanwhile."""
-        held = None
+    def _wait(self, held: BaseException | None = None) -> BaseException | None:
+        """Until no helper is inside the kernel; returns ``held``, else the first exception
+        (e.g. a second Ctrl-C) that arrived meanwhile. (The waiting loop lies inside the
+        ``try``: CPython checks for signals at its backward jump.)"""
         while True:
             try:
-                with self.lock:  # a helper past its stop check is counted in busy now
-                    if not self.busy:
-                        return held
-                # the first pass takes ``done`` at once, the next waits for the last helper
-                # to release it (the timeout: a safety net, never needed)
-                self.done.acquire(True, 0.05)
+                while True:
+                    with self.lock:  # a helper past its stop check is counted in busy now
+                        if not self.busy:
+                            return held
+                    # the first pass takes ``done`` at once, the next waits for the last
+                    # helper to release it (the timeout: a safety net, never needed)
+                    self.done.acquire(True, 0.05)
             except BaseException as exc:
                 held = held or exc
                 self.stop = True
 
     def run(self, pool: _Pool, helpers: int) -> None:
         done = False
+        held = None
         try:
             for _ in range(helpers):
                 pool.submit(self.helper)
@@ -187,7 +194,15 @@ class _Rows:
         finally:
             if not done:
                 self.stop = True
-            held = self._wait()
+            # a second interrupt can land at the entry of _wait, before its own try: wait
+            # again (the call must not return while a helper is inside the kernel)
+            while True:
+                try:
+                    held = self._wait(held)
+                    break
+                except BaseException as exc:
+                    held = held or exc
+                    self.stop = True
         if held is not None:
             raise held
         for f in self.failed:
