@@ -582,6 +582,50 @@ def test_the_registration_takes_the_largest_neighbourhood_the_field_allows():
     assert float(reg.variance(choice)[2, centre]) == pytest.approx(float(plane25))
 
 
+def test_equal_factors_keep_the_lower_degree_and_the_maps_are_the_chosen_fits():
+    """At a POI whose 25 neighbours lie symmetric about it the cubic's value weights are the
+    quadratic's (equal variance factors, to rounding): where both pass, the quadratic (listed
+    first) registers the frame, not whichever rounding favours. The maps (_smooth) are each
+    chosen fit's value, slopes and second-order terms (LocalFit.apply*) at its frames and
+    POIs, the POI's own warp elsewhere."""
+    pts = _fit_grid(15)  # fits over 25 and 49 POIs
+    n = len(pts)
+    reg = series_reference.RegistrationFits.make(pts, 25, 21)
+    centre = 7 * 15 + 7
+    quad, cubic = reg.candidates.index((0, 2)), reg.candidates.index((0, 3))
+    fq, fc = float(reg.factor[quad, centre]), float(reg.factor[cubic, centre])
+    assert fq == pytest.approx(fc, rel=1e-12)
+    torch.manual_seed(1)
+    x, y = pts[:, 0] - 70, pts[:, 1] - 70
+    curved = 2e-4 * x ** 2 + 1e-4 * y ** 2  # every plane fails, the quadratic passes
+    u = curved[None] + 0.01 * torch.randn(2, n, dtype=torch.float64)
+    v = -curved[None] + 0.01 * torch.randn(2, n, dtype=torch.float64)
+    ok = torch.ones(2, n, dtype=torch.bool)
+    ok[:, centre + 3] = False  # in the centre's 49 neighbours, not its 25
+    unit = torch.full((n,), 1e-4, dtype=torch.float64)
+    warps = _warps_of(u, v)
+    warps[..., 1] = 0.3  # a gradient of its own: kept where no fit is chosen
+    choice = series_reference._fit_choice(reg, warps, ok, unit)
+    assert int(choice[0, centre]) == quad + 1 and int(choice[1, centre]) == quad + 1
+    reg.factor[cubic, centre] = fq * (1 - 1e-13)  # rounding's side: still the quadratic
+    assert int(series_reference._fit_choice(reg, warps, ok, unit)[0, centre]) == quad + 1
+    reg.factor[cubic, centre] = fq * (1 - 1e-6)  # a real difference: the cubic
+    assert int(series_reference._fit_choice(reg, warps, ok, unit)[0, centre]) == cubic + 1
+    choice[1, :50] = 0  # no fit: the POI's own warp
+    choice[1, 50:60] = cubic + 1
+    ok[:, centre + 3] = True
+    out = series_reference._smooth(reg, warps, ok, choice)
+    for c, o in ((0, 0), (3, 6)):
+        for k, (i, d) in enumerate(reg.candidates):
+            fit, here = reg.fits[i], choice == k + 1
+            want = torch.cat([fit.apply(d, warps[..., c])[..., None],
+                              fit.apply_slopes(d, warps[..., c]),
+                              fit.apply_quadratic(d, warps[..., c])], -1)
+            torch.testing.assert_close(out[..., o:o + 6][here], want[here])
+    torch.testing.assert_close(out[1, :50, 0:3], warps[1, :50, 0:3])
+    assert bool((out[1, :50, 3:6] == 0).all())
+
+
 def test_the_larger_neighbourhoods_lower_the_templates_registration_error(monkeypatch):
     """The error every row shares is the reference image's noise seen through the fits that
     registered the frames: with only the reference frame noisy (the other frames nearly

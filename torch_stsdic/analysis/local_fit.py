@@ -29,9 +29,33 @@ import torch
 from torch_stsdic.analysis.points import nearest_points
 
 __all__ = ["LocalFit", "local_fit_weights", "overlap_correlation", "local_fit",
-           "local_fit_passes"]
+           "local_fit_passes", "passing_fits", "FitTest"]
 
 _CHUNK = 1 << 22  # elements of the (n, k, k) work arrays per chunk of POIs
+
+
+@dataclass
+class FitTest:
+    """One degree's tests of a local fit (:meth:`LocalFit.test_z`) for C rows of values.
+
+    Attributes:
+        value_z: (C, N) |fitted value - the next degree's| / its standard deviation (inf
+            where either fit is ill-posed; None: not tested).
+        residual_z: (C, N) the largest |residual| / its standard deviation over the
+            neighbours (inf where ill-posed).
+        factor: (N,) the fitted value's variance over one value's, ``w^T R w`` (1 where
+            ill-posed).
+    """
+
+    value_z: torch.Tensor | None
+    residual_z: torch.Tensor
+    factor: torch.Tensor
+
+    def passes(self, z_limit: float) -> torch.Tensor:
+        """(C, N) bool: both tests within ``z_limit`` (both fits well posed)."""
+        if self.value_z is None:
+            raise ValueError("FitTest.passes: the fitted value was not tested (value=False)")
+        return (self.value_z < z_limit) & (self.residual_z < z_limit)
 
 
 @dataclass
@@ -61,8 +85,9 @@ class LocalFit:
     offsets: torch.Tensor
     used: torch.Tensor
     subset_size: float
-    #: (N, k, k) the neighbours' correlations, kept while :meth:`keep_correlation` asks
-    _corr: torch.Tensor | None = field(default=None, repr=False)
+    #: degree -> (N, P, P) ``(A^T A)^-1`` of the fit's design (offsets over the largest
+    #: neighbour distance; the identity where ill-posed)
+    inverse: dict[int, torch.Tensor] = field(default_factory=dict)
 
     def _chunks(self, rows: int = 1) -> range:
         """Chunks of POIs whose (n, k, k) and (rows, n, k) work arrays hold ~_CHUNK each."""
@@ -70,20 +95,15 @@ class LocalFit:
         return range(0, self.index.shape[0], max(1, _CHUNK // (k * max(k, rows))))
 
     def correlation(self, sl: slice) -> torch.Tensor:
-        """(n, k, k) the error correlation of the neighbours of the POIs ``sl``."""
-        if self._corr is not None:
-            return self._corr[sl]
+        """(n, k, k) the error correlation of the neighbours of the POIs ``sl``: the
+        :func:`overlap_correlation` of their pairwise offsets, one axis at a time in place
+        (no (n, k, k, 2) temporaries: this is most of a fit test's work)."""
         d = self.offsets[sl]
-        return overlap_correlation(d[:, :, None, :] - d[:, None, :, :], self.subset_size)
+        scale = -1.0 / float(self.subset_size)
 
-    def keep_correlation(self, keep: bool = True, budget_mb: float = 128.0) -> None:
-        """Keep every POI's (k, k) correlation (float64) between calls, where they fit
-        in ``budget_mb``: several tests of one fit then make them once, not per call;
-        ``keep=False`` lets them go."""
-        n, k = self.index.shape
-        self._corr = None
-        if keep and n * k * k * 8 <= budget_mb * 2**20:
-            self._corr = self.correlation(slice(0, n))
+        def share(a: torch.Tensor) -> torch.Tensor:
+            return (a[:, :, None] - a[:, None, :]).abs_().mul_(scale).add_(1.0).clamp_(min=0.0)
+        return share(d[..., 0]).mul_(share(d[..., 1]))
 
     def apply(self, degree: int, values: torch.Tensor) -> torch.Tensor:
         """(..., N) values -> (..., N) fitted values at the POIs."""
@@ -112,31 +132,122 @@ class LocalFit:
         over each POI's neighbours: the residuals ``(I - H) y`` (``H`` the fit's hat matrix)
         have the covariance ``(I - H) R (I - H)^T`` times the values' variance (C, N) (the
         neighbourhood's mean). A jump (a crack, a lost subset) inside the neighbourhood
-        stands out here, where the fitted value alone may not show it."""
+        stands out here, where the fitted value alone may not show it. inf where the fit is
+        ill-posed."""
+        return self.test_z(values, variance, (degree,), value=False)[degree].residual_z
+
+    def value_factors(self, degrees: tuple[int, ...]) -> dict[int, torch.Tensor]:
+        """degree -> (N,) ``w^T R w`` of the fitted value's weights ``w`` (1 where the fit is
+        ill-posed: the POI's own value), as :meth:`variance_factor` of ``weights[degree]``,
+        every degree from one pass over the correlations (``A^T R A``, P x P a POI)."""
+        n = self.index.shape[0]
+        out = {d: torch.ones(n, dtype=torch.float64) for d in degrees}
+        scale = self._scale()
+        chunks = self._chunks()
+        for s0 in chunks:
+            sl = slice(s0, s0 + chunks.step)
+            a, _, _, gram = self._moments(sl, max(degrees), scale)
+            for d in degrees:
+                w = self._inverse(a[..., :_n_terms(d)], sl, d)[:, 0]
+                out[d][sl] = self._factor(w, gram, sl, d)
+        return out
+
+    def test_z(self, values: torch.Tensor, variance: torch.Tensor, degrees: tuple[int, ...],
+               value: bool = True) -> dict[int, FitTest]:
+        """degree -> :class:`FitTest` of the fits of ``degrees`` for the values (C, N) of
+        error variances ``variance`` (C, N), or (1, N) for all rows, px^2 (the
+        neighbourhood's mean counts); ``value=False``: the residuals only.
+
+        All the degrees from one pass over each chunk of POIs: the neighbours' values
+        gathered once, the fits' coefficients ``(A^T A)^-1 A^T y`` of nested designs ``A``
+        (the degree's monomials are the first columns of the highest's), and the
+        residuals' variances as the diagonal ``R - 2 H R + H R H`` from ``A^T R`` and
+        ``A^T R A`` (O(k^2 P) a POI, not the (k, k) products' O(k^3)); the value
+        difference's variance ``delta^T (A^T R A) delta`` with ``delta`` the two fits'
+        value rows of their inverses (the weights' difference is ``A delta``)."""
         c, n = values.shape
-        k = self.index.shape[1]
-        out = torch.zeros(c, n, dtype=torch.float64)
-        nb_var = variance[:, self.index].mean(-1).clamp(min=1e-30)  # (C, N)
-        eye = torch.eye(k, dtype=torch.float64)
-        scale = float(self.offsets.norm(dim=-1).max().clamp(min=1.0))
+        top = max(degrees) + (1 if value else 0)
+        scale = self._scale()
+        out = {d: FitTest(value_z=(torch.full((c, n), torch.inf, dtype=torch.float64)
+                                   if value else None),
+                          residual_z=torch.full((c, n), torch.inf, dtype=torch.float64),
+                          factor=torch.ones(n, dtype=torch.float64)) for d in degrees}
+        need = sorted(set(degrees) | ({d + 1 for d in degrees} if value else set()))
+        # POI-major: every product below is one batched matrix product over the POIs
+        vals_t, var_t = values.T.contiguous(), variance.T.contiguous()  # (N, C), (N, C | 1)
         chunks = self._chunks(c)
         for s0 in chunks:
             sl = slice(s0, s0 + chunks.step)
             u = self.used[sl]
-            a = _design(self.offsets[sl] / scale, degree) * u[..., None]  # (n, k, P)
-            ata = a.transpose(1, 2) @ a
-            good = self.posed[degree][sl]
-            p = a.shape[-1]
-            inv = torch.linalg.inv(torch.where(good[:, None, None], ata,
-                                               torch.eye(p, dtype=torch.float64)))
-            resid_op = (eye - a @ inv @ a.transpose(1, 2)) * u[:, :, None]  # (n, k, k)
-            cov = torch.einsum("njk,nkl,njl->nj", resid_op, self.correlation(sl), resid_op)
-            y = values[:, self.index[sl]]  # (C, n, k)
-            r = torch.einsum("njk,cnk->cnj", resid_op, y)
-            sd = (cov.clamp(min=1e-12)[None] * nb_var[:, sl, None]).sqrt()
-            z = torch.where(u[None] > 0, r.abs() / sd, 0.0).amax(-1)
-            out[:, sl] = torch.where(good[None], z, torch.inf)
+            idx = self.index[sl]
+            a, rdiag, ar, gram = self._moments(sl, top, scale)
+            y = vals_t[idx]  # (n, k, C)
+            nb_var = var_t[idx].mean(1).clamp(min=1e-30)  # (n, C | 1)
+            aty = a.transpose(1, 2) @ y  # (n, P, C) A^T y
+            inv = {d: self._inverse(a[..., :_n_terms(d)], sl, d) for d in need}
+            for d in degrees:
+                p = _n_terms(d)
+                coef = inv[d] @ aty[:, :p]  # (n, P, C) the fit's coefficients
+                resid = torch.baddbmm(y, a[..., :p], coef, alpha=-1.0)  # (n, k, C)
+                am = a[..., :p] @ inv[d]  # (n, k, P): H = am A^T
+                hr = (am * ar[:, :p].transpose(1, 2)).sum(-1)  # (n, k) diag(H R)
+                hrh = ((am @ gram[:, :p, :p]) * am).sum(-1)  # diag(H R H)
+                # 1 / the residuals' variance factors, 0 at unused neighbours
+                icov = torch.where(u > 0, 1.0 / (rdiag - 2.0 * hr + hrh).clamp(min=1e-12), 0.0)
+                z = (resid.square_().mul_(icov[..., None]).amax(1) / nb_var).sqrt()  # (n, C)
+                out[d].residual_z[:, sl] = torch.where(self.posed[d][sl][:, None], z,
+                                                       torch.inf).T
+                out[d].factor[sl] = self._factor(inv[d][:, 0], gram, sl, d)
+                if value:
+                    q = _n_terms(d + 1)
+                    nxt = inv[d + 1][:, 0]  # (n, Q)
+                    delta = -nxt
+                    delta[:, :p] += inv[d][:, 0]
+                    var_d = torch.einsum("np,npq,nq->n", delta, gram[:, :q, :q],
+                                         delta).clamp(min=1e-12)
+                    diff = coef[:, 0] - (nxt[:, None] @ aty[:, :q])[:, 0]  # (n, C)
+                    vz = diff.abs() / (var_d[:, None] * nb_var).sqrt()
+                    posed = self.posed[d][sl] & self.posed[d + 1][sl]
+                    out[d].value_z[:, sl] = torch.where(posed[:, None], vz, torch.inf).T
         return out
+
+    def _factor(self, w: torch.Tensor, gram: torch.Tensor, sl: slice, degree: int
+                ) -> torch.Tensor:
+        """(n,) ``w^T (A^T R A) w`` for the value rows ``w`` (n, P) of the inverses of the
+        fit of ``degree`` (its weights are ``A w``); 1 where it is ill-posed."""
+        p = w.shape[-1]
+        f = torch.einsum("np,npq,nq->n", w, gram[:, :p, :p], w)
+        return torch.where(self.posed[degree][sl], f, 1.0)
+
+    def _scale(self) -> float:
+        """px: the offsets' unit in the designs (the largest neighbour distance)."""
+        return float(self.offsets.norm(dim=-1).max().clamp(min=1.0))
+
+    def _moments(self, sl: slice, degree: int, scale: float
+                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """For the POIs ``sl``: the design ``A`` (n, k, P) of ``degree`` (offsets / ``scale``,
+        unused neighbours' rows 0), the correlations' diagonal (n, k), ``A^T R`` (n, P, k)
+        and ``A^T R A`` (n, P, P)."""
+        a = _design(self.offsets[sl] / scale, degree) * self.used[sl][..., None]
+        r = self.correlation(sl)
+        ar = a.transpose(1, 2) @ r
+        return a, r.diagonal(dim1=1, dim2=2), ar, ar @ a
+
+    def _inverse(self, a: torch.Tensor, sl: slice, degree: int) -> torch.Tensor:
+        """(n, P, P) ``(A^T A)^-1`` of the design ``a`` (n, k, P) of ``degree`` (the identity
+        where the fit is ill-posed): :func:`local_fit_weights`'s where it kept them."""
+        if degree in self.inverse:
+            return self.inverse[degree][sl]
+        p = a.shape[-1]
+        ata = a.transpose(1, 2) @ a
+        good = self.posed[degree][sl]
+        return torch.linalg.inv(torch.where(good[:, None, None], ata,
+                                            torch.eye(p, dtype=torch.float64)))
+
+
+def _n_terms(degree: int) -> int:
+    """Monomials of a polynomial in (x, y) up to ``degree``."""
+    return (degree + 1) * (degree + 2) // 2
 
 
 def overlap_correlation(offsets: torch.Tensor, subset_size: float) -> torch.Tensor:
@@ -181,7 +292,7 @@ def local_fit_weights(points: torch.Tensor, k: int, subset_size: float,
     scale = float(d.norm(dim=-1).max().clamp(min=1.0))
     ok = torch.ones(n, dtype=torch.bool) if valid is None else valid.cpu().bool()
     wk = ok[idx].double()  # (N, k)
-    weights, slopes, quadratic, posed = {}, {}, {}, {}
+    weights, slopes, quadratic, posed, inverse = {}, {}, {}, {}, {}
     own = torch.zeros(n, k, dtype=torch.float64)
     own[:, 0] = 1.0
     for deg in degrees:
@@ -201,24 +312,30 @@ def local_fit_weights(points: torch.Tensor, k: int, subset_size: float,
             quad = torch.where(good[:, None, None], rows[:, 3:6].transpose(1, 2) / scale ** 2,
                                quad)
         weights[deg], slopes[deg], quadratic[deg], posed[deg] = w0, sl, quad, good
+        inverse[deg] = inv
     return LocalFit(index=idx, weights=weights, slopes=slopes, quadratic=quadratic,
-                    posed=posed, offsets=d, used=wk, subset_size=float(subset_size))
+                    posed=posed, offsets=d, used=wk, subset_size=float(subset_size),
+                    inverse=inverse)
+
+
+def passing_fits(fit: LocalFit, values: torch.Tensor, variance: torch.Tensor, *,
+                 degrees: tuple[int, ...] = (1,), z_limit: float = 3.0
+                 ) -> dict[int, torch.Tensor]:
+    """degree -> (C, N) bool: where the fit of that degree holds for each component of
+    ``values`` (C, N) (error variances ``variance``: (C, N) or (1, N) px^2): its value within
+    ``z_limit`` standard deviations of the next degree's, every residual within ``z_limit``
+    of its own (:meth:`LocalFit.residual_z`), and both fits well posed
+    (:meth:`FitTest.passes`). The weights' geometry and the neighbours' values are worked
+    out once for all C components and all ``degrees`` (:meth:`LocalFit.test_z`), so the C
+    rows (every frame's u and v) and the degrees cost about one."""
+    return {d: t.passes(z_limit) for d, t in fit.test_z(values, variance, degrees).items()}
 
 
 def local_fit_passes(fit: LocalFit, values: torch.Tensor, variance: torch.Tensor, *,
                      degree: int = 1, z_limit: float = 3.0) -> torch.Tensor:
     """(C, N) bool: where the fit of ``degree`` holds for each component of ``values``
-    (C, N) (error variances ``variance``: (C, N) px^2): its value within ``z_limit``
-    standard deviations of the next degree's, every residual within ``z_limit`` of its own
-    (:meth:`LocalFit.residual_z`), and both fits well posed. The weights' geometry is worked
-    out once for all C components, so the C rows (every frame's u and v) cost about one."""
-    d = fit.weights[degree] - fit.weights[degree + 1]
-    var_d = fit.variance_factor(d).clamp(min=1e-12)  # (N,)
-    nb_var = variance[:, fit.index].mean(-1)  # (C, N) the neighbourhood's mean variance
-    diff = fit.apply(degree, values) - fit.apply(degree + 1, values)
-    z = diff.abs() / (var_d * nb_var).sqrt()
-    resid = fit.residual_z(degree, values, variance)
-    return (z < z_limit) & (resid < z_limit) & fit.posed[degree] & fit.posed[degree + 1]
+    (:func:`passing_fits` of the one degree)."""
+    return passing_fits(fit, values, variance, degrees=(degree,), z_limit=z_limit)[degree]
 
 
 def local_fit(fit: LocalFit, values: torch.Tensor, variance: torch.Tensor, *,

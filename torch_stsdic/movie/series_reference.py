@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from torch_stsdic.analysis.local_fit import LocalFit, local_fit_passes, local_fit_weights
+from torch_stsdic.analysis.local_fit import LocalFit, local_fit_weights
 from torch_stsdic.analysis.points import nearest_points
 from torch_stsdic.analysis.quality import line_mismatch, line_offset
 from torch_stsdic.analysis.result import USABLE, TrackResult
@@ -76,6 +76,8 @@ PLANE_Z = 5.0
 #: fits (docs/validation/window_length.md): a plane over 81 POIs passes a third of a plane
 #: over 25's variance where the field allows it
 NEIGHBOURHOODS = (25, 49, 81)
+#: relative difference below which two fits' variance factors are equal (:func:`_fit_choice`)
+TIE = 1e-9
 
 
 @dataclass
@@ -334,7 +336,17 @@ class RegistrationFits:
 
     fits: list[LocalFit]  # one per neighbourhood, degrees 1 .. 3 (the smallest: .. 4)
     candidates: list[tuple[int, int]]  # (index into fits, degree)
-    factor: torch.Tensor  # (C, N) float64 each candidate's variance factor
+    #: (C, N) float64 each candidate's variance factor, from the fits' tests
+    #: (:func:`_fit_choice`, which works them out in the same pass) or on first use
+    _factor: torch.Tensor | None = None
+
+    @property
+    def factor(self) -> torch.Tensor:
+        """(C, N) float64 each candidate's variance factor ``w^T R w``."""
+        if self._factor is None:
+            per_fit = [fit.value_factors(self.degrees(i)) for i, fit in enumerate(self.fits)]
+            self._factor = torch.stack([per_fit[i][d] for i, d in self.candidates])
+        return self._factor
 
     @classmethod
     def make(cls, pts: torch.Tensor, neighbours: int, subset_size: float) -> RegistrationFits:
@@ -347,12 +359,12 @@ class RegistrationFits:
         sizes = [small] + [k for k in NEIGHBOURHOODS if small < k <= n // 3]
         fits = [local_fit_weights(pts, k, subset_size, degrees=(1, 2, 3, 4) if i == 0
                                   else (1, 2, 3)) for i, k in enumerate(sizes)]
-        for fit in fits:  # tested several times each (:func:`_fit_choice`)
-            fit.keep_correlation()
         candidates = [(i, d) for i in range(len(fits)) for d in (1, 2)] + [(0, 3)]
-        factor = torch.stack([fits[i].variance_factor(fits[i].weights[d])
-                              for i, d in candidates])
-        return cls(fits=fits, candidates=candidates, factor=factor)
+        return cls(fits=fits, candidates=candidates)
+
+    def degrees(self, i: int) -> tuple[int, ...]:
+        """The degrees of the candidates over the neighbourhood ``fits[i]``."""
+        return tuple(d for j, d in self.candidates if j == i)
 
     def degree(self, choice: torch.Tensor) -> torch.Tensor:
         """(F, N) the degree (1 .. 3; 0: none) of the fits ``choice`` (F, N) (0: none, c + 1:
@@ -381,28 +393,35 @@ def _fit_choice(reg: RegistrationFits, warps: torch.Tensor, ok: torch.Tensor,
                 unit: torch.Tensor) -> torch.Tensor:
     """(F, N) the local fit that registers each frame at each POI (0: none, c + 1: candidate
     c of ``reg``): of the fits that pass their tests against the next degree
-    (:func:`~torch_stsdic.analysis.local_fit.local_fit_passes` on u and v of that frame
-    measured against the reference image: both images' noise, ``unit``: (N,) one image's
-    share of a classical displacement's variance) and whose neighbours are all trusted
-    (``ok``: a guard band around a crack, a lost region, the points that straddle them),
-    the one of least variance factor: a larger neighbourhood where the field allows it, a
-    plane before a quadratic over the same POIs; none: the frame is left out of the
-    template there."""
+    (:meth:`~torch_stsdic.analysis.local_fit.LocalFit.test_z`, every degree of a
+    neighbourhood in one pass, on u and v of that frame measured against the reference
+    image: both images' noise, ``unit``: (N,) one image's share of a classical
+    displacement's variance) and whose neighbours are all trusted (``ok``: a guard band
+    around a crack, a lost region, the points that straddle them), the one of least
+    variance factor (equal to ``TIE``: the one listed first): a larger neighbourhood where
+    the field allows it, a plane before a quadratic over the same POIs; none: the frame is
+    left out of the template there. Fills ``reg``'s factors from the same pass."""
     f, n = ok.shape
     # every frame's u and v as the rows of one test: (2F, N), rows u_0, v_0, u_1, v_1, ...
     vals = torch.where(ok[..., None], warps[..., [0, 3]], 0.0).transpose(1, 2).reshape(2 * f, n)
-    var = (2.0 * unit).expand(2 * f, -1)
+    var = (2.0 * unit)[None]  # (1, N): every row's
+    passes, factor = [], {}  # per neighbourhood: degree -> (F, N); (i, degree) -> (N,)
+    for i, fit in enumerate(reg.fits):  # every degree of a neighbourhood in one pass
+        tests = fit.test_z(vals, var, reg.degrees(i))
+        trusted = ok[:, fit.index].all(-1)
+        passes.append({d: t.passes(PLANE_Z).view(f, 2, n).all(1) & trusted
+                       for d, t in tests.items()})
+        factor.update({(i, d): t.factor for d, t in tests.items()})
+    if reg._factor is None:
+        reg._factor = torch.stack([factor[c] for c in reg.candidates])
     best = torch.full((f, n), torch.inf, dtype=torch.float64)
     choice = torch.zeros(f, n, dtype=torch.long)
     for c, (i, d) in enumerate(reg.candidates):
-        fit = reg.fits[i]
-        passes = (local_fit_passes(fit, vals, var, degree=d, z_limit=PLANE_Z).view(f, 2, n)
-                  .all(1) & ok[:, fit.index].all(-1))
-        better = passes & (reg.factor[c][None] < best)
+        # an equal factor (the cubic's value weights are the quadratic's at a POI whose
+        # neighbours lie symmetric about it) keeps the candidate listed first
+        better = passes[i][d] & (reg.factor[c][None] < best * (1.0 - TIE))
         best = torch.where(better, reg.factor[c][None], best)
         choice = torch.where(better, c + 1, choice)
-    for fit in reg.fits:
-        fit.keep_correlation(False)
     return choice
 
 
@@ -417,17 +436,20 @@ def _smooth(reg: RegistrationFits, warps: torch.Tensor, ok: torch.Tensor,
     f, n = warps.shape[:2]
     out = torch.zeros(f, n, 12, dtype=torch.float64)
     out[..., 0:3], out[..., 6:9] = warps[..., 0:3], warps[..., 3:6]
-    for c, o in ((0, 0), (3, 6)):
-        vals = torch.where(ok, warps[..., c], 0.0)  # (F, N)
-        for k, (i, d) in enumerate(reg.candidates):
-            here = choice == k + 1
-            if not bool(here.any()):
-                continue
-            fit = reg.fits[i]
-            terms = torch.cat([fit.apply(d, vals)[..., None], fit.apply_slopes(d, vals),
-                               fit.apply_quadratic(d, vals)], -1)  # (F, N, 6)
-            use = here & fit.posed[d] & torch.isfinite(terms).all(-1)
-            out[..., o:o + 6] = torch.where(use[..., None], terms, out[..., o:o + 6])
+    vals = torch.where(ok[..., None], warps[..., [0, 3]], 0.0)  # (F, N, 2) u, v
+    for k, (i, d) in enumerate(reg.candidates):
+        fr, pt = torch.nonzero((choice == k + 1) & reg.fits[i].posed[d][None], as_tuple=True)
+        if fr.numel() == 0:
+            continue
+        fit = reg.fits[i]
+        # (M, k, 6) the weights of the value, the slopes, the second-order coefficients
+        weights = torch.cat([fit.weights[d][pt, :, None], fit.slopes[d][pt],
+                             fit.quadratic[d][pt]], -1)
+        nb = vals[fr[:, None], fit.index[pt]]  # (M, k, 2) only where chosen
+        terms = torch.einsum("mkc,mkq->mcq", nb, weights)  # (M, 2, 6)
+        here = out[fr, pt].view(-1, 2, 6)
+        out[fr, pt] = torch.where(torch.isfinite(terms).all(-1, keepdim=True), terms,
+                                  here).reshape(-1, 12)
     return out
 
 
