@@ -382,10 +382,11 @@ class RegistrationFits:
         """(F, N) where the fit ``choice`` was made and every one of its neighbours is
         trusted (``ok`` (F, N)): a guard band around cracks and lost regions."""
         out = torch.zeros_like(choice, dtype=torch.bool)
-        for c, (i, _) in enumerate(self.candidates):
-            here = choice == c + 1
+        for i, fit in enumerate(self.fits):
+            cs = [c + 1 for c, (j, _) in enumerate(self.candidates) if j == i]
+            here = torch.isin(choice, torch.tensor(cs))
             if bool(here.any()):
-                out |= here & ok[:, self.fits[i].index].all(-1)
+                out |= here & ok[:, fit.index].all(-1)
         return out
 
 
