@@ -18,6 +18,11 @@ a plane with a variance ``d^T R d`` (``d`` the difference of the two weight vect
 difference beyond ``z_limit`` of its standard deviation says the plane does not hold there.
 A jump inside the neighbourhood (a crack) can leave the two values alike; the residuals
 show it (:meth:`LocalFit.residual_z`).
+
+:meth:`LocalFit.test_z` makes both tests of several degrees in one pass over the POIs (the
+designs of the degrees are nested; the residuals' variances come from ``A^T R`` and
+``A^T R A``, O(k^2 P) a POI): on the hourglass's 1,666 POIs and 42 rows the tests over 25,
+49 and 81 neighbours take ~0.3 s (docs/validation/window_length.md, "Cost").
 """
 
 from __future__ import annotations
