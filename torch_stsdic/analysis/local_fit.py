@@ -27,7 +27,7 @@ designs of the degrees are nested; the residuals' variances come from ``A^T R`` 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import torch
 
@@ -90,9 +90,6 @@ class LocalFit:
     offsets: torch.Tensor
     used: torch.Tensor
     subset_size: float
-    #: degree -> (N, P, P) ``(A^T A)^-1`` of the fit's design (offsets over the largest
-    #: neighbour distance; the identity where ill-posed)
-    inverse: dict[int, torch.Tensor] = field(default_factory=dict)
 
     def _chunks(self, rows: int = 1) -> range:
         """Chunks of POIs whose (n, k, k) and (rows, n, k) work arrays hold ~_CHUNK each."""
@@ -236,13 +233,11 @@ class LocalFit:
         a = _design(self.offsets[sl] / scale, degree) * self.used[sl][..., None]
         r = self.correlation(sl)
         ar = a.transpose(1, 2) @ r
-        return a, r.diagonal(dim1=1, dim2=2), ar, ar @ a
+        return a, r.diagonal(dim1=1, dim2=2).clone(), ar, ar @ a  # r itself goes now
 
     def _inverse(self, a: torch.Tensor, sl: slice, degree: int) -> torch.Tensor:
         """(n, P, P) ``(A^T A)^-1`` of the design ``a`` (n, k, P) of ``degree`` (the identity
-        where the fit is ill-posed): :func:`local_fit_weights`'s where it kept them."""
-        if degree in self.inverse:
-            return self.inverse[degree][sl]
+        where the fit is ill-posed)."""
         p = a.shape[-1]
         ata = a.transpose(1, 2) @ a
         good = self.posed[degree][sl]
@@ -297,7 +292,7 @@ def local_fit_weights(points: torch.Tensor, k: int, subset_size: float,
     scale = float(d.norm(dim=-1).max().clamp(min=1.0))
     ok = torch.ones(n, dtype=torch.bool) if valid is None else valid.cpu().bool()
     wk = ok[idx].double()  # (N, k)
-    weights, slopes, quadratic, posed, inverse = {}, {}, {}, {}, {}
+    weights, slopes, quadratic, posed = {}, {}, {}, {}
     own = torch.zeros(n, k, dtype=torch.float64)
     own[:, 0] = 1.0
     for deg in degrees:
@@ -317,10 +312,8 @@ def local_fit_weights(points: torch.Tensor, k: int, subset_size: float,
             quad = torch.where(good[:, None, None], rows[:, 3:6].transpose(1, 2) / scale ** 2,
                                quad)
         weights[deg], slopes[deg], quadratic[deg], posed[deg] = w0, sl, quad, good
-        inverse[deg] = inv
     return LocalFit(index=idx, weights=weights, slopes=slopes, quadratic=quadratic,
-                    posed=posed, offsets=d, used=wk, subset_size=float(subset_size),
-                    inverse=inverse)
+                    posed=posed, offsets=d, used=wk, subset_size=float(subset_size))
 
 
 def passing_fits(fit: LocalFit, values: torch.Tensor, variance: torch.Tensor, *,
