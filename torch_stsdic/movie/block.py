@@ -6,9 +6,9 @@ from the :class:`Carry` of the block before (the last stored row moved on by its
 Points without a valid carry start from their grid neighbours' carried motion; rows whose
 carried subset lies outside the image are OUTSIDE; the reference frame as its own classical
 target is the identity. Rows that get lost (not converged, or ZNCC below ``lost_zncc``) are
-rescued in time order from the solution of the previous target of the same block, then from
-their neighbours' solutions, then by FFT cross-correlation; the better of the attempts is
-kept. Then (``BlockContext.checks``) every row is checked
+rescued (:mod:`torch_stsdic.movie.rescue`) from the solution of an earlier target of the same
+block, then from their neighbours' solutions, then by FFT cross-correlation, all targets at
+once in each step; the better of the attempts is kept. Then (``BlockContext.checks``) every row is checked
 (:mod:`torch_stsdic.analysis.quality`): its window against the classical solution (shorter windows
 where the motion is not affine in time, the classical solution where none fits), rows still
 lost are solved classically, and poor fits and outliers among neighbours are flagged.
@@ -34,10 +34,11 @@ from torch_stsdic.core.solver import (
     subset_inside,
 )
 from torch_stsdic.core.status import Status
-from torch_stsdic.movie.carry import Carry, neighbour_guess
+from torch_stsdic.movie.carry import Carry
 from torch_stsdic.movie.checks import CHECK_ITER, CHECK_TOL, BlockChecks
 from torch_stsdic.movie.frames import FrameCache, block_frames, window_frames
 from torch_stsdic.movie.reference import Reference, noise_ratio, to_relative, to_total
+from torch_stsdic.movie.rescue import BlockRescue
 from torch_stsdic.movie.sample_guess import MeasuredSample
 from torch_stsdic.movie.template_noise import TemplateShares
 
@@ -126,7 +127,7 @@ class BlockContext:
 
 
 
-class Block(BlockChecks):
+class Block(BlockChecks, BlockRescue):
     """The rows (target frame x POI, row = target * N + point) of one block being solved:
     parameters relative to the current reference, ZNCC, status, iterations."""
 
@@ -450,75 +451,6 @@ class Block(BlockChecks):
         some = next(iter(values.values()))
         return torch.stack([values[nm] if nm in values else torch.zeros_like(some)
                             for nm in self.run.names], 1)
-
-    def rescue(self, carry: Carry | None, carried: torch.Tensor, m: int | None = None
-               ) -> tuple[int, int, int]:
-        """Lost rows, target by target in time order: start again from the solution of the
-        previous target of the block (same point) moved on by its velocity, then, where
-        still lost, from FFT cross-correlation; keep the better result (windows of
-        half-width ``m``, default the run's). ``carried``: rows that started from the
-        carried guess. Returns the rows restarted from a neighbour target, by FFT, and by
-        FFT after a carried start (an int, or a 0-d tensor read with the block's counts)."""
-        run, n = self.run, self.n
-        names = run.names
-        from_prev = by_fft = redone = from_nb = 0
-        # a target without lost rows has nothing to rescue (a target's rescue writes only its
-        # own rows): one host synchronisation for all targets instead of several each
-        has_lost = self.lost().reshape(self.b, n).any(1).tolist()
-        for j in range(self.b):
-            if not has_lost[j]:
-                continue
-            rows = torch.arange(j * n, (j + 1) * n, device=run.device)
-            if j > 0:
-                prev = rows - n
-                lost = self.lost()
-                cand = lost[rows] & (self.status[prev] <= USABLE) & ~lost[prev]
-                cand = torch.nonzero(cand).flatten()  # one index for all (one sync)
-                if cand.numel():
-                    r, pr = rows[cand], prev[cand]
-                    d = (run.ts[self.k[j]] - run.ts[self.k[j - 1]]).to(run.dtype)
-                    vals = {nm: self.params[pr, i] for i, nm in enumerate(names)}
-                    vel_u, vel_v = self._velocity(j, cand, carry)
-                    vals["u"] = vals["u"] + vel_u * d
-                    vals["v"] = vals["v"] + vel_v * d
-                    init = self.init_rows(vals)
-                    if m == 0:
-                        init = init.nan_to_num(0.0)  # a classical row has no ut, vt
-                    ok = torch.nonzero(torch.isfinite(init).all(1)).flatten()
-                    if ok.numel():
-                        self.keep(r[ok], self.solve(r[ok], init[ok], m=m), only_better=True,
-                                  m=m)
-                        from_prev += ok.numel()
-            from_nb += self._rescue_from_neighbours(rows, m)
-            r = rows[torch.nonzero(self.lost()[rows]).flatten()]
-            if r.numel():
-                self.keep(r, self.solve(r, None, m=m), only_better=True, m=m)
-                by_fft += r.numel()
-                redone = redone + carried[r].sum()  # read with the block's counts
-        run.stats["neighbour_rescued_rows"] = run.stats.get("neighbour_rescued_rows", 0) + from_nb
-        return from_prev, by_fft, redone
-
-    def _rescue_from_neighbours(self, rows: torch.Tensor, m: int | None) -> int:
-        """Lost rows among ``rows`` (one target) solved again from their trusted grid
-        neighbours' solutions at the same target (:func:`neighbour_guess`); the better
-        result is kept. Returns the rows tried."""
-        lost = self.lost()[rows]
-        ok = (self.status[rows] <= USABLE) & ~lost
-        n_lost, n_ok = torch.stack([lost.sum(), ok.sum()]).tolist()  # one read for both
-        if not n_lost or n_ok < 2:
-            return 0
-        guess = neighbour_guess(self.params[rows].unsqueeze(0), ok.unsqueeze(0),
-                                self.run.names, self.run.grid_neighbours(self.ref),
-                                self.ref.points)[0]
-        for nm in ("ut", "vt"):  # a classical neighbour has no velocity: none
-            if nm in self.run.names:
-                i = self.run.names.index(nm)
-                guess[:, i] = guess[:, i].nan_to_num(0.0)
-        try_ = torch.nonzero(lost & torch.isfinite(guess).all(1)).flatten()
-        r = rows[try_]
-        if r.numel():
-            self.keep(r, self.solve(r, guess[try_], m=m), only_better=True, m=m)
-        return r.numel()
 
 
 def _only_identity(run: BlockContext, ref: Reference, carry: Carry) -> bool:

@@ -380,27 +380,4 @@ class BlockChecks:
                                                           int(Status.INCONSISTENT))
         return out.sum()
 
-    def _velocity(self, j: int, cand: torch.Tensor, carry: Carry | None):
-        """Velocity (u, v) of target j-1 for the rows ``cand`` of a target: the measured
-        ut, vt where there is one, else the finite difference to target j-2 (or the carried
-        row)."""
-        run, n = self.run, self.n
-        names = run.names
-        prev = torch.arange((j - 1) * n, j * n, device=run.device)[cand]
-        iu, iv = names.index("u"), names.index("v")
-        if j >= 2:
-            pp = prev - n
-            span = (run.ts[self.k[j - 1]] - run.ts[self.k[j - 2]]).to(run.dtype)
-            du = (self.params[prev, iu] - self.params[pp, iu]) / span
-            dv = (self.params[prev, iv] - self.params[pp, iv]) / span
-        elif carry is not None:
-            du, dv = carry.vel_u[cand], carry.vel_v[cand]
-        else:
-            du = dv = torch.zeros_like(self.params[prev, iu])
-        if "ut" in names:
-            mu, mv = self.params[prev, names.index("ut")], self.params[prev, names.index("vt")]
-            du = torch.where(torch.isfinite(mu), mu, du)
-            dv = torch.where(torch.isfinite(mv), mv, dv)
-        return torch.nan_to_num(du), torch.nan_to_num(dv)
-
 

@@ -1,0 +1,60 @@
+"""The rescue of a block's lost rows (movie.block.Block.rescue): every target of a long block
+at once in each step (a few solves, not up to three a target), with the results of blocks
+solved one target after another."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from torch_stsdic import DICConfig
+from torch_stsdic.core.status import Status
+from torch_stsdic.movie import block as block_mod
+from torch_stsdic.movie.series import track
+from torch_stsdic.synth import Translation, synthetic_movie
+
+UT, VT = 0.45, -0.3  # px per frame
+
+
+@pytest.fixture(scope="module")
+def movie():
+    """21 noisy frames (t = 0..20; frame 0 the reference) of a translation at (UT, VT)."""
+    mv = synthetic_movie((81, 81), 20, Translation(ut=UT, vt=VT), noise_sigma=1.0, seed=3)
+    return torch.cat([mv.ref[None], mv.frames])
+
+
+def _track(frames, batch: int, monkeypatch) -> tuple:
+    """Classical DIC of the movie against frame 0 (no template, no shared motion: the
+    first block starts without a guess), in blocks of ``batch`` targets; the number of
+    solves its blocks made."""
+    calls = []
+    solve = block_mod.Block.solve
+
+    def counting(self, rows, init, *a, **k):
+        calls.append(int(rows.numel()))
+        return solve(self, rows, init, *a, **k)
+
+    monkeypatch.setattr(block_mod.Block, "solve", counting)
+    res = track(frames, config=DICConfig(m=0, subset_size=21), roi=(22, 22, 58, 58), step=12,
+                progress=False, batch_frames=batch, series_reference=False,
+                shared_motion=None, find_specimen=False, strain_window=None)
+    monkeypatch.undo()
+    return res, calls
+
+
+def test_a_long_block_is_rescued_in_a_few_solves_with_the_same_results(movie, monkeypatch):
+    """A first block of 20 targets has no guess: every row is lost. Target by target that
+    was an FFT solve and then a solve a target from the one before (20 and more); all at
+    once it is the FFT of the first target and a wave a stretch of targets (the velocity
+    unknown at the first target: one target; then up to 8 at a time). The answer is the
+    one-target blocks' and the known motion."""
+    long_, calls = _track(movie, 20, monkeypatch)
+    short, calls_short = _track(movie, 1, monkeypatch)
+    assert len(calls) <= 8, calls
+    assert len(calls_short) >= 20  # one block a target (the comparison's premise)
+    assert bool((long_.status <= int(Status.MAX_ITER)).all())
+    assert torch.equal(long_.status, short.status)
+    t = long_.times.double().view(-1, 1)
+    for got, ref, rate in ((long_.u, short.u, UT), (long_.v, short.v, VT)):
+        assert float((got.double() - ref.double()).abs().max()) < 2e-3
+        assert float((got.double() - rate * t).abs().max()) < 0.05

@@ -1,0 +1,168 @@
+"""The rescue of a block's lost rows (:class:`BlockRescue`, mixed into
+:class:`torch_stsdic.movie.block.Block`): rows without a trustworthy solution after the
+block's solve start again from the point's nearest earlier trusted target, from their grid
+neighbours' solutions, or from FFT cross-correlation, all the block's targets at once in each
+step."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+
+from torch_stsdic.analysis.result import USABLE
+from torch_stsdic.movie.carry import Carry, neighbour_guess
+from torch_stsdic.movie.plan import MAX_DEFAULT_BATCH
+
+__all__ = ["BlockRescue"]
+
+
+class BlockRescue:
+    """The rescue steps of a :class:`~torch_stsdic.movie.block.Block` (its rows, statuses,
+    ``lost``, ``keep`` and ``solve``)."""
+
+    def rescue(self, carry: Carry | None, carried: torch.Tensor, m: int | None = None
+               ) -> tuple[int, int, int]:
+        """Lost rows solved again, all the block's targets at once in each step (a few solves
+        a block, not up to three a target: on a GPU each solve costs its launches and host
+        reads): (1) from the point's nearest earlier trusted target of the block, moved on by
+        its velocity (at most ``MAX_DEFAULT_BATCH`` targets back where the velocity is known,
+        the target just before where it is not), in waves while rows are found; (2) from
+        their trusted grid neighbours' solutions at the same target; (3) from FFT
+        cross-correlation at each point's first lost target with no trusted one before, then
+        (1) again; (4) from FFT cross-correlation where still lost, then (1) again. The better
+        result is kept (windows of half-width ``m``, default the run's). ``carried``: rows
+        that started from the carried guess. Returns the rows restarted from an earlier
+        target, by FFT, and by FFT after a carried start (ints, or 0-d tensors read with the
+        block's counts)."""
+        run, b, n = self.run, self.b, self.n
+        tried = torch.full((b * n,), -1, dtype=torch.long, device=run.device)
+        from_prev = self._from_earlier(carry, m, tried)
+        from_nb = self._rescue_from_neighbours(m)
+        by_fft: Any = 0
+        redone: Any = 0
+        fft_tried = torch.zeros(b * n, dtype=torch.bool, device=run.device)
+        for first in (True, False):
+            lost = self.lost() & ~fft_tried
+            if first:  # each point's first lost target without a trusted one before it
+                alone = lost.view(b, n) & ~self._trusted().view(b, n).cummax(0).values
+                lost = (alone & (alone.cumsum(0) == 1)).reshape(-1)
+            r = torch.nonzero(lost).flatten()
+            if r.numel():
+                fft_tried[r] = True
+                self.keep(r, self.solve(r, None, m=m), only_better=True, m=m)
+                by_fft, redone = by_fft + r.numel(), redone + carried[r].sum()
+                from_prev += self._from_earlier(carry, m, tried)
+        run.stats["neighbour_rescued_rows"] = run.stats.get("neighbour_rescued_rows", 0) + from_nb
+        return from_prev, by_fft, redone
+
+    def _trusted(self) -> torch.Tensor:
+        """(B*N,) bool: usable rows that are not lost."""
+        return (self.status <= USABLE) & ~self.lost()
+
+    def _from_earlier(self, carry: Carry | None, m: int | None, tried: torch.Tensor) -> int:
+        """Step (1) of :meth:`rescue`: lost rows (target j, point i) started from the point's
+        nearest earlier trusted target p of the block, its parameters with u, v moved on by
+        its velocity over t_j - t_p (j - p <= ``MAX_DEFAULT_BATCH`` where that velocity is
+        known, j - p = 1 where not), in waves while a wave finds rows to try. ``tried``
+        (B*N,) long: the target each row was last started from (-1: none), updated: a row
+        is tried again only from a nearer target. Returns the rows tried."""
+        run, n, b = self.run, self.n, self.b
+        if b < 2:
+            return 0
+        names, dev = run.names, run.device
+        iu, iv = names.index("u"), names.index("v")
+        j_of = torch.arange(b, device=dev).repeat_interleave(n)  # (B*N,) each row's target
+        total = 0
+        for _ in range(b):
+            good = self._trusted()
+            # (B, N) the nearest trusted target strictly before each row's (-1: none)
+            at = torch.where(good, j_of, -1).view(b, n).cummax(0).values
+            p = torch.cat([at.new_full((1, n), -1), at[:-1]]).reshape(-1)
+            pr = p.clamp(min=0) * n + torch.arange(b * n, device=dev) % n
+            vel_u, vel_v, known = self._velocity_at(pr, carry)
+            reach = torch.where(known, MAX_DEFAULT_BATCH, 1)
+            cand = ~good & self.lost() & (p >= 0) & (p > tried) & (j_of - p <= reach)
+            r = torch.nonzero(cand).flatten()  # one index for all (one sync)
+            if not r.numel():
+                break
+            tried[r] = p[r]
+            init = self.params[pr[r]]  # a copy
+            d = (run.ts[self.k[j_of[r]]] - run.ts[self.k[p[r]]]).to(run.dtype)
+            init[:, iu] += vel_u[r] * d
+            init[:, iv] += vel_v[r] * d
+            if m == 0:
+                init = init.nan_to_num(0.0)  # a classical row has no ut, vt
+            else:
+                for nm, vel in (("ut", vel_u[r]), ("vt", vel_v[r])):  # a classical row: its
+                    if nm in names:                                     # velocity
+                        i = names.index(nm)
+                        init[:, i] = torch.where(torch.isfinite(init[:, i]), init[:, i], vel)
+            ok = torch.nonzero(torch.isfinite(init).all(1)).flatten()
+            if ok.numel():
+                self.keep(r[ok], self.solve(r[ok], init[ok], m=m), only_better=True, m=m)
+                total += ok.numel()
+        return total
+
+    def _velocity_at(self, rows: torch.Tensor, carry: Carry | None
+                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(R,) velocity (u, v) of the block's rows ``rows`` and whether it is known: the
+        measured ut, vt where there is one, else the finite difference to the row of the
+        target before (the carried velocity at the block's first target; 0 and not known
+        without one)."""
+        run, n = self.run, self.n
+        names = run.names
+        iu, iv = names.index("u"), names.index("v")
+        j = rows // n
+        first = j == 0
+        before = torch.where(first, rows, rows - n)
+        span = (run.ts[self.k[j]] - run.ts[self.k[(j - 1).clamp(min=0)]]).to(run.dtype)
+        span = torch.where(first, torch.ones_like(span), span)
+        du = (self.params[rows, iu] - self.params[before, iu]) / span
+        dv = (self.params[rows, iv] - self.params[before, iv]) / span
+        if carry is not None:
+            i = rows % n
+            du = torch.where(first, carry.vel_u[i].to(du), du)
+            dv = torch.where(first, carry.vel_v[i].to(dv), dv)
+            vk = carry.vel_known[i] if carry.vel_known is not None else torch.ones_like(first)
+            known = ~first | vk
+        else:
+            du = torch.where(first, torch.zeros_like(du), du)
+            dv = torch.where(first, torch.zeros_like(dv), dv)
+            known = ~first
+        known = known & torch.isfinite(du) & torch.isfinite(dv)
+        if "ut" in names:
+            mu, mv = self.params[rows, names.index("ut")], self.params[rows, names.index("vt")]
+            window = torch.isfinite(mu) & torch.isfinite(mv)
+            du = torch.where(window, mu, du)
+            dv = torch.where(window, mv, dv)
+            known = known | window
+        return torch.nan_to_num(du), torch.nan_to_num(dv), known
+
+    def _rescue_from_neighbours(self, m: int | None) -> int:
+        """Lost rows of every target solved again from their trusted grid neighbours'
+        solutions at the same target (:func:`neighbour_guess`); the better result is kept.
+        Returns the rows tried."""
+        b, n = self.b, self.n
+        lost = self.lost()
+        ok = (self.status <= USABLE) & ~lost
+        # the targets with a lost row and at least two trusted ones
+        has = (lost.view(b, n).any(1) & (ok.view(b, n).sum(1) >= 2)).tolist()  # one read
+        js = [j for j in range(b) if has[j]]
+        if not js:
+            return 0
+        sel = torch.tensor(js, device=self.run.device)
+        guess = neighbour_guess(self.params.view(b, n, -1)[sel], ok.view(b, n)[sel],
+                                self.run.names, self.run.grid_neighbours(self.ref),
+                                self.ref.points)  # (J, N, P)
+        for nm in ("ut", "vt"):  # a classical neighbour has no velocity: none
+            if nm in self.run.names:
+                i = self.run.names.index(nm)
+                guess[..., i] = guess[..., i].nan_to_num(0.0)
+        rows = (sel[:, None] * n + torch.arange(n, device=sel.device)).reshape(-1)
+        guess = guess.reshape(rows.numel(), -1)
+        try_ = torch.nonzero(lost[rows] & torch.isfinite(guess).all(1)).flatten()
+        r = rows[try_]
+        if r.numel():
+            self.keep(r, self.solve(r, guess[try_], m=m), only_better=True, m=m)
+        return r.numel()
