@@ -14,6 +14,7 @@ import torch_stsdic as sts
 import torch_stsdic.movie.series_reference as series_reference
 import torch_stsdic.movie.template_image as template_image
 from torch_stsdic import synth
+from torch_stsdic.analysis.local_fit import local_fit_weights
 
 N_FRAMES = 17
 MOTION = synth.QuadraticInTime(au=0.11, bu=-0.003, av=-0.06, bv=0.002)  # decelerating
@@ -615,9 +616,11 @@ def test_equal_factors_keep_the_lower_degree_and_the_maps_are_the_chosen_fits():
     choice[1, 50:60] = cubic + 1
     ok[:, centre + 3] = True
     out = series_reference._smooth(reg, warps, ok, choice)
+    # the fits with every weight kept (the registration keeps few; _smooth makes them)
+    full = [local_fit_weights(pts, f.index.shape[1], 21, degrees=(1, 2, 3)) for f in reg.fits]
     for c, o in ((0, 0), (3, 6)):
         for k, (i, d) in enumerate(reg.candidates):
-            fit, here = reg.fits[i], choice == k + 1
+            fit, here = full[i], choice == k + 1
             want = torch.cat([fit.apply(d, warps[..., c])[..., None],
                               fit.apply_slopes(d, warps[..., c]),
                               fit.apply_quadratic(d, warps[..., c])], -1)

@@ -70,16 +70,19 @@ class LocalFit:
     Attributes:
         index: (N, k) long, the neighbours of every POI (itself first).
         weights: degree -> (N, k) float64 weights of the fitted value at the POI (rows of
-            POIs whose fit is ill-posed: the POI itself, weight 1).
+            POIs whose fit is ill-posed: the POI itself, weight 1), for the degrees kept
+            (``keep`` of :func:`local_fit_weights`; any degree by chunks of POIs:
+            :meth:`map_weights`).
         slopes: degree -> (N, k, 2) weights of the fitted d/dx, d/dy at the POI (0 where
-            ill-posed).
+            ill-posed), the degrees kept.
         quadratic: degree -> (N, k, 3) weights of the fit's coefficients of dx^2, dx dy, dy^2
-            (px offsets from the POI; 0 for a plane and where ill-posed).
-        posed: degree -> (N,) bool, whether the fit was well posed.
+            (px offsets from the POI; 0 for a plane and where ill-posed), the degrees kept.
+        posed: degree -> (N,) bool, whether the fit was well posed (every degree fitted).
         offsets: (N, k, 2) px, the neighbours' offsets from the POI.
         used: (N, k) float64, 1 where a neighbour may be used.
         subset_size: px, for the neighbours' error correlation (:func:`overlap_correlation`,
             computed by chunks of POIs where needed: (k, k) per POI).
+        scale: px, the offsets' unit in the designs (the largest neighbour distance).
     """
 
     index: torch.Tensor
@@ -90,6 +93,16 @@ class LocalFit:
     offsets: torch.Tensor
     used: torch.Tensor
     subset_size: float
+    scale: float
+
+    def map_weights(self, degree: int, rows: torch.Tensor | slice) -> torch.Tensor:
+        """(n, k, 6) the weights of the fitted value, d/dx, d/dy and the coefficients of
+        dx^2, dx dy, dy^2 of the fit of ``degree`` at the POIs ``rows`` (indices or a slice),
+        worked out there (the stored ``weights``, ``slopes``, ``quadratic`` of a kept degree
+        are these, column by column): O(n k) memory for any number of POIs."""
+        rows_ = _fit_rows(self.offsets[rows], self.used[rows], degree, self.scale,
+                          self.posed[degree][rows])[0]
+        return _map_columns(rows_, self.posed[degree][rows], self.scale, degree)
 
     def _chunks(self, rows: int = 1) -> range:
         """Chunks of POIs whose (n, k, k) and (rows, n, k) work arrays hold ~_CHUNK each."""
@@ -223,7 +236,7 @@ class LocalFit:
 
     def _scale(self) -> float:
         """px: the offsets' unit in the designs (the largest neighbour distance)."""
-        return float(self.offsets.norm(dim=-1).max().clamp(min=1.0))
+        return self.scale
 
     def _moments(self, sl: slice, degree: int, scale: float
                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -273,7 +286,8 @@ def _design(d: torch.Tensor, degree: int) -> torch.Tensor:
 
 def local_fit_weights(points: torch.Tensor, k: int, subset_size: float,
                       valid: torch.Tensor | None = None,
-                      degrees: tuple[int, ...] = (1, 2)) -> LocalFit:
+                      degrees: tuple[int, ...] = (1, 2),
+                      keep: tuple[int, ...] | None = None) -> LocalFit:
     """The local fits of degree ``degrees`` of every POI over its ``k`` nearest POIs.
 
     Args:
@@ -283,6 +297,9 @@ def local_fit_weights(points: torch.Tensor, k: int, subset_size: float,
         valid: (N,) bool, the POIs whose values may be used (default all); an invalid POI
             gets weight 0 in its neighbours' fits.
         degrees: polynomial degrees to fit.
+        keep: the degrees whose weights are stored (default all ``degrees``; the others
+            only whether they are well posed, their weights by chunks where needed:
+            :meth:`LocalFit.map_weights`): N k 48 bytes a kept degree.
     """
     pts = points.double().cpu()
     n = pts.shape[0]
@@ -292,28 +309,65 @@ def local_fit_weights(points: torch.Tensor, k: int, subset_size: float,
     scale = float(d.norm(dim=-1).max().clamp(min=1.0))
     ok = torch.ones(n, dtype=torch.bool) if valid is None else valid.cpu().bool()
     wk = ok[idx].double()  # (N, k)
+    kept = tuple(degrees) if keep is None else tuple(keep)
     weights, slopes, quadratic, posed = {}, {}, {}, {}
+    step = max(1, _CHUNK // (k * 16))  # POIs a chunk: (n, k, P) designs of up to 15 terms
+    for deg in degrees:
+        good = []
+        cols = []
+        for s0 in range(0, n, step):
+            sl = slice(s0, s0 + step)
+            rows, g = _fit_rows(d[sl], wk[sl], deg, scale, None, rows=deg in kept)
+            good.append(g)
+            if deg in kept:
+                cols.append(_map_columns(rows, g, scale, deg))
+        posed[deg] = torch.cat(good)
+        if deg in kept:
+            m = torch.cat(cols)  # (N, k, 6)
+            weights[deg] = m[..., 0].clone()
+            slopes[deg] = m[..., 1:3].clone()
+            quadratic[deg] = m[..., 3:6].clone()
+    return LocalFit(index=idx, weights=weights, slopes=slopes, quadratic=quadratic,
+                    posed=posed, offsets=d, used=wk, subset_size=float(subset_size),
+                    scale=scale)
+
+
+def _fit_rows(offsets: torch.Tensor, used: torch.Tensor, degree: int, scale: float,
+              good: torch.Tensor | None, rows: bool = True
+              ) -> tuple[torch.Tensor | None, torch.Tensor]:
+    """The fits of ``degree`` of some POIs from their neighbours' ``offsets`` (n, k, 2) px and
+    ``used`` (n, k): the rows (n, P, k) of ``(A^T A)^-1 A^T`` (the coefficients are these
+    times the values; None with ``rows=False``) and (n,) whether each fit is well posed
+    (``good``: known; None: from the condition number of ``A^T A``, below 1e8, and more
+    used neighbours than terms)."""
+    a = _design(offsets / scale, degree) * used[..., None]  # (n, k, P)
+    ata = a.transpose(1, 2) @ a
+    p = a.shape[-1]
+    if good is None:
+        cond = torch.linalg.cond(ata)
+        good = (used.sum(1) > p) & torch.isfinite(cond) & (cond < 1e8)
+    if not rows:
+        return None, good
+    inv = torch.linalg.inv(torch.where(good[:, None, None], ata,
+                                       torch.eye(p, dtype=torch.float64)))
+    return inv @ a.transpose(1, 2), good
+
+
+def _map_columns(rows: torch.Tensor, good: torch.Tensor, scale: float, degree: int
+                 ) -> torch.Tensor:
+    """(n, P, k) rows of the fits of ``degree`` (:func:`_fit_rows`) -> (n, k, 6) the weights of
+    the value (the POI's own value where ill-posed), d/dx, d/dy (px^-1) and the coefficients
+    of dx^2, dx dy, dy^2 (px^-2; 0 for a plane and where ill-posed)."""
+    n, _, k = rows.shape
     own = torch.zeros(n, k, dtype=torch.float64)
     own[:, 0] = 1.0
-    for deg in degrees:
-        a = _design(d / scale, deg) * wk[..., None]  # (N, k, P)
-        ata = a.transpose(1, 2) @ a
-        p = a.shape[-1]
-        eye = torch.eye(p, dtype=torch.float64)
-        cond = torch.linalg.cond(ata)
-        good = (wk.sum(1) > p) & torch.isfinite(cond) & (cond < 1e8)
-        inv = torch.linalg.inv(torch.where(good[:, None, None], ata, eye))
-        rows = inv @ a.transpose(1, 2)  # (N, P, k): coefficients = rows @ y
-        w0 = torch.where(good[:, None], rows[:, 0], own)
-        sl = torch.where(good[:, None, None], rows[:, 1:3].transpose(1, 2) / scale,
-                         torch.zeros(n, k, 2, dtype=torch.float64))
-        quad = torch.zeros(n, k, 3, dtype=torch.float64)
-        if deg >= 2:
-            quad = torch.where(good[:, None, None], rows[:, 3:6].transpose(1, 2) / scale ** 2,
-                               quad)
-        weights[deg], slopes[deg], quadratic[deg], posed[deg] = w0, sl, quad, good
-    return LocalFit(index=idx, weights=weights, slopes=slopes, quadratic=quadratic,
-                    posed=posed, offsets=d, used=wk, subset_size=float(subset_size))
+    w0 = torch.where(good[:, None], rows[:, 0], own)
+    sl = torch.where(good[:, None, None], rows[:, 1:3].transpose(1, 2) / scale,
+                     torch.zeros(n, k, 2, dtype=torch.float64))
+    quad = torch.zeros(n, k, 3, dtype=torch.float64)
+    if degree >= 2:
+        quad = torch.where(good[:, None, None], rows[:, 3:6].transpose(1, 2) / scale ** 2, quad)
+    return torch.cat([w0[..., None], sl, quad], -1)
 
 
 def passing_fits(fit: LocalFit, values: torch.Tensor, variance: torch.Tensor, *,

@@ -78,6 +78,9 @@ PLANE_Z = 5.0
 NEIGHBOURHOODS = (25, 49, 81)
 #: relative difference below which two fits' variance factors are equal (:func:`_fit_choice`)
 TIE = 1e-9
+#: (frame, POI) pairs x neighbours of :func:`_smooth`'s work arrays per chunk of POIs (its
+#: weights worked out there: memory bounded for any number of POIs and frames)
+MAP_CHUNK = 1 << 19
 
 
 @dataclass
@@ -357,8 +360,10 @@ class RegistrationFits:
         # a larger neighbourhood only where it is local: at most a third of the POIs (over
         # nearly all, every POI's registration error would be one and the same field)
         sizes = [small] + [k for k in NEIGHBOURHOODS if small < k <= n // 3]
+        # weights kept: the smallest's planes (the gauge's); the maps' by chunks (_smooth)
         fits = [local_fit_weights(pts, k, subset_size, degrees=(1, 2, 3, 4) if i == 0
-                                  else (1, 2, 3)) for i, k in enumerate(sizes)]
+                                  else (1, 2, 3), keep=(1,) if i == 0 else ())
+                for i, k in enumerate(sizes)]
         candidates = [(i, d) for i in range(len(fits)) for d in (1, 2)] + [(0, 3)]
         return cls(fits=fits, candidates=candidates)
 
@@ -439,18 +444,21 @@ def _smooth(reg: RegistrationFits, warps: torch.Tensor, ok: torch.Tensor,
     out[..., 0:3], out[..., 6:9] = warps[..., 0:3], warps[..., 3:6]
     vals = torch.where(ok[..., None], warps[..., [0, 3]], 0.0)  # (F, N, 2) u, v
     for k, (i, d) in enumerate(reg.candidates):
-        fr, pt = torch.nonzero((choice == k + 1) & reg.fits[i].posed[d][None], as_tuple=True)
-        if fr.numel() == 0:
-            continue
         fit = reg.fits[i]
-        # (M, k, 6) the weights of the value, the slopes, the second-order coefficients
-        weights = torch.cat([fit.weights[d][pt, :, None], fit.slopes[d][pt],
-                             fit.quadratic[d][pt]], -1)
-        nb = vals[fr[:, None], fit.index[pt]]  # (M, k, 2) only where chosen
-        terms = torch.einsum("mkc,mkq->mcq", nb, weights)  # (M, 2, 6)
-        here = out[fr, pt].view(-1, 2, 6)
-        out[fr, pt] = torch.where(torch.isfinite(terms).all(-1, keepdim=True), terms,
-                                  here).reshape(-1, 12)
+        chosen = (choice == k + 1) & fit.posed[d][None]  # (F, N)
+        where = torch.nonzero(chosen.any(0)).flatten()  # POIs where it registers a frame
+        step = max(1, MAP_CHUNK // (fit.index.shape[1] * f))
+        for s0 in range(0, where.numel(), step):
+            rows = where[s0:s0 + step]
+            # (n, k, 6) the weights of the value, the slopes, the second-order coefficients
+            weights = fit.map_weights(d, rows)
+            at, fr = torch.nonzero(chosen[:, rows].T, as_tuple=True)
+            pt = rows[at]
+            nb = vals[fr[:, None], fit.index[pt]]  # (M, k, 2) only where chosen
+            terms = torch.einsum("mkc,mkq->mcq", nb, weights[at])  # (M, 2, 6)
+            here = out[fr, pt].view(-1, 2, 6)
+            out[fr, pt] = torch.where(torch.isfinite(terms).all(-1, keepdim=True), terms,
+                                      here).reshape(-1, 12)
     return out
 
 
