@@ -629,6 +629,50 @@ def test_equal_factors_keep_the_lower_degree_and_the_maps_are_the_chosen_fits():
     assert bool((out[1, :50, 3:6] == 0).all())
 
 
+def _kept_bytes(reg: series_reference.RegistrationFits) -> int:
+    """Bytes of the tensors a RegistrationFits keeps (its fits' and its factors)."""
+    total = 0 if reg._factor is None else reg._factor.nbytes
+    for fit in reg.fits:
+        total += fit.index.nbytes + fit.offsets.nbytes + fit.used.nbytes
+        for kept in (fit.weights, fit.slopes, fit.quadratic, fit.posed):
+            total += sum(t.nbytes for t in kept.values())
+    return total
+
+
+def test_the_registration_fits_keep_a_few_kb_a_poi_and_the_maps_work_by_chunks(monkeypatch):
+    """What the registration keeps grows with N by a small constant: the neighbours' index,
+    offsets and use over 25, 49 and 81 POIs (155 x 32 bytes a POI), whether each fit is
+    posed, the factors and the smallest neighbourhood's planes (the gauge's) -- 6.2 kB a POI
+    today, under 8 kB; keeping every degree's weights (round 5) took 28.5 kB a POI (250k POIs:
+    7 GB). The maps (_smooth) make the chosen fits' weights by chunks of POIs: the same
+    maps with chunks of one POI as with the default's."""
+    sizes = {}
+    for side in (30, 45):  # 900 and 2,025 POIs: fits over 25, 49, 81
+        reg = series_reference.RegistrationFits.make(_fit_grid(side), 25, 21)
+        assert [f.index.shape[1] for f in reg.fits] == [25, 49, 81]
+        _ = reg.factor
+        sizes[side * side] = _kept_bytes(reg)
+    for n, b in sizes.items():
+        assert b / n < 8000, (n, b / n)
+    (n0, b0), (n1, b1) = sizes.items()
+    assert abs(b1 / n1 - b0 / n0) < 0.02 * b0 / n0  # linear in N
+    torch.manual_seed(2)
+    pts = _fit_grid(30)
+    n = len(pts)
+    reg = series_reference.RegistrationFits.make(pts, 25, 21)
+    x = pts[:, 0] - 150
+    u = (1e-4 * x ** 2)[None] + 0.01 * torch.randn(3, n, dtype=torch.float64)
+    v = (-0.002 * x)[None] + 0.01 * torch.randn(3, n, dtype=torch.float64)
+    warps, ok = _warps_of(u, v), torch.ones(3, n, dtype=torch.bool)
+    choice = series_reference._fit_choice(reg, warps, ok, torch.full((n,), 1e-4,
+                                                                      dtype=torch.float64))
+    assert len(set(choice.unique().tolist())) >= 3  # several candidates chosen
+    out = series_reference._smooth(reg, warps, ok, choice)
+    monkeypatch.setattr(series_reference, "MAP_CHUNK", 1)
+    torch.testing.assert_close(series_reference._smooth(reg, warps, ok, choice), out,
+                               rtol=0, atol=1e-13)
+
+
 def test_the_larger_neighbourhoods_lower_the_templates_registration_error(monkeypatch):
     """The error every row shares is the reference image's noise seen through the fits that
     registered the frames: with only the reference frame noisy (the other frames nearly
