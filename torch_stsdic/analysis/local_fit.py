@@ -312,18 +312,23 @@ def local_fit_weights(points: torch.Tensor, k: int, subset_size: float,
     kept = tuple(degrees) if keep is None else tuple(keep)
     weights, slopes, quadratic, posed = {}, {}, {}, {}
     step = max(1, _CHUNK // (k * 16))  # POIs a chunk: (n, k, P) designs of up to 15 terms
+    good: dict[int, list[torch.Tensor]] = {deg: [] for deg in degrees}
+    cols: dict[int, list[torch.Tensor]] = {deg: [] for deg in kept if deg in degrees}
+    for s0 in range(0, n, step):
+        sl = slice(s0, s0 + step)
+        # the degrees not kept: only whether posed, from the highest design's first columns
+        top = _design(d[sl] / scale, max(degrees)) * wk[sl][..., None]
+        for deg in degrees:
+            if deg in cols:
+                rows, g = _fit_rows(d[sl], wk[sl], deg, scale, None)
+                cols[deg].append(_map_columns(rows, g, scale, deg))
+            else:
+                g = _posed(top[..., :_n_terms(deg)], wk[sl])
+            good[deg].append(g)
     for deg in degrees:
-        good = []
-        cols = []
-        for s0 in range(0, n, step):
-            sl = slice(s0, s0 + step)
-            rows, g = _fit_rows(d[sl], wk[sl], deg, scale, None, rows=deg in kept)
-            good.append(g)
-            if deg in kept:
-                cols.append(_map_columns(rows, g, scale, deg))
-        posed[deg] = torch.cat(good)
-        if deg in kept:
-            m = torch.cat(cols)  # (N, k, 6)
+        posed[deg] = torch.cat(good[deg])
+        if deg in cols:
+            m = torch.cat(cols[deg])  # (N, k, 6)
             weights[deg] = m[..., 0].clone()
             slopes[deg] = m[..., 1:3].clone()
             quadratic[deg] = m[..., 3:6].clone()
@@ -333,24 +338,31 @@ def local_fit_weights(points: torch.Tensor, k: int, subset_size: float,
 
 
 def _fit_rows(offsets: torch.Tensor, used: torch.Tensor, degree: int, scale: float,
-              good: torch.Tensor | None, rows: bool = True
-              ) -> tuple[torch.Tensor | None, torch.Tensor]:
+              good: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
     """The fits of ``degree`` of some POIs from their neighbours' ``offsets`` (n, k, 2) px and
     ``used`` (n, k): the rows (n, P, k) of ``(A^T A)^-1 A^T`` (the coefficients are these
-    times the values; None with ``rows=False``) and (n,) whether each fit is well posed
+    times the values) and (n,) whether each fit is well posed
     (``good``: known; None: from the condition number of ``A^T A``, below 1e8, and more
     used neighbours than terms)."""
     a = _design(offsets / scale, degree) * used[..., None]  # (n, k, P)
     ata = a.transpose(1, 2) @ a
     p = a.shape[-1]
     if good is None:
-        cond = torch.linalg.cond(ata)
-        good = (used.sum(1) > p) & torch.isfinite(cond) & (cond < 1e8)
-    if not rows:
-        return None, good
+        good = _posed(a, used, ata)
     inv = torch.linalg.inv(torch.where(good[:, None, None], ata,
                                        torch.eye(p, dtype=torch.float64)))
     return inv @ a.transpose(1, 2), good
+
+
+def _posed(a: torch.Tensor, used: torch.Tensor, ata: torch.Tensor | None = None
+           ) -> torch.Tensor:
+    """(n,) whether the fits of the designs ``a`` (n, k, P) (``ata``: their ``A^T A`` where
+    known) are well posed: more used neighbours (``used`` (n, k)) than terms and the
+    condition number of ``A^T A`` below 1e8."""
+    if ata is None:
+        ata = a.transpose(1, 2) @ a
+    cond = torch.linalg.cond(ata)
+    return (used.sum(1) > a.shape[-1]) & torch.isfinite(cond) & (cond < 1e8)
 
 
 def _map_columns(rows: torch.Tensor, good: torch.Tensor, scale: float, degree: int
