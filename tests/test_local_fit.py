@@ -122,3 +122,59 @@ def test_residuals_find_a_jump_the_fitted_values_miss():
     assert float(z[near].min()) > 20 and float(z[far].max()) < 5
     keep, _ = local_fit(fit, vals, var, z_limit=5.0)
     assert not bool(keep[near].any())
+
+
+def _direct_z(fit, degree: int, vals: torch.Tensor, var: torch.Tensor):
+    """The tests written out with the (k, k) matrices: the residual operator ``(I - H)``
+    (rows of unused neighbours 0), its covariance's diagonal ``(I - H) R (I - H)^T``, the
+    value difference's weights and their ``d^T R d``."""
+    n, k = fit.index.shape
+    scale = float(fit.offsets.norm(dim=-1).max())
+    from torch_stsdic.analysis.local_fit import _design
+
+    a = _design(fit.offsets / scale, degree) * fit.used[..., None]
+    h = a @ torch.linalg.inv(a.transpose(1, 2) @ a) @ a.transpose(1, 2)
+    op = (torch.eye(k, dtype=torch.float64) - h) * fit.used[..., None]
+    r = overlap_correlation(fit.offsets[:, :, None] - fit.offsets[:, None], fit.subset_size)
+    cov = torch.einsum("njk,nkl,njl->nj", op, r, op).clamp(min=1e-12)
+    nb = var[:, fit.index].mean(-1)
+    res = torch.einsum("njk,cnk->cnj", op, vals[:, fit.index])
+    rz = torch.where(fit.used[None] > 0, res.abs() / (cov[None] * nb[..., None]).sqrt(),
+                     0.0).amax(-1)
+    d = fit.weights[degree] - fit.weights[degree + 1]
+    var_d = torch.einsum("nj,njk,nk->n", d, r, d)
+    vz = (fit.apply(degree, vals) - fit.apply(degree + 1, vals)).abs() / (var_d * nb).sqrt()
+    return vz, rz, torch.einsum("nj,njk,nk->n", fit.weights[degree], r, fit.weights[degree])
+
+
+def test_one_pass_tests_equal_the_tests_written_out():
+    """LocalFit.test_z (every degree from one pass: nested designs, the residuals' variance
+    as diag(R - 2 H R + H R H) from A^T R, A^T R A) gives the z of the tests written out
+    with the (k, k) matrices, an invalid POI among the neighbours included, and the
+    fitted value's factor w^T R w; one value of variance (1, N) serves every row."""
+    g = torch.Generator().manual_seed(4)
+    pts = _grid(n=12) + torch.rand(144, 2, generator=g, dtype=torch.float64) * 4
+    valid = torch.ones(144, dtype=torch.bool)
+    valid[[30, 77]] = False
+    fit = local_fit_weights(pts, 25, 21, valid=valid, degrees=(1, 2, 3))
+    x, y = pts[:, 0] - 60, pts[:, 1] - 60
+    vals = torch.stack([1e-4 * x * x, 0.01 * y, 1e-6 * x ** 3]) + 0.01 * torch.randn(
+        3, 144, generator=g, dtype=torch.float64)
+    var = 1e-4 * (1 + torch.rand(1, 144, generator=g, dtype=torch.float64))
+    tests = fit.test_z(vals, var, (1, 2))
+    for d in (1, 2):
+        vz, rz, factor = _direct_z(fit, d, vals, var.expand(3, -1))
+        ok = fit.posed[d] & fit.posed[d + 1]
+        assert bool(ok.all())
+        torch.testing.assert_close(tests[d].value_z, vz, rtol=1e-7, atol=1e-9)
+        torch.testing.assert_close(tests[d].residual_z, rz, rtol=1e-7, atol=1e-9)
+        torch.testing.assert_close(tests[d].factor, factor, rtol=1e-9, atol=1e-12)
+        torch.testing.assert_close(fit.value_factors((d,))[d], factor, rtol=1e-9, atol=1e-12)
+        torch.testing.assert_close(fit.residual_z(d, vals, var), rz, rtol=1e-7, atol=1e-9)
+    # the curved rows fail the plane somewhere, the noise-only row passes nearly everywhere
+    passes = tests[1].passes(5.0)
+    assert float(passes[1].double().mean()) > 0.9 and not bool(passes[2].all())
+    # the correlation made in place is overlap_correlation of the pairwise offsets
+    off = fit.offsets[:5]
+    torch.testing.assert_close(fit.correlation(slice(0, 5)),
+                               overlap_correlation(off[:, :, None] - off[:, None], 21.0))

@@ -14,6 +14,7 @@ import torch_stsdic as sts
 import torch_stsdic.movie.series_reference as series_reference
 import torch_stsdic.movie.template_image as template_image
 from torch_stsdic import synth
+from torch_stsdic.analysis.local_fit import local_fit_weights
 
 N_FRAMES = 17
 MOTION = synth.QuadraticInTime(au=0.11, bu=-0.003, av=-0.06, bv=0.002)  # decelerating
@@ -520,6 +521,184 @@ def test_a_later_round_starts_every_row_from_the_earlier_rounds_solution(movie, 
     rows = n * res.n_points
     assert res.info["first_guess_rows"] >= 0.95 * rows  # not only the first block's
     assert float(res.iterations.double().mean()) < float(first[0].iterations.double().mean())
+
+
+def _fit_grid(n: int = 15, step: float = 10.0) -> torch.Tensor:
+    xs = torch.arange(n, dtype=torch.float64) * step
+    return torch.stack(torch.meshgrid(xs, xs, indexing="xy"), -1).reshape(-1, 2)
+
+
+def _warps_of(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """(F, N, 6) warps with the values u, v (F, N) (gradients unused by the choice)."""
+    w = torch.zeros(*u.shape, 6, dtype=torch.float64)
+    w[..., 0], w[..., 3] = u, v
+    return w
+
+
+def test_the_registration_takes_the_largest_neighbourhood_the_field_allows():
+    """The fit that registers a frame at a POI is the passing one of least variance factor:
+    on a field linear in space the plane over 81 POIs at the grid's centre (w^T R w 0.049
+    at step 10, subset 21, against 0.144 for the plane over 25: the template's registration
+    error, which every row carries, a third in variance); on a strongly curved field every
+    plane fails and a quadratic registers it, on a field that bends beyond a quadratic over
+    5 x 5 POIs a cubic over 25; an untrusted POI keeps the fits that would
+    include it out (a smaller neighbourhood is taken around it)."""
+    torch.manual_seed(0)
+    pts = _fit_grid(19)
+    n = len(pts)
+    x, y = pts[:, 0] - 20, pts[:, 1] - 20  # the grid's centre at 70, 70
+    reg = series_reference.RegistrationFits.make(pts, 25, 21)
+    assert [f.index.shape[1] for f in reg.fits] == [25, 49, 81]
+    # a grid of 225 POIs: 81 is over a third of them, not local
+    assert [f.index.shape[1] for f in series_reference.RegistrationFits.make(
+        _fit_grid(15), 25, 21).fits] == [25, 49]
+    centre = 9 * 19 + 9
+    plane25 = reg.factor[reg.candidates.index((0, 1)), centre]
+    plane81 = reg.factor[reg.candidates.index((2, 1)), centre]
+    assert abs(float(plane25) - 0.1437) < 2e-3 and abs(float(plane81) - 0.0493) < 2e-3
+    unit = torch.full((n,), 1e-4, dtype=torch.float64)  # (0.01 px)^2 one image's share
+    noise = 0.01 * torch.randn(4, 2, n, dtype=torch.float64)
+    linear = 0.002 * (x - 70) + 0.1
+    curved = 2e-4 * (x - 70) ** 2 + 1e-4 * (y - 70) ** 2  # 0.49 px over the grid
+    cubic = 5e-5 * (x - 40) ** 3  # bends beyond a quadratic over 5 x 5 POIs
+    u = torch.stack([linear, curved, linear, cubic]) + noise[:, 0]
+    v = torch.stack([-0.5 * linear, curved, -0.5 * linear, -cubic]) + noise[:, 1]
+    ok = torch.ones(4, n, dtype=torch.bool)
+    bad = centre + 3  # three columns right of the centre: inside its 7 x 7 block
+    ok[2, bad] = False
+    choice = series_reference._fit_choice(reg, _warps_of(u, v), ok, unit)
+    assert reg.candidates[int(choice[0, centre]) - 1] == (2, 1)  # a plane over 81
+    deg = reg.degree(choice)
+    assert bool((deg[1][choice[1] > 0] == 2).all())  # curved: only quadratics
+    assert float((choice[1] > 0).double().mean()) > 0.5
+    # frame 2: the centre's 49 and 81 neighbourhoods hold the untrusted POI: its 25's do not
+    assert reg.candidates[int(choice[2, centre]) - 1] == (0, 1)
+    assert bool(reg.guard(choice, ok)[2, centre])
+    # frame 3: only the cubic over 25 POIs follows it, and its value is the field's
+    assert reg.candidates[int(choice[3, centre]) - 1] == (0, 3)
+    smooth = series_reference._smooth(reg, _warps_of(u, v), ok, choice)
+    assert abs(float(smooth[3, centre, 0] - cubic[centre])) < 0.02  # noise 0.01 per POI
+    # the variance factor the template's registration is predicted with follows the choice
+    assert abs(float(reg.variance(choice)[0, centre]) - float(plane81)) < 1e-12
+    assert float(reg.variance(choice)[2, centre]) == pytest.approx(float(plane25))
+
+
+def test_equal_factors_keep_the_lower_degree_and_the_maps_are_the_chosen_fits():
+    """At a POI whose 25 neighbours lie symmetric about it the cubic's value weights are the
+    quadratic's (equal variance factors, to rounding): where both pass, the quadratic (listed
+    first) registers the frame, not whichever rounding favours. The maps (_smooth) are each
+    chosen fit's value, slopes and second-order terms (LocalFit.apply*) at its frames and
+    POIs, the POI's own warp elsewhere."""
+    pts = _fit_grid(15)  # fits over 25 and 49 POIs
+    n = len(pts)
+    reg = series_reference.RegistrationFits.make(pts, 25, 21)
+    centre = 7 * 15 + 7
+    quad, cubic = reg.candidates.index((0, 2)), reg.candidates.index((0, 3))
+    fq, fc = float(reg.factor[quad, centre]), float(reg.factor[cubic, centre])
+    assert fq == pytest.approx(fc, rel=1e-12)
+    torch.manual_seed(1)
+    x, y = pts[:, 0] - 70, pts[:, 1] - 70
+    curved = 2e-4 * x ** 2 + 1e-4 * y ** 2  # every plane fails, the quadratic passes
+    u = curved[None] + 0.01 * torch.randn(2, n, dtype=torch.float64)
+    v = -curved[None] + 0.01 * torch.randn(2, n, dtype=torch.float64)
+    ok = torch.ones(2, n, dtype=torch.bool)
+    ok[:, centre + 3] = False  # in the centre's 49 neighbours, not its 25
+    unit = torch.full((n,), 1e-4, dtype=torch.float64)
+    warps = _warps_of(u, v)
+    warps[..., 1] = 0.3  # a gradient of its own: kept where no fit is chosen
+    choice = series_reference._fit_choice(reg, warps, ok, unit)
+    assert int(choice[0, centre]) == quad + 1 and int(choice[1, centre]) == quad + 1
+    reg.factor[cubic, centre] = fq * (1 - 1e-13)  # rounding's side: still the quadratic
+    assert int(series_reference._fit_choice(reg, warps, ok, unit)[0, centre]) == quad + 1
+    reg.factor[cubic, centre] = fq * (1 - 1e-6)  # a real difference: the cubic
+    assert int(series_reference._fit_choice(reg, warps, ok, unit)[0, centre]) == cubic + 1
+    choice[1, :50] = 0  # no fit: the POI's own warp
+    choice[1, 50:60] = cubic + 1
+    ok[:, centre + 3] = True
+    out = series_reference._smooth(reg, warps, ok, choice)
+    # the fits with every weight kept (the registration keeps few; _smooth makes them)
+    full = [local_fit_weights(pts, f.index.shape[1], 21, degrees=(1, 2, 3)) for f in reg.fits]
+    for c, o in ((0, 0), (3, 6)):
+        for k, (i, d) in enumerate(reg.candidates):
+            fit, here = full[i], choice == k + 1
+            want = torch.cat([fit.apply(d, warps[..., c])[..., None],
+                              fit.apply_slopes(d, warps[..., c]),
+                              fit.apply_quadratic(d, warps[..., c])], -1)
+            torch.testing.assert_close(out[..., o:o + 6][here], want[here])
+    torch.testing.assert_close(out[1, :50, 0:3], warps[1, :50, 0:3])
+    assert bool((out[1, :50, 3:6] == 0).all())
+
+
+def _kept_bytes(reg: series_reference.RegistrationFits) -> int:
+    """Bytes of the tensors a RegistrationFits keeps (its fits' and its factors)."""
+    total = 0 if reg._factor is None else reg._factor.nbytes
+    for fit in reg.fits:
+        total += fit.index.nbytes + fit.offsets.nbytes + fit.used.nbytes
+        for kept in (fit.weights, fit.slopes, fit.quadratic, fit.posed):
+            total += sum(t.nbytes for t in kept.values())
+    return total
+
+
+def test_the_registration_fits_keep_a_few_kb_a_poi_and_the_maps_work_by_chunks(monkeypatch):
+    """What the registration keeps grows with N by a small constant: the neighbours' index,
+    offsets and use over 25, 49 and 81 POIs (155 x 32 bytes a POI), whether each fit is
+    posed, the factors and the smallest neighbourhood's planes (the gauge's) -- 6.2 kB a POI
+    today, under 8 kB; keeping every degree's weights (round 5) took 28.5 kB a POI (250k POIs:
+    7 GB). The maps (_smooth) make the chosen fits' weights by chunks of POIs: the same
+    maps with chunks of one POI as with the default's."""
+    sizes = {}
+    for side in (30, 45):  # 900 and 2,025 POIs: fits over 25, 49, 81
+        reg = series_reference.RegistrationFits.make(_fit_grid(side), 25, 21)
+        assert [f.index.shape[1] for f in reg.fits] == [25, 49, 81]
+        _ = reg.factor
+        sizes[side * side] = _kept_bytes(reg)
+    for n, b in sizes.items():
+        assert b / n < 8000, (n, b / n)
+    (n0, b0), (n1, b1) = sizes.items()
+    assert abs(b1 / n1 - b0 / n0) < 0.02 * b0 / n0  # linear in N
+    torch.manual_seed(2)
+    pts = _fit_grid(30)
+    n = len(pts)
+    reg = series_reference.RegistrationFits.make(pts, 25, 21)
+    x = pts[:, 0] - 150
+    u = (1e-4 * x ** 2)[None] + 0.01 * torch.randn(3, n, dtype=torch.float64)
+    v = (-0.002 * x)[None] + 0.01 * torch.randn(3, n, dtype=torch.float64)
+    warps, ok = _warps_of(u, v), torch.ones(3, n, dtype=torch.bool)
+    choice = series_reference._fit_choice(reg, warps, ok, torch.full((n,), 1e-4,
+                                                                      dtype=torch.float64))
+    assert len(set(choice.unique().tolist())) >= 3  # several candidates chosen
+    out = series_reference._smooth(reg, warps, ok, choice)
+    monkeypatch.setattr(series_reference, "MAP_CHUNK", 1)
+    torch.testing.assert_close(series_reference._smooth(reg, warps, ok, choice), out,
+                               rtol=0, atol=1e-13)
+
+
+def test_the_larger_neighbourhoods_lower_the_templates_registration_error(monkeypatch):
+    """The error every row shares is the reference image's noise seen through the fits that
+    registered the frames: with only the reference frame noisy (the other frames nearly
+    noise-free), classical DIC against the template errs by each point's registration
+    error. Fits over 25 .. 81 POIs (the default) against fits over 25 only: measured 0.70x
+    (2.18e-3 / 3.10e-3 px RMS over the frames and points; variance factors 0.049 / 0.144 at
+    the grid's centre, more at its edges); band 0.8."""
+    mot = synth.Custom(lambda x, y, t: (0.05 * t + 0.0004 * t * (x - 100), -0.03 * t))
+    mv = synth.synthetic_movie((201, 201), 10, mot, noise_sigma=0.0, seed=3)
+    clean = torch.cat([mv.ref[None], mv.frames]).double()
+    times = torch.cat([torch.zeros(1, dtype=torch.float64), mv.times])
+    gen = torch.Generator().manual_seed(5)
+    scale = torch.full((len(clean), 1, 1), 0.05, dtype=torch.float64)
+    scale[0] = 2.0
+    series = clean + torch.randn(clean.shape, generator=gen, dtype=torch.float64) * scale
+
+    def err():
+        res = sts.track(series, config=sts.DICConfig(m=0, subset_size=21), step=8,
+                        progress=False, series_reference=True)
+        gt = synth.ground_truth(mot, res.points.double(), times)
+        e = torch.stack([res.u.double()[1:] - gt["u"][1:], res.v.double()[1:] - gt["v"][1:]])
+        return float(e[torch.isfinite(e)].pow(2).mean().sqrt())
+    ladder = err()
+    monkeypatch.setattr(series_reference, "NEIGHBOURHOODS", (25,))
+    small = err()
+    assert ladder <= 0.8 * small, (ladder, small)
 
 
 def test_splat_over_the_covered_pixels_equals_the_splat_into_the_image():

@@ -21,7 +21,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import benchmark as bm  # noqa: E402
 import torch  # noqa: E402
 
-STAGES = ("_measure", "_frame_noise", "local_fit_weights", "time_model_holds", "_fit_degree",
+STAGES = ("_measure", "_frame_noise", "local_fit_weights", "time_model_holds", "_fit_choice",
           "_smooth", "template_image", "_gauge")
 
 

@@ -23,9 +23,10 @@ frames entered the template at each POI.
     python scripts/validation/hourglass_floor.py [--data ../shared/data]
         [--neighbours 25] [--plane-z 5]
 
-``--neighbours``, ``--plane-z``: the template's local fits made over that many POIs, and the
-z limit of their tests (the library's ``DEFAULT_NEIGHBOURS``, ``PLANE_Z``), for a study of
-what lets more frames into the template; the library is not changed.
+``--neighbours``, ``--plane-z``: the template's smallest local fits made over that many POIs
+(the larger ones of ``NEIGHBOURHOODS`` beyond it), and the z limit of their tests (the
+library's ``DEFAULT_NEIGHBOURS``, ``PLANE_Z``), for a study of what lets more frames into the
+template; the library is not changed.
 """
 
 from __future__ import annotations

@@ -11,6 +11,8 @@ every other option the default, the template made from the series included):
   y) / 60`` (``time_model_bias.py``), 31 images of 201 px;
 - ``steps``: load steps: a strain of 0.1 % added every 6 frames (held in between) plus a
   drift of 0.02 px a frame, 31 images of 201 px;
+- ``linear``: a drift and a strain growing linearly in time (``u = 0.05 t + 0.0004 t (x -
+  100)``, ``v = -0.03 t + 0.0002 t (y - 100)``), 31 images of 201 px;
 - ``sample3``: DIC Challenge sample 3 (rigid 0.1 px a frame, 11 images; subset 21, step 16,
   ROI 40 40 471 471), where ``--data`` holds it.
 
@@ -21,8 +23,9 @@ velocity) and its random part over the RMS of ut_std / vt_std, the share of trus
 at each m, the wall time and its ratio to the ``--m 0`` run (one run each: noisy on a
 shared machine).
 
-    python scripts/validation/window_length.py [--cases stretch vibration0.03 ...]
-        [--data ../shared/data] [--out docs/validation/window_length.md]
+    python scripts/validation/window_length.py [--cases stretch linear vibration0.03 ...]
+        [--data ../shared/data] [--out docs/validation/window_length.md] [--seed 1]
+        [--neighbourhoods 25 49 81]
 """
 
 from __future__ import annotations
@@ -38,6 +41,7 @@ import torch
 import torch_stsdic as sts
 from torch_stsdic import synth
 from torch_stsdic.io.images import load_series
+from torch_stsdic.movie import series_reference
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from series_reference_floor import errors  # noqa: E402
@@ -55,6 +59,13 @@ def steps() -> synth.Motion:
     def fn(x, y, t):
         e = 0.001 * torch.floor(t / 6.0)
         return e * (x - 100) + 0.02 * t, -0.3 * e * (y - 100)
+    return synth.Custom(fn)
+
+
+def linear() -> synth.Motion:
+    """A drift and a strain, both linear in time: the time model holds everywhere."""
+    def fn(x, y, t):
+        return 0.05 * t + 0.0004 * t * (x - 100), -0.03 * t + 0.0002 * t * (y - 100)
     return synth.Custom(fn)
 
 
@@ -85,7 +96,8 @@ def velocity_honesty(res, truth: dict[str, torch.Tensor]) -> float:
     return float(torch.nanmean(e.pow(2)).sqrt() / p[ok].pow(2).mean().sqrt())
 
 
-def run_case(name: str, data: Path, runs=RUNS, save: Path | None = None) -> list[dict]:
+def run_case(name: str, data: Path, runs=RUNS, save: Path | None = None, seed: int = 1
+             ) -> list[dict]:
     kw: dict = {"step": 10}
     if name == "sample3":
         folder = data / "dic-challenge-sample3"
@@ -101,9 +113,9 @@ def run_case(name: str, data: Path, runs=RUNS, save: Path | None = None) -> list
             z = (0.1 * t).expand_as(res.u)
             return {"u": z, "v": z, "ut": torch.full_like(z, 0.1), "vt": torch.full_like(z, 0.1)}
     else:
-        mot = {"stretch": stretch, "steps": steps}.get(name)
+        mot = {"stretch": stretch, "steps": steps, "linear": linear}.get(name)
         mot = mot() if mot is not None else vibration(float(name.removeprefix("vibration")))
-        series, times = render(mot)
+        series, times = render(mot, seed=seed)
         n = len(series)
 
         def truth(res):
@@ -152,7 +164,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--runs", nargs="*", type=int, default=None,
                     help="indices into RUNS (default all)")
     ap.add_argument("--save", type=Path, default=None, help="folder for each run's fields")
+    ap.add_argument("--seed", type=int, default=1, help="the renders' noise and speckle seed")
+    ap.add_argument("--neighbourhoods", nargs="+", type=int, default=None,
+                    help="the template's fits' neighbourhoods (series_reference.NEIGHBOURHOODS)")
     args = ap.parse_args(argv)
+    if args.neighbourhoods:
+        series_reference.NEIGHBOURHOODS = tuple(args.neighbourhoods)
     head = ["| case | run | RMS 1e-3 px | x classical | random 1e-3 px | predicted 1e-3 px | "
             "random / predicted | velocity RMS 1e-3 px/frame | velocity random / predicted | "
             "share of trusted results at m | s | time / classical |",
@@ -161,7 +178,7 @@ def main(argv: list[str] | None = None) -> int:
     lines = list(head)
     for case in args.cases:
         runs = RUNS if args.runs is None else tuple(RUNS[i] for i in args.runs)
-        for r in run_case(case, args.data, runs, args.save):
+        for r in run_case(case, args.data, runs, args.save, args.seed):
             lines.append(f"| {r['case']} | {r['run']} | {r['rms'] * 1e3:.2f} | {r['ratio']:.3f} | "
                          f"{r['random'] * 1e3:.2f} | {r['predicted'] * 1e3:.2f} | "
                          f"{r['random'] / r['predicted']:.2f} | "

@@ -18,6 +18,11 @@ a plane with a variance ``d^T R d`` (``d`` the difference of the two weight vect
 difference beyond ``z_limit`` of its standard deviation says the plane does not hold there.
 A jump inside the neighbourhood (a crack) can leave the two values alike; the residuals
 show it (:meth:`LocalFit.residual_z`).
+
+:meth:`LocalFit.test_z` makes both tests of several degrees in one pass over the POIs (the
+designs of the degrees are nested; the residuals' variances come from ``A^T R`` and
+``A^T R A``, O(k^2 P) a POI): on the hourglass's 1,666 POIs and 42 rows the tests over 25,
+49 and 81 neighbours take ~0.3 s (docs/validation/window_length.md, "Cost").
 """
 
 from __future__ import annotations
@@ -29,9 +34,33 @@ import torch
 from torch_stsdic.analysis.points import nearest_points
 
 __all__ = ["LocalFit", "local_fit_weights", "overlap_correlation", "local_fit",
-           "local_fit_passes"]
+           "local_fit_passes", "passing_fits", "FitTest"]
 
 _CHUNK = 1 << 22  # elements of the (n, k, k) work arrays per chunk of POIs
+
+
+@dataclass
+class FitTest:
+    """One degree's tests of a local fit (:meth:`LocalFit.test_z`) for C rows of values.
+
+    Attributes:
+        value_z: (C, N) |fitted value - the next degree's| / its standard deviation (inf
+            where either fit is ill-posed; None: not tested).
+        residual_z: (C, N) the largest |residual| / its standard deviation over the
+            neighbours (inf where ill-posed).
+        factor: (N,) the fitted value's variance over one value's, ``w^T R w`` (1 where
+            ill-posed).
+    """
+
+    value_z: torch.Tensor | None
+    residual_z: torch.Tensor
+    factor: torch.Tensor
+
+    def passes(self, z_limit: float) -> torch.Tensor:
+        """(C, N) bool: both tests within ``z_limit`` (both fits well posed)."""
+        if self.value_z is None:
+            raise ValueError("FitTest.passes: the fitted value was not tested (value=False)")
+        return (self.value_z < z_limit) & (self.residual_z < z_limit)
 
 
 @dataclass
@@ -41,16 +70,19 @@ class LocalFit:
     Attributes:
         index: (N, k) long, the neighbours of every POI (itself first).
         weights: degree -> (N, k) float64 weights of the fitted value at the POI (rows of
-            POIs whose fit is ill-posed: the POI itself, weight 1).
+            POIs whose fit is ill-posed: the POI itself, weight 1), for the degrees kept
+            (``keep`` of :func:`local_fit_weights`; any degree by chunks of POIs:
+            :meth:`map_weights`).
         slopes: degree -> (N, k, 2) weights of the fitted d/dx, d/dy at the POI (0 where
-            ill-posed).
+            ill-posed), the degrees kept.
         quadratic: degree -> (N, k, 3) weights of the fit's coefficients of dx^2, dx dy, dy^2
-            (px offsets from the POI; 0 for a plane and where ill-posed).
-        posed: degree -> (N,) bool, whether the fit was well posed.
+            (px offsets from the POI; 0 for a plane and where ill-posed), the degrees kept.
+        posed: degree -> (N,) bool, whether the fit was well posed (every degree fitted).
         offsets: (N, k, 2) px, the neighbours' offsets from the POI.
         used: (N, k) float64, 1 where a neighbour may be used.
         subset_size: px, for the neighbours' error correlation (:func:`overlap_correlation`,
             computed by chunks of POIs where needed: (k, k) per POI).
+        scale: px, the offsets' unit in the designs (the largest neighbour distance).
     """
 
     index: torch.Tensor
@@ -61,6 +93,16 @@ class LocalFit:
     offsets: torch.Tensor
     used: torch.Tensor
     subset_size: float
+    scale: float
+
+    def map_weights(self, degree: int, rows: torch.Tensor | slice) -> torch.Tensor:
+        """(n, k, 6) the weights of the fitted value, d/dx, d/dy and the coefficients of
+        dx^2, dx dy, dy^2 of the fit of ``degree`` at the POIs ``rows`` (indices or a slice),
+        worked out there (the stored ``weights``, ``slopes``, ``quadratic`` of a kept degree
+        are these, column by column): O(n k) memory for any number of POIs."""
+        rows_ = _fit_rows(self.offsets[rows], self.used[rows], degree, self.scale,
+                          self.posed[degree][rows])[0]
+        return _map_columns(rows_, self.posed[degree][rows], self.scale, degree)
 
     def _chunks(self, rows: int = 1) -> range:
         """Chunks of POIs whose (n, k, k) and (rows, n, k) work arrays hold ~_CHUNK each."""
@@ -68,9 +110,15 @@ class LocalFit:
         return range(0, self.index.shape[0], max(1, _CHUNK // (k * max(k, rows))))
 
     def correlation(self, sl: slice) -> torch.Tensor:
-        """(n, k, k) the error correlation of the neighbours of the POIs ``sl``."""
+        """(n, k, k) the error correlation of the neighbours of the POIs ``sl``: the
+        :func:`overlap_correlation` of their pairwise offsets, one axis at a time in place
+        (no (n, k, k, 2) temporaries: this is most of a fit test's work)."""
         d = self.offsets[sl]
-        return overlap_correlation(d[:, :, None, :] - d[:, None, :, :], self.subset_size)
+        scale = -1.0 / float(self.subset_size)
+
+        def share(a: torch.Tensor) -> torch.Tensor:
+            return (a[:, :, None] - a[:, None, :]).abs_().mul_(scale).add_(1.0).clamp_(min=0.0)
+        return share(d[..., 0]).mul_(share(d[..., 1]))
 
     def apply(self, degree: int, values: torch.Tensor) -> torch.Tensor:
         """(..., N) values -> (..., N) fitted values at the POIs."""
@@ -99,31 +147,120 @@ class LocalFit:
         over each POI's neighbours: the residuals ``(I - H) y`` (``H`` the fit's hat matrix)
         have the covariance ``(I - H) R (I - H)^T`` times the values' variance (C, N) (the
         neighbourhood's mean). A jump (a crack, a lost subset) inside the neighbourhood
-        stands out here, where the fitted value alone may not show it."""
+        stands out here, where the fitted value alone may not show it. inf where the fit is
+        ill-posed."""
+        return self.test_z(values, variance, (degree,), value=False)[degree].residual_z
+
+    def value_factors(self, degrees: tuple[int, ...]) -> dict[int, torch.Tensor]:
+        """degree -> (N,) ``w^T R w`` of the fitted value's weights ``w`` (1 where the fit is
+        ill-posed: the POI's own value), as :meth:`variance_factor` of ``weights[degree]``,
+        every degree from one pass over the correlations (``A^T R A``, P x P a POI)."""
+        n = self.index.shape[0]
+        out = {d: torch.ones(n, dtype=torch.float64) for d in degrees}
+        scale = self._scale()
+        chunks = self._chunks()
+        for s0 in chunks:
+            sl = slice(s0, s0 + chunks.step)
+            a, _, _, gram = self._moments(sl, max(degrees), scale)
+            for d in degrees:
+                w = self._inverse(a[..., :_n_terms(d)], sl, d)[:, 0]
+                out[d][sl] = self._factor(w, gram, sl, d)
+        return out
+
+    def test_z(self, values: torch.Tensor, variance: torch.Tensor, degrees: tuple[int, ...],
+               value: bool = True) -> dict[int, FitTest]:
+        """degree -> :class:`FitTest` of the fits of ``degrees`` for the values (C, N) of
+        error variances ``variance`` (C, N), or (1, N) for all rows, px^2 (the
+        neighbourhood's mean counts); ``value=False``: the residuals only.
+
+        All the degrees from one pass over each chunk of POIs: the neighbours' values
+        gathered once, the fits' coefficients ``(A^T A)^-1 A^T y`` of nested designs ``A``
+        (the degree's monomials are the first columns of the highest's), and the
+        residuals' variances as the diagonal ``R - 2 H R + H R H`` from ``A^T R`` and
+        ``A^T R A`` (O(k^2 P) a POI, not the (k, k) products' O(k^3)); the value
+        difference's variance ``delta^T (A^T R A) delta`` with ``delta`` the two fits'
+        value rows of their inverses (the weights' difference is ``A delta``)."""
         c, n = values.shape
-        k = self.index.shape[1]
-        out = torch.zeros(c, n, dtype=torch.float64)
-        nb_var = variance[:, self.index].mean(-1).clamp(min=1e-30)  # (C, N)
-        eye = torch.eye(k, dtype=torch.float64)
-        scale = float(self.offsets.norm(dim=-1).max().clamp(min=1.0))
+        top = max(degrees) + (1 if value else 0)
+        scale = self._scale()
+        out = {d: FitTest(value_z=(torch.full((c, n), torch.inf, dtype=torch.float64)
+                                   if value else None),
+                          residual_z=torch.full((c, n), torch.inf, dtype=torch.float64),
+                          factor=torch.ones(n, dtype=torch.float64)) for d in degrees}
+        need = sorted(set(degrees) | ({d + 1 for d in degrees} if value else set()))
+        # POI-major: every product below is one batched matrix product over the POIs
+        vals_t, var_t = values.T.contiguous(), variance.T.contiguous()  # (N, C), (N, C | 1)
         chunks = self._chunks(c)
         for s0 in chunks:
             sl = slice(s0, s0 + chunks.step)
             u = self.used[sl]
-            a = _design(self.offsets[sl] / scale, degree) * u[..., None]  # (n, k, P)
-            ata = a.transpose(1, 2) @ a
-            good = self.posed[degree][sl]
-            p = a.shape[-1]
-            inv = torch.linalg.inv(torch.where(good[:, None, None], ata,
-                                               torch.eye(p, dtype=torch.float64)))
-            resid_op = (eye - a @ inv @ a.transpose(1, 2)) * u[:, :, None]  # (n, k, k)
-            cov = torch.einsum("njk,nkl,njl->nj", resid_op, self.correlation(sl), resid_op)
-            y = values[:, self.index[sl]]  # (C, n, k)
-            r = torch.einsum("njk,cnk->cnj", resid_op, y)
-            sd = (cov.clamp(min=1e-12)[None] * nb_var[:, sl, None]).sqrt()
-            z = torch.where(u[None] > 0, r.abs() / sd, 0.0).amax(-1)
-            out[:, sl] = torch.where(good[None], z, torch.inf)
+            idx = self.index[sl]
+            a, rdiag, ar, gram = self._moments(sl, top, scale)
+            y = vals_t[idx]  # (n, k, C)
+            nb_var = var_t[idx].mean(1).clamp(min=1e-30)  # (n, C | 1)
+            aty = a.transpose(1, 2) @ y  # (n, P, C) A^T y
+            inv = {d: self._inverse(a[..., :_n_terms(d)], sl, d) for d in need}
+            for d in degrees:
+                p = _n_terms(d)
+                coef = inv[d] @ aty[:, :p]  # (n, P, C) the fit's coefficients
+                resid = torch.baddbmm(y, a[..., :p], coef, alpha=-1.0)  # (n, k, C)
+                am = a[..., :p] @ inv[d]  # (n, k, P): H = am A^T
+                hr = (am * ar[:, :p].transpose(1, 2)).sum(-1)  # (n, k) diag(H R)
+                hrh = ((am @ gram[:, :p, :p]) * am).sum(-1)  # diag(H R H)
+                # 1 / the residuals' variance factors, 0 at unused neighbours
+                icov = torch.where(u > 0, 1.0 / (rdiag - 2.0 * hr + hrh).clamp(min=1e-12), 0.0)
+                z = (resid.square_().mul_(icov[..., None]).amax(1) / nb_var).sqrt()  # (n, C)
+                out[d].residual_z[:, sl] = torch.where(self.posed[d][sl][:, None], z,
+                                                       torch.inf).T
+                out[d].factor[sl] = self._factor(inv[d][:, 0], gram, sl, d)
+                if value:
+                    q = _n_terms(d + 1)
+                    nxt = inv[d + 1][:, 0]  # (n, Q)
+                    delta = -nxt
+                    delta[:, :p] += inv[d][:, 0]
+                    var_d = torch.einsum("np,npq,nq->n", delta, gram[:, :q, :q],
+                                         delta).clamp(min=1e-12)
+                    diff = coef[:, 0] - (nxt[:, None] @ aty[:, :q])[:, 0]  # (n, C)
+                    vz = diff.abs() / (var_d[:, None] * nb_var).sqrt()
+                    posed = self.posed[d][sl] & self.posed[d + 1][sl]
+                    out[d].value_z[:, sl] = torch.where(posed[:, None], vz, torch.inf).T
         return out
+
+    def _factor(self, w: torch.Tensor, gram: torch.Tensor, sl: slice, degree: int
+                ) -> torch.Tensor:
+        """(n,) ``w^T (A^T R A) w`` for the value rows ``w`` (n, P) of the inverses of the
+        fit of ``degree`` (its weights are ``A w``); 1 where it is ill-posed."""
+        p = w.shape[-1]
+        f = torch.einsum("np,npq,nq->n", w, gram[:, :p, :p], w)
+        return torch.where(self.posed[degree][sl], f, 1.0)
+
+    def _scale(self) -> float:
+        """px: the offsets' unit in the designs (the largest neighbour distance)."""
+        return self.scale
+
+    def _moments(self, sl: slice, degree: int, scale: float
+                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """For the POIs ``sl``: the design ``A`` (n, k, P) of ``degree`` (offsets / ``scale``,
+        unused neighbours' rows 0), the correlations' diagonal (n, k), ``A^T R`` (n, P, k)
+        and ``A^T R A`` (n, P, P)."""
+        a = _design(self.offsets[sl] / scale, degree) * self.used[sl][..., None]
+        r = self.correlation(sl)
+        ar = a.transpose(1, 2) @ r
+        return a, r.diagonal(dim1=1, dim2=2).clone(), ar, ar @ a  # r itself goes now
+
+    def _inverse(self, a: torch.Tensor, sl: slice, degree: int) -> torch.Tensor:
+        """(n, P, P) ``(A^T A)^-1`` of the design ``a`` (n, k, P) of ``degree`` (the identity
+        where the fit is ill-posed)."""
+        p = a.shape[-1]
+        ata = a.transpose(1, 2) @ a
+        good = self.posed[degree][sl]
+        return torch.linalg.inv(torch.where(good[:, None, None], ata,
+                                            torch.eye(p, dtype=torch.float64)))
+
+
+def _n_terms(degree: int) -> int:
+    """Monomials of a polynomial in (x, y) up to ``degree``."""
+    return (degree + 1) * (degree + 2) // 2
 
 
 def overlap_correlation(offsets: torch.Tensor, subset_size: float) -> torch.Tensor:
@@ -142,12 +279,15 @@ def _design(d: torch.Tensor, degree: int) -> torch.Tensor:
         cols += [x * x, x * y, y * y]
     if degree >= 3:
         cols += [x ** 3, x * x * y, x * y * y, y ** 3]
+    if degree >= 4:
+        cols += [x ** 4, x ** 3 * y, x * x * y * y, x * y ** 3, y ** 4]
     return torch.stack(cols, -1)
 
 
 def local_fit_weights(points: torch.Tensor, k: int, subset_size: float,
                       valid: torch.Tensor | None = None,
-                      degrees: tuple[int, ...] = (1, 2)) -> LocalFit:
+                      degrees: tuple[int, ...] = (1, 2),
+                      keep: tuple[int, ...] | None = None) -> LocalFit:
     """The local fits of degree ``degrees`` of every POI over its ``k`` nearest POIs.
 
     Args:
@@ -157,6 +297,9 @@ def local_fit_weights(points: torch.Tensor, k: int, subset_size: float,
         valid: (N,) bool, the POIs whose values may be used (default all); an invalid POI
             gets weight 0 in its neighbours' fits.
         degrees: polynomial degrees to fit.
+        keep: the degrees whose weights are stored (default all ``degrees``; the others
+            only whether they are well posed, their weights by chunks where needed:
+            :meth:`LocalFit.map_weights`): N k 48 bytes a kept degree.
     """
     pts = points.double().cpu()
     n = pts.shape[0]
@@ -166,44 +309,97 @@ def local_fit_weights(points: torch.Tensor, k: int, subset_size: float,
     scale = float(d.norm(dim=-1).max().clamp(min=1.0))
     ok = torch.ones(n, dtype=torch.bool) if valid is None else valid.cpu().bool()
     wk = ok[idx].double()  # (N, k)
+    kept = tuple(degrees) if keep is None else tuple(keep)
     weights, slopes, quadratic, posed = {}, {}, {}, {}
+    step = max(1, _CHUNK // (k * 16))  # POIs a chunk: (n, k, P) designs of up to 15 terms
+    good: dict[int, list[torch.Tensor]] = {deg: [] for deg in degrees}
+    cols: dict[int, list[torch.Tensor]] = {deg: [] for deg in kept if deg in degrees}
+    for s0 in range(0, n, step):
+        sl = slice(s0, s0 + step)
+        # the degrees not kept: only whether posed, from the highest design's first columns
+        top = _design(d[sl] / scale, max(degrees)) * wk[sl][..., None]
+        for deg in degrees:
+            if deg in cols:
+                rows, g = _fit_rows(d[sl], wk[sl], deg, scale, None)
+                cols[deg].append(_map_columns(rows, g, scale, deg))
+            else:
+                g = _posed(top[..., :_n_terms(deg)], wk[sl])
+            good[deg].append(g)
+    for deg in degrees:
+        posed[deg] = torch.cat(good[deg])
+        if deg in cols:
+            m = torch.cat(cols[deg])  # (N, k, 6)
+            weights[deg] = m[..., 0].clone()
+            slopes[deg] = m[..., 1:3].clone()
+            quadratic[deg] = m[..., 3:6].clone()
+    return LocalFit(index=idx, weights=weights, slopes=slopes, quadratic=quadratic,
+                    posed=posed, offsets=d, used=wk, subset_size=float(subset_size),
+                    scale=scale)
+
+
+def _fit_rows(offsets: torch.Tensor, used: torch.Tensor, degree: int, scale: float,
+              good: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+    """The fits of ``degree`` of some POIs from their neighbours' ``offsets`` (n, k, 2) px and
+    ``used`` (n, k): the rows (n, P, k) of ``(A^T A)^-1 A^T`` (the coefficients are these
+    times the values) and (n,) whether each fit is well posed
+    (``good``: known; None: from the condition number of ``A^T A``, below 1e8, and more
+    used neighbours than terms)."""
+    a = _design(offsets / scale, degree) * used[..., None]  # (n, k, P)
+    ata = a.transpose(1, 2) @ a
+    p = a.shape[-1]
+    if good is None:
+        good = _posed(a, used, ata)
+    inv = torch.linalg.inv(torch.where(good[:, None, None], ata,
+                                       torch.eye(p, dtype=torch.float64)))
+    return inv @ a.transpose(1, 2), good
+
+
+def _posed(a: torch.Tensor, used: torch.Tensor, ata: torch.Tensor | None = None
+           ) -> torch.Tensor:
+    """(n,) whether the fits of the designs ``a`` (n, k, P) (``ata``: their ``A^T A`` where
+    known) are well posed: more used neighbours (``used`` (n, k)) than terms and the
+    condition number of ``A^T A`` below 1e8."""
+    if ata is None:
+        ata = a.transpose(1, 2) @ a
+    cond = torch.linalg.cond(ata)
+    return (used.sum(1) > a.shape[-1]) & torch.isfinite(cond) & (cond < 1e8)
+
+
+def _map_columns(rows: torch.Tensor, good: torch.Tensor, scale: float, degree: int
+                 ) -> torch.Tensor:
+    """(n, P, k) rows of the fits of ``degree`` (:func:`_fit_rows`) -> (n, k, 6) the weights of
+    the value (the POI's own value where ill-posed), d/dx, d/dy (px^-1) and the coefficients
+    of dx^2, dx dy, dy^2 (px^-2; 0 for a plane and where ill-posed)."""
+    n, _, k = rows.shape
     own = torch.zeros(n, k, dtype=torch.float64)
     own[:, 0] = 1.0
-    for deg in degrees:
-        a = _design(d / scale, deg) * wk[..., None]  # (N, k, P)
-        ata = a.transpose(1, 2) @ a
-        p = a.shape[-1]
-        eye = torch.eye(p, dtype=torch.float64)
-        cond = torch.linalg.cond(ata)
-        good = (wk.sum(1) > p) & torch.isfinite(cond) & (cond < 1e8)
-        inv = torch.linalg.inv(torch.where(good[:, None, None], ata, eye))
-        rows = inv @ a.transpose(1, 2)  # (N, P, k): coefficients = rows @ y
-        w0 = torch.where(good[:, None], rows[:, 0], own)
-        sl = torch.where(good[:, None, None], rows[:, 1:3].transpose(1, 2) / scale,
-                         torch.zeros(n, k, 2, dtype=torch.float64))
-        quad = torch.zeros(n, k, 3, dtype=torch.float64)
-        if deg >= 2:
-            quad = torch.where(good[:, None, None], rows[:, 3:6].transpose(1, 2) / scale ** 2,
-                               quad)
-        weights[deg], slopes[deg], quadratic[deg], posed[deg] = w0, sl, quad, good
-    return LocalFit(index=idx, weights=weights, slopes=slopes, quadratic=quadratic,
-                    posed=posed, offsets=d, used=wk, subset_size=float(subset_size))
+    w0 = torch.where(good[:, None], rows[:, 0], own)
+    sl = torch.where(good[:, None, None], rows[:, 1:3].transpose(1, 2) / scale,
+                     torch.zeros(n, k, 2, dtype=torch.float64))
+    quad = torch.zeros(n, k, 3, dtype=torch.float64)
+    if degree >= 2:
+        quad = torch.where(good[:, None, None], rows[:, 3:6].transpose(1, 2) / scale ** 2, quad)
+    return torch.cat([w0[..., None], sl, quad], -1)
+
+
+def passing_fits(fit: LocalFit, values: torch.Tensor, variance: torch.Tensor, *,
+                 degrees: tuple[int, ...] = (1,), z_limit: float = 3.0
+                 ) -> dict[int, torch.Tensor]:
+    """degree -> (C, N) bool: where the fit of that degree holds for each component of
+    ``values`` (C, N) (error variances ``variance``: (C, N) or (1, N) px^2): its value within
+    ``z_limit`` standard deviations of the next degree's, every residual within ``z_limit``
+    of its own (:meth:`LocalFit.residual_z`), and both fits well posed
+    (:meth:`FitTest.passes`). The weights' geometry and the neighbours' values are worked
+    out once for all C components and all ``degrees`` (:meth:`LocalFit.test_z`), so the C
+    rows (every frame's u and v) and the degrees cost about one."""
+    return {d: t.passes(z_limit) for d, t in fit.test_z(values, variance, degrees).items()}
 
 
 def local_fit_passes(fit: LocalFit, values: torch.Tensor, variance: torch.Tensor, *,
                      degree: int = 1, z_limit: float = 3.0) -> torch.Tensor:
     """(C, N) bool: where the fit of ``degree`` holds for each component of ``values``
-    (C, N) (error variances ``variance``: (C, N) px^2): its value within ``z_limit``
-    standard deviations of the next degree's, every residual within ``z_limit`` of its own
-    (:meth:`LocalFit.residual_z`), and both fits well posed. The weights' geometry is worked
-    out once for all C components, so the C rows (every frame's u and v) cost about one."""
-    d = fit.weights[degree] - fit.weights[degree + 1]
-    var_d = fit.variance_factor(d).clamp(min=1e-12)  # (N,)
-    nb_var = variance[:, fit.index].mean(-1)  # (C, N) the neighbourhood's mean variance
-    diff = fit.apply(degree, values) - fit.apply(degree + 1, values)
-    z = diff.abs() / (var_d * nb_var).sqrt()
-    resid = fit.residual_z(degree, values, variance)
-    return (z < z_limit) & (resid < z_limit) & fit.posed[degree] & fit.posed[degree + 1]
+    (:func:`passing_fits` of the one degree)."""
+    return passing_fits(fit, values, variance, degrees=(degree,), z_limit=z_limit)[degree]
 
 
 def local_fit(fit: LocalFit, values: torch.Tensor, variance: torch.Tensor, *,

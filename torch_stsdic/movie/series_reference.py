@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from torch_stsdic.analysis.local_fit import LocalFit, local_fit_passes, local_fit_weights
+from torch_stsdic.analysis.local_fit import LocalFit, local_fit_weights
 from torch_stsdic.analysis.points import nearest_points
 from torch_stsdic.analysis.quality import line_mismatch, line_offset
 from torch_stsdic.analysis.result import USABLE, TrackResult
@@ -69,6 +69,18 @@ POOL_CLIP = 3.0
 BIAS_FLOOR_PX = 1e-3
 #: |plane - quadratic| / its std beyond which a frame is left out of the template at a POI
 PLANE_Z = 5.0
+#: the neighbourhoods (POIs: 5 x 5, 7 x 7, 9 x 9 blocks of a grid) whose local fits may
+#: register a frame at a POI, beyond the run's ``neighbours`` (the smallest): at each frame
+#: and POI the passing fit of least variance (:class:`RegistrationFits`). The template's
+#: registration error, common to every row, is the reference image's noise through the
+#: fits (docs/validation/window_length.md): a plane over 81 POIs passes a third of a plane
+#: over 25's variance where the field allows it
+NEIGHBOURHOODS = (25, 49, 81)
+#: relative difference below which two fits' variance factors are equal (:func:`_fit_choice`)
+TIE = 1e-9
+#: (frame, POI) pairs x neighbours of :func:`_smooth`'s work arrays per chunk of POIs (its
+#: weights worked out there: memory bounded for any number of POIs and frames)
+MAP_CHUNK = 1 << 19
 
 
 @dataclass
@@ -316,41 +328,140 @@ def _matched(res: TrackResult, frames: list[int], reference_frame: int) -> torch
     return ~own[:, None] | ok
 
 
-def _fit_degree(fit: LocalFit, warps: torch.Tensor, ok: torch.Tensor, unit: torch.Tensor
-                ) -> torch.Tensor:
-    """(F, N) the degree of the local fit that registers each frame at each POI: 1 (a
-    plane) where it passes its tests against the quadratic (:func:`local_fit` on u and v
-    of that frame measured against the reference image: both images' noise, ``unit``: (N,)
-    one image's share of a classical displacement's variance), else 2 where the quadratic
-    passes against the cubic, else 0: the frame is left out of the template there, and
-    wherever a neighbour is not trusted in that frame (a guard band around a crack, a lost
-    region, the points that straddle them)."""
+@dataclass
+class RegistrationFits:
+    """The local fits that may register a frame at a POI (:func:`_fit_choice`): every
+    (neighbourhood, degree) of ``NEIGHBOURHOODS`` (from the run's ``neighbours`` up; a plane
+    or a quadratic, tested against the next degree) and a cubic over the smallest (against
+    the quartic: a field that bends more than a quadratic over it, as a specimen's load
+    grows), with each one's variance factor at each POI (``w^T R w``: the share of one
+    POI's noise its fitted value keeps). Memory linear in N with a small constant: the
+    fits keep their neighbours, whether each degree is posed and the smallest
+    neighbourhood's plane weights (the gauge's), 6.2 kB a POI over 25, 49, 81 POIs; the
+    maps' weights are made by chunks of POIs where chosen (:func:`_smooth`)."""
+
+    fits: list[LocalFit]  # one per neighbourhood, degrees 1 .. 3 (the smallest: .. 4)
+    candidates: list[tuple[int, int]]  # (index into fits, degree)
+    #: (C, N) float64 each candidate's variance factor, from the fits' tests
+    #: (:func:`_fit_choice`, which works them out in the same pass) or on first use
+    _factor: torch.Tensor | None = None
+
+    @property
+    def factor(self) -> torch.Tensor:
+        """(C, N) float64 each candidate's variance factor ``w^T R w``."""
+        if self._factor is None:
+            per_fit = [fit.value_factors(self.degrees(i)) for i, fit in enumerate(self.fits)]
+            self._factor = torch.stack([per_fit[i][d] for i, d in self.candidates])
+        return self._factor
+
+    @classmethod
+    def make(cls, pts: torch.Tensor, neighbours: int, subset_size: float) -> RegistrationFits:
+        """The fits of the POIs ``pts`` (N, 2) over ``neighbours`` POIs and the larger
+        ``NEIGHBOURHOODS`` of at most N / 3 POIs."""
+        n = pts.shape[0]
+        small = max(int(neighbours), 10)
+        # a larger neighbourhood only where it is local: at most a third of the POIs (over
+        # nearly all, every POI's registration error would be one and the same field)
+        sizes = [small] + [k for k in NEIGHBOURHOODS if small < k <= n // 3]
+        # weights kept: the smallest's planes (the gauge's); the maps' by chunks (_smooth)
+        fits = [local_fit_weights(pts, k, subset_size, degrees=(1, 2, 3, 4) if i == 0
+                                  else (1, 2, 3), keep=(1,) if i == 0 else ())
+                for i, k in enumerate(sizes)]
+        candidates = [(i, d) for i in range(len(fits)) for d in (1, 2)] + [(0, 3)]
+        return cls(fits=fits, candidates=candidates)
+
+    def degrees(self, i: int) -> tuple[int, ...]:
+        """The degrees of the candidates over the neighbourhood ``fits[i]``."""
+        return tuple(d for j, d in self.candidates if j == i)
+
+    def degree(self, choice: torch.Tensor) -> torch.Tensor:
+        """(F, N) the degree (1 .. 3; 0: none) of the fits ``choice`` (F, N) (0: none, c + 1:
+        candidate c)."""
+        deg = torch.tensor([0] + [d for _, d in self.candidates])
+        return deg[choice]
+
+    def variance(self, choice: torch.Tensor) -> torch.Tensor:
+        """(F, N) the variance factor of the fits ``choice`` (0 where none)."""
+        f = torch.cat([torch.zeros(1, self.factor.shape[1], dtype=torch.float64),
+                       self.factor])  # (C + 1, N)
+        return f.gather(0, choice.long())
+
+    def guard(self, choice: torch.Tensor, ok: torch.Tensor) -> torch.Tensor:
+        """(F, N) where the fit ``choice`` was made and every one of its neighbours is
+        trusted (``ok`` (F, N)): a guard band around cracks and lost regions."""
+        out = torch.zeros_like(choice, dtype=torch.bool)
+        for i, fit in enumerate(self.fits):
+            cs = [c + 1 for c, (j, _) in enumerate(self.candidates) if j == i]
+            here = torch.isin(choice, torch.tensor(cs))
+            if bool(here.any()):
+                out |= here & ok[:, fit.index].all(-1)
+        return out
+
+
+def _fit_choice(reg: RegistrationFits, warps: torch.Tensor, ok: torch.Tensor,
+                unit: torch.Tensor) -> torch.Tensor:
+    """(F, N) the local fit that registers each frame at each POI (0: none, c + 1: candidate
+    c of ``reg``): of the fits that pass their tests against the next degree
+    (:meth:`~torch_stsdic.analysis.local_fit.LocalFit.test_z`, every degree of a
+    neighbourhood in one pass, on u and v of that frame measured against the reference
+    image: both images' noise, ``unit``: (N,) one image's share of a classical
+    displacement's variance) and whose neighbours are all trusted (``ok``: a guard band
+    around a crack, a lost region, the points that straddle them), the one of least
+    variance factor (equal to ``TIE``: the one listed first): a larger neighbourhood where
+    the field allows it, a plane before a quadratic over the same POIs; none: the frame is
+    left out of the template there. Fills ``reg``'s factors from the same pass."""
     f, n = ok.shape
     # every frame's u and v as the rows of one test: (2F, N), rows u_0, v_0, u_1, v_1, ...
     vals = torch.where(ok[..., None], warps[..., [0, 3]], 0.0).transpose(1, 2).reshape(2 * f, n)
-    var = (2.0 * unit).expand(2 * f, -1)
-    plane = local_fit_passes(fit, vals, var, degree=1, z_limit=PLANE_Z).view(f, 2, n).all(1)
-    quad = local_fit_passes(fit, vals, var, degree=2, z_limit=PLANE_Z).view(f, 2, n).all(1)
-    return torch.where(plane, 1, torch.where(quad, 2, 0)) * ok[:, fit.index].all(-1)
+    var = (2.0 * unit)[None]  # (1, N): every row's
+    passes, factor = [], {}  # per neighbourhood: degree -> (F, N); (i, degree) -> (N,)
+    for i, fit in enumerate(reg.fits):  # every degree of a neighbourhood in one pass
+        tests = fit.test_z(vals, var, reg.degrees(i))
+        trusted = ok[:, fit.index].all(-1)
+        passes.append({d: t.passes(PLANE_Z).view(f, 2, n).all(1) & trusted
+                       for d, t in tests.items()})
+        factor.update({(i, d): t.factor for d, t in tests.items()})
+    if reg._factor is None:
+        reg._factor = torch.stack([factor[c] for c in reg.candidates])
+    best = torch.full((f, n), torch.inf, dtype=torch.float64)
+    choice = torch.zeros(f, n, dtype=torch.long)
+    for c, (i, d) in enumerate(reg.candidates):
+        # an equal factor (the cubic's value weights are the quadratic's at a POI whose
+        # neighbours lie symmetric about it) keeps the candidate listed first
+        better = passes[i][d] & (reg.factor[c][None] < best * (1.0 - TIE))
+        best = torch.where(better, reg.factor[c][None], best)
+        choice = torch.where(better, c + 1, choice)
+    return choice
 
 
-def _smooth(fit: LocalFit, warps: torch.Tensor, ok: torch.Tensor, degree: torch.Tensor
-            ) -> torch.Tensor:
+def _smooth(reg: RegistrationFits, warps: torch.Tensor, ok: torch.Tensor,
+            choice: torch.Tensor) -> torch.Tensor:
     """(F, N, 12) the maps of the frames at the POIs: u, its gradient and its coefficients
-    of dx^2, dx dy, dy^2 (px offsets from the POI), then the same of v; the local fit's of
-    ``degree`` (F, N) (whose neighbours are all trusted, ``ok``), elsewhere the POI's own
-    warp (no second-order terms). The second-order terms matter where the field curves: a
-    gradient of 10 % over 200 px moves a pixel 15 px from the POI by 0.06 px."""
+    of dx^2, dx dy, dy^2 (px offsets from the POI), then the same of v; the local fit
+    ``choice`` (F, N) of ``reg`` (:func:`_fit_choice`; its neighbours trusted, ``ok``),
+    elsewhere the POI's own warp (no second-order terms). The second-order terms matter
+    where the field curves: a gradient of 10 % over 200 px moves a pixel 15 px from the POI
+    by 0.06 px."""
     f, n = warps.shape[:2]
     out = torch.zeros(f, n, 12, dtype=torch.float64)
     out[..., 0:3], out[..., 6:9] = warps[..., 0:3], warps[..., 3:6]
-    for c, o in ((0, 0), (3, 6)):
-        vals = torch.where(ok, warps[..., c], 0.0)  # (F, N)
-        for d in (1, 2):
-            terms = torch.cat([fit.apply(d, vals)[..., None], fit.apply_slopes(d, vals),
-                               fit.apply_quadratic(d, vals)], -1)  # (F, N, 6)
-            use = (degree == d) & fit.posed[d] & torch.isfinite(terms).all(-1)
-            out[..., o:o + 6] = torch.where(use[..., None], terms, out[..., o:o + 6])
+    vals = torch.where(ok[..., None], warps[..., [0, 3]], 0.0)  # (F, N, 2) u, v
+    for k, (i, d) in enumerate(reg.candidates):
+        fit = reg.fits[i]
+        chosen = (choice == k + 1) & fit.posed[d][None]  # (F, N)
+        where = torch.nonzero(chosen.any(0)).flatten()  # POIs where it registers a frame
+        step = max(1, MAP_CHUNK // (fit.index.shape[1] * f))
+        for s0 in range(0, where.numel(), step):
+            rows = where[s0:s0 + step]
+            # (n, k, 6) the weights of the value, the slopes, the second-order coefficients
+            weights = fit.map_weights(d, rows)
+            at, fr = torch.nonzero(chosen[:, rows].T, as_tuple=True)
+            pt = rows[at]
+            nb = vals[fr[:, None], fit.index[pt]]  # (M, k, 2) only where chosen
+            terms = torch.einsum("mkc,mkq->mcq", nb, weights[at])  # (M, 2, 6)
+            here = out[fr, pt].view(-1, 2, 6)
+            out[fr, pt] = torch.where(torch.isfinite(terms).all(-1, keepdim=True), terms,
+                                      here).reshape(-1, 12)
     return out
 
 
@@ -367,7 +478,8 @@ def build_series_reference(plan: RunPlan, ref_raw: torch.Tensor, *,
     ``ref_raw`` (H, W), the others against the last template) and a template from their
     warps, replaced by each POI's local fit over its ``neighbours`` nearest POIs; a frame
     enters the template at a POI only where its first-round warp matched
-    (:func:`_matched`), its fit passed (:func:`_fit_degree`) and every neighbour is trusted.
+    (:func:`_matched`), one of its fits passed (:func:`_fit_choice`: over ``neighbours`` POIs
+    or a larger neighbourhood of ``NEIGHBOURHOODS``) and every neighbour of it is trusted.
     The first round also decides where the time model holds (:func:`time_model_holds`,
     with the ``shared`` motion taken out). Then the template's registration as the
     reference frame measures it (:func:`_gauge`), where the reference is a frame of the
@@ -385,34 +497,34 @@ def build_series_reference(plan: RunPlan, ref_raw: torch.Tensor, *,
     frames = sample_frames(plan, max_frames)
     sigmas = _frame_noise(plan, frames, cache)  # the same in every round
     pts = plan.points.double().cpu()
-    fit = local_fit_weights(pts, max(int(neighbours), 10), plan.config.subset_size,
-                            degrees=(1, 2, 3))
-    image = degree = unit = matched = guess = None
+    reg = RegistrationFits.make(pts, neighbours, plan.config.subset_size)
+    fit = reg.fits[0]  # the smallest neighbourhood: the gauge's planes
+    image = choice = unit = matched = guess = None
     for _ in range(int(iterations)):
         res = measured.result(frames) if image is None and measured is not None else None
         if res is None:
             res = _measure(plan, frames, image, run, guess)
         guess = _round_guess(plan, res)
         warps, trusted = _all_warps(plan, res)
-        if degree is None:  # tested once, against the reference image (a known null)
+        if choice is None:  # tested once, against the reference image (a known null)
             holds = time_model_holds(plan, res, frames, shared)
             unit = _unit_variance(res)
             matched = _matched(res, frames, plan.reference_frame)
-            degree = _fit_degree(fit, warps, trusted & matched, unit)
+            choice = _fit_choice(reg, warps, trusted & matched, unit)
         trusted = trusted & matched
-        # a frame enters at a POI whose fit passed and whose neighbours are all trusted
-        splat = (degree > 0) & trusted[:, fit.index].all(-1)
+        # a frame enters at a POI whose fit passed and whose fit's neighbours are all trusted
+        splat = reg.guard(choice, trusted)
         image, ratio, coverage, point_ratio = template_image(
-            plan, _smooth(fit, warps, trusted, degree), splat, frames, sigmas, ref_raw, cache)
+            plan, _smooth(reg, warps, trusted, choice), splat, frames, sigmas, ref_raw, cache)
+    degree = reg.degree(choice)
     use = degree > 0
     own = torch.tensor([k != plan.reference_frame for k in frames])
     counts = (use & own[:, None]).sum(0)  # (N,) frames besides the reference in the template
     registered = counts > 0
-    # the template's registration: the planes' error (the reference image's, common to the
-    # frames, and theirs averaged), none where only the reference image is there
-    planes = (degree == 1).double().sum(0) / (degree > 0).double().sum(0).clamp(min=1)
-    factor = (planes * fit.variance_factor(fit.weights[1])
-              + (1 - planes) * fit.variance_factor(fit.weights[2]))
+    # the template's registration: the fits' error (the reference image's, common to the
+    # frames, and theirs averaged; the mean variance factor of the frames' fits), none
+    # where only the reference image is there
+    factor = reg.variance(choice).sum(0) / use.double().sum(0).clamp(min=1)
     prior = factor * (1.0 + 1.0 / counts.clamp(min=1)) * unit
     added = torch.where(registered, prior, 0.0)
     gauge = None
