@@ -157,7 +157,7 @@ class LocalFit:
         every degree from one pass over the correlations (``A^T R A``, P x P a POI)."""
         n = self.index.shape[0]
         out = {d: torch.ones(n, dtype=torch.float64) for d in degrees}
-        scale = self._scale()
+        scale = self.scale
         chunks = self._chunks()
         for s0 in chunks:
             sl = slice(s0, s0 + chunks.step)
@@ -182,7 +182,7 @@ class LocalFit:
         value rows of their inverses (the weights' difference is ``A delta``)."""
         c, n = values.shape
         top = max(degrees) + (1 if value else 0)
-        scale = self._scale()
+        scale = self.scale
         out = {d: FitTest(value_z=(torch.full((c, n), torch.inf, dtype=torch.float64)
                                    if value else None),
                           residual_z=torch.full((c, n), torch.inf, dtype=torch.float64),
@@ -233,10 +233,6 @@ class LocalFit:
         p = w.shape[-1]
         f = torch.einsum("np,npq,nq->n", w, gram[:, :p, :p], w)
         return torch.where(self.posed[degree][sl], f, 1.0)
-
-    def _scale(self) -> float:
-        """px: the offsets' unit in the designs (the largest neighbour distance)."""
-        return self.scale
 
     def _moments(self, sl: slice, degree: int, scale: float
                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:

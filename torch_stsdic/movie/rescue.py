@@ -43,9 +43,10 @@ class BlockRescue:
         redone: Any = 0
         fft_tried = torch.zeros(b * n, dtype=torch.bool, device=run.device)
         for first in (True, False):
-            lost = self.lost() & ~fft_tried
+            now = self.lost()
+            lost = now & ~fft_tried
             if first:  # each point's first lost target without a trusted one before it
-                alone = lost.view(b, n) & ~self._trusted().view(b, n).cummax(0).values
+                alone = lost.view(b, n) & ~self._trusted(now).view(b, n).cummax(0).values
                 lost = (alone & (alone.cumsum(0) == 1)).reshape(-1)
             r = torch.nonzero(lost).flatten()
             if r.numel():
@@ -56,9 +57,9 @@ class BlockRescue:
         run.stats["neighbour_rescued_rows"] = run.stats.get("neighbour_rescued_rows", 0) + from_nb
         return from_prev, by_fft, redone
 
-    def _trusted(self) -> torch.Tensor:
-        """(B*N,) bool: usable rows that are not lost."""
-        return (self.status <= USABLE) & ~self.lost()
+    def _trusted(self, lost: torch.Tensor) -> torch.Tensor:
+        """(B*N,) bool: usable rows that are not ``lost`` (:meth:`lost`, read by the caller)."""
+        return (self.status <= USABLE) & ~lost
 
     def _from_earlier(self, carry: Carry | None, m: int | None, tried: torch.Tensor) -> int:
         """Step (1) of :meth:`rescue`: lost rows (target j, point i) started from the point's
@@ -73,16 +74,18 @@ class BlockRescue:
         names, dev = run.names, run.device
         iu, iv = names.index("u"), names.index("v")
         j_of = torch.arange(b, device=dev).repeat_interleave(n)  # (B*N,) each row's target
+        i_of = torch.arange(n, device=dev).repeat(b)  # (B*N,) each row's point
         total = 0
         for _ in range(b):
-            good = self._trusted()
+            lost = self.lost()
+            good = self._trusted(lost)
             # (B, N) the nearest trusted target strictly before each row's (-1: none)
             at = torch.where(good, j_of, -1).view(b, n).cummax(0).values
             p = torch.cat([at.new_full((1, n), -1), at[:-1]]).reshape(-1)
-            pr = p.clamp(min=0) * n + torch.arange(b * n, device=dev) % n
+            pr = p.clamp(min=0) * n + i_of
             vel_u, vel_v, known = self._velocity_at(pr, carry)
             reach = torch.where(known, MAX_DEFAULT_BATCH, 1)
-            cand = ~good & self.lost() & (p >= 0) & (p > tried) & (j_of - p <= reach)
+            cand = lost & (p >= 0) & (p > tried) & (j_of - p <= reach)
             r = torch.nonzero(cand).flatten()  # one index for all (one sync)
             if not r.numel():
                 break
@@ -145,7 +148,7 @@ class BlockRescue:
         Returns the rows tried."""
         b, n = self.b, self.n
         lost = self.lost()
-        ok = (self.status <= USABLE) & ~lost
+        ok = self._trusted(lost)
         # the targets with a lost row and at least two trusted ones
         has = (lost.view(b, n).any(1) & (ok.view(b, n).sum(1) >= 2)).tolist()  # one read
         js = [j for j in range(b) if has[j]]
