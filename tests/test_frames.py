@@ -219,7 +219,9 @@ def test_a_run_prepares_each_frame_once_across_its_passes():
     assert res.ok.float().mean() > 0.85 and float(err.abs().max()) < 0.05
     again = run(FrameStore(0))  # no store across passes: every pass prepares its frames
     assert again.info["prefiltered"] > 2 * read
-    assert again.info["pyramid_levels"] > res.info["pyramid_levels"]
+    # (only the first pass's first block searches on the pyramids: the later passes start
+    # from its solutions, and the rescue no longer searches the points leaving the image)
+    assert again.info["pyramid_levels"] >= res.info["pyramid_levels"]
     torch.testing.assert_close(again.u, res.u, rtol=0, atol=0, equal_nan=True)
 
 

@@ -58,3 +58,37 @@ def test_a_long_block_is_rescued_in_a_few_solves_with_the_same_results(movie, mo
     for got, ref, rate in ((long_.u, short.u, UT), (long_.v, short.v, VT)):
         assert float((got.double() - ref.double()).abs().max()) < 2e-3
         assert float((got.double() - rate * t).abs().max()) < 0.05
+
+
+@pytest.mark.parametrize("m", [0, 2])
+def test_a_long_blocks_rescue_keeps_points_leaving_the_image_in_view(m, monkeypatch):
+    """The specimen moves up and out of view. One-target blocks carry each point and move
+    its subset inside the image while the point is in view (an off-centre subset; a
+    shorter window where it leaves within the window's frames); a long block's rows start
+    in the rescue and must be placed the same way: the same statuses as one-target blocks,
+    points measured until they leave (a long block's rescue that solved centred subsets
+    with the run's window there disagreed at 26 % (m = 0) and 10 % (m = 2) of the top
+    points' rows)."""
+    mv = synthetic_movie((97, 97), 20, Translation(ut=0.2, vt=-1.4), noise_sigma=1.0, seed=5,
+                         margin=40.0)
+    frames = torch.cat([mv.ref[None], mv.frames])
+    runs = []
+    for batch in (1, 20):
+        res = track(frames, config=DICConfig(m=m, subset_size=21), roi=(20, 14, 76, 60),
+                    step=10, progress=False, batch_frames=batch, series_reference=False,
+                    shared_motion=None, find_specimen=False, strain_window=None,
+                    window_length="fixed")
+        runs.append(res)
+    short, long_ = runs
+    top = short.points[:, 1] < 30  # the rows of points that leave within the movie
+    assert bool(top.any())
+    ok_short = short.status <= int(Status.MAX_ITER)
+    ok_long = long_.status <= int(Status.MAX_ITER)
+    # the top points are measured off-centre for frames after their centred subset left
+    y = short.points[:, 1].double() + short.v.double()
+    assert bool((ok_short & (y < 10.5)).any())
+    assert float((ok_long[:, top] == ok_short[:, top]).double().mean()) >= 0.98
+    assert int(ok_long.sum()) >= int(ok_short.sum()) - 2
+    both = ok_short & ok_long  # (a subset moved by other whole px: other pixels, other noise)
+    d = (long_.v - short.v).double()[both]
+    assert float(d.pow(2).mean().sqrt()) < 2e-3 and float(d.abs().max()) < 0.02

@@ -30,6 +30,8 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--targets", type=int, default=None,
                     help="most target frames a block (default: the CPU's, 8)")
+    ap.add_argument("--keep", type=Path, default=None,
+                    help="keep the run's result file there (default: a temporary one)")
     ap.add_argument("run_args", nargs="+", help="stsdic run's arguments (after --)")
     a = ap.parse_args()
     import torch_stsdic.movie.plan as plan_mod
@@ -61,7 +63,7 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
         with contextlib.redirect_stdout(io.StringIO()):
-            rc = cli_main(["run", *a.run_args, "--out", str(Path(tmp) / "r.h5"),
+            rc = cli_main(["run", *a.run_args, "--out", str(a.keep or Path(tmp) / "r.h5"),
                            "--overwrite", "--no-progress"])
         wall = time.perf_counter() - t0
     print(json.dumps({"rc": rc, "wall_s": round(wall, 1), **st}, indent=1))

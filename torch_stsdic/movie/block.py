@@ -37,7 +37,7 @@ from torch_stsdic.core.solver import (
 from torch_stsdic.core.status import Status
 from torch_stsdic.movie.carry import Carry
 from torch_stsdic.movie.checks import CHECK_ITER, CHECK_TOL, BlockChecks
-from torch_stsdic.movie.frames import FrameCache, block_frames, window_frames
+from torch_stsdic.movie.frames import FrameCache, block_frames, half_widths, window_frames
 from torch_stsdic.movie.reference import Reference, noise_ratio, to_relative, to_total
 from torch_stsdic.movie.rescue import BlockRescue
 from torch_stsdic.movie.sample_guess import MeasuredSample
@@ -322,6 +322,7 @@ class Block(BlockChecks, BlockRescue):
         self.zncc[out] = float("nan")
         self.status[out] = int(Status.OUTSIDE)
         self.m_used[out] = 0
+        self.gone |= out  # final: not rescued (a rescue would move the subset inside)
         return rows
 
     def identity_solution(self, idx: torch.Tensor) -> WindowSolution:
@@ -397,15 +398,18 @@ class Block(BlockChecks, BlockRescue):
         self.status.masked_fill_(out, int(Status.OUTSIDE))
         self.gone |= out
         moved = (shift != 0).any(1) & ~out
-        per_target = moved.reshape(self.b, -1).sum(1).tolist()  # one read: which targets
-        n_moved = sum(per_target)
+        n_moved = int(moved.sum())  # one read
         if n_moved:
-            # each target's moved points, for the shared motion at their centres (one index)
-            at = torch.nonzero(moved.reshape(self.b, -1)).split(per_target)
-            self._moved = [(j, a[:, 1]) for j, a in enumerate(at) if per_target[j]]
             whole = torch.sign(shift) * shift.abs().ceil()  # whole px, away from the border
-            self.centres = self.pts + torch.where(moved.unsqueeze(1), whole, 0.0)
-            self.centres_inside = bool(subset_inside(  # once a block, not once a solve
+            # rows moved by an earlier call (the block's carry, then its rescue) keep theirs
+            base = self.pts if self.centres is None else self.centres
+            self.centres = torch.where(moved.unsqueeze(1), self.pts + whole, base)
+            off = (self.centres != self.pts).any(1).reshape(self.b, -1)
+            per_target = off.sum(1).tolist()  # one read: which targets
+            # each target's moved points, for the shared motion at their centres (one index)
+            at = torch.nonzero(off).split(per_target)
+            self._moved = [(j, a[:, 1]) for j, a in enumerate(at) if per_target[j]]
+            self.centres_inside = bool(subset_inside(  # once a call, not once a solve
                 self.centres, float(run.solver.window.half), self.ref.img.height,
                 self.ref.img.width).all())
             self._motion = {}  # the shared motion at the subsets' centres
@@ -483,7 +487,7 @@ def _shorter_again(blk: Block, cap: torch.Tensor) -> None:
     (``cap``: (B*N,) the longest half-width; a first block's FFT start, a rescue) are solved
     again with that half-width from their solution; kept where usable."""
     over = (blk.m_used > cap) & (blk.status <= USABLE)
-    for m in _half_widths(cap, over, blk.run.m):
+    for m in half_widths(cap, over, blk.run.m):
         again = torch.nonzero(over & (cap == m)).flatten()
         sol = blk.solve(again, blk.params[again], m=m)
         good = torch.nonzero(sol.status <= USABLE).flatten()
@@ -491,14 +495,6 @@ def _shorter_again(blk: Block, cap: torch.Tensor) -> None:
             blk.keep(again[good], sol.rows(good), only_better=False, m=m)
             blk.run.stats["shorter_again_rows"] = blk.run.stats.get(
                 "shorter_again_rows", 0) + int(good.numel())
-
-
-def _half_widths(m_of: torch.Tensor, rows: torch.Tensor, m_max: int) -> list[int]:
-    """The half-widths 0 .. ``m_max`` that ``m_of`` (R,) takes at the ``rows`` (R,) bool, in
-    increasing order: one host read (a count of each), not a ``unique`` and a copy."""
-    counts = torch.bincount(torch.where(rows, m_of.long().clamp(0, m_max), m_max + 1),
-                            minlength=m_max + 2)[:m_max + 1]
-    return [m for m, c in enumerate(counts.tolist()) if c]
 
 
 def _first_guess_rows(run: BlockContext, blk: Block, ref: Reference) -> torch.Tensor:
@@ -580,7 +576,7 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
                                                                               cap)
     shorter = carried & (blk.window_m < run.m) if blk.window_m is not None else None
     if shorter is not None:  # points leaving the image within their window
-        for m in _half_widths(blk.window_m, shorter, run.m):
+        for m in half_widths(blk.window_m, shorter, run.m):
             r = torch.nonzero(shorter & (blk.window_m == m)).flatten()
             blk.keep(r, blk.solve(r, init[r], m=m), only_better=False, m=m)
         carried = carried & ~shorter

@@ -37,7 +37,7 @@ from torch_stsdic.io import ImageSeries
 from torch_stsdic.movie.frame_ring import FrameRing, RingView
 
 __all__ = ["FrameCache", "FrameStore", "PreparedFrame", "window_frames", "block_frames",
-           "segment_bounds", "frames_in_order", "default_ahead"]
+           "segment_bounds", "frames_in_order", "default_ahead", "half_widths"]
 
 
 def window_frames(ks: torch.Tensor, m: int, n_series: int,
@@ -405,3 +405,11 @@ class FrameCache:
         call are copied; address them by :attr:`RingView.planes`)."""
         self._hold_only(idx)
         return self._ring.fill(self.entries, idx)
+
+
+def half_widths(m_of: torch.Tensor, rows: torch.Tensor, m_max: int) -> list[int]:
+    """The half-widths 0 .. ``m_max`` that ``m_of`` (R,) takes at the ``rows`` (R,) bool, in
+    increasing order: one host read (a count of each), not a ``unique`` and a copy."""
+    counts = torch.bincount(torch.where(rows, m_of.long().clamp(0, m_max), m_max + 1),
+                            minlength=m_max + 2)[:m_max + 1]
+    return [m for m, c in enumerate(counts.tolist()) if c]

@@ -12,6 +12,7 @@ import torch
 
 from torch_stsdic.analysis.result import USABLE
 from torch_stsdic.movie.carry import Carry, neighbour_guess
+from torch_stsdic.movie.frames import half_widths
 from torch_stsdic.movie.plan import MAX_DEFAULT_BATCH
 
 __all__ = ["BlockRescue"]
@@ -51,11 +52,46 @@ class BlockRescue:
             r = torch.nonzero(lost).flatten()
             if r.numel():
                 fft_tried[r] = True
-                self.keep(r, self.solve(r, None, m=m), only_better=True, m=m)
+                self._solve_own(r, None, m)
                 by_fft, redone = by_fft + r.numel(), redone + carried[r].sum()
                 from_prev += self._from_earlier(carry, m, tried)
         run.stats["neighbour_rescued_rows"] = run.stats.get("neighbour_rescued_rows", 0) + from_nb
         return from_prev, by_fft, redone
+
+    def _solve_own(self, rows: torch.Tensor, init: torch.Tensor | None, m: int | None
+                   ) -> None:
+        """Rows ``rows`` solved again from ``init`` (None: FFT) with their own windows and
+        subsets: from ``init``, placed as the block's carried rows are
+        (:meth:`~torch_stsdic.movie.block.Block.keep_outside`: a subset near the border
+        moved inside, a shorter window where the point leaves the image within the run's,
+        OUTSIDE and not solved where it has left); then at most half-width ``m`` (default
+        the run's) and no longer than the row's :attr:`window_m` (also the point's measured
+        motion, a point classical there): one solve per half-width. The better result is
+        kept. Without it a rescued row took the run's window and a centred subset wherever
+        it started, and a point leaving the image failed again where a block's carry had
+        placed it (32-target blocks lost rows that 1-target blocks solve)."""
+        run = self.run
+        if init is not None:
+            full = torch.full((self.pts.shape[0], init.shape[1]), float("nan"),
+                              dtype=init.dtype, device=init.device)
+            full[rows] = init
+            ask = torch.zeros(self.pts.shape[0], dtype=torch.bool, device=rows.device)
+            ask[rows] = True
+            keep = torch.nonzero(~self.keep_outside((full,), ask)[rows]).flatten()
+            rows, init = rows[keep], init[keep]  # (one index for both: one read)
+            if not rows.numel():
+                return
+        m_req = run.m if m is None else m
+        own = torch.full((rows.numel(),), m_req, dtype=torch.int8, device=rows.device)
+        if self.window_m is not None and m_req > 0:
+            own = torch.minimum(own, self.window_m[rows])
+        widths = half_widths(own, torch.ones_like(own, dtype=torch.bool), m_req)
+        for mm in widths:
+            sel = (torch.nonzero(own == mm).flatten() if len(widths) > 1
+                   else torch.arange(rows.numel(), device=rows.device))
+            mk = None if mm == run.m else mm
+            self.keep(rows[sel], self.solve(rows[sel], None if init is None else init[sel],
+                                            m=mk), only_better=True, m=mk)
 
     def _trusted(self, lost: torch.Tensor) -> torch.Tensor:
         """(B*N,) bool: usable rows that are not ``lost`` (:meth:`lost`, read by the caller)."""
@@ -103,7 +139,7 @@ class BlockRescue:
                         init[:, i] = torch.where(torch.isfinite(init[:, i]), init[:, i], vel)
             ok = torch.nonzero(torch.isfinite(init).all(1)).flatten()
             if ok.numel():
-                self.keep(r[ok], self.solve(r[ok], init[ok], m=m), only_better=True, m=m)
+                self._solve_own(r[ok], init[ok], m)
                 total += ok.numel()
         return total
 
@@ -167,5 +203,5 @@ class BlockRescue:
         try_ = torch.nonzero(lost[rows] & torch.isfinite(guess).all(1)).flatten()
         r = rows[try_]
         if r.numel():
-            self.keep(r, self.solve(r, guess[try_], m=m), only_better=True, m=m)
+            self._solve_own(r, guess[try_], m)
         return r.numel()
