@@ -11,9 +11,11 @@ from typing import Any
 import torch
 
 from torch_stsdic.analysis.result import USABLE
+from torch_stsdic.core.status import Status
 from torch_stsdic.movie.carry import Carry, neighbour_guess
 from torch_stsdic.movie.frames import half_widths
 from torch_stsdic.movie.plan import MAX_DEFAULT_BATCH
+from torch_stsdic.movie.reference import to_relative
 
 __all__ = ["BlockRescue"]
 
@@ -58,13 +60,14 @@ class BlockRescue:
         run.stats["neighbour_rescued_rows"] = run.stats.get("neighbour_rescued_rows", 0) + from_nb
         return from_prev, by_fft, redone
 
-    def _solve_own(self, rows: torch.Tensor, init: torch.Tensor | None, m: int | None
-                   ) -> None:
+    def _solve_own(self, rows: torch.Tensor, init: torch.Tensor | None, m: int | None,
+                   near: torch.Tensor | None = None) -> None:
         """Rows ``rows`` solved again from ``init`` (None: FFT) with their own windows and
         subsets: from ``init``, placed as the block's carried rows are
         (:meth:`~torch_stsdic.movie.block.Block.keep_outside`: a subset near the border
         moved inside, a shorter window where the point leaves the image within the run's,
-        OUTSIDE and not solved where it has left); then at most half-width ``m`` (default
+        not solved where it has left: OUTSIDE where ``init`` predicts from the target before
+        or the same one, ``near`` (R,) bool, default all); then at most half-width ``m`` (default
         the run's) and no longer than the row's :attr:`window_m` (also the point's measured
         motion, a point classical there): one solve per half-width. The better result is
         kept. Without it a rescued row took the run's window and a centred subset wherever
@@ -77,7 +80,20 @@ class BlockRescue:
             full[rows] = init
             ask = torch.zeros(self.pts.shape[0], dtype=torch.bool, device=rows.device)
             ask[rows] = True
-            keep = torch.nonzero(~self.keep_outside((full,), ask)[rows]).flatten()
+            final = None
+            if near is not None:  # OUTSIDE where predicted from the target before, or where
+                final = torch.zeros_like(ask)  # the point's row there is predicted OUTSIDE
+                final[rows] = near  # so (a point that has left, predicted from further back)
+                out = self.keep_outside((full,), ask, torch.zeros_like(ask))
+                chain = (out & final).view(self.b, self.n).clone()
+                for j in range(1, self.b):
+                    chain[j] |= out.view(self.b, self.n)[j] & chain[j - 1]
+                final = chain.reshape(-1)
+                self.status.masked_fill_(final, int(Status.OUTSIDE))
+                self.gone |= final
+            else:
+                out = self.keep_outside((full,), ask)
+            keep = torch.nonzero(~out[rows]).flatten()
             rows, init = rows[keep], init[keep]  # (one index for both: one read)
             if not rows.numel():
                 return
@@ -120,7 +136,7 @@ class BlockRescue:
             p = torch.cat([at.new_full((1, n), -1), at[:-1]]).reshape(-1)
             pr = p.clamp(min=0) * n + i_of
             vel_u, vel_v, known = self._velocity_at(pr, carry)
-            reach = torch.where(known, MAX_DEFAULT_BATCH, 1)
+            reach = torch.where(known, max(MAX_DEFAULT_BATCH, b), 1)
             cand = lost & (p >= 0) & (p > tried) & (j_of - p <= reach)
             r = torch.nonzero(cand).flatten()  # one index for all (one sync)
             if not r.numel():
@@ -138,8 +154,8 @@ class BlockRescue:
                         i = names.index(nm)
                         init[:, i] = torch.where(torch.isfinite(init[:, i]), init[:, i], vel)
             ok = torch.nonzero(torch.isfinite(init).all(1)).flatten()
-            if ok.numel():
-                self._solve_own(r[ok], init[ok], m)
+            if ok.numel():  # (a point predicted out of view from further back: tried later)
+                self._solve_own(r[ok], init[ok], m, near=(j_of[r] - p[r] <= 1)[ok])
                 total += ok.numel()
         return total
 
@@ -147,8 +163,8 @@ class BlockRescue:
                      ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(R,) velocity (u, v) of the block's rows ``rows`` and whether it is known: the
         measured ut, vt where there is one, else the finite difference to the row of the
-        target before (the carried velocity at the block's first target; 0 and not known
-        without one)."""
+        target before (at the block's first target the carried velocity, else the finite
+        difference to the carry's last row; 0 and not known without a carry)."""
         run, n = self.run, self.n
         names = run.names
         iu, iv = names.index("u"), names.index("v")
@@ -161,10 +177,16 @@ class BlockRescue:
         dv = (self.params[rows, iv] - self.params[before, iv]) / span
         if carry is not None:
             i = rows % n
-            du = torch.where(first, carry.vel_u[i].to(du), du)
-            dv = torch.where(first, carry.vel_v[i].to(dv), dv)
             vk = carry.vel_known[i] if carry.vel_known is not None else torch.ones_like(first)
-            known = ~first | vk
+            # without a carried velocity: the finite difference to the carry's last row
+            last = to_relative(dict(carry.vals), self.ref.acc)
+            gap = (run.ts[self.k[0]] - carry.t).to(run.dtype)
+            fu = (self.params[rows, iu] - last["u"][i].to(du)) / gap
+            fv = (self.params[rows, iv] - last["v"][i].to(dv)) / gap
+            fd = carry.valid[i] & bool(gap > 0)
+            du = torch.where(first, torch.where(vk, carry.vel_u[i].to(du), fu), du)
+            dv = torch.where(first, torch.where(vk, carry.vel_v[i].to(dv), fv), dv)
+            known = ~first | vk | fd
         else:
             du = torch.where(first, torch.zeros_like(du), du)
             dv = torch.where(first, torch.zeros_like(dv), dv)
