@@ -20,7 +20,7 @@ from torch_stsdic.cli import run as run_command
 from torch_stsdic.io.results import ResultWriter
 
 FAST = ["--threads", "1", "--no-progress"]
-RUN = ["--subset", "17", "--step", "7", "--m", "1", "--search-radius", "3", "--memory-mb", "0.5",
+RUN = ["--subset", "17", "--step", "7", "--m", "1", "--search-radius", "3", "--memory-mb", "0.2",
        "--shared-motion", "none"]
 
 

@@ -37,9 +37,9 @@ from torch_stsdic.synth import Translation, make_speckle, render_series
 
 ROOT = Path(__file__).resolve().parents[1]
 FAST = ["--threads", "1", "--no-progress"]
-#: 12 frames of 81 x 81 px, one block per target frame (--memory-mb 0.5): many moments to
+#: 12 frames of 81 x 81 px, one block per target frame (--memory-mb 0.2): many moments to
 #: interrupt, each run ~1 s
-RUN = ["--subset", "17", "--step", "7", "--m", "1", "--search-radius", "3", "--memory-mb", "0.5",
+RUN = ["--subset", "17", "--step", "7", "--m", "1", "--search-radius", "3", "--memory-mb", "0.2",
        "--shared-motion", "none"]  # its pass comes before the first frame: see the test below
 
 

@@ -449,14 +449,19 @@ def test_reference_subsets_kept_between_solves_change_nothing(monkeypatch):
 
 
 def test_default_block_length_on_the_cpu_and_on_a_gpu():
-    """8 target frames at most on the CPU within half of memory_mb; on a GPU 32 within a
-    frames' budget of at least 2 GiB (a tenth of the device's memory at most)."""
+    """8 target frames at most on the CPU, their frames within half of memory_mb (the
+    window's 2m frames on top); on a GPU 32 within a frames' budget of at least 2 GiB (a
+    tenth of the device's memory at most)."""
     from torch_stsdic.movie.plan import default_batch_frames
 
     cfg = DICConfig(m=2)  # 256 MiB: 128 for the frames, 12 MiB a 1024^2 float32 frame
-    assert default_batch_frames(cfg, (1024, 1024), 4) == 10 - 4
+    assert default_batch_frames(cfg, (1024, 1024), 4) == 8
+    assert default_batch_frames(cfg, (2048, 2048), 4) == 2  # 48 MiB a frame
+    assert default_batch_frames(DICConfig(m=6), (2048, 2048), 4) == 2  # whatever m
+    assert default_batch_frames(cfg, (4096, 4096), 4) == 1  # 192 MiB: one at least
     assert default_batch_frames(DICConfig(m=2, memory_mb=8000), (1024, 1024), 4) == 8
     assert default_batch_frames(cfg, (1024, 1024), 4, "cuda", device_mb=80_000) == 32
-    # a tenth of a 4 GiB card: 409 MiB, 34 frames' worth less the window's 4
-    assert default_batch_frames(cfg, (1024, 1024), 4, "cuda", device_mb=4096) == 30
-    assert default_batch_frames(cfg, (4096, 4096), 4, "cuda", device_mb=80_000) == 10 - 4
+    # a tenth of a 4 GiB card: 409 MiB, 34 frames' worth
+    assert default_batch_frames(cfg, (1024, 1024), 4, "cuda", device_mb=4096) == 32
+    assert default_batch_frames(cfg, (2048, 2048), 4, "cuda", device_mb=4096) == 8
+    assert default_batch_frames(cfg, (4096, 4096), 4, "cuda", device_mb=80_000) == 10
