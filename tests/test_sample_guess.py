@@ -141,3 +141,35 @@ def test_a_run_starts_its_first_block_from_the_pass_and_lands_on_the_same_minimu
     assert float((guessed.u - plain.u).abs().max()) < 1e-4
     assert float((guessed.u - 0.37 * 4).abs().max()) < 0.05
     assert float((guessed.ut - 0.37).abs().max()) < 0.02
+
+
+def test_a_poi_that_is_a_sample_point_starts_from_its_own_solution():
+    """The template's rounds guess every POI from the round before, measured at all POIs:
+    each POI is a sample point itself, and its own solution is its best guess (the mean
+    with its neighbours carried to it adds the field's curvature: here ~0.03 px at 40 px
+    spacing); where its own disagrees with the others (a false peak) there is no guess."""
+    frames = [2]
+    pts = _grid(40.0, 15.0)
+
+    def bent(p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        d, g = _field(p, 2.0)
+        x = p[:, 0] - 100.0
+        d[:, 0] += 2e-5 * x * x
+        g[:, 0, 0] += 4e-5 * x
+        return d, g
+
+    d, g = bent(pts)
+    sample = MeasuredSample(points=pts, frames=torch.tensor(frames), disp=d[None], grad=g[None])
+    guess = sample.guess(pts, torch.tensor([frames]), torch.zeros(1, 1))
+    assert bool(torch.isfinite(guess["u"]).all())
+    assert float((guess["u"] - d[:, 0]).abs().max()) < 1e-12
+    assert float((guess["ux"] - g[:, 0, 0]).abs().max()) < 1e-12
+    # the neighbours' mean alone (the POIs moved off the sample points by 1e-3 px) is off
+    off = sample.guess(pts + 1e-3, torch.tensor([frames]), torch.zeros(1, 1))
+    assert float((off["u"] - d[:, 0]).abs().max()) > 0.01
+    wrong = d.clone()
+    wrong[10, 0] += 5.0  # a false peak: no guess there
+    sample = MeasuredSample(points=pts, frames=torch.tensor(frames), disp=wrong[None],
+                            grad=g[None])
+    guess = sample.guess(pts, torch.tensor([frames]), torch.zeros(1, 1))
+    assert not bool(torch.isfinite(guess["u"][10]))
