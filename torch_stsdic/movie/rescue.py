@@ -14,7 +14,6 @@ from torch_stsdic.analysis.result import USABLE
 from torch_stsdic.core.status import Status
 from torch_stsdic.movie.carry import Carry, neighbour_guess
 from torch_stsdic.movie.frames import half_widths
-from torch_stsdic.movie.plan import MAX_DEFAULT_BATCH
 from torch_stsdic.movie.reference import to_relative
 
 __all__ = ["BlockRescue"]
@@ -29,8 +28,9 @@ class BlockRescue:
         """Lost rows solved again, all the block's targets at once in each step (a few solves
         a block, not up to three a target: on a GPU each solve costs its launches and host
         reads): (1) from the point's nearest earlier trusted target of the block, moved on by
-        its velocity (at most ``MAX_DEFAULT_BATCH`` targets back where the velocity is known,
-        the target just before where it is not), in waves while rows are found; (2) from
+        its velocity (any earlier target where the velocity is known, as the block's carried
+        rows are predicted over the whole block; the target just before where it is not), in
+        waves while rows are found; (2) from
         their trusted grid neighbours' solutions at the same target; (3) from FFT
         cross-correlation at each point's first lost target with no trusted one before, then
         (1) again; (4) from FFT cross-correlation where still lost, then (1) again. The better
@@ -116,8 +116,9 @@ class BlockRescue:
     def _from_earlier(self, carry: Carry | None, m: int | None, tried: torch.Tensor) -> int:
         """Step (1) of :meth:`rescue`: lost rows (target j, point i) started from the point's
         nearest earlier trusted target p of the block, its parameters with u, v moved on by
-        its velocity over t_j - t_p (j - p <= ``MAX_DEFAULT_BATCH`` where that velocity is
-        known, j - p = 1 where not), in waves while a wave finds rows to try. ``tried``
+        its velocity over t_j - t_p (any j - p where that velocity is known, j - p = 1 where
+        not), in waves while a wave finds rows to try; a row whose guess puts it out of view
+        is OUTSIDE only from p = j - 1 (else it waits for a nearer p). ``tried``
         (B*N,) long: the target each row was last started from (-1: none), updated: a row
         is tried again only from a nearer target. Returns the rows tried."""
         run, n, b = self.run, self.n, self.b
@@ -136,7 +137,7 @@ class BlockRescue:
             p = torch.cat([at.new_full((1, n), -1), at[:-1]]).reshape(-1)
             pr = p.clamp(min=0) * n + i_of
             vel_u, vel_v, known = self._velocity_at(pr, carry)
-            reach = torch.where(known, max(MAX_DEFAULT_BATCH, b), 1)
+            reach = torch.where(known, b, 1)
             cand = lost & (p >= 0) & (p > tried) & (j_of - p <= reach)
             r = torch.nonzero(cand).flatten()  # one index for all (one sync)
             if not r.numel():
