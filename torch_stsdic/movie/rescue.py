@@ -30,8 +30,8 @@ class BlockRescue:
         reads): (1) from the point's nearest earlier trusted target of the block, moved on by
         its velocity (any earlier target where the velocity is known, as the block's carried
         rows are predicted over the whole block; the target just before where it is not), in
-        waves while rows are found; (2) from
-        their trusted grid neighbours' solutions at the same target; (3) from FFT
+        waves while rows are found; (2) from their trusted grid neighbours' solutions at the
+        same target; (3) from FFT
         cross-correlation at each point's first lost target with no trusted one before, then
         (1) again; (4) from FFT cross-correlation where still lost, then (1) again. The better
         result is kept (windows of half-width ``m``, default the run's). ``carried``: rows
@@ -84,10 +84,11 @@ class BlockRescue:
             if near is not None:  # OUTSIDE where predicted from the target before, or where
                 final = torch.zeros_like(ask)  # the point's row there is predicted OUTSIDE
                 final[rows] = near  # so (a point that has left, predicted from further back)
+                left = (self.gone & (self.status == int(Status.OUTSIDE))).view(self.b, self.n)
                 out = self.keep_outside((full,), ask, torch.zeros_like(ask))
                 chain = (out & final).view(self.b, self.n).clone()
-                for j in range(1, self.b):
-                    chain[j] |= out.view(self.b, self.n)[j] & chain[j - 1]
+                for j in range(1, self.b):  # (B small tensor steps, no host read)
+                    chain[j] |= out.view(self.b, self.n)[j] & (chain[j - 1] | left[j - 1])
                 final = chain.reshape(-1)
                 self.status.masked_fill_(final, int(Status.OUTSIDE))
                 self.gone |= final
