@@ -92,3 +92,29 @@ def test_a_long_blocks_rescue_keeps_points_leaving_the_image_in_view(m, monkeypa
     both = ok_short & ok_long  # (a subset moved by other whole px: other pixels, other noise)
     d = (long_.v - short.v).double()[both]
     assert float(d.pow(2).mean().sqrt()) < 2e-3 and float(d.abs().max()) < 0.02
+
+
+def test_a_point_predicted_out_of_view_from_further_back_is_outside_only_along_a_run():
+    """The rescue gives up on a row predicted out of view (OUTSIDE) only where the guess comes
+    from the target before (or the same one), or where the point's row at the target before
+    is OUTSIDE: along each run of rows predicted out. Against the target-by-target rule on
+    random cases, and a hand-made one."""
+    from torch_stsdic.movie.rescue import _outside_runs
+
+    def one_by_one(out, near, left):
+        chain = out & near
+        for j in range(1, out.shape[0]):
+            chain[j] |= out[j] & (chain[j - 1] | left[j - 1])
+        return chain
+
+    gen = torch.Generator().manual_seed(0)
+    for b in range(1, 10):
+        for _ in range(50):
+            out, near, left = (torch.rand(b, 4, generator=gen) < p for p in (0.6, 0.3, 0.2))
+            assert torch.equal(_outside_runs(out, near, left), one_by_one(out, near, left))
+    # one point, 6 targets: predicted out at 1..5, from the target before only at 2; the row
+    # at 4 is in view: the run 2..3 is OUTSIDE, 1 and 5 wait for a nearer guess
+    out = torch.tensor([[0], [1], [1], [1], [0], [1]], dtype=torch.bool)
+    near = torch.tensor([[0], [0], [1], [0], [0], [0]], dtype=torch.bool)
+    left = torch.zeros(6, 1, dtype=torch.bool)
+    assert _outside_runs(out, near, left).flatten().tolist() == [0, 0, 1, 1, 0, 0]

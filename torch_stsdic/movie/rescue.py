@@ -86,10 +86,8 @@ class BlockRescue:
                 final[rows] = near  # so (a point that has left, predicted from further back)
                 left = (self.gone & (self.status == int(Status.OUTSIDE))).view(self.b, self.n)
                 out = self.keep_outside((full,), ask, torch.zeros_like(ask))
-                chain = (out & final).view(self.b, self.n).clone()
-                for j in range(1, self.b):  # (B small tensor steps, no host read)
-                    chain[j] |= out.view(self.b, self.n)[j] & (chain[j - 1] | left[j - 1])
-                final = chain.reshape(-1)
+                final = _outside_runs(out.view(self.b, self.n), final.view(self.b, self.n),
+                                      left).reshape(-1)
                 self.status.masked_fill_(final, int(Status.OUTSIDE))
                 self.gone |= final
             else:
@@ -229,3 +227,17 @@ class BlockRescue:
         if r.numel():
             self._solve_own(r, guess[try_], m)
         return r.numel()
+
+
+def _outside_runs(out: torch.Tensor, near: torch.Tensor, left: torch.Tensor) -> torch.Tensor:
+    """(B, N) bool: the rows predicted out of view (``out`` (B, N), targets along dim 0) that
+    are OUTSIDE for good: from a guess of the target before or the same one (``near``), or
+    where the point's row at the target before is OUTSIDE already (``left``) or becomes so
+    here, along each run of consecutive ``out`` rows (no loop over the targets)."""
+    b = out.shape[0]
+    j = torch.arange(b, device=out.device).view(-1, 1).expand_as(out)
+    before = torch.cat([torch.zeros_like(left[:1]), left[:-1]])  # OUTSIDE at j - 1
+    start = out & (near | before)  # a run of OUTSIDE rows starts or goes on here
+    last_start = torch.where(start, j, -1).cummax(0).values
+    last_gap = torch.where(out, -1, j).cummax(0).values  # the last row not predicted out
+    return out & (last_start > last_gap)
