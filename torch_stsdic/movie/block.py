@@ -352,7 +352,7 @@ class Block(BlockChecks, BlockRescue):
         ) & ~self.gone
 
     def keep_outside(self, inits: Sequence[torch.Tensor], carried: torch.Tensor,
-                     final: torch.Tensor | None = None) -> torch.Tensor:
+                     mark: bool = True) -> torch.Tensor:
         """Carried rows near the image border. At every one of the predictions ``inits``
         ((B*N, P) relative parameters: the carry moved on by its velocity, and where it was
         last), over every frame of the row's window, the POI's predicted position is
@@ -371,9 +371,8 @@ class Block(BlockChecks, BlockRescue):
           neither solved nor rescued: a specimen moving out of view (every rescue of such a
           point found some other peak inside the image, at low ZNCC, again in every block).
 
-        Returns the (B*N,) bool mask of the OUTSIDE rows; with ``final`` ((B*N,) bool) only
-        those rows are marked OUTSIDE (the others' prediction is too far ahead to give up on
-        them: they are only not solved now)."""
+        Returns the (B*N,) bool mask of the OUTSIDE rows; without ``mark`` they are only
+        returned, not marked (the caller decides which of them to give up on)."""
         run = self.run
         rows = carried.shape[0]
         left = carried.clone()  # carried rows without a window that stays in view yet
@@ -397,9 +396,9 @@ class Block(BlockChecks, BlockRescue):
                 self.window_m.masked_fill_(fit, m)
             left &= ~fit
         out = left
-        done = out if final is None else out & final
-        self.status.masked_fill_(done, int(Status.OUTSIDE))
-        self.gone |= done
+        if mark:
+            self.status.masked_fill_(out, int(Status.OUTSIDE))
+            self.gone |= out
         moved = (shift != 0).any(1) & ~out
         n_moved = int(moved.sum())  # one read
         if n_moved:

@@ -31,13 +31,12 @@ class BlockRescue:
         its velocity (any earlier target where the velocity is known, as the block's carried
         rows are predicted over the whole block; the target just before where it is not), in
         waves while rows are found; (2) from their trusted grid neighbours' solutions at the
-        same target; (3) from FFT
-        cross-correlation at each point's first lost target with no trusted one before, then
-        (1) again; (4) from FFT cross-correlation where still lost, then (1) again. The better
-        result is kept (windows of half-width ``m``, default the run's). ``carried``: rows
-        that started from the carried guess. Returns the rows restarted from an earlier
-        target, by FFT, and by FFT after a carried start (ints, or 0-d tensors read with the
-        block's counts)."""
+        same target; (3) from FFT cross-correlation at each point's first lost target with no
+        trusted one before, then (1) again; (4) from FFT cross-correlation where still lost,
+        then (1) again. The better result is kept (windows of half-width ``m``, default the
+        run's). ``carried``: rows that started from the carried guess. Returns the rows
+        restarted from an earlier target, by FFT, and by FFT after a carried start (ints, or
+        0-d tensors read with the block's counts)."""
         run, b, n = self.run, self.b, self.n
         tried = torch.full((b * n,), -1, dtype=torch.long, device=run.device)
         from_prev = self._from_earlier(carry, m, tried)
@@ -67,8 +66,9 @@ class BlockRescue:
         (:meth:`~torch_stsdic.movie.block.Block.keep_outside`: a subset near the border
         moved inside, a shorter window where the point leaves the image within the run's,
         not solved where it has left: OUTSIDE where ``init`` predicts from the target before
-        or the same one, ``near`` (R,) bool, default all); then at most half-width ``m`` (default
-        the run's) and no longer than the row's :attr:`window_m` (also the point's measured
+        or the same one, ``near`` (R,) bool, default all, and along the run of rows predicted
+        out after one, :func:`_outside_runs`); then at most half-width ``m`` (default the
+        run's) and no longer than the row's :attr:`window_m` (also the point's measured
         motion, a point classical there): one solve per half-width. The better result is
         kept. Without it a rescued row took the run's window and a centred subset wherever
         it started, and a point leaving the image failed again where a block's carry had
@@ -80,18 +80,15 @@ class BlockRescue:
             full[rows] = init
             ask = torch.zeros(self.pts.shape[0], dtype=torch.bool, device=rows.device)
             ask[rows] = True
-            final = None
-            if near is not None:  # OUTSIDE where predicted from the target before, or where
-                final = torch.zeros_like(ask)  # the point's row there is predicted OUTSIDE
-                final[rows] = near  # so (a point that has left, predicted from further back)
-                left = (self.gone & (self.status == int(Status.OUTSIDE))).view(self.b, self.n)
-                out = self.keep_outside((full,), ask, torch.zeros_like(ask))
-                final = _outside_runs(out.view(self.b, self.n), final.view(self.b, self.n),
-                                      left).reshape(-1)
-                self.status.masked_fill_(final, int(Status.OUTSIDE))
-                self.gone |= final
-            else:
-                out = self.keep_outside((full,), ask)
+            close = ask.clone()  # the rows whose guess is as near as a carry's
+            if near is not None:
+                close[rows] = near
+            left = (self.gone & (self.status == int(Status.OUTSIDE))).view(self.b, self.n)
+            out = self.keep_outside((full,), ask, mark=False)
+            final = _outside_runs(out.view(self.b, self.n), close.view(self.b, self.n),
+                                  left).reshape(-1)
+            self.status.masked_fill_(final, int(Status.OUTSIDE))
+            self.gone |= final
             keep = torch.nonzero(~out[rows]).flatten()
             rows, init = rows[keep], init[keep]  # (one index for both: one read)
             if not rows.numel():
@@ -183,7 +180,7 @@ class BlockRescue:
             gap = (run.ts[self.k[0]] - carry.t).to(run.dtype)
             fu = (self.params[rows, iu] - last["u"][i].to(du)) / gap
             fv = (self.params[rows, iv] - last["v"][i].to(dv)) / gap
-            fd = carry.valid[i] & bool(gap > 0)
+            fd = carry.valid[i] & (gap > 0)
             du = torch.where(first, torch.where(vk, carry.vel_u[i].to(du), fu), du)
             dv = torch.where(first, torch.where(vk, carry.vel_v[i].to(dv), fv), dv)
             known = ~first | vk | fd
