@@ -49,3 +49,114 @@ def test_carry_with_the_shared_motion_predicts_a_shaking_linear_motion_exactly()
     truth = total([11, 13])
     torch.testing.assert_close(plain + step, truth, rtol=0, atol=1e-12)
     assert float((plain - truth).abs().max()) > 0.1  # without it: the shake's error
+
+
+def _rows(t: np.ndarray, grads: dict[str, np.ndarray], status: np.ndarray | None = None
+          ) -> dict[str, np.ndarray]:
+    """A block's stored rows (B, N) with u = v = 0 and the given gradients."""
+    b, n = grads["ux"].shape
+    rows = {nm: np.zeros((b, n)) for nm in ("u", "v")}
+    rows.update(grads)
+    rows["status"] = np.zeros((b, n), dtype=np.int8) if status is None else status
+    return rows
+
+
+def test_the_carry_moves_the_displacement_gradients_on_by_their_rates():
+    """A specimen that deforms steadily: each gradient's least-squares slope over the block's
+    trusted rows carries it on exactly (a row that is not trusted does not enter it); a
+    point with one trusted row takes the rate from the previous carry to that row; a point
+    with none of either keeps its gradients."""
+    names = ("u", "ux", "uy", "v", "vx", "vy")
+    t = np.arange(4.0, 12.0)  # a block of 8 targets
+    n = 3
+    rate = np.array([[2e-3, -1e-3, 0.0], [5e-4, 0.0, 3e-3], [0.0, 4e-3, -2e-3],
+                     [1e-3, 1e-3, 1e-3]])  # (4 gradients, N)
+    base = np.array([0.01, -0.02, 0.03])
+    grads = {nm: base + rate[g] * t[:, None] for g, nm in enumerate(("ux", "uy", "vx", "vy"))}
+    status = np.zeros((8, n), dtype=np.int8)
+    status[3, 0] = 5  # not trusted: its (wrong) value must not enter the slope
+    grads["vy"][3, 0] = 1.0
+    carry = make_carry(_rows(t, grads, status), t, names, None, torch.float64, "cpu")
+    pred = carry.predict(torch.tensor([14.0, 19.0], dtype=torch.float64))
+    for g, nm in enumerate(("ux", "uy", "vx", "vy")):
+        truth = torch.from_numpy(base + rate[g] * np.array([[14.0], [19.0]]))
+        torch.testing.assert_close(pred[nm], truth, rtol=0, atol=1e-12)
+    # the next block of one target: its rate from the carry before
+    t2 = np.array([12.0])
+    one = {nm: base + rate[g] * t2[:, None] for g, nm in enumerate(("ux", "uy", "vx", "vy"))}
+    st2 = np.zeros((1, n), dtype=np.int8)
+    st2[0, 2] = 5  # the last row not trusted: no rate
+    carry2 = make_carry(_rows(t2, one, st2), t2, names, carry, torch.float64, "cpu")
+    pred2 = carry2.predict(torch.tensor([15.0], dtype=torch.float64))
+    for g, nm in enumerate(("ux", "uy", "vx", "vy")):
+        truth = base[:2] + rate[g, :2] * 15.0
+        torch.testing.assert_close(pred2[nm][0, :2], torch.from_numpy(truth), rtol=0,
+                                   atol=1e-12)
+        assert float(carry2.rates[nm][2]) == 0.0
+
+
+def test_a_carried_window_velocity_holds_the_shake_of_the_rows_own_window():
+    """A window's ut, vt hold the shared motion's slope over its own frames: the carried
+    velocity minus the slope over the carry's window (:meth:`Carry.shared_slope`), plus the
+    slope over each row's window (``block._window_shake``), is the window velocity of a
+    shaking linear motion exactly, for windows of any half-width."""
+    from types import SimpleNamespace
+
+    from torch_stsdic.movie.block import _window_shake
+
+    g = torch.Generator().manual_seed(1)
+    n_series, n = 30, 3
+    ts = torch.arange(n_series, dtype=torch.float64)
+    params = np.zeros((n_series, 6))
+    params[:, :2] = 0.2 * torch.randn(n_series, 2, generator=g, dtype=torch.float64).numpy()
+    params[:, 2] = 1e-3 * torch.randn(n_series, generator=g, dtype=torch.float64).numpy()
+    shared = SharedMotion(kind="affine", params=params, origin=np.array([50.0, 50.0]),
+                          scatter=np.zeros(n_series), points=np.ones(n_series, dtype=int),
+                          measured=np.ones(n_series, dtype=bool))
+    pts = torch.tensor([[10.0, 20.0], [60.0, 45.0], [90.0, 80.0]], dtype=torch.float64)
+    a = torch.tensor([[0.3, -0.1], [1.0, 0.2], [-0.5, 0.4]], dtype=torch.float64)
+    b = torch.tensor([[0.05, 0.02], [-0.03, 0.01], [0.0, -0.04]], dtype=torch.float64)
+
+    def total(frames: list[int]) -> torch.Tensor:  # (K, N, 2) deformation + shake
+        f = torch.tensor(frames)
+        return a + b * ts[f].view(-1, 1, 1) + shared.displacement(pts, f)
+
+    def window_velocity(k: int, m: int) -> torch.Tensor:  # (N, 2) by numpy's line fit
+        frames = list(range(k - m, k + m + 1))
+        tot = total(frames).numpy()
+        return torch.from_numpy(np.stack([np.polyfit(frames, tot[:, i], 1)[0]
+                                          for i in range(n)]))
+
+    last, m = 10, 2
+    slope = window_velocity(last, m)
+    rows = {"u": total([9, 10])[..., 0].numpy(), "v": total([9, 10])[..., 1].numpy(),
+            "ut": np.stack([np.full(n, np.nan), slope[:, 0].numpy()]),
+            "vt": np.stack([np.full(n, np.nan), slope[:, 1].numpy()]),
+            "status": np.zeros((2, n), dtype=np.int8), "m": np.full((2, n), m, dtype=np.int8)}
+    rows["ut"][1, 2] = rows["vt"][1, 2] = np.nan  # point 2: classical, a finite difference
+    rows["m"][1, 2] = 0
+    names = ("u", "v", "ut", "vt")
+    carry = make_carry(rows, np.array([9.0, 10.0]), names, None, torch.float64, "cpu",
+                       frames=[9, 10])
+    ks = [12, 16]
+    pred = carry.predict(ts[ks])
+    init = torch.stack([pred[nm].reshape(-1) for nm in names], 1)  # (B*N, P)
+    held = carry.shared_slope(shared, pts, ts).repeat(len(ks), 1)
+    window_m = torch.tensor([1, 3, 2, 3, 1, 2], dtype=torch.int8)  # each row's own
+
+    def shake_slope(mm: int) -> torch.Tensor:  # (B*N, 2) by numpy's line fit
+        out = []
+        for k in ks:
+            frames = list(range(k - mm, k + mm + 1))
+            gd = shared.displacement(pts, torch.tensor(frames)).numpy()
+            out.append(np.stack([np.polyfit(frames, gd[:, i], 1)[0] for i in range(n)]))
+        return torch.from_numpy(np.concatenate(out))
+
+    blk = SimpleNamespace(run=SimpleNamespace(names=list(names), m=3), window_m=window_m,
+                          shared_slope=shake_slope)
+    before = init.clone()
+    _window_shake(blk, init, torch.ones(len(ks) * n, dtype=torch.bool), held)
+    truth = torch.cat([torch.stack([window_velocity(k, int(window_m[j * n + i]))[i]
+                                    for i in range(n)]) for j, k in enumerate(ks)])
+    torch.testing.assert_close(init[:, 2:4], truth, rtol=0, atol=1e-10)
+    assert float((before[:, 2:4] - truth).abs().max()) > 0.01  # the carry's own: off

@@ -45,7 +45,8 @@ from torch import Tensor
 from torch_stsdic.core.shared_fit import SHARED_MOTION_KINDS, fit_frame_motion, frame_chunks
 
 __all__ = ["SharedMotion", "SHARED_MOTION_KINDS", "PARAM_NAMES", "PARAM_UNITS",
-           "fit_frame_motion", "window_offsets", "known_window_motion", "overlap_factor",
+           "fit_frame_motion", "window_offsets", "window_slope", "known_window_motion",
+           "overlap_factor",
            "sample_points", "frame_chunks",
            "detect_steps", "step_increments", "steps_from_increments",
            "DEFAULT_MAX_POINTS", "SIGNIFICANT", "STEP_Z", "STEP_RATIO", "SE_FLOOR"]
@@ -230,31 +231,57 @@ class SharedMotion:
                    extra={k: v for k, v in rec.items() if k not in known})
 
 
-def window_offsets(g: Tensor, dt: Tensor) -> Tensor:
+def _window_sums(g: Tensor, dt: Tensor) -> Tensor:
+    """(..., 2, 3): per component of ``g`` (..., T, 2) over a window's times ``dt`` (..., T;
+    its leading dimensions may be 1 where they repeat, e.g. one row of times per target
+    for all its points): the least-squares slope, the value at dt = 0 (the mean over the
+    frames there; the line's value where none is) and the mean. One batched matrix product
+    with the (..., T, 3) weights (the times' centred values over their spread, ...)."""
+    dt = dt.to(g.dtype)
+    t_count = dt.shape[-1]
+    dc = dt - dt.mean(-1, keepdim=True)
+    slope_w = dc / (dc * dc).sum(-1, keepdim=True).clamp(min=1e-30)
+    at0 = (dt == 0).to(g.dtype)
+    cnt = at0.sum(-1, keepdim=True)
+    w = torch.stack([slope_w, at0 / cnt.clamp(min=1), torch.full_like(dt, 1.0 / t_count)], -1)
+    sums = g.transpose(-1, -2) @ w  # (..., 2, 3)
+    beta, g_k, mean = sums.unbind(-1)
+    line0 = mean - beta * dt.mean(-1, keepdim=True)  # the line's value at dt = 0
+    g_k = torch.where(cnt > 0, g_k, line0)
+    return torch.stack([beta, g_k, mean], -1)
+
+
+def window_slope(g: Tensor, dt: Tensor) -> Tensor:
+    """(..., 2) px per time unit: the least-squares slope of the shared motion's displacement
+    ``g`` (..., T, 2) over a window's frame times ``dt`` (..., T; broadcast against g's
+    leading dimensions): the part of it a window's velocity (ut, vt) holds (0 where the
+    window has one frame)."""
+    if dt.shape[-1] < 2:
+        return torch.zeros_like(g[..., 0, :])
+    return _window_sums(g, dt)[..., 0]
+
+
+def window_offsets(g: Tensor, dt: Tensor, return_slope: bool = False
+                   ) -> Tensor | tuple[Tensor, Tensor]:
     """The known motion of every frame of a window: the shared motion's jitter about its own
     line through the window (module docstring).
 
     Args:
         g: (..., T, 2) the shared motion's displacement at a point in the window's T frames.
-        dt: (..., T) frame times minus the target's (0 at the target frame).
+        dt: (..., T) frame times minus the target's (0 at the target frame); its leading
+            dimensions broadcast against g's.
 
     Returns:
         (..., T, 2) ``o_t = g_t - g_k - beta dt_t`` (``beta`` the least-squares slope of g over
-        the window; ``g_k`` its value at dt = 0), 0 where the window has one frame."""
-    dt = dt.to(g.dtype)
-    t_count = dt.shape[-1]
-    if t_count < 2:
-        return torch.zeros_like(g)
-    dc = dt - dt.mean(-1, keepdim=True)
-    den = (dc * dc).sum(-1, keepdim=True).clamp(min=1e-30)
-    beta = ((dc.unsqueeze(-1) * (g - g.mean(-2, keepdim=True))).sum(-2)
-            / den)  # (..., 2)
-    at0 = (dt == 0).to(g.dtype)
-    has0 = at0.sum(-1, keepdim=True) > 0
-    g_k = (g * at0.unsqueeze(-1)).sum(-2) / at0.sum(-1, keepdim=True).clamp(min=1)
-    line0 = g.mean(-2) - beta * dt.mean(-1, keepdim=True)  # the line's value at dt = 0
-    g_k = torch.where(has0, g_k, line0)
-    return g - g_k.unsqueeze(-2) - beta.unsqueeze(-2) * dt.unsqueeze(-1)
+        the window; ``g_k`` its value at dt = 0), 0 where the window has one frame; with
+        ``return_slope`` also beta (..., 2) (:func:`window_slope`)."""
+    if dt.shape[-1] < 2:
+        o = torch.zeros_like(g)
+        return (o, o[..., 0, :]) if return_slope else o
+    sums = _window_sums(g, dt)
+    beta, g_k = sums[..., 0], sums[..., 1]
+    o = g - g_k.unsqueeze(-2) - beta.unsqueeze(-2) * dt.to(g.dtype).unsqueeze(-1)
+    return (o, beta) if return_slope else o
 
 
 def detect_steps(residual: Tensor, valid: Tensor, sigma: Tensor, frames: Sequence[int],

@@ -17,7 +17,7 @@ neighbours are flagged.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -180,6 +180,8 @@ class Block(BlockChecks, BlockRescue):
         #: (target, (M,) its points) whose subsets :meth:`keep_outside` moved
         self._moved: list[tuple[int, torch.Tensor]] = []
         self._motion: dict[int, torch.Tensor] = {}
+        self._slope: dict[int, torch.Tensor] = {}
+        self._shared_g: torch.Tensor | None = None  # (N, F) the shared motion, needed frames
 
     def motion_of(self, m: int) -> torch.Tensor | None:
         """(B*N, 2m+1, 2) the shared motion's known part of every row's window frames
@@ -191,18 +193,30 @@ class Block(BlockChecks, BlockRescue):
         if m not in self._motion:
             win = self.windows(m)  # (B, T)
             b, t = win.shape
-            pts = self.ref.points
-            g = run.shared.displacement(pts, win.reshape(-1)).to(run.dtype)  # (B*T, N, 2)
-            g = g.reshape(b, t, -1, 2).permute(0, 2, 1, 3)  # (B, N, T, 2)
+            if self._shared_g is None:  # at every frame the block reads, once
+                self._shared_g = run.shared.displacement(self.ref.points, self.needed).to(
+                    run.dtype).transpose(0, 1)  # (N, F, 2)
+            # (B, N, T, 2)
+            g = self._shared_g[:, torch.searchsorted(self.needed, win)].permute(1, 0, 2, 3)
             if self.centres is not None:  # off-centre subsets: the motion at their centres
                 cen = self.centres.reshape(b, -1, 2)
                 for j, i in self._moved:  # (chosen once a block: no host read here)
                     g[j, i] = run.shared.displacement(cen[j, i], win[j]).to(
                         run.dtype).transpose(0, 1)
-            dt = (run.ts[win] - run.ts[self.k].unsqueeze(1)).to(run.dtype)  # (B, T)
-            o = window_offsets(g, dt.unsqueeze(1).expand(-1, g.shape[1], -1))
+            dt = (run.ts[win] - run.ts[self.k].unsqueeze(1)).to(run.dtype).unsqueeze(1)
+            # dt (B, 1, T): the same for all the target's points
+            o, slope = window_offsets(g, dt, return_slope=True)
             self._motion[m] = o.reshape(-1, t, 2).contiguous()
+            self._slope[m] = slope.reshape(-1, 2)
         return self._motion[m]
+
+    def shared_slope(self, m: int) -> torch.Tensor | None:
+        """(B*N, 2) px per time unit: the shared motion's least-squares slope over every
+        row's window of half-width ``m`` (the part of the window's ut, vt it makes), or None
+        (no shared motion, or m = 0)."""
+        if self.motion_of(m) is None:
+            return None
+        return self._slope[m]
 
     def windows(self, m: int) -> torch.Tensor:
         """(B, 2m+1) series frames of every target's window, shifted (not shrunk) at the
@@ -499,11 +513,77 @@ def _shorter_again(blk: Block, cap: torch.Tensor) -> None:
                 "shorter_again_rows", 0) + int(good.numel())
 
 
+def _window_shake(blk: Block, init: torch.Tensor, rows: torch.Tensor,
+                  shake_vel: torch.Tensor) -> None:
+    """The carried ut, vt of ``rows`` ((B*N,) bool) in ``init`` (B*N, P) with the shared
+    motion's slope over the carry's window (``shake_vel`` (B*N, 2)) replaced by its slope
+    over each row's own window (half-width ``blk.window_m``, the run's m where None): a
+    window's velocity holds the shake's slope over its frames, which changes from window to
+    window (hourglass: the carried ut missed the next block's by 0.035 px per frame,
+    median)."""
+    run = blk.run
+    iu, iv = run.names.index("ut"), run.names.index("vt")
+    wm = blk.window_m
+    for m in ([run.m] if wm is None else half_widths(wm, rows, run.m)):
+        sel = rows if wm is None else rows & (wm == m)
+        slope = blk.shared_slope(int(m))
+        if slope is None:
+            continue
+        d = torch.where(sel.unsqueeze(1), slope.to(init) - shake_vel.to(init), 0.0)
+        init[:, iu] += d[:, 0]
+        init[:, iv] += d[:, 1]
+
+
 def _first_guess_rows(run: BlockContext, blk: Block, ref: Reference) -> torch.Tensor:
     """(B*N, P) the block's rows from ``run.first_guess`` (NaN rows where it has none)."""
     guess = run.first_guess.guess(ref.points, blk.windows(run.m), blk.dt[::blk.n])
     return blk.init_rows({nm: v.to(device=run.device, dtype=run.dtype)
                           for nm, v in guess.items()})
+
+
+def _carried_start(run: BlockContext, blk: Block, ref: Reference, carry: Carry,
+                   count: Callable[[str, torch.Tensor | int], None]
+                   ) -> tuple[Carry, torch.Tensor, torch.Tensor, torch.Tensor | None,
+                              torch.Tensor | None]:
+    """The block's rows started from ``carry``: the carry with lost points filled from
+    their neighbours (:meth:`Carry.from_neighbours`), (B*N, P) the guesses (its prediction, the
+    shake between the frames added; an earlier round's solution where ``run`` has one for
+    every block), (B*N,) bool the rows that start from them, (B*N,) bool those from the
+    earlier round (None: none) and (B*N, 2) the shared motion's part of the carried window
+    velocity (None: none; :func:`_window_shake`). ``count``: the block's counter."""
+    b, n, dev = blk.b, blk.n, run.device
+    shake_vel = has = None
+    pts0 = ref.points if ref.acc is None else ref.points - torch.stack(
+        [ref.acc["u"], ref.acc["v"]], 1)
+    if not bool(carry.valid.all()):
+        carry, filled = carry.from_neighbours(run.grid_neighbours(ref), pts0)
+        run.stats["neighbour_rows"] = run.stats.get("neighbour_rows", 0) + filled * b
+    pred = carry.predict(run.ts[blk.k].to(run.dtype))
+    if run.shared is not None and ref.acc is None:  # the shake between the frames
+        step = carry.shared_step(run.shared, ref.points, blk.k, run.ts, run.segments)
+        pred["u"] = pred["u"] + step[..., 0].to(pred["u"])
+        pred["v"] = pred["v"] + step[..., 1].to(pred["v"])
+        if "ut" in pred:  # the specimen's own velocity: the windows add their shake's
+            held = carry.shared_slope(run.shared, ref.points, run.ts, run.segments)
+            shake_vel = held.repeat(b, 1).to(run.dtype)  # (B*N, 2)
+    pred = to_relative(pred, ref.acc)
+    init = blk.init_rows({nm: v.reshape(-1) for nm, v in pred.items()})
+    carried = carry.valid.repeat(b) & torch.isfinite(init).all(1)
+    if run.guess_every_block and run.first_guess is not None and ref.acc is None:
+        # an earlier round's solution of the row's own frames: closer than the carry
+        # moved on over the frames between (the template's sampled frames are apart)
+        g = _first_guess_rows(run, blk, ref)
+        has = torch.isfinite(g).all(1)
+        init = torch.where(has.unsqueeze(1), g, init)
+        carried |= has
+        count("first_guess_rows", has.sum())
+    last = {nm: v.repeat(b) for nm, v in to_relative(dict(carry.vals), ref.acc).items()}
+    carried &= ~blk.keep_outside((init, blk.init_rows(last)), carried)
+    if carry.vel_known is not None:  # without a velocity the carry predicts only the
+        later = torch.arange(b, device=dev).repeat_interleave(n) > 0  # first target:
+        keep = ~later | carry.vel_known.repeat(b)  # the later ones start from it
+        carried &= keep if has is None else keep | has
+    return carry, init, carried, has, shake_vel
 
 
 def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry | None):
@@ -521,6 +601,7 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
     def count(name: str, value: torch.Tensor | int) -> None:
         value = torch.as_tensor(value, device=dev)
         counts[name] = counts[name] + value if name in counts else value
+    shake_vel = has = None  # see _carried_start
     if carry is not None and _only_identity(run, ref, carry):
         carry = None  # the reference frame's own row, no velocity: it predicts nothing
     if carry is None and run.first_guess is not None and ref.acc is None:
@@ -533,34 +614,7 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
         carried = torch.zeros(rows, dtype=torch.bool, device=dev)
         init = None
     else:
-        pts0 = ref.points if ref.acc is None else ref.points - torch.stack(
-            [ref.acc["u"], ref.acc["v"]], 1)
-        if not bool(carry.valid.all()):
-            carry, filled = carry.from_neighbours(run.grid_neighbours(ref), pts0)
-            run.stats["neighbour_rows"] = run.stats.get("neighbour_rows", 0) + filled * b
-        pred = carry.predict(run.ts[blk.k].to(run.dtype))
-        if run.shared is not None and ref.acc is None:  # the shake between the frames
-            step = carry.shared_step(run.shared, ref.points, blk.k, run.ts, run.segments)
-            pred["u"] = pred["u"] + step[..., 0].to(pred["u"])
-            pred["v"] = pred["v"] + step[..., 1].to(pred["v"])
-        pred = to_relative(pred, ref.acc)
-        init = blk.init_rows({nm: v.reshape(-1) for nm, v in pred.items()})
-        carried = carry.valid.repeat(b) & torch.isfinite(init).all(1)
-        has = None
-        if run.guess_every_block and run.first_guess is not None and ref.acc is None:
-            # an earlier round's solution of the row's own frames: closer than the carry
-            # moved on over the frames between (the template's sampled frames are apart)
-            g = _first_guess_rows(run, blk, ref)
-            has = torch.isfinite(g).all(1)
-            init = torch.where(has.unsqueeze(1), g, init)
-            carried |= has
-            count("first_guess_rows", has.sum())
-        last = {nm: v.repeat(b) for nm, v in to_relative(dict(carry.vals), ref.acc).items()}
-        carried &= ~blk.keep_outside((init, blk.init_rows(last)), carried)
-        if carry.vel_known is not None:  # without a velocity the carry predicts only the
-            later = torch.arange(b, device=dev).repeat_interleave(n) > 0  # first target:
-            keep = ~later | carry.vel_known.repeat(b)  # the later ones start from it
-            carried &= keep if has is None else keep | has
+        carry, init, carried, has, shake_vel = _carried_start(run, blk, ref, carry, count)
     ident = blk.keep_identity()
     carried &= ~ident
     guess = None  # the carried rows' guesses (NaN: none; no test whether there are any)
@@ -576,6 +630,8 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
     if cap is not None:
         blk.window_m = cap.clone() if blk.window_m is None else torch.minimum(blk.window_m,
                                                                               cap)
+    if shake_vel is not None:
+        _window_shake(blk, init, carried if has is None else carried & ~has, shake_vel)
     shorter = carried & (blk.window_m < run.m) if blk.window_m is not None else None
     if shorter is not None:  # points leaving the image within their window
         for m in half_widths(blk.window_m, shorter, run.m):
