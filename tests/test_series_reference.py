@@ -732,3 +732,41 @@ def test_splat_over_the_covered_pixels_equals_the_splat_into_the_image():
     mapped[:, cover[0]] = on_cover
     assert float(on_cover[1].sum()) > 0 and float(on_cover[2].sum()) > 0
     torch.testing.assert_close(mapped, image, rtol=1e-12, atol=1e-9)
+
+
+def test_the_carry_starts_the_next_block_where_the_solves_measure(movie, monkeypatch):
+    """Stored rows have the template's gauge subtracted (the reference frame's measurement
+    of the template's registration); the solves measure against the template itself. The
+    next block's carried guess is the last solved row in the solves' own terms (the stored
+    row with the gauge added back), not the stored row: started from that, every carried
+    row began the gauge away from its solution (0.01 px a point on the hourglass)."""
+    import torch_stsdic.movie.series as series_mod
+
+    solved, seeds = {}, {}
+    orig_solve, orig_carry = series_mod.solve_block, series_mod.make_carry
+
+    def solve(run, ks, ref, carry):
+        out = orig_solve(run, ks, ref, carry)
+        if run.m > 0 and ref.frame == -1:  # the main run's blocks, against the template
+            solved[tuple(ks)] = {nm: out[nm][-1].double().cpu() for nm in ("u", "v", "uy")}
+        return out
+
+    def carry(rows, times, names, prev, dtype, device, frames=None):
+        out = orig_carry(rows, times, names, prev, dtype, device, frames=frames)
+        if "ut" in names:
+            seeds[tuple(frames)] = out
+        return out
+
+    monkeypatch.setattr(series_mod, "solve_block", solve)
+    monkeypatch.setattr(series_mod, "make_carry", carry)
+    res = _run(movie, 2, batch_frames=4)
+    assert res.info["series_reference"]["gauge_rms_px"] > 1e-4  # measurable here
+    # the reference frame's row is stored as the truth (0), not as solved: not compared
+    blocks = [ks for ks in solved if ks in seeds and 0 not in ks]
+    assert len(blocks) >= 3
+    for ks in blocks:
+        for nm in ("u", "v", "uy"):
+            got, want = seeds[ks].vals[nm].double(), solved[ks][nm]
+            ok = torch.isfinite(got) & torch.isfinite(want)
+            # the carry holds the stored (float32) row: the solved one within its rounding
+            torch.testing.assert_close(got[ok], want[ok], rtol=0, atol=2e-6)

@@ -392,16 +392,20 @@ class Block(BlockChecks, BlockRescue):
         left = carried.clone()  # carried rows without a window that stays in view yet
         shift = torch.zeros_like(self.pts)
         for m in range(run.m, -1, -1):
-            # one host read a shorter window (none for the run's: a block whose carried
-            # rows all stay in view reads once here)
-            if m < run.m and not bool(left.any()):
-                break
             if m == run.m:
-                dt = self.dt
-            else:
-                dt = self.frames_of(self.windows(m))[1]
-            fit, d = self._placement(inits, dt, self.motion_of(m))
-            fit &= left
+                fit, d = self._placement(inits, self.dt, self.motion_of(m))
+                fit &= left
+            else:  # the rows left only (one host read a shorter window; none for the
+                # run's: a block whose carried rows all stay in view reads once here)
+                idx = torch.nonzero(left).flatten()
+                if not idx.numel():
+                    break
+                motion = self.motion_of(m)
+                f_i, d_i = self._placement(
+                    [init[idx] for init in inits], self.frames_of(self.windows(m))[1][idx],
+                    None if motion is None else motion[idx], idx)
+                fit = torch.zeros_like(left).index_put_((idx,), f_i)
+                d = torch.zeros_like(shift).index_put_((idx,), d_i)
             shift = torch.where(fit.unsqueeze(1), d, shift)
             if m < run.m:  # (no test: an unused window_m is the run's m everywhere)
                 if self.window_m is None:
@@ -433,22 +437,25 @@ class Block(BlockChecks, BlockRescue):
         return out
 
     def _placement(self, inits: Sequence[torch.Tensor], dt: torch.Tensor,
-                   motion: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
-        """(B*N,) bool: the row's subset can be placed in view over its window (frame times
-        ``dt`` (B*N, T), known motion ``motion`` (B*N, T, 2) or None) by one of the
-        predictions ``inits`` (:meth:`keep_outside`), and (B*N, 2) px the shift of its
-        centre that this takes (the largest over the predictions that fit)."""
+                   motion: torch.Tensor | None, rows: torch.Tensor | None = None
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
+        """(R,) bool: the row's subset can be placed in view over its window (frame times
+        ``dt`` (R, T), known motion ``motion`` (R, T, 2) or None) by one of the
+        predictions ``inits`` ((R, P) each; :meth:`keep_outside`), and (R, 2) px the shift
+        of its centre that this takes (the largest over the predictions that fit); the
+        rows ``rows`` (R,) of the block (None: all of them, R = B*N)."""
         run = self.run
         names = run.names
         iu, iv = names.index("u"), names.index("v")
         half = float(run.solver.window.half)
         h, w = self.ref.img.height, self.ref.img.width
-        feasible = torch.zeros(self.pts.shape[0], dtype=torch.bool, device=run.device)
-        shift = torch.zeros_like(self.pts)
+        pts = self.pts if rows is None else self.pts[rows]
+        feasible = torch.zeros(pts.shape[0], dtype=torch.bool, device=run.device)
+        shift = torch.zeros_like(pts)
         for i, init in enumerate(inits):
             pos = []
             for c, (iz, it) in enumerate(((iu, "ut"), (iv, "vt"))):
-                z = self.pts[:, c:c + 1] + init[:, iz:iz + 1]
+                z = pts[:, c:c + 1] + init[:, iz:iz + 1]
                 if it in names:
                     z = z + init[:, names.index(it)].nan_to_num(0.0).unsqueeze(1) * dt
                 if motion is not None:

@@ -49,7 +49,7 @@ from torch_stsdic.movie.plan import RunPlan
 from torch_stsdic.movie.template_noise import REGISTRATION_GAIN
 
 __all__ = ["ReferenceOffsets", "check_refinable", "fit_frames", "measure_trajectory_gauge",
-           "fit_intercepts", "images_rho", "apply_offsets", "set_refinement",
+           "fit_intercepts", "images_rho", "apply_offsets", "restore_offsets", "set_refinement",
            "DEFAULT_MAX_FRAMES"]
 
 DEFAULT_MAX_FRAMES = 41
@@ -568,6 +568,19 @@ def apply_offsets(rows: dict[str, np.ndarray], offsets: ReferenceOffsets,
         if k in out and k not in _RATES:
             out[k] = out[k].copy()
             out[k][i] = np.where(ok, 0.0, out[k][i])
+    return out
+
+
+def restore_offsets(rows: dict[str, np.ndarray], offsets: ReferenceOffsets
+                    ) -> dict[str, np.ndarray]:
+    """Stored rows (name -> (B, N)) with the offsets added back (names without an offset,
+    and the velocities, unchanged): the quantities the blocks' solves measure against their
+    reference (the next block's carried guess starts there, not the stored rows' offset
+    away)."""
+    out = dict(rows)
+    for k, off in offsets.values.items():
+        if k in out and k not in _RATES:
+            out[k] = out[k] + off[None, :]
     return out
 
 

@@ -69,7 +69,12 @@ from torch_stsdic.movie.frames import (
 )
 from torch_stsdic.movie.plan import RunPlan, plan_run
 from torch_stsdic.movie.reference import Reference, maybe_update
-from torch_stsdic.movie.refine import ReferenceOffsets, apply_offsets, set_refinement
+from torch_stsdic.movie.refine import (
+    ReferenceOffsets,
+    apply_offsets,
+    restore_offsets,
+    set_refinement,
+)
 from torch_stsdic.movie.sample_guess import MeasuredSample
 from torch_stsdic.movie.series_reference import SeriesReference, set_series_reference
 from torch_stsdic.movie.sinks import MemorySink, open_sink
@@ -246,7 +251,8 @@ def _run_blocks(plan: RunPlan, sink: MemorySink, run: BlockContext, ref: Referen
     rows_done = 0
     thr = plan.options.get("reference_update")
     pts0 = plan.points.to(device=plan.device, dtype=plan.dtype)
-    for block in plan.blocks:
+    blocks = plan.blocks  # (a property: made anew on every read)
+    for b_i, block in enumerate(blocks):
         rs = [row_of[k] for k in block]
         if all(r in done for r in rs):
             stored = sink.read_rows(rs)  # replay a finished block from the file
@@ -257,14 +263,17 @@ def _run_blocks(plan: RunPlan, sink: MemorySink, run: BlockContext, ref: Referen
                 full = apply_offsets(full, offsets, block)
             stored = as_stored(full)
             sink.write_rows(rs, full, reference_frame=ref.frame)
-        if block is not plan.blocks[-1]:  # the last block carries nothing on
-            seed = stored
-            if warm_up and block is plan.blocks[0]:  # poor for the residual, judged without
+        if b_i < len(blocks) - 1:  # the last block carries nothing on
+            # in the solves' own terms: the stored rows with the offsets added back (the
+            # template's gauge on the hourglass, ~0.01 px a point: every block started that
+            # far off); made from the stored rows, so a resumed run carries the same
+            seed = stored if offsets is None else restore_offsets(stored, offsets)
+            if warm_up and b_i == 0:  # poor for the residual, judged without
                 # its history: trusted
                 poor = (stored["status"] == int(Status.POOR_FIT)) & (
                     stored["zncc"] >= float(plan.options.get("lost_zncc", 0.8)))
-                seed = {**stored, "status": np.where(poor, int(Status.CONVERGED),
-                                                     stored["status"]).astype(np.int8)}
+                seed = {**seed, "status": np.where(poor, int(Status.CONVERGED),
+                                                   stored["status"]).astype(np.int8)}
             carry = make_carry(seed, plan.times[block], plan.param_names, carry,
                                plan.dtype, plan.device, frames=block)
         if thr is not None:
