@@ -440,6 +440,14 @@ def test_wrappers_pass_exactly_the_declared_parameters(monkeypatch):
         grads = torch.rand(1, 3, 2, 2, dtype=dtype)
         native.neighbour_own_gradient(nb, valid, grads, 1e-4)
         native.neighbour_test(nb, valid, vals, pts, torch.ones(1, 3, dtype=dtype), grads, grads)
+        d = torch.arange(-2.0, 3.0, dtype=torch.float64)
+        one = torch.ones(2, dtype=torch.float64)
+        maps = torch.zeros(2, 12, dtype=torch.float64)
+        maps[:, 0], maps[:, 1], maps[:, 6], maps[:, 8] = 20.0, 1.0, 22.0, 1.0
+        native.splat(a, 3, d, d, one[:1].expand(5), maps, torch.full((2, 2), 20.0),
+                     torch.zeros(2, dtype=torch.long), one, one, one, (one, one),
+                     torch.zeros(img.height * img.width, dtype=torch.float64), img.width,
+                     img.height)
     declared = native.kernels()
     assert set(seen) == set(declared)
     for name, calls in seen.items():

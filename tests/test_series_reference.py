@@ -467,6 +467,56 @@ def test_splat_with_and_without_the_image_border_mask_agree():
     assert float(border[1].sum()) < 0.9 * float(inner[1].sum()) / 3  # 54 against 64
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_the_native_splat_equals_the_torch_splat(dtype, monkeypatch):
+    """The template's samples in one C++ pass (``native.ops.splat``: map, sample, grey
+    levels matched, weights) give the torch code's sums, for windows inside the image, over
+    its border and mapped partly out of it, in frames of a stack, float32 and float64
+    coefficients; quintic too."""
+    from torch_stsdic.core.interpolation import BSplineImage
+    from torch_stsdic.kernels import dispatch
+    from torch_stsdic.kernels.native import loader
+
+    if not loader.usable(torch.zeros(1)):
+        pytest.skip("no native kernels (no C++ compiler)")
+    size, half = 90, 7
+    imgs = torch.stack([synth.render(synth.make_speckle((size, size), seed=s),
+                                     (size, size)).double() for s in (8, 9)])
+    ref = imgs[0].reshape(-1)
+    g = torch.Generator().manual_seed(2)
+    pts = torch.rand(40, 2, generator=g, dtype=torch.float64) * (size + 6) - 3  # some outside
+    warp = (torch.rand(2, 40, 12, generator=g, dtype=torch.float64) - 0.5) * 0.02
+    warp[..., 0] += torch.tensor([0.4, -2.3], dtype=torch.float64)[:, None]
+    warp[..., 6] += torch.tensor([-0.7, 1.6], dtype=torch.float64)[:, None]
+    ok = torch.rand(2, 40, generator=g) > 0.1
+    weight = torch.tensor([1.0, 0.6], dtype=torch.float64)
+    level = torch.tensor([1.0, 1.2], dtype=torch.float64)
+    planes = torch.tensor([1, 0])
+    calls = []
+    orig = template_image.native_ops.splat
+
+    def counted(*a, **k):
+        calls.append(1)
+        return orig(*a, **k)
+
+    for order in (3, 5):
+        stack = BSplineImage(imgs.to(dtype), order=order)
+        sums = {}
+        for path in ("native", "torch"):
+            monkeypatch.setattr(template_image.native_ops, "splat", counted)
+            if path == "torch":
+                monkeypatch.setattr(dispatch, "splat", lambda *a: dispatch.TORCH)
+            acc = torch.zeros(3, size * size, dtype=torch.float64)
+            n_calls = len(calls)
+            template_image.splat(acc, stack, planes, ref, pts, warp, ok, half, weight, level)
+            assert (len(calls) > n_calls) == (path == "native")
+            sums[path] = acc
+            monkeypatch.undo()
+        assert float(sums["torch"][1].sum()) > 0
+        tol = 1e-9 if dtype == torch.float64 else 2e-4
+        torch.testing.assert_close(sums["native"], sums["torch"], rtol=tol, atol=tol)
+
+
 def test_splat_of_frames_at_once_equals_the_sum_of_each_frame_alone():
     """_splat takes a group of frames (planes of one stack) in one batch: its sums equal
     those of each frame splatted alone and added, the noise share included (a product of

@@ -31,6 +31,12 @@ def sample(kernel_args: tuple, *tensors: Tensor) -> str:
     return NATIVE if native.usable_image(kernel_args, *tensors) else TORCH
 
 
+def splat(kernel_args: tuple, *tensors: Tensor) -> str:
+    """The template's samples of a frame (``movie.template_image.splat``): map, sample,
+    grey levels matched, weights."""
+    return NATIVE if native.usable_image(kernel_args, *tensors) else TORCH
+
+
 def gram(*tensors: Tensor) -> str:
     """Moments of the steepest-descent images of a batch of subsets."""
     return NATIVE if native.usable(*tensors) else TORCH

@@ -13,6 +13,8 @@ import torch
 
 from torch_stsdic.core.interpolation import BSplineImage
 from torch_stsdic.core.noise import interpolation_variance_factor
+from torch_stsdic.kernels import dispatch
+from torch_stsdic.kernels import native as native_ops
 from torch_stsdic.kernels.scatter import scatter_add_
 from torch_stsdic.movie.frames import FrameCache
 from torch_stsdic.movie.plan import RunPlan
@@ -118,6 +120,8 @@ def splat(acc: torch.Tensor, img: BSplineImage, planes: torch.Tensor, ref: torch
     sums = acc if on_cover else torch.zeros(3, n_px, dtype=torch.float64, device=dev)
     per_frame = torch.zeros(2, g_count * n_px, dtype=torch.float64, device=dev)
     chunk = max(1, _CHUNK_SAMPLES // dx.numel())
+    ka = img.kernel_args()
+    native = dispatch.splat(ka, warp) == dispatch.NATIVE
     for s0 in range(0, sel.numel(), chunk):
         f, i = sel[s0: s0 + chunk] // n, sel[s0: s0 + chunk] % n
         c = pts[i].round()
@@ -129,6 +133,20 @@ def splat(acc: torch.Tensor, img: BSplineImage, planes: torch.Tensor, ref: torch
         px_map[:, 1] += 1.0
         py_map[:, 0] += c[:, 1]
         py_map[:, 2] += 1.0
+        u0, v0 = warp[f, i, 0], warp[f, i, 6]
+        fac = interpolation_variance_factor(u0 - u0.floor(), v0 - v0.floor(),
+                                            img.order)  # (n,)
+        px = local[i]  # (n, S) the window pixels among the covered ones
+        at = px if g_count == 1 else f[:, None] * n_px + px  # the pixel in its frame's share
+        if native:  # the samples' values, weights and noise shares in one C++ pass
+            vals, wt, share = native_ops.splat(
+                ka, img.order, dx, dy, tent, torch.cat([px_map, py_map], 1), c,
+                planes[f] * ka[-1], weight[f], level[f], fac,
+                (ref_stats[0][i].reshape(-1), ref_stats[1][i].reshape(-1)), ref, w, h)
+            scatter_add_(sums[0], px, vals)
+            scatter_add_(per_frame[0], at, wt)
+            scatter_add_(per_frame[1], at, share)
+            continue
         xs, ys = px_map @ mono.T, py_map @ mono.T  # (n, S) px in the frame
         # a window wholly inside the image (both configurations) needs no mask: most do
         (xlo, xhi), (ylo, yhi) = torch.aminmax(xs), torch.aminmax(ys)
@@ -154,14 +172,9 @@ def splat(acc: torch.Tensor, img: BSplineImage, planes: torch.Tensor, ref: torch
             m_r = _masked(own, inside).sum(1, keepdim=True) / cnt
             s_r = _masked((own - m_r) ** 2, inside).sum(1, keepdim=True).sqrt()
         gain = torch.where(s_f > 0, s_r / s_f.clamp(min=1e-12), 1.0)
-        u0, v0 = warp[f, i, 0], warp[f, i, 6]
-        fac = interpolation_variance_factor(u0 - u0.floor(), v0 - v0.floor(),
-                                            img.order)  # (n,)
         wt = _masked(tent * weight[f, None], inside)
         # summed in a fixed order (the same template on every run and device)
-        px = local[i]  # (n, S) the window pixels among the covered ones
         scatter_add_(sums[0], px, vals.mul_(gain).add_(m_r).mul_(wt))  # in the ref's levels
-        at = px if g_count == 1 else f[:, None] * n_px + px  # the pixel in its frame's share
         scatter_add_(per_frame[0], at, wt)
         scatter_add_(per_frame[1], at, wt.mul_(fac[:, None] * (gain * level[f, None]) ** 2))
     weights, shares = per_frame.view(2, g_count, n_px).unbind(0)

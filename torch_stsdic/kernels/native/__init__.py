@@ -7,8 +7,9 @@ operations writes each intermediate (N, T, S) tensor to memory. The kernels in
 one pass per point (double accumulators across frames), a few ns per sample and thread
 (measured by ``scripts/bench_kernels.py``, recorded in ``docs/bench/kernels-cpu.json``);
 also the reference subsets with gradients, the IC Hessian's moments, the inverses of small
-symmetric positive definite matrices, medians of short rows and the recursive B-spline
-prefilter.
+symmetric positive definite matrices, medians of short rows, the recursive B-spline
+prefilter and the samples of the template made from the series (map, sample, grey levels
+matched, weights: one pass per frame and POI).
 
 * Built with the system C++ compiler (``$CXX``, else ``c++``/``g++``/``clang++``; the same
   one torch.compile needs on a CPU) into ``$TORCH_STSDIC_CACHE`` (default
@@ -44,7 +45,7 @@ Modules, one job each: ``builder`` (compiler, cache directory, :func:`build`),
 ``loader`` (the switch, loading once, :func:`usable`), ``rows`` (the row-parallel runner),
 ``ops`` (the wrappers :func:`sample`, :func:`subsets`, :func:`ic_rhs`, :func:`gram`,
 :func:`spd_inverse`, :func:`nanmedian`, :func:`neighbour_own_gradient`,
-:func:`neighbour_test`, :func:`prefilter`).
+:func:`neighbour_test`, :func:`prefilter`, :func:`splat`).
 """
 
 from __future__ import annotations
@@ -71,11 +72,12 @@ from torch_stsdic.kernels.native.ops import (
     prefilter,
     sample,
     spd_inverse,
+    splat,
     subsets,
 )
 
 __all__ = ["available", "set_native", "native_enabled", "sample", "subsets", "ic_rhs",
            "ic_solve", "gram",
            "spd_inverse", "param_std", "nanmedian", "neighbour_own_gradient", "neighbour_test",
-           "prefilter", "build", "kernels", "Kernel", "Param", "usable", "usable_image",
+           "prefilter", "splat", "build", "kernels", "Kernel", "Param", "usable", "usable_image",
            "per_point_enabled"]

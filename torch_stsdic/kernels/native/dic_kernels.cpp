@@ -1157,6 +1157,114 @@ STS_KERNEL(sts_prefilter, (T* data, int64_t planes, int64_t h, int64_t w, int or
   return 0;
 }
 
+// ---- the template's samples (movie/template_image.splat) ---------------------------------
+// Rows i in [i0, i1), each a (frame, POI) pair: the window's ns pixels (dx[s], dy[s]) about
+// the whole-pixel centre (cx[i], cy[i]) mapped into the frame at plane off[i] by the
+// quadratic maps pm[i] (12: x = pm[0..5] . (1, dx, dy, dx^2, dx dy, dy^2), y = pm[6..11] .
+// the same; centre and shift folded in), sampled there, brought to the reference's grey
+// levels over the window (mean and norm matched: the reference's mr[i], sr[i] where the
+// whole window is inside both images, else its own pixels ref[...] over the pixels inside)
+// and weighted by tent[s] wf[i] (0 outside). Out (N, ns) double: the weighted value a, the
+// weight wt and the frame's noise share wt fac[i] (gain lv[i])^2. Images w x h px (the
+// reference ref (h * w) double).
+STS_KERNEL(sts_splat, (const T* flat, int64_t wp, double x_lo, double x_hi, double y_lo,
+                       double y_hi, int64_t shift, int order, int64_t i0, int64_t i1,
+                       int64_t ns, const double* dx, const double* dy, const double* tent,
+                       const double* pm, const double* cx, const double* cy,
+                       const int64_t* off, const double* wf, const double* lv,
+                       const double* fac, const double* mr, const double* sr,
+                       const double* ref, int64_t w, int64_t h, double* a, double* wt,
+                       double* nz)) {
+  if (order != 3 && order != 5) return 1;
+  const Geo g{wp, x_lo, x_hi, y_lo, y_hi, shift};
+  std::vector<T> xs(ns), ys(ns), val(ns), fxs(ns), fys(ns);
+  std::vector<double> in(ns), dxx(ns), dxy(ns), dyy(ns);
+  std::vector<int32_t> idx(ns);
+  for (int64_t s = 0; s < ns; ++s) {
+    dxx[s] = dx[s] * dx[s];
+    dxy[s] = dx[s] * dy[s];
+    dyy[s] = dy[s] * dy[s];
+  }
+  const double wmax = double(w - 1), hmax = double(h - 1);
+  for (int64_t i = i0; i < i1; ++i) {
+    const double* q = pm + i * 12;
+    // the reference configuration's window is inside where its corners are
+    const double ci = cx[i], cj = cy[i];
+    const bool ref_in = ci + dx[0] >= 0 && ci + dx[ns - 1] <= wmax && cj + dy[0] >= 0 &&
+                        cj + dy[ns - 1] <= hmax;
+    double n_in = 0;
+    for (int64_t s = 0; s < ns; ++s) {
+      const double x = q[0] + q[1] * dx[s] + q[2] * dy[s] + q[3] * dxx[s] + q[4] * dxy[s] +
+                       q[5] * dyy[s];
+      const double y = q[6] + q[7] * dx[s] + q[8] * dy[s] + q[9] * dxx[s] + q[10] * dxy[s] +
+                       q[11] * dyy[s];
+      xs[s] = T(x);
+      ys[s] = T(y);
+      const double rx = ci + dx[s], ry = cj + dy[s];
+      const bool ok = (x >= 0) & (x <= wmax) & (y >= 0) & (y <= hmax) & (rx >= 0) &
+                      (rx <= wmax) & (ry >= 0) & (ry <= hmax);
+      in[s] = ok ? 1.0 : 0.0;
+      n_in += in[s];
+    }
+    const bool whole = ref_in && n_in == double(ns);
+    if (order == 3)
+      sample_points<T, 3>(flat + off[i], g, T(0), T(0), xs.data(), ys.data(), ns, idx.data(),
+                          fxs.data(), fys.data(), val.data());
+    else
+      sample_points<T, 5>(flat + off[i], g, T(0), T(0), xs.data(), ys.data(), ns, idx.data(),
+                          fxs.data(), fys.data(), val.data());
+    double sum = 0;
+    for (int64_t s = 0; s < ns; ++s) sum += double(val[s]) * in[s];
+    if (!std::isfinite(sum)) {  // a frame with NaN or inf pixels: those samples count 0
+      for (int64_t s = 0; s < ns; ++s)
+        if (!std::isfinite(double(val[s]))) val[s] = T(0);
+      sum = 0;
+      for (int64_t s = 0; s < ns; ++s) sum += double(val[s]) * in[s];
+    }
+    const double c = n_in > 0 ? n_in : 1.0;
+    const double mf = sum / c;
+    double ss = 0;
+    for (int64_t s = 0; s < ns; ++s) {
+      const double v = (double(val[s]) - mf) * in[s];
+      ss += v * v;
+    }
+    const double sf = std::sqrt(ss);
+    double m_r = mr[i], s_r = sr[i];
+    if (!whole) {  // the reference's own pixels of the window, over those inside
+      const int64_t size = w * h;
+      const int64_t base = int64_t(cj) * w + int64_t(ci);
+      double rs = 0;
+      for (int64_t s = 0; s < ns; ++s) {
+        const int64_t k = std::min(std::max(base + int64_t(dy[s]) * w + int64_t(dx[s]),
+                                            int64_t(0)), size - 1);
+        rs += ref[k] * in[s];
+      }
+      m_r = rs / c;
+      double r2 = 0;
+      for (int64_t s = 0; s < ns; ++s) {
+        const int64_t k = std::min(std::max(base + int64_t(dy[s]) * w + int64_t(dx[s]),
+                                            int64_t(0)), size - 1);
+        const double e = (ref[k] - m_r) * in[s];
+        r2 += e * e;
+      }
+      s_r = std::sqrt(r2);
+    }
+    const double gain = sf > 0 ? s_r / std::max(sf, 1e-12) : 1.0;
+    const double share = fac[i] * (gain * lv[i]) * (gain * lv[i]);
+    const double wfi = wf[i], off_v = m_r - mf * gain;
+    double* ai = a + i * ns;
+    double* wi = wt + i * ns;
+    double* ni = nz + i * ns;
+    for (int64_t s = 0; s < ns; ++s) {
+      const double weight = tent[s] * wfi * in[s];
+      ai[s] = (double(val[s]) * gain + off_v) * weight;
+      wi[s] = weight;
+      ni[s] = weight * share;
+    }
+  }
+  return 0;
+}
+
 }  // namespace
 
 // ---- the library's interface: the ABI version and the kernel declarations ------------------
@@ -1164,7 +1272,7 @@ extern "C" {
 
 // Version of this interface (the sts_kernel_* functions and what the kernels' parameters
 // mean); native/declarations.py refuses a library of another version.
-int sts_abi_version() { return 11; }
+int sts_abi_version() { return 12; }
 
 int sts_kernel_count() { return int(declarations().size()); }
 

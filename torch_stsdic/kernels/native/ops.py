@@ -14,7 +14,7 @@ from torch_stsdic.kernels.native.loader import kernel
 from torch_stsdic.kernels.native.rows import run_rows, run_shared, threads
 
 __all__ = ["sample", "subsets", "ic_rhs", "ic_solve", "gram", "spd_inverse", "param_std",
-           "nanmedian", "prefilter", "neighbour_own_gradient", "neighbour_test"]
+           "nanmedian", "prefilter", "neighbour_own_gradient", "neighbour_test", "splat"]
 
 
 def _geo(img_args: tuple, order: int) -> dict:
@@ -399,3 +399,40 @@ def prefilter(images: torch.Tensor, order: int) -> torch.Tensor:
         blocks = planes * ((w + 63) // 64)
         run_rows(fn, blocks, h * 64 * 4, dict(args, axis=0))
     return out
+
+
+def splat(img_args: tuple, order: int, dx: torch.Tensor, dy: torch.Tensor, tent: torch.Tensor,
+          maps: torch.Tensor, centres: torch.Tensor, frame_off: torch.Tensor,
+          weight: torch.Tensor, level: torch.Tensor, fac: torch.Tensor,
+          ref_stats: tuple[torch.Tensor, torch.Tensor], ref: torch.Tensor, w: int, h: int
+          ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Native twin of the per-sample part of ``movie.template_image.splat``: for N rows
+    (frame, POI), the window's S pixels (offsets ``dx``, ``dy`` (S,), tent weights ``tent``
+    (S,)) about the whole-pixel ``centres`` (N, 2) mapped by ``maps`` (N, 12) (x then y: a
+    quadratic of the offsets, centre folded in) into the frame at plane offset ``frame_off``
+    (N,), sampled, matched to the reference's grey levels (``ref_stats``: mean and norm (N,)
+    over whole windows; else from ``ref`` (H*W,) over the pixels inside both images) and
+    weighted (``weight``, ``level``, ``fac`` (N,)). Returns (N, S) float64 each: the
+    weighted values, the weights and the noise shares."""
+    flat = img_args[0].contiguous()
+    n, ns = maps.shape[0], dx.numel()
+    _require("splat", tuple(maps.shape) == (n, 12) and tuple(centres.shape) == (n, 2)
+             and all(t.numel() == n for t in (frame_off, weight, level, fac, *ref_stats))
+             and dy.numel() == ns and tent.numel() == ns and ref.numel() == w * h,
+             "maps (N, 12), centres (N, 2), frame_off/weight/level/fac/ref_stats (N,), "
+             "dx/dy/tent (S,), ref (H*W,)")
+    off = frame_off.to(torch.int64).reshape(-1).contiguous()
+    _check_planes("splat", img_args, off)
+
+    def d(t):
+        return t.to(torch.float64).reshape(-1).contiguous()
+
+    out = [torch.empty(n, ns, dtype=torch.float64) for _ in range(3)]
+    c = centres.to(torch.float64)
+    run_rows(kernel("sts_splat", flat.dtype), n,
+             8 * ns, dict(flat=flat, **_geo(img_args, order), ns=ns, dx=d(dx), dy=d(dy),
+                          tent=d(tent), pm=maps.to(torch.float64).contiguous(), cx=d(c[:, 0]),
+                          cy=d(c[:, 1]), off=off, wf=d(weight), lv=d(level), fac=d(fac),
+                          mr=d(ref_stats[0]), sr=d(ref_stats[1]), ref=d(ref), w=int(w),
+                          h=int(h), a=out[0], wt=out[1], nz=out[2]))
+    return out[0], out[1], out[2]
