@@ -352,3 +352,37 @@ def test_command_line_workers_give_the_one_process_file(dask_distributed, steppe
         cluster.close()
     assert main([*base, "--out", str(tmp_path / "x.h5"), "--chunk-frames", "6"]) == 2
     assert "--chunk-frames" in capsys.readouterr().err
+
+
+def test_a_warm_up_block_seeds_its_poor_fit_rows_as_trusted(movie, monkeypatch):
+    """With ``warm_up`` (a chunk's rows before its targets) the first block only seeds the
+    carry: its rows the fit check made POOR_FIT without their point's history (ZNCC still
+    above ``lost_zncc``) are carried on as trusted; without warm-up, and in later blocks,
+    they are not. (The first block was once recognised by identity with ``plan.blocks``,
+    a property made anew on every read: never.)"""
+    import torch_stsdic.movie.series as series_mod
+
+    seeds = []
+    solve, carry = series_mod.solve_block, series_mod.make_carry
+
+    def poor_first_point(run, ks, ref, c):
+        out = solve(run, ks, ref, c)
+        out["status"][:, 0] = int(Status.POOR_FIT)  # high ZNCC: poor for the residual alone
+        return out
+
+    def recording(rows, times, names, *args, **kwargs):
+        if "ut" in names:  # the run's own blocks (m = 2), not a pre-pass's classical ones
+            seeds.append(rows["status"].copy())
+        return carry(rows, times, names, *args, **kwargs)
+
+    monkeypatch.setattr(series_mod, "solve_block", poor_first_point)
+    monkeypatch.setattr(series_mod, "make_carry", recording)
+    plan = plan_run(movie, config=CFG, roi=ROI, step=18, batch_frames=4)
+    assert len(plan.blocks) >= 3
+    for warm in (True, False):
+        seeds.clear()
+        run_plan(plan, progress=False, warm_up=warm)
+        first, later = seeds[0], seeds[1:]
+        assert len(later) == len(plan.blocks) - 2  # the last block carries nothing on
+        assert (first[:, 0] == (Status.CONVERGED if warm else Status.POOR_FIT)).all()
+        assert all((s[:, 0] == Status.POOR_FIT).all() for s in later)
