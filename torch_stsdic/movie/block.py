@@ -567,11 +567,11 @@ def _carried_start(run: BlockContext, blk: Block, ref: Reference, carry: Carry,
         run.stats["neighbour_rows"] = run.stats.get("neighbour_rows", 0) + filled * b
     pred = carry.predict(run.ts[blk.k].to(run.dtype))
     if run.shared is not None and ref.acc is None:  # the shake between the frames
-        step = carry.shared_step(run.shared, ref.points, blk.k, run.ts, run.segments)
+        held = carry.shared_slope(run.shared, ref.points, run.ts, run.segments)  # (N, 2)
+        step = carry.shared_step(run.shared, ref.points, blk.k, run.ts, run.segments, held)
         pred["u"] = pred["u"] + step[..., 0].to(pred["u"])
         pred["v"] = pred["v"] + step[..., 1].to(pred["v"])
         if "ut" in pred:  # the specimen's own velocity: the windows add their shake's
-            held = carry.shared_slope(run.shared, ref.points, run.ts, run.segments)
             shake_vel = held.repeat(b, 1).to(run.dtype)  # (B*N, 2)
     pred = to_relative(pred, ref.acc)
     init = blk.init_rows({nm: v.reshape(-1) for nm, v in pred.items()})

@@ -62,7 +62,8 @@ class Carry:
         return out
 
     def shared_step(self, shared: SharedMotion, points: torch.Tensor, ks: torch.Tensor,
-                    ts: torch.Tensor, segments: torch.Tensor | None = None) -> torch.Tensor:
+                    ts: torch.Tensor, segments: torch.Tensor | None = None,
+                    slope: torch.Tensor | None = None) -> torch.Tensor:
         """(B, N, 2) px: what the shared motion (:mod:`torch_stsdic.core.shared_motion`) adds
         to :meth:`predict` at series frames ``ks`` (B,) (times ``ts`` (T_series,)): its
         displacement there minus at the last row, minus the part of it the carried velocity
@@ -70,7 +71,8 @@ class Carry:
         window where the velocity is its ut, vt; its finite difference where the velocity is
         one). A specimen that shakes moves by the shake between frames, which no velocity
         predicts: on the muDIC hourglass (0.15 px median shake) the carry missed a frame's
-        solution by 0.185 px median, 0.014 px with the shake added. Zero where unknown."""
+        solution by 0.185 px median, 0.014 px with the shake added. Zero where unknown.
+        ``slope``: :meth:`shared_slope`'s answer where the caller has it already."""
         n = points.shape[0]
         out = torch.zeros(ks.shape[0], n, 2, dtype=points.dtype, device=points.device)
         if self.frame is None:
@@ -78,7 +80,8 @@ class Carry:
         last = torch.tensor([self.frame], device=ks.device)
         g_last = shared.displacement(points, last)[0]  # (N, 2)
         d = (ts[ks] - self.t).to(points.dtype).view(-1, 1, 1)
-        slope = self.shared_slope(shared, points, ts, segments)
+        if slope is None:
+            slope = self.shared_slope(shared, points, ts, segments)
         return shared.displacement(points, ks) - g_last - slope * d
 
     def shared_slope(self, shared: SharedMotion, points: torch.Tensor, ts: torch.Tensor,
