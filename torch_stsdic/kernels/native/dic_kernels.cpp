@@ -247,7 +247,33 @@ inline void sample_points(const T* plane, const Geo& g, T ox, T oy, const T* dxu
 #if defined(__AVX2__) && defined(__FMA__)
   if constexpr (ORDER == 3 && sizeof(T) == 4) {
     const CubicAvx k;
-    for (int64_t s = 0; s < ns; ++s) {
+    int64_t s = 0;
+    if constexpr (!GRAD) {
+      // eight points at a time: their 8 partial sums each reduced together (a transposing
+      // tree of horizontal adds, one store), not one horizontal sum and store per point
+      for (; s + 8 <= ns; s += 8) {
+        __m256 acc[8];
+        for (int q = 0; q < 8; ++q) {
+          const __m256 wv = k.weights(CubicAvx::frac(fxs[s + q], fys[s + q]));
+          const __m128 wx = _mm256_castps256_ps128(wv);
+          const __m256 wxx = _mm256_set_m128(wx, wx);
+          __m256 wy01, wy23;
+          CubicAvx::rows_of(_mm256_extractf128_ps(wv, 1), &wy01, &wy23);
+          const float* r = plane + idx[s + q];
+          const __m256 r01 = _mm256_loadu2_m128(r + wpl, r);
+          const __m256 r23 = _mm256_loadu2_m128(r + 3 * wpl, r + 2 * wpl);
+          acc[q] = _mm256_fmadd_ps(r23, _mm256_mul_ps(wxx, wy23),
+                                   _mm256_mul_ps(r01, _mm256_mul_ps(wxx, wy01)));
+        }
+        const __m256 u0 = _mm256_hadd_ps(_mm256_hadd_ps(acc[0], acc[1]),
+                                         _mm256_hadd_ps(acc[2], acc[3]));
+        const __m256 u1 = _mm256_hadd_ps(_mm256_hadd_ps(acc[4], acc[5]),
+                                         _mm256_hadd_ps(acc[6], acc[7]));
+        _mm256_storeu_ps(out + s, _mm256_add_ps(_mm256_permute2f128_ps(u0, u1, 0x20),
+                                                _mm256_permute2f128_ps(u0, u1, 0x31)));
+      }
+    }
+    for (; s < ns; ++s) {
       const __m256 f = CubicAvx::frac(fxs[s], fys[s]);
       const __m256 wv = k.weights(f);
       const __m128 wx = _mm256_castps256_ps128(wv);
