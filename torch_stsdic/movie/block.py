@@ -233,12 +233,14 @@ class Block(BlockChecks, BlockRescue):
         return fidx, dt.repeat_interleave(self.n, 0)
 
     def solve(self, idx: torch.Tensor, init: torch.Tensor | None, m: int | None = None,
-              solver: SubsetSolver | None = None, init_step: torch.Tensor | None = None
-              ) -> WindowSolution:
+              solver: SubsetSolver | None = None, init_step: torch.Tensor | None = None,
+              for_check: bool = True) -> WindowSolution:
         """Solve rows ``idx`` from ``init`` (None: FFT) with windows of half-width ``m``
         (default the run's; m = 0: the target frame alone, classical shape), with ``solver``
         (default the run's); subsets at :attr:`centres` where :meth:`keep_outside` moved them
-        inside the image (the results are the POIs')."""
+        inside the image (the results are the POIs'). ``for_check``: the model check will
+        judge these rows (a window solve then gives it its first classical step); False
+        for the check's own solves."""
         ref, run = self.ref, self.run
         if m is None or m == run.m:
             fidx, dt = self.fidx[idx], self.dt[idx]
@@ -258,7 +260,7 @@ class Block(BlockChecks, BlockRescue):
             noise_ratio=run.noise_ratio, motion=None if motion is None else motion[idx],
             centres=None if self.centres is None else self.centres[idx],
             # the model check's first classical step, from the window solve's last step
-            classical_step=run.checks and m_eff > 0 and solver is None,
+            classical_step=run.checks and m_eff > 0 and solver is None and for_check,
             init_step=init_step,
             # known per run: the POIs' grid (the centres are whole pixels from them) and
             # the shape (a window of 2m+1 frames at distinct times has temporal terms)

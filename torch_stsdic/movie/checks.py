@@ -290,7 +290,7 @@ class BlockChecks:
                     j = run.names.index(nm)
                     start[:, j] = torch.where(torch.isfinite(vel[:, c]), vel[:, c].to(start),
                                               start[:, j])
-            sol = self.solve(idx[sel], start, m=m)
+            sol = self.solve(idx[sel], start, m=m, for_check=False)  # judged here, now
             good = sol.status <= USABLE
             d = sol.params[:, [iu, iv]].to(run.dtype)
             good &= ~model_mismatch(d, d_cls[sel], sol.std[:, [iu, iv]], s_cls[sel])
