@@ -35,6 +35,7 @@ from torch_stsdic.core.solver import (
     subset_inside,
 )
 from torch_stsdic.core.status import Status
+from torch_stsdic.movie.block_start import pilot_shift, window_shake
 from torch_stsdic.movie.carry import Carry
 from torch_stsdic.movie.checks import CHECK_ITER, CHECK_TOL, BlockChecks
 from torch_stsdic.movie.frames import FrameCache, block_frames, half_widths, window_frames
@@ -522,27 +523,6 @@ def _shorter_again(blk: Block, cap: torch.Tensor) -> None:
                 "shorter_again_rows", 0) + int(good.numel())
 
 
-def _window_shake(blk: Block, init: torch.Tensor, rows: torch.Tensor,
-                  shake_vel: torch.Tensor) -> None:
-    """The carried ut, vt of ``rows`` ((B*N,) bool) in ``init`` (B*N, P) with the shared
-    motion's slope over the carry's window (``shake_vel`` (B*N, 2)) replaced by its slope
-    over each row's own window (half-width ``blk.window_m``, the run's m where None): a
-    window's velocity holds the shake's slope over its frames, which changes from window to
-    window (hourglass: the carried ut missed the next block's by 0.035 px per frame,
-    median)."""
-    run = blk.run
-    iu, iv = run.names.index("ut"), run.names.index("vt")
-    wm = blk.window_m
-    for m in ([run.m] if wm is None else half_widths(wm, rows, run.m)):
-        sel = rows if wm is None else rows & (wm == m)
-        slope = blk.shared_slope(int(m))
-        if slope is None:
-            continue
-        d = torch.where(sel.unsqueeze(1), slope.to(init) - shake_vel.to(init), 0.0)
-        init[:, iu] += d[:, 0]
-        init[:, iv] += d[:, 1]
-
-
 def _first_guess_rows(run: BlockContext, blk: Block, ref: Reference) -> torch.Tensor:
     """(B*N, P) the block's rows from ``run.first_guess`` (NaN rows where it has none)."""
     guess = run.first_guess.guess(ref.points, blk.windows(run.m), blk.dt[::blk.n])
@@ -559,7 +539,8 @@ def _carried_start(run: BlockContext, blk: Block, ref: Reference, carry: Carry,
     shake between the frames added; an earlier round's solution where ``run`` has one for
     every block), (B*N,) bool the rows that start from them, (B*N,) bool those from the
     earlier round (None: none) and (B*N, 2) the shared motion's part of the carried window
-    velocity (None: none; :func:`_window_shake`). ``count``: the block's counter."""
+    velocity (None: none; :func:`~torch_stsdic.movie.block_start.window_shake`).
+    ``count``: the block's counter."""
     b, n, dev = blk.b, blk.n, run.device
     shake_vel = has = None
     pts0 = ref.points if ref.acc is None else ref.points - torch.stack(
@@ -626,6 +607,9 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
         carry, init, carried, has, shake_vel = _carried_start(run, blk, ref, carry, count)
     ident = blk.keep_identity()
     carried &= ~ident
+    pilot = None  # (B*N,) bool the pilot rows, solved already (None: none)
+    if init is not None and run.m == 0 and run.shared is None and carry is not None:
+        pilot = pilot_shift(blk, init, carried if has is None else carried & ~has)
     guess = None  # the carried rows' guesses (NaN: none; no test whether there are any)
     if init is not None:
         guess = torch.where(carried.unsqueeze(1), init, torch.full_like(init, float("nan")))
@@ -640,14 +624,14 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
         blk.window_m = cap.clone() if blk.window_m is None else torch.minimum(blk.window_m,
                                                                               cap)
     if shake_vel is not None:
-        _window_shake(blk, init, carried if has is None else carried & ~has, shake_vel)
+        window_shake(blk, init, carried if has is None else carried & ~has, shake_vel)
     shorter = carried & (blk.window_m < run.m) if blk.window_m is not None else None
     if shorter is not None:  # points leaving the image within their window
         for m in half_widths(blk.window_m, shorter, run.m):
             r = torch.nonzero(shorter & (blk.window_m == m)).flatten()
             blk.keep(r, blk.solve(r, init[r], m=m), only_better=False, m=m)
         carried = carried & ~shorter
-    idx_c = torch.nonzero(carried).flatten()
+    idx_c = torch.nonzero(carried if pilot is None else carried & ~pilot).flatten()
     if idx_c.numel():
         blk.keep(idx_c, blk.solve(idx_c, init[idx_c]), only_better=False)
     if shorter is not None:
