@@ -11,9 +11,12 @@ from torch_stsdic.core.shared_motion import SharedMotion
 from torch_stsdic.movie.carry import make_carry
 
 
-def test_carry_with_the_shared_motion_predicts_a_shaking_linear_motion_exactly():
-    g = torch.Generator().manual_seed(0)
-    n_series, n = 30, 3
+def _shaking_linear_motion(seed: int):
+    """Three points moving linearly in time plus an affine shake of the whole field (0.2 px
+    translation, 1e-3 du/dx std per frame) over 30 frames: the times (30,), the shake
+    (:class:`SharedMotion`), the points (3, 2) and ``total(frames)`` (K, 3, 2) px."""
+    g = torch.Generator().manual_seed(seed)
+    n_series = 30
     ts = torch.arange(n_series, dtype=torch.float64)
     params = np.zeros((n_series, 6))
     params[:, :2] = 0.2 * torch.randn(n_series, 2, generator=g, dtype=torch.float64).numpy()
@@ -28,6 +31,13 @@ def test_carry_with_the_shared_motion_predicts_a_shaking_linear_motion_exactly()
     def total(frames: list[int]) -> torch.Tensor:  # (K, N, 2) deformation + shake
         f = torch.tensor(frames)
         return a + b * ts[f].view(-1, 1, 1) + shared.displacement(pts, f)
+
+    return ts, shared, pts, total
+
+
+def test_carry_with_the_shared_motion_predicts_a_shaking_linear_motion_exactly():
+    ts, shared, pts, total = _shaking_linear_motion(seed=0)
+    n = pts.shape[0]
 
     last, m = 10, 2
     win = list(range(last - m, last + m + 1))
@@ -104,22 +114,8 @@ def test_a_carried_window_velocity_holds_the_shake_of_the_rows_own_window():
 
     from torch_stsdic.movie.block_start import window_shake
 
-    g = torch.Generator().manual_seed(1)
-    n_series, n = 30, 3
-    ts = torch.arange(n_series, dtype=torch.float64)
-    params = np.zeros((n_series, 6))
-    params[:, :2] = 0.2 * torch.randn(n_series, 2, generator=g, dtype=torch.float64).numpy()
-    params[:, 2] = 1e-3 * torch.randn(n_series, generator=g, dtype=torch.float64).numpy()
-    shared = SharedMotion(kind="affine", params=params, origin=np.array([50.0, 50.0]),
-                          scatter=np.zeros(n_series), points=np.ones(n_series, dtype=int),
-                          measured=np.ones(n_series, dtype=bool))
-    pts = torch.tensor([[10.0, 20.0], [60.0, 45.0], [90.0, 80.0]], dtype=torch.float64)
-    a = torch.tensor([[0.3, -0.1], [1.0, 0.2], [-0.5, 0.4]], dtype=torch.float64)
-    b = torch.tensor([[0.05, 0.02], [-0.03, 0.01], [0.0, -0.04]], dtype=torch.float64)
-
-    def total(frames: list[int]) -> torch.Tensor:  # (K, N, 2) deformation + shake
-        f = torch.tensor(frames)
-        return a + b * ts[f].view(-1, 1, 1) + shared.displacement(pts, f)
+    ts, shared, pts, total = _shaking_linear_motion(seed=1)
+    n = pts.shape[0]
 
     def window_velocity(k: int, m: int) -> torch.Tensor:  # (N, 2) by numpy's line fit
         frames = list(range(k - m, k + m + 1))

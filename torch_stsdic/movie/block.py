@@ -182,7 +182,7 @@ class Block(BlockChecks, BlockRescue):
         self._moved: list[tuple[int, torch.Tensor]] = []
         self._motion: dict[int, torch.Tensor] = {}
         self._slope: dict[int, torch.Tensor] = {}
-        self._shared_g: torch.Tensor | None = None  # (N, F) the shared motion, needed frames
+        self._shared_g: torch.Tensor | None = None  # (N, F, 2) shared motion, needed frames
 
     def motion_of(self, m: int) -> torch.Tensor | None:
         """(B*N, 2m+1, 2) the shared motion's known part of every row's window frames

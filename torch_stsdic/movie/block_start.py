@@ -59,10 +59,10 @@ def pilot_shift(blk: Block, init: torch.Tensor, rows: torch.Tensor) -> torch.Ten
     shift = torch.where(enough.unsqueeze(1), per.nanmedian(1).values.nan_to_num(0.0), 0.0)
     pilot = torch.zeros_like(rows)
     pilot[sel] = True
-    rest = (rows & ~pilot).unsqueeze(1)
+    rest = rows & ~pilot
     step = shift.repeat_interleave(n, 0)  # (B*N, 2)
-    init[:, iu] += torch.where(rest[:, 0], step[:, 0], 0.0).to(init)
-    init[:, iv] += torch.where(rest[:, 0], step[:, 1], 0.0).to(init)
+    init[:, iu] += torch.where(rest, step[:, 0], 0.0).to(init)
+    init[:, iv] += torch.where(rest, step[:, 1], 0.0).to(init)
     return pilot
 
 

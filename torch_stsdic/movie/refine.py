@@ -552,10 +552,7 @@ def apply_offsets(rows: dict[str, np.ndarray], offsets: ReferenceOffsets,
     velocities, unchanged). With ``frames`` (B,) (the rows' series frames), the reference
     frame's row reports the truth where it was solved (status usable): displacement and
     gradients 0, and so their predicted std (u_std, v_std); the velocity stays as measured."""
-    out = dict(rows)
-    for k, off in offsets.values.items():
-        if k in out and k not in _RATES:
-            out[k] = out[k] - off[None, :]
+    out = _shifted(rows, offsets, -1.0)
     if frames is None:
         return out
     frames = [int(f) for f in frames]
@@ -577,10 +574,17 @@ def restore_offsets(rows: dict[str, np.ndarray], offsets: ReferenceOffsets
     and the velocities, unchanged): the quantities the blocks' solves measure against their
     reference (the next block's carried guess starts there, not the stored rows' offset
     away)."""
+    return _shifted(rows, offsets, 1.0)
+
+
+def _shifted(rows: dict[str, np.ndarray], offsets: ReferenceOffsets, sign: float
+             ) -> dict[str, np.ndarray]:
+    """Rows with ``sign`` times the offsets added (names without an offset, and the
+    velocities, unchanged)."""
     out = dict(rows)
     for k, off in offsets.values.items():
         if k in out and k not in _RATES:
-            out[k] = out[k] + off[None, :]
+            out[k] = out[k] + sign * off[None, :]
     return out
 
 

@@ -429,10 +429,10 @@ def splat(img_args: tuple, order: int, dx: torch.Tensor, dy: torch.Tensor, tent:
 
     out = [torch.empty(n, ns, dtype=torch.float64) for _ in range(3)]
     c = centres.to(torch.float64)
-    run_rows(kernel("sts_splat", flat.dtype), n,
-             8 * ns, dict(flat=flat, **_geo(img_args, order), ns=ns, dx=d(dx), dy=d(dy),
-                          tent=d(tent), pm=maps.to(torch.float64).contiguous(), cx=d(c[:, 0]),
-                          cy=d(c[:, 1]), off=off, wf=d(weight), lv=d(level), fac=d(fac),
-                          mr=d(ref_stats[0]), sr=d(ref_stats[1]), ref=d(ref), w=int(w),
-                          h=int(h), a=out[0], wt=out[1], nz=out[2]))
+    run_rows(kernel("sts_splat", flat.dtype), n, 8 * ns,
+             dict(flat=flat, **_geo(img_args, order), ns=ns, dx=d(dx), dy=d(dy), tent=d(tent),
+                  pm=maps.to(torch.float64).contiguous(), cx=d(c[:, 0]), cy=d(c[:, 1]),
+                  off=off, wf=d(weight), lv=d(level), fac=d(fac), mr=d(ref_stats[0]),
+                  sr=d(ref_stats[1]), ref=d(ref), w=int(w), h=int(h), a=out[0], wt=out[1],
+                  nz=out[2]))
     return out[0], out[1], out[2]
