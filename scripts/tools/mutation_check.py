@@ -126,7 +126,7 @@ MUTATIONS: tuple[Mutation, ...] = (
         "reference_update never takes a new reference"),
     Mutation(
         "refined-offsets-not-subtracted", "reference", "torch_stsdic/movie/refine.py",
-        "out[k] = out[k] - off[None, :]", "out[k] = out[k]",
+        "out = _shifted(rows, offsets, -1.0)", "out = dict(rows)",
         (OPTIONS, "test_refine.py", "test_demo.py"),
         "refine_reference measures the offsets but does not subtract them"),
     Mutation(
