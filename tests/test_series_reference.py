@@ -401,8 +401,8 @@ def test_one_bad_point_does_not_turn_its_neighbours_classical(monkeypatch):
     measure = sr._measure
     hit = {}
 
-    def measure_with_a_bad_point(plan, frames, image, run, guess=None):
-        res = measure(plan, frames, image, run, guess)
+    def measure_with_a_bad_point(plan, frames, image, run, guess=None, ratio=None):
+        res = measure(plan, frames, image, run, guess, ratio)
         if image is None:  # the classical measurement the time-model test reads
             k = int(torch.argmin((plan.points.double() - 80.0).norm(dim=1)))
             e = 6.0 * float(res.std["u"][1:, k].median())
@@ -557,8 +557,8 @@ def test_a_later_round_starts_every_row_from_the_earlier_rounds_solution(movie, 
     rounds = []
     orig = series_reference._measure
 
-    def recording(plan, frames, image, run, guess=None):
-        res = orig(plan, frames, image, run, guess)
+    def recording(plan, frames, image, run, guess=None, ratio=None):
+        res = orig(plan, frames, image, run, guess, ratio)
         rounds.append((guess is not None, len(frames), res))
         return res
 
@@ -571,6 +571,42 @@ def test_a_later_round_starts_every_row_from_the_earlier_rounds_solution(movie, 
     rows = n * res.n_points
     assert res.info["first_guess_rows"] >= 0.95 * rows  # not only the first block's
     assert float(res.iterations.double().mean()) < float(first[0].iterations.double().mean())
+
+
+def test_the_rounds_against_the_template_take_its_known_noise_ratio(movie, monkeypatch):
+    """The template's later rounds and its gauge measure against the template, whose noise
+    ratio its own construction gives (``template_image``): their blocks take it, they do
+    not estimate it again from the template's and the frames' pixels (Immerkaer over whole
+    images: 0.4 s of the hourglass's template)."""
+    import torch_stsdic.movie.block as block
+
+    estimated, made, rounds = [], [], []
+    orig_ratio, orig_image, orig_measure = (block.noise_ratio, template_image.template_image,
+                                            series_reference._measure)
+
+    def ratio(desc, raw, frames):
+        estimated.append(desc)
+        return orig_ratio(desc, raw, frames)
+
+    def image(*a, **kw):
+        out = orig_image(*a, **kw)
+        made.append(out[1])
+        return out
+
+    def measure(plan, frames, image, run, guess=None, ratio=None):
+        res = orig_measure(plan, frames, image, run, guess, ratio)
+        rounds.append((image is not None, res.info["reference_noise_ratio"]))
+        return res
+
+    monkeypatch.setattr(block, "noise_ratio", ratio)
+    monkeypatch.setattr(series_reference, "template_image", image)
+    monkeypatch.setattr(series_reference, "_measure", measure)
+    _run(movie, 0)
+    against = [r for on_template, r in rounds if on_template]
+    assert len(against) == 2 and len(made) == 2  # round 2 and the gauge; two templates
+    assert against[0] == pytest.approx(made[0]) and against[1] == pytest.approx(made[1])
+    assert 0.0 < made[1] < 0.5  # 16 frames and the reference: well below a frame's
+    assert not any(str(d).startswith("array:") for d in estimated)
 
 
 def _fit_grid(n: int = 15, step: float = 10.0) -> torch.Tensor:

@@ -154,6 +154,8 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
         ref = Reference(frame=plan.reference_frame, raw=ref_raw, img=solver.prepare(ref_raw),
                         points=pts)
     run.reference_desc = plan.reference_desc  # its noise ratio is measured on the 1st block
+    # ... unless the plan knows it (a template's own rounds: made from frames of known noise)
+    run.noise_ratio = plan.options.get("reference_noise_ratio")
     updates: list[dict[str, Any]] = []
     if "series_reference" not in plan.options and "single_reference" not in plan.options:
         set_series_reference(plan, "auto")  # the default of a plan no one chose a reference for
@@ -166,7 +168,9 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
     record_estimates(est, sink)  # for a resumed run (not where they were read from the file)
     # the passes before the blocks freed what they held: its pages back to the system, so
     # that what a long movie's passes left fragmented does not stay resident under the blocks
-    release_freed_memory()
+    if estimates is None and (est.shared is not None or est.series_reference is not None
+                              or est.window_m is not None or est.time_model is not None):
+        release_freed_memory()  # (not after a sub-run's nothing: a few ms each)
     ref = _apply_estimates(run, est, plan, ref, first_guess, guess_every_block)
     offsets = est.row_offsets
     bar = tqdm(total=plan.n_rows, unit="frame", file=sys.stderr, disable=not progress,

@@ -168,15 +168,18 @@ def sample_frames(plan: RunPlan, max_frames: int = DEFAULT_FRAMES) -> list[int]:
 
 
 def _measure(plan: RunPlan, frames: list[int], image: torch.Tensor | None,
-             run: Callable[..., TrackResult], guess: MeasuredSample | None = None
-             ) -> TrackResult:
+             run: Callable[..., TrackResult], guess: MeasuredSample | None = None,
+             ratio: float | None = None) -> TrackResult:
     """Classical DIC (checks off) of ``frames`` at all the plan's POIs, against the plan's
-    reference or against ``image``; its first block starts from ``guess`` (an earlier
-    round's solutions; None: FFT cross-correlation)."""
+    reference or against ``image`` (a template of noise variance ``ratio`` times a
+    frame's, as :func:`template_image` made it: not estimated from its pixels again);
+    its first block starts from ``guess`` (an earlier round's solutions; None: FFT
+    cross-correlation)."""
     sub = classical_subplan(plan, frames)
     if image is not None:
         sub = dataclasses.replace(sub, reference_image=image, reference_frame=-1,
-                                  reference_desc="array:series-template")
+                                  reference_desc="array:series-template",
+                                  options={**sub.options, "reference_noise_ratio": ratio})
     return run(sub, progress=False, **({} if guess is None else
                                        {"first_guess": guess, "guess_every_block": True}))
 
@@ -509,11 +512,11 @@ def build_series_reference(plan: RunPlan, ref_raw: torch.Tensor, *,
     pts = plan.points.double().cpu()
     reg = RegistrationFits.make(pts, neighbours, plan.config.subset_size)
     fit = reg.fits[0]  # the smallest neighbourhood: the gauge's planes
-    image = choice = unit = matched = guess = None
+    image = choice = unit = matched = guess = ratio = None
     for _ in range(int(iterations)):
         res = measured.result(frames) if image is None and measured is not None else None
         if res is None:
-            res = _measure(plan, frames, image, run, guess)
+            res = _measure(plan, frames, image, run, guess, ratio)
         guess = _round_guess(plan, res)
         warps, trusted = _all_warps(plan, res)
         if choice is None:  # tested once, against the reference image (a known null)
@@ -539,7 +542,7 @@ def build_series_reference(plan: RunPlan, ref_raw: torch.Tensor, *,
     added = torch.where(registered, prior, 0.0)
     gauge = None
     if plan.reference_frame >= 0:
-        gauge, left = _gauge(plan, fit, image, registered, run, guess)
+        gauge, left = _gauge(plan, fit, image, registered, run, guess, ratio)
         added = torch.where(registered, left, 0.0)
     # the template's noise beyond the median the solver is told, where fewer frames cover it
     added = added + (point_ratio - ratio).clamp(min=0.0) * unit
@@ -567,8 +570,8 @@ def _shares(splat: torch.Tensor, sigmas: list[float], frames: list[int], referen
 
 
 def _gauge(plan: RunPlan, fit: LocalFit, image: torch.Tensor, keep: torch.Tensor,
-           run: Callable[..., TrackResult], guess: MeasuredSample | None = None
-           ) -> tuple[ReferenceOffsets, torch.Tensor]:
+           run: Callable[..., TrackResult], guess: MeasuredSample | None = None,
+           ratio: float | None = None) -> tuple[ReferenceOffsets, torch.Tensor]:
     """The template's registration error as the reference frame (zero displacement by
     definition) measures it against the template, and the variance (N,) px^2 left after
     subtracting it.
@@ -584,8 +587,9 @@ def _gauge(plan: RunPlan, fit: LocalFit, image: torch.Tensor, keep: torch.Tensor
     template there); elsewhere (the reference image's own pixels) nothing is subtracted.
     Subtracted from every row like the refined reference's offsets
     (:func:`~torch_stsdic.movie.refine.apply_offsets`); ``rho``: the median of ``e / noise``.
-    ``guess``: where the solve starts (the last round's solutions; None: FFT)."""
-    res = _measure(plan, [plan.reference_frame], image, run, guess)
+    ``guess``: where the solve starts (the last round's solutions; None: FFT); ``ratio``:
+    the template's noise variance over a frame's (None: estimated from its pixels)."""
+    res = _measure(plan, [plan.reference_frame], image, run, guess, ratio)
     warp, ok = _warps(res, 0, float(plan.options.get("lost_zncc", 0.8)))
     vals = torch.where(ok[:, None], warp, torch.nan).T  # (6, N)
     smooth = torch.nan_to_num(fit.apply(1, vals), nan=0.0)
