@@ -178,3 +178,44 @@ def test_one_pass_tests_equal_the_tests_written_out():
     off = fit.offsets[:5]
     torch.testing.assert_close(fit.correlation(slice(0, 5)),
                                overlap_correlation(off[:, :, None] - off[:, None], 21.0))
+
+
+def test_fits_shared_by_neighbourhood_pattern_equal_the_fits_of_every_poi():
+    """A grid's POIs whose neighbourhoods have one shape (the same offsets and used
+    neighbours, listed alike) share one pattern, and the fits' geometry is worked out once
+    a pattern: the tests, factors, map weights and stored weights equal those worked out at
+    every POI (a fit without patterns), invalid POIs and the grid's edges included."""
+    import dataclasses
+
+    g = torch.Generator().manual_seed(9)
+    pts = _grid(n=20)
+    valid = torch.ones(400, dtype=torch.bool)
+    valid[[42, 211, 305]] = False
+    fit = local_fit_weights(pts, 25, 21, valid=valid, degrees=(1, 2, 3))
+    # every POI lists its neighbours as its pattern's first POI does: equal offsets, used
+    rep = fit.reps[fit.pattern]
+    assert torch.equal(fit.offsets, fit.offsets[rep]) and torch.equal(fit.used, fit.used[rep])
+    assert bool((fit.index[:, 0] == torch.arange(400)).all())  # itself first
+    # the interior's 12 x 12 POIs minus those next to an invalid one: a handful of patterns
+    assert fit.reps.numel() < 120
+    plain = dataclasses.replace(fit, pattern=None, reps=None)
+    x, y = pts[:, 0] - 100, pts[:, 1] - 100
+    vals = torch.stack([1e-4 * x * x, 0.01 * y]) + 0.01 * torch.randn(
+        2, 400, generator=g, dtype=torch.float64)
+    var = 1e-4 * (1 + torch.rand(1, 400, generator=g, dtype=torch.float64))
+    shared, each = fit.test_z(vals, var, (1, 2)), plain.test_z(vals, var, (1, 2))
+    rows = torch.tensor([0, 5, 41, 42, 43, 200, 399])
+    for d in (1, 2):
+        torch.testing.assert_close(shared[d].value_z, each[d].value_z, rtol=1e-9, atol=1e-12)
+        torch.testing.assert_close(shared[d].residual_z, each[d].residual_z, rtol=1e-9,
+                                   atol=1e-12)
+        torch.testing.assert_close(shared[d].factor, each[d].factor, rtol=1e-10, atol=1e-14)
+        torch.testing.assert_close(fit.value_factors((d,))[d], plain.value_factors((d,))[d])
+        torch.testing.assert_close(fit.map_weights(d, rows), plain.map_weights(d, rows))
+        torch.testing.assert_close(fit.map_weights(d, slice(0, 400))[..., 0],
+                                   plain.map_weights(d, slice(0, 400))[..., 0])
+    # the stored weights (made once a pattern) are those of every POI's own fit
+    torch.testing.assert_close(fit.weights[1], plain.map_weights(1, slice(0, 400))[..., 0])
+    torch.testing.assert_close(fit.slopes[2], plain.map_weights(2, slice(0, 400))[..., 1:3])
+    for d in (1, 2, 3):  # posed at the edges' shapes too
+        assert torch.equal(fit.posed[d], fit.posed[d][rep])

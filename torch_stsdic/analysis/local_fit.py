@@ -21,8 +21,11 @@ show it (:meth:`LocalFit.residual_z`).
 
 :meth:`LocalFit.test_z` makes both tests of several degrees in one pass over the POIs (the
 designs of the degrees are nested; the residuals' variances come from ``A^T R`` and
-``A^T R A``, O(k^2 P) a POI): on the hourglass's 1,666 POIs and 42 rows the tests over 25,
-49 and 81 neighbours take ~0.3 s (docs/validation/window_length.md, "Cost").
+``A^T R A``, O(k^2 P) a POI). That geometry depends only on the neighbours' offsets: POIs
+whose neighbourhoods have one shape (a grid's interior; the neighbours listed by distance,
+then angle) share it, worked out once a pattern. On the hourglass's 1,666 POIs (149, 288 and
+412 patterns over 25, 49 and 81 neighbours) and 42 rows the tests take ~0.15 s instead of
+~0.3 s (docs/validation/window_length.md, "Cost").
 """
 
 from __future__ import annotations
@@ -94,22 +97,39 @@ class LocalFit:
     used: torch.Tensor
     subset_size: float
     scale: float
+    #: (N,) long each POI's neighbourhood pattern (the same offsets and used neighbours, in
+    #: the same order: every POI inside a grid shares one) and (U,) a POI of each pattern:
+    #: the fits' geometry is worked out once a pattern (None: at every POI)
+    pattern: torch.Tensor | None = None
+    reps: torch.Tensor | None = None
+
+    def _geometry_rows(self, sl: slice | torch.Tensor
+                       ) -> tuple[torch.Tensor | slice, torch.Tensor | None]:
+        """The POIs whose geometry stands for the POIs ``sl`` (a slice or indices; one of
+        each pattern among them) and (n,) each POI's row among those (None: ``sl`` itself,
+        no gather)."""
+        if self.pattern is None or self.reps is None:
+            return sl, None
+        pats, back = torch.unique(self.pattern[sl], return_inverse=True)
+        return self.reps[pats], back
 
     def map_weights(self, degree: int, rows: torch.Tensor | slice) -> torch.Tensor:
         """(n, k, 6) the weights of the fitted value, d/dx, d/dy and the coefficients of
         dx^2, dx dy, dy^2 of the fit of ``degree`` at the POIs ``rows`` (indices or a slice),
         worked out there (the stored ``weights``, ``slopes``, ``quadratic`` of a kept degree
         are these, column by column): O(n k) memory for any number of POIs."""
-        rows_ = _fit_rows(self.offsets[rows], self.used[rows], degree, self.scale,
-                          self.posed[degree][rows])[0]
-        return _map_columns(rows_, self.posed[degree][rows], self.scale, degree)
+        geo, back = self._geometry_rows(rows)  # once a neighbourhood pattern
+        rows_ = _fit_rows(self.offsets[geo], self.used[geo], degree, self.scale,
+                          self.posed[degree][geo])[0]
+        out = _map_columns(rows_, self.posed[degree][geo], self.scale, degree)
+        return out if back is None else out[back]
 
     def _chunks(self, rows: int = 1) -> range:
         """Chunks of POIs whose (n, k, k) and (rows, n, k) work arrays hold ~_CHUNK each."""
         k = self.index.shape[1]
         return range(0, self.index.shape[0], max(1, _CHUNK // (k * max(k, rows))))
 
-    def correlation(self, sl: slice) -> torch.Tensor:
+    def correlation(self, sl: slice | torch.Tensor) -> torch.Tensor:
         """(n, k, k) the error correlation of the neighbours of the POIs ``sl``: the
         :func:`overlap_correlation` of their pairwise offsets, one axis at a time in place
         (no (n, k, k, 2) temporaries: this is most of a fit test's work)."""
@@ -161,10 +181,12 @@ class LocalFit:
         chunks = self._chunks()
         for s0 in chunks:
             sl = slice(s0, s0 + chunks.step)
-            a, _, _, gram = self._moments(sl, max(degrees), scale)
+            geo, back = self._geometry_rows(sl)  # once a neighbourhood pattern
+            a, _, _, gram = self._moments(geo, max(degrees), scale)
             for d in degrees:
-                w = self._inverse(a[..., :_n_terms(d)], sl, d)[:, 0]
-                out[d][sl] = self._factor(w, gram, sl, d)
+                w = self._inverse(a[..., :_n_terms(d)], geo, d)[:, 0]
+                f = self._factor(w, gram, geo, d)
+                out[d][sl] = f if back is None else f[back]
         return out
 
     def test_z(self, values: torch.Tensor, variance: torch.Tensor, degrees: tuple[int, ...],
@@ -193,48 +215,56 @@ class LocalFit:
         chunks = self._chunks(c)
         for s0 in chunks:
             sl = slice(s0, s0 + chunks.step)
-            u = self.used[sl]
+            # the geometry (designs, correlations, inverses: O(k^2 P) a POI, most of the
+            # work) once a neighbourhood pattern among the chunk's POIs, then gathered
+            geo, back = self._geometry_rows(sl)
+
+            def each(t: torch.Tensor, back: torch.Tensor | None = back) -> torch.Tensor:
+                return t if back is None else t[back]
+            u = self.used[geo]
             idx = self.index[sl]
-            a, rdiag, ar, gram = self._moments(sl, top, scale)
+            a_g, rdiag, ar, gram = self._moments(geo, top, scale)
+            a = each(a_g)
             y = vals_t[idx]  # (n, k, C)
             nb_var = var_t[idx].mean(1).clamp(min=1e-30)  # (n, C | 1)
             aty = a.transpose(1, 2) @ y  # (n, P, C) A^T y
-            inv = {d: self._inverse(a[..., :_n_terms(d)], sl, d) for d in need}
+            inv = {d: self._inverse(a_g[..., :_n_terms(d)], geo, d) for d in need}
             for d in degrees:
                 p = _n_terms(d)
-                coef = inv[d] @ aty[:, :p]  # (n, P, C) the fit's coefficients
+                coef = each(inv[d]) @ aty[:, :p]  # (n, P, C) the fit's coefficients
                 resid = torch.baddbmm(y, a[..., :p], coef, alpha=-1.0)  # (n, k, C)
-                am = a[..., :p] @ inv[d]  # (n, k, P): H = am A^T
-                hr = (am * ar[:, :p].transpose(1, 2)).sum(-1)  # (n, k) diag(H R)
+                am = a_g[..., :p] @ inv[d]  # (U, k, P): H = am A^T
+                hr = (am * ar[:, :p].transpose(1, 2)).sum(-1)  # (U, k) diag(H R)
                 hrh = ((am @ gram[:, :p, :p]) * am).sum(-1)  # diag(H R H)
                 # 1 / the residuals' variance factors, 0 at unused neighbours
-                icov = torch.where(u > 0, 1.0 / (rdiag - 2.0 * hr + hrh).clamp(min=1e-12), 0.0)
+                icov = each(torch.where(u > 0, 1.0 / (rdiag - 2.0 * hr + hrh).clamp(min=1e-12),
+                                        0.0))
                 z = (resid.square_().mul_(icov[..., None]).amax(1) / nb_var).sqrt()  # (n, C)
                 out[d].residual_z[:, sl] = torch.where(self.posed[d][sl][:, None], z,
                                                        torch.inf).T
-                out[d].factor[sl] = self._factor(inv[d][:, 0], gram, sl, d)
+                out[d].factor[sl] = each(self._factor(inv[d][:, 0], gram, geo, d))
                 if value:
                     q = _n_terms(d + 1)
-                    nxt = inv[d + 1][:, 0]  # (n, Q)
+                    nxt = inv[d + 1][:, 0]  # (U, Q)
                     delta = -nxt
                     delta[:, :p] += inv[d][:, 0]
-                    var_d = torch.einsum("np,npq,nq->n", delta, gram[:, :q, :q],
-                                         delta).clamp(min=1e-12)
-                    diff = coef[:, 0] - (nxt[:, None] @ aty[:, :q])[:, 0]  # (n, C)
+                    var_d = each(torch.einsum("np,npq,nq->n", delta, gram[:, :q, :q],
+                                              delta).clamp(min=1e-12))
+                    diff = coef[:, 0] - (each(nxt)[:, None] @ aty[:, :q])[:, 0]  # (n, C)
                     vz = diff.abs() / (var_d[:, None] * nb_var).sqrt()
                     posed = self.posed[d][sl] & self.posed[d + 1][sl]
                     out[d].value_z[:, sl] = torch.where(posed[:, None], vz, torch.inf).T
         return out
 
-    def _factor(self, w: torch.Tensor, gram: torch.Tensor, sl: slice, degree: int
-                ) -> torch.Tensor:
+    def _factor(self, w: torch.Tensor, gram: torch.Tensor, sl: slice | torch.Tensor,
+                degree: int) -> torch.Tensor:
         """(n,) ``w^T (A^T R A) w`` for the value rows ``w`` (n, P) of the inverses of the
         fit of ``degree`` (its weights are ``A w``); 1 where it is ill-posed."""
         p = w.shape[-1]
         f = torch.einsum("np,npq,nq->n", w, gram[:, :p, :p], w)
         return torch.where(self.posed[degree][sl], f, 1.0)
 
-    def _moments(self, sl: slice, degree: int, scale: float
+    def _moments(self, sl: slice | torch.Tensor, degree: int, scale: float
                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """For the POIs ``sl``: the design ``A`` (n, k, P) of ``degree`` (offsets / ``scale``,
         unused neighbours' rows 0), the correlations' diagonal (n, k), ``A^T R`` (n, P, k)
@@ -244,7 +274,8 @@ class LocalFit:
         ar = a.transpose(1, 2) @ r
         return a, r.diagonal(dim1=1, dim2=2).clone(), ar, ar @ a  # r itself goes now
 
-    def _inverse(self, a: torch.Tensor, sl: slice, degree: int) -> torch.Tensor:
+    def _inverse(self, a: torch.Tensor, sl: slice | torch.Tensor, degree: int
+                 ) -> torch.Tensor:
         """(n, P, P) ``(A^T A)^-1`` of the design ``a`` (n, k, P) of ``degree`` (the identity
         where the fit is ill-posed)."""
         p = a.shape[-1]
@@ -300,37 +331,74 @@ def local_fit_weights(points: torch.Tensor, k: int, subset_size: float,
     pts = points.double().cpu()
     n = pts.shape[0]
     k = max(1, min(int(k), n))
-    idx = nearest_points(pts, k)[1]
+    idx = _canonical(pts, nearest_points(pts, k)[1])
     d = pts[idx] - pts[:, None]  # (N, k, 2) px
     scale = float(d.norm(dim=-1).max().clamp(min=1.0))
     ok = torch.ones(n, dtype=torch.bool) if valid is None else valid.cpu().bool()
     wk = ok[idx].double()  # (N, k)
+    pattern, reps = _patterns(d, wk)
     kept = tuple(degrees) if keep is None else tuple(keep)
     weights, slopes, quadratic, posed = {}, {}, {}, {}
     step = max(1, _CHUNK // (k * 16))  # POIs a chunk: (n, k, P) designs of up to 15 terms
     good: dict[int, list[torch.Tensor]] = {deg: [] for deg in degrees}
     cols: dict[int, list[torch.Tensor]] = {deg: [] for deg in kept if deg in degrees}
-    for s0 in range(0, n, step):
+    d_r, wk_r = d[reps], wk[reps]  # one POI a pattern: the fits depend on nothing else
+    for s0 in range(0, reps.numel(), step):
         sl = slice(s0, s0 + step)
         # the degrees not kept: only whether posed, from the highest design's first columns
-        top = _design(d[sl] / scale, max(degrees)) * wk[sl][..., None]
+        top = _design(d_r[sl] / scale, max(degrees)) * wk_r[sl][..., None]
         for deg in degrees:
             if deg in cols:
-                rows, g = _fit_rows(d[sl], wk[sl], deg, scale, None)
+                rows, g = _fit_rows(d_r[sl], wk_r[sl], deg, scale, None)
                 cols[deg].append(_map_columns(rows, g, scale, deg))
             else:
-                g = _posed(top[..., :_n_terms(deg)], wk[sl])
+                g = _posed(top[..., :_n_terms(deg)], wk_r[sl])
             good[deg].append(g)
     for deg in degrees:
-        posed[deg] = torch.cat(good[deg])
+        posed[deg] = torch.cat(good[deg])[pattern]
         if deg in cols:
-            m = torch.cat(cols[deg])  # (N, k, 6)
+            m = torch.cat(cols[deg])[pattern]  # (N, k, 6)
             weights[deg] = m[..., 0].clone()
             slopes[deg] = m[..., 1:3].clone()
             quadratic[deg] = m[..., 3:6].clone()
     return LocalFit(index=idx, weights=weights, slopes=slopes, quadratic=quadratic,
                     posed=posed, offsets=d, used=wk, subset_size=float(subset_size),
-                    scale=scale)
+                    scale=scale, pattern=pattern, reps=reps)
+
+
+def _canonical(pts: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+    """The neighbours ``idx`` (N, k) of the POIs ``pts`` (N, 2) in an order set by their
+    offsets alone: by distance, then angle (the POI itself first): POIs whose neighbourhoods
+    have the same shape list them alike (a nearest-point search breaks distance ties by
+    index, which differs between POIs)."""
+    d = pts[idx] - pts[:, None]  # (N, k, 2)
+    angle = torch.atan2(d[..., 1], d[..., 0])
+    dist = d.square().sum(-1)
+    # distance first, to 1e-9 of the largest (equal offsets of a grid are equal here)
+    ticks = (dist / dist.amax().clamp(min=1e-300) * 1e9).round()
+    order = torch.sort(angle, dim=1, stable=True).indices
+    order = order.gather(1, torch.sort(ticks.gather(1, order), dim=1, stable=True).indices)
+    return idx.gather(1, order)
+
+
+def _patterns(d: torch.Tensor, used: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(N,) the pattern of each POI's neighbourhood (offsets ``d`` (N, k, 2) and ``used``
+    (N, k) equal, in order) and (U,) the first POI of each pattern. Rows are told apart by
+    a random projection, and every POI is checked against its pattern's first: a POI that
+    differs (a projection's collision) is a pattern of its own."""
+    n = d.shape[0]
+    rows = torch.cat([d.reshape(n, -1), used], 1)  # (N, 3k)
+    gen = torch.Generator().manual_seed(0)
+    key = rows @ torch.rand(rows.shape[1], 2, dtype=torch.float64, generator=gen)  # (N, 2)
+    _, pattern = torch.unique(key, dim=0, return_inverse=True)
+    first = torch.full((int(pattern.max()) + 1 if n else 0,), n, dtype=torch.long)
+    first.scatter_reduce_(0, pattern, torch.arange(n), reduce="amin")
+    odd = (rows != rows[first[pattern]]).any(1)
+    if bool(odd.any()):  # its own pattern each
+        pattern = pattern.clone()
+        pattern[odd] = first.numel() + torch.arange(int(odd.sum()))
+        first = torch.cat([first, torch.nonzero(odd).flatten()])
+    return pattern, first
 
 
 def _fit_rows(offsets: torch.Tensor, used: torch.Tensor, degree: int, scale: float,
