@@ -273,8 +273,8 @@ def test_the_template_made_frame_by_frame_equals_the_one_made_in_batches(movie, 
         list(range(a, min(a + 5, f))) for a in range(0, f, 5)])  # groups of 5 frames
     take = template_image._group_frames
     monkeypatch.setattr(template_image, "_group_frames",
-                        lambda cache, frames, dev: sizes.append(len(frames)) or take(
-                            cache, frames, dev))
+                        lambda cache, frames, dev, pixels=True: sizes.append(len(frames))
+                        or take(cache, frames, dev, pixels))
     batched = sts.series_template(series, res.points, **kw)
     assert len(sizes) >= 2 and max(sizes) > 1 and sum(sizes) == len(one.frames), sizes
     torch.testing.assert_close(batched.image, one.image, rtol=0, atol=1e-9)

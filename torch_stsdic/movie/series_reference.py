@@ -513,6 +513,7 @@ def build_series_reference(plan: RunPlan, ref_raw: torch.Tensor, *,
     reg = RegistrationFits.make(pts, neighbours, plan.config.subset_size)
     fit = reg.fits[0]  # the smallest neighbourhood: the gauge's planes
     image = choice = unit = matched = guess = ratio = None
+    shared_by_rounds: dict = {}  # the template's windows and frames' contrasts, made once
     for _ in range(int(iterations)):
         res = measured.result(frames) if image is None and measured is not None else None
         if res is None:
@@ -528,7 +529,8 @@ def build_series_reference(plan: RunPlan, ref_raw: torch.Tensor, *,
         # a frame enters at a POI whose fit passed and whose fit's neighbours are all trusted
         splat = reg.guard(choice, trusted)
         image, ratio, coverage, point_ratio = template_image(
-            plan, _smooth(reg, warps, trusted, choice), splat, frames, sigmas, ref_raw, cache)
+            plan, _smooth(reg, warps, trusted, choice), splat, frames, sigmas, ref_raw, cache,
+            shared_by_rounds)
     degree = reg.degree(choice)
     use = degree > 0
     own = torch.tensor([k != plan.reference_frame for k in frames])

@@ -201,41 +201,56 @@ def frame_groups(frames: int, pixels: int, batched: bool = True) -> list[list[in
     return [list(range(a, min(a + size, frames))) for a in range(0, frames, size)]
 
 
-def _group_frames(cache: FrameCache, frames: list[int], dev: torch.device
-                  ) -> tuple[BSplineImage, torch.Tensor, torch.Tensor]:
+def _group_frames(cache: FrameCache, frames: list[int], dev: torch.device,
+                  pixels: bool = True) -> tuple[BSplineImage, torch.Tensor, torch.Tensor | None]:
     """The prepared ``frames``: their coefficients as one stack, each frame's plane in it
-    (G,), and their pixels (G, H, W) float64 on ``dev`` (a single frame: its own image, no
-    copy; several: the cache's :meth:`~torch_stsdic.movie.frames.FrameCache.in_ring`)."""
+    (G,), and (``pixels``; else None) their pixels (G, H, W) float64 on ``dev`` (a single
+    frame: its own image, no copy; several: the cache's
+    :meth:`~torch_stsdic.movie.frames.FrameCache.in_ring`)."""
     if len(frames) == 1:
         prepared = cache.frame(frames[0])  # the run's: read and prefiltered once
         return (prepared.prep, torch.zeros(1, dtype=torch.long, device=dev),
-                prepared.raw.to(dev).double().unsqueeze(0))
+                prepared.raw.to(dev).double().unsqueeze(0) if pixels else None)
     view = cache.in_ring(frames)
     planes = torch.as_tensor(view.planes, device=dev)
-    return view.img, planes, view.raw[planes.to(view.raw.device)].to(dev).double()
+    return view.img, planes, (view.raw[planes.to(view.raw.device)].to(dev).double()
+                              if pixels else None)
 
 
 def template_image(plan: RunPlan, warps: torch.Tensor, oks: torch.Tensor, frames: list[int],
-                   sigmas: list[float], ref_raw: torch.Tensor, cache: FrameCache
+                   sigmas: list[float], ref_raw: torch.Tensor, cache: FrameCache,
+                   shared: dict | None = None
                    ) -> tuple[torch.Tensor, float, float, torch.Tensor]:
     """The template from the maps (F, N, 12) (the local fits' of the series reference) and
     trust (F, N) of ``frames`` (noise ``sigmas``; prepared by ``cache``): image (H, W), its
     noise variance over one frame's (median over the covered pixels), coverage, and (N,) that
-    ratio at each POI (1 where no frame covers it: the reference image's pixels)."""
+    ratio at each POI (1 where no frame covers it: the reference image's pixels).
+    ``shared``: a dict the rounds of one template pass (the windows' pixels, the
+    reference's statistics over them, each frame's contrast: the same in every round),
+    filled on the first."""
     h, w = plan.series.shape
     dev = torch.device(plan.device)
     pts = plan.points.double().to(dev)
     half = (plan.config.subset_size - 1) // 2
     ref = ref_raw.double().to(dev).reshape(-1)
-    spread = float(ref.std().clamp(min=1e-12))
+    memo = {} if shared is None else shared
+    if "cover" not in memo:
+        memo["spread"] = float(ref.std().clamp(min=1e-12))
+        memo["cover"] = window_pixels(pts, half, h, w)
+        memo["ref_stats"] = reference_window_stats(ref, memo["cover"])
+        memo["level"] = {}
+    spread, cover, ref_stats, levels = (memo["spread"], memo["cover"], memo["ref_stats"],
+                                        memo["level"])
     norm = []  # each frame's noise in the reference's grey levels
-    cover = window_pixels(pts, half, h, w)
-    ref_stats = reference_window_stats(ref, cover)
     # the sums over the covered pixels, on the run's device, mapped to the image at the end
     on_cover = torch.zeros(3, cover[0].numel(), dtype=torch.float64, device=dev)
     for group in frame_groups(len(frames), cover[0].numel(), batched=dev.type != "cpu"):
-        img, planes, raw = _group_frames(cache, [frames[j] for j in group], dev)
-        level = raw.flatten(1).std(1).clamp(min=1e-12) / spread  # (G,) contrast ratios
+        img, planes, raw = _group_frames(cache, [frames[j] for j in group], dev,
+                                         pixels=any(frames[j] not in levels for j in group))
+        if raw is not None:  # (G,) contrast ratios
+            levels.update(zip((frames[j] for j in group),
+                              raw.flatten(1).std(1).clamp(min=1e-12) / spread))
+        level = torch.stack([levels[frames[j]] for j in group])
         g_norm = torch.as_tensor([sigmas[j] for j in group], dtype=torch.float64,
                                  device=dev) / level
         norm += g_norm.tolist()
