@@ -233,8 +233,8 @@ def _frame_noise(plan: RunPlan, frames: list[int], cache: FrameCache) -> list[fl
         bw, bh = max(8, int((x1 - x0) * shrink)), max(8, int((y1 - y0) * shrink))
         x0, y0 = (x0 + x1 - bw) // 2, (y0 + y1 - bh) // 2
         x1, y1 = x0 + bw, y0 + bh
-    return [max(float(estimate_noise_sigma(
-        cache.read(k)[y0:y1, x0:x1].double().cpu())), 1e-6) for k in frames]
+    return [max(float(estimate_noise_sigma(cache.read(k)[y0:y1, x0:x1].cpu())), 1e-6)
+            for k in frames]
 
 
 def time_model_holds(plan: RunPlan, res: TrackResult, frames: list[int],
