@@ -247,6 +247,69 @@ def test_auto_leaves_a_smooth_motion_alone():
         sts.track(movie, shared_motion="affine", reference_update=0.9, **kw)
 
 
+def _motion_in_time(a: np.ndarray, se: float, kind: str = "affine") -> SharedMotion:
+    """A shared motion whose translation is ``a`` (T, 2) px per frame (gradients 0)."""
+    n = a.shape[0]
+    params = np.zeros((n, 6 if kind == "affine" else 12))
+    params[:, :2] = a
+    return SharedMotion(kind=kind, params=params, origin=np.zeros(2),
+                        scatter=np.zeros(n), points=np.full(n, 100), measured=np.ones(n, bool),
+                        se=np.full(n, se))
+
+
+def test_departure_is_the_windows_offsets_over_the_noise_carrying_adds():
+    """SharedMotion.departure: the mean square of the offsets a window of 2m + 1 frames
+    would carry, over ``p (se^2 + SE_FLOOR^2) (T - 2) / T``. Under a constant acceleration
+    a a window centred on its target carries ``a/2 t^2`` (t = -m .. m; the slope of t^2 over
+    the window is 0): the known answer; a motion affine in time carries nothing; a load
+    step splits the windows."""
+    from torch_stsdic.core.shared_motion import SE_FLOOR
+
+    t = np.arange(31, dtype=np.float64)
+    acc, se, m = 2e-3, 1e-3, 4
+    sm = _motion_in_time(np.stack([0.5 * acc * t ** 2, 0.1 * t], 1), se)
+    pts = torch.tensor([[0.0, 0.0], [30.0, -20.0]], dtype=torch.float64)
+    tw = np.arange(-m, m + 1, dtype=np.float64)
+    offsets = 0.5 * acc * tw ** 2
+    ms = (offsets ** 2).mean() / 2  # u curved, v on its line: mean over both components
+    want = ms / (3 * (se ** 2 + SE_FLOOR ** 2) * (2 * m - 1) / (2 * m + 1))
+    assert sm.departure(pts, m) == pytest.approx(want, rel=1e-9)
+    assert sm.departure(pts, 0) != sm.departure(pts, 0)  # NaN: no window
+    line = _motion_in_time(np.stack([0.3 * t, -0.1 * t], 1), se)
+    assert line.departure(pts, m) < 1e-12
+    # a quadratic kind's fitted displacement carries 6 terms' noise, not 3
+    quad = _motion_in_time(np.stack([0.5 * acc * t ** 2, 0.1 * t], 1), se, "quadratic")
+    assert quad.departure(pts, m) == pytest.approx(want / 2, rel=1e-9)
+    # a jump of 1 px at frame 15 (a load step) between two lines: no window spans it
+    step = _motion_in_time(np.stack([0.1 * t + (t >= 15), 0 * t], 1), se)
+    assert step.departure(pts, m) > 100
+    step.steps = [15]
+    assert step.departure(pts, m) < 1e-12
+
+
+def test_auto_carries_a_smooth_motion_that_is_not_affine_in_time():
+    """A motion with no jitter but a clear departure from a line over the run's windows (a
+    relaxing stretch, a decelerating drift: what the windows' lines would miss) is carried
+    ('auto': SharedMotion.departure above DEPARTURE), and the windows grow; a motion affine
+    in time stays uncarried (test_auto_leaves_a_smooth_motion_alone)."""
+    from torch_stsdic.core.shared_motion import DEPARTURE, SIGNIFICANT
+
+    c = 60.0
+
+    def relaxing(x, y, t):
+        e = 0.004 * (1 - torch.exp(-t / 6.0))
+        return e * (x - c) + 0.3 * (1 - torch.exp(-t / 5.0)), -0.3 * e * (y - c) - 0.02 * t
+
+    times = torch.arange(0.0, 21)
+    ref, frames = render_series(make_speckle((121, 121), seed=4), (121, 121),
+                                Custom(relaxing), times[1:], noise_sigma=2.0, seed=5)
+    movie = torch.cat([ref[None], frames])
+    res = sts.track(movie, config=sts.DICConfig(m=4), step=10, progress=False)
+    sm = res.shared_motion
+    assert sm.significance() < SIGNIFICANT  # no jitter
+    assert res.info["shared_motion"]["departure"] > DEPARTURE and sm.applied
+
+
 def test_summary_round_trip():
     sm = SharedMotion(kind="affine", params=np.arange(18.0).reshape(3, 6) / 100,
                       origin=np.array([5.0, 6.0]), scatter=np.array([np.nan, 0.1, 0.2]),

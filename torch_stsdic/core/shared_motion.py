@@ -49,7 +49,8 @@ __all__ = ["SharedMotion", "SHARED_MOTION_KINDS", "PARAM_NAMES", "PARAM_UNITS",
            "overlap_factor",
            "sample_points", "frame_chunks",
            "detect_steps", "step_increments", "steps_from_increments",
-           "DEFAULT_MAX_POINTS", "SIGNIFICANT", "STEP_Z", "STEP_RATIO", "SE_FLOOR"]
+           "DEFAULT_MAX_POINTS", "SIGNIFICANT", "DEPARTURE", "STEP_Z", "STEP_RATIO",
+           "SE_FLOOR"]
 
 #: the columns of ``SharedMotion.params`` (px, px/px, px/px^2): u = a_x + du/dx dx + du/dy dy
 #: + d2u/dx2 dx^2 / 2 + d2u/dxdy dx dy + d2u/dy2 dy^2 / 2 (dx, dy from the origin), v alike
@@ -64,6 +65,15 @@ DEFAULT_MAX_POINTS = 1000
 #: affine in time gives ~1, and up to ~6 where the sub-pixel interpolation bias, the same at
 #: every point of a uniform translation, moves the estimate; a real shake gives 10^3-10^5.)
 SIGNIFICANT = 25.0
+#: "auto" also applies it where its departure from a line over the run's windows
+#: (:meth:`SharedMotion.departure`: the offsets the windows would carry, over the noise that
+#: carrying them adds) exceeds this: a motion that is smooth but not affine in time (a
+#: relaxing stretch, a decelerating drift, load steps of a uniform strain) that the windows'
+#: lines would miss. Renders affine in time read 0.2-0.3, DIC Challenge sample 3 0.5 (its
+#: estimate's sub-pixel bias, which carrying would add: 0.237x -> 0.34x classical there);
+#: a relaxing stretch 2.4, uniform load steps 11, a vibration 30
+#: (docs/validation/window_length.md)
+DEPARTURE = 1.5
 #: load-step detection (:func:`detect_steps`): an increment above STEP_Z times its noise and
 #: STEP_RATIO times the median increment of the frames around it starts a new load state
 STEP_Z = 2.0
@@ -96,7 +106,8 @@ class SharedMotion:
         steps: series frames that begin a new load state (:func:`detect_steps`); windows stay
             inside a load state where it holds 2m+1 frames.
         applied: whether the windows carry it (``"auto"`` applies it only where the jitter is
-            significant: :meth:`significance`).
+            significant, :meth:`significance`, or its departure from a line over the run's
+            windows, :meth:`departure`).
         seconds: wall time of the measurement.
         sample: the pass's solutions at its sample points (the first block's initial guess).
     """
@@ -135,6 +146,42 @@ class SharedMotion:
         if not ok.any():
             return float("nan")
         return float(np.median(d2[ok] / var[ok]) / np.log(4.0))
+
+    def departure(self, points: Tensor, m: int, max_windows: int = 256) -> float:
+        """How far the motion departs from a line in time over windows of ``2m + 1`` frames,
+        in units of the noise that carrying it adds: over windows of adjacent measured
+        frames (none across a load step; at most ``max_windows``, spread evenly), the mean
+        square of the offsets a window would carry (:func:`window_offsets`) at ``points``
+        (N, 2) (the fit's sample) over ``p (se^2 + SE_FLOOR^2) (T - 2) / T`` (``p`` the
+        kind's terms a component: the fitted displacement's mean variance over the sample
+        points is ``p se^2``; ``(T - 2) / T`` what a line through T noisy frames leaves),
+        the mean over the windows. About 0.2-0.5 for a motion affine in time; NaN where no
+        window fits (``m`` < 1, too few frames)."""
+        n, t_count = len(self.params), 2 * int(m) + 1
+        if m < 1 or n < t_count or self.se is None:
+            return float("nan")
+        cut = np.zeros(n, dtype=bool)
+        cut[[k for k in self.steps if 0 < k < n]] = True  # a window may start at a step
+        ok = [s for s in range(n - t_count + 1) if self.measured[s:s + t_count].all()
+              and not cut[s + 1:s + t_count].any()]
+        if not ok:
+            return float("nan")
+        starts = np.asarray(ok)[np.unique(np.round(np.linspace(0, len(ok) - 1, min(
+            len(ok), int(max_windows)))).astype(int))]
+        idx = torch.as_tensor(starts)[:, None] + torch.arange(t_count)  # (W, T)
+        times = torch.as_tensor(np.arange(n, dtype=np.float64) if self.times is None
+                                else np.asarray(self.times, dtype=np.float64))
+        se2 = torch.as_tensor(np.nan_to_num(self.se, nan=0.0)) ** 2 + SE_FLOOR ** 2
+        terms = {"translation": 1, "affine": 3}.get(self.kind, 6)
+        ratios = []
+        for w0 in range(0, idx.shape[0], 32):  # (32, N, T, 2) at a time
+            win = idx[w0:w0 + 32]
+            g = self.displacement(points.double(), win.reshape(-1)).double()  # (W*T, N, 2)
+            g = g.view(win.shape[0], t_count, -1, 2).transpose(1, 2)  # (W, N, T, 2)
+            dt = (times[win] - times[win[:, int(m)]].unsqueeze(1)).unsqueeze(1)  # (W, 1, T)
+            ms = window_offsets(g, dt).pow(2).mean((1, 2, 3))  # (W,)
+            ratios.append(ms / (terms * se2[win].mean(1) * (t_count - 2) / t_count))
+        return float(torch.cat(ratios).mean())
 
     def _at(self, points: Tensor, frames: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         p = torch.as_tensor(self.params, dtype=torch.float64)[frames.long().cpu()]  # (K, P)

@@ -15,6 +15,7 @@ import torch
 from torch_stsdic.analysis.result import USABLE, TrackResult
 from torch_stsdic.core.shared_motion import (
     DEFAULT_MAX_POINTS,
+    DEPARTURE,
     SIGNIFICANT,
     SharedMotion,
     fit_frame_motion,
@@ -111,8 +112,10 @@ def estimate_shared_motion(plan: RunPlan, kind: str = "auto",
     statistics over all frames; worked frame chunk by frame chunk). The reference frame's
     motion is exactly zero. With
     ``auto`` it is applied (``SharedMotion.applied``) only where its departure from a line in
-    time is significant (:meth:`SharedMotion.significance` above ``SIGNIFICANT``): where it
-    is not, carrying it would only add its estimation noise to every window. ``kind`` "auto":
+    time is significant (:meth:`SharedMotion.significance` above ``SIGNIFICANT``), or where
+    it departs from a line over the run's windows (:meth:`SharedMotion.departure` above
+    ``DEPARTURE``): where neither, carrying it would only add its estimation noise to every
+    window. ``kind`` "auto":
     "quadratic" where the sample holds ``QUADRATIC_POINTS`` points, else "affine" (sample 12:
     full windows at 77 % of the trusted results with the quadratic kind, 71 % with the
     affine one; the hourglass: 94.5 % and 94.9 %). ``run``: the runner of a plan
@@ -202,6 +205,10 @@ def estimate_shared_motion(plan: RunPlan, kind: str = "auto",
     if auto:
         z = out.significance()
         out.applied = bool(np.isfinite(z) and z > SIGNIFICANT)
+        if plan.config.m > 0:  # smooth but not affine in time over the run's windows
+            dep = out.departure(pts, plan.config.m)
+            out.extra["departure"] = None if not np.isfinite(dep) else round(dep, 3)
+            out.applied |= bool(np.isfinite(dep) and dep > DEPARTURE)
     if reason is not None:
         out.applied = False
         out.steps = []
