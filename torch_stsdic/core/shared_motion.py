@@ -49,8 +49,8 @@ __all__ = ["SharedMotion", "SHARED_MOTION_KINDS", "PARAM_NAMES", "PARAM_UNITS",
            "overlap_factor",
            "sample_points", "frame_chunks",
            "detect_steps", "step_increments", "steps_from_increments",
-           "DEFAULT_MAX_POINTS", "SIGNIFICANT", "DEPARTURE", "STEP_Z", "STEP_RATIO",
-           "SE_FLOOR"]
+           "DEFAULT_MAX_POINTS", "SIGNIFICANT", "DEPARTURE", "VELOCITY_M", "STEP_Z",
+           "STEP_RATIO", "SE_FLOOR"]
 
 #: the columns of ``SharedMotion.params`` (px, px/px, px/px^2): u = a_x + du/dx dx + du/dy dy
 #: + d2u/dx2 dx^2 / 2 + d2u/dxdy dx dy + d2u/dy2 dy^2 / 2 (dx, dy from the origin), v alike
@@ -74,6 +74,11 @@ SIGNIFICANT = 25.0
 #: a relaxing stretch 2.4, uniform load steps 11, a vibration 30
 #: (docs/validation/window_length.md)
 DEPARTURE = 1.5
+#: the half-width of the frames whose slope of the shared motion a reported velocity holds
+#: where it is carried for its departure alone (SharedMotion.velocity_m; a relaxing
+#: stretch's velocity error 2.31e-3 px per frame with the windows' own slopes, 0.87e-3 with
+#: five frames', 1.23e-3 with three, 1.14e-3 with seven)
+VELOCITY_M = 2
 #: load-step detection (:func:`detect_steps`): an increment above STEP_Z times its noise and
 #: STEP_RATIO times the median increment of the frames around it starts a new load state
 STEP_Z = 2.0
@@ -124,6 +129,9 @@ class SharedMotion:
     applied: bool = True
     seconds: float = 0.0
     extra: dict[str, Any] = field(default_factory=dict)
+    #: a reported velocity holds the shared motion's slope over this half-width about the
+    #: target (None: over the row's whole window; :meth:`velocity_window`)
+    velocity_m: int | None = None
     #: the measuring pass's trusted solutions at its sample of POIs
     #: (:class:`~torch_stsdic.movie.sample_guess.MeasuredSample`: the first block's initial guess);
     #: None where not measured by a pass (not written to results)
@@ -146,6 +154,14 @@ class SharedMotion:
         if not ok.any():
             return float("nan")
         return float(np.median(d2[ok] / var[ok]) / np.log(4.0))
+
+    def velocity_window(self, m: int) -> int:
+        """The half-width of the frames whose slope of this motion a reported velocity of a
+        window of half-width ``m`` holds (:mod:`torch_stsdic.movie.shared_velocity`): the
+        window's own, or at most :attr:`velocity_m` where set (a motion carried for its
+        departure from a line: its slope over a long window misses its velocity at the
+        target)."""
+        return int(m) if self.velocity_m is None else min(int(m), int(self.velocity_m))
 
     def departure(self, points: Tensor, m: int, max_windows: int = 256) -> float:
         """How far the motion departs from a line in time over windows of ``2m + 1`` frames,
@@ -249,6 +265,7 @@ class SharedMotion:
                              if np.isfinite(self.significance()) else None),
             "applied": bool(self.applied),
             "steps": [int(k) for k in self.steps],
+            "velocity_m": self.velocity_m,
             "times": (None if self.times is None
                       else [float(t) for t in np.asarray(self.times, dtype=np.float64)]),
             "seconds": round(self.seconds, 3),
@@ -260,7 +277,7 @@ class SharedMotion:
         """The inverse of :meth:`summary`."""
         known = {"kind", "origin", "params", "scatter", "points", "measured", "seconds",
                  "jitter_px_median", "jitter_px_max", "se", "significance", "applied",
-                 "times", "steps"}
+                 "times", "steps", "velocity_m"}
         se = rec.get("se")
         return cls(kind=rec["kind"], params=np.asarray(rec["params"], dtype=np.float64),
                    origin=np.asarray(rec["origin"], dtype=np.float64),
@@ -272,6 +289,8 @@ class SharedMotion:
                                                         for s in se], dtype=np.float64),
                    applied=bool(rec.get("applied", True)),
                    steps=[int(k) for k in rec.get("steps", [])],
+                   velocity_m=(None if rec.get("velocity_m") is None
+                               else int(rec["velocity_m"])),
                    times=(None if rec.get("times") is None
                           else np.asarray(rec["times"], dtype=np.float64)),
                    seconds=float(rec.get("seconds", 0.0)),

@@ -42,6 +42,7 @@ from torch_stsdic.movie.frames import FrameCache, block_frames, half_widths, win
 from torch_stsdic.movie.reference import Reference, noise_ratio, to_relative, to_total
 from torch_stsdic.movie.rescue import BlockRescue
 from torch_stsdic.movie.sample_guess import MeasuredSample
+from torch_stsdic.movie.shared_velocity import report_velocity
 from torch_stsdic.movie.template_noise import TemplateShares
 
 #: px beyond the image border a carried prediction must put a subset before the row is
@@ -663,6 +664,12 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
     out["status"] = blk.status.reshape(b, n)
     out["iterations"] = blk.iters.reshape(b, n)
     out["m"] = blk.m_used.reshape(b, n)
+    vel_var = None  # the shared motion's part of the velocities, in the reported terms
+    if "ut" in out and run.shared is not None:
+        vel, vel_var = torch.stack([out["ut"].reshape(-1), out["vt"].reshape(-1)], 1), \
+            torch.zeros(b * n, 2, dtype=out["ut"].dtype, device=dev)
+        report_velocity(blk, vel, vel_var)
+        out["ut"], out["vt"] = vel[:, 0].reshape(b, n), vel[:, 1].reshape(b, n)
     fac = None if run.template_shares is None else run.template_shares.variance_factors(
         blk.k, out["m"], run.ts, float(run.noise_ratio or 1.0), run.segments, m_max=run.m)
     for j, nm in enumerate(run.names):
@@ -672,6 +679,8 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
                 std = std * fac[..., int(nm in ("ut", "vt"))].sqrt().to(std)
             if run.reference_var is not None and nm in ("u", "v"):
                 std = (std.pow(2) + run.reference_var.to(std)).sqrt()
+            if vel_var is not None and nm in ("ut", "vt"):
+                std = (std.pow(2) + vel_var[:, int(nm == "vt")].reshape(b, n).to(std)).sqrt()
             out[STD_OF[nm]] = std
     return out
 

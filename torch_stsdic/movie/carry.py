@@ -97,9 +97,10 @@ class Carry:
         last = torch.tensor([self.frame], device=points.device)
         g_last = shared.displacement(points, last)[0]  # (N, 2)
         wm = self.window_m
-        if wm is not None:
+        if wm is not None:  # (the row's velocity in the reported terms: shared_velocity)
             for m in torch.unique(wm[wm > 0]).tolist():
-                win = window_frames(last, int(m), len(ts), segments)[0]  # (T,)
+                win = window_frames(last, shared.velocity_window(int(m)), len(ts),
+                                    segments)[0]  # (T,)
                 g = shared.displacement(points, win).transpose(0, 1)  # (N, T, 2)
                 dt = (ts[win] - ts[self.frame]).to(points.dtype)
                 fit = window_slope(g, dt.expand(n, -1))

@@ -17,6 +17,7 @@ from torch_stsdic.core.shared_motion import (
     DEFAULT_MAX_POINTS,
     DEPARTURE,
     SIGNIFICANT,
+    VELOCITY_M,
     SharedMotion,
     fit_frame_motion,
     frame_chunks,
@@ -208,9 +209,11 @@ def estimate_shared_motion(plan: RunPlan, kind: str = "auto",
         if plan.config.m > 0:  # smooth but not affine in time over the run's windows
             dep = out.departure(pts, plan.config.m)
             out.extra["departure"] = None if not np.isfinite(dep) else round(dep, 3)
-            out.applied |= bool(np.isfinite(dep) and dep > DEPARTURE)
+            if not out.applied and np.isfinite(dep) and dep > DEPARTURE:
+                out.applied = True  # its velocity at a target: over a few frames about it
+                out.velocity_m = VELOCITY_M
     if reason is not None:
-        out.applied = False
+        out.applied, out.velocity_m = False, None
         out.steps = []
         out.extra["refused"] = reason
         warnings.warn(f"shared motion: not carried, the fit is implausible: {reason}; the "

@@ -1,0 +1,56 @@
+"""The shared motion's part of a reported velocity.
+
+A window that carries the shared motion (:mod:`torch_stsdic.core.shared_motion`) solves for
+the specimen's own slope ``s`` over its frames plus the shared motion's least-squares slope
+``beta_m`` over the same frames (``ut = s + beta_m``: the line through the total motion).
+Where the shared motion is carried because it bends over the windows (a relaxing stretch, a
+decelerating drift: :meth:`SharedMotion.departure`), ``beta_m`` over a long window misses
+its velocity at the target by its curvature (a relaxing stretch's first frames: 9e-3 px per
+frame at m = 6); the windows themselves grow there, as the specimen's own motion is a line.
+Such a run reports ``s`` plus the shared motion's slope over ``SharedMotion.velocity_m``
+frames about the target (2: five frames; :meth:`SharedMotion.velocity_window`), its noise
+added to ut_std, vt_std; a shaking
+specimen's (carried for its jitter: ``velocity_m`` None) keeps the window's slope, which
+averages the shake. The carry's velocity is read in the same terms
+(:meth:`~torch_stsdic.movie.carry.Carry.shared_slope`)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+
+from torch_stsdic.movie.frames import half_widths
+
+#: a :class:`~torch_stsdic.movie.block.Block` (not imported: the block imports this module)
+Block = Any
+
+__all__ = ["report_velocity"]
+
+
+def report_velocity(blk: Block, vel: torch.Tensor, var: torch.Tensor) -> None:
+    """The block's velocities ``vel`` (B*N, 2) (ut, vt as solved: ``s + beta_m``) in the
+    reported terms (module docstring), in place, and their variance ``var`` (B*N, 2) px^2
+    per time unit^2 with the shorter slope's noise (``p se^2 / (2 sum dt^2)`` over its
+    frames, ``p`` the kind's terms: the fitted displacement's mean variance over the sample
+    points is ``p se^2``, of which the reference image's half is common to every frame and
+    leaves a slope alone). Nothing where the run's shared motion keeps the windows' slopes."""
+    run = blk.run
+    shared = run.shared
+    vm = None if shared is None else shared.velocity_m
+    if vm is None or run.m <= vm:
+        return
+    rows = blk.m_used > vm  # (B*N,) the rows whose window is longer than the slope's
+    se2 = torch.as_tensor(shared.se, dtype=torch.float64).nan_to_num(0.0).square()
+    terms = {"translation": 1, "affine": 3}.get(shared.kind, 6)
+    short = blk.shared_slope(int(vm))  # (B*N, 2)
+    win = blk.windows(int(vm))  # (B, 2 vm + 1)
+    dt = (run.ts[win] - run.ts[blk.k].unsqueeze(1)).double()
+    dc = dt - dt.mean(1, keepdim=True)
+    noise = (0.5 * terms * se2.to(dt.device)[win].mean(1)
+             / dc.square().sum(1).clamp(min=1e-30))
+    noise = noise.repeat_interleave(blk.n).unsqueeze(1).to(var)  # (B*N, 1)
+    for m in half_widths(blk.m_used.to(torch.int8), rows, run.m):
+        sel = (rows & (blk.m_used == m)).unsqueeze(1)
+        vel.add_(torch.where(sel, (short - blk.shared_slope(int(m))).to(vel), 0.0))
+        var.add_(torch.where(sel, noise, 0.0))
