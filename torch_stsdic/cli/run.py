@@ -192,8 +192,8 @@ def _add_frames(p: argparse.ArgumentParser) -> None:
     opt(g, "--shared-motion", choices=("auto", "quadratic", "affine", "translation", "none"),
         default="auto", help="the specimen's per-frame motion (a shake, load steps), "
         "measured from all points and carried in every window; auto: with --m > 0, "
-        "quadratic (affine under 500 points), carried where the shake is significant "
-        "(docs/series.md)")  # fmt: skip
+        "quadratic (affine under 500 points), carried where the shake is significant or "
+        "the motion bends over the windows (docs/series.md)")  # fmt: skip
 
 
 # ----------------------------------------------------------------------------------------

@@ -69,9 +69,9 @@ SIGNIFICANT = 25.0
 #: (:meth:`SharedMotion.departure`: the offsets the windows would carry, over the noise that
 #: carrying them adds) exceeds this: a motion that is smooth but not affine in time (a
 #: relaxing stretch, a decelerating drift, load steps of a uniform strain) that the windows'
-#: lines would miss. Renders affine in time read 0.2-0.3, DIC Challenge sample 3 0.5 (its
-#: estimate's sub-pixel bias, which carrying would add: 0.237x -> 0.34x classical there);
-#: a relaxing stretch 2.4, uniform load steps 11, a vibration 30
+#: lines would miss. Renders affine in time read 0.2-0.3, DIC Challenge sample 3 0.24
+#: (carried, its estimate's sub-pixel bias would go into every window: 0.237x -> 0.34x);
+#: a relaxing stretch 2.35, uniform load steps 12, a vibration of 0.03 px 29
 #: (docs/validation/window_length.md)
 DEPARTURE = 1.5
 #: the half-width of the frames whose slope of the shared motion a reported velocity holds
