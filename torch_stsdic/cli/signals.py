@@ -13,7 +13,6 @@ call has returned.
 from __future__ import annotations
 
 import contextlib
-import gc
 import os
 import signal
 import sys
@@ -126,14 +125,8 @@ def leave_if_interrupted(code: int) -> int:
     within its wait, a server's request) unwinds through a ``noexcept`` destructor and the
     process aborts ("terminate called without an active exception", exit 134 instead of
     130). And the shutdown costs ~0.6 s of CPU (the garbage collection of ~1,700 modules,
-    torch's operator registry): tens of seconds on an oversubscribed CPU, seen as a hang.
-    After a command that was not interrupted the heap is frozen for the collector
-    (``gc.freeze``): the shutdown still runs the exit handlers and drops the modules, but its
-    collections no longer walk every object (``python -c "import torch"`` spends 0.42 s
-    after its last line, 0.13 s frozen). Nothing is left to finalise by then: a command
-    closes its files itself."""
+    torch's operator registry): tens of seconds on an oversubscribed CPU, seen as a hang."""
     if code not in {exit_code(s) for s in SIGNALS}:
-        gc.freeze()
         return code
     if "logging" in sys.modules:  # (its handlers flush at the shutdown skipped here)
         sys.modules["logging"].shutdown()
