@@ -393,9 +393,8 @@ def track(
             "translation" per frame, measured by a classical pass at up to 1,000 POIs and
             fitted robustly, so a specimen that shakes or steps as a whole keeps its full
             windows. "auto" (default): for STS windows (m > 0) without ``reference_update``,
-            quadratic (affine under 500 points), carried where the shake is significant or
-            the motion bends over the windows (``SharedMotion.departure``);
-            None: off. The per-frame motion is in ``result.shared_motion`` and the file.
+            quadratic (affine under 500 points), carried where it shakes or bends over the
+            windows; None: off. The per-frame motion: ``result.shared_motion``, the file.
         strain_window, strain_kind: strains written to ``out`` (grid points per side of the
             plane fit; "green" or "small"); ``strain_window=None``: none.
         scale, unit, time_unit: calibration recorded with the results (``out`` attributes,
