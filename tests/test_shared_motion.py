@@ -287,6 +287,41 @@ def test_departure_is_the_windows_offsets_over_the_noise_carrying_adds():
     assert step.departure(pts, m) < 1e-12
 
 
+def test_smooth_takes_the_noise_out_of_a_smooth_motion_and_keeps_its_jumps():
+    """SharedMotion.smooth: each frame's parameters replaced by a local quadratic in time
+    (7 frames) where that fits the motion at the sample points within the noise: a smooth
+    motion's per-frame noise falls by about sqrt(3) (the quadratic's value over 7 frames);
+    the frames whose 7-frame window holds a jump keep their estimates, and so does the
+    reference frame (0 by definition)."""
+    rng = np.random.default_rng(3)
+    t = np.arange(41, dtype=np.float64)
+    se = 2e-3
+    truth = np.stack([0.2 * (1 - np.exp(-t / 8.0)), 0.01 * t], 1)
+    noisy = truth + rng.normal(0.0, se, truth.shape)
+    noisy[0] = 0.0
+    sm = _motion_in_time(noisy, se)
+    sm.se[0] = 0.0
+    pts = torch.tensor([[0.0, 0.0], [40.0, 25.0], [-30.0, 10.0]], dtype=torch.float64)
+    assert sm.smooth(pts) == 40  # every frame but the reference
+    assert np.array_equal(sm.params[0], np.zeros(6))
+    before = np.sqrt(((noisy[1:] - truth[1:]) ** 2).mean())
+    after = np.sqrt(((sm.params[1:, :2] - truth[1:]) ** 2).mean())
+    assert after < 0.7 * before, (after, before)
+    # a jump of 0.5 px at frame 20: the frames whose window holds it are kept
+    jump = noisy + np.where(t >= 20, 0.5, 0.0)[:, None]
+    jump[0] = 0.0
+    sj = _motion_in_time(jump, se)
+    sj.se[0] = 0.0
+    kept = sj.smooth(pts)
+    changed = np.nonzero((sj.params[:, :2] != jump).any(1))[0]
+    assert kept == changed.size and not np.isin(np.arange(17, 23), changed).any()
+    assert kept >= 30
+    # a load step there (its own segment): both sides smoothed within their segments
+    sj2 = _motion_in_time(jump, se)
+    sj2.se[0], sj2.steps = 0.0, [20]
+    assert sj2.smooth(pts) == 40
+
+
 def test_auto_carries_a_smooth_motion_that_is_not_affine_in_time(monkeypatch):
     """A motion with no jitter but a clear departure from a line over the run's windows (a
     relaxing stretch, a decelerating drift: what the windows' lines would miss) is carried
@@ -310,6 +345,7 @@ def test_auto_carries_a_smooth_motion_that_is_not_affine_in_time(monkeypatch):
     assert sm.significance() < SIGNIFICANT  # no jitter
     assert res.info["shared_motion"]["departure"] > DEPARTURE and sm.applied
     assert sm.velocity_m == 2 and int((res.m == 4).sum()) > 0.9 * res.m.numel()
+    assert res.info["shared_motion"]["smoothed_frames"] >= 15  # smooth in time: all but ends
 
     def velocity_error(r):
         gt = ground_truth(Custom(relaxing), r.points.double(), times)

@@ -212,6 +212,7 @@ def estimate_shared_motion(plan: RunPlan, kind: str = "auto",
             if not out.applied and np.isfinite(dep) and dep > DEPARTURE:
                 out.applied = True  # its velocity at a target: over a few frames about it
                 out.velocity_m = VELOCITY_M
+                out.extra["smoothed_frames"] = out.smooth(pts)  # its noise: in every window
     if reason is not None:
         out.applied, out.velocity_m = False, None
         out.steps = []
