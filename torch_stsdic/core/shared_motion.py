@@ -195,7 +195,7 @@ class SharedMotion:
             if 0 < k < n:
                 seg[k:] += 1
         fixed = self.measured & ~((self.se == 0) & (np.abs(self.params).sum(1) == 0))
-        g = self.displacement(points.double(), torch.arange(n)).double().numpy()  # (n, N, 2)
+        pts = points.double()
         new, done = self.params.copy(), 0
         for k in np.nonzero(fixed)[0]:
             own = np.nonzero(self.measured & (seg == seg[k]))[0]  # its segment's frames
@@ -206,7 +206,8 @@ class SharedMotion:
             dt = times[win] - times[k]
             a = np.stack([np.ones_like(dt), dt, dt * dt], 1)  # (T, 3)
             hat = np.linalg.pinv(a)  # (3, T)
-            resid = g[win].reshape(t_count, -1) - a @ (hat @ g[win].reshape(t_count, -1))
+            g = self.displacement(pts, torch.as_tensor(win)).numpy().reshape(t_count, -1)
+            resid = g - a @ (hat @ g)  # (a window's frames at a time: no (F, N) array)
             ratio = (resid ** 2).mean() / (terms * se2[win].mean() * (t_count - 3) / t_count)
             if ratio <= limit:
                 new[k] = hat[0] @ self.params[win]
