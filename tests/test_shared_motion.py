@@ -436,10 +436,15 @@ def test_run_summary_and_figures_say_why_velocities_are_missing():
     assert lines[0].startswith("shared motion: affine, carried in every window")
     assert "0.156 px" in lines[0] and "before frames 6, 12" in lines[1]
     assert "before frame 10:" in shared_motion_lines({**rec, "steps": [10]})[1]
+    assert shared_motion_lines({**rec, "velocity_m": 2, "smoothed_frames": 25})[0].startswith(
+        "shared motion: affine, carried in every window (not affine in time over the windows; "
+        "smoothed in time at 25 frames)")
+    assert shared_motion_lines({**rec, "velocity_m": 2, "smoothed_frames": 0})[0].startswith(
+        "shared motion: affine, carried in every window (not affine in time over the windows)")
     rec.update(applied=False, steps=[])
     assert shared_motion_lines(rec) == [
-        "shared motion: affine, measured, not carried (no significant shake) (shake median "
-        "0.156 px, max 0.490 px)"]
+        "shared motion: affine, measured, not carried (no significant shake, affine in time "
+        "over the windows) (shake median 0.156 px, max 0.490 px)"]
     assert shared_motion_lines(None) == []
 
 

@@ -29,6 +29,7 @@ from matplotlib.figure import Figure
 from matplotlib.ticker import FuncFormatter, MaxNLocator, ScalarFormatter
 
 from torch_stsdic.analysis.strain import detect_grid
+from torch_stsdic.core.shared_motion import carried_note
 from torch_stsdic.core.signatures import POSITIONAL, bind, param, signature_like
 from torch_stsdic.core.status import Status
 from torch_stsdic.io.run_record import written_atomically
@@ -537,6 +538,8 @@ def plot_shared_motion(
     params: Any,
     *,
     applied: bool = True,
+    velocity_m: int | None = None,
+    smoothed_frames: int | None = None,
     title: str | None = None,
     time_label: str = "time (frame)",
     length_unit: str = "px",
@@ -548,7 +551,9 @@ def plot_shared_motion(
     translation at the POIs' centre (``scale`` ``length_unit`` per px) and, below, its
     rotation and normal strains (the affine gradient), in 1e-3.
 
-    ``times`` (T,); ``params`` (T, 6) or (T, 12): columns ``shared_motion.PARAM_NAMES``."""
+    ``times`` (T,); ``params`` (T, 6) or (T, 12): columns ``shared_motion.PARAM_NAMES``;
+    ``applied``, ``velocity_m``, ``smoothed_frames``: how the run carried it (the title's
+    note: :func:`~torch_stsdic.core.shared_motion.carried_note`)."""
     t = _np(times).astype(np.float64)
     p = _np(params).astype(np.float64)
     if p.ndim != 2 or p.shape[0] != t.shape[0] or p.shape[1] not in (6, 12):
@@ -568,7 +573,7 @@ def plot_shared_motion(
     ax2.set_xlabel(time_label)
     ax2.legend(fontsize=8)
     ax2.grid(True, alpha=0.3)
-    note = "carried in every window" if applied else "measured, not carried (no significant shake)"
+    note = carried_note(applied, velocity_m, smoothed_frames)
     ax1.set_title(title + f"\n{note}" if title else note, fontsize=10)
     return save_figure(fig, path, dpi=dpi)
 

@@ -15,6 +15,7 @@ from torch_stsdic.cli import options
 from torch_stsdic.cli.common import check_device, check_folder, fmt_time, to_numpy
 from torch_stsdic.cli.errors import CommandError, UsageError, one_line
 from torch_stsdic.cli.signals import Interrupted, checkpoint
+from torch_stsdic.core.shared_motion import carried_note
 
 NAME = "run"
 HELP = "measure displacement, velocity and strain in an image series -> HDF5"
@@ -577,8 +578,7 @@ def shared_motion_lines(rec: dict[str, Any] | None) -> list[str]:
         return []
     shake = (f"shake median {rec['jitter_px_median']:.3f} px, max {rec['jitter_px_max']:.3f} px"
              if rec.get("jitter_px_median") is not None else "shake not measured")
-    how = ("carried in every window" if rec.get("applied")
-           else "measured, not carried (no significant shake)")
+    how = carried_note(bool(rec.get("applied")), rec.get("velocity_m"), rec.get("smoothed_frames"))
     if rec.get("refused"):
         how = (f"REFUSED, not carried: {rec['refused']}; the points may include background "
                "or a second body (choose them with --roi/--mask)")

@@ -49,7 +49,8 @@ __all__ = ["SharedMotion", "SHARED_MOTION_KINDS", "PARAM_NAMES", "PARAM_UNITS",
            "overlap_factor",
            "sample_points", "frame_chunks",
            "detect_steps", "step_increments", "steps_from_increments",
-           "DEFAULT_MAX_POINTS", "SIGNIFICANT", "DEPARTURE", "VELOCITY_M", "SMOOTH_H",
+           "carried_note", "DEFAULT_MAX_POINTS", "SIGNIFICANT", "DEPARTURE", "VELOCITY_M",
+           "SMOOTH_H",
            "SMOOTH_LIMIT", "STEP_Z", "STEP_RATIO", "SE_FLOOR"]
 
 #: the columns of ``SharedMotion.params`` (px, px/px, px/px^2): u = a_x + du/dx dx + du/dy dy
@@ -347,6 +348,20 @@ class SharedMotion:
                           else np.asarray(rec["times"], dtype=np.float64)),
                    seconds=float(rec.get("seconds", 0.0)),
                    extra={k: v for k, v in rec.items() if k not in known})
+
+
+def carried_note(applied: bool, velocity_m: Any = None, smoothed: Any = None) -> str:
+    """How a run used its shared motion, for its summary and figure: ``applied``,
+    :attr:`SharedMotion.velocity_m` (None, or "null" as a result file's attribute holds
+    it, where the windows carry the motion as measured) and the frames
+    :meth:`SharedMotion.smooth` smoothed (``extra["smoothed_frames"]``)."""
+    if not applied:
+        return "measured, not carried (no significant shake, affine in time over the windows)"
+    if velocity_m is None or velocity_m == "null":
+        return "carried in every window"
+    n = 0 if smoothed is None or smoothed == "null" else int(smoothed)
+    return ("carried in every window (not affine in time over the windows"
+            + (f"; smoothed in time at {n} frames)" if n else ")"))
 
 
 def _window_sums(g: Tensor, dt: Tensor) -> Tensor:
