@@ -54,20 +54,19 @@ def _integral(x: torch.Tensor, size: int) -> torch.Tensor:
     return torch.nn.functional.pad(kornia.enhance.integral_image(pad), (1, 0, 1, 0))
 
 
-def _box(x: torch.Tensor, size: int) -> torch.Tensor:
-    """Mean over a ``size`` x ``size`` square (``size`` odd) around every pixel (reflected
-    borders; kornia's box blur, by an integral image: O(1) a pixel at any size)."""
-    h, w = x.shape
-    s = _integral(x, size)
-    return (s[size:size + h, size:size + w] - s[:h, size:size + w] - s[size:size + h, :w]
-            + s[:h, :w]) / float(size * size)
-
-
 def _box_at(x: torch.Tensor, size: int, iy: torch.Tensor, ix: torch.Tensor) -> torch.Tensor:
-    """:func:`_box` of ``x`` at the pixels (``iy``, ``ix``) only."""
+    """Mean over a ``size`` x ``size`` square (``size`` odd) around the pixels (``iy``,
+    ``ix``) (broadcast together) of ``x`` (reflected borders; kornia's box blur, by an
+    integral image: O(1) a pixel at any size)."""
     s = _integral(x, size)
     return (s[iy + size, ix + size] - s[iy, ix + size] - s[iy + size, ix]
             + s[iy, ix]) / float(size * size)
+
+
+def _box(x: torch.Tensor, size: int) -> torch.Tensor:
+    """:func:`_box_at` every pixel of ``x`` (H, W)."""
+    h, w = x.shape
+    return _box_at(x, size, torch.arange(h)[:, None], torch.arange(w)[None, :])
 
 
 def _square(op, mask: torch.Tensor, size: int) -> torch.Tensor:

@@ -173,6 +173,31 @@ class SharedMotion:
         target)."""
         return int(m) if self.velocity_m is None else min(int(m), int(self.velocity_m))
 
+    @property
+    def terms(self) -> int:
+        """The kind's parameters a component (translation 1, affine 3, quadratic 6): the
+        fitted displacement's mean variance over the sample points is ``terms * se^2``."""
+        return {"translation": 1, "affine": 3}.get(self.kind, 6)
+
+    def _time_axis(self) -> np.ndarray:
+        """(T_series,) float64 the frames' times (frame indices where none were given)."""
+        n = len(self.params)
+        return (np.arange(n, dtype=np.float64) if self.times is None
+                else np.asarray(self.times, dtype=np.float64))
+
+    def _noise2(self) -> np.ndarray:
+        """(T_series,) px^2 the estimate's variance a component with ``SE_FLOOR`` added
+        (0 + floor where not measured)."""
+        return np.nan_to_num(np.asarray(self.se, dtype=np.float64)) ** 2 + SE_FLOOR ** 2
+
+    def _segment_of(self) -> np.ndarray:
+        """(T_series,) int64 each frame's load segment (:attr:`steps` start new ones)."""
+        seg = np.zeros(len(self.params), dtype=np.int64)
+        for k in self.steps:
+            if 0 < k < len(seg):
+                seg[k:] += 1
+        return seg
+
     def smooth(self, points: Tensor, h: int = SMOOTH_H, limit: float = SMOOTH_LIMIT) -> int:
         """Smooth the motion in time, in place: at every measured frame, its parameters
         replaced by the value of a least-squares quadratic in time over the ``2h + 1``
@@ -187,14 +212,7 @@ class SharedMotion:
         n, t_count = len(self.params), 2 * int(h) + 1
         if h < 1 or n < t_count or self.se is None:
             return 0
-        times = (np.arange(n, dtype=np.float64) if self.times is None
-                 else np.asarray(self.times, dtype=np.float64))
-        se2 = np.nan_to_num(np.asarray(self.se, dtype=np.float64)) ** 2 + SE_FLOOR ** 2
-        terms = {"translation": 1, "affine": 3}.get(self.kind, 6)
-        seg = np.zeros(n, dtype=np.int64)  # load segment of each frame
-        for k in self.steps:
-            if 0 < k < n:
-                seg[k:] += 1
+        times, se2, seg = self._time_axis(), self._noise2(), self._segment_of()
         fixed = self.measured & ~((self.se == 0) & (np.abs(self.params).sum(1) == 0))
         pts = points.double()
         new, done = self.params.copy(), 0
@@ -209,7 +227,8 @@ class SharedMotion:
             hat = np.linalg.pinv(a)  # (3, T)
             g = self.displacement(pts, torch.as_tensor(win)).numpy().reshape(t_count, -1)
             resid = g - a @ (hat @ g)  # (a window's frames at a time: no (F, N) array)
-            ratio = (resid ** 2).mean() / (terms * se2[win].mean() * (t_count - 3) / t_count)
+            ratio = (resid ** 2).mean() / (self.terms * se2[win].mean() * (t_count - 3)
+                                           / t_count)
             if ratio <= limit:
                 new[k] = hat[0] @ self.params[win]
                 done += 1
@@ -229,19 +248,15 @@ class SharedMotion:
         n, t_count = len(self.params), 2 * int(m) + 1
         if m < 1 or n < t_count or self.se is None:
             return float("nan")
-        cut = np.zeros(n, dtype=bool)
-        cut[[k for k in self.steps if 0 < k < n]] = True  # a window may start at a step
+        seg = self._segment_of()  # a window within one load segment
         ok = [s for s in range(n - t_count + 1) if self.measured[s:s + t_count].all()
-              and not cut[s + 1:s + t_count].any()]
+              and seg[s] == seg[s + t_count - 1]]
         if not ok:
             return float("nan")
         starts = np.asarray(ok)[np.unique(np.round(np.linspace(0, len(ok) - 1, min(
             len(ok), int(max_windows)))).astype(int))]
         idx = torch.as_tensor(starts)[:, None] + torch.arange(t_count)  # (W, T)
-        times = torch.as_tensor(np.arange(n, dtype=np.float64) if self.times is None
-                                else np.asarray(self.times, dtype=np.float64))
-        se2 = torch.as_tensor(np.nan_to_num(self.se, nan=0.0)) ** 2 + SE_FLOOR ** 2
-        terms = {"translation": 1, "affine": 3}.get(self.kind, 6)
+        times, se2 = torch.as_tensor(self._time_axis()), torch.as_tensor(self._noise2())
         ratios = []
         for w0 in range(0, idx.shape[0], 32):  # (32, N, T, 2) at a time
             win = idx[w0:w0 + 32]
@@ -249,7 +264,7 @@ class SharedMotion:
             g = g.view(win.shape[0], t_count, -1, 2).transpose(1, 2)  # (W, N, T, 2)
             dt = (times[win] - times[win[:, int(m)]].unsqueeze(1)).unsqueeze(1)  # (W, 1, T)
             ms = window_offsets(g, dt).pow(2).mean((1, 2, 3))  # (W,)
-            ratios.append(ms / (terms * se2[win].mean(1) * (t_count - 2) / t_count))
+            ratios.append(ms / (self.terms * se2[win].mean(1) * (t_count - 2) / t_count))
         return float(torch.cat(ratios).mean())
 
     def _at(self, points: Tensor, frames: Tensor) -> tuple[Tensor, Tensor, Tensor]:

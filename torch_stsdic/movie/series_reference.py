@@ -45,7 +45,7 @@ from torch_stsdic.movie.frames import FrameCache, FrameStore
 from torch_stsdic.movie.plan import RunPlan
 from torch_stsdic.movie.refine import ReferenceOffsets
 from torch_stsdic.movie.sample_guess import MeasuredSample
-from torch_stsdic.movie.template_image import template_image
+from torch_stsdic.movie.template_image import TemplateWindows, template_image
 
 __all__ = ["SeriesReference", "DEFAULT_FRAMES", "DEFAULT_ITERATIONS", "sample_frames",
            "build_series_reference", "set_series_reference", "single_reason",
@@ -513,7 +513,7 @@ def build_series_reference(plan: RunPlan, ref_raw: torch.Tensor, *,
     reg = RegistrationFits.make(pts, neighbours, plan.config.subset_size)
     fit = reg.fits[0]  # the smallest neighbourhood: the gauge's planes
     image = choice = unit = matched = guess = ratio = None
-    shared_by_rounds: dict = {}  # the template's windows and frames' contrasts, made once
+    windows = TemplateWindows.make(plan, ref_raw)  # the same in every round
     for _ in range(int(iterations)):
         res = measured.result(frames) if image is None and measured is not None else None
         if res is None:
@@ -530,7 +530,7 @@ def build_series_reference(plan: RunPlan, ref_raw: torch.Tensor, *,
         splat = reg.guard(choice, trusted)
         image, ratio, coverage, point_ratio = template_image(
             plan, _smooth(reg, warps, trusted, choice), splat, frames, sigmas, ref_raw, cache,
-            shared_by_rounds)
+            windows)
     degree = reg.degree(choice)
     use = degree > 0
     own = torch.tensor([k != plan.reference_frame for k in frames])

@@ -206,7 +206,7 @@ def estimate_shared_motion(plan: RunPlan, kind: str = "auto",
     if auto:
         z = out.significance()
         out.applied = bool(np.isfinite(z) and z > SIGNIFICANT)
-        if plan.config.m > 0:  # smooth but not affine in time over the run's windows
+        if plan.config.m > 0 and reason is None:  # smooth, not affine in time over windows
             dep = out.departure(pts, plan.config.m)
             out.extra["departure"] = None if not np.isfinite(dep) else round(dep, 3)
             if not out.applied and np.isfinite(dep) and dep > DEPARTURE:

@@ -42,15 +42,14 @@ def report_velocity(blk: Block, vel: torch.Tensor, var: torch.Tensor) -> None:
         return
     rows = blk.m_used > vm  # (B*N,) the rows whose window is longer than the slope's
     se2 = torch.as_tensor(shared.se, dtype=torch.float64).nan_to_num(0.0).square()
-    terms = {"translation": 1, "affine": 3}.get(shared.kind, 6)
     short = blk.shared_slope(int(vm))  # (B*N, 2)
     win = blk.windows(int(vm))  # (B, 2 vm + 1)
     dt = (run.ts[win] - run.ts[blk.k].unsqueeze(1)).double()
     dc = dt - dt.mean(1, keepdim=True)
-    noise = (0.5 * terms * se2.to(dt.device)[win].mean(1)
+    noise = (0.5 * shared.terms * se2.to(dt.device)[win].mean(1)
              / dc.square().sum(1).clamp(min=1e-30))
     noise = noise.repeat_interleave(blk.n).unsqueeze(1).to(var)  # (B*N, 1)
-    for m in half_widths(blk.m_used.to(torch.int8), rows, run.m):
+    for m in half_widths(blk.m_used, rows, run.m):
         sel = (rows & (blk.m_used == m)).unsqueeze(1)
         vel.add_(torch.where(sel, (short - blk.shared_slope(int(m))).to(vel), 0.0))
         var.add_(torch.where(sel, noise, 0.0))

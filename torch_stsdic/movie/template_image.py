@@ -8,6 +8,8 @@ order (:func:`~torch_stsdic.kernels.scatter.scatter_add_`)."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
+
 import numpy as np
 import torch
 
@@ -19,7 +21,7 @@ from torch_stsdic.kernels.scatter import scatter_add_
 from torch_stsdic.movie.frames import FrameCache
 from torch_stsdic.movie.plan import RunPlan
 
-__all__ = ["template_image", "splat", "frame_groups", "window_pixels"]
+__all__ = ["template_image", "splat", "frame_groups", "window_pixels", "TemplateWindows"]
 
 #: the points whose warps feed the template (grey levels of the pixels: memory per chunk)
 _CHUNK_SAMPLES = 1_000_000
@@ -217,30 +219,47 @@ def _group_frames(cache: FrameCache, frames: list[int], dev: torch.device,
                               if pixels else None)
 
 
+@dataclass
+class TemplateWindows:
+    """What every round of one template shares (:func:`template_image`): the reference's
+    grey-level spread, the pixels the POIs' windows cover (:func:`window_pixels`), the
+    reference's statistics over them (:func:`reference_window_stats`) and each sampled
+    frame's contrast over the reference's (series frame -> 0-d tensor, filled as read)."""
+
+    spread: float
+    cover: tuple[torch.Tensor, torch.Tensor]
+    ref_stats: tuple[torch.Tensor, torch.Tensor]
+    level: dict[int, torch.Tensor] = field(default_factory=dict)
+
+    @classmethod
+    def make(cls, plan: RunPlan, ref_raw: torch.Tensor) -> TemplateWindows:
+        """Those of ``plan``'s POIs and its reference image ``ref_raw`` (H, W)."""
+        h, w = plan.series.shape
+        dev = torch.device(plan.device)
+        ref = ref_raw.double().to(dev).reshape(-1)
+        cover = window_pixels(plan.points.double().to(dev), (plan.config.subset_size - 1) // 2,
+                              h, w)
+        return cls(spread=float(ref.std().clamp(min=1e-12)), cover=cover,
+                   ref_stats=reference_window_stats(ref, cover))
+
+
 def template_image(plan: RunPlan, warps: torch.Tensor, oks: torch.Tensor, frames: list[int],
                    sigmas: list[float], ref_raw: torch.Tensor, cache: FrameCache,
-                   shared: dict | None = None
+                   windows: TemplateWindows | None = None
                    ) -> tuple[torch.Tensor, float, float, torch.Tensor]:
     """The template from the maps (F, N, 12) (the local fits' of the series reference) and
     trust (F, N) of ``frames`` (noise ``sigmas``; prepared by ``cache``): image (H, W), its
     noise variance over one frame's (median over the covered pixels), coverage, and (N,) that
     ratio at each POI (1 where no frame covers it: the reference image's pixels).
-    ``shared``: a dict the rounds of one template pass (the windows' pixels, the
-    reference's statistics over them, each frame's contrast: the same in every round),
-    filled on the first."""
+    ``windows``: what the rounds of one template share (default: made here)."""
     h, w = plan.series.shape
     dev = torch.device(plan.device)
     pts = plan.points.double().to(dev)
     half = (plan.config.subset_size - 1) // 2
     ref = ref_raw.double().to(dev).reshape(-1)
-    memo = {} if shared is None else shared
-    if "cover" not in memo:
-        memo["spread"] = float(ref.std().clamp(min=1e-12))
-        memo["cover"] = window_pixels(pts, half, h, w)
-        memo["ref_stats"] = reference_window_stats(ref, memo["cover"])
-        memo["level"] = {}
-    spread, cover, ref_stats, levels = (memo["spread"], memo["cover"], memo["ref_stats"],
-                                        memo["level"])
+    windows = TemplateWindows.make(plan, ref_raw) if windows is None else windows
+    spread, cover, ref_stats, levels = (windows.spread, windows.cover, windows.ref_stats,
+                                        windows.level)
     norm = []  # each frame's noise in the reference's grey levels
     # the sums over the covered pixels, on the run's device, mapped to the image at the end
     on_cover = torch.zeros(3, cover[0].numel(), dtype=torch.float64, device=dev)
