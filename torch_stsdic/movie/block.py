@@ -664,12 +664,7 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
     out["status"] = blk.status.reshape(b, n)
     out["iterations"] = blk.iters.reshape(b, n)
     out["m"] = blk.m_used.reshape(b, n)
-    vel_var = None  # the shared motion's part of the velocities, in the reported terms
-    if "ut" in out and run.shared is not None:
-        vel, vel_var = torch.stack([out["ut"].reshape(-1), out["vt"].reshape(-1)], 1), \
-            torch.zeros(b * n, 2, dtype=out["ut"].dtype, device=dev)
-        report_velocity(blk, vel, vel_var)
-        out["ut"], out["vt"] = vel[:, 0].reshape(b, n), vel[:, 1].reshape(b, n)
+    vel_var = report_velocity(blk, out)  # the shared motion's part, in the reported terms
     fac = None if run.template_shares is None else run.template_shares.variance_factors(
         blk.k, out["m"], run.ts, float(run.noise_ratio or 1.0), run.segments, m_max=run.m)
     for j, nm in enumerate(run.names):
@@ -680,7 +675,7 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
             if run.reference_var is not None and nm in ("u", "v"):
                 std = (std.pow(2) + run.reference_var.to(std)).sqrt()
             if vel_var is not None and nm in ("ut", "vt"):
-                std = (std.pow(2) + vel_var[:, int(nm == "vt")].reshape(b, n).to(std)).sqrt()
+                std = (std.pow(2) + vel_var[..., int(nm == "vt")].to(std)).sqrt()
             out[STD_OF[nm]] = std
     return out
 

@@ -28,18 +28,20 @@ Block = Any
 __all__ = ["report_velocity"]
 
 
-def report_velocity(blk: Block, vel: torch.Tensor, var: torch.Tensor) -> None:
-    """The block's velocities ``vel`` (B*N, 2) (ut, vt as solved: ``s + beta_m``) in the
-    reported terms (module docstring), in place, and their variance ``var`` (B*N, 2) px^2
-    per time unit^2 with the shorter slope's noise (``p se^2 / (2 sum dt^2)`` over its
-    frames, ``p`` the kind's terms: the fitted displacement's mean variance over the sample
-    points is ``p se^2``, of which the reference image's half is common to every frame and
-    leaves a slope alone). Nothing where the run's shared motion keeps the windows' slopes."""
+def report_velocity(blk: Block, out: dict[str, torch.Tensor]) -> torch.Tensor | None:
+    """The block's velocities ``out["ut"]``, ``out["vt"]`` ((B, N), as solved: ``s +
+    beta_m``) in the reported terms (module docstring), in place; returns (B, N, 2) px^2
+    per time unit^2 the variance this adds to them: the shorter slope's noise (``p se^2 /
+    (2 sum dt^2)`` over its frames, ``p`` the kind's terms: the fitted displacement's mean
+    variance over the sample points is ``p se^2``, of which the reference image's half is
+    common to every frame and leaves a slope alone). None (nothing changed) where the run's
+    shared motion keeps the windows' slopes."""
     run = blk.run
     shared = run.shared
     vm = None if shared is None else shared.velocity_m
-    if vm is None or run.m <= vm:
-        return
+    if vm is None or run.m <= vm or "ut" not in out:
+        return None
+    b, n = out["ut"].shape
     rows = blk.m_used > vm  # (B*N,) the rows whose window is longer than the slope's
     se2 = torch.as_tensor(shared.se, dtype=torch.float64).nan_to_num(0.0).square()
     short = blk.shared_slope(int(vm))  # (B*N, 2)
@@ -48,8 +50,12 @@ def report_velocity(blk: Block, vel: torch.Tensor, var: torch.Tensor) -> None:
     dc = dt - dt.mean(1, keepdim=True)
     noise = (0.5 * shared.terms * se2.to(dt.device)[win].mean(1)
              / dc.square().sum(1).clamp(min=1e-30))
-    noise = noise.repeat_interleave(blk.n).unsqueeze(1).to(var)  # (B*N, 1)
+    noise = noise.repeat_interleave(n).unsqueeze(1)  # (B*N, 1)
+    vel = torch.stack([out["ut"].reshape(-1), out["vt"].reshape(-1)], 1)  # (B*N, 2)
+    var = torch.zeros(b * n, 2, dtype=noise.dtype, device=noise.device)
     for m in half_widths(blk.m_used, rows, run.m):
         sel = (rows & (blk.m_used == m)).unsqueeze(1)
-        vel.add_(torch.where(sel, (short - blk.shared_slope(int(m))).to(vel), 0.0))
-        var.add_(torch.where(sel, noise, 0.0))
+        vel += torch.where(sel, (short - blk.shared_slope(int(m))).to(vel), 0.0)
+        var += torch.where(sel, noise, 0.0)
+    out["ut"], out["vt"] = vel[:, 0].reshape(b, n), vel[:, 1].reshape(b, n)
+    return var.view(b, n, 2)
