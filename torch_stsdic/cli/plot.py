@@ -389,13 +389,16 @@ def _plot_shared_motion(args: argparse.Namespace, res: Any, out: Path) -> list[P
     if "shared_motion" not in res.arrays:
         return []
     params, attrs = res.arrays["shared_motion"]
-    times = attrs.get("times")
-    times = np.arange(len(params)) if times is None else np.asarray(json.loads(times))
+
+    def value(key: str) -> Any:  # an attribute the writer stored as JSON (None: "null")
+        v = attrs.get(key)
+        return json.loads(v) if isinstance(v, str) else v
+    times = value("times")
+    times = np.arange(len(params)) if times is None else np.asarray(times)
     units = res.units
     path = out / "shared_motion.png"
     plot_shared_motion(times, params, applied=bool(attrs.get("applied", True)),
-                       velocity_m=attrs.get("velocity_m"),
-                       smoothed_frames=attrs.get("smoothed_frames"),
+                       velocity_m=value("velocity_m"), smoothed_frames=value("smoothed_frames"),
                        title=f"{Path(args.result).name}: shared motion of the specimen",
                        time_label=units.time_label, length_unit=units.unit,
                        scale=units.scale or 1.0, path=path, dpi=args.dpi)

@@ -365,18 +365,17 @@ class SharedMotion:
                    extra={k: v for k, v in rec.items() if k not in known})
 
 
-def carried_note(applied: bool, velocity_m: Any = None, smoothed: Any = None) -> str:
+def carried_note(applied: bool, velocity_m: int | None = None, smoothed: int | None = None
+                 ) -> str:
     """How a run used its shared motion, for its summary and figure: ``applied``,
-    :attr:`SharedMotion.velocity_m` (None, or "null" as a result file's attribute holds
-    it, where the windows carry the motion as measured) and the frames
-    :meth:`SharedMotion.smooth` smoothed (``extra["smoothed_frames"]``)."""
+    :attr:`SharedMotion.velocity_m` (None where the windows carry the motion as measured)
+    and the frames :meth:`SharedMotion.smooth` smoothed (``extra["smoothed_frames"]``)."""
     if not applied:
         return "measured, not carried (no significant shake, affine in time over the windows)"
-    if velocity_m is None or velocity_m == "null":
+    if velocity_m is None:
         return "carried in every window"
-    n = 0 if smoothed is None or smoothed == "null" else int(smoothed)
     return ("carried in every window (not affine in time over the windows"
-            + (f"; smoothed in time at {n} frames)" if n else ")"))
+            + (f"; smoothed in time at {int(smoothed)} frames)" if smoothed else ")"))
 
 
 def _window_sums(g: Tensor, dt: Tensor) -> Tensor:
