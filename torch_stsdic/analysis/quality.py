@@ -118,23 +118,24 @@ def line_offset(disp: Tensor, dt: Tensor) -> tuple[Tensor, Tensor]:
     window's solution (affine in time) lands from the classical one.
 
     Args:
-        disp: (R, T, 2) classical (u, v) at the window's frames, px.
+        disp: (R, T, 2) classical (u, v) at the window's frames, px (any leading dims).
         dt: (R, T) the frames' times minus the target's (the target's own frame: the one
-            nearest 0).
+            nearest 0); any leading dims that broadcast with ``disp``'s (one row of times
+            for all the points of a target: (K, 1, T) against (K, N, T, 2)).
 
     Returns:
         (R, 2) the offset px; (R, 1) ``sum_k c_k^2``, the offset's noise variance over one
         frame's (``c``: the offset's weights of the frames, which sum to 0: a displacement
-        error every frame shares, the reference image's, cancels).
+        error every frame shares, the reference image's, cancels), of ``dt``'s leading dims.
     """
     d, t = disp.double(), dt.double()
-    n = t.shape[1]
-    tm = t.mean(1, keepdim=True)
-    sxx = ((t - tm) ** 2).sum(1, keepdim=True)
+    n = t.shape[-1]
+    tm = t.mean(-1, keepdim=True)
+    sxx = ((t - tm) ** 2).sum(-1, keepdim=True)
     a = 1.0 / n - tm * (t - tm) / sxx.clamp(min=1e-12)  # (R, T) weights of the line at 0
-    at = t.abs().argmin(1, keepdim=True)  # the target's own frame in the window
-    c = a - torch.zeros_like(a).scatter_(1, at, 1.0)
-    return (c.unsqueeze(-1) * d).sum(1), (c * c).sum(1, keepdim=True)
+    at = t.abs().argmin(-1, keepdim=True)  # the target's own frame in the window
+    c = a - torch.zeros_like(a).scatter_(-1, at, 1.0)
+    return (c.unsqueeze(-1) * d).sum(-2), (c * c).sum(-1, keepdim=True)
 
 
 def line_mismatch(disp: Tensor, dt: Tensor, own: Tensor, std_cls: Tensor,
@@ -152,21 +153,22 @@ def line_mismatch(disp: Tensor, dt: Tensor, own: Tensor, std_cls: Tensor,
     Args:
         disp: (R, T, 2) classical (u, v) at the window's frames, px, any known motion the
             window carries (the shared motion's offsets) removed; NaN: unknown (then False).
-        dt: (R, T) the frames' times minus the target's.
+        dt: (R, T) the frames' times minus the target's (leading dims that broadcast, as
+            :func:`line_offset`'s).
         own: (R, 2) the classical (u, v) at the target.
         std_cls: (R, 2) its predicted standard deviation, px (taken for every frame).
         line: :func:`line_offset` of (disp, dt), where the caller has it already.
     """
-    n = dt.shape[1]
-    at = dt.abs().argmin(1)
+    n = dt.shape[-1]
+    at = dt.abs().argmin(-1)[..., None, None]  # the target's frame in the window
     # the line at 0 minus the target frame's displacement
     off, csq = line_offset(disp, dt) if line is None else line
-    off = off + disp.double()[torch.arange(disp.shape[0]), at] - own.double()
+    off = off + torch.take_along_dim(disp.double(), at, -2).squeeze(-2) - own.double()
     vc = torch.nan_to_num(std_cls.double(), nan=float("inf")) ** 2
     sd_pred = (vc * csq).sqrt()
     sd_diff = (torch.maximum(vc * (1.0 - 1.0 / n), 0.2 * vc) + MODEL_TOL**2).sqrt()
     off = off.abs()
-    return ((off > MODEL_Z * sd_diff + LINE_Z * sd_pred) & torch.isfinite(off)).any(1)
+    return ((off > MODEL_Z * sd_diff + LINE_Z * sd_pred) & torch.isfinite(off)).any(-1)
 
 
 def residual_mismatch(sigma_window: Tensor, sigma_classical: Tensor, n_pixels: float,

@@ -126,47 +126,42 @@ def window_lengths(plan: RunPlan, res: TrackResult, frames: list[int],
     pos = torch.full((n_series,), -1, dtype=torch.long)
     pos[torch.as_tensor(frames)] = torch.arange(len(frames))
     ks = torch.as_tensor(frames)  # every measured frame is a target of the test
-    nb = nearest_points(pts, min(POOL_POINTS, n))[1]  # (N, P)
+    pool = _pooling(nearest_points(pts, min(POOL_POINTS, n))[1])  # (N, N) sparse
     seg_of = (seg[ks, 0] if seg is not None else torch.zeros_like(ks))  # (K,)
+    own = d[pos[ks]]  # (K, N, 2) the targets' own displacements
+    own_sd = sd[pos[ks]]
     accepted = torch.ones(len(frames), n, dtype=torch.bool)
     out = torch.zeros(len(frames), n, dtype=torch.int8)
     for m in range(1, max_m + 1):
         win = window_frames(ks, m, n_series, seg)  # (K, T)
         at = pos[win]  # (K, T) the windows' rows in res, -1: not measured
         have = (at >= 0).all(1)  # (K,)
-        disp = d[at.clamp(min=0)].permute(0, 2, 1, 3)  # (K, N, T, 2)
-        dt = (t[win] - t[ks][:, None])  # (K, T)
-        kk, nn_ = disp.shape[:2]
-        dte = dt[:, None, :].expand(kk, nn_, -1).reshape(kk * nn_, -1)
-        flat = disp.reshape(kk * nn_, -1, 2)
-        off, csq = line_offset(flat, dte)
-        own = d[pos[ks]].reshape(kk * nn_, 2)
-        miss = line_mismatch(flat, dte, own, sd[pos[ks]].reshape(kk * nn_, 2),
-                             line=(off, csq)).view(kk, nn_)
-        off, csq = off.view(kk, nn_, 2), csq.view(kk, nn_)
+        disp = d[at.clamp(min=0)].permute(0, 2, 1, 3)  # (K, N, T, 2) (a view)
+        dt = (t[win] - t[ks][:, None]).unsqueeze(1)  # (K, 1, T): the same for all points
+        off, csq = line_offset(disp, dt)  # (K, N, 2), (K, 1, 1)
+        miss = line_mismatch(disp, dt, own, own_sd, line=(off, csq))  # (K, N)
+        csq = csq.view(-1, 1)  # (K, 1)
         valid = torch.isfinite(off).all(-1) & have[:, None]  # (K, N)
         noise = own_var[None] * csq[..., None]  # (K, N, 2) the offset's noise variance
         term = (off.nan_to_num() ** 2 - noise).sum(-1)  # (K, N) squared bias, unbiased
         term = torch.minimum(term, POOL_CLIP * noise.sum(-1))  # a wrong peak: limited
-        term = torch.where(valid & ~miss, term, 0.0)
-        use = (valid & ~miss).double()
+        use = valid & ~miss
+        term = torch.where(use, term, 0.0)
         # pooled over the nearest POIs, then over the targets within m frames (same state)
         near_t = ((ks[:, None] - ks[None, :]).abs() <= m) & (seg_of[:, None] == seg_of[None])
         wt = near_t.double()  # (K, K)
-        s1 = wt @ term[:, nb].sum(-1)  # (K, N)
-        s2 = wt @ (term ** 2)[:, nb].sum(-1)
-        cnt = wt @ use[:, nb].sum(-1)
-        bias2 = s1 / cnt.clamp(min=1)
-        se = ((s2 / cnt.clamp(min=1) - bias2 ** 2).clamp(min=0) / cnt.clamp(min=1)).sqrt()
-        # the signed offsets pooled first: a bias smooth over the pool adds up, the noise
+        # the signed offsets pooled too: a bias smooth over the pool adds up, the noise
         # averages out (far more power where the field is smooth; none where the bias
         # changes sign within the pool, which the squares above catch)
-        offs = torch.where((valid & ~miss)[..., None], off.nan_to_num(), 0.0)
-        mean_off = torch.einsum("kj,jnc->knc", wt, offs[:, nb].sum(2)) / cnt.clamp(min=1)[
-            ..., None]
-        noise_mean = (wt @ torch.where(valid & ~miss, noise.sum(-1), 0.0)[:, nb].sum(-1)
-                      ) / cnt.clamp(min=1) ** 2 * DESIGN  # (K, N) its noise variance
-        signed = mean_off.pow(2).sum(-1) - noise_mean
+        offs = torch.where(use[..., None], off.nan_to_num(), 0.0)
+        s1, s2, cnt, mu, mv, nsum = _pooled(pool, wt, torch.stack(
+            [term, term ** 2, use.double(), offs[..., 0], offs[..., 1],
+             torch.where(use, noise.sum(-1), 0.0)], -1))  # (K, N) each
+        bias2 = s1 / cnt.clamp(min=1)
+        se = ((s2 / cnt.clamp(min=1) - bias2 ** 2).clamp(min=0) / cnt.clamp(min=1)).sqrt()
+        mean_off2 = (mu.pow(2) + mv.pow(2)) / cnt.clamp(min=1) ** 2
+        noise_mean = nsum / cnt.clamp(min=1) ** 2 * DESIGN  # (K, N) its noise variance
+        signed = mean_off2 - noise_mean
         h = (1.0 - csq)  # (K, N) the window's intercept variance over one frame's
         fails = wt @ (miss & valid).double()  # the point's own windows
         tests = wt @ valid.double()
@@ -180,6 +175,24 @@ def window_lengths(plan: RunPlan, res: TrackResult, frames: list[int],
     # every series frame: the decision of the nearest measured target
     near = (t[:, None] - t[ks][None, :]).abs().argmin(1)  # (T_series,)
     return out[near]
+
+
+def _pooling(nb: torch.Tensor) -> torch.Tensor:
+    """(N, N) sparse float64: row i holds a 1 at each of point i's pool ``nb[i]`` (N, P)
+    (its nearest POIs, itself included): ``pool @ x`` sums x (N, C) over every pool."""
+    n, p = nb.shape
+    rows = torch.arange(n, dtype=torch.int64).repeat_interleave(p)
+    return torch.sparse_coo_tensor(torch.stack([rows, nb.reshape(-1).to(torch.int64)]),
+                                   torch.ones(n * p, dtype=torch.float64), (n, n),
+                                   check_invariants=True).coalesce()
+
+
+def _pooled(pool: torch.Tensor, wt: torch.Tensor, x: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """x (K, N, C) summed over each point's pool (``pool``: :func:`_pooling`), then over the
+    targets ``wt`` (K, K) weights: C tensors (K, N)."""
+    k, n, c = x.shape
+    by_point = (pool @ x.permute(1, 0, 2).reshape(n, k * c)).view(n, k, c)
+    return torch.einsum("kj,njc->ckn", wt, by_point).unbind(0)
 
 
 def measure_window_lengths(plan: RunPlan, run: Callable[..., TrackResult],
