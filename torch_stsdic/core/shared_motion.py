@@ -98,6 +98,9 @@ STEP_Z = 2.0
 #: 5 x 0.002 = 0.01 px before it is carried
 SE_FLOOR = 0.002
 STEP_RATIO = 2.0
+#: sample points :meth:`SharedMotion.find_jumps` reads the motion at (a low-order polynomial
+#: of the position: a few hundred points see it)
+JUMP_POINTS = 256
 
 
 @dataclass
@@ -142,6 +145,10 @@ class SharedMotion:
     #: a reported velocity holds the shared motion's slope over this half-width about the
     #: target (None: over the row's whole window; :meth:`velocity_window`)
     velocity_m: int | None = None
+    #: series frames where the motion itself jumps among smooth frames (:meth:`find_jumps`:
+    #: load steps of a uniform strain, which the fit takes out of the deformation's
+    #: residual): a reported velocity's slope of the motion stays on its target's side
+    jumps: list[int] = field(default_factory=list)
     #: the measuring pass's trusted solutions at its sample of POIs
     #: (:class:`~torch_stsdic.movie.sample_guess.MeasuredSample`: the first block's initial guess);
     #: None where not measured by a pass (not written to results)
@@ -191,9 +198,10 @@ class SharedMotion:
         return np.nan_to_num(np.asarray(self.se, dtype=np.float64)) ** 2 + SE_FLOOR ** 2
 
     def _segment_of(self) -> np.ndarray:
-        """(T_series,) int64 each frame's load segment (:attr:`steps` start new ones)."""
+        """(T_series,) int64 each frame's load segment (:attr:`steps` and :attr:`jumps`
+        start new ones)."""
         seg = np.zeros(len(self.params), dtype=np.int64)
-        for k in self.steps:
+        for k in sorted(set(self.steps) | set(self.jumps)):
             if 0 < k < len(seg):
                 seg[k:] += 1
         return seg
@@ -267,6 +275,54 @@ class SharedMotion:
             ratios.append(ms / (self.terms * se2[win].mean(1) * (t_count - 2) / t_count))
         return float(torch.cat(ratios).mean())
 
+    def find_jumps(self, points: Tensor, z: float = STEP_Z, ratio: float = STEP_RATIO,
+                   reach: int = 5, max_points: int = JUMP_POINTS) -> list[int]:
+        """Series frames where the motion itself jumps among smooth frames (a load step of a
+        uniform strain: the fit takes it, so :func:`detect_steps` never sees it in the
+        deformation's residual). Each adjacent pair of measured frames' increment of the
+        displacement at ``points`` (N, 2) (the fit's sample; at most ``max_points`` of
+        them, spread), per time unit, is compared at each point with what the pairs about it
+        predict: the median of the two on either side (robust to one jump among them, and
+        to a vibration: its increments' signs alternate), at the series' ends the line
+        through the three on the one side (an accelerating start). The median distance
+        over the points, ``j``, starts a jump where it exceeds ``z`` times its noise (1.18
+        times ``sqrt(2 p se^2)`` a component, ``se^2`` the frames' mean variance with
+        ``SE_FLOOR``, ``p`` the kind's terms) and ``ratio`` times the median ``j`` of the
+        pairs within ``reach``: a jump, not a vibration or a shake (every increment alike).
+        Uniform 0.1 % strain steps every 6 frames over a 0.02 px drift: each step found
+        (docs/validation/window_length.md)."""
+        meas = np.nonzero(self.measured)[0]
+        if meas.size < 6 or self.se is None:
+            return []
+        pts = points.double()
+        if pts.shape[0] > max_points:
+            pts = pts[torch.linspace(0, pts.shape[0] - 1, max_points).round().long()]
+        fr = torch.as_tensor(meas)
+        g = self.displacement(pts, fr).double()  # (F, N, 2)
+        span = torch.as_tensor(self._time_axis())[fr].diff().clamp(min=1e-12)  # (F-1,)
+        inc = g.diff(dim=0) / span.view(-1, 1, 1)  # (F-1, N, 2) per time unit
+        f1 = inc.shape[0]
+        line = torch.tensor([4.0, 1.0, -2.0], dtype=torch.float64)[:, None, None] / 3.0
+        pred = torch.empty_like(inc)
+        for j in range(f1):
+            if 2 <= j <= f1 - 3:
+                pred[j] = inc[[j - 2, j - 1, j + 1, j + 2]].median(0).values
+            elif j < 2:  # the line through pairs j+1 .. j+3 at j
+                pred[j] = (line * inc[j + 1:j + 4]).sum(0)
+            else:
+                pred[j] = (line * inc[[j - 1, j - 2, j - 3]]).sum(0)
+        jump = (inc - pred).norm(dim=-1).median(1).values  # (F-1,)
+        se2 = torch.as_tensor(self._noise2())[fr]
+        noise = 1.1774 * (2 * self.terms * se2.mean()).sqrt() / span  # (F-1,)
+        adjacent = fr.diff() == 1
+        out = []
+        for j in range(f1):
+            near = [i for i in range(max(0, j - reach), min(f1, j + reach + 1)) if i != j]
+            if (bool(adjacent[j]) and float(jump[j]) > z * float(noise[j])
+                    and float(jump[j]) > ratio * float(jump[near].median())):
+                out.append(int(fr[j + 1]))
+        return out
+
     def _at(self, points: Tensor, frames: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         p = torch.as_tensor(self.params, dtype=torch.float64)[frames.long().cpu()]  # (K, P)
         p = p.to(device=points.device)
@@ -334,6 +390,7 @@ class SharedMotion:
             "applied": bool(self.applied),
             "steps": [int(k) for k in self.steps],
             "velocity_m": self.velocity_m,
+            "jumps": [int(k) for k in self.jumps],
             "times": (None if self.times is None
                       else [float(t) for t in np.asarray(self.times, dtype=np.float64)]),
             "seconds": round(self.seconds, 3),
@@ -345,7 +402,7 @@ class SharedMotion:
         """The inverse of :meth:`summary`."""
         known = {"kind", "origin", "params", "scatter", "points", "measured", "seconds",
                  "jitter_px_median", "jitter_px_max", "se", "significance", "applied",
-                 "times", "steps", "velocity_m"}
+                 "times", "steps", "velocity_m", "jumps"}
         se = rec.get("se")
         return cls(kind=rec["kind"], params=np.asarray(rec["params"], dtype=np.float64),
                    origin=np.asarray(rec["origin"], dtype=np.float64),
@@ -357,6 +414,7 @@ class SharedMotion:
                                                         for s in se], dtype=np.float64),
                    applied=bool(rec.get("applied", True)),
                    steps=[int(k) for k in rec.get("steps", [])],
+                   jumps=[int(k) for k in rec.get("jumps", [])],
                    velocity_m=(None if rec.get("velocity_m") is None
                                else int(rec["velocity_m"])),
                    times=(None if rec.get("times") is None

@@ -72,6 +72,9 @@ class BlockContext:
     neighbour_reach: float | None = None  # px, their median distance, made with them
     shared: SharedMotion | None = None  # the specimen's per-frame motion (None: not used)
     segments: torch.Tensor | None = None  # (T_series, 2) load segment of every frame
+    #: (T_series, 2) the segments a reported velocity's slope of the shared motion stays in:
+    #: the load segments split where the motion itself jumps (SharedMotion.jumps); None: none
+    velocity_segments: torch.Tensor | None = None
     #: the measuring pass's solutions (:class:`~torch_stsdic.movie.sample_guess.MeasuredSample`):
     #: the initial guess of a block that has no carry (None: FFT cross-correlation)
     first_guess: MeasuredSample | None = None
@@ -551,7 +554,9 @@ def _carried_start(run: BlockContext, blk: Block, ref: Reference, carry: Carry,
         run.stats["neighbour_rows"] = run.stats.get("neighbour_rows", 0) + filled * b
     pred = carry.predict(run.ts[blk.k].to(run.dtype))
     if run.shared is not None and ref.acc is None:  # the shake between the frames
-        held = carry.shared_slope(run.shared, ref.points, run.ts, run.segments)  # (N, 2)
+        held = carry.shared_slope(run.shared, ref.points, run.ts,  # (N, 2)
+                                  run.segments if run.velocity_segments is None
+                                  else run.velocity_segments)
         step = carry.shared_step(run.shared, ref.points, blk.k, run.ts, run.segments, held)
         pred["u"] = pred["u"] + step[..., 0].to(pred["u"])
         pred["v"] = pred["v"] + step[..., 1].to(pred["v"])

@@ -219,6 +219,9 @@ def _apply_estimates(run: BlockContext, est: RunEstimates, plan: RunPlan, ref: R
         run.first_guess = shared.sample  # the first block starts from the pass's solutions
         if shared.steps:
             run.segments = segment_bounds(shared.steps, len(plan.series)).to(plan.device)
+        if run.shared is not None and shared.jumps:
+            run.velocity_segments = segment_bounds(sorted(set(shared.steps) | set(
+                shared.jumps)), len(plan.series)).to(plan.device)
     if first_guess is not None:
         run.first_guess = first_guess
         run.guess_every_block = bool(guess_every_block)

@@ -210,12 +210,12 @@ def estimate_shared_motion(plan: RunPlan, kind: str = "auto",
             dep = out.departure(pts, plan.config.m)
             out.extra["departure"] = None if not np.isfinite(dep) else round(dep, 3)
             if not out.applied and np.isfinite(dep) and dep > DEPARTURE:
-                out.applied = True  # its velocity at a target: over a few frames about it
-                out.velocity_m = VELOCITY_M
+                # its velocity at a target: over a few frames about it, not across a jump
+                out.applied, out.velocity_m, out.jumps = True, VELOCITY_M, out.find_jumps(pts)
                 out.extra["smoothed_frames"] = out.smooth(pts)  # its noise: in every window
     if reason is not None:
         out.applied, out.velocity_m = False, None
-        out.steps = []
+        out.steps, out.jumps = [], []
         out.extra["refused"] = reason
         warnings.warn(f"shared motion: not carried, the fit is implausible: {reason}; the "
                       "points may include background or a second body (choose them with "
