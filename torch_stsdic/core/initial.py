@@ -17,6 +17,13 @@ from torch_stsdic.core.interpolation import window_view
 from torch_stsdic.core.pyramid import PyramidStack
 from torch_stsdic.kernels.native.rows import own_threads, run_tasks, threads
 
+#: MiB the FFT search's working arrays may take at once, over all threads
+#: (:func:`fft_cross_correlation`; measured: about 6 padded search regions of float32 a
+#: POI-frame pair in flight)
+FFT_MEMORY_MB = 64.0
+#: the padded search regions' bytes a POI-frame pair holds in flight, in element sizes
+_PAIR_REGIONS = 6
+
 __all__ = ["fft_cross_correlation", "coarse_to_fine", "linear_fit_in_time", "seed_cells",
            "carry_from_seed", "retry_weak_peaks", "walk_weak_frames"]
 
@@ -88,12 +95,13 @@ def _fast_size(n: int) -> int:
 def _batch_size(n: int, most: int, device: torch.device) -> int:
     """POIs per FFT batch: at most ``most``, and on the CPU, for the library's threads
     (:func:`~torch_stsdic.kernels.native.rows.run_tasks`), a multiple of that many batches of
-    at least 64 POIs (each POI's numbers do not depend on its batch)."""
+    at least 64 POIs where ``most`` allows (each POI's numbers do not depend on its
+    batch)."""
     k = threads() if device.type == "cpu" else 1
     if k == 1 or n < 128:
         return min(n, most) if n else most
     batches = -(-n // most)
-    batches = min(-(-batches // k) * k, max(1, n // 64))
+    batches = min(-(-batches // k) * k, max(1, n // min(64, most)))
     return max(1, -(-n // batches))
 
 
@@ -124,8 +132,11 @@ def fft_cross_correlation(
     ref_index: torch.Tensor | None = None,
     prior: torch.Tensor | None = None,
     batch: int = 4096,
+    memory_mb: float = FFT_MEMORY_MB,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Displacement of each POI from ``ref`` (H, W) to each of ``images`` (T, H, W).
+    """Displacement of each POI from ``ref`` (H, W) to each of ``images`` (T, H, W), by
+    batches of at most ``batch`` POI-frame pairs whose working arrays (all threads'
+    batches at once) stay within ``memory_mb`` MiB.
 
     Args:
         points: (N, 2) POI positions (x, y) in px (rounded to the nearest pixel here).
@@ -166,7 +177,11 @@ def fft_cross_correlation(
     disp = torch.zeros(n, t_count, 2, dtype=dtype, device=images.device)
     score = torch.full((n, t_count), -1.0, dtype=dtype, device=images.device)
     shifts = torch.arange(-rad, rad + 1, device=images.device)
-    per_batch = _batch_size(n, max(1, batch // max(1, t_count)), dev)
+    # the pairs in flight within FFT_MEMORY_MB (all threads' batches at once)
+    pair_bytes = _PAIR_REGIONS * fast * fast * torch.finfo(dtype).bits // 8
+    in_flight = threads() if dev.type == "cpu" else 1
+    pairs = min(batch, max(1, int(memory_mb * 2**20 / (pair_bytes * in_flight))))
+    per_batch = _batch_size(n, max(1, pairs // max(1, t_count)), dev)
 
     def one(sl: slice) -> None:
         bx, by = cx[sl], cy[sl]
