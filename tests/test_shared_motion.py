@@ -386,7 +386,9 @@ def test_velocities_stay_on_their_side_of_a_uniform_load_step(monkeypatch):
     monkeypatch.setattr(SharedMotion, "find_jumps", lambda self, *a, **k: [])
     across = sts.track(movie, config=sts.DICConfig(m=4), step=10, progress=False)
     assert across.shared_motion.jumps == []
-    torch.testing.assert_close(across.u, res.u)  # the displacements are the same
+    # the displacements are the same, within the solver's tolerance (the carry starts from the
+    # velocities)
+    torch.testing.assert_close(across.u, res.u, atol=5e-4, rtol=0)
     rms_x, honesty_x = velocity_error(across)
     assert rms < 0.5 * rms_x and honesty < 1.5 and honesty_x > 2.5, (rms, rms_x, honesty,
                                                                      honesty_x)
@@ -435,7 +437,9 @@ def test_auto_carries_a_smooth_motion_that_is_not_affine_in_time(monkeypatch):
     monkeypatch.setattr(shared_pass, "VELOCITY_M", None)
     window = sts.track(movie, config=sts.DICConfig(m=4), step=10, progress=False)
     assert window.shared_motion.velocity_m is None
-    torch.testing.assert_close(window.u, res.u)  # the displacements are the same
+    # the displacements are the same, within the solver's tolerance (the carry starts from the
+    # velocities)
+    torch.testing.assert_close(window.u, res.u, atol=5e-4, rtol=0)
     rms_w, honesty_w = velocity_error(window)
     assert rms < 0.6 * rms_w and 0.5 < honesty < 1.25 < honesty_w
 

@@ -44,6 +44,7 @@ from torch_stsdic.movie.rescue import BlockRescue
 from torch_stsdic.movie.sample_guess import MeasuredSample
 from torch_stsdic.movie.shared_velocity import report_velocity
 from torch_stsdic.movie.template_noise import TemplateShares
+from torch_stsdic.movie.velocity_point import refer_velocities
 
 #: px beyond the image border a carried prediction must put a subset before the row is
 #: OUTSIDE without a solve
@@ -670,6 +671,7 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
     out["iterations"] = blk.iters.reshape(b, n)
     out["m"] = blk.m_used.reshape(b, n)
     vel_var = report_velocity(blk, out)  # the shared motion's part, in the reported terms
+    refer_velocities(blk, out)  # the velocity at the POI, not the subset's centroid
     fac = None if run.template_shares is None else run.template_shares.variance_factors(
         blk.k, out["m"], run.ts, float(run.noise_ratio or 1.0), run.segments, m_max=run.m)
     for j, nm in enumerate(run.names):

@@ -36,6 +36,9 @@ class Reference:
     points: torch.Tensor  # (N, 2)
     acc: dict[str, torch.Tensor] | None = None  # u, v (+ ux, uy, vx, vy) (N,)
     pyramid: ImagePyramid | None = None  # its Gaussian pyramid, built on first use
+    #: (N, 2, 4) where a window's velocity refers to at each POI (movie/velocity_point.py),
+    #: worked out on first use
+    velocity_maps: torch.Tensor | None = None
 
     def ensure(self, cache: FrameCache) -> None:
         if self.raw is None:
