@@ -515,6 +515,10 @@ def test_run_summary_and_figures_say_why_velocities_are_missing():
         "smoothed in time at 25 frames)")
     assert shared_motion_lines({**rec, "velocity_m": 2, "smoothed_frames": 0})[0].startswith(
         "shared motion: affine, carried in every window (not affine in time over the windows)")
+    jumpy = {**rec, "velocity_m": 2, "smoothed_frames": 3, "jumps": [6, 12]}
+    assert shared_motion_lines(jumpy)[0].startswith(
+        "shared motion: affine, carried in every window (not affine in time over the windows; "
+        "smoothed in time at 3 frames; jumps before frames 6, 12: velocities not across them)")
     rec.update(applied=False, steps=[])
     assert shared_motion_lines(rec) == [
         "shared motion: affine, measured, not carried (no significant shake, affine in time "

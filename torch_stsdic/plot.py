@@ -540,6 +540,7 @@ def plot_shared_motion(
     applied: bool = True,
     velocity_m: int | None = None,
     smoothed_frames: int | None = None,
+    jumps: Any = None,
     title: str | None = None,
     time_label: str = "time (frame)",
     length_unit: str = "px",
@@ -552,8 +553,8 @@ def plot_shared_motion(
     rotation and normal strains (the affine gradient), in 1e-3.
 
     ``times`` (T,); ``params`` (T, 6) or (T, 12): columns ``shared_motion.PARAM_NAMES``;
-    ``applied``, ``velocity_m``, ``smoothed_frames``: how the run carried it (the title's
-    note: :func:`~torch_stsdic.core.shared_motion.carried_note`)."""
+    ``applied``, ``velocity_m``, ``smoothed_frames``, ``jumps`` (marked): how the run carried
+    it (the title's note: :func:`~torch_stsdic.core.shared_motion.carried_note`)."""
     t = _np(times).astype(np.float64)
     p = _np(params).astype(np.float64)
     if p.ndim != 2 or p.shape[0] != t.shape[0] or p.shape[1] not in (6, 12):
@@ -573,7 +574,9 @@ def plot_shared_motion(
     ax2.set_xlabel(time_label)
     ax2.legend(fontsize=8)
     ax2.grid(True, alpha=0.3)
-    note = carried_note(applied, velocity_m, smoothed_frames)
+    for ax, k in ((ax, k) for k in jumps or () for ax in (ax1, ax2)):  # where it jumps
+        ax.axvline(t[int(k)], color="0.5", ls="--", lw=0.8)
+    note = carried_note(applied, velocity_m, smoothed_frames, jumps)
     ax1.set_title(title + f"\n{note}" if title else note, fontsize=10)
     return save_figure(fig, path, dpi=dpi)
 

@@ -399,6 +399,7 @@ def _plot_shared_motion(args: argparse.Namespace, res: Any, out: Path) -> list[P
     path = out / "shared_motion.png"
     plot_shared_motion(times, params, applied=bool(attrs.get("applied", True)),
                        velocity_m=value("velocity_m"), smoothed_frames=value("smoothed_frames"),
+                       jumps=value("jumps"),
                        title=f"{Path(args.result).name}: shared motion of the specimen",
                        time_label=units.time_label, length_unit=units.unit,
                        scale=units.scale or 1.0, path=path, dpi=args.dpi)

@@ -578,15 +578,15 @@ def shared_motion_lines(rec: dict[str, Any] | None) -> list[str]:
         return []
     shake = (f"shake median {rec['jitter_px_median']:.3f} px, max {rec['jitter_px_max']:.3f} px"
              if rec.get("jitter_px_median") is not None else "shake not measured")
-    how = carried_note(bool(rec.get("applied")), rec.get("velocity_m"), rec.get("smoothed_frames"))
+    how = carried_note(bool(rec.get("applied")), *map(rec.get, ("velocity_m", "smoothed_frames",
+                                                               "jumps")))
     if rec.get("refused"):
         how = (f"REFUSED, not carried: {rec['refused']}; the points may include background "
                "or a second body (choose them with --roi/--mask)")
     lines = [f"shared motion: {rec['kind']}, {how} ({shake})"]
     steps = rec.get("steps") or []
     if steps:
-        which = (f"frame {steps[0]}" if len(steps) == 1
-                 else f"frames {', '.join(str(s) for s in steps)}")
+        which = f"frame{'s' if len(steps) > 1 else ''} {', '.join(map(str, steps))}"
         lines.append(f"load steps before {which}: windows stay inside each load state")
     return lines
 

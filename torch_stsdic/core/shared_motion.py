@@ -423,17 +423,23 @@ class SharedMotion:
                    extra={k: v for k, v in rec.items() if k not in known})
 
 
-def carried_note(applied: bool, velocity_m: int | None = None, smoothed: int | None = None
-                 ) -> str:
+def carried_note(applied: bool, velocity_m: int | None = None, smoothed: int | None = None,
+                 jumps: Sequence[int] | None = None) -> str:
     """How a run used its shared motion, for its summary and figure: ``applied``,
-    :attr:`SharedMotion.velocity_m` (None where the windows carry the motion as measured)
-    and the frames :meth:`SharedMotion.smooth` smoothed (``extra["smoothed_frames"]``)."""
+    :attr:`SharedMotion.velocity_m` (None where the windows carry the motion as measured),
+    the frames :meth:`SharedMotion.smooth` smoothed (``extra["smoothed_frames"]``) and the
+    frames where the motion jumps (:attr:`SharedMotion.jumps`)."""
     if not applied:
         return "measured, not carried (no significant shake, affine in time over the windows)"
     if velocity_m is None:
         return "carried in every window"
+    where = ""
+    if jumps:
+        where = (f"; jumps before frame{'s' if len(jumps) > 1 else ''} "
+                 f"{', '.join(str(int(k)) for k in jumps)}: velocities not across them")
     return ("carried in every window (not affine in time over the windows"
-            + (f"; smoothed in time at {int(smoothed)} frames)" if smoothed else ")"))
+            + (f"; smoothed in time at {int(smoothed)} frames" if smoothed else "") + where
+            + ")")
 
 
 def _window_sums(g: Tensor, dt: Tensor) -> Tensor:
