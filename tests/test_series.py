@@ -247,6 +247,44 @@ def test_classical_reference_row_is_the_identity_without_a_solve(movie):
     assert float((res.u[1:, :2] - truth["u"][1:, :2]).abs().max()) < 0.01
 
 
+@pytest.mark.parametrize("m", [0, 2])
+def test_points_that_leave_the_view_stay_outside_without_fft(m, monkeypatch):
+    """A specimen that moves out of the view (3 px a frame: 90 px gone by the end, more than
+    the neighbour fill's 8 rings of 4 px): a point whose rows left the view and that has
+    no neighbour in view to carry it stays OUTSIDE in later blocks; it is not searched by
+    FFT cross-correlation again in every block (where it found wrong peaks inside the
+    image: POOR_FIT rows and most of the run's time; in this movie of 150 POIs the FFT
+    searched 300 / 740 rows at m = 0 / 2 before, 150 / 300 now). Counted with the FFT
+    rescue's rows."""
+    import torch_stsdic.movie.rescue as rescue
+
+    motion = Translation(ut=3.0)
+    mv = synthetic_movie((61, 161), 30, motion, noise_sigma=2.0, margin=100.0)
+    frames = torch.cat([mv.ref[None], mv.frames])
+    fft_rows = []
+    solve_own = rescue.BlockRescue._solve_own
+
+    def spy(self, rows, init, mm, near=None):
+        if init is None:
+            fft_rows.append(int(rows.numel()))
+        return solve_own(self, rows, init, mm, near)
+
+    monkeypatch.setattr(rescue.BlockRescue, "_solve_own", spy)
+    res = track(frames, config=CFG.replace(m=m), step=4, progress=False,
+                series_reference=False, shared_motion=None, window_length="fixed")
+    truth = ground_truth(motion, res.points, res.times)
+    x_now = res.points[:, 0].double() + truth["u"]  # (F, N) where each point is
+    gone = x_now > 161  # the point itself beyond the image (its subset off-centre before)
+    assert bool(gone[-1].sum() > 0.3 * gone.shape[1])
+    st = res.status
+    assert not bool((st == int(Status.POOR_FIT)).any())
+    assert bool((st[gone] == int(Status.OUTSIDE)).all())
+    trusted = st <= 1
+    assert float((res.u - truth["u"])[trusted].abs().max()) < 0.1  # no wrong peak trusted
+    # the first block's searches only (every point at most twice), not one a block
+    assert sum(fft_rows) <= 2 * st.shape[1], fft_rows
+
+
 def test_lost_points_after_a_jump_are_recovered_by_fft():
     # at t = 4 everything jumps by (6, -5) px: the carried guess is far off; the points that
     # do not converge from it start again from their neighbours that did, or from the FFT

@@ -553,6 +553,10 @@ def _carried_start(run: BlockContext, blk: Block, ref: Reference, carry: Carry,
     if not bool(carry.valid.all()):
         carry, filled = carry.from_neighbours(run.grid_neighbours(ref), pts0)
         run.stats["neighbour_rows"] = run.stats.get("neighbour_rows", 0) + filled * b
+        if carry.left is not None:  # left the view, no neighbour in view: stays out
+            out = (carry.left & ~carry.valid).repeat(b)
+            blk.status.masked_fill_(out, int(Status.OUTSIDE))
+            blk.gone |= out
     pred = carry.predict(run.ts[blk.k].to(run.dtype))
     if run.shared is not None and ref.acc is None:  # the shake between the frames
         held = carry.shared_slope(run.shared, ref.points, run.ts,  # (N, 2)

@@ -49,6 +49,9 @@ class Carry:
     #: name -> (N,) per time unit: the rate of each displacement gradient (ux, uy, vx, vy)
     #: over the last rows (0 where unknown); None: none carried
     rates: dict[str, torch.Tensor] | None = None
+    #: (N,) bool: the point's last rows left the view (OUTSIDE, and no trusted row since);
+    #: None: none did
+    left: torch.Tensor | None = None
 
     def predict(self, tk: torch.Tensor) -> dict[str, torch.Tensor]:
         """Predicted total parameters (B, N) at times ``tk`` (B,): u, v moved on by the
@@ -261,9 +264,16 @@ def make_carry(rows: dict[str, np.ndarray], times: np.ndarray, names, prev: Carr
                                    m_row.clamp(min=1), -1)
         else:
             window_m = torch.full_like(m_row, -1)
+    # a point that left the view stays out until a trusted row (or its neighbours') brings
+    # it back: without a carry of its own it was searched by FFT in every block (a specimen
+    # moving out of view: wrong peaks, POOR_FIT, most of the run's time)
+    left = torch.from_numpy(st == int(Status.OUTSIDE)).to(device)
+    if prev is not None and prev.left is not None:
+        left |= prev.left & ~ok & ~torch.from_numpy(
+            (rows["status"] <= USABLE).any(0)).to(device)
     return Carry(t=t_last, vals=vals, vel_u=vel_u, vel_v=vel_v, valid=ok, vel_known=known,
                  fit_zncc=fit, frame=frame, prev_frame=prev_frame, window_m=window_m,
-                 rates=rates)
+                 rates=rates, left=left if bool(left.any()) else None)
 
 
 def gradient_rates(rows: dict[str, np.ndarray], times: np.ndarray, names, prev: Carry | None,
