@@ -314,14 +314,7 @@ class SharedMotion:
         jump = (inc - pred).norm(dim=-1).median(1).values  # (F-1,)
         se2 = torch.as_tensor(self._noise2())[fr]
         noise = 1.1774 * (2 * self.terms * se2.mean()).sqrt() / span  # (F-1,)
-        adjacent = fr.diff() == 1
-        out = []
-        for j in range(f1):
-            near = [i for i in range(max(0, j - reach), min(f1, j + reach + 1)) if i != j]
-            if (bool(adjacent[j]) and float(jump[j]) > z * float(noise[j])
-                    and float(jump[j]) > ratio * float(jump[near].median())):
-                out.append(int(fr[j + 1]))
-        return out
+        return _above_neighbours(jump, noise, fr, z, ratio, reach)
 
     def _at(self, points: Tensor, frames: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         p = torch.as_tensor(self.params, dtype=torch.float64)[frames.long().cpu()]  # (K, P)
@@ -543,22 +536,29 @@ def steps_from_increments(s: Tensor, sigma: Tensor, frames: Sequence[int],
                           ) -> list[int]:
     """The load steps of :func:`detect_steps` from the median increments ``s`` (F - 1,)
     (:func:`step_increments`), the noise ``sigma`` (F,) and the series frames (F,)."""
-    f = len(frames)
-    if f < 3:
+    if len(frames) < 3:
         return []
-    fr = torch.as_tensor(list(frames))
-    adjacent = (fr[1:] - fr[:-1]) == 1
     noise = 1.1774 * torch.maximum(sigma[1:], sigma[:-1])
+    return _above_neighbours(s, noise, torch.as_tensor(list(frames)), z, ratio, reach)
+
+
+def _above_neighbours(s: Tensor, noise: Tensor, frames: Tensor, z: float, ratio: float,
+                      reach: int) -> list[int]:
+    """The frames ``frames[j + 1]`` (``frames`` (F,) series frames) whose pair ``j`` of
+    adjacent frames has ``s[j]`` ((F - 1,)) above both ``z`` times its ``noise[j]`` and
+    ``ratio`` times the median ``s`` of the pairs within ``reach``: a jump among still
+    pairs (:func:`steps_from_increments`, :meth:`SharedMotion.find_jumps`)."""
+    adjacent = (frames[1:] - frames[:-1]) == 1
     out = []
-    for j in range(f - 1):
+    for j in range(s.shape[0]):
         if not bool(adjacent[j]) or not bool(torch.isfinite(s[j])):
             continue
-        near = [i for i in range(max(0, j - reach), min(f - 1, j + reach + 1)) if i != j]
+        near = [i for i in range(max(0, j - reach), min(s.shape[0], j + reach + 1)) if i != j]
         base = torch.nanmedian(s[near]) if near else torch.tensor(float("nan"))
         if not bool(torch.isfinite(base)):
             continue
         if float(s[j]) > z * float(noise[j]) and float(s[j]) > ratio * float(base):
-            out.append(int(fr[j + 1]))
+            out.append(int(frames[j + 1]))
     return out
 
 
