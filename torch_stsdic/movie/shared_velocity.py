@@ -56,21 +56,21 @@ def report_velocity(blk: Block, out: dict[str, torch.Tensor]) -> torch.Tensor | 
     var = torch.zeros(b * n, 2, dtype=torch.float64, device=vel.device)
     for m in half_widths(blk.m_used, blk.m_used > 0, run.m):
         mv = min(int(m), int(vm))
-        if vseg is None:  # the slope over 2 vm + 1 frames about the target
-            if m <= vm:
-                continue
-            win, short = blk.windows(mv), blk.shared_slope(mv)  # (B, T), (B*N, 2)
+        if vseg is None and m <= vm:
+            continue
+        # (B, T) the slope's frames: 2 vm + 1 about the target, within its side of any jump
+        win = (blk.windows(mv) if vseg is None
+               else window_frames(blk.k, mv, run.n_series, vseg.to(blk.k.device)))
+        dt = (run.ts[win] - run.ts[blk.k].unsqueeze(1)).double()
+        if vseg is None:
+            short = blk.shared_slope(mv)  # (B*N, 2)
             differs = torch.ones(b, dtype=torch.bool, device=vel.device)
-        else:  # ... within the target's side of any jump
-            win = window_frames(blk.k, mv, run.n_series, vseg.to(blk.k.device))
-            t_count = win.shape[1]
+        else:
             g = shared.displacement(blk.ref.points, win.reshape(-1)).view(
-                b, t_count, n, 2).transpose(1, 2)  # (B, N, T, 2)
-            dt = (run.ts[win] - run.ts[blk.k].unsqueeze(1)).to(g.dtype).unsqueeze(1)
-            short = window_slope(g, dt).reshape(-1, 2)
+                b, win.shape[1], n, 2).transpose(1, 2)  # (B, N, T, 2)
+            short = window_slope(g, dt.to(g.dtype).unsqueeze(1)).reshape(-1, 2)
             differs = (win != blk.windows(int(m))).any(1) if m <= vm else torch.ones(
                 b, dtype=torch.bool, device=vel.device)
-        dt = (run.ts[win] - run.ts[blk.k].unsqueeze(1)).double()
         dc = dt - dt.mean(1, keepdim=True)
         noise = (0.5 * shared.terms * se2.to(dt.device)[win].mean(1)
                  / dc.square().sum(1).clamp(min=1e-30))  # (B,)
