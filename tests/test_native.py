@@ -137,6 +137,33 @@ def test_ic_rhs_matches_torch(has_time, znssd):
     assert torch.equal(out4, out3[rows])
 
 
+def test_ic_rhs_float32_on_a_bright_faint_speckle():
+    """The float kernel sums a frame's grey levels about one of its samples: on a bright,
+    faint speckle (mean 230 grey levels, contrast 2) its ZNSSD right-hand side keeps the
+    double computation's digits, as summing raw values would not (g^2 ~ 5e4 against a
+    variance ~ 4)."""
+    g = torch.Generator().manual_seed(3)
+    raw = 230.0 + 2.0 * torch.randn(3, 48, 64, generator=g, dtype=torch.float64)
+    img, _, c = _rhs_case(True)
+    c = {nm: v.float() if torch.is_tensor(v) and v.is_floating_point() else v
+         for nm, v in c.items()}
+    want = None
+    for dtype in (torch.float64, torch.float32):
+        im = BSplineImage(raw.to(dtype), 3)
+        cd = {nm: v.to(dtype) if torch.is_tensor(v) and v.is_floating_point() else v
+              for nm, v in c.items()}
+        b, zn, _ = native.ic_rhs(im.kernel_args(), 3, cd["p"], cd["px"], cd["py"], cd["dx"],
+                                 cd["dy"], cd["basis"], cd["dt"], c["fidx"], cd["ft"],
+                                 cd["fnorm"], cd["gx"], cd["gy"], cd["w"], 64, 48, c["k"],
+                                 True, True)
+        if want is None:
+            want = (b, zn.double())
+            continue
+        scale = want[0].abs().amax(1, keepdim=True)
+        assert ((b - want[0]).abs() / scale).max() < 2e-4
+        assert (zn.double() - want[1]).abs().max() < 1e-4
+
+
 def test_wrappers_refuse_sizes_the_kernels_would_overrun():
     """Sizes are the wrappers' to check (a declaration has kinds and dtypes, not sizes): what
     would make a kernel read or write past an array raises ValueError instead."""

@@ -469,6 +469,81 @@ struct IcScratch {
         bb(2 * P.k) {}
 };
 
+// One frame's part of a Ks = 3 row (ic_rhs_row, after sampling g into S.gv) in two passes
+// over the subset instead of eleven: (1) the weighted sums of g, g^2 and f g about a shift c
+// (a sample of the subset: the sums stay well conditioned whatever the grey level), giving
+// g's weighted mean gm, |g - gm|^2 and f.(g - gm); (2) e = w (f - a (g - gm)) and every dot
+// product of J^T e at once. Same quantities as the general path, summed in another order.
+template <typename T>
+inline void frame_sums3(const IcProblem<T>& P, IcScratch<T>& S, const T* fti, const T* gxi,
+                        const T* gyi, T swf, double fn, double dti, double* bb, double* zsum,
+                        double* bft) {
+  const int64_t ns = P.ns, k = P.k;
+  const T* w = P.w;
+  const T* g = S.gv.data();
+  T gm = 0, sgg = 0, sfg = 0;
+  if (P.znssd) {
+    const T c = g[ns / 2];
+    T s1 = 0, s2 = 0, s3 = 0;
+#pragma omp simd reduction(+ : s1, s2, s3)
+    for (int64_t s = 0; s < ns; ++s) {
+      const T d = g[s] - c, wd = w[s] * d;
+      s1 += wd;
+      s2 += wd * d;
+      s3 += wd * fti[s];
+    }
+    const T md = s1 * P.inv_wsum;  // gm - c
+    gm = c + md;
+    sgg = s2 - md * s1;            // sum w (g - gm)^2
+    sfg = s3 - md * swf;           // sum w f (g - gm), f's own weighted sum swf
+  } else {
+#pragma omp simd reduction(+ : sgg, sfg)
+    for (int64_t s = 0; s < ns; ++s) {
+      sgg += w[s] * g[s] * g[s];
+      sfg += w[s] * fti[s] * g[s];
+    }
+  }
+  const double gn2 = std::max(double(sgg), 1e-30);
+  const double zt = double(sfg) / (fn * std::sqrt(gn2));
+  *zsum += zt;
+  const T a = P.znssd ? T(fn / std::sqrt(gn2)) : T(1);
+  const T ag = a * gm;
+  const T* b0 = P.bt.data();
+  const T* b1 = b0 + ns;
+  const T* b2 = b1 + ns;
+  T x0 = 0, x1 = 0, x2 = 0, y0 = 0, y1 = 0, y2 = 0, sx = 0, sy = 0;
+#pragma omp simd reduction(+ : x0, x1, x2, y0, y1, y2, sx, sy)
+  for (int64_t s = 0; s < ns; ++s) {
+    const T e = w[s] * (fti[s] - a * g[s] + ag);
+    const T ex = gxi[s] * e, ey = gyi[s] * e;
+    x0 += ex * b0[s];
+    x1 += ex * b1[s];
+    x2 += ex * b2[s];
+    y0 += ey * b0[s];
+    y1 += ey * b1[s];
+    y2 += ey * b2[s];
+    sx += ex;
+    sy += ey;
+  }
+  const double bx[3] = {double(x0), double(x1), double(x2)};
+  const double by[3] = {double(y0), double(y1), double(y2)};
+  for (int q = 0; q < 3; ++q) {
+    bb[q] += bx[q];
+    bb[k + q] += by[q];
+  }
+  if (bft) {  // frame t's own (spatial) right-hand side, then its ZNCC
+    for (int q = 0; q < 3; ++q) {
+      bft[q] = bx[q];
+      bft[3 + q] = by[q];
+    }
+    bft[6] = zt;
+  }
+  if (P.has_time) {
+    bb[k - 1] += dti * double(sx);
+    bb[2 * k - 1] += dti * double(sy);
+  }
+}
+
 // Data row i at parameters pi (2k): b into S.bb (2k, double), the mean ZNCC into *zn, whether
 // a warped subset leaves the image into *out; bf (T, 2 Ks + 1) where not null: each frame's
 // own spatial b and its ZNCC.
@@ -510,6 +585,7 @@ inline void ic_rhs_row(const IcProblem<T>& P, IcScratch<T>& S, int64_t i, const 
   bool out_i = false;
   double zsum = 0;
   const double fn = double(P.fnorm[i]);
+  const T swf = P.ks == 3 && P.znssd ? dot(w, fti, ns) : T(0);  // sum w f
   for (int64_t t = 0; t < nt; ++t) {
     const double dti = double(P.dt[i * nt + t]);
     double ox = double(P.px[i]) + ut * dti, oy = double(P.py[i]) + vt * dti;
@@ -521,6 +597,11 @@ inline void ic_rhs_row(const IcProblem<T>& P, IcScratch<T>& S, int64_t i, const 
             oy + ymx > P.h - 1;
     sample_points<T, ORDER>(P.flat + P.frame_off[i * nt + t], P.g, T(ox), T(oy), dxu, dyv, ns,
                             S.idx.data(), S.fxs.data(), S.fys.data(), S.gv.data());
+    if (P.ks == 3) {  // the affine shapes: the frame's sums in two fused passes
+      frame_sums3<T>(P, S, fti, gxi, gyi, swf, fn, dti, bb, &zsum,
+                     bf ? bf + t * (2 * ks + 1) : nullptr);
+      continue;
+    }
     T gm = 0;
     if (P.znssd) {
       gm = dot(w, S.gv.data(), ns) * P.inv_wsum;
