@@ -329,6 +329,102 @@ inline void sample_points(const T* plane, const Geo& g, T ox, T oy, const T* dxu
   }
 }
 
+#if defined(__AVX2__) && defined(__FMA__)
+// Values of one float frame at the points (ox + dxu[s], oy + dyv[s]), s < ns (cubic
+// B-spline; the IC-GN residual's path): pass 1, eight points at a time, the tap origins, the
+// x fractions and the four y weights of every point (wy: (4, ns), one row per tap row);
+// pass 2, per point, its four tap rows (128-bit loads) weighted by its y weights (broadcast
+// loads), then by its x weights, eight points reduced together. No lane shuffles but the
+// final reduction: the loads and the FMAs set the pace.
+inline void cubic_values_f32(const float* plane, const Geo& g, float ox, float oy,
+                             const float* dxu, const float* dyv, int64_t ns, int32_t* idx,
+                             float* fxs, float* wy, float* out) {
+  const float xlo = float(g.x_lo), xhi = float(g.x_hi), ylo = float(g.y_lo), yhi = float(g.y_hi);
+  const int32_t wp = int32_t(g.wp), sh = int32_t(g.shift);
+  const int64_t wpl = g.wp;
+  float* wy0 = wy;
+  float* wy1 = wy + ns;
+  float* wy2 = wy + 2 * ns;
+  float* wy3 = wy + 3 * ns;
+  int64_t s = 0;
+  {
+    const __m256 vox = _mm256_set1_ps(ox), voy = _mm256_set1_ps(oy);
+    const __m256 vxlo = _mm256_set1_ps(xlo), vxhi = _mm256_set1_ps(xhi);
+    const __m256 vylo = _mm256_set1_ps(ylo), vyhi = _mm256_set1_ps(yhi);
+    const __m256i vwp = _mm256_set1_epi32(wp), vsh = _mm256_set1_epi32(sh);
+    const __m256 sixth = _mm256_set1_ps(1.f / 6), half = _mm256_set1_ps(0.5f);
+    const __m256 one = _mm256_set1_ps(1.f), twoth = _mm256_set1_ps(2.f / 3);
+    for (; s + 8 <= ns; s += 8) {
+      __m256 x = _mm256_add_ps(vox, _mm256_loadu_ps(dxu + s));
+      __m256 y = _mm256_add_ps(voy, _mm256_loadu_ps(dyv + s));
+      x = _mm256_min_ps(_mm256_max_ps(x, vxlo), vxhi);
+      y = _mm256_min_ps(_mm256_max_ps(y, vylo), vyhi);
+      const __m256 x0 = _mm256_floor_ps(x), y0 = _mm256_floor_ps(y);
+      _mm256_storeu_ps(fxs + s, _mm256_sub_ps(x, x0));
+      const __m256 f = _mm256_sub_ps(y, y0);
+      const __m256i iy = _mm256_add_epi32(_mm256_cvttps_epi32(y0), vsh);
+      const __m256i ix = _mm256_add_epi32(_mm256_cvttps_epi32(x0), vsh);
+      _mm256_storeu_si256(reinterpret_cast<__m256i*>(idx + s),
+                          _mm256_add_epi32(_mm256_mullo_epi32(iy, vwp), ix));
+      // the cubic B-spline's weights (1-f)^3/6, 2/3 - f^2 + f^3/2, ..., f^3/6
+      const __m256 f2 = _mm256_mul_ps(f, f), f3 = _mm256_mul_ps(f2, f);
+      const __m256 g1 = _mm256_sub_ps(one, f);
+      const __m256 w0 = _mm256_mul_ps(sixth, _mm256_mul_ps(_mm256_mul_ps(g1, g1), g1));
+      const __m256 w3 = _mm256_mul_ps(sixth, f3);
+      const __m256 w1 = _mm256_fmadd_ps(half, f3, _mm256_sub_ps(twoth, f2));
+      _mm256_storeu_ps(wy0 + s, w0);
+      _mm256_storeu_ps(wy1 + s, w1);
+      _mm256_storeu_ps(wy2 + s, _mm256_add_ps(_mm256_fmadd_ps(half, _mm256_sub_ps(f2, f3),
+                                                              _mm256_mul_ps(half, f)), sixth));
+      _mm256_storeu_ps(wy3 + s, w3);
+    }
+  }
+  for (int64_t r = s; r < ns; ++r) {
+    float x = ox + dxu[r], y = oy + dyv[r];
+    x = x < xlo ? xlo : (x > xhi ? xhi : x);
+    y = y < ylo ? ylo : (y > yhi ? yhi : y);
+    const float x0 = std::floor(x), y0 = std::floor(y);
+    fxs[r] = x - x0;
+    idx[r] = (int32_t(y0) + sh) * wp + int32_t(x0) + sh;
+    float w[4], dw[4];
+    weights<float, 3>(y - y0, w, dw, false);
+    wy0[r] = w[0];
+    wy1[r] = w[1];
+    wy2[r] = w[2];
+    wy3[r] = w[3];
+  }
+  const __m128 c3 = _mm_setr_ps(-1.f / 6, 0.5f, -0.5f, 1.f / 6);
+  const __m128 c2 = _mm_setr_ps(0.5f, -1.f, 0.5f, 0.f);
+  const __m128 c1 = _mm_setr_ps(-0.5f, 0.f, 0.5f, 0.f);
+  const __m128 c0 = _mm_setr_ps(1.f / 6, 2.f / 3, 1.f / 6, 0.f);
+  auto point = [&](int64_t t) {
+    const __m128 f = _mm_broadcast_ss(fxs + t);
+    const __m128 wx = _mm_fmadd_ps(_mm_fmadd_ps(_mm_fmadd_ps(c3, f, c2), f, c1), f, c0);
+    const float* r = plane + idx[t];
+    __m128 a = _mm_mul_ps(_mm_loadu_ps(r), _mm_broadcast_ss(wy0 + t));
+    a = _mm_fmadd_ps(_mm_loadu_ps(r + wpl), _mm_broadcast_ss(wy1 + t), a);
+    a = _mm_fmadd_ps(_mm_loadu_ps(r + 2 * wpl), _mm_broadcast_ss(wy2 + t), a);
+    a = _mm_fmadd_ps(_mm_loadu_ps(r + 3 * wpl), _mm_broadcast_ss(wy3 + t), a);
+    return _mm_mul_ps(a, wx);
+  };
+  s = 0;
+  for (; s + 8 <= ns; s += 8) {
+    __m128 acc[8];
+    for (int q = 0; q < 8; ++q) acc[q] = point(s + q);
+    const __m128 lo = _mm_hadd_ps(_mm_hadd_ps(acc[0], acc[1]), _mm_hadd_ps(acc[2], acc[3]));
+    const __m128 hi = _mm_hadd_ps(_mm_hadd_ps(acc[4], acc[5]), _mm_hadd_ps(acc[6], acc[7]));
+    _mm_storeu_ps(out + s, lo);
+    _mm_storeu_ps(out + s + 4, hi);
+  }
+  for (; s < ns; ++s) {
+    __m128 q = point(s);
+    q = _mm_add_ps(q, _mm_movehl_ps(q, q));
+    q = _mm_add_ss(q, _mm_shuffle_ps(q, q, 0x55));
+    out[s] = _mm_cvtss_f32(q);
+  }
+}
+#endif
+
 // Generic sampling of points x[i], y[i], i in [i0, i1), in the plane at off[i / period]
 // (period 0: off[0] for all; off null: plane 0), in blocks of constant plane.
 template <typename T, int ORDER>
@@ -461,12 +557,12 @@ struct IcProblem {
 
 template <typename T>
 struct IcScratch {
-  std::vector<T> dxu, dyv, gv, ex, ey, fxs, fys;
+  std::vector<T> dxu, dyv, gv, ex, ey, fxs, fys, wy;
   std::vector<int32_t> idx;
   std::vector<double> bb;
   explicit IcScratch(const IcProblem<T>& P)
-      : dxu(P.ns), dyv(P.ns), gv(P.ns), ex(P.ns), ey(P.ns), fxs(P.ns), fys(P.ns), idx(P.ns),
-        bb(2 * P.k) {}
+      : dxu(P.ns), dyv(P.ns), gv(P.ns), ex(P.ns), ey(P.ns), fxs(P.ns), fys(P.ns),
+        wy(4 * P.ns), idx(P.ns), bb(2 * P.k) {}
 };
 
 // One frame's part of a Ks = 3 row (ic_rhs_row, after sampling g into S.gv) in two passes
@@ -558,21 +654,35 @@ inline void ic_rhs_row(const IcProblem<T>& P, IcScratch<T>& S, int64_t i, const 
   const T* gyi = P.fgy + r * ns;
   T* dxu = S.dxu.data();
   T* dyv = S.dyv.data();
-  std::fill(S.dxu.begin(), S.dxu.end(), T(0));
-  std::fill(S.dyv.begin(), S.dyv.end(), T(0));
-  for (int64_t q = 0; q < ks; ++q) {
-    const T pu = pi[q], pv = pi[k + q];
-    const T* bq = P.bt.data() + q * ns;
+  if (ks == 3) {  // the affine shapes: the warped offsets in one pass
+    const T u0 = pi[0], u1 = pi[1], u2 = pi[2], v0 = pi[k], v1 = pi[k + 1], v2 = pi[k + 2];
+    const T *b0 = P.bt.data(), *b1 = b0 + ns, *b2 = b1 + ns;
 #pragma omp simd
     for (int64_t s = 0; s < ns; ++s) {
-      dxu[s] += pu * bq[s];
-      dyv[s] += pv * bq[s];
+      dxu[s] = P.dx[s] + (u0 * b0[s] + u1 * b1[s] + u2 * b2[s]);
+      dyv[s] = P.dy[s] + (v0 * b0[s] + v1 * b1[s] + v2 * b2[s]);
+    }
+  } else {
+    std::fill(S.dxu.begin(), S.dxu.end(), T(0));
+    std::fill(S.dyv.begin(), S.dyv.end(), T(0));
+    for (int64_t q = 0; q < ks; ++q) {
+      const T pu = pi[q], pv = pi[k + q];
+      const T* bq = P.bt.data() + q * ns;
+#pragma omp simd
+      for (int64_t s = 0; s < ns; ++s) {
+        dxu[s] += pu * bq[s];
+        dyv[s] += pv * bq[s];
+      }
+    }
+#pragma omp simd
+    for (int64_t s = 0; s < ns; ++s) {
+      dxu[s] += P.dx[s];
+      dyv[s] += P.dy[s];
     }
   }
-  T xmn = P.dx[0] + dxu[0], xmx = xmn, ymn = P.dy[0] + dyv[0], ymx = ymn;
+  T xmn = dxu[0], xmx = xmn, ymn = dyv[0], ymx = ymn;
+#pragma omp simd reduction(min : xmn, ymn) reduction(max : xmx, ymx)
   for (int64_t s = 0; s < ns; ++s) {
-    dxu[s] += P.dx[s];
-    dyv[s] += P.dy[s];
     xmn = std::min(xmn, dxu[s]);
     xmx = std::max(xmx, dxu[s]);
     ymn = std::min(ymn, dyv[s]);
@@ -595,8 +705,14 @@ inline void ic_rhs_row(const IcProblem<T>& P, IcScratch<T>& S, int64_t i, const 
     }
     out_i = out_i || ox + xmn < 0 || ox + xmx > P.w_img - 1 || oy + ymn < 0 ||
             oy + ymx > P.h - 1;
-    sample_points<T, ORDER>(P.flat + P.frame_off[i * nt + t], P.g, T(ox), T(oy), dxu, dyv, ns,
-                            S.idx.data(), S.fxs.data(), S.fys.data(), S.gv.data());
+#if defined(__AVX2__) && defined(__FMA__)
+    if constexpr (ORDER == 3 && sizeof(T) == 4)
+      cubic_values_f32(P.flat + P.frame_off[i * nt + t], P.g, float(ox), float(oy), dxu, dyv,
+                       ns, S.idx.data(), S.fxs.data(), S.wy.data(), S.gv.data());
+    else
+#endif
+      sample_points<T, ORDER>(P.flat + P.frame_off[i * nt + t], P.g, T(ox), T(oy), dxu, dyv,
+                              ns, S.idx.data(), S.fxs.data(), S.fys.data(), S.gv.data());
     if (P.ks == 3) {  // the affine shapes: the frame's sums in two fused passes
       frame_sums3<T>(P, S, fti, gxi, gyi, swf, fn, dti, bb, &zsum,
                      bf ? bf + t * (2 * ks + 1) : nullptr);
