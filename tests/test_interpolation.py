@@ -4,6 +4,7 @@ import pytest
 import torch
 
 from torch_stsdic.core.interpolation import BSplineImage, bspline_prefilter
+from torch_stsdic.kernels import native
 from torch_stsdic.kernels.compile import compile_failed
 
 
@@ -125,6 +126,13 @@ def test_whole_pixel_subsets_are_gathered_bit_identically(order):
         fast = b.sample_subsets(px, py, dx[keep], dy[keep], fr)
         slow = b._subsets(px.view(-1, 1), py.view(-1, 1), dx[keep], dy[keep], fr.view(-1, 1))
         assert all(torch.equal(f, s) for f, s in zip(fast, slow))
+        # the C++ copy of whole windows (where it runs) and torch's gather agree
+        native.set_native("0")
+        try:
+            plain = b.sample_subsets(px, py, dx[keep], dy[keep], fr)
+        finally:
+            native.set_native("auto")
+        assert all(torch.equal(f, s) for f, s in zip(plain, slow))
     assert b._grid is not None  # the gathered path was taken
     assert b._subsets_on_grid(px.view(-1, 1) + 0.5, py.view(-1, 1), dx, dy,
                               fr.view(-1, 1)) is None

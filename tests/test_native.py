@@ -164,6 +164,24 @@ def test_ic_rhs_float32_on_a_bright_faint_speckle():
         assert (zn.double() - want[1]).abs().max() < 1e-4
 
 
+def test_windows_copy_what_the_window_view_gathers():
+    """native.windows: the whole-pixel windows of a stack at flat top-left indices, as
+    interpolation.window_view gathers them; a window past its frame is refused."""
+    from torch_stsdic.core.interpolation import window_view
+    g = torch.Generator().manual_seed(5)
+    for dtype in (torch.float32, torch.float64):
+        src = torch.rand(3, 40, 50, generator=g, dtype=dtype)
+        f = torch.randint(0, 3, (200,), generator=g)
+        y = torch.randint(0, 40 - 7 + 1, (200,), generator=g)
+        x = torch.randint(0, 50 - 9 + 1, (200,), generator=g)
+        got = native.windows(src, (f * 40 + y) * 50 + x, 7, 9)
+        assert torch.equal(got, window_view(src, 7, 9)[f, y, x].reshape(200, 63))
+    for bad in ((0, 0, 42), (0, 34, 0), (2, 39, 0)):  # past the right edge, the bottom, the end
+        b = torch.tensor([(bad[0] * 40 + bad[1]) * 50 + bad[2]])
+        with pytest.raises(ValueError, match="native.windows: every window inside its frame"):
+            native.windows(src, b, 7, 9)
+
+
 def test_wrappers_refuse_sizes_the_kernels_would_overrun():
     """Sizes are the wrappers' to check (a declaration has kinds and dtypes, not sizes): what
     would make a kernel read or write past an array raises ValueError instead."""
@@ -475,6 +493,7 @@ def test_wrappers_pass_exactly_the_declared_parameters(monkeypatch):
                      torch.zeros(2, dtype=torch.long), one, one, one, (one, one),
                      torch.zeros(img.height * img.width, dtype=torch.float64), img.width,
                      img.height)
+        native.windows(torch.rand(1, 8, 9, dtype=dtype), torch.tensor([0, 10]), 3, 4)
     declared = native.kernels()
     assert set(seen) == set(declared)
     for name, calls in seen.items():

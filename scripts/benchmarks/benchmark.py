@@ -1288,13 +1288,17 @@ def load_records(directory: Path = BENCH_DIR) -> list[dict[str, Any]]:
             rec = json.loads(p.read_text())
         except (OSError, json.JSONDecodeError):
             continue
-        if isinstance(rec, dict) and "results" in rec and "machine" in rec and "preset" in rec:
+        # this script's presets only (bench_memory_length.py writes "memory-length" records
+        # of another layout into the same folder)
+        if (isinstance(rec, dict) and "results" in rec and "machine" in rec
+                and rec.get("preset") in _PRESETS):
             rec["_file"] = p.name
             recs.append(rec)
     return recs
 
 
 _PRESET_ORDER = {"targets": 0, "memory": 1, "movie": 2, "full": 3}
+_PRESETS = frozenset(_PRESET_ORDER)
 
 
 def _triton_kernel_row() -> tuple[str, str, str, str, str]:

@@ -14,7 +14,7 @@ from torch import Tensor
 
 from torch_stsdic.kernels import fused_step, native
 
-__all__ = ["prefilter", "sample", "gram", "ic_step", "fused_ic_step", "param_std",
+__all__ = ["prefilter", "sample", "windows", "gram", "ic_step", "fused_ic_step", "param_std",
            "spd_inverse", "nanmedian", "neighbour_test", "describe"]
 
 NATIVE, TRITON, TORCH = "native", "triton", "torch"
@@ -29,6 +29,12 @@ def sample(kernel_args: tuple, *tensors: Tensor) -> str:
     """B-spline sampling (points, or whole subsets) of an image's flat coefficients
     (``BSplineImage.kernel_args()``) at the given coordinate tensors."""
     return NATIVE if native.usable_image(kernel_args, *tensors) else TORCH
+
+
+def windows(*tensors: Tensor) -> str:
+    """Whole-pixel windows gathered from per-pixel images (the reference subsets of POIs on
+    the pixel grid)."""
+    return NATIVE if native.usable(*tensors) else TORCH
 
 
 def splat(kernel_args: tuple, *tensors: Tensor) -> str:

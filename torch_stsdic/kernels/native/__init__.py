@@ -45,7 +45,7 @@ Modules, one job each: ``builder`` (compiler, cache directory, :func:`build`),
 ``loader`` (the switch, loading once, :func:`usable`), ``rows`` (the row-parallel runner),
 ``ops`` (the wrappers :func:`sample`, :func:`subsets`, :func:`ic_rhs`, :func:`gram`,
 :func:`spd_inverse`, :func:`nanmedian`, :func:`neighbour_own_gradient`,
-:func:`neighbour_test`, :func:`prefilter`, :func:`splat`).
+:func:`neighbour_test`, :func:`prefilter`, :func:`splat`, :func:`windows`).
 """
 
 from __future__ import annotations
@@ -74,10 +74,11 @@ from torch_stsdic.kernels.native.ops import (
     spd_inverse,
     splat,
     subsets,
+    windows,
 )
 
 __all__ = ["available", "set_native", "native_enabled", "sample", "subsets", "ic_rhs",
            "ic_solve", "gram",
            "spd_inverse", "param_std", "nanmedian", "neighbour_own_gradient", "neighbour_test",
-           "prefilter", "splat", "build", "kernels", "Kernel", "Param", "usable", "usable_image",
-           "per_point_enabled"]
+           "prefilter", "splat", "windows", "build", "kernels", "Kernel", "Param", "usable",
+           "usable_image", "per_point_enabled"]

@@ -16,6 +16,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <cstdint>
 #include <limits>
 #include <string>
@@ -501,6 +502,21 @@ STS_KERNEL(sts_subsets, (const T* flat, int64_t wp, double x_lo, double x_hi, do
     else
       sample_points<T, 5>(plane, g, px[i], py[i], dx, dy, ns, idx.data(), fxs.data(),
                           fys.data(), v);
+  }
+  return 0;
+}
+
+// Windows: rows i in [i0, i1) of out (N, wy * wx) = the wy x wx window of the image src
+// whose top-left pixel is at the flat index base[i] (image rows ws values apart): whole-pixel
+// subsets gathered from a per-pixel image (interpolation.BSplineImage._subsets_on_grid),
+// one copy per window row.
+STS_KERNEL(sts_windows, (int64_t i0, int64_t i1, const T* src, int64_t ws,
+                         const int64_t* base, int64_t wy, int64_t wx, T* out)) {
+  if (wy < 1 || wx < 1) return 1;
+  for (int64_t i = i0; i < i1; ++i) {
+    const T* from = src + base[i];
+    T* to = out + i * wy * wx;
+    for (int64_t r = 0; r < wy; ++r) std::memcpy(to + r * wx, from + r * ws, wx * sizeof(T));
   }
   return 0;
 }
@@ -1495,7 +1511,7 @@ extern "C" {
 
 // Version of this interface (the sts_kernel_* functions and what the kernels' parameters
 // mean); native/declarations.py refuses a library of another version.
-int sts_abi_version() { return 12; }
+int sts_abi_version() { return 13; }
 
 int sts_kernel_count() { return int(declarations().size()); }
 

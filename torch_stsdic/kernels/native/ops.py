@@ -13,7 +13,7 @@ import torch
 from torch_stsdic.kernels.native.loader import kernel
 from torch_stsdic.kernels.native.rows import run_rows, run_shared, threads
 
-__all__ = ["sample", "subsets", "ic_rhs", "ic_solve", "gram", "spd_inverse", "param_std",
+__all__ = ["sample", "subsets", "windows", "ic_rhs", "ic_solve", "gram", "spd_inverse", "param_std",
            "nanmedian", "prefilter", "neighbour_own_gradient", "neighbour_test", "splat"]
 
 
@@ -308,6 +308,30 @@ def param_std(cols: torch.Tensor, dt: torch.Tensor, has_time: bool, ks: int, g1:
                   g2=None if g2 is None else c(g2), bw=c(bw), b2=c(b2), f2=c(f2), g2n=c(g2n),
                   kappa=float(kappa), std=std))
     return std
+
+
+def windows(src: torch.Tensor, base: torch.Tensor, wy: int, wx: int) -> torch.Tensor:
+    """(N, wy * wx) the ``wy`` x ``wx`` windows of the images ``src`` (F, H, W) whose
+    top-left pixels are at the flat indices ``base`` (N,) of ``src`` (row-major, as
+    ``interpolation.window_view(src, wy, wx)[f, y, x]`` gathers them): one copy a window
+    row."""
+    _require("windows", src.dim() == 3 and wy >= 1 and wx >= 1 and wx <= src.shape[2]
+             and wy <= src.shape[1], f"src (F, H, W) and a window inside a frame, got "
+             f"{tuple(src.shape)} and {wy} x {wx}")
+    b = base.to(torch.int64).reshape(-1).contiguous()
+    n, (f, h, w) = b.numel(), src.shape
+    if n:
+        lo, hi = torch.aminmax(b)
+        last = (wy - 1) * w + wx - 1  # the window's last pixel, from its first
+        # a window wholly inside one frame: its first row starts in the frame's first
+        # h - wy + 1 rows, at most w - wx columns in
+        col, row = b % w, (b // w) % h
+        ok = (lo >= 0) & (hi + last < f * h * w) & (col <= w - wx).all() & (row <= h - wy).all()
+        _require("windows", bool(ok), "every window inside its frame")
+    out = torch.empty(n, wy * wx, dtype=src.dtype)
+    run_rows(kernel("sts_windows", src.dtype), n, wy * wx,
+             dict(src=src.contiguous(), ws=w, base=b, wy=wy, wx=wx, out=out))
+    return out
 
 
 def nanmedian(x: torch.Tensor) -> torch.Tensor:
