@@ -160,44 +160,62 @@ inline void weights(T f, T* w, T* dw, bool grad) {
   }
 }
 
-// Tap origin (32-bit index in the plane) and fractions of the points
-// (ox + dxu[s], oy + dyv[s]) after clamping to the coefficient grid.
+// Tap origin (32-bit index in the plane) and fractions of one point (x, y) after clamping it
+// to the coefficient grid.
+template <typename T>
+inline void tap_origin(const Geo& g, T x, T y, int32_t* idx, T* fx, T* fy) {
+  const T xlo = T(g.x_lo), xhi = T(g.x_hi), ylo = T(g.y_lo), yhi = T(g.y_hi);
+  x = x < xlo ? xlo : (x > xhi ? xhi : x);
+  y = y < ylo ? ylo : (y > yhi ? yhi : y);
+  const T x0 = std::floor(x), y0 = std::floor(y);
+  *fx = x - x0;
+  *fy = y - y0;
+  *idx = (int32_t(y0) + int32_t(g.shift)) * int32_t(g.wp) + int32_t(x0) + int32_t(g.shift);
+}
+
+#if defined(__AVX2__) && defined(__FMA__)
+// tap_origin of eight float points at once: the indices stored to idx, the fractions
+// returned.
+struct TapOrigins8 {
+  __m256 xlo, xhi, ylo, yhi;
+  __m256i wp, sh;
+  explicit TapOrigins8(const Geo& g)
+      : xlo(_mm256_set1_ps(float(g.x_lo))), xhi(_mm256_set1_ps(float(g.x_hi))),
+        ylo(_mm256_set1_ps(float(g.y_lo))), yhi(_mm256_set1_ps(float(g.y_hi))),
+        wp(_mm256_set1_epi32(int32_t(g.wp))), sh(_mm256_set1_epi32(int32_t(g.shift))) {}
+  void operator()(__m256 x, __m256 y, int32_t* idx, __m256* fx, __m256* fy) const {
+    x = _mm256_min_ps(_mm256_max_ps(x, xlo), xhi);
+    y = _mm256_min_ps(_mm256_max_ps(y, ylo), yhi);
+    const __m256 x0 = _mm256_floor_ps(x), y0 = _mm256_floor_ps(y);
+    *fx = _mm256_sub_ps(x, x0);
+    *fy = _mm256_sub_ps(y, y0);
+    const __m256i iy = _mm256_add_epi32(_mm256_cvttps_epi32(y0), sh);
+    const __m256i ix = _mm256_add_epi32(_mm256_cvttps_epi32(x0), sh);
+    _mm256_storeu_si256(reinterpret_cast<__m256i*>(idx),
+                        _mm256_add_epi32(_mm256_mullo_epi32(iy, wp), ix));
+  }
+};
+#endif
+
+// Tap origins and fractions of the points (ox + dxu[s], oy + dyv[s]), s < ns.
 template <typename T>
 inline void tap_origins(const Geo& g, T ox, T oy, const T* dxu, const T* dyv, int64_t ns,
                         int32_t* idx, T* fxs, T* fys) {
-  const T xlo = T(g.x_lo), xhi = T(g.x_hi), ylo = T(g.y_lo), yhi = T(g.y_hi);
-  const int32_t wp = int32_t(g.wp), sh = int32_t(g.shift);
   int64_t s = 0;
 #if defined(__AVX2__) && defined(__FMA__)
   if constexpr (sizeof(T) == 4) {
+    const TapOrigins8 taps(g);
     const __m256 vox = _mm256_set1_ps(ox), voy = _mm256_set1_ps(oy);
-    const __m256 vxlo = _mm256_set1_ps(xlo), vxhi = _mm256_set1_ps(xhi);
-    const __m256 vylo = _mm256_set1_ps(ylo), vyhi = _mm256_set1_ps(yhi);
-    const __m256i vwp = _mm256_set1_epi32(wp), vsh = _mm256_set1_epi32(sh);
     for (; s + 8 <= ns; s += 8) {
-      __m256 x = _mm256_add_ps(vox, _mm256_loadu_ps(dxu + s));
-      __m256 y = _mm256_add_ps(voy, _mm256_loadu_ps(dyv + s));
-      x = _mm256_min_ps(_mm256_max_ps(x, vxlo), vxhi);
-      y = _mm256_min_ps(_mm256_max_ps(y, vylo), vyhi);
-      const __m256 x0 = _mm256_floor_ps(x), y0 = _mm256_floor_ps(y);
-      _mm256_storeu_ps(fxs + s, _mm256_sub_ps(x, x0));
-      _mm256_storeu_ps(fys + s, _mm256_sub_ps(y, y0));
-      const __m256i iy = _mm256_add_epi32(_mm256_cvttps_epi32(y0), vsh);
-      const __m256i ix = _mm256_add_epi32(_mm256_cvttps_epi32(x0), vsh);
-      _mm256_storeu_si256(reinterpret_cast<__m256i*>(idx + s),
-                          _mm256_add_epi32(_mm256_mullo_epi32(iy, vwp), ix));
+      __m256 fx, fy;
+      taps(_mm256_add_ps(vox, _mm256_loadu_ps(dxu + s)),
+           _mm256_add_ps(voy, _mm256_loadu_ps(dyv + s)), idx + s, &fx, &fy);
+      _mm256_storeu_ps(fxs + s, fx);
+      _mm256_storeu_ps(fys + s, fy);
     }
   }
 #endif
-  for (; s < ns; ++s) {
-    T x = ox + dxu[s], y = oy + dyv[s];
-    x = x < xlo ? xlo : (x > xhi ? xhi : x);
-    y = y < ylo ? ylo : (y > yhi ? yhi : y);
-    const T x0 = std::floor(x), y0 = std::floor(y);
-    fxs[s] = x - x0;
-    fys[s] = y - y0;
-    idx[s] = (int32_t(y0) + sh) * wp + int32_t(x0) + sh;
-  }
+  for (; s < ns; ++s) tap_origin<T>(g, ox + dxu[s], oy + dyv[s], idx + s, fxs + s, fys + s);
 }
 
 #if defined(__AVX2__) && defined(__FMA__)
@@ -340,8 +358,6 @@ inline void sample_points(const T* plane, const Geo& g, T ox, T oy, const T* dxu
 inline void cubic_values_f32(const float* plane, const Geo& g, float ox, float oy,
                              const float* dxu, const float* dyv, int64_t ns, int32_t* idx,
                              float* fxs, float* wy, float* out) {
-  const float xlo = float(g.x_lo), xhi = float(g.x_hi), ylo = float(g.y_lo), yhi = float(g.y_hi);
-  const int32_t wp = int32_t(g.wp), sh = int32_t(g.shift);
   const int64_t wpl = g.wp;
   float* wy0 = wy;
   float* wy1 = wy + ns;
@@ -349,46 +365,29 @@ inline void cubic_values_f32(const float* plane, const Geo& g, float ox, float o
   float* wy3 = wy + 3 * ns;
   int64_t s = 0;
   {
+    const TapOrigins8 taps(g);
     const __m256 vox = _mm256_set1_ps(ox), voy = _mm256_set1_ps(oy);
-    const __m256 vxlo = _mm256_set1_ps(xlo), vxhi = _mm256_set1_ps(xhi);
-    const __m256 vylo = _mm256_set1_ps(ylo), vyhi = _mm256_set1_ps(yhi);
-    const __m256i vwp = _mm256_set1_epi32(wp), vsh = _mm256_set1_epi32(sh);
     const __m256 sixth = _mm256_set1_ps(1.f / 6), half = _mm256_set1_ps(0.5f);
     const __m256 one = _mm256_set1_ps(1.f), twoth = _mm256_set1_ps(2.f / 3);
     for (; s + 8 <= ns; s += 8) {
-      __m256 x = _mm256_add_ps(vox, _mm256_loadu_ps(dxu + s));
-      __m256 y = _mm256_add_ps(voy, _mm256_loadu_ps(dyv + s));
-      x = _mm256_min_ps(_mm256_max_ps(x, vxlo), vxhi);
-      y = _mm256_min_ps(_mm256_max_ps(y, vylo), vyhi);
-      const __m256 x0 = _mm256_floor_ps(x), y0 = _mm256_floor_ps(y);
-      _mm256_storeu_ps(fxs + s, _mm256_sub_ps(x, x0));
-      const __m256 f = _mm256_sub_ps(y, y0);
-      const __m256i iy = _mm256_add_epi32(_mm256_cvttps_epi32(y0), vsh);
-      const __m256i ix = _mm256_add_epi32(_mm256_cvttps_epi32(x0), vsh);
-      _mm256_storeu_si256(reinterpret_cast<__m256i*>(idx + s),
-                          _mm256_add_epi32(_mm256_mullo_epi32(iy, vwp), ix));
-      // the cubic B-spline's weights (1-f)^3/6, 2/3 - f^2 + f^3/2, ..., f^3/6
+      __m256 fx, f;
+      taps(_mm256_add_ps(vox, _mm256_loadu_ps(dxu + s)),
+           _mm256_add_ps(voy, _mm256_loadu_ps(dyv + s)), idx + s, &fx, &f);
+      _mm256_storeu_ps(fxs + s, fx);
+      // the cubic B-spline's y weights (1-f)^3/6, 2/3 - f^2 + f^3/2, ..., f^3/6
       const __m256 f2 = _mm256_mul_ps(f, f), f3 = _mm256_mul_ps(f2, f);
       const __m256 g1 = _mm256_sub_ps(one, f);
-      const __m256 w0 = _mm256_mul_ps(sixth, _mm256_mul_ps(_mm256_mul_ps(g1, g1), g1));
-      const __m256 w3 = _mm256_mul_ps(sixth, f3);
-      const __m256 w1 = _mm256_fmadd_ps(half, f3, _mm256_sub_ps(twoth, f2));
-      _mm256_storeu_ps(wy0 + s, w0);
-      _mm256_storeu_ps(wy1 + s, w1);
+      _mm256_storeu_ps(wy0 + s, _mm256_mul_ps(sixth, _mm256_mul_ps(_mm256_mul_ps(g1, g1), g1)));
+      _mm256_storeu_ps(wy1 + s, _mm256_fmadd_ps(half, f3, _mm256_sub_ps(twoth, f2)));
       _mm256_storeu_ps(wy2 + s, _mm256_add_ps(_mm256_fmadd_ps(half, _mm256_sub_ps(f2, f3),
                                                               _mm256_mul_ps(half, f)), sixth));
-      _mm256_storeu_ps(wy3 + s, w3);
+      _mm256_storeu_ps(wy3 + s, _mm256_mul_ps(sixth, f3));
     }
   }
   for (int64_t r = s; r < ns; ++r) {
-    float x = ox + dxu[r], y = oy + dyv[r];
-    x = x < xlo ? xlo : (x > xhi ? xhi : x);
-    y = y < ylo ? ylo : (y > yhi ? yhi : y);
-    const float x0 = std::floor(x), y0 = std::floor(y);
-    fxs[r] = x - x0;
-    idx[r] = (int32_t(y0) + sh) * wp + int32_t(x0) + sh;
-    float w[4], dw[4];
-    weights<float, 3>(y - y0, w, dw, false);
+    float fy, w[4], dw[4];
+    tap_origin<float>(g, ox + dxu[r], oy + dyv[r], idx + r, fxs + r, &fy);
+    weights<float, 3>(fy, w, dw, false);
     wy0[r] = w[0];
     wy1[r] = w[1];
     wy2[r] = w[2];
