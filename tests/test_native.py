@@ -174,12 +174,15 @@ def test_windows_copy_what_the_window_view_gathers():
         f = torch.randint(0, 3, (200,), generator=g)
         y = torch.randint(0, 40 - 7 + 1, (200,), generator=g)
         x = torch.randint(0, 50 - 9 + 1, (200,), generator=g)
-        got = native.windows(src, (f * 40 + y) * 50 + x, 7, 9)
-        assert torch.equal(got, window_view(src, 7, 9)[f, y, x].reshape(200, 63))
+        got = native.windows((src, 2 * src), (f * 40 + y) * 50 + x, 7, 9)
+        want = window_view(src, 7, 9)[f, y, x].reshape(200, 63)
+        assert torch.equal(got[0], want) and torch.equal(got[1], 2 * want)
     for bad in ((0, 0, 42), (0, 34, 0), (2, 39, 0)):  # past the right edge, the bottom, the end
         b = torch.tensor([(bad[0] * 40 + bad[1]) * 50 + bad[2]])
         with pytest.raises(ValueError, match="native.windows: every window inside its frame"):
-            native.windows(src, b, 7, 9)
+            native.windows((src,), b, 7, 9)
+    with pytest.raises(ValueError, match="native.windows: images .* of one shape"):
+        native.windows((src, src[:, :30]), torch.tensor([0]), 7, 9)
 
 
 def test_wrappers_refuse_sizes_the_kernels_would_overrun():
@@ -493,7 +496,7 @@ def test_wrappers_pass_exactly_the_declared_parameters(monkeypatch):
                      torch.zeros(2, dtype=torch.long), one, one, one, (one, one),
                      torch.zeros(img.height * img.width, dtype=torch.float64), img.width,
                      img.height)
-        native.windows(torch.rand(1, 8, 9, dtype=dtype), torch.tensor([0, 10]), 3, 4)
+        native.windows((torch.rand(1, 8, 9, dtype=dtype),), torch.tensor([0, 10]), 3, 4)
     declared = native.kernels()
     assert set(seen) == set(declared)
     for name, calls in seen.items():

@@ -228,7 +228,7 @@ class BSplineImage:
         f = frame_t.reshape(-1).expand(x0.numel())
         if full and dispatch.windows(*grid) == dispatch.NATIVE:  # one copy a window row
             base = (f * self.height + y0) * self.width + x0
-            return tuple(native.windows(g, base, wy, wx) for g in grid)
+            return native.windows(grid, base, wy, wx)
         out = []
         for g in grid:
             sub = window_view(g, wy, wx)[f, y0, x0].reshape(x0.numel(), wx * wy)

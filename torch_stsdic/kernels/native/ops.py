@@ -310,28 +310,30 @@ def param_std(cols: torch.Tensor, dt: torch.Tensor, has_time: bool, ks: int, g1:
     return std
 
 
-def windows(src: torch.Tensor, base: torch.Tensor, wy: int, wx: int) -> torch.Tensor:
-    """(N, wy * wx) the ``wy`` x ``wx`` windows of the images ``src`` (F, H, W) whose
-    top-left pixels are at the flat indices ``base`` (N,) of ``src`` (row-major, as
-    ``interpolation.window_view(src, wy, wx)[f, y, x]`` gathers them): one copy a window
+def windows(sources: tuple[torch.Tensor, ...], base: torch.Tensor, wy: int, wx: int
+            ) -> tuple[torch.Tensor, ...]:
+    """Per image of ``sources`` (each (F, H, W), all one shape): (N, wy * wx) its ``wy`` x
+    ``wx`` windows whose top-left pixels are at the flat indices ``base`` (N,) (row-major,
+    as ``interpolation.window_view(src, wy, wx)[f, y, x]`` gathers them): one copy a window
     row."""
-    _require("windows", src.dim() == 3 and wy >= 1 and wx >= 1 and wx <= src.shape[2]
-             and wy <= src.shape[1], f"src (F, H, W) and a window inside a frame, got "
-             f"{tuple(src.shape)} and {wy} x {wx}")
+    shape = sources[0].shape if sources else ()
+    _require("windows", len(shape) == 3 and all(s.shape == shape for s in sources)
+             and 1 <= wy <= shape[1] and 1 <= wx <= shape[2], f"images (F, H, W) of one "
+             f"shape and a window inside a frame, got {[tuple(s.shape) for s in sources]} and "
+             f"{wy} x {wx}")
     b = base.to(torch.int64).reshape(-1).contiguous()
-    n, (f, h, w) = b.numel(), src.shape
-    if n:
-        lo, hi = torch.aminmax(b)
-        last = (wy - 1) * w + wx - 1  # the window's last pixel, from its first
-        # a window wholly inside one frame: its first row starts in the frame's first
-        # h - wy + 1 rows, at most w - wx columns in
-        col, row = b % w, (b // w) % h
-        ok = (lo >= 0) & (hi + last < f * h * w) & (col <= w - wx).all() & (row <= h - wy).all()
+    n, (f, h, w) = b.numel(), shape
+    if n:  # every window wholly inside one frame: its first row in the frame's first
+        # h - wy + 1 rows, at most w - wx columns in (one host read for all the images)
+        ok = ((b >= 0) & (b < f * h * w) & (b % w <= w - wx) & ((b // w) % h <= h - wy)).all()
         _require("windows", bool(ok), "every window inside its frame")
-    out = torch.empty(n, wy * wx, dtype=src.dtype)
-    run_rows(kernel("sts_windows", src.dtype), n, wy * wx,
-             dict(src=src.contiguous(), ws=w, base=b, wy=wy, wx=wx, out=out))
-    return out
+    out = []
+    for src in sources:
+        o = torch.empty(n, wy * wx, dtype=src.dtype)
+        run_rows(kernel("sts_windows", src.dtype), n, wy * wx,
+                 dict(src=src.contiguous(), ws=w, base=b, wy=wy, wx=wx, out=o))
+        out.append(o)
+    return tuple(out)
 
 
 def nanmedian(x: torch.Tensor) -> torch.Tensor:
