@@ -30,7 +30,53 @@ from torch_stsdic.movie.frames import half_widths, window_frames
 #: a :class:`~torch_stsdic.movie.block.Block` (not imported: the block imports this module)
 Block = Any
 
-__all__ = ["report_velocity"]
+__all__ = ["report_velocity", "target_slope", "CURVATURE_Z"]
+
+
+#: standard errors of the shared motion's curvature over a shifted window (a window at the
+#: movie's ends or next to a load step) above which its velocity at the target is taken
+#: from the local quadratic, not the window's line (:func:`target_slope`)
+CURVATURE_Z = 3.0
+
+
+def target_slope(g: torch.Tensor, dt: torch.Tensor, frame_var: torch.Tensor | None = None
+                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The shared motion's velocity at the target from its displacement ``g`` (..., T, 2)
+    over a window's frame times ``dt`` (..., T; broadcast against g's leading dimensions):
+    the least-squares line's slope, which is the derivative at the window's mean time;
+    where the window is shifted (its mean time is not the target's: the movie's first and
+    last frames, a load step) and the motion's curvature over it is significant (a local
+    quadratic's ``c2`` beyond :data:`CURVATURE_Z` standard errors), the quadratic's
+    derivative at dt = 0 (an accelerating motion's line over frames 0..12 gives its
+    velocity at frame 6 to frame 0). ``frame_var`` (...,): the variance of one frame's
+    displacement about the motion (default: the quadratic's residuals, T >= 4).
+
+    Returns (slope (..., 2), used (..., 2) bool: the quadratic's derivative taken, var
+    (..., 2) its variance where taken, else 0)."""
+    lead = torch.broadcast_shapes(g.shape[:-2], dt.shape[:-1])
+    g = g.expand(*lead, *g.shape[-2:]).double()
+    t = dt.to(torch.float64).expand(*lead, dt.shape[-1])
+    line = window_slope(g, t)
+    n = t.shape[-1]
+    zero = torch.zeros_like(line)
+    shifted = t.mean(-1).abs() > 1e-9
+    if n < 3 or not bool(shifted.any()):
+        return line, torch.zeros_like(line, dtype=torch.bool), zero
+    a = torch.stack([torch.ones_like(t), t, t * t], -1)  # (..., T, 3)
+    inv = torch.linalg.inv(a.transpose(-1, -2) @ a)  # (..., 3, 3)
+    coef = inv @ (a.transpose(-1, -2) @ g)  # (..., 3, 2)
+    if frame_var is None:
+        if n < 4:
+            return line, torch.zeros_like(line, dtype=torch.bool), zero
+        resid = g - a @ coef
+        fv = resid.square().sum(-2) / (n - 3)  # (..., 2)
+    else:
+        fv = frame_var.to(torch.float64).expand(*lead).unsqueeze(-1).expand_as(line)
+    z = coef[..., 2, :].abs() / (fv * inv[..., 2, 2].unsqueeze(-1)).sqrt().clamp(min=1e-30)
+    used = shifted.unsqueeze(-1) & (z > CURVATURE_Z)
+    slope = torch.where(used, coef[..., 1, :], line)
+    var = torch.where(used, fv * inv[..., 1, 1].unsqueeze(-1), 0.0)
+    return slope, used, var
 
 
 def report_velocity(blk: Block, out: dict[str, torch.Tensor]) -> torch.Tensor | None:
@@ -42,40 +88,67 @@ def report_velocity(blk: Block, out: dict[str, torch.Tensor]) -> torch.Tensor | 
     common to every frame and leaves a slope alone). Where the motion jumps
     (``run.velocity_segments``: :attr:`SharedMotion.jumps`) the slope's frames stay on
     the target's side of the jump (shifted, as windows are at load steps), at any window
-    length. None (nothing changed) where the run's shared motion keeps the windows'
-    slopes."""
+    length. Where a window is shifted (the movie's ends, a load step) the shared motion's
+    velocity is taken at the target, not at the window's mean time, where it bends
+    significantly over the frames (:func:`target_slope`; a shaking specimen's from the
+    row's own window, the jitter the noise). None (nothing changed) where nothing is."""
     run = blk.run
     shared = run.shared
-    vm = None if shared is None else shared.velocity_m
-    vseg = run.velocity_segments
-    if vm is None or "ut" not in out or (run.m <= vm and vseg is None):
+    if shared is None or "ut" not in out:
         return None
+    vm = shared.velocity_m
+    vseg = run.velocity_segments
     b, n = out["ut"].shape
     se2 = torch.as_tensor(shared.se, dtype=torch.float64).nan_to_num(0.0).square()
     vel = torch.stack([out["ut"].reshape(-1), out["vt"].reshape(-1)], 1)  # (B*N, 2)
     var = torch.zeros(b * n, 2, dtype=torch.float64, device=vel.device)
+    changed = False
     for m in half_widths(blk.m_used, blk.m_used > 0, run.m):
-        mv = min(int(m), int(vm))
-        if vseg is None and m <= vm:
+        m = int(m)
+        own = blk.windows(m)  # (B, T) the rows' windows
+        if vm is None or (vseg is None and m <= vm):
+            # the window's own slope of the motion, at the target where the window is shifted
+            dt = (run.ts[own] - run.ts[blk.k].unsqueeze(1)).double()
+            if not bool((dt.mean(1).abs() > 1e-9).any()):
+                continue
+            g = shared.displacement(blk.ref.points, own.reshape(-1)).view(
+                b, own.shape[1], n, 2).transpose(1, 2)  # (B, N, T, 2)
+            slope, used, add = target_slope(g, dt.unsqueeze(1))
+            sel = (blk.m_used == m).unsqueeze(1) & used.reshape(-1, 2)
+            vel += torch.where(sel, (slope.reshape(-1, 2)
+                                     - blk.shared_slope(m).double()).to(vel), 0.0)
+            var += torch.where(sel, add.reshape(-1, 2).to(var), 0.0)
+            changed = True
             continue
+        mv = min(m, int(vm))
         # (B, T) the slope's frames: 2 vm + 1 about the target, within its side of any jump
         win = (blk.windows(mv) if vseg is None
                else window_frames(blk.k, mv, run.n_series, vseg.to(blk.k.device)))
         dt = (run.ts[win] - run.ts[blk.k].unsqueeze(1)).double()
-        if vseg is None:
-            short = blk.shared_slope(mv)  # (B*N, 2)
-            differs = torch.ones(b, dtype=torch.bool, device=vel.device)
-        else:
-            g = shared.displacement(blk.ref.points, win.reshape(-1)).view(
-                b, win.shape[1], n, 2).transpose(1, 2)  # (B, N, T, 2)
-            short = window_slope(g, dt.to(g.dtype).unsqueeze(1)).reshape(-1, 2)
-            differs = (win != blk.windows(int(m))).any(1) if m <= vm else torch.ones(
-                b, dtype=torch.bool, device=vel.device)
+        differs = ((win != own).any(1) if m <= vm
+                   else torch.ones(b, dtype=torch.bool, device=vel.device))
+        g = shared.displacement(blk.ref.points, win.reshape(-1)).view(
+            b, win.shape[1], n, 2).transpose(1, 2)  # (B, N, T, 2)
         dc = dt - dt.mean(1, keepdim=True)
-        noise = (0.5 * shared.terms * se2.to(dt.device)[win].mean(1)
-                 / dc.square().sum(1).clamp(min=1e-30))  # (B,)
+        frame = 0.5 * shared.terms * se2.to(dt.device)[win].mean(1)  # (B,) a frame's share
+        short, used, qvar = target_slope(g, dt.unsqueeze(1), frame.unsqueeze(1))
+        if vseg is not None:  # the target's velocity at the movie's ends only (a load
+            # state's own frames shifted by a jump: the motion is a line there, and a
+            # false alarm of the 5-frame quadratic costs more than it mends)
+            ends = window_frames(blk.k, mv, run.n_series, None)
+            at_end = (run.ts[ends] - run.ts[blk.k].unsqueeze(1)).double().mean(1).abs() > 1e-9
+            keep = at_end.view(b, 1, 1)
+            short = torch.where(used & ~keep, window_slope(g, dt.unsqueeze(1).to(g)), short)
+            qvar = torch.where(used & ~keep, 0.0, qvar)
+            used = used & keep
+        noise = (frame / dc.square().sum(1).clamp(min=1e-30)).view(b, 1, 1)  # (B, 1, 1)
+        noise = torch.where(used, qvar, noise)  # (B, N, 2)
         sel = ((blk.m_used == m) & differs.repeat_interleave(n)).unsqueeze(1)
-        vel += torch.where(sel, (short - blk.shared_slope(int(m))).to(vel), 0.0)
-        var += torch.where(sel, noise.repeat_interleave(n).unsqueeze(1).to(var), 0.0)
+        vel += torch.where(sel, (short.reshape(-1, 2)
+                                 - blk.shared_slope(m).double()).to(vel), 0.0)
+        var += torch.where(sel, noise.reshape(-1, 2).to(var), 0.0)
+        changed = True
+    if not changed:
+        return None
     out["ut"], out["vt"] = vel[:, 0].reshape(b, n), vel[:, 1].reshape(b, n)
     return var.view(b, n, 2)
