@@ -53,25 +53,21 @@ def target_slope(g: torch.Tensor, dt: torch.Tensor, frame_var: torch.Tensor | No
 
     Returns (slope (..., 2), used (..., 2) bool: the quadratic's derivative taken, var
     (..., 2) its variance where taken, else 0)."""
-    lead = torch.broadcast_shapes(g.shape[:-2], dt.shape[:-1])
-    g = g.expand(*lead, *g.shape[-2:]).double()
-    t = dt.to(torch.float64).expand(*lead, dt.shape[-1])
+    g = g.double()
+    t = dt.to(torch.float64)  # the design depends on the times alone: made at their shape
     line = window_slope(g, t)
     n = t.shape[-1]
     zero = torch.zeros_like(line)
-    shifted = t.mean(-1).abs() > 1e-9
-    if n < 3 or not bool(shifted.any()):
+    shifted = t.mean(-1).abs() > 1e-9  # (t's leading shape)
+    if n < 3 or not bool(shifted.any()) or (frame_var is None and n < 4):
         return line, torch.zeros_like(line, dtype=torch.bool), zero
     a = torch.stack([torch.ones_like(t), t, t * t], -1)  # (..., T, 3)
     inv = torch.linalg.inv(a.transpose(-1, -2) @ a)  # (..., 3, 3)
     coef = inv @ (a.transpose(-1, -2) @ g)  # (..., 3, 2)
     if frame_var is None:
-        if n < 4:
-            return line, torch.zeros_like(line, dtype=torch.bool), zero
-        resid = g - a @ coef
-        fv = resid.square().sum(-2) / (n - 3)  # (..., 2)
+        fv = (g - a @ coef).square().sum(-2) / (n - 3)  # (..., 2) the residuals'
     else:
-        fv = frame_var.to(torch.float64).expand(*lead).unsqueeze(-1).expand_as(line)
+        fv = frame_var.to(torch.float64).unsqueeze(-1)
     z = coef[..., 2, :].abs() / (fv * inv[..., 2, 2].unsqueeze(-1)).sqrt().clamp(min=1e-30)
     used = shifted.unsqueeze(-1) & (z > CURVATURE_Z)
     slope = torch.where(used, coef[..., 1, :], line)
