@@ -37,6 +37,20 @@ __all__ = ["report_velocity", "target_slope", "CURVATURE_Z"]
 #: movie's ends or next to a load step) above which its velocity at the target is taken
 #: from the local quadratic, not the window's line (:func:`target_slope`)
 CURVATURE_Z = 3.0
+#: the same false-alarm rate (0.27 %) where the curvature is tested against the window's own
+#: residuals: Student's t quantiles for 1 .. 20 degrees of freedom (a 5-frame window has 2:
+#: 19.2, where 3 would pass one window in ten without a bend), scaled with CURVATURE_Z
+_T_LIMITS = (235.78, 19.21, 9.22, 6.62, 5.51, 4.90, 4.53, 4.28, 4.09, 3.96, 3.85, 3.76, 3.69,
+             3.64, 3.59, 3.54, 3.51, 3.48, 3.45, 3.42)
+
+
+def _curvature_limit(dof: int | None) -> float:
+    """The curvature's z limit: :data:`CURVATURE_Z` for a known noise (``dof`` None), else
+    the t quantile of its false-alarm rate for ``dof`` residual degrees of freedom."""
+    if dof is None:
+        return CURVATURE_Z
+    z = _T_LIMITS[dof - 1] if dof <= len(_T_LIMITS) else 3.0 * (1 + 10.0 / (4 * dof))
+    return z * CURVATURE_Z / 3.0
 
 
 def target_slope(g: torch.Tensor, dt: torch.Tensor, frame_var: torch.Tensor | None = None
@@ -46,7 +60,8 @@ def target_slope(g: torch.Tensor, dt: torch.Tensor, frame_var: torch.Tensor | No
     the least-squares line's slope, which is the derivative at the window's mean time;
     where the window is shifted (its mean time is not the target's: the movie's first and
     last frames, a load step) and the motion's curvature over it is significant (a local
-    quadratic's ``c2`` beyond :data:`CURVATURE_Z` standard errors), the quadratic's
+    quadratic's ``c2`` beyond :data:`CURVATURE_Z` standard errors, or the t quantile of the
+    same false-alarm rate where they come from the residuals), the quadratic's
     derivative at dt = 0 (an accelerating motion's line over frames 0..12 gives its
     velocity at frame 6 to frame 0). ``frame_var`` (...,): the variance of one frame's
     displacement about the motion (default: the quadratic's residuals, T >= 4).
@@ -69,7 +84,8 @@ def target_slope(g: torch.Tensor, dt: torch.Tensor, frame_var: torch.Tensor | No
     else:
         fv = frame_var.to(torch.float64).unsqueeze(-1)
     z = coef[..., 2, :].abs() / (fv * inv[..., 2, 2].unsqueeze(-1)).sqrt().clamp(min=1e-30)
-    used = shifted.unsqueeze(-1) & (z > CURVATURE_Z)
+    used = shifted.unsqueeze(-1) & (z > _curvature_limit(None if frame_var is not None
+                                                        else n - 3))
     slope = torch.where(used, coef[..., 1, :], line)
     var = torch.where(used, fv * inv[..., 1, 1].unsqueeze(-1), 0.0)
     return slope, used, var
