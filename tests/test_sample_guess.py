@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import torch
+from renders import speckle_movie  # tests/ on the path
 
 import torch_stsdic as sts
 from torch_stsdic.movie.sample_guess import GUESS_TOL, MeasuredSample
-from torch_stsdic.synth import Translation, make_speckle, render_series
+from torch_stsdic.synth import Translation
 
 
 def _field(p: torch.Tensor, t: float) -> tuple[torch.Tensor, torch.Tensor]:
@@ -127,10 +128,7 @@ def test_a_run_starts_its_first_block_from_the_pass_and_lands_on_the_same_minimu
     """STS(5) with the shared motion measured: the first block starts from the pass's
     solutions (no FFT cross-correlation there) and gives what FFT starts give."""
     times = torch.arange(0.0, 9)
-    ref, frames = render_series(make_speckle((121, 121), seed=4), (121, 121),
-                                Translation(ut=0.37, vt=-0.21), times[1:], noise_sigma=2.0,
-                                seed=5)
-    movie = torch.cat([ref[None], frames])
+    movie = speckle_movie(Translation(ut=0.37, vt=-0.21), times)
     kw = dict(config=sts.DICConfig(m=2), step=10, progress=False, frames=[4])
     guessed = sts.track(movie, **kw)
     plain = sts.track(movie, shared_motion=None, **kw)

@@ -4,6 +4,7 @@ measured robustly from all points and carried as a known term in every window.""
 import numpy as np
 import pytest
 import torch
+from renders import speckle_movie  # tests/ on the path
 
 import torch_stsdic as sts
 import torch_stsdic.nn as sts_nn
@@ -368,9 +369,7 @@ def test_velocities_stay_on_their_side_of_a_uniform_load_step(monkeypatch):
         return e * (x - c) + 0.02 * t, -0.3 * e * (y - c)
 
     times = torch.arange(0.0, 25)
-    ref, frames = render_series(make_speckle((121, 121), seed=4), (121, 121), Custom(fn),
-                                times[1:], noise_sigma=2.0, seed=5)
-    movie = torch.cat([ref[None], frames])
+    movie = speckle_movie(Custom(fn), times)
 
     def velocity_error(r):
         gt = ground_truth(Custom(fn), r.points.double(), times)
@@ -410,9 +409,7 @@ def test_auto_carries_a_smooth_motion_that_is_not_affine_in_time(monkeypatch):
         return e * (x - c) + 0.3 * (1 - torch.exp(-t / 5.0)), -0.3 * e * (y - c) - 0.02 * t
 
     times = torch.arange(0.0, 21)
-    ref, frames = render_series(make_speckle((121, 121), seed=4), (121, 121),
-                                Custom(relaxing), times[1:], noise_sigma=2.0, seed=5)
-    movie = torch.cat([ref[None], frames])
+    movie = speckle_movie(Custom(relaxing), times)
     res = sts.track(movie, config=sts.DICConfig(m=4), step=10, progress=False)
     sm = res.shared_motion
     assert sm.significance() < SIGNIFICANT  # no jitter

@@ -7,12 +7,13 @@ import math
 import numpy as np
 import pytest
 import torch
+from renders import speckle_movie  # tests/ on the path
 
 import torch_stsdic as sts
 from torch_stsdic.core.solver import SubsetSolver
 from torch_stsdic.movie import velocity_point
 from torch_stsdic.movie.velocity_point import refer_to_points, velocity_maps
-from torch_stsdic.synth import Custom, ground_truth, make_speckle, render_series
+from torch_stsdic.synth import Custom, ground_truth
 
 
 def test_maps_are_the_gradient_weighted_centroid():
@@ -77,9 +78,7 @@ def test_velocities_of_a_growing_strain_refer_to_the_points(monkeypatch):
         return 0.05 * t + 6e-4 * t * (x - c), -0.03 * t + 4e-4 * t * (y - c)
 
     times = torch.arange(0.0, 21)
-    ref, frames = render_series(make_speckle((121, 121), seed=4), (121, 121), Custom(fn),
-                                times[1:], noise_sigma=2.0, seed=5)
-    movie = torch.cat([ref[None], frames])
+    movie = speckle_movie(Custom(fn), times)
 
     def per_point_error(r):
         gt = ground_truth(Custom(fn), r.points.double(), times)
