@@ -260,3 +260,26 @@ def test_kernel_compiles_for_a_gpu(tmp_path):
     # compiler then does not carry them and returns the starting parameters as the last step's
     # on a GPU (what the first H200 run of this solver showed), while the interpreter is right.
     assert [int(n) for n in out[2::3]] == [2 * 8 + 4, 6 + 4], out
+
+
+@needs_device
+def test_rows_with_a_zero_inverse_hessian_stop_where_they_start():
+    """``point_solve`` gives the rows it does not iterate (no texture, a singular Hessian) a
+    zero inverse Hessian rather than leaving them out (no index of the rows, no host read):
+    such a row takes one zero step and stops where it started, in the C++ solver and in the
+    Triton solver alike, and the other rows are unchanged by it."""
+    a, k = _native_calls(2, "float32", "znssd")[-1]
+    a = list(a)
+    base = native.ic_solve(*a, **k)
+    dead = torch.zeros(a[2].shape[0], dtype=torch.bool)
+    dead[::3] = True
+    a[20] = torch.where(dead.view(-1, 1, 1), 0.0, a[20])
+    want = native.ic_solve(*a, **k)
+    inside = want[2] != int(sts.Status.OUTSIDE)
+    assert bool((dead & inside).any())
+    assert torch.equal(want[0][dead], a[2][dead].to(want[0].dtype))
+    assert bool((want[3][dead & inside] == 1).all())
+    assert bool((want[2][dead & inside] == int(sts.Status.CONVERGED)).all())
+    for got, ref in zip(want[:4], base[:4]):
+        assert torch.equal(got[~dead], ref[~dead])
+    _assert_same(want, _triton(a, k), 1e-5)

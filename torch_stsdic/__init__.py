@@ -26,7 +26,7 @@ from torch_stsdic.core.config import DICConfig
 from torch_stsdic.core.interpolation import BSplineImage, bspline_prefilter
 from torch_stsdic.core.noise import estimate_noise_sigma, predicted_std
 from torch_stsdic.core.shape import AffineShape, QuadraticShape, ShapeFunction, make_shape
-from torch_stsdic.core.solver import SubsetSolver, WindowSolution, solve_window
+from torch_stsdic.core.solver import SubsetSolver, WindowSolution
 from torch_stsdic.core.status import Status, usable
 from torch_stsdic.core.window import (
     CircularWindow,
@@ -35,6 +35,7 @@ from torch_stsdic.core.window import (
     SubsetWindow,
     make_window,
 )
+from torch_stsdic.core.window_solve import solve_window
 from torch_stsdic.io import ImageSeries, InputError, ResultWriter, load_series, read_results
 from torch_stsdic.kernels.native import set_native
 from torch_stsdic.movie.plan import RunPlan, plan_run

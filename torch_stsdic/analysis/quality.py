@@ -336,6 +336,12 @@ def nanmedian_rows(x: Tensor) -> Tensor:
     return torch.nanmedian(x, dim=-1).values
 
 
+#: :func:`carried_neighbours` fits the plane of the neighbours' gradients at every row where
+#: it has at most this many (B x N: a lost point's guess), not only where it is needed (one
+#: host read fewer; a row's plane does not depend on the others)
+PLANE_EVERY_ROW = 4096
+
+
 def carried_neighbours(values: Tensor, valid: Tensor, nb: Tensor, points: Tensor | None = None,
                        gradients: Tensor | None = None, at: Tensor | None = None) -> Tensor:
     """(B, N, k, C): the ``valid`` (B, N) neighbours ``nb`` (N, k) of every point, their
@@ -374,12 +380,21 @@ def carried_neighbours(values: Tensor, valid: Tensor, nb: Tensor, points: Tensor
         med = nanmedian_rows(gm)
         mad = nanmedian_rows((gm - med.unsqueeze(-1)).abs_())
         own = valid.view(*valid.shape, 1, 1) & ((g - med).abs() <= 3.0 * mad + GRADIENT_TOL)
-        g_at = g.clone()  # the gradient at each point
+        g_at = g.clone(memory_format=torch.contiguous_format)  # the gradient at each point
         fit = ~own.flatten(-2).all(-1)  # (B, N): the plane fit of the neighbours is needed
-        if bool(fit.any()):
-            dd = d.view(1, n, -1, 2).expand(g.shape[0], -1, -1, -1)[fit]  # (M, k, 2)
-            plane = _gradient_at(gn[fit].unsqueeze(0), use[fit].unsqueeze(0), dd.unsqueeze(0))[0]
-            g_at[fit] = torch.where(own[fit], g[fit], plane)
+        if fit.numel() <= PLANE_EVERY_ROW:  # few rows: the plane at all (no host read)
+            g_at = torch.where(own, g, _gradient_at(gn, use, d.view(1, n, -1, 2)))
+            at_fit = fit.new_empty(0)
+        else:
+            at_fit = torch.nonzero(fit.reshape(-1)).flatten()  # one index for all (one read)
+        if at_fit.numel():
+
+            def rows(t: Tensor) -> Tensor:  # (M, ...) the (B, N, ...) rows that need it
+                return t.reshape(-1, *t.shape[2:])[at_fit]
+            dd = rows(d.view(1, n, -1, 2).expand(g.shape[0], -1, -1, -1))  # (M, k, 2)
+            plane = _gradient_at(rows(gn).unsqueeze(0), rows(use).unsqueeze(0),
+                                 dd.unsqueeze(0))[0]
+            g_at.view(-1, *g_at.shape[2:])[at_fit] = torch.where(rows(own), rows(g), plane)
         vn = vn + (0.5 * (torch.nan_to_num(gn) + g_at.unsqueeze(2)) * d).sum(-1)
     return torch.where(use.unsqueeze(-1), vn, torch.nan)
 

@@ -31,7 +31,7 @@ from torch_stsdic.core.status import Status
 from torch_stsdic.kernels import dispatch
 from torch_stsdic.kernels.linalg import spd_inverse
 
-__all__ = ["BatchContext", "ReferenceCache", "solve_batch"]
+__all__ = ["BatchContext", "KeptToken", "ReferenceCache", "keep_subsets", "solve_batch"]
 
 #: the slowest convergence assumed when the next increment is predicted from the last two
 #: (:func:`_next_increment`): at a faster observed rate the prediction uses this one. Chosen
@@ -65,6 +65,8 @@ class ReferenceCache:
         # grown by doubling (not a concatenation per solve: that copied every kept row)
         self._store: dict[str, torch.Tensor] = {}
         self.count = 0
+        #: bumped whenever the kept subsets are dropped (:meth:`token`)
+        self.generation = 0
 
     @property
     def rows(self) -> dict[str, torch.Tensor]:
@@ -73,6 +75,12 @@ class ReferenceCache:
 
     def _empty(self) -> None:
         self._store, self.count = {}, 0
+        self.generation += 1
+
+    def token(self) -> tuple[ReferenceCache, int]:
+        """What :func:`keep_subsets` returns: the cache and its generation, which a solve
+        compares (``BatchContext.kept``) on the host: the same while nothing was dropped."""
+        return (self, self.generation)
 
     def applies(self, ref: BSplineImage, geo: Geometry) -> bool:
         """The cache serves subsets of ``ref`` with ``geo`` (emptied first when ``ref`` is
@@ -124,6 +132,10 @@ class ReferenceCache:
         self.count = end
 
 
+#: :meth:`ReferenceCache.token`: the cache and its generation
+KeptToken = tuple[ReferenceCache, int]
+
+
 @dataclass
 class BatchContext:
     """What every batch of one solve shares: geometry, images, settings."""
@@ -145,6 +157,9 @@ class BatchContext:
     #: <torch_stsdic.core.solver.SubsetSolver.solve>` snaps the others first): not tested
     #: on the host; False: tested
     on_grid: bool = False
+    #: :func:`keep_subsets`'s token where the caller put every point's reference subsets in
+    #: ``cache`` (the rows' misses are then not counted: no host read); None: counted
+    kept: KeptToken | None = None
 
     def batch_size(self, t: int) -> int:
         """POIs per batch within ``cfg.memory_mb``."""
@@ -365,7 +380,21 @@ def _cached_reference_data(ctx: BatchContext, pts, dt, fidx, ridx, key):
     """:func:`_reference_data` through ``ctx.cache``: the distinct points not kept yet are
     sampled (as there) and kept, then every row takes its point's kept subsets. None where
     they would exceed the cache's budget (the cache is then off). One host read where every
-    point is kept (the rows' count of misses); the distinct points only where some miss."""
+    point is kept (the rows' count of misses; none where the caller kept them all,
+    ``ctx.kept``: :func:`keep_subsets`); the distinct points only where some miss."""
+    cache = ctx.cache
+    if ctx.kept != cache.token() and not _keep_missing(ctx, pts, dt, fidx, ridx, key):
+        return None
+    kept = cache.rows
+    data = SubsetData(px=pts, py=pts, dt=dt, fidx=fidx, ft=kept["ft"], fnorm=kept["fnorm"],
+                      gx=kept["gx"], gy=kept["gy"], gram=kept["gram"], texture=kept["texture"])
+    return _rows_of(ctx, data, cache.slot[key], pts, dt, fidx)
+
+
+def _keep_missing(ctx: BatchContext, pts, dt, fidx, ridx, key) -> bool:
+    """The reference subsets of the rows ``key`` (N,) (pixel keys of ``pts``) that
+    ``ctx.cache`` misses, sampled and kept (one host read: the misses' count); False where
+    they would exceed its budget (the cache is then off)."""
     cache, geo = ctx.cache, ctx.geo
     miss_rows = cache.slot[key] < 0
     if int(miss_rows.sum()):
@@ -374,13 +403,31 @@ def _cached_reference_data(ctx: BatchContext, pts, dt, fidx, ridx, key):
         uniq, inv = torch.unique(key[rows], return_inverse=True)
         s = int(geo.w.numel())
         if not cache.fits(uniq.shape[0], s, ctx.ref.coeffs.element_size(), 2 * (geo.ks + 1)):
-            return None
+            return False
         cache.add(uniq, _sampled(ctx, pts, dt, fidx, ridx,
                                  rows[_first_rows(inv, uniq.shape[0])]))
-    kept = cache.rows
-    data = SubsetData(px=pts, py=pts, dt=dt, fidx=fidx, ft=kept["ft"], fnorm=kept["fnorm"],
-                      gx=kept["gx"], gy=kept["gy"], gram=kept["gram"], texture=kept["texture"])
-    return _rows_of(ctx, data, cache.slot[key], pts, dt, fidx)
+    return True
+
+
+def keep_subsets(ctx: BatchContext, pts: torch.Tensor) -> KeptToken | None:
+    """Put the reference subsets of the points ``pts`` (N, 2) (reference 0; at the pixels a
+    solve snaps them to) in ``ctx.cache`` (those it misses sampled: one host read) and
+    return its token
+    (:meth:`ReferenceCache.token`): a solve of any of these points given it as
+    ``BatchContext.kept`` reads their subsets from the cache with no host read. None where
+    the cache does not serve them (none, another geometry, over its budget)."""
+    cache = ctx.cache
+    if cache is None or not cache.applies(ctx.ref, ctx.geo):
+        return None
+    n = pts.shape[0]
+    pts = pts.detach().round()  # the pixels a solve snaps its points to
+    ij = pts.long()
+    key = ij[:, 1] * ctx.ref.width + ij[:, 0]
+    zero = torch.zeros(n, 1, dtype=pts.dtype, device=pts.device)
+    ridx = torch.zeros(n, dtype=torch.long, device=pts.device)
+    if not _keep_missing(ctx, pts, zero, ridx.unsqueeze(1), ridx, key):
+        return None
+    return cache.token()
 
 
 def _uncertainty(ctx: BatchContext, data: SubsetData, params, zncc, ok):

@@ -86,31 +86,49 @@ def solve_stage(ctx, form, params: Tensor, data: SubsetData, live: Tensor, frame
         return None
     cfg, geo, frames = ctx.cfg, ctx.geo, ctx.frames
     n = params.shape[0]
-    device, dtype = params.device, params.dtype
-    params, zncc, status, used, rows, data = start_stage(form, geo, params, data, live)
-    if data is None:
-        return params, zncc, status, used, None
+    dtype = params.dtype
+    if n == 0:
+        return start_stage(form, geo, params, data, live)[:4] + (None,)
+    params, zncc, status, alive, data = _start_every_row(form, geo, params, data, live)
     scale = geo.shape.increment_scale(geo.spatial, data.dt)
-    prev = (torch.zeros(rows.numel(), dtype=dtype, device=device) if step0 is None
-            else step0[rows].to(dtype).nan_to_num(0.0))
+    prev = (torch.zeros_like(params[:, 0]) if step0 is None
+            else step0.to(dtype).nan_to_num(0.0))
     ka = frames.kernel_args()
     solve = native.ic_solve if backend == "native" else fused_step.ic_solve
-    p, zn, st, it, last_rows = solve(
-        ka, frames.order, params[rows], data.px, data.py, geo.dx, geo.dy, geo.spatial,
+    # a row not iterated starts at zero (its own POI: finite numbers for the kernel)
+    start = torch.where(alive.unsqueeze(1), params, 0.0)
+    p, zn, st, it, last = solve(
+        ka, frames.order, start, data.px, data.py, geo.dx, geo.dy, geo.spatial,
         data.dt, data.fidx * ka[-1], data.ft, data.fnorm, data.gx, data.gy, geo.w,
         frames.width, frames.height, geo.k, geo.shape.has_time, geo.znssd, data.hinv, scale,
         prev, cfg.tol, cfg.max_iter, 4.0 * geo.half, rate_floor, CODES, motion=data.motion,
         ref_rows=data.ref_rows, frame_rhs=frame_rhs)
-    params[rows] = p.to(dtype)
-    zncc[rows] = zn.to(dtype)
-    status[rows] = st
-    used[rows] = it
-    last = None
+    # the rows not iterated (not live, or a singular Hessian) as start_stage leaves them
+    params = torch.where(alive.unsqueeze(1), p.to(dtype), params)
+    zncc = torch.where(alive, zn.to(dtype), zncc)
+    status = torch.where(alive, st, status)
+    used = torch.where(alive, it, 0)
     if frame_rhs:
-        t_count = data.dt.shape[1]
-        last = (torch.full_like(params, float("nan")),
-                torch.full((n, t_count, 2 * geo.ks + 1), float("nan"), dtype=torch.float64,
-                           device=device))
-        last[0][rows] = last_rows[0].to(dtype)
-        last[1][rows] = last_rows[1]
+        last = (torch.where(alive.unsqueeze(1), last[0].to(dtype), float("nan")),
+                torch.where(alive.view(-1, 1, 1), last[1], float("nan")))
     return params, zncc, status, used, last
+
+
+def _start_every_row(form, geo, params: Tensor, data: SubsetData, live: Tensor):
+    """:func:`start_stage` for a kernel that iterates every row, with no host
+    synchronisation (no index of the rows to iterate): the rows not to iterate (not
+    ``live``, or their Hessian singular: LOW_TEXTURE) get a zero inverse Hessian, so their
+    one step is zero (they stop at once, their parameters unchanged, their numbers dropped
+    by the caller: :func:`solve_stage`). A row's numbers do not depend on the others', so
+    the rows iterated give what they give alone. Returns params (a copy), zncc (NaN), status
+    (MAX_ITER until decided; LOW_TEXTURE where singular), the (N,) bool rows iterated and
+    data (every row, its Hessian prepared)."""
+    n = params.shape[0]
+    device, dtype = params.device, params.dtype
+    status = torch.full((n,), int(Status.MAX_ITER), dtype=torch.int8, device=device)
+    zncc = torch.full((n,), float("nan"), dtype=dtype, device=device)
+    sing = form.prepare(geo, data)
+    status.masked_fill_(live & sing, int(Status.LOW_TEXTURE))
+    alive = live & ~sing
+    data.hinv = torch.where(alive.view(-1, 1, 1), data.hinv, 0.0)
+    return params.clone(), zncc, status, alive, data

@@ -39,8 +39,10 @@ from torch_stsdic.core.config import DICConfig
 from torch_stsdic.core.formulations import Formulation, Geometry
 from torch_stsdic.core.gauss_newton import (
     BatchContext,
+    KeptToken,
     ReferenceCache,
     classical_step_width,
+    keep_subsets,
     solve_batch,
 )
 from torch_stsdic.core.initial import (
@@ -55,18 +57,16 @@ from torch_stsdic.core.interpolation import BSplineImage
 from torch_stsdic.core.offgrid import carry_params, carry_solution, snap_points
 from torch_stsdic.core.pyramid import PyramidStack
 from torch_stsdic.core.shape import ShapeFunction, make_shape
-from torch_stsdic.core.shared_motion import known_window_motion
 from torch_stsdic.core.solution import (
     WindowSolution,
     classical_step_info,
     packed_classical_step,
 )
 from torch_stsdic.core.status import Status
-from torch_stsdic.core.validation import as_image, as_points, as_series, as_times, check_init
 from torch_stsdic.core.window import make_window
 from torch_stsdic.kernels.native.rows import in_own_threads, own_threads
 
-__all__ = ["WindowSolution", "SubsetSolver", "solve_window", "subset_inside"]
+__all__ = ["WindowSolution", "SubsetSolver", "subset_inside"]
 
 
 class SubsetSolver:
@@ -114,6 +114,21 @@ class SubsetSolver:
         """The Gauss-Newton stages (formulations) run for ``shape`` (see :func:`shape_for`)."""
         return formulations.stages(self.config.formulation, shape)
 
+    def keep_reference_subsets(self, ref: BSplineImage, points: torch.Tensor
+                               ) -> KeptToken | None:
+        """Put the reference subsets of the whole-pixel ``points`` (N, 2) (their dtype the
+        solves') of ``ref`` (reference 0) in :attr:`reference_cache` (one host read), and
+        return the token that lets a later :meth:`solve` of any of them (``kept=``) read
+        them there with no host read; None where the cache does not serve them."""
+        if self.reference_cache is None or points.shape[0] == 0:
+            return None
+        geo = Geometry.make(self.shape, self.window, self.config.criterion, points.dtype,
+                            points.device)
+        ctx = BatchContext(geo=geo, ref=ref, frames=ref, cfg=self.config,
+                           stages=self.stages_for(self.shape), grey_range=1.0,
+                           cache=self.reference_cache, on_grid=True)
+        return keep_subsets(ctx, points)
+
     def shape_for(self, dt: torch.Tensor, has_time: bool | None = None) -> ShapeFunction:
         """The shape function used for frame offsets ``dt``: without temporal terms when all
         frames are at the same time (one frame, m = 0: classical DIC). ``has_time``: that
@@ -147,6 +162,7 @@ class SubsetSolver:
         on_grid: bool = False,
         has_time: bool | None = None,
         all_inside: bool = False,
+        kept: KeptToken | None = None,
     ) -> WindowSolution:
         """Solve many POIs, each against its own window of frames.
 
@@ -199,6 +215,9 @@ class SubsetSolver:
             all_inside: the caller knows that every subset (at ``centres`` where given)
                 lies inside ``ref`` (:func:`subset_inside`): the rows are not chosen on the
                 host. False: the subsets outside are found and left OUTSIDE.
+            kept: :meth:`keep_reference_subsets`'s token for these points (and
+                ``centres``): their reference subsets are read from the cache with no host
+                read of its misses. None: the misses are counted (one host read a batch).
         """
         moved = None
         if centres is not None:
@@ -211,7 +230,7 @@ class SubsetSolver:
             return self._solve_on_grid(ref, frames, points, dt, frame_index, ref_index, init,
                                        ref_pixels, frame_pixels, time, noise_ratio, motion,
                                        classical_step, init_step, pyramids, has_time,
-                                       all_inside)
+                                       all_inside, kept)
         grid, _ = snap_points(points if centres is None else centres)
         offset = points - grid
         # off the pixel grid (known where the caller says so): solve on it, carry the result
@@ -224,7 +243,7 @@ class SubsetSolver:
                              frame_pixels=frame_pixels, time=time, noise_ratio=noise_ratio,
                              motion=motion, classical_step=classical_step,
                              init_step=init_step, pyramids=pyramids, on_grid=True,
-                             has_time=has_time, all_inside=all_inside)
+                             has_time=has_time, all_inside=all_inside, kept=kept)
             if classical_step:  # known at the subset centre only
                 off = (offset != 0).any(1, keepdim=True)
                 sol.info.update(classical_step_info(packed_classical_step(sol.info).masked_fill(
@@ -233,13 +252,14 @@ class SubsetSolver:
             return carry_solution(sol, points, offset, snapped=0 if on_grid else None)
         return self._solve_on_grid(ref, frames, points, dt, frame_index, ref_index, init,
                                    ref_pixels, frame_pixels, time, noise_ratio, motion,
-                                   classical_step, init_step, pyramids, has_time, all_inside)
+                                   classical_step, init_step, pyramids, has_time, all_inside,
+                                   kept)
 
     def _solve_on_grid(self, ref: BSplineImage, frames: BSplineImage, points: torch.Tensor,
                        dt, frame_index, ref_index, init, ref_pixels, frame_pixels, time,
                        noise_ratio: float, motion, classical_step: bool, init_step,
                        pyramids=None, has_time: bool | None = None,
-                       all_inside: bool = False) -> WindowSolution:
+                       all_inside: bool = False, kept: KeptToken | None = None) -> WindowSolution:
         """:meth:`solve` for POIs on the pixel grid with centred subsets."""
         n = points.shape[0]
         dt, frame_index, ref_index = _per_point(points, dt, frame_index, ref_index)
@@ -266,7 +286,7 @@ class SubsetSolver:
         guess = {"method": "fft" if init is None else "given", "fft_s": t_fft}
         return self._solve_batches(ref, frames, shape, points, dt, frame_index, ref_index,
                                    inside, p0, motion, init_step, ref_pixels, time,
-                                   noise_ratio, classical_step, guess, all_inside)
+                                   noise_ratio, classical_step, guess, all_inside, kept)
 
     def _initial_params(self, shape: ShapeFunction, init, inside: torch.Tensor,
                         points: torch.Tensor, dt: torch.Tensor, frame_index: torch.Tensor,
@@ -298,8 +318,8 @@ class SubsetSolver:
                        points: torch.Tensor, dt: torch.Tensor, frame_index: torch.Tensor,
                        ref_index: torch.Tensor, inside: torch.Tensor, p0: torch.Tensor,
                        motion, init_step, ref_pixels, time, noise_ratio: float,
-                       classical_step: bool, guess: dict, all_inside: bool = False
-                       ) -> WindowSolution:
+                       classical_step: bool, guess: dict, all_inside: bool = False,
+                       kept: KeptToken | None = None) -> WindowSolution:
         """Gauss-Newton from ``p0`` for the POIs ``inside``, in batches within the memory
         budget (:func:`~torch_stsdic.core.gauss_newton.solve_batch`); the others OUTSIDE."""
         cfg = self.config
@@ -323,6 +343,7 @@ class SubsetSolver:
             work=int(todo.numel()) * t_count * int(geo.w.numel()),
             noise_ratio=float(noise_ratio), cache=self.reference_cache,
             classical_step=classical_step, on_grid=True,  # reached with grid points only
+            kept=kept,
         )
         std = torch.full_like(params, float("nan"))
         sigma = torch.full_like(zncc, float("nan"))
@@ -620,81 +641,3 @@ def subset_inside(points: torch.Tensor, half: float, h: int, w: int) -> torch.Te
     return ((points[:, 0] - half >= 0) & (points[:, 0] + half <= w - 1)
             & (points[:, 1] - half >= 0) & (points[:, 1] + half <= h - 1))
 
-
-# ---------------------------------------------------------------------------------------
-# on the CPU the inputs' conversion runs in the scope too: outside it, torch's spinning OpenMP
-# threads (torch imported first) under load made it cost ~0.09 s a call (issue 46)
-@in_own_threads(0, "ref")
-def solve_window(
-    ref,
-    frames,
-    points,
-    config: DICConfig | None = None,
-    times=None,
-    init=None,
-    center: int | None = None,
-    shared_motion=None,
-    centres=None,
-) -> WindowSolution:
-    """Measure displacement and velocity at many POIs from one window of 2m+1 frames.
-
-    Args:
-        ref: reference image f, (H, W) tensor or array (grey; any real dtype).
-        frames: the window's deformed frames g_t in time order, (2m+1, H, W); (H, W) is
-            accepted when m = 0.
-        points: (N, 2) POIs as (x, y) in px (x = column, y = row, 0-based).
-        config: a :class:`DICConfig` (default DICConfig()).
-        times: (2m+1,) frame times (default 0, 1, ..., 2m: frame units).
-        init: optional initial guess per POI: (N, 2) (u, v), (N, 4) (u, v, ut, vt) or
-            (N, P) full parameters; default: FFT cross-correlation within
-            ``config.search_radius`` on every frame of the window, then a line fit in time.
-        center: index of the frame the results refer to (default m, the window centre; a
-            shifted window at the ends of a movie uses another index).
-        shared_motion: the specimen's known displacement (u, v) px in every frame, (2m+1, 2)
-            (the same at every POI: a rigid shake) or (N, 2m+1, 2); its jitter about a line in
-            time is carried in every warp (:mod:`torch_stsdic.core.shared_motion`), so u, v stay
-            the total displacement and ut, vt the smooth velocity. None: none.
-        centres: (N, 2) px where each POI's subset is centred (default: the POI itself): an
-            off-centre subset, e.g. kept inside the image where its point nears the border;
-            the solution is carried to the POI by the subset's gradients (u += ux dx + uy dy),
-            its predicted std with them.
-
-    Returns:
-        :class:`WindowSolution` on the input's device: u, v, ut, vt (N,), params (N, P),
-        zncc (N,), status (N,), iterations (N,).
-    """
-    cfg = config if config is not None else DICConfig()
-    if not isinstance(cfg, DICConfig):
-        raise TypeError(f"config must be a DICConfig, got {type(cfg).__name__}")
-    ref_t = as_image(ref, "ref", dtype=cfg.dtype)
-    frames_t = as_series(frames, "frames", dtype=ref_t.dtype, device=ref_t.device,
-                         like=ref_t, m=cfg.m)
-    n_frames = frames_t.shape[0]
-    if n_frames != cfg.n_frames:
-        raise ValueError(
-            f"frames: config.m = {cfg.m} needs 2m+1 = {cfg.n_frames} frames, got {n_frames}"
-            + (" (m is larger than the frames given)" if n_frames < cfg.n_frames else "")
-        )
-    if min(ref_t.shape) < cfg.subset_size:
-        raise ValueError(
-            f"subset_size {cfg.subset_size} is larger than the image {tuple(ref_t.shape)}"
-        )
-    pts = as_points(points, "points", dtype=ref_t.dtype, device=ref_t.device)
-    t = as_times(times, n_frames, dtype=ref_t.dtype, device=ref_t.device)
-    c = cfg.m if center is None else int(center)
-    if not 0 <= c < n_frames:
-        raise ValueError(f"center must be in 0..{n_frames - 1}, got {center}")
-    init_t = check_init(init, pts.shape[0], dtype=ref_t.dtype, device=ref_t.device)
-    solver = SubsetSolver(cfg)
-    ref_img = solver.prepare(ref_t)
-    frames_img = solver.prepare(frames_t)
-    motion = None
-    if shared_motion is not None:
-        motion = known_window_motion(shared_motion, (t - t[c]).expand(pts.shape[0], -1))
-    centres_t = None  # one per point: SubsetSolver.solve checks that
-    if centres is not None:
-        centres_t = as_points(centres, "centres", dtype=ref_t.dtype, device=ref_t.device)
-    return solver.solve(
-        ref_img, frames_img, pts, t - t[c], init=init_t, ref_pixels=ref_t.unsqueeze(0),
-        frame_pixels=frames_t, time=float(t[c]), motion=motion, centres=centres_t,
-    )

@@ -38,7 +38,7 @@ from torch_stsdic.core.status import Status
 from torch_stsdic.movie.block_start import pilot_shift, window_shake
 from torch_stsdic.movie.carry import Carry
 from torch_stsdic.movie.checks import CHECK_ITER, CHECK_TOL, BlockChecks
-from torch_stsdic.movie.frames import FrameCache, block_frames, half_widths, window_frames
+from torch_stsdic.movie.frames import FrameCache, block_frames, rows_by_half_width, window_frames
 from torch_stsdic.movie.reference import Reference, noise_ratio, to_relative, to_total
 from torch_stsdic.movie.rescue import BlockRescue
 from torch_stsdic.movie.sample_guess import MeasuredSample
@@ -188,6 +188,8 @@ class Block(BlockChecks, BlockRescue):
         self._motion: dict[int, torch.Tensor] = {}
         self._slope: dict[int, torch.Tensor] = {}
         self._shared_g: torch.Tensor | None = None  # (N, F, 2) shared motion, needed frames
+        # the POIs' reference subsets kept for every solve of the block (one host read)
+        self.kept = ref.kept_by(run.solver)
 
     def motion_of(self, m: int) -> torch.Tensor | None:
         """(B*N, 2m+1, 2) the shared motion's known part of every row's window frames
@@ -271,7 +273,7 @@ class Block(BlockChecks, BlockRescue):
             # known per run: the POIs' grid (the centres are whole pixels from them) and
             # the shape (a window of 2m+1 frames at distinct times has temporal terms)
             on_grid=on_grid, has_time=m_eff > 0, all_inside=inside and self.centres_inside,
-        )
+            kept=self.kept)
 
     def keep(self, idx: torch.Tensor, sol: WindowSolution, only_better: bool,
              m: int | None = None) -> None:
@@ -280,36 +282,31 @@ class Block(BlockChecks, BlockRescue):
         is higher). Parameters missing from ``sol`` (a classical solution has no ut, vt)
         are stored as NaN."""
         self.iters[idx] += sol.iterations
+        dt = self.run.dtype
+        take = None  # (R,) bool the rows stored (None: every row)
         if only_better:
-            new_ok = sol.status <= USABLE
             old_ok = self.status[idx] <= USABLE
-            take = new_ok & (~old_ok | (sol.zncc.to(self.run.dtype) > self.zncc[idx]))
+            take = (sol.status <= USABLE) & (~old_ok | (sol.zncc.to(dt) > self.zncc[idx]))
             take |= self.status[idx] == int(Status.NOT_COMPUTED)  # a reason beats none
-            take = torch.nonzero(take).flatten()  # one index for all (a mask syncs per tensor)
 
-            def pick(a: torch.Tensor) -> torch.Tensor:
-                return a[take]
-        else:  # every row (no copies of the solution's rows)
-            def pick(a: torch.Tensor) -> torch.Tensor:
-                return a
-        r = pick(idx)
+        def put(dst: torch.Tensor, new: torch.Tensor | float) -> None:  # no host read
+            dst[idx] = new if take is None else torch.where(
+                take.view(-1, *([1] * (dst.dim() - 1))), new, dst[idx])
         cols = [sol.param_names.index(nm) if nm in sol.param_names else -1
                 for nm in self.run.names]
-        p, sd = self._columns(pick(sol.params), cols), self._columns(
-            pick(sol.std) if sol.std is not None else None, cols, rows=r.numel())
-        self.params[r], self.std[r] = p, sd
+        put(self.params, self._columns(sol.params, cols))
+        put(self.std, self._columns(sol.std, cols, rows=idx.numel()))
         cstep = packed_classical_step(sol.info) if "classical_step" in sol.info else None
         if cstep is not None and self.check_start is None:
             self.check_start = torch.full((self.params.shape[0], cstep.shape[1]), float("nan"),
                                           dtype=self.params.dtype, device=self.params.device)
         if self.check_start is not None:
-            self.check_start[r] = float("nan") if cstep is None else pick(cstep).to(
-                self.params.dtype)
-        self.zncc[r] = pick(sol.zncc).to(self.run.dtype)
-        self.status[r] = pick(sol.status)
+            put(self.check_start, float("nan") if cstep is None else cstep.to(dt))
+        put(self.zncc, sol.zncc.to(dt))
+        put(self.status, sol.status)
         if sol.sigma is not None:
-            self.sigma[r] = pick(sol.sigma).to(self.run.dtype)
-        self.m_used[r] = self.run.m if m is None else m
+            put(self.sigma, sol.sigma.to(dt))
+        put(self.m_used, self.run.m if m is None else m)
 
     def _columns(self, a: torch.Tensor | None, cols: list[int], rows: int = 0) -> torch.Tensor:
         """(R, P) the run's parameter columns taken from ``a`` (R, P') (NaN where ``cols``
@@ -399,20 +396,21 @@ class Block(BlockChecks, BlockRescue):
         rows = carried.shape[0]
         left = carried.clone()  # carried rows without a window that stays in view yet
         shift = torch.zeros_like(self.pts)
+        idx = None
         for m in range(run.m, -1, -1):
             if m == run.m:
                 fit, d = self._placement(inits, self.dt, self.motion_of(m))
                 fit &= left
-            else:  # the rows left only (one host read a shorter window; none for the
-                # run's: a block whose carried rows all stay in view reads once here)
-                idx = torch.nonzero(left).flatten()
+            else:  # the rows left by the run's window only (one host read for all the
+                # shorter ones; a block whose carried rows all stay in view reads once here)
+                idx = torch.nonzero(left).flatten() if idx is None else idx
                 if not idx.numel():
                     break
                 motion = self.motion_of(m)
                 f_i, d_i = self._placement(
                     [init[idx] for init in inits], self.frames_of(self.windows(m))[1][idx],
                     None if motion is None else motion[idx], idx)
-                fit = torch.zeros_like(left).index_put_((idx,), f_i)
+                fit = torch.zeros_like(left).index_put_((idx,), f_i) & left
                 d = torch.zeros_like(shift).index_put_((idx,), d_i)
             shift = torch.where(fit.unsqueeze(1), d, shift)
             if m < run.m:  # (no test: an unused window_m is the run's m everywhere)
@@ -432,6 +430,8 @@ class Block(BlockChecks, BlockRescue):
             # rows moved by an earlier call (the block's carry, then its rescue) keep theirs
             base = self.pts if self.centres is None else self.centres
             self.centres = torch.where(moved.unsqueeze(1), self.pts + whole, base)
+            if self.kept is not None:  # and the moved subsets' (one host read)
+                self.kept = run.solver.keep_reference_subsets(self.ref.img, self.centres)
             off = (self.centres != self.pts).any(1).reshape(self.b, -1)
             per_target = off.sum(1).tolist()  # one read: which targets
             # each target's moved points, for the shared motion at their centres (one index)
@@ -518,8 +518,7 @@ def _shorter_again(blk: Block, cap: torch.Tensor) -> None:
     (``cap``: (B*N,) the longest half-width; a first block's FFT start, a rescue) are solved
     again with that half-width from their solution; kept where usable."""
     over = (blk.m_used > cap) & (blk.status <= USABLE)
-    for m in half_widths(cap, over, blk.run.m):
-        again = torch.nonzero(over & (cap == m)).flatten()
+    for m, again in rows_by_half_width(cap, over, blk.run.m):
         sol = blk.solve(again, blk.params[again], m=m)
         good = torch.nonzero(sol.status <= USABLE).flatten()
         if good.numel():
@@ -638,8 +637,7 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
         window_shake(blk, init, carried if has is None else carried & ~has, shake_vel)
     shorter = carried & (blk.window_m < run.m) if blk.window_m is not None else None
     if shorter is not None:  # points leaving the image within their window
-        for m in half_widths(blk.window_m, shorter, run.m):
-            r = torch.nonzero(shorter & (blk.window_m == m)).flatten()
+        for m, r in rows_by_half_width(blk.window_m, shorter, run.m):
             blk.keep(r, blk.solve(r, init[r], m=m), only_better=False, m=m)
         carried = carried & ~shorter
     idx_c = torch.nonzero(carried if pilot is None else carried & ~pilot).flatten()

@@ -101,7 +101,8 @@ class Carry:
         g_last = shared.displacement(points, last)[0]  # (N, 2)
         wm = self.window_m
         if wm is not None:  # (the row's velocity in the reported terms: shared_velocity)
-            for m in torch.unique(wm[wm > 0]).tolist():
+            counts = torch.bincount(wm.long().clamp(min=0)).tolist()  # one read
+            for m in [m for m, c in enumerate(counts) if c and m > 0]:
                 win = window_frames(last, shared.velocity_window(int(m)), len(ts),
                                     segments)[0]  # (T,)
                 g = shared.displacement(points, win).transpose(0, 1)  # (N, T, 2)
@@ -131,27 +132,27 @@ class Carry:
         stack = torch.stack([self.vals[nm] for nm in names] + [self.vel_u, self.vel_v]
                             + [self.rates[nm] for nm in rated], 1)
         ok = self.valid.clone()
-        for _ in range(rounds):
-            need = torch.nonzero(~ok).flatten()  # only those: ~0.2 of the work when 7 % are lost
-            if need.numel() == 0:
-                break
+        # only those (~0.2 of the work when 7 % are lost), chosen once: one host read for
+        # all the rounds (a round fills those of them its guess reaches; a guess of a point
+        # depends on its neighbours alone, so the rows filled before take no part)
+        need = torch.nonzero(~ok).flatten()
+        for _ in range(rounds if need.numel() else 0):
             guess = neighbour_guess(stack.unsqueeze(0), ok.unsqueeze(0),
                                     names + ["vel_u", "vel_v"] + [f"rate_{nm}" for nm in rated],
                                     nb, points, at=need)[0]
-            fill = torch.isfinite(guess).all(1)
-            if not bool(fill.any()):
-                break
-            stack[need[fill]] = guess[fill].to(stack.dtype)
-            ok[need[fill]] = True
+            fill = torch.isfinite(guess).all(1) & ~ok[need]
+            stack[need] = torch.where(fill.unsqueeze(1), guess.to(stack.dtype), stack[need])
+            ok[need] |= fill
         filled = ok & ~self.valid
-        if not bool(filled.any()):
+        count = int(filled.sum())  # one read
+        if not count:
             return self, 0
         vals = {nm: stack[:, i] for i, nm in enumerate(names)}
         nv = len(names)
         rates = {nm: stack[:, nv + 2 + i] for i, nm in enumerate(rated)} or self.rates
         known = None if self.vel_known is None else self.vel_known | filled
         return dataclasses.replace(self, vals=vals, vel_u=stack[:, nv], vel_v=stack[:, nv + 1],
-                                   valid=ok, vel_known=known, rates=rates), int(filled.sum())
+                                   valid=ok, vel_known=known, rates=rates), count
 
 
 def neighbour_guess(params: torch.Tensor, ok: torch.Tensor, names, nb: torch.Tensor,

@@ -274,16 +274,14 @@ class BlockChecks:
         shortened = 0
         first_m = self.m_used[idx].long()  # each row's window: only shorter ones are tried
         for m in range(run.m - 1, 0, -1) if bool(fail.any()) else ():
-            # one host read a half-width: the rows to try (none: the next one)
-            sel = torch.nonzero(fail & (first_m > m)).flatten()
-            if sel.numel() == 0:
-                continue
             # a window whose frames' classical solutions miss a line would fail: not solved
-            off, vel = self._off_a_line(idx[sel], m, d_all, s_all)
-            on = torch.nonzero(~off).flatten()  # one index for both (one sync)
-            sel, vel = sel[on], vel[on]
+            # (judged at every row of the check: a row's test is its own, no read)
+            off, vel = self._off_a_line(idx, m, d_all, s_all)
+            # one host read a half-width: the rows to try (none: the next one)
+            sel = torch.nonzero(fail & (first_m > m) & ~off).flatten()
             if sel.numel() == 0:
                 continue
+            vel = vel[sel]
             start = init[sel]  # the velocity of the classical solutions' line, where known
             for c, nm in ((0, "ut"), (1, "vt")):
                 if nm in run.names:

@@ -37,7 +37,8 @@ from torch_stsdic.io import ImageSeries
 from torch_stsdic.movie.frame_ring import FrameRing, RingView
 
 __all__ = ["FrameCache", "FrameStore", "PreparedFrame", "window_frames", "block_frames",
-           "segment_bounds", "frames_in_order", "default_ahead", "half_widths"]
+           "segment_bounds", "frames_in_order", "default_ahead", "half_widths",
+           "rows_by_half_width"]
 
 
 def window_frames(ks: torch.Tensor, m: int, n_series: int,
@@ -405,6 +406,18 @@ class FrameCache:
         call are copied; address them by :attr:`RingView.planes`)."""
         self._hold_only(idx)
         return self._ring.fill(self.entries, idx)
+
+
+def rows_by_half_width(m_of: torch.Tensor, rows: torch.Tensor, m_max: int
+                       ) -> list[tuple[int, torch.Tensor]]:
+    """The ``rows`` (R,) bool grouped by their half-width ``m_of`` (R,) (clamped to 0 ..
+    ``m_max``): ``(m, (R_m,) long row indices ascending)`` for each half-width they take, in
+    increasing order. One host read (a count of each), not an index per half-width: the
+    rows sorted by half-width (a stable sort keeps their order), split by the counts."""
+    key = torch.where(rows, m_of.long().clamp(0, m_max), m_max + 1)
+    counts = torch.bincount(key, minlength=m_max + 2)[:m_max + 1].tolist()
+    order = torch.argsort(key, stable=True)[:sum(counts)]
+    return [(m, part) for m, part in enumerate(order.split(counts)) if counts[m]]
 
 
 def half_widths(m_of: torch.Tensor, rows: torch.Tensor, m_max: int) -> list[int]:

@@ -9,6 +9,7 @@ it are turned into totals by composition (:func:`to_total`) and back (:func:`to_
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
@@ -17,6 +18,7 @@ from torch_stsdic.analysis.result import USABLE
 from torch_stsdic.core.interpolation import BSplineImage
 from torch_stsdic.core.noise import estimate_noise_sigma
 from torch_stsdic.core.pyramid import ImagePyramid, PyramidStack
+from torch_stsdic.core.solver import SubsetSolver
 from torch_stsdic.movie.frames import FrameCache
 
 __all__ = ["Reference", "GRADIENTS", "compose_gradients", "to_relative", "to_total",
@@ -39,6 +41,18 @@ class Reference:
     #: (N, 2, 4) where a window's velocity refers to at each POI (movie/velocity_point.py),
     #: worked out on first use
     velocity_maps: torch.Tensor | None = None
+    #: the token of a solver's reference cache holding the POIs' subsets (:meth:`kept_by`)
+    kept: Any = None
+
+    def kept_by(self, solver: SubsetSolver) -> Any:
+        """``solver.keep_reference_subsets`` of the POIs (one host read), or the token of an
+        earlier block while the solver's cache still holds them (none): every block's
+        solves then read the POIs' reference subsets with no host read
+        (:meth:`~torch_stsdic.core.solver.SubsetSolver.keep_reference_subsets`)."""
+        cache = solver.reference_cache
+        if cache is None or self.kept is None or self.kept != cache.token():
+            self.kept = solver.keep_reference_subsets(self.img, self.points)
+        return self.kept
 
     def ensure(self, cache: FrameCache) -> None:
         if self.raw is None:

@@ -13,7 +13,7 @@ import torch
 from torch_stsdic.analysis.result import USABLE
 from torch_stsdic.core.status import Status
 from torch_stsdic.movie.carry import Carry, neighbour_guess
-from torch_stsdic.movie.frames import half_widths
+from torch_stsdic.movie.frames import rows_by_half_width
 from torch_stsdic.movie.reference import to_relative
 
 __all__ = ["BlockRescue"]
@@ -97,10 +97,7 @@ class BlockRescue:
         own = torch.full((rows.numel(),), m_req, dtype=torch.int8, device=rows.device)
         if self.window_m is not None and m_req > 0:
             own = torch.minimum(own, self.window_m[rows])
-        widths = half_widths(own, torch.ones_like(own, dtype=torch.bool), m_req)
-        for mm in widths:
-            sel = (torch.nonzero(own == mm).flatten() if len(widths) > 1
-                   else torch.arange(rows.numel(), device=rows.device))
+        for mm, sel in rows_by_half_width(own, torch.ones_like(own, dtype=torch.bool), m_req):
             mk = None if mm == run.m else mm
             self.keep(rows[sel], self.solve(rows[sel], None if init is None else init[sel],
                                             m=mk), only_better=True, m=mk)

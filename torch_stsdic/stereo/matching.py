@@ -28,8 +28,8 @@ from torch import Tensor
 
 from torch_stsdic.core.config import DICConfig
 from torch_stsdic.core.solution import WindowSolution
-from torch_stsdic.core.solver import solve_window
 from torch_stsdic.core.status import Status
+from torch_stsdic.core.window_solve import solve_window
 
 from .calibration import StereoCalibration
 from .triangulation import project, undistort

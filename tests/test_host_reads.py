@@ -1,0 +1,165 @@
+"""A solve without host reads of its own (issue 45, item 3): the per-point kernel iterates every
+row of a stage (rows not to iterate masked, not chosen by an index), and a block's reference
+subsets are kept once for all its solves (the cache's misses not counted per solve). Both
+give what the solves gave before, bit for bit."""
+
+import os
+
+import pytest
+import torch
+
+import torch_stsdic as sts
+from torch_stsdic import synth
+from torch_stsdic.core import gauss_newton, point_solve
+from torch_stsdic.core.gauss_newton import ReferenceCache
+from torch_stsdic.core.solver import SubsetSolver
+from torch_stsdic.kernels import native
+
+pytestmark = pytest.mark.skipif(not native.available(), reason="no native kernels")
+
+N = 96
+
+
+@pytest.fixture
+def per_point():
+    old = os.environ.get("TORCH_STSDIC_PER_POINT")
+    os.environ["TORCH_STSDIC_PER_POINT"] = "1"
+    yield
+    if old is None:
+        os.environ.pop("TORCH_STSDIC_PER_POINT", None)
+    else:
+        os.environ["TORCH_STSDIC_PER_POINT"] = old
+
+
+def _window(flat_left: bool = False):
+    """A 5-frame window of a speckle render (a strain and a drift), its left quarter flat in
+    every image where ``flat_left`` (those points have no texture), and a grid of points."""
+    pattern = synth.make_speckle((N, N), seed=5)
+    motion = synth.HomogeneousStrain(exx=0.01, eyy=-0.004, exy=0.003, center=(N / 2, N / 2)) \
+        + synth.Translation(0.4, -0.3, ut=0.05, vt=0.02)
+    times = torch.arange(0.0, 5.0, dtype=torch.float64)
+    ref, frames = synth.render_series(pattern, (N, N), motion, times, noise_sigma=1.0, seed=3,
+                                      reference_time=None)
+    if flat_left:
+        ref = ref.clone()
+        frames = frames.clone()
+        ref[:, : N // 4] = 100.0
+        frames[:, :, : N // 4] = 100.0
+    c = torch.arange(14.0, N - 14.0, 4.0, dtype=torch.float64)
+    yy, xx = torch.meshgrid(c, c, indexing="ij")
+    return ref, frames, torch.stack([xx.reshape(-1), yy.reshape(-1)], 1), times
+
+
+def test_a_stage_iterates_every_row_without_an_index_of_them(per_point, monkeypatch):
+    """Points without texture (LOW_TEXTURE, not iterated) in the same stage as textured ones:
+    the kernel runs every row, no index of the rows to iterate is made (``start_stage`` is
+    not called), the untextured rows end as before (LOW_TEXTURE, 0 iterations, no result)
+    and every other row equals its solve without them, bit for bit."""
+    ref, frames, pts, times = _window(flat_left=True)
+    cfg = sts.DICConfig(m=2, subset_size=15)
+    init = torch.zeros(pts.shape[0], 2, dtype=torch.float64)
+    init[:, 0], init[:, 1] = 0.4, -0.3
+    full = sts.solve_window(ref, frames, pts, config=cfg, times=times, init=init)
+    flat = full.status == int(sts.Status.LOW_TEXTURE)
+    assert 0 < int(flat.sum()) < pts.shape[0] // 2
+    assert bool((full.iterations[flat] == 0).all())
+    assert bool(torch.isnan(full.params[flat]).all())
+    textured = ~flat
+    assert bool((full.status[textured] == int(sts.Status.CONVERGED)).all())
+
+    def no_index(*a, **k):
+        raise AssertionError("the rows to iterate were chosen by an index")
+    monkeypatch.setattr(point_solve, "start_stage", no_index)
+    again = sts.solve_window(ref, frames, pts, config=cfg, times=times, init=init)
+    alone = sts.solve_window(ref, frames, pts[textured], config=cfg, times=times,
+                             init=init[textured])
+    assert torch.equal(again.status, full.status)
+    assert torch.equal(again.params[textured], alone.params)
+    assert torch.equal(again.zncc[textured], alone.zncc)
+    assert torch.equal(again.iterations[textured], alone.iterations)
+
+
+def _solver_and_images(cfg):
+    ref, frames, pts, times = _window()
+    solver = SubsetSolver(cfg)
+    solver.reference_cache = ReferenceCache(256.0)
+    ref_img = solver.prepare(ref.to(torch.float32))
+    frames_img = solver.prepare(frames.to(torch.float32))
+    return solver, ref, ref_img, frames_img, pts.to(torch.float32), times
+
+
+def test_kept_subsets_are_read_without_counting_the_misses(per_point, monkeypatch):
+    """``keep_reference_subsets`` samples the points' reference subsets once; a solve given its
+    token reads them with no count of the misses (``_keep_missing`` not called) and equals a
+    solve that samples its own; once the cache has dropped them (another reference) the
+    token is stale and the solve samples them again."""
+    cfg = sts.DICConfig(m=2, subset_size=15)
+    solver, ref, ref_img, frames_img, pts, times = _solver_and_images(cfg)
+    dt = (times - 2.0).to(torch.float32)
+    init = torch.tensor([0.4, 0.0, 0.0, 0.05, -0.3, 0.0, 0.0, 0.02]).expand(pts.shape[0], -1)
+    token = solver.keep_reference_subsets(ref_img, pts)
+    assert token is not None and solver.reference_cache.count == pts.shape[0]
+
+    calls = []
+    real = gauss_newton._keep_missing
+
+    def counted(*a, **k):
+        calls.append(1)
+        return real(*a, **k)
+    monkeypatch.setattr(gauss_newton, "_keep_missing", counted)
+    kept = solver.solve(ref_img, frames_img, pts[::2], dt, init=init[::2], on_grid=True,
+                        kept=token)
+    assert calls == []
+    own, _, own_ref, own_frames, _, _ = _solver_and_images(cfg)
+    plain = own.solve(own_ref, own_frames, pts[::2], dt, init=init[::2], on_grid=True)
+    assert torch.equal(kept.params, plain.params) and torch.equal(kept.status, plain.status)
+    assert torch.equal(kept.std, plain.std)
+
+    # another reference: the cache drops what it kept, the old token no longer holds
+    other = solver.prepare((ref.flip(1)).to(torch.float32))
+    solver.keep_reference_subsets(other, pts[:3])
+    assert solver.reference_cache.token() != token
+    calls.clear()
+    again = solver.solve(ref_img, frames_img, pts[::2], dt, init=init[::2], on_grid=True,
+                         kept=token)
+    assert calls  # sampled again
+    assert torch.equal(again.params, plain.params)
+
+
+def test_a_block_keeps_its_subsets_once(monkeypatch):
+    """In a movie run the blocks' solves read their reference subsets through the block's
+    token: ``_keep_missing`` runs where a block keeps them (its POIs, its moved subsets), not
+    in every solve."""
+    pattern = synth.make_speckle((N, N), seed=2)
+    motion = synth.Translation(0.2, -0.1, ut=0.1, vt=0.05)
+    times = torch.arange(0.0, 12.0, dtype=torch.float64)
+    _, movie = synth.render_series(pattern, (N, N), motion, times, noise_sigma=1.0, seed=4,
+                                   reference_time=None)
+    callers = []
+    real = gauss_newton._keep_missing
+
+    def counted(ctx, *a, **k):
+        import inspect
+        callers.append(inspect.stack()[1].function)
+        return real(ctx, *a, **k)
+    monkeypatch.setattr(gauss_newton, "_keep_missing", counted)
+    res = sts.track(movie.to(torch.float32), config=sts.DICConfig(m=2, subset_size=15), step=8,
+                    progress=False, series_reference=False)
+    assert float((res.status <= int(sts.Status.MAX_ITER)).double().mean()) > 0.9
+    per_solve = callers.count("_cached_reference_data")
+    assert callers.count("keep_subsets") >= 2  # the blocks kept them
+    # the first block's FFT start solves through another path; every later solve is served
+    assert per_solve <= 2, callers
+
+
+def test_rows_grouped_by_half_width_in_one_read():
+    """``rows_by_half_width``: each half-width the chosen rows take, with their indices in
+    ascending order (as an index per half-width gave them); half-widths clamped to
+    0 .. m_max; rows not chosen left out."""
+    from torch_stsdic.movie.frames import rows_by_half_width
+
+    m_of = torch.tensor([3, 1, 3, 0, 2, 1, 9, 3, -1], dtype=torch.int8)
+    rows = torch.tensor([1, 1, 1, 1, 0, 1, 1, 0, 1], dtype=torch.bool)
+    got = [(m, r.tolist()) for m, r in rows_by_half_width(m_of, rows, 4)]
+    assert got == [(0, [3, 8]), (1, [1, 5]), (3, [0, 2]), (4, [6])]
+    assert rows_by_half_width(m_of, torch.zeros_like(rows), 4) == []
