@@ -94,7 +94,7 @@ def test_solve_window_converts_its_inputs_on_one_thread(monkeypatch):
     """solve_window's own torch work before the solve (the inputs' conversion to the config's
     dtype) runs in the scope too: outside it, a torch-first process's spinning OpenMP threads
     cost it up to 0.09 s a call under load."""
-    from torch_stsdic.core import solver as solver_module
+    from torch_stsdic.core import window_solve as solver_module
 
     seen = []
     inner = solver_module.as_image

@@ -276,14 +276,15 @@ class Block(BlockChecks, BlockRescue):
             kept=self.kept)
 
     def keep(self, idx: torch.Tensor, sol: WindowSolution, only_better: bool,
-             m: int | None = None) -> None:
+             m: int | None = None, where: torch.Tensor | None = None) -> None:
         """Store ``sol`` (solved with half-window ``m``, default the run's) at rows ``idx``
         (with ``only_better``: where it is usable and the stored result is not, or its ZNCC
-        is higher). Parameters missing from ``sol`` (a classical solution has no ut, vt)
-        are stored as NaN."""
-        self.iters[idx] += sol.iterations
+        is higher; ``where`` (R,) bool: those rows only, as if ``idx[where]`` were given).
+        Parameters missing from ``sol`` (a classical solution has no ut, vt) are NaN."""
+        self.iters[idx] += sol.iterations if where is None else torch.where(
+            where, sol.iterations, 0)
         dt = self.run.dtype
-        take = None  # (R,) bool the rows stored (None: every row)
+        take = where  # (R,) bool the rows stored (None: every row)
         if only_better:
             old_ok = self.status[idx] <= USABLE
             take = (sol.status <= USABLE) & (~old_ok | (sol.zncc.to(dt) > self.zncc[idx]))
@@ -424,22 +425,24 @@ class Block(BlockChecks, BlockRescue):
             self.status.masked_fill_(out, int(Status.OUTSIDE))
             self.gone |= out
         moved = (shift != 0).any(1) & ~out
-        n_moved = int(moved.sum())  # one read
+        whole = torch.sign(shift) * shift.abs().ceil()  # whole px, away from the border
+        # rows moved by an earlier call (the block's carry, then its rescue) keep theirs
+        base = self.pts if self.centres is None else self.centres
+        centres = torch.where(moved.unsqueeze(1), self.pts + whole, base)
+        off = (centres != self.pts).any(1).reshape(self.b, -1)
+        inside = subset_inside(centres, float(run.solver.window.half), self.ref.img.height,
+                               self.ref.img.width).all()
+        # one read: the rows moved, whether every subset is inside, each target's moved rows
+        n_moved, all_in, *per_target = torch.cat([moved.sum().view(1), inside.view(1),
+                                                  off.sum(1)]).tolist()
         if n_moved:
-            whole = torch.sign(shift) * shift.abs().ceil()  # whole px, away from the border
-            # rows moved by an earlier call (the block's carry, then its rescue) keep theirs
-            base = self.pts if self.centres is None else self.centres
-            self.centres = torch.where(moved.unsqueeze(1), self.pts + whole, base)
+            self.centres, self.centres_inside = centres, bool(all_in)
             if self.kept is not None:  # and the moved subsets' (one host read)
                 self.kept = run.solver.keep_reference_subsets(self.ref.img, self.centres)
-            off = (self.centres != self.pts).any(1).reshape(self.b, -1)
-            per_target = off.sum(1).tolist()  # one read: which targets
-            # each target's moved points, for the shared motion at their centres (one index)
-            at = torch.nonzero(off).split(per_target)
-            self._moved = [(j, a[:, 1]) for j, a in enumerate(at) if per_target[j]]
-            self.centres_inside = bool(subset_inside(  # once a call, not once a solve
-                self.centres, float(run.solver.window.half), self.ref.img.height,
-                self.ref.img.width).all())
+            # each target's moved points, for the shared motion at their centres (flat rows
+            # in order: a stable sort split by the counts, no index)
+            at = torch.argsort(~off.reshape(-1), stable=True)[:sum(per_target)].split(per_target)
+            self._moved = [(j, a % self.n) for j, a in enumerate(at) if per_target[j]]
             self._motion = {}  # the shared motion at the subsets' centres
             run.stats["off_centre_rows"] = run.stats.get("off_centre_rows", 0) + n_moved
         return out
@@ -657,9 +660,8 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
     if run.checks and not (run.m == 0 and bool(ident.all())):
         shortened, classical = blk.check_model()
         classical += blk.rescue_classical(guess, carry) if run.m > 0 else 0
-        stats = run.stats
-        stats["shortened_rows"] = stats.get("shortened_rows", 0) + shortened
-        stats["classical_rows"] = stats.get("classical_rows", 0) + classical
+        count("shortened_rows", shortened)  # read with the other counters
+        run.stats["classical_rows"] = run.stats.get("classical_rows", 0) + classical
         count("poor_fit_rows", blk.check_fit(carry))
         count("inconsistent_rows", blk.check_neighbours())
     if counts:  # one read for all of them

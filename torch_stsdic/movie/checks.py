@@ -196,7 +196,7 @@ class BlockChecks:
         _, vel = linear_fit_in_time(d, dt[rows], spread=True)  # m > 0: distinct times
         return line_mismatch(d, dt[rows], disp[rows], std[rows]), vel
 
-    def check_model(self) -> tuple[int, int]:
+    def check_model(self) -> tuple[int | torch.Tensor, int]:
         """Model check (:func:`~torch_stsdic.analysis.quality.model_mismatch`) of every usable row
         against its classical solution at the target frame (started from the row's own
         solution: ``CHECK_ITER`` steps to ``CHECK_TOL``, in full where those do not converge
@@ -207,7 +207,8 @@ class BlockChecks:
         (:func:`~torch_stsdic.analysis.quality.line_mismatch`);
         where no window fits they keep the classical solution, converged to the run's
         ``tol`` (ut, vt NaN, ``m_used`` 0). A usable row whose classical solution fails is
-        POOR_FIT. Returns (rows shortened, rows left classical)."""
+        POOR_FIT. Returns (rows shortened (an int or a 0-d tensor: not read here), rows left
+        classical)."""
         run = self.run
         idx = torch.nonzero((self.status <= USABLE) & torch.isfinite(self.params).all(1)
                             ).flatten()
@@ -294,10 +295,9 @@ class BlockChecks:
             good &= ~model_mismatch(d, d_cls[sel], sol.std[:, [iu, iv]], s_cls[sel])
             good &= ~(not_ref[sel] & residual_mismatch(sol.sigma, sig_cls[sel], pixels,
                                                        sol.zncc))
-            good = torch.nonzero(good).flatten()  # one index for all (one sync)
-            self.keep(idx[sel][good], solution_rows(sol, good), only_better=False, m=m)
-            shortened += good.numel()
-            fail[sel[good]] = False
+            self.keep(idx[sel], sol, only_better=False, m=m, where=good)  # (no read)
+            shortened = shortened + good.sum()
+            fail[sel] &= ~good
         fail = torch.nonzero(fail).flatten()  # one index for all (one sync)
         pick = ok_i[fail]
         kept = solution_rows(cls, pick)
