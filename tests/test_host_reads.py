@@ -163,3 +163,40 @@ def test_rows_grouped_by_half_width_in_one_read():
     got = [(m, r.tolist()) for m, r in rows_by_half_width(m_of, rows, 4)]
     assert got == [(0, [3, 8]), (1, [1, 5]), (3, [0, 2]), (4, [6])]
     assert rows_by_half_width(m_of, torch.zeros_like(rows), 4) == []
+
+
+def test_the_reference_cache_tells_its_geometry_by_a_host_key(monkeypatch):
+    """A solve's geometry is told from the cache's by a key of host facts (window kind and
+    settings, the spatial shape, dtype, device), not by comparing tensors (``torch.equal``:
+    a read of the device): equal settings, equal keys, the cache applies; another sigma or
+    window size is another key; a window of the user's own has none (its tensors compared)."""
+    from torch_stsdic.core import window as window_mod
+    from torch_stsdic.core.formulations import Geometry
+
+    cfg = sts.DICConfig(m=2, subset_size=15)
+    solver, _, ref_img, _, pts, _ = _solver_and_images(cfg)
+    shape = solver.shape
+
+    def geo(win):
+        return Geometry.make(shape, win, "znssd", torch.float32, "cpu")
+    g1, g2 = geo(window_mod.GaussianWindow(15)), geo(window_mod.GaussianWindow(15))
+    assert g1.key is not None and g1.key == g2.key and g1 is not g2
+    other = geo(window_mod.GaussianWindow(15, sigma=2.0))
+    assert other.key != g1.key
+    assert geo(window_mod.SquareWindow(17)).key != geo(window_mod.SquareWindow(15)).key
+    assert geo(window_mod.make_window("square", 15)).key == geo(window_mod.SquareWindow(15)).key
+    assert Geometry.make(shape.spatial(), window_mod.SquareWindow(15), "znssd", torch.float32,
+                         "cpu").key == geo(window_mod.SquareWindow(15)).key  # same subsets
+
+    class Mine(window_mod.SquareWindow):
+        pass
+    assert geo(Mine(15)).key is None
+
+    cache = ReferenceCache(64.0)
+    assert cache.applies(ref_img, g1)
+    with monkeypatch.context() as mp:
+        mp.setattr(torch, "equal", lambda *a: (_ for _ in ()).throw(
+            AssertionError("compared on the device")))
+        assert cache.applies(ref_img, g2)  # by the key: no torch.equal
+    assert not cache.applies(ref_img, other)  # another key: the tensors differ
+    assert cache.applies(ref_img, geo(Mine(15))) is False  # a square's, not the Gaussian's

@@ -8,8 +8,8 @@ block that force a host synchronisation on a GPU, counted on any device (the CPU
 
 Counted through a ``TorchDispatchMode`` (every aten call of the process, in the calling
 thread): a value read on the host (``.item()``, ``bool()``, ``int()``, ``float()`` of a
-tensor: ``aten._local_scalar_dense``), and the operations whose output size depends on the
-data (``nonzero``, ``masked_select``, boolean-mask indexing, ``unique``, ``repeat_interleave``
+tensor: ``aten._local_scalar_dense``; ``torch.equal``'s answer), and the operations whose
+output size depends on the data (``nonzero``, ``masked_select``, boolean-mask indexing, ``unique``, ``repeat_interleave``
 with a tensor of repeats): on CUDA each waits for the device. Copies to the host
 (``.cpu()``, ``.numpy()``, ``.tolist()``) do not pass the dispatcher on a CPU run and are not
 counted by the dispatcher; they are counted apart (``host copy``: ``.tolist()`` and
@@ -41,7 +41,8 @@ HOURGLASS = [str(REPO.parent / "shared/data/mudic-hourglass"), "--roi", "150", "
              "734", "--subset", "31", "--step", "20"]
 
 #: aten operations that make the host wait for the device (by their overload packet name)
-SYNCING = {"_local_scalar_dense": "host read", "nonzero": "data-dependent size",
+SYNCING = {"_local_scalar_dense": "host read", "equal": "host read",
+           "nonzero": "data-dependent size",
            "masked_select": "data-dependent size", "unique_dim": "data-dependent size",
            "_unique2": "data-dependent size", "unique_consecutive": "data-dependent size",
            "repeat_interleave": "data-dependent size"}

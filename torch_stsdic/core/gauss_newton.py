@@ -59,6 +59,7 @@ class ReferenceCache:
         self.off = False  # over budget: not used again
         self.coeffs: torch.Tensor | None = None  # the reference's coefficients (identity)
         self.geo: tuple[torch.Tensor, ...] | None = None  # dx, dy, w, spatial
+        self.geo_key: tuple | None = None  # their Geometry.key (None: compared as tensors)
         self.znssd = True
         self.slot: torch.Tensor | None = None  # (R*H*W,) row of each pixel's subset, -1: none
         # ft, fnorm, gx, gy, gram, texture: (capacity, ...), the first ``count`` rows kept;
@@ -93,9 +94,13 @@ class ReferenceCache:
             self.slot = torch.full((ref.n_frames * ref.height * ref.width,), -1,
                                    dtype=torch.long, device=ref.coeffs.device)
             self.geo, self.znssd = (geo.dx, geo.dy, geo.w, geo.spatial), geo.znssd
-        return self.znssd == geo.znssd and all(
-            a.shape == b.shape and a.dtype == b.dtype and torch.equal(a, b)
-            for a, b in zip(self.geo, (geo.dx, geo.dy, geo.w, geo.spatial)))
+            self.geo_key = geo.key
+        if self.znssd != geo.znssd:
+            return False
+        if geo.key is not None and geo.key == self.geo_key:  # no read of the device
+            return True
+        return all(a.shape == b.shape and a.dtype == b.dtype and torch.equal(a, b)
+                   for a, b in zip(self.geo, (geo.dx, geo.dy, geo.w, geo.spatial)))
 
     def fits(self, more: int, s: int, elem: int, pa: int) -> bool:
         """``more`` points of S samples (element size ``elem``; gram P' x P') fit the

@@ -6,7 +6,7 @@ import torch
 from torch import nn
 
 __all__ = ["SubsetWindow", "SquareWindow", "CircularWindow", "GaussianWindow", "make_window",
-           "effective_pixels", "weight_stats"]
+           "effective_pixels", "weight_stats", "BUILT_IN_WINDOWS"]
 
 
 def effective_pixels(weights: torch.Tensor) -> float:
@@ -97,6 +97,8 @@ class GaussianWindow(SubsetWindow):
 
 
 _WINDOWS = {"square": SquareWindow, "circular": CircularWindow, "gaussian": GaussianWindow}
+#: the windows whose offsets and weights their settings (``extra_repr``) alone decide
+BUILT_IN_WINDOWS = tuple(_WINDOWS.values())
 
 
 def make_window(window: str | SubsetWindow, size: int) -> SubsetWindow:

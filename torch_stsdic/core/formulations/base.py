@@ -28,8 +28,8 @@ import torch
 from torch import Tensor
 
 from torch_stsdic.core.interpolation import BSplineImage
-from torch_stsdic.core.shape import ShapeFunction
-from torch_stsdic.core.window import SubsetWindow, weight_stats
+from torch_stsdic.core.shape import AffineShape, QuadraticShape, ShapeFunction
+from torch_stsdic.core.window import BUILT_IN_WINDOWS, SubsetWindow, weight_stats
 
 __all__ = ["Geometry", "SubsetData", "Formulation", "reference_subsets", "wsum"]
 
@@ -63,16 +63,26 @@ class Geometry:
     #: (:meth:`~torch_stsdic.core.window.SubsetWindow.weight_stats`: read without waiting
     #: for the device); None: from ``w``
     w_stats: tuple[float, bool, float] | None = None
+    #: the host facts the tensors are made from where they alone make them (a built-in
+    #: window and shape: their kinds and settings, the dtype and device): equal keys, equal
+    #: tensors (compared without reading the device); None: compare the tensors
+    key: tuple | None = None
 
     @classmethod
     def make(cls, shape: ShapeFunction, window: SubsetWindow, criterion: str,
              dtype: torch.dtype, device: torch.device | str | None) -> Geometry:
         """The geometry of ``window``'s subset for ``shape`` in ``dtype`` on ``device``."""
         offsets, weights = window.offsets_and_weights(dtype, device)
+        spatial = shape.spatial()
+        known = type(window) in BUILT_IN_WINDOWS and type(spatial) in (AffineShape,
+                                                                       QuadraticShape)
+        key = ((type(window).__name__, window.extra_repr(), type(spatial).__name__,
+                tuple(spatial.terms), str(dtype), str(torch.device(device or "cpu")))
+               if known else None)
         return cls(shape=shape, spatial=shape.spatial_basis(offsets[:, 0], offsets[:, 1]),
                    dx=offsets[:, 0], dy=offsets[:, 1], w=weights,
                    znssd=criterion == "znssd", half=float(window.half),
-                   w_stats=window.weight_stats())
+                   w_stats=window.weight_stats(), key=key)
 
     def _stats(self) -> tuple[float, bool, float]:
         return self.w_stats if self.w_stats is not None else weight_stats(self.w)
