@@ -9,8 +9,9 @@ block that force a host synchronisation on a GPU, counted on any device (the CPU
 Counted through a ``TorchDispatchMode`` (every aten call of the process, in the calling
 thread): a value read on the host (``.item()``, ``bool()``, ``int()``, ``float()`` of a
 tensor: ``aten._local_scalar_dense``; ``torch.equal``'s answer), and the operations whose
-output size depends on the data (``nonzero``, ``masked_select``, boolean-mask indexing, ``unique``, ``repeat_interleave``
-with a tensor of repeats): on CUDA each waits for the device. Copies to the host
+output size depends on the data (``nonzero``, ``masked_select``, boolean-mask indexing,
+``unique``, ``repeat_interleave`` with a tensor of repeats): on CUDA each waits for the
+device. Copies to the host
 (``.cpu()``, ``.numpy()``, ``.tolist()``) do not pass the dispatcher on a CPU run and are not
 counted by the dispatcher; they are counted apart (``host copy``: ``.tolist()`` and
 ``.numpy()`` called in the counting thread, patched in while counting; on a GPU each of a
