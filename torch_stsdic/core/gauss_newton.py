@@ -417,10 +417,9 @@ def _keep_missing(ctx: BatchContext, pts, dt, fidx, ridx, key) -> bool:
 def keep_subsets(ctx: BatchContext, pts: torch.Tensor) -> KeptToken | None:
     """Put the reference subsets of the points ``pts`` (N, 2) (reference 0; at the pixels a
     solve snaps them to) in ``ctx.cache`` (those it misses sampled: one host read) and
-    return its token
-    (:meth:`ReferenceCache.token`): a solve of any of these points given it as
-    ``BatchContext.kept`` reads their subsets from the cache with no host read. None where
-    the cache does not serve them (none, another geometry, over its budget)."""
+    return its token (:meth:`ReferenceCache.token`): a solve of any of these points given it
+    as ``BatchContext.kept`` reads their subsets from the cache with no host read. None
+    where the cache does not serve them (none, another geometry, over its budget)."""
     cache = ctx.cache
     if cache is None or not cache.applies(ctx.ref, ctx.geo):
         return None

@@ -116,10 +116,11 @@ class SubsetSolver:
 
     def keep_reference_subsets(self, ref: BSplineImage, points: torch.Tensor
                                ) -> KeptToken | None:
-        """Put the reference subsets of the whole-pixel ``points`` (N, 2) (their dtype the
-        solves') of ``ref`` (reference 0) in :attr:`reference_cache` (one host read), and
-        return the token that lets a later :meth:`solve` of any of them (``kept=``) read
-        them there with no host read; None where the cache does not serve them."""
+        """Put the reference subsets of ``points`` (N, 2) (their dtype the solves'; at the
+        whole pixels a solve snaps them to) of ``ref`` (reference 0) in
+        :attr:`reference_cache` (one host read), and return the token that lets a later
+        :meth:`solve` of any of them (``kept=``) read them there with no host read; None
+        where the cache does not serve them."""
         if self.reference_cache is None or points.shape[0] == 0:
             return None
         geo = Geometry.make(self.shape, self.window, self.config.criterion, points.dtype,
