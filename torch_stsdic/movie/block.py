@@ -501,33 +501,34 @@ def _only_identity(run: BlockContext, ref: Reference, carry: Carry) -> bool:
             and carry.vel_known is not None and not bool(carry.vel_known.any()))
 
 
-def _classical_again(blk: Block, classical: torch.Tensor) -> None:
+#: counters of a block kept in the run's statistics only where they count something
+_IF_ANY = ("classical_again_rows", "shorter_again_rows")
+
+
+def _classical_again(blk: Block, classical: torch.Tensor, count: Callable) -> None:
     """Rows at points solved classically (``classical``: (B*N,) bool) that a window solved
     all the same (no carried start: the first block's FFT, a rescue) are solved again with
-    the target frame alone, from that solution; kept where the classical solve is usable."""
+    the target frame alone, from that solution; kept where the classical solve is usable
+    (``count``: the block's counter)."""
     again = torch.nonzero(classical & (blk.m_used > 0) & (blk.status <= USABLE)).flatten()
     if not again.numel():
         return
     sol = blk.solve(again, blk.params[again], m=0)
-    good = torch.nonzero(sol.status <= USABLE).flatten()
-    if good.numel():
-        blk.keep(again[good], sol.rows(good), only_better=False, m=0)
-        blk.run.stats["classical_again_rows"] = blk.run.stats.get(
-            "classical_again_rows", 0) + int(good.numel())
+    good = sol.status <= USABLE
+    blk.keep(again, sol, only_better=False, m=0, where=good)  # (no read)
+    count("classical_again_rows", good.sum())
 
 
-def _shorter_again(blk: Block, cap: torch.Tensor) -> None:
+def _shorter_again(blk: Block, cap: torch.Tensor, count: Callable) -> None:
     """Rows solved with a longer window than their point's motion supports at their target
     (``cap``: (B*N,) the longest half-width; a first block's FFT start, a rescue) are solved
     again with that half-width from their solution; kept where usable."""
     over = (blk.m_used > cap) & (blk.status <= USABLE)
     for m, again in rows_by_half_width(cap, over, blk.run.m):
         sol = blk.solve(again, blk.params[again], m=m)
-        good = torch.nonzero(sol.status <= USABLE).flatten()
-        if good.numel():
-            blk.keep(again[good], sol.rows(good), only_better=False, m=m)
-            blk.run.stats["shorter_again_rows"] = blk.run.stats.get(
-                "shorter_again_rows", 0) + int(good.numel())
+        good = sol.status <= USABLE
+        blk.keep(again, sol, only_better=False, m=m, where=good)  # (no read)
+        count("shorter_again_rows", good.sum())
 
 
 def _first_guess_rows(run: BlockContext, blk: Block, ref: Reference) -> torch.Tensor:
@@ -650,9 +651,9 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
         carried = carried | shorter
     from_prev, by_fft, redone = blk.rescue(carry, carried)
     if run.classical_points is not None and run.m > 0:
-        _classical_again(blk, run.classical_points.to(dev).repeat(b))
+        _classical_again(blk, run.classical_points.to(dev).repeat(b), count)
     if cap is not None:
-        _shorter_again(blk, cap)
+        _shorter_again(blk, cap, count)
     run.stats["rescued_rows"] = run.stats.get("rescued_rows", 0) + from_prev
     run.stats["fft_rows"] += by_fft
     count("redone_rows", redone)
@@ -667,7 +668,8 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
     if counts:  # one read for all of them
         for name, v in zip(counts, torch.stack([c.reshape(()).to(torch.int64)
                                                 for c in counts.values()]).tolist()):
-            run.stats[name] = run.stats.get(name, 0) + v
+            if v or name not in _IF_ANY:
+                run.stats[name] = run.stats.get(name, 0) + v
     rel = {nm: blk.params[:, j].reshape(b, n) for j, nm in enumerate(run.names)}
     out = to_total(rel, ref.acc)
     out["zncc"] = blk.zncc.reshape(b, n)
