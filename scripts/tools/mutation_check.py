@@ -189,7 +189,7 @@ MUTATIONS: tuple[Mutation, ...] = (
         "windows that pass the model check with a bias are kept where the time model fails"),
     Mutation(
         "classical-points-solved-by-windows", "reference", "torch_stsdic/movie/block.py",
-        "_classical_again(blk, run.classical_points.to(dev).repeat(b))", "None",
+        "_classical_again(blk, run.classical_points.to(dev).repeat(b), count)", "None",
         ("test_series_reference.py",),
         "rows at points decided classical keep the window a rescue or FFT start gave them"),
 )
