@@ -130,5 +130,5 @@ def _start_every_row(form, geo, params: Tensor, data: SubsetData, live: Tensor):
     sing = form.prepare(geo, data)
     status.masked_fill_(live & sing, int(Status.LOW_TEXTURE))
     alive = live & ~sing
-    data.hinv = torch.where(alive.view(-1, 1, 1), data.hinv, 0.0)
+    data.hinv.masked_fill_(~alive.view(-1, 1, 1), 0.0)  # (its own: just prepared)
     return params.clone(), zncc, status, alive, data

@@ -414,15 +414,20 @@ def rows_by_half_width(m_of: torch.Tensor, rows: torch.Tensor, m_max: int
     ``m_max``): ``(m, (R_m,) long row indices ascending)`` for each half-width they take, in
     increasing order. One host read (a count of each), not an index per half-width: the
     rows sorted by half-width (a stable sort keeps their order), split by the counts."""
-    key = torch.where(rows, m_of.long().clamp(0, m_max), m_max + 1)
-    counts = torch.bincount(key, minlength=m_max + 2)[:m_max + 1].tolist()
+    key, counts = _half_width_counts(m_of, rows, m_max)
     order = torch.argsort(key, stable=True)[:sum(counts)]
     return [(m, part) for m, part in enumerate(order.split(counts)) if counts[m]]
+
+
+def _half_width_counts(m_of: torch.Tensor, rows: torch.Tensor, m_max: int
+                       ) -> tuple[torch.Tensor, list[int]]:
+    """(R,) each row's half-width (``m_max + 1`` where not in ``rows``) and the count of
+    each half-width 0 .. ``m_max`` (one host read)."""
+    key = torch.where(rows, m_of.long().clamp(0, m_max), m_max + 1)
+    return key, torch.bincount(key, minlength=m_max + 2)[:m_max + 1].tolist()
 
 
 def half_widths(m_of: torch.Tensor, rows: torch.Tensor, m_max: int) -> list[int]:
     """The half-widths 0 .. ``m_max`` that ``m_of`` (R,) takes at the ``rows`` (R,) bool, in
     increasing order: one host read (a count of each), not a ``unique`` and a copy."""
-    counts = torch.bincount(torch.where(rows, m_of.long().clamp(0, m_max), m_max + 1),
-                            minlength=m_max + 2)[:m_max + 1]
-    return [m for m, c in enumerate(counts.tolist()) if c]
+    return [m for m, c in enumerate(_half_width_counts(m_of, rows, m_max)[1]) if c]
