@@ -48,8 +48,9 @@ def _backend(ctx, form, params: Tensor, data: SubsetData) -> str:
 
 
 def start_stage(form, geo, params: Tensor, data: SubsetData, live: Tensor):
-    """What every Gauss-Newton stage starts with (the batched loop of
-    :mod:`torch_stsdic.core.gauss_newton` and :func:`solve_stage`): the (N,) status (MAX_ITER
+    """What a Gauss-Newton stage of the batched loop of :mod:`torch_stsdic.core.gauss_newton`
+    starts with (:func:`solve_stage` starts with :func:`_start_every_row`, which chooses no
+    rows): the (N,) status (MAX_ITER
     until decided), ZNCC and iteration counts, the live rows' data prepared by the
     formulation (Hessian), rows whose Hessian is singular LOW_TEXTURE and dropped. Returns
     params (a copy), zncc, status, used, rows (the rows to iterate), data (theirs); data is

@@ -9,12 +9,12 @@ it are turned into totals by composition (:func:`to_total`) and back (:func:`to_
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 import torch
 
 from torch_stsdic.analysis.result import USABLE
+from torch_stsdic.core.gauss_newton import KeptToken
 from torch_stsdic.core.interpolation import BSplineImage
 from torch_stsdic.core.noise import estimate_noise_sigma
 from torch_stsdic.core.pyramid import ImagePyramid, PyramidStack
@@ -42,12 +42,12 @@ class Reference:
     #: worked out on first use
     velocity_maps: torch.Tensor | None = None
     #: the token of a solver's reference cache holding the POIs' subsets (:meth:`kept_by`)
-    kept: Any = None
+    kept: KeptToken | None = None
 
-    def kept_by(self, solver: SubsetSolver) -> Any:
-        """``solver.keep_reference_subsets`` of the POIs (one host read), or the token of an
-        earlier block while the solver's cache still holds them (none): every block's
-        solves then read the POIs' reference subsets with no host read
+    def kept_by(self, solver: SubsetSolver) -> KeptToken | None:
+        """``solver.keep_reference_subsets`` of the POIs (one host read), or, with no read,
+        the token an earlier block got while the solver's cache still holds them: every
+        block's solves then read the POIs' reference subsets with no host read
         (:meth:`~torch_stsdic.core.solver.SubsetSolver.keep_reference_subsets`)."""
         cache = solver.reference_cache
         if cache is None or self.kept is None or self.kept != cache.token():
