@@ -497,6 +497,10 @@ def test_wrappers_pass_exactly_the_declared_parameters(monkeypatch):
                      torch.zeros(img.height * img.width, dtype=torch.float64), img.width,
                      img.height)
         native.windows((torch.rand(1, 8, 9, dtype=dtype),), torch.tensor([0, 10]), 3, 4)
+        vals = torch.rand(2, 5, dtype=dtype)
+        bins = [torch.zeros(k, dtype=dtype) for k in (7, 14, 14)]
+        native.splat_add(*bins, vals, vals, vals, torch.tensor([1, 0]), torch.tensor([0, 1]),
+                         torch.arange(10).view(2, 5) % 7)
     declared = native.kernels()
     assert set(seen) == set(declared)
     for name, calls in seen.items():
@@ -1131,3 +1135,37 @@ def test_nanmedian_matches_torch(k, dtype):
         assert got.dtype == dtype and torch.equal(got.nan_to_num(9e9), want.nan_to_num(9e9))
     with pytest.raises(ValueError, match=r"native.nanmedian: rows of 1 to 64 values"):
         native.nanmedian(torch.zeros(3, 65, dtype=dtype))
+
+
+def test_splat_add_adds_in_the_order_of_scatter_add():
+    """The template's sums added in C++ (``native.splat_add``) are scatter_add_'s on the
+    CPU to the last bit: each bin's values in row order (many rows on few bins, values of
+    mixed magnitude, so another order would round differently), frames of a group apart;
+    a row outside the POIs or frames is refused."""
+    from torch_stsdic.kernels.scatter import scatter_add_
+
+    g = torch.Generator().manual_seed(5)
+    n_poi, ns, n_px, frames, n = 30, 9, 40, 3, 200
+    local = torch.randint(0, n_px, (n_poi, ns), generator=g)
+    poi = torch.randint(0, n_poi, (n,), generator=g)
+    frame = torch.randint(0, frames, (n,), generator=g)
+    a, wt, nz = (torch.randn(n, ns, generator=g, dtype=torch.float64)
+                 * 10.0 ** torch.randint(-8, 8, (n, ns), generator=g) for _ in range(3))
+    want = [torch.zeros(n_px, dtype=torch.float64),
+            torch.zeros(frames * n_px, dtype=torch.float64),
+            torch.zeros(frames * n_px, dtype=torch.float64)]
+    px = local[poi]
+    at = frame[:, None] * n_px + px
+    scatter_add_(want[0], px, a)
+    scatter_add_(want[1], at, wt)
+    scatter_add_(want[2], at, nz)
+    got = [torch.zeros_like(t) for t in want]
+    native.splat_add(*got, a, wt, nz, poi, frame, local)
+    for x, y in zip(got, want):
+        assert torch.equal(x, y)
+    # another order of the rows gives other bits (the test can tell orders apart)
+    other = torch.zeros(n_px, dtype=torch.float64)
+    scatter_add_(other, px.flip(0), a.flip(0))
+    assert not torch.equal(other, want[0])
+    with pytest.raises(ValueError, match="poi within"):
+        native.splat_add(*got, a, wt, nz, poi + n_poi, frame, local)

@@ -138,42 +138,45 @@ def splat(acc: torch.Tensor, img: BSplineImage, planes: torch.Tensor, ref: torch
         u0, v0 = warp[f, i, 0], warp[f, i, 6]
         fac = interpolation_variance_factor(u0 - u0.floor(), v0 - v0.floor(),
                                             img.order)  # (n,)
-        px = local[i]  # (n, S) the window pixels among the covered ones
-        at = px if g_count == 1 else f[:, None] * n_px + px  # the pixel in its frame's share
-        if native:  # the samples' values, weights and noise shares in one C++ pass
+        if native:  # the samples' values, weights and noise shares in one C++ pass, added
+            # to the sums in a second (one thread, the rows' order: scatter_add_'s numbers)
             vals, wt, share = native_ops.splat(
                 ka, img.order, dx, dy, tent, torch.cat([px_map, py_map], 1), c,
                 planes[f] * ka[-1], weight[f], level[f], fac,
                 (ref_stats[0][i].reshape(-1), ref_stats[1][i].reshape(-1)), ref, w, h)
+            native_ops.splat_add(sums[0], per_frame[0], per_frame[1], vals, wt, share, i, f,
+                                 local)
+            continue
+        px = local[i]  # (n, S) the window pixels among the covered ones
+        at = px if g_count == 1 else f[:, None] * n_px + px  # the pixel in its frame's share
+        xs, ys = px_map @ mono.T, py_map @ mono.T  # (n, S) px in the frame
+        # a window wholly inside the image (both configurations) needs no mask: most do
+        (xlo, xhi), (ylo, yhi) = torch.aminmax(xs), torch.aminmax(ys)
+        whole = bool((c.amin() >= half) & (c[:, 0].amax() <= w - 1 - half)
+                     & (c[:, 1].amax() <= h - 1 - half) & (xlo >= 0) & (xhi <= w - 1)
+                     & (ylo >= 0) & (yhi <= h - 1))
+        inside = None
+        if not whole:
+            x, y = c[:, :1] + dx, c[:, 1:] + dy  # (n, S) reference-configuration pixels
+            inside = ((x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1) & (xs >= 0)
+                      & (xs <= w - 1) & (ys >= 0) & (ys <= h - 1))
+        vals = torch.nan_to_num(img.sample(xs.to(img.dtype), ys.to(img.dtype),
+                                           frame=planes[f].unsqueeze(1)).double())
+        cnt = (torch.full((len(i), 1), float(dx.numel()), dtype=torch.float64, device=dev)
+               if inside is None else inside.sum(1, keepdim=True).clamp(min=1))
+        m_f = _masked(vals, inside).sum(1, keepdim=True) / cnt
+        vals -= m_f  # centred over the window
+        s_f = torch.linalg.vector_norm(_masked(vals, inside), dim=1, keepdim=True)
+        if inside is None:  # whole windows: the reference's statistics, frame-independent
+            m_r, s_r = ref_stats[0][i], ref_stats[1][i]
         else:
-            xs, ys = px_map @ mono.T, py_map @ mono.T  # (n, S) px in the frame
-            # a window wholly inside the image (both configurations) needs no mask: most do
-            (xlo, xhi), (ylo, yhi) = torch.aminmax(xs), torch.aminmax(ys)
-            whole = bool((c.amin() >= half) & (c[:, 0].amax() <= w - 1 - half)
-                         & (c[:, 1].amax() <= h - 1 - half) & (xlo >= 0) & (xhi <= w - 1)
-                         & (ylo >= 0) & (yhi <= h - 1))
-            inside = None
-            if not whole:
-                x, y = c[:, :1] + dx, c[:, 1:] + dy  # (n, S) reference-configuration pixels
-                inside = ((x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1) & (xs >= 0)
-                          & (xs <= w - 1) & (ys >= 0) & (ys <= h - 1))
-            vals = torch.nan_to_num(img.sample(xs.to(img.dtype), ys.to(img.dtype),
-                                               frame=planes[f].unsqueeze(1)).double())
-            cnt = (torch.full((len(i), 1), float(dx.numel()), dtype=torch.float64, device=dev)
-                   if inside is None else inside.sum(1, keepdim=True).clamp(min=1))
-            m_f = _masked(vals, inside).sum(1, keepdim=True) / cnt
-            vals -= m_f  # centred over the window
-            s_f = torch.linalg.vector_norm(_masked(vals, inside), dim=1, keepdim=True)
-            if inside is None:  # whole windows: the reference's statistics, frame-independent
-                m_r, s_r = ref_stats[0][i], ref_stats[1][i]
-            else:
-                own = ref[pixels[local[i]]]  # (n, S) the reference's pixels of the windows
-                m_r = _masked(own, inside).sum(1, keepdim=True) / cnt
-                s_r = _masked((own - m_r) ** 2, inside).sum(1, keepdim=True).sqrt()
-            gain = torch.where(s_f > 0, s_r / s_f.clamp(min=1e-12), 1.0)
-            wt = _masked(tent * weight[f, None], inside)
-            vals.mul_(gain).add_(m_r).mul_(wt)  # in the reference's grey levels, weighted
-            share = wt * (fac[:, None] * (gain * level[f, None]) ** 2)
+            own = ref[pixels[local[i]]]  # (n, S) the reference's pixels of the windows
+            m_r = _masked(own, inside).sum(1, keepdim=True) / cnt
+            s_r = _masked((own - m_r) ** 2, inside).sum(1, keepdim=True).sqrt()
+        gain = torch.where(s_f > 0, s_r / s_f.clamp(min=1e-12), 1.0)
+        wt = _masked(tent * weight[f, None], inside)
+        vals.mul_(gain).add_(m_r).mul_(wt)  # in the reference's grey levels, weighted
+        share = wt * (fac[:, None] * (gain * level[f, None]) ** 2)
         # summed in a fixed order (the same template on every run and device)
         scatter_add_(sums[0], px, vals)
         scatter_add_(per_frame[0], at, wt)

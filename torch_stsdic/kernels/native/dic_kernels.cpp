@@ -1503,6 +1503,32 @@ STS_KERNEL(sts_splat, (const T* flat, int64_t wp, double x_lo, double x_hi, doub
   return 0;
 }
 
+// Rows i in [i0, i1) of sts_splat's outputs a, wt, nz (N, ns), each a (frame, POI) pair:
+// added to the sums over the n_px pixels the windows cover, k = local[poi[i] * ns + s] the
+// pixel of sample s: sums[k] += a, and the row's frame's pf_w[frame[i] * n_px + k] += wt,
+// pf_n[...] += nz. Each bin's values added in row order, as index_add_ adds them on the CPU
+// (kernels/scatter.py): call it on one thread, over all rows at once.
+STS_KERNEL(sts_splat_add, (int64_t i0, int64_t i1, int64_t ns, int64_t n_px, const T* a,
+                           const T* wt, const T* nz, const int64_t* poi,
+                           const int64_t* frame, const int64_t* local, T* sums, T* pf_w,
+                           T* pf_n)) {
+  for (int64_t i = i0; i < i1; ++i) {
+    const int64_t* k = local + poi[i] * ns;
+    const T* ai = a + i * ns;
+    const T* wi = wt + i * ns;
+    const T* ni = nz + i * ns;
+    T* fw = pf_w + frame[i] * n_px;
+    T* fn = pf_n + frame[i] * n_px;
+    for (int64_t s = 0; s < ns; ++s) {
+      const int64_t j = k[s];
+      sums[j] += ai[s];
+      fw[j] += wi[s];
+      fn[j] += ni[s];
+    }
+  }
+  return 0;
+}
+
 }  // namespace
 
 // ---- the library's interface: the ABI version and the kernel declarations ------------------
@@ -1510,7 +1536,7 @@ extern "C" {
 
 // Version of this interface (the sts_kernel_* functions and what the kernels' parameters
 // mean); native/declarations.py refuses a library of another version.
-int sts_abi_version() { return 13; }
+int sts_abi_version() { return 14; }
 
 int sts_kernel_count() { return int(declarations().size()); }
 

@@ -14,7 +14,8 @@ from torch_stsdic.kernels.native.loader import kernel
 from torch_stsdic.kernels.native.rows import run_rows, run_shared, threads
 
 __all__ = ["sample", "subsets", "windows", "ic_rhs", "ic_solve", "gram", "spd_inverse", "param_std",
-           "nanmedian", "prefilter", "neighbour_own_gradient", "neighbour_test", "splat"]
+           "nanmedian", "prefilter", "neighbour_own_gradient", "neighbour_test", "splat",
+           "splat_add"]
 
 
 def _geo(img_args: tuple, order: int) -> dict:
@@ -462,3 +463,39 @@ def splat(img_args: tuple, order: int, dx: torch.Tensor, dy: torch.Tensor, tent:
                   sr=d(ref_stats[1]), ref=d(ref), w=int(w), h=int(h), a=out[0], wt=out[1],
                   nz=out[2]))
     return out[0], out[1], out[2]
+
+
+def splat_add(sums: torch.Tensor, pf_w: torch.Tensor, pf_n: torch.Tensor, a: torch.Tensor,
+              wt: torch.Tensor, nz: torch.Tensor, poi: torch.Tensor, frame: torch.Tensor,
+              local: torch.Tensor) -> None:
+    """Add :func:`splat`'s rows (``a``, ``wt``, ``nz`` (N, S), each a (frame, POI)
+    pair: ``frame`` (N,), ``poi`` (N,)) to the sums over the C pixels the windows cover, in
+    place: ``sums`` (C,) += a and the row's frame's ``pf_w``, ``pf_n`` (G*C,) += wt, nz, at
+    pixel ``local[poi, s]`` (``local`` (P, S): each POI's window pixels among the C). Each
+    bin's values added in row order on one thread: the numbers of
+    :func:`~torch_stsdic.kernels.scatter.scatter_add_` on the CPU, without the (N, S)
+    index. Every value tensor of one dtype (float64 for the template; float32 too)."""
+    n, ns = a.shape
+    n_px = sums.numel()
+    _require("splat_add", a.dtype in (torch.float32, torch.float64)
+             and all(t.dtype == a.dtype and t.is_contiguous()
+                     for t in (sums, pf_w, pf_n, a, wt, nz))
+             and wt.shape == a.shape and nz.shape == a.shape and poi.numel() == n
+             and frame.numel() == n and local.dim() == 2 and local.shape[1] == ns
+             and pf_w.numel() == pf_n.numel() and pf_w.numel() % max(n_px, 1) == 0,
+             "sums (C,), pf_w/pf_n (G*C,), a/wt/nz (N, S) contiguous, one float dtype, "
+             "poi/frame (N,), local (P, S)")
+    if n == 0:
+        return
+    poi, frame = poi.to(torch.int64).contiguous(), frame.to(torch.int64).contiguous()
+    _require("splat_add", bool((poi >= 0).all() & (poi < local.shape[0]).all()
+                               & (frame >= 0).all() & (frame < pf_w.numel() // n_px).all()),
+             "poi within local's rows, frame within pf_w's frames")
+    fn = kernel("sts_splat_add", a.dtype)
+    raw, keep = fn.bind(dict(i0=0, i1=n, ns=ns, n_px=n_px, a=a, wt=wt, nz=nz, poi=poi,
+                             frame=frame, local=local.to(torch.int64).contiguous(), sums=sums,
+                             pf_w=pf_w, pf_n=pf_n))
+    rc = fn.fn(*raw)
+    del keep
+    if rc:
+        raise RuntimeError(f"sts_splat_add returned {rc}")
