@@ -49,8 +49,12 @@ def window_pixels(pts: torch.Tensor, half: int, height: int, width: int
     the border reaches pixels it masks out): (C,) their flat indices, sorted, and (N, S)
     each window pixel's position among them."""
     flat = _window_index(pts.round(), half, width, height * width)  # (N, S)
-    pixels, local = torch.unique(flat, return_inverse=True)
-    return pixels, local
+    # torch.unique's answer without its sort: the pixels marked on the image, in order,
+    # each window pixel's rank among them
+    mark = torch.zeros(height * width, dtype=torch.bool, device=flat.device)
+    mark[flat] = True
+    rank = torch.cumsum(mark, 0) - 1
+    return torch.nonzero(mark).flatten(), rank[flat]
 
 
 def reference_window_stats(ref: torch.Tensor, cover: tuple[torch.Tensor, torch.Tensor]
