@@ -23,9 +23,7 @@ from typing import Any
 
 import torch
 
-from torch_stsdic.analysis.quality import (
-    neighbours,
-)
+from torch_stsdic.analysis.quality import neighbours
 from torch_stsdic.analysis.result import USABLE
 from torch_stsdic.core.shared_motion import SharedMotion, window_offsets
 from torch_stsdic.core.solver import (
@@ -38,7 +36,13 @@ from torch_stsdic.core.status import Status
 from torch_stsdic.movie.block_start import pilot_shift, window_shake
 from torch_stsdic.movie.carry import Carry
 from torch_stsdic.movie.checks import CHECK_ITER, CHECK_TOL, BlockChecks
-from torch_stsdic.movie.frames import FrameCache, block_frames, rows_by_half_width, window_frames
+from torch_stsdic.movie.frames import (
+    FrameCache,
+    block_frames,
+    grouped_rows,
+    rows_by_half_width,
+    window_frames,
+)
 from torch_stsdic.movie.reference import Reference, noise_ratio, to_relative, to_total
 from torch_stsdic.movie.rescue import BlockRescue
 from torch_stsdic.movie.sample_guess import MeasuredSample
@@ -439,9 +443,10 @@ class Block(BlockChecks, BlockRescue):
             self.centres, self.centres_inside = centres, bool(all_in)
             if self.kept is not None:  # and the moved subsets' (one host read)
                 self.kept = run.solver.keep_reference_subsets(self.ref.img, self.centres)
-            # each target's moved points, for the shared motion at their centres (flat rows
-            # in order: a stable sort split by the counts, no index)
-            at = torch.argsort(~off.reshape(-1), stable=True)[:sum(per_target)].split(per_target)
+            # each target's moved points, for the shared motion at their centres (by the
+            # counts read above, no index)
+            target = torch.arange(self.b, device=off.device).unsqueeze(1)
+            at = grouped_rows(torch.where(off, target, self.b).reshape(-1), per_target)
             self._moved = [(j, a % self.n) for j, a in enumerate(at) if per_target[j]]
             self._motion = {}  # the shared motion at the subsets' centres
             run.stats["off_centre_rows"] = run.stats.get("off_centre_rows", 0) + n_moved

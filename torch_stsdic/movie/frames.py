@@ -38,7 +38,7 @@ from torch_stsdic.movie.frame_ring import FrameRing, RingView
 
 __all__ = ["FrameCache", "FrameStore", "PreparedFrame", "window_frames", "block_frames",
            "segment_bounds", "frames_in_order", "default_ahead", "half_widths",
-           "rows_by_half_width"]
+           "rows_by_half_width", "grouped_rows"]
 
 
 def window_frames(ks: torch.Tensor, m: int, n_series: int,
@@ -415,8 +415,16 @@ def rows_by_half_width(m_of: torch.Tensor, rows: torch.Tensor, m_max: int
     increasing order. One host read (a count of each), not an index per half-width: the
     rows sorted by half-width (a stable sort keeps their order), split by the counts."""
     key, counts = _half_width_counts(m_of, rows, m_max)
-    order = torch.argsort(key, stable=True)[:sum(counts)]
-    return [(m, part) for m, part in enumerate(order.split(counts)) if counts[m]]
+    return [(m, part) for m, part in enumerate(grouped_rows(key, counts)) if counts[m]]
+
+
+def grouped_rows(key: torch.Tensor, counts: Sequence[int]) -> list[torch.Tensor]:
+    """The rows of each group g = 0 .. G-1 of ``key`` (R,) integer (G or more: in no group),
+    as (R_g,) long indices ascending, given every group's size ``counts`` (G,) (read by the
+    caller, with whatever else it reads at once): the rows sorted by group (a stable sort
+    keeps their order), split by the counts; no host read here."""
+    counts = [int(c) for c in counts]
+    return list(torch.argsort(key, stable=True)[:sum(counts)].split(counts))
 
 
 def _half_width_counts(m_of: torch.Tensor, rows: torch.Tensor, m_max: int
