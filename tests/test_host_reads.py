@@ -200,3 +200,38 @@ def test_the_reference_cache_tells_its_geometry_by_a_host_key(monkeypatch):
         assert cache.applies(ref_img, g2)  # by the key: no torch.equal
     assert not cache.applies(ref_img, other)  # another key: the tensors differ
     assert cache.applies(ref_img, geo(Mine(15))) is False  # a square's, not the Gaussian's
+
+
+def test_the_shared_velocity_at_the_target_reads_nothing_and_is_the_line_where_centred():
+    """``shared_velocity.target_slope`` takes the quadratic's derivative at the target where
+    a window is shifted and the motion bends, the line's slope elsewhere, without a host
+    read of whether any window is shifted; a shifted window of two distinct times (no
+    quadratic) gives the line, not an error."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    from torch_stsdic.core.shared_motion import window_slope
+    from torch_stsdic.movie.shared_velocity import target_slope
+
+    reads = []
+
+    class Reads(TorchDispatchMode):
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            if func in (torch.ops.aten._local_scalar_dense.default,
+                        torch.ops.aten.is_nonzero.default, torch.ops.aten.nonzero.default):
+                reads.append(func)
+            return func(*args, **(kwargs or {}))
+
+    centred = torch.arange(-3.0, 4.0, dtype=torch.float64)
+    shifted = torch.arange(0.0, 7.0, dtype=torch.float64)  # the movie's first frame
+    repeated = torch.tensor([0.0, 0.0, 0.0, 1.0, 1.0, 1.0, 1.0], dtype=torch.float64)
+    dt = torch.stack([centred, shifted, repeated])[:, None, :].expand(3, 4, 7)  # (B, N, T)
+    b1, c2 = torch.tensor([0.3, -0.1]), torch.tensor([0.02, 0.05])  # px/frame, px/frame^2
+    g = 1.5 + b1 * dt.unsqueeze(-1) + c2 * dt.unsqueeze(-1) ** 2  # (B, N, T, 2)
+    frame_var = torch.full((3, 4), 1e-6, dtype=torch.float64)
+    with Reads():
+        slope, used, var = target_slope(g, dt, frame_var)
+    assert not reads
+    line = window_slope(g.double(), dt)
+    assert not used[0].any() and torch.equal(slope[0], line[0]) and not var[0].any()
+    assert used[1].all() and torch.allclose(slope[1], b1.double().expand(4, 2), atol=1e-9)
+    assert not used[2].any() and torch.equal(slope[2], line[2])

@@ -74,10 +74,14 @@ def target_slope(g: torch.Tensor, dt: torch.Tensor, frame_var: torch.Tensor | No
     n = t.shape[-1]
     zero = torch.zeros_like(line)
     shifted = t.mean(-1).abs() > 1e-9  # (t's leading shape)
-    if n < 3 or not bool(shifted.any()) or (frame_var is None and n < 4):
+    if n < 3 or (frame_var is None and n < 4):
         return line, torch.zeros_like(line, dtype=torch.bool), zero
+    # the quadratic at every window, shifted or not (no host read of whether any is: a
+    # centred window's is not used); inv_ex: a singular design (two distinct times) keeps
+    # the line there instead of raising
     a = torch.stack([torch.ones_like(t), t, t * t], -1)  # (..., T, 3)
-    inv = torch.linalg.inv(a.transpose(-1, -2) @ a)  # (..., 3, 3)
+    inv, info = torch.linalg.inv_ex(a.transpose(-1, -2) @ a)  # (..., 3, 3)
+    shifted = shifted & (info == 0)
     coef = inv @ (a.transpose(-1, -2) @ g)  # (..., 3, 2)
     if frame_var is None:
         fv = (g - a @ coef).square().sum(-2) / (n - 3)  # (..., 2) the residuals'
