@@ -126,3 +126,26 @@ def test_cuda_targets_compare_the_triton_solver_with_the_batched_loop():
             if c["kind"] == "solve" and not c.get("compare")}
     assert {(c["m"], c["n"], c.get("step")) for c in loop} <= same  # the solver's own rows
     assert not any(c.get("per_point") for c in bench.preset_cases(args, "cpu"))
+
+
+def test_cpu_criteria_reads_the_template_from_the_runs_and_records(tmp_path):
+    """scripts/benchmarks/cpu_criteria.py on a small synthetic movie, one round: the
+    defaults, the classical run, the template's seconds read from the run's summary line
+    (a changed summary would leave the share out), the ratio per round and the record."""
+    script = SCRIPT.parent / "cpu_criteria.py"
+    movie = tmp_path / "movie"
+    p = subprocess.run([sys.executable, "-m", "torch_stsdic", "synth", "--out", str(movie),
+                        "--size", "120", "120", "--frames", "8"], capture_output=True,
+                       text=True, timeout=300)
+    assert p.returncode == 0, p.stderr[-2000:]
+    out = tmp_path / "criteria.json"
+    p = subprocess.run([sys.executable, str(script), "--rounds", "1", "--out", str(out), "--",
+                        str(movie / "movie.tif")], capture_output=True, text=True, timeout=600)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
+    rec = json.loads(out.read_text())
+    row = rec["rounds"][0]
+    assert row["defaults_s"] > 0 and row["classical_s"] > 0
+    assert abs(row["defaults_ratio"] - row["defaults_s"] / row["classical_s"]) < 0.01
+    assert 0 < row["defaults_template_share"] < 1  # the summary line was read
+    assert rec["summary"]["defaults_ratio"]["median"] == row["defaults_ratio"]
+    assert "limits: ratio <= 3.0x" in p.stdout
