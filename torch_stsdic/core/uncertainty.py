@@ -131,7 +131,7 @@ def _centred_gram(geo: Geometry, g: Tensor, m: Tensor, m1: Tensor, weights: Tens
     window-weighted (``geo.w``) mean for ZNSSD (no centring for SSD)."""
     if not geo.znssd:
         return g
-    jbar = m1 / float(geo.w.sum())
+    jbar = m1 / geo.w_sum
     return (g - m.unsqueeze(-1) * jbar.unsqueeze(-2) - jbar.unsqueeze(-1) * m.unsqueeze(-2)
             + float(weights.sum()) * jbar.unsqueeze(-1) * jbar.unsqueeze(-2))
 

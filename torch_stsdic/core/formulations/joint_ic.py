@@ -70,7 +70,7 @@ def gram_and_texture(geo: Geometry, gx: Tensor, gy: Tensor) -> tuple[Tensor, Ten
     ``gx^2 + gy^2`` (the texture test), read off the gram before centring (the diagonal
     entries of the augmented constant columns are ``sum_s w gx^2`` and ``sum_s w gy^2``)."""
     g, m = gram(gx, gy, geo.spatial, geo.w)
-    ks, wsum = geo.ks, float(geo.w.sum())
+    ks, wsum = geo.ks, geo.w_sum  # (a host number: no read of the device)
     texture = ((g[:, ks, ks] + g[:, 2 * ks + 1, 2 * ks + 1]) / wsum).to(gx.dtype)
     if geo.znssd:
         g = g - m.unsqueeze(-1) * m.unsqueeze(-2) / wsum
