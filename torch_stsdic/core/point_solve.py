@@ -59,13 +59,9 @@ def start_stage(form, geo, params: Tensor, data: SubsetData, live: Tensor):
     usually live), so the rows to iterate are chosen by one index (one host
     synchronisation), not one for the live rows and another for the singular ones."""
     n = params.shape[0]
-    device, dtype = params.device, params.dtype
-    status = torch.full((n,), int(Status.MAX_ITER), dtype=torch.int8, device=device)
-    zncc = torch.full((n,), float("nan"), dtype=dtype, device=device)
-    used = torch.zeros(n, dtype=torch.int32, device=device)
-    sing = form.prepare(geo, data)
-    status.masked_fill_(live & sing, int(Status.LOW_TEXTURE))
-    rows = torch.nonzero(live & ~sing).flatten()  # one index for all (one sync)
+    status, zncc, alive = _prepare_rows(form, geo, params, data, live)
+    used = torch.zeros(n, dtype=torch.int32, device=params.device)
+    rows = torch.nonzero(alive).flatten()  # one index for all (one sync)
     if rows.numel() == 0:
         return params, zncc, status, used, rows, None
     params = params.clone()
@@ -124,12 +120,18 @@ def _start_every_row(form, geo, params: Tensor, data: SubsetData, live: Tensor):
     the rows iterated give what they give alone. Returns params (a copy), zncc (NaN), status
     (MAX_ITER until decided; LOW_TEXTURE where singular), the (N,) bool rows iterated and
     data (every row, its Hessian prepared)."""
-    n = params.shape[0]
-    device, dtype = params.device, params.dtype
-    status = torch.full((n,), int(Status.MAX_ITER), dtype=torch.int8, device=device)
-    zncc = torch.full((n,), float("nan"), dtype=dtype, device=device)
-    sing = form.prepare(geo, data)
-    status.masked_fill_(live & sing, int(Status.LOW_TEXTURE))
-    alive = live & ~sing
+    status, zncc, alive = _prepare_rows(form, geo, params, data, live)
     data.hinv.masked_fill_(~alive.view(-1, 1, 1), 0.0)  # (its own: just prepared)
     return params.clone(), zncc, status, alive, data
+
+
+def _prepare_rows(form, geo, params: Tensor, data: SubsetData, live: Tensor):
+    """What both starts share: every row's data prepared by the formulation (Hessian),
+    the (N,) status (MAX_ITER until decided; LOW_TEXTURE where ``live`` and the Hessian is
+    singular), ZNCC (NaN) and the (N,) bool rows to iterate (live, not singular)."""
+    n = params.shape[0]
+    status = torch.full((n,), int(Status.MAX_ITER), dtype=torch.int8, device=params.device)
+    zncc = torch.full((n,), float("nan"), dtype=params.dtype, device=params.device)
+    sing = form.prepare(geo, data)
+    status.masked_fill_(live & sing, int(Status.LOW_TEXTURE))
+    return status, zncc, live & ~sing
