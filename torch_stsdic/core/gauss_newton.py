@@ -320,6 +320,12 @@ def _classical_step(ctx: BatchContext, data: SubsetData, p_last: Tensor, frame: 
     return est.masked_fill(bad.unsqueeze(1), float("nan"))
 
 
+def _pixel_keys(ref: BSplineImage, ij: Tensor, ridx: Tensor) -> Tensor:
+    """(N,) one integer per (reference, pixel): of whole-pixel points ``ij`` (N, 2) in
+    references ``ridx`` (N,) of ``ref`` (the reference cache's slots are indexed by it)."""
+    return (ridx * ref.height + ij[:, 1].long()) * ref.width + ij[:, 0].long()
+
+
 def _reference_data(ctx: BatchContext, pts, dt, fidx, ridx) -> SubsetData:
     """The reference subsets of a batch and their centred gram (for the Hessian and the
     uncertainty), sampled once per distinct (point, reference) pair: a block of B targets
@@ -328,7 +334,7 @@ def _reference_data(ctx: BatchContext, pts, dt, fidx, ridx) -> SubsetData:
     n = pts.shape[0]
     # points are on the pixel grid here (solve snaps off-grid points): one integer key each
     ij = pts.detach().round()
-    key = (ridx * ctx.ref.height + ij[:, 1].long()) * ctx.ref.width + ij[:, 0].long()
+    key = _pixel_keys(ctx.ref, ij, ridx)
     on_grid = ctx.on_grid or bool((ij == pts).all())
     if on_grid and ctx.cache is not None and ctx.cache.applies(ctx.ref, geo):
         data = _cached_reference_data(ctx, pts, dt, fidx, ridx, key)
@@ -425,10 +431,9 @@ def keep_subsets(ctx: BatchContext, pts: torch.Tensor) -> KeptToken | None:
         return None
     n = pts.shape[0]
     pts = pts.detach().round()  # the pixels a solve snaps its points to
-    ij = pts.long()
-    key = ij[:, 1] * ctx.ref.width + ij[:, 0]
     zero = torch.zeros(n, 1, dtype=pts.dtype, device=pts.device)
     ridx = torch.zeros(n, dtype=torch.long, device=pts.device)
+    key = _pixel_keys(ctx.ref, pts, ridx)
     if not _keep_missing(ctx, pts, zero, ridx.unsqueeze(1), ridx, key):
         return None
     return cache.token()
