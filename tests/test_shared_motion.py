@@ -656,3 +656,70 @@ def test_fit_does_not_jump_where_the_field_departs_from_it():
     par = fit_frame_motion(pts, disp, valid, "quadratic")[0]
     second = (par[2:, :2] - 2 * par[1:-1, :2] + par[:-2, :2]).abs().max()
     assert float(second) < 0.05, float(second)
+
+
+def test_a_blocks_window_motion_follows_its_moved_subsets():
+    """:class:`~torch_stsdic.movie.block_motion.BlockMotion`: after subsets move off their
+    POIs (twice, the second move shifting one of the first's again), every half-width's
+    window offsets and slopes are the shared motion's at each row's subset centre over its
+    window (:func:`window_offsets` of :meth:`SharedMotion.displacement` there; to round-off:
+    a product of another batch size), and bit for bit what a block computing them afresh at
+    those centres gets; rows not moved keep theirs."""
+    from types import SimpleNamespace
+
+    from torch_stsdic.movie.block_motion import BlockMotion
+
+    rng = np.random.default_rng(5)
+    n_series = 12
+    shared = SharedMotion(kind="quadratic", params=rng.normal(0, 0.3, (n_series, 12)),
+                          origin=np.array([40.0, 30.0]), scatter=np.zeros(n_series),
+                          points=np.zeros(0, dtype=np.int64),
+                          measured=np.ones(n_series, dtype=bool))
+    ts = torch.arange(n_series, dtype=torch.float64) * 0.5
+    k = torch.tensor([0, 5, 11])  # windows shifted at both ends
+    n = 7
+    pts = torch.rand(n, 2, generator=torch.Generator().manual_seed(1)) * 60
+
+    class Stub(BlockMotion):
+        def __init__(self, centres=None):
+            self.run = SimpleNamespace(shared=shared, ts=ts, dtype=torch.float32)
+            self.k, self.n, self.b = k, n, k.numel()
+            self.ref = SimpleNamespace(points=pts)
+            self.pts = pts.repeat(self.b, 1)
+            self.needed = torch.arange(n_series)
+            self.centres = centres
+            self._init_motion()
+
+        def windows(self, m):
+            return window_frames(self.k, m, n_series)
+
+    def moved_to(blk, centres):
+        moved = (centres != (blk.pts if blk.centres is None else blk.centres)).any(1)
+        off = (centres != blk.pts).any(1)
+        blk.centres = centres
+        blk._centres_moved(off, int(off.sum()), moved, int(moved.sum()))
+
+    blk = Stub()
+    before = {m: (blk.motion_of(m).clone(), blk.shared_slope(m).clone()) for m in (1, 3)}
+    first = blk.pts.clone()
+    first[[2, 9, 16]] += torch.tensor([3.0, -2.0])
+    moved_to(blk, first)
+    second = first.clone()
+    second[[9, 20]] += torch.tensor([0.0, 4.0])
+    moved_to(blk, second)
+    fresh = Stub(centres=second)
+    off = (second != fresh.pts).any(1)
+    fresh._centres_moved(off, int(off.sum()), off, int(off.sum()))
+    for m in (1, 3, 2):  # 1, 3 cached before the moves, 2 computed after them
+        got, slope = blk.motion_of(m), blk.shared_slope(m)
+        assert torch.equal(got, fresh.motion_of(m)) and torch.equal(slope, fresh.shared_slope(m))
+        win = window_frames(k, m, n_series)
+        for r in (2, 9, 20, 4):  # moved (once, twice), and not moved
+            j = r // n
+            g = shared.displacement(second[r:r + 1], win[j]).to(torch.float32)[:, 0]
+            o, s = window_offsets(g, (ts[win[j]] - ts[k[j]]).float(), return_slope=True)
+            torch.testing.assert_close(got[r], o, rtol=1e-6, atol=1e-4)
+            torch.testing.assert_close(slope[r], s, rtol=1e-6, atol=1e-4)
+        if m in before:
+            assert not torch.equal(got[9], before[m][0][9])
+            assert torch.equal(got[4], before[m][0][4])

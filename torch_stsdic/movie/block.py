@@ -25,7 +25,7 @@ import torch
 
 from torch_stsdic.analysis.quality import neighbours
 from torch_stsdic.analysis.result import USABLE
-from torch_stsdic.core.shared_motion import SharedMotion, window_offsets
+from torch_stsdic.core.shared_motion import SharedMotion
 from torch_stsdic.core.solver import (
     SubsetSolver,
     WindowSolution,
@@ -33,13 +33,13 @@ from torch_stsdic.core.solver import (
     subset_inside,
 )
 from torch_stsdic.core.status import Status
+from torch_stsdic.movie.block_motion import BlockMotion
 from torch_stsdic.movie.block_start import pilot_shift, window_shake
 from torch_stsdic.movie.carry import Carry
 from torch_stsdic.movie.checks import CHECK_ITER, CHECK_TOL, BlockChecks
 from torch_stsdic.movie.frames import (
     FrameCache,
     block_frames,
-    grouped_rows,
     rows_by_half_width,
     window_frames,
 )
@@ -138,7 +138,7 @@ class BlockContext:
 
 
 
-class Block(BlockChecks, BlockRescue):
+class Block(BlockChecks, BlockRescue, BlockMotion):
     """The rows (target frame x POI, row = target * N + point) of one block being solved:
     parameters relative to the current reference, ZNCC, status, iterations."""
 
@@ -187,48 +187,9 @@ class Block(BlockChecks, BlockRescue):
         #: every row's subset (at :attr:`centres` where moved) lies inside the reference
         #: image: the solves need not find the others (made with the centres)
         self.centres_inside = True
-        #: (target, (M,) its points) whose subsets :meth:`keep_outside` moved
-        self._moved: list[tuple[int, torch.Tensor]] = []
-        self._motion: dict[int, torch.Tensor] = {}
-        self._slope: dict[int, torch.Tensor] = {}
-        self._shared_g: torch.Tensor | None = None  # (N, F, 2) shared motion, needed frames
+        self._init_motion()
         # the POIs' reference subsets kept for every solve of the block (one host read)
         self.kept = ref.kept_by(run.solver)
-
-    def motion_of(self, m: int) -> torch.Tensor | None:
-        """(B*N, 2m+1, 2) the shared motion's known part of every row's window frames
-        (:func:`~torch_stsdic.core.shared_motion.window_offsets`), or None (no shared motion, or
-        m = 0)."""
-        run = self.run
-        if run.shared is None or m == 0:
-            return None
-        if m not in self._motion:
-            win = self.windows(m)  # (B, T)
-            b, t = win.shape
-            if self._shared_g is None:  # at every frame the block reads, once
-                self._shared_g = run.shared.displacement(self.ref.points, self.needed).to(
-                    run.dtype).transpose(0, 1)  # (N, F, 2)
-            # (B, N, T, 2)
-            g = self._shared_g[:, torch.searchsorted(self.needed, win)].permute(1, 0, 2, 3)
-            if self.centres is not None:  # off-centre subsets: the motion at their centres
-                cen = self.centres.reshape(b, -1, 2)
-                for j, i in self._moved:  # (chosen once a block: no host read here)
-                    g[j, i] = run.shared.displacement(cen[j, i], win[j]).to(
-                        run.dtype).transpose(0, 1)
-            dt = (run.ts[win] - run.ts[self.k].unsqueeze(1)).to(run.dtype).unsqueeze(1)
-            # dt (B, 1, T): the same for all the target's points
-            o, slope = window_offsets(g, dt, return_slope=True)
-            self._motion[m] = o.reshape(-1, t, 2).contiguous()
-            self._slope[m] = slope.reshape(-1, 2)
-        return self._motion[m]
-
-    def shared_slope(self, m: int) -> torch.Tensor | None:
-        """(B*N, 2) px per time unit: the shared motion's least-squares slope over every
-        row's window of half-width ``m`` (the part of the window's ut, vt it makes), or None
-        (no shared motion, or m = 0)."""
-        if self.motion_of(m) is None:
-            return None
-        return self._slope[m]
 
     def windows(self, m: int) -> torch.Tensor:
         """(B, 2m+1) series frames of every target's window, shifted (not shrunk) at the
@@ -433,22 +394,16 @@ class Block(BlockChecks, BlockRescue):
         # rows moved by an earlier call (the block's carry, then its rescue) keep theirs
         base = self.pts if self.centres is None else self.centres
         centres = torch.where(moved.unsqueeze(1), self.pts + whole, base)
-        off = (centres != self.pts).any(1).reshape(self.b, -1)
+        off = (centres != self.pts).any(1)
         inside = subset_inside(centres, float(run.solver.window.half), self.ref.img.height,
                                self.ref.img.width).all()
-        # one read: the rows moved, whether every subset is inside, each target's moved rows
-        n_moved, all_in, *per_target = torch.cat([moved.sum().view(1), inside.view(1),
-                                                  off.sum(1)]).tolist()
+        # one read: the rows moved, whether every subset is inside, the rows off their POIs
+        n_moved, all_in, n_off = torch.stack([moved.sum(), inside.long(), off.sum()]).tolist()
         if n_moved:
             self.centres, self.centres_inside = centres, bool(all_in)
             if self.kept is not None:  # and the moved subsets' (one host read)
                 self.kept = run.solver.keep_reference_subsets(self.ref.img, self.centres)
-            # each target's moved points, for the shared motion at their centres (by the
-            # counts read above, no index)
-            target = torch.arange(self.b, device=off.device).unsqueeze(1)
-            at = grouped_rows(torch.where(off, target, self.b).reshape(-1), per_target)
-            self._moved = [(j, a % self.n) for j, a in enumerate(at) if per_target[j]]
-            self._motion = {}  # the shared motion at the subsets' centres
+            self._centres_moved(off, n_off, moved, n_moved)  # the shared motion there
             run.stats["off_centre_rows"] = run.stats.get("off_centre_rows", 0) + n_moved
         return out
 

@@ -1,0 +1,97 @@
+"""The shared motion in a block's windows (:class:`BlockMotion`, mixed into
+:class:`torch_stsdic.movie.block.Block`): every row's known motion over its window's frames,
+at its subset's centre, computed once a block for each half-width and updated only at the
+rows whose subsets :meth:`~torch_stsdic.movie.block.Block.keep_outside` moves."""
+
+from __future__ import annotations
+
+import torch
+
+from torch_stsdic.core.shared_motion import window_offsets
+
+__all__ = ["BlockMotion"]
+
+
+class BlockMotion:
+    """The shared motion of a :class:`~torch_stsdic.movie.block.Block`'s windows (its run,
+    targets ``k``, frames ``needed``, points ``pts`` and ``centres``). State: the motion at
+    the POIs in every needed frame, that at the off-centre subsets' centres, and each
+    half-width's window offsets and slopes."""
+
+    def _init_motion(self) -> None:
+        self._motion: dict[int, torch.Tensor] = {}  # m -> (B*N, 2m+1, 2)
+        self._slope: dict[int, torch.Tensor] = {}  # m -> (B*N, 2)
+        self._shared_g: torch.Tensor | None = None  # (N, F, 2) at the POIs, needed frames
+        #: (M,) rows whose subsets are off their POIs and (M, F, 2) the motion at their
+        #: centres in the needed frames (None: every subset at its POI)
+        self._off: tuple[torch.Tensor, torch.Tensor] | None = None
+
+    def motion_of(self, m: int) -> torch.Tensor | None:
+        """(B*N, 2m+1, 2) the shared motion's known part of every row's window frames
+        (:func:`~torch_stsdic.core.shared_motion.window_offsets`) at the row's subset centre,
+        or None (no shared motion, or m = 0)."""
+        run = self.run
+        if run.shared is None or m == 0:
+            return None
+        if m not in self._motion:
+            o, slope = self._window_motion(m, None)
+            self._motion[m], self._slope[m] = o, slope
+        return self._motion[m]
+
+    def shared_slope(self, m: int) -> torch.Tensor | None:
+        """(B*N, 2) px per time unit: the shared motion's least-squares slope over every
+        row's window of half-width ``m`` (the part of the window's ut, vt it makes), or None
+        (no shared motion, or m = 0)."""
+        if self.motion_of(m) is None:
+            return None
+        return self._slope[m]
+
+    def _window_motion(self, m: int, rows: torch.Tensor | None
+                       ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Window offsets (R, 2m+1, 2) and slopes (R, 2) of half-width ``m`` at the rows
+        ``rows`` (R,) (None: all B*N), each at its subset's centre. A row's numbers do not
+        depend on which other rows are computed with it."""
+        run, n = self.run, self.n
+        win = self.windows(m)  # (B, T)
+        b, t = win.shape
+        cols = torch.searchsorted(self.needed, win)  # (B, T) columns of the needed frames
+        dt = (run.ts[win] - run.ts[self.k].unsqueeze(1)).to(run.dtype)  # (B, T)
+        if rows is not None:  # only these rows, at their subsets' centres
+            g = run.shared.displacement(self.centres[rows], self.needed).to(
+                run.dtype).transpose(0, 1)  # (R, F, 2)
+            g = g[torch.arange(rows.numel(), device=g.device).unsqueeze(1), cols[rows // n]]
+            return window_offsets(g, dt[rows // n], return_slope=True)
+        if self._shared_g is None:  # at every frame the block reads, once
+            self._shared_g = run.shared.displacement(self.ref.points, self.needed).to(
+                run.dtype).transpose(0, 1)  # (N, F, 2)
+        g = self._shared_g[:, cols].permute(1, 0, 2, 3)  # (B, N, T, 2)
+        if self._off is not None:  # off-centre subsets: the motion at their centres
+            at, off_g = self._off
+            g = g.reshape(-1, t, 2)  # (a copy: g is a permuted gather)
+            g[at] = off_g[torch.arange(at.numel(), device=at.device).unsqueeze(1),
+                          cols[at // n]]
+            g = g.view(b, n, t, 2)
+        # dt (B, 1, T): the same for all the target's points
+        o, slope = window_offsets(g, dt.unsqueeze(1), return_slope=True)
+        return o.reshape(-1, t, 2).contiguous(), slope.reshape(-1, 2)
+
+    def _centres_moved(self, off: torch.Tensor, n_off: int, moved: torch.Tensor,
+                       n_moved: int) -> None:
+        """The subsets' :attr:`centres` changed at the rows ``moved`` (B*N,) bool
+        (``n_moved`` of them, read by the caller); ``off`` (B*N,) bool the rows now off
+        their POIs (``n_off``): the motion at those centres kept, the cached windows'
+        offsets and slopes computed again at the moved rows only. No host read."""
+        run = self.run
+        if run.shared is None:
+            return
+        # the rows ascending without an index read: a stable sort by the mask, counts known
+        at = torch.argsort((~off).to(torch.int8), stable=True)[:n_off]
+        self._off = (at, run.shared.displacement(self.centres[at], self.needed).to(
+            run.dtype).transpose(0, 1))
+        if not self._motion:
+            return
+        rows = torch.argsort((~moved).to(torch.int8), stable=True)[:n_moved]
+        for m in list(self._motion):  # new tensors: a caller may hold the old ones
+            o, slope = self._window_motion(m, rows)
+            self._motion[m] = self._motion[m].index_put((rows,), o)
+            self._slope[m] = self._slope[m].index_put((rows,), slope)
