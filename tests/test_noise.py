@@ -182,3 +182,25 @@ def test_noise_estimate_of_a_float32_image_equals_the_float64_one():
         assert b == pytest.approx(a, rel=0 if x is not img else 1e-6, abs=1e-9)
     assert estimate_noise_sigma(grey.float(), flat_fraction=None) == pytest.approx(
         estimate_noise_sigma(grey, flat_fraction=None), rel=1e-12)
+
+
+def test_immerkaer_of_a_stack_is_each_frames_own_and_its_quantile_torchs():
+    """:func:`immerkaer_sigmas` of a stack gives every frame the single-image estimate bit for
+    bit (frames of other noise levels beside it change nothing), each near the noise added
+    to a smooth ramp; its flat-pixel cut is ``torch.quantile``'s, ties and ends included."""
+    from torch_stsdic.core.noise import _quantiles, immerkaer_sigmas
+
+    gen = torch.Generator().manual_seed(3)
+    yy, xx = torch.meshgrid(torch.arange(96.0), torch.arange(80.0), indexing="ij")
+    ramp = 40 + 0.3 * xx + 0.2 * yy
+    sig = torch.tensor([0.5, 2.0, 4.0])
+    stack = (ramp + sig.view(-1, 1, 1) * torch.randn(3, 96, 80, generator=gen)).float()
+    for flat in (0.5, None):
+        got = immerkaer_sigmas(stack, flat)
+        own = [sts.estimate_noise_sigma(f, flat_fraction=flat) for f in stack]
+        assert got.tolist() == own
+        assert torch.allclose(got, sig.double(), rtol=0.12)
+        assert immerkaer_sigmas(stack[1:2], flat).tolist() == own[1:2]
+    x = torch.randint(0, 4, (5, 13), generator=gen).float()
+    for q in (0.0, 0.25, 0.5, 0.9, 1.0):
+        assert torch.equal(_quantiles(x, q), torch.quantile(x, q, dim=1))

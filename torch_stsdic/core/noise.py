@@ -386,15 +386,20 @@ predicted_std.__signature__ = signature_like(  # type: ignore[attr-defined]
     predicted_covariance, returns="dict[str, torch.Tensor]")
 
 
-def _quantile(x: torch.Tensor, q: float) -> float:
-    """``torch.quantile(x, q)`` of a 1-D tensor (linear interpolation) by a partial sort
-    (``numpy.partition``: O(n), where a megapixel's full sort takes 0.15 s)."""
-    a = x.detach().cpu().numpy()
-    pos = q * (a.size - 1)
-    lo = int(np.floor(pos))
-    hi = min(lo + 1, a.size - 1)
-    part = np.partition(a, [lo, hi])
-    return float(part[lo] + (part[hi] - part[lo]) * (pos - lo))
+def _quantiles(x: torch.Tensor, q: float) -> torch.Tensor:
+    """(F,) ``torch.quantile(x, q, dim=1)`` of ``x`` (F, n) (linear interpolation, in x's
+    dtype) from its two order statistics about ``q`` in each row: the lower by ``kthvalue``'s
+    selection (O(n), where a megapixel's full sort takes 0.15 s), the next as the least
+    value above it unless the lower one repeats."""
+    n = x.shape[1]
+    pos = q * (n - 1)
+    lo = int(math.floor(pos))
+    v_lo = x.kthvalue(lo + 1, dim=1).values
+    if lo + 1 >= n:
+        return v_lo
+    above = torch.where(x > v_lo.unsqueeze(1), x, torch.inf).amin(1)
+    v_hi = torch.where((x <= v_lo.unsqueeze(1)).sum(1) >= lo + 2, v_lo, above)
+    return v_lo + (v_hi - v_lo) * (pos - lo)
 
 
 def _second_difference(x: torch.Tensor, dim: int) -> torch.Tensor:
@@ -416,24 +421,34 @@ def _smoothing(x: torch.Tensor, dim: int) -> torch.Tensor:
 
 
 def _immerkaer(img: torch.Tensor, flat_fraction: float | None) -> float:
-    """Immerkaer's estimate of an (H, W) image (float32 or float64; the mean taken in
-    float64); the 3x3 kernels (the Laplacian difference, Sobel's) applied as their
-    separable 1-D factors ("valid"): a megapixel in tens of ms, where a float64 ``conv2d``
-    on the CPU takes 0.15 s a kernel. (In float32 the kernels of integer grey levels up to
-    16 bits are exact: sums of at most 16 of them.)"""
-    a = _second_difference(_second_difference(img, 1), 0).abs_()  # Immerkaer's Laplacian
-    if flat_fraction is not None:
-        # Sobel's |d/dx| + |d/dy|
-        g = _smoothing(_central_difference(img, 1), 0).abs_().add_(
-            _smoothing(_central_difference(img, 0), 1).abs_())
-        keep = g <= _quantile(g.reshape(-1)[:: max(1, g.numel() // 2_000_000)],
-                              float(flat_fraction))
-        # the kept pixels' mean, without gathering them
-        mean = torch.where(keep, a, 0.0).sum(dtype=torch.float64) / max(int(keep.sum()), 1)
+    """Immerkaer's estimate of an (H, W) image (:func:`immerkaer_sigmas`)."""
+    return float(immerkaer_sigmas(img.unsqueeze(0), flat_fraction)[0])
+
+
+def immerkaer_sigmas(frames: torch.Tensor, flat_fraction: float | None = 0.5) -> torch.Tensor:
+    """(F,) float64 Immerkaer's noise estimate (grey levels) of every frame of ``frames``
+    (F, H, W) (float32 or float64, H, W >= 3; :func:`estimate_noise_sigma`), on the frames'
+    device with no host read: the 3x3 kernels (the Laplacian difference, Sobel's) applied
+    as their separable 1-D factors ("valid": a megapixel in tens of ms, where a float64
+    ``conv2d`` on the CPU takes 0.15 s a kernel), each frame's flat pixels (Sobel's
+    gradient at most its ``flat_fraction`` quantile; None: every pixel) averaged in
+    float64. (In float32 the kernels of integer grey levels up to 16 bits are exact: sums
+    of at most 16 of them.)"""
+    a = _second_difference(_second_difference(frames, -1), -2).abs_()  # the Laplacian
+    if flat_fraction is None:
+        mean = a.mean((-2, -1), dtype=torch.float64)
     else:
-        mean = a.mean(dtype=torch.float64)
+        # Sobel's |d/dx| + |d/dy|, below each frame's quantile of it
+        g = _smoothing(_central_difference(frames, -1), -2).abs_().add_(
+            _smoothing(_central_difference(frames, -2), -1).abs_())
+        flat = g.reshape(g.shape[0], -1)
+        cut = _quantiles(flat[:, :: max(1, flat.shape[1] // 2_000_000)], float(flat_fraction))
+        keep = g <= cut.view(-1, 1, 1)
+        # the kept pixels' mean, without gathering them
+        mean = torch.where(keep, a, 0.0).sum((-2, -1), dtype=torch.float64) / keep.sum(
+            (-2, -1)).clamp(min=1)
     # E|N * noise| = sigma sqrt(36) sqrt(2/pi): sum of squared weights is 36
-    return float(math.sqrt(math.pi / 2.0) * mean / 6.0)
+    return math.sqrt(math.pi / 2.0) * mean / 6.0
 
 
 def estimate_noise_sigma(

@@ -37,7 +37,7 @@ from torch_stsdic.analysis.local_fit import LocalFit, local_fit_weights
 from torch_stsdic.analysis.points import nearest_points
 from torch_stsdic.analysis.quality import line_mismatch, line_offset
 from torch_stsdic.analysis.result import USABLE, TrackResult
-from torch_stsdic.core.noise import estimate_noise_sigma
+from torch_stsdic.core.noise import immerkaer_sigmas
 from torch_stsdic.core.shared_motion import SharedMotion
 from torch_stsdic.core.solver import SubsetSolver
 from torch_stsdic.movie.classical_pass import ClassicalPass, classical_subplan
@@ -86,6 +86,8 @@ MAP_CHUNK = 1 << 19
 #: box; Immerkaer's estimate over 2^18 pixels has a relative error of ~0.3 %, far below the
 #: frames' differences it weighs)
 NOISE_PIXELS = 1 << 18
+#: pixels of the frames' boxes whose noise is estimated together
+NOISE_CHUNK_PIXELS = 1 << 20
 
 
 @dataclass
@@ -233,8 +235,12 @@ def _frame_noise(plan: RunPlan, frames: list[int], cache: FrameCache) -> list[fl
         bw, bh = max(8, int((x1 - x0) * shrink)), max(8, int((y1 - y0) * shrink))
         x0, y0 = (x0 + x1 - bw) // 2, (y0 + y1 - bh) // 2
         x1, y1 = x0 + bw, y0 + bh
-    return [max(float(estimate_noise_sigma(cache.read(k)[y0:y1, x0:x1].cpu())), 1e-6)
-            for k in frames]
+    # a few frames' boxes at once (the kernels' temporaries of a chunk stay in cache on a
+    # CPU), one host read for all
+    per = max(1, NOISE_CHUNK_PIXELS // ((y1 - y0) * (x1 - x0)))
+    sig = [immerkaer_sigmas(torch.stack([cache.read(k)[y0:y1, x0:x1] for k in frames[i:i + per]]))
+           for i in range(0, len(frames), per)]
+    return torch.cat(sig).clamp(min=1e-6).tolist() if sig else []
 
 
 def time_model_holds(plan: RunPlan, res: TrackResult, frames: list[int],
