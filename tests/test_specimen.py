@@ -87,7 +87,19 @@ def test_implausible_fit_is_refused():
     dragged = disp.clone()
     dragged[1] += torch.tensor([-75.0, 0.0])  # a "shake" far from every point
     reason = implausible(disp, dragged, valid, [1, 2, 3])
-    assert reason is not None and "frame 2" in reason
+    assert reason is not None and "frame 2" in reason and "100%" in reason
+    # each frame judged over its own trusted points: a frame with fewer than 10 is not
+    # judged, the first frame that fails is named
+    dragged[2] += torch.tensor([0.0, 40.0])
+    valid[1, 9:] = False
+    reason = implausible(disp, dragged, valid, [1, 2, 3])
+    assert reason is not None and "frame 3" in reason
+    # frame 2 moved at 60 of its 200 points: plausible; with only 100 trusted, 60 of them
+    dragged[1, 60:] = disp[1, 60:]
+    valid[1] = True
+    assert "frame 3" in implausible(disp, dragged, valid, [1, 2, 3])
+    valid[1, 100:] = False
+    assert "frame 2" in implausible(disp, dragged, valid, [1, 2, 3])
 
 
 @pytest.mark.parametrize("frames", [None])
