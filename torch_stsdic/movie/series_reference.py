@@ -88,6 +88,8 @@ MAP_CHUNK = 1 << 19
 NOISE_PIXELS = 1 << 18
 #: pixels of the frames' boxes whose noise is estimated together
 NOISE_CHUNK_PIXELS = 1 << 20
+#: displacements (windows x points x frames x 2) :func:`time_model_holds` judges together
+WINDOW_CHUNK = 1 << 22
 
 
 @dataclass
@@ -295,23 +297,27 @@ def time_model_holds(plan: RunPlan, res: TrackResult, frames: list[int],
     tests = torch.zeros(n, dtype=torch.int64)
     excess = torch.zeros(n, dtype=torch.float64)  # sum over passing windows: off^2 - noise
     gain = torch.zeros(n, dtype=torch.float64)  # ... the variance the window takes off
-    for j0 in range(len(frames) - 2 * m):
-        j1 = j0 + 2 * m
-        if frames[j1] - frames[j0] != 2 * m or any(frames[j0] < s <= frames[j1]
-                                                    for s in steps):
-            continue
-        jt = j0 + m
-        disp = d[j0:j1 + 1].permute(1, 0, 2)  # (N, T, 2)
-        dt = (t[j0:j1 + 1] - t[jt]).expand(n, -1)
+    # the windows of 2m + 1 adjacent sampled frames within one load state, all at once
+    # (in chunks of bounded memory)
+    t_count = 2 * m + 1
+    starts = [j0 for j0 in range(len(frames) - 2 * m)
+              if frames[j0 + 2 * m] - frames[j0] == 2 * m
+              and not any(frames[j0] < s <= frames[j0 + 2 * m] for s in steps)]
+    per = max(1, WINDOW_CHUNK // (2 * n * t_count))
+    for c0 in range(0, len(starts), per):
+        j0 = torch.as_tensor(starts[c0:c0 + per])
+        idx = j0.unsqueeze(1) + torch.arange(t_count)  # (W, T) rows of the sampled frames
+        disp = d[idx].permute(0, 2, 1, 3)  # (W, N, T, 2)
+        dt = (t[idx] - t[j0 + m].unsqueeze(1)).unsqueeze(1)  # (W, 1, T)
         off, csq = line_offset(disp, dt)
-        miss = line_mismatch(disp, dt, d[jt], sd[jt], line=(off, csq))
-        valid = ok[j0:j1 + 1].all(0)
-        fails += (miss & valid).long()
-        tests += valid.long()
+        miss = line_mismatch(disp, dt, d[j0 + m], sd[j0 + m], line=(off, csq))  # (W, N)
+        valid = ok[idx].all(1)
+        fails += (miss & valid).long().sum(0)
+        tests += valid.long().sum(0)
         kept = valid & ~miss & torch.isfinite(own_var).all(-1)
-        v = torch.where(kept[:, None], own_var, 0.0)
-        excess += torch.where(kept, (off.nan_to_num() ** 2 - v * csq).sum(-1), 0.0)
-        gain += (v * (2 * m / (2 * m + 1))).sum(-1)
+        v = torch.where(kept[..., None], own_var, 0.0)
+        excess += torch.where(kept, (off.nan_to_num() ** 2 - v * csq).sum(-1), 0.0).sum(0)
+        gain += (v * (2 * m / (2 * m + 1))).sum(-1).sum(0)
     if int(tests.max()) < 3:
         return None
     nb = nearest_points(pts, min(POOL_POINTS, n))[1]
