@@ -55,18 +55,34 @@ NATIVE = "torch_stsdic/kernels/native"
 CPU_ONLY = "of which in the CPU kernels' checks"
 #: the counter of the copies to the host outside the dispatcher (``.tolist()``, ``.numpy()``)
 HOST_COPY = "host copy (tolist, numpy)"
+#: the counter of the aten operations that would launch a kernel on a GPU (every dispatched
+#: operation but the views and metadata ones, :data:`NO_LAUNCH`): a proxy of a block's
+#: launches, not a sync (not added to a block's total); the C++ kernels' calls are not
+#: among them (a GPU run launches a Triton kernel for each of those instead)
+LAUNCHES = "operations (GPU launches, proxy)"
+#: aten operations that launch no kernel (views, metadata)
+NO_LAUNCH = {"view", "_unsafe_view", "reshape", "as_strided", "expand", "permute", "transpose",
+             "t", "unsqueeze", "squeeze", "slice", "select", "detach", "alias", "unbind",
+             "split", "split_with_sizes", "chunk", "narrow", "view_as_real", "view_as_complex",
+             "_reshape_alias", "lift_fresh", "unfold", "diagonal", "movedim", "numpy_T",
+             "expand_as", "view_as", "flatten", "_local_scalar_dense", "equal", "sym_size",
+             "sym_stride", "sym_numel", "is_same_size", "empty", "empty_like", "empty_strided",
+             "resize_", "set_"}
 
 
 class SyncCounter(TorchDispatchMode):
     """Counts the syncing operations (:data:`SYNCING`) by name, and boolean-mask indexing."""
 
-    def __init__(self, where: bool = False) -> None:
+    def __init__(self, where: bool = False, ops_where: bool = False) -> None:
         super().__init__()
         self.counts: collections.Counter[str] = collections.Counter()
         self.where: collections.Counter[str] | None = collections.Counter() if where else None
         self._saved: dict[str, object] = {}
         #: the places of the run's own blocks only (filled by :func:`count_run`)
         self.block_where: collections.Counter[str] = collections.Counter()
+        #: the launch-like operations of the run's blocks by function (``ops_where``)
+        self.op_where: collections.Counter[str] | None = (
+            collections.Counter() if ops_where else None)
 
     def __enter__(self):
         """Also count ``.tolist()`` and ``.numpy()`` of the entering thread (they do not pass
@@ -92,19 +108,26 @@ class SyncCounter(TorchDispatchMode):
         self._saved = {}
         return super().__exit__(*exc)
 
-    def _place(self) -> str:
-        """The innermost line of the package's own code on the calling stack."""
+    def _place(self, function: bool = False) -> str:
+        """The innermost line (``function``: function) of the package's own code on the
+        calling stack."""
         frame = sys._getframe(2)
         while frame is not None:
             path = frame.f_code.co_filename
             if "torch_stsdic" in path and "count_syncs" not in path:
                 short = path[path.rindex("torch_stsdic"):]
+                if function:
+                    return f"{short} {frame.f_code.co_name}"
                 return f"{short}:{frame.f_lineno} {frame.f_code.co_name}"
             frame = frame.f_back
         return "(outside the package)"
 
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
         name = func.overloadpacket.__name__
+        if name not in NO_LAUNCH:
+            self.counts[LAUNCHES] += 1
+            if self.op_where is not None:
+                self.op_where[self._place(function=True)] += 1
         if name in SYNCING:
             self.counts[name] += 1
             place = self._place()
@@ -130,8 +153,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=None, help="JSON record")
     ap.add_argument("--where", type=int, default=0, metavar="N",
                     help="also list the N lines of the package that sync most (whole run)")
+    ap.add_argument("--ops-where", type=int, default=0, metavar="N",
+                    help="also list the N functions of the package that make the most "
+                         "launch-like operations in the run's blocks (slow)")
     args = ap.parse_args(own)
-    rc, per_block, counter = count_run(run_args, where=args.where > 0)
+    rc, per_block, counter = count_run(run_args, where=args.where > 0,
+                                       ops_where=args.ops_where > 0)
     if rc:
         return rc
     kinds = sorted({k for b in per_block for k in b})
@@ -162,6 +189,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"where (the run's {len(per_block)} blocks only, top {args.where}):")
         for place, n in counter.block_where.most_common(args.where):
             print(f"  {n:>7d}  {place}")
+    if counter.op_where is not None:
+        rec["ops_where_blocks"] = dict(counter.op_where.most_common(args.ops_where))
+        print(f"launch-like operations by function (the run's {len(per_block)} blocks, "
+              f"top {args.ops_where}):")
+        for place, n in counter.op_where.most_common(args.ops_where):
+            print(f"  {n:>7d}  {place}")
     if args.out is not None:
         args.out.write_text(json.dumps(rec, indent=1) + "\n")
     return 0
@@ -170,7 +203,7 @@ def main(argv: list[str] | None = None) -> int:
 def block_total(counts: dict[str, int], cpu_kernels: bool = True, copies: bool = True) -> int:
     """A block's syncing operations (``counts`` by kind): all, or without those in the CPU
     kernels' checks (``cpu_kernels`` False) or without the host copies (``copies`` False)."""
-    out = sum(v for k, v in counts.items() if k != CPU_ONLY)
+    out = sum(v for k, v in counts.items() if k not in (CPU_ONLY, LAUNCHES))
     if not cpu_kernels:
         out -= counts.get(CPU_ONLY, 0)
     if not copies:
@@ -178,7 +211,7 @@ def block_total(counts: dict[str, int], cpu_kernels: bool = True, copies: bool =
     return out
 
 
-def count_run(run_args: list[str], where: bool = False
+def count_run(run_args: list[str], where: bool = False, ops_where: bool = False
               ) -> tuple[int, list[dict[str, int]], SyncCounter]:
     """``stsdic run`` with ``run_args`` (the output to a temporary file) under a
     :class:`SyncCounter`: its exit code, the counts of each block of the run itself (its
@@ -188,6 +221,7 @@ def count_run(run_args: list[str], where: bool = False
     from torch_stsdic.cli.app import main as cli_main
 
     counter = SyncCounter(where=where)
+    ops = collections.Counter() if ops_where else None
     per_block: list[dict[str, int]] = []
     depth = {"runs": 0}
     run_plan, solve_block = series.run_plan, block.solve_block
@@ -202,7 +236,11 @@ def count_run(run_args: list[str], where: bool = False
     def counted_block(*a, **k):
         before = collections.Counter(counter.counts)
         where_before = collections.Counter(counter.where or {})
-        out = solve_block(*a, **k)
+        counter.op_where = ops if depth["runs"] == 1 else None  # the run's blocks only
+        try:
+            out = solve_block(*a, **k)
+        finally:
+            counter.op_where = None
         if depth["runs"] == 1:
             per_block.append(dict(counter.counts - before))
             if counter.where is not None:
@@ -216,6 +254,7 @@ def count_run(run_args: list[str], where: bool = False
                            "--no-progress"])
     finally:
         series.run_plan, series.solve_block = run_plan, solve_block
+    counter.op_where = ops
     return rc, per_block, counter
 
 

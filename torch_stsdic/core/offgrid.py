@@ -36,19 +36,33 @@ def carry_params(params: torch.Tensor, names: Sequence[str], offset: torch.Tenso
     uxy dy; uy += uxy dx + uyy dy; second-order and temporal terms unchanged)."""
     idx = {nm: i for i, nm in enumerate(names)}
     dx, dy = offset[:, 0].to(params.dtype), offset[:, 1].to(params.dtype)
-    cols = list(params.unbind(1))
+    out = params.clone()  # only the changed columns written (few operations a call: a
+    # solve carries four parameter sets, and each operation is a launch on a GPU)
+
+    def col(nm: str) -> torch.Tensor | None:
+        return params[:, idx[nm]] if nm in idx else None
+
     for c in ("u", "v"):
         if c not in idx:
             continue
-        gx, gy, gxx, gxy, gyy = (params[:, idx[c + t]] if c + t in idx else 0.0
-                                 for t in ("x", "y", "xx", "xy", "yy"))
-        cols[idx[c]] = params[:, idx[c]] + gx * dx + gy * dy + 0.5 * gxx * dx * dx \
-            + gxy * dx * dy + 0.5 * gyy * dy * dy
-        if c + "x" in idx:
-            cols[idx[c + "x"]] = params[:, idx[c + "x"]] + gxx * dx + gxy * dy
-        if c + "y" in idx:
-            cols[idx[c + "y"]] = params[:, idx[c + "y"]] + gxy * dx + gyy * dy
-    return torch.stack(cols, 1)
+        gx, gy, gxx, gxy, gyy = (col(c + t) for t in ("x", "y", "xx", "xy", "yy"))
+        # the terms in a fixed order, absent coefficients (zero) left out
+        terms = [(gx, dx), (gy, dy), (None if gxx is None else 0.5 * gxx * dx, dx),
+                 (None if gxy is None else gxy * dx, dy),
+                 (None if gyy is None else 0.5 * gyy * dy, dy)]
+        val = params[:, idx[c]]
+        for g, d in terms:
+            if g is not None:
+                val = val + g * d
+        out[:, idx[c]] = val
+        for t, (ga, da), (gb, db) in (("x", (gxx, dx), (gxy, dy)), ("y", (gxy, dx), (gyy, dy))):
+            if c + t in idx and (ga is not None or gb is not None):
+                val = params[:, idx[c + t]]
+                for g, d in ((ga, da), (gb, db)):
+                    if g is not None:
+                        val = val + g * d
+                out[:, idx[c + t]] = val
+    return out
 
 
 def carry_std(std: torch.Tensor, names: Sequence[str], offset: torch.Tensor) -> torch.Tensor:
@@ -58,7 +72,7 @@ def carry_std(std: torch.Tensor, names: Sequence[str], offset: torch.Tensor) -> 
     symmetric window over an isotropic texture); the others unchanged."""
     idx = {nm: i for i, nm in enumerate(names)}
     dx, dy = offset[:, 0].to(std.dtype), offset[:, 1].to(std.dtype)
-    cols = list(std.unbind(1))
+    out = std.clone()  # only the changed columns written
     for c in ("u", "v"):
         if c not in idx:
             continue
@@ -66,8 +80,8 @@ def carry_std(std: torch.Tensor, names: Sequence[str], offset: torch.Tensor) -> 
         for t, d in (("x", dx), ("y", dy)):
             if c + t in idx:
                 var = var + (d * std[:, idx[c + t]]) ** 2
-        cols[idx[c]] = var.sqrt()
-    return torch.stack(cols, 1)
+        out[:, idx[c]] = var.sqrt()
+    return out
 
 
 def carry_solution(sol, points: torch.Tensor, offset: torch.Tensor,

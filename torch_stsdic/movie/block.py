@@ -423,24 +423,23 @@ class Block(BlockChecks, BlockRescue, BlockMotion):
         pts = self.pts if rows is None else self.pts[rows]
         feasible = torch.zeros(pts.shape[0], dtype=torch.bool, device=run.device)
         shift = torch.zeros_like(pts)
+        # both components at once: (u, v) in the last dimension
+        lo_edge = half + OUTSIDE_MARGIN
+        hi_edge = torch.tensor([w - 1 - half - OUTSIDE_MARGIN, h - 1 - half - OUTSIDE_MARGIN],
+                               dtype=pts.dtype, device=pts.device)
         for i, init in enumerate(inits):
-            pos = []
-            for c, (iz, it) in enumerate(((iu, "ut"), (iv, "vt"))):
-                z = pts[:, c:c + 1] + init[:, iz:iz + 1]
-                if it in names:
-                    z = z + init[:, names.index(it)].nan_to_num(0.0).unsqueeze(1) * dt
-                if motion is not None:
-                    z = z + motion[..., c]
-                pos.append(z)  # (B*N, T)
-            need = []
+            z = pts.unsqueeze(1) + init[:, [iu, iv]].unsqueeze(1)  # (R, 1, 2)
+            if "ut" in names:
+                vel = init[:, [names.index("ut"), names.index("vt")]].nan_to_num(0.0)
+                z = z + vel.unsqueeze(1) * dt.unsqueeze(-1)  # (R, T, 2)
+            if motion is not None:
+                z = z + motion
             reach = half if i == 0 else 0.0  # only the moved-on prediction moves a subset
-            for z, size in zip(pos, (w, h)):
-                lo = (half + OUTSIDE_MARGIN - z.amin(1)).clamp(min=0)  # move the subset in
-                hi = (z.amax(1) - (size - 1 - half - OUTSIDE_MARGIN)).clamp(min=0)
-                need.append((lo - hi, ((lo == 0) | (hi == 0)) & (torch.maximum(lo, hi) <= reach)))
-            fit = need[0][1] & need[1][1] & torch.isfinite(pos[0]).all(1) \
-                & torch.isfinite(pos[1]).all(1)
-            d = torch.stack([need[0][0], need[1][0]], 1)
+            lo = (lo_edge - z.amin(1)).clamp(min=0)  # move the subset in
+            hi = (z.amax(1) - hi_edge).clamp(min=0)
+            ok = ((lo == 0) | (hi == 0)) & (torch.maximum(lo, hi) <= reach)
+            fit = ok.all(1) & torch.isfinite(z).all(1).all(1)
+            d = lo - hi
             shift = torch.where(fit.unsqueeze(1) & (d.abs() > shift.abs()), d, shift)
             feasible |= fit
         return feasible, shift
