@@ -170,8 +170,10 @@ def interpolation_variance_factor(dx: Any, dy: Any = 0.0, order: int = 3) -> tor
     (dx, dy): ``r_dx(0) r_dy(0)`` (1 at integer shifts; cubic at (0.5, 0): about 0.76), from a
     table of :func:`interpolated_noise_autocorrelation`."""
     fx = torch.as_tensor(dx, dtype=torch.float64)
-    fy = torch.as_tensor(dy, dtype=torch.float64)
-    return _variance_1d(fx, order) * _variance_1d(fy, order)
+    fy = torch.as_tensor(dy, dtype=torch.float64, device=fx.device)
+    # both axes in one pass of the table (half the operations: launches on a GPU)
+    r = _variance_1d(torch.stack(torch.broadcast_tensors(fx, fy)), order)
+    return r[0] * r[1]
 
 
 @lru_cache(maxsize=4)

@@ -317,22 +317,38 @@ class SharedMotion:
         return _above_neighbours(jump, noise, fr, z, ratio, reach)
 
     def _at(self, points: Tensor, frames: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        p = torch.as_tensor(self.params, dtype=torch.float64)[frames.long().cpu()]  # (K, P)
-        p = p.to(device=points.device)
-        d = points.double() - torch.as_tensor(self.origin, dtype=torch.float64,
-                                              device=points.device)
+        dev = points.device
+        p = self._params_on(dev)[frames.to(device=dev, dtype=torch.long)]  # (K, P)
+        d = points.double() - torch.as_tensor(self.origin, dtype=torch.float64, device=dev)
         return p, d[:, 0], d[:, 1]
+
+    def _params_on(self, device: torch.device) -> Tensor:
+        """(T_series, P) float64 :attr:`params` on ``device``, kept while they are the same
+        array (a block asks for them many times: no copy, and no host read of the frames
+        asked for, each time)."""
+        held = self.__dict__.get("_held")
+        if held is None or held[0] is not self.params or held[1] != device:
+            held = (self.params, device, torch.as_tensor(self.params, dtype=torch.float64,
+                                                         device=device))
+            self.__dict__["_held"] = held
+        return held[2]
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = dict(self.__dict__)
+        state.pop("_held", None)  # (a device copy: not sent to other processes)
+        return state
 
     def displacement(self, points: Tensor, frames: Tensor) -> Tensor:
         """(K, N, 2) the shared motion's displacement (u, v) px at ``points`` (N, 2) px in
         series frames ``frames`` (K,), in the points' dtype and device."""
         p, dx, dy = self._at(points, frames)
-        u = p[:, 0:1] + p[:, 2:3] * dx + p[:, 3:4] * dy
-        v = p[:, 1:2] + p[:, 4:5] * dx + p[:, 5:6] * dy
-        if p.shape[1] == 12:
-            u = u + 0.5 * p[:, 6:7] * dx * dx + p[:, 7:8] * dx * dy + 0.5 * p[:, 8:9] * dy * dy
-            v = v + 0.5 * p[:, 9:10] * dx * dx + p[:, 10:11] * dx * dy + 0.5 * p[:, 11:12] * dy * dy
-        return torch.stack([u, v], -1).to(points.dtype)
+        p = p.unsqueeze(1)  # (K, 1, P): u's and v's coefficients side by side, (..., 2)
+        dx, dy = dx.unsqueeze(1), dy.unsqueeze(1)  # (N, 1)
+        uv = p[..., 0:2] + p[..., [2, 4]] * dx + p[..., [3, 5]] * dy
+        if p.shape[-1] == 12:
+            uv = (uv + 0.5 * p[..., [6, 9]] * dx * dx + p[..., [7, 10]] * dx * dy
+                  + 0.5 * p[..., [8, 11]] * dy * dy)
+        return uv.to(points.dtype)
 
     def gradient(self, points: Tensor, frames: Tensor) -> Tensor:
         """(K, N, 4) du/dx, du/dy, dv/dx, dv/dy of the shared motion at ``points`` (N, 2) in
