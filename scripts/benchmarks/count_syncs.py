@@ -13,8 +13,8 @@ output size depends on the data (``nonzero``, ``masked_select``, boolean-mask in
 ``unique``, ``repeat_interleave`` with a tensor of repeats): on CUDA each waits for the
 device. Copies to the host
 (``.cpu()``, ``.numpy()``, ``.tolist()``) do not pass the dispatcher on a CPU run and are not
-counted by the dispatcher; they are counted apart (``host copy``: ``.tolist()`` and
-``.numpy()`` called in the counting thread, patched in while counting; on a GPU each of a
+counted by the dispatcher; they are counted apart (``host copy``: ``.tolist()``,
+``.numpy()`` and ``.cpu()`` called in the counting thread, patched in while counting; on a GPU each of a
 device tensor waits for it; on the CPU some of them read host tensors a GPU run keeps on
 the host too, so they are an upper bound there). Per block of the run itself (its passes' blocks
 apart), the median over the blocks; the run is slowed down by the counting (use it for
@@ -53,8 +53,9 @@ SYNCING = {"_local_scalar_dense": "host read", "equal": "host read",
 NATIVE = "torch_stsdic/kernels/native"
 #: the counter of those (a part of the others, not added to a block's total)
 CPU_ONLY = "of which in the CPU kernels' checks"
-#: the counter of the copies to the host outside the dispatcher (``.tolist()``, ``.numpy()``)
-HOST_COPY = "host copy (tolist, numpy)"
+#: the counter of the copies to the host outside the dispatcher (``.tolist()``, ``.numpy()``,
+#: ``.cpu()``)
+HOST_COPY = "host copy (tolist, numpy, cpu)"
 #: the counter of the aten operations that would launch a kernel on a GPU (every dispatched
 #: operation but the views and metadata ones, :data:`NO_LAUNCH`): a proxy of a block's
 #: launches, not a sync (not added to a block's total); the C++ kernels' calls are not
@@ -85,10 +86,10 @@ class SyncCounter(TorchDispatchMode):
             collections.Counter() if ops_where else None)
 
     def __enter__(self):
-        """Also count ``.tolist()`` and ``.numpy()`` of the entering thread (they do not pass
-        the dispatcher on the CPU)."""
+        """Also count ``.tolist()``, ``.numpy()`` and ``.cpu()`` of the entering thread (they
+        do not pass the dispatcher on the CPU)."""
         me = threading.get_ident()
-        for name in ("tolist", "numpy"):
+        for name in ("tolist", "numpy", "cpu"):
             orig = getattr(torch.Tensor, name)
             self._saved[name] = orig
 

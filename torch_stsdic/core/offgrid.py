@@ -30,8 +30,8 @@ def snap_points(points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def carry_params(params: torch.Tensor, names: Sequence[str], offset: torch.Tensor) -> torch.Tensor:
-    """Shape-function parameters (N, P) measured at pixel centres, carried to the points at
-    ``offset`` (N, 2) px from them: every component's spatial polynomial re-expanded about
+    """Shape-function parameters (..., N, P) measured at pixel centres, carried to the points
+    at ``offset`` (N, 2) px from them: every component's spatial polynomial re-expanded about
     the new centre (u += ux dx + uy dy + uxx dx^2/2 + uxy dx dy + uyy dy^2/2; ux += uxx dx +
     uxy dy; uy += uxy dx + uyy dy; second-order and temporal terms unchanged)."""
     idx = {nm: i for i, nm in enumerate(names)}
@@ -40,7 +40,7 @@ def carry_params(params: torch.Tensor, names: Sequence[str], offset: torch.Tenso
     # solve carries four parameter sets, and each operation is a launch on a GPU)
 
     def col(nm: str) -> torch.Tensor | None:
-        return params[:, idx[nm]] if nm in idx else None
+        return params[..., idx[nm]] if nm in idx else None
 
     for c in ("u", "v"):
         if c not in idx:
@@ -50,18 +50,18 @@ def carry_params(params: torch.Tensor, names: Sequence[str], offset: torch.Tenso
         terms = [(gx, dx), (gy, dy), (None if gxx is None else 0.5 * gxx * dx, dx),
                  (None if gxy is None else gxy * dx, dy),
                  (None if gyy is None else 0.5 * gyy * dy, dy)]
-        val = params[:, idx[c]]
+        val = params[..., idx[c]]
         for g, d in terms:
             if g is not None:
                 val = val + g * d
-        out[:, idx[c]] = val
+        out[..., idx[c]] = val
         for t, (ga, da), (gb, db) in (("x", (gxx, dx), (gxy, dy)), ("y", (gxy, dx), (gyy, dy))):
             if c + t in idx and (ga is not None or gb is not None):
-                val = params[:, idx[c + t]]
+                val = params[..., idx[c + t]]
                 for g, d in ((ga, da), (gb, db)):
                     if g is not None:
                         val = val + g * d
-                out[:, idx[c + t]] = val
+                out[..., idx[c + t]] = val
     return out
 
 
@@ -94,12 +94,18 @@ def carry_solution(sol, points: torch.Tensor, offset: torch.Tensor,
     knows it (None: the points with an offset, read on the host)."""
     names = sol.param_names
     info = dict(sol.info)
-    for key in ("first_stage_params", "initial_params"):
+    # the solution's and the info's parameter sets carried together (one pass of operations)
+    keys = [k for k in ("first_stage_params", "initial_params")
+            if isinstance(info.get(k), torch.Tensor) and info[k].shape == sol.params.shape
+            and info[k].dtype == sol.params.dtype]
+    carried = carry_params(torch.stack([sol.params, *(info[k] for k in keys)]), names, offset)
+    for key, val in zip(keys, carried[1:]):
+        info[key] = val
+    for key in ("first_stage_params", "initial_params"):  # (of another dtype: apart)
         val = info.get(key)
-        if isinstance(val, torch.Tensor) and val.shape == sol.params.shape:
+        if key not in keys and isinstance(val, torch.Tensor) and val.shape == sol.params.shape:
             info[key] = carry_params(val, names, offset)
     info["snapped_to_pixels"] = (int((offset != 0).any(1).sum()) if snapped is None
                                  else int(snapped))
     std = None if sol.std is None else carry_std(sol.std, names, offset)
-    return dataclasses.replace(sol, points=points, params=carry_params(sol.params, names, offset),
-                               std=std, info=info)
+    return dataclasses.replace(sol, points=points, params=carried[0], std=std, info=info)

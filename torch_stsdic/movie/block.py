@@ -146,7 +146,8 @@ class Block(BlockChecks, BlockRescue, BlockMotion):
         self.run, self.ks, self.ref = run, ks, ref
         dev = run.device
         self.k = torch.tensor(ks, dtype=torch.long, device=dev)
-        win = self.windows(run.m)
+        self._win: dict[int, torch.Tensor] = {}  # :meth:`windows`
+        self._rows: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}  # :meth:`window_rows`
         seg = run.segments
         self.needed = block_frames(  # sorted; every half-width's windows' frames
             self.k, run.m, run.n_series, None if seg is None else seg.to(self.k.device))
@@ -159,7 +160,7 @@ class Block(BlockChecks, BlockRescue, BlockMotion):
             run.noise_ratio = noise_ratio(run.reference_desc, ref.raw, ring.frames_raw())
         self.b, self.n = len(ks), ref.points.shape[0]
         self.pts = ref.points.repeat(self.b, 1)  # (B*N, 2)
-        self.fidx, self.dt = self.frames_of(win)
+        self.fidx, self.dt = self.window_rows(run.m)
         rows, p_count = self.b * self.n, len(run.names)
         self.params = torch.full((rows, p_count), float("nan"), dtype=run.dtype, device=dev)
         self.zncc = torch.full((rows,), float("nan"), dtype=run.dtype, device=dev)
@@ -193,10 +194,19 @@ class Block(BlockChecks, BlockRescue, BlockMotion):
 
     def windows(self, m: int) -> torch.Tensor:
         """(B, 2m+1) series frames of every target's window, shifted (not shrunk) at the
-        ends of the series."""
-        seg = self.run.segments
-        return window_frames(self.k, m, self.run.n_series,
-                             None if seg is None else seg.to(self.k.device))
+        ends of the series (made once a block and half-width: read, not written)."""
+        if m not in self._win:
+            seg = self.run.segments
+            self._win[m] = window_frames(self.k, m, self.run.n_series,
+                                         None if seg is None else seg.to(self.k.device))
+        return self._win[m]
+
+    def window_rows(self, m: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`frames_of` the windows of half-width ``m`` (made once a block and
+        half-width: read, not written)."""
+        if m not in self._rows:
+            self._rows[m] = self.frames_of(self.windows(m))
+        return self._rows[m]
 
     def frames_of(self, win: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Per row: the planes of the block's frame stack (B*N, T) and dt (B*N, T)."""
@@ -218,7 +228,7 @@ class Block(BlockChecks, BlockRescue, BlockMotion):
         if m is None or m == run.m:
             fidx, dt = self.fidx[idx], self.dt[idx]
         else:
-            fidx, dt = self.frames_of(self.windows(m))
+            fidx, dt = self.window_rows(m)
             fidx, dt = fidx[idx], dt[idx]
         if m == 0 and run.m > 0 and init is not None and init.shape[1] == len(run.names):
             spatial = run.solver.shape.spatial().param_names
@@ -374,7 +384,7 @@ class Block(BlockChecks, BlockRescue, BlockMotion):
                     break
                 motion = self.motion_of(m)
                 f_i, d_i = self._placement(
-                    [init[idx] for init in inits], self.frames_of(self.windows(m))[1][idx],
+                    [init[idx] for init in inits], self.window_rows(m)[1][idx],
                     None if motion is None else motion[idx], idx)
                 fit = torch.zeros_like(left).index_put_((idx,), f_i) & left
                 d = torch.zeros_like(shift).index_put_((idx,), d_i)

@@ -192,7 +192,7 @@ class BlockChecks:
         off = self.motion_of(m)
         if off is not None:
             d = d - off[rows]
-        _, dt = self.frames_of(win)
+        _, dt = self.window_rows(m)
         _, vel = linear_fit_in_time(d, dt[rows], spread=True)  # m > 0: distinct times
         return line_mismatch(d, dt[rows], disp[rows], std[rows]), vel
 
