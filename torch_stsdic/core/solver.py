@@ -326,46 +326,55 @@ class SubsetSolver:
         cfg = self.config
         device, dtype = points.device, points.dtype
         n, p_count, t_count = points.shape[0], shape.n_params, dt.shape[-1]
-        status = torch.full((n,), int(Status.NOT_COMPUTED), dtype=torch.int8, device=device)
-        params = torch.full((n, p_count), float("nan"), dtype=dtype, device=device)
-        zncc = torch.full((n,), float("nan"), dtype=dtype, device=device)
-        iters = torch.zeros(n, dtype=torch.int32, device=device)
-        status.masked_fill_(~inside, int(Status.OUTSIDE))  # no host sync (boolean indexing)
-
         # every row where the caller knows all subsets inside (no host synchronisation)
-        todo = (torch.arange(n, device=device) if all_inside
-                else torch.nonzero(inside).flatten())
-        first_stage = torch.full_like(params, float("nan"))
+        todo = None if all_inside else torch.nonzero(inside).flatten()
         grey = ref_pixels if ref_pixels is not None else ref.coeffs
         geo = Geometry.make(shape, self.window, cfg.criterion, dtype, device)
         ctx = BatchContext(
             geo=geo, ref=ref, frames=frames, cfg=cfg, stages=self.stages_for(shape),
             grey_range=self._grey_range_of(grey),
-            work=int(todo.numel()) * t_count * int(geo.w.numel()),
+            work=(n if todo is None else int(todo.numel())) * t_count * int(geo.w.numel()),
             noise_ratio=float(noise_ratio), cache=self.reference_cache,
             classical_step=classical_step, on_grid=True,  # reached with grid points only
             kept=kept,
         )
-        std = torch.full_like(params, float("nan"))
-        sigma = torch.full_like(zncc, float("nan"))
-        cstep = (torch.full((n, classical_step_width(geo.ks)), float("nan"), dtype=dtype,
-                            device=device) if classical_step else None)
         batch = cfg.batch_points or ctx.batch_size(t_count)
-        for s0 in range(0, todo.numel(), batch):
-            idx = todo[s0 : s0 + batch]
-            pr, zr, sr, ir, p1, sd, sg, cs = solve_batch(
-                ctx, points[idx], p0[idx], dt[idx], frame_index[idx], ref_index[idx],
-                None if motion is None else motion[idx],
-                None if init_step is None else init_step[idx],
-            )
-            params[idx], zncc[idx], status[idx], iters[idx] = pr, zr, sr, ir
-            first_stage[idx], std[idx], sigma[idx] = p1, sd, sg
-            if cstep is not None:
-                cstep[idx] = cs
+        if todo is None and 0 < n <= batch:  # one batch of every row: its answers as they
+            # are (no buffers to gather the rows from and scatter them into: launches)
+            pr, zr, status, iters, p1, sd, sg, cs = solve_batch(
+                ctx, points, p0, dt, frame_index, ref_index, motion, init_step)
+            params, zncc, first_stage = pr.to(dtype), zr.to(dtype), p1.to(dtype)
+            std, sigma = sd.to(dtype), sg.to(dtype)
+            cstep = cs.to(dtype) if classical_step else None
+        else:
+            if todo is None:
+                todo = torch.arange(n, device=device)
+            status = torch.full((n,), int(Status.NOT_COMPUTED), dtype=torch.int8,
+                                device=device)
+            params = torch.full((n, p_count), float("nan"), dtype=dtype, device=device)
+            zncc = torch.full((n,), float("nan"), dtype=dtype, device=device)
+            iters = torch.zeros(n, dtype=torch.int32, device=device)
+            status.masked_fill_(~inside, int(Status.OUTSIDE))  # no host sync
+            first_stage = torch.full_like(params, float("nan"))
+            std = torch.full_like(params, float("nan"))
+            sigma = torch.full_like(zncc, float("nan"))
+            cstep = (torch.full((n, classical_step_width(geo.ks)), float("nan"), dtype=dtype,
+                                device=device) if classical_step else None)
+            for s0 in range(0, todo.numel(), batch):
+                idx = todo[s0 : s0 + batch]
+                pr, zr, sr, ir, p1, sd, sg, cs = solve_batch(
+                    ctx, points[idx], p0[idx], dt[idx], frame_index[idx], ref_index[idx],
+                    None if motion is None else motion[idx],
+                    None if init_step is None else init_step[idx],
+                )
+                params[idx], zncc[idx], status[idx], iters[idx] = pr, zr, sr, ir
+                first_stage[idx], std[idx], sigma[idx] = p1, sd, sg
+                if cstep is not None:
+                    cstep[idx] = cs
 
-        bad = status > int(Status.MAX_ITER)
-        params.masked_fill_(bad.unsqueeze(1), float("nan"))
-        zncc.masked_fill_(bad, float("nan"))
+        bad = status > int(Status.MAX_ITER)  # (out of place: the first stage's may be these)
+        params = params.masked_fill(bad.unsqueeze(1), float("nan"))
+        zncc = zncc.masked_fill(bad, float("nan"))
         return WindowSolution(
             points=points, params=params, param_names=shape.param_names, zncc=zncc,
             status=status, iterations=iters, time=time, std=std, sigma=sigma,
