@@ -431,27 +431,29 @@ class Block(BlockChecks, BlockRescue, BlockMotion):
         half = float(run.solver.window.half)
         h, w = self.ref.img.height, self.ref.img.width
         pts = self.pts if rows is None else self.pts[rows]
-        feasible = torch.zeros(pts.shape[0], dtype=torch.bool, device=run.device)
-        shift = torch.zeros_like(pts)
-        # both components at once: (u, v) in the last dimension
+        # every prediction and both components at once: (I, R, T, 2)
         lo_edge = half + OUTSIDE_MARGIN
         hi_edge = torch.tensor([w - 1 - half - OUTSIDE_MARGIN, h - 1 - half - OUTSIDE_MARGIN],
                                dtype=pts.dtype, device=pts.device)
-        for i, init in enumerate(inits):
-            z = pts.unsqueeze(1) + init[:, [iu, iv]].unsqueeze(1)  # (R, 1, 2)
-            if "ut" in names:
-                vel = init[:, [names.index("ut"), names.index("vt")]].nan_to_num(0.0)
-                z = z + vel.unsqueeze(1) * dt.unsqueeze(-1)  # (R, T, 2)
-            if motion is not None:
-                z = z + motion
-            reach = half if i == 0 else 0.0  # only the moved-on prediction moves a subset
-            lo = (lo_edge - z.amin(1)).clamp(min=0)  # move the subset in
-            hi = (z.amax(1) - hi_edge).clamp(min=0)
-            ok = ((lo == 0) | (hi == 0)) & (torch.maximum(lo, hi) <= reach)
-            fit = ok.all(1) & torch.isfinite(z).all(1).all(1)
-            d = lo - hi
-            shift = torch.where(fit.unsqueeze(1) & (d.abs() > shift.abs()), d, shift)
-            feasible |= fit
+        p = torch.stack(list(inits))  # (I, R, P)
+        z = pts.unsqueeze(1) + p[..., [iu, iv]].unsqueeze(-2)  # (I, R, 1, 2)
+        if "ut" in names:
+            vel = p[..., [names.index("ut"), names.index("vt")]].nan_to_num(0.0)
+            z = z + vel.unsqueeze(-2) * dt.unsqueeze(-1)  # (I, R, T, 2)
+        if motion is not None:
+            z = z + motion
+        # only the moved-on prediction (the first) moves a subset
+        reach = torch.zeros(p.shape[0], 1, 1, dtype=z.dtype, device=z.device)
+        reach[0] = half
+        lo = (lo_edge - z.amin(-2)).clamp(min=0)  # (I, R, 2) move the subset in
+        hi = (z.amax(-2) - hi_edge).clamp(min=0)
+        ok = ((lo == 0) | (hi == 0)) & (torch.maximum(lo, hi) <= reach)
+        fit = ok.all(-1) & torch.isfinite(z).all(-2).all(-1)  # (I, R)
+        d = lo - hi
+        shift = torch.zeros_like(pts)  # the largest shift over the predictions that fit
+        for i in range(p.shape[0]):
+            shift = torch.where(fit[i].unsqueeze(1) & (d[i].abs() > shift.abs()), d[i], shift)
+        feasible = fit.any(0)
         return feasible, shift
 
     def init_rows(self, values: dict[str, torch.Tensor]) -> torch.Tensor:
