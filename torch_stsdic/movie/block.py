@@ -77,6 +77,7 @@ class BlockContext:
     neighbour_reach: float | None = None  # px, their median distance, made with them
     shared: SharedMotion | None = None  # the specimen's per-frame motion (None: not used)
     segments: torch.Tensor | None = None  # (T_series, 2) load segment of every frame
+    segments_host: torch.Tensor | None = None  # the same on the host (None: none, or read)
     #: (T_series, 2) the segments a reported velocity's slope of the shared motion stays in:
     #: the load segments split where the motion itself jumps (SharedMotion.jumps); None: none
     velocity_segments: torch.Tensor | None = None
@@ -148,10 +149,12 @@ class Block(BlockChecks, BlockRescue, BlockMotion):
         self.k = torch.tensor(ks, dtype=torch.long, device=dev)
         self._win: dict[int, torch.Tensor] = {}  # :meth:`windows`
         self._rows: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}  # :meth:`window_rows`
-        seg = run.segments
-        self.needed = block_frames(  # sorted; every half-width's windows' frames
-            self.k, run.m, run.n_series, None if seg is None else seg.to(self.k.device))
-        ring = run.cache.in_ring(self.needed.tolist())  # only new frames copied
+        seg = run.segments_host if run.segments_host is not None or run.segments is None \
+            else run.segments.cpu()
+        # sorted; every half-width's windows' frames: from host facts (no read of a device)
+        needed = block_frames(torch.tensor(ks, dtype=torch.long), run.m, run.n_series, seg)
+        self.needed = needed.to(dev)
+        ring = run.cache.in_ring(needed.tolist())  # only new frames copied
         # the frames' stack, addressed by plane (self.planes[j]: frame self.needed[j])
         self.raw, self.img, self.pyramids = ring.raw, ring.img, ring.pyramids
         self.planes = torch.as_tensor(ring.planes, dtype=torch.long, device=dev)

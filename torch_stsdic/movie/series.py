@@ -218,7 +218,8 @@ def _apply_estimates(run: BlockContext, est: RunEstimates, plan: RunPlan, ref: R
         run.shared = shared if shared.applied else None
         run.first_guess = shared.sample  # the first block starts from the pass's solutions
         if shared.steps:
-            run.segments = segment_bounds(shared.steps, len(plan.series)).to(plan.device)
+            run.segments_host = segment_bounds(shared.steps, len(plan.series))
+            run.segments = run.segments_host.to(plan.device)
         if run.shared is not None and shared.jumps:
             run.velocity_segments = segment_bounds(sorted(set(shared.steps) | set(
                 shared.jumps)), len(plan.series)).to(plan.device)
@@ -253,7 +254,8 @@ def _run_blocks(plan: RunPlan, sink: MemorySink, run: BlockContext, ref: Referen
     done = sink.completed_rows()
     run.cache.schedule(frames_in_order(  # read ahead the frames of the blocks to solve
         [b for b in plan.blocks if not all(row_of[k] in done for k in b)], plan.config.m,
-        len(plan.series), None if run.segments is None else run.segments.cpu()))
+        len(plan.series), None if run.segments is None else (
+            run.segments.cpu() if run.segments_host is None else run.segments_host)))
     carry: Carry | None = None
     rows_done = 0
     thr = plan.options.get("reference_update")
