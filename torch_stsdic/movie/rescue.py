@@ -13,7 +13,7 @@ import torch
 from torch_stsdic.analysis.result import USABLE
 from torch_stsdic.core.status import Status
 from torch_stsdic.movie.carry import Carry, neighbour_guess
-from torch_stsdic.movie.frames import rows_by_half_width
+from torch_stsdic.movie.frames import grouped_rows, rows_by_half_width
 from torch_stsdic.movie.reference import to_relative
 
 __all__ = ["BlockRescue"]
@@ -132,25 +132,28 @@ class BlockRescue:
             vel_u, vel_v, known = self._velocity_at(pr, carry)
             reach = torch.where(known, b, 1)
             cand = lost & (p >= 0) & (p > tried) & (j_of - p <= reach)
-            r = torch.nonzero(cand).flatten()  # one index for all (one sync)
-            if not r.numel():
-                break
-            tried[r] = p[r]
-            init = self.params[pr[r]]  # a copy
-            d = (run.ts[self.k[j_of[r]]] - run.ts[self.k[p[r]]]).to(run.dtype)
-            init[:, iu] += vel_u[r] * d
-            init[:, iv] += vel_v[r] * d
+            # every row's guess (the candidates' taken below): moved on from target p
+            init = self.params[pr]  # a copy
+            d = (run.ts[self.k[j_of]] - run.ts[self.k[p.clamp(min=0)]]).to(run.dtype)
+            init[:, iu] += vel_u * d
+            init[:, iv] += vel_v * d
             if m == 0:
                 init = init.nan_to_num(0.0)  # a classical row has no ut, vt
             else:
-                for nm, vel in (("ut", vel_u[r]), ("vt", vel_v[r])):  # a classical row: its
-                    if nm in names:                                     # velocity
+                for nm, vel in (("ut", vel_u), ("vt", vel_v)):  # a classical row: its
+                    if nm in names:                              # velocity
                         i = names.index(nm)
                         init[:, i] = torch.where(torch.isfinite(init[:, i]), init[:, i], vel)
-            ok = torch.nonzero(torch.isfinite(init).all(1)).flatten()
-            if ok.numel():  # (a point predicted out of view from further back: tried later)
-                self._solve_own(r[ok], init[ok], m, near=(j_of[r] - p[r] <= 1)[ok])
-                total += ok.numel()
+            fin = torch.isfinite(init).all(1)
+            # one read for the wave: the candidates with a guess, and those without
+            n_go, n_wait = torch.stack([(cand & fin).sum(), (cand & ~fin).sum()]).tolist()
+            if not n_go + n_wait:
+                break
+            tried.copy_(torch.where(cand, p, tried))
+            if n_go:  # (a point predicted out of view from further back: tried later)
+                go = grouped_rows(torch.where(cand & fin, 0, 1), [n_go])[0]
+                self._solve_own(go, init[go], m, near=j_of[go] - p[go] <= 1)
+                total += n_go
         return total
 
     def _velocity_at(self, rows: torch.Tensor, carry: Carry | None
@@ -174,7 +177,7 @@ class BlockRescue:
             vk = carry.vel_known[i] if carry.vel_known is not None else torch.ones_like(first)
             # without a carried velocity: the finite difference to the carry's last row
             last = to_relative(dict(carry.vals), self.ref.acc)
-            gap = (run.ts[self.k[0]] - carry.t).to(run.dtype)
+            gap = (run.ts[self.ks[0]] - carry.t).to(run.dtype)
             fu = (self.params[rows, iu] - last["u"][i].to(du)) / gap
             fv = (self.params[rows, iv] - last["v"][i].to(dv)) / gap
             fd = carry.valid[i] & (gap > 0)
