@@ -230,9 +230,9 @@ class BlockChecks:
         d_all = torch.full((self.b * self.n, 2), float("nan"), dtype=run.dtype,
                            device=run.device)
         s_all = d_all.clone()
-        conv = torch.nonzero(quick.status == int(Status.CONVERGED)).flatten()  # one sync
-        d_all[idx[conv]] = quick.params[conv][:, [cu, cv]].to(run.dtype)
-        s_all[idx[conv]] = quick.std[conv][:, [cu, cv]].to(run.dtype)
+        conv = (quick.status == int(Status.CONVERGED)).unsqueeze(1)  # (blended: no read)
+        d_all[idx] = torch.where(conv, quick.params[:, [cu, cv]].to(run.dtype), float("nan"))
+        s_all[idx] = torch.where(conv, quick.std[:, [cu, cv]].to(run.dtype), float("nan"))
         # the reference frame as target: its classical residual is round-off, no measure
         not_ref = ~self._no_residual(idx, quick.zncc)
         pixels = run.solver.window.effective_pixels()

@@ -89,15 +89,14 @@ class BlockRescue:
                                   left).reshape(-1)
             self.status.masked_fill_(final, int(Status.OUTSIDE))
             self.gone |= final
-            keep = torch.nonzero(~out[rows]).flatten()
-            rows, init = rows[keep], init[keep]  # (one index for both: one read)
-            if not rows.numel():
-                return
+            solved = ~out[rows]  # the rows still in view (grouped below: one read for both)
+        else:
+            solved = torch.ones_like(rows, dtype=torch.bool)
         m_req = run.m if m is None else m
         own = torch.full((rows.numel(),), m_req, dtype=torch.int8, device=rows.device)
         if self.window_m is not None and m_req > 0:
             own = torch.minimum(own, self.window_m[rows])
-        for mm, sel in rows_by_half_width(own, torch.ones_like(own, dtype=torch.bool), m_req):
+        for mm, sel in rows_by_half_width(own, solved, m_req):
             mk = None if mm == run.m else mm
             self.keep(rows[sel], self.solve(rows[sel], None if init is None else init[sel],
                                             m=mk), only_better=True, m=mk)
