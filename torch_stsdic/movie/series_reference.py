@@ -86,10 +86,8 @@ MAP_CHUNK = 1 << 19
 #: box; Immerkaer's estimate over 2^18 pixels has a relative error of ~0.3 %, far below the
 #: frames' differences it weighs)
 NOISE_PIXELS = 1 << 18
-#: pixels of the frames' boxes whose noise is estimated together
-NOISE_CHUNK_PIXELS = 1 << 20
-#: displacements (windows x points x frames x 2) :func:`time_model_holds` judges together
-WINDOW_CHUNK = 1 << 22
+NOISE_CHUNK_PIXELS = 1 << 20  # pixels of the frames' boxes whose noise is estimated at once
+WINDOW_CHUNK = 1 << 22  # displacements (windows x points x frames x 2) judged at once
 
 
 @dataclass
@@ -237,9 +235,7 @@ def _frame_noise(plan: RunPlan, frames: list[int], cache: FrameCache) -> list[fl
         bw, bh = max(8, int((x1 - x0) * shrink)), max(8, int((y1 - y0) * shrink))
         x0, y0 = (x0 + x1 - bw) // 2, (y0 + y1 - bh) // 2
         x1, y1 = x0 + bw, y0 + bh
-    # a few frames' boxes at once (the kernels' temporaries of a chunk stay in cache on a
-    # CPU), one host read for all
-    per = max(1, NOISE_CHUNK_PIXELS // ((y1 - y0) * (x1 - x0)))
+    per = max(1, NOISE_CHUNK_PIXELS // ((y1 - y0) * (x1 - x0)))  # (a chunk stays in cache)
     sig = [immerkaer_sigmas(torch.stack([cache.read(k)[y0:y1, x0:x1] for k in frames[i:i + per]]))
            for i in range(0, len(frames), per)]
     return torch.cat(sig).clamp(min=1e-6).tolist() if sig else []
@@ -297,16 +293,13 @@ def time_model_holds(plan: RunPlan, res: TrackResult, frames: list[int],
     tests = torch.zeros(n, dtype=torch.int64)
     excess = torch.zeros(n, dtype=torch.float64)  # sum over passing windows: off^2 - noise
     gain = torch.zeros(n, dtype=torch.float64)  # ... the variance the window takes off
-    # the windows of 2m + 1 adjacent sampled frames within one load state, all at once
-    # (in chunks of bounded memory)
-    t_count = 2 * m + 1
-    starts = [j0 for j0 in range(len(frames) - 2 * m)
-              if frames[j0 + 2 * m] - frames[j0] == 2 * m
+    # the windows of 2m + 1 adjacent sampled frames within one load state, at once
+    starts = [j0 for j0 in range(len(frames) - 2 * m) if frames[j0 + 2 * m] - frames[j0] == 2 * m
               and not any(frames[j0] < s <= frames[j0 + 2 * m] for s in steps)]
-    per = max(1, WINDOW_CHUNK // (2 * n * t_count))
+    per = max(1, WINDOW_CHUNK // (2 * n * (2 * m + 1)))
     for c0 in range(0, len(starts), per):
         j0 = torch.as_tensor(starts[c0:c0 + per])
-        idx = j0.unsqueeze(1) + torch.arange(t_count)  # (W, T) rows of the sampled frames
+        idx = j0.unsqueeze(1) + torch.arange(2 * m + 1)  # (W, T) rows of the sampled frames
         disp = d[idx].permute(0, 2, 1, 3)  # (W, N, T, 2)
         dt = (t[idx] - t[j0 + m].unsqueeze(1)).unsqueeze(1)  # (W, 1, T)
         off, csq = line_offset(disp, dt)
