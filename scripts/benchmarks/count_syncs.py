@@ -11,15 +11,17 @@ thread): a value read on the host (``.item()``, ``bool()``, ``int()``, ``float()
 tensor: ``aten._local_scalar_dense``; ``torch.equal``'s answer), and the operations whose
 output size depends on the data (``nonzero``, ``masked_select``, boolean-mask indexing,
 ``unique``, ``repeat_interleave`` with a tensor of repeats): on CUDA each waits for the
-device. Copies to the host
-(``.cpu()``, ``.numpy()``, ``.tolist()``) do not pass the dispatcher on a CPU run and are not
-counted by the dispatcher; they are counted apart (``host copy``: ``.tolist()``,
-``.numpy()`` and ``.cpu()`` called in the counting thread, patched in while counting; on a GPU each of a
-device tensor waits for it; on the CPU some of them read host tensors a GPU run keeps on
-the host too, so they are an upper bound there). Per block of the run itself (its passes' blocks
-apart), the median over the blocks; the run is slowed down by the counting (use it for
-counts, not for speed). Of those, the ones in the C++ CPU kernels' argument checks
-(``kernels/native``) are shown apart: a GPU run takes other kernels. ``--where N`` lists the
+device. Copies to the host (``.cpu()``, ``.numpy()``, ``.tolist()``) do not pass the
+dispatcher on a CPU run; they are counted apart (``host copy``: those called in the
+counting thread, patched in while counting; on a GPU each of a device tensor waits for it;
+on the CPU some of them read host tensors a GPU run keeps on the host too, so they are an
+upper bound there). Per block of the run itself (its passes' blocks apart), the median over
+the blocks; the run is slowed down by the counting (use it for counts, not for speed). Of
+those, the ones in the C++ CPU kernels' argument checks (``kernels/native``) are shown
+apart: a GPU run takes other kernels. Also counted, apart from the syncs: the launch-like
+operations of a block (every dispatched operation but the views and metadata ones: on a
+GPU each launches a kernel; the C++ kernels' calls are not among them), ``--ops-where N``
+listing the N functions that make most of them. ``--where N`` lists the
 N lines of the package that sync most over the whole run.
 """
 
