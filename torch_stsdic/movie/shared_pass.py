@@ -82,7 +82,7 @@ def implausible(disp: torch.Tensor, fitted: torch.Tensor, valid: torch.Tensor,
     dragged by background points that froze or diverged, is not the specimen's motion)."""
     # every frame at once: the points not trusted there are NaN in the quantiles (one host
     # read: the first frame that fails, if any)
-    ok = valid & torch.isfinite(disp).all(-1)  # (NaN would not be in the old subsets either)
+    ok = valid & torch.isfinite(disp).all(-1)  # (a point without a finite displacement: out)
     d = torch.where(ok.unsqueeze(-1), disp, torch.nan)
     q01, q99 = torch.nanquantile(d, 0.01, dim=1), torch.nanquantile(d, 0.99, dim=1)  # (F, 2)
     margin = torch.clamp(0.25 * (q99 - q01), min=PLAUSIBLE_MARGIN)
