@@ -235,3 +235,48 @@ def test_the_shared_velocity_at_the_target_reads_nothing_and_is_the_line_where_c
     assert not used[0].any() and torch.equal(slope[0], line[0]) and not var[0].any()
     assert used[1].all() and torch.allclose(slope[1], b1.double().expand(4, 2), atol=1e-9)
     assert not used[2].any() and torch.equal(slope[2], line[2])
+
+
+def test_the_cache_keeps_new_subsets_with_one_read_of_the_misses(monkeypatch):
+    """``keep_reference_subsets`` of points of which some are kept already and some repeat
+    (a block's moved subsets: the same pixel in several targets) reads the device once for
+    its misses (their distinct pixels, by one ``unique``; not a count, an index and a unique)
+    and keeps each new pixel's subset once, the same numbers as sampling it alone."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    from torch_stsdic.core import gauss_newton as gn
+
+    solver, ref, ref_img, frames_img, pts, times = _solver_and_images(sts.DICConfig(m=0,
+                                                                                    subset_size=15))
+    assert solver.keep_reference_subsets(ref_img, pts[:10]) is not None
+    count = solver.reference_cache.count
+    moved = torch.cat([pts[5:20], pts[12:20], pts[:3]])  # kept, new, repeated
+    reads = []
+
+    class Reads(TorchDispatchMode):
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            if func.overloadpacket.__name__ in ("_local_scalar_dense", "nonzero", "_unique2",
+                                                "unique_dim", "unique_consecutive"):
+                reads.append(func.overloadpacket.__name__)
+            return func(*args, **(kwargs or {}))
+
+    sampled_rows = []
+    real = gn._sampled
+
+    def sampled(ctx, p, dt, fidx, ridx, rows):
+        sampled_rows.append(rows.clone())
+        return real(ctx, p, dt, fidx, ridx, rows)
+    monkeypatch.setattr(gn, "_sampled", sampled)
+    with Reads():
+        assert solver.keep_reference_subsets(ref_img, moved) is not None
+    monkeypatch.setattr(gn, "_sampled", real)
+    assert reads.count("_unique2") == 1 and "nonzero" not in reads, reads
+    cache = solver.reference_cache
+    assert cache.count == count + 10  # pts[10:20] new, each once
+    # the first row of each new pixel, in the keys' order (rows 5..14 of `moved`)
+    assert sampled_rows[0].tolist() == list(range(5, 15))
+    fresh = SubsetSolver(solver.config)
+    fresh.reference_cache = ReferenceCache(256.0)
+    fresh.keep_reference_subsets(ref_img, pts[10:20])
+    for k in ("ft", "gx", "gy", "gram"):
+        assert torch.equal(cache.rows[k][count:], fresh.reference_cache.rows[k])

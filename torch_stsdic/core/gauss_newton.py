@@ -404,19 +404,21 @@ def _cached_reference_data(ctx: BatchContext, pts, dt, fidx, ridx, key):
 
 def _keep_missing(ctx: BatchContext, pts, dt, fidx, ridx, key) -> bool:
     """The reference subsets of the rows ``key`` (N,) (pixel keys of ``pts``) that
-    ``ctx.cache`` misses, sampled and kept (one host read: the misses' count); False where
-    they would exceed its budget (the cache is then off)."""
+    ``ctx.cache`` misses, sampled and kept (one host read: the distinct keys that miss);
+    False where they would exceed its budget (the cache is then off)."""
     cache, geo = ctx.cache, ctx.geo
     miss_rows = cache.slot[key] < 0
-    if int(miss_rows.sum()):
-        # the distinct points among the rows that miss (sorted, as over all the rows)
-        rows = torch.nonzero(miss_rows).flatten()
-        uniq, inv = torch.unique(key[rows], return_inverse=True)
+    # the distinct keys of the rows that miss, sorted, by one unique over every row: the
+    # rows that do not miss keyed -1 (the least key; one -1 in front, so it is always there)
+    keys = torch.cat([key.new_full((1,), -1), torch.where(miss_rows, key, -1)])
+    uniq, inv = torch.unique(keys, return_inverse=True)
+    if uniq.shape[0] > 1:
         s = int(geo.w.numel())
-        if not cache.fits(uniq.shape[0], s, ctx.ref.coeffs.element_size(), 2 * (geo.ks + 1)):
+        if not cache.fits(uniq.shape[0] - 1, s, ctx.ref.coeffs.element_size(),
+                          2 * (geo.ks + 1)):
             return False
-        cache.add(uniq, _sampled(ctx, pts, dt, fidx, ridx,
-                                 rows[_first_rows(inv, uniq.shape[0])]))
+        first = _first_rows(inv, uniq.shape[0])[1:] - 1  # each missing key's first row
+        cache.add(uniq[1:], _sampled(ctx, pts, dt, fidx, ridx, first))
     return True
 
 
