@@ -308,3 +308,16 @@ def test_the_ring_copies_each_frame_once_and_its_planes_hold_the_frames_asked_fo
         assert all(torch.equal(a, b) for a, b in zip(lev, ref))
     assert cache._ring.capacity == 5  # grew to the longest block (frames 5..9)
     assert cache._ring.copies == 12  # each frame once (the planes kept when it grew)
+
+
+def test_upload_puts_a_host_tensor_on_the_device_with_its_values():
+    """``frames.upload``: the values on the device asked for (on a GPU from pinned memory, a
+    copy that does not wait for the device's queue); a tensor already there is itself."""
+    from torch_stsdic.movie.frames import upload
+
+    t = torch.arange(7, dtype=torch.long)
+    assert upload(t, "cpu") is t
+    if torch.cuda.is_available():
+        g = upload(t, "cuda")
+        assert g.device.type == "cuda" and torch.equal(g.cpu(), t)
+        assert upload(g, "cuda") is g

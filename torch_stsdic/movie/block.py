@@ -41,6 +41,7 @@ from torch_stsdic.movie.frames import (
     FrameCache,
     block_frames,
     rows_by_half_width,
+    upload,
     window_frames,
 )
 from torch_stsdic.movie.reference import Reference, noise_ratio, to_relative, to_total
@@ -146,18 +147,19 @@ class Block(BlockChecks, BlockRescue, BlockMotion):
     def __init__(self, run: BlockContext, ks: list[int], ref: Reference) -> None:
         self.run, self.ks, self.ref = run, ks, ref
         dev = run.device
-        self.k = torch.tensor(ks, dtype=torch.long, device=dev)
+        host_k = torch.tensor(ks, dtype=torch.long)
+        self.k = upload(host_k, dev)
         self._win: dict[int, torch.Tensor] = {}  # :meth:`windows`
         self._rows: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}  # :meth:`window_rows`
         seg = run.segments_host if run.segments_host is not None or run.segments is None \
             else run.segments.cpu()
         # sorted; every half-width's windows' frames: from host facts (no read of a device)
-        needed = block_frames(torch.tensor(ks, dtype=torch.long), run.m, run.n_series, seg)
-        self.needed = needed.to(dev)
+        needed = block_frames(host_k, run.m, run.n_series, seg)
+        self.needed = upload(needed, dev)
         ring = run.cache.in_ring(needed.tolist())  # only new frames copied
         # the frames' stack, addressed by plane (self.planes[j]: frame self.needed[j])
         self.raw, self.img, self.pyramids = ring.raw, ring.img, ring.pyramids
-        self.planes = torch.as_tensor(ring.planes, dtype=torch.long, device=dev)
+        self.planes = upload(torch.as_tensor(ring.planes, dtype=torch.long), dev)
         ref.ensure(run.cache)
         if run.noise_ratio is None:
             run.noise_ratio = noise_ratio(run.reference_desc, ref.raw, ring.frames_raw())
@@ -436,8 +438,9 @@ class Block(BlockChecks, BlockRescue, BlockMotion):
         pts = self.pts if rows is None else self.pts[rows]
         # every prediction and both components at once: (I, R, T, 2)
         lo_edge = half + OUTSIDE_MARGIN
-        hi_edge = torch.tensor([w - 1 - half - OUTSIDE_MARGIN, h - 1 - half - OUTSIDE_MARGIN],
-                               dtype=pts.dtype, device=pts.device)
+        hi_edge = torch.full((2,), w - 1 - half - OUTSIDE_MARGIN, dtype=pts.dtype,
+                             device=pts.device)  # (filled on the device: no copy to it)
+        hi_edge[1] = h - 1 - half - OUTSIDE_MARGIN
         p = torch.stack(list(inits))  # (I, R, P)
         z = pts.unsqueeze(1) + p[..., [iu, iv]].unsqueeze(-2)  # (I, R, 1, 2)
         if "ut" in names:

@@ -36,9 +36,19 @@ from torch_stsdic.core.solver import SubsetSolver
 from torch_stsdic.io import ImageSeries
 from torch_stsdic.movie.frame_ring import FrameRing, RingView
 
-__all__ = ["FrameCache", "FrameStore", "PreparedFrame", "window_frames", "block_frames",
+__all__ = ["FrameCache", "FrameStore", "PreparedFrame", "window_frames", "block_frames", "upload",
            "segment_bounds", "frames_in_order", "default_ahead", "half_widths",
            "rows_by_half_width", "grouped_rows"]
+
+
+def upload(t: torch.Tensor, device: torch.device | str) -> torch.Tensor:
+    """``t`` (on the host) on ``device`` without waiting for it: to a GPU from pinned memory,
+    not blocking (a copy from pageable memory waits for the device's queue first); as it is
+    elsewhere."""
+    device = torch.device(device)
+    if device.type == "cuda" and t.device.type == "cpu":
+        return t.pin_memory().to(device, non_blocking=True)
+    return t.to(device)
 
 
 def window_frames(ks: torch.Tensor, m: int, n_series: int,
@@ -211,7 +221,7 @@ class _Reader(threading.Thread):
                 ev = None
                 if self.stream is not None:
                     with torch.cuda.device(self.stream.device), torch.cuda.stream(self.stream):
-                        raw = cpu.pin_memory().to(c.device, non_blocking=True)
+                        raw = upload(cpu, c.device)
                         prep = c.solver.prepare(raw)
                         ev = torch.cuda.Event()
                         ev.record(self.stream)
