@@ -723,3 +723,26 @@ def test_a_blocks_window_motion_follows_its_moved_subsets():
         if m in before:
             assert not torch.equal(got[9], before[m][0][9])
             assert torch.equal(got[4], before[m][0][4])
+
+
+def test_the_motion_kept_on_the_device_follows_new_parameters():
+    """:meth:`SharedMotion.displacement` keeps its parameters and origin on the points'
+    device between calls; parameters or an origin set anew (``smooth`` replaces them) are
+    the ones used next, and a copy sent to another process leaves the device copy behind."""
+    import pickle
+
+    params = np.zeros((4, 6))
+    params[:, 0] = [0.0, 1.0, 2.0, 3.0]
+    sm = SharedMotion(kind="affine", params=params, origin=np.array([10.0, 5.0]),
+                      scatter=np.zeros(4), points=np.zeros(0, dtype=np.int64),
+                      measured=np.ones(4, dtype=bool))
+    pts = torch.tensor([[12.0, 5.0]], dtype=torch.float64)
+    fr = torch.tensor([1, 3])
+    assert sm.displacement(pts, fr)[:, 0, 0].tolist() == [1.0, 3.0]
+    new = params.copy()
+    new[:, 2] = 0.5  # du/dx
+    sm.params = new
+    assert sm.displacement(pts, fr)[:, 0, 0].tolist() == [2.0, 4.0]  # 0.5 * (12 - 10) added
+    sm.origin = np.array([12.0, 5.0])
+    assert sm.displacement(pts, fr)[:, 0, 0].tolist() == [1.0, 3.0]
+    assert "_held" not in pickle.loads(pickle.dumps(sm)).__dict__

@@ -318,20 +318,23 @@ class SharedMotion:
 
     def _at(self, points: Tensor, frames: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         dev = points.device
-        p = self._params_on(dev)[frames.to(device=dev, dtype=torch.long)]  # (K, P)
-        d = points.double() - torch.as_tensor(self.origin, dtype=torch.float64, device=dev)
+        params, origin = self._on(dev)
+        p = params[frames.to(device=dev, dtype=torch.long)]  # (K, P)
+        d = points.double() - origin
         return p, d[:, 0], d[:, 1]
 
-    def _params_on(self, device: torch.device) -> Tensor:
-        """(T_series, P) float64 :attr:`params` on ``device``, kept while they are the same
-        array (a block asks for them many times: no copy, and no host read of the frames
-        asked for, each time)."""
+    def _on(self, device: torch.device) -> tuple[Tensor, Tensor]:
+        """(T_series, P) :attr:`params` and (2,) :attr:`origin`, float64, on ``device``, kept
+        while they are the same arrays (a block asks for them many times: no copy to the
+        device, and no host read of the frames asked for, each time)."""
         held = self.__dict__.get("_held")
-        if held is None or held[0] is not self.params or held[1] != device:
-            held = (self.params, device, torch.as_tensor(self.params, dtype=torch.float64,
-                                                         device=device))
+        if (held is None or held[0] is not self.params or held[1] is not self.origin
+                or held[2] != device):
+            held = (self.params, self.origin, device,
+                    torch.as_tensor(self.params, dtype=torch.float64, device=device),
+                    torch.as_tensor(self.origin, dtype=torch.float64, device=device))
             self.__dict__["_held"] = held
-        return held[2]
+        return held[3], held[4]
 
     def __getstate__(self) -> dict[str, Any]:
         state = dict(self.__dict__)
