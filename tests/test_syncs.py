@@ -43,11 +43,14 @@ def test_the_counter_counts_what_waits_for_the_device():
         x.tolist()  # a copy to the host
         _ = x * 2 + 1  # none
         _ = x.view(2, 3).t().unsqueeze(0)  # views: no sync, no launch
+        _ = torch.tensor([1.0, 2.0], device=x.device)  # host data onto a device
+        _ = torch.as_tensor(x, device=x.device)  # a tensor already: none
     assert c.counts["_local_scalar_dense"] == 1
     assert c.counts["nonzero"] == 1
     assert c.counts["index (bool mask)"] == 1
     assert c.counts[cs.HOST_COPY] == 1
-    assert cs.block_total(dict(c.counts)) == 4
+    assert c.counts[cs.TO_DEVICE] == 1
+    assert cs.block_total(dict(c.counts)) == 5
     # launch-like: sum, gt, nonzero, gt, index, mul, add (not the read, the copy, the views)
     assert c.counts[cs.LAUNCHES] == 7
     assert x.tolist() == [0.0, 1.0, 2.0, 3.0, 4.0, 5.0]  # the patch is gone again

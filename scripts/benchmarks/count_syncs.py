@@ -15,7 +15,9 @@ device. Copies to the host (``.cpu()``, ``.numpy()``, ``.tolist()``) do not pass
 dispatcher on a CPU run; they are counted apart (``host copy``: those called in the
 counting thread, patched in while counting; on a GPU each of a device tensor waits for it;
 on the CPU some of them read host tensors a GPU run keeps on the host too, so they are an
-upper bound there). Per block of the run itself (its passes' blocks apart), the median over
+upper bound there); so are the tensors made from host data with a ``device`` (``torch.tensor``,
+``torch.as_tensor``: to a GPU a copy from pageable memory, which waits too; counted whatever
+the device). Per block of the run itself (its passes' blocks apart), the median over
 the blocks; the run is slowed down by the counting (use it for counts, not for speed). Of
 those, the ones in the C++ CPU kernels' argument checks (``kernels/native``) are shown
 apart: a GPU run takes other kernels. Also counted, apart from the syncs: the launch-like
@@ -58,6 +60,11 @@ CPU_ONLY = "of which in the CPU kernels' checks"
 #: the counter of the copies to the host outside the dispatcher (``.tolist()``, ``.numpy()``,
 #: ``.cpu()``)
 HOST_COPY = "host copy (tolist, numpy, cpu)"
+#: the counter of the tensors made from host data on a device (``torch.tensor`` or
+#: ``torch.as_tensor`` of Python numbers, lists or arrays with a ``device``): to a GPU each is
+#: a copy from pageable memory, which waits for the device's queue (on the CPU they are
+#: counted whatever the device: an upper bound, like the host copies)
+TO_DEVICE = "copy to the device (tensor, as_tensor)"
 #: the counter of the aten operations that would launch a kernel on a GPU (every dispatched
 #: operation but the views and metadata ones, :data:`NO_LAUNCH`): a proxy of a block's
 #: launches, not a sync (not added to a block's total); the C++ kernels' calls are not
@@ -103,11 +110,27 @@ class SyncCounter(TorchDispatchMode):
                 return _orig(t, *a, **k)
 
             setattr(torch.Tensor, name, counted)
+        for name in ("tensor", "as_tensor"):
+            make = getattr(torch, name)
+            self._saved["torch." + name] = make
+
+            def made(data, *a, _make=make, **k):
+                if (threading.get_ident() == me and k.get("device") is not None
+                        and not isinstance(data, torch.Tensor)):
+                    self.counts[TO_DEVICE] += 1
+                    if self.where is not None:
+                        self.where[self._place()] += 1
+                return _make(data, *a, **k)
+
+            setattr(torch, name, made)
         return super().__enter__()
 
     def __exit__(self, *exc):
         for name, orig in self._saved.items():
-            setattr(torch.Tensor, name, orig)
+            if name.startswith("torch."):
+                setattr(torch, name[len("torch."):], orig)
+            else:
+                setattr(torch.Tensor, name, orig)
         self._saved = {}
         return super().__exit__(*exc)
 

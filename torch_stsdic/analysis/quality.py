@@ -409,7 +409,8 @@ def _gradient_at(gn: Tensor, use: Tensor, d: Tensor) -> Tensor:
     a = torch.cat([torch.ones_like(d[..., :1]), -d], -1).expand(w.shape[0], -1, -1, -1)
     m = torch.einsum("bnk,bnki,bnkj->bnij", w, a, a)  # (B, N, 3, 3)
     scale = (w * d.square().sum(-1)).sum(-1) / w.sum(-1).clamp(min=1.0)
-    damp = torch.tensor([0.0, 1.0, 1.0], dtype=m.dtype, device=m.device)
+    damp = torch.ones(3, dtype=m.dtype, device=m.device)  # (0, 1, 1), made on the device
+    damp[0] = 0.0
     m = m + torch.diag_embed(1e-3 * scale.clamp(min=1e-12).unsqueeze(-1) * damp)
     m = m + torch.diag_embed((w.sum(-1) == 0).double().unsqueeze(-1) * (1.0 - damp))
     rhs = torch.einsum("bnk,bnki,bnkf->bnif", w, a, gn.flatten(-2))  # (B, N, 3, 2C)

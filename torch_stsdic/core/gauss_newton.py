@@ -448,9 +448,9 @@ def _uncertainty(ctx: BatchContext, data: SubsetData, params, zncc, ok):
     noise, _ = uncertainty.solution_noise(ctx.geo, ctx.frames, data, params, ctx.noise_ratio,
                                           ctx.frames.order, zncc=zncc)
     std = uncertainty.predicted_std(ctx.geo, data, noise, ctx.frames.order)
-    nan = torch.tensor(float("nan"), dtype=dtype, device=params.device)
-    std = torch.where(ok.unsqueeze(1), std.to(dtype), nan)
-    return std, torch.where(ok, noise.total.sqrt().to(dtype), nan)
+    # (NaN a scalar of the operation: no tensor copied to the device)
+    std = torch.where(ok.unsqueeze(1), std.to(dtype), float("nan"))
+    return std, torch.where(ok, noise.total.sqrt().to(dtype), float("nan"))
 
 
 def _next_increment(norm: Tensor, prev: Tensor) -> Tensor:
@@ -502,7 +502,8 @@ def _run_stage(ctx: BatchContext, form: Formulation, params, data: SubsetData, l
             else step0[rows].to(dtype).nan_to_num(0.0))
     # On CUDA every boolean test or compaction waits for the GPU: look every few iterations.
     check_every = 1 if device.type == "cpu" else 4
-    conv_code = torch.tensor(int(Status.CONVERGED), dtype=torch.int8, device=device)
+    # filled on the device (a tensor from a Python number is a copy to it, which waits)
+    conv_code = torch.full((), int(Status.CONVERGED), dtype=torch.int8, device=device)
     for it in range(cfg.max_iter):
         if rows.numel() == 0:
             break

@@ -146,7 +146,7 @@ class BSplineImage:
         ka = self.kernel_args()
         flat, wp, x_lo, x_hi, y_lo, y_hi, shift, plane = ka
         if isinstance(frame, int):
-            frame_t = torch.tensor(frame * plane, device=self.device)
+            frame_t = torch.full((), frame * plane, dtype=torch.long, device=self.device)
         else:
             frame_t = torch.as_tensor(frame, device=self.device).long() * plane
         if dispatch.sample(ka, x, y) == "native":
@@ -162,7 +162,9 @@ class BSplineImage:
         (px[i] + dx[s], py[i] + dy[s]) of frame[i]; px, py (N,) or (N, 1), dx, dy (S,),
         frame an int or (N,) integer tensor."""
         px, py = px.reshape(-1, 1).to(self.dtype), py.reshape(-1, 1).to(self.dtype)
-        frame_t = torch.as_tensor(frame, device=self.device).long().reshape(-1, 1)
+        frame_t = (torch.full((1, 1), frame, dtype=torch.long, device=self.device)
+                   if isinstance(frame, int)
+                   else torch.as_tensor(frame, device=self.device).long().reshape(-1, 1))
         fast = self._subsets_on_grid(px, py, dx, dy, frame_t)
         if fast is not None:
             return fast

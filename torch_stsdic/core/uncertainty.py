@@ -110,7 +110,8 @@ def _aug_columns(geo: Geometry) -> Tensor:
     ks = geo.ks
     if geo.shape.has_time:
         return torch.arange(2 * (ks + 1), device=geo.spatial.device)
-    return torch.tensor([*range(ks), *range(ks + 1, 2 * ks + 1)], device=geo.spatial.device)
+    i = torch.arange(2 * ks, device=geo.spatial.device)  # 0 .. ks-1, ks+1 .. 2 ks (made on
+    return i + (i >= ks)  # the device: a tensor from a Python list is a copy to it)
 
 
 def _z(geo: Geometry, dt: Tensor) -> Tensor:
@@ -334,7 +335,9 @@ def shared_frame_factors(dt: Tensor, share: Tensor, share_sq: Tensor, rho: float
     1/K``) leaves only the registration's noise in the displacement."""
     a = share.double()
     c = intercept_weights(dt)
-    r = torch.as_tensor(rho, dtype=torch.float64, device=a.device)
+    # a number as it is (a tensor made of it would be a copy to the device, which waits)
+    r = float(rho) if isinstance(rho, (int, float)) else rho.to(device=a.device,
+                                                                 dtype=torch.float64)
     csq, ac, asq = (c * c).sum(1), (c * a).sum(1), share_sq.double()
     noise = (r + 1.0) / (r + 1.0 - 2.0 * a.mean(1)).clamp(min=1e-3 * (r + 1.0))
     var = asq + csq - 2.0 * ac

@@ -150,6 +150,7 @@ class Block(BlockChecks, BlockRescue, BlockMotion):
         host_k = torch.tensor(ks, dtype=torch.long)
         self.k = upload(host_k, dev)
         self._win: dict[int, torch.Tensor] = {}  # :meth:`windows`
+        self._col_index: dict[tuple, torch.Tensor] = {}  # :meth:`_columns`
         self._rows: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}  # :meth:`window_rows`
         seg = run.segments_host if run.segments_host is not None or run.segments is None \
             else run.segments.cpu()
@@ -298,7 +299,11 @@ class Block(BlockChecks, BlockRescue, BlockMotion):
         if cols == list(range(a.shape[1])) and a.shape[1] == len(cols):
             return a.to(dt)
         pad = torch.cat([a.to(dt), torch.full_like(a[:, :1], float("nan"), dtype=dt)], 1)
-        return pad[:, torch.tensor([c if c >= 0 else a.shape[1] for c in cols], device=dev)]
+        key = (tuple(cols), a.shape[1])  # the index on the device once a block (a copy)
+        if key not in self._col_index:
+            self._col_index[key] = upload(torch.tensor([c if c >= 0 else a.shape[1]
+                                                        for c in cols]), dev)
+        return pad[:, self._col_index[key]]
 
     def keep_identity(self) -> torch.Tensor:
         """Rows whose whole window is the current reference frame itself (classical DIC with
@@ -580,7 +585,8 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
     counts: dict[str, torch.Tensor] = {}  # run.stats counted on the device, read at the end
 
     def count(name: str, value: torch.Tensor | int) -> None:
-        value = torch.as_tensor(value, device=dev)
+        if not isinstance(value, torch.Tensor):  # (filled on the device: no copy to it)
+            value = torch.full((), int(value), dtype=torch.int64, device=dev)
         counts[name] = counts[name] + value if name in counts else value
     shake_vel = has = None  # see _carried_start
     if carry is not None and _only_identity(run, ref, carry):
