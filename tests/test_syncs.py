@@ -17,14 +17,14 @@ from torch_stsdic.cli import main
 SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "benchmarks" / "count_syncs.py"
 
 #: syncing operations a block, median over the blocks, outside the CPU kernels (host reads,
-#: data-dependent sizes, boolean-mask indexing, ``tolist``/``numpy``/``cpu`` copies) on the
-#: movie below: 222 at 78130a9, 83 after issue 45 item 3's first steps, 41.5 (33-77) at
-#: 2026-11-29 (the rescue and the model check choosing rows, about 10 solve calls a block);
-#: a little room for noise-free changes of the path
+#: data-dependent sizes, boolean-mask indexing, ``tolist``/``numpy``/``cpu`` copies, tensors
+#: made from host data on a device) on the movie below: 222 at 78130a9, 83 after issue 45
+#: item 3's first steps, 39 (32-76) at ae57afb (the rescue and the model check choosing
+#: rows, about 10 solve calls a block); a little room for noise-free changes of the path
 MAX_PER_BLOCK = 48
 #: launch-like torch operations a block (``count_syncs.LAUNCHES``: on a GPU each launches a
-#: kernel), median over the blocks on the movie below: 5043 at d3e78a5, 4592 after the
-#: carry, placement, window and solve-buffer changes of 2026-11-29; room for noise-free
+#: kernel), median over the blocks on the movie below: 5043 at d3e78a5, 4629 at ae57afb (the
+#: carry, placement, window and solve-buffer changes of 2026-11-29); room for noise-free
 #: changes of the path
 MAX_OPERATIONS_PER_BLOCK = 5000
 
