@@ -429,3 +429,24 @@ def test_classical_step_is_nan_where_the_native_kernel_is_not_used(pattern):
     finally:
         native.set_native("auto")
     assert sol.ok.all() and torch.isnan(sol.info["classical_step"]).all()
+
+
+def test_a_solver_keeps_its_geometries_between_solves():
+    """``SubsetSolver._geometry``: the same geometry for the same shape, dtype and device
+    (its tensors and the bare basis's moments made once), another for another shape or a
+    window set anew; a pickled solver makes them again."""
+    import pickle
+
+    from torch_stsdic.core.window import make_window
+
+    solver = sts.SubsetSolver(sts.DICConfig(m=1, subset_size=15))
+    spatial = solver.shape.spatial()
+    g1 = solver._geometry(solver.shape, torch.float32, "cpu")
+    assert solver._geometry(solver.shape, torch.float32, "cpu") is g1
+    assert solver._geometry(solver.shape, torch.float64, "cpu") is not g1
+    g2 = solver._geometry(spatial, torch.float32, "cpu")
+    assert g2 is not g1 and g2.spatial.shape == g1.spatial.shape and not g2.shape.has_time
+    solver.window = make_window("circular", 15)
+    g3 = solver._geometry(solver.shape, torch.float32, "cpu")
+    assert g3 is not g1 and g3.w.sum() < g1.w.sum()
+    assert pickle.loads(pickle.dumps(solver))._geometries == {}

@@ -63,7 +63,7 @@ from torch_stsdic.core.solution import (
     packed_classical_step,
 )
 from torch_stsdic.core.status import Status
-from torch_stsdic.core.window import make_window
+from torch_stsdic.core.window import SubsetWindow, make_window
 from torch_stsdic.kernels.native.rows import in_own_threads, own_threads
 
 __all__ = ["WindowSolution", "SubsetSolver", "subset_inside"]
@@ -88,6 +88,8 @@ class SubsetSolver:
         #: (:class:`~torch_stsdic.core.gauss_newton.ReferenceCache`; set by a run, None: none)
         self.reference_cache: ReferenceCache | None = None
         self._grey_memo: tuple | None = None  # (weakref to the pixels, their version, range)
+        #: :meth:`_geometry`'s geometries by their host facts (no tensors made again a solve)
+        self._geometries: dict[tuple, tuple[SubsetWindow, Geometry]] = {}
 
     def prepare(self, images: torch.Tensor) -> BSplineImage:
         """Prefilter (T, H, W) or (H, W) images into B-spline coefficients."""
@@ -95,7 +97,25 @@ class SubsetSolver:
             return BSplineImage(images, order=self.config.interpolation_order)
 
     def __getstate__(self) -> dict:
-        return {**self.__dict__, "_grey_memo": None}  # a weak reference does not pickle
+        # a weak reference does not pickle; the geometries are made again where needed
+        return {**self.__dict__, "_grey_memo": None, "_geometries": {}}
+
+    def _geometry(self, shape: ShapeFunction, dtype: torch.dtype,
+                  device: torch.device | str) -> Geometry:
+        """:meth:`Geometry.make` of this solver's window and criterion for ``shape``, kept
+        for the next solve with the same host facts (built-in window and shape: their kinds,
+        settings, dtype and device; others made every time). Read, not written, by the
+        solves."""
+        key = (id(self.window), self.window.extra_repr(), self.config.criterion,
+               type(shape).__name__,
+               tuple(shape.param_names), str(dtype), str(torch.device(device)))
+        held = self._geometries.get(key)
+        if held is not None and held[0] is self.window:
+            return held[1]
+        geo = Geometry.make(shape, self.window, self.config.criterion, dtype, device)
+        if geo.key is not None:  # a built-in window and shape: its tensors are its facts'
+            self._geometries[key] = (self.window, geo)
+        return geo
 
     def _grey_range_of(self, grey: torch.Tensor) -> float:
         """:func:`_grey_range` of the reference's pixels, kept while they are the same
@@ -123,8 +143,7 @@ class SubsetSolver:
         where the cache does not serve them."""
         if self.reference_cache is None or points.shape[0] == 0:
             return None
-        geo = Geometry.make(self.shape, self.window, self.config.criterion, points.dtype,
-                            points.device)
+        geo = self._geometry(self.shape, points.dtype, points.device)
         ctx = BatchContext(geo=geo, ref=ref, frames=ref, cfg=self.config,
                            stages=self.stages_for(self.shape), grey_range=1.0,
                            cache=self.reference_cache, on_grid=True)
@@ -329,7 +348,7 @@ class SubsetSolver:
         # every row where the caller knows all subsets inside (no host synchronisation)
         todo = None if all_inside else torch.nonzero(inside).flatten()
         grey = ref_pixels if ref_pixels is not None else ref.coeffs
-        geo = Geometry.make(shape, self.window, cfg.criterion, dtype, device)
+        geo = self._geometry(shape, dtype, device)
         ctx = BatchContext(
             geo=geo, ref=ref, frames=frames, cfg=cfg, stages=self.stages_for(shape),
             grey_range=self._grey_range_of(grey),

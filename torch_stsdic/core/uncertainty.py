@@ -175,12 +175,19 @@ def _moments(geo: Geometry, data: SubsetData
     w- and w^2-moments (P', P')."""
     w = geo.w
     g1 = data.gram if data.gram is not None else centred_gram(geo, data.gx, data.gy)
-    bw = _basis_moments(geo, w)
+    # the bare basis's moments: the geometry's alone, kept with it (a solver keeps its
+    # geometries from solve to solve)
+    held = geo.__dict__.get("_basis_moments")
+    if held is None:
+        bw = _basis_moments(geo, w)
+        held = (bw, bw if geo.w_binary else _basis_moments(geo, w * w))
+        geo.__dict__["_basis_moments"] = held
+    bw, b2 = held
     if geo.w_binary:  # a 0/1 window: the w^2-moments are the w-moments
-        return g1, None, bw, bw
+        return g1, None, bw, b2
     _, mw = gram(data.gx, data.gy, geo.spatial, w)
     gww, mww = gram(data.gx, data.gy, geo.spatial, w * w)
-    return g1, _centred_gram(geo, gww, mww, mw, w * w), bw, _basis_moments(geo, w * w)
+    return g1, _centred_gram(geo, gww, mww, mw, w * w), bw, b2
 
 
 def response(geo: Geometry, data: SubsetData, noise: NoiseModel, order: int) -> Response:
