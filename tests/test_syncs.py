@@ -23,8 +23,8 @@ SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "benchmarks" / "count
 #: rows, about 10 solve calls a block); a little room for noise-free changes of the path
 MAX_PER_BLOCK = 48
 #: launch-like torch operations a block (``count_syncs.LAUNCHES``: on a GPU each launches a
-#: kernel), median over the blocks on the movie below: 5043 at d3e78a5, 4629 at ae57afb (the
-#: carry, placement, window and solve-buffer changes of 2026-11-29); room for noise-free
+#: kernel), median over the blocks on the movie below: 5043 at d3e78a5, 4520 at 5b953b0 (the
+#: carry, placement, window, solve-buffer and geometry changes of 2026-11-29); room for noise-free
 #: changes of the path
 MAX_OPERATIONS_PER_BLOCK = 5000
 
