@@ -693,6 +693,10 @@ def test_a_blocks_window_motion_follows_its_moved_subsets():
         def windows(self, m):
             return window_frames(self.k, m, n_series)
 
+        def window_columns(self, m):  # (every series frame is needed: columns = frames)
+            win = self.windows(m)
+            return win, (ts[win] - ts[self.k].unsqueeze(1)).float()
+
     def moved_to(blk, centres):
         moved = (centres != (blk.pts if blk.centres is None else blk.centres)).any(1)
         off = (centres != blk.pts).any(1)

@@ -151,6 +151,7 @@ class Block(BlockChecks, BlockRescue, BlockMotion):
         self.k = upload(host_k, dev)
         self._win: dict[int, torch.Tensor] = {}  # :meth:`windows`
         self._col_index: dict[tuple, torch.Tensor] = {}  # :meth:`_columns`
+        self._cols: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}  # :meth:`window_columns`
         self._rows: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}  # :meth:`window_rows`
         seg = run.segments_host if run.segments_host is not None or run.segments is None \
             else run.segments.cpu()
@@ -207,19 +208,25 @@ class Block(BlockChecks, BlockRescue, BlockMotion):
                                          None if seg is None else seg.to(self.k.device))
         return self._win[m]
 
-    def window_rows(self, m: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """:meth:`frames_of` the windows of half-width ``m`` (made once a block and
+    def window_columns(self, m: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Per target, the windows of half-width ``m``: (B, T) their frames' columns among
+        :attr:`needed` and (B, T) their times minus the target's (made once a block and
         half-width: read, not written)."""
-        if m not in self._rows:
-            self._rows[m] = self.frames_of(self.windows(m))
-        return self._rows[m]
+        if m not in self._cols:
+            run, win = self.run, self.windows(m)
+            self._cols[m] = (torch.searchsorted(self.needed, win),
+                             (run.ts[win] - run.ts[self.k].unsqueeze(1)).to(run.dtype))
+        return self._cols[m]
 
-    def frames_of(self, win: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Per row: the planes of the block's frame stack (B*N, T) and dt (B*N, T)."""
-        run = self.run
-        fidx = self.planes[torch.searchsorted(self.needed, win)].repeat_interleave(self.n, 0)
-        dt = (run.ts[win] - run.ts[self.k].unsqueeze(1)).to(run.dtype)
-        return fidx, dt.repeat_interleave(self.n, 0)
+    def window_rows(self, m: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Per row, the windows of half-width ``m``: (B*N, T) the planes of the block's
+        frame stack and (B*N, T) dt (:meth:`window_columns` for every point; made once a
+        block and half-width: read, not written)."""
+        if m not in self._rows:
+            cols, dt = self.window_columns(m)
+            self._rows[m] = (self.planes[cols].repeat_interleave(self.n, 0),
+                             dt.repeat_interleave(self.n, 0))
+        return self._rows[m]
 
     def solve(self, idx: torch.Tensor, init: torch.Tensor | None, m: int | None = None,
               solver: SubsetSolver | None = None, init_step: torch.Tensor | None = None,

@@ -8,13 +8,15 @@ from __future__ import annotations
 import torch
 
 from torch_stsdic.core.shared_motion import window_offsets
+from torch_stsdic.movie.frames import grouped_rows
 
 __all__ = ["BlockMotion"]
 
 
 class BlockMotion:
     """The shared motion of a :class:`~torch_stsdic.movie.block.Block`'s windows (its run,
-    targets ``k``, frames ``needed``, points ``pts`` and ``centres``). State: the motion at
+    targets ``k``, frames ``needed``, points ``pts`` and ``centres``, and its
+    ``window_columns``). State: the motion at
     the POIs in every needed frame, that at the off-centre subsets' centres, and each
     half-width's window offsets and slopes."""
 
@@ -52,10 +54,8 @@ class BlockMotion:
         ``rows`` (R,) (None: all B*N), each at its subset's centre. A row's numbers do not
         depend on which other rows are computed with it."""
         run, n = self.run, self.n
-        win = self.windows(m)  # (B, T)
-        b, t = win.shape
-        cols = torch.searchsorted(self.needed, win)  # (B, T) columns of the needed frames
-        dt = (run.ts[win] - run.ts[self.k].unsqueeze(1)).to(run.dtype)  # (B, T)
+        cols, dt = self.window_columns(m)  # (B, T) the needed frames' columns, times
+        b, t = cols.shape
         if rows is not None:  # only these rows, at their subsets' centres
             g = run.shared.displacement(self.centres[rows], self.needed).to(
                 run.dtype).transpose(0, 1)  # (R, F, 2)
@@ -84,13 +84,13 @@ class BlockMotion:
         run = self.run
         if run.shared is None:
             return
-        # the rows ascending without an index read: a stable sort by the mask, counts known
-        at = torch.argsort((~off).to(torch.int8), stable=True)[:n_off]
+        # the rows ascending without an index read (the counts known)
+        at = grouped_rows(torch.where(off, 0, 1), [n_off])[0]
         self._off = (at, run.shared.displacement(self.centres[at], self.needed).to(
             run.dtype).transpose(0, 1))
         if not self._motion:
             return
-        rows = torch.argsort((~moved).to(torch.int8), stable=True)[:n_moved]
+        rows = grouped_rows(torch.where(moved, 0, 1), [n_moved])[0]
         for m in list(self._motion):  # new tensors: a caller may hold the old ones
             o, slope = self._window_motion(m, rows)
             self._motion[m] = self._motion[m].index_put((rows,), o)
