@@ -181,12 +181,14 @@ class BatchContext:
         return max(16, int(self.cfg.memory_mb * 2**20 / per_point))
 
 
-def solve_batch(ctx: BatchContext, pts, p0, dt, fidx, ridx, motion=None, step0=None):
+def solve_batch(ctx: BatchContext, pts, p0, dt, fidx, ridx, motion=None, step0=None,
+                count=None):
     """Solve one batch of N POIs (all inside the image) from ``p0`` (N, P), with frame times
     ``dt`` (N, T), frame indices ``fidx`` (N, T), reference indices ``ridx`` (N,), the
     known motion of every frame ``motion`` (N, T, 2) (None: none) and the size of the step
     that gave ``p0`` (N,) (the first stage's previous increment for its convergence rate;
-    None, 0 or NaN: none).
+    None, 0 or NaN: none) and each row's frames in use ``count`` (N,) (its first ``count``
+    columns, ``SubsetData.count``; None: all).
 
     Returns params (N, P), zncc (N,), status (N,) int8, iterations (N,), the first stage's
     params (N, P), predicted std (N, P), noise std (N,) (grey levels) and, with
@@ -197,6 +199,7 @@ def solve_batch(ctx: BatchContext, pts, p0, dt, fidx, ridx, motion=None, step0=N
     device, dtype = pts.device, pts.dtype
     data = _reference_data(ctx, pts, dt, fidx, ridx)
     data.motion = motion
+    data.count = count
     status = torch.full((n,), int(Status.NOT_COMPUTED), dtype=torch.int8, device=device)
     low = data.texture < cfg.texture_threshold * ctx.grey_range**2
     low |= data.fnorm < 1e-6 * ctx.grey_range * math.sqrt(geo.w_sum)
@@ -282,7 +285,7 @@ def _classical_step(ctx: BatchContext, data: SubsetData, p_last: Tensor, frame: 
     rows where the window has no frame at dt = 0 or no step was recorded."""
     geo = ctx.geo
     ks, k, n = geo.ks, geo.k, p_last.shape[0]
-    at0 = data.dt == 0  # (N, T)
+    at0 = data.dt == 0  # (N, T) (padding has dt 0: after the frames in use)
     t0 = at0.to(torch.int8).argmax(1)
     rows = torch.arange(n, device=frame.device)
     fr = frame[rows, t0]  # (N, 2 Ks + 1)
@@ -309,7 +312,7 @@ def _classical_step(ctx: BatchContext, data: SubsetData, p_last: Tensor, frame: 
         cdata = dataclasses.replace(  # the classical problem: the target frame alone
             data, dt=torch.zeros_like(data.dt[:, :1]), fidx=data.fidx[rows, t0].unsqueeze(1),
             motion=None if data.motion is None else data.motion[rows, t0].unsqueeze(1),
-            hinv=None)
+            hinv=None, count=None)
         noise, _ = uncertainty.solution_noise(classical, ctx.frames, cdata, out.to(p_last.dtype),
                                               ctx.noise_ratio, ctx.frames.order, zncc=zncc)
         est[:, cols["zncc"]] = zncc.unsqueeze(1)

@@ -99,7 +99,7 @@ def solve_stage(ctx, form, params: Tensor, data: SubsetData, live: Tensor, frame
         data.dt, data.fidx * ka[-1], data.ft, data.fnorm, data.gx, data.gy, geo.w,
         frames.width, frames.height, geo.k, geo.shape.has_time, geo.znssd, data.hinv, scale,
         prev, cfg.tol, cfg.max_iter, 4.0 * geo.half, rate_floor, CODES, motion=data.motion,
-        ref_rows=data.ref_rows, frame_rhs=frame_rhs)
+        ref_rows=data.ref_rows, frame_rhs=frame_rhs, count=data.count)
     # the rows not iterated (not live, or a singular Hessian) as start_stage leaves them
     params = torch.where(alive.unsqueeze(1), p.to(dtype), params)
     zncc = torch.where(alive, zn.to(dtype), zncc)

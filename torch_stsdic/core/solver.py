@@ -62,6 +62,7 @@ from torch_stsdic.core.solution import (
     classical_step_info,
     packed_classical_step,
 )
+from torch_stsdic.core.solve_inputs import frame_counts, per_point, per_point_motion
 from torch_stsdic.core.status import Status
 from torch_stsdic.core.window import SubsetWindow, make_window
 from torch_stsdic.kernels.native.rows import in_own_threads, own_threads
@@ -134,6 +135,12 @@ class SubsetSolver:
         """The Gauss-Newton stages (formulations) run for ``shape`` (see :func:`shape_for`)."""
         return formulations.stages(self.config.formulation, shape)
 
+    def mixed_windows(self, shape: ShapeFunction) -> bool:
+        """Whether :meth:`solve` takes windows of different lengths in one call
+        (``frame_count``) for ``shape``: every stage is the joint inverse-compositional one
+        (its Hessian, kernels and uncertainty sum over each row's own frames)."""
+        return all(isinstance(f, formulations.JointIC) for f in self.stages_for(shape))
+
     def keep_reference_subsets(self, ref: BSplineImage, points: torch.Tensor
                                ) -> KeptToken | None:
         """Put the reference subsets of ``points`` (N, 2) (their dtype the solves'; at the
@@ -183,6 +190,7 @@ class SubsetSolver:
         has_time: bool | None = None,
         all_inside: bool = False,
         kept: KeptToken | None = None,
+        frame_count: torch.Tensor | None = None,
     ) -> WindowSolution:
         """Solve many POIs, each against its own window of frames.
 
@@ -238,7 +246,11 @@ class SubsetSolver:
             kept: :meth:`keep_reference_subsets`'s token for these points (and
                 ``centres``): their reference subsets are read from the cache with no host
                 read of its misses. None: the misses are counted (one host read a batch).
+            frame_count: (N,) int, windows of mixed length in one call: row i's first
+                ``frame_count[i]`` columns of ``dt``, ``frame_index``, ``motion`` (the rest not
+                read). Needs ``init``, temporal terms, :meth:`mixed_windows`. None: all T.
         """
+        frame_count = self._frame_counts(frame_count, points, dt, init, has_time)
         moved = None
         if centres is not None:
             centres = torch.as_tensor(centres).to(device=points.device, dtype=points.dtype)
@@ -250,7 +262,7 @@ class SubsetSolver:
             return self._solve_on_grid(ref, frames, points, dt, frame_index, ref_index, init,
                                        ref_pixels, frame_pixels, time, noise_ratio, motion,
                                        classical_step, init_step, pyramids, has_time,
-                                       all_inside, kept)
+                                       all_inside, kept, frame_count)
         grid, _ = snap_points(points if centres is None else centres)
         offset = points - grid
         # off the pixel grid (known where the caller says so): solve on it, carry the result
@@ -263,7 +275,8 @@ class SubsetSolver:
                              frame_pixels=frame_pixels, time=time, noise_ratio=noise_ratio,
                              motion=motion, classical_step=classical_step,
                              init_step=init_step, pyramids=pyramids, on_grid=True,
-                             has_time=has_time, all_inside=all_inside, kept=kept)
+                             has_time=has_time, all_inside=all_inside, kept=kept,
+                             frame_count=frame_count)
             if classical_step:  # known at the subset centre only
                 off = (offset != 0).any(1, keepdim=True)
                 sol.info.update(classical_step_info(packed_classical_step(sol.info).masked_fill(
@@ -273,17 +286,26 @@ class SubsetSolver:
         return self._solve_on_grid(ref, frames, points, dt, frame_index, ref_index, init,
                                    ref_pixels, frame_pixels, time, noise_ratio, motion,
                                    classical_step, init_step, pyramids, has_time, all_inside,
-                                   kept)
+                                   kept, frame_count)
+
+    def _frame_counts(self, count, points, dt, init, has_time) -> torch.Tensor | None:
+        """:meth:`solve`'s ``frame_count`` checked (:func:`frame_counts`; None: None)."""
+        if count is None:
+            return None
+        shape = self.shape if has_time is None else self.shape_for(dt, has_time)
+        return frame_counts(count, points, init, self.mixed_windows(shape),
+                            self.config.formulation)
 
     def _solve_on_grid(self, ref: BSplineImage, frames: BSplineImage, points: torch.Tensor,
                        dt, frame_index, ref_index, init, ref_pixels, frame_pixels, time,
                        noise_ratio: float, motion, classical_step: bool, init_step,
                        pyramids=None, has_time: bool | None = None,
-                       all_inside: bool = False, kept: KeptToken | None = None) -> WindowSolution:
+                       all_inside: bool = False, kept: KeptToken | None = None,
+                       frame_count: torch.Tensor | None = None) -> WindowSolution:
         """:meth:`solve` for POIs on the pixel grid with centred subsets."""
         n = points.shape[0]
-        dt, frame_index, ref_index = _per_point(points, dt, frame_index, ref_index)
-        motion = _per_point_motion(motion, n, dt.shape[-1], points)
+        dt, frame_index, ref_index = per_point(points, dt, frame_index, ref_index, frame_count)
+        motion = per_point_motion(motion, n, dt.shape[-1], points)
         shape = self.shape_for(dt, has_time)
         inside = subset_inside(points, float(self.window.half), ref.height, ref.width)
         if init is None:
@@ -306,7 +328,8 @@ class SubsetSolver:
         guess = {"method": "fft" if init is None else "given", "fft_s": t_fft}
         return self._solve_batches(ref, frames, shape, points, dt, frame_index, ref_index,
                                    inside, p0, motion, init_step, ref_pixels, time,
-                                   noise_ratio, classical_step, guess, all_inside, kept)
+                                   noise_ratio, classical_step, guess, all_inside, kept,
+                                   frame_count)
 
     def _initial_params(self, shape: ShapeFunction, init, inside: torch.Tensor,
                         points: torch.Tensor, dt: torch.Tensor, frame_index: torch.Tensor,
@@ -339,7 +362,8 @@ class SubsetSolver:
                        ref_index: torch.Tensor, inside: torch.Tensor, p0: torch.Tensor,
                        motion, init_step, ref_pixels, time, noise_ratio: float,
                        classical_step: bool, guess: dict, all_inside: bool = False,
-                       kept: KeptToken | None = None) -> WindowSolution:
+                       kept: KeptToken | None = None,
+                       frame_count: torch.Tensor | None = None) -> WindowSolution:
         """Gauss-Newton from ``p0`` for the POIs ``inside``, in batches within the memory
         budget (:func:`~torch_stsdic.core.gauss_newton.solve_batch`); the others OUTSIDE."""
         cfg = self.config
@@ -361,7 +385,7 @@ class SubsetSolver:
         if todo is None and 0 < n <= batch:  # one batch of every row: its answers as they
             # are (no buffers to gather the rows from and scatter them into: launches)
             pr, zr, status, iters, p1, sd, sg, cs = solve_batch(
-                ctx, points, p0, dt, frame_index, ref_index, motion, init_step)
+                ctx, points, p0, dt, frame_index, ref_index, motion, init_step, frame_count)
             params, zncc, first_stage = pr.to(dtype), zr.to(dtype), p1.to(dtype)
             std, sigma = sd.to(dtype), sg.to(dtype)
             cstep = cs.to(dtype) if classical_step else None
@@ -385,6 +409,7 @@ class SubsetSolver:
                     ctx, points[idx], p0[idx], dt[idx], frame_index[idx], ref_index[idx],
                     None if motion is None else motion[idx],
                     None if init_step is None else init_step[idx],
+                    None if frame_count is None else frame_count[idx],
                 )
                 params[idx], zncc[idx], status[idx], iters[idx] = pr, zr, sr, ir
                 first_stage[idx], std[idx], sigma[idx] = p1, sd, sg
@@ -632,37 +657,6 @@ def _expand_init(p0: torch.Tensor, shape: ShapeFunction, full: ShapeFunction) ->
         if nm in names:
             out[:, names.index(nm)] = p0[:, j]
     return out
-
-
-def _per_point(points: torch.Tensor, dt: torch.Tensor, frame_index: torch.Tensor | None,
-               ref_index: torch.Tensor | None):
-    """Each POI's frame times (N, T) in the points' dtype, frame indices (N, T) (default
-    0..T-1) and reference index (N,) (default 0), on the points' device."""
-    n, device = points.shape[0], points.device
-    dt = dt.to(device=device, dtype=points.dtype)
-    t_count = dt.shape[-1]
-    dt = dt.expand(n, t_count) if dt.dim() == 1 else dt
-    if frame_index is None:
-        frame_index = torch.arange(t_count, device=device)
-    frame_index = frame_index.to(device).long().expand(n, t_count)
-    if ref_index is None:
-        return dt, frame_index, torch.zeros(n, dtype=torch.long, device=device)
-    return dt, frame_index, ref_index.to(device).long().expand(n)
-
-
-def _per_point_motion(motion: torch.Tensor | None, n: int, t_count: int,
-                      points: torch.Tensor) -> torch.Tensor | None:
-    """Each POI's known motion (N, T, 2) from (T, 2) or (N, T, 2), in the points' dtype
-    (None: none). Its values are the caller's to check (every solve of a run passes here)."""
-    if motion is None:
-        return None
-    motion = torch.as_tensor(motion).detach().to(device=points.device, dtype=points.dtype)
-    if motion.dim() == 2:
-        motion = motion.unsqueeze(0).expand(n, -1, -1)
-    if tuple(motion.shape) != (n, t_count, 2):
-        raise ValueError(f"motion must be (T, 2) or (N, T, 2) = ({n}, {t_count}, 2), got "
-                         f"{tuple(motion.shape)}")
-    return motion.contiguous()
 
 
 def subset_inside(points: torch.Tensor, half: float, h: int, w: int) -> torch.Tensor:

@@ -90,9 +90,11 @@ def noise_model(geo: Geometry, residual: Tensor, p: Tensor, data: SubsetData, rh
                 order: int) -> NoiseModel:
     """Noise variances from a solution's weighted residual variance ``residual`` (N, T) per
     frame, or (N, 1) its mean over the frames, at parameters ``p`` (N, P) (see the module
-    docstring); ``rho`` = sigma_f^2 / sigma_g^2."""
+    docstring); ``rho`` = sigma_f^2 / sigma_g^2. Means over the frames in use
+    (:meth:`SubsetData.in_use`)."""
     s_eff = geo.w_effective
-    t = data.dt.shape[1]
+    use = data.in_use()
+    t = data.dt.shape[1] if use is None else use.sum(1).to(residual.dtype)  # (N,) each row's
     dof = 1.0 - (2.0 + p.shape[1] / t) / s_eff  # mean, scale and a share of P per frame
     zero = torch.zeros(1, dtype=geo.dx.dtype, device=geo.dx.device)
     u, v = geo.shape.displacement(p, geo.shape.spatial_basis(zero, zero), data.dt)
@@ -101,8 +103,16 @@ def noise_model(geo: Geometry, residual: Tensor, p: Tensor, data: SubsetData, rh
     if data.motion is not None:
         x, y = x + data.motion[..., 0].double(), y + data.motion[..., 1].double()
     c = interpolation_variance_factor(x, y, order).to(residual)
-    sig_g = residual.mean(1) / dof / (rho + c.mean(1))
+    sig_g = _frame_mean(residual, use) / dof / (rho + _frame_mean(c, use))
     return NoiseModel(ref=rho * sig_g, frame=sig_g)
+
+
+def _frame_mean(x: Tensor, use: Tensor | None) -> Tensor:
+    """(N,) the mean of ``x`` (N, T) over the frames in use ``use`` (N, T) bool (None: all;
+    an (N, 1) ``x``: that column)."""
+    if use is None or x.shape[1] == 1:
+        return x.mean(1)
+    return torch.where(use, x, 0.0).sum(1) / use.sum(1)
 
 
 def _aug_columns(geo: Geometry) -> Tensor:
@@ -114,16 +124,16 @@ def _aug_columns(geo: Geometry) -> Tensor:
     return i + (i >= ks)  # the device: a tensor from a Python list is a copy to it)
 
 
-def _z(geo: Geometry, dt: Tensor) -> Tensor:
+def _z(geo: Geometry, dt: Tensor, use: Tensor | None = None) -> Tensor:
     """(N, T, P') column factors z_t = (1 .. 1, dt_t) per component (0 for the time columns
-    of a shape without time)."""
+    of a shape without time; 0 at the frames not in ``use`` (N, T) bool, None: all)."""
     ks = geo.ks
     n, t = dt.shape
     z = torch.ones(n, t, 2 * (ks + 1), dtype=torch.float64, device=dt.device)
     d = dt.double() if geo.shape.has_time else torch.zeros_like(dt, dtype=torch.float64)
     z[..., ks] = d
     z[..., 2 * ks + 1] = d
-    return z
+    return z if use is None else z * use.unsqueeze(-1)
 
 
 def _centred_gram(geo: Geometry, g: Tensor, m: Tensor, m1: Tensor, weights: Tensor) -> Tensor:
@@ -194,7 +204,7 @@ def response(geo: Geometry, data: SubsetData, noise: NoiseModel, order: int) -> 
     """The noise response of solutions with geometry ``geo`` at the points and frame times of
     ``data`` (reference gradients ``gx, gy`` (N, S) or their ``gram``, ``dt`` (N, T))."""
     kappa = gradient_noise_factor(order)
-    z = _z(geo, data.dt)
+    z = _z(geo, data.dt, data.in_use())
     zz = z.transpose(1, 2) @ z
     g1, g2, bw, b2 = _moments(geo, data)
     g2 = g1 if g2 is None else g2
@@ -286,7 +296,7 @@ def predicted_std(geo: Geometry, data: SubsetData, noise: NoiseModel, order: int
         g1, g2, bw, b2 = _moments(geo, data)
         return native.param_std(cols, data.dt, geo.shape.has_time, geo.ks, g1, g2, bw, b2,
                                 noise.ref.double(), noise.frame.double(),
-                                gradient_noise_factor(order))
+                                gradient_noise_factor(order), count=data.count)
     return std_of(response(geo, data, noise, order))
 
 

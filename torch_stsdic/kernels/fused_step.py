@@ -87,28 +87,29 @@ def usable(flat: Tensor, order: int, n_subset: int, *tensors: Tensor) -> bool:
 
 def _torch_ic_rhs(flat, p, px, py, dx, dy, basis, dt, frame_off, ft, fnorm, gx, gy, w, rows,
                   wp, x_lo, x_hi, y_lo, y_hi, shift, w_img, h, k, has_time, znssd, order,
-                  motion=None):
+                  motion=None, count=None):
     """The torch code on the rows ``rows`` of the per-point data (None: all)."""
     if rows is not None:
         px, py, dt, frame_off = px[rows], py[rows], dt[rows], frame_off[rows]
         ft, fnorm, gx, gy = ft[rows], fnorm[rows], gx[rows], gy[rows]
         motion = None if motion is None else motion[rows]
+        count = None if count is None else count[rows]
     b, zn, outside = ic_rhs_kernel(
         flat, p, px.reshape(-1, 1), py.reshape(-1, 1), dx, dy, basis.T.contiguous(), dt,
         frame_off, ft, fnorm.reshape(-1), gx, gy, w, wp, x_lo, x_hi, y_lo, y_hi, shift, w_img,
-        h, basis.shape[1], k, has_time, znssd, order, motion)
+        h, basis.shape[1], k, has_time, znssd, order, motion, count)
     return b.double(), zn, outside
 
 
 def _ic_rhs_impl(flat, p, px, py, dx, dy, basis, dt, frame_off, ft, fnorm, gx, gy, w, rows,
                  wp, x_lo, x_hi, y_lo, y_hi, shift, w_img, h, k, has_time, znssd, order,
-                 motion=None):
+                 motion=None, count=None):
     """The op's body: the Triton kernel where :func:`usable`, else the torch code."""
     args = (flat, p, px, py, dx, dy, basis, dt, frame_off, ft, fnorm, gx, gy, w, rows, wp,
             x_lo, x_hi, y_lo, y_hi, shift, w_img, h, k, has_time, znssd)
     if usable(flat, order, basis.shape[0], p, ft):
-        return triton_module().ic_rhs_triton(*args, motion=motion)
-    return _torch_ic_rhs(*args, order, motion)
+        return triton_module().ic_rhs_triton(*args, motion=motion, count=count)
+    return _torch_ic_rhs(*args, order, motion, count)
 
 
 @torch.library.custom_op("torch_stsdic::ic_rhs", mutates_args=())
@@ -117,15 +118,16 @@ def _ic_rhs_op(flat: Tensor, p: Tensor, px: Tensor, py: Tensor, dx: Tensor, dy: 
                gx: Tensor, gy: Tensor, w: Tensor, rows: Tensor | None, wp: int, x_lo: float,
                x_hi: float, y_lo: float, y_hi: float, shift: int, w_img: int, h: int, k: int,
                has_time: bool, znssd: bool, order: int,
-               motion: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+               motion: Tensor | None = None, count: Tensor | None = None
+               ) -> tuple[Tensor, Tensor, Tensor]:
     return _ic_rhs_impl(flat, p, px, py, dx, dy, basis, dt, frame_off, ft, fnorm, gx, gy, w,
                         rows, wp, x_lo, x_hi, y_lo, y_hi, shift, w_img, h, k, has_time, znssd,
-                        order, motion)
+                        order, motion, count)
 
 
 @_ic_rhs_op.register_fake
 def _(flat, p, px, py, dx, dy, basis, dt, frame_off, ft, fnorm, gx, gy, w, rows, wp, x_lo,
-      x_hi, y_lo, y_hi, shift, w_img, h, k, has_time, znssd, order, motion=None):
+      x_hi, y_lo, y_hi, shift, w_img, h, k, has_time, znssd, order, motion=None, count=None):
     m = p.shape[0]
     return (p.new_empty(m, 2 * k, dtype=torch.float64), p.new_empty(m, dtype=flat.dtype),
             p.new_empty(m, dtype=torch.bool))
@@ -134,7 +136,7 @@ def _(flat, p, px, py, dx, dy, basis, dt, frame_off, ft, fnorm, gx, gy, w, rows,
 def ic_rhs(img_args: tuple, order: int, p, px, py, dx, dy, basis, dt, frame_off, ft, fnorm,
            gx, gy, w, w_img: int, h: int, k: int, has_time: bool, znssd: bool,
            rows: Tensor | None = None, frame_rhs: Tensor | None = None,
-           motion: Tensor | None = None):
+           motion: Tensor | None = None, count: Tensor | None = None):
     """``torch.ops.torch_stsdic.ic_rhs`` with the arguments of ``native.ic_rhs``: img_args
     from :meth:`BSplineImage.kernel_args`, p (M, 2k), basis (S, Ks), dt and frame_off (N, T)
     (frame offsets in coefficients), the per-point data (N, ...), ``rows`` (M,) the data row
@@ -150,7 +152,10 @@ def ic_rhs(img_args: tuple, order: int, p, px, py, dx, dy, basis, dt, frame_off,
     (:func:`usable`; ValueError otherwise), outside ``torch.compile``.
 
     ``motion``: (N, T, 2) a known displacement (u, v) added to each data row's warp of frame
-    t (the specimen's shared motion, as ``native.ic_rhs``), or None."""
+    t (the specimen's shared motion, as ``native.ic_rhs``), or None.
+
+    ``count``: (N,) each data row's frames in use, its first ``count[i]`` columns of dt and
+    frame_off (a shorter window padded to T; as ``native.ic_rhs``), or None (all)."""
     flat, wp, x_lo, x_hi, y_lo, y_hi, shift, _ = img_args
     args = (flat, p, px.reshape(-1), py.reshape(-1), dx, dy, basis.contiguous(), dt,
             frame_off.to(torch.int64), ft, fnorm.reshape(-1), gx, gy, w, rows, int(wp),
@@ -168,10 +173,11 @@ def ic_rhs(img_args: tuple, order: int, p, px, py, dx, dy, basis, dt, frame_off,
                 or frame_rhs.device != flat.device):
             raise ValueError(f"kernels.ic_rhs: frame_rhs must be a contiguous float64 "
                              f"({p.shape[0]}, {n_t}, {2 * ks + 1}) tensor on {flat.device}")
-        return triton_module().ic_rhs_triton(*args, frame_rhs=frame_rhs, motion=motion)
+        return triton_module().ic_rhs_triton(*args, frame_rhs=frame_rhs, motion=motion,
+                                             count=count)
     compiling = getattr(torch.compiler, "is_compiling", lambda: False)()  # torch >= 2.3
     call = torch.ops.torch_stsdic.ic_rhs if compiling else _ic_rhs_impl
-    return call(*args, int(order), motion)
+    return call(*args, int(order), motion, count)
 
 
 @functools.lru_cache(maxsize=1)
@@ -190,7 +196,7 @@ def ic_solve(img_args: tuple, order: int, p, px, py, dx, dy, basis, dt, frame_of
              gx, gy, w, w_img: int, h: int, k: int, has_time: bool, znssd: bool, hinv, scale,
              prev, tol: float, max_iter: int, div_norm: float, rate_floor: float,
              codes: tuple[int, int, int, int], motion=None, ref_rows=None,
-             frame_rhs: bool = False):
+             frame_rhs: bool = False, count=None):
     """Every point's joint IC-GN stage to its end in one Triton launch
     (:func:`torch_stsdic.kernels.triton_solve.ic_solve_triton`): the arguments and results of
     ``native.ic_solve``. Where :func:`usable` (ValueError otherwise: the caller asks
@@ -202,4 +208,4 @@ def ic_solve(img_args: tuple, order: int, p, px, py, dx, dy, basis, dt, frame_of
     return mod.ic_solve_triton(img_args, p, px, py, dx, dy, basis, dt, frame_off, ft, fnorm, gx,
                                gy, w, w_img, h, k, has_time, znssd, hinv, scale, prev, tol,
                                max_iter, div_norm, rate_floor, codes, motion=motion,
-                               ref_rows=ref_rows, frame_rhs=frame_rhs)
+                               ref_rows=ref_rows, frame_rhs=frame_rhs, count=count)

@@ -27,6 +27,8 @@ import torch
 import triton
 import triton.language as tl
 
+from torch_stsdic.kernels.ic_step import frames_in_use
+
 __all__ = ["ic_rhs_triton", "tap_row", "MAX_SUBSET_PIXELS"]
 
 #: largest subset (pixels) one program holds in registers (41x41 = 1681 fits in 2048 lanes)
@@ -57,11 +59,12 @@ def tap_row(flat_ptr, base, m, w0, w1, w2, w3):
 @triton.jit
 def _ic_rhs_kernel(flat_ptr, p_ptr, px_ptr, py_ptr, dx_ptr, dy_ptr, basis_ptr, dt_ptr,
                    foff_ptr, ft_ptr, fnorm_ptr, gx_ptr, gy_ptr, w_ptr, rows_ptr,
-                   b_ptr, zn_ptr, out_ptr, bf_ptr, mo_ptr,
+                   b_ptr, zn_ptr, out_ptr, bf_ptr, mo_ptr, cnt_ptr,
                    NT, S, wp, x_lo, x_hi, y_lo, y_hi, shift, w_img, h,
                    KS: tl.constexpr, K: tl.constexpr, HAS_TIME: tl.constexpr,
                    ZNSSD: tl.constexpr, HAS_ROWS: tl.constexpr, BLOCK_S: tl.constexpr,
-                   FRAME_RHS: tl.constexpr, HAS_MOTION: tl.constexpr):
+                   FRAME_RHS: tl.constexpr, HAS_MOTION: tl.constexpr,
+                   HAS_COUNT: tl.constexpr):
     j = tl.program_id(0).to(tl.int64)
     if HAS_ROWS:
         i = tl.load(rows_ptr + j).to(tl.int64)
@@ -94,7 +97,11 @@ def _ic_rhs_kernel(flat_ptr, p_ptr, px_ptr, py_ptr, dx_ptr, dy_ptr, basis_ptr, d
     e2 = tl.zeros([BLOCK_S], dtype=ft.dtype)
     zsum = tl.sum(e1, axis=0)  # a zero scalar of the data's dtype
     outside = tl.full([], 0, tl.int32)
-    for t in range(NT):
+    if HAS_COUNT:  # a shorter window: its first frames, the later columns padding
+        nti = tl.minimum(tl.maximum(tl.load(cnt_ptr + i), 1), NT).to(tl.int32)
+    else:
+        nti = NT
+    for t in range(nti):
         dtt = tl.load(dt_ptr + i * NT + t)
         if HAS_TIME:
             xs = xs0 + ut * dtt
@@ -155,21 +162,22 @@ def _ic_rhs_kernel(flat_ptr, p_ptr, px_ptr, py_ptr, dx_ptr, dy_ptr, basis_ptr, d
     if HAS_TIME:
         tl.store(bj + K - 1, tl.sum(gx * e2, axis=0).to(tl.float64))
         tl.store(bj + 2 * K - 1, tl.sum(gy * e2, axis=0).to(tl.float64))
-    tl.store(zn_ptr + j, zsum / NT)
+    tl.store(zn_ptr + j, zsum / nti)
     tl.store(out_ptr + j, outside.to(tl.int8))
 
 
 def ic_rhs_triton(flat, p, px, py, dx, dy, basis, dt, frame_off, ft, fnorm, gx, gy, w, rows,
                   wp: int, x_lo: float, x_hi: float, y_lo: float, y_hi: float, shift: int,
                   w_img: int, h: int, k: int, has_time: bool, znssd: bool, frame_rhs=None,
-                  motion=None):
+                  motion=None, count=None):
     """Launch the kernel. Shapes: p (M, 2k), px/py/fnorm (N,) or (N, 1), dx/dy/w (S,), basis
     (S, Ks), dt and frame_off (N, T) (frame_off in coefficients, int64), ft/gx/gy (N, S),
     rows (M,) data row of each row of p or None (M = N); ``frame_rhs`` a contiguous float64
     (M, T, 2 Ks + 1) tensor on the device, filled with each frame's own spatial right-hand
     side and its ZNCC (as ``native.ic_rhs``), or None; ``motion`` (N, T, 2) the known
-    displacement added to each data row's warp of frame t (as ``native.ic_rhs``), or None.
-    Returns b (M, 2k) float64, mean ZNCC
+    displacement added to each data row's warp of frame t (as ``native.ic_rhs``), or None;
+    ``count`` (N,) each data row's frames in use (as ``native.ic_rhs``: the later columns
+    padding, skipped, NaN in ``frame_rhs``), or None. Returns b (M, 2k) float64, mean ZNCC
     (M,) in p's dtype and the outside flag (M,) bool."""
     dtype = flat.dtype
     m_rows = p.shape[0]
@@ -193,10 +201,14 @@ def ic_rhs_triton(flat, p, px, py, dx, dy, basis, dt, frame_off, ft, fnorm, gx, 
         c(basis), c(dt), frame_off.to(device=dev, dtype=torch.int64).contiguous(), c(ft),
         c(fnorm.reshape(-1)), c(gx), c(gy), c(w), rows_t, b, zn, out,
         b if frame_rhs is None else frame_rhs, b if motion is None else c(motion),
+        rows_t if count is None else count.to(device=dev, dtype=torch.int64).contiguous(),
         n_t, s, int(wp), float(x_lo), float(x_hi), float(y_lo), float(y_hi), int(shift),
         float(w_img), float(h),
         KS=ks, K=k, HAS_TIME=bool(has_time), ZNSSD=bool(znssd), HAS_ROWS=rows is not None,
         BLOCK_S=block, FRAME_RHS=frame_rhs is not None, HAS_MOTION=motion is not None,
-        num_warps=4 if block <= 512 else 8,
+        HAS_COUNT=count is not None, num_warps=4 if block <= 512 else 8,
     )
+    if frame_rhs is not None and count is not None:  # no right-hand side of a padding frame
+        rows_c = count.to(dev) if rows is None else count.to(dev)[rows.to(dev)]
+        frame_rhs.masked_fill_(~frames_in_use(rows_c, n_t).unsqueeze(-1), float("nan"))
     return b, zn, out.bool()

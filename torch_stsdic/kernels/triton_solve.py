@@ -127,11 +127,12 @@ def _frame(flat_ptr, ox, oy, dxu, dyv, m, foff, x_lo, x_hi, y_lo, y_hi, shift, w
 
 
 @triton.jit
-def _rhs(flat_ptr, dt_ptr, mo_ptr, foff_ptr, bf_ptr, i, NT, px, py, ut, vt, dxu, dyv, m,
+def _rhs(flat_ptr, dt_ptr, mo_ptr, foff_ptr, bf_ptr, i, NT, NTI, px, py, ut, vt, dxu, dyv, m,
          w_img, h, x_lo, x_hi, y_lo, y_hi, shift, wp, sixth, two3, w, ft, gx, gy, b0, b1, b2,
          fn, inv_wsum, ZNSSD: tl.constexpr, HAS_TIME: tl.constexpr, HAS_MOTION: tl.constexpr,
          FRAME_RHS: tl.constexpr):
-    """The joint right-hand side of point ``i`` over its NT frames (float64: u terms, then v,
+    """The joint right-hand side of point ``i`` over its first NTI of NT frames (the later
+    columns padding of a shorter window; float64: u terms, then v,
     each spatial then time), the sum of the frames' ZNCC and whether a warped subset leaves
     the image; with FRAME_RHS each frame's own spatial b and ZNCC into ``bf_ptr``."""
     big = 3.0e38
@@ -143,7 +144,7 @@ def _rhs(flat_ptr, dt_ptr, mo_ptr, foff_ptr, bf_ptr, i, NT, px, py, ut, vt, dxu,
     bu0, bu1, bu2, but, bv0, bv1, bv2, bvt = zero, zero, zero, zero, zero, zero, zero, zero
     zsum = zero
     outside = zero < 0  # false
-    for t in range(NT):
+    for t in range(NTI):
         dti = tl.load(dt_ptr + i * NT + t).to(tl.float64)
         ox = px + ut * dti
         oy = py + vt * dti
@@ -245,7 +246,7 @@ def _store_params(ptr, pu0, pu1, pu2, put, pv0, pv1, pv2, pvt, K: tl.constexpr,
 @triton.jit
 def _ic_solve_kernel(flat_ptr, p_ptr, px_ptr, py_ptr, dx_ptr, dy_ptr, basis_ptr, dt_ptr,
                      foff_ptr, ft_ptr, fnorm_ptr, gx_ptr, gy_ptr, w_ptr, ref_ptr, mo_ptr,
-                     hinv_ptr, scale_ptr, prev_ptr, consts_ptr, zn_ptr, st_ptr, used_ptr,
+                     cnt_ptr, hinv_ptr, scale_ptr, prev_ptr, consts_ptr, zn_ptr, st_ptr, used_ptr,
                      bf_ptr, plast_ptr,
                      NT, S, wp, shift, w_img, h, max_iter,
                      C_CONV: tl.constexpr, C_MAXIT: tl.constexpr, C_DIV: tl.constexpr,
@@ -254,6 +255,7 @@ def _ic_solve_kernel(flat_ptr, p_ptr, px_ptr, py_ptr, dx_ptr, dy_ptr, basis_ptr,
                      FRAME_RHS: tl.constexpr, BLOCK_S: tl.constexpr):
     NP: tl.constexpr = 2 * K
     i = tl.program_id(0).to(tl.int64)
+    nti = tl.minimum(tl.maximum(tl.load(cnt_ptr + i), 1), NT).to(tl.int32)  # frames in use
     if HAS_REF:
         r = tl.load(ref_ptr + i).to(tl.int64)
     else:
@@ -316,12 +318,12 @@ def _ic_solve_kernel(flat_ptr, p_ptr, px_ptr, py_ptr, dx_ptr, dy_ptr, basis_ptr,
         dxu += dx
         dyv += dy
         bu0, bu1, bu2, but, bv0, bv1, bv2, bvt, zsum, outside = _rhs(
-            flat_ptr, dt_ptr, mo_ptr, foff_ptr, bf_ptr, i, NT, px, py, put.to(tl.float64),
+            flat_ptr, dt_ptr, mo_ptr, foff_ptr, bf_ptr, i, NT, nti, px, py, put.to(tl.float64),
             pvt.to(tl.float64), dxu, dyv, m, w_img, h, tl.load(consts_ptr + 4),
             tl.load(consts_ptr + 5), tl.load(consts_ptr + 6), tl.load(consts_ptr + 7), shift,
             wp, tl.load(consts_ptr + 8), tl.load(consts_ptr + 9), w, ft, gx, gy, b0, b1, b2,
             fn, tl.load(consts_ptr + 3), ZNSSD, HAS_TIME, HAS_MOTION, FRAME_RHS)
-        zn = (zsum / NT).to(zn.dtype)
+        zn = (zsum / nti).to(zn.dtype)
         # dp = -(Hinv b) in float64, then the data's dtype; p o dp^-1
         dpv = _step(hinv, pidx, bu0, bu1, bu2, but, bv0, bv1, bv2, bvt, HAS_TIME).to(pu0.dtype)
         nu0, nu1, nu2, nut, nv0, nv1, nv2, nvt = _compose(pu0, pu1, pu2, put, pv0, pv1, pv2,
@@ -358,16 +360,16 @@ def _ic_solve_kernel(flat_ptr, p_ptr, px_ptr, py_ptr, dx_ptr, dy_ptr, basis_ptr,
                       tl.where(ran_out, nan, ov1), tl.where(ran_out, nan, ov2),
                       tl.where(ran_out, nan, ovt), K, HAS_TIME)
         fidx = tl.arange(0, 8)
-        for t in range(NT):
+        for t in range(NT):  # and at a shorter window's padding columns
             tl.store(bf_ptr + (i * NT + t) * 7 + fidx, tl.full([8], float("nan"), tl.float64),
-                     mask=(fidx < 7) & (fidx * 0 + st == C_MAXIT))
+                     mask=(fidx < 7) & ((fidx * 0 + st == C_MAXIT) | (fidx * 0 + t >= nti)))
 
 
 def ic_solve_triton(img_args: tuple, p, px, py, dx, dy, basis, dt, frame_off, ft, fnorm, gx,
                     gy, w, w_img: int, h: int, k: int, has_time: bool, znssd: bool, hinv, scale,
                     prev, tol: float, max_iter: int, div_norm: float, rate_floor: float,
                     codes: tuple[int, int, int, int], motion=None, ref_rows=None,
-                    frame_rhs: bool = False):
+                    frame_rhs: bool = False, count=None):
     """Every point's joint IC-GN stage to its end in one launch: the arguments and results of
     :func:`torch_stsdic.kernels.native.ic_solve` (the C++ twin), on the image's device.
 
@@ -375,7 +377,8 @@ def ic_solve_triton(img_args: tuple, p, px, py, dx, dy, basis, dt, frame_off, ft
     k = 3 (+ 1 with time); px, py, fnorm, prev (N,) or (N, 1); dx, dy, w (S,); basis (S, 3);
     dt and frame_off (N, T) (frame offsets in coefficients); ft, gx, gy (R, S) reference
     subsets, row ``ref_rows[i]`` for point i (None: R = N, row i); hinv (N, P, P) the inverse
-    Hessians; scale (N, P) the increments' scale; motion (N, T, 2) or None.
+    Hessians; scale (N, P) the increments' scale; motion (N, T, 2) or None; count (N,) each
+    point's frames in use (its first ``count[i]``, the later columns padding) or None.
 
     Returns p (N, 2k), the last step's mean ZNCC (N,), status (N,) int8, iterations (N,)
     int32 and, with ``frame_rhs``, (the parameters (N, P) of each point's last step, its
@@ -415,6 +418,8 @@ def ic_solve_triton(img_args: tuple, p, px, py, dx, dy, basis, dt, frame_off, ft
         c(fnorm.reshape(-1)), c(gx), c(gy), c(w),
         dummy if ref_rows is None else ref_rows.to(device=dev, dtype=torch.int64).contiguous(),
         dummy if motion is None else c(motion),
+        (torch.full((n,), nt, dtype=torch.int64, device=dev) if count is None  # (filled there)
+         else count.to(device=dev, dtype=torch.int64).contiguous()),
         hinv.to(device=dev, dtype=torch.float64).contiguous(), c(scale),
         c(prev.reshape(-1)), consts, zn, status, used,
         dummy if bframe is None else bframe, dummy if plast is None else plast,

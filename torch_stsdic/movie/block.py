@@ -35,14 +35,13 @@ from torch_stsdic.core.solver import (
 from torch_stsdic.core.status import Status
 from torch_stsdic.movie.block_motion import BlockMotion
 from torch_stsdic.movie.block_start import pilot_shift, window_shake
+from torch_stsdic.movie.block_windows import BlockWindows
 from torch_stsdic.movie.carry import Carry
 from torch_stsdic.movie.checks import CHECK_ITER, CHECK_TOL, BlockChecks
 from torch_stsdic.movie.frames import (
     FrameCache,
     block_frames,
-    rows_by_half_width,
     upload,
-    window_frames,
 )
 from torch_stsdic.movie.reference import Reference, noise_ratio, to_relative, to_total
 from torch_stsdic.movie.rescue import BlockRescue
@@ -140,7 +139,7 @@ class BlockContext:
 
 
 
-class Block(BlockChecks, BlockRescue, BlockMotion):
+class Block(BlockChecks, BlockRescue, BlockMotion, BlockWindows):
     """The rows (target frame x POI, row = target * N + point) of one block being solved:
     parameters relative to the current reference, ZNCC, status, iterations."""
 
@@ -149,10 +148,8 @@ class Block(BlockChecks, BlockRescue, BlockMotion):
         dev = run.device
         host_k = torch.tensor(ks, dtype=torch.long)
         self.k = upload(host_k, dev)
-        self._win: dict[int, torch.Tensor] = {}  # :meth:`windows`
         self._col_index: dict[tuple, torch.Tensor] = {}  # :meth:`_columns`
-        self._cols: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}  # :meth:`window_columns`
-        self._rows: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}  # :meth:`window_rows`
+        self._init_windows()
         seg = run.segments_host if run.segments_host is not None or run.segments is None \
             else run.segments.cpu()
         # sorted; every half-width's windows' frames: from host facts (no read of a device)
@@ -199,61 +196,39 @@ class Block(BlockChecks, BlockRescue, BlockMotion):
         # the POIs' reference subsets kept for every solve of the block (one host read)
         self.kept = ref.kept_by(run.solver)
 
-    def windows(self, m: int) -> torch.Tensor:
-        """(B, 2m+1) series frames of every target's window, shifted (not shrunk) at the
-        ends of the series (made once a block and half-width: read, not written)."""
-        if m not in self._win:
-            seg = self.run.segments
-            self._win[m] = window_frames(self.k, m, self.run.n_series,
-                                         None if seg is None else seg.to(self.k.device))
-        return self._win[m]
-
-    def window_columns(self, m: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """Per target, the windows of half-width ``m``: (B, T) their frames' columns among
-        :attr:`needed` and (B, T) their times minus the target's (made once a block and
-        half-width: read, not written)."""
-        if m not in self._cols:
-            run, win = self.run, self.windows(m)
-            self._cols[m] = (torch.searchsorted(self.needed, win),
-                             (run.ts[win] - run.ts[self.k].unsqueeze(1)).to(run.dtype))
-        return self._cols[m]
-
-    def window_rows(self, m: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """Per row, the windows of half-width ``m``: (B*N, T) the planes of the block's
-        frame stack and (B*N, T) dt (:meth:`window_columns` for every point; made once a
-        block and half-width: read, not written)."""
-        if m not in self._rows:
-            cols, dt = self.window_columns(m)
-            self._rows[m] = (self.planes[cols].repeat_interleave(self.n, 0),
-                             dt.repeat_interleave(self.n, 0))
-        return self._rows[m]
-
-    def solve(self, idx: torch.Tensor, init: torch.Tensor | None, m: int | None = None,
-              solver: SubsetSolver | None = None, init_step: torch.Tensor | None = None,
-              for_check: bool = True) -> WindowSolution:
+    def solve(self, idx: torch.Tensor, init: torch.Tensor | None,
+              m: int | torch.Tensor | None = None, solver: SubsetSolver | None = None,
+              init_step: torch.Tensor | None = None, for_check: bool = True) -> WindowSolution:
         """Solve rows ``idx`` from ``init`` (None: FFT) with windows of half-width ``m``
-        (default the run's; m = 0: the target frame alone, classical shape), with ``solver``
+        (default the run's; m = 0: the target frame alone, classical shape; (R,) each row's
+        own, 1 .. the run's, in one call: :meth:`mixed_rows`, needs ``init``), with ``solver``
         (default the run's); subsets at :attr:`centres` where :meth:`keep_outside` moved them
         inside the image (the results are the POIs'). ``for_check``: the model check will
         judge these rows (a window solve then gives it its first classical step); False
         for the check's own solves."""
         ref, run = self.ref, self.run
-        if m is None or m == run.m:
-            fidx, dt = self.fidx[idx], self.dt[idx]
+        count = None
+        if isinstance(m, torch.Tensor):  # windows of mixed length (1 .. run.m), one call
+            fidx, dt, count = self.mixed_rows(idx, m)
+            m_eff, motion = run.m, self.mixed_motion(idx, m)
         else:
-            fidx, dt = self.window_rows(m)
-            fidx, dt = fidx[idx], dt[idx]
-        if m == 0 and run.m > 0 and init is not None and init.shape[1] == len(run.names):
-            spatial = run.solver.shape.spatial().param_names
-            init = init[:, [run.names.index(nm) for nm in spatial]]
-        m_eff = run.m if m is None else m
-        motion = self.motion_of(m_eff)
+            if m is None or m == run.m:
+                fidx, dt = self.fidx[idx], self.dt[idx]
+            else:
+                fidx, dt = self.window_rows(m)
+                fidx, dt = fidx[idx], dt[idx]
+            if m == 0 and run.m > 0 and init is not None and init.shape[1] == len(run.names):
+                spatial = run.solver.shape.spatial().param_names
+                init = init[:, [run.names.index(nm) for nm in spatial]]
+            m_eff = run.m if m is None else m
+            motion = self.motion_of(m_eff)
+            motion = None if motion is None else motion[idx]
         on_grid, inside = run.point_facts(ref)
         return (solver or run.solver).solve(
             ref.img, self.img, self.pts[idx], dt, frame_index=fidx,
             init=init, ref_pixels=ref.raw.unsqueeze(0), frame_pixels=self.raw,
             pyramids=(ref.pyramids(), self.pyramids),
-            noise_ratio=run.noise_ratio, motion=None if motion is None else motion[idx],
+            noise_ratio=run.noise_ratio, motion=motion,
             centres=None if self.centres is None else self.centres[idx],
             # the model check's first classical step, from the window solve's last step
             classical_step=run.checks and m_eff > 0 and solver is None and for_check,
@@ -261,11 +236,12 @@ class Block(BlockChecks, BlockRescue, BlockMotion):
             # known per run: the POIs' grid (the centres are whole pixels from them) and
             # the shape (a window of 2m+1 frames at distinct times has temporal terms)
             on_grid=on_grid, has_time=m_eff > 0, all_inside=inside and self.centres_inside,
-            kept=self.kept)
+            kept=self.kept, frame_count=count)
 
     def keep(self, idx: torch.Tensor, sol: WindowSolution, only_better: bool,
-             m: int | None = None, where: torch.Tensor | None = None) -> None:
-        """Store ``sol`` (solved with half-window ``m``, default the run's) at rows ``idx``
+             m: int | torch.Tensor | None = None, where: torch.Tensor | None = None) -> None:
+        """Store ``sol`` (solved with half-window ``m``, default the run's; (R,) each
+        row's) at rows ``idx``
         (with ``only_better``: where it is usable and the stored result is not, or its ZNCC
         is higher; ``where`` (R,) bool: those rows only, as if ``idx[where]`` were given).
         Parameters missing from ``sol`` (a classical solution has no ut, vt) are NaN."""
@@ -513,8 +489,8 @@ def _shorter_again(blk: Block, cap: torch.Tensor, count: Callable) -> None:
     (``cap``: (B*N,) the longest half-width; a first block's FFT start, a rescue) are solved
     again with that half-width from their solution; kept where usable."""
     over = (blk.m_used > cap) & (blk.status <= USABLE)
-    for m, again in rows_by_half_width(cap, over, blk.run.m):
-        sol = blk.solve(again, blk.params[again], m=m)
+    every = torch.arange(over.numel(), device=over.device)
+    for again, m, sol in blk.solve_windows(every, cap, blk.params, pick=over):
         good = sol.status <= USABLE
         blk.keep(again, sol, only_better=False, m=m, where=good)  # (no read)
         count("shorter_again_rows", good.sum())
@@ -629,16 +605,16 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
                                                                               cap)
     if shake_vel is not None:
         window_shake(blk, init, carried if has is None else carried & ~has, shake_vel)
-    shorter = carried & (blk.window_m < run.m) if blk.window_m is not None else None
-    if shorter is not None:  # points leaving the image within their window
-        for m, r in rows_by_half_width(blk.window_m, shorter, run.m):
-            blk.keep(r, blk.solve(r, init[r], m=m), only_better=False, m=m)
-        carried = carried & ~shorter
-    idx_c = torch.nonzero(carried if pilot is None else carried & ~pilot).flatten()
-    if idx_c.numel():
-        blk.keep(idx_c, blk.solve(idx_c, init[idx_c]), only_better=False)
-    if shorter is not None:
-        carried = carried | shorter
+    if blk.window_m is not None:  # windows shortened (points leaving the image, the
+        # motion's limit): every row with its own (one call where the solver mixes them)
+        every = torch.arange(rows, device=dev)
+        pick = carried if pilot is None else carried & ~pilot
+        for r, m, sol in blk.solve_windows(every, blk.window_m, init, pick=pick):
+            blk.keep(r, sol, only_better=False, m=m)
+    else:
+        idx_c = torch.nonzero(carried if pilot is None else carried & ~pilot).flatten()
+        if idx_c.numel():
+            blk.keep(idx_c, blk.solve(idx_c, init[idx_c]), only_better=False)
     from_prev, by_fft, redone = blk.rescue(carry, carried)
     if run.classical_points is not None and run.m > 0:
         _classical_again(blk, run.classical_points.to(dev).repeat(b), count)

@@ -40,6 +40,23 @@ class BlockMotion:
             self._motion[m], self._slope[m] = o, slope
         return self._motion[m]
 
+    def mixed_motion(self, idx: torch.Tensor, m: torch.Tensor) -> torch.Tensor | None:
+        """(R, 2M+1, 2) :meth:`motion_of` the rows ``idx`` (R,) with windows of half-widths
+        ``m`` (R,) (1 .. the run's M), each row's in its first 2m + 1 columns (the rest 0,
+        padding: :meth:`~torch_stsdic.movie.block_windows.BlockWindows.mixed_rows`), or
+        None (no shared motion)."""
+        run = self.run
+        if run.shared is None:
+            return None
+        out = None
+        for h in range(1, run.m + 1):  # each half-width's rows take theirs (no host read)
+            o = self.motion_of(h)[idx]  # (R, 2h+1, 2)
+            if out is None:
+                out = o.new_zeros(idx.numel(), 2 * run.m + 1, 2)
+            part = out[:, :2 * h + 1]
+            part.copy_(torch.where((m == h).view(-1, 1, 1), o, part))
+        return out
+
     def shared_slope(self, m: int) -> torch.Tensor | None:
         """(B*N, 2) px per time unit: the shared motion's least-squares slope over every
         row's window of half-width ``m`` (the part of the window's ut, vt it makes), or None

@@ -13,7 +13,7 @@ import torch
 from torch_stsdic.analysis.result import USABLE
 from torch_stsdic.core.status import Status
 from torch_stsdic.movie.carry import Carry, neighbour_guess
-from torch_stsdic.movie.frames import grouped_rows, rows_by_half_width
+from torch_stsdic.movie.frames import grouped_rows
 from torch_stsdic.movie.reference import to_relative
 
 __all__ = ["BlockRescue"]
@@ -96,10 +96,8 @@ class BlockRescue:
         own = torch.full((rows.numel(),), m_req, dtype=torch.int8, device=rows.device)
         if self.window_m is not None and m_req > 0:
             own = torch.minimum(own, self.window_m[rows])
-        for mm, sel in rows_by_half_width(own, solved, m_req):
-            mk = None if mm == run.m else mm
-            self.keep(rows[sel], self.solve(rows[sel], None if init is None else init[sel],
-                                            m=mk), only_better=True, m=mk)
+        for r, mk, sol in self.solve_windows(rows, own, init, pick=solved):
+            self.keep(r, sol, only_better=True, m=mk)
 
     def _trusted(self, lost: torch.Tensor) -> torch.Tensor:
         """(B*N,) bool: usable rows that are not ``lost`` (:meth:`lost`, read by the caller)."""

@@ -30,6 +30,7 @@ from torch import Tensor
 from torch_stsdic.core.interpolation import BSplineImage
 from torch_stsdic.core.shape import AffineShape, QuadraticShape, ShapeFunction
 from torch_stsdic.core.window import BUILT_IN_WINDOWS, SubsetWindow, weight_stats
+from torch_stsdic.kernels.ic_step import frames_in_use
 
 __all__ = ["Geometry", "SubsetData", "Formulation", "reference_subsets", "wsum"]
 
@@ -142,6 +143,10 @@ class SubsetData:
             ``ft``, ``gx``, ``gy`` (then (R, S), one per distinct point) of every row, read
             through it by the native joint IC kernel (:meth:`direct`: one row each); None:
             row i is row i.
+        count: (N,) int64 each row's frames in use where the rows' windows differ in length:
+            its first ``count[i]`` columns of ``dt``, ``fidx`` and ``motion`` (the later
+            columns padding: dt 0, left out of every sum over the frames; :meth:`in_use`);
+            None: all T.
     """
 
     px: Tensor
@@ -157,6 +162,11 @@ class SubsetData:
     motion: Tensor | None = None
     texture: Tensor | None = None
     ref_rows: Tensor | None = None
+    count: Tensor | None = None
+
+    def in_use(self) -> Tensor | None:
+        """(N, T) bool the frames in use (:attr:`count`), or None: all of them."""
+        return None if self.count is None else frames_in_use(self.count, self.dt.shape[1])
 
     def take(self, idx: Tensor) -> SubsetData:
         """The rows ``idx`` (index or boolean mask)."""

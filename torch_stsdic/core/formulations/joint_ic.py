@@ -78,24 +78,28 @@ def gram_and_texture(geo: Geometry, gx: Tensor, gy: Tensor) -> tuple[Tensor, Ten
 
 
 def ic_hessian(geo: Geometry, gx: Tensor, gy: Tensor, dt: Tensor,
-               g: Tensor | None = None) -> Tensor:
+               g: Tensor | None = None, use: Tensor | None = None) -> Tensor:
     """Gauss-Newton Hessian ``sum_t J_t^T W J_t`` of the joint IC problem, (N, P, P) float64.
 
     With the moments of :func:`gram` this is H = (G - m m^T / sum w) o sum_t z_t z_t^T,
     z_t = (1 .. 1, dt_t) per component (o: element-wise product), so no (N, T, S, P) Jacobian
     is formed (equal to the brute-force sum over :func:`ic_jacobian`; tested). ``g``: the
-    :func:`centred_gram` when already computed."""
+    :func:`centred_gram` when already computed; ``use`` (N, T) bool the frames in use
+    (:meth:`SubsetData.in_use`; None: all)."""
     if g is None:
         g = centred_gram(geo, gx, gy)
     n, t = dt.shape
     ks = geo.ks
     if not geo.shape.has_time:  # drop the augmented constant columns; sum over T frames
         keep = [*range(ks), *range(ks + 1, 2 * ks + 1)]
-        return g[:, keep][:, :, keep] * t
+        frames = t if use is None else use.sum(1).to(g.dtype).view(-1, 1, 1)
+        return g[:, keep][:, :, keep] * frames
     z = torch.ones(n, t, 2 * (ks + 1), dtype=torch.float64, device=g.device)
     dtd = dt.double()
     z[..., ks] = dtd
     z[..., 2 * ks + 1] = dtd
+    if use is not None:
+        z = z * use.unsqueeze(-1)
     return g * torch.einsum("ntp,ntq->npq", z, z)
 
 
@@ -110,7 +114,8 @@ class JointIC(Formulation):
         d = data if data.gram is not None else data.direct()
         # the inverse once per point: a batched product per step is ~7x cheaper than a
         # batched Cholesky solve of (N, 8, 8) systems (singular points are dropped)
-        data.hinv, singular = spd_inverse(ic_hessian(geo, d.gx, d.gy, d.dt, g=d.gram))
+        data.hinv, singular = spd_inverse(ic_hessian(geo, d.gx, d.gy, d.dt, g=d.gram,
+                                                     use=d.in_use()))
         return singular
 
     def uses_fused_kernel(self, frames: BSplineImage, data: SubsetData, p: Tensor) -> bool:
@@ -128,7 +133,7 @@ class JointIC(Formulation):
         return (flat, p, data.px, data.py, geo.dx, geo.dy, geo.spatial.T.contiguous(), data.dt,
                 data.fidx * plane, data.ft, data.fnorm, data.gx, data.gy, geo.w, wp, x_lo,
                 x_hi, y_lo, y_hi, shift, frames.width, frames.height, geo.ks, geo.k,
-                geo.shape.has_time, geo.znssd, frames.order, data.motion)
+                geo.shape.has_time, geo.znssd, frames.order, data.motion, data.count)
 
     def gives_frame_rhs(self, frames: BSplineImage, data: SubsetData, p: Tensor) -> bool:
         # the native and Triton steps do; the torch step does not
@@ -142,10 +147,10 @@ class JointIC(Formulation):
             extra = {}
             if self._backend(frames, data, p) == "native":
                 fused, extra = native.ic_rhs, {"motion": data.motion, "ref_rows": data.ref_rows,
-                                               "frame_rhs": frame_rhs}
+                                               "frame_rhs": frame_rhs, "count": data.count}
             else:  # Triton: reference subsets row by row (no ref_rows), the motion by data row
                 fused, data = kernels.ic_rhs, data.direct()
-                extra = {"motion": data.motion}
+                extra = {"motion": data.motion, "count": data.count}
                 if frame_rhs is not None:
                     extra["frame_rhs"] = frame_rhs
             b, zn, outside = fused(

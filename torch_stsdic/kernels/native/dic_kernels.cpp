@@ -549,6 +549,7 @@ struct IcProblem {
   const T *ft, *fnorm, *fgx, *fgy, *w;
   const int64_t* ref_rows;
   const T* motion;
+  const int64_t* count;  // (N,) each data row's frames in use: its first count[i] (null: nt)
   double w_img, h;
   std::vector<T> bt;  // basis transposed (Ks, S)
   T inv_wsum;
@@ -557,11 +558,12 @@ struct IcProblem {
             bool has_time_, bool znssd_, const T* px_, const T* py_, const T* dx_,
             const T* dy_, const T* basis, const T* dt_, const int64_t* frame_off_,
             const T* ft_, const T* fnorm_, const T* fgx_, const T* fgy_, const T* w_,
-            const int64_t* ref_rows_, const T* motion_, double w_img_, double h_)
+            const int64_t* ref_rows_, const T* motion_, const int64_t* count_,
+            double w_img_, double h_)
       : flat(flat_), g(g_), nt(nt_), ns(ns_), ks(ks_), k(k_), has_time(has_time_),
         znssd(znssd_), px(px_), py(py_), dx(dx_), dy(dy_), dt(dt_), frame_off(frame_off_),
         ft(ft_), fnorm(fnorm_), fgx(fgx_), fgy(fgy_), w(w_), ref_rows(ref_rows_),
-        motion(motion_), w_img(w_img_), h(h_), bt(ks_ * ns_) {
+        motion(motion_), count(count_), w_img(w_img_), h(h_), bt(ks_ * ns_) {
     for (int64_t s = 0; s < ns; ++s)
       for (int64_t q = 0; q < ks; ++q) bt[q * ns + s] = basis[s * ks + q];
     double wsum = 0;
@@ -711,7 +713,12 @@ inline void ic_rhs_row(const IcProblem<T>& P, IcScratch<T>& S, int64_t i, const 
   double zsum = 0;
   const double fn = double(P.fnorm[i]);
   const T swf = P.ks == 3 && P.znssd ? dot(w, fti, ns) : T(0);  // sum w f
-  for (int64_t t = 0; t < nt; ++t) {
+  // a window shorter than the call's: its first nti frames, the others padding
+  const int64_t nti = P.count ? std::min(std::max(P.count[i], int64_t(1)), nt) : nt;
+  if (bf && nti < nt)  // no right-hand side of a padding frame
+    std::fill(bf + nti * (2 * ks + 1), bf + nt * (2 * ks + 1),
+              std::numeric_limits<double>::quiet_NaN());
+  for (int64_t t = 0; t < nti; ++t) {
     const double dti = double(P.dt[i * nt + t]);
     double ox = double(P.px[i]) + ut * dti, oy = double(P.py[i]) + vt * dti;
     if (P.motion) {  // the known (shared) motion of this row's frame t
@@ -783,7 +790,7 @@ inline void ic_rhs_row(const IcProblem<T>& P, IcScratch<T>& S, int64_t i, const 
     }
   }
   (void)np;
-  *zn = T(zsum / double(nt));
+  *zn = T(zsum / double(nti));
   *out = out_i;
 }
 
@@ -868,12 +875,14 @@ STS_KERNEL(sts_ic_rhs, (const T* flat, int64_t wp, double x_lo, double x_hi, dou
                         const T* basis, const T* dt, const int64_t* frame_off, const T* ft,
                         const T* fnorm, const T* gx, const T* gy, const T* w,
                         nullable<const int64_t> rows, nullable<const int64_t> ref_rows,
-                        nullable<const T> motion, double w_img, double h, double* b, T* zn,
-                        uint8_t* outside, nullable<double> bframe)) {
+                        nullable<const T> motion, nullable<const int64_t> count, double w_img,
+                        double h, double* b, T* zn, uint8_t* outside,
+                        nullable<double> bframe)) {
   const Geo g{wp, x_lo, x_hi, y_lo, y_hi, shift};
   if (order != 3 && order != 5) return 1;
   const IcProblem<T> P(flat, g, nt, ns, ks, k, has_time != 0, znssd != 0, px, py, dx, dy, basis,
-                       dt, frame_off, ft, fnorm, gx, gy, w, ref_rows, motion, w_img, h);
+                       dt, frame_off, ft, fnorm, gx, gy, w, ref_rows, motion, count, w_img,
+                       h);
   if (order == 3)
     ic_rhs_range<T, 3>(P, i0, i1, p, rows, b, zn, outside, bframe);
   else
@@ -998,7 +1007,8 @@ STS_KERNEL(sts_ic_solve, (const T* flat, int64_t wp, double x_lo, double x_hi, d
                           const T* dx, const T* dy, const T* basis, const T* dt,
                           const int64_t* frame_off, const T* ft, const T* fnorm, const T* gx,
                           const T* gy, const T* w, nullable<const int64_t> ref_rows,
-                          nullable<const T> motion, double w_img, double h,
+                          nullable<const T> motion, nullable<const int64_t> count,
+                          double w_img, double h,
                           const double* hinv, const T* scale, T* p, const T* prev, double tol,
                           int64_t max_iter, double div_norm, double rate_floor,
                           const int64_t* codes, T* zn, uint8_t* status, int32_t* used,
@@ -1007,7 +1017,8 @@ STS_KERNEL(sts_ic_solve, (const T* flat, int64_t wp, double x_lo, double x_hi, d
   if (ks != 3 || k != ks + (has_time ? 1 : 0) || chunk < 1) return 2;
   const Geo g{wp, x_lo, x_hi, y_lo, y_hi, shift};
   const IcProblem<T> P(flat, g, nt, ns, ks, k, has_time != 0, znssd != 0, px, py, dx, dy, basis,
-                       dt, frame_off, ft, fnorm, gx, gy, w, ref_rows, motion, w_img, h);
+                       dt, frame_off, ft, fnorm, gx, gy, w, ref_rows, motion, count, w_img,
+                       h);
   if (order == 3)
     ic_solve_points<T, 3>(P, i0, i1, counter, chunk, hinv, scale, p, prev, tol, max_iter,
                           div_norm, rate_floor, codes, zn, status, used, bframe, plast);
@@ -1088,7 +1099,7 @@ STS_KERNEL(sts_spd_inverse, (int64_t i0, int64_t i1, int64_t np, const T* h, T* 
 // g1, g2 (npa, npa) per row (g2 null: g1, a 0/1 window), bw, b2 (npa, npa) shared; np <= 16.
 STS_KERNEL(sts_param_std, (int64_t i0, int64_t i1, int64_t npa, int64_t np, int64_t nt,
                            int64_t ks, int64_t has_time, const int64_t* cols, const T* dt,
-                           const T* g1, nullable<const T> g2, const T* bw, const T* b2,
+                           nullable<const int64_t> count, const T* g1, nullable<const T> g2, const T* bw, const T* b2,
                            const T* f2, const T* g2n, double kappa, T* std)) {
   if (np < 1 || np > 16 || npa < np) return 1;
   for (int64_t a = 0; a < np; ++a) {
@@ -1096,14 +1107,15 @@ STS_KERNEL(sts_param_std, (int64_t i0, int64_t i1, int64_t npa, int64_t np, int6
   }
   for (int64_t i = i0; i < i1; ++i) {
     double s1 = 0.0, s2 = 0.0;
+    const int64_t nti = count ? std::min(std::max(count[i], int64_t(1)), nt) : nt;
     if (has_time) {
-      for (int64_t t = 0; t < nt; ++t) {
+      for (int64_t t = 0; t < nti; ++t) {
         const double d = double(dt[i * nt + t]);
         s1 += d;
         s2 += d * d;
       }
     }
-    const double s0 = double(nt);
+    const double s0 = double(nti);
     bool tm[16];
     for (int64_t a = 0; a < np; ++a) tm[a] = has_time && (cols[a] == ks || cols[a] == 2 * ks + 1);
     const T* G1 = g1 + i * npa * npa;

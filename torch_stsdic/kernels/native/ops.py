@@ -54,6 +54,16 @@ def _check_planes(fn: str, img_args: tuple, off: torch.Tensor) -> None:
                  f"plane offsets [{lo}, {hi}] outside the image's [0, {last}]")
 
 
+def _check_count(fn: str, count: torch.Tensor | None, n: int) -> None:
+    """A window's frames in use per data row: (N,) (the kernels clamp it to [1, T])."""
+    _require(fn, count is None or tuple(count.shape) == (n,),
+             f"count must be (N,) = ({n},) frames in use per row")
+
+
+def _count(count: torch.Tensor | None) -> torch.Tensor | None:
+    return None if count is None else count.to(torch.int64).contiguous()
+
+
 def sample(img_args: tuple, order: int, x: torch.Tensor, y: torch.Tensor,
            frame_off: torch.Tensor, grad: bool):
     """Native twin of interpolation.sample_kernel: values (shape of x) and, with grad, d/dx
@@ -114,7 +124,8 @@ def subsets(img_args: tuple, order: int, px, py, dx, dy, frame_off, grad: bool):
 def ic_rhs(img_args: tuple, order: int, p, px, py, dx, dy, basis, dt, frame_off, ft, fnorm,
            gx, gy, w, w_img: int, h: int, k: int, has_time: bool, znssd: bool,
            rows: torch.Tensor | None = None, motion: torch.Tensor | None = None,
-           ref_rows: torch.Tensor | None = None, frame_rhs: torch.Tensor | None = None):
+           ref_rows: torch.Tensor | None = None, frame_rhs: torch.Tensor | None = None,
+           count: torch.Tensor | None = None):
     """Native twin of formulations.joint_ic.ic_rhs_kernel. Shapes: p (M, 2k), px/py (N, 1) or (N,),
     dx/dy/w (S,), basis (S, Ks), dt and frame_off (N, T), ft/gx/gy (N, S), fnorm (N,);
     ``rows`` (M,) picks the per-point data rows of p's rows (default: M = N, row j = j);
@@ -122,8 +133,10 @@ def ic_rhs(img_args: tuple, order: int, p, px, py, dx, dy, basis, dt, frame_off,
     ``ref_rows`` (N,) the row of ft/gx/gy (then (R, S)) of each data row (a point repeated
     over targets: one copy of its reference subset; None: row i); ``frame_rhs`` a float64
     (M, T, 2 Ks + 1) tensor filled with each frame's own spatial part of b (the classical
-    right-hand side of that frame at the row's warp), then that frame's ZNCC, or None.
-    Returns b (M, 2k) float64, per-POI mean ZNCC (M,) and the outside flag (M,) bool."""
+    right-hand side of that frame at the row's warp), then that frame's ZNCC, or None
+    (NaN at a row's padding frames); ``count`` (N,) each data row's frames in use, its
+    first ``count[i]`` columns of dt and frame_off (the others padding, skipped; None: all
+    T). Returns b (M, 2k) float64, per-POI mean ZNCC (M,) and the outside flag (M,) bool."""
     flat = img_args[0].contiguous()
     dtype = flat.dtype
     n, (big_n, nt), (ns, ks) = p.shape[0], dt.shape, basis.shape
@@ -156,6 +169,7 @@ def ic_rhs(img_args: tuple, order: int, p, px, py, dx, dy, basis, dt, frame_off,
                                              and frame_rhs.is_contiguous()),
              f"frame_rhs must be a contiguous float64 (M, T, 2 Ks + 1) = ({n}, {nt}, "
              f"{2 * ks + 1})")
+    _check_count("ic_rhs", count, big_n)
 
     def c(t):
         return t.to(dtype).contiguous()
@@ -171,7 +185,7 @@ def ic_rhs(img_args: tuple, order: int, p, px, py, dx, dy, basis, dt, frame_off,
                    fnorm=c(fnorm.reshape(-1)), gx=c(gx), gy=c(gy), w=c(w),
                    rows=None if rows is None else rows.to(torch.int64).contiguous(),
                    ref_rows=None if ref_rows is None else ref_rows.to(torch.int64).contiguous(),
-                   motion=None if motion is None else c(motion),
+                   motion=None if motion is None else c(motion), count=_count(count),
                    w_img=float(w_img), h=float(h), b=b, zn=zn, outside=out,
                    bframe=frame_rhs))
     return b, zn, out.bool()
@@ -181,7 +195,7 @@ def ic_solve(img_args: tuple, order: int, p, px, py, dx, dy, basis, dt, frame_of
              gx, gy, w, w_img: int, h: int, k: int, has_time: bool, znssd: bool, hinv, scale,
              prev, tol: float, max_iter: int, div_norm: float, rate_floor: float,
              codes: tuple[int, int, int, int], motion=None, ref_rows=None,
-             frame_rhs: bool = False):
+             frame_rhs: bool = False, count: torch.Tensor | None = None):
     """Every point's joint IC-GN solve to its end in one call (C++ ``sts_ic_solve``: threads
     take chunks of points from a shared counter and iterate each one to convergence, with no
     barrier per iteration). The arguments are :func:`ic_rhs`'s (the rows of ``p`` (N, P) are
@@ -213,6 +227,7 @@ def ic_solve(img_args: tuple, order: int, p, px, py, dx, dy, basis, dt, frame_of
                  f"ref_rows must be (N,) = ({n},) indices into the {n_ref} subsets")
     _require("ic_solve", motion is None or tuple(motion.shape) == (n, nt, 2),
              f"motion must be (N, T, 2) = ({n}, {nt}, 2)")
+    _check_count("ic_solve", count, n)
     frame_off = frame_off.to(torch.int64).contiguous()
     _check_planes("ic_solve", img_args, frame_off)
 
@@ -234,8 +249,9 @@ def ic_solve(img_args: tuple, order: int, p, px, py, dx, dy, basis, dt, frame_of
                     dy=c(dy), basis=c(basis), dt=c(dt), frame_off=frame_off, ft=c(ft),
                     fnorm=c(fnorm.reshape(-1)), gx=c(gx), gy=c(gy), w=c(w),
                     ref_rows=None if ref_rows is None else ref_rows.to(torch.int64).contiguous(),
-                    motion=None if motion is None else c(motion), w_img=float(w_img),
-                    h=float(h), hinv=hinv.to(torch.float64).contiguous(), scale=c(scale),
+                    motion=None if motion is None else c(motion), count=_count(count),
+                    w_img=float(w_img), h=float(h), hinv=hinv.to(torch.float64).contiguous(),
+                    scale=c(scale),
                     p=out_p, prev=c(prev.reshape(-1)), tol=float(tol), max_iter=int(max_iter),
                     div_norm=float(div_norm), rate_floor=float(rate_floor),
                     codes=torch.tensor(codes, dtype=torch.int64), zn=zn, status=status,
@@ -279,14 +295,15 @@ def spd_inverse(h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
 def param_std(cols: torch.Tensor, dt: torch.Tensor, has_time: bool, ks: int, g1: torch.Tensor,
               g2: torch.Tensor | None, bw: torch.Tensor, b2: torch.Tensor, f2: torch.Tensor,
-              g2n: torch.Tensor, kappa: float) -> torch.Tensor:
+              g2n: torch.Tensor, kappa: float, count: torch.Tensor | None = None
+              ) -> torch.Tensor:
     """Native :func:`~torch_stsdic.core.uncertainty.std_of` of
     :func:`~torch_stsdic.core.uncertainty.response`: (N, P) predicted std of the parameters at
     the augmented columns ``cols`` (P,) of N rows with frame times ``dt`` (N, T), centred
     grams ``g1`` (N, P', P') and ``g2`` (its w^2 moments; None: ``g1``), basis moments
     ``bw``, ``b2`` (P', P'), reference and frame noise variances ``f2``, ``g2n`` (N,) and
     gradient noise factor ``kappa``; in g1's dtype (float32/float64, computed in double),
-    P <= 16."""
+    P <= 16; ``count`` (N,) each row's frames in use (:func:`ic_rhs`; None: all T)."""
     n, npa = g1.shape[0], g1.shape[-1]
     p = cols.numel()
     _require("param_std", g1.shape == (n, npa, npa) and 1 <= p <= 16 and p <= npa,
@@ -298,6 +315,7 @@ def param_std(cols: torch.Tensor, dt: torch.Tensor, has_time: bool, ks: int, g1:
     _require("param_std", tuple(bw.shape) == (npa, npa) and tuple(b2.shape) == (npa, npa),
              f"bw, b2 must be ({npa}, {npa})")
     _require("param_std", f2.shape == (n,) and g2n.shape == (n,), f"f2, g2n must be ({n},)")
+    _check_count("param_std", count, n)
     dbl = g1.dtype
 
     def c(t):
@@ -305,7 +323,8 @@ def param_std(cols: torch.Tensor, dt: torch.Tensor, has_time: bool, ks: int, g1:
     std = torch.empty(n, p, dtype=dbl)
     run_rows(kernel("sts_param_std", dbl), n, 4 * p * p * p,
              dict(npa=npa, np=p, nt=dt.shape[1], ks=ks, has_time=int(has_time),
-                  cols=cols.to(torch.int64).contiguous(), dt=c(dt), g1=c(g1),
+                  cols=cols.to(torch.int64).contiguous(), dt=c(dt), count=_count(count),
+                  g1=c(g1),
                   g2=None if g2 is None else c(g2), bw=c(bw), b2=c(b2), f2=c(f2), g2n=c(g2n),
                   kappa=float(kappa), std=std))
     return std

@@ -1,0 +1,133 @@
+"""Windows of different lengths in one solve (``SubsetSolver.solve(frame_count=)``): each row
+iterated over its own first ``frame_count`` frames, the later columns padding. Checked against
+solving each length on its own, on the C++ per-point kernel, the batched torch loop and the
+Triton kernels (their interpreter on the CPU): the same statuses and iterations; parameters,
+ZNCC, predicted std, noise and the classical step equal to rounding."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+import torch
+
+if not torch.cuda.is_available():  # no GPU: Triton's interpreter, before Triton is imported
+    os.environ.setdefault("TRITON_INTERPRET", "1")
+
+from test_native_solve import _movie  # tests/ on the path
+
+import torch_stsdic as sts
+from torch_stsdic import kernels
+from torch_stsdic.core.gauss_newton import classical_step_width
+from torch_stsdic.core.solution import packed_classical_step
+from torch_stsdic.kernels import native
+
+M = 3  # the longest half-width; the rows take 1, 2 or 3
+
+
+@pytest.fixture(autouse=True)
+def _modes(monkeypatch):
+    yield
+    kernels.set_triton("auto")
+    native.set_native("auto")
+
+
+def _problem(n: int = 64, every: float = 6.0):
+    """A 7-frame render, its points, and rows (point, half-width h) with h = 1, 2, 3 cycling
+    over the points: each row's centred window of 2h + 1 frames, padded to 7 columns with
+    nonsense (a far time, the last frame) that the solve must not read."""
+    ref, frames, pts, times = _movie(M, n, 10.0, every, ((8.2, 30.0), (8.6, 36.0)))
+    n_pts = pts.shape[0]
+    half = torch.arange(n_pts) % M + 1
+    t_all = 2 * M + 1
+    dt = torch.full((n_pts, t_all), 99.0, dtype=torch.float64)
+    fidx = torch.full((n_pts, t_all), t_all - 1, dtype=torch.long)
+    for h in range(1, M + 1):
+        at = half == h
+        cols = torch.arange(M - h, M + h + 1)
+        dt[at, : 2 * h + 1] = times[cols] - times[M]
+        fidx[at, : 2 * h + 1] = cols
+    return ref, frames, pts, half, dt, fidx
+
+
+def _solve(mode: str, dtype: str):
+    """(mixed solution, {h: (rows, solution of those rows alone)}) in ``mode``."""
+    if mode == "triton":
+        if not kernels.available():
+            pytest.skip("triton is not importable")
+        kernels.set_triton("1")
+        native.set_native("0")
+    elif mode == "torch":
+        kernels.set_triton("0")
+        native.set_native("0")
+    elif not native.available():
+        pytest.skip("no native kernels")
+    ref, frames, pts, half, dt, fidx = _problem(48 if mode == "triton" else 64,
+                                                 8.0 if mode == "triton" else 6.0)
+    cfg = sts.DICConfig(m=M, dtype=dtype, subset_size=11 if mode == "triton" else 15)
+    solver = sts.SubsetSolver(cfg)
+    ref, frames = ref.to(getattr(torch, dtype)), frames.to(getattr(torch, dtype))
+    ref_img, frames_img = solver.prepare(ref), solver.prepare(frames)
+    p = pts.to(getattr(torch, dtype))
+    init = torch.zeros(p.shape[0], 8, dtype=p.dtype)
+    init[:, 0], init[:, 4] = 0.4, -0.3  # near the render's translation
+    kw = dict(ref_pixels=ref.unsqueeze(0).to(p.dtype), frame_pixels=frames.to(p.dtype),
+              classical_step=True, has_time=True)
+    mixed = solver.solve(ref_img, frames_img, p, dt, frame_index=fidx, init=init,
+                         frame_count=2 * half + 1, **kw)
+    alone = {}
+    for h in range(1, M + 1):
+        rows = torch.nonzero(half == h).flatten()
+        alone[h] = rows, solver.solve(ref_img, frames_img, p[rows], dt[rows, : 2 * h + 1],
+                                      frame_index=fidx[rows, : 2 * h + 1], init=init[rows],
+                                      **kw)
+    return mixed, alone
+
+
+@pytest.mark.parametrize("mode,dtype", [("native", "float32"), ("native", "float64"),
+                                        ("torch", "float64"), ("triton", "float32")])
+def test_mixed_windows_equal_each_length_alone(mode, dtype):
+    mixed, alone = _solve(mode, dtype)
+    atol = 1e-6 if dtype == "float64" else 2e-4
+    n_ok = 0
+    for h, (rows, sol) in alone.items():
+        assert torch.equal(mixed.status[rows], sol.status), h
+        assert torch.equal(mixed.iterations[rows], sol.iterations), h
+        ok = sol.status <= int(sts.Status.MAX_ITER)
+        n_ok += int(ok.sum())
+        for name in ("params", "std"):
+            torch.testing.assert_close(getattr(mixed, name)[rows][ok], getattr(sol, name)[ok],
+                                       rtol=1e-4, atol=atol)
+        for name in ("zncc", "sigma"):
+            torch.testing.assert_close(getattr(mixed, name)[rows][ok], getattr(sol, name)[ok],
+                                       rtol=1e-4, atol=atol)
+        if mode != "torch":  # the classical step comes from the fused kernels' frame rhs
+            a = packed_classical_step(mixed.info)[rows]
+            b = packed_classical_step(sol.info)
+            assert a.shape[1] == classical_step_width(3)
+            assert torch.equal(torch.isnan(a), torch.isnan(b))
+            assert torch.isfinite(b).any()
+            torch.testing.assert_close(a.nan_to_num(0), b.nan_to_num(0), rtol=1e-4,
+                                       atol=atol)
+    assert n_ok > 0.8 * mixed.status.numel()
+    # the windows' velocity differs with their length: a solve that read the padding
+    # would not give each row what its own window gives (checked above); and the lengths
+    # are all there
+    assert all(rows.numel() for rows, _ in alone.values())
+
+
+def test_frame_count_is_checked():
+    ref, frames, pts, half, dt, fidx = _problem()
+    solver = sts.SubsetSolver(sts.DICConfig(m=M, subset_size=15))
+    r, f = solver.prepare(ref), solver.prepare(frames)
+    p = pts.float()
+    init = torch.zeros(p.shape[0], 8)
+    with pytest.raises(ValueError, match=r"frame_count must be \(N,\)"):
+        solver.solve(r, f, p, dt, frame_index=fidx, init=init, frame_count=half[:3])
+    with pytest.raises(ValueError, match="integers"):
+        solver.solve(r, f, p, dt, frame_index=fidx, init=init, frame_count=half.float())
+    with pytest.raises(ValueError, match="needs init"):
+        solver.solve(r, f, p, dt, frame_index=fidx, frame_count=half)
+    fa = sts.SubsetSolver(sts.DICConfig(m=M, subset_size=15, formulation="joint+average"))
+    with pytest.raises(ValueError, match="one window length a call"):
+        fa.solve(r, f, p, dt, frame_index=fidx, init=init, frame_count=half)
