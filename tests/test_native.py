@@ -433,14 +433,15 @@ def test_library_declares_the_source_signatures():
 
 def test_declared_kinds_come_from_the_compiler():
     k32, k64 = native.kernels()["sts_ic_rhs_f32"], native.kernels()["sts_ic_rhs_f64"]
-    assert len(k32.params) == len(k64.params) == 38
+    assert len(k32.params) == len(k64.params) == 39
     by = {p.name: p for p in k32.params}
     assert by["flat"].kind == "*f32" and k64.params[0].kind == "*f64"
     assert by["b"].kind == "*f64"  # b is double in both instances, zn follows T
     assert by["zn"].kind == "*f32" and by["outside"].kind == "*u8"
     assert by["wp"].kind == "i64" and by["order"].kind == "i32" and by["w_img"].kind == "f64"
     assert [p.name for p in k32.params if p.nullable] == ["rows", "ref_rows", "motion",
-                                                           "bframe"]
+                                                           "count", "bframe"]
+    assert by["count"].kind == "*i64"  # a row's frames in use: int64 in both instances
     assert by["bframe"].kind == "*f64"  # double in both instances, like b
     assert [p.name for p in native.kernels()["sts_sample_f64"].params if p.nullable] == \
         ["off", "gx", "gy"]
