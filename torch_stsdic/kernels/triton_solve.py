@@ -406,10 +406,9 @@ def ic_solve_triton(img_args: tuple, p, px, py, dx, dy, basis, dt, frame_off, ft
     last = (plast, bframe) if frame_rhs else None
     if n == 0:
         return out_p, zn, status, used, last
-    wsum = float(w.double().sum())
-    consts = torch.tensor([tol, div_norm, rate_floor, 1.0 / wsum, x_lo, x_hi, y_lo, y_hi,
-                           1.0 / 6.0, 2.0 / 3.0],
-                          dtype=dtype, device=dev)
+    consts = torch.tensor([tol, div_norm, rate_floor, 0.0, x_lo, x_hi, y_lo, y_hi,
+                           1.0 / 6.0, 2.0 / 3.0], dtype=dtype, device=dev)
+    consts[3] = 1.0 / w.to(device=dev, dtype=torch.float64).sum()  # on the device: no read
     block = max(16, triton.next_power_of_2(s))
     dummy = out_p
     _ic_solve_kernel[(n,)](
