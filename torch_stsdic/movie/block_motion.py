@@ -65,17 +65,17 @@ class BlockMotion:
             return None
         return self._slope[m]
 
-    def _window_motion(self, m: int, rows: torch.Tensor | None
-                       ) -> tuple[torch.Tensor, torch.Tensor]:
+    def _window_motion(self, m: int, rows: torch.Tensor | None,
+                       at_rows: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Window offsets (R, 2m+1, 2) and slopes (R, 2) of half-width ``m`` at the rows
-        ``rows`` (R,) (None: all B*N), each at its subset's centre. A row's numbers do not
-        depend on which other rows are computed with it."""
+        ``rows`` (R,) (None: all B*N), each at its subset's centre (``at_rows`` (R, F, 2):
+        the shared motion there in the needed frames, where the caller has it). A row's
+        numbers do not depend on which other rows are computed with it."""
         run, n = self.run, self.n
         cols, dt = self.window_columns(m)  # (B, T) the needed frames' columns, times
         b, t = cols.shape
         if rows is not None:  # only these rows, at their subsets' centres
-            g = run.shared.displacement(self.centres[rows], self.needed).to(
-                run.dtype).transpose(0, 1)  # (R, F, 2)
+            g = self._motion_at(rows) if at_rows is None else at_rows  # (R, F, 2)
             g = g[torch.arange(rows.numel(), device=g.device).unsqueeze(1), cols[rows // n]]
             return window_offsets(g, dt[rows // n], return_slope=True)
         if self._shared_g is None:  # at every frame the block reads, once
@@ -91,6 +91,13 @@ class BlockMotion:
         # dt (B, 1, T): the same for all the target's points
         o, slope = window_offsets(g, dt.unsqueeze(1), return_slope=True)
         return o.reshape(-1, t, 2).contiguous(), slope.reshape(-1, 2)
+
+    def _motion_at(self, rows: torch.Tensor) -> torch.Tensor:
+        """(R, F, 2) the shared motion at the subset centres of ``rows`` (R,) in the block's
+        needed frames."""
+        run = self.run
+        return run.shared.displacement(self.centres[rows], self.needed).to(
+            run.dtype).transpose(0, 1)
 
     def _centres_moved(self, off: torch.Tensor, n_off: int, moved: torch.Tensor,
                        n_moved: int) -> None:
@@ -108,7 +115,8 @@ class BlockMotion:
         if not self._motion:
             return
         rows = grouped_rows(torch.where(moved, 0, 1), [n_moved])[0]
+        at_rows = self._motion_at(rows)  # once for every half-width
         for m in list(self._motion):  # new tensors: a caller may hold the old ones
-            o, slope = self._window_motion(m, rows)
+            o, slope = self._window_motion(m, rows, at_rows)
             self._motion[m] = self._motion[m].index_put((rows,), o)
             self._slope[m] = self._slope[m].index_put((rows,), slope)
