@@ -363,31 +363,27 @@ class Block(BlockChecks, BlockRescue, BlockMotion, BlockWindows):
         returned, not marked (the caller decides which of them to give up on)."""
         run = self.run
         rows = carried.shape[0]
-        left = carried.clone()  # carried rows without a window that stays in view yet
-        shift = torch.zeros_like(self.pts)
-        idx = None
-        for m in range(run.m, -1, -1):
-            if m == run.m:
-                fit, d = self._placement(inits, self.dt, self.motion_of(m))
-                fit &= left
-            else:  # the rows left by the run's window only (one host read for all the
-                # shorter ones; a block whose carried rows all stay in view reads once here)
-                idx = torch.nonzero(left).flatten() if idx is None else idx
-                if not idx.numel():
-                    break
-                motion = self.motion_of(m)
-                f_i, d_i = self._placement(
-                    [init[idx] for init in inits], self.window_rows(m)[1][idx],
-                    None if motion is None else motion[idx], idx)
-                fit = torch.zeros_like(left).index_put_((idx,), f_i) & left
-                d = torch.zeros_like(shift).index_put_((idx,), d_i)
-            shift = torch.where(fit.unsqueeze(1), d, shift)
-            if m < run.m:  # (no test: an unused window_m is the run's m everywhere)
-                if self.window_m is None:
-                    self.window_m = torch.full((rows,), run.m, dtype=torch.int8,
-                                               device=run.device)
-                self.window_m.masked_fill_(fit, m)
-            left &= ~fit
+        fit, shift = self._placement(inits, self.dt, self.motion_of(run.m))
+        fit &= carried
+        shift = torch.where(fit.unsqueeze(1), shift, 0.0)
+        left = carried & ~fit  # carried rows without a window that stays in view yet
+        # the rows left by the run's window only (one host read; a block whose carried rows
+        # all stay in view reads once here): every shorter window at once, the longest that
+        # stays in view taken (:attr:`window_m`; no test: unused, it is the run's m)
+        idx = torch.nonzero(left).flatten() if run.m > 0 else left[:0].long()
+        if idx.numel():
+            halves = torch.arange(run.m - 1, -1, -1, device=run.device)  # (H,) descending
+            f_h, d_h = self._placement([init[idx] for init in inits],
+                                       *self.padded_windows(idx, run.m), idx)  # (H, R)
+            j = f_h.to(torch.int8).argmax(0)  # the first that fits: the longest
+            f_i = f_h.any(0)
+            d_i = d_h[j, torch.arange(idx.numel(), device=run.device)]
+            shift[idx] = torch.where(f_i.unsqueeze(1), d_i, shift[idx])
+            if self.window_m is None:
+                self.window_m = torch.full((rows,), run.m, dtype=torch.int8,
+                                           device=run.device)
+            self.window_m[idx] = torch.where(f_i, halves[j].to(torch.int8), self.window_m[idx])
+            left[idx] = ~f_i
         out = left
         if mark:
             self.status.masked_fill_(out, int(Status.OUTSIDE))
@@ -413,11 +409,12 @@ class Block(BlockChecks, BlockRescue, BlockMotion, BlockWindows):
     def _placement(self, inits: Sequence[torch.Tensor], dt: torch.Tensor,
                    motion: torch.Tensor | None, rows: torch.Tensor | None = None
                    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """(R,) bool: the row's subset can be placed in view over its window (frame times
-        ``dt`` (R, T), known motion ``motion`` (R, T, 2) or None) by one of the
-        predictions ``inits`` ((R, P) each; :meth:`keep_outside`), and (R, 2) px the shift
-        of its centre that this takes (the largest over the predictions that fit); the
-        rows ``rows`` (R,) of the block (None: all of them, R = B*N)."""
+        """(..., R) bool: the row's subset can be placed in view over its window (frame
+        times ``dt`` (..., R, T), known motion ``motion`` (..., R, T, 2) or None; leading
+        dimensions: windows of several lengths at once) by one of the predictions ``inits``
+        ((R, P) each; :meth:`keep_outside`), and (..., R, 2) px the shift of its centre that
+        this takes (the largest over the predictions that fit); the rows ``rows`` (R,) of
+        the block (None: all of them, R = B*N)."""
         run = self.run
         names = run.names
         iu, iv = names.index("u"), names.index("v")
@@ -429,24 +426,26 @@ class Block(BlockChecks, BlockRescue, BlockMotion, BlockWindows):
         hi_edge = torch.full((2,), w - 1 - half - OUTSIDE_MARGIN, dtype=pts.dtype,
                              device=pts.device)  # (filled on the device: no copy to it)
         hi_edge[1] = h - 1 - half - OUTSIDE_MARGIN
+        lead = dt.dim() - 2  # the window lengths' dimensions
         p = torch.stack(list(inits))  # (I, R, P)
-        z = pts.unsqueeze(1) + p[..., [iu, iv]].unsqueeze(-2)  # (I, R, 1, 2)
+        p = p.view(p.shape[0], *([1] * lead), *p.shape[1:])  # (I, ..., R, P)
+        z = pts.unsqueeze(1) + p[..., [iu, iv]].unsqueeze(-2)  # (I, ..., R, 1, 2)
         if "ut" in names:
             vel = p[..., [names.index("ut"), names.index("vt")]].nan_to_num(0.0)
             z = z + vel.unsqueeze(-2) * dt.unsqueeze(-1)  # (I, R, T, 2)
         if motion is not None:
             z = z + motion
         # only the moved-on prediction (the first) moves a subset
-        reach = torch.zeros(p.shape[0], 1, 1, dtype=z.dtype, device=z.device)
+        reach = torch.zeros(p.shape[0], *([1] * (lead + 2)), dtype=z.dtype, device=z.device)
         reach[0] = half
         lo = (lo_edge - z.amin(-2)).clamp(min=0)  # (I, R, 2) move the subset in
         hi = (z.amax(-2) - hi_edge).clamp(min=0)
         ok = ((lo == 0) | (hi == 0)) & (torch.maximum(lo, hi) <= reach)
         fit = ok.all(-1) & torch.isfinite(z).all(-2).all(-1)  # (I, R)
         d = lo - hi
-        shift = torch.zeros_like(pts)  # the largest shift over the predictions that fit
+        shift = torch.zeros_like(d[0])  # the largest shift over the predictions that fit
         for i in range(p.shape[0]):
-            shift = torch.where(fit[i].unsqueeze(1) & (d[i].abs() > shift.abs()), d[i], shift)
+            shift = torch.where(fit[i].unsqueeze(-1) & (d[i].abs() > shift.abs()), d[i], shift)
         feasible = fit.any(0)
         return feasible, shift
 

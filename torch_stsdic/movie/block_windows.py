@@ -72,6 +72,26 @@ class BlockWindows:
             self._table = (torch.stack(cols), torch.stack(dts))
         return self._table
 
+    def padded_windows(self, idx: torch.Tensor, top: int
+                       ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """The rows ``idx`` (R,)'s windows of every half-width ``top - 1`` down to 0 at once,
+        padded to T = 2 top - 1 frames by repeating their last (so a window's extremes over
+        its frames are its own): times (H, R, T) and the shared motion's known part
+        (H, R, T, 2) (:meth:`motion_of`; None without shared motion)."""
+        t = 2 * top - 1
+        b = torch.div(idx, self.n, rounding_mode="floor")
+        times, motion = [], []
+        for h in range(top - 1, -1, -1):
+            _, d = self.window_columns(h)
+            d = d[b]  # (R, 2h+1)
+            times.append(torch.cat([d, d[:, -1:].expand(-1, t - d.shape[1])], 1))
+            o = self.motion_of(h)
+            if o is not None or h == 0:
+                o = d.new_zeros(idx.numel(), 1, 2) if o is None else o[idx]
+                motion.append(torch.cat([o, o[:, -1:].expand(-1, t - o.shape[1], -1)], 1))
+        return torch.stack(times), (torch.stack(motion) if len(motion) == len(times)
+                                    else None)
+
     def mixed_rows(self, idx: torch.Tensor, m: torch.Tensor
                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Rows ``idx`` (R,) with windows of half-widths ``m`` (R,) (1 .. the run's m): their
