@@ -285,7 +285,8 @@ def _classical_step(ctx: BatchContext, data: SubsetData, p_last: Tensor, frame: 
     rows where the window has no frame at dt = 0 or no step was recorded."""
     geo = ctx.geo
     ks, k, n = geo.ks, geo.k, p_last.shape[0]
-    at0 = data.dt == 0  # (N, T) (padding has dt 0: after the frames in use)
+    at0 = data.dt == 0  # (N, T), a frame in use (padding, dt 0, is not one)
+    at0 = at0 if data.count is None else at0 & data.in_use()
     t0 = at0.to(torch.int8).argmax(1)
     rows = torch.arange(n, device=frame.device)
     fr = frame[rows, t0]  # (N, 2 Ks + 1)

@@ -144,7 +144,7 @@ def _centred_gram(geo: Geometry, g: Tensor, m: Tensor, m1: Tensor, weights: Tens
         return g
     jbar = m1 / geo.w_sum
     return (g - m.unsqueeze(-1) * jbar.unsqueeze(-2) - jbar.unsqueeze(-1) * m.unsqueeze(-2)
-            + float(weights.sum()) * jbar.unsqueeze(-1) * jbar.unsqueeze(-2))
+            + weights.sum() * jbar.unsqueeze(-1) * jbar.unsqueeze(-2))  # (0-d: no read)
 
 
 def _basis_moments(geo: Geometry, weights: Tensor) -> Tensor:
@@ -226,9 +226,9 @@ def _corrected_inverse(h: Tensor, bias: Tensor) -> Tensor:
     first-order Hessian the solver factored) is inverted instead; where that is singular too
     (no texture) the inverse is NaN."""
     inv, bad = spd_inverse(h - bias)
-    if bool(bad.any()):  # one host synchronisation per batch
-        inv[bad] = spd_inverse(h[bad])[0]
-    return inv
+    # every row's plain inverse too (a batch of small ones), blended in: no host read of
+    # whether any row needs it
+    return torch.where(bad.view(-1, 1, 1), spd_inverse(h)[0], inv)
 
 
 def _middle(r: Response) -> Tensor:

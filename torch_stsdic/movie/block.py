@@ -240,10 +240,10 @@ class Block(BlockChecks, BlockRescue, BlockMotion, BlockWindows):
 
     def keep(self, idx: torch.Tensor, sol: WindowSolution, only_better: bool,
              m: int | torch.Tensor | None = None, where: torch.Tensor | None = None) -> None:
-        """Store ``sol`` (solved with half-window ``m``, default the run's; (R,) each
-        row's) at rows ``idx``
-        (with ``only_better``: where it is usable and the stored result is not, or its ZNCC
-        is higher; ``where`` (R,) bool: those rows only, as if ``idx[where]`` were given).
+        """Store ``sol`` (solved with half-window ``m``, default the run's; (R,): each
+        row's own) at rows ``idx`` (with ``only_better``: where it is usable and the stored
+        result is not, or its ZNCC is higher; ``where`` (R,) bool: those rows only, as if
+        ``idx[where]`` were given).
         Parameters missing from ``sol`` (a classical solution has no ut, vt) are NaN."""
         self.iters[idx] += sol.iterations if where is None else torch.where(
             where, sol.iterations, 0)
