@@ -131,3 +131,45 @@ def test_frame_count_is_checked():
     fa = sts.SubsetSolver(sts.DICConfig(m=M, subset_size=15, formulation="joint+average"))
     with pytest.raises(ValueError, match="one window length a call"):
         fa.solve(r, f, p, dt, frame_index=fidx, init=init, frame_count=half)
+
+
+def test_a_movie_block_solves_every_window_length_in_one_call(tmp_path, monkeypatch):
+    """A movie whose points leave the image (the blocks shorten their windows there) run with
+    the blocks' one call for every window length, and with one call a half-width (the
+    fallback of a formulation that takes one length a call): the same result file."""
+    import h5py
+
+    from torch_stsdic.cli import main
+    from torch_stsdic.movie import block, block_windows
+
+    if not native.available():
+        pytest.skip("no native kernels (the two paths agree to the bit on the C++ kernels)")
+    assert main(["synth", "--out", str(tmp_path / "mv"), "--size", "121", "--frames", "15",
+                 "--motion", "translation", "--ut", "2.0", "--vt", "0.7", "--noise", "2",
+                 "--seed", "4", "--threads", "1"]) == 0
+    calls = {"mixed": 0}
+    solve = block.Block.solve
+
+    def spy(self, idx, init, m=None, *a, **k):
+        calls["mixed"] += isinstance(m, torch.Tensor) and m.numel() > 0
+        return solve(self, idx, init, m, *a, **k)
+
+    monkeypatch.setattr(block.Block, "solve", spy)
+    out = {}
+    for mixes in (True, False):
+        if not mixes:
+            monkeypatch.setattr(block_windows.BlockWindows, "mixes_windows",
+                                property(lambda self: False))
+        path = tmp_path / f"r{int(mixes)}.h5"
+        assert main(["run", str(tmp_path / "mv" / "movie.tif"), "--subset", "21", "--step",
+                     "12", "--threads", "1", "--no-progress", "--out", str(path)]) == 0
+        with h5py.File(path) as f:
+            out[mixes] = {k: f[k][()] for k in ("u", "v", "ut", "vt", "status", "m", "u_std")}
+        if mixes:
+            assert calls["mixed"] > 0  # the blocks took the one call
+            calls["mixed"] = 0
+    assert calls["mixed"] == 0  # and the fallback one a half-width
+    m = out[True]["m"]
+    assert len(set(m[m > 0].tolist())) >= 3  # windows of several lengths in the blocks
+    for k, v in out[True].items():
+        assert (v.tobytes() == out[False][k].tobytes()), k

@@ -192,6 +192,19 @@ MUTATIONS: tuple[Mutation, ...] = (
         "_classical_again(blk, run.classical_points.to(dev).repeat(b), count)", "None",
         ("test_series_reference.py",),
         "rows at points decided classical keep the window a rescue or FFT start gave them"),
+    Mutation(
+        "mixed-windows-read-padding", "solver", "torch_stsdic/kernels/native/dic_kernels.cpp",
+        "const int64_t nti = P.count ? std::min(std::max(P.count[i], int64_t(1)), nt) : nt;",
+        "const int64_t nti = nt;",
+        ("test_mixed_windows.py",),
+        "a solve of windows of mixed length sums the padding frames of the shorter ones"),
+    Mutation(
+        "block-window-length-off-by-one", "movie", "torch_stsdic/movie/block_windows.py",
+        "return self.planes[cols[h, b]], dts[h, b], 2 * m.long() + 1",
+        "return self.planes[cols[h, b]], dts[h, b], 2 * m.long() + 3",
+        ("test_mixed_windows.py",),
+        "a block's one call for every window length solves each row with a window one frame "
+        "too long on each side"),
 )
 
 
