@@ -50,7 +50,7 @@ def _problem(n: int = 64, every: float = 6.0):
     return ref, frames, pts, half, dt, fidx
 
 
-def _solve(mode: str, dtype: str):
+def _solve(mode: str, dtype: str, criterion: str = "znssd"):
     """(mixed solution, {h: (rows, solution of those rows alone)}) in ``mode``."""
     if mode == "triton":
         if not kernels.available():
@@ -64,7 +64,8 @@ def _solve(mode: str, dtype: str):
         pytest.skip("no native kernels")
     ref, frames, pts, half, dt, fidx = _problem(48 if mode == "triton" else 64,
                                                  8.0 if mode == "triton" else 6.0)
-    cfg = sts.DICConfig(m=M, dtype=dtype, subset_size=11 if mode == "triton" else 15)
+    cfg = sts.DICConfig(m=M, dtype=dtype, subset_size=11 if mode == "triton" else 15,
+                        criterion=criterion)
     solver = sts.SubsetSolver(cfg)
     ref, frames = ref.to(getattr(torch, dtype)), frames.to(getattr(torch, dtype))
     ref_img, frames_img = solver.prepare(ref), solver.prepare(frames)
@@ -84,10 +85,11 @@ def _solve(mode: str, dtype: str):
     return mixed, alone
 
 
-@pytest.mark.parametrize("mode,dtype", [("native", "float32"), ("native", "float64"),
-                                        ("torch", "float64"), ("triton", "float32")])
-def test_mixed_windows_equal_each_length_alone(mode, dtype):
-    mixed, alone = _solve(mode, dtype)
+@pytest.mark.parametrize("mode,dtype,criterion", [
+    ("native", "float32", "znssd"), ("native", "float64", "znssd"), ("native", "float64", "ssd"),
+    ("torch", "float64", "znssd"), ("triton", "float32", "znssd")])
+def test_mixed_windows_equal_each_length_alone(mode, dtype, criterion):
+    mixed, alone = _solve(mode, dtype, criterion)
     atol = 1e-6 if dtype == "float64" else 2e-4
     n_ok = 0
     for h, (rows, sol) in alone.items():
