@@ -64,13 +64,16 @@ def _solve(mode: str, dtype: str, criterion: str = "znssd"):
         pytest.skip("no native kernels")
     ref, frames, pts, half, dt, fidx = _problem(48 if mode == "triton" else 64,
                                                  8.0 if mode == "triton" else 6.0)
+    # the Triton kernels on a GPU where there is one, else through the interpreter
+    dev = "cuda" if mode == "triton" and torch.cuda.is_available() else "cpu"
+    ref, frames, pts, half, dt, fidx = (t.to(dev) for t in (ref, frames, pts, half, dt, fidx))
     cfg = sts.DICConfig(m=M, dtype=dtype, subset_size=11 if mode == "triton" else 15,
                         criterion=criterion)
     solver = sts.SubsetSolver(cfg)
     ref, frames = ref.to(getattr(torch, dtype)), frames.to(getattr(torch, dtype))
     ref_img, frames_img = solver.prepare(ref), solver.prepare(frames)
     p = pts.to(getattr(torch, dtype))
-    init = torch.zeros(p.shape[0], 8, dtype=p.dtype)
+    init = torch.zeros(p.shape[0], 8, dtype=p.dtype, device=dev)
     init[:, 0], init[:, 4] = 0.4, -0.3  # near the render's translation
     kw = dict(ref_pixels=ref.unsqueeze(0).to(p.dtype), frame_pixels=frames.to(p.dtype),
               classical_step=True, has_time=True)
