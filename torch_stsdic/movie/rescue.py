@@ -69,10 +69,12 @@ class BlockRescue:
         or the same one, ``near`` (R,) bool, default all, and along the run of rows predicted
         out after one, :func:`_outside_runs`); then at most half-width ``m`` (default the
         run's) and no longer than the row's :attr:`window_m` (also the point's measured
-        motion, a point classical there): one solve per half-width. The better result is
-        kept. Without it a rescued row took the run's window and a centred subset wherever
-        it started, and a point leaving the image failed again where a block's carry had
-        placed it (32-target blocks lost rows that 1-target blocks solve)."""
+        motion, a point classical there): all of them in one solve and the classical rows
+        in another (:meth:`~torch_stsdic.movie.block_windows.BlockWindows.solve_windows`;
+        from FFT, one per half-width). The better result is kept. Without it a rescued row
+        took the run's window and a centred subset wherever it started, and a point leaving
+        the image failed again where a block's carry had placed it (32-target blocks lost
+        rows that 1-target blocks solve)."""
         run = self.run
         if init is not None:
             full = torch.full((self.pts.shape[0], init.shape[1]), float("nan"),
