@@ -270,20 +270,21 @@ class HDF5Sink(MemorySink):
     def _strain_of(self, stored: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         """The strain fields (k, N) of rows ``stored`` (u, v, ut, vt, status as stored),
         computed as :meth:`TrackResult.strain` computes them on the whole result: from the
-        values at the plan's precision, rates wherever the file has rate fields."""
+        values at the plan's precision, rates wherever the file has rate fields. On the host,
+        where the rows are (a run on a GPU copied them there already: no copy to the device
+        and back, two waits a block, for a few thousand rows)."""
         plan = self.plan
 
         def ft(a: np.ndarray) -> torch.Tensor:
-            return torch.from_numpy(np.asarray(a, dtype=np.float64)).to(device=plan.device,
-                                                                          dtype=plan.dtype)
+            return torch.from_numpy(np.asarray(a, dtype=np.float64)).to(dtype=plan.dtype)
 
         rates = any(nm.endswith("_rate") for nm in self.strain_fields)
         valid = torch.from_numpy(np.asarray(stored["status"]).astype(np.int8)) <= int(
             Status.MAX_ITER)
         strain = compute_strain(
-            plan.points.to(device=plan.device, dtype=plan.dtype), ft(stored["u"]),
+            plan.points.to(device="cpu", dtype=plan.dtype), ft(stored["u"]),
             ft(stored["v"]), window=self.strain_window, kind=self.strain_kind,
-            valid=valid.to(plan.device), ut=ft(stored["ut"]) if rates else None,
+            valid=valid, ut=ft(stored["ut"]) if rates else None,
             vt=ft(stored["vt"]) if rates else None)
         return {k: np.asarray(a.detach().cpu()) for k, a in strain.items()
                 if k in self.strain_fields}
