@@ -280,3 +280,44 @@ def test_the_cache_keeps_new_subsets_with_one_read_of_the_misses(monkeypatch):
     fresh.keep_reference_subsets(ref_img, pts[10:20])
     for k in ("ft", "gx", "gy", "gram"):
         assert torch.equal(cache.rows[k][count:], fresh.reference_cache.rows[k])
+
+
+def test_the_cache_keeps_new_subsets_without_a_read_given_their_count(monkeypatch):
+    """With the count of its misses read by the caller (``missing_reference_subsets``, a
+    0-d tensor a block reads with its other facts), ``keep_reference_subsets`` reads nothing
+    (no ``unique``: the missing pixels from their marks, ascending) and keeps what the
+    counting path keeps, the same rows in the same order."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    cfg = sts.DICConfig(m=0, subset_size=15)
+    solver, ref, ref_img, frames_img, pts, times = _solver_and_images(cfg)
+    other = SubsetSolver(cfg)
+    other.reference_cache = ReferenceCache(256.0)
+    moved = torch.cat([pts[5:20], pts[12:20], pts[:3]])  # kept, new, repeated
+    for s in (solver, other):
+        assert s.keep_reference_subsets(ref_img, pts[:10]) is not None
+    count = solver.reference_cache.count
+    n_miss = solver.missing_reference_subsets(ref_img, moved)
+    assert n_miss.dim() == 0 and int(n_miss) == 10  # pts[10:20]
+    reads = []
+
+    class Reads(TorchDispatchMode):
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            if func.overloadpacket.__name__ in ("_local_scalar_dense", "nonzero", "_unique2",
+                                                "unique_dim", "unique_consecutive"):
+                reads.append(func.overloadpacket.__name__)
+            return func(*args, **(kwargs or {}))
+
+    with Reads():
+        assert solver.keep_reference_subsets(ref_img, moved, missing=int(n_miss)) is not None
+    # no unique, no index (the C++ sampler's argument checks read scalars on the CPU only)
+    assert not [r for r in reads if r != "_local_scalar_dense"], reads
+    assert other.keep_reference_subsets(ref_img, moved) is not None  # the counting path
+    a, b = solver.reference_cache, other.reference_cache
+    assert a.count == b.count == count + 10
+    assert torch.equal(a.slot, b.slot)
+    for k in ("ft", "gx", "gy", "gram", "fnorm", "texture"):
+        assert torch.equal(a.rows[k], b.rows[k]), k
+    assert int(solver.missing_reference_subsets(ref_img, moved)) == 0  # all kept now
+    assert solver.keep_reference_subsets(ref_img, moved, missing=0) is not None
+    assert a.count == count + 10

@@ -31,7 +31,8 @@ from torch_stsdic.core.status import Status
 from torch_stsdic.kernels import dispatch
 from torch_stsdic.kernels.linalg import spd_inverse
 
-__all__ = ["BatchContext", "KeptToken", "ReferenceCache", "keep_subsets", "solve_batch"]
+__all__ = ["BatchContext", "KeptToken", "ReferenceCache", "keep_subsets", "missing_subsets",
+           "solve_batch"]
 
 #: the slowest convergence assumed when the next increment is predicted from the last two
 #: (:func:`_next_increment`): at a faster observed rate the prediction uses this one. Chosen
@@ -406,11 +407,50 @@ def _cached_reference_data(ctx: BatchContext, pts, dt, fidx, ridx, key):
     return _rows_of(ctx, data, cache.slot[key], pts, dt, fidx)
 
 
-def _keep_missing(ctx: BatchContext, pts, dt, fidx, ridx, key) -> bool:
+def _missing_marks(cache: ReferenceCache, key: Tensor) -> tuple[Tensor, Tensor]:
+    """For the rows' pixel keys ``key`` (N,): each row's key where ``cache`` misses its
+    subset, else one past the last pixel (N,), and the (pixels + 1,) bool marks of the keys
+    that miss (the last entry: the rows that do not). No host read."""
+    n_px = cache.slot.numel()
+    km = torch.where(cache.slot[key] < 0, key, n_px)
+    mark = torch.zeros(n_px + 1, dtype=torch.bool, device=key.device)
+    mark[km] = True
+    return km, mark
+
+
+def missing_subsets(ctx: BatchContext, pts: torch.Tensor) -> Tensor | None:
+    """(0-d int64, on the device, not read) how many distinct pixels of the points ``pts``
+    (N, 2) (reference 0, at the pixels a solve snaps them to) ``ctx.cache`` misses: what
+    :func:`keep_subsets` would sample (a caller reads it with its own numbers and hands it
+    back, ``missing=``). None where the cache does not serve them."""
+    cache = ctx.cache
+    if cache is None or not cache.applies(ctx.ref, ctx.geo):
+        return None
+    pts = pts.detach().round()
+    ridx = torch.zeros(pts.shape[0], dtype=torch.long, device=pts.device)
+    return _missing_marks(cache, _pixel_keys(ctx.ref, pts, ridx))[1][:-1].sum()
+
+
+def _keep_missing(ctx: BatchContext, pts, dt, fidx, ridx, key,
+                  missing: int | None = None) -> bool:
     """The reference subsets of the rows ``key`` (N,) (pixel keys of ``pts``) that
-    ``ctx.cache`` misses, sampled and kept (one host read: the distinct keys that miss);
-    False where they would exceed its budget (the cache is then off)."""
+    ``ctx.cache`` misses, sampled and kept (one host read: the distinct keys that miss;
+    none where the caller read their count, ``missing``: :func:`missing_subsets`); False
+    where they would exceed its budget (the cache is then off)."""
     cache, geo = ctx.cache, ctx.geo
+    if missing is not None:  # the distinct keys that miss, ascending, from their marks
+        if missing == 0:
+            return True
+        s = int(geo.w.numel())
+        if not cache.fits(missing, s, ctx.ref.coeffs.element_size(), 2 * (geo.ks + 1)):
+            return False
+        km, mark = _missing_marks(cache, key)
+        uniq = torch.nonzero_static(mark[:-1], size=missing).flatten()
+        n = key.shape[0]
+        first = torch.full((mark.numel(),), n, dtype=torch.long, device=key.device)
+        first = first.scatter_reduce(0, km, torch.arange(n, device=key.device), "amin")
+        cache.add(uniq, _sampled(ctx, pts, dt, fidx, ridx, first[uniq]))
+        return True
     miss_rows = cache.slot[key] < 0
     # the distinct keys of the rows that miss, sorted, by one unique over every row: the
     # rows that do not miss keyed -1 (the least key; one -1 in front, so it is always there)
@@ -426,12 +466,14 @@ def _keep_missing(ctx: BatchContext, pts, dt, fidx, ridx, key) -> bool:
     return True
 
 
-def keep_subsets(ctx: BatchContext, pts: torch.Tensor) -> KeptToken | None:
+def keep_subsets(ctx: BatchContext, pts: torch.Tensor, missing: int | None = None
+                 ) -> KeptToken | None:
     """Put the reference subsets of the points ``pts`` (N, 2) (reference 0; at the pixels a
     solve snaps them to) in ``ctx.cache`` (those it misses sampled: one host read) and
     return its token (:meth:`ReferenceCache.token`): a solve of any of these points given it
     as ``BatchContext.kept`` reads their subsets from the cache with no host read. None
-    where the cache does not serve them (none, another geometry, over its budget)."""
+    where the cache does not serve them (none, another geometry, over its budget).
+    ``missing``: :func:`missing_subsets`'s count, read by the caller (then no read here)."""
     cache = ctx.cache
     if cache is None or not cache.applies(ctx.ref, ctx.geo):
         return None
@@ -440,7 +482,7 @@ def keep_subsets(ctx: BatchContext, pts: torch.Tensor) -> KeptToken | None:
     zero = torch.zeros(n, 1, dtype=pts.dtype, device=pts.device)
     ridx = torch.zeros(n, dtype=torch.long, device=pts.device)
     key = _pixel_keys(ctx.ref, pts, ridx)
-    if not _keep_missing(ctx, pts, zero, ridx.unsqueeze(1), ridx, key):
+    if not _keep_missing(ctx, pts, zero, ridx.unsqueeze(1), ridx, key, missing):
         return None
     return cache.token()
 

@@ -43,6 +43,7 @@ from torch_stsdic.core.gauss_newton import (
     ReferenceCache,
     classical_step_width,
     keep_subsets,
+    missing_subsets,
     solve_batch,
 )
 from torch_stsdic.core.initial import (
@@ -141,20 +142,32 @@ class SubsetSolver:
         (its Hessian, kernels and uncertainty sum over each row's own frames)."""
         return all(isinstance(f, formulations.JointIC) for f in self.stages_for(shape))
 
-    def keep_reference_subsets(self, ref: BSplineImage, points: torch.Tensor
-                               ) -> KeptToken | None:
+    def keep_reference_subsets(self, ref: BSplineImage, points: torch.Tensor,
+                               missing: int | None = None) -> KeptToken | None:
         """Put the reference subsets of ``points`` (N, 2) (their dtype the solves'; at the
         whole pixels a solve snaps them to) of ``ref`` (reference 0) in
-        :attr:`reference_cache` (one host read), and return the token that lets a later
-        :meth:`solve` of any of them (``kept=``) read them there with no host read; None
-        where the cache does not serve them."""
+        :attr:`reference_cache` (one host read; none with ``missing``, the count of
+        :meth:`missing_reference_subsets` read by the caller), and return the token that lets
+        a later :meth:`solve` of any of them (``kept=``) read them there with no host read;
+        None where the cache does not serve them."""
+        ctx = self._cache_context(ref, points)
+        return None if ctx is None else keep_subsets(ctx, points, missing)
+
+    def missing_reference_subsets(self, ref: BSplineImage, points: torch.Tensor
+                                  ) -> torch.Tensor | None:
+        """(0-d int64 on the device, not read) the distinct pixels of ``points`` whose
+        subsets :meth:`keep_reference_subsets` would sample; None where the cache does not
+        serve them."""
+        ctx = self._cache_context(ref, points)
+        return None if ctx is None else missing_subsets(ctx, points)
+
+    def _cache_context(self, ref: BSplineImage, points: torch.Tensor) -> BatchContext | None:
         if self.reference_cache is None or points.shape[0] == 0:
             return None
         geo = self._geometry(self.shape, points.dtype, points.device)
-        ctx = BatchContext(geo=geo, ref=ref, frames=ref, cfg=self.config,
-                           stages=self.stages_for(self.shape), grey_range=1.0,
-                           cache=self.reference_cache, on_grid=True)
-        return keep_subsets(ctx, points)
+        return BatchContext(geo=geo, ref=ref, frames=ref, cfg=self.config,
+                            stages=self.stages_for(self.shape), grey_range=1.0,
+                            cache=self.reference_cache, on_grid=True)
 
     def shape_for(self, dt: torch.Tensor, has_time: bool | None = None) -> ShapeFunction:
         """The shape function used for frame offsets ``dt``: without temporal terms when all

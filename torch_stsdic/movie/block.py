@@ -397,11 +397,16 @@ class Block(BlockChecks, BlockRescue, BlockMotion, BlockWindows):
         inside = subset_inside(centres, float(run.solver.window.half), self.ref.img.height,
                                self.ref.img.width).all()
         # one read: the rows moved, whether every subset is inside, the rows off their POIs
-        n_moved, all_in, n_off = torch.stack([moved.sum(), inside.long(), off.sum()]).tolist()
+        # and the reference subsets the solver's cache misses at the centres
+        miss = (None if self.kept is None
+                else run.solver.missing_reference_subsets(self.ref.img, centres))
+        facts = [moved.sum(), inside.long(), off.sum()] + ([] if miss is None else [miss])
+        n_moved, all_in, n_off, *n_miss = torch.stack(facts).tolist()
         if n_moved:
             self.centres, self.centres_inside = centres, bool(all_in)
-            if self.kept is not None:  # and the moved subsets' (one host read)
-                self.kept = run.solver.keep_reference_subsets(self.ref.img, self.centres)
+            if self.kept is not None:  # and the moved subsets' (no read: counted above)
+                self.kept = run.solver.keep_reference_subsets(
+                    self.ref.img, self.centres, missing=n_miss[0] if n_miss else None)
             self._centres_moved(off, n_off, moved, n_moved)  # the shared motion there
             run.stats["off_centre_rows"] = run.stats.get("off_centre_rows", 0) + n_moved
         return out
