@@ -321,3 +321,38 @@ def test_the_cache_keeps_new_subsets_without_a_read_given_their_count(monkeypatc
     assert int(solver.missing_reference_subsets(ref_img, moved)) == 0  # all kept now
     assert solver.keep_reference_subsets(ref_img, moved, missing=0) is not None
     assert a.count == count + 10
+
+
+@pytest.mark.parametrize("window", ["square", "circular"])
+def test_subsets_known_inside_are_gathered_without_reading_the_points(window):
+    """``sample_subsets(inside=True)`` (whole pixels inside the image, known to the caller)
+    gives the same subsets as the tested path, and once the image has seen the offsets it
+    reads nothing (the offsets' facts kept with them); a point off the pixel grid is not
+    taken for one."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    from torch_stsdic.core.formulations import Geometry
+
+    cfg = sts.DICConfig(m=0, subset_size=15, window=window)
+    solver, ref, ref_img, frames_img, pts, times = _solver_and_images(cfg)
+    geo = Geometry.make(solver.shape, solver.window, "znssd", torch.float32, "cpu")
+    ref_img._pixel_grid()  # the per-pixel images (a run's POIs made them)
+    px, py = pts[:, :1], pts[:, 1:]
+    want = ref_img.sample_subsets(px, py, geo.dx, geo.dy)
+    first = ref_img.sample_subsets(px, py, geo.dx, geo.dy, inside=True)
+    for a, b in zip(want, first):
+        assert torch.equal(a, b)
+    seen = []
+
+    class Reads(TorchDispatchMode):
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            seen.append(func.overloadpacket.__name__)
+            return func(*args, **(kwargs or {}))
+
+    with Reads():
+        again = ref_img.sample_subsets(px[:7], py[:7], geo.dx, geo.dy, inside=True)
+    # no facts of the points or offsets (their max and min); the C++ gather's own argument
+    # check reads a flag on the CPU only
+    assert not {"max", "min", "abs"} & set(seen), sorted(set(seen))
+    for a, b in zip(want, again):
+        assert torch.equal(a[:7], b)

@@ -362,11 +362,13 @@ def _first_rows(inv: torch.Tensor, n_points: int) -> torch.Tensor:
     return first.scatter_reduce(0, inv, torch.arange(n, device=inv.device), "amin")
 
 
-def _sampled(ctx: BatchContext, pts, dt, fidx, ridx, rows) -> SubsetData:
+def _sampled(ctx: BatchContext, pts, dt, fidx, ridx, rows, inside: bool = False
+             ) -> SubsetData:
     """The reference subsets of the rows ``rows`` (one per distinct point), sampled, with
-    their centred gram and texture."""
+    their centred gram and texture (``inside``: :func:`reference_subsets`'s)."""
     geo = ctx.geo
-    data = reference_subsets(geo, ctx.ref, pts[rows], ridx[rows], dt[rows], fidx[rows])
+    data = reference_subsets(geo, ctx.ref, pts[rows], ridx[rows], dt[rows], fidx[rows],
+                             inside=inside)
     data.gram, data.texture = gram_and_texture(geo, data.gx, data.gy)
     return data
 
@@ -432,10 +434,11 @@ def missing_subsets(ctx: BatchContext, pts: torch.Tensor) -> Tensor | None:
 
 
 def _keep_missing(ctx: BatchContext, pts, dt, fidx, ridx, key,
-                  missing: int | None = None) -> bool:
+                  missing: int | None = None, inside: bool = False) -> bool:
     """The reference subsets of the rows ``key`` (N,) (pixel keys of ``pts``) that
     ``ctx.cache`` misses, sampled and kept (one host read: the distinct keys that miss;
-    none where the caller read their count, ``missing``: :func:`missing_subsets`); False
+    none where the caller read their count, ``missing``: :func:`missing_subsets`; nor of
+    the points' facts where it knows them, ``inside``: :func:`reference_subsets`'s); False
     where they would exceed its budget (the cache is then off)."""
     cache, geo = ctx.cache, ctx.geo
     if missing is not None:  # the distinct keys that miss, ascending, from their marks
@@ -449,7 +452,7 @@ def _keep_missing(ctx: BatchContext, pts, dt, fidx, ridx, key,
         n = key.shape[0]
         first = torch.full((mark.numel(),), n, dtype=torch.long, device=key.device)
         first = first.scatter_reduce(0, km, torch.arange(n, device=key.device), "amin")
-        cache.add(uniq, _sampled(ctx, pts, dt, fidx, ridx, first[uniq]))
+        cache.add(uniq, _sampled(ctx, pts, dt, fidx, ridx, first[uniq], inside))
         return True
     miss_rows = cache.slot[key] < 0
     # the distinct keys of the rows that miss, sorted, by one unique over every row: the
@@ -466,14 +469,15 @@ def _keep_missing(ctx: BatchContext, pts, dt, fidx, ridx, key,
     return True
 
 
-def keep_subsets(ctx: BatchContext, pts: torch.Tensor, missing: int | None = None
-                 ) -> KeptToken | None:
+def keep_subsets(ctx: BatchContext, pts: torch.Tensor, missing: int | None = None,
+                 inside: bool = False) -> KeptToken | None:
     """Put the reference subsets of the points ``pts`` (N, 2) (reference 0; at the pixels a
     solve snaps them to) in ``ctx.cache`` (those it misses sampled: one host read) and
     return its token (:meth:`ReferenceCache.token`): a solve of any of these points given it
     as ``BatchContext.kept`` reads their subsets from the cache with no host read. None
     where the cache does not serve them (none, another geometry, over its budget).
-    ``missing``: :func:`missing_subsets`'s count, read by the caller (then no read here)."""
+    ``missing``: :func:`missing_subsets`'s count, read by the caller (then no read here);
+    ``inside``: every point a whole pixel whose subset lies inside the image (known)."""
     cache = ctx.cache
     if cache is None or not cache.applies(ctx.ref, ctx.geo):
         return None
@@ -482,7 +486,7 @@ def keep_subsets(ctx: BatchContext, pts: torch.Tensor, missing: int | None = Non
     zero = torch.zeros(n, 1, dtype=pts.dtype, device=pts.device)
     ridx = torch.zeros(n, dtype=torch.long, device=pts.device)
     key = _pixel_keys(ctx.ref, pts, ridx)
-    if not _keep_missing(ctx, pts, zero, ridx.unsqueeze(1), ridx, key, missing):
+    if not _keep_missing(ctx, pts, zero, ridx.unsqueeze(1), ridx, key, missing, inside):
         return None
     return cache.token()
 

@@ -15,6 +15,7 @@ B-spline and leaves a systematic error of order 1e-2 px in DIC.
 from __future__ import annotations
 
 import math
+import weakref
 
 import torch
 
@@ -157,15 +158,16 @@ class BSplineImage:
         return kernel(*args)
 
     def sample_subsets(self, px: torch.Tensor, py: torch.Tensor, dx: torch.Tensor,
-                       dy: torch.Tensor, frame: torch.Tensor | int = 0):
+                       dy: torch.Tensor, frame: torch.Tensor | int = 0, inside: bool = False):
         """Values and gradients (each (N, S)) of whole subsets: the points
         (px[i] + dx[s], py[i] + dy[s]) of frame[i]; px, py (N,) or (N, 1), dx, dy (S,),
-        frame an int or (N,) integer tensor."""
+        frame an int or (N,) integer tensor. ``inside``: the caller knows every point is a
+        whole pixel whose subset lies inside the image (its facts then not read)."""
         px, py = px.reshape(-1, 1).to(self.dtype), py.reshape(-1, 1).to(self.dtype)
         frame_t = (torch.full((1, 1), frame, dtype=torch.long, device=self.device)
                    if isinstance(frame, int)
                    else torch.as_tensor(frame, device=self.device).long().reshape(-1, 1))
-        fast = self._subsets_on_grid(px, py, dx, dy, frame_t)
+        fast = self._subsets_on_grid(px, py, dx, dy, frame_t, inside)
         if fast is not None:
             return fast
         return self._subsets(px, py, dx, dy, frame_t)
@@ -189,15 +191,22 @@ class BSplineImage:
     #: large image are sampled: the per-pixel images would cost more than they save)
     GRID_MAX_MB = 512.0
 
-    def _subsets_on_grid(self, px, py, dx, dy, frame_t):
+    def _subsets_on_grid(self, px, py, dx, dy, frame_t, inside: bool = False):
         """Subsets whose points and offsets are all whole pixels (the reference subsets of
         POIs on the pixel grid), gathered from the spline's values and gradients at every
         pixel (computed once per image by the same kernel: the same numbers); None where
         that does not apply (off-grid, gradients required, a long stack, points whose
-        subsets leave the image)."""
+        subsets leave the image). ``inside``: :meth:`sample_subsets`'s (the points' facts
+        known; the offsets' read once for the offsets the image last saw)."""
         if (self.n_frames > self.GRID_FRAMES or px.requires_grad or py.requires_grad
                 or self._flat.requires_grad or px.numel() == 0):
             return None
+        if inside:
+            hx, hy, full, whole = self._offset_facts(dx, dy)
+            if not whole:
+                return None
+            x0, y0 = px.long().reshape(-1) - hx, py.long().reshape(-1) - hy
+            return self._gather_windows(x0, y0, dx, dy, frame_t, hx, hy, full)
         # every test's numbers in one host read (whole pixels, the reach, the bounds, and
         # whether the offsets are the full square in raster order)
         hx_t, hy_t = dx.abs().max(), dy.abs().max()
@@ -219,6 +228,31 @@ class BSplineImage:
         if (int(pxmin) - hx < 0 or int(pymin) - hy < 0 or int(pxmax) - hx + 2 * hx >= self.width
                 or int(pymax) - hy + 2 * hy >= self.height):
             return None
+        return self._gather_windows(x0, y0, dx, dy, frame_t, hx, hy, bool(full))
+
+    def _offset_facts(self, dx: torch.Tensor, dy: torch.Tensor) -> tuple[int, int, bool, bool]:
+        """(reach x, reach y, the full square in raster order, all whole pixels) of the
+        subset offsets ``dx``, ``dy`` (S,): one host read, kept for the offsets last asked
+        for (a solver's geometry keeps its tensors from solve to solve)."""
+        memo = self.__dict__.get("_offset_memo")
+        if memo is not None and memo[0]() is dx and memo[1]() is dy:
+            return memo[2]
+        hx_t, hy_t = dx.abs().max(), dy.abs().max()
+        wx_t = 2 * hx_t.round() + 1
+        col_t = (dy.round() + hy_t.round()) * wx_t + dx.round() + hx_t.round()
+        full_t = (col_t == torch.arange(dx.numel(), device=col_t.device,
+                                        dtype=col_t.dtype)).all()
+        full_t &= (wx_t * (2 * hy_t.round() + 1)) == dx.numel()
+        whole_t = (dx == dx.round()).all() & (dy == dy.round()).all()
+        hx, hy, full, whole = torch.stack([t.to(torch.float64).reshape(()) for t in (
+            hx_t, hy_t, full_t, whole_t)]).tolist()
+        facts = (int(hx), int(hy), bool(full), bool(whole))
+        self.__dict__["_offset_memo"] = (weakref.ref(dx), weakref.ref(dy), facts)
+        return facts
+
+    def _gather_windows(self, x0, y0, dx, dy, frame_t, hx: int, hy: int, full: bool):
+        """:meth:`_subsets_on_grid`'s gather of the windows whose first pixels are ``x0``,
+        ``y0`` (N,), or None where the per-pixel images would cost more than they save."""
         if self._grid is None:
             pixels = self.n_frames * self.height * self.width
             mb = 3 * pixels * self.coeffs.element_size() / 2**20

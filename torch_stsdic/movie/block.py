@@ -406,7 +406,8 @@ class Block(BlockChecks, BlockRescue, BlockMotion, BlockWindows):
             self.centres, self.centres_inside = centres, bool(all_in)
             if self.kept is not None:  # and the moved subsets' (no read: counted above)
                 self.kept = run.solver.keep_reference_subsets(
-                    self.ref.img, self.centres, missing=n_miss[0] if n_miss else None)
+                    self.ref.img, self.centres, missing=n_miss[0] if n_miss else None,
+                    inside=bool(all_in) and run.point_facts(self.ref)[0])
             self._centres_moved(off, n_off, moved, n_moved)  # the shared motion there
             run.stats["off_centre_rows"] = run.stats.get("off_centre_rows", 0) + n_moved
         return out

@@ -186,12 +186,15 @@ class SubsetData:
 
 
 def reference_subsets(geo: Geometry, ref: BSplineImage, pts: Tensor, ridx: Tensor,
-                      dt: Tensor, fidx: Tensor, motion: Tensor | None = None) -> SubsetData:
+                      dt: Tensor, fidx: Tensor, motion: Tensor | None = None,
+                      inside: bool = False) -> SubsetData:
     """Sample the reference subsets of POIs ``pts`` (N, 2) in reference images ``ridx`` (N,)
     with gradients and normalise them for the criterion. Differentiable in the reference
-    pixels and the points when they require gradients (the native kernels are then skipped)."""
+    pixels and the points when they require gradients (the native kernels are then skipped).
+    ``inside``: the caller knows every POI is a whole pixel whose subset lies inside the
+    image (:meth:`BSplineImage.sample_subsets`: not read)."""
     px, py = pts[:, 0:1], pts[:, 1:2]
-    f, gx, gy = ref.sample_subsets(px, py, geo.dx, geo.dy, frame=ridx)
+    f, gx, gy = ref.sample_subsets(px, py, geo.dx, geo.dy, frame=ridx, inside=inside)
     # sums row by row (a matrix-vector product rounds a row by where it lies in the batch):
     # a point's subset is the same whatever points it is solved with, in a resumed run too
     ft = f - ((f * geo.w).sum(-1) / geo.w.sum()).unsqueeze(-1) if geo.znssd else f
