@@ -7,6 +7,7 @@ import os
 
 import pytest
 import torch
+from torch.utils._python_dispatch import TorchDispatchMode
 
 import torch_stsdic as sts
 from torch_stsdic import synth
@@ -86,6 +87,26 @@ def _solver_and_images(cfg):
     ref_img = solver.prepare(ref.to(torch.float32))
     frames_img = solver.prepare(frames.to(torch.float32))
     return solver, ref, ref_img, frames_img, pts.to(torch.float32), times
+
+
+#: the operations that make a host wait for a GPU, as the dispatcher names them
+READS = ("_local_scalar_dense", "is_nonzero", "nonzero", "_unique2", "unique_dim",
+         "unique_consecutive")
+
+
+class _Dispatched(TorchDispatchMode):
+    """Records the names of the torch operations dispatched inside it (only ``names`` where
+    given) in :attr:`seen`."""
+
+    def __init__(self, names: tuple[str, ...] | None = None) -> None:
+        super().__init__()
+        self.names, self.seen = names, []
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        name = func.overloadpacket.__name__
+        if self.names is None or name in self.names:
+            self.seen.append(name)
+        return func(*args, **(kwargs or {}))
 
 
 def test_kept_subsets_are_read_without_counting_the_misses(per_point, monkeypatch):
@@ -207,19 +228,10 @@ def test_the_shared_velocity_at_the_target_reads_nothing_and_is_the_line_where_c
     a window is shifted and the motion bends, the line's slope elsewhere, without a host
     read of whether any window is shifted; a shifted window of two distinct times (no
     quadratic) gives the line, not an error."""
-    from torch.utils._python_dispatch import TorchDispatchMode
-
     from torch_stsdic.core.shared_motion import window_slope
     from torch_stsdic.movie.shared_velocity import target_slope
 
-    reads = []
-
-    class Reads(TorchDispatchMode):
-        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-            if func in (torch.ops.aten._local_scalar_dense.default,
-                        torch.ops.aten.is_nonzero.default, torch.ops.aten.nonzero.default):
-                reads.append(func)
-            return func(*args, **(kwargs or {}))
+    reads = _Dispatched(("_local_scalar_dense", "is_nonzero", "nonzero"))
 
     centred = torch.arange(-3.0, 4.0, dtype=torch.float64)
     shifted = torch.arange(0.0, 7.0, dtype=torch.float64)  # the movie's first frame
@@ -228,9 +240,9 @@ def test_the_shared_velocity_at_the_target_reads_nothing_and_is_the_line_where_c
     b1, c2 = torch.tensor([0.3, -0.1]), torch.tensor([0.02, 0.05])  # px/frame, px/frame^2
     g = 1.5 + b1 * dt.unsqueeze(-1) + c2 * dt.unsqueeze(-1) ** 2  # (B, N, T, 2)
     frame_var = torch.full((3, 4), 1e-6, dtype=torch.float64)
-    with Reads():
+    with reads:
         slope, used, var = target_slope(g, dt, frame_var)
-    assert not reads
+    assert not reads.seen
     line = window_slope(g.double(), dt)
     assert not used[0].any() and torch.equal(slope[0], line[0]) and not var[0].any()
     assert used[1].all() and torch.allclose(slope[1], b1.double().expand(4, 2), atol=1e-9)
@@ -242,8 +254,6 @@ def test_the_cache_keeps_new_subsets_with_one_read_of_the_misses(monkeypatch):
     (a block's moved subsets: the same pixel in several targets) reads the device once for
     its misses (their distinct pixels, by one ``unique``; not a count, an index and a unique)
     and keeps each new pixel's subset once, the same numbers as sampling it alone."""
-    from torch.utils._python_dispatch import TorchDispatchMode
-
     from torch_stsdic.core import gauss_newton as gn
 
     solver, ref, ref_img, frames_img, pts, times = _solver_and_images(sts.DICConfig(m=0,
@@ -251,15 +261,7 @@ def test_the_cache_keeps_new_subsets_with_one_read_of_the_misses(monkeypatch):
     assert solver.keep_reference_subsets(ref_img, pts[:10]) is not None
     count = solver.reference_cache.count
     moved = torch.cat([pts[5:20], pts[12:20], pts[:3]])  # kept, new, repeated
-    reads = []
-
-    class Reads(TorchDispatchMode):
-        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-            if func.overloadpacket.__name__ in ("_local_scalar_dense", "nonzero", "_unique2",
-                                                "unique_dim", "unique_consecutive"):
-                reads.append(func.overloadpacket.__name__)
-            return func(*args, **(kwargs or {}))
-
+    reads = _Dispatched(READS)
     sampled_rows = []
     real = gn._sampled
 
@@ -267,10 +269,10 @@ def test_the_cache_keeps_new_subsets_with_one_read_of_the_misses(monkeypatch):
         sampled_rows.append(rows.clone())
         return real(ctx, p, dt, fidx, ridx, rows)
     monkeypatch.setattr(gn, "_sampled", sampled)
-    with Reads():
+    with reads:
         assert solver.keep_reference_subsets(ref_img, moved) is not None
     monkeypatch.setattr(gn, "_sampled", real)
-    assert reads.count("_unique2") == 1 and "nonzero" not in reads, reads
+    assert reads.seen.count("_unique2") == 1 and "nonzero" not in reads.seen, reads.seen
     cache = solver.reference_cache
     assert cache.count == count + 10  # pts[10:20] new, each once
     # the first row of each new pixel, in the keys' order (rows 5..14 of `moved`)
@@ -287,8 +289,6 @@ def test_the_cache_keeps_new_subsets_without_a_read_given_their_count(monkeypatc
     0-d tensor a block reads with its other facts), ``keep_reference_subsets`` reads nothing
     (no ``unique``: the missing pixels from their marks, ascending) and keeps what the
     counting path keeps, the same rows in the same order."""
-    from torch.utils._python_dispatch import TorchDispatchMode
-
     cfg = sts.DICConfig(m=0, subset_size=15)
     solver, ref, ref_img, frames_img, pts, times = _solver_and_images(cfg)
     other = SubsetSolver(cfg)
@@ -299,19 +299,11 @@ def test_the_cache_keeps_new_subsets_without_a_read_given_their_count(monkeypatc
     count = solver.reference_cache.count
     n_miss = solver.missing_reference_subsets(ref_img, moved)
     assert n_miss.dim() == 0 and int(n_miss) == 10  # pts[10:20]
-    reads = []
-
-    class Reads(TorchDispatchMode):
-        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-            if func.overloadpacket.__name__ in ("_local_scalar_dense", "nonzero", "_unique2",
-                                                "unique_dim", "unique_consecutive"):
-                reads.append(func.overloadpacket.__name__)
-            return func(*args, **(kwargs or {}))
-
-    with Reads():
+    reads = _Dispatched(READS)
+    with reads:
         assert solver.keep_reference_subsets(ref_img, moved, missing=int(n_miss)) is not None
     # no unique, no index (the C++ sampler's argument checks read scalars on the CPU only)
-    assert not [r for r in reads if r != "_local_scalar_dense"], reads
+    assert not [r for r in reads.seen if r != "_local_scalar_dense"], reads.seen
     assert other.keep_reference_subsets(ref_img, moved) is not None  # the counting path
     a, b = solver.reference_cache, other.reference_cache
     assert a.count == b.count == count + 10
@@ -327,10 +319,7 @@ def test_the_cache_keeps_new_subsets_without_a_read_given_their_count(monkeypatc
 def test_subsets_known_inside_are_gathered_without_reading_the_points(window):
     """``sample_subsets(inside=True)`` (whole pixels inside the image, known to the caller)
     gives the same subsets as the tested path, and once the image has seen the offsets it
-    reads nothing (the offsets' facts kept with them); a point off the pixel grid is not
-    taken for one."""
-    from torch.utils._python_dispatch import TorchDispatchMode
-
+    reads nothing of the points or offsets (the offsets' facts kept with them)."""
     from torch_stsdic.core.formulations import Geometry
 
     cfg = sts.DICConfig(m=0, subset_size=15, window=window)
@@ -342,17 +331,11 @@ def test_subsets_known_inside_are_gathered_without_reading_the_points(window):
     first = ref_img.sample_subsets(px, py, geo.dx, geo.dy, inside=True)
     for a, b in zip(want, first):
         assert torch.equal(a, b)
-    seen = []
-
-    class Reads(TorchDispatchMode):
-        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-            seen.append(func.overloadpacket.__name__)
-            return func(*args, **(kwargs or {}))
-
-    with Reads():
+    ops = _Dispatched()
+    with ops:
         again = ref_img.sample_subsets(px[:7], py[:7], geo.dx, geo.dy, inside=True)
     # no facts of the points or offsets (their max and min); the C++ gather's own argument
     # check reads a flag on the CPU only
-    assert not {"max", "min", "abs"} & set(seen), sorted(set(seen))
+    assert not {"max", "min", "abs"} & set(ops.seen), sorted(set(ops.seen))
     for a, b in zip(want, again):
         assert torch.equal(a[:7], b)
