@@ -265,9 +265,9 @@ def test_the_cache_keeps_new_subsets_with_one_read_of_the_misses(monkeypatch):
     sampled_rows = []
     real = gn._sampled
 
-    def sampled(ctx, p, dt, fidx, ridx, rows):
+    def sampled(ctx, p, dt, fidx, ridx, rows, *rest):
         sampled_rows.append(rows.clone())
-        return real(ctx, p, dt, fidx, ridx, rows)
+        return real(ctx, p, dt, fidx, ridx, rows, *rest)
     monkeypatch.setattr(gn, "_sampled", sampled)
     with reads:
         assert solver.keep_reference_subsets(ref_img, moved) is not None

@@ -465,7 +465,7 @@ def _keep_missing(ctx: BatchContext, pts, dt, fidx, ridx, key,
                           2 * (geo.ks + 1)):
             return False
         first = _first_rows(inv, uniq.shape[0])[1:] - 1  # each missing key's first row
-        cache.add(uniq[1:], _sampled(ctx, pts, dt, fidx, ridx, first))
+        cache.add(uniq[1:], _sampled(ctx, pts, dt, fidx, ridx, first, inside))
     return True
 
 
