@@ -436,36 +436,24 @@ def missing_subsets(ctx: BatchContext, pts: torch.Tensor) -> Tensor | None:
 def _keep_missing(ctx: BatchContext, pts, dt, fidx, ridx, key,
                   missing: int | None = None, inside: bool = False) -> bool:
     """The reference subsets of the rows ``key`` (N,) (pixel keys of ``pts``) that
-    ``ctx.cache`` misses, sampled and kept (one host read: the distinct keys that miss;
-    none where the caller read their count, ``missing``: :func:`missing_subsets`; nor of
-    the points' facts where it knows them, ``inside``: :func:`reference_subsets`'s); False
+    ``ctx.cache`` misses, sampled and kept (one host read: how many distinct keys miss;
+    none where the caller read it, ``missing``: :func:`missing_subsets`; nor of the
+    points' facts where it knows them, ``inside``: :func:`reference_subsets`'s); False
     where they would exceed its budget (the cache is then off)."""
     cache, geo = ctx.cache, ctx.geo
-    if missing is not None:  # the distinct keys that miss, ascending, from their marks
-        if missing == 0:
-            return True
-        s = int(geo.w.numel())
-        if not cache.fits(missing, s, ctx.ref.coeffs.element_size(), 2 * (geo.ks + 1)):
-            return False
-        km, mark = _missing_marks(cache, key)
-        uniq = torch.nonzero_static(mark[:-1], size=missing).flatten()
-        n = key.shape[0]
-        first = torch.full((mark.numel(),), n, dtype=torch.long, device=key.device)
-        first = first.scatter_reduce(0, km, torch.arange(n, device=key.device), "amin")
-        cache.add(uniq, _sampled(ctx, pts, dt, fidx, ridx, first[uniq], inside))
+    if missing == 0:
         return True
-    miss_rows = cache.slot[key] < 0
-    # the distinct keys of the rows that miss, sorted, by one unique over every row: the
-    # rows that do not miss keyed -1 (the least key; one -1 in front, so it is always there)
-    keys = torch.cat([key.new_full((1,), -1), torch.where(miss_rows, key, -1)])
-    uniq, inv = torch.unique(keys, return_inverse=True)
-    if uniq.shape[0] > 1:
-        s = int(geo.w.numel())
-        if not cache.fits(uniq.shape[0] - 1, s, ctx.ref.coeffs.element_size(),
-                          2 * (geo.ks + 1)):
-            return False
-        first = _first_rows(inv, uniq.shape[0])[1:] - 1  # each missing key's first row
-        cache.add(uniq[1:], _sampled(ctx, pts, dt, fidx, ridx, first, inside))
+    km, mark = _missing_marks(cache, key)
+    missing = int(mark[:-1].sum()) if missing is None else missing
+    if missing == 0:
+        return True
+    if not cache.fits(missing, int(geo.w.numel()), ctx.ref.coeffs.element_size(),
+                      2 * (geo.ks + 1)):
+        return False
+    # the distinct keys that miss, ascending, and the first row of each
+    uniq = torch.nonzero_static(mark[:-1], size=missing).flatten()
+    first = _first_rows(km, mark.numel())[uniq]
+    cache.add(uniq, _sampled(ctx, pts, dt, fidx, ridx, first, inside))
     return True
 
 
