@@ -201,34 +201,19 @@ class BSplineImage:
         if (self.n_frames > self.GRID_FRAMES or px.requires_grad or py.requires_grad
                 or self._flat.requires_grad or px.numel() == 0):
             return None
-        if inside:
-            hx, hy, full, whole = self._offset_facts(dx, dy)
-            if not whole:
-                return None
-            x0, y0 = px.long().reshape(-1) - hx, py.long().reshape(-1) - hy
-            return self._gather_windows(x0, y0, dx, dy, frame_t, hx, hy, full)
-        # every test's numbers in one host read (whole pixels, the reach, the bounds, and
-        # whether the offsets are the full square in raster order)
-        hx_t, hy_t = dx.abs().max(), dy.abs().max()
-        wx_t = 2 * hx_t.round() + 1
-        col_t = (dy.round() + hy_t.round()) * wx_t + dx.round() + hx_t.round()
-        s_count = dx.numel()
-        full_t = (col_t == torch.arange(s_count, device=col_t.device, dtype=col_t.dtype)).all()
-        full_t &= (wx_t * (2 * hy_t.round() + 1)) == s_count
-        whole = ((px == px.round()).all() & (py == py.round()).all()
-                 & (dx == dx.round()).all() & (dy == dy.round()).all())
-        (whole, hx, hy, pxmin, pxmax, pymin, pymax, full) = torch.stack([
-            t.to(device=px.device, dtype=torch.float64).reshape(())
-            for t in (whole, hx_t, hy_t, px.min(), px.max(), py.min(), py.max(), full_t)
-        ]).tolist()
+        hx, hy, full, whole = self._offset_facts(dx, dy)  # (read once for the offsets)
         if not whole:
             return None
-        hx, hy = int(hx), int(hy)
         x0, y0 = px.long().reshape(-1) - hx, py.long().reshape(-1) - hy
-        if (int(pxmin) - hx < 0 or int(pymin) - hy < 0 or int(pxmax) - hx + 2 * hx >= self.width
-                or int(pymax) - hy + 2 * hy >= self.height):
-            return None
-        return self._gather_windows(x0, y0, dx, dy, frame_t, hx, hy, bool(full))
+        if not inside:  # the points' tests in one host read: whole pixels, the bounds
+            whole, pxmin, pxmax, pymin, pymax = torch.stack([
+                t.to(dtype=torch.float64).reshape(()) for t in (
+                    (px == px.round()).all() & (py == py.round()).all(), px.min(), px.max(),
+                    py.min(), py.max())]).tolist()
+            if (not whole or int(pxmin) - hx < 0 or int(pymin) - hy < 0
+                    or int(pxmax) + hx >= self.width or int(pymax) + hy >= self.height):
+                return None
+        return self._gather_windows(x0, y0, dx, dy, frame_t, hx, hy, full)
 
     def _offset_facts(self, dx: torch.Tensor, dy: torch.Tensor) -> tuple[int, int, bool, bool]:
         """(reach x, reach y, the full square in raster order, all whole pixels) of the
