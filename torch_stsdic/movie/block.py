@@ -102,6 +102,12 @@ class BlockContext:
     _checker: SubsetSolver | None = None
     _on_grid: tuple[torch.Tensor, bool, bool] | None = None  # (points, whole px, inside)
 
+    def host_segments(self) -> torch.Tensor | None:
+        """:attr:`segments` on the host: :attr:`segments_host` where kept, else a copy."""
+        if self.segments_host is not None or self.segments is None:
+            return self.segments_host
+        return self.segments.cpu()
+
     def point_facts(self, ref: Reference) -> tuple[bool, bool]:
         """Whether the reference's POIs are whole pixels (a grid's) and their centred subsets
         all inside the reference image: read once per set of points, then every solve is
@@ -150,10 +156,8 @@ class Block(BlockChecks, BlockRescue, BlockMotion, BlockWindows):
         self.k = upload(host_k, dev)
         self._col_index: dict[tuple, torch.Tensor] = {}  # :meth:`_columns`
         self._init_windows()
-        seg = run.segments_host if run.segments_host is not None or run.segments is None \
-            else run.segments.cpu()
         # sorted; every half-width's windows' frames: from host facts (no read of a device)
-        needed = block_frames(host_k, run.m, run.n_series, seg)
+        needed = block_frames(host_k, run.m, run.n_series, run.host_segments())
         self.needed = upload(needed, dev)
         ring = run.cache.in_ring(needed.tolist())  # only new frames copied
         # the frames' stack, addressed by plane (self.planes[j]: frame self.needed[j])

@@ -254,8 +254,7 @@ def _run_blocks(plan: RunPlan, sink: MemorySink, run: BlockContext, ref: Referen
     done = sink.completed_rows()
     run.cache.schedule(frames_in_order(  # read ahead the frames of the blocks to solve
         [b for b in plan.blocks if not all(row_of[k] in done for k in b)], plan.config.m,
-        len(plan.series), None if run.segments is None else (
-            run.segments.cpu() if run.segments_host is None else run.segments_host)))
+        len(plan.series), run.host_segments()))
     carry: Carry | None = None
     rows_done = 0
     thr = plan.options.get("reference_update")
