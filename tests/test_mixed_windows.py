@@ -178,3 +178,73 @@ def test_a_movie_block_solves_every_window_length_in_one_call(tmp_path, monkeypa
     assert len(set(m[m > 0].tolist())) >= 3  # windows of several lengths in the blocks
     for k, v in out[True].items():
         assert (v.tobytes() == out[False][k].tobytes()), k
+
+
+def test_the_model_checks_shorter_windows_take_every_rows_next_one_at_once(tmp_path,
+                                                                           monkeypatch):
+    """A movie whose motion oscillates in time, differently over the image (the model check
+    shortens windows in rounds of several depths): the blocks' check with every failing row's
+    next shorter window in one solve a round gives the same result file as one solve a
+    half-width, in no more solves (a round as many as the deepest row's tries), some of them
+    with rows of several half-widths."""
+    import math
+
+    import h5py
+    import tifffile
+
+    from torch_stsdic import synth
+    from torch_stsdic.cli import main
+    from torch_stsdic.movie import block_windows, checks
+
+    if not native.available():
+        pytest.skip("no native kernels (the two paths agree to the bit on the C++ kernels)")
+    n = 121
+
+    def oscillating(x, y, t):  # px: u, v oscillate in time, their amplitudes vary with x
+        s = x / n
+        return 3.0 * s * torch.sin(0.5 * t), 1.5 * (1.0 - s) * torch.sin(0.35 * t)
+
+    times = torch.arange(0.0, 21.0, dtype=torch.float64)
+    _, frames = synth.render_series(synth.make_speckle((n, n), seed=5), (n, n),
+                                    synth.Custom(oscillating), times, noise_sigma=2.0,
+                                    seed=3, reference_time=None)
+    tifffile.imwrite(tmp_path / "osc.tif", frames.clamp(0, 255).round().to(torch.uint8).numpy())
+    tries = []  # per block: the number of rows of each solve of the shorter windows
+    mixed_rounds = []  # the half-widths a solve of several took
+    try_window = checks.BlockChecks._try_window
+    check_model = checks.BlockChecks.check_model
+
+    def spy_try(self, idx, sel, m, *a, **k):
+        tries[-1].append(sel.numel())
+        if isinstance(m, torch.Tensor) and m.unique().numel() > 1:
+            mixed_rounds.append(sorted(m.unique().tolist()))
+        return try_window(self, idx, sel, m, *a, **k)
+
+    def spy_check(self):
+        tries.append([])
+        return check_model(self)
+
+    monkeypatch.setattr(checks.BlockChecks, "_try_window", spy_try)
+    monkeypatch.setattr(checks.BlockChecks, "check_model", spy_check)
+    out, calls = {}, {}
+    for mixes in (True, False):
+        if not mixes:
+            monkeypatch.setattr(block_windows.BlockWindows, "mixes_windows",
+                                property(lambda self: False))
+        tries.clear()
+        path = tmp_path / f"r{int(mixes)}.h5"
+        assert main(["run", str(tmp_path / "osc.tif"), "--subset", "21", "--step", "8",
+                     "--threads", "1", "--no-progress", "--out", str(path)]) == 0
+        with h5py.File(path) as f:
+            out[mixes] = {k: f[k][()] for k in ("u", "v", "ut", "vt", "status", "m", "u_std")}
+        calls[mixes] = [len(t) for t in tries]
+        rows = sum(map(sum, tries))
+        assert rows >= 100, rows  # the check shortened many rows' windows
+    assert sum(calls[True]) <= sum(calls[False]), calls
+    assert max(calls[True]) >= 4  # rows that tried four windows or more
+    assert mixed_rounds  # rows of several half-widths in one solve
+    m = out[True]["m"]
+    assert len(set(m[(m > 0) & (m < 6)].tolist())) >= 3  # shortened to several lengths
+    for k, v in out[True].items():
+        assert (v.tobytes() == out[False][k].tobytes()), k
+    assert math.isfinite(float(abs(out[True]["u"][out[True]["status"] == 0]).max()))

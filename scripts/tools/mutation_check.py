@@ -205,6 +205,12 @@ MUTATIONS: tuple[Mutation, ...] = (
         ("test_mixed_windows.py",),
         "a block's one call for every window length solves each row with a window one frame "
         "too long on each side"),
+    Mutation(
+        "check-rounds-skip-a-window", "movie", "torch_stsdic/movie/checks.py",
+        "            last[sel] = c\n", "            last[sel] = c + 1\n",
+        ("test_mixed_windows.py",),
+        "the model check's rounds of shorter windows skip each row's next candidate after a "
+        "try"),
 )
 
 

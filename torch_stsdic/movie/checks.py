@@ -272,32 +272,10 @@ class BlockChecks:
         init = self.params[idx].clone()  # shorter windows start from the classical solution
         for j, nm in enumerate(cls.param_names):
             init[:, run.names.index(nm)] = p_cls[:, j].to(run.dtype)
-        shortened = 0
-        first_m = self.m_used[idx].long()  # each row's window: only shorter ones are tried
-        for m in range(run.m - 1, 0, -1) if bool(fail.any()) else ():
-            # a window whose frames' classical solutions miss a line would fail: not solved
-            # (judged at every row of the check: a row's test is its own, no read)
-            off, vel = self._off_a_line(idx, m, d_all, s_all)
-            # one host read a half-width: the rows to try (none: the next one)
-            sel = torch.nonzero(fail & (first_m > m) & ~off).flatten()
-            if sel.numel() == 0:
-                continue
-            vel = vel[sel]
-            start = init[sel]  # the velocity of the classical solutions' line, where known
-            for c, nm in ((0, "ut"), (1, "vt")):
-                if nm in run.names:
-                    j = run.names.index(nm)
-                    start[:, j] = torch.where(torch.isfinite(vel[:, c]), vel[:, c].to(start),
-                                              start[:, j])
-            sol = self.solve(idx[sel], start, m=m, for_check=False)  # judged here, now
-            good = sol.status <= USABLE
-            d = sol.params[:, [iu, iv]].to(run.dtype)
-            good &= ~model_mismatch(d, d_cls[sel], sol.std[:, [iu, iv]], s_cls[sel])
-            good &= ~(not_ref[sel] & residual_mismatch(sol.sigma, sig_cls[sel], pixels,
-                                                       sol.zncc))
-            self.keep(idx[sel], sol, only_better=False, m=m, where=good)  # (no read)
-            shortened = shortened + good.sum()
-            fail[sel] &= ~good
+        shortened: int | torch.Tensor = 0
+        if run.m > 1 and bool(fail.any()):
+            shortened = self._shorter_windows(idx, fail, init, (d_all, s_all),
+                                              (d_cls, s_cls, sig_cls), not_ref)
         fail = torch.nonzero(fail).flatten()  # one index for all (one sync)
         pick = ok_i[fail]
         kept = solution_rows(cls, pick)
@@ -310,6 +288,75 @@ class BlockChecks:
             kept = with_rows(kept, loose[good], solution_rows(pol, good))
         self.keep(idx[fail], kept, only_better=False, m=0)
         return shortened, fail.numel()
+
+    def _shorter_windows(self, idx: torch.Tensor, fail: torch.Tensor, init: torch.Tensor,
+                         block_cls: tuple[torch.Tensor, torch.Tensor],
+                         cls: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+                         not_ref: torch.Tensor) -> torch.Tensor:
+        """The rows ``idx`` (R,) that fail the model check (``fail`` (R,) bool, cleared where
+        a window passes) solved again with shorter windows from ``init`` (R, P): each row's
+        candidates are the half-widths below its window's, longest first, but those whose
+        frames' classical solutions miss a line (:meth:`_off_a_line`, from the block's
+        classical (u, v) and std ``block_cls``: (B*N, 2) each); the first that passes the
+        check against the row's classical solution ``cls`` ((R, 2) (u, v), (R, 2) std,
+        (R,) residual sigma; ``not_ref``: where its residual measures the noise) is kept.
+        Where the solver mixes window lengths, every failing row's next candidate in one
+        solve (one read and one solve a round: a round as many as the deepest row's tries,
+        not one a half-width); else one solve a half-width. Returns the rows shortened (0-d
+        tensor, not read)."""
+        run = self.run
+        ms = list(range(run.m - 1, 0, -1))  # the candidates' half-widths, longest first
+        first_m = self.m_used[idx].long()
+        offs, vels = zip(*(self._off_a_line(idx, m, *block_cls) for m in ms))
+        cand = torch.stack([(first_m > m) & ~off for m, off in zip(ms, offs)], 1)  # (R, M)
+        vel = torch.stack(vels, 1)  # (R, M, 2) the velocity of each candidate's line
+        shortened = torch.zeros((), dtype=torch.int64, device=run.device)
+        if not self.mixes_windows:
+            for c, m in enumerate(ms):
+                sel = torch.nonzero(fail & cand[:, c]).flatten()  # one read a half-width
+                if sel.numel():
+                    shortened += self._try_window(idx, sel, m, vel[sel, c], init, fail, cls,
+                                                  not_ref)
+            return shortened
+        col = torch.arange(len(ms), device=run.device)
+        m_col = torch.tensor(ms, dtype=torch.int8, device=run.device)
+        last = torch.full_like(first_m, -1)  # each row's candidate tried last (-1: none)
+        while True:
+            left = cand & (col > last.unsqueeze(1)) & fail.unsqueeze(1)
+            sel = torch.nonzero(left.any(1)).flatten()  # one read a round
+            if sel.numel() == 0:
+                return shortened
+            c = left[sel].to(torch.int8).argmax(1)  # each row's next: its first one left
+            last[sel] = c
+            shortened += self._try_window(idx, sel, m_col[c], vel[sel, c], init, fail, cls,
+                                          not_ref)
+
+    def _try_window(self, idx: torch.Tensor, sel: torch.Tensor, m: int | torch.Tensor,
+                    vel: torch.Tensor, init: torch.Tensor, fail: torch.Tensor,
+                    cls: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+                    not_ref: torch.Tensor) -> torch.Tensor:
+        """One try of :meth:`_shorter_windows`: rows ``idx[sel]`` with windows of
+        half-width ``m`` (an int, or (S,) each row's), started from ``init[sel]`` with the
+        velocity ``vel`` (S, 2) of their classical solutions' line where known; kept where
+        they pass (``fail`` cleared there). Returns how many passed (0-d tensor)."""
+        run = self.run
+        iu, iv = run.names.index("u"), run.names.index("v")
+        cls_uv, cls_std, cls_sig = cls
+        start = init[sel]
+        for c, nm in ((0, "ut"), (1, "vt")):
+            if nm in run.names:
+                j = run.names.index(nm)
+                start[:, j] = torch.where(torch.isfinite(vel[:, c]), vel[:, c].to(start),
+                                          start[:, j])
+        sol = self.solve(idx[sel], start, m=m, for_check=False)  # judged here, now
+        good = sol.status <= USABLE
+        d = sol.params[:, [iu, iv]].to(run.dtype)
+        good &= ~model_mismatch(d, cls_uv[sel], sol.std[:, [iu, iv]], cls_std[sel])
+        good &= ~(not_ref[sel] & residual_mismatch(
+            sol.sigma, cls_sig[sel], run.solver.window.effective_pixels(), sol.zncc))
+        self.keep(idx[sel], sol, only_better=False, m=m, where=good)  # (no read)
+        fail[sel] &= ~good
+        return good.sum()
 
     def rescue_classical(self, guess: torch.Tensor | None, carry: Carry | None) -> int:
         """Rows a window could not solve (still lost after :meth:`rescue`) are solved
