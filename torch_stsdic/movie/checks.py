@@ -28,6 +28,7 @@ from torch_stsdic.core.solver import (
 )
 from torch_stsdic.core.status import Status
 from torch_stsdic.movie.carry import Carry
+from torch_stsdic.movie.frames import grouped_rows
 
 #: Gauss-Newton steps of the model check's classical solutions (measured on a 2,500-point
 #: movie: 26 % of rows had not converged after 3 steps, 0.8 % after 4; the rest are re-solved)
@@ -132,7 +133,8 @@ class BlockChecks:
             have = (torch.isfinite(p0).all(1) & torch.isfinite(size)).unsqueeze(1)
             start = torch.where(have, p0, start[:, spatial])
             step = torch.where(have.squeeze(1), size, 0.0)
-        n_own = int(own.sum())  # one read for both tests
+        # (one read for both tests, only in the block whose targets hold the reference frame)
+        n_own = int(own.sum()) if self.ref.frame in self.ks else 0
         if not n_own:
             return self.solve(idx, start, m=0, solver=solver, init_step=step)
         ident = self.identity_solution(idx)
@@ -210,20 +212,28 @@ class BlockChecks:
         POOR_FIT. Returns (rows shortened (an int or a 0-d tensor: not read here), rows left
         classical)."""
         run = self.run
-        idx = torch.nonzero((self.status <= USABLE) & torch.isfinite(self.params).all(1)
-                            ).flatten()
-        if run.m == 0 or idx.numel() == 0:
+        if run.m == 0:
             return 0, 0
+        use = (self.status <= USABLE) & torch.isfinite(self.params).all(1)
         iu, iv = run.names.index("u"), run.names.index("v")
         # rows whose free classical step passes with room to spare are judged from it; the
         # others take a few classical steps from there; rows that do not converge in them,
-        # or disagree, are solved classically in full before they are judged
-        screened, quick = self._screen(idx)
+        # or disagree, are solved classically in full before they are judged (the screen
+        # judged at every row: the rows checked and those left for the steps in one read)
+        screened, quick = self._screen(torch.arange(use.numel(), device=run.device))
+        if screened is None:
+            n_use, n_rest = int(use.sum()), -1
+        else:
+            n_use, n_rest = torch.stack([use.sum(), (use & ~screened).sum()]).tolist()
+        if n_use == 0:
+            return 0, 0
+        idx = grouped_rows(torch.where(use, 0, 1), [n_use])[0]  # ascending
         if screened is None:
             quick = self._classical(idx, run.check_solver())
         else:
-            rest = torch.nonzero(~screened).flatten()  # one index for all (one sync)
-            if rest.numel():
+            quick = solution_rows(quick, idx)
+            if n_rest:
+                rest = grouped_rows(torch.where(screened[idx], 1, 0), [n_rest])[0]
                 quick = with_rows(quick, rest, self._classical(idx[rest], run.check_solver()))
         cu, cv = quick.param_names.index("u"), quick.param_names.index("v")
         # every row's classical (u, v) and std (NaN: none), for the shorter windows below
@@ -241,16 +251,18 @@ class BlockChecks:
             self.std[idx][:, [iu, iv]], quick.std[:, [cu, cv]].to(run.dtype))
         suspect |= not_ref & residual_mismatch(self.sigma[idx], quick.sigma, pixels,
                                                self.zncc[idx])
-        suspect = torch.nonzero(suspect).flatten()  # one index for all (one sync)
-        idx, not_ref = idx[suspect], not_ref[suspect]
-        if idx.numel() == 0:
-            return 0, 0
         # where the few steps converged they are the classical solution (the full solver
-        # takes the same steps); only the others go on
+        # takes the same steps); only the others go on (the rows of both: one read)
+        n_sus, n_redo = torch.stack([
+            suspect.sum(), (suspect & (quick.status != int(Status.CONVERGED))).sum()]).tolist()
+        if n_sus == 0:
+            return 0, 0
+        suspect = grouped_rows(torch.where(suspect, 0, 1), [n_sus])[0]
+        idx, not_ref = idx[suspect], not_ref[suspect]
         cls = solution_rows(quick, suspect)
         redo = cls.status != int(Status.CONVERGED)
-        redo_i = torch.nonzero(redo).flatten()  # one index for all (one sync)
-        if redo_i.numel():
+        redo_i = grouped_rows(torch.where(redo, 0, 1), [n_redo])[0]
+        if n_redo:
             cls = with_rows(cls, redo_i, self.solve(
                 idx[redo_i], cls.params[redo_i].nan_to_num(0.0), m=0))
             not_ref = ~self._no_residual(idx, cls.zncc)
@@ -260,29 +272,34 @@ class BlockChecks:
         s_all[idx] = torch.where(ok_c.unsqueeze(1), cls.std[:, [cu, cv]].to(run.dtype),
                                  float("nan"))
         self.status[idx] = self.status[idx].masked_fill(~ok_c, int(Status.POOR_FIT))
-        ok_i = torch.nonzero(ok_c).flatten()  # one index for all (one sync)
-        idx, not_ref = idx[ok_i], not_ref[ok_i]
+        # the usable classical rows whose window fails (judged at every row: the rows and
+        # whether any fails in one read)
+        fail = model_mismatch(self.params[idx][:, [iu, iv]], cls.params[:, [cu, cv]].to(
+            run.dtype), self.std[idx][:, [iu, iv]], cls.std[:, [cu, cv]].to(run.dtype))
+        fail |= not_ref & residual_mismatch(self.sigma[idx], cls.sigma, pixels, self.zncc[idx])
+        fail &= ok_c
+        n_ok, n_fail = torch.stack([ok_c.sum(), fail.sum()]).tolist()
+        ok_i = grouped_rows(torch.where(ok_c, 0, 1), [n_ok])[0]
+        idx, not_ref, fail = idx[ok_i], not_ref[ok_i], fail[ok_i]
         p_cls = cls.params[ok_i]
         sig_cls = cls.sigma[ok_i]
         d_cls = p_cls[:, [cu, cv]].to(run.dtype)
         s_cls = cls.std[ok_i][:, [cu, cv]].to(run.dtype)
-        fail = model_mismatch(self.params[idx][:, [iu, iv]], d_cls, self.std[idx][:, [iu, iv]],
-                              s_cls)
-        fail |= not_ref & residual_mismatch(self.sigma[idx], sig_cls, pixels, self.zncc[idx])
         init = self.params[idx].clone()  # shorter windows start from the classical solution
         for j, nm in enumerate(cls.param_names):
             init[:, run.names.index(nm)] = p_cls[:, j].to(run.dtype)
         shortened: int | torch.Tensor = 0
-        if run.m > 1 and bool(fail.any()):
+        if run.m > 1 and n_fail:
             shortened = self._shorter_windows(idx, fail, init, (d_all, s_all),
                                               (d_cls, s_cls, sig_cls), not_ref)
-        fail = torch.nonzero(fail).flatten()  # one index for all (one sync)
+        # the rows no window fits, and those of them converged to CHECK_TOL only (on to the
+        # run's tol): one read
+        n_fail, n_loose = torch.stack([fail.sum(), (fail & ~redo[ok_i]).sum()]).tolist()
+        fail = grouped_rows(torch.where(fail, 0, 1), [n_fail])[0]
         pick = ok_i[fail]
         kept = solution_rows(cls, pick)
-        # converged to CHECK_TOL only: on to the run's tol
-        loose = (torch.nonzero(~redo[pick]).flatten() if redo_i.numel()
-                 else torch.arange(pick.numel(), device=pick.device))
-        if loose.numel():
+        loose = grouped_rows(torch.where(redo[pick], 1, 0), [n_loose])[0]
+        if n_loose:
             pol = self.solve(idx[fail][loose], kept.params[loose].nan_to_num(0.0), m=0)
             good = torch.nonzero(pol.status <= USABLE).flatten()  # (one sync)
             kept = with_rows(kept, loose[good], solution_rows(pol, good))
@@ -301,7 +318,7 @@ class BlockChecks:
         check against the row's classical solution ``cls`` ((R, 2) (u, v), (R, 2) std,
         (R,) residual sigma; ``not_ref``: where its residual measures the noise) is kept.
         Where the solver mixes window lengths, every failing row's next candidate in one
-        solve (one read and one solve a round: a round as many as the deepest row's tries,
+        solve (one read and one solve a round, as many rounds as the deepest row's tries,
         not one a half-width); else one solve a half-width. Returns the rows shortened (0-d
         tensor, not read)."""
         run = self.run
@@ -319,17 +336,24 @@ class BlockChecks:
                                                   not_ref)
             return shortened
         col = torch.arange(len(ms), device=run.device)
-        m_col = torch.tensor(ms, dtype=torch.int8, device=run.device)
+        m_col = torch.arange(run.m - 1, 0, -1, dtype=torch.int8, device=run.device)
         last = torch.full_like(first_m, -1)  # each row's candidate tried last (-1: none)
-        while True:
-            left = cand & (col > last.unsqueeze(1)) & fail.unsqueeze(1)
-            sel = torch.nonzero(left.any(1)).flatten()  # one read a round
-            if sel.numel() == 0:
-                return shortened
+        left = cand & fail.unsqueeze(1)  # each row's candidates not tried yet
+        # one read: the rows of the first round and the rounds at most (the most candidates
+        # a row has): no read after the last
+        n_sel, rounds = torch.stack([left.any(1).sum(), left.sum(1).max()]).tolist()
+        for r in range(rounds):
+            if r:  # the rows that failed their try and have candidates left (one read)
+                left = cand & (col > last.unsqueeze(1)) & fail.unsqueeze(1)
+                n_sel = int(left.any(1).sum())
+            if n_sel == 0:
+                break
+            sel = grouped_rows(torch.where(left.any(1), 0, 1), [n_sel])[0]
             c = left[sel].to(torch.int8).argmax(1)  # each row's next: its first one left
             last[sel] = c
             shortened += self._try_window(idx, sel, m_col[c], vel[sel, c], init, fail, cls,
                                           not_ref)
+        return shortened
 
     def _try_window(self, idx: torch.Tensor, sel: torch.Tensor, m: int | torch.Tensor,
                     vel: torch.Tensor, init: torch.Tensor, fail: torch.Tensor,
