@@ -284,20 +284,27 @@ def template_image(plan: RunPlan, warps: torch.Tensor, oks: torch.Tensor, frames
         g_idx = torch.as_tensor(group, device=warps.device)
         splat(on_cover, img, planes, ref, pts, warps[g_idx].to(dev), oks[g_idx].to(dev),
               half, 1.0 / g_norm ** 2, level, cover, ref_stats)
-    acc = torch.zeros(3, h * w, dtype=torch.float64)  # what follows is per pixel, once
-    acc[:, cover[0].cpu()] = on_cover.cpu()
+    # what follows is per covered pixel, once (the sums' pixels, ascending flat indices)
+    px, sums = cover[0].cpu(), on_cover.cpu()
     ref, pts = ref.cpu(), pts.cpu()
-    covered = acc[1] > 0
-    image = torch.where(covered, acc[0] / acc[1].clamp(min=1e-300), ref).reshape(h, w)
-    # noise variance of a pixel: sum over frames of the frame's share (acc[2]) over the
-    # squared weight sum, over one frame's median s^2
+    covered = sums[1] > 0  # (C,)
+    weight_sum = sums[1][covered]
+    image = ref.clone()  # the reference's pixels where no frame covers one
+    image[px[covered]] = sums[0][covered] / weight_sum.clamp(min=1e-300)
+    # noise variance of a pixel: sum over frames of the frame's share (sums[2]) over the
+    # squared weight sum, over one frame's median s^2 (1 where no frame covers it)
     s2 = float(np.median(norm)) ** 2
-    pix = torch.where(covered, acc[2] / acc[1].clamp(min=1e-300) ** 2 / s2, 1.0)
-    ratio = float(pix[covered].median()) if bool(covered.any()) else 1.0
-    wmax = acc[1][covered].max() if bool(covered.any()) else torch.tensor(1.0)
-    multi = (acc[1][covered] > 1.5 * wmax / max(len(frames), 1)).double()
+    pix = torch.where(covered, sums[2] / sums[1].clamp(min=1e-300) ** 2 / s2, 1.0)  # (C,)
+    some = weight_sum.numel() > 0
+    ratio = float(pix[covered].median()) if some else 1.0
+    wmax = weight_sum.max() if some else torch.tensor(1.0)
+    multi = (weight_sum > 1.5 * wmax / max(len(frames), 1)).double()
     coverage = float(multi.mean()) if multi.numel() else 0.0
     c = pts.round().long()
     c[:, 0].clamp_(0, w - 1)
     c[:, 1].clamp_(0, h - 1)
-    return image, ratio, coverage, pix[c[:, 1] * w + c[:, 0]]
+    at = c[:, 1] * w + c[:, 0]  # each POI's centre pixel, and its place among the covered
+    pos = torch.searchsorted(px, at).clamp(max=max(px.numel() - 1, 0))
+    known = (px[pos] == at) if px.numel() else torch.zeros_like(at, dtype=torch.bool)
+    at_poi = torch.where(known, pix[pos] if px.numel() else 1.0, 1.0)
+    return image.reshape(h, w), ratio, coverage, at_poi
