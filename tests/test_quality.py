@@ -22,6 +22,7 @@ from torch_stsdic.analysis.quality import (
     poor_fit,
     residual_mismatch,
 )
+from torch_stsdic.analysis.result import USABLE
 from torch_stsdic.core.status import Status, usable
 from torch_stsdic.synth import (
     Translation,
@@ -154,11 +155,12 @@ def test_the_model_check_judges_from_the_free_step_as_from_the_classical_solve(
     counts = [0, 0]
     screen = checks.BlockChecks._screen
 
-    def counting(self, idx):
+    def counting(self, idx):  # over the rows the check judges (the screen sees every row)
         ok, est = screen(self, idx)
         if ok is not None:
-            counts[0] += int(ok.sum())
-            counts[1] += int(idx.numel())
+            checked = (self.status[idx] <= USABLE) & torch.isfinite(self.params[idx]).all(1)
+            counts[0] += int((ok & checked).sum())
+            counts[1] += int(checked.sum())
         return ok, est
 
     monkeypatch.setattr(checks.BlockChecks, "_screen", counting)
