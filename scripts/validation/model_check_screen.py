@@ -34,6 +34,7 @@ from torch_stsdic.analysis.quality import (
     model_mismatch,
     residual_mismatch,
 )
+from torch_stsdic.analysis.result import USABLE
 from torch_stsdic.cli import main as cli_main
 from torch_stsdic.core.gauss_newton import classical_step_columns
 from torch_stsdic.core.status import Status
@@ -92,10 +93,12 @@ def _judged(self, idx, screened, est) -> None:
 def main(argv: list[str]) -> int:
     screen = checks.BlockChecks._screen
 
-    def recording(self, idx):
+    def recording(self, idx):  # the screen sees every row: the usable ones are judged
         screened, est = screen(self, idx)
         if screened is not None:
-            _judged(self, idx, screened, est)
+            use = (self.status[idx] <= USABLE) & torch.isfinite(self.params[idx]).all(1)
+            sel = torch.nonzero(use).flatten()
+            _judged(self, idx[sel], screened[sel], checks.solution_rows(est, sel))
         return screened, est
 
     checks.BlockChecks._screen = recording

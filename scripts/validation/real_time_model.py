@@ -110,11 +110,14 @@ def recording(log: list):
         finally:
             del self.solve, self._classical
 
-    def rows_of_stage() -> np.ndarray | None:
-        """Rows (target * N + point) judged in this call (stages 0 and 1)."""
+    def rows_of_stage() -> tuple[np.ndarray, np.ndarray] | None:
+        """Rows (target * N + point) judged in this call (stages 0 and 1) and which of them
+        count (stage 1: the suspects are all tested, those with a usable classical
+        solution count)."""
         sv = state["solves"]
         if state["stage"] == 0 and sv:
-            return sv[0][0].numpy()
+            rows = sv[0][0].numpy()
+            return rows, np.ones(rows.shape[0], bool)
         if state["stage"] == 1 and sv and log:
             # the suspects of stage 0, with their classical solution: the few-step one where
             # it converged, else the full solve that followed (sv[1])
@@ -125,18 +128,20 @@ def recording(log: list):
             redo = st != int(block_mod.Status.CONVERGED)
             if redo.any() and len(sv) > 1:
                 st[redo] = sv[1][1].numpy()
-            return sv[0][0].numpy()[suspect][st <= block_mod.USABLE]
+            return sv[0][0].numpy()[suspect], st <= block_mod.USABLE
         return None
 
     def mm(d_sts, d_cls, std_sts, std_cls):
         out = orig[1](d_sts, d_cls, std_sts, std_cls)
         sd = quality.difference_std(std_sts, std_cls)
         diff = d_sts.double() - d_cls.double()
-        rows, blk = rows_of_stage(), state["block"]
-        not_ref = np.ones(diff.shape[0], bool)
-        if rows is not None:  # the reference frame as target: no residual test
+        judged, blk = rows_of_stage(), state["block"]
+        not_ref = counts = np.ones(diff.shape[0], bool)
+        if judged is not None:  # the reference frame as target: no residual test
+            rows, counts = judged
             not_ref = np.asarray(blk.ks)[rows // blk.n] != blk.ref.frame
         log.append({"stage": state["stage"], "d": diff.numpy(), "not_ref": not_ref,
+                    "counts": counts,
                     "z": (diff.abs() / sd).numpy(), "sd": sd.numpy(),
                     "std_cls": std_cls.double().numpy(), "fail_model": out.numpy()})
         return out
@@ -200,7 +205,7 @@ def check_stats(runs: dict) -> dict:
         recs = [r for r in chk["log"] if r["stage"] == stage]
         if not recs:
             return np.zeros((0, width) if width else 0)
-        return np.concatenate([r[key][r["not_ref"]] for r in recs])
+        return np.concatenate([r[key][r["not_ref"] & r.get("counts", True)] for r in recs])
 
     z = cat(0, "z", 2)
     z = z.max(1) if z.size else np.zeros(0)
