@@ -45,6 +45,7 @@ import torch_stsdic.movie.checks as block_mod
 from torch_stsdic.analysis import quality
 from torch_stsdic.core.interpolation import BSplineImage
 from torch_stsdic.io import load_series
+from torch_stsdic.movie.estimates import RunEstimates
 
 REPO = Path(__file__).resolve().parents[2]
 SUBSET = 31
@@ -140,10 +141,13 @@ def recording(log: list):
         if judged is not None:  # the reference frame as target: no residual test
             rows, counts = judged
             not_ref = np.asarray(blk.ks)[rows // blk.n] != blk.ref.frame
-        log.append({"stage": state["stage"], "d": diff.numpy(), "not_ref": not_ref,
+        # copies: the check goes on to change its tensors in place (a view of its fail
+        # mask recorded the mask as it ended, the residual test and the shorter windows in)
+        log.append({"stage": state["stage"], "d": diff.numpy().copy(), "not_ref": not_ref,
                     "counts": counts,
-                    "z": (diff.abs() / sd).numpy(), "sd": sd.numpy(),
-                    "std_cls": std_cls.double().numpy(), "fail_model": out.numpy()})
+                    "z": (diff.abs() / sd).numpy().copy(), "sd": sd.numpy().copy(),
+                    "std_cls": std_cls.double().numpy().copy(),
+                    "fail_model": out.numpy().copy()})
         return out
 
     def rm(sw, sc, n_pixels, zw):
@@ -178,10 +182,14 @@ def run_three(series, spec: dict, points=None) -> dict:
         t0 = time.perf_counter()
         with recording(log):
             # the time model alone: the shared motion (on by default) is what removes
-            # these rejections; scripts/validation/shared_motion.py measures that
+            # these rejections (scripts/validation/shared_motion.py measures that); the
+            # single reference image and no run-level estimates, so that no pre-pass (the
+            # template's or the run's own time-model test) decides points classical before
+            # the check judges their windows
             res = sts.track(series, roi=spec["roi"], mask=spec["mask"], step=spec["step"],
                             points=points, config=cfg, checks=checks, progress=False,
-                            shared_motion=None)
+                            shared_motion=None, series_reference=False,
+                            run_estimates=RunEstimates())
         r = {k: getattr(res, k).numpy() for k in ("u", "v", "status", "zncc")}
         r.update(m=res.m.numpy(), u_std=res.std["u"].numpy(), v_std=res.std["v"].numpy(),
                  points=res.points.numpy(), log=log, seconds=time.perf_counter() - t0,
