@@ -110,6 +110,9 @@ def test_real_time_model_quick(tmp_path):
     # the real series: most windows rejected, and the STS - classical difference is the
     # straight line through the classical trajectory (motion, not noise)
     assert float(real[0]["m0"]) > 0.5
+    # the check judged windows there (no pre-pass decided the points classical first)
+    assert float(real[0]["m2"]) + float(real[0]["m1"]) > 0.05
+    assert float(real[0]["z_median"]) > 3.0
     assert float(real[0]["u_corr_d_dtraj"]) > 0.95 and float(real[0]["v_corr_d_dtraj"]) > 0.95
     # the same texture moving affinely in time: (almost) no false alarms, and the predicted
     # std of a static texture within 25 % of the measured one
