@@ -8,7 +8,7 @@ from __future__ import annotations
 import torch
 
 from torch_stsdic.core.shared_motion import window_offsets
-from torch_stsdic.movie.frames import grouped_rows
+from torch_stsdic.movie.frames import true_rows
 
 __all__ = ["BlockMotion"]
 
@@ -109,12 +109,12 @@ class BlockMotion:
         if run.shared is None:
             return
         # the rows ascending without an index read (the counts known)
-        at = grouped_rows(torch.where(off, 0, 1), [n_off])[0]
+        at = true_rows(off, n_off)
         self._off = (at, run.shared.displacement(self.centres[at], self.needed).to(
             run.dtype).transpose(0, 1))
         if not self._motion:
             return
-        rows = grouped_rows(torch.where(moved, 0, 1), [n_moved])[0]
+        rows = true_rows(moved, n_moved)
         at_rows = self._motion_at(rows)  # once for every half-width
         for m in list(self._motion):  # new tensors: a caller may hold the old ones
             o, slope = self._window_motion(m, rows, at_rows)

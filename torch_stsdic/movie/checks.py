@@ -28,7 +28,7 @@ from torch_stsdic.core.solver import (
 )
 from torch_stsdic.core.status import Status
 from torch_stsdic.movie.carry import Carry
-from torch_stsdic.movie.frames import grouped_rows
+from torch_stsdic.movie.frames import true_rows
 
 #: Gauss-Newton steps of the model check's classical solutions (measured on a 2,500-point
 #: movie: 26 % of rows had not converged after 3 steps, 0.8 % after 4; the rest are re-solved)
@@ -227,13 +227,13 @@ class BlockChecks:
             n_use, n_rest = torch.stack([use.sum(), (use & ~screened).sum()]).tolist()
         if n_use == 0:
             return 0, 0
-        idx = grouped_rows(torch.where(use, 0, 1), [n_use])[0]  # ascending
+        idx = true_rows(use, n_use)  # ascending
         if screened is None:
             quick = self._classical(idx, run.check_solver())
         else:
             quick = solution_rows(quick, idx)
             if n_rest:
-                rest = grouped_rows(torch.where(screened[idx], 1, 0), [n_rest])[0]
+                rest = true_rows(~screened[idx], n_rest)
                 quick = with_rows(quick, rest, self._classical(idx[rest], run.check_solver()))
         cu, cv = quick.param_names.index("u"), quick.param_names.index("v")
         # every row's classical (u, v) and std (NaN: none), for the shorter windows below
@@ -257,11 +257,11 @@ class BlockChecks:
             suspect.sum(), (suspect & (quick.status != int(Status.CONVERGED))).sum()]).tolist()
         if n_sus == 0:
             return 0, 0
-        suspect = grouped_rows(torch.where(suspect, 0, 1), [n_sus])[0]
+        suspect = true_rows(suspect, n_sus)
         idx, not_ref = idx[suspect], not_ref[suspect]
         cls = solution_rows(quick, suspect)
         redo = cls.status != int(Status.CONVERGED)
-        redo_i = grouped_rows(torch.where(redo, 0, 1), [n_redo])[0]
+        redo_i = true_rows(redo, n_redo)
         if n_redo:
             cls = with_rows(cls, redo_i, self.solve(
                 idx[redo_i], cls.params[redo_i].nan_to_num(0.0), m=0))
@@ -279,7 +279,7 @@ class BlockChecks:
         fail |= not_ref & residual_mismatch(self.sigma[idx], cls.sigma, pixels, self.zncc[idx])
         fail &= ok_c
         n_ok, n_fail = torch.stack([ok_c.sum(), fail.sum()]).tolist()
-        ok_i = grouped_rows(torch.where(ok_c, 0, 1), [n_ok])[0]
+        ok_i = true_rows(ok_c, n_ok)
         idx, not_ref, fail = idx[ok_i], not_ref[ok_i], fail[ok_i]
         p_cls = cls.params[ok_i]
         sig_cls = cls.sigma[ok_i]
@@ -295,10 +295,10 @@ class BlockChecks:
         # the rows no window fits, and those of them converged to CHECK_TOL only (on to the
         # run's tol): one read
         n_fail, n_loose = torch.stack([fail.sum(), (fail & ~redo[ok_i]).sum()]).tolist()
-        fail = grouped_rows(torch.where(fail, 0, 1), [n_fail])[0]
+        fail = true_rows(fail, n_fail)
         pick = ok_i[fail]
         kept = solution_rows(cls, pick)
-        loose = grouped_rows(torch.where(redo[pick], 1, 0), [n_loose])[0]
+        loose = true_rows(~redo[pick], n_loose)
         if n_loose:
             pol = self.solve(idx[fail][loose], kept.params[loose].nan_to_num(0.0), m=0)
             good = torch.nonzero(pol.status <= USABLE).flatten()  # (one sync)
@@ -348,7 +348,7 @@ class BlockChecks:
                 n_sel = int(left.any(1).sum())
             if n_sel == 0:
                 break
-            sel = grouped_rows(torch.where(left.any(1), 0, 1), [n_sel])[0]
+            sel = true_rows(left.any(1), n_sel)
             c = left[sel].to(torch.int8).argmax(1)  # each row's next: its first one left
             last[sel] = c
             shortened += self._try_window(idx, sel, m_col[c], vel[sel, c], init, fail, cls,

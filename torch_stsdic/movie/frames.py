@@ -38,7 +38,7 @@ from torch_stsdic.movie.frame_ring import FrameRing, RingView
 
 __all__ = ["FrameCache", "FrameStore", "PreparedFrame", "window_frames", "block_frames", "upload",
            "segment_bounds", "frames_in_order", "default_ahead", "half_widths",
-           "rows_by_half_width", "grouped_rows"]
+           "rows_by_half_width", "grouped_rows", "true_rows"]
 
 
 def upload(t: torch.Tensor, device: torch.device | str) -> torch.Tensor:
@@ -435,6 +435,13 @@ def grouped_rows(key: torch.Tensor, counts: Sequence[int]) -> list[torch.Tensor]
     keeps their order), split by the counts; no host read here."""
     counts = [int(c) for c in counts]
     return list(torch.argsort(key, stable=True)[:sum(counts)].split(counts))
+
+
+def true_rows(mask: torch.Tensor, count: int) -> torch.Tensor:
+    """(count,) long: the rows where ``mask`` (R,) bool is True, ascending, given how many
+    there are (read by the caller, with whatever else it reads at once): ``nonzero`` of a
+    known size, no host read."""
+    return torch.nonzero_static(mask, size=int(count)).flatten()
 
 
 def _half_width_counts(m_of: torch.Tensor, rows: torch.Tensor, m_max: int

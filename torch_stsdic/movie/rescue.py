@@ -13,7 +13,7 @@ import torch
 from torch_stsdic.analysis.result import USABLE
 from torch_stsdic.core.status import Status
 from torch_stsdic.movie.carry import Carry, neighbour_guess
-from torch_stsdic.movie.frames import grouped_rows
+from torch_stsdic.movie.frames import true_rows
 from torch_stsdic.movie.reference import to_relative
 
 __all__ = ["BlockRescue"]
@@ -150,7 +150,7 @@ class BlockRescue:
                 break
             tried.copy_(torch.where(cand, p, tried))
             if n_go:  # (a point predicted out of view from further back: tried later)
-                go = grouped_rows(torch.where(cand & fin, 0, 1), [n_go])[0]
+                go = true_rows(cand & fin, n_go)
                 self._solve_own(go, init[go], m, near=j_of[go] - p[go] <= 1)
                 total += n_go
         return total
