@@ -434,6 +434,36 @@ def test_long_movies_sample_runs_of_adjacent_frames():
     plan0 = plan_run(series, config=sts.DICConfig(m=0, subset_size=15), step=10)
     k0 = sample_frames(plan0, 21)
     assert len(k0) == 21 and int(np.diff(k0).max()) == 2
+    # m = 4: a run is 11 frames, 21 hold one: two, at the movie's start and its end (one
+    # alone judged the time model from frames 0-10)
+    plan4 = plan_run(series, config=sts.DICConfig(m=4, subset_size=15), step=10)
+    k4 = sample_frames(plan4, 21)
+    assert k4 == list(range(11)) + list(range(30, 41)), k4
+    # where two runs do not fit in the targets: spread one by one
+    short = plan_run(series[:26], config=sts.DICConfig(m=6, subset_size=15), step=10)
+    k6 = sample_frames(short, 21)
+    assert len(k6) == 21 and k6[0] == 0 and k6[-1] == 25, k6
+
+
+def test_a_fixed_long_window_is_not_judged_from_the_movies_start_alone():
+    """A relaxing stretch: fast at the start, then nearly affine in time. With m = 4 the
+    time model is judged from runs at the movie's start and its end, so no point is made
+    classical for the whole run because the first 11 frames curve (one run at the start
+    turned 34 of the 64 points classical)."""
+    def fn(x, y, t):
+        e = 0.004 * (1 - torch.exp(-t / 8.0))
+        return (e * (x - 60) + 0.03 * t + 0.2 * (1 - torch.exp(-t / 5.0)),
+                -0.3 * e * (y - 60) - 0.02 * t)
+
+    mv = synth.synthetic_movie((121, 121), 30, synth.Custom(fn), noise_sigma=2.0, seed=1)
+    series = torch.cat([mv.ref[None], mv.frames]).double()
+    res = sts.track(series, config=sts.DICConfig(m=4, subset_size=21), step=10,
+                    progress=False)
+    frames = res.info["series_reference"]["frames"]
+    assert frames[0] == 0 and frames[-1] == 30 and len(frames) == 22, frames
+    m = res.field("m")[1:]
+    assert int((m == 0).all(0).sum()) == 0, int((m == 0).all(0).sum())
+    assert float((m == 0).double().mean()) < 0.01
 
 
 def test_splat_with_and_without_the_image_border_mask_agree():

@@ -145,28 +145,28 @@ def _unit_variance(res: TrackResult) -> torch.Tensor:
 
 
 def sample_frames(plan: RunPlan, max_frames: int = DEFAULT_FRAMES) -> list[int]:
-    """Up to ``max_frames`` frames spread over the targets, the reference frame (when it is a
-    frame of the series) always among them: for STS windows (m > 0) in runs of 2m + 3
-    adjacent targets (three windows each, for :func:`time_model_holds`), else one by one."""
+    """About ``max_frames`` frames spread over the targets, the reference frame (in the series)
+    among them: for STS windows in runs of 2m + 3 adjacent targets (three windows each,
+    :func:`time_model_holds`), at least two, at the targets' start and end (21 frames: 22, 26,
+    30 at m = 4, 5, 6); else, and where two runs do not fit, one by one."""
     if int(max_frames) < 2:
         raise ValueError(f"series_reference: needs >= 2 frames, got {max_frames!r}")
     ks = sorted(set(plan.targets) | ({plan.reference_frame} if plan.reference_frame >= 0
                                      else set()))
     run = 2 * plan.config.m + 3
+    n_runs = min(max(2, round(int(max_frames) / run)), len(ks) // run)
     auto = plan.options.get("window_length") == "auto"  # its own test: evenly spread
-    if len(ks) > max_frames and plan.config.m > 0 and int(max_frames) >= run and not auto:
-        starts = np.unique(np.round(np.linspace(0, len(ks) - run, int(max_frames) // run)))
+    if len(ks) <= max_frames:
+        return ks
+    if plan.config.m > 0 and n_runs >= 2 and int(max_frames) >= run and not auto:
+        starts = np.unique(np.round(np.linspace(0, len(ks) - run, n_runs)))
         chosen = {ks[int(s) + j] for s in starts for j in range(run)}
-        if plan.reference_frame >= 0:
-            chosen.add(plan.reference_frame)
-        ks = sorted(chosen)
-    elif len(ks) > max_frames:
+    else:
         pick = np.unique(np.round(np.linspace(0, len(ks) - 1, int(max_frames))).astype(int))
         chosen = {ks[i] for i in pick}
-        if plan.reference_frame >= 0:
-            chosen.add(plan.reference_frame)
-        ks = sorted(chosen)
-    return ks
+    if plan.reference_frame >= 0:
+        chosen.add(plan.reference_frame)
+    return sorted(chosen)
 
 
 def _measure(plan: RunPlan, frames: list[int], image: torch.Tensor | None,
