@@ -201,3 +201,38 @@ def test_a_classical_block_of_a_shaking_specimen_starts_from_its_pilots_shift(mo
         x, y = getattr(with_pilot, nm)[both].double(), getattr(without, nm)[both].double()
         assert float((x - y).pow(2).mean().sqrt()) < 1e-3, nm
         assert float((x - y).abs().max()) < 0.05, nm
+
+
+def test_the_carried_shake_slope_of_every_half_width_reads_nothing_and_is_the_same():
+    """Given the run's longest half-width, :meth:`Carry.shared_slope` takes every half-width
+    up to it without a host read of those its rows have (on a GPU a read waits for the
+    device), and gives the numbers of the read path: rows of mixed half-widths, a classical
+    row (its finite difference) and a point without a velocity."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    class Reads(TorchDispatchMode):
+        def __init__(self) -> None:
+            super().__init__()
+            self.seen: list[str] = []
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            if func.overloadpacket.__name__ in ("_local_scalar_dense", "nonzero", "equal"):
+                self.seen.append(func.overloadpacket.__name__)
+            return func(*args, **(kwargs or {}))
+
+    ts, shared, pts, total = _shaking_linear_motion(seed=2)
+    n = pts.shape[0]
+    rows = {"u": total([9, 10])[..., 0].numpy(), "v": total([9, 10])[..., 1].numpy(),
+            "ut": np.stack([np.full(n, np.nan), np.array([0.1, np.nan, 0.3])]),
+            "vt": np.stack([np.full(n, np.nan), np.array([0.2, np.nan, -0.1])]),
+            "status": np.zeros((2, n), dtype=np.int8),
+            "m": np.stack([np.zeros(n, dtype=np.int8), np.array([3, 0, 1], dtype=np.int8)])}
+    carry = make_carry(rows, np.array([9.0, 10.0]), ("u", "v", "ut", "vt"), None,
+                       torch.float64, "cpu", frames=[9, 10])
+    read = carry.shared_slope(shared, pts, ts)
+    reads = Reads()
+    with reads:
+        free = carry.shared_slope(shared, pts, ts, m_max=4)
+    assert not reads.seen, reads.seen
+    assert torch.equal(free, read)
+    assert bool((read.abs() > 0).all(1)[[0, 2]].all())  # the windows' slopes, not zero

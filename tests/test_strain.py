@@ -281,3 +281,23 @@ def test_detect_grid_answers_again_from_the_points_bytes():
     moved[0, 0] += 0.5  # off the grid now
     assert detect_grid(moved) is None
     assert detect_grid(pts[1:]) is not g1 and detect_grid(pts[1:]).nx == 10
+
+
+def test_a_grid_is_found_again_from_the_same_tensor_without_a_copy(monkeypatch):
+    """``detect_grid`` keeps its answer by the points' tensor (unchanged since): a block asks
+    for its points' grid again without copying them to the host (a GPU waits for that); a
+    tensor changed in place, or another one, is looked at again."""
+    import torch_stsdic.analysis.strain as strain
+
+    copies = []
+    real = strain._as_numpy
+    monkeypatch.setattr(strain, "_as_numpy", lambda a: copies.append(1) or real(a))
+    ys, xs = torch.meshgrid(torch.arange(5.0) * 7 + 3, torch.arange(6.0) * 7 + 1,
+                            indexing="ij")
+    pts = torch.stack([xs.reshape(-1), ys.reshape(-1)], 1)
+    g = detect_grid(pts)
+    assert g is not None and (g.nx, g.ny, g.sx) == (6, 5, 7.0) and len(copies) == 1
+    assert detect_grid(pts) is g and len(copies) == 1
+    pts[3, 0] += 2.5  # off the grid now
+    assert detect_grid(pts) is None and len(copies) == 2
+    assert detect_grid(pts.clone()) is None and len(copies) == 3

@@ -26,6 +26,7 @@ exist. A point gets NaN when it is itself invalid, has fewer than ``min_points``
 from __future__ import annotations
 
 import hashlib
+import weakref
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -72,6 +73,13 @@ class GridInfo:
         """(N,) index of each point in the row-major ``(ny, nx)`` grid."""
         return self.iy * self.nx + self.ix
 
+    def flat_on(self, device: torch.device) -> torch.Tensor:
+        """:attr:`flat_index` as a tensor on ``device``, copied there once per device."""
+        memo = self.__dict__.setdefault("_flat_on", {})
+        if str(device) not in memo:
+            memo[str(device)] = torch.as_tensor(self.flat_index, device=device)
+        return memo[str(device)]
+
     def to_image(self, values: np.ndarray, fill: float = np.nan) -> np.ndarray:
         """Scatter per-point ``values`` (..., N) into a (..., ny, nx) array (holes: ``fill``)."""
         values = np.asarray(values)
@@ -108,23 +116,37 @@ def detect_grid(points: Any, *, max_fill: float = 4.0, rtol: float = 1e-6) -> Gr
     Holes (masked points) are allowed, but the bounding grid may hold at most ``max_fill * N``
     cells and no cell may hold two points. Returns a :class:`GridInfo` (its index arrays
     read-only), or None when the points are scattered. The last few answers are kept by the
-    points' bytes: a run asks for the same points' grid three times (neighbour test, strains).
+    points' bytes: a run asks for the same points' grid three times (neighbour test, strains);
+    and by the tensor itself (unchanged since): a block asks again without a copy to the host.
     """
+    opts = (float(max_fill), float(rtol))
+    if isinstance(points, torch.Tensor):
+        hit = _GRID_TENSORS.get(id(points))
+        if hit is not None and hit[0]() is points and hit[1:3] == (points._version, opts):
+            return hit[3]
     p = np.ascontiguousarray(_as_numpy(points), dtype=np.float64).reshape(-1, 2)
-    key = (hashlib.blake2b(p.tobytes(), digest_size=16).digest(), float(max_fill), float(rtol))
-    if key in _GRIDS:
-        return _GRIDS[key]
-    grid = _detect_grid(p, max_fill, rtol)
-    if grid is not None:
-        grid.ix.flags.writeable = False
-        grid.iy.flags.writeable = False
-    _GRIDS[key] = grid
-    while len(_GRIDS) > 4:
-        _GRIDS.pop(next(iter(_GRIDS)))
-    return grid
+    key = (hashlib.blake2b(p.tobytes(), digest_size=16).digest(), *opts)
+    if key not in _GRIDS:
+        grid = _detect_grid(p, max_fill, rtol)
+        if grid is not None:
+            grid.ix.flags.writeable = False
+            grid.iy.flags.writeable = False
+        _GRIDS[key] = grid
+        while len(_GRIDS) > 4:
+            _GRIDS.pop(next(iter(_GRIDS)))
+    if isinstance(points, torch.Tensor):  # (tensors gone first: a writer's are short-lived)
+        for k, hit in list(_GRID_TENSORS.items()):
+            if hit[0]() is None:
+                _GRID_TENSORS.pop(k, None)
+        _GRID_TENSORS[id(points)] = (weakref.ref(points), points._version, opts, _GRIDS[key])
+        while len(_GRID_TENSORS) > 4:
+            _GRID_TENSORS.pop(next(iter(_GRID_TENSORS)), None)
+    return _GRIDS[key]
 
 
 _GRIDS: dict[tuple, GridInfo | None] = {}  # detect_grid's last answers, oldest first
+#: detect_grid's last answers by tensor: id -> (weak reference, version, options, answer)
+_GRID_TENSORS: dict[int, tuple[Any, int, tuple[float, float], GridInfo | None]] = {}
 
 
 def _detect_grid(p: np.ndarray, max_fill: float, rtol: float) -> GridInfo | None:
@@ -245,7 +267,7 @@ def _grid_moments(grid: GridInfo, vals: torch.Tensor, w: torch.Tensor, window: i
     bsz, nch, n = vals.shape
     dev, dt = vals.device, vals.dtype
     cells = grid.ny * grid.nx
-    flat = torch.as_tensor(grid.flat_index, device=dev)
+    flat = grid.flat_on(dev)
     wg = torch.zeros(bsz, cells, device=dev, dtype=dt)
     wg[:, flat] = w
     vg = torch.zeros(bsz, nch, cells, device=dev, dtype=dt)
@@ -362,7 +384,8 @@ def _gradients(
     rcond = 1e3 * torch.finfo(wdt).eps if fit.rcond is None else fit.rcond
     grid = None
     if fit.method in ("auto", "grid") and n > 0:
-        grid = detect_grid(pts)
+        # the caller's tensor where it gave one: its grid is kept by identity (no copy)
+        grid = detect_grid(points if isinstance(points, torch.Tensor) else pts)
         if grid is None and fit.method == "grid":
             raise ValueError("method='grid' but the points do not lie on a regular grid")
     if n == 0:

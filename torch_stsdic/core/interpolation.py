@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 import weakref
+from collections import OrderedDict
 
 import torch
 
@@ -24,6 +25,9 @@ from torch_stsdic.kernels.bspline import sample_kernel
 from torch_stsdic.kernels.compile import maybe_compiled, set_compile
 
 __all__ = ["BSplineImage", "bspline_prefilter", "set_compile", "window_view"]
+
+#: subset offsets whose facts an image keeps (:meth:`BSplineImage._offset_facts`)
+OFFSET_MEMO = 8
 
 
 def window_view(images: torch.Tensor, height: int, width: int) -> torch.Tensor:
@@ -217,11 +221,14 @@ class BSplineImage:
 
     def _offset_facts(self, dx: torch.Tensor, dy: torch.Tensor) -> tuple[int, int, bool, bool]:
         """(reach x, reach y, the full square in raster order, all whole pixels) of the
-        subset offsets ``dx``, ``dy`` (S,): one host read, kept for the offsets last asked
-        for (a solver's geometry keeps its tensors from solve to solve)."""
-        memo = self.__dict__.get("_offset_memo")
-        if memo is not None and memo[0]() is dx and memo[1]() is dy:
-            return memo[2]
+        subset offsets ``dx``, ``dy`` (S,): one host read, kept for the last few offsets
+        asked for (a solver's geometry keeps its tensors from solve to solve; a run's
+        solver and its model check's take turns)."""
+        memo = self.__dict__.setdefault("_offset_memo", OrderedDict())
+        key = (id(dx), id(dy))
+        hit = memo.get(key)
+        if hit is not None and hit[0]() is dx and hit[1]() is dy:
+            return hit[2]
         hx_t, hy_t = dx.abs().max(), dy.abs().max()
         wx_t = 2 * hx_t.round() + 1
         col_t = (dy.round() + hy_t.round()) * wx_t + dx.round() + hx_t.round()
@@ -232,7 +239,9 @@ class BSplineImage:
         hx, hy, full, whole = torch.stack([t.to(torch.float64).reshape(()) for t in (
             hx_t, hy_t, full_t, whole_t)]).tolist()
         facts = (int(hx), int(hy), bool(full), bool(whole))
-        self.__dict__["_offset_memo"] = (weakref.ref(dx), weakref.ref(dy), facts)
+        memo[key] = (weakref.ref(dx), weakref.ref(dy), facts)
+        while len(memo) > OFFSET_MEMO:
+            memo.popitem(last=False)
         return facts
 
     def _gather_windows(self, x0, y0, dx, dy, frame_t, hx: int, hy: int, full: bool):

@@ -41,6 +41,7 @@ from torch_stsdic.movie.checks import CHECK_ITER, CHECK_TOL, BlockChecks
 from torch_stsdic.movie.frames import (
     FrameCache,
     block_frames,
+    true_rows,
     upload,
 )
 from torch_stsdic.movie.reference import Reference, noise_ratio, to_relative, to_total
@@ -371,11 +372,15 @@ class Block(BlockChecks, BlockRescue, BlockMotion, BlockWindows):
         fit &= carried
         shift = torch.where(fit.unsqueeze(1), shift, 0.0)
         left = carried & ~fit  # carried rows without a window that stays in view yet
-        # the rows left by the run's window only (one host read; a block whose carried rows
-        # all stay in view reads once here): every shorter window at once, the longest that
-        # stays in view taken (:attr:`window_m`; no test: unused, it is the run's m)
-        idx = torch.nonzero(left).flatten() if run.m > 0 else left[:0].long()
-        if idx.numel():
+        # one read: how many rows the run's window alone leaves (none where m = 0: no
+        # shorter window), with the centres' facts as they stand (below; read again only
+        # where shorter windows move some)
+        n_left = left.sum() if run.m > 0 else left.new_zeros((), dtype=torch.int64)
+        facts, placed = self._centre_facts(shift, left)
+        n_left, *facts = torch.stack([n_left] + facts).tolist()
+        if n_left:  # every shorter window at once, the longest that stays in view taken
+            # (:attr:`window_m`; no test: unused, it is the run's m)
+            idx = true_rows(left, n_left)
             halves = torch.arange(run.m - 1, -1, -1, device=run.device)  # (H,) descending
             f_h, d_h = self._placement([init[idx] for init in inits],
                                        *self.padded_windows(idx, run.m), idx)  # (H, R)
@@ -388,24 +393,14 @@ class Block(BlockChecks, BlockRescue, BlockMotion, BlockWindows):
                                            device=run.device)
             self.window_m[idx] = torch.where(f_i, halves[j].to(torch.int8), self.window_m[idx])
             left[idx] = ~f_i
+            facts, placed = self._centre_facts(shift, left)
+            facts = torch.stack(facts).tolist()  # one read
         out = left
         if mark:
             self.status.masked_fill_(out, int(Status.OUTSIDE))
             self.gone |= out
-        moved = (shift != 0).any(1) & ~out
-        whole = torch.sign(shift) * shift.abs().ceil()  # whole px, away from the border
-        # rows moved by an earlier call (the block's carry, then its rescue) keep theirs
-        base = self.pts if self.centres is None else self.centres
-        centres = torch.where(moved.unsqueeze(1), self.pts + whole, base)
-        off = (centres != self.pts).any(1)
-        inside = subset_inside(centres, float(run.solver.window.half), self.ref.img.height,
-                               self.ref.img.width).all()
-        # one read: the rows moved, whether every subset is inside, the rows off their POIs
-        # and the reference subsets the solver's cache misses at the centres
-        miss = (None if self.kept is None
-                else run.solver.missing_reference_subsets(self.ref.img, centres))
-        facts = [moved.sum(), inside.long(), off.sum()] + ([] if miss is None else [miss])
-        n_moved, all_in, n_off, *n_miss = torch.stack(facts).tolist()
+        moved, centres, off = placed
+        n_moved, all_in, n_off, *n_miss = facts
         if n_moved:
             self.centres, self.centres_inside = centres, bool(all_in)
             if self.kept is not None:  # and the moved subsets' (no read: counted above)
@@ -415,6 +410,26 @@ class Block(BlockChecks, BlockRescue, BlockMotion, BlockWindows):
             self._centres_moved(off, n_off, moved, n_moved)  # the shared motion there
             run.stats["off_centre_rows"] = run.stats.get("off_centre_rows", 0) + n_moved
         return out
+
+    def _centre_facts(self, shift: torch.Tensor, out: torch.Tensor
+                      ) -> tuple[list[torch.Tensor], tuple[torch.Tensor, ...]]:
+        """The subsets moved by ``shift`` (B*N, 2) px but at the OUTSIDE rows ``out``: 0-d
+        tensors to read (the rows moved, whether every subset is inside, the rows off their
+        POIs, and the reference subsets the solver's cache misses at the centres, where it
+        keeps them) and (B*N,) bool moved, (B*N, 2) centres, (B*N,) bool off their POIs."""
+        run = self.run
+        moved = (shift != 0).any(1) & ~out
+        whole = torch.sign(shift) * shift.abs().ceil()  # whole px, away from the border
+        # rows moved by an earlier call (the block's carry, then its rescue) keep theirs
+        base = self.pts if self.centres is None else self.centres
+        centres = torch.where(moved.unsqueeze(1), self.pts + whole, base)
+        off = (centres != self.pts).any(1)
+        inside = subset_inside(centres, float(run.solver.window.half), self.ref.img.height,
+                               self.ref.img.width).all()
+        miss = (None if self.kept is None
+                else run.solver.missing_reference_subsets(self.ref.img, centres))
+        facts = [moved.sum(), inside.long(), off.sum()] + ([] if miss is None else [miss])
+        return facts, (moved, centres, off)
 
     def _placement(self, inits: Sequence[torch.Tensor], dt: torch.Tensor,
                    motion: torch.Tensor | None, rows: torch.Tensor | None = None
@@ -527,9 +542,10 @@ def _carried_start(run: BlockContext, blk: Block, ref: Reference, carry: Carry,
     shake_vel = has = None
     pts0 = ref.points if ref.acc is None else ref.points - torch.stack(
         [ref.acc["u"], ref.acc["v"]], 1)
-    if not bool(carry.valid.all()):
-        carry, filled = carry.from_neighbours(run.grid_neighbours(ref), pts0)
-        run.stats["neighbour_rows"] = run.stats.get("neighbour_rows", 0) + filled * b
+    missing = int((~carry.valid).sum())  # one read: whether any, and how many
+    if missing:
+        carry, filled = carry.from_neighbours(run.grid_neighbours(ref), pts0, missing=missing)
+        count("neighbour_rows", filled * b)
         if carry.left is not None:  # left the view, no neighbour in view: stays out
             out = (carry.left & ~carry.valid).repeat(b)
             blk.status.masked_fill_(out, int(Status.OUTSIDE))
@@ -538,7 +554,7 @@ def _carried_start(run: BlockContext, blk: Block, ref: Reference, carry: Carry,
     if run.shared is not None and ref.acc is None:  # the shake between the frames
         held = carry.shared_slope(run.shared, ref.points, run.ts,  # (N, 2)
                                   run.segments if run.velocity_segments is None
-                                  else run.velocity_segments)
+                                  else run.velocity_segments, m_max=run.m)
         step = carry.shared_step(run.shared, ref.points, blk.k, run.ts, run.segments, held)
         pred["u"] = pred["u"] + step[..., 0].to(pred["u"])
         pred["v"] = pred["v"] + step[..., 1].to(pred["v"])

@@ -16,7 +16,7 @@ from torch_stsdic.analysis.quality import carried_neighbours, nanmedian_rows
 from torch_stsdic.analysis.result import USABLE
 from torch_stsdic.core.shared_motion import SharedMotion, window_slope
 from torch_stsdic.core.status import Status
-from torch_stsdic.movie.frames import window_frames
+from torch_stsdic.movie.frames import true_rows, window_frames
 
 __all__ = ["Carry", "neighbour_guess", "rows_numpy", "make_carry", "FILL_ROUNDS"]
 
@@ -80,7 +80,7 @@ class Carry:
         out = torch.zeros(ks.shape[0], n, 2, dtype=points.dtype, device=points.device)
         if self.frame is None:
             return out
-        last = torch.tensor([self.frame], device=ks.device)
+        last = torch.full((1,), self.frame, dtype=torch.long, device=ks.device)  # (no copy)
         g_last = shared.displacement(points, last)[0]  # (N, 2)
         d = (ts[ks] - self.t).to(points.dtype).view(-1, 1, 1)
         if slope is None:
@@ -88,31 +88,41 @@ class Carry:
         return shared.displacement(points, ks) - g_last - slope * d
 
     def shared_slope(self, shared: SharedMotion, points: torch.Tensor, ts: torch.Tensor,
-                     segments: torch.Tensor | None = None) -> torch.Tensor:
+                     segments: torch.Tensor | None = None, m_max: int | None = None
+                     ) -> torch.Tensor:
         """(N, 2) px per time unit: the part of the carried velocity that the shared motion
         made (:meth:`shared_step`): its least-squares slope over the last row's window where
         the velocity is that row's ut, vt, its finite difference where the velocity is one;
-        0 where the velocity is unknown or no frame is known."""
+        0 where the velocity is unknown or no frame is known. ``m_max``: the run's longest
+        half-width (every one up to it taken, no host read; None: those of the rows, one
+        read)."""
         n = points.shape[0]
         slope = torch.zeros(n, 2, dtype=points.dtype, device=points.device)
         if self.frame is None:
             return slope
-        last = torch.tensor([self.frame], device=points.device)
+        dev = points.device
+        last = torch.full((1,), self.frame, dtype=torch.long, device=dev)  # (no copy)
         g_last = shared.displacement(points, last)[0]  # (N, 2)
         wm = self.window_m
         if wm is not None:  # (the row's velocity in the reported terms: shared_velocity)
-            counts = torch.bincount(wm.long().clamp(min=0)).tolist()  # one read
-            for m in [m for m, c in enumerate(counts) if c and m > 0]:
-                win = window_frames(last, shared.velocity_window(int(m)), len(ts),
-                                    segments)[0]  # (T,)
-                g = shared.displacement(points, win).transpose(0, 1)  # (N, T, 2)
-                dt = (ts[win] - ts[self.frame]).to(points.dtype)
-                fit = window_slope(g, dt.expand(n, -1))
-                slope = torch.where((wm == m).unsqueeze(1), fit, slope)
+            if m_max is None:
+                counts = torch.bincount(wm.long().clamp(min=0)).tolist()  # one read
+                ms = [m for m, c in enumerate(counts) if c and m > 0]
+            else:
+                ms = list(range(1, int(m_max) + 1))
+            fits: dict[int, torch.Tensor] = {}  # by the slope's half-width
+            for m in ms:
+                h = shared.velocity_window(int(m))
+                if h not in fits:
+                    win = window_frames(last, h, len(ts), segments)[0]  # (T,)
+                    g = shared.displacement(points, win).transpose(0, 1)  # (N, T, 2)
+                    dt = (ts[win] - ts[self.frame]).to(points.dtype)
+                    fits[h] = window_slope(g, dt.expand(n, -1))
+                slope = torch.where((wm == m).unsqueeze(1), fits[h], slope)
         if self.prev_frame is not None and self.prev_frame != self.frame:
-            span = float(ts[self.frame] - ts[self.prev_frame])
-            g_prev = shared.displacement(points, torch.tensor([self.prev_frame],
-                                                              device=points.device))[0]
+            span = (ts[self.frame] - ts[self.prev_frame]).to(points.dtype)  # (no read)
+            g_prev = shared.displacement(points, torch.full(
+                (1,), self.prev_frame, dtype=torch.long, device=dev))[0]
             fd = (g_last - g_prev) / span
             slope = fd if wm is None else torch.where((wm <= 0).unsqueeze(1), fd, slope)
         if self.vel_known is not None:
@@ -120,13 +130,15 @@ class Carry:
         return slope
 
     def from_neighbours(self, nb: torch.Tensor, points: torch.Tensor,
-                        rounds: int = FILL_ROUNDS) -> tuple[Carry, int]:
+                        rounds: int = FILL_ROUNDS, missing: int | None = None
+                        ) -> tuple[Carry, torch.Tensor]:
         """This carry with every point that has no valid carry (lost, or a poor fit) carried
         from its valid grid neighbours ``nb`` (N, k) instead (:func:`neighbour_guess`; points
         (N, 2) px in the first reference), ring by ring into a lost region (at most
         ``rounds``), so a lost point starts near the motion again rather than from FFT
-        cross-correlation (or is seen to have left the image). Returns the carry and the
-        points filled."""
+        cross-correlation (or is seen to have left the image). ``missing``: how many points
+        have no valid carry, where the caller read it (else read here). Returns the carry
+        and the points filled (a 0-d tensor: not read here)."""
         names = list(self.vals)
         rated = list(self.rates or {})
         stack = torch.stack([self.vals[nm] for nm in names] + [self.vel_u, self.vel_v]
@@ -135,8 +147,10 @@ class Carry:
         # only those (~0.2 of the work when 7 % are lost), chosen once: one host read for
         # all the rounds (a round fills those of them its guess reaches; a guess of a point
         # depends on its neighbours alone, so the rows filled before take no part)
-        need = torch.nonzero(~ok).flatten()
-        for _ in range(rounds if need.numel() else 0):
+        if missing is None:
+            missing = int((~ok).sum())
+        need = true_rows(~ok, missing)
+        for _ in range(rounds if missing else 0):
             guess = neighbour_guess(stack.unsqueeze(0), ok.unsqueeze(0),
                                     names + ["vel_u", "vel_v"] + [f"rate_{nm}" for nm in rated],
                                     nb, points, at=need)[0]
@@ -144,15 +158,12 @@ class Carry:
             stack[need] = torch.where(fill.unsqueeze(1), guess.to(stack.dtype), stack[need])
             ok[need] |= fill
         filled = ok & ~self.valid
-        count = int(filled.sum())  # one read
-        if not count:
-            return self, 0
         vals = {nm: stack[:, i] for i, nm in enumerate(names)}
         nv = len(names)
         rates = {nm: stack[:, nv + 2 + i] for i, nm in enumerate(rated)} or self.rates
         known = None if self.vel_known is None else self.vel_known | filled
         return dataclasses.replace(self, vals=vals, vel_u=stack[:, nv], vel_v=stack[:, nv + 1],
-                                   valid=ok, vel_known=known, rates=rates), count
+                                   valid=ok, vel_known=known, rates=rates), filled.sum()
 
 
 def neighbour_guess(params: torch.Tensor, ok: torch.Tensor, names, nb: torch.Tensor,

@@ -77,7 +77,7 @@ def refer_to_points(points: torch.Tensor, maps: torch.Tensor, ut: torch.Tensor,
     subset's centre minus the point where it was moved off it), taken off. Rows without a
     velocity (NaN) or a gradient (too few neighbours) are returned as they are."""
     ok = valid & torch.isfinite(ut) & torch.isfinite(vt)
-    g = compute_strain(points.double(), ut.double(), vt.double(), window=window, kind="small",
+    g = compute_strain(points, ut.double(), vt.double(), window=window, kind="small",
                        valid=ok, return_gradients=True)
     grad = torch.stack([g["ux"], g["uy"], g["vx"], g["vy"]], -1)  # (B, N, 4)
     bias = (maps.to(grad) @ grad.unsqueeze(-1)).squeeze(-1)  # (B, N, 2)
