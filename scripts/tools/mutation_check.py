@@ -211,6 +211,17 @@ MUTATIONS: tuple[Mutation, ...] = (
         ("test_mixed_windows.py",),
         "the model check's rounds of shorter windows skip each row's next candidate after a "
         "try"),
+    Mutation(
+        "window-test-independent-pool", "movie", "torch_stsdic/movie/window_length.py",
+        "Z * DESIGN ** 0.5 * se", "Z * se", ("test_window_length.py",),
+        "the window-length test's standard error takes the pooled terms as independent"),
+    Mutation(
+        "template-one-run", "movie", "torch_stsdic/movie/series_reference.py",
+        "    n_runs = min(max(2, round(int(max_frames) / run)), len(ks) // run)\n",
+        "    n_runs = min(int(max_frames) // run, len(ks) // run)\n",
+        ("test_series_reference.py",),
+        "a fixed long window's template and time-model test sample as many runs as the "
+        "frames hold whole (none at m >= 4: no time-model test)"),
 )
 
 

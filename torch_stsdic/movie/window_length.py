@@ -11,7 +11,8 @@ intercept variance factor (``1 / (2m + 1)`` at its centre, more where it is shif
 movie's ends or a load step). Pooled over a point's ``POOL_POINTS`` nearest POIs (the bias
 is smooth in space) and the targets within m frames of it in the same load state, the
 excess ``off^2 - v (1 - h)`` estimates ``b^2`` with a standard error ``se`` (the pooled
-terms' scatter).
+terms' scatter times the root of ``DESIGN``: neighbouring subsets share pixels, so the
+terms are not independent).
 
 A window of half-width m is accepted at a point and target where
 
@@ -62,7 +63,9 @@ GAMMA = 0.5
 #: standard errors of the pooled bias estimate below which a bias is not told from noise
 Z = 3.0
 #: the pooled mean offset's noise variance over that of independent offsets (neighbouring
-#: subsets share pixels, windows of adjacent targets frames)
+#: subsets share pixels, windows of adjacent targets frames); the pooled squared offsets'
+#: standard error from their scatter is too small by about its root too (measured: the
+#: null's bias / standard error spread 1.7-2.0 on a linear render, window_length.md)
 DESIGN = 3.0
 
 
@@ -166,7 +169,7 @@ def window_lengths(plan: RunPlan, res: TrackResult, frames: list[int],
         fails = wt @ (miss & valid).double()  # the point's own windows
         tests = wt @ valid.double()
         limit = torch.minimum(GAMMA * h, 1.0 - h) * vsum
-        good = ((bias2 <= torch.maximum(limit, Z * se))
+        good = ((bias2 <= torch.maximum(limit, Z * DESIGN ** 0.5 * se))  # (correlated)
                 & (signed <= torch.maximum(limit, Z * 2 ** 0.5 * noise_mean))
                 & (2 * fails < tests)
                 & have[:, None] & (cnt > 0))
