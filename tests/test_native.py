@@ -746,6 +746,10 @@ from torch_stsdic.core.shape import AffineShape
 from torch_stsdic.cli.signals import leave_if_interrupted
 
 rounds = int(sys.argv[1])
+# Ctrl-C as an interactive run gets it: a parent that ignores SIGINT passes that on through
+# exec (the test runner after some earlier test of the suite left it ignored; a shell's
+# background job), and the child then never saw one (the "hangs" of 2026-11-29)
+signal.signal(signal.SIGINT, signal.default_int_handler)
 faulthandler.register(signal.SIGUSR1, all_threads=True)  # the stacks, should it hang
 torch.set_num_threads(2)
 g = torch.Generator().manual_seed(0)
