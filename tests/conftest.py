@@ -2,6 +2,7 @@
 
 import contextlib
 import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -18,6 +19,37 @@ def _one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(old)
+
+
+#: the tests after which SIGINT's handler was not what it was before (restored): written to
+#: the file named by the environment variable STSDIC_SIGNAL_LOG, where set
+_SIGNAL_LEAKS: list[str] = []
+
+
+_SIGINT_AT_START = signal.getsignal(signal.SIGINT)
+
+
+def _signal_leak(where: str) -> None:
+    """SIGINT's handler found changed (``where``): put the session's first one back."""
+    signal.signal(signal.SIGINT, _SIGINT_AT_START)
+    _SIGNAL_LEAKS.append(where)
+    log = os.environ.get("STSDIC_SIGNAL_LOG")
+    if log:
+        with open(log, "a") as f:
+            f.write(where + "\n")
+
+
+@pytest.fixture(autouse=True)
+def _sigint_handler_restored(request):
+    """Every test starts and ends with the session's SIGINT handler: a handler left ignored
+    (SIG_IGN), by a test or a fixture's or a finalizer's clean-up between tests, passes on
+    through exec to every child process a later test starts, which then never sees a
+    Ctrl-C (test_native's interrupted children "hung" so)."""
+    if signal.getsignal(signal.SIGINT) is not _SIGINT_AT_START:
+        _signal_leak(f"before {request.node.nodeid}")
+    yield
+    if signal.getsignal(signal.SIGINT) is not _SIGINT_AT_START:
+        _signal_leak(f"in {request.node.nodeid}")
 
 
 @contextlib.contextmanager
