@@ -21,18 +21,13 @@ def _one_torch_thread():
     torch.set_num_threads(old)
 
 
-#: the tests after which SIGINT's handler was not what it was before (restored): written to
-#: the file named by the environment variable STSDIC_SIGNAL_LOG, where set
-_SIGNAL_LEAKS: list[str] = []
-
-
 _SIGINT_AT_START = signal.getsignal(signal.SIGINT)
 
 
 def _signal_leak(where: str) -> None:
-    """SIGINT's handler found changed (``where``): put the session's first one back."""
+    """SIGINT's handler found changed (``where``): put the session's first one back, and name
+    the test in the file the environment variable STSDIC_SIGNAL_LOG names, where set."""
     signal.signal(signal.SIGINT, _SIGINT_AT_START)
-    _SIGNAL_LEAKS.append(where)
     log = os.environ.get("STSDIC_SIGNAL_LOG")
     if log:
         with open(log, "a") as f:

@@ -93,9 +93,8 @@ class Carry:
         """(N, 2) px per time unit: the part of the carried velocity that the shared motion
         made (:meth:`shared_step`): its least-squares slope over the last row's window where
         the velocity is that row's ut, vt, its finite difference where the velocity is one;
-        0 where the velocity is unknown or no frame is known. ``m_max``: the run's longest
-        half-width (every one up to it taken, no host read; None: those of the rows, one
-        read)."""
+        0 where the velocity is unknown or no frame is known. Every half-width up to
+        ``m_max`` (the run's longest: no host read; None: the rows' longest, one read)."""
         n = points.shape[0]
         slope = torch.zeros(n, 2, dtype=points.dtype, device=points.device)
         if self.frame is None:
@@ -105,13 +104,9 @@ class Carry:
         g_last = shared.displacement(points, last)[0]  # (N, 2)
         wm = self.window_m
         if wm is not None:  # (the row's velocity in the reported terms: shared_velocity)
-            if m_max is None:
-                counts = torch.bincount(wm.long().clamp(min=0)).tolist()  # one read
-                ms = [m for m, c in enumerate(counts) if c and m > 0]
-            else:
-                ms = list(range(1, int(m_max) + 1))
+            top = (int(wm.max()) if wm.numel() else 0) if m_max is None else int(m_max)
             fits: dict[int, torch.Tensor] = {}  # by the slope's half-width
-            for m in ms:
+            for m in range(1, top + 1):
                 h = shared.velocity_window(int(m))
                 if h not in fits:
                     win = window_frames(last, h, len(ts), segments)[0]  # (T,)
