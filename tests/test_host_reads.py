@@ -343,3 +343,25 @@ def test_subsets_known_inside_are_gathered_without_reading_the_points(window):
     assert not {"max", "min", "abs"} & set(ops.seen), sorted(set(ops.seen))
     for a, b in zip(want, again):
         assert torch.equal(a[:7], b)
+
+
+def test_points_off_the_reference_image_are_kept_without_an_error():
+    """A reference update moves the POIs with the specimen (``pts0 + u``): points that left
+    the image are off the new reference. Keeping their subsets indexed the cache with a
+    negative pixel key (an IndexError that stopped ``--reference-update`` runs on the
+    hourglass); they now take their border pixel's key, and the points inside solve as they
+    do without the others."""
+    cfg = sts.DICConfig(m=0, subset_size=15)
+    solver, ref, ref_img, frames_img, pts, times = _solver_and_images(cfg)
+    h, w = ref_img.height, ref_img.width
+    off = torch.tensor([[-40.0, 10.0], [w + 30.0, 20.0], [15.0, -25.0], [20.0, h + 9.0],
+                        [-3.0, -3.0]], dtype=pts.dtype)
+    token = solver.keep_reference_subsets(ref_img, torch.cat([off, pts]))
+    assert token is not None
+    init = torch.tensor([0.4, 0.0, 0.0, -0.3, 0.0, 0.0]).expand(pts.shape[0], -1)
+    kept = solver.solve(ref_img, frames_img, pts, torch.zeros(1), frame_index=torch.tensor([2]),
+                        init=init, on_grid=True, kept=token)
+    own, _, own_ref, own_frames, _, _ = _solver_and_images(cfg)
+    plain = own.solve(own_ref, own_frames, pts, torch.zeros(1), frame_index=torch.tensor([2]),
+                      init=init, on_grid=True)
+    assert torch.equal(kept.params, plain.params) and torch.equal(kept.status, plain.status)

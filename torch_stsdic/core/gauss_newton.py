@@ -327,8 +327,12 @@ def _classical_step(ctx: BatchContext, data: SubsetData, p_last: Tensor, frame: 
 
 def _pixel_keys(ref: BSplineImage, ij: Tensor, ridx: Tensor) -> Tensor:
     """(N,) one integer per (reference, pixel): of whole-pixel points ``ij`` (N, 2) in
-    references ``ridx`` (N,) of ``ref`` (the reference cache's slots are indexed by it)."""
-    return (ridx * ref.height + ij[:, 1].long()) * ref.width + ij[:, 0].long()
+    references ``ridx`` (N,) of ``ref`` (the reference cache's slots are indexed by it).
+    A point off the image takes the key of the nearest pixel on its border (no subset of a
+    point there lies inside the image: no solve reads those keys' subsets)."""
+    x = ij[:, 0].long().clamp(0, ref.width - 1)
+    y = ij[:, 1].long().clamp(0, ref.height - 1)
+    return (ridx * ref.height + y) * ref.width + x
 
 
 def _reference_data(ctx: BatchContext, pts, dt, fidx, ridx) -> SubsetData:
@@ -470,7 +474,10 @@ def keep_subsets(ctx: BatchContext, pts: torch.Tensor, missing: int | None = Non
     if cache is None or not cache.applies(ctx.ref, ctx.geo):
         return None
     n = pts.shape[0]
-    pts = pts.detach().round()  # the pixels a solve snaps its points to
+    pts = pts.detach().round()  # the pixels a solve snaps its points to (those off the
+    # image: the border pixel their key names, :func:`_pixel_keys`)
+    pts = torch.stack([pts[:, 0].clamp(0, ctx.ref.width - 1),
+                       pts[:, 1].clamp(0, ctx.ref.height - 1)], 1)
     zero = torch.zeros(n, 1, dtype=pts.dtype, device=pts.device)
     ridx = torch.zeros(n, dtype=torch.long, device=pts.device)
     key = _pixel_keys(ctx.ref, pts, ridx)
