@@ -372,7 +372,7 @@ def test_a_warm_up_block_seeds_its_poor_fit_rows_as_trusted(movie, monkeypatch):
 
     def recording(rows, times, names, *args, **kwargs):
         if "ut" in names:  # the run's own blocks (m = 2), not a pre-pass's classical ones
-            seeds.append(rows["status"].copy())
+            seeds.append(torch.as_tensor(rows["status"]).cpu().numpy().copy())
         return carry(rows, times, names, *args, **kwargs)
 
     monkeypatch.setattr(series_mod, "solve_block", poor_first_point)

@@ -207,7 +207,11 @@ def test_sigkilled_process_resumes_to_identical_result(movie, sts_run, tmp_path)
     proc = subprocess.run([sys.executable, "-c", script], cwd=REPO, capture_output=True,
                           text=True, timeout=120)
     assert proc.returncode == -signal.SIGKILL, proc.stderr
-    assert read_results(out).completed.tolist() == [True] * 4 + [False] * 5
+    # the callback counts the rows handed to the writer thread: killed at once, the file
+    # holds the blocks it wrote by then, whole ([0], [1, 2, 3]), none after them
+    part = read_results(out).completed
+    kept = int(part.sum())
+    assert kept in (0, 1, 4) and part.tolist() == [True] * kept + [False] * (9 - kept)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the recorded input name differs (array vs tensor)
         res = track(movie[0], config=CFG, roi=ROI, step=18, progress=False,

@@ -17,7 +17,10 @@ counting thread, patched in while counting; on a GPU each of a device tensor wai
 on the CPU some of them read host tensors a GPU run keeps on the host too, so they are an
 upper bound there); so are the tensors made from host data with a ``device`` (``torch.tensor``,
 ``torch.as_tensor``: to a GPU a copy from pageable memory, which waits too; counted whatever
-the device). Per block of the run itself (its passes' blocks apart), the median over
+the device) and from numpy arrays (``torch.from_numpy``: the block loop moves them to the
+device). Per block of the run itself (its passes' blocks apart), from the start of its solve
+to the next block's (its results handed over, the next carry made: what the block loop's
+thread does; the writer thread's copies and writes are not counted), the median over
 the blocks; the run is slowed down by the counting (use it for counts, not for speed). Of
 those, the ones in the C++ CPU kernels' argument checks (``kernels/native``) are shown
 apart: a GPU run takes other kernels. Also counted, apart from the syncs: the launch-like
@@ -110,12 +113,13 @@ class SyncCounter(TorchDispatchMode):
                 return _orig(t, *a, **k)
 
             setattr(torch.Tensor, name, counted)
-        for name in ("tensor", "as_tensor"):
+        for name in ("tensor", "as_tensor", "from_numpy"):
             make = getattr(torch, name)
             self._saved["torch." + name] = make
 
-            def made(data, *a, _make=make, **k):
-                if (threading.get_ident() == me and k.get("device") is not None
+            def made(data, *a, _make=make, _name=name, **k):
+                if (threading.get_ident() == me and (k.get("device") is not None
+                                                     or _name == "from_numpy")
                         and not isinstance(data, torch.Tensor)):
                     self.counts[TO_DEVICE] += 1
                     if self.where is not None:
@@ -250,7 +254,7 @@ def count_run(run_args: list[str], where: bool = False, ops_where: bool = False
     ops = collections.Counter() if ops_where else None
     per_block: list[dict[str, int]] = []
     depth = {"runs": 0}
-    run_plan, solve_block = series.run_plan, block.solve_block
+    run_plan, solve_block, run_blocks = series.run_plan, block.solve_block, series._run_blocks
 
     def counted_run(plan, *a, **k):  # the run itself is the outermost run_plan
         depth["runs"] += 1
@@ -259,27 +263,42 @@ def count_run(run_args: list[str], where: bool = False, ops_where: bool = False
         finally:
             depth["runs"] -= 1
 
-    def counted_block(*a, **k):
-        before = collections.Counter(counter.counts)
-        where_before = collections.Counter(counter.where or {})
-        counter.op_where = ops if depth["runs"] == 1 else None  # the run's blocks only
-        try:
-            out = solve_block(*a, **k)
-        finally:
-            counter.op_where = None
-        if depth["runs"] == 1:
+    open_block: list = []  # the run's block being counted: (counts, places) at its start
+
+    def close_block() -> None:  # a block ends where the next starts (or the run's loop)
+        if open_block:
+            before, where_before = open_block.pop()
             per_block.append(dict(counter.counts - before))
             if counter.where is not None:
                 counter.block_where.update(counter.where - where_before)
-        return out
+
+    def counted_block(*a, **k):
+        if depth["runs"] == 1:  # the run's own: counted up to the next block's start (its
+            close_block()       # results handed over and the carry made from them too)
+            open_block.append((collections.Counter(counter.counts),
+                               collections.Counter(counter.where or {})))
+        counter.op_where = ops if depth["runs"] == 1 else None  # the run's blocks only
+        try:
+            return solve_block(*a, **k)
+        finally:
+            counter.op_where = None
+
+    def counted_blocks(*a, **k):  # the run's block loop: its last block ends with it
+        try:
+            return run_blocks(*a, **k)
+        finally:
+            if depth["runs"] == 1:
+                close_block()
 
     series.run_plan, series.solve_block = counted_run, counted_block
+    series._run_blocks = counted_blocks
     try:
         with tempfile.TemporaryDirectory() as tmp, counter:
             rc = cli_main(["run", *run_args, "--out", str(Path(tmp) / "r.h5"), "--overwrite",
                            "--no-progress"])
     finally:
         series.run_plan, series.solve_block = run_plan, solve_block
+        series._run_blocks = run_blocks
     counter.op_where = ops
     return rc, per_block, counter
 

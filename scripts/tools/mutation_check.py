@@ -222,6 +222,20 @@ MUTATIONS: tuple[Mutation, ...] = (
         ("test_series_reference.py",),
         "a fixed long window's template and time-model test sample as many runs as the "
         "frames hold whole (none at m >= 4: no time-model test)"),
+    Mutation(
+        "carry-not-rounded-as-stored", "movie", "torch_stsdic/movie/row_writer.py",
+        "    stored = as_stored_tensors(rows)\n", "    stored = rows\n",
+        ("test_row_writer.py",),
+        "the carry made on the device from the solved rows at full precision, not as the "
+        "file stores them (a resumed run would carry other numbers)"),
+    Mutation(
+        "writer-drops-pending-blocks", "movie", "torch_stsdic/movie/row_writer.py",
+        "                if self._error is not None:  # a failed write: the rest are not "
+        "written\n",
+        "                if self._error is not None or item[0][0] > 0:\n",
+        ("test_row_writer.py", "test_series.py"),
+        "the writer thread skips the blocks after the first (an interrupted run loses the "
+        "blocks it had handed over)"),
 )
 
 

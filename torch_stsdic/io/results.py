@@ -39,11 +39,12 @@ from torch_stsdic.io.run_record import (
     software_version,
     write_error,
 )
+from torch_stsdic.io.stored import as_stored, as_stored_tensors, field_dtype
 from torch_stsdic.io.units import Units, units_of
 
 __all__ = ["CSV_COLUMNS", "DEFAULT_FIELDS", "RESULTS_FORMAT", "RESULTS_FORMAT_VERSION",
            "STRAIN_FIELDS", "ResultFileError", "ResultWriter", "Results", "add_fields",
-           "as_stored", "field_names", "open_results", "read_results"]
+           "as_stored", "as_stored_tensors", "field_names", "open_results", "read_results"]
 
 
 class ResultFileError(ValueError):
@@ -81,28 +82,6 @@ _RESERVED = {"points", "frames", "times", "completed", *RUN_ARRAYS, *RUN_GROUPS}
 #: result files up to this size (bytes) are made in memory and written in one piece (larger
 #: ones on disk: a long movie's file image would add its size to the run's peak memory)
 SKELETON_IN_MEMORY = 32 << 20
-_INT_FIELDS: dict[str, tuple[type, int]] = {"status": (np.int8, int(Status.NOT_COMPUTED)),
-                                             "iterations": (np.int16, -1), "m": (np.int8, -1)}
-
-
-def _field_dtype(name: str) -> tuple[type, float | int]:
-    return _INT_FIELDS.get(name, (np.float32, np.nan))
-
-
-def as_stored(values: Mapping[str, Any]) -> dict[str, np.ndarray]:
-    """Values rounded exactly as a result file stores them (float32; status int8;
-    iterations int16, clipped): what a resumed run reads back."""
-    out = {}
-    for name, val in values.items():
-        a = np.asarray(as_numpy(val))
-        dt = _field_dtype(name)[0]
-        if np.issubdtype(dt, np.integer):
-            info = np.iinfo(dt)
-            a = np.clip(a, info.min, info.max)
-        out[name] = a.astype(dt)
-    return out
-
-
 class _FieldShape:
     """The (F, N) shape of a result file's fields: F rows (output frames) of N points."""
 
@@ -269,7 +248,7 @@ class ResultWriter(_FieldShape):
         f.create_dataset("frames", data=self.frames)
         f.create_dataset("times", data=self.times)
         for name in self.fields + self.extra_fields:
-            dt, fill = _field_dtype(name)
+            dt, fill = field_dtype(name)
             f.create_dataset(name, shape=(n_f, n_p), dtype=dt, fillvalue=fill,
                              chunks=chunks(n_f, n_p, np.dtype(dt).itemsize),
                              dcpl=creation_properties())
@@ -281,7 +260,7 @@ class ResultWriter(_FieldShape):
         n_f, n_p = self.n_rows, self.n_points
         size = (32 << 10) + len(config_json(self.config)) + 8 * n_f * 3 + 16 * n_p
         for name in self.fields + self.extra_fields:
-            item = np.dtype(_field_dtype(name)[0]).itemsize
+            item = np.dtype(field_dtype(name)[0]).itemsize
             ch = chunks(n_f, n_p, item) or (1, 1)
             size += (4 << 10) + (-(-n_f // ch[0]) * ch[0]) * (-(-n_p // ch[1]) * ch[1]) * item
         return size
@@ -417,7 +396,7 @@ class ResultWriter(_FieldShape):
                 a = a[None]
             if a.shape != (k, n_p):
                 raise ValueError(f"field {name!r}: expected shape ({k}, {n_p}), got {a.shape}")
-            data[name] = a.astype(_field_dtype(name)[0], copy=False)
+            data[name] = a.astype(field_dtype(name)[0], copy=False)
         if k == 0:
             return
         order = np.argsort(rows)

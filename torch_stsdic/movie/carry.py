@@ -6,7 +6,7 @@ by its velocity (:class:`Carry`), lost points filled from their grid neighbours'
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -50,7 +50,7 @@ class Carry:
     #: over the last rows (0 where unknown); None: none carried
     rates: dict[str, torch.Tensor] | None = None
     #: (N,) bool: the point's last rows left the view (OUTSIDE, and no trusted row since);
-    #: None: none did
+    #: None: not known (none did)
     left: torch.Tensor | None = None
 
     def predict(self, tk: torch.Tensor) -> dict[str, torch.Tensor]:
@@ -209,21 +209,26 @@ def rows_numpy(block: dict[str, torch.Tensor], fields: Sequence[str]) -> dict[st
 
 
 
-def make_carry(rows: dict[str, np.ndarray], times: np.ndarray, names, prev: Carry | None,
-                dtype, device, frames: list[int] | None = None) -> Carry:
+def make_carry(rows: Mapping[str, np.ndarray | torch.Tensor], times: np.ndarray, names,
+               prev: Carry | None, dtype, device, frames: list[int] | None = None) -> Carry:
     """Carry from the last stored row (velocity from ut/vt, else from the last two rows).
-    ``frames``: the rows' series frames (for :meth:`Carry.shared_step`).
+    ``rows``: name -> (B, N) the block's rows as stored (numpy, or tensors: on the run's
+    device, made there from the solved rows, no copy to the host and back);
+    ``frames``: the rows' series frames (for :meth:`Carry.shared_step`). No host read.
 
     Valid are the usable rows and the INCONSISTENT ones: a point the neighbour test
     doubts fitted its own subset (it passed the fit check), so it goes on from its own
     solution; restarting it would lose the many good points a bad neighbour condemns."""
+    rows = {nm: (a if isinstance(a, torch.Tensor) else torch.from_numpy(np.asarray(a))).to(
+        device) for nm, a in rows.items()}
 
     def col(nm: str, i: int = -1) -> torch.Tensor:
-        return torch.from_numpy(rows[nm][i].astype(np.float64)).to(device=device, dtype=dtype)
+        return rows[nm][i].to(torch.float64).to(dtype)
 
     vals = {nm: col(nm) for nm in names}
-    st = rows["status"][-1]
-    ok = torch.from_numpy((st <= USABLE) | (st == int(Status.INCONSISTENT))).to(device)
+    status = rows["status"]
+    st = status[-1]
+    ok = (st <= USABLE) | (st == int(Status.INCONSISTENT))
     ok &= torch.isfinite(vals["u"]) & torch.isfinite(vals["v"])
     t_last = float(times[-1])
     if len(times) >= 2:
@@ -257,14 +262,13 @@ def make_carry(rows: dict[str, np.ndarray], times: np.ndarray, names, prev: Carr
         fit = torch.full_like(vals["u"], float("nan")) if prev is None or \
             prev.fit_zncc is None else prev.fit_zncc.clone()
         for i in range(len(times)):
-            trusted = torch.from_numpy(rows["status"][i] <= USABLE).to(device)
-            fit = torch.where(trusted, col("zncc", i), fit)
+            fit = torch.where(status[i] <= USABLE, col("zncc", i), fit)
     frame = prev_frame = window_m = None
     if frames is not None:
         frame = int(frames[-1])
         prev_frame = int(frames[-2]) if len(frames) >= 2 else (
             prev.frame if prev is not None else None)
-        m_row = (torch.from_numpy(rows["m"][-1].astype(np.int64)).to(device) if "m" in rows
+        m_row = (rows["m"][-1].to(torch.int64) if "m" in rows
                  else torch.zeros(ok.shape, dtype=torch.long, device=device))
         if "ut" in names:
             window_m = torch.where(torch.isfinite(col("ut")) & torch.isfinite(col("vt")),
@@ -273,17 +277,17 @@ def make_carry(rows: dict[str, np.ndarray], times: np.ndarray, names, prev: Carr
             window_m = torch.full_like(m_row, -1)
     # a point that left the view stays out until a trusted row (or its neighbours') brings
     # it back: without a carry of its own it was searched by FFT in every block (a specimen
-    # moving out of view: wrong peaks, POOR_FIT, most of the run's time)
-    left = torch.from_numpy(st == int(Status.OUTSIDE)).to(device)
+    # moving out of view: wrong peaks, POOR_FIT, most of the run's time); kept as a mask
+    # (all False where none left: no read of whether any did)
+    left = st == int(Status.OUTSIDE)
     if prev is not None and prev.left is not None:
-        left |= prev.left & ~ok & ~torch.from_numpy(
-            (rows["status"] <= USABLE).any(0)).to(device)
+        left |= prev.left & ~ok & ~(status <= USABLE).any(0)
     return Carry(t=t_last, vals=vals, vel_u=vel_u, vel_v=vel_v, valid=ok, vel_known=known,
                  fit_zncc=fit, frame=frame, prev_frame=prev_frame, window_m=window_m,
-                 rates=rates, left=left if bool(left.any()) else None)
+                 rates=rates, left=left)
 
 
-def gradient_rates(rows: dict[str, np.ndarray], times: np.ndarray, names, prev: Carry | None,
+def gradient_rates(rows: Mapping[str, torch.Tensor], times: np.ndarray, names, prev: Carry | None,
                    ok: torch.Tensor, col) -> dict[str, torch.Tensor] | None:
     """name -> (N,) the rate of each displacement gradient (ux, uy, vx, vy) per time unit:
     the least-squares slope over a block's trusted rows (``rows`` (B, N) per field, times
@@ -297,8 +301,8 @@ def gradient_rates(rows: dict[str, np.ndarray], times: np.ndarray, names, prev: 
     if not grads:
         return None
     t = torch.as_tensor(np.asarray(times, dtype=np.float64), device=ok.device)
-    trusted = torch.from_numpy(rows["status"] <= USABLE).to(ok.device)  # (B, N)
-    vals = torch.stack([torch.stack([col(nm, i) for i in range(len(times))]) for nm in grads])
+    trusted = rows["status"] <= USABLE  # (B, N)
+    vals = torch.stack([rows[nm].to(torch.float64).to(col("u").dtype) for nm in grads])
     trusted = trusted & torch.isfinite(vals).all(0)  # (B, N)
     w = trusted.to(vals.dtype)
     cnt = w.sum(0)

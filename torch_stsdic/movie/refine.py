@@ -546,12 +546,13 @@ def _noise_var(y: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(v) & (v > 0), v, np.nan)
 
 
-def apply_offsets(rows: dict[str, np.ndarray], offsets: ReferenceOffsets,
-                  frames: Sequence[int] | None = None) -> dict[str, np.ndarray]:
-    """Rows (name -> (B, N)) with the offsets subtracted (names without an offset, and the
-    velocities, unchanged). With ``frames`` (B,) (the rows' series frames), the reference
-    frame's row reports the truth where it was solved (status usable): displacement and
-    gradients 0, and so their predicted std (u_std, v_std); the velocity stays as measured."""
+def apply_offsets(rows: dict[str, Any], offsets: ReferenceOffsets,
+                  frames: Sequence[int] | None = None) -> dict[str, Any]:
+    """Rows (name -> (B, N) numpy arrays, or tensors: the same numbers where they are) with
+    the offsets subtracted (names without an offset, and the velocities, unchanged). With
+    ``frames`` (B,) (the rows' series frames), the reference frame's row reports the truth
+    where it was solved (status usable): displacement and gradients 0, and so their
+    predicted std (u_std, v_std); the velocity stays as measured."""
     out = _shifted(rows, offsets, -1.0)
     if frames is None:
         return out
@@ -559,33 +560,49 @@ def apply_offsets(rows: dict[str, np.ndarray], offsets: ReferenceOffsets,
     if offsets.reference_frame not in frames:
         return out
     i = frames.index(offsets.reference_frame)
-    ok = out["status"][i] <= USABLE if "status" in out else np.ones(
-        next(iter(out.values())).shape[1], dtype=bool)
+    first = next(iter(out.values()))
+    ok = out["status"][i] <= USABLE if "status" in out else (
+        torch.ones(first.shape[1], dtype=torch.bool, device=first.device)
+        if isinstance(first, torch.Tensor) else np.ones(first.shape[1], dtype=bool))
     for k in [*offsets.values, "u_std", "v_std"]:
         if k in out and k not in _RATES:
-            out[k] = out[k].copy()
-            out[k][i] = np.where(ok, 0.0, out[k][i])
+            out[k] = out[k].clone() if isinstance(out[k], torch.Tensor) else out[k].copy()
+            out[k][i] = (torch.where if isinstance(ok, torch.Tensor) else np.where)(
+                ok, 0.0, out[k][i])
     return out
 
 
-def restore_offsets(rows: dict[str, np.ndarray], offsets: ReferenceOffsets
-                    ) -> dict[str, np.ndarray]:
-    """Stored rows (name -> (B, N)) with the offsets added back (names without an offset,
-    and the velocities, unchanged): the quantities the blocks' solves measure against their
-    reference (the next block's carried guess starts there, not the stored rows' offset
-    away)."""
+def restore_offsets(rows: dict[str, Any], offsets: ReferenceOffsets) -> dict[str, Any]:
+    """Stored rows (name -> (B, N) numpy arrays or tensors) with the offsets added back
+    (names without an offset, and the velocities, unchanged): the quantities the blocks'
+    solves measure against their reference (the next block's carried guess starts there,
+    not the stored rows' offset away)."""
     return _shifted(rows, offsets, 1.0)
 
 
-def _shifted(rows: dict[str, np.ndarray], offsets: ReferenceOffsets, sign: float
-             ) -> dict[str, np.ndarray]:
+def _shifted(rows: dict[str, Any], offsets: ReferenceOffsets, sign: float) -> dict[str, Any]:
     """Rows with ``sign`` times the offsets added (names without an offset, and the
-    velocities, unchanged)."""
+    velocities, unchanged); a tensor's on its device, in float64 as numpy's would be."""
     out = dict(rows)
     for k, off in offsets.values.items():
         if k in out and k not in _RATES:
-            out[k] = out[k] + sign * off[None, :]
+            a = out[k]
+            if isinstance(a, torch.Tensor):
+                out[k] = a + sign * _offset_on(offsets, k, a.device)[None, :]
+            else:
+                out[k] = a + sign * off[None, :]
     return out
+
+
+def _offset_on(offsets: ReferenceOffsets, name: str, device: torch.device) -> torch.Tensor:
+    """(N,) float64 the offset ``name`` on ``device``, copied there once a run (kept on the
+    object, not among its recorded fields)."""
+    held = offsets.__dict__.setdefault("_on_device", {})
+    key = (name, str(device))
+    if key not in held:
+        held[key] = torch.from_numpy(np.asarray(offsets.values[name], dtype=np.float64)).to(
+            device)
+    return held[key]
 
 
 def set_refinement(plan: RunPlan, max_frames: int | None = None) -> None:

@@ -50,10 +50,10 @@ from torch_stsdic.core.config import DICConfig
 from torch_stsdic.core.gauss_newton import ReferenceCache
 from torch_stsdic.core.solver import SubsetSolver
 from torch_stsdic.core.status import Status
-from torch_stsdic.io.results import as_stored
+from torch_stsdic.io.run_record import as_numpy
 from torch_stsdic.kernels.allocator import release_freed_memory
 from torch_stsdic.movie.block import BlockContext, solve_block
-from torch_stsdic.movie.carry import Carry, make_carry, rows_numpy
+from torch_stsdic.movie.carry import Carry, make_carry
 from torch_stsdic.movie.estimates import (
     RunEstimates,
     measure_run,
@@ -69,12 +69,8 @@ from torch_stsdic.movie.frames import (
 )
 from torch_stsdic.movie.plan import RunPlan, plan_run
 from torch_stsdic.movie.reference import Reference, maybe_update
-from torch_stsdic.movie.refine import (
-    ReferenceOffsets,
-    apply_offsets,
-    restore_offsets,
-    set_refinement,
-)
+from torch_stsdic.movie.refine import ReferenceOffsets, restore_offsets, set_refinement
+from torch_stsdic.movie.row_writer import RowWriter, carried_rows
 from torch_stsdic.movie.sample_guess import MeasuredSample
 from torch_stsdic.movie.series_reference import SeriesReference, set_series_reference
 from torch_stsdic.movie.sinks import MemorySink, open_sink
@@ -260,39 +256,56 @@ def _run_blocks(plan: RunPlan, sink: MemorySink, run: BlockContext, ref: Referen
     thr = plan.options.get("reference_update")
     pts0 = plan.points.to(device=plan.device, dtype=plan.dtype)
     blocks = plan.blocks  # (a property: made anew on every read)
-    for b_i, block in enumerate(blocks):
-        rs = [row_of[k] for k in block]
-        if all(r in done for r in rs):
-            stored = sink.read_rows(rs)  # replay a finished block from the file
-            sink.reference_frames[rs] = ref.frame
-        else:
-            full = rows_numpy(solve_block(run, block, ref, carry), plan.fields)
-            if offsets is not None:
-                full = apply_offsets(full, offsets, block)
-            stored = as_stored(full)
-            sink.write_rows(rs, full, reference_frame=ref.frame)
-        if b_i < len(blocks) - 1:  # the last block carries nothing on
-            # in the solves' own terms: the stored rows with the offsets added back (the
-            # template's gauge on the hourglass, ~0.01 px a point: every block started that
-            # far off); made from the stored rows, so a resumed run carries the same
-            seed = stored if offsets is None else restore_offsets(stored, offsets)
-            if warm_up and b_i == 0:  # poor for the residual, judged without
-                # its history: trusted
-                poor = (stored["status"] == int(Status.POOR_FIT)) & (
-                    stored["zncc"] >= float(plan.options.get("lost_zncc", 0.8)))
-                seed = {**seed, "status": np.where(poor, int(Status.CONVERGED),
-                                                   stored["status"]).astype(np.int8)}
-            carry = make_carry(seed, plan.times[block], plan.param_names, carry,
-                               plan.dtype, plan.device, frames=block)
-        if thr is not None:
-            ref = maybe_update(ref, stored, block[-1], float(thr), pts0, plan.param_names,
-                               run.cache, plan.dtype, plan.device, updates, rs[-1])
-            if updates:  # the reference is now a frame of the series
-                run.noise_ratio = 1.0
-        rows_done += len(block)
-        bar.update(len(block))
-        if callback is not None:
-            callback(rows_done, plan.n_rows)
+    writer = RowWriter(sink, plan.fields, offsets)
+    try:
+        for b_i, block in enumerate(blocks):
+            rs = [row_of[k] for k in block]
+            last = b_i == len(blocks) - 1  # the last block carries nothing on
+            replay = all(r in done for r in rs)
+            if replay:
+                writer.wait()  # (the file is the writer's until then)
+                stored = sink.read_rows(rs)  # replay a finished block from the file
+                sink.reference_frames[rs] = ref.frame
+                seed = stored if offsets is None else restore_offsets(stored, offsets)
+            else:
+                solved = solve_block(run, block, ref, carry)
+                writer.put(rs, solved, block, ref.frame)  # written while the next is solved
+                # the next carry from the same rows as stored, on the device (no host copy)
+                seed = None if last and thr is None else carried_rows(
+                    solved, plan.param_names, offsets, block)
+            if not last:
+                # in the solves' own terms: the stored rows with the offsets added back (the
+                # template's gauge on the hourglass, ~0.01 px a point: every block started
+                # that far off); made from the stored rows, so a resumed run carries the same
+                if warm_up and b_i == 0:  # poor for the residual, judged without
+                    # its history: trusted
+                    seed = _warm_start(seed, float(plan.options.get("lost_zncc", 0.8)))
+                carry = make_carry(seed, plan.times[block], plan.param_names, carry,
+                                   plan.dtype, plan.device, frames=block)
+            if thr is not None:  # (no refined reference with reference updates: the
+                # seed is the stored rows)
+                stored = {nm: as_numpy(v) for nm, v in seed.items()}
+                ref = maybe_update(ref, stored, block[-1], float(thr), pts0, plan.param_names,
+                                   run.cache, plan.dtype, plan.device, updates, rs[-1])
+                if updates:  # the reference is now a frame of the series
+                    run.noise_ratio = 1.0
+            rows_done += len(block)  # handed over: written before the run ends, or stops
+            bar.update(len(block))
+            if callback is not None:
+                callback(rows_done, plan.n_rows)
+    finally:
+        writer.close()
+
+
+def _warm_start(seed: dict[str, Any], lost_zncc: float) -> dict[str, Any]:
+    """``seed`` with its rows made POOR_FIT by their residual alone (ZNCC at least
+    ``lost_zncc``) trusted: a first block judged without its points' history (numpy rows
+    or tensors)."""
+    st, z = seed["status"], seed["zncc"]
+    poor = (st == int(Status.POOR_FIT)) & (z >= lost_zncc)
+    if isinstance(st, torch.Tensor):
+        return {**seed, "status": torch.where(poor, int(Status.CONVERGED), st).to(torch.int8)}
+    return {**seed, "status": np.where(poor, int(Status.CONVERGED), st).astype(np.int8)}
 
 
 def _smooth(plan: RunPlan, sink: MemorySink) -> None:
@@ -378,7 +391,7 @@ def track(
         checks: the trust checks of :mod:`torch_stsdic.analysis.quality` (model check of every
             window against the classical solution, shorter windows where the motion is not affine
             in time, fit and neighbour checks). False: every converged point is reported so.
-        callback: called as ``callback(rows_done, n_rows)`` after each block.
+        callback: ``callback(rows_done, n_rows)`` after each block (all written if it raises).
         refine_reference: the template's zero displacement from the trajectories: classical
             DIC of up to ``refine_frames`` (41) frames against the template, a fit in time per
             point, its (shrunk) value at the reference time subtracted from every row

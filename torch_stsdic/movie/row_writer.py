@@ -1,0 +1,122 @@
+"""A run's solved blocks written into its sink on a thread of their own (:class:`RowWriter`):
+the block loop hands a block's rows over where they were solved and goes on with the next
+block while the writer copies them to the host (from a GPU: into pinned memory, queued on
+the device's stream, no wait in the block loop), subtracts the refined reference's offsets,
+rounds them as a result file stores them, writes them and their strains. What the next
+block needs of them (its carry) is made on the device from the same rows
+(:func:`carried_rows`), so the loop never waits for the host copy."""
+
+from __future__ import annotations
+
+import queue
+import threading
+from collections.abc import Sequence
+from typing import Any
+
+import torch
+
+from torch_stsdic.io.stored import as_stored_tensors
+from torch_stsdic.movie.carry import rows_numpy
+from torch_stsdic.movie.refine import ReferenceOffsets, apply_offsets, restore_offsets
+
+__all__ = ["RowWriter", "carried_rows", "WRITER_DEPTH"]
+
+#: blocks handed over and not yet written at most (the loop waits beyond: bounded memory)
+WRITER_DEPTH = 1
+
+
+def carried_rows(block: dict[str, torch.Tensor], names: Sequence[str],
+                 offsets: ReferenceOffsets | None, frames: Sequence[int]
+                 ) -> dict[str, torch.Tensor]:
+    """name -> (B, N) what the next block's carry is made from (parameters ``names``,
+    status, ZNCC, window half-width), on the device of the solved rows ``block``: exactly the
+    numbers the result file stores (``offsets`` subtracted, rounded as stored: a resumed run
+    reads the same back) with the offsets added back (the solves' own terms)."""
+    keep = [nm for nm in (*names, "status", "zncc", "m") if nm in block]
+    rows = {nm: block[nm] for nm in keep}
+    if offsets is not None:
+        rows = apply_offsets(rows, offsets, frames)
+    stored = as_stored_tensors(rows)
+    return stored if offsets is None else restore_offsets(stored, offsets)
+
+
+class RowWriter:
+    """Writes solved blocks into ``sink`` (its ``write_rows``) on a thread of its own, in the
+    order they are handed over (:meth:`put`), at most :data:`WRITER_DEPTH` waiting. An error
+    of the writer is raised in the caller at its next :meth:`put`, :meth:`wait` or
+    :meth:`close`; :meth:`close` writes every block handed over first (an interrupted run
+    keeps every block it finished)."""
+
+    def __init__(self, sink: Any, fields: Sequence[str], offsets: ReferenceOffsets | None,
+                 depth: int = WRITER_DEPTH) -> None:
+        self.sink, self.fields, self.offsets = sink, tuple(fields), offsets
+        self._queue: queue.Queue = queue.Queue(maxsize=max(1, int(depth)))
+        self._error: BaseException | None = None  # the first failed write's error
+        self._raised = False  # (raised once in the caller)
+        #: the rows written so far (their blocks' rows; read by the caller's thread)
+        self.rows_written = 0
+        self._thread = threading.Thread(target=self._work, name="stsdic-row-writer",
+                                        daemon=True)
+        self._thread.start()
+
+    def put(self, rows: Sequence[int], block: dict[str, torch.Tensor], frames: Sequence[int],
+            reference_frame: int) -> None:
+        """Hand over the solved rows ``rows`` (output rows of series frames ``frames``): their
+        fields ``block`` (name -> (B, N) tensors, not changed afterwards), measured against
+        ``reference_frame``. From a GPU the copy to pinned host memory is queued here."""
+        self._raise()
+        fields = {nm: block[nm].detach() for nm in self.fields if nm in block}
+        done = None
+        dev = next(iter(fields.values())).device
+        if dev.type == "cuda":
+            fields = {nm: torch.empty(t.shape, dtype=t.dtype, pin_memory=True).copy_(
+                t, non_blocking=True) for nm, t in fields.items()}
+            done = torch.cuda.Event()
+            done.record()
+        self._queue.put((list(rows), fields, done, list(frames), int(reference_frame)))
+
+    def wait(self) -> None:
+        """Return once every block handed over is written (raises the writer's error)."""
+        self._queue.join()
+        self._raise()
+
+    def close(self) -> None:
+        """Write what was handed over, stop the thread (raises the writer's error). Another
+        interruption meanwhile does not cut a block's write short: it is raised after."""
+        interrupted: BaseException | None = None
+        if self._thread.is_alive():
+            self._queue.put(None)
+        while self._thread.is_alive():
+            try:
+                self._thread.join()
+            except KeyboardInterrupt as exc:  # a file closed mid-write would lose more
+                interrupted = exc
+        if interrupted is not None:
+            raise interrupted
+        self._raise()
+
+    def _raise(self) -> None:
+        if self._error is not None and not self._raised:
+            self._raised = True
+            raise self._error
+
+    def _work(self) -> None:
+        while True:
+            item = self._queue.get()
+            try:
+                if item is None:
+                    return
+                if self._error is not None:  # a failed write: the rest are not written
+                    continue
+                rows, fields, done, frames, ref_frame = item
+                if done is not None:
+                    done.synchronize()
+                full = rows_numpy(fields, self.fields)
+                if self.offsets is not None:
+                    full = apply_offsets(full, self.offsets, frames)
+                self.sink.write_rows(rows, full, reference_frame=ref_frame)
+                self.rows_written += len(rows)
+            except BaseException as exc:  # noqa: BLE001 (raised in the caller)
+                self._error = exc
+            finally:
+                self._queue.task_done()
