@@ -488,8 +488,11 @@ def test_run_refine_reference(capsys, movie, tmp_path):
     out = tmp_path / "rr.h5"  # step 8: 36 points (the template's local fits need 25)
     base = ["run", movie / "movie.tif", "--subset", "17", "--step", "8", "--m", "1",
             "--out", out, "--no-progress", *FAST]  # fmt: skip
-    code, _, err = _run(capsys, *base, "--refine-reference", "--refine-frames", "6")
+    code, out_text, err = _run(capsys, *base, "--refine-reference", "--refine-frames", "6")
     assert code == 0, err
+    # the summary says what the refinement did (the file records it in its info)
+    line = [ln for ln in out_text.splitlines() if ln.startswith("refined reference:")]
+    assert len(line) == 1 and " of 36 points (fits over " in line[0], out_text
     with h5py.File(out, "r") as f:
         assert np.isfinite(f["u"][()]).all()
     code, _, err = _run(capsys, *base, "--overwrite", "--refine-reference", "--reference", "0:2")

@@ -136,7 +136,7 @@ def test_an_error_of_the_writer_reaches_the_run_and_stops_the_writes():
         writer.put([i], _block(b=1, seed=i), [i], 0)
     writer.close()  # the error was raised once
     assert [r for r, _ in sink.rows] == [[0]]
-    assert not writer._thread.is_alive()
+    assert writer._ended  # the thread has ended
 
 
 def test_a_run_raises_its_output_error_with_the_blocks_before_it_written(tmp_path, monkeypatch):

@@ -230,9 +230,9 @@ MUTATIONS: tuple[Mutation, ...] = (
         "file stores them (a resumed run would carry other numbers)"),
     Mutation(
         "writer-drops-pending-blocks", "movie", "torch_stsdic/movie/row_writer.py",
-        "                if self._error is not None:  # a failed write: the rest are not "
+        "                if self._error is None:  # after a failed write the rest are not "
         "written\n",
-        "                if self._error is not None or item[0][0] > 0:\n",
+        "                if self._error is None and item[0][0] == 0:\n",
         ("test_row_writer.py", "test_series.py"),
         "the writer thread skips the blocks after the first (an interrupted run loses the "
         "blocks it had handed over)"),

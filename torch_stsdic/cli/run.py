@@ -678,6 +678,9 @@ def _print_summary(res: Any, args: argparse.Namespace, elapsed: float, ref: str,
               f"round(s) ({made}); its noise {sref['noise_ratio']:.3f} of a "
               "frame's" + (f", its registration +{added:.4f} px in u_std and v_std"
                            if added else ""))
+    refined = res.info.get("refine_reference")
+    if refined:
+        print(_refined_line(refined))
 
     classical = (sref or {}).get("classical_points") or (
         res.info.get("time_model") or {}).get("classical_points")
@@ -698,3 +701,17 @@ def _print_summary(res: Any, args: argparse.Namespace, elapsed: float, ref: str,
             if kept else "")) if solved else "no frame left to solve"
     print(f"time: {fmt_time(elapsed)} (strains included)   {rate}   ({device}, {kernels}"
           f"{threads})")
+
+
+def _refined_line(rr: dict) -> str:
+    """The summary line of ``--refine-reference`` (``info["refine_reference"]``): where the
+    template's zero was refined, over how many frames, and how much of the fits was kept."""
+    rho, cap = rr.get("rho"), rr.get("rho_images")
+    why = ""
+    if rho is not None and cap is not None:
+        why = (f": the offsets' variance the images allow is {cap:.3g}x a frame's error, "
+               f"the fits' {rho:.3g}x")
+    return (f"refined reference: the template's zero from the trajectories at {rr['refined']} "
+            f"of {rr['points']} points (fits over {rr['frames_median']:.0f} frames, median), "
+            f"each kept at {rr['shrink']:.3g} of its fit{why} ({rr['seconds']:.1f} s)")
+

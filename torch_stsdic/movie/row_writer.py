@@ -8,8 +8,8 @@ block needs of them (its carry) is made on the device from the same rows
 
 from __future__ import annotations
 
+import _thread
 import queue
-import threading
 from collections.abc import Sequence
 from typing import Any
 
@@ -21,7 +21,8 @@ from torch_stsdic.movie.refine import ReferenceOffsets, apply_offsets, restore_o
 
 __all__ = ["RowWriter", "carried_rows", "WRITER_DEPTH"]
 
-#: blocks handed over and not yet written at most (the loop waits beyond: bounded memory)
+#: blocks waiting for the writer at most, besides the one it writes (the loop waits beyond:
+#: bounded memory)
 WRITER_DEPTH = 1
 
 
@@ -40,30 +41,47 @@ def carried_rows(block: dict[str, torch.Tensor], names: Sequence[str],
     return stored if offsets is None else restore_offsets(stored, offsets)
 
 
+#: the writer's answers besides one per block: every block before a mark is written (a
+#: mark), the thread has ended (the end)
+_MARK, _END = "mark", "end"
+
+
 class RowWriter:
     """Writes solved blocks into ``sink`` (its ``write_rows``) on a thread of its own, in the
-    order they are handed over (:meth:`put`), at most :data:`WRITER_DEPTH` waiting. An error
-    of the writer is raised in the caller at its next :meth:`put`, :meth:`wait` or
-    :meth:`close`; :meth:`close` writes every block handed over first (an interrupted run
-    keeps every block it finished)."""
+    order they are handed over (:meth:`put`), at most ``depth`` waiting besides the one
+    being written. An error of the writer is raised in the caller at its next :meth:`put`,
+    :meth:`wait` or :meth:`close`; :meth:`close` writes every block handed over first (an
+    interrupted run keeps every block it finished).
+
+    Made of the primitives a Ctrl-C cannot wedge (as the kernels' thread pool,
+    :mod:`torch_stsdic.kernels.native.rows`): two ``queue.SimpleQueue`` (tasks to the
+    thread, an answer back for each) and a thread started by ``_thread.start_new_thread``;
+    a ``queue.Queue``'s lock, taken in Python code, stays taken if the interrupt lands just
+    after it is acquired, and the next hand-over would wait forever."""
 
     def __init__(self, sink: Any, fields: Sequence[str], offsets: ReferenceOffsets | None,
                  depth: int = WRITER_DEPTH) -> None:
         self.sink, self.fields, self.offsets = sink, tuple(fields), offsets
-        self._queue: queue.Queue = queue.Queue(maxsize=max(1, int(depth)))
+        self.depth = max(1, int(depth))
+        self._tasks: queue.SimpleQueue = queue.SimpleQueue()
+        self._answers: queue.SimpleQueue = queue.SimpleQueue()
+        self._pending = 0  # blocks handed over and not answered yet (the caller's count)
         self._error: BaseException | None = None  # the first failed write's error
         self._raised = False  # (raised once in the caller)
+        self._ended = False
         #: the rows written so far (their blocks' rows; read by the caller's thread)
         self.rows_written = 0
-        self._thread = threading.Thread(target=self._work, name="stsdic-row-writer",
-                                        daemon=True)
-        self._thread.start()
+        _thread.start_new_thread(self._work, ())
 
     def put(self, rows: Sequence[int], block: dict[str, torch.Tensor], frames: Sequence[int],
             reference_frame: int) -> None:
         """Hand over the solved rows ``rows`` (output rows of series frames ``frames``): their
         fields ``block`` (name -> (B, N) tensors, not changed afterwards), measured against
-        ``reference_frame``. From a GPU the copy to pinned host memory is queued here."""
+        ``reference_frame``. From a GPU the copy to pinned host memory is queued here. Waits
+        while ``depth`` blocks wait for the writer already."""
+        self._raise()
+        while self._pending > self.depth:
+            self._answer()
         self._raise()
         fields = {nm: block[nm].detach() for nm in self.fields if nm in block}
         done = None
@@ -73,27 +91,40 @@ class RowWriter:
                 t, non_blocking=True) for nm, t in fields.items()}
             done = torch.cuda.Event()
             done.record()
-        self._queue.put((list(rows), fields, done, list(frames), int(reference_frame)))
+        self._tasks.put((list(rows), fields, done, list(frames), int(reference_frame)))
+        self._pending += 1
 
     def wait(self) -> None:
         """Return once every block handed over is written (raises the writer's error)."""
-        self._queue.join()
+        if not self._ended:
+            self._tasks.put(_MARK)
+            while self._answer() != _MARK:
+                pass
         self._raise()
 
     def close(self) -> None:
-        """Write what was handed over, stop the thread (raises the writer's error). Another
+        """Write what was handed over, end the thread (raises the writer's error). Another
         interruption meanwhile does not cut a block's write short: it is raised after."""
         interrupted: BaseException | None = None
-        if self._thread.is_alive():
-            self._queue.put(None)
-        while self._thread.is_alive():
-            try:
-                self._thread.join()
-            except KeyboardInterrupt as exc:  # a file closed mid-write would lose more
-                interrupted = exc
+        if not self._ended:
+            self._tasks.put(None)
+            while not self._ended:
+                try:
+                    self._answer()
+                except KeyboardInterrupt as exc:  # a file closed mid-write would lose more
+                    interrupted = exc
         if interrupted is not None:
             raise interrupted
         self._raise()
+
+    def _answer(self) -> Any:
+        """The writer's next answer (waits for it): a block's, a mark or the end."""
+        got = self._answers.get()
+        if got == _END:
+            self._ended = True
+        elif got != _MARK:
+            self._pending -= 1
+        return got
 
     def _raise(self) -> None:
         if self._error is not None and not self._raised:
@@ -102,21 +133,23 @@ class RowWriter:
 
     def _work(self) -> None:
         while True:
-            item = self._queue.get()
-            try:
+            item = self._tasks.get()
+            if item is None or item == _MARK:
+                self._answers.put(_END if item is None else _MARK)
                 if item is None:
                     return
-                if self._error is not None:  # a failed write: the rest are not written
-                    continue
-                rows, fields, done, frames, ref_frame = item
-                if done is not None:
-                    done.synchronize()
-                full = rows_numpy(fields, self.fields)
-                if self.offsets is not None:
-                    full = apply_offsets(full, self.offsets, frames)
-                self.sink.write_rows(rows, full, reference_frame=ref_frame)
-                self.rows_written += len(rows)
+                continue
+            try:
+                if self._error is None:  # after a failed write the rest are not written
+                    rows, fields, done, frames, ref_frame = item
+                    if done is not None:
+                        done.synchronize()
+                    full = rows_numpy(fields, self.fields)
+                    if self.offsets is not None:
+                        full = apply_offsets(full, self.offsets, frames)
+                    self.sink.write_rows(rows, full, reference_frame=ref_frame)
+                    self.rows_written += len(rows)
             except BaseException as exc:  # noqa: BLE001 (raised in the caller)
                 self._error = exc
             finally:
-                self._queue.task_done()
+                self._answers.put(len(item[0]))
