@@ -15,8 +15,7 @@ import pytest
 import torch
 
 from torch_stsdic import DICConfig, track
-from torch_stsdic.cli import main
-from torch_stsdic.cli import run as run_command
+from torch_stsdic.cli import main, run_summary
 from torch_stsdic.io.results import ResultWriter
 
 FAST = ["--threads", "1", "--no-progress"]
@@ -94,7 +93,7 @@ def test_summary_never_says_minus_zero(capsys):
     status = np.array([[0, 1, 1]], dtype=np.int8)
     res = SimpleNamespace(status=torch.as_tensor(status), m=None, info={})
     args = argparse.Namespace(reference="0", m=0, device="cpu", resume=False)
-    run_command._print_summary(res, args, 1.0, "movie.tif")
+    run_summary.print_summary(res, args, 1.0, "movie.tif")
     out = capsys.readouterr().out
     assert "not trusted: 0.0 %" in out, out
     assert "-0.0" not in out, out

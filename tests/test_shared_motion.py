@@ -556,7 +556,7 @@ def test_load_steps_are_detected_and_windows_stay_inside_a_load_state():
 
 def test_run_summary_and_figures_say_why_velocities_are_missing():
     from torch_stsdic.cli.plot import velocity_note
-    from torch_stsdic.cli.run import shared_motion_lines
+    from torch_stsdic.cli.run_summary import shared_motion_lines
 
     m_row = np.array([2, 2, 0, 0, 1, 0, -1])
     valid = np.array([True, True, True, True, True, False, False])
