@@ -30,7 +30,7 @@ git log -1 --format='code %h %s' 2>/dev/null | cut -c1-80 | tee -a "$OUT/log.txt
 if step tests; then
   timeout ${TESTS_S:-150} python3 -m pytest -q -p no:cacheprovider --maxfail=6 \
     tests/test_triton_solve.py tests/test_cuda.py tests/test_triton.py \
-    tests/test_mixed_windows.py 2>&1 \
+    tests/test_mixed_windows.py tests/test_row_writer.py tests/test_frames.py 2>&1 \
     | tee "$OUT/tests.txt" | tail -25
   log "## tests: $((SECONDS - t0)) s"
 fi
