@@ -13,10 +13,12 @@ import torch
 from torch_stsdic.core.status import Status
 from torch_stsdic.io.run_record import as_numpy
 
-__all__ = ["field_dtype", "as_stored", "as_stored_tensors"]
+__all__ = ["INT_FIELDS", "field_dtype", "as_stored", "as_stored_tensors"]
 
 _INT_FIELDS: dict[str, tuple[type, int]] = {"status": (np.int8, int(Status.NOT_COMPUTED)),
                                              "iterations": (np.int16, -1), "m": (np.int8, -1)}
+#: the fields stored as integers (no unit, no conversion)
+INT_FIELDS = tuple(_INT_FIELDS)
 #: the torch dtype of each dtype a result file stores
 _TORCH_DTYPES = {np.float32: torch.float32, np.int8: torch.int8, np.int16: torch.int16}
 

@@ -27,6 +27,7 @@ import numpy as np
 
 from torch_stsdic.core.status import Status, usable
 from torch_stsdic.io.results import RUN_ARRAYS, field_names, open_results
+from torch_stsdic.io.stored import INT_FIELDS
 from torch_stsdic.io.units import Units, units_of
 from torch_stsdic.plot import STATUS_COLOURS, colour_norm, is_diverging, straddles_zero
 
@@ -38,8 +39,6 @@ LIMIT_ROWS = 24
 MIN_ZNCC = 0.8
 #: fields never hidden where a point is unusable (they say why it is)
 QUALITY_FIELDS = ("status", "zncc", "iterations", "m", "reprojection_error")
-#: the integer fields: no unit, no conversion
-_INT_FIELDS = ("status", "iterations", "m")
 
 
 def colour_maps(n: int = 256) -> dict[str, Any]:
@@ -219,7 +218,7 @@ class _Source:
         with self._file() as f:
             for nm in self.fields:
                 v = f[nm][row, k]
-                if nm in _INT_FIELDS:
+                if nm in INT_FIELDS:
                     out[nm] = int(v)
                 else:
                     c = float(self.convert(nm, np.float64(v)))
