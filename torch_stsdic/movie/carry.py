@@ -302,7 +302,8 @@ def gradient_rates(rows: Mapping[str, torch.Tensor], times: np.ndarray, names, p
         return None
     t = torch.as_tensor(np.asarray(times, dtype=np.float64), device=ok.device)
     trusted = rows["status"] <= USABLE  # (B, N)
-    vals = torch.stack([rows[nm].to(torch.float64).to(col("u").dtype) for nm in grads])
+    dtype = col(grads[0]).dtype  # (the carry's)
+    vals = torch.stack([rows[nm].to(torch.float64).to(dtype) for nm in grads])
     trusted = trusted & torch.isfinite(vals).all(0)  # (B, N)
     w = trusted.to(vals.dtype)
     cnt = w.sum(0)

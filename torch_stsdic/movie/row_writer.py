@@ -10,20 +10,27 @@ from __future__ import annotations
 
 import _thread
 import queue
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
+import numpy as np
 import torch
 
 from torch_stsdic.io.stored import as_stored_tensors
 from torch_stsdic.movie.carry import rows_numpy
 from torch_stsdic.movie.refine import ReferenceOffsets, apply_offsets, restore_offsets
 
-__all__ = ["RowWriter", "carried_rows", "WRITER_DEPTH"]
+__all__ = ["RowWriter", "carried_rows", "replayed_rows", "WRITER_DEPTH"]
 
 #: blocks waiting for the writer at most, besides the one it writes (the loop waits beyond:
 #: bounded memory)
 WRITER_DEPTH = 1
+
+
+def _carried(rows: Mapping[str, Any], names: Sequence[str]) -> dict[str, Any]:
+    """The fields of ``rows`` a carry is made from: the parameters ``names``, status, ZNCC
+    and window half-width (:func:`~torch_stsdic.movie.carry.make_carry`)."""
+    return {nm: rows[nm] for nm in (*names, "status", "zncc", "m") if nm in rows}
 
 
 def carried_rows(block: dict[str, torch.Tensor], names: Sequence[str],
@@ -33,12 +40,21 @@ def carried_rows(block: dict[str, torch.Tensor], names: Sequence[str],
     status, ZNCC, window half-width), on the device of the solved rows ``block``: exactly the
     numbers the result file stores (``offsets`` subtracted, rounded as stored: a resumed run
     reads the same back) with the offsets added back (the solves' own terms)."""
-    keep = [nm for nm in (*names, "status", "zncc", "m") if nm in block]
-    rows = {nm: block[nm] for nm in keep}
+    rows = _carried(block, names)
     if offsets is not None:
         rows = apply_offsets(rows, offsets, frames)
     stored = as_stored_tensors(rows)
     return stored if offsets is None else restore_offsets(stored, offsets)
+
+
+def replayed_rows(stored: Mapping[str, np.ndarray], names: Sequence[str],
+                  offsets: ReferenceOffsets | None, device: torch.device | str
+                  ) -> dict[str, torch.Tensor]:
+    """:func:`carried_rows` of a block replayed from the file (``stored``: its rows as read
+    back): those fields alone copied to ``device``, the offsets added back."""
+    rows = {nm: torch.from_numpy(np.asarray(a)).to(device)
+            for nm, a in _carried(stored, names).items()}
+    return rows if offsets is None else restore_offsets(rows, offsets)
 
 
 #: the writer's answers besides one per block: every block before a mark is written (a

@@ -69,8 +69,8 @@ from torch_stsdic.movie.frames import (
 )
 from torch_stsdic.movie.plan import RunPlan, plan_run
 from torch_stsdic.movie.reference import Reference, maybe_update
-from torch_stsdic.movie.refine import ReferenceOffsets, restore_offsets, set_refinement
-from torch_stsdic.movie.row_writer import RowWriter, carried_rows
+from torch_stsdic.movie.refine import ReferenceOffsets, set_refinement
+from torch_stsdic.movie.row_writer import RowWriter, carried_rows, replayed_rows
 from torch_stsdic.movie.sample_guess import MeasuredSample
 from torch_stsdic.movie.series_reference import SeriesReference, set_series_reference
 from torch_stsdic.movie.sinks import MemorySink, open_sink
@@ -266,7 +266,7 @@ def _run_blocks(plan: RunPlan, sink: MemorySink, run: BlockContext, ref: Referen
                 writer.wait()  # (the file is the writer's until then)
                 stored = sink.read_rows(rs)  # replay a finished block from the file
                 sink.reference_frames[rs] = ref.frame
-                seed = stored if offsets is None else restore_offsets(stored, offsets)
+                seed = replayed_rows(stored, plan.param_names, offsets, plan.device)
             else:
                 solved = solve_block(run, block, ref, carry)
                 writer.put(rs, solved, block, ref.frame)  # written while the next is solved
@@ -297,15 +297,12 @@ def _run_blocks(plan: RunPlan, sink: MemorySink, run: BlockContext, ref: Referen
         writer.close()
 
 
-def _warm_start(seed: dict[str, Any], lost_zncc: float) -> dict[str, Any]:
+def _warm_start(seed: dict[str, torch.Tensor], lost_zncc: float) -> dict[str, torch.Tensor]:
     """``seed`` with its rows made POOR_FIT by their residual alone (ZNCC at least
-    ``lost_zncc``) trusted: a first block judged without its points' history (numpy rows
-    or tensors)."""
+    ``lost_zncc``) trusted: a first block judged without its points' history."""
     st, z = seed["status"], seed["zncc"]
     poor = (st == int(Status.POOR_FIT)) & (z >= lost_zncc)
-    if isinstance(st, torch.Tensor):
-        return {**seed, "status": torch.where(poor, int(Status.CONVERGED), st).to(torch.int8)}
-    return {**seed, "status": np.where(poor, int(Status.CONVERGED), st).astype(np.int8)}
+    return {**seed, "status": torch.where(poor, int(Status.CONVERGED), st).to(torch.int8)}
 
 
 def _smooth(plan: RunPlan, sink: MemorySink) -> None:
