@@ -180,24 +180,13 @@ def test_a_movie_block_solves_every_window_length_in_one_call(tmp_path, monkeypa
         assert (v.tobytes() == out[False][k].tobytes()), k
 
 
-def test_the_model_checks_shorter_windows_take_every_rows_next_one_at_once(tmp_path,
-                                                                           monkeypatch):
-    """A movie whose motion oscillates in time, differently over the image (the model check
-    shortens windows in rounds of several depths): the blocks' check with every failing row's
-    next shorter window in one solve a round gives the same result file as one solve a
-    half-width, in no more solves (a round as many as the deepest row's tries), some of them
-    with rows of several half-widths."""
-    import math
-
-    import h5py
+def _oscillating_movie(path) -> None:
+    """A 121 x 121, 21-frame movie whose motion oscillates in time, differently over the
+    image (u's amplitude grows with x, v's falls): the model check shortens windows in
+    rounds of several depths."""
     import tifffile
 
     from torch_stsdic import synth
-    from torch_stsdic.cli import main
-    from torch_stsdic.movie import block_windows, checks
-
-    if not native.available():
-        pytest.skip("no native kernels (the two paths agree to the bit on the C++ kernels)")
     n = 121
 
     def oscillating(x, y, t):  # px: u, v oscillate in time, their amplitudes vary with x
@@ -208,7 +197,26 @@ def test_the_model_checks_shorter_windows_take_every_rows_next_one_at_once(tmp_p
     _, frames = synth.render_series(synth.make_speckle((n, n), seed=5), (n, n),
                                     synth.Custom(oscillating), times, noise_sigma=2.0,
                                     seed=3, reference_time=None)
-    tifffile.imwrite(tmp_path / "osc.tif", frames.clamp(0, 255).round().to(torch.uint8).numpy())
+    tifffile.imwrite(path, frames.clamp(0, 255).round().to(torch.uint8).numpy())
+
+
+def test_the_model_checks_shorter_windows_take_every_rows_next_one_at_once(tmp_path,
+                                                                           monkeypatch):
+    """A movie whose motion oscillates in time, differently over the image (the model check
+    shortens windows in rounds of several depths): the blocks' check with every failing row's
+    next shorter window in one solve a round gives the same result file as one solve a
+    half-width, in no more solves (a round as many as the deepest row's tries), some of them
+    with rows of several half-widths."""
+    import math
+
+    import h5py
+
+    from torch_stsdic.cli import main
+    from torch_stsdic.movie import block_windows, checks
+
+    if not native.available():
+        pytest.skip("no native kernels (the two paths agree to the bit on the C++ kernels)")
+    _oscillating_movie(tmp_path / "osc.tif")
     tries = []  # per block: the number of rows of each solve of the shorter windows
     mixed_rounds = []  # the half-widths a solve of several took
     try_window = checks.BlockChecks._try_window
@@ -248,3 +256,49 @@ def test_the_model_checks_shorter_windows_take_every_rows_next_one_at_once(tmp_p
     for k, v in out[True].items():
         assert (v.tobytes() == out[False][k].tobytes()), k
     assert math.isfinite(float(abs(out[True]["u"][out[True]["status"] == 0]).max()))
+
+
+def test_the_model_check_tries_every_shorter_window_at_once_as_a_gpu_run_does(tmp_path,
+                                                                               monkeypatch):
+    """The check's shorter windows all at once (``checks.EVERY_CANDIDATE``, a GPU run's
+    choice: one read and one solve a block) keep, at every failing row, the window the rounds
+    keep (the longest that passes): the same result file to the bit, in one solve of the
+    shorter windows a block where the rounds take up to four or more."""
+    import h5py
+
+    from torch_stsdic.cli import main
+    from torch_stsdic.movie import checks
+
+    if not native.available():
+        pytest.skip("no native kernels (the two paths agree to the bit on the C++ kernels)")
+    _oscillating_movie(tmp_path / "osc.tif")
+    judge = checks.BlockChecks._judge_window
+    check_model = checks.BlockChecks.check_model
+    tries: list[list[int]] = []  # per block: the rows of each solve of shorter windows
+
+    def spy_judge(self, idx, sel, *a, **k):
+        tries[-1].append(sel.numel())
+        return judge(self, idx, sel, *a, **k)
+
+    def spy_check(self):
+        tries.append([])
+        return check_model(self)
+
+    monkeypatch.setattr(checks.BlockChecks, "_judge_window", spy_judge)
+    monkeypatch.setattr(checks.BlockChecks, "check_model", spy_check)
+    out, solves, rows = {}, {}, {}
+    for every in (False, True):
+        monkeypatch.setattr(checks, "EVERY_CANDIDATE", every)
+        tries.clear()
+        path = tmp_path / f"e{int(every)}.h5"
+        assert main(["run", str(tmp_path / "osc.tif"), "--subset", "21", "--step", "8",
+                     "--threads", "1", "--no-progress", "--out", str(path)]) == 0
+        with h5py.File(path) as f:
+            out[every] = {k: f[k][()] for k in f if isinstance(f[k], h5py.Dataset)}
+        solves[every] = [len(t) for t in tries]
+        rows[every] = sum(map(sum, tries))
+    assert max(solves[False]) >= 4 and max(solves[True]) == 1, solves
+    assert rows[True] > rows[False] >= 100, rows  # every candidate tried, not the first passing
+    assert out[True].keys() == out[False].keys()
+    for k, v in out[True].items():
+        assert v.tobytes() == out[False][k].tobytes(), k

@@ -118,3 +118,33 @@ def test_a_point_predicted_out_of_view_from_further_back_is_outside_only_along_a
     near = torch.tensor([[0], [0], [1], [0], [0], [0]], dtype=torch.bool)
     left = torch.zeros(6, 1, dtype=torch.bool)
     assert _outside_runs(out, near, left).flatten().tolist() == [0, 0, 1, 1, 0, 0]
+
+
+def test_a_block_with_no_lost_row_reads_once_in_its_rescue(movie, monkeypatch):
+    """The rescue's steps are told what to do by facts read with its waves' numbers
+    (``BlockRescue._facts``): a block with no lost row reads the device once in its
+    rescue (its first wave's read), not once a step (3-4 before: the neighbours', two FFT
+    passes); a block with lost rows reads again after each step that changed its rows."""
+    from pathlib import Path
+
+    from repo_scripts import load_script  # tests/ on the path
+
+    from torch_stsdic.movie import rescue as rescue_mod
+
+    cs = load_script(Path(__file__).resolve().parents[1] / "scripts" / "benchmarks"
+                     / "count_syncs.py", "count_syncs")
+    reads: list[tuple[int, int]] = []  # per block: (rows lost at the rescue, reads in it)
+    rescue = rescue_mod.BlockRescue.rescue
+
+    def counted(self, *a, **k):
+        lost = int(self.lost().sum())
+        with cs.SyncCounter() as c:
+            out = rescue(self, *a, **k)
+        reads.append((lost, cs.block_total(dict(c.counts), cpu_kernels=False)))
+        return out
+
+    monkeypatch.setattr(rescue_mod.BlockRescue, "rescue", counted)
+    _track(movie, 5, monkeypatch)
+    clean = [r for lost, r in reads if lost == 0]
+    assert len(clean) >= 3 and all(r == 1 for r in clean), reads
+    assert any(lost and r > 1 for lost, r in reads), reads  # (the counter sees the reads)

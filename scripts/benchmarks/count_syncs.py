@@ -27,7 +27,9 @@ apart: a GPU run takes other kernels. Also counted, apart from the syncs: the la
 operations of a block (every dispatched operation but the views and metadata ones: on a
 GPU each launches a kernel; the C++ kernels' calls are not among them), ``--ops-where N``
 listing the N functions that make most of them. ``--where N`` lists the
-N lines of the package that sync most over the whole run.
+N lines of the package that sync most over the whole run. ``--gpu-choices`` takes the
+choices a GPU run makes where they differ from a CPU run's (the model check's shorter
+windows all at once, ``movie.checks.EVERY_CANDIDATE``): the same results, fewer reads.
 """
 
 from __future__ import annotations
@@ -186,7 +188,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--ops-where", type=int, default=0, metavar="N",
                     help="also list the N functions of the package that make the most "
                          "launch-like operations in the run's blocks (slow)")
+    ap.add_argument("--gpu-choices", action="store_true",
+                    help="take the choices a GPU run takes where they differ from the CPU's "
+                         "(the model check's shorter windows at once: checks.EVERY_CANDIDATE)")
     args = ap.parse_args(own)
+    if args.gpu_choices:
+        from torch_stsdic.movie import checks
+        checks.EVERY_CANDIDATE = True
     rc, per_block, counter = count_run(run_args, where=args.where > 0,
                                        ops_where=args.ops_where > 0)
     if rc:
@@ -196,7 +204,8 @@ def main(argv: list[str] | None = None) -> int:
     total = [block_total(b) for b in per_block]
     rest = [block_total(b, cpu_kernels=False) for b in per_block]
     old = [block_total(b, cpu_kernels=False, copies=False) for b in per_block]
-    rec = {"args": run_args, "device": "cpu", "blocks": len(per_block),
+    rec = {"args": run_args, "device": "cpu", "gpu_choices": args.gpu_choices,
+           "blocks": len(per_block),
            "per_block_median": med, "per_block_total_median": statistics.median(total),
            "per_block_total_range": [min(total), max(total)],
            "per_block_outside_cpu_kernels_median": statistics.median(rest),

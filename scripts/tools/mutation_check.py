@@ -236,6 +236,21 @@ MUTATIONS: tuple[Mutation, ...] = (
         ("test_row_writer.py", "test_series.py"),
         "the writer thread skips the blocks after the first (an interrupted run loses the "
         "blocks it had handed over)"),
+    Mutation(
+        "every-window-keeps-the-shortest", "checks", "torch_stsdic/movie/checks.py",
+        'first = first.scatter_reduce(0, sel, torch.where(good, pos, n_pairs), "amin")',
+        'first = first.scatter_reduce(0, sel, torch.where(good, pos, -1), "amax").clamp(0)\n'
+        '        first = torch.where(first > 0, first, n_pairs)',
+        ("test_mixed_windows.py",),
+        "the model check's shorter windows tried at once (a GPU run's choice) keep each "
+        "row's last passing window, not the longest"),
+    Mutation(
+        "rescue-skips-on-stale-facts", "rescue", "torch_stsdic/movie/rescue.py",
+        "            if from_nb:\n                facts = self._facts(fft_tried).tolist()",
+        "            if False:\n                facts = self._facts(fft_tried).tolist()",
+        ("test_rescue.py", "test_series.py"),
+        "the rescue's FFT steps sized by the facts read before the neighbours' step changed "
+        "the rows"),
 )
 
 

@@ -191,6 +191,9 @@ class Block(BlockChecks, BlockRescue, BlockMotion, BlockWindows):
         #: (B*N, 2) px where each row's subset is centred, or None: at its POI everywhere
         #: (:meth:`keep_outside` moves the subsets of points near the border inside)
         self.centres: torch.Tensor | None = None
+        #: how many rows' subsets are off their POIs (at :attr:`centres`; read where they
+        #: were moved, so that no later step reads it again)
+        self.off_count = 0
         #: (B*N,) int8 the half-window a row is first solved with, or None: the run's m
         #: everywhere (:meth:`keep_outside` shortens it where the point leaves the image)
         self.window_m: torch.Tensor | None = None
@@ -403,6 +406,7 @@ class Block(BlockChecks, BlockRescue, BlockMotion, BlockWindows):
         n_moved, all_in, n_off, *n_miss = facts
         if n_moved:
             self.centres, self.centres_inside = centres, bool(all_in)
+            self.off_count = int(n_off)
             if self.kept is not None:  # and the moved subsets' (no read: counted above)
                 self.kept = run.solver.keep_reference_subsets(
                     self.ref.img, self.centres, missing=n_miss[0] if n_miss else None,

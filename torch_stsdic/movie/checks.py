@@ -57,6 +57,16 @@ SCREEN = True
 SCREEN_SLACK = 0.5
 SCREEN_MARGIN = 0.98
 
+#: The model check's shorter windows (where the solver mixes window lengths): every candidate
+#: window of every failing row in one solve, each row's first that passes kept (True), or in
+#: rounds, each failing row's next candidate a round (False); None: by the run's device,
+#: at once on a GPU (one host read and one solve a block instead of one each a round: 5
+#: rounds a block on the muDIC hourglass), in rounds on the CPU (a row stops at the window
+#: that passes: the kernel work is that of the windows tried, not of every candidate). The
+#: same results to the bit either way (a row's solution does not depend on the rows solved
+#: with it).
+EVERY_CANDIDATE: bool | None = None
+
 
 def solution_rows(sol: WindowSolution, pick: torch.Tensor) -> WindowSolution:
     """The rows ``pick`` (bool mask or indices) of a solution."""
@@ -90,6 +100,12 @@ def with_rows(sol: WindowSolution, pick: torch.Tensor, new: WindowSolution) -> W
     )
 
 
+
+
+def every_candidate(device: torch.device) -> bool:
+    """Whether the model check tries every shorter window at once on ``device``
+    (:data:`EVERY_CANDIDATE`; None: on a GPU, not on the CPU)."""
+    return device.type != "cpu" if EVERY_CANDIDATE is None else bool(EVERY_CANDIDATE)
 
 
 class BlockChecks:
@@ -319,8 +335,9 @@ class BlockChecks:
         (R,) residual sigma; ``not_ref``: where its residual measures the noise) is kept.
         Where the solver mixes window lengths, every failing row's next candidate in one
         solve (one read and one solve a round, as many rounds as the deepest row's tries,
-        not one a half-width); else one solve a half-width. Returns the rows shortened (0-d
-        tensor, not read)."""
+        not one a half-width), or on a GPU every candidate at once (:data:`EVERY_CANDIDATE`,
+        :meth:`_every_window`); else one solve a half-width. Returns the rows shortened
+        (0-d tensor, not read)."""
         run = self.run
         ms = list(range(run.m - 1, 0, -1))  # the candidates' half-widths, longest first
         first_m = self.m_used[idx].long()
@@ -337,6 +354,8 @@ class BlockChecks:
             return shortened
         col = torch.arange(len(ms), device=run.device)
         m_col = torch.arange(run.m - 1, 0, -1, dtype=torch.int8, device=run.device)
+        if every_candidate(run.device):
+            return self._every_window(idx, fail, cand, m_col, vel, init, cls, not_ref)
         last = torch.full_like(first_m, -1)  # each row's candidate tried last (-1: none)
         left = cand & fail.unsqueeze(1)  # each row's candidates not tried yet
         # one read: the rows of the first round and the rounds at most (the most candidates
@@ -363,6 +382,50 @@ class BlockChecks:
         half-width ``m`` (an int, or (S,) each row's), started from ``init[sel]`` with the
         velocity ``vel`` (S, 2) of their classical solutions' line where known; kept where
         they pass (``fail`` cleared there). Returns how many passed (0-d tensor)."""
+        sol, good = self._judge_window(idx, sel, m, vel, init, cls, not_ref)
+        self.keep(idx[sel], sol, only_better=False, m=m, where=good)  # (no read)
+        fail[sel] &= ~good
+        return good.sum()
+
+    def _every_window(self, idx: torch.Tensor, fail: torch.Tensor, cand: torch.Tensor,
+                      m_col: torch.Tensor, vel: torch.Tensor, init: torch.Tensor,
+                      cls: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+                      not_ref: torch.Tensor) -> torch.Tensor:
+        """:meth:`_shorter_windows` at once (:data:`EVERY_CANDIDATE`): every candidate
+        ``cand`` (R, M) (half-widths ``m_col`` (M,), longest first; line velocities ``vel``
+        (R, M, 2)) of every failing row in one solve (rows of mixed window lengths), each
+        row's first that passes kept, as the rounds keep it. One host read (how many
+        candidates). Returns the rows shortened (0-d tensor, not read)."""
+        run = self.run
+        n_rows, n_cand = cand.shape
+        pairs = cand & fail.unsqueeze(1)  # (R, M) the windows to try
+        n_pairs = int(pairs.sum())  # the one read
+        if n_pairs == 0:
+            return torch.zeros((), dtype=torch.int64, device=run.device)
+        # row-major: a row's candidates together, longest first
+        q = true_rows(pairs.reshape(-1), n_pairs)
+        sel, c = torch.div(q, n_cand, rounding_mode="floor"), q % n_cand
+        sol, good = self._judge_window(idx, sel, m_col[c], vel[sel, c], init, cls, not_ref)
+        # each row's first candidate that passes: the least position among its good ones
+        # (n_pairs: none), one gathered solution a row (no row twice in a store)
+        first = torch.full((n_rows,), n_pairs, dtype=torch.long, device=run.device)
+        pos = torch.arange(n_pairs, device=run.device)
+        first = first.scatter_reduce(0, sel, torch.where(good, pos, n_pairs), "amin")
+        passed = first < n_pairs
+        pick = first.clamp(max=n_pairs - 1)
+        self.keep(idx, solution_rows(sol, pick), only_better=False, m=m_col[c[pick]],
+                  where=passed)
+        fail &= ~passed
+        return passed.sum()
+
+    def _judge_window(self, idx: torch.Tensor, sel: torch.Tensor, m: int | torch.Tensor,
+                      vel: torch.Tensor, init: torch.Tensor,
+                      cls: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+                      not_ref: torch.Tensor) -> tuple[WindowSolution, torch.Tensor]:
+        """Rows ``idx[sel]`` solved with windows of half-width ``m`` (an int, or (S,) each
+        row's) from ``init[sel]`` with the velocity ``vel`` (S, 2) of their classical
+        solutions' line where known, and judged against their classical solutions ``cls``:
+        the solution and (S,) bool where it passes (nothing kept here)."""
         run = self.run
         iu, iv = run.names.index("u"), run.names.index("v")
         cls_uv, cls_std, cls_sig = cls
@@ -378,9 +441,7 @@ class BlockChecks:
         good &= ~model_mismatch(d, cls_uv[sel], sol.std[:, [iu, iv]], cls_std[sel])
         good &= ~(not_ref[sel] & residual_mismatch(
             sol.sigma, cls_sig[sel], run.solver.window.effective_pixels(), sol.zncc))
-        self.keep(idx[sel], sol, only_better=False, m=m, where=good)  # (no read)
-        fail[sel] &= ~good
-        return good.sum()
+        return sol, good
 
     def rescue_classical(self, guess: torch.Tensor | None, carry: Carry | None) -> int:
         """Rows a window could not solve (still lost after :meth:`rescue`) are solved

@@ -39,25 +39,53 @@ class BlockRescue:
         0-d tensors read with the block's counts)."""
         run, b, n = self.run, self.b, self.n
         tried = torch.full((b * n,), -1, dtype=torch.long, device=run.device)
-        from_prev = self._from_earlier(carry, m, tried)
-        from_nb = self._rescue_from_neighbours(m)
+        fft_tried = torch.zeros(b * n, dtype=torch.bool, device=run.device)
+        # each step's facts read with the waves' last read (:meth:`_facts`), read again only
+        # after a step that changed the rows: a block with no lost row reads once
+        from_prev, facts = self._from_earlier(carry, m, tried, fft_tried)
+        from_nb = 0
         by_fft: Any = 0
         redone: Any = 0
-        fft_tried = torch.zeros(b * n, dtype=torch.bool, device=run.device)
-        for first in (True, False):
-            now = self.lost()
-            lost = now & ~fft_tried
-            if first:  # each point's first lost target without a trusted one before it
-                alone = lost.view(b, n) & ~self._trusted(now).view(b, n).cummax(0).values
-                lost = (alone & (alone.cumsum(0) == 1)).reshape(-1)
-            r = torch.nonzero(lost).flatten()
-            if r.numel():
+        if facts[0]:  # lost rows
+            from_nb = self._rescue_from_neighbours(m, facts[2:])
+            if from_nb:
+                facts = self._facts(fft_tried).tolist()  # one read
+            for first in (True, False):
+                n_try = facts[1] if first else facts[0]  # (read with the rows as they stand)
+                if not n_try:
+                    continue
+                r = true_rows(self._fft_rows(fft_tried, first), n_try)
                 fft_tried[r] = True
                 self._solve_own(r, None, m)
-                by_fft, redone = by_fft + r.numel(), redone + carried[r].sum()
-                from_prev += self._from_earlier(carry, m, tried)
+                by_fft, redone = by_fft + n_try, redone + carried[r].sum()
+                found, facts = self._from_earlier(carry, m, tried, fft_tried)
+                from_prev += found
         run.stats["neighbour_rescued_rows"] = run.stats.get("neighbour_rescued_rows", 0) + from_nb
         return from_prev, by_fft, redone
+
+    def _fft_rows(self, fft_tried: torch.Tensor, first: bool) -> torch.Tensor:
+        """(B*N,) bool the lost rows not tried by FFT yet (``fft_tried``); ``first``: only
+        each point's first lost target without a trusted one before it."""
+        b, n = self.b, self.n
+        now = self.lost()
+        lost = now & ~fft_tried
+        if first:
+            alone = lost.view(b, n) & ~self._trusted(now).view(b, n).cummax(0).values
+            lost = (alone & (alone.cumsum(0) == 1)).reshape(-1)
+        return lost
+
+    def _facts(self, fft_tried: torch.Tensor) -> torch.Tensor:
+        """(2 + B,) int64 of the rows as they stand, for :meth:`rescue` to read with other
+        numbers: the lost rows not tried by FFT (:meth:`_fft_rows`), those FFT tries first,
+        and per target whether its neighbours can help (a lost row and at least two trusted
+        ones: :meth:`_rescue_from_neighbours`)."""
+        b, n = self.b, self.n
+        lost = self.lost()
+        ok = self._trusted(lost)
+        has = lost.view(b, n).any(1) & (ok.view(b, n).sum(1) >= 2)
+        return torch.cat([torch.stack([self._fft_rows(fft_tried, False).sum(),
+                                       self._fft_rows(fft_tried, True).sum()]),
+                          has.long()])
 
     def _solve_own(self, rows: torch.Tensor, init: torch.Tensor | None, m: int | None,
                    near: torch.Tensor | None = None) -> None:
@@ -105,17 +133,20 @@ class BlockRescue:
         """(B*N,) bool: usable rows that are not ``lost`` (:meth:`lost`, read by the caller)."""
         return (self.status <= USABLE) & ~lost
 
-    def _from_earlier(self, carry: Carry | None, m: int | None, tried: torch.Tensor) -> int:
+    def _from_earlier(self, carry: Carry | None, m: int | None, tried: torch.Tensor,
+                      fft_tried: torch.Tensor) -> tuple[int, list[int]]:
         """Step (1) of :meth:`rescue`: lost rows (target j, point i) started from the point's
         nearest earlier trusted target p of the block, its parameters with u, v moved on by
         its velocity over t_j - t_p (any j - p where that velocity is known, j - p = 1 where
         not), in waves while a wave finds rows to try; a row whose guess puts it out of view
         is OUTSIDE only from p = j - 1 (else it waits for a nearer p). ``tried``
         (B*N,) long: the target each row was last started from (-1: none), updated: a row
-        is tried again only from a nearer target. Returns the rows tried."""
+        is tried again only from a nearer target. Returns the rows tried and the facts of
+        the rows as the waves leave them (:meth:`_facts` with ``fft_tried``, read with the
+        last wave's numbers: one read a wave)."""
         run, n, b = self.run, self.n, self.b
         if b < 2:
-            return 0
+            return 0, self._facts(fft_tried).tolist()  # one read
         names, dev = run.names, run.device
         iu, iv = names.index("u"), names.index("v")
         j_of = torch.arange(b, device=dev).repeat_interleave(n)  # (B*N,) each row's target
@@ -144,8 +175,11 @@ class BlockRescue:
                         i = names.index(nm)
                         init[:, i] = torch.where(torch.isfinite(init[:, i]), init[:, i], vel)
             fin = torch.isfinite(init).all(1)
-            # one read for the wave: the candidates with a guess, and those without
-            n_go, n_wait = torch.stack([(cand & fin).sum(), (cand & ~fin).sum()]).tolist()
+            # one read for the wave: the candidates with a guess, those without, and the
+            # rows' facts (the caller's, where this wave is the last)
+            n_go, n_wait, *facts = torch.cat([torch.stack([(cand & fin).sum(),
+                                                           (cand & ~fin).sum()]),
+                                              self._facts(fft_tried)]).tolist()
             if not n_go + n_wait:
                 break
             tried.copy_(torch.where(cand, p, tried))
@@ -153,7 +187,8 @@ class BlockRescue:
                 go = true_rows(cand & fin, n_go)
                 self._solve_own(go, init[go], m, near=j_of[go] - p[go] <= 1)
                 total += n_go
-        return total
+                facts = None  # rows changed: the next wave's read tells
+        return total, (self._facts(fft_tried).tolist() if facts is None else facts)
 
     def _velocity_at(self, rows: torch.Tensor, carry: Carry | None
                      ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -196,18 +231,17 @@ class BlockRescue:
             known = known | window
         return torch.nan_to_num(du), torch.nan_to_num(dv), known
 
-    def _rescue_from_neighbours(self, m: int | None) -> int:
+    def _rescue_from_neighbours(self, m: int | None, has: list[int]) -> int:
         """Lost rows of every target solved again from their trusted grid neighbours'
         solutions at the same target (:func:`neighbour_guess`); the better result is kept.
-        Returns the rows tried."""
+        ``has`` (B,): the targets with a lost row and at least two trusted ones (read by the
+        caller: :meth:`_facts`). Returns the rows tried."""
         b, n = self.b, self.n
-        lost = self.lost()
-        ok = self._trusted(lost)
-        # the targets with a lost row and at least two trusted ones
-        has = (lost.view(b, n).any(1) & (ok.view(b, n).sum(1) >= 2)).tolist()  # one read
         js = [j for j in range(b) if has[j]]
         if not js:
             return 0
+        lost = self.lost()
+        ok = self._trusted(lost)
         sel = torch.tensor(js, device=self.run.device)
         guess = neighbour_guess(self.params.view(b, n, -1)[sel], ok.view(b, n)[sel],
                                 self.run.names, self.run.grid_neighbours(self.ref),

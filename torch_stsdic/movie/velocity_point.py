@@ -28,6 +28,7 @@ import torch
 
 from torch_stsdic.analysis.result import USABLE
 from torch_stsdic.analysis.strain import compute_strain
+from torch_stsdic.movie.frames import true_rows
 
 #: a :class:`~torch_stsdic.movie.block.Block` (not imported: the block imports this module)
 Block = Any
@@ -102,8 +103,8 @@ def refer_velocities(blk: Block, out: dict[str, torch.Tensor]) -> None:
         ref.velocity_maps = velocity_maps(ref.img, ref.points, offsets, weights)
     b, n = out["ut"].shape
     maps, shift = ref.velocity_maps, None
-    if blk.centres is not None:
-        moved = torch.nonzero((blk.centres != blk.pts).any(1)).flatten()
+    if blk.centres is not None and blk.off_count:  # (counted where they were moved)
+        moved = true_rows((blk.centres != blk.pts).any(1), blk.off_count)
         if moved.numel():
             maps = maps.repeat(b, 1, 1)
             maps[moved] = velocity_maps(ref.img, blk.centres[moved], offsets, weights)
