@@ -63,11 +63,13 @@ class BlockRescue:
         run.stats["neighbour_rescued_rows"] = run.stats.get("neighbour_rescued_rows", 0) + from_nb
         return from_prev, by_fft, redone
 
-    def _fft_rows(self, fft_tried: torch.Tensor, first: bool) -> torch.Tensor:
+    def _fft_rows(self, fft_tried: torch.Tensor, first: bool,
+                  now: torch.Tensor | None = None) -> torch.Tensor:
         """(B*N,) bool the lost rows not tried by FFT yet (``fft_tried``); ``first``: only
-        each point's first lost target without a trusted one before it."""
+        each point's first lost target without a trusted one before it (``now``: the lost
+        rows, :meth:`lost`, where the caller has them)."""
         b, n = self.b, self.n
-        now = self.lost()
+        now = self.lost() if now is None else now
         lost = now & ~fft_tried
         if first:
             alone = lost.view(b, n) & ~self._trusted(now).view(b, n).cummax(0).values
@@ -83,8 +85,8 @@ class BlockRescue:
         lost = self.lost()
         ok = self._trusted(lost)
         has = lost.view(b, n).any(1) & (ok.view(b, n).sum(1) >= 2)
-        return torch.cat([torch.stack([self._fft_rows(fft_tried, False).sum(),
-                                       self._fft_rows(fft_tried, True).sum()]),
+        return torch.cat([torch.stack([self._fft_rows(fft_tried, False, lost).sum(),
+                                       self._fft_rows(fft_tried, True, lost).sum()]),
                           has.long()])
 
     def _solve_own(self, rows: torch.Tensor, init: torch.Tensor | None, m: int | None,
