@@ -500,8 +500,8 @@ def test_wrappers_pass_exactly_the_declared_parameters(monkeypatch):
         native.windows((torch.rand(1, 8, 9, dtype=dtype),), torch.tensor([0, 10]), 3, 4)
         vals = torch.rand(2, 5, dtype=dtype)
         bins = [torch.zeros(k, dtype=dtype) for k in (7, 14, 14)]
-        native.splat_add(*bins, vals, vals, vals, torch.tensor([1, 0]), torch.tensor([0, 1]),
-                         torch.arange(10).view(2, 5) % 7)
+        native.splat_add(*bins, vals, vals, vals[:, 0].contiguous(), torch.tensor([1, 0]),
+                         torch.tensor([0, 1]), torch.arange(10).view(2, 5) % 7)
     declared = native.kernels()
     assert set(seen) == set(declared)
     for name, calls in seen.items():
@@ -1145,8 +1145,9 @@ def test_nanmedian_matches_torch(k, dtype):
 def test_splat_add_adds_in_the_order_of_scatter_add():
     """The template's sums added in C++ (``native.splat_add``) are scatter_add_'s on the
     CPU to the last bit: each bin's values in row order (many rows on few bins, values of
-    mixed magnitude, so another order would round differently), frames of a group apart;
-    a row outside the POIs or frames is refused."""
+    mixed magnitude, so another order would round differently), frames of a group apart,
+    the noise shares formed as each weight times its row's factor, rounded before they
+    are added (not fused into the add); a row outside the POIs or frames is refused."""
     from torch_stsdic.kernels.scatter import scatter_add_
 
     g = torch.Generator().manual_seed(5)
@@ -1154,8 +1155,10 @@ def test_splat_add_adds_in_the_order_of_scatter_add():
     local = torch.randint(0, n_px, (n_poi, ns), generator=g)
     poi = torch.randint(0, n_poi, (n,), generator=g)
     frame = torch.randint(0, frames, (n,), generator=g)
-    a, wt, nz = (torch.randn(n, ns, generator=g, dtype=torch.float64)
-                 * 10.0 ** torch.randint(-8, 8, (n, ns), generator=g) for _ in range(3))
+    a, wt = (torch.randn(n, ns, generator=g, dtype=torch.float64)
+             * 10.0 ** torch.randint(-8, 8, (n, ns), generator=g) for _ in range(2))
+    rs = torch.rand(n, generator=g, dtype=torch.float64) * 3.0  # each row's noise factor
+    nz = wt * rs[:, None]  # the shares as the torch path forms them (products rounded)
     want = [torch.zeros(n_px, dtype=torch.float64),
             torch.zeros(frames * n_px, dtype=torch.float64),
             torch.zeros(frames * n_px, dtype=torch.float64)]
@@ -1165,7 +1168,7 @@ def test_splat_add_adds_in_the_order_of_scatter_add():
     scatter_add_(want[1], at, wt)
     scatter_add_(want[2], at, nz)
     got = [torch.zeros_like(t) for t in want]
-    native.splat_add(*got, a, wt, nz, poi, frame, local)
+    native.splat_add(*got, a, wt, rs, poi, frame, local)
     for x, y in zip(got, want):
         assert torch.equal(x, y)
     # another order of the rows gives other bits (the test can tell orders apart)
@@ -1173,4 +1176,4 @@ def test_splat_add_adds_in_the_order_of_scatter_add():
     scatter_add_(other, px.flip(0), a.flip(0))
     assert not torch.equal(other, want[0])
     with pytest.raises(ValueError, match="poi within"):
-        native.splat_add(*got, a, wt, nz, poi + n_poi, frame, local)
+        native.splat_add(*got, a, wt, rs, poi + n_poi, frame, local)

@@ -25,7 +25,7 @@ import torch
 
 __all__ = ["ABI", "KERNELS", "VARIANTS", "Param", "Kernel", "Library"]
 
-ABI = 14  # sts_abi_version() of the matching dic_kernels.cpp
+ABI = 15  # sts_abi_version() of the matching dic_kernels.cpp
 # the kernels the wrappers (ops.py) call (each as <name>_f32 and <name>_f64); their signatures
 # come from the library (see the module docstring)
 KERNELS = ("sts_sample", "sts_subsets", "sts_ic_rhs", "sts_ic_solve", "sts_prefilter",

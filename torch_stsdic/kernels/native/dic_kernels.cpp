@@ -1414,9 +1414,10 @@ STS_KERNEL(sts_prefilter, (T* data, int64_t planes, int64_t h, int64_t w, int or
 // the same; centre and shift folded in), sampled there, brought to the reference's grey
 // levels over the window (mean and norm matched: the reference's mr[i], sr[i] where the
 // whole window is inside both images, else its own pixels ref[...] over the pixels inside)
-// and weighted by tent[s] wf[i] (0 outside). Out (N, ns) double: the weighted value a, the
-// weight wt and the frame's noise share wt fac[i] (gain lv[i])^2. Images w x h px (the
-// reference ref (h * w) double).
+// and weighted by tent[s] wf[i] (0 outside). Out (N, ns) double: the weighted value a and
+// the weight wt; (N,) double rs: the row's noise factor fac[i] (gain lv[i])^2 (a sample's
+// share of the frame's noise is wt rs[i], formed where it is added: sts_splat_add). Images
+// w x h px (the reference ref (h * w) double).
 STS_KERNEL(sts_splat, (const T* flat, int64_t wp, double x_lo, double x_hi, double y_lo,
                        double y_hi, int64_t shift, int order, int64_t i0, int64_t i1,
                        int64_t ns, const double* dx, const double* dy, const double* tent,
@@ -1424,7 +1425,7 @@ STS_KERNEL(sts_splat, (const T* flat, int64_t wp, double x_lo, double x_hi, doub
                        const int64_t* off, const double* wf, const double* lv,
                        const double* fac, const double* mr, const double* sr,
                        const double* ref, int64_t w, int64_t h, double* a, double* wt,
-                       double* nz)) {
+                       double* rs)) {
   if (order != 3 && order != 5) return 1;
   const Geo g{wp, x_lo, x_hi, y_lo, y_hi, shift};
   std::vector<T> xs(ns), ys(ns), val(ns), fxs(ns), fys(ns);
@@ -1500,42 +1501,45 @@ STS_KERNEL(sts_splat, (const T* flat, int64_t wp, double x_lo, double x_hi, doub
       s_r = std::sqrt(r2);
     }
     const double gain = sf > 0 ? s_r / std::max(sf, 1e-12) : 1.0;
-    const double share = fac[i] * (gain * lv[i]) * (gain * lv[i]);
+    rs[i] = fac[i] * (gain * lv[i]) * (gain * lv[i]);
     const double wfi = wf[i], off_v = m_r - mf * gain;
     double* ai = a + i * ns;
     double* wi = wt + i * ns;
-    double* ni = nz + i * ns;
     for (int64_t s = 0; s < ns; ++s) {
       const double weight = tent[s] * wfi * in[s];
       ai[s] = (double(val[s]) * gain + off_v) * weight;
       wi[s] = weight;
-      ni[s] = weight * share;
     }
   }
   return 0;
 }
 
-// Rows i in [i0, i1) of sts_splat's outputs a, wt, nz (N, ns), each a (frame, POI) pair:
-// added to the sums over the n_px pixels the windows cover, k = local[poi[i] * ns + s] the
-// pixel of sample s: sums[k] += a, and the row's frame's pf_w[frame[i] * n_px + k] += wt,
-// pf_n[...] += nz. Each bin's values added in row order, as index_add_ adds them on the CPU
-// (kernels/scatter.py): call it on one thread, over all rows at once.
+// Rows i in [i0, i1) of sts_splat's outputs a, wt (N, ns) and rs (N,), each a (frame, POI)
+// pair: added to the sums over the n_px pixels the windows cover, k = local[poi[i] * ns + s]
+// the pixel of sample s: sums[k] += a, and the row's frame's pf_w[frame[i] * n_px + k] += wt,
+// pf_n[...] += wt rs[i] (the product rounded before it is added: the numbers of a product
+// stored, then added). Each bin's values added in row order, as index_add_ adds them on the
+// CPU (kernels/scatter.py): call it on one thread, over all rows at once.
 STS_KERNEL(sts_splat_add, (int64_t i0, int64_t i1, int64_t ns, int64_t n_px, const T* a,
-                           const T* wt, const T* nz, const int64_t* poi,
+                           const T* wt, const T* rs, const int64_t* poi,
                            const int64_t* frame, const int64_t* local, T* sums, T* pf_w,
                            T* pf_n)) {
   for (int64_t i = i0; i < i1; ++i) {
     const int64_t* k = local + poi[i] * ns;
     const T* ai = a + i * ns;
     const T* wi = wt + i * ns;
-    const T* ni = nz + i * ns;
+    const T ri = rs[i];
     T* fw = pf_w + frame[i] * n_px;
     T* fn = pf_n + frame[i] * n_px;
     for (int64_t s = 0; s < ns; ++s) {
       const int64_t j = k[s];
+      T share = wi[s] * ri;
+#if defined(__GNUC__) && (defined(__x86_64__) || defined(__i386__))
+      asm volatile("" : "+x"(share));  // rounded here: not fused into the add (-ffp-contract)
+#endif
       sums[j] += ai[s];
       fw[j] += wi[s];
-      fn[j] += ni[s];
+      fn[j] += share;
     }
   }
   return 0;
@@ -1548,7 +1552,7 @@ extern "C" {
 
 // Version of this interface (the sts_kernel_* functions and what the kernels' parameters
 // mean); native/declarations.py refuses a library of another version.
-int sts_abi_version() { return 14; }
+int sts_abi_version() { return 15; }
 
 int sts_kernel_count() { return int(declarations().size()); }
 

@@ -458,8 +458,9 @@ def splat(img_args: tuple, order: int, dx: torch.Tensor, dy: torch.Tensor, tent:
     quadratic of the offsets, centre folded in) into the frame at plane offset ``frame_off``
     (N,), sampled, matched to the reference's grey levels (``ref_stats``: mean and norm (N,)
     over whole windows; else from ``ref`` (H*W,) over the pixels inside both images) and
-    weighted (``weight``, ``level``, ``fac`` (N,)). Returns (N, S) float64 each: the
-    weighted values, the weights and the noise shares."""
+    weighted (``weight``, ``level``, ``fac`` (N,)). Returns (N, S) float64 the weighted
+    values, (N, S) float64 the weights and (N,) float64 each row's noise factor (a sample's
+    noise share is its weight times it: :func:`splat_add` forms it)."""
     flat = img_args[0].contiguous()
     n, ns = maps.shape[0], dx.numel()
     _require("splat", tuple(maps.shape) == (n, 12) and tuple(centres.shape) == (n, 2)
@@ -473,24 +474,26 @@ def splat(img_args: tuple, order: int, dx: torch.Tensor, dy: torch.Tensor, tent:
     def d(t):
         return t.to(torch.float64).reshape(-1).contiguous()
 
-    out = [torch.empty(n, ns, dtype=torch.float64) for _ in range(3)]
+    out = [torch.empty(n, ns, dtype=torch.float64) for _ in range(2)]
+    out.append(torch.empty(n, dtype=torch.float64))
     c = centres.to(torch.float64)
     run_rows(kernel("sts_splat", flat.dtype), n, 8 * ns,
              dict(flat=flat, **_geo(img_args, order), ns=ns, dx=d(dx), dy=d(dy), tent=d(tent),
                   pm=maps.to(torch.float64).contiguous(), cx=d(c[:, 0]), cy=d(c[:, 1]),
                   off=off, wf=d(weight), lv=d(level), fac=d(fac), mr=d(ref_stats[0]),
                   sr=d(ref_stats[1]), ref=d(ref), w=int(w), h=int(h), a=out[0], wt=out[1],
-                  nz=out[2]))
+                  rs=out[2]))
     return out[0], out[1], out[2]
 
 
 def splat_add(sums: torch.Tensor, pf_w: torch.Tensor, pf_n: torch.Tensor, a: torch.Tensor,
-              wt: torch.Tensor, nz: torch.Tensor, poi: torch.Tensor, frame: torch.Tensor,
+              wt: torch.Tensor, rs: torch.Tensor, poi: torch.Tensor, frame: torch.Tensor,
               local: torch.Tensor) -> None:
-    """Add :func:`splat`'s rows (``a``, ``wt``, ``nz`` (N, S), each a (frame, POI)
+    """Add :func:`splat`'s rows (``a``, ``wt`` (N, S) and ``rs`` (N,), each a (frame, POI)
     pair: ``frame`` (N,), ``poi`` (N,)) to the sums over the C pixels the windows cover, in
-    place: ``sums`` (C,) += a and the row's frame's ``pf_w``, ``pf_n`` (G*C,) += wt, nz, at
-    pixel ``local[poi, s]`` (``local`` (P, S): each POI's window pixels among the C). Each
+    place: ``sums`` (C,) += a and the row's frame's ``pf_w``, ``pf_n`` (G*C,) += wt, wt rs
+    (the product rounded, then added), at pixel ``local[poi, s]`` (``local`` (P, S): each
+    POI's window pixels among the C). Each
     bin's values added in row order on one thread: the numbers of
     :func:`~torch_stsdic.kernels.scatter.scatter_add_` on the CPU, without the (N, S)
     index. Every value tensor of one dtype (float64 for the template; float32 too)."""
@@ -498,11 +501,11 @@ def splat_add(sums: torch.Tensor, pf_w: torch.Tensor, pf_n: torch.Tensor, a: tor
     n_px = sums.numel()
     _require("splat_add", a.dtype in (torch.float32, torch.float64)
              and all(t.dtype == a.dtype and t.is_contiguous()
-                     for t in (sums, pf_w, pf_n, a, wt, nz))
-             and wt.shape == a.shape and nz.shape == a.shape and poi.numel() == n
+                     for t in (sums, pf_w, pf_n, a, wt, rs))
+             and wt.shape == a.shape and tuple(rs.shape) == (n,) and poi.numel() == n
              and frame.numel() == n and local.dim() == 2 and local.shape[1] == ns
              and pf_w.numel() == pf_n.numel() and pf_w.numel() % max(n_px, 1) == 0,
-             "sums (C,), pf_w/pf_n (G*C,), a/wt/nz (N, S) contiguous, one float dtype, "
+             "sums (C,), pf_w/pf_n (G*C,), a/wt (N, S), rs (N,) contiguous, one float dtype, "
              "poi/frame (N,), local (P, S)")
     if n == 0:
         return
@@ -511,7 +514,7 @@ def splat_add(sums: torch.Tensor, pf_w: torch.Tensor, pf_n: torch.Tensor, a: tor
                                & (frame >= 0).all() & (frame < pf_w.numel() // n_px).all()),
              "poi within local's rows, frame within pf_w's frames")
     fn = kernel("sts_splat_add", a.dtype)
-    raw, keep = fn.bind(dict(i0=0, i1=n, ns=ns, n_px=n_px, a=a, wt=wt, nz=nz, poi=poi,
+    raw, keep = fn.bind(dict(i0=0, i1=n, ns=ns, n_px=n_px, a=a, wt=wt, rs=rs, poi=poi,
                              frame=frame, local=local.to(torch.int64).contiguous(), sums=sums,
                              pf_w=pf_w, pf_n=pf_n))
     rc = fn.fn(*raw)
