@@ -16,7 +16,7 @@ from torch_stsdic.analysis.quality import carried_neighbours, nanmedian_rows
 from torch_stsdic.analysis.result import USABLE
 from torch_stsdic.core.shared_motion import SharedMotion, window_slope
 from torch_stsdic.core.status import Status
-from torch_stsdic.movie.frames import true_rows, window_frames
+from torch_stsdic.movie.frames import true_rows, upload, window_frames
 
 __all__ = ["Carry", "neighbour_guess", "rows_numpy", "make_carry", "FILL_ROUNDS"]
 
@@ -300,7 +300,9 @@ def gradient_rates(rows: Mapping[str, torch.Tensor], times: np.ndarray, names, p
     grads = [nm for nm in GRADIENTS if nm in names]
     if not grads:
         return None
-    t = torch.as_tensor(np.asarray(times, dtype=np.float64), device=ok.device)
+    # the block's times to the device without waiting for it (pinned, not blocking)
+    t = upload(torch.tensor(np.asarray(times, dtype=np.float64).tolist(), dtype=torch.float64),
+               ok.device)
     trusted = rows["status"] <= USABLE  # (B, N)
     dtype = col(grads[0]).dtype  # (the carry's)
     vals = torch.stack([rows[nm].to(torch.float64).to(dtype) for nm in grads])
