@@ -301,8 +301,7 @@ def gradient_rates(rows: Mapping[str, torch.Tensor], times: np.ndarray, names, p
     if not grads:
         return None
     # the block's times to the device without waiting for it (pinned, not blocking)
-    t = upload(torch.tensor(np.asarray(times, dtype=np.float64).tolist(), dtype=torch.float64),
-               ok.device)
+    t = upload(torch.tensor(np.asarray(times, dtype=np.float64)), ok.device)
     trusted = rows["status"] <= USABLE  # (B, N)
     dtype = col(grads[0]).dtype  # (the carry's)
     vals = torch.stack([rows[nm].to(torch.float64).to(dtype) for nm in grads])

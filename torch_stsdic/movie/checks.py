@@ -100,8 +100,6 @@ def with_rows(sol: WindowSolution, pick: torch.Tensor, new: WindowSolution) -> W
     )
 
 
-
-
 def every_candidate(device: torch.device) -> bool:
     """Whether the model check tries every shorter window at once on ``device``
     (:data:`EVERY_CANDIDATE`; None: on a GPU, not on the CPU)."""

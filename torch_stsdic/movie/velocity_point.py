@@ -105,10 +105,9 @@ def refer_velocities(blk: Block, out: dict[str, torch.Tensor]) -> None:
     maps, shift = ref.velocity_maps, None
     if blk.centres is not None and blk.off_count:  # (counted where they were moved)
         moved = true_rows((blk.centres != blk.pts).any(1), blk.off_count)
-        if moved.numel():
-            maps = maps.repeat(b, 1, 1)
-            maps[moved] = velocity_maps(ref.img, blk.centres[moved], offsets, weights)
-            maps = maps.view(b, n, 2, 4)
-            shift = (blk.centres - blk.pts).view(b, n, 2)
+        maps = maps.repeat(b, 1, 1)
+        maps[moved] = velocity_maps(ref.img, blk.centres[moved], offsets, weights)
+        maps = maps.view(b, n, 2, 4)
+        shift = (blk.centres - blk.pts).view(b, n, 2)
     out["ut"], out["vt"] = refer_to_points(ref.points, maps, out["ut"], out["vt"],
                                            out["status"] <= USABLE, shift)
