@@ -236,3 +236,53 @@ def test_the_carried_shake_slope_of_every_half_width_reads_nothing_and_is_the_sa
     assert not reads.seen, reads.seen
     assert torch.equal(free, read)
     assert bool((read.abs() > 0).all(1)[[0, 2]].all())  # the windows' slopes, not zero
+
+
+def test_the_neighbour_fill_stops_at_the_first_ring_that_fills_none_with_the_same_carry(
+        monkeypatch):
+    """A lost region three rings deep (a square of 6 x 6 points in a 14 x 14 grid) and a
+    lost point with no valid neighbour within reach of any ring: until done (the CPU's
+    choice, ``movie.choices.FILL_UNTIL_DONE``) the fill takes the three rings that fill
+    points and one that fills none, then stops; every ring (a GPU's) takes all eight. The
+    carry is the same to the bit."""
+    from torch_stsdic.analysis.quality import neighbours
+    from torch_stsdic.movie import carry as carry_mod
+    from torch_stsdic.movie import choices
+    from torch_stsdic.movie.carry import Carry
+
+    ys, xs = torch.meshgrid(torch.arange(14.0) * 10, torch.arange(14.0) * 10, indexing="ij")
+    pts = torch.stack([xs.flatten(), ys.flatten()], 1)
+    n = pts.shape[0]
+    far = torch.tensor([[500.0, 500.0]])  # a point alone, far from the grid
+    pts = torch.cat([pts, far])
+    nb = neighbours(pts)
+    g = torch.Generator().manual_seed(5)
+    vals = {nm: torch.randn(n + 1, generator=g, dtype=torch.float64) * 0.01
+            for nm in ("u", "v", "ux", "uy", "vx", "vy")}
+    vals["u"] = vals["u"] + 2e-3 * pts[:, 0]
+    lost = ((xs >= 40) & (xs < 100) & (ys >= 40) & (ys < 100)).flatten()
+    valid = torch.cat([~lost, torch.tensor([False])])
+    carry = Carry(t=0.0, vals=vals, vel_u=0.1 * vals["u"], vel_v=0.1 * vals["v"],
+                  valid=valid)
+    calls = []
+    guess = carry_mod.neighbour_guess
+
+    def spy(*args, **kwargs):
+        calls.append(1)
+        return guess(*args, **kwargs)
+
+    monkeypatch.setattr(carry_mod, "neighbour_guess", spy)
+    out = {}
+    for until_done in (True, False):
+        monkeypatch.setattr(choices, "FILL_UNTIL_DONE", until_done)
+        calls.clear()
+        filled_carry, filled = carry.from_neighbours(nb, pts)
+        out[until_done] = (filled_carry, int(filled), len(calls))
+    (a, fa, ca), (b, fb, cb) = out[True], out[False]
+    assert (ca, cb) == (4, carry_mod.FILL_ROUNDS)
+    assert fa == fb == int(lost.sum())  # the lone point stays without a carry
+    assert not bool(a.valid[-1]) and bool(a.valid[:-1].all())
+    assert torch.equal(a.valid, b.valid)
+    for nm in vals:
+        assert torch.equal(a.vals[nm], b.vals[nm])
+    assert torch.equal(a.vel_u, b.vel_u) and torch.equal(a.vel_v, b.vel_v)

@@ -212,7 +212,7 @@ def test_the_model_checks_shorter_windows_take_every_rows_next_one_at_once(tmp_p
     import h5py
 
     from torch_stsdic.cli import main
-    from torch_stsdic.movie import block_windows, checks
+    from torch_stsdic.movie import block_windows, checks, choices
 
     if not native.available():
         pytest.skip("no native kernels (the two paths agree to the bit on the C++ kernels)")
@@ -234,7 +234,7 @@ def test_the_model_checks_shorter_windows_take_every_rows_next_one_at_once(tmp_p
 
     monkeypatch.setattr(checks.BlockChecks, "_try_window", spy_try)
     monkeypatch.setattr(checks.BlockChecks, "check_model", spy_check)
-    monkeypatch.setattr(checks, "EVERY_CANDIDATE", False)  # the rounds (the CPU's choice)
+    monkeypatch.setattr(choices, "EVERY_CANDIDATE", False)  # the rounds (the CPU's choice)
     out, calls = {}, {}
     for mixes in (True, False):
         if not mixes:
@@ -261,14 +261,14 @@ def test_the_model_checks_shorter_windows_take_every_rows_next_one_at_once(tmp_p
 
 def test_the_model_check_tries_every_shorter_window_at_once_as_a_gpu_run_does(tmp_path,
                                                                                monkeypatch):
-    """The check's shorter windows all at once (``checks.EVERY_CANDIDATE``, a GPU run's
+    """The check's shorter windows all at once (``movie.choices.EVERY_CANDIDATE``, a GPU run's
     choice: one read and one solve a block) keep, at every failing row, the window the rounds
     keep (the longest that passes): the same result file to the bit, in one solve of the
     shorter windows a block where the rounds take up to four or more."""
     import h5py
 
     from torch_stsdic.cli import main
-    from torch_stsdic.movie import checks
+    from torch_stsdic.movie import checks, choices
 
     if not native.available():
         pytest.skip("no native kernels (the two paths agree to the bit on the C++ kernels)")
@@ -289,7 +289,7 @@ def test_the_model_check_tries_every_shorter_window_at_once_as_a_gpu_run_does(tm
     monkeypatch.setattr(checks.BlockChecks, "check_model", spy_check)
     out, solves, rows = {}, {}, {}
     for every in (False, True):
-        monkeypatch.setattr(checks, "EVERY_CANDIDATE", every)
+        monkeypatch.setattr(choices, "EVERY_CANDIDATE", every)
         tries.clear()
         path = tmp_path / f"e{int(every)}.h5"
         assert main(["run", str(tmp_path / "osc.tif"), "--subset", "21", "--step", "8",

@@ -25,7 +25,7 @@ SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "benchmarks" / "count
 #: facts read with its waves; a little room for noise-free changes of the path
 MAX_PER_BLOCK = 30
 #: the same with a GPU run's choices (the model check's shorter windows at once,
-#: ``checks.EVERY_CANDIDATE``): 21.5 (17-72)
+#: ``movie.choices``): 21.5 (17-72)
 MAX_PER_BLOCK_GPU_CHOICES = 25
 #: launch-like torch operations a block (``count_syncs.LAUNCHES``: on a GPU each launches a
 #: kernel), median over the blocks on the movie below: 5043 at d3e78a5, 4520 at 5b953b0 (the
@@ -66,8 +66,9 @@ def test_a_default_movie_block_syncs_at_most_the_level_reached(tmp_path, monkeyp
                                                                gpu_choices):
     cs = _counter_module()
     if gpu_choices:
-        from torch_stsdic.movie import checks
-        monkeypatch.setattr(checks, "EVERY_CANDIDATE", True)
+        from torch_stsdic.movie import choices
+        for name, value in choices.gpu_choices().items():
+            monkeypatch.setattr(choices, name, value)
     assert main(["synth", "--out", str(tmp_path), "--size", "160", "--frames", "23",
                  "--motion", "strain", "--exx", "0.002", "--noise", "2", "--seed", "3",
                  "--threads", "1"]) == 0

@@ -28,8 +28,9 @@ operations of a block (every dispatched operation but the views and metadata one
 GPU each launches a kernel; the C++ kernels' calls are not among them), ``--ops-where N``
 listing the N functions that make most of them. ``--where N`` lists the
 N lines of the package that sync most over the whole run. ``--gpu-choices`` takes the
-choices a GPU run makes where they differ from a CPU run's (the model check's shorter
-windows all at once, ``movie.checks.EVERY_CANDIDATE``): the same results, fewer reads.
+choices a GPU run makes where they differ from a CPU run's (``torch_stsdic.movie.choices``:
+the model check's shorter windows all at once, every ring of a carry's neighbour fill):
+the same results, fewer reads.
 """
 
 from __future__ import annotations
@@ -190,11 +191,13 @@ def main(argv: list[str] | None = None) -> int:
                          "launch-like operations in the run's blocks (slow)")
     ap.add_argument("--gpu-choices", action="store_true",
                     help="take the choices a GPU run takes where they differ from the CPU's "
-                         "(the model check's shorter windows at once: checks.EVERY_CANDIDATE)")
+                         "(torch_stsdic.movie.choices: the model check's shorter windows at "
+                         "once, every ring of a carry's neighbour fill)")
     args = ap.parse_args(own)
     if args.gpu_choices:
-        from torch_stsdic.movie import checks
-        checks.EVERY_CANDIDATE = True
+        from torch_stsdic.movie import choices
+        for name, value in choices.gpu_choices().items():
+            setattr(choices, name, value)
     rc, per_block, counter = count_run(run_args, where=args.where > 0,
                                        ops_where=args.ops_where > 0)
     if rc:

@@ -251,6 +251,13 @@ MUTATIONS: tuple[Mutation, ...] = (
         ("test_rescue.py", "test_series.py"),
         "the rescue's FFT steps sized by the facts read before the neighbours' step changed "
         "the rows"),
+    Mutation(
+        "fill-stops-after-one-ring", "carry", "torch_stsdic/movie/carry.py",
+        "            if until_done and not bool(fill.any()):",
+        "            if until_done and bool(fill.any()):",
+        ("test_carry_shared.py",),
+        "a carry's neighbour fill stops at the first ring that fills points, not at the "
+        "first that fills none"),
 )
 
 

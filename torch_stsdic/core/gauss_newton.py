@@ -454,9 +454,11 @@ def _keep_missing(ctx: BatchContext, pts, dt, fidx, ridx, key,
     if not cache.fits(missing, int(geo.w.numel()), ctx.ref.coeffs.element_size(),
                       2 * (geo.ks + 1)):
         return False
-    # the distinct keys that miss, ascending, and the first row of each
+    # the distinct keys that miss, ascending, and the first row of each (the rows sorted
+    # by key, stably: a search, not a scatter over every pixel of the image)
     uniq = torch.nonzero_static(mark[:-1], size=missing).flatten()
-    first = _first_rows(km, mark.numel())[uniq]
+    order = torch.argsort(km, stable=True)
+    first = order[torch.searchsorted(km[order], uniq)]
     cache.add(uniq, _sampled(ctx, pts, dt, fidx, ridx, first, inside))
     return True
 

@@ -162,7 +162,8 @@ class Block(BlockChecks, BlockRescue, BlockMotion, BlockWindows):
         self.needed = upload(needed, dev)
         ring = run.cache.in_ring(needed.tolist())  # only new frames copied
         # the frames' stack, addressed by plane (self.planes[j]: frame self.needed[j])
-        self.raw, self.img, self.pyramids = ring.raw, ring.img, ring.pyramids
+        # the pixels only where a solve asks for them (:attr:`RingView.raw`: the FFT guess)
+        self.ring, self.img, self.pyramids = ring, ring.img, ring.pyramids
         self.planes = upload(torch.as_tensor(ring.planes, dtype=torch.long), dev)
         ref.ensure(run.cache)
         if run.noise_ratio is None:
@@ -234,7 +235,8 @@ class Block(BlockChecks, BlockRescue, BlockMotion, BlockWindows):
         on_grid, inside = run.point_facts(ref)
         return (solver or run.solver).solve(
             ref.img, self.img, self.pts[idx], dt, frame_index=fidx,
-            init=init, ref_pixels=ref.raw.unsqueeze(0), frame_pixels=self.raw,
+            init=init, ref_pixels=ref.raw.unsqueeze(0),
+            frame_pixels=self.ring.raw if init is None else None,  # (read by the FFT only)
             pyramids=(ref.pyramids(), self.pyramids),
             noise_ratio=run.noise_ratio, motion=motion,
             centres=None if self.centres is None else self.centres[idx],

@@ -16,6 +16,7 @@ from torch_stsdic.analysis.quality import carried_neighbours, nanmedian_rows
 from torch_stsdic.analysis.result import USABLE
 from torch_stsdic.core.shared_motion import SharedMotion, window_slope
 from torch_stsdic.core.status import Status
+from torch_stsdic.movie.choices import fill_until_done
 from torch_stsdic.movie.frames import true_rows, upload, window_frames
 
 __all__ = ["Carry", "neighbour_guess", "rows_numpy", "make_carry", "FILL_ROUNDS"]
@@ -145,11 +146,16 @@ class Carry:
         if missing is None:
             missing = int((~ok).sum())
         need = true_rows(~ok, missing)
+        # on the CPU until a ring fills none (then none after it would: nothing changed),
+        # on a GPU every ring, no read (:data:`~torch_stsdic.movie.choices.FILL_UNTIL_DONE`)
+        until_done = fill_until_done(ok.device)
         for _ in range(rounds if missing else 0):
             guess = neighbour_guess(stack.unsqueeze(0), ok.unsqueeze(0),
                                     names + ["vel_u", "vel_v"] + [f"rate_{nm}" for nm in rated],
                                     nb, points, at=need)[0]
             fill = torch.isfinite(guess).all(1) & ~ok[need]
+            if until_done and not bool(fill.any()):
+                break
             stack[need] = torch.where(fill.unsqueeze(1), guess.to(stack.dtype), stack[need])
             ok[need] |= fill
         filled = ok & ~self.valid

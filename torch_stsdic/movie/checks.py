@@ -28,6 +28,7 @@ from torch_stsdic.core.solver import (
 )
 from torch_stsdic.core.status import Status
 from torch_stsdic.movie.carry import Carry
+from torch_stsdic.movie.choices import every_candidate
 from torch_stsdic.movie.frames import true_rows
 
 #: Gauss-Newton steps of the model check's classical solutions (measured on a 2,500-point
@@ -57,15 +58,6 @@ SCREEN = True
 SCREEN_SLACK = 0.5
 SCREEN_MARGIN = 0.98
 
-#: The model check's shorter windows (where the solver mixes window lengths): every candidate
-#: window of every failing row in one solve, each row's first that passes kept (True), or in
-#: rounds, each failing row's next candidate a round (False); None: by the run's device,
-#: at once on a GPU (one host read and one solve a block instead of one each a round: 5
-#: rounds a block on the muDIC hourglass), in rounds on the CPU (a row stops at the window
-#: that passes: the kernel work is that of the windows tried, not of every candidate). The
-#: same results to the bit either way (a row's solution does not depend on the rows solved
-#: with it).
-EVERY_CANDIDATE: bool | None = None
 
 
 def solution_rows(sol: WindowSolution, pick: torch.Tensor) -> WindowSolution:
@@ -98,12 +90,6 @@ def with_rows(sol: WindowSolution, pick: torch.Tensor, new: WindowSolution) -> W
         iterations=put(sol.iterations, sol.iterations[pick] + new.iterations), time=sol.time,
         std=put(sol.std, new.std), sigma=put(sol.sigma, new.sigma),
     )
-
-
-def every_candidate(device: torch.device) -> bool:
-    """Whether the model check tries every shorter window at once on ``device``
-    (:data:`EVERY_CANDIDATE`; None: on a GPU, not on the CPU)."""
-    return device.type != "cpu" if EVERY_CANDIDATE is None else bool(EVERY_CANDIDATE)
 
 
 class BlockChecks:
@@ -333,7 +319,8 @@ class BlockChecks:
         (R,) residual sigma; ``not_ref``: where its residual measures the noise) is kept.
         Where the solver mixes window lengths, every failing row's next candidate in one
         solve (one read and one solve a round, as many rounds as the deepest row's tries,
-        not one a half-width), or on a GPU every candidate at once (:data:`EVERY_CANDIDATE`,
+        not one a half-width), or on a GPU every candidate at once
+        (:data:`~torch_stsdic.movie.choices.EVERY_CANDIDATE`,
         :meth:`_every_window`); else one solve a half-width. Returns the rows shortened
         (0-d tensor, not read)."""
         run = self.run
@@ -389,7 +376,8 @@ class BlockChecks:
                       m_col: torch.Tensor, vel: torch.Tensor, init: torch.Tensor,
                       cls: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
                       not_ref: torch.Tensor) -> torch.Tensor:
-        """:meth:`_shorter_windows` at once (:data:`EVERY_CANDIDATE`): every candidate
+        """:meth:`_shorter_windows` at once
+        (:data:`~torch_stsdic.movie.choices.EVERY_CANDIDATE`): every candidate
         ``cand`` (R, M) (half-widths ``m_col`` (M,), longest first; line velocities ``vel``
         (R, M, 2)) of every failing row in one solve (rows of mixed window lengths), each
         row's first that passes kept, as the rounds keep it. One host read (how many

@@ -6,6 +6,10 @@ frame or two, so :class:`FrameRing` keeps the stack between blocks and writes on
 that are new into the planes that frames no longer needed leave free: a frame is copied into
 the stack once while it stays in use, instead of every block copying all of its 2m+1 (or
 more) frames again (on a 754 x 1273 movie with 13-frame windows that was 100 MB a block).
+A frame's pixels are copied into their plane only when a block asks for them
+(:attr:`RingView.raw`: the FFT initial guess, a noise estimate), not with its coefficients,
+which every solve reads (the hourglass's defaults: 102 frames copied, the pixels of most
+never read).
 
 A block then addresses its frames by *plane* (:attr:`RingView.planes`), not by position in its
 list of frames.
@@ -34,15 +38,22 @@ class _Prepared(Protocol):  # movie.frames.PreparedFrame (not imported: no cycle
 
 @dataclass(frozen=True)
 class RingView:
-    """A block's frames in the ring: ``raw`` (C, H, W) pixels and ``img`` the C-plane
-    coefficient stack (every plane, those of other frames or empty ones included), ``planes``
-    the plane of each frame asked for (in the order asked), ``pyramids`` the Gaussian
-    pyramids by plane (an empty plane's is None)."""
+    """A block's frames in the ring: ``img`` the C-plane coefficient stack (every plane,
+    those of other frames or empty ones included), ``planes`` the plane of each frame asked
+    for (in the order asked), ``pyramids`` the Gaussian pyramids by plane (an empty plane's
+    is None), and :attr:`raw` the pixels (C, H, W), the planes asked for filled on first
+    use."""
 
-    raw: torch.Tensor
+    ring: FrameRing
     img: BSplineImage
     planes: list[int]
     pyramids: PyramidStack
+
+    @property
+    def raw(self) -> torch.Tensor:
+        """(C, H, W) the pixel stack, the planes of the frames asked for filled (copied
+        from the prepared frames where not yet: once while a frame stays in its plane)."""
+        return self.ring.pixels(self.planes)
 
     def frames_raw(self) -> torch.Tensor:
         """(L, H, W) the pixels of the frames asked for, in their order (a copy)."""
@@ -59,7 +70,9 @@ class FrameRing:
         self.raw: torch.Tensor | None = None  # (C, H, W)
         self.coeffs: torch.Tensor | None = None  # (C, H', W')
         self.by_plane: list[_Prepared | None] = []
+        self.has_pixels: list[bool] = []  # the plane's pixels copied (:meth:`pixels`)
         self.copies = 0  # frames copied into a plane (a test counts them)
+        self.pixel_copies = 0  # and their pixels (:meth:`pixels`)
 
     @property
     def capacity(self) -> int:
@@ -80,11 +93,14 @@ class FrameRing:
         new_co = torch.empty((n, *co.shape[1:]), dtype=co.dtype, device=co.device)
         if self._same_kind(first):
             c = self.capacity
-            new_raw[:c].copy_(self.raw)
+            held = [p for p in range(c) if self.has_pixels[p]]
+            if held:
+                new_raw[held] = self.raw[held]
             new_co[:c].copy_(self.coeffs)
             self.by_plane += [None] * (n - c)
+            self.has_pixels += [False] * (n - c)
         else:
-            self.slot, self.by_plane = {}, [None] * n
+            self.slot, self.by_plane, self.has_pixels = {}, [None] * n, [False] * n
         self.raw, self.coeffs = new_raw, new_co
 
     def fill(self, entries: Mapping[int, _Prepared], idx: Sequence[int]) -> RingView:
@@ -103,10 +119,19 @@ class FrameRing:
                 continue
             p = next(free)
             entry = entries[i]
-            self.raw[p].copy_(entry.raw)
             self.coeffs[p].copy_(entry.prep.coeffs[0])
-            self.slot[i], self.by_plane[p] = p, entry
+            self.slot[i], self.by_plane[p], self.has_pixels[p] = p, entry, False
             self.copies += 1
         img = first.prep.with_coeffs(self.coeffs)  # every plane, no copy
         pyramids = PyramidStack([None if e is None else e.pyramid() for e in self.by_plane])
-        return RingView(self.raw, img, [self.slot[i] for i in idx], pyramids)
+        return RingView(self, img, [self.slot[i] for i in idx], pyramids)
+
+    def pixels(self, planes: Sequence[int]) -> torch.Tensor:
+        """(C, H, W) the pixel stack with the frames of ``planes`` in it (each copied from
+        its prepared frame the first time it is asked for while it holds that plane)."""
+        for p in planes:
+            if not self.has_pixels[p]:
+                self.raw[p].copy_(self.by_plane[p].raw)
+                self.has_pixels[p] = True
+                self.pixel_copies += 1
+        return self.raw

@@ -1,0 +1,51 @@
+"""The choices a run makes by its device, where a GPU and a CPU pay for different things: a
+GPU waits for every value the host reads (a synchronisation: the device's queue drained),
+while its extra rows cost next to nothing; a CPU reads for free and pays for every row it
+computes. Each choice is None by default (decided by the run's device); set it to True or
+False to take one device's choice on the other (the tests, ``scripts/benchmarks/
+count_syncs.py --gpu-choices``). Either way the results are the same to the bit.
+"""
+
+from __future__ import annotations
+
+import torch
+
+__all__ = ["EVERY_CANDIDATE", "FILL_UNTIL_DONE", "every_candidate", "fill_until_done",
+           "gpu_choices"]
+
+#: The model check's shorter windows (where the solver mixes window lengths): every candidate
+#: window of every failing row in one solve, each row's first that passes kept (True), or in
+#: rounds, each failing row's next candidate a round (False); None: at once on a GPU (one
+#: host read and one solve a block instead of one each a round: 5 rounds a block on the
+#: muDIC hourglass), in rounds on the CPU (a row stops at the window that passes: the kernel
+#: work is that of the windows tried, not of every candidate). A row's solution does not
+#: depend on the rows solved with it.
+EVERY_CANDIDATE: bool | None = None
+
+#: A carry's lost points filled from their neighbours ring by ring
+#: (:meth:`~torch_stsdic.movie.carry.Carry.from_neighbours`): until a ring fills no point,
+#: one host read a ring (True), or every one of its ``rounds`` rings, no read (False); None:
+#: until done on the CPU (the hourglass's carries: 2-3 rings of 8 fill points), every ring
+#: on a GPU. A ring that fills no point changes nothing, so neither does any after it.
+FILL_UNTIL_DONE: bool | None = None
+
+
+def _choose(value: bool | None, device: torch.device, on_gpu: bool) -> bool:
+    return (on_gpu if device.type != "cpu" else not on_gpu) if value is None else bool(value)
+
+
+def every_candidate(device: torch.device) -> bool:
+    """Whether the model check tries every shorter window at once on ``device``
+    (:data:`EVERY_CANDIDATE`)."""
+    return _choose(EVERY_CANDIDATE, device, on_gpu=True)
+
+
+def fill_until_done(device: torch.device) -> bool:
+    """Whether a carry's neighbour fill stops at the first ring that fills no point on
+    ``device`` (:data:`FILL_UNTIL_DONE`)."""
+    return _choose(FILL_UNTIL_DONE, device, on_gpu=False)
+
+
+def gpu_choices() -> dict[str, bool]:
+    """Every choice as a GPU run makes it (by name), for a caller to set on the CPU."""
+    return {"EVERY_CANDIDATE": True, "FILL_UNTIL_DONE": False}
