@@ -5,6 +5,7 @@ carry's linear prediction, less the part of it the carried velocity already hold
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 from torch_stsdic.core.shared_motion import SharedMotion
@@ -105,14 +106,21 @@ def test_the_carry_moves_the_displacement_gradients_on_by_their_rates():
         assert float(carry2.rates[nm][2]) == 0.0
 
 
-def test_a_carried_window_velocity_holds_the_shake_of_the_rows_own_window():
+@pytest.mark.parametrize("masked", [False, True], ids=["half-widths-read", "every-masked"])
+def test_a_carried_window_velocity_holds_the_shake_of_the_rows_own_window(monkeypatch,
+                                                                          masked):
     """A window's ut, vt hold the shared motion's slope over its own frames: the carried
     velocity minus the slope over the carry's window (:meth:`Carry.shared_slope`), plus the
     slope over each row's window (``block_start.window_shake``), is the window velocity of a
-    shaking linear motion exactly, for windows of any half-width."""
+    shaking linear motion exactly, for windows of any half-width; with the half-widths the
+    rows take read first (the CPU's choice) or every half-width's slope masked (a GPU's,
+    ``movie.choices.MASKED_GROUPS``)."""
     from types import SimpleNamespace
 
+    from torch_stsdic.movie import choices
     from torch_stsdic.movie.block_start import window_shake
+
+    monkeypatch.setattr(choices, "MASKED_GROUPS", masked)
 
     ts, shared, pts, total = _shaking_linear_motion(seed=1)
     n = pts.shape[0]
@@ -138,9 +146,12 @@ def test_a_carried_window_velocity_holds_the_shake_of_the_rows_own_window():
     pred = carry.predict(ts[ks])
     init = torch.stack([pred[nm].reshape(-1) for nm in names], 1)  # (B*N, P)
     held = carry.shared_slope(shared, pts, ts).repeat(len(ks), 1)
-    window_m = torch.tensor([1, 3, 2, 3, 1, 2], dtype=torch.int8)  # each row's own
+    window_m = torch.tensor([1, 3, 3, 3, 1, 1], dtype=torch.int8)  # each row's own
+
+    asked = []
 
     def shake_slope(mm: int) -> torch.Tensor:  # (B*N, 2) by numpy's line fit
+        asked.append(mm)
         out = []
         for k in ks:
             frames = list(range(k - mm, k + mm + 1))
@@ -156,6 +167,7 @@ def test_a_carried_window_velocity_holds_the_shake_of_the_rows_own_window():
                                     for i in range(n)]) for j, k in enumerate(ks)])
     torch.testing.assert_close(init[:, 2:4], truth, rtol=0, atol=1e-10)
     assert float((before[:, 2:4] - truth).abs().max()) > 0.01  # the carry's own: off
+    assert asked == ([1, 2, 3] if masked else [1, 3])  # every one, or those the rows take
 
 
 def test_a_classical_block_of_a_shaking_specimen_starts_from_its_pilots_shift(monkeypatch):

@@ -140,3 +140,32 @@ def test_classical_step_from_the_last_frame_rhs():
 
 def test_applies_only_to_the_joint_ic_affine_stage():
     assert point_solve.CODES == (0, 1, 2, 3)
+
+
+@pytest.mark.parametrize("dtype", ["float64", "float32"])
+def test_guesses_of_nan_inf_or_far_away_are_a_status_not_a_crash(dtype):
+    """Rows started from NaN, an infinite or a far-away guess (a caller's bad init): the C++
+    kernels clamp every sample inside the image (a NaN coordinate once read past its plane:
+    a segmentation fault in float64), the rows end DIVERGED or OUTSIDE with NaN numbers, and
+    the other rows get what they get without them."""
+    ref, frames, pts, _ = _movie(1, n=64, every=6.0)
+    solver = sts.SubsetSolver(sts.DICConfig(m=1, subset_size=15, dtype=dtype))
+    r, f = solver.prepare(ref), solver.prepare(frames)
+    p = pts.to(getattr(torch, dtype))
+    init = torch.zeros(p.shape[0], 8, dtype=p.dtype)
+    init[:, 0], init[:, 4] = 0.4, -0.3
+    good = solver.solve(r, f, p, torch.tensor([-1.0, 0.0, 1.0]), init=init)
+    bad = init.clone()
+    bad[3] = float("nan")
+    bad[5, 0] = float("inf")
+    bad[6, 4] = float("-inf")
+    bad[7, 0] = 1e30
+    bad[9, 3] = float("nan")  # the velocity alone
+    sol = solver.solve(r, f, p, torch.tensor([-1.0, 0.0, 1.0]), init=bad)
+    hit = torch.tensor([3, 5, 6, 7, 9])
+    assert set(sol.status[hit].tolist()) <= {int(sts.Status.DIVERGED), int(sts.Status.OUTSIDE)}
+    assert bool(torch.isnan(sol.params[hit]).all())
+    rest = torch.ones(p.shape[0], dtype=torch.bool)
+    rest[hit] = False
+    assert torch.equal(sol.status[rest], good.status[rest])
+    assert torch.equal(sol.params[rest].nan_to_num(0), good.params[rest].nan_to_num(0))

@@ -258,6 +258,19 @@ MUTATIONS: tuple[Mutation, ...] = (
         ("test_carry_shared.py",),
         "a carry's neighbour fill stops at the first ring that fills points, not at the "
         "first that fills none"),
+    Mutation(
+        "masked-groups-keep-every-row", "block windows", "torch_stsdic/movie/block_windows.py",
+        "                where = key == window\n",
+        "                where = key != 2\n",
+        ("test_gpu_choices.py", "test_masked_solve.py"),
+        "a masked group's solve keeps the rows of the other group too (a GPU run's "
+        "classical rows overwritten by their window solve)"),
+    Mutation(
+        "masked-solve-iterates-every-row", "solver", "torch_stsdic/core/gauss_newton.py",
+        "    live = ~low if active is None else active & ~low\n",
+        "    live = ~low\n",
+        ("test_masked_solve.py",),
+        "a masked solve iterates the rows it was told to leave"),
 )
 
 

@@ -183,13 +183,14 @@ class BatchContext:
 
 
 def solve_batch(ctx: BatchContext, pts, p0, dt, fidx, ridx, motion=None, step0=None,
-                count=None):
+                count=None, active=None):
     """Solve one batch of N POIs (all inside the image) from ``p0`` (N, P), with frame times
     ``dt`` (N, T), frame indices ``fidx`` (N, T), reference indices ``ridx`` (N,), the
     known motion of every frame ``motion`` (N, T, 2) (None: none) and the size of the step
     that gave ``p0`` (N,) (the first stage's previous increment for its convergence rate;
     None, 0 or NaN: none) and each row's frames in use ``count`` (N,) (its first ``count``
-    columns, ``SubsetData.count``; None: all).
+    columns, ``SubsetData.count``; None: all), and the rows to iterate ``active`` (N,) bool
+    (None: all; the others NOT_COMPUTED, their parameters ``p0``, no host read).
 
     Returns params (N, P), zncc (N,), status (N,) int8, iterations (N,), the first stage's
     params (N, P), predicted std (N, P), noise std (N,) (grey levels) and, with
@@ -204,11 +205,13 @@ def solve_batch(ctx: BatchContext, pts, p0, dt, fidx, ridx, motion=None, step0=N
     status = torch.full((n,), int(Status.NOT_COMPUTED), dtype=torch.int8, device=device)
     low = data.texture < cfg.texture_threshold * ctx.grey_range**2
     low |= data.fnorm < 1e-6 * ctx.grey_range * math.sqrt(geo.w_sum)
+    if active is not None:  # the rows not to solve: none of their facts either
+        low &= active
     status.masked_fill_(low, int(Status.LOW_TEXTURE))  # no host sync (boolean indexing)
     params = p0.clone()
     zncc = torch.full((n,), float("nan"), dtype=dtype, device=device)
     iters = torch.zeros(n, dtype=torch.int32, device=device)
-    live = ~low
+    live = ~low if active is None else active & ~low
     stage_params = []
     last = None
     for stage_i, form in enumerate(ctx.stages):

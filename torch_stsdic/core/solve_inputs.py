@@ -12,7 +12,7 @@ import torch
 
 from torch_stsdic.kernels.ic_step import frames_in_use
 
-__all__ = ["frame_counts", "per_point", "per_point_motion"]
+__all__ = ["active_rows", "checked_centres", "frame_counts", "per_point", "per_point_motion"]
 
 
 def frame_counts(count, points: torch.Tensor, init, mixed: bool, formulation: str
@@ -34,6 +34,37 @@ def frame_counts(count, points: torch.Tensor, init, mixed: bool, formulation: st
                          f"inverse-compositional formulation; {formulation!r} takes one "
                          f"window length a call")
     return count.to(device=points.device, dtype=torch.int64)
+
+
+def active_rows(active, points: torch.Tensor, init) -> torch.Tensor:
+    """A solve's ``active`` (:meth:`~torch_stsdic.core.solver.SubsetSolver.solve`) checked:
+    (N,) bool, with an ``init`` (the FFT guess chooses its own rows). Returns it on the
+    points' device (None: None)."""
+    if active is None:
+        return None
+    active = torch.as_tensor(active)
+    n = points.shape[0]
+    if tuple(active.shape) != (n,) or active.dtype != torch.bool:
+        raise ValueError(f"active must be (N,) = ({n},) bool, got {tuple(active.shape)} "
+                         f"{active.dtype}")
+    if init is None:
+        raise ValueError("active (rows to solve) needs init: the FFT initial guess chooses "
+                         "its own rows")
+    return active.to(points.device)
+
+
+def checked_centres(centres, points: torch.Tensor
+                    ) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+    """A solve's off-centre subsets ``centres`` checked: (N, 2) like ``points``. Returns them
+    on the points' device and dtype and (N, 1) bool where they are off the points (None,
+    None: none)."""
+    if centres is None:
+        return None, None
+    centres = torch.as_tensor(centres).to(device=points.device, dtype=points.dtype)
+    if tuple(centres.shape) != tuple(points.shape):
+        raise ValueError(f"centres must be (N, 2) like points {tuple(points.shape)}, "
+                         f"got {tuple(centres.shape)}")
+    return centres, (centres != points).any(1, keepdim=True)
 
 
 def per_point(points: torch.Tensor, dt: torch.Tensor, frame_index: torch.Tensor | None,

@@ -63,7 +63,13 @@ from torch_stsdic.core.solution import (
     classical_step_info,
     packed_classical_step,
 )
-from torch_stsdic.core.solve_inputs import frame_counts, per_point, per_point_motion
+from torch_stsdic.core.solve_inputs import (
+    active_rows,
+    checked_centres,
+    frame_counts,
+    per_point,
+    per_point_motion,
+)
 from torch_stsdic.core.status import Status
 from torch_stsdic.core.window import SubsetWindow, make_window
 from torch_stsdic.kernels.native.rows import in_own_threads, own_threads
@@ -206,6 +212,7 @@ class SubsetSolver:
         all_inside: bool = False,
         kept: KeptToken | None = None,
         frame_count: torch.Tensor | None = None,
+        active: torch.Tensor | None = None,
     ) -> WindowSolution:
         """Solve many POIs, each against its own window of frames.
 
@@ -264,20 +271,19 @@ class SubsetSolver:
             frame_count: (N,) int, windows of mixed length in one call: row i's first
                 ``frame_count[i]`` columns of ``dt``, ``frame_index``, ``motion`` (the rest not
                 read). Needs ``init``, temporal terms, :meth:`mixed_windows`. None: all T.
+            active: (N,) bool, the rows to solve; the others are not iterated (a zero inverse
+                Hessian in the per-point kernels: next to no work on a GPU), NOT_COMPUTED
+                with NaN parameters, with no host read (a caller's data-chosen rows of a
+                fixed set: fixed shapes). Needs ``init``. None: every row.
         """
+        active = active_rows(active, points, init)
         frame_count = self._frame_counts(frame_count, points, dt, init, has_time)
-        moved = None
-        if centres is not None:
-            centres = torch.as_tensor(centres).to(device=points.device, dtype=points.dtype)
-            if tuple(centres.shape) != tuple(points.shape):
-                raise ValueError(f"centres must be (N, 2) like points {tuple(points.shape)}, "
-                                 f"got {tuple(centres.shape)}")
-            moved = (centres != points).any(1, keepdim=True)
+        centres, moved = checked_centres(centres, points)
         if on_grid and centres is None:  # the caller's fact: no offset to test
             return self._solve_on_grid(ref, frames, points, dt, frame_index, ref_index, init,
                                        ref_pixels, frame_pixels, time, noise_ratio, motion,
                                        classical_step, init_step, pyramids, has_time,
-                                       all_inside, kept, frame_count)
+                                       all_inside, kept, frame_count, active)
         grid, _ = snap_points(points if centres is None else centres)
         offset = points - grid
         # off the pixel grid (known where the caller says so): solve on it, carry the result
@@ -291,7 +297,7 @@ class SubsetSolver:
                              motion=motion, classical_step=classical_step,
                              init_step=init_step, pyramids=pyramids, on_grid=True,
                              has_time=has_time, all_inside=all_inside, kept=kept,
-                             frame_count=frame_count)
+                             frame_count=frame_count, active=active)
             if classical_step:  # known at the subset centre only
                 off = (offset != 0).any(1, keepdim=True)
                 sol.info.update(classical_step_info(packed_classical_step(sol.info).masked_fill(
@@ -301,7 +307,7 @@ class SubsetSolver:
         return self._solve_on_grid(ref, frames, points, dt, frame_index, ref_index, init,
                                    ref_pixels, frame_pixels, time, noise_ratio, motion,
                                    classical_step, init_step, pyramids, has_time, all_inside,
-                                   kept, frame_count)
+                                   kept, frame_count, active)
 
     def _frame_counts(self, count, points, dt, init, has_time) -> torch.Tensor | None:
         """:meth:`solve`'s ``frame_count`` checked (:func:`frame_counts`; None: None)."""
@@ -316,7 +322,8 @@ class SubsetSolver:
                        noise_ratio: float, motion, classical_step: bool, init_step,
                        pyramids=None, has_time: bool | None = None,
                        all_inside: bool = False, kept: KeptToken | None = None,
-                       frame_count: torch.Tensor | None = None) -> WindowSolution:
+                       frame_count: torch.Tensor | None = None,
+                       active: torch.Tensor | None = None) -> WindowSolution:
         """:meth:`solve` for POIs on the pixel grid with centred subsets."""
         n = points.shape[0]
         dt, frame_index, ref_index = per_point(points, dt, frame_index, ref_index, frame_count)
@@ -344,7 +351,7 @@ class SubsetSolver:
         return self._solve_batches(ref, frames, shape, points, dt, frame_index, ref_index,
                                    inside, p0, motion, init_step, ref_pixels, time,
                                    noise_ratio, classical_step, guess, all_inside, kept,
-                                   frame_count)
+                                   frame_count, active)
 
     def _initial_params(self, shape: ShapeFunction, init, inside: torch.Tensor,
                         points: torch.Tensor, dt: torch.Tensor, frame_index: torch.Tensor,
@@ -378,9 +385,11 @@ class SubsetSolver:
                        motion, init_step, ref_pixels, time, noise_ratio: float,
                        classical_step: bool, guess: dict, all_inside: bool = False,
                        kept: KeptToken | None = None,
-                       frame_count: torch.Tensor | None = None) -> WindowSolution:
-        """Gauss-Newton from ``p0`` for the POIs ``inside``, in batches within the memory
-        budget (:func:`~torch_stsdic.core.gauss_newton.solve_batch`); the others OUTSIDE."""
+                       frame_count: torch.Tensor | None = None,
+                       active: torch.Tensor | None = None) -> WindowSolution:
+        """Gauss-Newton from ``p0`` for the POIs ``inside`` (and ``active``: :meth:`solve`),
+        in batches within the memory budget
+        (:func:`~torch_stsdic.core.gauss_newton.solve_batch`); the others OUTSIDE."""
         cfg = self.config
         device, dtype = points.device, points.dtype
         n, p_count, t_count = points.shape[0], shape.n_params, dt.shape[-1]
@@ -400,7 +409,8 @@ class SubsetSolver:
         if todo is None and 0 < n <= batch:  # one batch of every row: its answers as they
             # are (no buffers to gather the rows from and scatter them into: launches)
             pr, zr, status, iters, p1, sd, sg, cs = solve_batch(
-                ctx, points, p0, dt, frame_index, ref_index, motion, init_step, frame_count)
+                ctx, points, p0, dt, frame_index, ref_index, motion, init_step, frame_count,
+                active)
             params, zncc, first_stage = pr.to(dtype), zr.to(dtype), p1.to(dtype)
             std, sigma = sd.to(dtype), sg.to(dtype)
             cstep = cs.to(dtype) if classical_step else None
@@ -412,7 +422,9 @@ class SubsetSolver:
             params = torch.full((n, p_count), float("nan"), dtype=dtype, device=device)
             zncc = torch.full((n,), float("nan"), dtype=dtype, device=device)
             iters = torch.zeros(n, dtype=torch.int32, device=device)
-            status.masked_fill_(~inside, int(Status.OUTSIDE))  # no host sync
+            # no host sync (and the rows not to solve: none of their facts)
+            status.masked_fill_(~inside if active is None else ~inside & active,
+                                int(Status.OUTSIDE))
             first_stage = torch.full_like(params, float("nan"))
             std = torch.full_like(params, float("nan"))
             sigma = torch.full_like(zncc, float("nan"))
@@ -425,6 +437,7 @@ class SubsetSolver:
                     None if motion is None else motion[idx],
                     None if init_step is None else init_step[idx],
                     None if frame_count is None else frame_count[idx],
+                    None if active is None else active[idx],
                 )
                 params[idx], zncc[idx], status[idx], iters[idx] = pr, zr, sr, ir
                 first_stage[idx], std[idx], sigma[idx] = p1, sd, sg

@@ -3,8 +3,10 @@ started from the carried guesses, with rescue of lost points and the trust check
 
 A block is a few consecutive target frames of a movie. Every row (target frame x POI) starts
 from the :class:`Carry` of the block before (the last stored row moved on by its velocity).
-Points without a valid carry start from their grid neighbours' carried motion; rows whose
-carried subset lies outside the image are OUTSIDE; the reference frame as its own classical
+Points without a valid carry start from their grid neighbours' carried motion; near the
+border a carried subset is moved inside the image or its window shortened, and a row whose
+point has left it is OUTSIDE (:mod:`~torch_stsdic.movie.block_placement`); the reference
+frame as its own classical
 target is the identity. Rows that get lost (not converged, or ZNCC below ``lost_zncc``) are
 rescued (:mod:`torch_stsdic.movie.rescue`) from the solution of an earlier target of the same
 block, then from their neighbours' solutions, then by FFT cross-correlation, all targets at
@@ -17,7 +19,7 @@ neighbours are flagged.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -34,6 +36,7 @@ from torch_stsdic.core.solver import (
 )
 from torch_stsdic.core.status import Status
 from torch_stsdic.movie.block_motion import BlockMotion
+from torch_stsdic.movie.block_placement import BlockPlacement
 from torch_stsdic.movie.block_start import pilot_shift, window_shake
 from torch_stsdic.movie.block_windows import BlockWindows
 from torch_stsdic.movie.carry import Carry
@@ -41,7 +44,6 @@ from torch_stsdic.movie.checks import CHECK_ITER, CHECK_TOL, BlockChecks
 from torch_stsdic.movie.frames import (
     FrameCache,
     block_frames,
-    true_rows,
     upload,
 )
 from torch_stsdic.movie.reference import Reference, noise_ratio, to_relative, to_total
@@ -50,10 +52,6 @@ from torch_stsdic.movie.sample_guess import MeasuredSample
 from torch_stsdic.movie.shared_velocity import report_velocity
 from torch_stsdic.movie.template_noise import TemplateShares
 from torch_stsdic.movie.velocity_point import refer_velocities
-
-#: px beyond the image border a carried prediction must put a subset before the row is
-#: OUTSIDE without a solve
-OUTSIDE_MARGIN = 2.0
 
 #: the predicted-std field of each parameter stored with the results (px, px per time unit)
 STD_OF = {"u": "u_std", "v": "v_std", "ut": "ut_std", "vt": "vt_std"}
@@ -146,7 +144,7 @@ class BlockContext:
 
 
 
-class Block(BlockChecks, BlockRescue, BlockMotion, BlockWindows):
+class Block(BlockChecks, BlockRescue, BlockPlacement, BlockMotion, BlockWindows):
     """The rows (target frame x POI, row = target * N + point) of one block being solved:
     parameters relative to the current reference, ZNCC, status, iterations."""
 
@@ -203,18 +201,20 @@ class Block(BlockChecks, BlockRescue, BlockMotion, BlockWindows):
         self.centres_inside = True
         self._init_motion()
         # the POIs' reference subsets kept for every solve of the block (one host read)
-        self.kept = ref.kept_by(run.solver)
+        self.kept = ref.kept_by(run.solver, inside=all(run.point_facts(ref)))
 
     def solve(self, idx: torch.Tensor, init: torch.Tensor | None,
               m: int | torch.Tensor | None = None, solver: SubsetSolver | None = None,
-              init_step: torch.Tensor | None = None, for_check: bool = True) -> WindowSolution:
+              init_step: torch.Tensor | None = None, for_check: bool = True,
+              active: torch.Tensor | None = None) -> WindowSolution:
         """Solve rows ``idx`` from ``init`` (None: FFT) with windows of half-width ``m``
         (default the run's; m = 0: the target frame alone, classical shape; (R,) each row's
         own, 1 .. the run's, in one call: :meth:`mixed_rows`, needs ``init``), with ``solver``
         (default the run's); subsets at :attr:`centres` where :meth:`keep_outside` moved them
         inside the image (the results are the POIs'). ``for_check``: the model check will
         judge these rows (a window solve then gives it its first classical step); False
-        for the check's own solves."""
+        for the check's own solves. ``active`` (R,) bool: only those rows solved, the others
+        masked (no read: ``SubsetSolver.solve``'s; None: all)."""
         ref, run = self.ref, self.run
         count = None
         if isinstance(m, torch.Tensor):  # windows of mixed length (1 .. run.m), one call
@@ -246,7 +246,7 @@ class Block(BlockChecks, BlockRescue, BlockMotion, BlockWindows):
             # known per run: the POIs' grid (the centres are whole pixels from them) and
             # the shape (a window of 2m+1 frames at distinct times has temporal terms)
             on_grid=on_grid, has_time=m_eff > 0, all_inside=inside and self.centres_inside,
-            kept=self.kept, frame_count=count)
+            kept=self.kept, frame_count=count, active=active)
 
     def keep(self, idx: torch.Tensor, sol: WindowSolution, only_better: bool,
              m: int | torch.Tensor | None = None, where: torch.Tensor | None = None) -> None:
@@ -263,6 +263,8 @@ class Block(BlockChecks, BlockRescue, BlockMotion, BlockWindows):
             old_ok = self.status[idx] <= USABLE
             take = (sol.status <= USABLE) & (~old_ok | (sol.zncc.to(dt) > self.zncc[idx]))
             take |= self.status[idx] == int(Status.NOT_COMPUTED)  # a reason beats none
+            if where is not None:
+                take &= where
 
         def put(dst: torch.Tensor, new: torch.Tensor | float) -> None:  # no host read
             dst[idx] = new if take is None else torch.where(
@@ -349,137 +351,6 @@ class Block(BlockChecks, BlockRescue, BlockMotion, BlockWindows):
             | (st == int(Status.POOR_FIT)) | ((st <= USABLE) & ~(self.zncc >= self.run.lost_zncc))
         ) & ~self.gone
 
-    def keep_outside(self, inits: Sequence[torch.Tensor], carried: torch.Tensor,
-                     mark: bool = True) -> torch.Tensor:
-        """Carried rows near the image border. At every one of the predictions ``inits``
-        ((B*N, P) relative parameters: the carry moved on by its velocity, and where it was
-        last), over every frame of the row's window, the POI's predicted position is
-        checked:
-
-        * where, as predicted by the first (the carry moved on), the subset would come
-          within ``OUTSIDE_MARGIN`` px of the border but the POI stays that far inside, the
-          subset is moved inside the image by up to its half-size (an off-centre subset,
-          :attr:`centres`; its solution is carried to the POI by its own gradients, the std
-          with them): the point is measured while it is in view;
-        * where that fails over the run's window but holds over a shorter one (the point
-          leaves the image within the window), the row is solved with the longest such
-          window (:attr:`window_m`);
-        * where the POI is that close to the border, or beyond, by the first prediction even
-          at the target frame alone, and the subset is by the others, the row is OUTSIDE,
-          neither solved nor rescued: a specimen moving out of view (every rescue of such a
-          point found some other peak inside the image, at low ZNCC, again in every block).
-
-        Returns the (B*N,) bool mask of the OUTSIDE rows; without ``mark`` they are only
-        returned, not marked (the caller decides which of them to give up on)."""
-        run = self.run
-        rows = carried.shape[0]
-        fit, shift = self._placement(inits, self.dt, self.motion_of(run.m))
-        fit &= carried
-        shift = torch.where(fit.unsqueeze(1), shift, 0.0)
-        left = carried & ~fit  # carried rows without a window that stays in view yet
-        # one read: how many rows the run's window alone leaves (none where m = 0: no
-        # shorter window), with the centres' facts as they stand (below; read again only
-        # where shorter windows move some)
-        n_left = left.sum() if run.m > 0 else left.new_zeros((), dtype=torch.int64)
-        facts, placed = self._centre_facts(shift, left)
-        n_left, *facts = torch.stack([n_left] + facts).tolist()
-        if n_left:  # every shorter window at once, the longest that stays in view taken
-            # (:attr:`window_m`; no test: unused, it is the run's m)
-            idx = true_rows(left, n_left)
-            halves = torch.arange(run.m - 1, -1, -1, device=run.device)  # (H,) descending
-            f_h, d_h = self._placement([init[idx] for init in inits],
-                                       *self.padded_windows(idx, run.m), idx)  # (H, R)
-            j = f_h.to(torch.int8).argmax(0)  # the first that fits: the longest
-            f_i = f_h.any(0)
-            d_i = d_h[j, torch.arange(idx.numel(), device=run.device)]
-            shift[idx] = torch.where(f_i.unsqueeze(1), d_i, shift[idx])
-            if self.window_m is None:
-                self.window_m = torch.full((rows,), run.m, dtype=torch.int8,
-                                           device=run.device)
-            self.window_m[idx] = torch.where(f_i, halves[j].to(torch.int8), self.window_m[idx])
-            left[idx] = ~f_i
-            facts, placed = self._centre_facts(shift, left)
-            facts = torch.stack(facts).tolist()  # one read
-        out = left
-        if mark:
-            self.status.masked_fill_(out, int(Status.OUTSIDE))
-            self.gone |= out
-        moved, centres, off = placed
-        n_moved, all_in, n_off, *n_miss = facts
-        if n_moved:
-            self.centres, self.centres_inside = centres, bool(all_in)
-            self.off_count = int(n_off)
-            if self.kept is not None:  # and the moved subsets' (no read: counted above)
-                self.kept = run.solver.keep_reference_subsets(
-                    self.ref.img, self.centres, missing=n_miss[0] if n_miss else None,
-                    inside=bool(all_in) and run.point_facts(self.ref)[0])
-            self._centres_moved(off, n_off, moved, n_moved)  # the shared motion there
-            run.stats["off_centre_rows"] = run.stats.get("off_centre_rows", 0) + n_moved
-        return out
-
-    def _centre_facts(self, shift: torch.Tensor, out: torch.Tensor
-                      ) -> tuple[list[torch.Tensor], tuple[torch.Tensor, ...]]:
-        """The subsets moved by ``shift`` (B*N, 2) px but at the OUTSIDE rows ``out``: 0-d
-        tensors to read (the rows moved, whether every subset is inside, the rows off their
-        POIs, and the reference subsets the solver's cache misses at the centres, where it
-        keeps them) and (B*N,) bool moved, (B*N, 2) centres, (B*N,) bool off their POIs."""
-        run = self.run
-        moved = (shift != 0).any(1) & ~out
-        whole = torch.sign(shift) * shift.abs().ceil()  # whole px, away from the border
-        # rows moved by an earlier call (the block's carry, then its rescue) keep theirs
-        base = self.pts if self.centres is None else self.centres
-        centres = torch.where(moved.unsqueeze(1), self.pts + whole, base)
-        off = (centres != self.pts).any(1)
-        inside = subset_inside(centres, float(run.solver.window.half), self.ref.img.height,
-                               self.ref.img.width).all()
-        miss = (None if self.kept is None
-                else run.solver.missing_reference_subsets(self.ref.img, centres))
-        facts = [moved.sum(), inside.long(), off.sum()] + ([] if miss is None else [miss])
-        return facts, (moved, centres, off)
-
-    def _placement(self, inits: Sequence[torch.Tensor], dt: torch.Tensor,
-                   motion: torch.Tensor | None, rows: torch.Tensor | None = None
-                   ) -> tuple[torch.Tensor, torch.Tensor]:
-        """(..., R) bool: the row's subset can be placed in view over its window (frame
-        times ``dt`` (..., R, T), known motion ``motion`` (..., R, T, 2) or None; leading
-        dimensions: windows of several lengths at once) by one of the predictions ``inits``
-        ((R, P) each; :meth:`keep_outside`), and (..., R, 2) px the shift of its centre that
-        this takes (the largest over the predictions that fit); the rows ``rows`` (R,) of
-        the block (None: all of them, R = B*N)."""
-        run = self.run
-        names = run.names
-        iu, iv = names.index("u"), names.index("v")
-        half = float(run.solver.window.half)
-        h, w = self.ref.img.height, self.ref.img.width
-        pts = self.pts if rows is None else self.pts[rows]
-        # every prediction and both components at once: (I, R, T, 2)
-        lo_edge = half + OUTSIDE_MARGIN
-        hi_edge = torch.full((2,), w - 1 - half - OUTSIDE_MARGIN, dtype=pts.dtype,
-                             device=pts.device)  # (filled on the device: no copy to it)
-        hi_edge[1] = h - 1 - half - OUTSIDE_MARGIN
-        lead = dt.dim() - 2  # the window lengths' dimensions
-        p = torch.stack(list(inits))  # (I, R, P)
-        p = p.view(p.shape[0], *([1] * lead), *p.shape[1:])  # (I, ..., R, P)
-        z = pts.unsqueeze(1) + p[..., [iu, iv]].unsqueeze(-2)  # (I, ..., R, 1, 2)
-        if "ut" in names:
-            vel = p[..., [names.index("ut"), names.index("vt")]].nan_to_num(0.0)
-            z = z + vel.unsqueeze(-2) * dt.unsqueeze(-1)  # (I, R, T, 2)
-        if motion is not None:
-            z = z + motion
-        # only the moved-on prediction (the first) moves a subset
-        reach = torch.zeros(p.shape[0], *([1] * (lead + 2)), dtype=z.dtype, device=z.device)
-        reach[0] = half
-        lo = (lo_edge - z.amin(-2)).clamp(min=0)  # (I, R, 2) move the subset in
-        hi = (z.amax(-2) - hi_edge).clamp(min=0)
-        ok = ((lo == 0) | (hi == 0)) & (torch.maximum(lo, hi) <= reach)
-        fit = ok.all(-1) & torch.isfinite(z).all(-2).all(-1)  # (I, R)
-        d = lo - hi
-        shift = torch.zeros_like(d[0])  # the largest shift over the predictions that fit
-        for i in range(p.shape[0]):
-            shift = torch.where(fit[i].unsqueeze(-1) & (d[i].abs() > shift.abs()), d[i], shift)
-        feasible = fit.any(0)
-        return feasible, shift
-
     def init_rows(self, values: dict[str, torch.Tensor]) -> torch.Tensor:
         """(R, P) initial parameters from relative values by name (missing ones zero)."""
         some = next(iter(values.values()))
@@ -520,8 +391,9 @@ def _shorter_again(blk: Block, cap: torch.Tensor, count: Callable) -> None:
     again with that half-width from their solution; kept where usable."""
     over = (blk.m_used > cap) & (blk.status <= USABLE)
     every = torch.arange(over.numel(), device=over.device)
-    for again, m, sol in blk.solve_windows(every, cap, blk.params, pick=over):
+    for again, m, sol, where in blk.solve_windows(every, cap, blk.params, pick=over):
         good = sol.status <= USABLE
+        good = good if where is None else good & where
         blk.keep(again, sol, only_better=False, m=m, where=good)  # (no read)
         count("shorter_again_rows", good.sum())
 
@@ -640,8 +512,8 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
         # motion's limit): every row with its own (one call where the solver mixes them)
         every = torch.arange(rows, device=dev)
         pick = carried if pilot is None else carried & ~pilot
-        for r, m, sol in blk.solve_windows(every, blk.window_m, init, pick=pick):
-            blk.keep(r, sol, only_better=False, m=m)
+        for r, m, sol, where in blk.solve_windows(every, blk.window_m, init, pick=pick):
+            blk.keep(r, sol, only_better=False, m=m, where=where)
     else:
         idx_c = torch.nonzero(carried if pilot is None else carried & ~pilot).flatten()
         if idx_c.numel():

@@ -1,7 +1,7 @@
 """The shared motion in a block's windows (:class:`BlockMotion`, mixed into
 :class:`torch_stsdic.movie.block.Block`): every row's known motion over its window's frames,
 at its subset's centre, computed once a block for each half-width and updated only at the
-rows whose subsets :meth:`~torch_stsdic.movie.block.Block.keep_outside` moves."""
+rows whose subsets :meth:`~torch_stsdic.movie.block_placement.BlockPlacement.keep_outside` moves."""
 
 from __future__ import annotations
 

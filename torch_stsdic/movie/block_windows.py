@@ -9,6 +9,7 @@ from __future__ import annotations
 import torch
 
 from torch_stsdic.core.solver import WindowSolution
+from torch_stsdic.movie.choices import masked_groups
 from torch_stsdic.movie.frames import grouped_rows, rows_by_half_width, window_frames
 
 __all__ = ["BlockWindows"]
@@ -104,14 +105,18 @@ class BlockWindows:
 
     def solve_windows(self, rows: torch.Tensor, m_of: torch.Tensor,
                       init: torch.Tensor | None, pick: torch.Tensor | None = None
-                      ) -> list[tuple[torch.Tensor, int | torch.Tensor | None, WindowSolution]]:
+                      ) -> list[tuple[torch.Tensor, int | torch.Tensor | None, WindowSolution,
+                                      torch.Tensor | None]]:
         """Solve the rows ``rows`` (R,) (where ``pick`` (R,) bool, default all) from ``init``
         (R, P) (None: FFT), each with its window of half-width ``m_of`` (R,) (clamped to
-        0 .. the run's m). Returns ``(rows solved, their half-width, solution)`` per solve,
-        for the caller to keep (the half-width an int, None for the run's, or (R_s,) per
-        row). One host read: where the solver takes windows of mixed length and there is
-        a guess, the classical rows (m = 0) in one solve and all others in one more;
-        otherwise one solve per half-width (:func:`rows_by_half_width`)."""
+        0 .. the run's m). Returns ``(rows solved, their half-width, solution, where)`` per
+        solve, for the caller to keep (the half-width an int, None for the run's, or (R_s,)
+        per row; ``where`` (R_s,) bool the rows of the solve that count, None: all). Where
+        the solver takes windows of mixed length and there is a guess, the classical rows
+        (m = 0) in one solve and all others in one more: each group's rows alone, their
+        counts read first (one host read), or on a GPU each solve over all the ``rows``,
+        the others masked (:data:`~torch_stsdic.movie.choices.MASKED_GROUPS`: no read);
+        otherwise one solve per half-width (:func:`rows_by_half_width`, one read)."""
         run = self.run
         pick = torch.ones_like(rows, dtype=torch.bool) if pick is None else pick
         out = []
@@ -119,15 +124,21 @@ class BlockWindows:
             for mm, sel in rows_by_half_width(m_of, pick, run.m):
                 mk = None if mm == run.m else mm
                 sol = self.solve(rows[sel], None if init is None else init[sel], m=mk)
-                out.append((rows[sel], mk, sol))
+                out.append((rows[sel], mk, sol, None))
             return out
         m_of = m_of.clamp(0, run.m)
         key = torch.where(pick, (m_of > 0).long(), 2)  # classical, a window, not solved
+        if masked_groups(run.device):  # every row in both solves, the others masked
+            windows = torch.where(key == 1, m_of, run.m).to(torch.int8)
+            for window, mm in enumerate((0, windows)):
+                where = key == window
+                out.append((rows, mm, self.solve(rows, init, m=mm, active=where), where))
+            return out
         counts = torch.bincount(key, minlength=3)[:2].tolist()
         for window, sel in enumerate(grouped_rows(key, counts)):
             if sel.numel():
                 mm = m_of[sel].to(torch.int8) if window else 0
-                out.append((rows[sel], mm, self.solve(rows[sel], init[sel], m=mm)))
+                out.append((rows[sel], mm, self.solve(rows[sel], init[sel], m=mm), None))
         return out
 
     @property

@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["EVERY_CANDIDATE", "FILL_UNTIL_DONE", "every_candidate", "fill_until_done",
-           "gpu_choices"]
+__all__ = ["EVERY_CANDIDATE", "FILL_UNTIL_DONE", "MASKED_GROUPS", "every_candidate",
+           "fill_until_done", "masked_groups", "gpu_choices"]
 
 #: The model check's shorter windows (where the solver mixes window lengths): every candidate
 #: window of every failing row in one solve, each row's first that passes kept (True), or in
@@ -28,6 +28,18 @@ EVERY_CANDIDATE: bool | None = None
 #: until done on the CPU (the hourglass's carries: 2-3 rings of 8 fill points), every ring
 #: on a GPU. A ring that fills no point changes nothing, so neither does any after it.
 FILL_UNTIL_DONE: bool | None = None
+
+#: A block's rows of mixed half-widths (its carried rows, a rescue's, those solved again
+#: shorter; :meth:`~torch_stsdic.movie.block_windows.BlockWindows.solve_windows`): the
+#: classical rows and the window rows each in one solve of all the rows asked about, the
+#: others masked (``SubsetSolver.solve(active=)``: no read, a GPU's per-point kernels skip
+#: them; True), or each group's rows alone, their counts read first (one host read; False);
+#: None: masked on a GPU, alone on the CPU (which would prepare every masked row: the
+#: Hessians, the uncertainty). So too the carried window velocity's shake
+#: (:func:`~torch_stsdic.movie.block_start.window_shake`) and the reported velocity's
+#: (:func:`~torch_stsdic.movie.shared_velocity.report_velocity`): every half-width's,
+#: masked, or those the rows take, read first.
+MASKED_GROUPS: bool | None = None
 
 
 def _choose(value: bool | None, device: torch.device, on_gpu: bool) -> bool:
@@ -46,6 +58,12 @@ def fill_until_done(device: torch.device) -> bool:
     return _choose(FILL_UNTIL_DONE, device, on_gpu=False)
 
 
+def masked_groups(device: torch.device) -> bool:
+    """Whether a block solves its groups of rows masked over all the rows asked about on
+    ``device`` (:data:`MASKED_GROUPS`)."""
+    return _choose(MASKED_GROUPS, device, on_gpu=True)
+
+
 def gpu_choices() -> dict[str, bool]:
     """Every choice as a GPU run makes it (by name), for a caller to set on the CPU."""
-    return {"EVERY_CANDIDATE": True, "FILL_UNTIL_DONE": False}
+    return {"EVERY_CANDIDATE": True, "FILL_UNTIL_DONE": False, "MASKED_GROUPS": True}

@@ -41,17 +41,21 @@ class Reference:
     #: (N, 2, 4) where a window's velocity refers to at each POI (movie/velocity_point.py),
     #: worked out on first use
     velocity_maps: torch.Tensor | None = None
+    #: their subset columns on the device (``velocity_point.map_offsets``), made with them
+    map_offsets: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
     #: the token of a solver's reference cache holding the POIs' subsets (:meth:`kept_by`)
     kept: KeptToken | None = None
 
-    def kept_by(self, solver: SubsetSolver) -> KeptToken | None:
+    def kept_by(self, solver: SubsetSolver, inside: bool = False) -> KeptToken | None:
         """``solver.keep_reference_subsets`` of the POIs (one host read), or, with no read,
         the token an earlier block got while the solver's cache still holds them: every
         block's solves then read the POIs' reference subsets with no host read
-        (:meth:`~torch_stsdic.core.solver.SubsetSolver.keep_reference_subsets`)."""
+        (:meth:`~torch_stsdic.core.solver.SubsetSolver.keep_reference_subsets`).
+        ``inside``: the POIs are whole pixels whose subsets lie inside the image (known to
+        the caller: not read)."""
         cache = solver.reference_cache
         if cache is None or self.kept is None or self.kept != cache.token():
-            self.kept = solver.keep_reference_subsets(self.img, self.points)
+            self.kept = solver.keep_reference_subsets(self.img, self.points, inside=inside)
         return self.kept
 
     def ensure(self, cache: FrameCache) -> None:

@@ -93,18 +93,19 @@ class BlockRescue:
                    near: torch.Tensor | None = None) -> None:
         """Rows ``rows`` solved again from ``init`` (None: FFT) with their own windows and
         subsets: from ``init``, placed as the block's carried rows are
-        (:meth:`~torch_stsdic.movie.block.Block.keep_outside`: a subset near the border
-        moved inside, a shorter window where the point leaves the image within the run's,
-        not solved where it has left: OUTSIDE where ``init`` predicts from the target before
-        or the same one, ``near`` (R,) bool, default all, and along the run of rows predicted
-        out after one, :func:`_outside_runs`); then at most half-width ``m`` (default the
-        run's) and no longer than the row's :attr:`window_m` (also the point's measured
-        motion, a point classical there): all of them in one solve and the classical rows
-        in another (:meth:`~torch_stsdic.movie.block_windows.BlockWindows.solve_windows`;
-        from FFT, one per half-width). The better result is kept. Without it a rescued row
-        took the run's window and a centred subset wherever it started, and a point leaving
-        the image failed again where a block's carry had placed it (32-target blocks lost
-        rows that 1-target blocks solve)."""
+        (:meth:`~torch_stsdic.movie.block_placement.BlockPlacement.keep_outside`: a subset
+        near the border moved inside, a shorter window where the point leaves the image
+        within the run's, not solved where it has left: OUTSIDE where ``init`` predicts from
+        the target before or the same one, ``near`` (R,) bool, default all, and along the
+        run of rows predicted out after one, :func:`_outside_runs`); then at most half-width
+        ``m`` (default the run's) and no longer than the row's :attr:`window_m` (also the
+        point's measured motion, a point classical there): all of them in one solve and the
+        classical rows in another
+        (:meth:`~torch_stsdic.movie.block_windows.BlockWindows.solve_windows`; from FFT, one
+        per half-width). The better result is kept. Without it a rescued row took the run's
+        window and a centred subset wherever it started, and a point leaving the image
+        failed again where a block's carry had placed it (32-target blocks lost rows that
+        1-target blocks solve)."""
         run = self.run
         if init is not None:
             full = torch.full((self.pts.shape[0], init.shape[1]), float("nan"),
@@ -128,8 +129,8 @@ class BlockRescue:
         own = torch.full((rows.numel(),), m_req, dtype=torch.int8, device=rows.device)
         if self.window_m is not None and m_req > 0:
             own = torch.minimum(own, self.window_m[rows])
-        for r, mk, sol in self.solve_windows(rows, own, init, pick=solved):
-            self.keep(r, sol, only_better=True, m=mk)
+        for r, mk, sol, where in self.solve_windows(rows, own, init, pick=solved):
+            self.keep(r, sol, only_better=True, m=mk, where=where)
 
     def _trusted(self, lost: torch.Tensor) -> torch.Tensor:
         """(B*N,) bool: usable rows that are not ``lost`` (:meth:`lost`, read by the caller)."""

@@ -33,28 +33,42 @@ from torch_stsdic.movie.frames import true_rows
 #: a :class:`~torch_stsdic.movie.block.Block` (not imported: the block imports this module)
 Block = Any
 
-__all__ = ["velocity_maps", "refer_to_points", "refer_velocities", "MAP_CHUNK"]
+__all__ = ["velocity_maps", "map_offsets", "refer_to_points", "refer_velocities", "MAP_CHUNK"]
 
 #: POIs whose subsets :func:`velocity_maps` samples at once
 MAP_CHUNK = 2048
 
 
 def velocity_maps(img: Any, points: torch.Tensor, offsets: torch.Tensor,
-                  weights: torch.Tensor) -> torch.Tensor:
+                  weights: torch.Tensor, inside: bool = False) -> torch.Tensor:
     """(N, 2, 4) float64 per POI: the (ut, vt) bias a velocity gradient (d ut/dx, d ut/dy,
     d vt/dx, d vt/dy) gives a window's solution (module docstring), from the reference
     ``img`` (a :class:`~torch_stsdic.core.interpolation.BSplineImage`) at ``points`` (N, 2)
     px, the subset's ``offsets`` (S, 2) px (dx, dy) and ``weights`` (S,) (``M``'s
-    pseudo-inverse: zero where the subset has no texture, along an axis without it)."""
-    dev = points.device
-    dx = offsets[:, 0].to(device=dev, dtype=img.dtype)
-    dy = offsets[:, 1].to(device=dev, dtype=img.dtype)
-    w = weights.to(device=dev, dtype=torch.float64)
+    pseudo-inverse: zero where the subset has no texture, along an axis without it).
+    ``inside``: every point is a whole pixel whose subset lies inside the image (known to
+    the caller: not read)."""
+    return _maps(img, points, *map_offsets(img, points.device, offsets, weights), inside)
+
+
+def map_offsets(img: Any, device: torch.device, offsets: torch.Tensor, weights: torch.Tensor
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`velocity_maps`'s subset columns on ``device``: dx, dy (S,) in ``img``'s dtype
+    and the weights (S,) float64 (kept by a caller that maps again: the same tensors let
+    the image's sampling keep its facts of them)."""
+    return (offsets[:, 0].to(device=device, dtype=img.dtype),
+            offsets[:, 1].to(device=device, dtype=img.dtype),
+            weights.to(device=device, dtype=torch.float64))
+
+
+def _maps(img: Any, points: torch.Tensor, dx: torch.Tensor, dy: torch.Tensor,
+          w: torch.Tensor, inside: bool) -> torch.Tensor:
+    """:func:`velocity_maps` from :func:`map_offsets`'s columns."""
     ox, oy = dx.double(), dy.double()
-    out = torch.zeros(points.shape[0], 2, 4, dtype=torch.float64, device=dev)
+    out = torch.zeros(points.shape[0], 2, 4, dtype=torch.float64, device=points.device)
     for i0 in range(0, points.shape[0], MAP_CHUNK):
         p = points[i0:i0 + MAP_CHUNK].to(img.dtype)
-        _, gx, gy = img.sample_subsets(p[:, 0], p[:, 1], dx, dy)
+        _, gx, gy = img.sample_subsets(p[:, 0], p[:, 1], dx, dy, inside=inside)
         gx, gy = gx.double(), gy.double()
         xx, xy, yy = w * gx * gx, w * gx * gy, w * gy * gy  # (n, S)
         m = torch.stack([torch.stack([xx.sum(1), xy.sum(1)], -1),
@@ -93,20 +107,25 @@ def refer_to_points(points: torch.Tensor, maps: torch.Tensor, ut: torch.Tensor,
 def refer_velocities(blk: Block, out: dict[str, torch.Tensor]) -> None:
     """A block's velocities ``out["ut"]``, ``out["vt"]`` (B, N) referred to its POIs, in
     place (:func:`refer_to_points`; the reference's maps worked out once, kept on it; rows
-    whose subset :meth:`~torch_stsdic.movie.block.Block.keep_outside` moved off the POI
-    take the maps at the subset's centre and the shift)."""
+    whose subset :meth:`~torch_stsdic.movie.block_placement.BlockPlacement.keep_outside`
+    moved off the POI take the maps at the subset's centre and the shift)."""
     run, ref = blk.run, blk.ref
     if "ut" not in out or run.m == 0 or ref.img is None:
         return
-    offsets, weights = run.solver.window.offsets_and_weights()
+    if ref.map_offsets is None:  # (made once: the image's sampling keeps its facts)
+        ref.map_offsets = map_offsets(ref.img, ref.points.device,
+                                      *run.solver.window.offsets_and_weights())
+    on_grid, inside = run.point_facts(ref)  # (known per run: not read)
     if ref.velocity_maps is None:
-        ref.velocity_maps = velocity_maps(ref.img, ref.points, offsets, weights)
+        ref.velocity_maps = _maps(ref.img, ref.points, *ref.map_offsets, on_grid and inside)
     b, n = out["ut"].shape
     maps, shift = ref.velocity_maps, None
     if blk.centres is not None and blk.off_count:  # (counted where they were moved)
         moved = true_rows((blk.centres != blk.pts).any(1), blk.off_count)
         maps = maps.repeat(b, 1, 1)
-        maps[moved] = velocity_maps(ref.img, blk.centres[moved], offsets, weights)
+        # the moved centres are whole pixels where the POIs are (moved by whole pixels)
+        maps[moved] = _maps(ref.img, blk.centres[moved], *ref.map_offsets,
+                            on_grid and blk.centres_inside)
         maps = maps.view(b, n, 2, 4)
         shift = (blk.centres - blk.pts).view(b, n, 2)
     out["ut"], out["vt"] = refer_to_points(ref.points, maps, out["ut"], out["vt"],

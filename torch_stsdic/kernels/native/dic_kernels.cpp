@@ -161,12 +161,13 @@ inline void weights(T f, T* w, T* dw, bool grad) {
 }
 
 // Tap origin (32-bit index in the plane) and fractions of one point (x, y) after clamping it
-// to the coefficient grid.
+// to the coefficient grid (a NaN coordinate to its low end, as the AVX2 path's max/min do: a
+// point of NaN parameters reads inside the plane, never outside it).
 template <typename T>
 inline void tap_origin(const Geo& g, T x, T y, int32_t* idx, T* fx, T* fy) {
   const T xlo = T(g.x_lo), xhi = T(g.x_hi), ylo = T(g.y_lo), yhi = T(g.y_hi);
-  x = x < xlo ? xlo : (x > xhi ? xhi : x);
-  y = y < ylo ? ylo : (y > yhi ? yhi : y);
+  x = x >= xlo ? (x > xhi ? xhi : x) : xlo;
+  y = y >= ylo ? (y > yhi ? yhi : y) : ylo;
   const T x0 = std::floor(x), y0 = std::floor(y);
   *fx = x - x0;
   *fy = y - y0;

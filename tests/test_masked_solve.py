@@ -1,0 +1,86 @@
+"""Solves of data-chosen rows of a fixed set (``SubsetSolver.solve(active=)``): the rows to
+solve given as a mask, not an index, so that a block keeps its shapes and reads nothing; the
+active rows get what they get solved alone, the others nothing."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from test_mixed_windows import _modes, _problem  # noqa: F401  (tests/ on the path; a fixture)
+
+import torch_stsdic as sts
+from torch_stsdic import kernels
+from torch_stsdic.kernels import native
+
+M = 3
+
+
+def _setup(mode: str):
+    if mode == "torch":
+        kernels.set_triton("0")
+        native.set_native("0")
+    elif not native.available():
+        pytest.skip("no native kernels")
+    ref, frames, pts, half, dt, fidx = _problem()
+    solver = sts.SubsetSolver(sts.DICConfig(m=M, subset_size=15, dtype="float64"))
+    ref_img, frames_img = solver.prepare(ref), solver.prepare(frames)
+    init = torch.zeros(pts.shape[0], 8, dtype=pts.dtype)
+    init[:, 0], init[:, 4] = 0.4, -0.3
+    return solver, ref_img, frames_img, pts, half, dt, fidx, init
+
+
+@pytest.mark.parametrize("mode,off_centre", [("native", False), ("torch", False),
+                                             ("native", True)])
+def test_the_active_rows_are_solved_as_alone_and_the_others_not_at_all(mode, off_centre):
+    """Every third row active, windows of mixed length, the others' guesses NaN (a masked row
+    of a block may have none; ``off_centre``: some subsets moved off their POIs by whole
+    pixels, as a block moves them near the border): the active rows' numbers equal those of
+    the same rows solved alone to the bit; the others are NOT_COMPUTED with NaN numbers and
+    no iteration."""
+    solver, ref_img, frames_img, pts, half, dt, fidx, init = _setup(mode)
+    n = pts.shape[0]
+    active = torch.arange(n) % 3 == 1
+    init_nan = init.clone()
+    init_nan[~active] = float("nan")
+    kw = dict(has_time=True, classical_step=mode == "native")
+    centres = None
+    if off_centre:  # (the points are whole pixels: the block's facts)
+        pts = pts.round()
+        centres = pts + torch.where((torch.arange(n) % 4 == 1).unsqueeze(1),
+                                    torch.tensor([2.0, -1.0], dtype=pts.dtype), 0.0)
+        kw["on_grid"] = True
+    masked = solver.solve(ref_img, frames_img, pts, dt, frame_index=fidx, init=init_nan,
+                          frame_count=2 * half + 1, active=active, centres=centres, **kw)
+    rows = torch.nonzero(active).flatten()
+    alone = solver.solve(ref_img, frames_img, pts[rows], dt[rows], frame_index=fidx[rows],
+                         init=init[rows], frame_count=2 * half[rows] + 1,
+                         centres=None if centres is None else centres[rows], **kw)
+    assert bool((alone.status <= int(sts.Status.MAX_ITER)).float().mean() > 0.8)
+    for name in ("params", "zncc", "status", "iterations", "std", "sigma"):
+        a, b = getattr(masked, name)[rows], getattr(alone, name)
+        assert torch.equal(torch.isnan(a) if a.is_floating_point() else a == a,
+                           torch.isnan(b) if b.is_floating_point() else b == b), name
+        assert torch.equal(a.nan_to_num(0) if a.is_floating_point() else a,
+                           b.nan_to_num(0) if b.is_floating_point() else b), name
+    off = ~active
+    assert bool((masked.status[off] == int(sts.Status.NOT_COMPUTED)).all())
+    assert bool(torch.isnan(masked.params[off]).all()) and bool(torch.isnan(masked.zncc[off]).all())
+    assert bool((masked.iterations[off] == 0).all())
+
+
+def test_an_all_active_mask_is_no_mask_and_a_wrong_one_is_told():
+    solver, ref_img, frames_img, pts, half, dt, fidx, init = _setup("native")
+    kw = dict(frame_index=fidx, init=init, frame_count=2 * half + 1, has_time=True)
+    every = solver.solve(ref_img, frames_img, pts, dt, **kw)
+    same = solver.solve(ref_img, frames_img, pts, dt,
+                        active=torch.ones(pts.shape[0], dtype=torch.bool), **kw)
+    assert torch.equal(every.params.nan_to_num(0), same.params.nan_to_num(0))
+    assert torch.equal(every.status, same.status)
+    with pytest.raises(ValueError, match=r"active must be \(N,\)"):
+        solver.solve(ref_img, frames_img, pts, dt, active=torch.ones(3, dtype=torch.bool), **kw)
+    with pytest.raises(ValueError, match=r"active must be \(N,\) = .* bool"):
+        solver.solve(ref_img, frames_img, pts, dt, active=torch.ones(pts.shape[0]), **kw)
+    with pytest.raises(ValueError, match="active .* needs init"):
+        solver.solve(ref_img, frames_img, pts, dt[:, :1], frame_index=fidx[:, :1],
+                     active=torch.ones(pts.shape[0], dtype=torch.bool),
+                     ref_pixels=ref_img.coeffs[:, 2:-2, 2:-2], frame_pixels=frames_img.coeffs)

@@ -1,0 +1,173 @@
+"""Subsets near the image border (:class:`BlockPlacement`, mixed into
+:class:`torch_stsdic.movie.block.Block`): where a row's predicted motion takes its subset
+out of view over its window, the subset is moved inside the image (an off-centre subset),
+the row given the longest shorter window that stays in view, or the row left OUTSIDE."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+
+from torch_stsdic.core.solver import subset_inside
+from torch_stsdic.core.status import Status
+from torch_stsdic.movie.choices import masked_groups
+from torch_stsdic.movie.frames import true_rows
+
+__all__ = ["BlockPlacement", "OUTSIDE_MARGIN"]
+
+#: px beyond the image border a carried prediction must put a subset before the row is
+#: OUTSIDE without a solve
+OUTSIDE_MARGIN = 2.0
+
+
+class BlockPlacement:
+    """The placement of a :class:`~torch_stsdic.movie.block.Block`'s subsets near the
+    border (its run, reference, rows' points ``pts``, times ``dt``, statuses, ``centres``,
+    ``window_m``, the reference subsets it keeps and its windows' motion)."""
+
+    def keep_outside(self, inits: Sequence[torch.Tensor], carried: torch.Tensor,
+                     mark: bool = True) -> torch.Tensor:
+        """Carried rows near the image border. At every one of the predictions ``inits``
+        ((B*N, P) relative parameters: the carry moved on by its velocity, and where it was
+        last), over every frame of the row's window, the POI's predicted position is
+        checked:
+
+        * where, as predicted by the first (the carry moved on), the subset would come
+          within ``OUTSIDE_MARGIN`` px of the border but the POI stays that far inside, the
+          subset is moved inside the image by up to its half-size (an off-centre subset,
+          :attr:`centres`; its solution is carried to the POI by its own gradients, the std
+          with them): the point is measured while it is in view;
+        * where that fails over the run's window but holds over a shorter one (the point
+          leaves the image within the window), the row is solved with the longest such
+          window (:attr:`window_m`);
+        * where the POI is that close to the border, or beyond, by the first prediction even
+          at the target frame alone, and the subset is by the others, the row is OUTSIDE,
+          neither solved nor rescued: a specimen moving out of view (every rescue of such a
+          point found some other peak inside the image, at low ZNCC, again in every block).
+
+        Returns the (B*N,) bool mask of the OUTSIDE rows; without ``mark`` they are only
+        returned, not marked (the caller decides which of them to give up on)."""
+        run = self.run
+        rows = carried.shape[0]
+        fit, shift = self._placement(inits, self.dt, self.motion_of(run.m))
+        fit &= carried
+        shift = torch.where(fit.unsqueeze(1), shift, 0.0)
+        left = carried & ~fit  # carried rows without a window that stays in view yet
+        if run.m > 0 and self.mixes_windows and masked_groups(run.device):
+            # on a GPU every carried row's shorter windows placed, those left taking theirs
+            # (:data:`~torch_stsdic.movie.choices.MASKED_GROUPS`), then one read
+            self._shorter_windows_in_view(inits, left, shift,
+                                          torch.arange(rows, device=run.device))
+            facts, placed = self._centre_facts(shift, left)
+            facts = torch.stack(facts).tolist()
+        else:
+            # one read: how many rows the run's window alone leaves (none where m = 0: no
+            # shorter window), with the centres' facts as they stand (read again only
+            # where shorter windows move some)
+            n_left = left.sum() if run.m > 0 else left.new_zeros((), dtype=torch.int64)
+            facts, placed = self._centre_facts(shift, left)
+            n_left, *facts = torch.stack([n_left] + facts).tolist()
+            if n_left:  # every shorter window at once, the longest that stays in view
+                self._shorter_windows_in_view(inits, left, shift, true_rows(left, n_left))
+                facts, placed = self._centre_facts(shift, left)
+                facts = torch.stack(facts).tolist()  # one read
+        out = left
+        if mark:
+            self.status.masked_fill_(out, int(Status.OUTSIDE))
+            self.gone |= out
+        moved, centres, off = placed
+        n_moved, all_in, n_off, *n_miss = facts
+        if n_moved:
+            self.centres, self.centres_inside = centres, bool(all_in)
+            self.off_count = int(n_off)
+            if self.kept is not None:  # and the moved subsets' (no read: counted above)
+                self.kept = run.solver.keep_reference_subsets(
+                    self.ref.img, self.centres, missing=n_miss[0] if n_miss else None,
+                    inside=bool(all_in) and run.point_facts(self.ref)[0])
+            self._centres_moved(off, n_off, moved, n_moved)  # the shared motion there
+            run.stats["off_centre_rows"] = run.stats.get("off_centre_rows", 0) + n_moved
+        return out
+
+    def _shorter_windows_in_view(self, inits: Sequence[torch.Tensor], left: torch.Tensor,
+                                 shift: torch.Tensor, idx: torch.Tensor) -> None:
+        """:meth:`keep_outside`'s rows ``left`` (B*N,) bool (no window of the run's length
+        stays in view) among ``idx`` (R,) given the longest shorter window that does
+        (:attr:`window_m`; no test: unused, it is the run's m) and its subset's shift
+        (``shift`` (B*N, 2) px), every shorter window placed at once; ``left`` keeps those
+        with none. In place."""
+        run, rows = self.run, left.shape[0]
+        halves = torch.arange(run.m - 1, -1, -1, device=run.device)  # (H,) descending
+        f_h, d_h = self._placement([init[idx] for init in inits],
+                                   *self.padded_windows(idx, run.m), idx)  # (H, R)
+        j = f_h.to(torch.int8).argmax(0)  # the first that fits: the longest
+        f_i = f_h.any(0) & left[idx]
+        d_i = d_h[j, torch.arange(idx.numel(), device=run.device)]
+        shift[idx] = torch.where(f_i.unsqueeze(1), d_i, shift[idx])
+        if self.window_m is None:
+            self.window_m = torch.full((rows,), run.m, dtype=torch.int8, device=run.device)
+        self.window_m[idx] = torch.where(f_i, halves[j].to(torch.int8), self.window_m[idx])
+        left[idx] = left[idx] & ~f_i
+
+    def _centre_facts(self, shift: torch.Tensor, out: torch.Tensor
+                      ) -> tuple[list[torch.Tensor], tuple[torch.Tensor, ...]]:
+        """The subsets moved by ``shift`` (B*N, 2) px but at the OUTSIDE rows ``out``: 0-d
+        tensors to read (the rows moved, whether every subset is inside, the rows off their
+        POIs, and the reference subsets the solver's cache misses at the centres, where it
+        keeps them) and (B*N,) bool moved, (B*N, 2) centres, (B*N,) bool off their POIs."""
+        run = self.run
+        moved = (shift != 0).any(1) & ~out
+        whole = torch.sign(shift) * shift.abs().ceil()  # whole px, away from the border
+        # rows moved by an earlier call (the block's carry, then its rescue) keep theirs
+        base = self.pts if self.centres is None else self.centres
+        centres = torch.where(moved.unsqueeze(1), self.pts + whole, base)
+        off = (centres != self.pts).any(1)
+        inside = subset_inside(centres, float(run.solver.window.half), self.ref.img.height,
+                               self.ref.img.width).all()
+        miss = (None if self.kept is None
+                else run.solver.missing_reference_subsets(self.ref.img, centres))
+        facts = [moved.sum(), inside.long(), off.sum()] + ([] if miss is None else [miss])
+        return facts, (moved, centres, off)
+
+    def _placement(self, inits: Sequence[torch.Tensor], dt: torch.Tensor,
+                   motion: torch.Tensor | None, rows: torch.Tensor | None = None
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
+        """(..., R) bool: the row's subset can be placed in view over its window (frame
+        times ``dt`` (..., R, T), known motion ``motion`` (..., R, T, 2) or None; leading
+        dimensions: windows of several lengths at once) by one of the predictions ``inits``
+        ((R, P) each; :meth:`keep_outside`), and (..., R, 2) px the shift of its centre that
+        this takes (the largest over the predictions that fit); the rows ``rows`` (R,) of
+        the block (None: all of them, R = B*N)."""
+        run = self.run
+        names = run.names
+        iu, iv = names.index("u"), names.index("v")
+        half = float(run.solver.window.half)
+        h, w = self.ref.img.height, self.ref.img.width
+        pts = self.pts if rows is None else self.pts[rows]
+        # every prediction and both components at once: (I, R, T, 2)
+        lo_edge = half + OUTSIDE_MARGIN
+        hi_edge = torch.full((2,), w - 1 - half - OUTSIDE_MARGIN, dtype=pts.dtype,
+                             device=pts.device)  # (filled on the device: no copy to it)
+        hi_edge[1] = h - 1 - half - OUTSIDE_MARGIN
+        lead = dt.dim() - 2  # the window lengths' dimensions
+        p = torch.stack(list(inits))  # (I, R, P)
+        p = p.view(p.shape[0], *([1] * lead), *p.shape[1:])  # (I, ..., R, P)
+        z = pts.unsqueeze(1) + p[..., [iu, iv]].unsqueeze(-2)  # (I, ..., R, 1, 2)
+        if "ut" in names:
+            vel = p[..., [names.index("ut"), names.index("vt")]].nan_to_num(0.0)
+            z = z + vel.unsqueeze(-2) * dt.unsqueeze(-1)  # (I, R, T, 2)
+        if motion is not None:
+            z = z + motion
+        # only the moved-on prediction (the first) moves a subset
+        reach = torch.zeros(p.shape[0], *([1] * (lead + 2)), dtype=z.dtype, device=z.device)
+        reach[0] = half
+        lo = (lo_edge - z.amin(-2)).clamp(min=0)  # (I, R, 2) move the subset in
+        hi = (z.amax(-2) - hi_edge).clamp(min=0)
+        ok = ((lo == 0) | (hi == 0)) & (torch.maximum(lo, hi) <= reach)
+        fit = ok.all(-1) & torch.isfinite(z).all(-2).all(-1)  # (I, R)
+        d = lo - hi
+        shift = torch.zeros_like(d[0])  # the largest shift over the predictions that fit
+        for i in range(p.shape[0]):
+            shift = torch.where(fit[i].unsqueeze(-1) & (d[i].abs() > shift.abs()), d[i], shift)
+        feasible = fit.any(0)
+        return feasible, shift
