@@ -28,7 +28,7 @@ from torch_stsdic.core.solver import (
 )
 from torch_stsdic.core.status import Status
 from torch_stsdic.movie.carry import Carry
-from torch_stsdic.movie.choices import every_candidate
+from torch_stsdic.movie.choices import every_candidate, masked_groups
 from torch_stsdic.movie.frames import true_rows
 
 #: Gauss-Newton steps of the model check's classical solutions (measured on a 2,500-point
@@ -299,11 +299,11 @@ class BlockChecks:
         pick = ok_i[fail]
         kept = solution_rows(cls, pick)
         loose = true_rows(~redo[pick], n_loose)
-        if n_loose:
-            pol = self.solve(idx[fail][loose], kept.params[loose].nan_to_num(0.0), m=0)
-            good = torch.nonzero(pol.status <= USABLE).flatten()  # (one sync)
-            kept = with_rows(kept, loose[good], solution_rows(pol, good))
         self.keep(idx[fail], kept, only_better=False, m=0)
+        if n_loose:  # (the usable ones kept over them: no read of which)
+            pol = self.solve(idx[fail][loose], kept.params[loose].nan_to_num(0.0), m=0)
+            self.keep(idx[fail][loose], pol, only_better=False, m=0,
+                      where=pol.status <= USABLE)
         return shortened, fail.numel()
 
     def _shorter_windows(self, idx: torch.Tensor, fail: torch.Tensor, init: torch.Tensor,
@@ -385,13 +385,20 @@ class BlockChecks:
         run = self.run
         n_rows, n_cand = cand.shape
         pairs = cand & fail.unsqueeze(1)  # (R, M) the windows to try
-        n_pairs = int(pairs.sum())  # the one read
-        if n_pairs == 0:
-            return torch.zeros((), dtype=torch.int64, device=run.device)
+        active = None
+        if masked_groups(run.device):  # every (row, candidate) pair, those not to try
+            n_pairs = n_rows * n_cand   # masked (no read)
+            q = torch.arange(n_pairs, device=run.device)
+            active = pairs.reshape(-1)
+        else:
+            n_pairs = int(pairs.sum())  # the one read
+            if n_pairs == 0:
+                return torch.zeros((), dtype=torch.int64, device=run.device)
+            q = true_rows(pairs.reshape(-1), n_pairs)
         # row-major: a row's candidates together, longest first
-        q = true_rows(pairs.reshape(-1), n_pairs)
         sel, c = torch.div(q, n_cand, rounding_mode="floor"), q % n_cand
-        sol, good = self._judge_window(idx, sel, m_col[c], vel[sel, c], init, cls, not_ref)
+        sol, good = self._judge_window(idx, sel, m_col[c], vel[sel, c], init, cls, not_ref,
+                                       active)
         # each row's first candidate that passes: the least position among its good ones
         # (n_pairs: none), one gathered solution a row (no row twice in a store)
         first = torch.full((n_rows,), n_pairs, dtype=torch.long, device=run.device)
@@ -407,11 +414,13 @@ class BlockChecks:
     def _judge_window(self, idx: torch.Tensor, sel: torch.Tensor, m: int | torch.Tensor,
                       vel: torch.Tensor, init: torch.Tensor,
                       cls: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
-                      not_ref: torch.Tensor) -> tuple[WindowSolution, torch.Tensor]:
+                      not_ref: torch.Tensor, active: torch.Tensor | None = None
+                      ) -> tuple[WindowSolution, torch.Tensor]:
         """Rows ``idx[sel]`` solved with windows of half-width ``m`` (an int, or (S,) each
         row's) from ``init[sel]`` with the velocity ``vel`` (S, 2) of their classical
         solutions' line where known, and judged against their classical solutions ``cls``:
-        the solution and (S,) bool where it passes (nothing kept here)."""
+        the solution and (S,) bool where it passes (nothing kept here; ``active`` (S,) bool:
+        only those solved, the others masked and not passing)."""
         run = self.run
         iu, iv = run.names.index("u"), run.names.index("v")
         cls_uv, cls_std, cls_sig = cls
@@ -421,7 +430,8 @@ class BlockChecks:
                 j = run.names.index(nm)
                 start[:, j] = torch.where(torch.isfinite(vel[:, c]), vel[:, c].to(start),
                                           start[:, j])
-        sol = self.solve(idx[sel], start, m=m, for_check=False)  # judged here, now
+        sol = self.solve(idx[sel], start, m=m, for_check=False,  # judged here, now
+                         active=active)
         good = sol.status <= USABLE
         d = sol.params[:, [iu, iv]].to(run.dtype)
         good &= ~model_mismatch(d, cls_uv[sel], sol.std[:, [iu, iv]], cls_std[sel])
