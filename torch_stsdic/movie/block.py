@@ -20,7 +20,7 @@ neighbours are flagged.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import torch
@@ -98,8 +98,23 @@ class BlockContext:
     #: (T_series, N) int8: the longest half-width of each frame's window (as a target) at
     #: each point (:mod:`~torch_stsdic.movie.window_length`; None: ``m`` everywhere)
     window_lengths: torch.Tensor | None = None
+    #: the blocks' counters on the device (name -> 0-d int64), summed block by block and
+    #: added to :attr:`stats` by :meth:`read_counts` (one host read a run, not a block)
+    pending: dict[str, torch.Tensor] = field(default_factory=dict)
     _checker: SubsetSolver | None = None
     _on_grid: tuple[torch.Tensor, bool, bool] | None = None  # (points, whole px, inside)
+
+    def read_counts(self) -> None:
+        """The blocks' counters kept on the device (:attr:`pending`) added to :attr:`stats`
+        in one read (those of ``_IF_ANY`` only where they count something)."""
+        if not self.pending:
+            return
+        names = list(self.pending)
+        values = torch.stack([self.pending[nm] for nm in names]).tolist()
+        self.pending = {}
+        for name, v in zip(names, values):
+            if v or name not in _IF_ANY:
+                self.stats[name] = self.stats.get(name, 0) + v
 
     def host_segments(self) -> torch.Tensor | None:
         """:attr:`segments` on the host: :attr:`segments_host` where kept, else a copy."""
@@ -534,11 +549,9 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
         run.stats["classical_rows"] = run.stats.get("classical_rows", 0) + classical
         count("poor_fit_rows", blk.check_fit(carry))
         count("inconsistent_rows", blk.check_neighbours())
-    if counts:  # one read for all of them
-        for name, v in zip(counts, torch.stack([c.reshape(()).to(torch.int64)
-                                                for c in counts.values()]).tolist()):
-            if v or name not in _IF_ANY:
-                run.stats[name] = run.stats.get(name, 0) + v
+    for name, v in counts.items():  # kept on the device: read once, at the run's end
+        v = v.reshape(()).to(torch.int64)
+        run.pending[name] = run.pending[name] + v if name in run.pending else v
     rel = {nm: blk.params[:, j].reshape(b, n) for j, nm in enumerate(run.names)}
     out = to_total(rel, ref.acc)
     out["zncc"] = blk.zncc.reshape(b, n)

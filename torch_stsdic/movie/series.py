@@ -176,6 +176,7 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
             _run_blocks(plan, sink, run, ref, updates, bar, callback, offsets, warm_up)
         finally:
             frame_times = cache.finish()
+        run.read_counts()  # the blocks' counters, kept on the device until now
         if plan.options.get("smoothing"):
             _smooth(plan, sink)
         info: dict[str, Any] = {
