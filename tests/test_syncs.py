@@ -22,11 +22,13 @@ SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "benchmarks" / "count
 #: made from host data on a device) on the movie below: 222 at 78130a9, 83 after issue 45
 #: item 3's first steps, 39 (32-76) at ae57afb (the rescue and the model check choosing
 #: rows, about 10 solve calls a block), 28 (24-79) at ac00524, 25 (21-77) with the rescue's
-#: facts read with its waves; a little room for noise-free changes of the path
+#: facts read with its waves, 23.5 (19-73) at 5ed4838 (the CPU's neighbour fill reads until
+#: done); a little room for noise-free changes of the path
 MAX_PER_BLOCK = 30
-#: the same with a GPU run's choices (the model check's shorter windows at once,
-#: ``movie.choices``): 21.5 (17-72)
-MAX_PER_BLOCK_GPU_CHOICES = 25
+#: the same with a GPU run's choices (``movie.choices``: the model check's shorter windows
+#: at once, masked solves of a block's groups): 21.5 (17-72) at 02f8cdf, 17 (12-65) at
+#: 5ed4838
+MAX_PER_BLOCK_GPU_CHOICES = 20
 #: launch-like torch operations a block (``count_syncs.LAUNCHES``: on a GPU each launches a
 #: kernel), median over the blocks on the movie below: 5043 at d3e78a5, 4520 at 5b953b0 (the
 #: carry, placement, window, solve-buffer and geometry changes of 2026-11-29), 4174 at 9a7ce19
