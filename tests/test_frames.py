@@ -308,6 +308,34 @@ def test_the_ring_copies_each_frame_once_and_its_planes_hold_the_frames_asked_fo
         assert all(torch.equal(a, b) for a, b in zip(lev, ref))
     assert cache._ring.capacity == 5  # grew to the longest block (frames 5..9)
     assert cache._ring.copies == 12  # each frame once (the planes kept when it grew)
+    assert cache._ring.pixel_copies == 12  # and its pixels once, where asked for
+
+
+def test_the_ring_copies_a_frames_pixels_only_where_a_block_asks_for_them():
+    """The coefficients of a block's frames go into the ring at once (every solve reads
+    them); their pixels (the FFT guess's) only when a block asks for them, once while the
+    frame holds its plane, kept when the stack grows."""
+    frames = _frames(n=8)
+    series = load_series(frames)
+    solver = SubsetSolver(sts.DICConfig(m=1))
+    cache = FrameCache(series, solver, torch.float32, "cpu")
+    ring = cache._ring
+    view = cache.in_ring([0, 1, 2])
+    assert (ring.copies, ring.pixel_copies) == (3, 0)
+    view = cache.in_ring([1, 2, 3])  # one frame new: its coefficients only
+    assert (ring.copies, ring.pixel_copies) == (4, 0)
+    raw = view.raw
+    assert ring.pixel_copies == 3
+    planes = torch.tensor(view.planes)
+    assert torch.equal(raw[planes], torch.stack([cache.frame(i).raw for i in (1, 2, 3)]))
+    view.raw  # noqa: B018  (asked again: no copy)
+    assert ring.pixel_copies == 3
+    view = cache.in_ring([1, 2, 3, 4, 5])  # the stack grows: the pixels held are kept
+    assert ring.pixel_copies == 3
+    raw = view.raw
+    assert ring.pixel_copies == 5  # frames 4 and 5 only
+    planes = torch.tensor(view.planes)
+    assert torch.equal(raw[planes], torch.stack([cache.frame(i).raw for i in range(1, 6)]))
 
 
 def test_upload_puts_a_host_tensor_on_the_device_with_its_values():

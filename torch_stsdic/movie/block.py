@@ -6,15 +6,14 @@ from the :class:`Carry` of the block before (the last stored row moved on by its
 Points without a valid carry start from their grid neighbours' carried motion; near the
 border a carried subset is moved inside the image or its window shortened, and a row whose
 point has left it is OUTSIDE (:mod:`~torch_stsdic.movie.block_placement`); the reference
-frame as its own classical
-target is the identity. Rows that get lost (not converged, or ZNCC below ``lost_zncc``) are
-rescued (:mod:`torch_stsdic.movie.rescue`) from the solution of an earlier target of the same
-block, then from their neighbours' solutions, then by FFT cross-correlation, all targets at
-once in each step; the better of the attempts is kept. Then (``BlockContext.checks``) every
-row is checked (:mod:`torch_stsdic.analysis.quality`): its window against the classical
-solution (shorter windows where the motion is not affine in time, the classical solution where
-none fits), rows still lost are solved classically, and poor fits and outliers among
-neighbours are flagged.
+frame as its own classical target is the identity. Rows that get lost (not converged, or
+ZNCC below ``lost_zncc``) are rescued (:mod:`torch_stsdic.movie.rescue`) from the solution
+of an earlier target of the same block, then from their neighbours' solutions, then by FFT
+cross-correlation, all targets at once in each step; the better of the attempts is kept.
+Then (``BlockContext.checks``) every row is checked (:mod:`torch_stsdic.analysis.quality`):
+its window against the classical solution (shorter windows where the motion is not affine in
+time, the classical solution where none fits), rows still lost are solved classically, and
+poor fits and outliers among neighbours are flagged.
 """
 
 from __future__ import annotations

@@ -59,7 +59,6 @@ SCREEN_SLACK = 0.5
 SCREEN_MARGIN = 0.98
 
 
-
 def solution_rows(sol: WindowSolution, pick: torch.Tensor) -> WindowSolution:
     """The rows ``pick`` (bool mask or indices) of a solution."""
     if pick.dtype == torch.bool:  # one index for all the fields (a mask syncs per tensor)
@@ -381,7 +380,9 @@ class BlockChecks:
         ``cand`` (R, M) (half-widths ``m_col`` (M,), longest first; line velocities ``vel``
         (R, M, 2)) of every failing row in one solve (rows of mixed window lengths), each
         row's first that passes kept, as the rounds keep it. One host read (how many
-        candidates). Returns the rows shortened (0-d tensor, not read)."""
+        candidates), or on a GPU none: every (row, candidate) pair in the solve, those not
+        to try masked (:data:`~torch_stsdic.movie.choices.MASKED_GROUPS`). Returns the rows
+        shortened (0-d tensor, not read)."""
         run = self.run
         n_rows, n_cand = cand.shape
         pairs = cand & fail.unsqueeze(1)  # (R, M) the windows to try
