@@ -16,21 +16,34 @@ M = 3
 
 
 def _setup(mode: str):
+    dtype = "float64"
     if mode == "torch":
         kernels.set_triton("0")
         native.set_native("0")
+    elif mode == "triton":  # on a GPU where there is one, else through the interpreter
+        if not kernels.available():
+            pytest.skip("triton is not importable")
+        kernels.set_triton("1")
+        native.set_native("0")
+        dtype = "float32"
     elif not native.available():
         pytest.skip("no native kernels")
-    ref, frames, pts, half, dt, fidx = _problem()
-    solver = sts.SubsetSolver(sts.DICConfig(m=M, subset_size=15, dtype="float64"))
+    small = mode == "triton"
+    ref, frames, pts, half, dt, fidx = _problem(48 if small else 64, 8.0 if small else 6.0)
+    dev = "cuda" if small and torch.cuda.is_available() else "cpu"
+    ref, frames, pts, half, dt, fidx = (t.to(dev) for t in (ref, frames, pts, half, dt, fidx))
+    ref, frames = ref.to(getattr(torch, dtype)), frames.to(getattr(torch, dtype))
+    pts = pts.to(getattr(torch, dtype))
+    solver = sts.SubsetSolver(sts.DICConfig(m=M, subset_size=11 if small else 15,
+                                            dtype=dtype))
     ref_img, frames_img = solver.prepare(ref), solver.prepare(frames)
-    init = torch.zeros(pts.shape[0], 8, dtype=pts.dtype)
+    init = torch.zeros(pts.shape[0], 8, dtype=pts.dtype, device=pts.device)
     init[:, 0], init[:, 4] = 0.4, -0.3
     return solver, ref_img, frames_img, pts, half, dt, fidx, init
 
 
 @pytest.mark.parametrize("mode,off_centre", [("native", False), ("torch", False),
-                                             ("native", True)])
+                                             ("triton", False), ("native", True)])
 def test_the_active_rows_are_solved_as_alone_and_the_others_not_at_all(mode, off_centre):
     """Every third row active, windows of mixed length, the others' guesses NaN (a masked row
     of a block may have none; ``off_centre``: some subsets moved off their POIs by whole
@@ -39,7 +52,7 @@ def test_the_active_rows_are_solved_as_alone_and_the_others_not_at_all(mode, off
     no iteration."""
     solver, ref_img, frames_img, pts, half, dt, fidx, init = _setup(mode)
     n = pts.shape[0]
-    active = torch.arange(n) % 3 == 1
+    active = (torch.arange(n) % 3 == 1).to(pts.device)
     init_nan = init.clone()
     init_nan[~active] = float("nan")
     kw = dict(has_time=True, classical_step=mode == "native")
