@@ -5,6 +5,7 @@ the CPU: the same result file as with the CPU's choices, to the bit."""
 from __future__ import annotations
 
 import pytest
+import torch
 
 from torch_stsdic.kernels import native
 
@@ -63,3 +64,58 @@ def test_a_gpu_runs_choices_give_the_cpu_runs_file(tmp_path, monkeypatch, args):
     assert out[True].keys() == out[False].keys()
     for k, v in out[True].items():
         assert v.tobytes() == out[False][k].tobytes(), k
+
+
+def test_choices_are_named_in_the_environment_and_a_wrong_entry_is_told(monkeypatch):
+    """``TORCH_STSDIC_CHOICES`` sets the named choices (a fresh process reads it at import:
+    ``scripts/benchmarks/device_choices.py`` times them); a malformed entry or an unknown
+    name is warned about and skipped, the others still set."""
+    from torch_stsdic.movie import choices
+
+    for name in ("EVERY_CANDIDATE", "FILL_UNTIL_DONE", "MASKED_GROUPS"):
+        monkeypatch.setattr(choices, name, None)
+    with pytest.warns(UserWarning, match="'BOGUS=1' skipped"):
+        got = choices.from_environment("MASKED_GROUPS=1, fill_until_done=0,BOGUS=1")
+    assert got == {"MASKED_GROUPS": True, "FILL_UNTIL_DONE": False}
+    assert choices.MASKED_GROUPS is True and choices.FILL_UNTIL_DONE is False
+    assert choices.EVERY_CANDIDATE is None
+    cpu = torch.device("cpu")
+    assert choices.masked_groups(cpu) and not choices.fill_until_done(cpu)
+    assert not choices.every_candidate(cpu)  # None: the device's (the CPU's: rounds)
+    with pytest.warns(UserWarning, match="'MASKED_GROUPS=yes' skipped"):
+        choices.from_environment("MASKED_GROUPS=yes")
+    assert choices.MASKED_GROUPS is True  # unchanged
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, choices.ENV: "MASKED_GROUPS=1,EVERY_CANDIDATE=0"}
+    out = subprocess.run([sys.executable, "-c", "from torch_stsdic.movie import choices as c; "
+                          "print(c.MASKED_GROUPS, c.EVERY_CANDIDATE, c.FILL_UNTIL_DONE)"],
+                         capture_output=True, text=True, env=env, check=True).stdout
+    assert out.split() == ["True", "False", "None"]  # read at import
+
+
+def test_device_choices_script_times_the_variants_and_finds_the_same_file(tmp_path):
+    """``scripts/benchmarks/device_choices.py`` on a small movie: the default and a GPU's
+    choices in fresh processes (set through the environment), their times recorded and the
+    files the same to the bit."""
+    import json
+    from pathlib import Path
+
+    from repo_scripts import load_script  # tests/ on the path
+
+    from torch_stsdic.cli import main
+
+    assert main(["synth", "--out", str(tmp_path / "m"), "--size", "128", "--frames", "8",
+                 "--motion", "translation", "--ut", "0.5", "--noise", "2", "--seed", "2",
+                 "--threads", "1"]) == 0
+    script = load_script(Path(__file__).resolve().parents[1] / "scripts" / "benchmarks"
+                         / "device_choices.py", "device_choices")
+    rec = tmp_path / "rec.json"
+    assert script.main(["--rounds", "1", "--variants", "MASKED_GROUPS=1,EVERY_CANDIDATE=1",
+                        "--out", str(rec), "--", str(tmp_path / "m" / "movie.tif"),
+                        "--subset", "21", "--step", "12", "--threads", "1"]) == 0
+    got = json.loads(rec.read_text())
+    assert set(got["summary"]) == {"default", "MASKED_GROUPS=1,EVERY_CANDIDATE=1"}
+    assert all(s["identical_to_default"] and s["wall_s"] > 0 for s in got["summary"].values())

@@ -3,10 +3,12 @@
 # Triton solver's among them), the solver at 38,809 and 250,000 POIs (Triton solver and the
 # batched loop), the 500-frame movie with defaults and against frame 0 alone, and the hourglass
 # with `stsdic run --device cuda` split by pass and kind of work (run_parts.py, with the
-# classical baseline). `gpu_round.sh timeline` adds the device's busy share and the syncs.
+# classical baseline). `gpu_round.sh timeline` adds the device's busy share and the syncs;
+# `choices` times the hourglass with the GPU's choices against the CPU's (device_choices.py:
+# masked solves against reads, and whether the files are the same to the bit).
 #
 #   HG=.gpu/hourglass bash scripts/benchmarks/gpu_round.sh [steps]   # logs and records in $OUT
-#                                              # steps: tests,solver,movie,parts,timeline,syncs
+#                                      # steps: tests,solver,movie,parts,timeline,syncs,choices
 #
 # Needs kornia's wheels in .whl/ (README: GPU) and, for the hourglass, its images in $HG.
 set -uo pipefail
@@ -64,5 +66,11 @@ if step syncs && [[ -d ${HG:-} ]]; then
   timeout ${SYNCS_S:-60} python3 scripts/benchmarks/count_syncs.py --out "$OUT/syncs-hourglass-cuda.json" \
     -- "$HG" --roi 150 20 1120 734 --subset 31 --step 20 --device cuda 2>&1 | tail -8
   log "## syncs: $((SECONDS - t0)) s"
+fi
+if step choices && [[ -d ${HG:-} ]]; then
+  timeout ${CHOICES_S:-150} python3 scripts/benchmarks/device_choices.py --rounds ${CHOICES_ROUNDS:-2} \
+    --out "$OUT/device-choices-hourglass-cuda.json" -- "$HG" --roi 150 20 1120 734 --subset 31 \
+    --step 20 --device cuda 2>&1 | tee -a "$OUT/log.txt" | tail -9
+  log "## choices: $((SECONDS - t0)) s"
 fi
 log "## total: $((SECONDS - t0)) s"

@@ -3,15 +3,21 @@ GPU waits for every value the host reads (a synchronisation: the device's queue 
 while its extra rows cost next to nothing; a CPU reads for free and pays for every row it
 computes. Each choice is None by default (decided by the run's device); set it to True or
 False to take one device's choice on the other (the tests, ``scripts/benchmarks/
-count_syncs.py --gpu-choices``). Either way the results are the same to the bit.
+count_syncs.py --gpu-choices``), or name them in the environment before the package is
+imported: ``TORCH_STSDIC_CHOICES="MASKED_GROUPS=0,EVERY_CANDIDATE=1"`` (a fresh ``stsdic
+run`` process: ``scripts/benchmarks/device_choices.py`` times them). Either way the results
+are the same to the bit.
 """
 
 from __future__ import annotations
 
+import os
+import warnings
+
 import torch
 
-__all__ = ["EVERY_CANDIDATE", "FILL_UNTIL_DONE", "MASKED_GROUPS", "every_candidate",
-           "fill_until_done", "masked_groups", "gpu_choices"]
+__all__ = ["EVERY_CANDIDATE", "FILL_UNTIL_DONE", "MASKED_GROUPS", "ENV", "every_candidate",
+           "fill_until_done", "masked_groups", "gpu_choices", "from_environment"]
 
 #: The model check's shorter windows (where the solver mixes window lengths): every candidate
 #: window of every failing row in one solve, each row's first that passes kept (True), or in
@@ -42,6 +48,28 @@ FILL_UNTIL_DONE: bool | None = None
 MASKED_GROUPS: bool | None = None
 
 
+#: the environment variable that sets choices at import (``NAME=0|1`` by commas)
+ENV = "TORCH_STSDIC_CHOICES"
+
+
+def from_environment(text: str | None = None) -> dict[str, bool]:
+    """The choices named in ``text`` (default: the environment's :data:`ENV`), set on this
+    module; a malformed entry or an unknown name is warned about and skipped."""
+    text = os.environ.get(ENV, "") if text is None else text
+    names = {"EVERY_CANDIDATE", "FILL_UNTIL_DONE", "MASKED_GROUPS"}
+    out: dict[str, bool] = {}
+    for entry in filter(None, (e.strip() for e in text.split(","))):
+        name, _, value = entry.partition("=")
+        name, value = name.strip().upper(), value.strip()
+        if name not in names or value not in ("0", "1"):
+            warnings.warn(f"{ENV}: {entry!r} skipped (NAME=0 or NAME=1, NAME one of "
+                          f"{', '.join(sorted(names))})", stacklevel=2)
+            continue
+        out[name] = value == "1"
+        globals()[name] = out[name]
+    return out
+
+
 def _choose(value: bool | None, device: torch.device, on_gpu: bool) -> bool:
     return (on_gpu if device.type != "cpu" else not on_gpu) if value is None else bool(value)
 
@@ -67,3 +95,6 @@ def masked_groups(device: torch.device) -> bool:
 def gpu_choices() -> dict[str, bool]:
     """Every choice as a GPU run makes it (by name), for a caller to set on the CPU."""
     return {"EVERY_CANDIDATE": True, "FILL_UNTIL_DONE": False, "MASKED_GROUPS": True}
+
+
+from_environment()
