@@ -38,19 +38,27 @@ LIMITS = {"ratio": 3.0, "template_share": 0.15}
 _TEMPLATE = re.compile(r"round\(s\) \(([0-9.]+) s\)")
 
 
-def _run(args: list[str], out: Path, tree: Path | None) -> tuple[float, float | None]:
-    """Wall seconds of one ``stsdic run`` process and its template's seconds (None: none)."""
-    env = dict(os.environ)
-    if tree is not None:
-        env["PYTHONPATH"] = str(tree)
+def timed_run(args: list[str], out: Path, env: dict[str, str] | None = None,
+              label: str = "") -> tuple[float, str]:
+    """Wall seconds and stdout of one fresh ``stsdic run`` process writing ``out`` (started
+    in its folder), ``env`` added to the environment; a failed run stops the benchmark with
+    its stderr (``label`` in front of the message)."""
     cmd = [sys.executable, "-m", "torch_stsdic", "run", *args, "--out", str(out),
            "--overwrite", "--no-progress"]
     t0 = time.perf_counter()
-    p = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=out.parent)
+    p = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, **(env or {})},
+                       cwd=out.parent)
     wall = time.perf_counter() - t0
     if p.returncode:
-        raise SystemExit(f"{' '.join(cmd)} failed ({p.returncode}):\n{p.stderr[-2000:]}")
-    m = _TEMPLATE.search(p.stdout)
+        raise SystemExit(f"{label}{' '.join(cmd)} failed ({p.returncode}):\n"
+                         f"{p.stderr[-2000:]}")
+    return wall, p.stdout
+
+
+def _run(args: list[str], out: Path, tree: Path | None) -> tuple[float, float | None]:
+    """Wall seconds of one ``stsdic run`` process and its template's seconds (None: none)."""
+    wall, stdout = timed_run(args, out, None if tree is None else {"PYTHONPATH": str(tree)})
+    m = _TEMPLATE.search(stdout)
     return wall, (float(m.group(1)) if m else None)
 
 

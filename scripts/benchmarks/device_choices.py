@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import re
 import statistics
 import subprocess
@@ -28,43 +27,22 @@ import tempfile
 import time
 from pathlib import Path
 
-import h5py
-import numpy as np
-
 ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT / "scripts" / "benchmarks"))
+sys.path.insert(0, str(ROOT / "scripts" / "tools"))
+from compare_results import compare  # noqa: E402  (bit for bit, volatile attributes left out)
+from cpu_criteria import timed_run  # noqa: E402  (one fresh stsdic run process, timed)
+
 _TIME = re.compile(r"^time: ([0-9.]+) s", re.M)
 
 
 def _run(args: list[str], out: Path, choices: str) -> tuple[float, float | None]:
     """Wall seconds of one ``stsdic run`` process with ``choices`` in the environment, and
     the run's own seconds from its summary line (None: not found)."""
-    env = dict(os.environ)
-    env["TORCH_STSDIC_CHOICES"] = choices
-    cmd = [sys.executable, "-m", "torch_stsdic", "run", *args, "--out", str(out),
-           "--overwrite", "--no-progress"]
-    t0 = time.perf_counter()
-    p = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=out.parent)
-    wall = time.perf_counter() - t0
-    if p.returncode:
-        raise SystemExit(f"{choices or 'default'}: {' '.join(cmd)} failed ({p.returncode}):\n"
-                         f"{p.stderr[-2000:]}")
-    m = _TIME.search(p.stdout)
+    wall, stdout = timed_run(args, out, {"TORCH_STSDIC_CHOICES": choices},
+                             label=f"{choices or 'default'}: ")
+    m = _TIME.search(stdout)
     return wall, (float(m.group(1)) if m else None)
-
-
-def same_file(a: Path, b: Path) -> bool:
-    """Every numeric dataset of result file ``a`` equals ``b``'s to the bit (NaNs alike)."""
-    with h5py.File(a, "r") as fa, h5py.File(b, "r") as fb:
-        names: list[str] = []
-        fa.visititems(lambda n, o: names.append(n) if isinstance(o, h5py.Dataset)
-                      and o.dtype.kind in "fiub" else None)
-        for n in names:
-            if n not in fb:
-                return False
-            x, y = fa[n][()], fb[n][()]
-            if np.shape(x) != np.shape(y) or np.asarray(x).tobytes() != np.asarray(y).tobytes():
-                return False
-        return bool(names)
 
 
 def default_variants(device: str) -> list[str]:
@@ -101,7 +79,7 @@ def main(argv: list[str] | None = None) -> int:
                 wall, own = _run(run_args, out, v)
                 row[v or "default"] = {"wall_s": round(wall, 2), "run_s": own}
                 if i == 0 and j:
-                    identical[v] = same_file(Path(tmp) / "v0.h5", out)
+                    identical[v] = not compare(Path(tmp) / "v0.h5", out)
             rows.append(row)
             print(f"round {i + 1}: " + "; ".join(
                 f"{k} {r['wall_s']} s (run {r['run_s']} s)" for k, r in row.items()

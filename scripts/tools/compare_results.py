@@ -6,12 +6,14 @@ field by field, bit for bit (a refactor must not change a number).
 ``--old``: a checkout of the earlier code (``git worktree add /tmp/old <commit>``). Each case
 runs in a fresh process per tree with ``PYTHONPATH`` pointing at that tree. Every dataset of
 the HDF5 file is compared (NaN equal to NaN); attributes that record when or how long a run
-took are left out. Exit 0 when every case is bit-identical, 1 otherwise. Needs
+took are left out (also inside the JSON texts of a run's recorded estimates). Exit 0 when
+every case is bit-identical, 1 otherwise. Needs
 ``../shared/data``."""
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import subprocess
 import sys
@@ -45,6 +47,30 @@ def run(tree: Path, case: list[str], out: Path) -> float:
     return time.perf_counter() - t
 
 
+def _volatile(key: str) -> bool:
+    return any(s in key.lower() for s in VOLATILE)
+
+
+def _steady(value: object) -> object:
+    """An attribute's value without what differs between any two runs: a JSON text (a run's
+    recorded estimates, :data:`VOLATILE` keys at any depth, e.g. a pass's ``seconds``)
+    read and those keys dropped; any other value as it is."""
+    text = value.decode() if isinstance(value, bytes) else value
+    if not isinstance(text, str) or text[:1] not in "{[":
+        return value
+
+    def drop(x):
+        if isinstance(x, dict):
+            return {k: drop(v) for k, v in x.items() if not _volatile(k)}
+        if isinstance(x, list):
+            return [drop(v) for v in x]
+        return x
+    try:
+        return json.dumps(drop(json.loads(text)), sort_keys=True)
+    except ValueError:
+        return value
+
+
 def _items(f: h5py.File) -> dict[str, object]:
     out: dict[str, object] = {}
 
@@ -52,13 +78,13 @@ def _items(f: h5py.File) -> dict[str, object]:
         if isinstance(obj, h5py.Dataset):
             out[name] = obj[()]
         for k, v in obj.attrs.items():
-            if not any(s in k.lower() for s in VOLATILE):
-                out[f"{name}@{k}"] = v
+            if not _volatile(k):
+                out[f"{name}@{k}"] = _steady(v)
 
     f.visititems(visit)
     for k, v in f.attrs.items():
-        if not any(s in k.lower() for s in VOLATILE):
-            out[f"@{k}"] = v
+        if not _volatile(k):
+            out[f"@{k}"] = _steady(v)
     return out
 
 
