@@ -36,7 +36,7 @@ def frame_counts(count, points: torch.Tensor, init, mixed: bool, formulation: st
     return count.to(device=points.device, dtype=torch.int64)
 
 
-def active_rows(active, points: torch.Tensor, init) -> torch.Tensor:
+def active_rows(active, points: torch.Tensor, init) -> torch.Tensor | None:
     """A solve's ``active`` (:meth:`~torch_stsdic.core.solver.SubsetSolver.solve`) checked:
     (N,) bool, with an ``init`` (the FFT guess chooses its own rows). Returns it on the
     points' device (None: None)."""

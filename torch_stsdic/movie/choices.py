@@ -56,7 +56,7 @@ def from_environment(text: str | None = None) -> dict[str, bool]:
     """The choices named in ``text`` (default: the environment's :data:`ENV`), set on this
     module; a malformed entry or an unknown name is warned about and skipped."""
     text = os.environ.get(ENV, "") if text is None else text
-    names = {"EVERY_CANDIDATE", "FILL_UNTIL_DONE", "MASKED_GROUPS"}
+    names = set(gpu_choices())  # every choice
     out: dict[str, bool] = {}
     for entry in filter(None, (e.strip() for e in text.split(","))):
         name, _, value = entry.partition("=")
