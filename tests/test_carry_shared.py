@@ -254,7 +254,7 @@ def test_the_neighbour_fill_stops_at_the_first_ring_that_fills_none_with_the_sam
         monkeypatch):
     """A lost region three rings deep (a square of 6 x 6 points in a 14 x 14 grid) and a
     lost point with no valid neighbour within reach of any ring: until done (the CPU's
-    choice, ``movie.choices.FILL_UNTIL_DONE``) the fill takes the three rings that fill
+    choice, ``movie.choices.UNTIL_DONE``) the fill takes the three rings that fill
     points and one that fills none, then stops; every ring (a GPU's) takes all eight. The
     carry is the same to the bit."""
     from torch_stsdic.analysis.quality import neighbours
@@ -286,7 +286,7 @@ def test_the_neighbour_fill_stops_at_the_first_ring_that_fills_none_with_the_sam
     monkeypatch.setattr(carry_mod, "neighbour_guess", spy)
     out = {}
     for until_done in (True, False):
-        monkeypatch.setattr(choices, "FILL_UNTIL_DONE", until_done)
+        monkeypatch.setattr(choices, "UNTIL_DONE", until_done)
         calls.clear()
         filled_carry, filled = carry.from_neighbours(nb, pts)
         out[until_done] = (filled_carry, int(filled), len(calls))

@@ -66,21 +66,72 @@ def test_a_gpu_runs_choices_give_the_cpu_runs_file(tmp_path, monkeypatch, args):
         assert v.tobytes() == out[False][k].tobytes(), k
 
 
+def test_a_gpu_runs_model_check_masks_its_rows_and_gives_the_cpu_runs_file(tmp_path,
+                                                                             monkeypatch):
+    """A movie whose motion oscillates in time, differently over the image: the model check
+    solves rows classically, in full, shorter and classical to the run's tol. With a GPU's
+    choices every step is a masked solve over all the block's rows (no host read of which
+    rows), with the CPU's each step's rows are taken; the same file to the bit, and the
+    check's steps did work (rows shortened and left classical)."""
+    from test_mixed_windows import _oscillating_movie  # (tests/ on the path)
+
+    from torch_stsdic.core.solver import SubsetSolver
+    from torch_stsdic.movie import checks, choices
+
+    if not native.available():
+        pytest.skip("no native kernels (the two paths agree to the bit on the C++ kernels)")
+    _oscillating_movie(tmp_path / "osc.tif")
+    solve, check_model = SubsetSolver.solve, checks.BlockChecks.check_model
+    masked, counted = [], []
+    in_check = [False]
+
+    def spy(self, *a, active=None, **k):
+        if in_check[0]:
+            masked.append(active is not None)
+        return solve(self, *a, active=active, **k)
+
+    def spy_check(self):
+        in_check[0] = True
+        try:
+            shortened, classical = check_model(self)
+        finally:
+            in_check[0] = False
+        counted.append((int(shortened), int(classical)))
+        return shortened, classical
+
+    monkeypatch.setattr(SubsetSolver, "solve", spy)
+    monkeypatch.setattr(checks.BlockChecks, "check_model", spy_check)
+    out, solves = {}, {}
+    for gpu in (False, True):
+        for name, value in choices.gpu_choices().items():
+            monkeypatch.setattr(choices, name, value if gpu else not value)
+        masked.clear()
+        counted.clear()
+        out[gpu] = _run(tmp_path, f"o{int(gpu)}", tmp_path / "osc.tif", ("--step", "8"))
+        solves[gpu] = list(masked)
+        shortened, classical = map(sum, zip(*counted))
+        assert shortened >= 500 and classical >= 5, counted  # the check's steps worked
+    assert solves[True] and all(solves[True])  # every solve of the check masked
+    assert not any(solves[False])
+    for k, v in out[True].items():
+        assert v.tobytes() == out[False][k].tobytes(), k
+
+
 def test_choices_are_named_in_the_environment_and_a_wrong_entry_is_told(monkeypatch):
     """``TORCH_STSDIC_CHOICES`` sets the named choices (a fresh process reads it at import:
     ``scripts/benchmarks/device_choices.py`` times them); a malformed entry or an unknown
     name is warned about and skipped, the others still set."""
     from torch_stsdic.movie import choices
 
-    for name in ("EVERY_CANDIDATE", "FILL_UNTIL_DONE", "MASKED_GROUPS"):
+    for name in ("EVERY_CANDIDATE", "UNTIL_DONE", "MASKED_GROUPS", "MASKED_CHECK"):
         monkeypatch.setattr(choices, name, None)
     with pytest.warns(UserWarning, match="'BOGUS=1' skipped"):
-        got = choices.from_environment("MASKED_GROUPS=1, fill_until_done=0,BOGUS=1")
-    assert got == {"MASKED_GROUPS": True, "FILL_UNTIL_DONE": False}
-    assert choices.MASKED_GROUPS is True and choices.FILL_UNTIL_DONE is False
+        got = choices.from_environment("MASKED_GROUPS=1, until_done=0,BOGUS=1")
+    assert got == {"MASKED_GROUPS": True, "UNTIL_DONE": False}
+    assert choices.MASKED_GROUPS is True and choices.UNTIL_DONE is False
     assert choices.EVERY_CANDIDATE is None
     cpu = torch.device("cpu")
-    assert choices.masked_groups(cpu) and not choices.fill_until_done(cpu)
+    assert choices.masked_groups(cpu) and not choices.until_done(cpu)
     assert not choices.every_candidate(cpu)  # None: the device's (the CPU's: rounds)
     with pytest.warns(UserWarning, match="'MASKED_GROUPS=yes' skipped"):
         choices.from_environment("MASKED_GROUPS=yes")
@@ -91,7 +142,7 @@ def test_choices_are_named_in_the_environment_and_a_wrong_entry_is_told(monkeypa
 
     env = {**os.environ, choices.ENV: "MASKED_GROUPS=1,EVERY_CANDIDATE=0"}
     out = subprocess.run([sys.executable, "-c", "from torch_stsdic.movie import choices as c; "
-                          "print(c.MASKED_GROUPS, c.EVERY_CANDIDATE, c.FILL_UNTIL_DONE)"],
+                          "print(c.MASKED_GROUPS, c.EVERY_CANDIDATE, c.UNTIL_DONE)"],
                          capture_output=True, text=True, env=env, check=True).stdout
     assert out.split() == ["True", "False", "None"]  # read at import
 

@@ -237,6 +237,34 @@ def test_median_test_does_not_condemn_a_good_point_for_its_bad_neighbours():
     assert torch.nonzero(out).flatten().tolist() == bad
 
 
+@pytest.mark.parametrize("gradients", [False, True], ids=["values", "carried"])
+def test_median_test_run_to_its_last_round_gives_the_same_answer(gradients):
+    """A GPU run's choice (``until_done=False``): every round of the test run, no host read
+    of whether a round flagged any point; the outliers found over several rounds (the worst
+    among its neighbours flagged a round) equal those of the rounds stopped when done, also
+    on the path that carries each neighbour by its gradients."""
+    pts = _grid()
+    gen = torch.Generator().manual_seed(5)
+    gu = torch.tensor([0.02, -0.01], dtype=torch.float64)
+    vals = torch.stack([pts @ gu, pts @ gu.flip(0)], -1)[None].repeat(2, 1, 1)
+    vals = vals + 0.005 * torch.randn(2, 49, 2, generator=gen, dtype=torch.float64)
+    bad = [1, 2, 7, 8, 9, 24, 40]  # a cluster (several rounds) and loners
+    vals[:, bad] += 3.0 * torch.randn(2, len(bad), 2, generator=gen, dtype=torch.float64)
+    ok = torch.ones(2, 49, dtype=torch.bool)
+    ok[1, 30] = False
+    kw = {}
+    if gradients:
+        kw = {"points": pts,
+              "gradients": torch.stack([gu, gu.flip(0)])[None, None].expand(2, 49, 2, 2)}
+    nb = neighbours(pts)
+    done = median_test(vals, ok, nb, 0.05, **kw)
+    every = median_test(vals, ok, nb, 0.05, until_done=False, **kw)
+    assert torch.equal(done, every)
+    assert set(bad) <= set(torch.nonzero(done[0]).flatten().tolist())
+    if gradients:  # (here the rounds do change the answer)
+        assert not torch.equal(median_test(vals, ok, nb, 0.05, rounds=1, **kw), done)
+
+
 def test_poor_fit_median_ignores_noise_free_matches():
     """At the reference frame a classical row matches the reference itself to round-off and a
     window row leaves the noise: where most rows are classical (sample 12), their ~0 median

@@ -22,15 +22,16 @@ device). Per block of the run itself (its passes' blocks apart), from the start 
 to the next block's (its results handed over, the next carry made: what the block loop's
 thread does; the writer thread's copies and writes are not counted), the median over
 the blocks; the run is slowed down by the counting (use it for counts, not for speed). Of
-those, the ones in the C++ CPU kernels' argument checks (``kernels/native``) are shown
+those, the ones in the C++ CPU kernels' argument checks (``kernels/native``, and the host
+work of their callers, :data:`NATIVE_CALLERS`) are shown
 apart: a GPU run takes other kernels. Also counted, apart from the syncs: the launch-like
 operations of a block (every dispatched operation but the views and metadata ones: on a
 GPU each launches a kernel; the C++ kernels' calls are not among them), ``--ops-where N``
 listing the N functions that make most of them. ``--where N`` lists the
 N lines of the package that sync most over the whole run. ``--gpu-choices`` takes the
 choices a GPU run makes where they differ from a CPU run's (``torch_stsdic.movie.choices``:
-the model check's shorter windows all at once, every ring of a carry's neighbour fill):
-the same results, fewer reads.
+masked rows, the model check's shorter windows all at once, every round of a loop; those
+named in ``TORCH_STSDIC_CHOICES`` as named): the same results, fewer reads.
 """
 
 from __future__ import annotations
@@ -61,8 +62,15 @@ SYNCING = {"_local_scalar_dense": "host read", "equal": "host read",
 
 #: where the C++ CPU kernels check their arguments on the host (a GPU run takes other paths)
 NATIVE = "torch_stsdic/kernels/native"
+#: functions counted with them: those that call those kernels and prepare their arguments
+#: on the host (the CPU's path of a step a GPU run takes in torch:
+#: ``torch_stsdic.kernels.dispatch`` picks the C++ kernels on the CPU only), and those that
+#: work on host tensors on every device (a block's frame numbers from its host targets)
+NATIVE_CALLERS = (" _round_native", " block_frames")
 #: the counter of those (a part of the others, not added to a block's total)
 CPU_ONLY = "of which in the CPU kernels' checks"
+#: of those, the host copies (apart, so that a total without copies leaves them out once)
+CPU_ONLY_COPIES = "of which host copies in the CPU kernels' checks"
 #: the counter of the copies to the host outside the dispatcher (``.tolist()``, ``.numpy()``,
 #: ``.cpu()``)
 HOST_COPY = "host copy (tolist, numpy, cpu)"
@@ -111,8 +119,12 @@ class SyncCounter(TorchDispatchMode):
             def counted(t, *a, _orig=orig, **k):
                 if threading.get_ident() == me:
                     self.counts[HOST_COPY] += 1
+                    place = self._place()
+                    if place.startswith(NATIVE) or place.endswith(NATIVE_CALLERS):
+                        self.counts[CPU_ONLY] += 1
+                        self.counts[CPU_ONLY_COPIES] += 1
                     if self.where is not None:
-                        self.where[self._place()] += 1
+                        self.where[place] += 1
                 return _orig(t, *a, **k)
 
             setattr(torch.Tensor, name, counted)
@@ -164,7 +176,7 @@ class SyncCounter(TorchDispatchMode):
         if name in SYNCING:
             self.counts[name] += 1
             place = self._place()
-            if place.startswith(NATIVE):
+            if place.startswith(NATIVE) or place.endswith(NATIVE_CALLERS):
                 self.counts[CPU_ONLY] += 1
             if self.where is not None:
                 self.where[place] += 1
@@ -191,13 +203,16 @@ def main(argv: list[str] | None = None) -> int:
                          "launch-like operations in the run's blocks (slow)")
     ap.add_argument("--gpu-choices", action="store_true",
                     help="take the choices a GPU run takes where they differ from the CPU's "
-                         "(torch_stsdic.movie.choices: the model check's shorter windows at "
-                         "once, every ring of a carry's neighbour fill)")
+                         "(torch_stsdic.movie.choices: masked rows, the model check's "
+                         "shorter windows at once, every round of a loop), but those named "
+                         "in TORCH_STSDIC_CHOICES")
     args = ap.parse_args(own)
     if args.gpu_choices:
         from torch_stsdic.movie import choices
+        named = choices.from_environment()  # (set at import already: kept as named)
         for name, value in choices.gpu_choices().items():
-            setattr(choices, name, value)
+            if name not in named:
+                setattr(choices, name, value)
     rc, per_block, counter = count_run(run_args, where=args.where > 0,
                                        ops_where=args.ops_where > 0)
     if rc:
@@ -245,11 +260,13 @@ def main(argv: list[str] | None = None) -> int:
 def block_total(counts: dict[str, int], cpu_kernels: bool = True, copies: bool = True) -> int:
     """A block's syncing operations (``counts`` by kind): all, or without those in the CPU
     kernels' checks (``cpu_kernels`` False) or without the host copies (``copies`` False)."""
-    out = sum(v for k, v in counts.items() if k not in (CPU_ONLY, LAUNCHES))
+    out = sum(v for k, v in counts.items() if k not in (CPU_ONLY, CPU_ONLY_COPIES, LAUNCHES))
     if not cpu_kernels:
         out -= counts.get(CPU_ONLY, 0)
     if not copies:
         out -= counts.get(HOST_COPY, 0)
+        if not cpu_kernels:  # (those left out already)
+            out += counts.get(CPU_ONLY_COPIES, 0)
     return out
 
 

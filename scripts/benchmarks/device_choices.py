@@ -7,7 +7,7 @@ time (its summary line) and whether its result file equals the default's to the 
     python scripts/benchmarks/device_choices.py --rounds 3 -- \\
         ../shared/data/mudic-hourglass --roi 150 20 1120 734 --subset 31 --step 20 --device cuda
     python scripts/benchmarks/device_choices.py --variants MASKED_GROUPS=1 \\
-        "MASKED_GROUPS=1,EVERY_CANDIDATE=1,FILL_UNTIL_DONE=0" -- movie.tif   # a GPU's on the CPU
+        "MASKED_GROUPS=1,EVERY_CANDIDATE=1,UNTIL_DONE=0" -- movie.tif   # a GPU's on the CPU
 
 Default variants: the other device's choices, one at a time, then all of them (on a GPU the
 CPU's, which read the host where a GPU run masks; on the CPU the GPU's). A GPU decides

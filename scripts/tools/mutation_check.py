@@ -253,8 +253,8 @@ MUTATIONS: tuple[Mutation, ...] = (
         "the rows"),
     Mutation(
         "fill-stops-after-one-ring", "carry", "torch_stsdic/movie/carry.py",
-        "            if until_done and not bool(fill.any()):",
-        "            if until_done and bool(fill.any()):",
+        "            if stop and not bool(fill.any()):",
+        "            if stop and bool(fill.any()):",
         ("test_carry_shared.py",),
         "a carry's neighbour fill stops at the first ring that fills points, not at the "
         "first that fills none"),
@@ -271,6 +271,19 @@ MUTATIONS: tuple[Mutation, ...] = (
         "    live = ~low\n",
         ("test_masked_solve.py",),
         "a masked solve iterates the rows it was told to leave"),
+    Mutation(
+        "masked-check-keeps-dropped-rows", "row set", "torch_stsdic/movie/row_set.py",
+        "            return RowSet(self.idx, True, self.act & keep), None\n",
+        "            return RowSet(self.idx, True, self.act), None\n",
+        ("test_row_set.py", "test_gpu_choices.py"),
+        "the model check's masked steps (a GPU run's choice) keep the rows a step drops"),
+    Mutation(
+        "median-test-one-round-on-gpu", "quality", "torch_stsdic/analysis/quality.py",
+        "        if i == rounds - 1 or (until_done and not bool(cand.any())):\n",
+        "        if i == rounds - 1 or not until_done or not bool(cand.any()):\n",
+        ("test_quality.py", "test_gpu_choices.py"),
+        "the neighbour test run to the end (a GPU run's choice) stops after its first "
+        "round"),
 )
 
 

@@ -459,7 +459,8 @@ def _round_native(v: Tensor, valid: Tensor, nb: Tensor, points: Tensor | None,
 
 def median_test(values: Tensor, valid: Tensor, nb: Tensor, eps: float | Tensor,
                 points: Tensor | None = None, gradients: Tensor | None = None,
-                min_neighbours: int = 3, rounds: int = MEDIAN_ROUNDS) -> Tensor:
+                min_neighbours: int = 3, rounds: int = MEDIAN_ROUNDS,
+                until_done: bool = True) -> Tensor:
     """Normalised median test (module docstring) of (B, N, C) ``values`` (C components, e.g.
     u and v) over the neighbours ``nb`` (N, k); only ``valid`` (B, N) points count as
     neighbours or are judged. ``eps`` px: a number, (B,) one per row of ``values`` or (B, N)
@@ -473,8 +474,10 @@ def median_test(values: Tensor, valid: Tensor, nb: Tensor, eps: float | Tensor,
     among their neighbours, and the next round judges the others again without the points
     flagged so far. A point whose carried neighbours (outliers excluded) scatter (median
     absolute residual) by more than ``MEDIAN_SCATTER`` times ``eps`` is an outlier too: no
-    smooth field to judge it by. Returns (B, N) bool outliers (never a point with fewer than
-    ``min_neighbours`` valid neighbours)."""
+    smooth field to judge it by. ``until_done``: the rounds stop at the first that flags
+    no point (one host read a round); False: all ``rounds`` run, no read (a round that
+    flags none changes nothing: the same answer). Returns (B, N) bool outliers (never a
+    point with fewer than ``min_neighbours`` valid neighbours)."""
     b = values.shape[0]
     v = values.double()
     eps_t = torch.as_tensor(eps, dtype=torch.float64, device=values.device)
@@ -491,7 +494,7 @@ def median_test(values: Tensor, valid: Tensor, nb: Tensor, eps: float | Tensor,
         r, rm, count = round_(v, valid & ~out, nb, points, gradients, eps_bn)
         judged = valid & ~out & (count >= min_neighbours)
         cand = judged & (r > MEDIAN_THRESHOLD)
-        if i == rounds - 1 or not bool(cand.any()):
+        if i == rounds - 1 or (until_done and not bool(cand.any())):
             out |= cand
             break
         score = torch.where(cand, r, -torch.inf)

@@ -40,6 +40,7 @@ from torch_stsdic.movie.block_start import pilot_shift, window_shake
 from torch_stsdic.movie.block_windows import BlockWindows
 from torch_stsdic.movie.carry import Carry
 from torch_stsdic.movie.checks import CHECK_ITER, CHECK_TOL, BlockChecks
+from torch_stsdic.movie.choices import until_done
 from torch_stsdic.movie.frames import (
     FrameCache,
     block_frames,
@@ -171,8 +172,8 @@ class Block(BlockChecks, BlockRescue, BlockPlacement, BlockMotion, BlockWindows)
         self._init_windows()
         # sorted; every half-width's windows' frames: from host facts (no read of a device)
         needed = block_frames(host_k, run.m, run.n_series, run.host_segments())
-        self.needed = upload(needed, dev)
-        ring = run.cache.in_ring(needed.tolist())  # only new frames copied
+        self.needed = upload(torch.tensor(needed, dtype=torch.long), dev)
+        ring = run.cache.in_ring(needed)  # only new frames copied
         # the frames' stack, addressed by plane (self.planes[j]: frame self.needed[j])
         # the pixels only where a solve asks for them (:attr:`RingView.raw`: the FFT guess)
         self.ring, self.img, self.pyramids = ring, ring.img, ring.pyramids
@@ -382,7 +383,7 @@ def _only_identity(run: BlockContext, ref: Reference, carry: Carry) -> bool:
 
 
 #: counters of a block kept in the run's statistics only where they count something
-_IF_ANY = ("classical_again_rows", "shorter_again_rows")
+_IF_ANY = ("classical_again_rows", "shorter_again_rows", "neighbour_rows")
 
 
 def _classical_again(blk: Block, classical: torch.Tensor, count: Callable) -> None:
@@ -434,8 +435,10 @@ def _carried_start(run: BlockContext, blk: Block, ref: Reference, carry: Carry,
     shake_vel = has = None
     pts0 = ref.points if ref.acc is None else ref.points - torch.stack(
         [ref.acc["u"], ref.acc["v"]], 1)
-    missing = int((~carry.valid).sum())  # one read: whether any, and how many
-    if missing:
+    # the CPU: one read, whether any point is missing and how many; a GPU fills every
+    # point's ring by ring, no read (:data:`~torch_stsdic.movie.choices.UNTIL_DONE`)
+    missing = int((~carry.valid).sum()) if until_done(dev) else None
+    if missing is None or missing:
         carry, filled = carry.from_neighbours(run.grid_neighbours(ref), pts0, missing=missing)
         count("neighbour_rows", filled * b)
         if carry.left is not None:  # left the view, no neighbour in view: stays out
@@ -543,9 +546,10 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
     # the identity cannot fail (rows are the identity only where m = 0: no read otherwise)
     if run.checks and not (run.m == 0 and bool(ident.all())):
         shortened, classical = blk.check_model()
-        classical += blk.rescue_classical(guess, carry) if run.m > 0 else 0
+        if run.m > 0:
+            classical = classical + blk.rescue_classical(guess, carry)
         count("shortened_rows", shortened)  # read with the other counters
-        run.stats["classical_rows"] = run.stats.get("classical_rows", 0) + classical
+        count("classical_rows", classical)
         count("poor_fit_rows", blk.check_fit(carry))
         count("inconsistent_rows", blk.check_neighbours())
     for name, v in counts.items():  # kept on the device: read once, at the run's end

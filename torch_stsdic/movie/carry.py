@@ -16,7 +16,7 @@ from torch_stsdic.analysis.quality import carried_neighbours, nanmedian_rows
 from torch_stsdic.analysis.result import USABLE
 from torch_stsdic.core.shared_motion import SharedMotion, window_slope
 from torch_stsdic.core.status import Status
-from torch_stsdic.movie.choices import fill_until_done
+from torch_stsdic.movie.choices import until_done
 from torch_stsdic.movie.frames import true_rows, upload, window_frames
 
 __all__ = ["Carry", "neighbour_guess", "rows_numpy", "make_carry", "FILL_ROUNDS"]
@@ -133,28 +133,33 @@ class Carry:
         (N, 2) px in the first reference), ring by ring into a lost region (at most
         ``rounds``), so a lost point starts near the motion again rather than from FFT
         cross-correlation (or is seen to have left the image). ``missing``: how many points
-        have no valid carry, where the caller read it (else read here). Returns the carry
-        and the points filled (a 0-d tensor: not read here)."""
+        have no valid carry, where the caller read it (else read here); on a GPU
+        (:data:`~torch_stsdic.movie.choices.UNTIL_DONE` False) not read: every point's
+        guess made in every ring, the valid ones left as they are. Returns the carry and
+        the points filled (a 0-d tensor: not read here)."""
         names = list(self.vals)
         rated = list(self.rates or {})
         stack = torch.stack([self.vals[nm] for nm in names] + [self.vel_u, self.vel_v]
                             + [self.rates[nm] for nm in rated], 1)
         ok = self.valid.clone()
-        # only those (~0.2 of the work when 7 % are lost), chosen once: one host read for
-        # all the rounds (a round fills those of them its guess reaches; a guess of a point
-        # depends on its neighbours alone, so the rows filled before take no part)
-        if missing is None:
-            missing = int((~ok).sum())
-        need = true_rows(~ok, missing)
         # on the CPU until a ring fills none (then none after it would: nothing changed),
-        # on a GPU every ring, no read (:data:`~torch_stsdic.movie.choices.FILL_UNTIL_DONE`)
-        until_done = fill_until_done(ok.device)
-        for _ in range(rounds if missing else 0):
+        # on a GPU every ring, no read (:data:`~torch_stsdic.movie.choices.UNTIL_DONE`)
+        stop = until_done(ok.device)
+        if stop:  # only those (~0.2 of the work when 7 % are lost), chosen once: one host
+            # read for all the rounds (a round fills those of them its guess reaches; a
+            # guess of a point depends on its neighbours alone, so the rows filled before
+            # take no part)
+            if missing is None:
+                missing = int((~ok).sum())
+            need = true_rows(~ok, missing)
+        else:  # every point (a valid one is not filled), no read
+            need = torch.arange(ok.numel(), device=ok.device)
+        for _ in range(rounds if missing or not stop else 0):
             guess = neighbour_guess(stack.unsqueeze(0), ok.unsqueeze(0),
                                     names + ["vel_u", "vel_v"] + [f"rate_{nm}" for nm in rated],
                                     nb, points, at=need)[0]
             fill = torch.isfinite(guess).all(1) & ~ok[need]
-            if until_done and not bool(fill.any()):
+            if stop and not bool(fill.any()):
                 break
             stack[need] = torch.where(fill.unsqueeze(1), guess.to(stack.dtype), stack[need])
             ok[need] |= fill

@@ -28,8 +28,9 @@ from torch_stsdic.core.solver import (
 )
 from torch_stsdic.core.status import Status
 from torch_stsdic.movie.carry import Carry
-from torch_stsdic.movie.choices import every_candidate, masked_groups
+from torch_stsdic.movie.choices import every_candidate, masked_check, masked_groups, until_done
 from torch_stsdic.movie.frames import true_rows
+from torch_stsdic.movie.row_set import RowSet, solution_rows, take, with_rows
 
 #: Gauss-Newton steps of the model check's classical solutions (measured on a 2,500-point
 #: movie: 26 % of rows had not converged after 3 steps, 0.8 % after 4; the rest are re-solved)
@@ -59,38 +60,6 @@ SCREEN_SLACK = 0.5
 SCREEN_MARGIN = 0.98
 
 
-def solution_rows(sol: WindowSolution, pick: torch.Tensor) -> WindowSolution:
-    """The rows ``pick`` (bool mask or indices) of a solution."""
-    if pick.dtype == torch.bool:  # one index for all the fields (a mask syncs per tensor)
-        pick = torch.nonzero(pick).flatten()
-    return WindowSolution(
-        points=sol.points[pick], params=sol.params[pick], param_names=sol.param_names,
-        zncc=sol.zncc[pick], status=sol.status[pick], iterations=sol.iterations[pick],
-        time=sol.time, std=None if sol.std is None else sol.std[pick],
-        sigma=None if sol.sigma is None else sol.sigma[pick],
-    )
-
-
-def with_rows(sol: WindowSolution, pick: torch.Tensor, new: WindowSolution) -> WindowSolution:
-    """``sol`` with its rows ``pick`` (bool mask) replaced by the rows of ``new``."""
-    if pick.dtype == torch.bool:  # one index for all the fields
-        pick = torch.nonzero(pick).flatten()
-
-    def put(a: torch.Tensor | None, b: torch.Tensor | None) -> torch.Tensor | None:
-        if a is None or b is None:
-            return a
-        out = a.clone()
-        out[pick] = b.to(a.dtype)
-        return out
-
-    return WindowSolution(
-        points=sol.points, params=put(sol.params, new.params), param_names=sol.param_names,
-        zncc=put(sol.zncc, new.zncc), status=put(sol.status, new.status),
-        iterations=put(sol.iterations, sol.iterations[pick] + new.iterations), time=sol.time,
-        std=put(sol.std, new.std), sigma=put(sol.sigma, new.sigma),
-    )
-
-
 class BlockChecks:
     """The checks of a :class:`~torch_stsdic.movie.block.Block` (its rows, solves and
     ``keep`` come from the block)."""
@@ -116,10 +85,11 @@ class BlockChecks:
         at = self.k.repeat_interleave(self.n)[idx] == int(desc)
         return own | (at & (zncc.to(self.run.dtype) >= RESIDUAL_ZNCC))
 
-    def _classical(self, idx: torch.Tensor, solver: SubsetSolver) -> WindowSolution:
+    def _classical(self, idx: torch.Tensor, solver: SubsetSolver,
+                   active: torch.Tensor | None = None) -> WindowSolution:
         """The classical solutions of rows ``idx`` from their window's solution (with
-        ``solver``); where the target is the reference frame itself it is the
-        :meth:`identity_solution`, not solved."""
+        ``solver``; ``active`` (R,) bool: only those, the others masked); where the target
+        is the reference frame itself it is the :meth:`identity_solution`, not solved."""
         own = self._own(idx)
         # one classical step from the window's solution is known where its solve gave it:
         # the solve goes on from there, that step its previous increment
@@ -132,17 +102,20 @@ class BlockChecks:
             have = (torch.isfinite(p0).all(1) & torch.isfinite(size)).unsqueeze(1)
             start = torch.where(have, p0, start[:, spatial])
             step = torch.where(have.squeeze(1), size, 0.0)
+        if active is not None:  # (the masked rows' start: any finite one)
+            start = start.nan_to_num(0.0)
         # (one read for both tests, only in the block whose targets hold the reference frame)
         n_own = int(own.sum()) if self.ref.frame in self.ks else 0
         if not n_own:
-            return self.solve(idx, start, m=0, solver=solver, init_step=step)
+            return self.solve(idx, start, m=0, solver=solver, init_step=step, active=active)
         ident = self.identity_solution(idx)
         if n_own == idx.numel():
             return ident
         other = torch.nonzero(~own).flatten()
         return with_rows(ident, other, self.solve(
             idx[other], start[other], m=0, solver=solver,
-            init_step=None if step is None else step[other]))
+            init_step=None if step is None else step[other],
+            active=None if active is None else active[other]))
 
     def _screen(self, idx: torch.Tensor) -> tuple[torch.Tensor | None, WindowSolution | None]:
         """(R,) bool: rows ``idx`` that pass the model check from their window's free
@@ -197,7 +170,7 @@ class BlockChecks:
         _, vel = linear_fit_in_time(d, dt[rows], spread=True)  # m > 0: distinct times
         return line_mismatch(d, dt[rows], disp[rows], std[rows]), vel
 
-    def check_model(self) -> tuple[int | torch.Tensor, int]:
+    def check_model(self) -> tuple[int | torch.Tensor, int | torch.Tensor]:
         """Model check (:func:`~torch_stsdic.analysis.quality.model_mismatch`) of every usable row
         against its classical solution at the target frame (started from the row's own
         solution: ``CHECK_ITER`` steps to ``CHECK_TOL``, in full where those do not converge
@@ -208,38 +181,35 @@ class BlockChecks:
         (:func:`~torch_stsdic.analysis.quality.line_mismatch`);
         where no window fits they keep the classical solution, converged to the run's
         ``tol`` (ut, vt NaN, ``m_used`` 0). A usable row whose classical solution fails is
-        POOR_FIT. Returns (rows shortened (an int or a 0-d tensor: not read here), rows left
-        classical)."""
+        POOR_FIT. The rows of each step are taken from the last's on the CPU, masked over
+        all the block's rows on a GPU (:class:`~torch_stsdic.movie.row_set.RowSet`: no
+        host read; :data:`~torch_stsdic.movie.choices.MASKED_CHECK`). Returns (rows
+        shortened, rows left classical: ints, or 0-d tensors not read here)."""
         run = self.run
         if run.m == 0:
             return 0, 0
         use = (self.status <= USABLE) & torch.isfinite(self.params).all(1)
         iu, iv = run.names.index("u"), run.names.index("v")
+        rows, _ = RowSet.every(use.numel(), run.device, masked_check(run.device)).narrow(use)
+        if rows.none():
+            return 0, 0
+        idx = rows.idx
         # rows whose free classical step passes with room to spare are judged from it; the
         # others take a few classical steps from there; rows that do not converge in them,
-        # or disagree, are solved classically in full before they are judged (the screen
-        # judged at every row: the rows checked and those left for the steps in one read)
-        screened, quick = self._screen(torch.arange(use.numel(), device=run.device))
-        if screened is None:
-            n_use, n_rest = int(use.sum()), -1
-        else:
-            n_use, n_rest = torch.stack([use.sum(), (use & ~screened).sum()]).tolist()
-        if n_use == 0:
-            return 0, 0
-        idx = true_rows(use, n_use)  # ascending
-        if screened is None:
-            quick = self._classical(idx, run.check_solver())
-        else:
-            quick = solution_rows(quick, idx)
-            if n_rest:
-                rest = true_rows(~screened[idx], n_rest)
-                quick = with_rows(quick, rest, self._classical(idx[rest], run.check_solver()))
+        # or disagree, are solved classically in full before they are judged
+        screened, quick = self._screen(idx)
+        solver = run.check_solver()
+
+        def classical(pos: torch.Tensor | None, active: torch.Tensor | None) -> WindowSolution:
+            return self._classical(take(idx, pos), solver, active)
+        quick = classical(None, rows.act) if screened is None else rows.redo(
+            quick, ~screened, classical)
         cu, cv = quick.param_names.index("u"), quick.param_names.index("v")
         # every row's classical (u, v) and std (NaN: none), for the shorter windows below
         d_all = torch.full((self.b * self.n, 2), float("nan"), dtype=run.dtype,
                            device=run.device)
         s_all = d_all.clone()
-        conv = (quick.status == int(Status.CONVERGED)).unsqueeze(1)  # (blended: no read)
+        conv = rows.on(quick.status == int(Status.CONVERGED)).unsqueeze(1)  # (no read)
         d_all[idx] = torch.where(conv, quick.params[:, [cu, cv]].to(run.dtype), float("nan"))
         s_all[idx] = torch.where(conv, quick.std[:, [cu, cv]].to(run.dtype), float("nan"))
         # the reference frame as target: its classical residual is round-off, no measure
@@ -250,60 +220,56 @@ class BlockChecks:
             self.std[idx][:, [iu, iv]], quick.std[:, [cu, cv]].to(run.dtype))
         suspect |= not_ref & residual_mismatch(self.sigma[idx], quick.sigma, pixels,
                                                self.zncc[idx])
-        # where the few steps converged they are the classical solution (the full solver
-        # takes the same steps); only the others go on (the rows of both: one read)
-        n_sus, n_redo = torch.stack([
-            suspect.sum(), (suspect & (quick.status != int(Status.CONVERGED))).sum()]).tolist()
-        if n_sus == 0:
+        rows, pos = rows.narrow(suspect)
+        if rows.none():
             return 0, 0
-        suspect = true_rows(suspect, n_sus)
-        idx, not_ref = idx[suspect], not_ref[suspect]
-        cls = solution_rows(quick, suspect)
+        idx, not_ref, cls = rows.idx, take(not_ref, pos), solution_rows(quick, pos)
+        # where the few steps converged they are the classical solution (the full solver
+        # takes the same steps); only the others go on
         redo = cls.status != int(Status.CONVERGED)
-        redo_i = true_rows(redo, n_redo)
-        if n_redo:
-            cls = with_rows(cls, redo_i, self.solve(
-                idx[redo_i], cls.params[redo_i].nan_to_num(0.0), m=0))
-            not_ref = ~self._no_residual(idx, cls.zncc)
+
+        def in_full(pos: torch.Tensor | None, active: torch.Tensor | None,
+                    start: torch.Tensor = cls.params) -> WindowSolution:
+            return self.solve(take(idx, pos), take(start, pos).nan_to_num(0.0), m=0,
+                              active=active)
+        cls = rows.redo(cls, redo, in_full)
+        not_ref = ~self._no_residual(idx, cls.zncc)
         ok_c = cls.status <= USABLE
-        d_all[idx] = torch.where(ok_c.unsqueeze(1), cls.params[:, [cu, cv]].to(run.dtype),
-                                 float("nan"))
-        s_all[idx] = torch.where(ok_c.unsqueeze(1), cls.std[:, [cu, cv]].to(run.dtype),
-                                 float("nan"))
-        self.status[idx] = self.status[idx].masked_fill(~ok_c, int(Status.POOR_FIT))
-        # the usable classical rows whose window fails (judged at every row: the rows and
-        # whether any fails in one read)
+        rows.put(d_all, torch.where(ok_c.unsqueeze(1), cls.params[:, [cu, cv]].to(run.dtype),
+                                    float("nan")))
+        rows.put(s_all, torch.where(ok_c.unsqueeze(1), cls.std[:, [cu, cv]].to(run.dtype),
+                                    float("nan")))
+        rows.put(self.status, self.status[idx].masked_fill(~ok_c, int(Status.POOR_FIT)))
+        # the usable classical rows whose window fails
         fail = model_mismatch(self.params[idx][:, [iu, iv]], cls.params[:, [cu, cv]].to(
             run.dtype), self.std[idx][:, [iu, iv]], cls.std[:, [cu, cv]].to(run.dtype))
         fail |= not_ref & residual_mismatch(self.sigma[idx], cls.sigma, pixels, self.zncc[idx])
         fail &= ok_c
-        n_ok, n_fail = torch.stack([ok_c.sum(), fail.sum()]).tolist()
-        ok_i = true_rows(ok_c, n_ok)
-        idx, not_ref, fail = idx[ok_i], not_ref[ok_i], fail[ok_i]
-        p_cls = cls.params[ok_i]
-        sig_cls = cls.sigma[ok_i]
-        d_cls = p_cls[:, [cu, cv]].to(run.dtype)
-        s_cls = cls.std[ok_i][:, [cu, cv]].to(run.dtype)
+        rows, pos = rows.narrow(ok_c)
+        idx, not_ref, redo = rows.idx, take(not_ref, pos), take(redo, pos)
+        fail = rows.on(take(fail, pos))
+        cls = solution_rows(cls, pos)
+        d_cls = cls.params[:, [cu, cv]].to(run.dtype)
+        s_cls = cls.std[:, [cu, cv]].to(run.dtype)
         init = self.params[idx].clone()  # shorter windows start from the classical solution
         for j, nm in enumerate(cls.param_names):
-            init[:, run.names.index(nm)] = p_cls[:, j].to(run.dtype)
+            init[:, run.names.index(nm)] = cls.params[:, j].to(run.dtype)
         shortened: int | torch.Tensor = 0
-        if run.m > 1 and n_fail:
+        if run.m > 1 and (rows.masked or bool(fail.any())):
             shortened = self._shorter_windows(idx, fail, init, (d_all, s_all),
-                                              (d_cls, s_cls, sig_cls), not_ref)
-        # the rows no window fits, and those of them converged to CHECK_TOL only (on to the
-        # run's tol): one read
-        n_fail, n_loose = torch.stack([fail.sum(), (fail & ~redo[ok_i]).sum()]).tolist()
-        fail = true_rows(fail, n_fail)
-        pick = ok_i[fail]
-        kept = solution_rows(cls, pick)
-        loose = true_rows(~redo[pick], n_loose)
-        self.keep(idx[fail], kept, only_better=False, m=0)
-        if n_loose:  # (the usable ones kept over them: no read of which)
-            pol = self.solve(idx[fail][loose], kept.params[loose].nan_to_num(0.0), m=0)
-            self.keep(idx[fail][loose], pol, only_better=False, m=0,
-                      where=pol.status <= USABLE)
-        return shortened, fail.numel()
+                                              (d_cls, s_cls, cls.sigma), not_ref)
+        # the rows no window fits keep their classical solution; those converged to
+        # CHECK_TOL only go on to the run's tol (the usable ones kept over them)
+        rows, pos = rows.narrow(fail)
+        kept, redo = solution_rows(cls, pos), take(redo, pos)
+        self.keep(rows.idx, kept, only_better=False, m=0, where=rows.act)
+        loose, lpos = rows.narrow(~redo)
+        if not loose.none():
+            pol = self.solve(loose.idx, take(kept.params, lpos).nan_to_num(0.0), m=0,
+                             active=loose.act)
+            self.keep(loose.idx, pol, only_better=False, m=0,
+                      where=loose.on(pol.status <= USABLE))
+        return shortened, rows.count()
 
     def _shorter_windows(self, idx: torch.Tensor, fail: torch.Tensor, init: torch.Tensor,
                          block_cls: tuple[torch.Tensor, torch.Tensor],
@@ -440,19 +406,30 @@ class BlockChecks:
             sol.sigma, cls_sig[sel], run.solver.window.effective_pixels(), sol.zncc))
         return sol, good
 
-    def rescue_classical(self, guess: torch.Tensor | None, carry: Carry | None) -> int:
+    def rescue_classical(self, guess: torch.Tensor | None, carry: Carry | None
+                         ) -> int | torch.Tensor:
         """Rows a window could not solve (still lost after :meth:`rescue`) are solved
         classically (m = 0): from their carried ``guess`` (R, P) (NaN rows: none), then as
-        in :meth:`rescue`. Returns the rows that became usable."""
+        in :meth:`rescue`. On a GPU the guessed rows in one masked solve of every row, and
+        no read of whether any row is lost
+        (:data:`~torch_stsdic.movie.choices.MASKED_GROUPS`). Returns the rows that became
+        usable (a 0-d tensor: read with the block's counts; 0 where none was lost)."""
         lost = self.lost()
-        if not bool(lost.any()):
+        masked = masked_groups(self.run.device)
+        if not masked and not bool(lost.any()):
             return 0
         if guess is not None:
-            r = torch.nonzero(lost & torch.isfinite(guess).all(1)).flatten()
-            if r.numel():
-                self.keep(r, self.solve(r, guess[r], m=0), only_better=True, m=0)
+            go = lost & torch.isfinite(guess).all(1)
+            if masked:
+                every = torch.arange(go.numel(), device=go.device)
+                self.keep(every, self.solve(every, guess.nan_to_num(0.0), m=0, active=go),
+                          only_better=True, m=0, where=go)
+            else:
+                r = torch.nonzero(go).flatten()
+                if r.numel():
+                    self.keep(r, self.solve(r, guess[r], m=0), only_better=True, m=0)
         self.rescue(carry, torch.zeros_like(lost), m=0)
-        return int((lost & ~self.lost()).sum())
+        return (lost & ~self.lost()).sum()
 
     def check_fit(self, carry: Carry | None = None) -> torch.Tensor:
         """Usable rows whose residual is not the image noise, or whose ZNCC is below the
@@ -502,7 +479,8 @@ class BlockChecks:
             sg = std[:, gi].reshape(b, n, 4).amax(-1)
             reach = run.neighbour_reach
         eps = neighbour_tolerance(sd, sg, ok, nb, reach)
-        out = median_test(uv, ok, nb, eps, points=self.ref.points, gradients=grads)
+        out = median_test(uv, ok, nb, eps, points=self.ref.points, gradients=grads,
+                          until_done=until_done(run.device))  # (a GPU: no read a round)
         self.status[rows] = self.status[rows].masked_fill(out.reshape(-1),
                                                           int(Status.INCONSISTENT))
         return out.sum()

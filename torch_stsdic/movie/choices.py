@@ -16,8 +16,9 @@ import warnings
 
 import torch
 
-__all__ = ["EVERY_CANDIDATE", "FILL_UNTIL_DONE", "MASKED_GROUPS", "ENV", "every_candidate",
-           "fill_until_done", "masked_groups", "gpu_choices", "from_environment"]
+__all__ = ["EVERY_CANDIDATE", "UNTIL_DONE", "MASKED_GROUPS", "MASKED_CHECK", "ENV",
+           "every_candidate", "until_done", "masked_groups", "masked_check", "gpu_choices",
+           "from_environment"]
 
 #: The model check's shorter windows (where the solver mixes window lengths): every candidate
 #: window of every failing row in one solve, each row's first that passes kept (True), or in
@@ -28,12 +29,14 @@ __all__ = ["EVERY_CANDIDATE", "FILL_UNTIL_DONE", "MASKED_GROUPS", "ENV", "every_
 #: depend on the rows solved with it.
 EVERY_CANDIDATE: bool | None = None
 
-#: A carry's lost points filled from their neighbours ring by ring
-#: (:meth:`~torch_stsdic.movie.carry.Carry.from_neighbours`): until a ring fills no point,
-#: one host read a ring (True), or every one of its ``rounds`` rings, no read (False); None:
-#: until done on the CPU (the hourglass's carries: 2-3 rings of 8 fill points), every ring
-#: on a GPU. A ring that fills no point changes nothing, so neither does any after it.
-FILL_UNTIL_DONE: bool | None = None
+#: Loops of rounds where a round that finds nothing changes nothing, so neither does any
+#: after it: a carry's lost points filled from their neighbours ring by ring
+#: (:meth:`~torch_stsdic.movie.carry.Carry.from_neighbours`) and the neighbour test's rounds
+#: (:func:`~torch_stsdic.analysis.quality.median_test`, ``MEDIAN_ROUNDS``): stopped at the
+#: first round that finds nothing, one host read a round (True), or every round run, no
+#: read (False); None: until done on the CPU (the hourglass's carries: 2-3 rings of 8 fill
+#: points; the neighbour test: 1-2 rounds of 4), every round on a GPU.
+UNTIL_DONE: bool | None = None
 
 #: A block's rows of mixed half-widths (its carried rows, a rescue's, those solved again
 #: shorter; :meth:`~torch_stsdic.movie.block_windows.BlockWindows.solve_windows`): the
@@ -46,6 +49,17 @@ FILL_UNTIL_DONE: bool | None = None
 #: (:func:`~torch_stsdic.movie.shared_velocity.report_velocity`): every half-width's,
 #: masked, or those the rows take, read first.
 MASKED_GROUPS: bool | None = None
+
+
+#: The model check's steps (:meth:`~torch_stsdic.movie.checks.BlockChecks.check_model`: its
+#: classical solves, those solved in full, the rows that keep the classical solution and
+#: those converged to the run's tol) over all the block's rows, the rows a step drops masked
+#: (:class:`~torch_stsdic.movie.row_set.RowSet`: no read; True), or each step's rows taken
+#: from the last's (one host read a step, four a block; False); None: masked on a GPU, taken
+#: on the CPU. Masked, every solve of the check covers every row of the block (on the
+#: hourglass about 7x the rows its classical solve needs, in more batches): launches a GPU
+#: pays for instead of the reads.
+MASKED_CHECK: bool | None = None
 
 
 #: the environment variable that sets choices at import (``NAME=0|1`` by commas)
@@ -80,10 +94,10 @@ def every_candidate(device: torch.device) -> bool:
     return _choose(EVERY_CANDIDATE, device, on_gpu=True)
 
 
-def fill_until_done(device: torch.device) -> bool:
-    """Whether a carry's neighbour fill stops at the first ring that fills no point on
-    ``device`` (:data:`FILL_UNTIL_DONE`)."""
-    return _choose(FILL_UNTIL_DONE, device, on_gpu=False)
+def until_done(device: torch.device) -> bool:
+    """Whether a loop of rounds stops at the first round that finds nothing on ``device``
+    (:data:`UNTIL_DONE`)."""
+    return _choose(UNTIL_DONE, device, on_gpu=False)
 
 
 def masked_groups(device: torch.device) -> bool:
@@ -92,9 +106,16 @@ def masked_groups(device: torch.device) -> bool:
     return _choose(MASKED_GROUPS, device, on_gpu=True)
 
 
+def masked_check(device: torch.device) -> bool:
+    """Whether the model check masks the rows its steps drop on ``device``
+    (:data:`MASKED_CHECK`)."""
+    return _choose(MASKED_CHECK, device, on_gpu=True)
+
+
 def gpu_choices() -> dict[str, bool]:
     """Every choice as a GPU run makes it (by name), for a caller to set on the CPU."""
-    return {"EVERY_CANDIDATE": True, "FILL_UNTIL_DONE": False, "MASKED_GROUPS": True}
+    return {"EVERY_CANDIDATE": True, "UNTIL_DONE": False, "MASKED_GROUPS": True,
+            "MASKED_CHECK": True}
 
 
 from_environment()

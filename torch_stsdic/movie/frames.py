@@ -69,14 +69,15 @@ def window_frames(ks: torch.Tensor, m: int, n_series: int,
 
 
 def block_frames(ks: torch.Tensor, m: int, n_series: int,
-                 segments: torch.Tensor | None = None) -> torch.Tensor:
-    """Sorted series frames of the windows of targets ``ks`` for every half-width 0 .. ``m``
+                 segments: torch.Tensor | None = None) -> list[int]:
+    """Sorted series frames (host numbers: ``ks`` and ``segments`` on the host) of the
+    windows of targets ``ks`` for every half-width 0 .. ``m``
     (:func:`window_frames`): what a block whose rows may be solved with shorter windows
     needs. Inside a load segment too short for the longest window, a shorter one is shifted
     to stay in the segment and can reach frames the longest does not (a segment of 12
     frames, a target at its end: m = 4 starts 8 frames before it, m = 6 6 before)."""
     return torch.unique(torch.cat([window_frames(ks, h, n_series, segments).reshape(-1)
-                                   for h in range(int(m) + 1)]))
+                                   for h in range(int(m) + 1)])).tolist()
 
 
 def segment_bounds(steps: Sequence[int], n_series: int) -> torch.Tensor:
