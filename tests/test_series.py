@@ -268,10 +268,10 @@ def test_points_that_leave_the_view_stay_outside_without_fft(m, monkeypatch):
     fft_rows = []
     solve_own = rescue.BlockRescue._solve_own
 
-    def spy(self, rows, init, mm, near=None):
+    def spy(self, rows, init, mm, near=None, **kw):
         if init is None:
             fft_rows.append(int(rows.numel()))
-        return solve_own(self, rows, init, mm, near)
+        return solve_own(self, rows, init, mm, near, **kw)
 
     monkeypatch.setattr(rescue.BlockRescue, "_solve_own", spy)
     res = track(frames, config=CFG.replace(m=m), step=4, progress=False,

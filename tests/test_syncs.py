@@ -36,8 +36,9 @@ MAX_PER_BLOCK_GPU_CHOICES = 5
 #: (windows of mixed length in one solve); room for noise-free changes of the path
 MAX_OPERATIONS_PER_BLOCK = 4600
 #: the same with a GPU run's choices: masked rows are computed, every round of a loop run
-#: (5753 at the commit of the bound above, CPU choices 4260): fixed shapes, no reads
-MAX_OPERATIONS_PER_BLOCK_GPU_CHOICES = 6300
+#: (5753 at d40bb70, CPU choices 4260; 6091 with each rescue wave's rows placed before its
+#: read): fixed shapes, no reads
+MAX_OPERATIONS_PER_BLOCK_GPU_CHOICES = 6500
 
 
 def _counter_module():

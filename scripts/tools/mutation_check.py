@@ -278,6 +278,13 @@ MUTATIONS: tuple[Mutation, ...] = (
         ("test_row_set.py", "test_gpu_choices.py"),
         "the model check's masked steps (a GPU run's choice) keep the rows a step drops"),
     Mutation(
+        "rescue-wave-placement-facts-misread", "rescue", "torch_stsdic/movie/rescue.py",
+        "            facts, placed_facts = facts[:b + 2], facts[b + 2:]\n",
+        "            facts, placed_facts = facts[:b + 2], facts[b + 1:]\n",
+        ("test_gpu_choices.py",),
+        "a rescue wave's border placement (made before the wave's read, a GPU run's "
+        "choice) settled with the wrong facts"),
+    Mutation(
         "median-test-one-round-on-gpu", "quality", "torch_stsdic/analysis/quality.py",
         "        if i == rounds - 1 or (until_done and not bool(cand.any())):\n",
         "        if i == rounds - 1 or not until_done or not bool(cand.any()):\n",

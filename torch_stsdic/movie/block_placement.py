@@ -6,6 +6,7 @@ the row given the longest shorter window that stays in view, or the row left OUT
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import torch
 
@@ -14,11 +15,22 @@ from torch_stsdic.core.status import Status
 from torch_stsdic.movie.choices import masked_groups
 from torch_stsdic.movie.frames import true_rows
 
-__all__ = ["BlockPlacement", "OUTSIDE_MARGIN"]
+__all__ = ["BlockPlacement", "Placement", "OUTSIDE_MARGIN"]
 
 #: px beyond the image border a carried prediction must put a subset before the row is
 #: OUTSIDE without a solve
 OUTSIDE_MARGIN = 2.0
+
+
+class Placement(NamedTuple):
+    """A placement of rows near the border (:meth:`BlockPlacement.place_outside`) before its
+    facts are read: ``out`` (B*N,) bool the rows no window keeps in view, ``facts`` the 0-d
+    facts stacked (None: read already) and ``placed`` (moved, centres, off)
+    (:meth:`BlockPlacement._centre_facts`)."""
+
+    out: torch.Tensor
+    facts: torch.Tensor | None
+    placed: tuple[torch.Tensor, torch.Tensor, torch.Tensor]
 
 
 class BlockPlacement:
@@ -49,34 +61,60 @@ class BlockPlacement:
         Returns the (B*N,) bool mask of the OUTSIDE rows; without ``mark`` they are only
         returned, not marked (the caller decides which of them to give up on)."""
         run = self.run
+        if self.places_at_once:  # one read, of the facts of the placement made at once
+            pending = self.place_outside(inits, carried)
+            return self.settle_outside(pending, pending.facts.tolist(), mark)
+        fit, shift = self._placement(inits, self.dt, self.motion_of(run.m))
+        fit &= carried
+        shift = torch.where(fit.unsqueeze(1), shift, 0.0)
+        left = carried & ~fit  # carried rows without a window that stays in view yet
+        # one read: how many rows the run's window alone leaves (none where m = 0: no
+        # shorter window), with the centres' facts as they stand (read again only where
+        # shorter windows move some)
+        n_left = left.sum() if run.m > 0 else left.new_zeros((), dtype=torch.int64)
+        facts, placed = self._centre_facts(shift, left)
+        n_left, *facts = torch.stack([n_left] + facts).tolist()
+        if n_left:  # every shorter window at once, the longest that stays in view
+            self._shorter_windows_in_view(inits, left, shift, true_rows(left, n_left))
+            facts, placed = self._centre_facts(shift, left)
+            facts = torch.stack(facts).tolist()  # one read
+        return self.settle_outside(Placement(left, None, placed), facts, mark)
+
+    @property
+    def places_at_once(self) -> bool:
+        """Whether :meth:`keep_outside` places every row's shorter windows at once, masked,
+        and reads once (a GPU's choice, :data:`~torch_stsdic.movie.choices.MASKED_GROUPS`,
+        where the block mixes window lengths): then :meth:`place_outside` makes a placement
+        whose facts a caller may read with its own numbers."""
+        run = self.run
+        return run.m > 0 and self.mixes_windows and masked_groups(run.device)
+
+    def place_outside(self, inits: Sequence[torch.Tensor], carried: torch.Tensor
+                      ) -> Placement:
+        """:meth:`keep_outside`'s placement with no host read (:attr:`places_at_once`):
+        every carried row's shorter windows placed, those left taking theirs
+        (:attr:`window_m` set at those rows), and the facts to read
+        (:meth:`settle_outside` takes them)."""
+        run = self.run
         rows = carried.shape[0]
         fit, shift = self._placement(inits, self.dt, self.motion_of(run.m))
         fit &= carried
         shift = torch.where(fit.unsqueeze(1), shift, 0.0)
         left = carried & ~fit  # carried rows without a window that stays in view yet
-        if run.m > 0 and self.mixes_windows and masked_groups(run.device):
-            # on a GPU every carried row's shorter windows placed, those left taking theirs
-            # (:data:`~torch_stsdic.movie.choices.MASKED_GROUPS`), then one read
-            self._shorter_windows_in_view(inits, left, shift,
-                                          torch.arange(rows, device=run.device))
-            facts, placed = self._centre_facts(shift, left)
-            facts = torch.stack(facts).tolist()
-        else:
-            # one read: how many rows the run's window alone leaves (none where m = 0: no
-            # shorter window), with the centres' facts as they stand (read again only
-            # where shorter windows move some)
-            n_left = left.sum() if run.m > 0 else left.new_zeros((), dtype=torch.int64)
-            facts, placed = self._centre_facts(shift, left)
-            n_left, *facts = torch.stack([n_left] + facts).tolist()
-            if n_left:  # every shorter window at once, the longest that stays in view
-                self._shorter_windows_in_view(inits, left, shift, true_rows(left, n_left))
-                facts, placed = self._centre_facts(shift, left)
-                facts = torch.stack(facts).tolist()  # one read
-        out = left
+        self._shorter_windows_in_view(inits, left, shift, torch.arange(rows, device=run.device))
+        facts, placed = self._centre_facts(shift, left)
+        return Placement(left, torch.stack(facts), placed)
+
+    def settle_outside(self, placed: Placement, facts: list[int], mark: bool) -> torch.Tensor:
+        """A placement's rows OUTSIDE marked (``mark``) and its moved subsets taken, given
+        its ``facts`` read on the host (:meth:`_centre_facts`'s, in order). Returns the
+        (B*N,) bool mask of the OUTSIDE rows."""
+        run = self.run
+        out = placed.out
         if mark:
             self.status.masked_fill_(out, int(Status.OUTSIDE))
             self.gone |= out
-        moved, centres, off = placed
+        moved, centres, off = placed.placed
         n_moved, all_in, n_off, *n_miss = facts
         if n_moved:
             self.centres, self.centres_inside = centres, bool(all_in)

@@ -12,6 +12,7 @@ import torch
 
 from torch_stsdic.analysis.result import USABLE
 from torch_stsdic.core.status import Status
+from torch_stsdic.movie.block_placement import Placement
 from torch_stsdic.movie.carry import Carry, neighbour_guess
 from torch_stsdic.movie.frames import true_rows
 from torch_stsdic.movie.reference import to_relative
@@ -90,7 +91,8 @@ class BlockRescue:
                           has.long()])
 
     def _solve_own(self, rows: torch.Tensor, init: torch.Tensor | None, m: int | None,
-                   near: torch.Tensor | None = None) -> None:
+                   near: torch.Tensor | None = None,
+                   placed: tuple[Placement, list[int]] | None = None) -> None:
         """Rows ``rows`` solved again from ``init`` (None: FFT) with their own windows and
         subsets: from ``init``, placed as the block's carried rows are
         (:meth:`~torch_stsdic.movie.block_placement.BlockPlacement.keep_outside`: a subset
@@ -105,7 +107,9 @@ class BlockRescue:
         per half-width). The better result is kept. Without it a rescued row took the run's
         window and a centred subset wherever it started, and a point leaving the image
         failed again where a block's carry had placed it (32-target blocks lost rows that
-        1-target blocks solve)."""
+        1-target blocks solve). ``placed``: the rows' placement made already, with its
+        facts read (:meth:`~torch_stsdic.movie.block_placement.BlockPlacement.
+        place_outside`; None: placed here)."""
         run = self.run
         if init is not None:
             full = torch.full((self.pts.shape[0], init.shape[1]), float("nan"),
@@ -117,7 +121,8 @@ class BlockRescue:
             if near is not None:
                 close[rows] = near
             left = (self.gone & (self.status == int(Status.OUTSIDE))).view(self.b, self.n)
-            out = self.keep_outside((full,), ask, mark=False)
+            out = (self.keep_outside((full,), ask, mark=False) if placed is None
+                   else self.settle_outside(*placed, mark=False))
             final = _outside_runs(out.view(self.b, self.n), close.view(self.b, self.n),
                                   left).reshape(-1)
             self.status.masked_fill_(final, int(Status.OUTSIDE))
@@ -178,17 +183,25 @@ class BlockRescue:
                         i = names.index(nm)
                         init[:, i] = torch.where(torch.isfinite(init[:, i]), init[:, i], vel)
             fin = torch.isfinite(init).all(1)
+            go = cand & fin
+            numbers = [torch.stack([go.sum(), (cand & ~fin).sum()]), self._facts(fft_tried)]
+            placed = None
+            if self.places_at_once:  # the wave's rows placed near the border now, the
+                # placement's facts read with the wave's (its solve reads none of its own)
+                placed = self.place_outside(
+                    (torch.where(go.unsqueeze(1), init, float("nan")),), go)
+                numbers.append(placed.facts)
             # one read for the wave: the candidates with a guess, those without, and the
             # rows' facts (the caller's, where this wave is the last)
-            n_go, n_wait, *facts = torch.cat([torch.stack([(cand & fin).sum(),
-                                                           (cand & ~fin).sum()]),
-                                              self._facts(fft_tried)]).tolist()
+            n_go, n_wait, *facts = torch.cat(numbers).tolist()
+            facts, placed_facts = facts[:b + 2], facts[b + 2:]
             if not n_go + n_wait:
                 break
             tried.copy_(torch.where(cand, p, tried))
             if n_go:  # (a point predicted out of view from further back: tried later)
-                go = true_rows(cand & fin, n_go)
-                self._solve_own(go, init[go], m, near=j_of[go] - p[go] <= 1)
+                go = true_rows(go, n_go)
+                self._solve_own(go, init[go], m, near=j_of[go] - p[go] <= 1,
+                                placed=None if placed is None else (placed, placed_facts))
                 total += n_go
                 facts = None  # rows changed: the next wave's read tells
         return total, (self._facts(fft_tried).tolist() if facts is None else facts)
