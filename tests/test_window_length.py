@@ -172,3 +172,46 @@ def test_chosen_windows_are_recorded_and_a_resumed_run_reads_them(tmp_path):
     assert torch.equal(again.u, whole.u) and torch.equal(again.m, whole.m)
     assert int(whole.m.max()) <= 3 and float((whole.m[1:] == 3).double().mean()) > 0.5
     assert whole.info["window_length"]["max_m"] <= 3
+
+
+def test_a_rescued_row_near_the_border_keeps_within_its_points_window(tmp_path, monkeypatch):
+    """The hourglass (16 frames): rows rescued from an earlier target near the image border
+    are placed as carried rows are, a shorter window where the point leaves the view within
+    the run's; that window stays within the one the point's measured motion supports (the
+    block's ``window_cap``), and so does every row the block solved before its model check.
+    It once took the longest that stays in view (162 rows here beyond their cap, each solved
+    again shorter afterwards)."""
+    from pathlib import Path
+
+    from torch_stsdic.cli import main
+    from torch_stsdic.movie import block, rescue
+
+    data = Path(__file__).resolve().parents[2] / "shared" / "data" / "mudic-hourglass"
+    if not data.is_dir():
+        pytest.skip(f"{data} is absent (../shared/data: real image sets)")
+    solve_own, check_model = rescue.BlockRescue._solve_own, block.Block.check_model
+    seen = {"placed": 0, "capped": 0, "over": 0, "blocks": 0, "block_over": 0}
+
+    def spy(self, rows, init, m, near=None, **kw):
+        out = solve_own(self, rows, init, m, near, **kw)
+        if init is not None and self.window_cap is not None:
+            solved = self.status[rows] <= 1
+            seen["placed"] += int(solved.sum())
+            seen["capped"] += int((solved & (self.window_cap[rows] < self.run.m)).sum())
+            seen["over"] += int((solved & (self.m_used[rows] > self.window_cap[rows])).sum())
+        return out
+
+    def spy_check(blk):
+        if blk.window_cap is not None:
+            seen["blocks"] += 1
+            seen["block_over"] += int(((blk.m_used > blk.window_cap)
+                                       & (blk.status <= 1)).sum())
+        return check_model(blk)
+
+    monkeypatch.setattr(rescue.BlockRescue, "_solve_own", spy)
+    monkeypatch.setattr(block.Block, "check_model", spy_check)
+    assert main(["run", str(data), "--roi", "150", "20", "1120", "734", "--subset", "31",
+                 "--step", "40", "--frames", "0:16", "--no-progress",
+                 "--out", str(tmp_path / "r.h5")]) == 0
+    assert seen["placed"] > 100 and seen["capped"] > 50, seen  # the case arose
+    assert seen["blocks"] >= 2 and seen["over"] == 0 and seen["block_over"] == 0, seen

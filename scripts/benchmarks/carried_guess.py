@@ -25,7 +25,7 @@ from pathlib import Path
 
 #: the main run's carried solves only (not these callers')
 _OTHER = ("check_model", "rescue", "estimate_shared_motion", "build_series_reference",
-          "_shorter_again", "_classical_again", "_solve_own", "measure_window_lengths")
+          "_solve_own", "measure_window_lengths")
 
 
 def _main_solve() -> bool:

@@ -189,9 +189,17 @@ MUTATIONS: tuple[Mutation, ...] = (
         "windows that pass the model check with a bias are kept where the time model fails"),
     Mutation(
         "classical-points-solved-by-windows", "reference", "torch_stsdic/movie/block.py",
-        "_classical_again(blk, run.classical_points.to(dev).repeat(b), count)", "None",
+        "cap = torch.where(cls, 0, run.m if cap is None else cap).to(torch.int8)",
+        "cap = torch.where(cls & False, 0, run.m if cap is None else cap).to(torch.int8)",
         ("test_series_reference.py",),
-        "rows at points decided classical keep the window a rescue or FFT start gave them"),
+        "rows at points decided classical take the window a rescue or FFT start gives them"),
+    Mutation(
+        "rescued-row-window-beyond-cap", "placement", "torch_stsdic/movie/block_placement.py",
+        "            half = torch.minimum(half, self.window_cap[idx])\n",
+        "            half = half\n",
+        ("test_window_length.py",),
+        "a rescued row near the border takes the longest window that stays in view, beyond "
+        "what its point's motion supports"),
     Mutation(
         "mixed-windows-read-padding", "solver", "torch_stsdic/kernels/native/dic_kernels.cpp",
         "const int64_t nti = P.count ? std::min(std::max(P.count[i], int64_t(1)), nt) : nt;",
@@ -314,6 +322,9 @@ def run_one(mut: Mutation, timeout: float) -> dict[str, object]:
     with tempfile.TemporaryDirectory(prefix="stsdic-mutant-") as tmp:
         root = Path(tmp) / "repo"
         _copy(root)
+        shared = REPO.parent / "shared"
+        if shared.is_dir():  # ../shared beside the copy too: the data tests run
+            (Path(tmp) / "shared").symlink_to(shared, target_is_directory=True)
         (root / mut.path).write_text(src.replace(mut.old, mut.new), encoding="utf-8")
         env = _env(root)
         where = subprocess.run([sys.executable, "-c", "import torch_stsdic; "

@@ -211,6 +211,10 @@ class Block(BlockChecks, BlockRescue, BlockPlacement, BlockMotion, BlockWindows)
         #: (B*N,) int8 the half-window a row is first solved with, or None: the run's m
         #: everywhere (:meth:`keep_outside` shortens it where the point leaves the image)
         self.window_m: torch.Tensor | None = None
+        #: (B*N,) int8 the longest half-width a row may take at all (the measured motion's
+        #: limit at its point and target, 0 where the time model failed), or None: the
+        #: run's m; every row's :attr:`window_m` stays within it, a rescued row's too
+        self.window_cap: torch.Tensor | None = None
         #: every row's subset (at :attr:`centres` where moved) lies inside the reference
         #: image: the solves need not find the others (made with the centres)
         self.centres_inside = True
@@ -383,34 +387,21 @@ def _only_identity(run: BlockContext, ref: Reference, carry: Carry) -> bool:
 
 
 #: counters of a block kept in the run's statistics only where they count something
-_IF_ANY = ("classical_again_rows", "shorter_again_rows", "neighbour_rows")
+_IF_ANY = ("neighbour_rows",)
 
 
-def _classical_again(blk: Block, classical: torch.Tensor, count: Callable) -> None:
-    """Rows at points solved classically (``classical``: (B*N,) bool) that a window solved
-    all the same (no carried start: the first block's FFT, a rescue) are solved again with
-    the target frame alone, from that solution; kept where the classical solve is usable
-    (``count``: the block's counter)."""
-    again = torch.nonzero(classical & (blk.m_used > 0) & (blk.status <= USABLE)).flatten()
-    if not again.numel():
-        return
-    sol = blk.solve(again, blk.params[again], m=0)
-    good = sol.status <= USABLE
-    blk.keep(again, sol, only_better=False, m=0, where=good)  # (no read)
-    count("classical_again_rows", good.sum())
-
-
-def _shorter_again(blk: Block, cap: torch.Tensor, count: Callable) -> None:
-    """Rows solved with a longer window than their point's motion supports at their target
-    (``cap``: (B*N,) the longest half-width; a first block's FFT start, a rescue) are solved
-    again with that half-width from their solution; kept where usable."""
-    over = (blk.m_used > cap) & (blk.status <= USABLE)
-    every = torch.arange(over.numel(), device=over.device)
-    for again, m, sol, where in blk.solve_windows(every, cap, blk.params, pick=over):
-        good = sol.status <= USABLE
-        good = good if where is None else good & where
-        blk.keep(again, sol, only_better=False, m=m, where=good)  # (no read)
-        count("shorter_again_rows", good.sum())
+def _window_cap(run: BlockContext, blk: Block) -> torch.Tensor | None:
+    """(B*N,) int8 the longest half-width each row of ``blk`` may take: the measured
+    motion's (``run.window_lengths`` at its target), 0 at the points where the time model
+    failed (``run.classical_points``); None: the run's m everywhere."""
+    if run.m == 0:
+        return None
+    cap = None if run.window_lengths is None else run.window_lengths[blk.k].reshape(-1).to(
+        device=run.device, dtype=torch.int8)
+    if run.classical_points is not None:  # the time model failed there
+        cls = run.classical_points.to(run.device).repeat(blk.b)
+        cap = torch.where(cls, 0, run.m if cap is None else cap).to(torch.int8)
+    return cap
 
 
 def _first_guess_rows(run: BlockContext, blk: Block, ref: Reference) -> torch.Tensor:
@@ -485,6 +476,7 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
     blk = Block(run, ks, ref)
     b, n, dev = blk.b, blk.n, run.device
     rows = b * n
+    blk.window_cap = _window_cap(run, blk)
     counts: dict[str, torch.Tensor] = {}  # run.stats counted on the device, read at the end
 
     def count(name: str, value: torch.Tensor | int) -> None:
@@ -513,14 +505,8 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
     guess = None  # the carried rows' guesses (NaN: none; no test whether there are any)
     if init is not None:
         guess = torch.where(carried.unsqueeze(1), init, torch.full_like(init, float("nan")))
-    if run.classical_points is not None and run.m > 0:  # the time model failed there
-        cls = carried & run.classical_points.to(dev).repeat(b)
-        if blk.window_m is None:
-            blk.window_m = torch.full((rows,), run.m, dtype=torch.int8, device=dev)
-        blk.window_m.masked_fill_(cls, 0)
-    cap = None if run.window_lengths is None or run.m == 0 else run.window_lengths[
-        blk.k].reshape(-1).to(device=dev, dtype=torch.int8)  # (B*N,) each row's longest
-    if cap is not None:
+    cap = blk.window_cap
+    if cap is not None:  # every row's window within what its point's motion supports
         blk.window_m = cap.clone() if blk.window_m is None else torch.minimum(blk.window_m,
                                                                               cap)
     if shake_vel is not None:
@@ -536,10 +522,6 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
         if idx_c.numel():
             blk.keep(idx_c, blk.solve(idx_c, init[idx_c]), only_better=False)
     from_prev, by_fft, redone = blk.rescue(carry, carried)
-    if run.classical_points is not None and run.m > 0:
-        _classical_again(blk, run.classical_points.to(dev).repeat(b), count)
-    if cap is not None:
-        _shorter_again(blk, cap, count)
     run.stats["rescued_rows"] = run.stats.get("rescued_rows", 0) + from_prev
     run.stats["fft_rows"] += by_fft
     count("redone_rows", redone)

@@ -144,7 +144,10 @@ class BlockPlacement:
         shift[idx] = torch.where(f_i.unsqueeze(1), d_i, shift[idx])
         if self.window_m is None:
             self.window_m = torch.full((rows,), run.m, dtype=torch.int8, device=run.device)
-        self.window_m[idx] = torch.where(f_i, halves[j].to(torch.int8), self.window_m[idx])
+        half = halves[j].to(torch.int8)
+        if self.window_cap is not None:  # (the point's motion's limit: a shorter one still)
+            half = torch.minimum(half, self.window_cap[idx])
+        self.window_m[idx] = torch.where(f_i, half, self.window_m[idx])
         left[idx] = left[idx] & ~f_i
 
     def _centre_facts(self, shift: torch.Tensor, out: torch.Tensor
