@@ -235,7 +235,7 @@ def main(argv: list[str] | None = None) -> int:
     for k in kinds:
         print(f"  {k:<28} {med[k]:>6.0f}")
     print(f"  outside the CPU kernels' checks (what a GPU run's path may keep): "
-          f"{statistics.median(rest):.0f} a block (median; range {min(rest)}-{max(rest)}); "
+          f"{statistics.median(rest):g} a block (median; range {min(rest)}-{max(rest)}); "
           f"without the host copies {statistics.median(old):.0f}")
     if counter.where is not None:
         rec["where_run_total"] = dict(counter.where.most_common(args.where))
