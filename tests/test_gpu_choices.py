@@ -117,6 +117,48 @@ def test_a_gpu_runs_model_check_masks_its_rows_and_gives_the_cpu_runs_file(tmp_p
         assert v.tobytes() == out[False][k].tobytes(), k
 
 
+def test_a_gpu_runs_classical_rescue_of_lost_rows_gives_the_cpu_runs_file(tmp_path,
+                                                                           monkeypatch):
+    """A stretching speckle whose middle is covered by a noise flash for three frames: rows
+    there stay lost after the rescue and the model check, and the classical rescue tries
+    them from their carried guesses, on a GPU in one masked solve of every row of the block
+    (no read of whether any is lost); the same file to the bit."""
+    import numpy as np
+    import tifffile
+
+    from torch_stsdic.cli import main
+    from torch_stsdic.movie import checks, choices
+
+    if not native.available():
+        pytest.skip("no native kernels (the two paths agree to the bit on the C++ kernels)")
+    assert main(["synth", "--out", str(tmp_path / "m"), "--size", "160", "--frames", "24",
+                 "--motion", "strain", "--exx", "0.004", "--noise", "2", "--seed", "7",
+                 "--threads", "1"]) == 0
+    frames = tifffile.imread(tmp_path / "m" / "movie.tif")
+    frames[9:12, 50:90, 50:90] = np.random.default_rng(1).integers(0, 255, (3, 40, 40),
+                                                                    dtype=np.uint8)
+    tifffile.imwrite(tmp_path / "flash.tif", frames)
+    rescue_classical = checks.BlockChecks.rescue_classical
+    tried = []
+
+    def spy(self, guess, carry):
+        if guess is not None:
+            tried.append(int((self.lost() & torch.isfinite(guess).all(1)).sum()))
+        return rescue_classical(self, guess, carry)
+
+    monkeypatch.setattr(checks.BlockChecks, "rescue_classical", spy)
+    out = {}
+    for gpu in (False, True):
+        for name, value in choices.gpu_choices().items():
+            monkeypatch.setattr(choices, name, value if gpu else not value)
+        tried.clear()
+        out[gpu] = _run(tmp_path, f"f{int(gpu)}", tmp_path / "flash.tif")
+        assert sum(tried) >= 50, tried  # lost rows with a carried guess, tried classically
+    assert (out[True]["status"] == 6).sum() >= 50  # POOR_FIT under the flash
+    for k, v in out[True].items():
+        assert v.tobytes() == out[False][k].tobytes(), k
+
+
 def test_choices_are_named_in_the_environment_and_a_wrong_entry_is_told(monkeypatch):
     """``TORCH_STSDIC_CHOICES`` sets the named choices (a fresh process reads it at import:
     ``scripts/benchmarks/device_choices.py`` times them); a malformed entry or an unknown
