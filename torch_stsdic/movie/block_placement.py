@@ -64,10 +64,7 @@ class BlockPlacement:
         if self.places_at_once:  # one read, of the facts of the placement made at once
             pending = self.place_outside(inits, carried)
             return self.settle_outside(pending, pending.facts.tolist(), mark)
-        fit, shift = self._placement(inits, self.dt, self.motion_of(run.m))
-        fit &= carried
-        shift = torch.where(fit.unsqueeze(1), shift, 0.0)
-        left = carried & ~fit  # carried rows without a window that stays in view yet
+        shift, left = self._run_window_fit(inits, carried)
         # one read: how many rows the run's window alone leaves (none where m = 0: no
         # shorter window), with the centres' facts as they stand (read again only where
         # shorter windows move some)
@@ -95,15 +92,20 @@ class BlockPlacement:
         every carried row's shorter windows placed, those left taking theirs
         (:attr:`window_m` set at those rows), and the facts to read
         (:meth:`settle_outside` takes them)."""
-        run = self.run
-        rows = carried.shape[0]
-        fit, shift = self._placement(inits, self.dt, self.motion_of(run.m))
-        fit &= carried
-        shift = torch.where(fit.unsqueeze(1), shift, 0.0)
-        left = carried & ~fit  # carried rows without a window that stays in view yet
-        self._shorter_windows_in_view(inits, left, shift, torch.arange(rows, device=run.device))
+        shift, left = self._run_window_fit(inits, carried)
+        self._shorter_windows_in_view(inits, left, shift,
+                                      torch.arange(carried.shape[0], device=carried.device))
         facts, placed = self._centre_facts(shift, left)
         return Placement(left, torch.stack(facts), placed)
+
+    def _run_window_fit(self, inits: Sequence[torch.Tensor], carried: torch.Tensor
+                        ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The ``carried`` (B*N,) rows placed over the run's window (:meth:`_placement`):
+        (B*N, 2) px the shift of each subset that fits (0 elsewhere) and (B*N,) bool the
+        carried rows without a window of that length that stays in view."""
+        fit, shift = self._placement(inits, self.dt, self.motion_of(self.run.m))
+        fit &= carried
+        return torch.where(fit.unsqueeze(1), shift, 0.0), carried & ~fit
 
     def settle_outside(self, placed: Placement, facts: list[int], mark: bool) -> torch.Tensor:
         """A placement's rows OUTSIDE marked (``mark``) and its moved subsets taken, given

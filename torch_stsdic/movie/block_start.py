@@ -11,8 +11,7 @@ from typing import Any
 import torch
 
 from torch_stsdic.analysis.result import USABLE
-from torch_stsdic.movie.choices import masked_groups
-from torch_stsdic.movie.frames import half_widths
+from torch_stsdic.movie.frames import window_half_widths
 
 #: a :class:`~torch_stsdic.movie.block.Block` (not imported: the block imports this module)
 Block = Any
@@ -78,10 +77,8 @@ def window_shake(blk: Block, init: torch.Tensor, rows: torch.Tensor,
     run = blk.run
     iu, iv = run.names.index("ut"), run.names.index("vt")
     wm = blk.window_m
-    # the half-widths the rows take (one read), or on a GPU every one, masked
-    # (:data:`~torch_stsdic.movie.choices.MASKED_GROUPS`: no read; m = 0 has no slope)
-    every = range(1, run.m + 1) if masked_groups(init.device) else None
-    for m in ([run.m] if wm is None else every or half_widths(wm, rows, run.m)):
+    # the half-widths the rows take, or on a GPU every one, masked (m = 0 has no slope)
+    for m in ([run.m] if wm is None else window_half_widths(wm, rows, run.m)):
         sel = rows if wm is None else rows & (wm == m)
         slope = blk.shared_slope(int(m))
         if slope is None:

@@ -34,11 +34,12 @@ from torch_stsdic.core.interpolation import BSplineImage
 from torch_stsdic.core.pyramid import ImagePyramid
 from torch_stsdic.core.solver import SubsetSolver
 from torch_stsdic.io import ImageSeries
+from torch_stsdic.movie.choices import masked_groups
 from torch_stsdic.movie.frame_ring import FrameRing, RingView
 
 __all__ = ["FrameCache", "FrameStore", "PreparedFrame", "window_frames", "block_frames", "upload",
            "segment_bounds", "frames_in_order", "default_ahead", "half_widths",
-           "rows_by_half_width", "grouped_rows", "true_rows"]
+           "window_half_widths", "rows_by_half_width", "grouped_rows", "true_rows"]
 
 
 def upload(t: torch.Tensor, device: torch.device | str) -> torch.Tensor:
@@ -457,3 +458,13 @@ def half_widths(m_of: torch.Tensor, rows: torch.Tensor, m_max: int) -> list[int]
     """The half-widths 0 .. ``m_max`` that ``m_of`` (R,) takes at the ``rows`` (R,) bool, in
     increasing order: one host read (a count of each), not a ``unique`` and a copy."""
     return [m for m, c in enumerate(_half_width_counts(m_of, rows, m_max)[1]) if c]
+
+
+def window_half_widths(m_of: torch.Tensor, rows: torch.Tensor, m_max: int) -> Sequence[int]:
+    """The half-widths of windows (1 .. ``m_max``) a caller goes through, masking each by
+    its rows: those ``m_of`` takes at the ``rows`` (:func:`half_widths`, one host read; 0
+    among them where a row is classical), or on a GPU every one, no read
+    (:data:`~torch_stsdic.movie.choices.MASKED_GROUPS`)."""
+    if masked_groups(m_of.device):
+        return range(1, m_max + 1)
+    return half_widths(m_of, rows, m_max)

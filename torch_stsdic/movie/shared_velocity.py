@@ -25,8 +25,7 @@ from typing import Any
 import torch
 
 from torch_stsdic.core.shared_motion import window_slope
-from torch_stsdic.movie.choices import masked_groups
-from torch_stsdic.movie.frames import half_widths, window_frames
+from torch_stsdic.movie.frames import window_frames, window_half_widths
 
 #: a :class:`~torch_stsdic.movie.block.Block` (not imported: the block imports this module)
 Block = Any
@@ -120,10 +119,8 @@ def report_velocity(blk: Block, out: dict[str, torch.Tensor]) -> torch.Tensor | 
     vel = torch.stack([out["ut"].reshape(-1), out["vt"].reshape(-1)], 1)  # (B*N, 2)
     var = torch.zeros(b * n, 2, dtype=torch.float64, device=vel.device)
     changed = False
-    # the half-widths the rows take (one read), or on a GPU every one, masked
-    # (:data:`~torch_stsdic.movie.choices.MASKED_GROUPS`: no read)
-    every = range(1, run.m + 1) if masked_groups(run.device) else None
-    for m in every or half_widths(blk.m_used, blk.m_used > 0, run.m):
+    # the half-widths the rows take, or on a GPU every one, masked
+    for m in window_half_widths(blk.m_used, blk.m_used > 0, run.m):
         m = int(m)
         own = blk.windows(m)  # (B, T) the rows' windows
         if vm is None or (vseg is None and m <= vm):
