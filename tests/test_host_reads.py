@@ -365,3 +365,68 @@ def test_points_off_the_reference_image_are_kept_without_an_error():
     plain = own.solve(own_ref, own_frames, pts, torch.zeros(1), frame_index=torch.tensor([2]),
                       init=init, on_grid=True)
     assert torch.equal(kept.params, plain.params) and torch.equal(kept.status, plain.status)
+
+
+def _above_neighbours_by_frame(s, noise, frames, z, ratio, reach):
+    """The frame-by-frame form the shared motion's jump test had: the reference answer."""
+    adjacent = (frames[1:] - frames[:-1]) == 1
+    out = []
+    for j in range(s.shape[0]):
+        if not bool(adjacent[j]) or not bool(torch.isfinite(s[j])):
+            continue
+        near = [i for i in range(max(0, j - reach), min(s.shape[0], j + reach + 1)) if i != j]
+        base = torch.nanmedian(s[near]) if near else torch.tensor(float("nan"))
+        if not bool(torch.isfinite(base)):
+            continue
+        if float(s[j]) > z * float(noise[j]) and float(s[j]) > ratio * float(base):
+            out.append(int(frames[j + 1]))
+    return out
+
+
+def test_the_jump_tests_take_every_frame_at_once_with_one_read():
+    """The shared-motion pass's jump tests (``_above_neighbours``: a step's increment against
+    the median of those within reach; ``_predicted_increments``: each increment as the ones
+    about it predict it) give the frame-by-frame answers (random increments with NaN,
+    gaps in the frames, float32 and float64, reach 0 to 6) with one host read, and the
+    shared fit's median with none."""
+    from torch_stsdic.core import shared_fit
+    from torch_stsdic.core.shared_motion import _above_neighbours, _predicted_increments
+
+    g = torch.Generator().manual_seed(7)
+    found = 0
+    for trial in range(60):
+        n = int(torch.randint(1, 40, (1,), generator=g))
+        dtype = torch.float32 if trial % 2 else torch.float64
+        s = torch.rand(n, generator=g, dtype=torch.float64).to(dtype)
+        s[torch.rand(n, generator=g) < 0.15] = torch.nan
+        s[torch.rand(n, generator=g) < 0.1] *= 40.0  # jumps
+        noise = torch.rand(n, generator=g, dtype=torch.float64) * 0.5
+        frames = torch.cumsum(1 + (torch.rand(n + 1, generator=g) < 0.1).long(), 0) + 3
+        reach, z, ratio = trial % 7, 2.0 + trial % 3, 3.0
+        reads = _Dispatched(("_local_scalar_dense", "is_nonzero", "nonzero", "equal"))
+        with reads:
+            got = _above_neighbours(s, noise, frames, z, ratio, reach)
+        want = _above_neighbours_by_frame(s, noise, frames, z, ratio, reach)
+        assert got == want, (trial, got, want)
+        assert len(reads.seen) <= 1, reads.seen
+        found += len(want)
+    assert found > 10  # the cases found jumps, not only none
+    for f1 in (5, 6, 9, 30):
+        inc = torch.randn(f1, 4, 2, generator=g, dtype=torch.float64)
+        line = torch.tensor([4.0, 1.0, -2.0], dtype=torch.float64)[:, None, None] / 3.0
+        want = torch.empty_like(inc)
+        for j in range(f1):
+            if 2 <= j <= f1 - 3:
+                want[j] = inc[[j - 2, j - 1, j + 1, j + 2]].median(0).values
+            elif j < 2:
+                want[j] = (line * inc[j + 1:j + 4]).sum(0)
+            else:
+                want[j] = (line * inc[[j - 1, j - 2, j - 3]]).sum(0)
+        assert torch.equal(_predicted_increments(inc), want)
+    v = torch.rand(300, 7, generator=g, dtype=torch.float64)
+    v[v < 0.2] = torch.nan
+    reads = _Dispatched(("_local_scalar_dense", "is_nonzero", "nonzero", "equal"))
+    with reads:
+        med = shared_fit._lower_median(v)
+    assert not reads.seen
+    assert torch.equal(med, torch.nanmedian(v))

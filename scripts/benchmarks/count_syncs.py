@@ -21,7 +21,9 @@ the device) and from numpy arrays (``torch.from_numpy``: the block loop moves th
 device). Per block of the run itself (its passes' blocks apart), from the start of its solve
 to the next block's (its results handed over, the next carry made: what the block loop's
 thread does; the writer thread's copies and writes are not counted), the median over
-the blocks; the run is slowed down by the counting (use it for counts, not for speed). Of
+the blocks (and, apart, the run's passes: its counts outside its blocks: the shared-motion
+pass, the template's rounds, the window-length pass, setting up and writing); the run is
+slowed down by the counting (use it for counts, not for speed). Of
 those, the ones in the C++ CPU kernels' argument checks (``kernels/native``, and the host
 work of their callers, :data:`NATIVE_CALLERS`) are shown
 apart: a GPU run takes other kernels. Also counted, apart from the syncs: the launch-like
@@ -65,8 +67,10 @@ NATIVE = "torch_stsdic/kernels/native"
 #: functions counted with them: those that call those kernels and prepare their arguments
 #: on the host (the CPU's path of a step a GPU run takes in torch:
 #: ``torch_stsdic.kernels.dispatch`` picks the C++ kernels on the CPU only), and those that
-#: work on host tensors on every device (a block's frame numbers from its host targets)
-NATIVE_CALLERS = (" _round_native", " block_frames")
+#: work on host tensors on every device (a block's frame numbers from its host targets, the
+#: frames of a run's blocks in the order of first use, the row of a frame in a result,
+#: whose frame numbers are kept on the host)
+NATIVE_CALLERS = (" _round_native", " block_frames", " frames_in_order", " row_of")
 #: the counter of those (a part of the others, not added to a block's total)
 CPU_ONLY = "of which in the CPU kernels' checks"
 #: of those, the host copies (apart, so that a total without copies leaves them out once)
@@ -230,6 +234,11 @@ def main(argv: list[str] | None = None) -> int:
            "per_block_outside_cpu_kernels_range": [min(rest), max(rest)],
            "per_block_outside_cpu_kernels_without_copies_median": statistics.median(old),
            "run_total": dict(counter.counts), "commit": _commit()}
+    passes = in_passes(counter.counts, per_block)
+    rec["passes"] = passes
+    rec["passes_outside_cpu_kernels"] = block_total(passes, cpu_kernels=False)
+    rec["passes_outside_cpu_kernels_without_copies"] = block_total(passes, cpu_kernels=False,
+                                                                   copies=False)
     print(f"{len(per_block)} blocks; syncing operations a block (median): "
           f"{rec['per_block_total_median']:.0f} (range {min(total)}-{max(total)})")
     for k in kinds:
@@ -237,11 +246,19 @@ def main(argv: list[str] | None = None) -> int:
     print(f"  outside the CPU kernels' checks (what a GPU run's path may keep): "
           f"{statistics.median(rest):g} a block (median; range {min(rest)}-{max(rest)}); "
           f"without the host copies {statistics.median(old):.0f}")
+    print(f"  the run's passes (outside its blocks): {rec['passes_outside_cpu_kernels']} "
+          f"outside the CPU kernels' checks ({rec['passes_outside_cpu_kernels_without_copies']}"
+          f" without the host copies), {passes.get(LAUNCHES, 0)} launch-like operations")
     if counter.where is not None:
         rec["where_run_total"] = dict(counter.where.most_common(args.where))
+        where_passes = counter.where - counter.block_where
+        rec["where_passes"] = dict(where_passes.most_common(args.where))
         rec["where_blocks"] = dict(counter.block_where.most_common(args.where))
         print(f"where (whole run, top {args.where}):")
         for place, n in counter.where.most_common(args.where):
+            print(f"  {n:>7d}  {place}")
+        print(f"where (the run's passes only, top {args.where}):")
+        for place, n in where_passes.most_common(args.where):
             print(f"  {n:>7d}  {place}")
         print(f"where (the run's {len(per_block)} blocks only, top {args.where}):")
         for place, n in counter.block_where.most_common(args.where):
@@ -255,6 +272,16 @@ def main(argv: list[str] | None = None) -> int:
     if args.out is not None:
         args.out.write_text(json.dumps(rec, indent=1) + "\n")
     return 0
+
+
+def in_passes(run_counts: dict[str, int], per_block: list[dict[str, int]]) -> dict[str, int]:
+    """The counts of a run's passes (the shared-motion pass, the template's rounds, the
+    window-length pass, its set-up and its end): the run's ``run_counts`` less its blocks'
+    (``per_block``), by kind."""
+    passes = collections.Counter(run_counts)
+    for b in per_block:
+        passes.subtract(b)
+    return {k: v for k, v in passes.items() if v}
 
 
 def block_total(counts: dict[str, int], cpu_kernels: bool = True, copies: bool = True) -> int:

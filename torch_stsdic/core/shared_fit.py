@@ -313,21 +313,20 @@ def _valid_share(ok: Tensor) -> Tensor:
 
 def _lower_median(v: Tensor) -> Tensor:
     """``torch.nanmedian(v)`` of values >= 0 (or NaN): the lower median of the non-NaN
-    entries, NaN where none; without a copy of ``v`` (a bisection on the float64 bit
-    patterns, which order values >= 0 as the values: 63 counts over ``v``)."""
-    n_ok = int(torch.count_nonzero(v >= 0))
-    if n_ok == 0:
-        return torch.tensor(float("nan"), dtype=torch.float64)
+    entries, NaN where none (0-d float64 on ``v``'s device); without a copy of ``v`` (a
+    bisection on the float64 bit patterns, which order values >= 0 as the values: 63 counts
+    over ``v``) and without a host read (the bisection's bounds stay on the device: the 63
+    steps halve any range of +0.0 .. +inf, a step once they meet changes nothing)."""
+    n_ok = torch.count_nonzero(v >= 0)
     rank = (n_ok - 1) // 2
-    lo, hi = 0, 0x7FF0000000000000  # +0.0 and +inf
-    while lo < hi:
-        mid = (lo + hi) // 2
-        at = torch.tensor([mid], dtype=torch.int64).view(torch.float64).to(v.device)
-        if int(torch.count_nonzero(v <= at)) > rank:
-            hi = mid
-        else:
-            lo = mid + 1
-    return torch.tensor([lo], dtype=torch.int64).view(torch.float64)[0]
+    lo = torch.zeros((), dtype=torch.int64, device=v.device)  # +0.0
+    hi = torch.full((), 0x7FF0000000000000, dtype=torch.int64, device=v.device)  # +inf
+    for _ in range(63):
+        mid = lo + (hi - lo) // 2  # (lo + hi) // 2 without overflowing int64
+        above = torch.count_nonzero(v <= mid.view(torch.float64)) > rank
+        hi = torch.where(above, mid, hi)
+        lo = torch.where(above, lo, mid + 1)
+    return torch.where(n_ok > 0, lo.view(torch.float64), torch.nan)
 
 
 def _consistent_fit(x: Tensor, d: Tensor, ok: Tensor, eye: Tensor

@@ -301,17 +301,7 @@ class SharedMotion:
         g = self.displacement(pts, fr).double()  # (F, N, 2)
         span = torch.as_tensor(self._time_axis())[fr].diff().clamp(min=1e-12)  # (F-1,)
         inc = g.diff(dim=0) / span.view(-1, 1, 1)  # (F-1, N, 2) per time unit
-        f1 = inc.shape[0]
-        line = torch.tensor([4.0, 1.0, -2.0], dtype=torch.float64)[:, None, None] / 3.0
-        pred = torch.empty_like(inc)
-        for j in range(f1):
-            if 2 <= j <= f1 - 3:
-                pred[j] = inc[[j - 2, j - 1, j + 1, j + 2]].median(0).values
-            elif j < 2:  # the line through pairs j+1 .. j+3 at j
-                pred[j] = (line * inc[j + 1:j + 4]).sum(0)
-            else:
-                pred[j] = (line * inc[[j - 1, j - 2, j - 3]]).sum(0)
-        jump = (inc - pred).norm(dim=-1).median(1).values  # (F-1,)
+        jump = (inc - _predicted_increments(inc)).norm(dim=-1).median(1).values  # (F-1,)
         se2 = torch.as_tensor(self._noise2())[fr]
         noise = 1.1774 * (2 * self.terms * se2.mean()).sqrt() / span  # (F-1,)
         return _above_neighbours(jump, noise, fr, z, ratio, reach)
@@ -561,24 +551,43 @@ def steps_from_increments(s: Tensor, sigma: Tensor, frames: Sequence[int],
     return _above_neighbours(s, noise, torch.as_tensor(list(frames)), z, ratio, reach)
 
 
+def _predicted_increments(inc: Tensor) -> Tensor:
+    """(F1, ...) each increment of ``inc`` (F1 >= 5, ...) as the ones about it predict it
+    (:meth:`SharedMotion.find_jumps`): the median of the two on either side, at the two at
+    either end the line through the three beyond them; the middle ones all at once."""
+    f1 = inc.shape[0]
+    line = torch.tensor([4.0, 1.0, -2.0], dtype=inc.dtype, device=inc.device)
+    line = line.view(3, *([1] * (inc.dim() - 1))) / 3.0
+    pred = torch.empty_like(inc)
+    pred[2:f1 - 2] = torch.stack([inc[:f1 - 4], inc[1:f1 - 3], inc[3:f1 - 1],
+                                  inc[4:]]).median(0).values
+    for j in (0, 1):  # the line through increments j+1 .. j+3, at j
+        pred[j] = (line * inc[j + 1:j + 4]).sum(0)
+    for j in (f1 - 2, f1 - 1):
+        pred[j] = (line * inc[[j - 1, j - 2, j - 3]]).sum(0)
+    return pred
+
+
 def _above_neighbours(s: Tensor, noise: Tensor, frames: Tensor, z: float, ratio: float,
                       reach: int) -> list[int]:
     """The frames ``frames[j + 1]`` (``frames`` (F,) series frames) whose pair ``j`` of
     adjacent frames has ``s[j]`` ((F - 1,)) above both ``z`` times its ``noise[j]`` and
     ``ratio`` times the median ``s`` of the pairs within ``reach``: a jump among still
     pairs (:func:`steps_from_increments`, :meth:`SharedMotion.find_jumps`)."""
-    adjacent = (frames[1:] - frames[:-1]) == 1
-    out = []
-    for j in range(s.shape[0]):
-        if not bool(adjacent[j]) or not bool(torch.isfinite(s[j])):
-            continue
-        near = [i for i in range(max(0, j - reach), min(s.shape[0], j + reach + 1)) if i != j]
-        base = torch.nanmedian(s[near]) if near else torch.tensor(float("nan"))
-        if not bool(torch.isfinite(base)):
-            continue
-        if float(s[j]) > z * float(noise[j]) and float(s[j]) > ratio * float(base):
-            out.append(int(frames[j + 1]))
-    return out
+    s, noise = s.double(), noise.double().to(s.device)
+    n = s.shape[0]
+    if n == 0:
+        return []
+    adjacent = ((frames[1:] - frames[:-1]) == 1).to(s.device)
+    # (n, 2 reach) the pairs within reach of each, NaN beyond the series' ends: their median
+    # is that of the pairs there (the same entries, NaN skipped), every pair at once
+    off = torch.cat([torch.arange(-reach, 0), torch.arange(1, reach + 1)]).to(s.device)
+    at = torch.arange(n, device=s.device)[:, None] + off
+    near = torch.where((at >= 0) & (at < n), s[at.clamp(0, n - 1)], torch.nan)
+    base = torch.nanmedian(near, dim=1).values if off.numel() else torch.full_like(s, torch.nan)
+    jump = (adjacent & torch.isfinite(s) & torch.isfinite(base) & (s > z * noise)
+            & (s > ratio * base))
+    return frames[1:][jump.cpu()].tolist()  # one read
 
 
 def overlap_factor(points: Tensor, subset_size: int) -> float:

@@ -22,6 +22,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
 import torch
 
 from torch_stsdic.analysis.quality import neighbours
@@ -40,7 +41,7 @@ from torch_stsdic.movie.block_start import pilot_shift, window_shake
 from torch_stsdic.movie.block_windows import BlockWindows
 from torch_stsdic.movie.carry import Carry
 from torch_stsdic.movie.checks import CHECK_ITER, CHECK_TOL, BlockChecks
-from torch_stsdic.movie.choices import until_done
+from torch_stsdic.movie.choices import masked_groups, until_done
 from torch_stsdic.movie.frames import (
     FrameCache,
     block_frames,
@@ -62,6 +63,7 @@ class BlockContext:
     solver: SubsetSolver
     cache: FrameCache
     ts: torch.Tensor  # (T_s,) series times, float64
+    times: np.ndarray  # (T_s,) the same on the host (read there without a device read)
     n_series: int
     m: int
     dtype: torch.dtype
@@ -330,8 +332,8 @@ class Block(BlockChecks, BlockRescue, BlockPlacement, BlockMotion, BlockWindows)
             return torch.zeros(self.b * self.n, dtype=torch.bool, device=run.device)
         rows = (self.windows(0) == self.ref.frame).all(1).repeat_interleave(self.n)
         self.identity = rows
-        if not bool(rows.any()):
-            return rows
+        if self.ref.frame not in self.ks:  # (a target's window at m = 0 is the target:
+            return rows                    # known on the host, no read)
         inside = subset_inside(self.pts, float(run.solver.window.half), self.ref.img.height,
                                self.ref.img.width)
         idx = torch.nonzero(rows & inside).flatten()
@@ -382,7 +384,7 @@ def _only_identity(run: BlockContext, ref: Reference, carry: Carry) -> bool:
     velocity): the next block starts as the first one, by FFT cross-correlation (at seed
     points: fewer Gauss-Newton steps than from zero motion; a pair: 3.7 instead of 6.1)."""
     return (run.m == 0 and ref.frame >= 0 and ref.acc is None
-            and carry.t == float(run.ts[ref.frame])
+            and carry.t == float(run.times[ref.frame])
             and carry.vel_known is not None and not bool(carry.vel_known.any()))
 
 
@@ -517,7 +519,11 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
         pick = carried if pilot is None else carried & ~pilot
         for r, m, sol, where in blk.solve_windows(every, blk.window_m, init, pick=pick):
             blk.keep(r, sol, only_better=False, m=m, where=where)
-    else:
+    elif init is not None and masked_groups(dev):  # every row, those not carried masked
+        every, pick = torch.arange(rows, device=dev), carried if pilot is None else \
+            carried & ~pilot                                  # (no read of which)
+        blk.keep(every, blk.solve(every, init, active=pick), only_better=False, where=pick)
+    elif init is not None:
         idx_c = torch.nonzero(carried if pilot is None else carried & ~pilot).flatten()
         if idx_c.numel():
             blk.keep(idx_c, blk.solve(idx_c, init[idx_c]), only_better=False)
@@ -526,7 +532,7 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
     run.stats["fft_rows"] += by_fft
     count("redone_rows", redone)
     # the identity cannot fail (rows are the identity only where m = 0: no read otherwise)
-    if run.checks and not (run.m == 0 and bool(ident.all())):
+    if run.checks and not (run.m == 0 and all(k == ref.frame for k in ks)):
         shortened, classical = blk.check_model()
         if run.m > 0:
             classical = classical + blk.rescue_classical(guess, carry)

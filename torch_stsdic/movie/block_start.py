@@ -40,8 +40,9 @@ def pilot_shift(blk: Block, init: torch.Tensor, rows: torch.Tensor) -> torch.Ten
         return None
     pts = torch.linspace(0, n - 1, PILOT_POINTS, device=dev).round().long()
     cand = (torch.arange(b, device=dev)[:, None] * n + pts[None]).reshape(-1)
-    sel = cand[rows[cand]]
-    if sel.numel() < PILOT_MIN:  # (one host read)
+    slot = torch.nonzero(rows[cand]).flatten()  # the pilots that start carried (one read)
+    sel = cand[slot]
+    if sel.numel() < PILOT_MIN:
         return None
     sol = blk.solve(sel, init[sel])
     blk.keep(sel, sol, only_better=False)
@@ -52,7 +53,6 @@ def pilot_shift(blk: Block, init: torch.Tensor, rows: torch.Tensor) -> torch.Ten
                         1).to(run.dtype)
     # (B, PILOT_POINTS, 2) each target's pilots' moves, NaN where not trusted or not carried
     per = torch.full((b * PILOT_POINTS, 2), float("nan"), dtype=run.dtype, device=dev)
-    slot = torch.nonzero(rows[cand]).flatten()
     per[slot] = torch.where(good.unsqueeze(1), moved, float("nan"))
     per = per.view(b, PILOT_POINTS, 2)
     enough = torch.isfinite(per[..., 0]).sum(1) >= PILOT_MIN  # (B,)

@@ -136,6 +136,7 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
                        ahead=default_ahead(plan.batch_frames, cfg.m), store=store)
     run = BlockContext(solver=solver, cache=cache,
                ts=torch.from_numpy(plan.times).to(device=plan.device, dtype=torch.float64),
+               times=np.asarray(plan.times, dtype=np.float64),
                n_series=len(plan.series), m=cfg.m, dtype=plan.dtype, device=plan.device,
                lost_zncc=float(plan.options.get("lost_zncc", 0.8)), names=plan.param_names,
                checks=bool(plan.options.get("checks", True)),

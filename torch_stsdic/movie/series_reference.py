@@ -203,18 +203,21 @@ def measure_classical(plan: RunPlan, frames: list[int], run: Callable[..., Track
     return _measure(plan, frames, None, run)
 
 
-def _warps(res: TrackResult, j: int, lost_zncc: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """(N, 6) u, ux, uy, v, vx, vy of result row j (gradients 0 where not solved) and (N,)
-    whether the row is trusted."""
+def _all_warps(plan: RunPlan, res: TrackResult) -> tuple[torch.Tensor, torch.Tensor]:
+    """(F, N, 6) u, ux, uy, v, vx, vy of every row of ``res`` (gradients 0 where not solved)
+    and (F, N) whether each is trusted (usable, ZNCC at least ``plan``'s ``lost_zncc``), on
+    the host: every row at once (a field copied to the host once, not once a frame)."""
+    lost_zncc = float(plan.options.get("lost_zncc", 0.8))
+    f, n = res.u.shape
     cols = []
     for nm in ("u", "ux", "uy", "v", "vx", "vy"):
         try:
-            cols.append(res.field(nm)[j].double().cpu())
+            cols.append(res.field(nm).double().cpu())
         except (KeyError, AttributeError):
-            cols.append(torch.zeros(res.u.shape[1], dtype=torch.float64))
-    w = torch.stack(cols, 1)
-    ok = ((res.status[j].cpu() <= USABLE) & torch.isfinite(w).all(1)
-          & (res.zncc[j].double().cpu() >= lost_zncc))
+            cols.append(torch.zeros(f, n, dtype=torch.float64))
+    w = torch.stack(cols, -1)
+    ok = ((res.status.cpu() <= USABLE) & torch.isfinite(w).all(-1)
+          & (res.zncc.double().cpu() >= lost_zncc))
     return torch.nan_to_num(w), ok
 
 
@@ -319,13 +322,6 @@ def time_model_holds(plan: RunPlan, res: TrackResult, frames: list[int],
     excess = torch.minimum(excess, POOL_CLIP * gain)
     biased = excess[nb].sum(1) > gain[nb].sum(1)
     return ~(((tests >= 3) & (2 * fails >= tests)) | biased)
-
-
-def _all_warps(plan: RunPlan, res: TrackResult) -> tuple[torch.Tensor, torch.Tensor]:
-    """(F, N, 6) warps and (F, N) trust of every row of ``res`` (:func:`_warps`)."""
-    lost = float(plan.options.get("lost_zncc", 0.8))
-    pairs = [_warps(res, j, lost) for j in range(res.u.shape[0])]
-    return torch.stack([p[0] for p in pairs]), torch.stack([p[1] for p in pairs])
 
 
 def _matched(res: TrackResult, frames: list[int], reference_frame: int) -> torch.Tensor:
@@ -597,7 +593,7 @@ def _gauge(plan: RunPlan, fit: LocalFit, image: torch.Tensor, keep: torch.Tensor
     ``guess``: where the solve starts (the last round's solutions; None: FFT); ``ratio``:
     the template's noise variance over a frame's (None: estimated from its pixels)."""
     res = _measure(plan, [plan.reference_frame], image, run, guess, ratio)
-    warp, ok = _warps(res, 0, float(plan.options.get("lost_zncc", 0.8)))
+    warp, ok = (a[0] for a in _all_warps(plan, res))
     vals = torch.where(ok[:, None], warp, torch.nan).T  # (6, N)
     smooth = torch.nan_to_num(fit.apply(1, vals), nan=0.0)
     # the reference's own noise through the plane, scaled to the noise its plane residuals

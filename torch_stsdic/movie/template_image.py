@@ -268,7 +268,8 @@ def template_image(plan: RunPlan, warps: torch.Tensor, oks: torch.Tensor, frames
     windows = TemplateWindows.make(plan, ref_raw) if windows is None else windows
     spread, cover, ref_stats, levels = (windows.spread, windows.cover, windows.ref_stats,
                                         windows.level)
-    norm = []  # each frame's noise in the reference's grey levels
+    norm = []  # each frame's noise in the reference's grey levels (read once, at the end)
+    sig = torch.as_tensor(sigmas, dtype=torch.float64).to(dev)  # (F,) one copy
     # the sums over the covered pixels, on the run's device, mapped to the image at the end
     on_cover = torch.zeros(3, cover[0].numel(), dtype=torch.float64, device=dev)
     for group in frame_groups(len(frames), cover[0].numel(), batched=dev.type != "cpu"):
@@ -278,12 +279,12 @@ def template_image(plan: RunPlan, warps: torch.Tensor, oks: torch.Tensor, frames
             levels.update(zip((frames[j] for j in group),
                               raw.flatten(1).std(1).clamp(min=1e-12) / spread))
         level = torch.stack([levels[frames[j]] for j in group])
-        g_norm = torch.as_tensor([sigmas[j] for j in group], dtype=torch.float64,
-                                 device=dev) / level
-        norm += g_norm.tolist()
-        g_idx = torch.as_tensor(group, device=warps.device)
-        splat(on_cover, img, planes, ref, pts, warps[g_idx].to(dev), oks[g_idx].to(dev),
+        g = slice(group[0], group[-1] + 1)  # (a group: consecutive frames)
+        g_norm = sig[g] / level
+        norm.append(g_norm)
+        splat(on_cover, img, planes, ref, pts, warps[g].to(dev), oks[g].to(dev),
               half, 1.0 / g_norm ** 2, level, cover, ref_stats)
+    norm = torch.cat(norm).tolist()
     # what follows is per covered pixel, once (the sums' pixels, ascending flat indices)
     px, sums = cover[0].cpu(), on_cover.cpu()
     ref, pts = ref.cpu(), pts.cpu()
