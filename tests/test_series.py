@@ -508,3 +508,40 @@ def test_default_block_length_on_the_cpu_and_on_a_gpu():
     assert default_batch_frames(cfg, (1024, 1024), 4, "cuda", device_mb=4096) == 32
     assert default_batch_frames(cfg, (2048, 2048), 4, "cuda", device_mb=4096) == 8
     assert default_batch_frames(cfg, (4096, 4096), 4, "cuda", device_mb=80_000) == 10
+
+
+def test_a_gpu_solves_in_batches_of_its_own_budget_with_the_same_answers(monkeypatch):
+    """On a GPU a solve's batches take at least 2 GiB within a tenth of the device's memory
+    (``gpu_budget_mb``; None on the CPU, which keeps ``memory_mb``): fewer batches, fewer
+    launches. A row's answer does not depend on its batch: a movie run in batches of 16
+    rows (a tiny ``memory_mb``, the same blocks) and in one batch a solve gives the same
+    numbers to the bit."""
+    from torch_stsdic.core import gauss_newton
+    from torch_stsdic.core.config import gpu_budget_mb
+
+    assert gpu_budget_mb("cpu") is None
+    assert gpu_budget_mb("cuda", device_mb=141_000) == 2048.0
+    assert gpu_budget_mb("cuda:1", device_mb=8192) == pytest.approx(819.2)
+    frames = synthetic_movie((81, 81), 6, Translation(ut=UT, vt=VT))
+    frames = torch.cat([frames.ref[None], frames.frames])
+
+    def run(memory_mb):
+        cfg = DICConfig(subset_size=CFG.subset_size, m=2, memory_mb=memory_mb)
+        return track(frames, config=cfg, roi=ROI, step=9, progress=False, batch_frames=3,
+                     shared_motion=None)
+
+    sizes = []
+    size_of = gauss_newton.BatchContext.batch_size
+    monkeypatch.setattr(gauss_newton.BatchContext, "batch_size",
+                        lambda self, t: sizes.append(size_of(self, t)) or sizes[-1])
+    small = run(1e-3)
+    assert max(sizes) == 16  # the floor: many batches a solve
+    sizes.clear()
+    # the same budget as a GPU's (the CPU's batch size made as on a 20 GiB card)
+    monkeypatch.setattr(gauss_newton, "gpu_budget_mb", lambda device: 2048.0)
+    one = run(1e-3)
+    assert min(sizes) > 10_000  # every solve in one batch
+    for name in ("u", "v", "ut", "vt", "zncc", "status", "iterations", "u_std"):
+        assert torch.equal(small.field(name).nan_to_num(-7), one.field(name).nan_to_num(-7)), \
+            name
+    assert (small.status == 0).float().mean() > 0.9

@@ -150,7 +150,8 @@ def add_solver(p: argparse.ArgumentParser) -> None:
     add_option(g, "--batch-points", type=int_min(1), default=None, metavar="N",
                help="points solved together", shown="from --memory-mb")  # fmt: skip
     add_option(g, "--memory-mb", type=float_pos, default=256.0, metavar="MB",
-               help="working-memory budget per batch in MiB")  # fmt: skip
+               help="working-memory budget per batch in MiB (a GPU takes at least 2048, "
+                    "within a tenth of its memory)")  # fmt: skip
 
 
 def _add_initial_guess(g: Group) -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 import warnings
 from dataclasses import dataclass, field
 from typing import Any
@@ -10,7 +11,15 @@ from typing import Any
 from torch_stsdic.core.shape import ShapeFunction
 from torch_stsdic.core.window import SubsetWindow
 
-__all__ = ["DICConfig", "FORMULATIONS", "FORMULATION_HELP", "CRITERIA", "INITIAL_GUESSES"]
+__all__ = ["DICConfig", "FORMULATIONS", "FORMULATION_HELP", "CRITERIA", "INITIAL_GUESSES",
+           "GPU_BUDGET_MB", "gpu_budget_mb"]
+
+#: MiB a GPU gives at least to a block's frames and to each batch of a solve, whatever
+#: ``memory_mb`` says, within a tenth of the device's memory (:func:`gpu_budget_mb`): there a
+#: block's launches, not its arithmetic, set the pace, and 256 MiB would hold 6 megapixel
+#: frames or split a block's solve into batches of ~5,800 rows (a masked solve over every
+#: row of a 32-target block of 10,000 POIs into 55 batches, each with its own launches)
+GPU_BUDGET_MB = 2048.0
 
 FORMULATIONS = ("auto", "joint", "average", "joint+average")
 #: The one description of the formulations (DICConfig docs, CLI help, README).
@@ -62,7 +71,9 @@ class DICConfig:
         max_displacement: a point whose displacement moves more than this (px) away from its
             initial guess is flagged DIVERGED (default: subset_size).
         batch_points: POIs solved together per batch (None: sized from ``memory_mb``).
-        memory_mb: working-memory budget per batch in MiB (default 256).
+        memory_mb: working-memory budget per batch in MiB (default 256; a GPU takes at
+            least :func:`gpu_budget_mb`, 2 GiB within a tenth of its memory, for a solve's
+            batches and a block's frames: the same answers in fewer launches).
         dtype: "float32", "float64" or None (None: the input's float dtype; float32 for integers).
     """
 
@@ -159,3 +170,26 @@ class DICConfig:
     def from_dict(cls, d: dict[str, Any]) -> DICConfig:
         names = {f.name for f in dataclasses.fields(cls)}
         return cls(**{k: v for k, v in d.items() if k in names})
+
+
+def gpu_budget_mb(device: Any, device_mb: float | None = None) -> float | None:
+    """MiB a run on ``device`` gives at least to a block's frames and to each batch of a
+    solve: :data:`GPU_BUDGET_MB` within a tenth of the device's memory (``device_mb`` MiB,
+    read from the device where not given) on a CUDA device; None elsewhere (the CPU takes
+    ``memory_mb`` as it is: its batches stay in its caches)."""
+    import torch
+
+    dev = torch.device(device)
+    if dev.type != "cuda":
+        return None
+    if device_mb is None:
+        device_mb = _cuda_total_mb(dev.index if dev.index is not None
+                                   else torch.cuda.current_device())
+    return min(GPU_BUDGET_MB, 0.1 * float(device_mb))
+
+
+@functools.cache
+def _cuda_total_mb(index: int) -> float:
+    import torch
+
+    return torch.cuda.get_device_properties(index).total_memory / 2**20

@@ -16,7 +16,7 @@ import torch
 from torch import Tensor
 
 from torch_stsdic.core import point_solve, uncertainty
-from torch_stsdic.core.config import DICConfig
+from torch_stsdic.core.config import DICConfig, gpu_budget_mb
 from torch_stsdic.core.formulations import (
     Formulation,
     Geometry,
@@ -168,7 +168,9 @@ class BatchContext:
     kept: KeptToken | None = None
 
     def batch_size(self, t: int) -> int:
-        """POIs per batch within ``cfg.memory_mb``."""
+        """POIs per batch within ``cfg.memory_mb`` (on a GPU at least
+        :func:`~torch_stsdic.core.config.gpu_budget_mb`: a batch's rows do not depend on
+        the batch, so fewer batches are the same answers for fewer launches)."""
         s, ks = self.geo.spatial.shape
         elem = self.geo.spatial.element_size()
         ic_only = all(f.inverse_compositional for f in self.stages)
@@ -179,7 +181,11 @@ class BatchContext:
         else:
             jac = 0 if ic_only else t * 2 * (ks + 1)
             per_point = s * elem * (t * 40 + jac + 8 * ks + 24)
-        return max(16, int(self.cfg.memory_mb * 2**20 / per_point))
+        budget = self.cfg.memory_mb
+        gpu_mb = gpu_budget_mb(self.geo.spatial.device)
+        if gpu_mb is not None:
+            budget = max(budget, gpu_mb)
+        return max(16, int(budget * 2**20 / per_point))
 
 
 def solve_batch(ctx: BatchContext, pts, p0, dt, fidx, ridx, motion=None, step0=None,

@@ -18,7 +18,7 @@ import torch
 
 from torch_stsdic.analysis.points import filter_points, grid_points
 from torch_stsdic.analysis.specimen import SpecimenReport, on_specimen
-from torch_stsdic.core.config import DICConfig
+from torch_stsdic.core.config import DICConfig, gpu_budget_mb
 from torch_stsdic.core.shape import make_shape
 from torch_stsdic.core.shared_motion import SHARED_MOTION_KINDS
 from torch_stsdic.core.validation import check_pixels
@@ -34,8 +34,6 @@ MAX_DEFAULT_BATCH = 8
 #: 32 target frames a block ran the 500-frame 1024^2 movie 1.31x faster than 8 on an H100,
 #: with the same error (u RMSE 0.0083947 against 0.0083941 px; 2.50 against 2.13 iterations)
 MAX_DEFAULT_BATCH_GPU = 32
-#: frames' budget on a GPU at least this (MiB), at most a tenth of the device's memory
-GPU_FRAMES_MB = 2048.0
 _BASE = ("u", "v", "ut", "vt")
 
 
@@ -375,17 +373,17 @@ def default_batch_frames(cfg: DICConfig, shape: tuple[int, int], elem: int,
     (the carried guess is extrapolated over the block, so very long blocks start further
     from the solution). On a GPU (``device``; its memory ``device_mb`` MiB, read from the
     device where not given) at most ``MAX_DEFAULT_BATCH_GPU`` and the frames' budget at
-    least ``GPU_FRAMES_MB`` (capped at a tenth of the device's memory): a block's host work
-    sets the pace there, and 256 MiB would hold 6 megapixel frames. (Counting the window's
+    least :func:`~torch_stsdic.core.config.gpu_budget_mb` (2 GiB within a tenth of the
+    device's memory): a block's host work sets the pace there, and 256 MiB would hold 6
+    megapixel frames. (Counting the window's
     frames too left the muDIC hourglass, 1.3 megapixel frames and windows of up to 13, one
     target a block: 17 s a run against 14 s with 8, the same results within 1.1e-3 px.)"""
     frame_bytes = 3.0 * shape[0] * shape[1] * elem
     budget = cfg.memory_mb * 2**20 / 2.0
     most = MAX_DEFAULT_BATCH
-    if torch.device(device).type == "cuda":
-        if device_mb is None:
-            device_mb = torch.cuda.get_device_properties(torch.device(device)).total_memory / 2**20
-        budget = max(budget, min(GPU_FRAMES_MB, 0.1 * float(device_mb)) * 2**20)
+    gpu_mb = gpu_budget_mb(device, device_mb)
+    if gpu_mb is not None:
+        budget = max(budget, gpu_mb * 2**20)
         most = MAX_DEFAULT_BATCH_GPU
     fit = int(budget / frame_bytes)
     return max(1, min(most, fit))
