@@ -210,7 +210,13 @@ def main(argv: list[str] | None = None) -> int:
                          "(torch_stsdic.movie.choices: masked rows, the model check's "
                          "shorter windows at once, every round of a loop), but those named "
                          "in TORCH_STSDIC_CHOICES")
+    ap.add_argument("--targets", type=int, default=None, metavar="N",
+                    help="the most target frames a block (plan.MAX_DEFAULT_BATCH, 8 on the "
+                         "CPU; a GPU's 32: with --memory-mb 2048, its blocks and budget)")
     args = ap.parse_args(own)
+    if args.targets is not None:
+        from torch_stsdic.movie import plan as plan_mod
+        plan_mod.MAX_DEFAULT_BATCH = args.targets
     if args.gpu_choices:
         from torch_stsdic.movie import choices
         named = choices.from_environment()  # (set at import already: kept as named)
@@ -227,7 +233,7 @@ def main(argv: list[str] | None = None) -> int:
     rest = [block_total(b, cpu_kernels=False) for b in per_block]
     old = [block_total(b, cpu_kernels=False, copies=False) for b in per_block]
     rec = {"args": run_args, "device": "cpu", "gpu_choices": args.gpu_choices,
-           "blocks": len(per_block),
+           "targets": args.targets, "blocks": len(per_block),
            "per_block_median": med, "per_block_total_median": statistics.median(total),
            "per_block_total_range": [min(total), max(total)],
            "per_block_outside_cpu_kernels_median": statistics.median(rest),
