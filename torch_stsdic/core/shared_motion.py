@@ -578,16 +578,16 @@ def _above_neighbours(s: Tensor, noise: Tensor, frames: Tensor, z: float, ratio:
     n = s.shape[0]
     if n == 0:
         return []
-    adjacent = ((frames[1:] - frames[:-1]) == 1).to(s.device)
+    adjacent = (frames[1:] - frames[:-1]) == 1  # (host frame numbers)
     # (n, 2 reach) the pairs within reach of each, NaN beyond the series' ends: their median
     # is that of the pairs there (the same entries, NaN skipped), every pair at once
-    off = torch.cat([torch.arange(-reach, 0), torch.arange(1, reach + 1)]).to(s.device)
-    at = torch.arange(n, device=s.device)[:, None] + off
+    dev = s.device
+    off = torch.cat([torch.arange(-reach, 0, device=dev), torch.arange(1, reach + 1, device=dev)])
+    at = torch.arange(n, device=dev)[:, None] + off
     near = torch.where((at >= 0) & (at < n), s[at.clamp(0, n - 1)], torch.nan)
-    base = torch.nanmedian(near, dim=1).values if off.numel() else torch.full_like(s, torch.nan)
-    jump = (adjacent & torch.isfinite(s) & torch.isfinite(base) & (s > z * noise)
-            & (s > ratio * base))
-    return frames[1:][jump.cpu()].tolist()  # one read
+    base = torch.nanmedian(near, dim=1).values if reach > 0 else torch.full_like(s, torch.nan)
+    jump = torch.isfinite(s) & torch.isfinite(base) & (s > z * noise) & (s > ratio * base)
+    return frames[1:][jump.cpu() & adjacent.cpu()].tolist()  # one read
 
 
 def overlap_factor(points: Tensor, subset_size: int) -> float:
