@@ -155,6 +155,13 @@ def test_fft_cross_correlation_batches_stay_within_their_memory(monkeypatch):
     pair_bytes = initial._PAIR_REGIONS * fast * fast * 4
     assert len(sizes) > 1 and max(sizes) * pair_bytes * rows.threads() <= 2**20
     assert torch.equal(got[0], want[0]) and torch.equal(got[1], want[1])
+    # a GPU's budget where larger (core.config.gpu_budget_mb): fewer, larger batches, the
+    # same numbers
+    sizes.clear()
+    monkeypatch.setattr(initial, "gpu_budget_mb", lambda device: 2048.0)
+    got = fft_cross_correlation(ref, cur, pts, 21, 6, memory_mb=1.0)
+    assert sum(sizes) == pts.shape[0] and max(sizes) > 2**20 // (pair_bytes * rows.threads())
+    assert torch.equal(got[0], want[0]) and torch.equal(got[1], want[1])
 
 
 def test_fft_cross_correlation_on_the_pool_equals_one_thread():

@@ -13,6 +13,7 @@ from functools import partial
 
 import torch
 
+from torch_stsdic.core.config import gpu_budget_mb
 from torch_stsdic.core.interpolation import window_view
 from torch_stsdic.core.pyramid import PyramidStack
 from torch_stsdic.kernels.native.rows import own_threads, run_tasks, threads
@@ -136,7 +137,8 @@ def fft_cross_correlation(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Displacement of each POI from ``ref`` (H, W) to each of ``images`` (T, H, W), by
     batches of at most ``batch`` POI-frame pairs whose working arrays (all threads'
-    batches at once) stay within ``memory_mb`` MiB.
+    batches at once) stay within ``memory_mb`` MiB (on a GPU at least
+    :func:`~torch_stsdic.core.config.gpu_budget_mb`).
 
     Args:
         points: (N, 2) POI positions (x, y) in px (rounded to the nearest pixel here).
@@ -177,9 +179,12 @@ def fft_cross_correlation(
     disp = torch.zeros(n, t_count, 2, dtype=dtype, device=images.device)
     score = torch.full((n, t_count), -1.0, dtype=dtype, device=images.device)
     shifts = torch.arange(-rad, rad + 1, device=images.device)
-    # the pairs in flight within FFT_MEMORY_MB (all threads' batches at once)
+    # the pairs in flight within FFT_MEMORY_MB (all threads' batches at once; a GPU's own
+    # budget where larger: the same numbers in fewer batches, each with its launches)
     pair_bytes = _PAIR_REGIONS * fast * fast * torch.finfo(dtype).bits // 8
     in_flight = threads() if dev.type == "cpu" else 1
+    gpu_mb = gpu_budget_mb(dev)
+    memory_mb = memory_mb if gpu_mb is None else max(memory_mb, gpu_mb)
     pairs = min(batch, max(1, int(memory_mb * 2**20 / (pair_bytes * in_flight))))
     per_batch = _batch_size(n, max(1, pairs // max(1, t_count)), dev)
 
