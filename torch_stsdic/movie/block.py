@@ -522,7 +522,8 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
     elif init is not None and masked_groups(dev):  # every row, those not carried masked
         every, pick = torch.arange(rows, device=dev), carried if pilot is None else \
             carried & ~pilot                                  # (no read of which)
-        blk.keep(every, blk.solve(every, init, active=pick), only_better=False, where=pick)
+        blk.keep(every, blk.solve(every, init.nan_to_num(0.0), active=pick),  # (the rows
+                 only_better=False, where=pick)         # not carried: no guess, masked)
     elif init is not None:
         idx_c = torch.nonzero(carried if pilot is None else carried & ~pilot).flatten()
         if idx_c.numel():
