@@ -194,6 +194,25 @@ MUTATIONS: tuple[Mutation, ...] = (
         ("test_series_reference.py",),
         "rows at points decided classical take the window a rescue or FFT start gives them"),
     Mutation(
+        "jump-test-reaches-one-pair-too-far", "shared motion",
+        "torch_stsdic/core/shared_motion.py",
+        "torch.arange(1, reach + 1, device=dev)])",
+        "torch.arange(1, reach + 2, device=dev)])",
+        ("test_host_reads.py",),
+        "the shared-motion pass's jump test compares a pair with the pairs one beyond its "
+        "reach on one side"),
+    Mutation(
+        "shared-median-bisects-too-few-steps", "shared motion",
+        "torch_stsdic/core/shared_fit.py",
+        "    for _ in range(63):\n", "    for _ in range(40):\n",
+        ("test_long_movies.py", "test_host_reads.py"),
+        "the shared fit's device-side median stops its bisection before the bounds meet"),
+    Mutation(
+        "gpu-batches-ignore-their-budget", "solver", "torch_stsdic/core/gauss_newton.py",
+        "            budget = max(budget, gpu_mb)\n", "            budget = budget\n",
+        ("test_series.py",),
+        "a GPU solves in batches of memory_mb's 256 MiB, not its own budget"),
+    Mutation(
         "rescued-row-window-beyond-cap", "placement", "torch_stsdic/movie/block_placement.py",
         "            half = torch.minimum(half, self.window_cap[idx])\n",
         "            half = half\n",
