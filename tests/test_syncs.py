@@ -106,3 +106,21 @@ def test_a_default_movie_block_syncs_at_most_the_level_reached(tmp_path, monkeyp
     assert min(outside) > 0, outside
     in_passes = cs.block_total(cs.in_passes(counter.counts, per_block), cpu_kernels=False)
     assert 0 < in_passes <= MAX_IN_PASSES, in_passes
+
+
+def test_a_gpus_blocks_and_budget_counted_on_the_cpu(monkeypatch):
+    """``count_syncs.py --gpu-config``: the package's GPU budget answers 2 GiB on the CPU
+    too, so a block takes a GPU's 32 targets and its solves a GPU's batches."""
+    import torch_stsdic.core.gauss_newton as gauss_newton
+    import torch_stsdic.core.initial as initial
+    import torch_stsdic.movie.plan as plan
+    from torch_stsdic.core.config import DICConfig
+
+    cs = _counter_module()
+    for mod in (gauss_newton, initial, plan):  # (restored after the test)
+        monkeypatch.setattr(mod, "gpu_budget_mb", mod.gpu_budget_mb)
+    assert plan.default_batch_frames(DICConfig(m=2), (256, 256), 4, "cpu") == 8
+    cs.gpu_config()
+    assert plan.default_batch_frames(DICConfig(m=2), (256, 256), 4, "cpu") == 32
+    assert gauss_newton.gpu_budget_mb("cpu") == initial.gpu_budget_mb("cpu") == 2048.0
+

@@ -33,7 +33,9 @@ listing the N functions that make most of them. ``--where N`` lists the
 N lines of the package that sync most over the whole run. ``--gpu-choices`` takes the
 choices a GPU run makes where they differ from a CPU run's (``torch_stsdic.movie.choices``:
 masked rows, the model check's shorter windows all at once, every round of a loop; those
-named in ``TORCH_STSDIC_CHOICES`` as named): the same results, fewer reads.
+named in ``TORCH_STSDIC_CHOICES`` as named): the same results, fewer reads. ``--gpu-config``
+takes a GPU's blocks and budget too (:func:`gpu_config`: 32 targets a block, its frames and
+batches within 2 GiB), the closest the CPU comes to counting a GPU run.
 """
 
 from __future__ import annotations
@@ -213,7 +215,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--targets", type=int, default=None, metavar="N",
                     help="the most target frames a block (plan.MAX_DEFAULT_BATCH, 8 on the "
                          "CPU; a GPU's 32: with --memory-mb 2048, its blocks and budget)")
+    ap.add_argument("--gpu-config", action="store_true",
+                    help="a GPU run's choices, blocks and budget on the CPU: --gpu-choices, "
+                         "and core.config.gpu_budget_mb answering 2048 MiB on every device "
+                         "(the blocks' frames and 32 targets, the solver's and the FFT "
+                         "search's batches, as on a card of 20 GiB or more)")
     args = ap.parse_args(own)
+    if args.gpu_config:
+        args.gpu_choices = True
+        gpu_config()
     if args.targets is not None:
         from torch_stsdic.movie import plan as plan_mod
         plan_mod.MAX_DEFAULT_BATCH = args.targets
@@ -233,7 +243,7 @@ def main(argv: list[str] | None = None) -> int:
     rest = [block_total(b, cpu_kernels=False) for b in per_block]
     old = [block_total(b, cpu_kernels=False, copies=False) for b in per_block]
     rec = {"args": run_args, "device": "cpu", "gpu_choices": args.gpu_choices,
-           "targets": args.targets, "blocks": len(per_block),
+           "gpu_config": args.gpu_config, "targets": args.targets, "blocks": len(per_block),
            "per_block_median": med, "per_block_total_median": statistics.median(total),
            "per_block_total_range": [min(total), max(total)],
            "per_block_outside_cpu_kernels_median": statistics.median(rest),
@@ -278,6 +288,22 @@ def main(argv: list[str] | None = None) -> int:
     if args.out is not None:
         args.out.write_text(json.dumps(rec, indent=1) + "\n")
     return 0
+
+
+def gpu_config() -> None:
+    """A GPU's budget on the CPU: ``gpu_budget_mb`` answers what a card of 20 GiB or more
+    does (:data:`~torch_stsdic.core.config.GPU_BUDGET_MB`) wherever the package asks it
+    (a block's frames and targets, the solver's and the FFT search's batches)."""
+    import torch_stsdic.core.gauss_newton as gauss_newton
+    import torch_stsdic.core.initial as initial
+    import torch_stsdic.movie.plan as plan
+    from torch_stsdic.core.config import GPU_BUDGET_MB
+
+    def budget(device, device_mb=None):
+        return GPU_BUDGET_MB
+
+    for mod in (gauss_newton, initial, plan):
+        mod.gpu_budget_mb = budget
 
 
 def in_passes(run_counts: dict[str, int], per_block: list[dict[str, int]]) -> dict[str, int]:
