@@ -430,3 +430,25 @@ def test_the_jump_tests_take_every_frame_at_once_with_one_read():
         med = shared_fit._lower_median(v)
     assert not reads.seen
     assert torch.equal(med, torch.nanmedian(v))
+
+
+def test_moved_subsets_keep_the_points_dtype_and_the_kept_subsets():
+    """A placement's moved centres are whole pixels in the points' dtype whatever the
+    guess's (a neighbour rescue's guesses are float64): float64 centres made the block's
+    later solves run in float64 without the reference cache's subsets (a read a batch)."""
+    from types import SimpleNamespace
+
+    from torch_stsdic.movie.block_placement import BlockPlacement
+
+    pts = torch.tensor([[20.0, 30.0], [40.0, 50.0], [60.0, 10.0]])  # float32, a run's
+    fake = SimpleNamespace(
+        pts=pts, centres=None, kept=None,
+        run=SimpleNamespace(solver=SimpleNamespace(window=SimpleNamespace(half=5))),
+        ref=SimpleNamespace(img=SimpleNamespace(height=80, width=80)))
+    shift = torch.tensor([[2.3, 0.0], [0.0, 0.0], [0.0, -1.2]], dtype=torch.float64)
+    facts, (moved, centres, off) = BlockPlacement._centre_facts(
+        fake, shift, torch.zeros(3, dtype=torch.bool))
+    assert centres.dtype == pts.dtype
+    assert torch.equal(centres, torch.tensor([[23.0, 30.0], [40.0, 50.0], [60.0, 8.0]]))
+    assert moved.tolist() == [True, False, True] and off.tolist() == [True, False, True]
+    assert [int(f) for f in facts] == [2, 1, 2]

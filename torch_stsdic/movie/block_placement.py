@@ -160,7 +160,10 @@ class BlockPlacement:
         keeps them) and (B*N,) bool moved, (B*N, 2) centres, (B*N,) bool off their POIs."""
         run = self.run
         moved = (shift != 0).any(1) & ~out
-        whole = torch.sign(shift) * shift.abs().ceil()  # whole px, away from the border
+        # whole px, away from the border, in the points' dtype (a guess in float64, a
+        # neighbour rescue's, made float64 centres: the block's later solves then ran in
+        # float64 and without the reference cache's subsets, a read a batch)
+        whole = (torch.sign(shift) * shift.abs().ceil()).to(self.pts.dtype)
         # rows moved by an earlier call (the block's carry, then its rescue) keep theirs
         base = self.pts if self.centres is None else self.centres
         centres = torch.where(moved.unsqueeze(1), self.pts + whole, base)
