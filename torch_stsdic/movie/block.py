@@ -204,6 +204,7 @@ class Block(BlockChecks, BlockRescue, BlockPlacement, BlockMotion, BlockWindows)
         self.check_start: torch.Tensor | None = None
         self.gone = torch.zeros(rows, dtype=torch.bool, device=dev)  # predicted outside
         self.identity: torch.Tensor | None = None  # (B*N,) rows known without a solve
+        self.has_identity = False  # whether any is (known on the host: no read)
         #: (B*N, 2) px where each row's subset is centred, or None: at its POI everywhere
         #: (:meth:`keep_outside` moves the subsets of points near the border inside)
         self.centres: torch.Tensor | None = None
@@ -332,8 +333,9 @@ class Block(BlockChecks, BlockRescue, BlockPlacement, BlockMotion, BlockWindows)
             return torch.zeros(self.b * self.n, dtype=torch.bool, device=run.device)
         rows = (self.windows(0) == self.ref.frame).all(1).repeat_interleave(self.n)
         self.identity = rows
-        if self.ref.frame not in self.ks:  # (a target's window at m = 0 is the target:
-            return rows                    # known on the host, no read)
+        self.has_identity = self.ref.frame in self.ks  # (a target's window at m = 0 is
+        if not self.has_identity:                      # the target: no read)
+            return rows
         inside = subset_inside(self.pts, float(run.solver.window.half), self.ref.img.height,
                                self.ref.img.width)
         idx = torch.nonzero(rows & inside).flatten()

@@ -116,10 +116,17 @@ class BlockWindows:
         (m = 0) in one solve and all others in one more: each group's rows alone, their
         counts read first (one host read), or on a GPU each solve over all the ``rows``,
         the others masked (:data:`~torch_stsdic.movie.choices.MASKED_GROUPS`: no read);
-        otherwise one solve per half-width (:func:`rows_by_half_width`, one read)."""
+        otherwise one solve per half-width (:func:`rows_by_half_width`, one read), but a
+        classical run's rows from a guess on a GPU: one solve of every row, the others
+        masked (no read)."""
         run = self.run
         pick = torch.ones_like(rows, dtype=torch.bool) if pick is None else pick
         out = []
+        if init is not None and run.m == 0 and masked_groups(run.device):
+            # one half-width (a classical run's rows from their guesses): every row in one
+            # solve, those not picked masked (no read; their guesses not used)
+            guess = torch.where(pick.unsqueeze(1), init, torch.zeros_like(init))
+            return [(rows, None, self.solve(rows, guess, active=pick), pick)]
         if init is None or run.m == 0 or not self.mixes_windows:
             for mm, sel in rows_by_half_width(m_of, pick, run.m):
                 mk = None if mm == run.m else mm

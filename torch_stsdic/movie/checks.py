@@ -459,7 +459,7 @@ class BlockChecks:
         nb = run.grid_neighbours(self.ref)
         b, n = self.b, self.n
         rows = torch.arange(b * n, device=run.device)
-        if self.identity is not None and bool(self.identity.any()):
+        if self.identity is not None and self.has_identity:
             # the reference frame as its own target (zero motion everywhere) has no outlier
             rows = rows[~self.identity]
             b = rows.numel() // n
