@@ -212,3 +212,42 @@ def test_device_choices_script_times_the_variants_and_finds_the_same_file(tmp_pa
     got = json.loads(rec.read_text())
     assert set(got["summary"]) == {"default", "MASKED_GROUPS=1,EVERY_CANDIDATE=1"}
     assert all(s["identical_to_default"] and s["wall_s"] > 0 for s in got["summary"].values())
+
+
+def test_a_gpu_runs_classical_blocks_give_the_cpu_runs_file(tmp_path, monkeypatch):
+    """A classical run (m = 0, no shared motion) of enough POIs for the pilot points
+    (``block_start.pilot_shift``: 48 a target, 384 POIs at least) on a shaking speckle: with
+    a GPU's choices the pilots, the carried rows and a rescue's rows from their guesses are
+    masked solves (no read of which), with the CPU's each taken by an index; the same file
+    to the bit, and the pilots were solved."""
+    from torch_stsdic.cli import main
+    from torch_stsdic.movie import block_start, choices
+
+    if not native.available():
+        pytest.skip("no native kernels (the two paths agree to the bit on the C++ kernels)")
+    assert main(["synth", "--out", str(tmp_path / "m"), "--size", "220", "--frames", "10",
+                 "--motion", "translation", "--ut", "0.6", "--vt", "-0.4", "--noise", "2",
+                 "--seed", "6", "--threads", "1"]) == 0
+    movie = tmp_path / "m" / "movie.tif"
+    pilot = block_start.pilot_shift
+    pilots = []
+
+    def spy(blk, init, rows):
+        out = pilot(blk, init, rows)
+        pilots.append(None if out is None else int(out.sum()))
+        return out
+
+    monkeypatch.setattr(block_start, "pilot_shift", spy)
+    import torch_stsdic.movie.block as block
+    monkeypatch.setattr(block, "pilot_shift", spy)
+    out = {}
+    for gpu in (False, True):
+        for name, value in choices.gpu_choices().items():
+            monkeypatch.setattr(choices, name, value if gpu else not value)
+        pilots.clear()
+        out[gpu] = _run(tmp_path, f"c{int(gpu)}", movie, ("--step", "9", "--m", "0",
+                                                          "--single-reference"))
+        assert pilots and max(p or 0 for p in pilots) >= 48, pilots  # pilots solved
+    assert out[True].keys() == out[False].keys()
+    for k, v in out[True].items():
+        assert v.tobytes() == out[False][k].tobytes(), k

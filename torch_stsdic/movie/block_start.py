@@ -11,6 +11,7 @@ from typing import Any
 import torch
 
 from torch_stsdic.analysis.result import USABLE
+from torch_stsdic.movie.choices import masked_groups
 from torch_stsdic.movie.frames import window_half_widths
 
 #: a :class:`~torch_stsdic.movie.block.Block` (not imported: the block imports this module)
@@ -40,15 +41,22 @@ def pilot_shift(blk: Block, init: torch.Tensor, rows: torch.Tensor) -> torch.Ten
         return None
     pts = torch.linspace(0, n - 1, PILOT_POINTS, device=dev).round().long()
     cand = (torch.arange(b, device=dev)[:, None] * n + pts[None]).reshape(-1)
-    slot = torch.nonzero(rows[cand]).flatten()  # the pilots that start carried (one read)
-    sel = cand[slot]
-    if sel.numel() < PILOT_MIN:
-        return None
-    sol = blk.solve(sel, init[sel])
-    blk.keep(sel, sol, only_better=False)
+    on = rows[cand]  # (B * PILOT_POINTS,) the pilots that start carried
+    if masked_groups(dev):  # every candidate, those not carried masked (no read; with
+        # fewer than PILOT_MIN no target's shift is taken: the same rows as none at all)
+        slot, sel = torch.arange(cand.numel(), device=dev), cand  # (slot: among cand)
+        sol = blk.solve(sel, torch.where(on.unsqueeze(1), init[sel], 0.0), active=on)
+        blk.keep(sel, sol, only_better=False, where=on)
+    else:
+        slot = torch.nonzero(on).flatten()  # (one read)
+        sel = cand[slot]
+        if sel.numel() < PILOT_MIN:
+            return None
+        sol = blk.solve(sel, init[sel])
+        blk.keep(sel, sol, only_better=False)
     iu, iv = run.names.index("u"), run.names.index("v")
     su, sv = sol.param_names.index("u"), sol.param_names.index("v")
-    good = (sol.status <= USABLE) & (sol.zncc.to(run.dtype) >= run.lost_zncc)
+    good = (sol.status <= USABLE) & (sol.zncc.to(run.dtype) >= run.lost_zncc) & on[slot]
     moved = torch.stack([sol.params[:, su] - init[sel, iu], sol.params[:, sv] - init[sel, iv]],
                         1).to(run.dtype)
     # (B, PILOT_POINTS, 2) each target's pilots' moves, NaN where not trusted or not carried
@@ -58,7 +66,7 @@ def pilot_shift(blk: Block, init: torch.Tensor, rows: torch.Tensor) -> torch.Ten
     enough = torch.isfinite(per[..., 0]).sum(1) >= PILOT_MIN  # (B,)
     shift = torch.where(enough.unsqueeze(1), per.nanmedian(1).values.nan_to_num(0.0), 0.0)
     pilot = torch.zeros_like(rows)
-    pilot[sel] = True
+    pilot[sel] = on[slot]
     rest = rows & ~pilot
     step = shift.repeat_interleave(n, 0)  # (B*N, 2)
     init[:, iu] += torch.where(rest, step[:, 0], 0.0).to(init)
