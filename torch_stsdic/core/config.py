@@ -8,6 +8,8 @@ import warnings
 from dataclasses import dataclass, field
 from typing import Any
 
+import torch
+
 from torch_stsdic.core.shape import ShapeFunction
 from torch_stsdic.core.window import SubsetWindow
 
@@ -177,8 +179,6 @@ def gpu_budget_mb(device: Any, device_mb: float | None = None) -> float | None:
     solve: :data:`GPU_BUDGET_MB` within a tenth of the device's memory (``device_mb`` MiB,
     read from the device where not given) on a CUDA device; None elsewhere (the CPU takes
     ``memory_mb`` as it is: its batches stay in its caches)."""
-    import torch
-
     dev = torch.device(device)
     if dev.type != "cuda":
         return None
@@ -190,6 +190,4 @@ def gpu_budget_mb(device: Any, device_mb: float | None = None) -> float | None:
 
 @functools.cache
 def _cuda_total_mb(index: int) -> float:
-    import torch
-
     return torch.cuda.get_device_properties(index).total_memory / 2**20

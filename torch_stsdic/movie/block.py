@@ -270,6 +270,15 @@ class Block(BlockChecks, BlockRescue, BlockPlacement, BlockMotion, BlockWindows)
             on_grid=on_grid, has_time=m_eff > 0, all_inside=inside and self.centres_inside,
             kept=self.kept, frame_count=count, active=active)
 
+    def solve_masked(self, idx: torch.Tensor, init: torch.Tensor, active: torch.Tensor,
+                     m: int | None = None) -> WindowSolution:
+        """Rows ``idx`` (R,) solved from ``init`` (R, P) where ``active`` (R,) bool, the
+        others masked (:meth:`solve`'s ``active``: no read of which; their guesses, NaN or
+        not, are not used and go in as 0). A caller's data-chosen rows of a fixed set, on a
+        GPU's choices (:data:`~torch_stsdic.movie.choices.MASKED_GROUPS`)."""
+        return self.solve(idx, torch.where(active.unsqueeze(1), init, 0.0), m=m,
+                          active=active)
+
     def keep(self, idx: torch.Tensor, sol: WindowSolution, only_better: bool,
              m: int | torch.Tensor | None = None, where: torch.Tensor | None = None) -> None:
         """Store ``sol`` (solved with half-window ``m``, default the run's; (R,): each
@@ -523,9 +532,8 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
             blk.keep(r, sol, only_better=False, m=m, where=where)
     elif init is not None and masked_groups(dev):  # every row, those not carried masked
         every, pick = torch.arange(rows, device=dev), carried if pilot is None else \
-            carried & ~pilot                                  # (no read of which)
-        blk.keep(every, blk.solve(every, init.nan_to_num(0.0), active=pick),  # (the rows
-                 only_better=False, where=pick)         # not carried: no guess, masked)
+            carried & ~pilot
+        blk.keep(every, blk.solve_masked(every, init, pick), only_better=False, where=pick)
     elif init is not None:
         idx_c = torch.nonzero(carried if pilot is None else carried & ~pilot).flatten()
         if idx_c.numel():

@@ -45,7 +45,7 @@ def pilot_shift(blk: Block, init: torch.Tensor, rows: torch.Tensor) -> torch.Ten
     if masked_groups(dev):  # every candidate, those not carried masked (no read; with
         # fewer than PILOT_MIN no target's shift is taken: the same rows as none at all)
         slot, sel = torch.arange(cand.numel(), device=dev), cand  # (slot: among cand)
-        sol = blk.solve(sel, torch.where(on.unsqueeze(1), init[sel], 0.0), active=on)
+        sol = blk.solve_masked(sel, init[sel], on)
         blk.keep(sel, sol, only_better=False, where=on)
     else:
         slot = torch.nonzero(on).flatten()  # (one read)

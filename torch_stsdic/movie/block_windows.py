@@ -124,9 +124,8 @@ class BlockWindows:
         out = []
         if init is not None and run.m == 0 and masked_groups(run.device):
             # one half-width (a classical run's rows from their guesses): every row in one
-            # solve, those not picked masked (no read; their guesses not used)
-            guess = torch.where(pick.unsqueeze(1), init, torch.zeros_like(init))
-            return [(rows, None, self.solve(rows, guess, active=pick), pick)]
+            # solve, those not picked masked (no read)
+            return [(rows, None, self.solve_masked(rows, init, pick), pick)]
         if init is None or run.m == 0 or not self.mixes_windows:
             for mm, sel in rows_by_half_width(m_of, pick, run.m):
                 mk = None if mm == run.m else mm

@@ -422,8 +422,8 @@ class BlockChecks:
             go = lost & torch.isfinite(guess).all(1)
             if masked:
                 every = torch.arange(go.numel(), device=go.device)
-                self.keep(every, self.solve(every, guess.nan_to_num(0.0), m=0, active=go),
-                          only_better=True, m=0, where=go)
+                self.keep(every, self.solve_masked(every, guess, go, m=0), only_better=True,
+                          m=0, where=go)
             else:
                 r = torch.nonzero(go).flatten()
                 if r.numel():
