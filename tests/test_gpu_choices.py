@@ -22,6 +22,23 @@ def _run(tmp_path, name: str, movie, args=()) -> dict:
         return {k: f[k][()] for k in f if isinstance(f[k], h5py.Dataset)}
 
 
+def _take_choices(monkeypatch, gpu: bool) -> None:
+    """Every choice of ``torch_stsdic.movie.choices`` as a GPU run (``gpu``) or a CPU run
+    makes it."""
+    from torch_stsdic.movie import choices
+
+    for name, value in choices.gpu_choices().items():
+        monkeypatch.setattr(choices, name, value if gpu else not value)
+
+
+def _same_files(out: dict) -> None:
+    """The two runs' files (``out[True]`` a GPU's choices, ``out[False]`` a CPU's) hold the
+    same datasets, equal to the bit."""
+    assert out[True].keys() == out[False].keys()
+    for k, v in out[True].items():
+        assert v.tobytes() == out[False][k].tobytes(), k
+
+
 @pytest.mark.parametrize("args", [(), ("--m", "3")], ids=["chosen-windows", "m3"])
 def test_a_gpu_runs_choices_give_the_cpu_runs_file(tmp_path, monkeypatch, args):
     """A speckle moving right by 1.5 px a frame out of a 160 px view: near the border the
@@ -31,7 +48,6 @@ def test_a_gpu_runs_choices_give_the_cpu_runs_file(tmp_path, monkeypatch, args):
     alone; the files are the same to the bit."""
     from torch_stsdic.cli import main
     from torch_stsdic.core.solver import SubsetSolver
-    from torch_stsdic.movie import choices
 
     if not native.available():
         pytest.skip("no native kernels (the two paths agree to the bit on the C++ kernels)")
@@ -50,8 +66,7 @@ def test_a_gpu_runs_choices_give_the_cpu_runs_file(tmp_path, monkeypatch, args):
     monkeypatch.setattr(SubsetSolver, "solve", spy)
     out = {}
     for gpu in (False, True):
-        for name, value in choices.gpu_choices().items():
-            monkeypatch.setattr(choices, name, value if gpu else not value)
+        _take_choices(monkeypatch, gpu)
         masked.clear()
         out[gpu] = _run(tmp_path, f"g{int(gpu)}", movie, args)
         if gpu:
@@ -61,9 +76,7 @@ def test_a_gpu_runs_choices_give_the_cpu_runs_file(tmp_path, monkeypatch, args):
     st, m = out[True]["status"], out[True]["m"]
     assert (st == 3).sum() > 50  # OUTSIDE: the points that left the view
     assert ((m > 0) & (m < m.max())).sum() > 20  # windows shortened
-    assert out[True].keys() == out[False].keys()
-    for k, v in out[True].items():
-        assert v.tobytes() == out[False][k].tobytes(), k
+    _same_files(out)
 
 
 def test_a_gpu_runs_model_check_masks_its_rows_and_gives_the_cpu_runs_file(tmp_path,
@@ -76,7 +89,7 @@ def test_a_gpu_runs_model_check_masks_its_rows_and_gives_the_cpu_runs_file(tmp_p
     from test_mixed_windows import _oscillating_movie  # (tests/ on the path)
 
     from torch_stsdic.core.solver import SubsetSolver
-    from torch_stsdic.movie import checks, choices
+    from torch_stsdic.movie import checks
 
     if not native.available():
         pytest.skip("no native kernels (the two paths agree to the bit on the C++ kernels)")
@@ -103,8 +116,7 @@ def test_a_gpu_runs_model_check_masks_its_rows_and_gives_the_cpu_runs_file(tmp_p
     monkeypatch.setattr(checks.BlockChecks, "check_model", spy_check)
     out, solves = {}, {}
     for gpu in (False, True):
-        for name, value in choices.gpu_choices().items():
-            monkeypatch.setattr(choices, name, value if gpu else not value)
+        _take_choices(monkeypatch, gpu)
         masked.clear()
         counted.clear()
         out[gpu] = _run(tmp_path, f"o{int(gpu)}", tmp_path / "osc.tif", ("--step", "8"))
@@ -113,8 +125,7 @@ def test_a_gpu_runs_model_check_masks_its_rows_and_gives_the_cpu_runs_file(tmp_p
         assert shortened >= 500 and classical >= 5, counted  # the check's steps worked
     assert solves[True] and all(solves[True])  # every solve of the check masked
     assert not any(solves[False])
-    for k, v in out[True].items():
-        assert v.tobytes() == out[False][k].tobytes(), k
+    _same_files(out)
 
 
 def test_a_gpu_runs_classical_rescue_of_lost_rows_gives_the_cpu_runs_file(tmp_path,
@@ -127,7 +138,7 @@ def test_a_gpu_runs_classical_rescue_of_lost_rows_gives_the_cpu_runs_file(tmp_pa
     import tifffile
 
     from torch_stsdic.cli import main
-    from torch_stsdic.movie import checks, choices
+    from torch_stsdic.movie import checks
 
     if not native.available():
         pytest.skip("no native kernels (the two paths agree to the bit on the C++ kernels)")
@@ -149,14 +160,12 @@ def test_a_gpu_runs_classical_rescue_of_lost_rows_gives_the_cpu_runs_file(tmp_pa
     monkeypatch.setattr(checks.BlockChecks, "rescue_classical", spy)
     out = {}
     for gpu in (False, True):
-        for name, value in choices.gpu_choices().items():
-            monkeypatch.setattr(choices, name, value if gpu else not value)
+        _take_choices(monkeypatch, gpu)
         tried.clear()
         out[gpu] = _run(tmp_path, f"f{int(gpu)}", tmp_path / "flash.tif")
         assert sum(tried) >= 50, tried  # lost rows with a carried guess, tried classically
     assert (out[True]["status"] == 6).sum() >= 50  # POOR_FIT under the flash
-    for k, v in out[True].items():
-        assert v.tobytes() == out[False][k].tobytes(), k
+    _same_files(out)
 
 
 def test_choices_are_named_in_the_environment_and_a_wrong_entry_is_told(monkeypatch):
@@ -221,7 +230,7 @@ def test_a_gpu_runs_classical_blocks_give_the_cpu_runs_file(tmp_path, monkeypatc
     masked solves (no read of which), with the CPU's each taken by an index; the same file
     to the bit, and the pilots were solved."""
     from torch_stsdic.cli import main
-    from torch_stsdic.movie import block_start, choices
+    from torch_stsdic.movie import block_start
 
     if not native.available():
         pytest.skip("no native kernels (the two paths agree to the bit on the C++ kernels)")
@@ -242,12 +251,9 @@ def test_a_gpu_runs_classical_blocks_give_the_cpu_runs_file(tmp_path, monkeypatc
     monkeypatch.setattr(block, "pilot_shift", spy)
     out = {}
     for gpu in (False, True):
-        for name, value in choices.gpu_choices().items():
-            monkeypatch.setattr(choices, name, value if gpu else not value)
+        _take_choices(monkeypatch, gpu)
         pilots.clear()
         out[gpu] = _run(tmp_path, f"c{int(gpu)}", movie, ("--step", "9", "--m", "0",
                                                           "--single-reference"))
         assert pilots and max(p or 0 for p in pilots) >= 48, pilots  # pilots solved
-    assert out[True].keys() == out[False].keys()
-    for k, v in out[True].items():
-        assert v.tobytes() == out[False][k].tobytes(), k
+    _same_files(out)
