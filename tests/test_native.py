@@ -502,6 +502,7 @@ def test_wrappers_pass_exactly_the_declared_parameters(monkeypatch):
         bins = [torch.zeros(k, dtype=dtype) for k in (7, 14, 14)]
         native.splat_add(*bins, vals, vals, vals[:, 0].contiguous(), torch.tensor([1, 0]),
                          torch.tensor([0, 1]), torch.arange(10).view(2, 5) % 7)
+        native.splat_finish(*[torch.zeros(7, dtype=dtype) for _ in range(4)], 2.0)
     declared = native.kernels()
     assert set(seen) == set(declared)
     for name, calls in seen.items():
@@ -1177,3 +1178,26 @@ def test_splat_add_adds_in_the_order_of_scatter_add():
     assert not torch.equal(other, want[0])
     with pytest.raises(ValueError, match="poi within"):
         native.splat_add(*got, a, wt, rs, poi + n_poi, frame, local)
+
+
+def test_splat_finish_folds_a_frame_into_the_sums_as_torch_does():
+    """One frame's sums folded into the template's in C++ (``native.splat_finish``) are the
+    torch lines' numbers to the last bit (``shares.div_(weight).mul_(weights)``, then both
+    added: each operation rounded, none fused, values of mixed magnitude), split over the
+    threads or not, and the frame's sums are left as zeros for the next frame; tensors of
+    other sizes are refused."""
+    g = torch.Generator().manual_seed(6)
+    n_px = 50_000  # enough pixels for the rows to be split over threads
+    sums_w, sums_n, pf_w, pf_n = (torch.randn(n_px, generator=g, dtype=torch.float64)
+                                  * 10.0 ** torch.randint(-6, 6, (n_px,), generator=g)
+                                  for _ in range(4))
+    weight = 0.37
+    want_w, want_n = sums_w.clone(), sums_n.clone()
+    shares = pf_n.clone().div_(torch.tensor([weight], dtype=torch.float64)).mul_(pf_w)
+    want_w += pf_w
+    want_n += shares
+    native.splat_finish(sums_w, sums_n, pf_w, pf_n, weight)
+    assert torch.equal(sums_w, want_w) and torch.equal(sums_n, want_n)
+    assert not pf_w.any() and not pf_n.any()
+    with pytest.raises(ValueError, match="splat_finish"):
+        native.splat_finish(sums_w, sums_n, pf_w[:-1], pf_n, weight)

@@ -110,6 +110,8 @@ class SyncCounter(TorchDispatchMode):
         self._saved: dict[str, object] = {}
         #: the places of the run's own blocks only (filled by :func:`count_run`)
         self.block_where: collections.Counter[str] = collections.Counter()
+        #: each of the run's blocks' places outside the CPU kernels' checks (``where``)
+        self.each_block_where: list[dict[str, int]] = []
         #: the launch-like operations of the run's blocks by function (``ops_where``)
         self.op_where: collections.Counter[str] | None = (
             collections.Counter() if ops_where else None)
@@ -279,6 +281,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"where (the run's {len(per_block)} blocks only, top {args.where}):")
         for place, n in counter.block_where.most_common(args.where):
             print(f"  {n:>7d}  {place}")
+        rec["where_each_block_outside_cpu_kernels"] = counter.each_block_where
+        print("where, block by block, outside the CPU kernels' checks:")
+        for i, places in enumerate(counter.each_block_where):
+            print(f"  block {i}: " + ", ".join(f"{n} {p}" for p, n in places.items()))
     if counter.op_where is not None:
         rec["ops_where_blocks"] = dict(counter.op_where.most_common(args.ops_where))
         print(f"launch-like operations by function (the run's {len(per_block)} blocks, "
@@ -358,7 +364,11 @@ def count_run(run_args: list[str], where: bool = False, ops_where: bool = False
             before, where_before = open_block.pop()
             per_block.append(dict(counter.counts - before))
             if counter.where is not None:
-                counter.block_where.update(counter.where - where_before)
+                here = counter.where - where_before
+                counter.block_where.update(here)
+                counter.each_block_where.append(
+                    {p: n for p, n in here.most_common()
+                     if not (p.startswith(NATIVE) or p.endswith(NATIVE_CALLERS))})
 
     def counted_block(*a, **k):
         if depth["runs"] == 1:  # the run's own: counted up to the next block's start (its

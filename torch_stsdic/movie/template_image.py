@@ -82,7 +82,8 @@ def splat(acc: torch.Tensor, img: BSplineImage, planes: torch.Tensor, ref: torch
           pts: torch.Tensor, warp: torch.Tensor, ok: torch.Tensor, half: int,
           weight: torch.Tensor, level: torch.Tensor,
           cover: tuple[torch.Tensor, torch.Tensor] | None = None,
-          ref_stats: tuple[torch.Tensor, torch.Tensor] | None = None) -> None:
+          ref_stats: tuple[torch.Tensor, torch.Tensor] | None = None,
+          scratch: torch.Tensor | None = None) -> None:
     """Add G frames, planes ``planes`` (G,) of the stack ``img``, each mapped back by each
     trusted POI's map (``warp``: (G, N, 12), the local fits' of the series reference;
     ``ok``: (G, N)) over its window of half-width ``half`` px, to ``acc``: weighted
@@ -106,7 +107,9 @@ def splat(acc: torch.Tensor, img: BSplineImage, planes: torch.Tensor, ref: torch
     the C pixels the windows cover, ``cover``: :func:`window_pixels` of ``pts``; the
     reference's statistics over whole windows ``ref_stats``:
     :func:`reference_window_stats`; each made here where not given)
-    before the frames are added up."""
+    before the frames are added up. ``scratch``: (2, C) float64 zeros for one frame's sums,
+    given back as zeros (a caller splatting frame after frame reuses it; the C++ path of one
+    frame, else unused)."""
     h, w = img.height, img.width
     g_count, n = ok.shape
     dev = acc.device
@@ -125,10 +128,13 @@ def splat(acc: torch.Tensor, img: BSplineImage, planes: torch.Tensor, ref: torch
     # cover every pixel: then the covered pixels, sorted, are the image's, the same layout)
     on_cover = acc.shape[1] == n_px
     sums = acc if on_cover else torch.zeros(3, n_px, dtype=torch.float64, device=dev)
-    per_frame = torch.zeros(2, g_count * n_px, dtype=torch.float64, device=dev)
-    chunk = max(1, _CHUNK_SAMPLES // dx.numel())
     ka = img.kernel_args()
     native = dispatch.splat(ka, warp) == dispatch.NATIVE
+    reuse = (native and g_count == 1 and scratch is not None
+             and tuple(scratch.shape) == (2, n_px))
+    per_frame = (scratch if reuse else
+                 torch.zeros(2, g_count * n_px, dtype=torch.float64, device=dev))
+    chunk = max(1, _CHUNK_SAMPLES // dx.numel())
     for s0 in range(0, sel.numel(), chunk):
         f, i = sel[s0: s0 + chunk] // n, sel[s0: s0 + chunk] % n
         c = pts[i].round()
@@ -187,11 +193,14 @@ def splat(acc: torch.Tensor, img: BSplineImage, planes: torch.Tensor, ref: torch
         scatter_add_(per_frame[0], at, wt)
         scatter_add_(per_frame[1], at, share)
     weights, shares = per_frame.view(2, g_count, n_px).unbind(0)
-    shares.div_(weight[:, None]).mul_(weights)  # each frame's share of the noise
-    if g_count == 1:
+    if native and g_count == 1:  # the lines below in one pass, per_frame left as zeros
+        native_ops.splat_finish(sums[1], sums[2], weights[0], shares[0], float(weight[0]))
+    elif g_count == 1:
+        shares.div_(weight[:, None]).mul_(weights)  # the frame's share of the noise
         sums[1] += weights[0]
         sums[2] += shares[0]
     else:
+        shares.div_(weight[:, None]).mul_(weights)  # each frame's share of the noise
         sums[1] += weights.sum(0)
         sums[2] += shares.sum(0)
     if not on_cover:
@@ -272,6 +281,7 @@ def template_image(plan: RunPlan, warps: torch.Tensor, oks: torch.Tensor, frames
     sig = torch.as_tensor(sigmas, dtype=torch.float64).to(dev)  # (F,) one copy
     # the sums over the covered pixels, on the run's device, mapped to the image at the end
     on_cover = torch.zeros(3, cover[0].numel(), dtype=torch.float64, device=dev)
+    scratch = torch.zeros(2, cover[0].numel(), dtype=torch.float64, device=dev)  # (reused)
     for group in frame_groups(len(frames), cover[0].numel(), batched=dev.type != "cpu"):
         img, planes, raw = _group_frames(cache, [frames[j] for j in group], dev,
                                          pixels=any(frames[j] not in levels for j in group))
@@ -283,7 +293,7 @@ def template_image(plan: RunPlan, warps: torch.Tensor, oks: torch.Tensor, frames
         g_norm = sig[g] / level
         norm.append(g_norm)
         splat(on_cover, img, planes, ref, pts, warps[g].to(dev), oks[g].to(dev),
-              half, 1.0 / g_norm ** 2, level, cover, ref_stats)
+              half, 1.0 / g_norm ** 2, level, cover, ref_stats, scratch)
     norm = torch.cat(norm).tolist()
     # what follows is per covered pixel, once (the sums' pixels, ascending flat indices)
     px, sums = cover[0].cpu(), on_cover.cpu()

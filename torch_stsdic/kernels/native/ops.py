@@ -15,7 +15,7 @@ from torch_stsdic.kernels.native.rows import run_rows, run_shared, threads
 
 __all__ = ["sample", "subsets", "windows", "ic_rhs", "ic_solve", "gram", "spd_inverse", "param_std",
            "nanmedian", "prefilter", "neighbour_own_gradient", "neighbour_test", "splat",
-           "splat_add"]
+           "splat_add", "splat_finish"]
 
 
 def _geo(img_args: tuple, order: int) -> dict:
@@ -521,3 +521,19 @@ def splat_add(sums: torch.Tensor, pf_w: torch.Tensor, pf_n: torch.Tensor, a: tor
     del keep
     if rc:
         raise RuntimeError(f"sts_splat_add returned {rc}")
+
+
+def splat_finish(sums_w: torch.Tensor, sums_n: torch.Tensor, pf_w: torch.Tensor,
+                 pf_n: torch.Tensor, weight: float) -> None:
+    """One frame's sums over the C covered pixels (``pf_w``, ``pf_n`` (C,): :func:`splat_add`'s
+    with one frame) folded into the template's, in place: ``sums_w`` += pf_w, ``sums_n`` +=
+    pf_n / ``weight`` * pf_w (the frame's noise share; the numbers of torch's ``div_``,
+    ``mul_``, ``add_``), and ``pf_w``, ``pf_n`` set to 0 (ready for the next frame). One pass
+    over the pixels, split over the threads (each pixel on its own: the same numbers)."""
+    n_px = sums_w.numel()
+    _require("splat_finish", sums_w.dtype in (torch.float32, torch.float64)
+             and all(t.dtype == sums_w.dtype and t.is_contiguous() and t.numel() == n_px
+                     for t in (sums_w, sums_n, pf_w, pf_n)),
+             "sums_w, sums_n, pf_w, pf_n (C,) contiguous, one float dtype")
+    run_rows(kernel("sts_splat_finish", sums_w.dtype), n_px, 8,
+             dict(wf=float(weight), pf_w=pf_w, pf_n=pf_n, sums_w=sums_w, sums_n=sums_n))
