@@ -213,6 +213,18 @@ MUTATIONS: tuple[Mutation, ...] = (
         ("test_series.py",),
         "a GPU solves in batches of memory_mb's 256 MiB, not its own budget"),
     Mutation(
+        "wrong-guess-not-caught", "block guesses", "torch_stsdic/movie/block_guess.py",
+        "        if wrong:\n            raise GuessWrong(wrong)\n",
+        "        if wrong and False:\n            raise GuessWrong(wrong)\n",
+        ("test_block_guess.py",),
+        "a block keeps a guessed answer \"nothing to do\" that its numbers contradict"),
+    Mutation(
+        "wrong-rescue-guess-keeps-its-state", "block guesses",
+        "torch_stsdic/movie/block_guess.py",
+        "            vars(self).update(state)\n", "            pass\n",
+        ("test_block_guess.py",),
+        "after a wrong guess of a rescue, the block goes on from what the wrong attempt left"),
+    Mutation(
         "rescued-row-window-beyond-cap", "placement", "torch_stsdic/movie/block_placement.py",
         "            half = torch.minimum(half, self.window_cap[idx])\n",
         "            half = half\n",
@@ -273,8 +285,8 @@ MUTATIONS: tuple[Mutation, ...] = (
         "row's last passing window, not the longest"),
     Mutation(
         "rescue-skips-on-stale-facts", "rescue", "torch_stsdic/movie/rescue.py",
-        "            if from_nb:\n                facts = self._facts(fft_tried).tolist()",
-        "            if False:\n                facts = self._facts(fft_tried).tolist()",
+        "            if from_nb:\n                facts = self.read(self._facts(fft_tried))",
+        "            if False:\n                facts = self.read(self._facts(fft_tried))",
         ("test_rescue.py", "test_series.py"),
         "the rescue's FFT steps sized by the facts read before the neighbours' step changed "
         "the rows"),

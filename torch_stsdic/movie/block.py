@@ -35,6 +35,7 @@ from torch_stsdic.core.solver import (
     subset_inside,
 )
 from torch_stsdic.core.status import Status
+from torch_stsdic.movie.block_guess import BlockGuesses, ReadGuesses, solve_guessing
 from torch_stsdic.movie.block_motion import BlockMotion
 from torch_stsdic.movie.block_placement import BlockPlacement
 from torch_stsdic.movie.block_start import pilot_shift, window_shake
@@ -103,6 +104,9 @@ class BlockContext:
     #: the blocks' counters on the device (name -> 0-d int64), summed block by block and
     #: added to :attr:`stats` by :meth:`read_counts` (one host read a run, not a block)
     pending: dict[str, torch.Tensor] = field(default_factory=dict)
+    #: the blocks' answers "nothing to do" a next block may guess (a GPU's choice:
+    #: :mod:`~torch_stsdic.movie.block_guess`)
+    guesses: ReadGuesses = field(default_factory=ReadGuesses)
     _checker: SubsetSolver | None = None
     _on_grid: tuple[torch.Tensor, bool, bool] | None = None  # (points, whole px, inside)
 
@@ -161,7 +165,8 @@ class BlockContext:
 
 
 
-class Block(BlockChecks, BlockRescue, BlockPlacement, BlockMotion, BlockWindows):
+class Block(BlockChecks, BlockRescue, BlockPlacement, BlockMotion, BlockWindows,
+            BlockGuesses):
     """The rows (target frame x POI, row = target * N + point) of one block being solved:
     parameters relative to the current reference, ZNCC, status, iterations."""
 
@@ -221,6 +226,7 @@ class Block(BlockChecks, BlockRescue, BlockPlacement, BlockMotion, BlockWindows)
         #: every row's subset (at :attr:`centres` where moved) lies inside the reference
         #: image: the solves need not find the others (made with the centres)
         self.centres_inside = True
+        self.deferred = []  # the guessed answers not read yet (:class:`BlockGuesses`)
         self._init_motion()
         # the POIs' reference subsets kept for every solve of the block (one host read)
         self.kept = ref.kept_by(run.solver, inside=all(run.point_facts(ref)))
@@ -471,7 +477,7 @@ def _carried_start(run: BlockContext, blk: Block, ref: Reference, carry: Carry,
         carried |= has
         count("first_guess_rows", has.sum())
     last = {nm: v.repeat(b) for nm, v in to_relative(dict(carry.vals), ref.acc).items()}
-    carried &= ~blk.keep_outside((init, blk.init_rows(last)), carried)
+    carried &= ~blk.keep_outside((init, blk.init_rows(last)), carried, guess=True)
     if carry.vel_known is not None:  # without a velocity the carry predicts only the
         later = torch.arange(b, device=dev).repeat_interleave(n) > 0  # first target:
         keep = ~later | carry.vel_known.repeat(b)  # the later ones start from it
@@ -482,11 +488,42 @@ def _carried_start(run: BlockContext, blk: Block, ref: Reference, carry: Carry,
 def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry | None):
     """Solve all POIs of target frames ``ks`` (B,) in one batched solve, then rescue lost
     rows (from the previous target of the block, their neighbours, then by FFT
-    cross-correlation) and check them (``run.checks``).
+    cross-correlation) and check them (``run.checks``); on a GPU the answers "nothing to
+    do" of the last block guessed, not read (:func:`~torch_stsdic.movie.block_guess.
+    solve_guessing`: the block solved again where one was wrong).
 
     Returns a dict of (B, N) tensors: total parameters by name, "zncc", "status",
     "iterations"."""
+    return solve_guessing(run, lambda guessing: _solve_block(run, ks, ref, carry, guessing))
+
+
+def _rescue_and_check(run: BlockContext, blk: Block, ks: list[int], carry: Carry | None,
+                      carried: torch.Tensor, guess: torch.Tensor | None,
+                      count: Callable[[str, torch.Tensor | int], None]) -> None:
+    """The block's lost rows rescued and every row checked (:func:`solve_block`, after its
+    solve; ``carried``: the rows started from ``carry``, ``guess`` their guesses), its
+    guessed answers settled; ``count``: the block's counter."""
+    from_prev, by_fft, redone = blk.rescue(carry, carried)
+    run.stats["rescued_rows"] = run.stats.get("rescued_rows", 0) + from_prev
+    run.stats["fft_rows"] += by_fft
+    count("redone_rows", redone)
+    # the identity cannot fail (rows are the identity only where m = 0: no read otherwise)
+    if run.checks and not (run.m == 0 and all(k == blk.ref.frame for k in ks)):
+        shortened, classical = blk.check_model()
+        if run.m > 0:
+            classical = classical + blk.rescue_classical(guess, carry)
+        count("shortened_rows", shortened)  # read with the other counters
+        count("classical_rows", classical)
+        count("poor_fit_rows", blk.check_fit(carry))
+        count("inconsistent_rows", blk.check_neighbours())
+    blk.settle_guesses()  # (its one read where every answer was guessed)
+
+
+def _solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry | None,
+                 guessing: bool):
+    """:func:`solve_block`, its reads guessed where ``guessing``."""
     blk = Block(run, ks, ref)
+    blk.guessing = guessing
     b, n, dev = blk.b, blk.n, run.device
     rows = b * n
     blk.window_cap = _window_cap(run, blk)
@@ -538,19 +575,8 @@ def solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry |
         idx_c = torch.nonzero(carried if pilot is None else carried & ~pilot).flatten()
         if idx_c.numel():
             blk.keep(idx_c, blk.solve(idx_c, init[idx_c]), only_better=False)
-    from_prev, by_fft, redone = blk.rescue(carry, carried)
-    run.stats["rescued_rows"] = run.stats.get("rescued_rows", 0) + from_prev
-    run.stats["fft_rows"] += by_fft
-    count("redone_rows", redone)
-    # the identity cannot fail (rows are the identity only where m = 0: no read otherwise)
-    if run.checks and not (run.m == 0 and all(k == ref.frame for k in ks)):
-        shortened, classical = blk.check_model()
-        if run.m > 0:
-            classical = classical + blk.rescue_classical(guess, carry)
-        count("shortened_rows", shortened)  # read with the other counters
-        count("classical_rows", classical)
-        count("poor_fit_rows", blk.check_fit(carry))
-        count("inconsistent_rows", blk.check_neighbours())
+    blk.from_here(counts, lambda: _rescue_and_check(run, blk, ks, carry, carried, guess,
+                                                    count))
     for name, v in counts.items():  # kept on the device: read once, at the run's end
         v = v.reshape(()).to(torch.int64)
         run.pending[name] = run.pending[name] + v if name in run.pending else v

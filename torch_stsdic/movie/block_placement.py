@@ -12,6 +12,7 @@ import torch
 
 from torch_stsdic.core.solver import subset_inside
 from torch_stsdic.core.status import Status
+from torch_stsdic.movie.block_guess import PLACEMENT
 from torch_stsdic.movie.choices import masked_groups
 from torch_stsdic.movie.frames import true_rows
 
@@ -39,7 +40,7 @@ class BlockPlacement:
     ``window_m``, the reference subsets it keeps and its windows' motion)."""
 
     def keep_outside(self, inits: Sequence[torch.Tensor], carried: torch.Tensor,
-                     mark: bool = True) -> torch.Tensor:
+                     mark: bool = True, guess: bool = False) -> torch.Tensor:
         """Carried rows near the image border. At every one of the predictions ``inits``
         ((B*N, P) relative parameters: the carry moved on by its velocity, and where it was
         last), over every frame of the row's window, the POI's predicted position is
@@ -59,11 +60,20 @@ class BlockPlacement:
           point found some other peak inside the image, at low ZNCC, again in every block).
 
         Returns the (B*N,) bool mask of the OUTSIDE rows; without ``mark`` they are only
-        returned, not marked (the caller decides which of them to give up on)."""
+        returned, not marked (the caller decides which of them to give up on). ``guess``:
+        where the last block's carried rows moved no subset, none is taken to move here,
+        unread (:meth:`~torch_stsdic.movie.block_guess.BlockGuesses.may_guess`; the
+        placement made at once only)."""
         run = self.run
         if self.places_at_once:  # one read, of the facts of the placement made at once
             pending = self.place_outside(inits, carried)
-            return self.settle_outside(pending, pending.facts.tolist(), mark)
+            if guess and self.may_guess(PLACEMENT):  # (the rows moved: read later)
+                self.defer(PLACEMENT, pending.facts[0])
+                return self.settle_outside(pending, [0, 1, 0], mark)
+            facts = self.read(pending.facts)
+            if guess:
+                self.heard(PLACEMENT, facts[0] == 0)
+            return self.settle_outside(pending, facts, mark)
         shift, left = self._run_window_fit(inits, carried)
         # one read: how many rows the run's window alone leaves (none where m = 0: no
         # shorter window), with the centres' facts as they stand (read again only where

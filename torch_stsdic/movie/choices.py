@@ -16,9 +16,9 @@ import warnings
 
 import torch
 
-__all__ = ["EVERY_CANDIDATE", "UNTIL_DONE", "MASKED_GROUPS", "MASKED_CHECK", "ENV",
-           "every_candidate", "until_done", "masked_groups", "masked_check", "gpu_choices",
-           "from_environment"]
+__all__ = ["EVERY_CANDIDATE", "UNTIL_DONE", "MASKED_GROUPS", "MASKED_CHECK", "GUESS_READS",
+           "ENV", "every_candidate", "until_done", "masked_groups", "masked_check",
+           "guess_reads", "gpu_choices", "from_environment"]
 
 #: The model check's shorter windows (where the solver mixes window lengths): every candidate
 #: window of every failing row in one solve, each row's first that passes kept (True), or in
@@ -60,6 +60,17 @@ MASKED_GROUPS: bool | None = None
 #: hourglass about 7x the rows its classical solve needs, in more batches): launches a GPU
 #: pays for instead of the reads.
 MASKED_CHECK: bool | None = None
+
+
+#: A block's questions whose answer was "nothing to do" in the last block that asked them
+#: (its carried rows' placement moved no subset, no row was lost after its solve;
+#: :mod:`~torch_stsdic.movie.block_guess`): answered so unread, the numbers that tell read
+#: with the block's next read (the classical rescue's, after the model check) or at its end,
+#: a wrong guess solving the block again reading every answer (True), or each read where it
+#: is asked (False); None: guessed on a GPU (a clean movie's block then reads once, not
+#: three times), read on the CPU (which reads for free and would pay for a block solved
+#: again).
+GUESS_READS: bool | None = None
 
 
 #: the environment variable that sets choices at import (``NAME=0|1`` by commas)
@@ -112,10 +123,16 @@ def masked_check(device: torch.device) -> bool:
     return _choose(MASKED_CHECK, device, on_gpu=True)
 
 
+def guess_reads(device: torch.device) -> bool:
+    """Whether a block guesses the answers "nothing to do" of the last block on ``device``
+    (:data:`GUESS_READS`)."""
+    return _choose(GUESS_READS, device, on_gpu=True)
+
+
 def gpu_choices() -> dict[str, bool]:
     """Every choice as a GPU run makes it (by name), for a caller to set on the CPU."""
     return {"EVERY_CANDIDATE": True, "UNTIL_DONE": False, "MASKED_GROUPS": True,
-            "MASKED_CHECK": True}
+            "MASKED_CHECK": True, "GUESS_READS": True}
 
 
 from_environment()

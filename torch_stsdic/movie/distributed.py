@@ -248,7 +248,7 @@ def _accept(job: _Job, result: dict[str, Any]) -> int:
         if k in ("frames_read", "prefiltered", "fft_rows", "redone_rows", "blocks",
                  "off_centre_rows", "first_guess_rows", "rescued_rows", "neighbour_rows",
                  "shortened_rows", "classical_rows", "poor_fit_rows", "inconsistent_rows",
-                 "neighbour_rescued_rows"):
+                 "neighbour_rescued_rows", "blocks_guessed_wrong"):
             job.info[k] = job.info.get(k, 0) + v
         elif k == "max_cached_frames":
             job.info[k] = max(job.info.get(k, 0), v)

@@ -12,6 +12,7 @@ import torch
 
 from torch_stsdic.analysis.result import USABLE
 from torch_stsdic.core.status import Status
+from torch_stsdic.movie.block_guess import RESCUE
 from torch_stsdic.movie.block_placement import Placement
 from torch_stsdic.movie.carry import Carry, neighbour_guess
 from torch_stsdic.movie.frames import true_rows
@@ -50,7 +51,7 @@ class BlockRescue:
         if facts[0]:  # lost rows
             from_nb = self._rescue_from_neighbours(m, facts[2:])
             if from_nb:
-                facts = self._facts(fft_tried).tolist()  # one read
+                facts = self.read(self._facts(fft_tried))  # one read
             for first in (True, False):
                 n_try = facts[1] if first else facts[0]  # (read with the rows as they stand)
                 if not n_try:
@@ -153,14 +154,24 @@ class BlockRescue:
         the rows as the waves leave them (:meth:`_facts` with ``fft_tried``, read with the
         last wave's numbers: one read a wave)."""
         run, n, b = self.run, self.n, self.b
+        # the block's rescue may be guessed; the classical rescue's first read (after the
+        # model check) is the block's one read, the guesses' numbers with it
+        guessed = m is None and self.may_guess(RESCUE)
         if b < 2:
-            return 0, self._facts(fft_tried).tolist()  # one read
+            facts = self._facts(fft_tried)
+            if guessed:  # no lost row, as in the last block: read later
+                self.defer(RESCUE, facts[0])
+                return 0, [0] * (b + 2)
+            facts = self.read(facts)  # one read
+            if m is None:
+                self.heard(RESCUE, facts[0] == 0)
+            return 0, facts
         names, dev = run.names, run.device
         iu, iv = names.index("u"), names.index("v")
         j_of = torch.arange(b, device=dev).repeat_interleave(n)  # (B*N,) each row's target
         i_of = torch.arange(n, device=dev).repeat(b)  # (B*N,) each row's point
         total = 0
-        for _ in range(b):
+        for wave in range(b):
             lost = self.lost()
             good = self._trusted(lost)
             # (B, N) the nearest trusted target strictly before each row's (-1: none)
@@ -191,9 +202,15 @@ class BlockRescue:
                 placed = self.place_outside(
                     (torch.where(go.unsqueeze(1), init, float("nan")),), go)
                 numbers.append(placed.facts)
+            numbers = torch.cat(numbers)
+            if wave == 0 and guessed:  # no lost row, as in the last block: the numbers
+                self.defer(RESCUE, numbers[:3])  # read later (the candidates and the lost
+                return 0, [0] * (b + 2)          # rows: 0)
             # one read for the wave: the candidates with a guess, those without, and the
             # rows' facts (the caller's, where this wave is the last)
-            n_go, n_wait, *facts = torch.cat(numbers).tolist()
+            n_go, n_wait, *facts = self.read(numbers)
+            if wave == 0 and m is None:
+                self.heard(RESCUE, n_go == 0 and n_wait == 0 and facts[0] == 0)
             facts, placed_facts = facts[:b + 2], facts[b + 2:]
             if not n_go + n_wait:
                 break
@@ -204,7 +221,7 @@ class BlockRescue:
                                 placed=None if placed is None else (placed, placed_facts))
                 total += n_go
                 facts = None  # rows changed: the next wave's read tells
-        return total, (self._facts(fft_tried).tolist() if facts is None else facts)
+        return total, (self.read(self._facts(fft_tried)) if facts is None else facts)
 
     def _velocity_at(self, rows: torch.Tensor, carry: Carry | None
                      ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

@@ -192,19 +192,28 @@ def splat(acc: torch.Tensor, img: BSplineImage, planes: torch.Tensor, ref: torch
         scatter_add_(sums[0], px, vals)
         scatter_add_(per_frame[0], at, wt)
         scatter_add_(per_frame[1], at, share)
-    weights, shares = per_frame.view(2, g_count, n_px).unbind(0)
-    if native and g_count == 1:  # the lines below in one pass, per_frame left as zeros
-        native_ops.splat_finish(sums[1], sums[2], weights[0], shares[0], float(weight[0]))
-    elif g_count == 1:
-        shares.div_(weight[:, None]).mul_(weights)  # the frame's share of the noise
+    _fold_frames(sums, per_frame.view(2, g_count, n_px), weight, native)
+    if not on_cover:
+        acc[:, pixels] += sums
+
+
+def _fold_frames(sums: torch.Tensor, per_frame: torch.Tensor, weight: torch.Tensor,
+                 native: bool) -> None:
+    """The G frames' own sums ``per_frame`` (2, G, C: weights, noise factors) folded into
+    the template's ``sums`` (3, C): the weights added, and each frame's share of the noise
+    (its noise factors over its ``weight`` (G,) times its weights). ``native``: one frame's
+    in one C++ pass, ``per_frame`` left as zeros."""
+    weights, shares = per_frame.unbind(0)
+    if native and weights.shape[0] == 1:
+        native_ops.splat_finish(sums[1], sums[2], weights[0], shares[0], weight)
+        return
+    shares.div_(weight[:, None]).mul_(weights)
+    if weights.shape[0] == 1:
         sums[1] += weights[0]
         sums[2] += shares[0]
     else:
-        shares.div_(weight[:, None]).mul_(weights)  # each frame's share of the noise
         sums[1] += weights.sum(0)
         sums[2] += shares.sum(0)
-    if not on_cover:
-        acc[:, pixels] += sums
 
 
 #: MiB of the per-frame sums a group of the template's frames holds (:func:`frame_groups`)

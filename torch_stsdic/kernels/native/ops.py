@@ -524,12 +524,13 @@ def splat_add(sums: torch.Tensor, pf_w: torch.Tensor, pf_n: torch.Tensor, a: tor
 
 
 def splat_finish(sums_w: torch.Tensor, sums_n: torch.Tensor, pf_w: torch.Tensor,
-                 pf_n: torch.Tensor, weight: float) -> None:
+                 pf_n: torch.Tensor, weight: float | torch.Tensor) -> None:
     """One frame's sums over the C covered pixels (``pf_w``, ``pf_n`` (C,): :func:`splat_add`'s
     with one frame) folded into the template's, in place: ``sums_w`` += pf_w, ``sums_n`` +=
     pf_n / ``weight`` * pf_w (the frame's noise share; the numbers of torch's ``div_``,
     ``mul_``, ``add_``), and ``pf_w``, ``pf_n`` set to 0 (ready for the next frame). One pass
-    over the pixels, split over the threads (each pixel on its own: the same numbers)."""
+    over the pixels, split over the threads (each pixel on its own: the same numbers).
+    ``weight``: a number or a 1-element tensor (read here)."""
     n_px = sums_w.numel()
     _require("splat_finish", sums_w.dtype in (torch.float32, torch.float64)
              and all(t.dtype == sums_w.dtype and t.is_contiguous() and t.numel() == n_px

@@ -1,0 +1,151 @@
+"""A block's guessed reads (``torch_stsdic.movie.block_guess``, a GPU's choice): the answer
+"nothing to do" of the last block taken unread, checked with the block's next read, a wrong
+guess solving the block again the reading way; the result file is that of the reading way to
+the bit."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+from torch_stsdic.kernels import native
+from torch_stsdic.movie import block_guess
+from torch_stsdic.movie.block_guess import BlockGuesses, GuessWrong, ReadGuesses
+
+
+def _guesses(guessing: bool = True) -> BlockGuesses:
+    g = BlockGuesses()
+    g.run = SimpleNamespace(guesses=ReadGuesses(), device=torch.device("cpu"), stats={},
+                            pending={})
+    g.guessing, g.deferred = guessing, []
+    return g
+
+
+def test_a_guess_is_taken_only_after_a_quiet_answer_and_checked_with_the_next_read():
+    g = _guesses()
+    assert not g.may_guess("rescue")  # never heard: read
+    g.heard("rescue", True)
+    assert g.may_guess("rescue")
+    assert not _guesses(guessing=False).may_guess("rescue")
+    g.run.guesses.quiet["rescue"] = True
+    # a guess that holds: the caller's numbers come back, the answer stays quiet
+    g.defer("rescue", torch.tensor([0, 0, 0]))
+    assert g.read(torch.tensor([4, 5])) == [4, 5]
+    assert g.deferred == [] and g.run.guesses.quiet["rescue"]
+    # one that does not: every answer heard, then GuessWrong names it
+    g.defer("placement", torch.tensor(0))
+    g.defer("rescue", torch.tensor([0, 2, 0]))
+    with pytest.raises(GuessWrong, match="rescue"):
+        g.read(torch.tensor([1]))
+    assert g.deferred == []
+    assert g.run.guesses.quiet == {"rescue": False, "placement": True}
+    # settled at the block's end where no read came after it
+    g.defer("placement", torch.tensor(3))
+    with pytest.raises(GuessWrong, match="placement"):
+        g.settle_guesses()
+    g.settle_guesses()  # nothing deferred: nothing read, nothing raised
+
+
+def test_a_wrong_guess_solves_the_block_again_with_the_counters_as_before(monkeypatch):
+    from torch_stsdic.movie import choices
+
+    run = SimpleNamespace(device=torch.device("cpu"), guesses=ReadGuesses(),
+                          stats={"fft_rows": torch.tensor(3), "rescued_rows": 2},
+                          pending={"classical_rows": torch.tensor(1)})
+    calls = []
+
+    def solve(guessing: bool) -> str:
+        calls.append(guessing)
+        run.stats["fft_rows"] += 5  # in place, as a block adds its 0-d counts
+        run.stats["rescued_rows"] += 1
+        run.pending["classical_rows"] = run.pending["classical_rows"] + 4
+        if guessing:
+            raise GuessWrong(["placement"])
+        return "solved"
+
+    monkeypatch.setattr(choices, "GUESS_READS", True)
+    assert block_guess.solve_guessing(run, solve) == "solved"
+    assert calls == [True, False]
+    # the wrong attempt's counts gone, the reading one's kept, the block counted
+    assert int(run.stats["fft_rows"]) == 8 and run.stats["rescued_rows"] == 3
+    assert int(run.pending["classical_rows"]) == 5
+    assert run.stats["blocks_guessed_wrong"] == 1
+    calls.clear()
+    monkeypatch.setattr(choices, "GUESS_READS", None)  # the CPU's choice: read
+    assert block_guess.solve_guessing(run, solve) == "solved" and calls == [False]
+
+
+@pytest.mark.parametrize("movie_kind", ["patch", "drift"])
+def test_guessed_reads_give_the_reading_runs_file_and_a_wrong_guess_is_caught(
+        tmp_path, monkeypatch, movie_kind):
+    """``patch``: a strained speckle whose frame 15 is another speckle over a patch: the
+    blocks before it find nothing to rescue, so the block holding frame 15 guesses "no row
+    lost", wrongly, and rescues and checks its rows again. ``drift``: a speckle drifting
+    right by 0.6 px a frame: the first carried blocks move no subset, so a later one guesses
+    that its points stay clear of the border, wrongly, and is solved again from its start.
+    With a GPU's choices, guessed and read give the same file to the bit; other blocks
+    guess rightly."""
+    import h5py
+    import tifffile
+
+    from torch_stsdic import synth
+    from torch_stsdic.cli import main
+    from torch_stsdic.movie import block, choices
+
+    if not native.available():
+        pytest.skip("no native kernels (the paths agree to the bit on the C++ kernels)")
+    motion = (["--motion", "strain", "--exx", "0.002"] if movie_kind == "patch"
+              else ["--motion", "translation", "--ut", "0.6", "--vt", "0.1"])
+    assert main(["synth", "--out", str(tmp_path / "m"), "--size", "160", "--frames", "23",
+                 *motion, "--noise", "2", "--seed", "3" if movie_kind == "patch" else "4",
+                 "--threads", "1"]) == 0
+    movie = tmp_path / "m" / "movie.tif"
+    if movie_kind == "patch":
+        pages = tifffile.imread(movie)
+        other = synth.render(synth.make_speckle((160, 160), seed=11), (160, 160)).numpy()
+        pages[15, 50:110, 50:110] = np.clip(other[50:110, 50:110], 0, 255).astype(pages.dtype)
+        tifffile.imwrite(movie, pages)
+    for name, value in choices.gpu_choices().items():
+        monkeypatch.setattr(choices, name, value)
+    attempts: list[bool] = []  # each attempt at a block: guessing or not
+    wrong: list[list[str]] = []  # the questions of each wrong guess
+    solve_block, init = block._solve_block, GuessWrong.__init__
+
+    def spy(run, ks, ref, carry, guessing):
+        attempts.append(guessing)
+        return solve_block(run, ks, ref, carry, guessing)
+
+    def heard_wrong(self, questions):
+        wrong.append(list(questions))
+        init(self, questions)
+
+    monkeypatch.setattr(block, "_solve_block", spy)
+    monkeypatch.setattr(GuessWrong, "__init__", heard_wrong)
+    out = {}
+    for guess in (False, True):
+        monkeypatch.setattr(choices, "GUESS_READS", guess)
+        attempts.clear()
+        wrong.clear()
+        path = tmp_path / f"g{int(guess)}.h5"
+        assert main(["run", str(movie), "--subset", "21", "--step", "10", "--threads", "1",
+                     "--no-progress", "--out", str(path)]) == 0
+        with h5py.File(path) as f:
+            out[guess] = {k: f[k][()] for k in f if isinstance(f[k], h5py.Dataset)}
+        if not guess:
+            assert not any(attempts) and not wrong
+            continue
+        if movie_kind == "patch":  # a rescue's wrong guess (solved from there again)
+            assert any("rescue" in q for q in wrong), wrong
+        else:  # the placement's
+            assert ["placement"] in wrong, wrong
+        # a wrong placement solves the whole block again, reading; a wrong rescue does not
+        assert attempts.count(False) == sum("placement" in q for q in wrong), (attempts, wrong)
+        assert attempts.count(True) > len(wrong)  # right guesses too
+    if movie_kind == "patch":
+        assert (out[True]["status"][15] != 0).sum() > 5  # the patch's rows: not converged
+    assert out[True].keys() == out[False].keys()
+    for k, v in out[True].items():
+        assert v.tobytes() == out[False][k].tobytes(), k

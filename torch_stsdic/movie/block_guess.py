@@ -1,0 +1,159 @@
+"""A block's guessed reads (:class:`BlockGuesses`, mixed into
+:class:`torch_stsdic.movie.block.Block`): on a GPU each value the host reads waits for the
+device, and a block of a clean movie asks two questions whose answer is nearly always the
+last block's "nothing to do": did the carried rows' placement move a subset inside the image
+(:meth:`~torch_stsdic.movie.block_placement.BlockPlacement.keep_outside`), and is any row
+lost after the solve (:meth:`~torch_stsdic.movie.rescue.BlockRescue.rescue`). Where the last
+block answered "nothing", the block takes that answer unread and keeps the numbers that
+tell, to read with its next read (the classical rescue's, after the model check, which is
+then the block's one read:
+:meth:`~torch_stsdic.movie.checks.BlockChecks.rescue_classical`) or once at its end
+(:meth:`BlockGuesses.settle_guesses`); a wrong guess raises :class:`GuessWrong` and the block
+is solved again reading every answer: from its rescue where that guess was wrong
+(:meth:`BlockGuesses.from_here`), from its start where the placement's was
+(:func:`solve_guessing`). The results
+are those of the reading way to the bit: a guess only skips work that the answer "nothing"
+skips. A GPU's choice (:data:`~torch_stsdic.movie.choices.GUESS_READS`)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+
+from torch_stsdic.movie.choices import guess_reads
+
+__all__ = ["GuessWrong", "ReadGuesses", "BlockGuesses", "solve_guessing"]
+
+#: the questions a block may guess (the keys of :attr:`ReadGuesses.quiet`)
+PLACEMENT, RESCUE = "placement", "rescue"
+
+
+class GuessWrong(Exception):
+    """A block's guessed answers were not "nothing to do" (:attr:`questions`)."""
+
+    def __init__(self, questions: list[str]) -> None:
+        super().__init__(", ".join(questions))
+        self.questions = list(questions)
+
+
+@dataclass
+class ReadGuesses:
+    """A run's answers to its blocks' questions: whether the last block that asked each one
+    found nothing to do (then the next block may guess so)."""
+
+    quiet: dict[str, bool] = field(default_factory=dict)
+
+
+class BlockGuesses:
+    """The guessed reads of a :class:`~torch_stsdic.movie.block.Block` (its ``run`` with a
+    :class:`ReadGuesses` as ``run.guesses``; ``guessing`` set per attempt)."""
+
+    run: Any
+    #: whether this attempt may guess (False: the reading way, the attempt after a wrong guess)
+    guessing: bool = False
+    #: the guesses taken and not checked yet: (question, (K,) int64 numbers that are all 0
+    #: where the guess holds)
+    deferred: list[tuple[str, torch.Tensor]]
+
+    def may_guess(self, question: str) -> bool:
+        """Whether ``question`` is answered "nothing to do" unread: this attempt guesses and
+        the last block that asked it found nothing."""
+        return self.guessing and self.run.guesses.quiet.get(question, False)
+
+    def defer(self, question: str, zeros: torch.Tensor) -> None:
+        """``question`` guessed "nothing to do": ``zeros`` (any shape, integers) are all 0
+        where it holds; read with the block's next read (:meth:`read`) or at its end."""
+        self.deferred.append((question, zeros.reshape(-1).to(torch.int64)))
+
+    def heard(self, question: str, quiet: bool) -> None:
+        """The answer to ``question`` as read (``quiet``: nothing to do), for the next block
+        to guess from."""
+        self.run.guesses.quiet[question] = bool(quiet)
+
+    def read(self, numbers: torch.Tensor) -> list[int]:
+        """``numbers`` (K,) int64 read on the host, with the deferred guesses' numbers in the
+        same read (one synchronisation); a guess that does not hold raises
+        :class:`GuessWrong` (after every answer is heard)."""
+        if not self.deferred:
+            return numbers.tolist()
+        k = numbers.numel()
+        values = torch.cat([numbers.reshape(-1).to(torch.int64)]
+                           + [z for _, z in self.deferred]).tolist()
+        self._check(values[k:])
+        return values[:k]
+
+    def settle_guesses(self) -> None:
+        """The deferred guesses read (one read; none where every guess was read already) and
+        checked: :class:`GuessWrong` where one does not hold."""
+        if self.deferred:
+            self._check(torch.cat([z for _, z in self.deferred]).tolist())
+
+    def _check(self, values: list[int]) -> None:
+        wrong, at = [], 0
+        for question, z in self.deferred:
+            quiet = not any(values[at:at + z.numel()])
+            at += z.numel()
+            self.heard(question, quiet)
+            if not quiet:
+                wrong.append(question)
+        self.deferred = []
+        if wrong:
+            raise GuessWrong(wrong)
+
+    def from_here(self, counts: dict[str, torch.Tensor], rest: Callable[[], None]) -> None:
+        """``rest()``, the rest of the block (its rescues and checks), guessing; where a
+        guess it checks was wrong, the block, the run's counters and the block's ``counts``
+        as they were here, and ``rest()`` again, reading every answer (the block's solve
+        is not done again). A wrong guess of the placement, made before here, is raised
+        (:func:`solve_guessing` solves the whole block again)."""
+        if not self.guessing:
+            rest()
+            return
+        # the block's tensors copied (solves change them in place), its containers anew
+        state = {k: v.clone() if isinstance(v, torch.Tensor) else
+                 (type(v)(v) if isinstance(v, (dict, list)) else v)
+                 for k, v in vars(self).items() if k != "run"}
+        stats, held = _counters(self.run.stats), dict(counts)
+        try:
+            rest()
+        except GuessWrong as wrong:
+            if PLACEMENT in wrong.questions:
+                raise
+            for k in [k for k in vars(self) if k != "run" and k not in state]:
+                delattr(self, k)
+            vars(self).update(state)
+            self.run.stats.clear()
+            self.run.stats.update(stats)
+            self.run.stats["blocks_guessed_wrong"] = (
+                self.run.stats.get("blocks_guessed_wrong", 0) + 1)
+            counts.clear()
+            counts.update(held)
+            self.guessing = False
+            rest()
+
+
+def _counters(stats: dict[str, Any]) -> dict[str, Any]:
+    """A copy of a run's counters (0-d tensors among them copied: blocks add to them in
+    place)."""
+    return {k: v.clone() if isinstance(v, torch.Tensor) else v for k, v in stats.items()}
+
+
+def solve_guessing(run: Any, solve: Callable[[bool], Any]) -> Any:
+    """``solve(guessing)`` (a block) with its reads guessed where ``run``'s device guesses
+    (:func:`~torch_stsdic.movie.choices.guess_reads`); after a wrong guess, the run's
+    counters as they were before it and the block solved again reading every answer
+    (counted in ``run.stats["blocks_guessed_wrong"]``)."""
+    if not guess_reads(run.device):
+        return solve(False)
+    stats, pending = _counters(run.stats), dict(run.pending)
+    try:
+        return solve(True)
+    except GuessWrong:
+        run.stats.clear()
+        run.stats.update(stats)
+        run.pending = pending
+        run.stats["blocks_guessed_wrong"] = run.stats.get("blocks_guessed_wrong", 0) + 1
+        return solve(False)
