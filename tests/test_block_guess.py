@@ -78,15 +78,17 @@ def test_a_wrong_guess_solves_the_block_again_with_the_counters_as_before(monkey
     assert block_guess.solve_guessing(run, solve) == "solved" and calls == [False]
 
 
-@pytest.mark.parametrize("movie_kind", ["patch", "drift"])
+@pytest.mark.parametrize("movie_kind,args", [("patch", ()), ("drift", ()),
+                                             ("drift", ("--m", "0", "--single-reference"))],
+                         ids=["patch", "drift", "drift-classical"])
 def test_guessed_reads_give_the_reading_runs_file_and_a_wrong_guess_is_caught(
-        tmp_path, monkeypatch, movie_kind):
+        tmp_path, monkeypatch, movie_kind, args):
     """``patch``: a strained speckle whose frame 15 is another speckle over a patch: the
     blocks before it find nothing to rescue, so the block holding frame 15 guesses "no row
     lost", wrongly, and rescues and checks its rows again. ``drift``: a speckle drifting
     right by 0.6 px a frame: the first carried blocks move no subset, so a later one guesses
-    that its points stay clear of the border, wrongly, and is solved again from its start.
-    With a GPU's choices, guessed and read give the same file to the bit; other blocks
+    that its points stay clear of the border, wrongly, and is solved again from its start;
+    so too a classical run's (``--m 0 --single-reference``: the placement read apart). With a GPU's choices, guessed and read give the same file to the bit; other blocks
     guess rightly."""
     import h5py
     import tifffile
@@ -131,7 +133,7 @@ def test_guessed_reads_give_the_reading_runs_file_and_a_wrong_guess_is_caught(
         wrong.clear()
         path = tmp_path / f"g{int(guess)}.h5"
         assert main(["run", str(movie), "--subset", "21", "--step", "10", "--threads", "1",
-                     "--no-progress", "--out", str(path)]) == 0
+                     "--no-progress", "--out", str(path), *args]) == 0
         with h5py.File(path) as f:
             out[guess] = {k: f[k][()] for k in f if isinstance(f[k], h5py.Dataset)}
         if not guess:

@@ -62,8 +62,8 @@ class BlockPlacement:
         Returns the (B*N,) bool mask of the OUTSIDE rows; without ``mark`` they are only
         returned, not marked (the caller decides which of them to give up on). ``guess``:
         where the last block's carried rows moved no subset, none is taken to move here,
-        unread (:meth:`~torch_stsdic.movie.block_guess.BlockGuesses.may_guess`; the
-        placement made at once only)."""
+        unread, nor a row left without a window in view
+        (:meth:`~torch_stsdic.movie.block_guess.BlockGuesses.may_guess`)."""
         run = self.run
         if self.places_at_once:  # one read, of the facts of the placement made at once
             pending = self.place_outside(inits, carried)
@@ -80,11 +80,17 @@ class BlockPlacement:
         # shorter windows move some)
         n_left = left.sum() if run.m > 0 else left.new_zeros((), dtype=torch.int64)
         facts, placed = self._centre_facts(shift, left)
-        n_left, *facts = torch.stack([n_left] + facts).tolist()
+        numbers = torch.stack([n_left] + facts)
+        if guess and self.may_guess(PLACEMENT):  # none left, none moved: read later
+            self.defer(PLACEMENT, numbers[:2])
+            return self.settle_outside(Placement(left, None, placed), [0, 1, 0], mark)
+        n_left, *facts = self.read(numbers)
+        if guess:
+            self.heard(PLACEMENT, n_left == 0 and facts[0] == 0)
         if n_left:  # every shorter window at once, the longest that stays in view
             self._shorter_windows_in_view(inits, left, shift, true_rows(left, n_left))
             facts, placed = self._centre_facts(shift, left)
-            facts = torch.stack(facts).tolist()  # one read
+            facts = self.read(torch.stack(facts))  # one read
         return self.settle_outside(Placement(left, None, placed), facts, mark)
 
     @property
