@@ -88,8 +88,9 @@ def test_guessed_reads_give_the_reading_runs_file_and_a_wrong_guess_is_caught(
     lost", wrongly, and rescues and checks its rows again. ``drift``: a speckle drifting
     right by 0.6 px a frame: the first carried blocks move no subset, so a later one guesses
     that its points stay clear of the border, wrongly, and is solved again from its start;
-    so too a classical run's (``--m 0 --single-reference``: the placement read apart). With a GPU's choices, guessed and read give the same file to the bit; other blocks
-    guess rightly."""
+    so too a classical run's (``--m 0 --single-reference``: the placement read apart). With
+    a GPU's choices, guessed and read give the same file to the bit; other blocks guess
+    rightly."""
     import h5py
     import tifffile
 
