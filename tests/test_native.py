@@ -503,6 +503,13 @@ def test_wrappers_pass_exactly_the_declared_parameters(monkeypatch):
         native.splat_add(*bins, vals, vals, vals[:, 0].contiguous(), torch.tensor([1, 0]),
                          torch.tensor([0, 1]), torch.arange(10).view(2, 5) % 7)
         native.splat_finish(*[torch.zeros(7, dtype=dtype) for _ in range(4)], 2.0)
+        native.splat_fused(a, 3, d, d, one[:1].expand(5), maps, torch.full((2, 2), 20.0),
+                           torch.zeros(2, dtype=torch.long), one, one, one, (one, one),
+                           torch.zeros(img.height * img.width, dtype=torch.float64),
+                           img.width, img.height,
+                           *[torch.zeros(k, dtype=torch.float64) for k in (7, 14, 14)],
+                           torch.tensor([1, 0]), torch.tensor([0, 1]),
+                           torch.arange(10).view(2, 5) % 7)
     declared = native.kernels()
     assert set(seen) == set(declared)
     for name, calls in seen.items():
@@ -1178,6 +1185,64 @@ def test_splat_add_adds_in_the_order_of_scatter_add():
     assert not torch.equal(other, want[0])
     with pytest.raises(ValueError, match="poi within"):
         native.splat_add(*got, a, wt, rs, poi + n_poi, frame, local)
+
+
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_splat_fused_is_splat_then_splat_add_to_the_bit(threads, monkeypatch):
+    """The template's samples formed and added in one pass (``native.splat_fused``, the
+    covered pixels split over the threads) give the sums of ``splat`` then ``splat_add``
+    to the last bit: windows inside the image, over its border and mapped partly out of it,
+    two frames of a stack with their own sums, rows in mixed order; any thread count."""
+    from torch_stsdic.core.interpolation import BSplineImage
+    from torch_stsdic.kernels.native import ops, rows
+    from torch_stsdic.movie import template_image
+
+    # that many ranges of pixels, however small the work
+    monkeypatch.setattr(rows, "_threads", lambda: threads)
+    monkeypatch.setattr(ops, "threads", lambda: threads)
+    monkeypatch.setattr(rows, "_PARALLEL_MIN", 0)
+    size, half = 70, 5
+    imgs = torch.stack([synth.render(synth.make_speckle((size, size), seed=s),
+                                     (size, size)).double() for s in (2, 3)])
+    stack = BSplineImage(imgs, order=3)
+    ka = stack.kernel_args()
+    ref = imgs[0].reshape(-1)
+    g = torch.Generator().manual_seed(9)
+    pts = torch.rand(30, 2, generator=g, dtype=torch.float64) * (size + 4) - 2
+    cover = template_image.window_pixels(pts, half, size, size)
+    pixels, local = cover
+    n_px = pixels.numel()
+    rows_i = torch.randint(0, 30, (45,), generator=g)  # (frame, POI) rows, mixed order
+    rows_f = torch.randint(0, 2, (45,), generator=g)
+    c = pts[rows_i].round()
+    maps = torch.zeros(45, 12, dtype=torch.float64)
+    maps[:, 0] = c[:, 0] + torch.rand(45, generator=g, dtype=torch.float64) * 3 - 1.5
+    maps[:, 6] = c[:, 1] + torch.rand(45, generator=g, dtype=torch.float64) * 3 - 1.5
+    maps[:, 1], maps[:, 8] = 1.01, 0.99
+    maps[:, 3] = 1e-3
+    d = torch.arange(-half, half + 1, dtype=torch.float64)
+    dy, dx = (t.reshape(-1) for t in torch.meshgrid(d, d, indexing="ij"))
+    tent = (1.0 - dx.abs() / (half + 1)) * (1.0 - dy.abs() / (half + 1))
+    stats = template_image.reference_window_stats(ref, cover)
+    args = (ka, 3, dx, dy, tent, maps, c, rows_f * ka[-1],
+            torch.rand(45, generator=g, dtype=torch.float64) + 0.5,
+            torch.rand(45, generator=g, dtype=torch.float64) + 0.5,
+            torch.rand(45, generator=g, dtype=torch.float64),
+            (stats[0][rows_i].reshape(-1), stats[1][rows_i].reshape(-1)), ref, size, size)
+    want = [torch.zeros(n_px, dtype=torch.float64), torch.zeros(2 * n_px, dtype=torch.float64),
+            torch.zeros(2 * n_px, dtype=torch.float64)]
+    vals, wt, share = native.splat(*args)
+    native.splat_add(*want, vals, wt, share, rows_i, rows_f, local)
+    got = [torch.zeros_like(t) for t in want]
+    calls = []
+    kernel = rows._Rows._chunk
+    monkeypatch.setattr(rows._Rows, "_chunk", lambda self, j: (calls.append(j),
+                                                               kernel(self, j)))
+    native.splat_fused(*args, *got, rows_i, rows_f, local)
+    assert len(calls) == (threads if threads > 1 else 0)  # one range a thread
+    assert float(want[1].sum()) > 0
+    for x, y in zip(got, want):
+        assert torch.equal(x, y)
 
 
 def test_splat_finish_folds_a_frame_into_the_sums_as_torch_does():

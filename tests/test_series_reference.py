@@ -499,8 +499,8 @@ def test_splat_with_and_without_the_image_border_mask_agree():
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_the_native_splat_equals_the_torch_splat(dtype, monkeypatch):
-    """The template's samples in one C++ pass (``native.ops.splat``: map, sample, grey
-    levels matched, weights) give the torch code's sums, for windows inside the image, over
+    """The template's samples in one C++ pass (``native.ops.splat_fused``: map, sample, grey
+    levels matched, weights, added) give the torch code's sums, for windows inside the image, over
     its border and mapped partly out of it, in frames of a stack, float32 and float64
     coefficients; quintic too."""
     from torch_stsdic.core.interpolation import BSplineImage
@@ -523,7 +523,7 @@ def test_the_native_splat_equals_the_torch_splat(dtype, monkeypatch):
     level = torch.tensor([1.0, 1.2], dtype=torch.float64)
     planes = torch.tensor([1, 0])
     calls = []
-    orig = template_image.native_ops.splat
+    orig = template_image.native_ops.splat_fused
 
     def counted(*a, **k):
         calls.append(1)
@@ -533,7 +533,7 @@ def test_the_native_splat_equals_the_torch_splat(dtype, monkeypatch):
         stack = BSplineImage(imgs.to(dtype), order=order)
         sums = {}
         for path in ("native", "torch"):
-            monkeypatch.setattr(template_image.native_ops, "splat", counted)
+            monkeypatch.setattr(template_image.native_ops, "splat_fused", counted)
             if path == "torch":
                 monkeypatch.setattr(dispatch, "splat", lambda *a: dispatch.TORCH)
             acc = torch.zeros(3, size * size, dtype=torch.float64)

@@ -134,7 +134,8 @@ def splat(acc: torch.Tensor, img: BSplineImage, planes: torch.Tensor, ref: torch
              and tuple(scratch.shape) == (2, n_px))
     per_frame = (scratch if reuse else
                  torch.zeros(2, g_count * n_px, dtype=torch.float64, device=dev))
-    chunk = max(1, _CHUNK_SAMPLES // dx.numel())
+    # (the C++ path keeps no (rows, S) arrays: every row at once)
+    chunk = max(1, sel.numel() if native else _CHUNK_SAMPLES // dx.numel())
     for s0 in range(0, sel.numel(), chunk):
         f, i = sel[s0: s0 + chunk] // n, sel[s0: s0 + chunk] % n
         c = pts[i].round()
@@ -149,14 +150,14 @@ def splat(acc: torch.Tensor, img: BSplineImage, planes: torch.Tensor, ref: torch
         u0, v0 = warp[f, i, 0], warp[f, i, 6]
         fac = interpolation_variance_factor(u0 - u0.floor(), v0 - v0.floor(),
                                             img.order)  # (n,)
-        if native:  # the samples' values, weights and noise shares in one C++ pass, added
-            # to the sums in a second (one thread, the rows' order: scatter_add_'s numbers)
-            vals, wt, share = native_ops.splat(
+        if native:  # the samples' values, weights and noise shares formed and added to
+            # the sums in one C++ pass (each covered pixel's rows in their order:
+            # scatter_add_'s numbers), the pixels split over the threads
+            native_ops.splat_fused(
                 ka, img.order, dx, dy, tent, torch.cat([px_map, py_map], 1), c,
                 planes[f] * ka[-1], weight[f], level[f], fac,
-                (ref_stats[0][i].reshape(-1), ref_stats[1][i].reshape(-1)), ref, w, h)
-            native_ops.splat_add(sums[0], per_frame[0], per_frame[1], vals, wt, share, i, f,
-                                 local)
+                (ref_stats[0][i].reshape(-1), ref_stats[1][i].reshape(-1)), ref, w, h,
+                sums[0], per_frame[0], per_frame[1], i, f, local)
             continue
         px = local[i]  # (n, S) the window pixels among the covered ones
         at = px if g_count == 1 else f[:, None] * n_px + px  # the pixel in its frame's share

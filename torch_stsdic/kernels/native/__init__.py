@@ -46,7 +46,7 @@ Modules, one job each: ``builder`` (compiler, cache directory, :func:`build`),
 ``ops`` (the wrappers :func:`sample`, :func:`subsets`, :func:`ic_rhs`, :func:`gram`,
 :func:`spd_inverse`, :func:`nanmedian`, :func:`neighbour_own_gradient`,
 :func:`neighbour_test`, :func:`prefilter`, :func:`splat`, :func:`splat_add`,
-:func:`splat_finish`, :func:`windows`).
+:func:`splat_fused`, :func:`splat_finish`, :func:`windows`).
 """
 
 from __future__ import annotations
@@ -76,6 +76,7 @@ from torch_stsdic.kernels.native.ops import (
     splat,
     splat_add,
     splat_finish,
+    splat_fused,
     subsets,
     windows,
 )
@@ -83,5 +84,6 @@ from torch_stsdic.kernels.native.ops import (
 __all__ = ["available", "set_native", "native_enabled", "sample", "subsets", "ic_rhs",
            "ic_solve", "gram",
            "spd_inverse", "param_std", "nanmedian", "neighbour_own_gradient", "neighbour_test",
-           "prefilter", "splat", "splat_add", "splat_finish", "windows", "build", "kernels",
-           "Kernel", "Param", "usable", "usable_image", "per_point_enabled"]
+           "prefilter", "splat", "splat_add", "splat_fused", "splat_finish", "windows",
+           "build", "kernels", "Kernel", "Param", "usable", "usable_image",
+           "per_point_enabled"]

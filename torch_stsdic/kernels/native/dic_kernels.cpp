@@ -1419,26 +1419,41 @@ STS_KERNEL(sts_prefilter, (T* data, int64_t planes, int64_t h, int64_t w, int or
 // the weight wt; (N,) double rs: the row's noise factor fac[i] (gain lv[i])^2 (a sample's
 // share of the frame's noise is wt rs[i], formed where it is added: sts_splat_add). Images
 // w x h px (the reference ref (h * w) double).
-STS_KERNEL(sts_splat, (const T* flat, int64_t wp, double x_lo, double x_hi, double y_lo,
-                       double y_hi, int64_t shift, int order, int64_t i0, int64_t i1,
-                       int64_t ns, const double* dx, const double* dy, const double* tent,
-                       const double* pm, const double* cx, const double* cy,
-                       const int64_t* off, const double* wf, const double* lv,
-                       const double* fac, const double* mr, const double* sr,
-                       const double* ref, int64_t w, int64_t h, double* a, double* wt,
-                       double* rs)) {
-  if (order != 3 && order != 5) return 1;
-  const Geo g{wp, x_lo, x_hi, y_lo, y_hi, shift};
-  std::vector<T> xs(ns), ys(ns), val(ns), fxs(ns), fys(ns);
-  std::vector<double> in(ns), dxx(ns), dxy(ns), dyy(ns);
-  std::vector<int32_t> idx(ns);
-  for (int64_t s = 0; s < ns; ++s) {
-    dxx[s] = dx[s] * dx[s];
-    dxy[s] = dx[s] * dy[s];
-    dyy[s] = dy[s] * dy[s];
+// The template's samples of one row at a time (sts_splat, sts_splat_fused): the arguments of
+// sts_splat, the row's scratch held between rows.
+template <typename T>
+struct SplatRows {
+  const T* flat;
+  Geo g;
+  int order;
+  int64_t ns;
+  const double *dx, *dy, *tent, *pm, *cx, *cy;
+  const int64_t* off;
+  const double *wf, *lv, *fac, *mr, *sr, *ref;
+  int64_t w, h;
+  std::vector<T> xs, ys, val, fxs, fys;
+  std::vector<double> in, dxx, dxy, dyy;
+  std::vector<int32_t> idx;
+
+  SplatRows(const T* flat_, Geo g_, int order_, int64_t ns_, const double* dx_,
+            const double* dy_, const double* tent_, const double* pm_, const double* cx_,
+            const double* cy_, const int64_t* off_, const double* wf_, const double* lv_,
+            const double* fac_, const double* mr_, const double* sr_, const double* ref_,
+            int64_t w_, int64_t h_)
+      : flat(flat_), g(g_), order(order_), ns(ns_), dx(dx_), dy(dy_), tent(tent_), pm(pm_),
+        cx(cx_), cy(cy_), off(off_), wf(wf_), lv(lv_), fac(fac_), mr(mr_), sr(sr_),
+        ref(ref_), w(w_), h(h_), xs(ns_), ys(ns_), val(ns_), fxs(ns_), fys(ns_), in(ns_),
+        dxx(ns_), dxy(ns_), dyy(ns_), idx(ns_) {
+    for (int64_t s = 0; s < ns; ++s) {
+      dxx[s] = dx[s] * dx[s];
+      dxy[s] = dx[s] * dy[s];
+      dyy[s] = dy[s] * dy[s];
+    }
   }
-  const double wmax = double(w - 1), hmax = double(h - 1);
-  for (int64_t i = i0; i < i1; ++i) {
+
+  // Row i: its weighted values ai[ns] and weights wi[ns]; returns its noise factor.
+  double row(int64_t i, double* ai, double* wi) {
+    const double wmax = double(w - 1), hmax = double(h - 1);
     const double* q = pm + i * 12;
     // the reference configuration's window is inside where its corners are
     const double ci = cx[i], cj = cy[i];
@@ -1485,13 +1500,13 @@ STS_KERNEL(sts_splat, (const T* flat, int64_t wp, double x_lo, double x_hi, doub
     if (!whole) {  // the reference's own pixels of the window, over those inside
       const int64_t size = w * h;
       const int64_t base = int64_t(cj) * w + int64_t(ci);
-      double rs = 0;
+      double rsum = 0;
       for (int64_t s = 0; s < ns; ++s) {
         const int64_t k = std::min(std::max(base + int64_t(dy[s]) * w + int64_t(dx[s]),
                                             int64_t(0)), size - 1);
-        rs += ref[k] * in[s];
+        rsum += ref[k] * in[s];
       }
-      m_r = rs / c;
+      m_r = rsum / c;
       double r2 = 0;
       for (int64_t s = 0; s < ns; ++s) {
         const int64_t k = std::min(std::max(base + int64_t(dy[s]) * w + int64_t(dx[s]),
@@ -1502,16 +1517,28 @@ STS_KERNEL(sts_splat, (const T* flat, int64_t wp, double x_lo, double x_hi, doub
       s_r = std::sqrt(r2);
     }
     const double gain = sf > 0 ? s_r / std::max(sf, 1e-12) : 1.0;
-    rs[i] = fac[i] * (gain * lv[i]) * (gain * lv[i]);
     const double wfi = wf[i], off_v = m_r - mf * gain;
-    double* ai = a + i * ns;
-    double* wi = wt + i * ns;
     for (int64_t s = 0; s < ns; ++s) {
       const double weight = tent[s] * wfi * in[s];
       ai[s] = (double(val[s]) * gain + off_v) * weight;
       wi[s] = weight;
     }
+    return fac[i] * (gain * lv[i]) * (gain * lv[i]);
   }
+};
+
+STS_KERNEL(sts_splat, (const T* flat, int64_t wp, double x_lo, double x_hi, double y_lo,
+                       double y_hi, int64_t shift, int order, int64_t i0, int64_t i1,
+                       int64_t ns, const double* dx, const double* dy, const double* tent,
+                       const double* pm, const double* cx, const double* cy,
+                       const int64_t* off, const double* wf, const double* lv,
+                       const double* fac, const double* mr, const double* sr,
+                       const double* ref, int64_t w, int64_t h, double* a, double* wt,
+                       double* rs)) {
+  if (order != 3 && order != 5) return 1;
+  SplatRows<T> rows(flat, Geo{wp, x_lo, x_hi, y_lo, y_hi, shift}, order, ns, dx, dy, tent, pm,
+                    cx, cy, off, wf, lv, fac, mr, sr, ref, w, h);
+  for (int64_t i = i0; i < i1; ++i) rs[i] = rows.row(i, a + i * ns, wt + i * ns);
   return 0;
 }
 
@@ -1540,6 +1567,47 @@ STS_KERNEL(sts_splat_add, (int64_t i0, int64_t i1, int64_t ns, int64_t n_px, con
 #endif
       sums[j] += ai[s];
       fw[j] += wi[s];
+      fn[j] += share;
+    }
+  }
+  return 0;
+}
+
+// Pixels p in [i0, i1) of the n_px covered ones: every row r in [0, n) (a (frame, POI)
+// pair, as in sts_splat) whose window reaches them (its pixels local[poi[r] * ns + s],
+// ascending in s) sampled as sts_splat samples it and added to those pixels as sts_splat_add
+// adds it: each pixel's sums are those of sts_splat then sts_splat_add to the bit (rows in
+// order), whatever the split of the pixels, with no (N, ns) arrays between (a row whose
+// window straddles two splits is sampled by both).
+STS_KERNEL(sts_splat_fused, (const T* flat, int64_t wp, double x_lo, double x_hi,
+                             double y_lo, double y_hi, int64_t shift, int order, int64_t i0,
+                             int64_t i1, int64_t n, int64_t ns, const double* dx,
+                             const double* dy, const double* tent, const double* pm,
+                             const double* cx, const double* cy, const int64_t* off,
+                             const double* wf, const double* lv, const double* fac,
+                             const double* mr, const double* sr, const double* ref,
+                             int64_t w, int64_t h, const int64_t* poi, const int64_t* frame,
+                             const int64_t* local, int64_t n_px, double* sums, double* pf_w,
+                             double* pf_n)) {
+  if (order != 3 && order != 5) return 1;
+  SplatRows<T> rows(flat, Geo{wp, x_lo, x_hi, y_lo, y_hi, shift}, order, ns, dx, dy, tent, pm,
+                    cx, cy, off, wf, lv, fac, mr, sr, ref, w, h);
+  std::vector<double> a(ns), wt(ns);
+  for (int64_t r = 0; r < n; ++r) {
+    const int64_t* k = local + poi[r] * ns;
+    if (k[ns - 1] < i0 || k[0] >= i1) continue;
+    const double ri = rows.row(r, a.data(), wt.data());
+    double* fw = pf_w + frame[r] * n_px;
+    double* fn = pf_n + frame[r] * n_px;
+    for (int64_t s = 0; s < ns; ++s) {
+      const int64_t j = k[s];
+      if (j < i0 || j >= i1) continue;
+      double share = wt[s] * ri;
+#if defined(__GNUC__) && (defined(__x86_64__) || defined(__i386__))
+      asm volatile("" : "+x"(share));  // rounded here: not fused into the add (-ffp-contract)
+#endif
+      sums[j] += a[s];
+      fw[j] += wt[s];
       fn[j] += share;
     }
   }
@@ -1576,7 +1644,7 @@ extern "C" {
 
 // Version of this interface (the sts_kernel_* functions and what the kernels' parameters
 // mean); native/declarations.py refuses a library of another version.
-int sts_abi_version() { return 16; }
+int sts_abi_version() { return 17; }
 
 int sts_kernel_count() { return int(declarations().size()); }
 

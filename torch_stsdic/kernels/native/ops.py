@@ -15,7 +15,7 @@ from torch_stsdic.kernels.native.rows import run_rows, run_shared, threads
 
 __all__ = ["sample", "subsets", "windows", "ic_rhs", "ic_solve", "gram", "spd_inverse", "param_std",
            "nanmedian", "prefilter", "neighbour_own_gradient", "neighbour_test", "splat",
-           "splat_add", "splat_finish"]
+           "splat_add", "splat_fused", "splat_finish"]
 
 
 def _geo(img_args: tuple, order: int) -> dict:
@@ -521,6 +521,54 @@ def splat_add(sums: torch.Tensor, pf_w: torch.Tensor, pf_n: torch.Tensor, a: tor
     del keep
     if rc:
         raise RuntimeError(f"sts_splat_add returned {rc}")
+
+
+def splat_fused(img_args: tuple, order: int, dx: torch.Tensor, dy: torch.Tensor,
+                tent: torch.Tensor, maps: torch.Tensor, centres: torch.Tensor,
+                frame_off: torch.Tensor, weight: torch.Tensor, level: torch.Tensor,
+                fac: torch.Tensor, ref_stats: tuple[torch.Tensor, torch.Tensor],
+                ref: torch.Tensor, w: int, h: int, sums: torch.Tensor, pf_w: torch.Tensor,
+                pf_n: torch.Tensor, poi: torch.Tensor, frame: torch.Tensor,
+                local: torch.Tensor) -> None:
+    """:func:`splat` then :func:`splat_add` in one pass, to the bit: the N rows (the
+    arguments of :func:`splat`) sampled and added to ``sums``, ``pf_w``, ``pf_n`` (float64,
+    those of :func:`splat_add`) with no (N, S) arrays between. The covered pixels are split
+    over the threads (one range each), each adding every row that reaches its range in row
+    order (a row across two ranges sampled twice)."""
+    flat = img_args[0].contiguous()
+    n, ns = maps.shape[0], dx.numel()
+    n_px = sums.numel()
+    _require("splat_fused", tuple(maps.shape) == (n, 12) and tuple(centres.shape) == (n, 2)
+             and all(t.numel() == n for t in (frame_off, weight, level, fac, *ref_stats,
+                                              poi, frame))
+             and dy.numel() == ns and tent.numel() == ns and ref.numel() == w * h
+             and local.dim() == 2 and local.shape[1] == ns
+             and all(t.dtype == torch.float64 and t.is_contiguous() for t in (sums, pf_w, pf_n))
+             and pf_w.numel() == pf_n.numel() and pf_w.numel() % max(n_px, 1) == 0,
+             "maps (N, 12), centres (N, 2), frame_off/weight/level/fac/ref_stats/poi/frame "
+             "(N,), dx/dy/tent (S,), ref (H*W,), local (P, S), sums (C,) and pf_w/pf_n "
+             "(G*C,) float64 contiguous")
+    if n == 0:
+        return
+    off = frame_off.to(torch.int64).reshape(-1).contiguous()
+    _check_planes("splat_fused", img_args, off)
+    poi, frame = poi.to(torch.int64).contiguous(), frame.to(torch.int64).contiguous()
+    _require("splat_fused", bool((poi >= 0).all() & (poi < local.shape[0]).all()
+                                 & (frame >= 0).all() & (frame < pf_w.numel() // n_px).all()),
+             "poi within local's rows, frame within pf_w's frames")
+
+    def d(t):
+        return t.to(torch.float64).reshape(-1).contiguous()
+
+    c = centres.to(torch.float64)
+    run_rows(kernel("sts_splat_fused", flat.dtype), n_px, max(1, 8 * n * ns // max(n_px, 1)),
+             dict(flat=flat, **_geo(img_args, order), n=n, ns=ns, dx=d(dx), dy=d(dy),
+                  tent=d(tent), pm=maps.to(torch.float64).contiguous(), cx=d(c[:, 0]),
+                  cy=d(c[:, 1]), off=off, wf=d(weight), lv=d(level), fac=d(fac),
+                  mr=d(ref_stats[0]), sr=d(ref_stats[1]), ref=d(ref), w=int(w), h=int(h),
+                  poi=poi, frame=frame, local=local.to(torch.int64).contiguous(), n_px=n_px,
+                  sums=sums, pf_w=pf_w, pf_n=pf_n),
+             parts=threads())
 
 
 def splat_finish(sums_w: torch.Tensor, sums_n: torch.Tensor, pf_w: torch.Tensor,

@@ -287,9 +287,11 @@ def run_tasks(tasks: list[Callable[[], None]]) -> None:
     _Tasks(tasks).run(_pool(threads() - 1), n - 1)
 
 
-def run_rows(kernel: Kernel, n_rows: int, work_per_row: int, args: dict) -> None:
+def run_rows(kernel: Kernel, n_rows: int, work_per_row: int, args: dict,
+             parts: int | None = None) -> None:
     """Call ``kernel`` with ``args`` (every parameter but i0, i1, by name) over the rows
-    [0, n_rows), split over :func:`threads` threads when that pays."""
+    [0, n_rows), split over :func:`threads` threads when that pays (in ``parts`` ranges;
+    default 4 a thread, which evens out uneven rows)."""
     if "i0" in args or "i1" in args or kernel.i0 is None or kernel.i1 is None:
         raise TypeError(f"{kernel.name}: the rows i0, i1 are set by run_rows")
     raw, keep = kernel.bind({**args, "i0": 0, "i1": n_rows})
@@ -304,7 +306,7 @@ def run_rows(kernel: Kernel, n_rows: int, work_per_row: int, args: dict) -> None
         if rc:
             raise RuntimeError(f"{kernel.name} returned {rc}")
         return
-    parts = min(threads * 4, n_rows)  # a few chunks per thread evens out uneven rows
+    parts = min(threads * 4 if parts is None else max(1, parts), n_rows)
     edges = [n_rows * j // parts for j in range(parts + 1)]
     _Rows(kernel, raw, keep, edges).run(_pool(threads - 1), min(threads, parts) - 1)
 
