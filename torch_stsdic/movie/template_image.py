@@ -4,8 +4,9 @@ tent weights and the inverse of each frame's noise variance (:mod:`.series_refer
 which frame enters where and makes the maps). Every frame is sampled from the run's prepared
 frames (:class:`~torch_stsdic.movie.frames.FrameCache`: B-spline coefficients made once per run),
 a group of frames at a time in one batch, the sums scattered on the run's device in a fixed
-order (:func:`~torch_stsdic.kernels.scatter.scatter_add_`; the CPU's C++ path adds them in
-the same order, :func:`~torch_stsdic.kernels.native.ops.splat_add`)."""
+order (:func:`~torch_stsdic.kernels.scatter.scatter_add_`; the CPU's C++ path samples and
+adds them in one pass, in the same order, :func:`~torch_stsdic.kernels.native.ops.
+splat_fused`)."""
 
 from __future__ import annotations
 
