@@ -534,7 +534,9 @@ def splat_fused(img_args: tuple, order: int, dx: torch.Tensor, dy: torch.Tensor,
     arguments of :func:`splat`) sampled and added to ``sums``, ``pf_w``, ``pf_n`` (float64,
     those of :func:`splat_add`) with no (N, S) arrays between. The covered pixels are split
     over the threads (one range each), each adding every row that reaches its range in row
-    order (a row across two ranges sampled twice)."""
+    order (a row across two ranges sampled twice). A window's first and last pixels in
+    ``local`` are its least and greatest (``window_pixels``' row-major offsets, clamped to
+    the image, ranked: monotone), even where the window is wider than the image."""
     flat = img_args[0].contiguous()
     n, ns = maps.shape[0], dx.numel()
     n_px = sums.numel()
