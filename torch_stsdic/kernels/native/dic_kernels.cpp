@@ -1542,6 +1542,25 @@ STS_KERNEL(sts_splat, (const T* flat, int64_t wp, double x_lo, double x_hi, doub
   return 0;
 }
 
+// One row of the template's samples (values a[ns], weights wt[ns], the row's noise factor
+// ri) added at its pixels k[ns] that lie in [lo, hi): sums[k] += a, fw[k] += wt, fn[k] += wt
+// ri (the product rounded, then added) (sts_splat_add, sts_splat_fused).
+template <typename T>
+inline void splat_add_row(const int64_t* k, const T* a, const T* wt, T ri, int64_t ns,
+                          int64_t lo, int64_t hi, T* sums, T* fw, T* fn) {
+  for (int64_t s = 0; s < ns; ++s) {
+    const int64_t j = k[s];
+    if (j < lo || j >= hi) continue;
+    T share = wt[s] * ri;
+#if defined(__GNUC__) && (defined(__x86_64__) || defined(__i386__))
+    asm volatile("" : "+x"(share));  // rounded here: not fused into the add (-ffp-contract)
+#endif
+    sums[j] += a[s];
+    fw[j] += wt[s];
+    fn[j] += share;
+  }
+}
+
 // Rows i in [i0, i1) of sts_splat's outputs a, wt (N, ns) and rs (N,), each a (frame, POI)
 // pair: added to the sums over the n_px pixels the windows cover, k = local[poi[i] * ns + s]
 // the pixel of sample s: sums[k] += a, and the row's frame's pf_w[frame[i] * n_px + k] += wt,
@@ -1552,24 +1571,9 @@ STS_KERNEL(sts_splat_add, (int64_t i0, int64_t i1, int64_t ns, int64_t n_px, con
                            const T* wt, const T* rs, const int64_t* poi,
                            const int64_t* frame, const int64_t* local, T* sums, T* pf_w,
                            T* pf_n)) {
-  for (int64_t i = i0; i < i1; ++i) {
-    const int64_t* k = local + poi[i] * ns;
-    const T* ai = a + i * ns;
-    const T* wi = wt + i * ns;
-    const T ri = rs[i];
-    T* fw = pf_w + frame[i] * n_px;
-    T* fn = pf_n + frame[i] * n_px;
-    for (int64_t s = 0; s < ns; ++s) {
-      const int64_t j = k[s];
-      T share = wi[s] * ri;
-#if defined(__GNUC__) && (defined(__x86_64__) || defined(__i386__))
-      asm volatile("" : "+x"(share));  // rounded here: not fused into the add (-ffp-contract)
-#endif
-      sums[j] += ai[s];
-      fw[j] += wi[s];
-      fn[j] += share;
-    }
-  }
+  for (int64_t i = i0; i < i1; ++i)
+    splat_add_row(local + poi[i] * ns, a + i * ns, wt + i * ns, rs[i], ns, 0, n_px, sums,
+                  pf_w + frame[i] * n_px, pf_n + frame[i] * n_px);
   return 0;
 }
 
@@ -1597,19 +1601,8 @@ STS_KERNEL(sts_splat_fused, (const T* flat, int64_t wp, double x_lo, double x_hi
     const int64_t* k = local + poi[r] * ns;
     if (k[ns - 1] < i0 || k[0] >= i1) continue;
     const double ri = rows.row(r, a.data(), wt.data());
-    double* fw = pf_w + frame[r] * n_px;
-    double* fn = pf_n + frame[r] * n_px;
-    for (int64_t s = 0; s < ns; ++s) {
-      const int64_t j = k[s];
-      if (j < i0 || j >= i1) continue;
-      double share = wt[s] * ri;
-#if defined(__GNUC__) && (defined(__x86_64__) || defined(__i386__))
-      asm volatile("" : "+x"(share));  // rounded here: not fused into the add (-ffp-contract)
-#endif
-      sums[j] += a[s];
-      fw[j] += wt[s];
-      fn[j] += share;
-    }
+    splat_add_row(k, a.data(), wt.data(), ri, ns, i0, i1, sums, pf_w + frame[r] * n_px,
+                  pf_n + frame[r] * n_px);
   }
   return 0;
 }

@@ -461,29 +461,62 @@ def splat(img_args: tuple, order: int, dx: torch.Tensor, dy: torch.Tensor, tent:
     weighted (``weight``, ``level``, ``fac`` (N,)). Returns (N, S) float64 the weighted
     values, (N, S) float64 the weights and (N,) float64 each row's noise factor (a sample's
     noise share is its weight times it: :func:`splat_add` forms it)."""
+    n, ns = maps.shape[0], dx.numel()
+    flat, args = _splat_inputs("splat", img_args, order, dx, dy, tent, maps, centres,
+                               frame_off, weight, level, fac, ref_stats, ref, w, h)
+    out = [torch.empty(n, ns, dtype=torch.float64) for _ in range(2)]
+    out.append(torch.empty(n, dtype=torch.float64))
+    run_rows(kernel("sts_splat", flat.dtype), n, 8 * ns,
+             dict(args, a=out[0], wt=out[1], rs=out[2]))
+    return out[0], out[1], out[2]
+
+
+def _splat_inputs(name: str, img_args: tuple, order: int, dx: torch.Tensor, dy: torch.Tensor,
+                  tent: torch.Tensor, maps: torch.Tensor, centres: torch.Tensor,
+                  frame_off: torch.Tensor, weight: torch.Tensor, level: torch.Tensor,
+                  fac: torch.Tensor, ref_stats: tuple[torch.Tensor, torch.Tensor],
+                  ref: torch.Tensor, w: int, h: int) -> tuple[torch.Tensor, dict]:
+    """The template's rows as the sampling kernels take them (:func:`splat`'s arguments,
+    checked, ``name`` in the message): the coefficients and the kernel's arguments."""
     flat = img_args[0].contiguous()
     n, ns = maps.shape[0], dx.numel()
-    _require("splat", tuple(maps.shape) == (n, 12) and tuple(centres.shape) == (n, 2)
+    _require(name, tuple(maps.shape) == (n, 12) and tuple(centres.shape) == (n, 2)
              and all(t.numel() == n for t in (frame_off, weight, level, fac, *ref_stats))
              and dy.numel() == ns and tent.numel() == ns and ref.numel() == w * h,
              "maps (N, 12), centres (N, 2), frame_off/weight/level/fac/ref_stats (N,), "
              "dx/dy/tent (S,), ref (H*W,)")
     off = frame_off.to(torch.int64).reshape(-1).contiguous()
-    _check_planes("splat", img_args, off)
+    _check_planes(name, img_args, off)
 
     def d(t):
         return t.to(torch.float64).reshape(-1).contiguous()
 
-    out = [torch.empty(n, ns, dtype=torch.float64) for _ in range(2)]
-    out.append(torch.empty(n, dtype=torch.float64))
     c = centres.to(torch.float64)
-    run_rows(kernel("sts_splat", flat.dtype), n, 8 * ns,
-             dict(flat=flat, **_geo(img_args, order), ns=ns, dx=d(dx), dy=d(dy), tent=d(tent),
-                  pm=maps.to(torch.float64).contiguous(), cx=d(c[:, 0]), cy=d(c[:, 1]),
-                  off=off, wf=d(weight), lv=d(level), fac=d(fac), mr=d(ref_stats[0]),
-                  sr=d(ref_stats[1]), ref=d(ref), w=int(w), h=int(h), a=out[0], wt=out[1],
-                  rs=out[2]))
-    return out[0], out[1], out[2]
+    return flat, dict(flat=flat, **_geo(img_args, order), ns=ns, dx=d(dx), dy=d(dy),
+                      tent=d(tent), pm=maps.to(torch.float64).contiguous(), cx=d(c[:, 0]),
+                      cy=d(c[:, 1]), off=off, wf=d(weight), lv=d(level), fac=d(fac),
+                      mr=d(ref_stats[0]), sr=d(ref_stats[1]), ref=d(ref), w=int(w), h=int(h))
+
+
+def _splat_bins(name: str, sums: torch.Tensor, pf_w: torch.Tensor, pf_n: torch.Tensor,
+                poi: torch.Tensor, frame: torch.Tensor, local: torch.Tensor, n: int, ns: int,
+                dtype: torch.dtype) -> dict:
+    """The sums the template's rows are added to (:func:`splat_add`'s ``sums``, ``pf_w``,
+    ``pf_n`` of ``dtype``, and each of the N rows' ``poi``, ``frame`` among ``local``'s
+    (P, S) windows), checked (``name`` in the message), as the adding kernels take them."""
+    n_px = sums.numel()
+    _require(name, all(t.dtype == dtype and t.is_contiguous() for t in (sums, pf_w, pf_n))
+             and poi.numel() == n and frame.numel() == n and local.dim() == 2
+             and local.shape[1] == ns and pf_w.numel() == pf_n.numel()
+             and pf_w.numel() % max(n_px, 1) == 0,
+             f"sums (C,), pf_w/pf_n (G*C,) contiguous {dtype}, poi/frame (N,), local (P, S)")
+    poi, frame = poi.to(torch.int64).contiguous(), frame.to(torch.int64).contiguous()
+    if n:
+        _require(name, bool((poi >= 0).all() & (poi < local.shape[0]).all()
+                            & (frame >= 0).all() & (frame < pf_w.numel() // n_px).all()),
+                 "poi within local's rows, frame within pf_w's frames")
+    return dict(n_px=n_px, poi=poi, frame=frame, local=local.to(torch.int64).contiguous(),
+                sums=sums, pf_w=pf_w, pf_n=pf_n)
 
 
 def splat_add(sums: torch.Tensor, pf_w: torch.Tensor, pf_n: torch.Tensor, a: torch.Tensor,
@@ -498,25 +531,15 @@ def splat_add(sums: torch.Tensor, pf_w: torch.Tensor, pf_n: torch.Tensor, a: tor
     :func:`~torch_stsdic.kernels.scatter.scatter_add_` on the CPU, without the (N, S)
     index. Every value tensor of one dtype (float64 for the template; float32 too)."""
     n, ns = a.shape
-    n_px = sums.numel()
     _require("splat_add", a.dtype in (torch.float32, torch.float64)
-             and all(t.dtype == a.dtype and t.is_contiguous()
-                     for t in (sums, pf_w, pf_n, a, wt, rs))
-             and wt.shape == a.shape and tuple(rs.shape) == (n,) and poi.numel() == n
-             and frame.numel() == n and local.dim() == 2 and local.shape[1] == ns
-             and pf_w.numel() == pf_n.numel() and pf_w.numel() % max(n_px, 1) == 0,
-             "sums (C,), pf_w/pf_n (G*C,), a/wt (N, S), rs (N,) contiguous, one float dtype, "
-             "poi/frame (N,), local (P, S)")
+             and all(t.dtype == a.dtype and t.is_contiguous() for t in (a, wt, rs))
+             and wt.shape == a.shape and tuple(rs.shape) == (n,),
+             "a/wt (N, S), rs (N,) contiguous, one float dtype")
+    bins = _splat_bins("splat_add", sums, pf_w, pf_n, poi, frame, local, n, ns, a.dtype)
     if n == 0:
         return
-    poi, frame = poi.to(torch.int64).contiguous(), frame.to(torch.int64).contiguous()
-    _require("splat_add", bool((poi >= 0).all() & (poi < local.shape[0]).all()
-                               & (frame >= 0).all() & (frame < pf_w.numel() // n_px).all()),
-             "poi within local's rows, frame within pf_w's frames")
     fn = kernel("sts_splat_add", a.dtype)
-    raw, keep = fn.bind(dict(i0=0, i1=n, ns=ns, n_px=n_px, a=a, wt=wt, rs=rs, poi=poi,
-                             frame=frame, local=local.to(torch.int64).contiguous(), sums=sums,
-                             pf_w=pf_w, pf_n=pf_n))
+    raw, keep = fn.bind(dict(bins, i0=0, i1=n, ns=ns, a=a, wt=wt, rs=rs))
     rc = fn.fn(*raw)
     del keep
     if rc:
@@ -537,40 +560,16 @@ def splat_fused(img_args: tuple, order: int, dx: torch.Tensor, dy: torch.Tensor,
     order (a row across two ranges sampled twice). A window's first and last pixels in
     ``local`` are its least and greatest (``window_pixels``' row-major offsets, clamped to
     the image, ranked: monotone), even where the window is wider than the image."""
-    flat = img_args[0].contiguous()
     n, ns = maps.shape[0], dx.numel()
-    n_px = sums.numel()
-    _require("splat_fused", tuple(maps.shape) == (n, 12) and tuple(centres.shape) == (n, 2)
-             and all(t.numel() == n for t in (frame_off, weight, level, fac, *ref_stats,
-                                              poi, frame))
-             and dy.numel() == ns and tent.numel() == ns and ref.numel() == w * h
-             and local.dim() == 2 and local.shape[1] == ns
-             and all(t.dtype == torch.float64 and t.is_contiguous() for t in (sums, pf_w, pf_n))
-             and pf_w.numel() == pf_n.numel() and pf_w.numel() % max(n_px, 1) == 0,
-             "maps (N, 12), centres (N, 2), frame_off/weight/level/fac/ref_stats/poi/frame "
-             "(N,), dx/dy/tent (S,), ref (H*W,), local (P, S), sums (C,) and pf_w/pf_n "
-             "(G*C,) float64 contiguous")
+    flat, args = _splat_inputs("splat_fused", img_args, order, dx, dy, tent, maps, centres,
+                               frame_off, weight, level, fac, ref_stats, ref, w, h)
+    bins = _splat_bins("splat_fused", sums, pf_w, pf_n, poi, frame, local, n, ns,
+                       torch.float64)
     if n == 0:
         return
-    off = frame_off.to(torch.int64).reshape(-1).contiguous()
-    _check_planes("splat_fused", img_args, off)
-    poi, frame = poi.to(torch.int64).contiguous(), frame.to(torch.int64).contiguous()
-    _require("splat_fused", bool((poi >= 0).all() & (poi < local.shape[0]).all()
-                                 & (frame >= 0).all() & (frame < pf_w.numel() // n_px).all()),
-             "poi within local's rows, frame within pf_w's frames")
-
-    def d(t):
-        return t.to(torch.float64).reshape(-1).contiguous()
-
-    c = centres.to(torch.float64)
+    n_px = bins["n_px"]
     run_rows(kernel("sts_splat_fused", flat.dtype), n_px, max(1, 8 * n * ns // max(n_px, 1)),
-             dict(flat=flat, **_geo(img_args, order), n=n, ns=ns, dx=d(dx), dy=d(dy),
-                  tent=d(tent), pm=maps.to(torch.float64).contiguous(), cx=d(c[:, 0]),
-                  cy=d(c[:, 1]), off=off, wf=d(weight), lv=d(level), fac=d(fac),
-                  mr=d(ref_stats[0]), sr=d(ref_stats[1]), ref=d(ref), w=int(w), h=int(h),
-                  poi=poi, frame=frame, local=local.to(torch.int64).contiguous(), n_px=n_px,
-                  sums=sums, pf_w=pf_w, pf_n=pf_n),
-             parts=threads())
+             dict(args, **bins, n=n), parts=threads())
 
 
 def splat_finish(sums_w: torch.Tensor, sums_n: torch.Tensor, pf_w: torch.Tensor,
