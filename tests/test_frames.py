@@ -115,6 +115,37 @@ def test_reader_errors_reach_the_caller():
     cache.close()
 
 
+def test_close_waits_for_the_frame_under_way(monkeypatch):
+    """A frame that takes longer than one of close's waits (a large frame on a busy CPU) is
+    finished before close returns: a daemon thread still inside a torch op at the
+    interpreter's shutdown aborts the process after its results are written."""
+    import time
+
+    from torch_stsdic.movie import frames as frames_mod
+
+    class _Slow(_Counting):
+        def get(self, i, dtype=torch.float32, device=None):
+            if i == 2:
+                self.started = time.monotonic()
+                time.sleep(0.6)  # (the GIL released, as in a torch op)
+            return super().get(i, dtype=dtype, device=device)
+
+    monkeypatch.setattr(frames_mod._Reader, "JOIN_SLICE_S", 0.05)
+    series = _Slow(_frames())
+    cache = FrameCache(series, SubsetSolver(sts.DICConfig(m=1)), torch.float32, "cpu", ahead=1)
+    cache.schedule(list(range(9)))
+    reader = cache._reader
+    cache.in_ring([0])
+    deadline = time.monotonic() + 20.0
+    while not hasattr(series, "started") and time.monotonic() < deadline:
+        time.sleep(0.005)
+    assert hasattr(series, "started"), "the reader never reached the slow frame"
+    cache.close()
+    assert not reader.is_alive()
+    assert time.monotonic() - series.started >= 0.55  # it waited for the frame
+    assert 3 not in series.count  # and read no further
+
+
 def test_track_equal_with_and_without_read_ahead(monkeypatch):
     mv = synth.synthetic_movie((64, 64), 8, synth.Translation(ut=0.1, vt=-0.05), seed=1,
                                noise_sigma=1.0)

@@ -24,6 +24,7 @@ import os
 import queue
 import threading
 import time
+import warnings
 from collections import Counter, OrderedDict
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
@@ -196,6 +197,10 @@ class _Reader(threading.Thread):
     for good (``queue.Queue`` and ``threading.Event`` take theirs in Python code)."""
 
     _DONE = object()
+    #: s a :meth:`close` waits at a time for the frame under way (then again, until it ends)
+    JOIN_SLICE_S = 0.5
+    #: s after which :meth:`close` warns that it still waits
+    CLOSE_WARN_S = 60.0
 
     def __init__(self, cache: FrameCache, order: list[int], ahead: int) -> None:
         super().__init__(name="stsdic-frames", daemon=True)
@@ -273,13 +278,27 @@ class _Reader(threading.Thread):
                 return raw, prep
 
     def close(self) -> None:
+        """Stop: the queue emptied and the frame under way finished (its decoding and
+        prefilter, seconds at most on a loaded CPU; waited for in slices of
+        :attr:`JOIN_SLICE_S`, a Ctrl-C still heard, warned about after :attr:`CLOSE_WARN_S`).
+        A daemon thread still inside a torch op at the interpreter's shutdown aborts the
+        process after the run's results are written ("terminate called without an active
+        exception", exit 134)."""
         self.stopped = True  # a put in progress gives up within 2 ms
         while True:
             try:
                 self.q.get_nowait()
             except queue.Empty:
                 break
-        self.join(timeout=5.0)
+        t0 = time.perf_counter()
+        warned = False
+        while self.is_alive():
+            self.join(timeout=self.JOIN_SLICE_S)
+            if not warned and time.perf_counter() - t0 > self.CLOSE_WARN_S:
+                warned = True
+                warnings.warn(f"the frame reader is still reading frame(s) of "
+                              f"{self.cache.series!r} after {self.CLOSE_WARN_S:.0f} s; "
+                              "waiting for it", RuntimeWarning, stacklevel=2)
 
 
 class FrameCache:
