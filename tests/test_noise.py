@@ -184,6 +184,42 @@ def test_noise_estimate_of_a_float32_image_equals_the_float64_one():
         estimate_noise_sigma(grey, flat_fraction=None), rel=1e-12)
 
 
+def test_quantiles_from_histograms_equal_the_sorted_rows():
+    """:func:`_quantiles`' two order statistics, from the rows' histograms (whole numbers on
+    the CPU: the Sobel magnitudes of integer grey levels) or by selection (any other
+    values), are the sorted rows' to the bit: ties, both ends, 16-bit ranges."""
+    import math
+
+    from torch_stsdic.core import noise
+
+    def by_sorting(x, q):
+        n = x.shape[1]
+        pos = q * (n - 1)
+        lo = int(math.floor(pos))
+        s = x.sort(1).values
+        if lo + 1 >= n:
+            return s[:, lo]
+        v_lo, v_hi = s[:, lo], s[:, lo + 1]
+        return v_lo + (v_hi - v_lo) * (pos - lo)
+
+    gen = torch.Generator().manual_seed(5)
+    cases = [torch.randint(0, top, (f, n), generator=gen).float()
+             for top, f, n in ((4, 5, 13), (3000, 3, 401), (70_000, 2, 999), (1, 2, 7))]
+    cases += [torch.randint(0, 300, (2, 64), generator=gen).double(),  # float64 rows
+              torch.randint(0, 300, (2, 64), generator=gen),  # integer rows
+              torch.randn(3, 77, generator=gen),  # negative: by selection
+              torch.rand(2, 50, generator=gen) * 9]  # fractions: by selection
+    for x in cases:
+        for q in (0.0, 0.1, 0.25, 0.5, 0.77, 1.0):
+            want = by_sorting(x, q)
+            got = noise._quantiles(x, q)
+            assert got.dtype == want.dtype and torch.equal(got, want), (x.dtype, q)
+    assert noise._order_statistics(cases[1], (1, 2)) is not None  # the histograms' path
+    assert noise._order_statistics(cases[-1], (1, 2)) is None
+    big = torch.tensor([[0.0, float(noise._HISTOGRAM_BINS)]])
+    assert noise._order_statistics(big, (1,)) is None
+
+
 def test_immerkaer_of_a_stack_is_each_frames_own_and_its_quantile_torchs():
     """:func:`immerkaer_sigmas` of a stack gives every frame the single-image estimate bit for
     bit (frames of other noise levels beside it change nothing), each near the noise added
