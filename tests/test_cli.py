@@ -282,6 +282,33 @@ def test_run_no_checks_is_recorded_and_resumed_alike(capsys, movie, tmp_path):
     assert code == 0, err
 
 
+def test_a_file_recorded_with_the_old_default_memory_budget_resumes(capsys, movie, tmp_path):
+    """``--memory-mb`` not given is recorded as null (a GPU then takes its own budget); a file
+    that recorded the default as 256.0 (before null) resumes alike, another budget does not."""
+    out = tmp_path / "r.h5"
+    base = ["run", movie / "movie.tif", "--subset", "17", "--step", "25", "--m", "1",
+            "--search-radius", "3", "--frames", "0:4", "--out", out, "--no-progress",
+            *FAST]  # fmt: skip
+    code, _, err = _run(capsys, *base)
+    assert code == 0, err
+
+    def recorded(memory_mb):
+        with h5py.File(out, "r+") as f:
+            cfg = json.loads(f.attrs["config"])
+            old, cfg["memory_mb"] = cfg["memory_mb"], memory_mb
+            f.attrs["config"] = json.dumps(cfg)
+        return old
+
+    assert recorded(256.0) is None  # written as not given
+    code, _, err = _run(capsys, *base, "--resume")
+    assert code == 0, err
+    recorded(512.0)
+    code, _, err = _run(capsys, *base, "--resume")
+    _assert_one_line_error(code, err, "--memory-mb")
+    code, _, err = _run(capsys, *base, "--memory-mb", "512", "--resume")
+    assert code == 0, err
+
+
 def test_run_points_and_timestamps(capsys, movie, tmp_path):
     pts = tmp_path / "poi.csv"
     pts.write_text("x,y\n30,30\n40,40\n50,35\n")

@@ -494,7 +494,8 @@ def test_reference_subsets_kept_between_solves_change_nothing(monkeypatch):
 def test_default_block_length_on_the_cpu_and_on_a_gpu():
     """8 target frames at most on the CPU, their frames within half of memory_mb (the
     window's 2m frames on top); on a GPU 32 within a frames' budget of at least 2 GiB (a
-    tenth of the device's memory at most)."""
+    tenth of the device's memory at most) where no memory_mb is given, within half of the
+    one given else."""
     from torch_stsdic.movie.plan import default_batch_frames
 
     cfg = DICConfig(m=2)  # 256 MiB: 128 for the frames, 12 MiB a 1024^2 float32 frame
@@ -508,14 +509,19 @@ def test_default_block_length_on_the_cpu_and_on_a_gpu():
     assert default_batch_frames(cfg, (1024, 1024), 4, "cuda", device_mb=4096) == 32
     assert default_batch_frames(cfg, (2048, 2048), 4, "cuda", device_mb=4096) == 8
     assert default_batch_frames(cfg, (4096, 4096), 4, "cuda", device_mb=80_000) == 10
+    # a budget given is kept to on a GPU too: 256 MiB given, as on the CPU (but up to 32)
+    given = DICConfig(m=2, memory_mb=256.0)
+    assert default_batch_frames(given, (2048, 2048), 4, "cuda", device_mb=80_000) == 2
+    assert default_batch_frames(DICConfig(m=2, memory_mb=8000), (1024, 1024), 4, "cuda",
+                                device_mb=80_000) == 32
 
 
 def test_a_gpu_solves_in_batches_of_its_own_budget_with_the_same_answers(monkeypatch):
     """On a GPU a solve's batches take at least 2 GiB within a tenth of the device's memory
-    (``gpu_budget_mb``; None on the CPU, which keeps ``memory_mb``): fewer batches, fewer
-    launches. A row's answer does not depend on its batch: a movie run in batches of 16
-    rows (a tiny ``memory_mb``, the same blocks) and in one batch a solve gives the same
-    numbers to the bit."""
+    (``gpu_budget_mb``; None on the CPU, which keeps ``memory_mb``) where no ``memory_mb`` is
+    given: fewer batches, fewer launches; a ``memory_mb`` given is kept to. A row's answer
+    does not depend on its batch: a movie run in batches of 16 rows (a tiny ``memory_mb``,
+    the same blocks) and in one batch a solve gives the same numbers to the bit."""
     from torch_stsdic.core import gauss_newton
     from torch_stsdic.core.config import gpu_budget_mb
 
@@ -539,8 +545,12 @@ def test_a_gpu_solves_in_batches_of_its_own_budget_with_the_same_answers(monkeyp
     sizes.clear()
     # the same budget as a GPU's (the CPU's batch size made as on a 20 GiB card)
     monkeypatch.setattr(gauss_newton, "gpu_budget_mb", lambda device: 2048.0)
-    one = run(1e-3)
+    one = run(None)  # (no budget given: the GPU's own)
     assert min(sizes) > 10_000  # every solve in one batch
+    sizes.clear()
+    given = run(1e-3)  # a budget given is kept to on a GPU too (a GPU shared with others)
+    assert max(sizes) == 16
+    assert torch.equal(given.u.nan_to_num(-7), small.u.nan_to_num(-7))
     for name in ("u", "v", "ut", "vt", "zncc", "status", "iterations", "u_std"):
         assert torch.equal(small.field(name).nan_to_num(-7), one.field(name).nan_to_num(-7)), \
             name

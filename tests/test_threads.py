@@ -162,6 +162,40 @@ def test_fft_cross_correlation_batches_stay_within_their_memory(monkeypatch):
     got = fft_cross_correlation(ref, cur, pts, 21, 6, memory_mb=1.0)
     assert sum(sizes) == pts.shape[0] and max(sizes) > 2**20 // (pair_bytes * rows.threads())
     assert torch.equal(got[0], want[0]) and torch.equal(got[1], want[1])
+    # a run given a memory budget keeps the FFT's own on a GPU too (gpu_floor=False)
+    sizes.clear()
+    got = fft_cross_correlation(ref, cur, pts, 21, 6, memory_mb=1.0, gpu_floor=False)
+    assert max(sizes) * pair_bytes * rows.threads() <= 2**20
+    assert torch.equal(got[0], want[0]) and torch.equal(got[1], want[1])
+
+
+def test_a_solver_given_a_memory_budget_asks_its_searches_for_no_gpu_floor(monkeypatch):
+    """``DICConfig.memory_mb`` given: the initial guess's FFT searches (the first, the
+    pyramid's retry, the walk along the window) take no GPU floor; not given: they do."""
+    import torch_stsdic.core.solver as solver_mod
+    from torch_stsdic.core.config import DICConfig
+    from torch_stsdic.core.solver import SubsetSolver
+
+    ref, cur = _pair(96, 1.4, -0.7)
+    frames = torch.stack([cur, cur])
+    pts = _points(96, step=12)
+    n = pts.shape[0]
+    seen = []
+    for name in ("fft_cross_correlation", "retry_weak_peaks", "walk_weak_frames"):
+        real = getattr(solver_mod, name)
+
+        def spy(*a, _real=real, _name=name, **k):
+            seen.append((_name, k.get("gpu_floor")))
+            return _real(*a, **k)
+        monkeypatch.setattr(solver_mod, name, spy)
+    for memory_mb, floor in ((None, True), (300.0, False)):
+        seen.clear()
+        sol = SubsetSolver(DICConfig(subset_size=21, m=1, search_radius=4, memory_mb=memory_mb))
+        sol.initial_guess(sol.shape, ref[None], frames, pts, torch.tensor([[-1.0, 1.0]] * n),
+                          torch.tensor([[0, 1]] * n), torch.zeros(n, dtype=torch.long))
+        assert {nm for nm, _ in seen} == {"fft_cross_correlation", "retry_weak_peaks",
+                                          "walk_weak_frames"}
+        assert all(f is floor for _, f in seen), seen
 
 
 def test_fft_cross_correlation_on_the_pool_equals_one_thread():

@@ -361,7 +361,7 @@ def run_solve_case(spec: dict[str, Any]) -> dict[str, Any]:
     pts = poi_grid(ref.shape[0], spec["n"], subset, spec.get("step")).to(dev, dtype)
     n = pts.shape[0]
     memory_mb = spec.get("memory_mb") or (_cuda_budget_mb() if dev.startswith("cuda")
-                                          else sts.DICConfig().memory_mb)
+                                          else sts.DICConfig().budget_mb)
     cfg = sts.DICConfig(subset_size=subset, m=m, dtype=spec["dtype"], memory_mb=memory_mb,
                         initial_guess=spec.get("initial_guess") or "auto")
     solver = sts.SubsetSolver(cfg)
@@ -548,7 +548,7 @@ def run_memory_case(spec: dict[str, Any]) -> dict[str, Any]:
         "converged_frac": float(res.ok.float().mean()),
         "info": {k: v for k, v in res.info.items() if isinstance(v, (int, float, str))},
         "tiff_mb": os.path.getsize(spec["tiff"]) / 2**20,
-        "memory_mb_budget": cfg.memory_mb,
+        "memory_mb_budget": cfg.budget_mb,
         "rss_trace": trace,
         "load_before": load0,
         "load_after": load1,

@@ -149,9 +149,10 @@ def add_solver(p: argparse.ArgumentParser) -> None:
                help="Gauss-Newton iterations per stage")  # fmt: skip
     add_option(g, "--batch-points", type=int_min(1), default=None, metavar="N",
                help="points solved together", shown="from --memory-mb")  # fmt: skip
-    add_option(g, "--memory-mb", type=float_pos, default=256.0, metavar="MB",
-               help="working-memory budget per batch in MiB (a GPU takes at least 2048, "
-                    "within a tenth of its memory)")  # fmt: skip
+    add_option(g, "--memory-mb", type=float_pos, default=None, metavar="MB",
+               help="working-memory budget per batch in MiB, kept to on every device (a GPU "
+                    "shared with other work)",
+               shown="256; a GPU takes at least 2048, within a tenth of its memory")  # fmt: skip
 
 
 def _add_initial_guess(g: Group) -> None:

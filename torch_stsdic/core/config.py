@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 import warnings
 from dataclasses import dataclass, field
 from typing import Any
@@ -14,11 +15,15 @@ from torch_stsdic.core.shape import ShapeFunction
 from torch_stsdic.core.window import SubsetWindow
 
 __all__ = ["DICConfig", "FORMULATIONS", "FORMULATION_HELP", "CRITERIA", "INITIAL_GUESSES",
-           "GPU_BUDGET_MB", "gpu_budget_mb"]
+           "DEFAULT_MEMORY_MB", "GPU_BUDGET_MB", "gpu_budget_mb"]
 
-#: MiB a GPU gives at least to a block's frames and to each batch of a solve, whatever
-#: ``memory_mb`` says, within a tenth of the device's memory (:func:`gpu_budget_mb`): there a
-#: block's launches, not its arithmetic, set the pace, and 256 MiB would hold 6 megapixel
+#: MiB of working memory a batch takes where ``DICConfig.memory_mb`` is not given (on a GPU
+#: at least :func:`gpu_budget_mb`; a value given is taken as given on every device)
+DEFAULT_MEMORY_MB = 256.0
+
+#: MiB a GPU gives at least to a block's frames and to each batch of a solve where
+#: ``memory_mb`` is not given, within a tenth of the device's memory (:func:`gpu_budget_mb`):
+#: there a block's launches, not its arithmetic, set the pace, and 256 MiB would hold 6 megapixel
 #: frames or split a block's solve into batches of ~5,800 rows (a masked solve over every
 #: row of a 32-target block of 10,000 POIs into 55 batches, each with its own launches)
 GPU_BUDGET_MB = 2048.0
@@ -73,9 +78,10 @@ class DICConfig:
         max_displacement: a point whose displacement moves more than this (px) away from its
             initial guess is flagged DIVERGED (default: subset_size).
         batch_points: POIs solved together per batch (None: sized from ``memory_mb``).
-        memory_mb: working-memory budget per batch in MiB (default 256; a GPU takes at
+        memory_mb: working-memory budget per batch in MiB (None: 256, and on a GPU at
             least :func:`gpu_budget_mb`, 2 GiB within a tenth of its memory, for a solve's
-            batches and a block's frames: the same answers in fewer launches).
+            batches and a block's frames: the same answers in fewer launches). A value given
+            is taken as given on every device (a GPU shared with a training job).
         dtype: "float32", "float64" or None (None: the input's float dtype; float32 for integers).
     """
 
@@ -94,7 +100,7 @@ class DICConfig:
     texture_threshold: float = 1e-5
     max_displacement: float | None = None
     batch_points: int | None = None
-    memory_mb: float = 256.0
+    memory_mb: float | None = None
     dtype: str | None = None
     extra: dict[str, Any] = field(default_factory=dict)
 
@@ -135,8 +141,8 @@ class DICConfig:
             bad("initial_guess", f"must be one of {INITIAL_GUESSES}")
         if self.seed_spacing is not None and not (self.seed_spacing >= 1):
             bad("seed_spacing", "must be >= 1 px or None")
-        if self.memory_mb <= 0:
-            bad("memory_mb", "must be > 0")
+        if self.memory_mb is not None and not (0 < self.memory_mb < math.inf):
+            bad("memory_mb", "must be > 0 and finite, or None")
         if self.batch_points is not None and self.batch_points < 1:
             bad("batch_points", "must be >= 1 or None")
         if self.dtype not in (None, "float32", "float64"):
@@ -154,6 +160,13 @@ class DICConfig:
     @property
     def interpolation_order(self) -> int:
         return 3 if self.interpolation == "cubic" else 5
+
+    @property
+    def budget_mb(self) -> float:
+        """MiB of working memory: ``memory_mb``, or :data:`DEFAULT_MEMORY_MB` where it is not
+        given (there a GPU takes at least :func:`gpu_budget_mb` for a solve's batches and a
+        block's frames)."""
+        return DEFAULT_MEMORY_MB if self.memory_mb is None else float(self.memory_mb)
 
     def replace(self, **changes: Any) -> DICConfig:
         """A copy with some settings changed."""

@@ -168,9 +168,9 @@ class BatchContext:
     kept: KeptToken | None = None
 
     def batch_size(self, t: int) -> int:
-        """POIs per batch within ``cfg.memory_mb`` (on a GPU at least
-        :func:`~torch_stsdic.core.config.gpu_budget_mb`: a batch's rows do not depend on
-        the batch, so fewer batches are the same answers for fewer launches)."""
+        """POIs per batch within ``cfg.memory_mb`` (not given: 256 MiB, and on a GPU at
+        least :func:`~torch_stsdic.core.config.gpu_budget_mb`: a batch's rows do not depend
+        on the batch, so fewer batches are the same answers for fewer launches)."""
         s, ks = self.geo.spatial.shape
         elem = self.geo.spatial.element_size()
         ic_only = all(f.inverse_compositional for f in self.stages)
@@ -181,9 +181,9 @@ class BatchContext:
         else:
             jac = 0 if ic_only else t * 2 * (ks + 1)
             per_point = s * elem * (t * 40 + jac + 8 * ks + 24)
-        budget = self.cfg.memory_mb
+        budget = self.cfg.budget_mb
         gpu_mb = gpu_budget_mb(self.geo.spatial.device)
-        if gpu_mb is not None:
+        if gpu_mb is not None and self.cfg.memory_mb is None:  # (a budget given: kept to)
             budget = max(budget, gpu_mb)
         return max(16, int(budget * 2**20 / per_point))
 

@@ -134,11 +134,13 @@ def fft_cross_correlation(
     prior: torch.Tensor | None = None,
     batch: int = 4096,
     memory_mb: float = FFT_MEMORY_MB,
+    gpu_floor: bool = True,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Displacement of each POI from ``ref`` (H, W) to each of ``images`` (T, H, W), by
     batches of at most ``batch`` POI-frame pairs whose working arrays (all threads'
     batches at once) stay within ``memory_mb`` MiB (on a GPU at least
-    :func:`~torch_stsdic.core.config.gpu_budget_mb`).
+    :func:`~torch_stsdic.core.config.gpu_budget_mb` with ``gpu_floor``: False where the run
+    was given a memory budget, ``DICConfig.memory_mb``).
 
     Args:
         points: (N, 2) POI positions (x, y) in px (rounded to the nearest pixel here).
@@ -183,7 +185,7 @@ def fft_cross_correlation(
     # budget where larger: the same numbers in fewer batches, each with its launches)
     pair_bytes = _PAIR_REGIONS * fast * fast * torch.finfo(dtype).bits // 8
     in_flight = threads() if dev.type == "cpu" else 1
-    gpu_mb = gpu_budget_mb(dev)
+    gpu_mb = gpu_budget_mb(dev) if gpu_floor else None
     memory_mb = memory_mb if gpu_mb is None else max(memory_mb, gpu_mb)
     pairs = min(batch, max(1, int(memory_mb * 2**20 / (pair_bytes * in_flight))))
     per_batch = _batch_size(n, max(1, pairs // max(1, t_count)), dev)
@@ -245,8 +247,10 @@ def coarse_to_fine(
     ref_index: torch.Tensor | None = None,
     refine_radius: int = 3,
     pyramids: tuple[PyramidStack, PyramidStack] | None = None,
+    gpu_floor: bool = True,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """:func:`fft_cross_correlation` over an image pyramid, for large motions.
+    """:func:`fft_cross_correlation` over an image pyramid, for large motions (``gpu_floor``
+    as there).
 
     At the coarsest of ``levels`` halvings the subsets (``subset_size`` px there, i.e. a
     region 2^levels times wider) are searched within ``search_radius`` px, reaching
@@ -283,7 +287,8 @@ def coarse_to_fine(
         prior = None if disp is None else torch.round(2.0 * disp)
         disp, score = fft_cross_correlation(
             refs[lev], imgs[lev], pts, subset_size, search_radius if disp is None else
-            refine_radius, frame_index=f_idx, ref_index=r_idx, prior=prior)
+            refine_radius, frame_index=f_idx, ref_index=r_idx, prior=prior,
+            gpu_floor=gpu_floor)
     return disp, score
 
 
@@ -357,14 +362,14 @@ def retry_weak_peaks(d: torch.Tensor, score: torch.Tensor, ref_pixels: torch.Ten
                      frame_pixels: torch.Tensor, points: torch.Tensor,
                      frame_index: torch.Tensor, ref_index: torch.Tensor, subset_size: int,
                      search_radius: int,
-                     pyramids: tuple[PyramidStack, PyramidStack] | None = None
-                     ) -> tuple[torch.Tensor, torch.Tensor]:
+                     pyramids: tuple[PyramidStack, PyramidStack] | None = None,
+                     gpu_floor: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
     """Where the full-resolution search found no clear peak (ZNCC < 0.8, or the peak on
     the border of the search area: the motion may be larger than ``search_radius``),
     search again over an image pyramid (:func:`~torch_stsdic.core.initial.coarse_to_fine`;
     ``pyramids`` those of the reference and frame images, as there) and keep the better
     peak of the two. ``d`` (N, T, 2) displacements, ``score`` (N, T) their ZNCC; returns
-    both updated."""
+    both updated (``gpu_floor`` as for :func:`fft_cross_correlation`)."""
     rad = search_radius
     weak = (score < 0.8) | (d.abs() >= rad - 0.5).any(-1)
     h, w = frame_pixels.shape[-2:]
@@ -376,7 +381,8 @@ def retry_weak_peaks(d: torch.Tensor, score: torch.Tensor, ref_pixels: torch.Ten
         return d, score
     d2, s2 = coarse_to_fine(ref_pixels, frame_pixels, points[rows], subset_size, rad,
                             levels, frame_index=frame_index[rows],
-                            ref_index=ref_index[rows], pyramids=pyramids)
+                            ref_index=ref_index[rows], pyramids=pyramids,
+                            gpu_floor=gpu_floor)
     better = s2 > score[rows]
     d, score = d.clone(), score.clone()
     d[rows] = torch.where(better.unsqueeze(-1), d2.to(d.dtype), d[rows])
@@ -387,11 +393,12 @@ def retry_weak_peaks(d: torch.Tensor, score: torch.Tensor, ref_pixels: torch.Ten
 def walk_weak_frames(d: torch.Tensor, score: torch.Tensor, dt: torch.Tensor,
                      ref_pixels: torch.Tensor, frame_pixels: torch.Tensor, points: torch.Tensor,
                      frame_index: torch.Tensor, ref_index: torch.Tensor, subset_size: int,
-                     search_radius: int) -> tuple[torch.Tensor, torch.Tensor]:
+                     search_radius: int, gpu_floor: bool = True
+                     ) -> tuple[torch.Tensor, torch.Tensor]:
     """Frames of a window whose peak is still weak (ZNCC < 0.8) are searched again around
     the displacement extrapolated from the frames before them in time (the window's
     motion carried along it), in time order; the better peak is kept. ``dt`` (N, T) frame
-    times; other shapes as :func:`retry_weak_peaks`."""
+    times; other shapes (and ``gpu_floor``) as :func:`retry_weak_peaks`."""
     order = torch.argsort(dt, dim=1)  # (N, T) frames in time order per POI
     d, score = d.clone(), score.clone()
     ar = torch.arange(d.shape[0], device=d.device)
@@ -412,7 +419,7 @@ def walk_weak_frames(d: torch.Tensor, score: torch.Tensor, dt: torch.Tensor,
         d2, s2 = fft_cross_correlation(
             ref_pixels, frame_pixels, points[rows], subset_size,
             max(3, search_radius // 2), frame_index=frame_index[rows, cur[rows]].unsqueeze(1),
-            ref_index=ref_index[rows], prior=prior.unsqueeze(1))
+            ref_index=ref_index[rows], prior=prior.unsqueeze(1), gpu_floor=gpu_floor)
         better = s2[:, 0] > score[rows, cur[rows]]
         rb = rows[better]
         d[rb, cur[rb]] = d2[better, 0].to(d.dtype)

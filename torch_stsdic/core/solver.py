@@ -616,17 +616,18 @@ class SubsetSolver:
         besides the known ``motion`` (N, T, 2) (None: none); ``pyramids`` as for
         :meth:`solve`."""
         cfg = self.config
+        floor = cfg.memory_mb is None  # (a budget given is kept to on a GPU too)
         d, score = fft_cross_correlation(
             ref_pixels, frame_pixels, points, cfg.subset_size, cfg.search_radius,
-            frame_index=frame_index, ref_index=ref_index,
+            frame_index=frame_index, ref_index=ref_index, gpu_floor=floor,
         )
-        cfg = self.config
         d, score = retry_weak_peaks(d, score, ref_pixels, frame_pixels, points, frame_index,
-                                    ref_index, cfg.subset_size, cfg.search_radius, pyramids)
+                                    ref_index, cfg.subset_size, cfg.search_radius, pyramids,
+                                    gpu_floor=floor)
         if d.shape[1] > 1:
             d, score = walk_weak_frames(d, score, dt, ref_pixels, frame_pixels, points,
                                         frame_index, ref_index, cfg.subset_size,
-                                        cfg.search_radius)
+                                        cfg.search_radius, gpu_floor=floor)
         d = d.to(points.dtype)
         if motion is not None:
             d = d - motion.to(d)

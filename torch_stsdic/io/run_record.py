@@ -19,6 +19,8 @@ import h5py
 import numpy as np
 import torch
 
+from torch_stsdic.core.config import DEFAULT_MEMORY_MB
+
 __all__ = ["software_version", "now_stamp", "json_default", "config_json", "as_numpy", "chunks",
            "OS_REASONS", "os_reason", "WriteError", "write_error", "written_atomically",
            "creation_properties", "flat_config", "diff_config"]
@@ -155,9 +157,19 @@ def flat_config(d: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
     return out
 
 
+#: settings whose value "not given" (None) stands for a value files wrote before None was
+#: possible: the two compare equal (``memory_mb``: 256 MiB, written until 2026-11-30)
+_NOT_GIVEN = {"memory_mb": DEFAULT_MEMORY_MB}
+
+
 def diff_config(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[tuple[str, str]]:
-    """(dotted key, "key: old -> new") for every setting that differs."""
+    """(dotted key, "key: old -> new") for every setting that differs (a setting not given,
+    None, equal to the value it stands for: :data:`_NOT_GIVEN`)."""
     old, new = flat_config(old), flat_config(new)
+    for d in (old, new):
+        for k, v in _NOT_GIVEN.items():
+            if k in d and d[k] is None:
+                d[k] = v
     out = []
     for k in sorted(set(old) | set(new)):
         if k not in old:

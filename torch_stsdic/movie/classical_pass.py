@@ -59,7 +59,7 @@ class ClassicalPass:
                  wanted: Iterable[int]) -> None:
         self.plan, self.run = plan, run
         self.frames = sorted({int(k) for k in wanted})
-        budget = plan.config.memory_mb * 2**20 / 4
+        budget = plan.config.budget_mb * 2**20 / 4
         self.enabled = 0 < len(self.frames) * plan.n_points * ROW_BYTES <= budget
         self._res: TrackResult | None = None
         #: how many of the pre-passes' requests it answered (the passes not measured again)

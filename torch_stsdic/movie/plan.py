@@ -368,22 +368,24 @@ def default_batch_frames(cfg: DICConfig, shape: tuple[int, int], elem: int,
                          device: torch.device | str = "cpu",
                          device_mb: float | None = None) -> int:
     """Target frames per block: the frames its targets add (raw + padded coefficients, ~3
-    copies each) within half of ``memory_mb`` (the other half bounds the solver's batches;
-    the 2m frames of the window come on top: any block holds them), at most 8 on the CPU
-    (the carried guess is extrapolated over the block, so very long blocks start further
-    from the solution). On a GPU (``device``; its memory ``device_mb`` MiB, read from the
-    device where not given) at most ``MAX_DEFAULT_BATCH_GPU`` and the frames' budget at
+    copies each) within half of ``memory_mb`` (not given: 256 MiB; the other half bounds
+    the solver's batches; the 2m frames of the window come on top: any block holds them),
+    at most 8 on the CPU (the carried guess is extrapolated over the block, so very long
+    blocks start further from the solution). On a GPU (``device``; its memory
+    ``device_mb`` MiB, read from the device where not given) at most
+    ``MAX_DEFAULT_BATCH_GPU`` and, where ``memory_mb`` is not given, the frames' budget at
     least :func:`~torch_stsdic.core.config.gpu_budget_mb` (2 GiB within a tenth of the
     device's memory): a block's host work sets the pace there, and 256 MiB would hold 6
     megapixel frames. (Counting the window's
     frames too left the muDIC hourglass, 1.3 megapixel frames and windows of up to 13, one
     target a block: 17 s a run against 14 s with 8, the same results within 1.1e-3 px.)"""
     frame_bytes = 3.0 * shape[0] * shape[1] * elem
-    budget = cfg.memory_mb * 2**20 / 2.0
+    budget = cfg.budget_mb * 2**20 / 2.0
     most = MAX_DEFAULT_BATCH
     gpu_mb = gpu_budget_mb(device, device_mb)
     if gpu_mb is not None:
-        budget = max(budget, gpu_mb * 2**20)
+        if cfg.memory_mb is None:  # (a budget given is kept to: a shared GPU)
+            budget = max(budget, gpu_mb * 2**20)
         most = MAX_DEFAULT_BATCH_GPU
     fit = int(budget / frame_bytes)
     return max(1, min(most, fit))

@@ -126,12 +126,12 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
     if cfg.m > 0 or sum(k != plan.reference_frame for k in plan.targets) > 1:
         # the points are solved again (windows and their checks, later blocks): their
         # reference subsets are sampled once, within the working-memory budget
-        solver.reference_cache = ReferenceCache(cfg.memory_mb, expected=len(plan.points))
+        solver.reference_cache = ReferenceCache(cfg.budget_mb, expected=len(plan.points))
     # the prepared frames of this run, kept across its passes (the shared-motion pass, the
     # template's rounds, the time-model pass: the sub-runs given ``frames``) and its blocks
     most = 2 * (plan.batch_frames + 2 * cfg.m) + STORE_FRAMES
     store = frames if frames is not None else FrameStore(
-        STORE_BUDGETS * cfg.memory_mb if len(plan.series) <= most else 0.0, max_frames=most)
+        STORE_BUDGETS * cfg.budget_mb if len(plan.series) <= most else 0.0, max_frames=most)
     cache = FrameCache(plan.series, solver, plan.dtype, plan.device,
                        ahead=default_ahead(plan.batch_frames, cfg.m), store=store)
     run = BlockContext(solver=solver, cache=cache,
