@@ -51,7 +51,8 @@ def main() -> int:
         code = cli_main(["run", *(args or HOURGLASS), "--out", str(Path(tmp) / "r.h5"),
                          "--no-progress"])
     for i, (key, lines) in enumerate(blocks.items()):
-        print(f"block {i} ({targets[key]} target{"s" if targets[key] != 1 else ""}): {len(lines)} read(s)")
+        b = targets[key]
+        print(f"block {i} ({b} target{'s' if b != 1 else ''}): {len(lines)} read(s)")
         for line in lines:
             print("   ", line)
     return int(code or 0)
