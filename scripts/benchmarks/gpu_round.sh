@@ -5,10 +5,11 @@
 # with `stsdic run --device cuda` split by pass and kind of work (run_parts.py, with the
 # classical baseline). `gpu_round.sh timeline` adds the device's busy share and the syncs;
 # `choices` times the hourglass with the GPU's choices against the CPU's (device_choices.py:
-# masked solves against reads, and whether the files are the same to the bit).
+# masked solves against reads, and whether the files are the same to the bit); `budget` whether
+# a run given --memory-mb keeps to it on the device (gpu_budget.py: peak allocations).
 #
 #   HG=.gpu/hourglass bash scripts/benchmarks/gpu_round.sh [steps]   # logs and records in $OUT
-#                                      # steps: tests,solver,movie,parts,timeline,syncs,choices
+#                                      # steps: tests,solver,movie,parts,timeline,syncs,choices,budget
 #
 # Needs kornia's wheels in .whl/ (README: GPU) and, for the hourglass, its images in $HG.
 set -uo pipefail
@@ -72,5 +73,11 @@ if step choices && [[ -d ${HG:-} ]]; then
     --out "$OUT/device-choices-hourglass-cuda.json" -- "$HG" --roi 150 20 1120 734 --subset 31 \
     --step 20 --device cuda 2>&1 | tee -a "$OUT/log.txt" | tail -9
   log "## choices: $((SECONDS - t0)) s"
+fi
+if step budget && [[ -d ${HG:-} ]]; then
+  timeout ${BUDGET_S:-120} python3 scripts/benchmarks/gpu_budget.py --device cuda --budgets 256 \
+    --out "$OUT/budget-hourglass-cuda.json" -- "$HG" --roi 150 20 1120 734 --subset 31 \
+    --step 20 2>&1 | tee -a "$OUT/log.txt" | tail -6
+  log "## budget: $((SECONDS - t0)) s"
 fi
 log "## total: $((SECONDS - t0)) s"
