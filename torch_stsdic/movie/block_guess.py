@@ -73,6 +73,21 @@ class BlockGuesses:
         to guess from."""
         self.run.guesses.quiet[question] = bool(quiet)
 
+    def ask(self, question: str, numbers: torch.Tensor, tell: int, asking: bool = True
+            ) -> list[int] | None:
+        """``numbers`` (K,) int64 read (:meth:`read`), their first ``tell`` all 0 where the
+        answer to ``question`` is "nothing to do" (heard so for the next block where
+        ``asking``); None where ``asking`` and that answer is guessed instead
+        (:meth:`may_guess`: those ``tell`` numbers deferred, the caller goes on as if every
+        number were 0)."""
+        if asking and self.may_guess(question):
+            self.defer(question, numbers[:tell])
+            return None
+        values = self.read(numbers)
+        if asking:
+            self.heard(question, not any(values[:tell]))
+        return values
+
     def read(self, numbers: torch.Tensor) -> list[int]:
         """``numbers`` (K,) int64 read on the host, with the deferred guesses' numbers in the
         same read (one synchronisation); a guess that does not hold raises

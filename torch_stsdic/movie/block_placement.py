@@ -67,26 +67,20 @@ class BlockPlacement:
         run = self.run
         if self.places_at_once:  # one read, of the facts of the placement made at once
             pending = self.place_outside(inits, carried)
-            if guess and self.may_guess(PLACEMENT):  # (the rows moved: read later)
-                self.defer(PLACEMENT, pending.facts[0])
-                return self.settle_outside(pending, [0, 1, 0], mark)
-            facts = self.read(pending.facts)
-            if guess:
-                self.heard(PLACEMENT, facts[0] == 0)
-            return self.settle_outside(pending, facts, mark)
+            # (guessed where the last block's moved none: the rows moved tell)
+            facts = self.ask(PLACEMENT, pending.facts, 1, guess)
+            return self.settle_outside(pending, [0, 1, 0] if facts is None else facts, mark)
         shift, left = self._run_window_fit(inits, carried)
         # one read: how many rows the run's window alone leaves (none where m = 0: no
         # shorter window), with the centres' facts as they stand (read again only where
         # shorter windows move some)
         n_left = left.sum() if run.m > 0 else left.new_zeros((), dtype=torch.int64)
         facts, placed = self._centre_facts(shift, left)
-        numbers = torch.stack([n_left] + facts)
-        if guess and self.may_guess(PLACEMENT):  # none left, none moved: read later
-            self.defer(PLACEMENT, numbers[:2])
+        # (guessed where the last block's left none and moved none: those two tell)
+        read = self.ask(PLACEMENT, torch.stack([n_left] + facts), 2, guess)
+        if read is None:
             return self.settle_outside(Placement(left, None, placed), [0, 1, 0], mark)
-        n_left, *facts = self.read(numbers)
-        if guess:
-            self.heard(PLACEMENT, n_left == 0 and facts[0] == 0)
+        n_left, *facts = read
         if n_left:  # every shorter window at once, the longest that stays in view
             self._shorter_windows_in_view(inits, left, shift, true_rows(left, n_left))
             facts, placed = self._centre_facts(shift, left)

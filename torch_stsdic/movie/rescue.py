@@ -154,18 +154,12 @@ class BlockRescue:
         the rows as the waves leave them (:meth:`_facts` with ``fft_tried``, read with the
         last wave's numbers: one read a wave)."""
         run, n, b = self.run, self.n, self.b
-        # the block's rescue may be guessed; the classical rescue's first read (after the
-        # model check) is the block's one read, the guesses' numbers with it
-        guessed = m is None and self.may_guess(RESCUE)
+        # the block's rescue (m None) may be guessed: no lost row, as in the last block (the
+        # classical rescue's first read, after the model check, is then the block's one
+        # read, the guesses' numbers with it)
         if b < 2:
-            facts = self._facts(fft_tried)
-            if guessed:  # no lost row, as in the last block: read later
-                self.defer(RESCUE, facts[0])
-                return 0, [0] * (b + 2)
-            facts = self.read(facts)  # one read
-            if m is None:
-                self.heard(RESCUE, facts[0] == 0)
-            return 0, facts
+            facts = self.ask(RESCUE, self._facts(fft_tried), 1, m is None)  # one read
+            return 0, [0] * (b + 2) if facts is None else facts
         names, dev = run.names, run.device
         iu, iv = names.index("u"), names.index("v")
         j_of = torch.arange(b, device=dev).repeat_interleave(n)  # (B*N,) each row's target
@@ -202,15 +196,13 @@ class BlockRescue:
                 placed = self.place_outside(
                     (torch.where(go.unsqueeze(1), init, float("nan")),), go)
                 numbers.append(placed.facts)
-            numbers = torch.cat(numbers)
-            if wave == 0 and guessed:  # no lost row, as in the last block: the numbers
-                self.defer(RESCUE, numbers[:3])  # read later (the candidates and the lost
-                return 0, [0] * (b + 2)          # rows: 0)
             # one read for the wave: the candidates with a guess, those without, and the
-            # rows' facts (the caller's, where this wave is the last)
-            n_go, n_wait, *facts = self.read(numbers)
-            if wave == 0 and m is None:
-                self.heard(RESCUE, n_go == 0 and n_wait == 0 and facts[0] == 0)
+            # rows' facts (the caller's, where this wave is the last); the first wave's
+            # answer (no candidate, no lost row) guessed where the rescue may be
+            read = self.ask(RESCUE, torch.cat(numbers), 3, wave == 0 and m is None)
+            if read is None:
+                return 0, [0] * (b + 2)
+            n_go, n_wait, *facts = read
             facts, placed_facts = facts[:b + 2], facts[b + 2:]
             if not n_go + n_wait:
                 break
