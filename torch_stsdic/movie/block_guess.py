@@ -140,14 +140,19 @@ class BlockGuesses:
             for k in [k for k in vars(self) if k != "run" and k not in state]:
                 delattr(self, k)
             vars(self).update(state)
-            self.run.stats.clear()
-            self.run.stats.update(stats)
-            self.run.stats["blocks_guessed_wrong"] = (
-                self.run.stats.get("blocks_guessed_wrong", 0) + 1)
+            _guessed_wrong(self.run, stats)
             counts.clear()
             counts.update(held)
             self.guessing = False
             rest()
+
+
+def _guessed_wrong(run: Any, stats: dict[str, Any]) -> None:
+    """``run``'s counters back to ``stats`` (:func:`_counters`, taken before the guess), the
+    wrong guess counted (``blocks_guessed_wrong``)."""
+    run.stats.clear()
+    run.stats.update(stats)
+    run.stats["blocks_guessed_wrong"] = run.stats.get("blocks_guessed_wrong", 0) + 1
 
 
 def _counters(stats: dict[str, Any]) -> dict[str, Any]:
@@ -167,8 +172,6 @@ def solve_guessing(run: Any, solve: Callable[[bool], Any]) -> Any:
     try:
         return solve(True)
     except GuessWrong:
-        run.stats.clear()
-        run.stats.update(stats)
+        _guessed_wrong(run, stats)
         run.pending = pending
-        run.stats["blocks_guessed_wrong"] = run.stats.get("blocks_guessed_wrong", 0) + 1
         return solve(False)
