@@ -214,13 +214,13 @@ MUTATIONS: tuple[Mutation, ...] = (
         "a GPU solves in batches of memory_mb's 256 MiB, not its own budget"),
     Mutation(
         "gpu-ignores-the-budget-given", "solver", "torch_stsdic/core/gauss_newton.py",
-        "        if gpu_mb is not None and self.cfg.memory_mb is None:",
+        "        if gpu_mb is not None and self.cfg.gpu_floor:",
         "        if gpu_mb is not None:",
         ("test_series.py",),
         "a GPU takes its own 2 GiB batches where the run was given a smaller memory_mb"),
     Mutation(
         "fft-ignores-the-budget-given", "initial guess", "torch_stsdic/core/solver.py",
-        "        floor = cfg.memory_mb is None", "        floor = True",
+        "        floor = cfg.gpu_floor", "        floor = True",
         ("test_threads.py",),
         "the FFT searches take a GPU's 2 GiB where the run was given a smaller memory_mb"),
     Mutation(

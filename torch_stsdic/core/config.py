@@ -168,6 +168,13 @@ class DICConfig:
         block's frames)."""
         return DEFAULT_MEMORY_MB if self.memory_mb is None else float(self.memory_mb)
 
+    @property
+    def gpu_floor(self) -> bool:
+        """Whether a GPU may take more than :attr:`budget_mb` (at least
+        :func:`gpu_budget_mb` for a solve's batches, a block's frames and the FFT search):
+        where ``memory_mb`` is not given; a budget given is kept to on every device."""
+        return self.memory_mb is None
+
     def replace(self, **changes: Any) -> DICConfig:
         """A copy with some settings changed."""
         return dataclasses.replace(self, **changes)

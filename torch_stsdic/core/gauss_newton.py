@@ -183,7 +183,7 @@ class BatchContext:
             per_point = s * elem * (t * 40 + jac + 8 * ks + 24)
         budget = self.cfg.budget_mb
         gpu_mb = gpu_budget_mb(self.geo.spatial.device)
-        if gpu_mb is not None and self.cfg.memory_mb is None:  # (a budget given: kept to)
+        if gpu_mb is not None and self.cfg.gpu_floor:
             budget = max(budget, gpu_mb)
         return max(16, int(budget * 2**20 / per_point))
 

@@ -616,7 +616,7 @@ class SubsetSolver:
         besides the known ``motion`` (N, T, 2) (None: none); ``pyramids`` as for
         :meth:`solve`."""
         cfg = self.config
-        floor = cfg.memory_mb is None  # (a budget given is kept to on a GPU too)
+        floor = cfg.gpu_floor
         d, score = fft_cross_correlation(
             ref_pixels, frame_pixels, points, cfg.subset_size, cfg.search_radius,
             frame_index=frame_index, ref_index=ref_index, gpu_floor=floor,

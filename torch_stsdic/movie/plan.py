@@ -384,7 +384,7 @@ def default_batch_frames(cfg: DICConfig, shape: tuple[int, int], elem: int,
     most = MAX_DEFAULT_BATCH
     gpu_mb = gpu_budget_mb(device, device_mb)
     if gpu_mb is not None:
-        if cfg.memory_mb is None:  # (a budget given is kept to: a shared GPU)
+        if cfg.gpu_floor:
             budget = max(budget, gpu_mb * 2**20)
         most = MAX_DEFAULT_BATCH_GPU
     fit = int(budget / frame_bytes)
