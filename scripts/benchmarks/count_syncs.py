@@ -53,8 +53,8 @@ import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
 REPO = Path(__file__).resolve().parents[2]
-HOURGLASS = [str(REPO.parent / "shared/data/mudic-hourglass"), "--roi", "150", "20", "1120",
-             "734", "--subset", "31", "--step", "20"]
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from run_parts import HOURGLASS  # noqa: E402  (the documented region, one definition)
 
 #: aten operations that make the host wait for the device (by their overload packet name)
 SYNCING = {"_local_scalar_dense": "host read", "equal": "host read",
