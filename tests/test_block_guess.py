@@ -49,6 +49,64 @@ def test_a_guess_is_taken_only_after_a_quiet_answer_and_checked_with_the_next_re
     g.settle_guesses()  # nothing deferred: nothing read, nothing raised
 
 
+def test_a_masked_solves_rows_are_taken_to_a_size_learned_from_the_blocks_before(
+        monkeypatch):
+    """``compact``: no size known, every row masked (the count read with the next read, for
+    the next block); known, the first C true rows (C a power of two at or above twice the
+    count and R / 32), padded with -1; more rows than C is a wrong guess; a guess taken
+    before the rescue (``from_here``) solves the whole block again. A block's most is held,
+    half of it passed on where the next block asks for fewer."""
+    from torch_stsdic.movie import choices
+
+    monkeypatch.setattr(choices, "COMPACT_ROWS", True)
+    assert block_guess.row_capacity(0, 100_000) == 4096  # R / 32 -> 3125 -> 4096
+    assert block_guess.row_capacity(10, 1000) == 64
+    assert block_guess.row_capacity(100, 1000) == 256
+    assert block_guess.row_capacity(300, 1000) is None  # over half the rows: all masked
+    g = _guesses()
+    active = torch.zeros(1000, dtype=torch.bool)
+    active[[3, 50, 700]] = True
+    assert g.compact("check", active) is None  # nothing known: masked, counted
+    assert g.read(torch.tensor([9])) == [9]
+    assert g.run.guesses.sizes == {"check": 3}
+    pos = g.compact("check", active)
+    assert pos.tolist() == [3, 50, 700] + [-1] * 61
+    g.settle_guesses()  # 3 <= 64: holds
+    assert not _guesses(guessing=False).compact("check", active)  # reading: never taken
+    monkeypatch.setattr(choices, "COMPACT_ROWS", False)
+    assert g.compact("check", active) is None and not g.deferred  # the choice off
+    monkeypatch.setattr(choices, "COMPACT_ROWS", True)
+    many = torch.zeros(1000, dtype=torch.bool)
+    many[:80] = True
+    assert g.compact("check", many).numel() == 64  # 80 rows asked for, 64 taken: wrong
+    with pytest.raises(GuessWrong, match="rows at check") as wrong:
+        g.settle_guesses()
+    assert not wrong.value.whole
+    g2 = _guesses()
+    g2.run.guesses = g.run.guesses  # the next block: it holds the 80 it read
+    assert g2.run.guesses.sizes["check"] == 80
+    g2.compact("check", many)  # 160 -> 256 rows: holds
+    g2.compact("check", many)
+    g2.run.guesses.sizes["check"] = 80
+    assert g2.compact("classical", active) is None  # another site: its own size
+    calls = []
+
+    def rest():
+        calls.append(g2.guessing)
+        g2.settle_guesses()
+    g2.run.guesses.sizes["check"] = 10  # a guess before here that does not hold
+    g2.deferred = []
+    g2.compact("check", many)
+    with pytest.raises(GuessWrong) as wrong:
+        g2.from_here({}, rest)
+    assert wrong.value.whole and calls == [True]  # raised for the whole block
+    g3 = _guesses()
+    g3.run.guesses.sizes["check"] = 40
+    g3.compact("check", active)
+    g3.settle_guesses()
+    assert g3.run.guesses.sizes["check"] == 20  # 3 asked: half of the 40 held before
+
+
 def test_a_wrong_guess_solves_the_block_again_with_the_counters_as_before(monkeypatch):
     from torch_stsdic.movie import choices
 
@@ -115,40 +173,89 @@ def test_guessed_reads_give_the_reading_runs_file_and_a_wrong_guess_is_caught(
         monkeypatch.setattr(choices, name, value)
     attempts: list[bool] = []  # each attempt at a block: guessing or not
     wrong: list[list[str]] = []  # the questions of each wrong guess
+    wholes: list[bool] = []  # each wrong guess: the whole block solved again
     solve_block, init = block._solve_block, GuessWrong.__init__
 
     def spy(run, ks, ref, carry, guessing):
         attempts.append(guessing)
         return solve_block(run, ks, ref, carry, guessing)
 
-    def heard_wrong(self, questions):
+    def heard_wrong(self, questions, whole=False):
         wrong.append(list(questions))
-        init(self, questions)
+        wholes.append(whole or "placement" in questions)
+        init(self, questions, whole)
+
+    compact = BlockGuesses.compact
+    taken: list[int] = []  # the rows of each compacted solve
+
+    def compacted(self, site, active):
+        pos = compact(self, site, active)
+        if pos is not None:
+            taken.append(pos.numel())
+        return pos
 
     monkeypatch.setattr(block, "_solve_block", spy)
     monkeypatch.setattr(GuessWrong, "__init__", heard_wrong)
+    monkeypatch.setattr(BlockGuesses, "compact", compacted)
     out = {}
     for guess in (False, True):
         monkeypatch.setattr(choices, "GUESS_READS", guess)
         attempts.clear()
         wrong.clear()
+        wholes.clear()
+        taken.clear()
         path = tmp_path / f"g{int(guess)}.h5"
         assert main(["run", str(movie), "--subset", "21", "--step", "10", "--threads", "1",
                      "--no-progress", "--out", str(path), *args]) == 0
         with h5py.File(path) as f:
             out[guess] = {k: f[k][()] for k in f if isinstance(f[k], h5py.Dataset)}
         if not guess:
-            assert not any(attempts) and not wrong
+            assert not any(attempts) and not wrong and not taken
             continue
+        if not args:  # the checks' masked solves taken to a size (COMPACT_ROWS)
+            assert len(taken) >= 3, taken
         if movie_kind == "patch":  # a rescue's wrong guess (solved from there again)
             assert any("rescue" in q for q in wrong), wrong
         else:  # the placement's
             assert ["placement"] in wrong, wrong
-        # a wrong placement solves the whole block again, reading; a wrong rescue does not
-        assert attempts.count(False) == sum("placement" in q for q in wrong), (attempts, wrong)
+        # a wrong placement (or a wrong size of a compacted solve before the rescue)
+        # solves the whole block again, reading; a wrong rescue does not
+        assert attempts.count(False) == sum(wholes), (attempts, wrong)
         assert attempts.count(True) > len(wrong)  # right guesses too
     if movie_kind == "patch":
         assert (out[True]["status"][15] != 0).sum() > 5  # the patch's rows: not converged
     assert out[True].keys() == out[False].keys()
     for k, v in out[True].items():
         assert v.tobytes() == out[False][k].tobytes(), k
+
+
+@pytest.mark.parametrize("args", [(), ("--single-reference",)], ids=["template", "frame-0"])
+def test_a_clean_movies_blocks_guess_rightly_the_first_after_the_reference_frame_too(
+        tmp_path, monkeypatch, args):
+    """A clean strained speckle with a GPU's choices: no block guesses wrong. The block
+    after the reference frame's own row (the identity: nothing lost, nothing to rescue)
+    starts from rest or a first guess, not from a carry, and so reads its answers instead
+    of taking the identity's "nothing" (which its rows, lost where the motion has no
+    velocity yet, proved wrong); its masked solves' sizes read too."""
+    from torch_stsdic.cli import main
+    from torch_stsdic.movie import choices
+
+    if not native.available():
+        pytest.skip("no native kernels")
+    assert main(["synth", "--out", str(tmp_path / "m"), "--size", "160", "--frames", "23",
+                 "--motion", "strain", "--exx", "0.002", "--noise", "2", "--seed", "4",
+                 "--threads", "1"]) == 0
+    for name, value in choices.gpu_choices().items():
+        monkeypatch.setattr(choices, name, value)
+    wrong: list[list[str]] = []
+    init = GuessWrong.__init__
+
+    def heard_wrong(self, questions, whole=False):
+        wrong.append(list(questions))
+        init(self, questions, whole)
+
+    monkeypatch.setattr(GuessWrong, "__init__", heard_wrong)
+    assert main(["run", str(tmp_path / "m" / "movie.tif"), "--subset", "21", "--step", "10",
+                 "--threads", "1", "--no-progress", "--out", str(tmp_path / "r.h5"),
+                 *args]) == 0
+    assert wrong == []

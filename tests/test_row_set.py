@@ -63,3 +63,44 @@ def test_blend_is_with_rows_by_a_mask():
     got, want = blend(a, where, b), with_rows(a, where, solution_rows(b, where))
     for f in ("params", "zncc", "status", "iterations", "std", "sigma"):
         assert torch.equal(getattr(got, f), getattr(want, f)), f
+
+
+def test_a_compacted_solve_spread_equals_the_masked_solve_of_every_row():
+    """The rows of a masked solve taken to a fixed number (``nonzero_static``, padded with
+    -1), solved alone and spread back (:func:`spread`): every field a block keeps equal to
+    the masked solve of all the rows, to the bit (the masked rows NOT_COMPUTED, NaN, 0
+    iterations), the classical step's columns too."""
+    from torch_stsdic import synth
+    from torch_stsdic.core.config import DICConfig
+    from torch_stsdic.core.solver import SubsetSolver
+    from torch_stsdic.movie.row_set import spread
+
+    sp = synth.make_speckle((128, 128), seed=2)
+    ref = synth.render(sp, (128, 128)).float()
+    motion = synth.Translation(ut=0.05, vt=-0.03)
+    frames = torch.stack([synth.render(sp, (128, 128), motion, t).float() for t in (4, 5, 6)])
+    solver = SubsetSolver(DICConfig(subset_size=21, m=1, dtype="float32"))
+    img_r, img_f = solver.prepare(ref.unsqueeze(0)), solver.prepare(frames)
+    g = torch.arange(20, 110, 9, dtype=torch.float32)
+    pts = torch.stack(torch.meshgrid(g, g, indexing="xy"), -1).reshape(-1, 2)  # (100, 2)
+    n = pts.shape[0]
+    init = torch.zeros(n, 8)
+    init[:, 0], init[:, 4] = 0.25, -0.15
+    active = torch.rand(n, generator=torch.Generator().manual_seed(5)) < 0.3
+    active[0] = True  # (a padding row must not land on a solved one)
+    kw = dict(on_grid=True, has_time=True, classical_step=True)
+    dt = torch.tensor([-1.0, 0.0, 1.0])
+    full = solver.solve(img_r, img_f, pts, dt, init=init, active=active, **kw)
+    pos = torch.nonzero_static(active, size=64, fill_value=-1).flatten()
+    assert int(active.sum()) < 64 and (pos < 0).any()  # padding rows among them
+    at = pos.clamp(min=0)
+    sub = solver.solve(img_r, img_f, pts[at], dt, init=init[at], active=pos >= 0, **kw)
+    got = spread(sub, pos, n, pts)
+    assert (full.status[active] == 0).all() and (full.iterations[active] > 0).all()
+    for name in ("params", "zncc", "status", "iterations", "std", "sigma", "points"):
+        a, b = getattr(full, name), getattr(got, name)
+        assert a.dtype == b.dtype and a.shape == b.shape, name
+        assert torch.equal(a.nan_to_num(-7.0), b.nan_to_num(-7.0)), name
+    for key, value in full.info.items():
+        if key.startswith("classical_step"):
+            assert torch.equal(value.nan_to_num(-7.0), got.info[key].nan_to_num(-7.0)), key

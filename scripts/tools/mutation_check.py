@@ -225,10 +225,34 @@ MUTATIONS: tuple[Mutation, ...] = (
         "the FFT searches take a GPU's 2 GiB where the run was given a smaller memory_mb"),
     Mutation(
         "wrong-guess-not-caught", "block guesses", "torch_stsdic/movie/block_guess.py",
-        "        if wrong:\n            raise GuessWrong(wrong)\n",
-        "        if wrong and False:\n            raise GuessWrong(wrong)\n",
+        "        if wrong:\n            raise GuessWrong(wrong, whole)\n",
+        "        if wrong and False:\n            raise GuessWrong(wrong, whole)\n",
         ("test_block_guess.py",),
         "a block keeps a guessed answer \"nothing to do\" that its numbers contradict"),
+    Mutation(
+        "compacted-rows-over-capacity-kept", "block guesses",
+        "torch_stsdic/movie/block_guess.py",
+        "                holds = d.limit < 0 or part[0] <= d.limit\n",
+        "                holds = True\n",
+        ("test_block_guess.py",),
+        "a masked solve taken to C rows where more were asked for leaves the rest unsolved"),
+    Mutation(
+        "compacted-padding-on-a-solved-row", "block guesses", "torch_stsdic/movie/row_set.py",
+        "    dest = torch.where(pos >= 0, pos, n)", "    dest = pos.clamp(min=0)",
+        ("test_row_set.py",),
+        "a compacted solve's padding rows spread onto its first row (a solved one)"),
+    Mutation(
+        "early-wrong-guess-redone-from-the-rescue", "block guesses",
+        "torch_stsdic/movie/block_guess.py",
+        "            if PLACEMENT in wrong.questions or wrong.whole:\n",
+        "            if PLACEMENT in wrong.questions:\n",
+        ("test_block_guess.py",),
+        "a compacted solve of the block's own solve guessed wrong: only its rescue solved again"),
+    Mutation(
+        "block-after-the-reference-guesses", "block guesses", "torch_stsdic/movie/block.py",
+        "    blk.guessing = guessing and carry is not None\n", "    blk.guessing = guessing\n",
+        ("test_block_guess.py",),
+        "the first block after the reference frame's own row takes its \"nothing lost\""),
     Mutation(
         "wrong-rescue-guess-keeps-its-state", "block guesses",
         "torch_stsdic/movie/block_guess.py",

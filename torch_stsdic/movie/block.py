@@ -50,6 +50,7 @@ from torch_stsdic.movie.frames import (
 )
 from torch_stsdic.movie.reference import Reference, noise_ratio, to_relative, to_total
 from torch_stsdic.movie.rescue import BlockRescue
+from torch_stsdic.movie.row_set import spread
 from torch_stsdic.movie.sample_guess import MeasuredSample
 from torch_stsdic.movie.shared_velocity import report_velocity
 from torch_stsdic.movie.template_noise import TemplateShares
@@ -234,7 +235,7 @@ class Block(BlockChecks, BlockRescue, BlockPlacement, BlockMotion, BlockWindows,
     def solve(self, idx: torch.Tensor, init: torch.Tensor | None,
               m: int | torch.Tensor | None = None, solver: SubsetSolver | None = None,
               init_step: torch.Tensor | None = None, for_check: bool = True,
-              active: torch.Tensor | None = None) -> WindowSolution:
+              active: torch.Tensor | None = None, site: str | None = None) -> WindowSolution:
         """Solve rows ``idx`` from ``init`` (None: FFT) with windows of half-width ``m``
         (default the run's; m = 0: the target frame alone, classical shape; (R,) each row's
         own, 1 .. the run's, in one call: :meth:`mixed_rows`, needs ``init``), with ``solver``
@@ -242,7 +243,17 @@ class Block(BlockChecks, BlockRescue, BlockPlacement, BlockMotion, BlockWindows,
         inside the image (the results are the POIs'). ``for_check``: the model check will
         judge these rows (a window solve then gives it its first classical step); False
         for the check's own solves. ``active`` (R,) bool: only those rows solved, the others
-        masked (no read: ``SubsetSolver.solve``'s; None: all)."""
+        masked (no read: ``SubsetSolver.solve``'s; None: all); with ``site`` (the caller's
+        name) taken to a fixed number of rows where the block guesses
+        (:meth:`~torch_stsdic.movie.block_guess.BlockGuesses.compact`: the same solution)."""
+        if active is not None and site is not None:
+            pos = self.compact(site, active)
+            if pos is not None:
+                at = pos.clamp(min=0)
+                sub = self.solve(idx[at], init[at], m=m[at] if isinstance(m, torch.Tensor)
+                                 else m, solver=solver, for_check=for_check, active=pos >= 0,
+                                 init_step=None if init_step is None else init_step[at])
+                return spread(sub, pos, idx.numel(), self.pts[idx])
         ref, run = self.ref, self.run
         count = None
         if isinstance(m, torch.Tensor):  # windows of mixed length (1 .. run.m), one call
@@ -277,13 +288,14 @@ class Block(BlockChecks, BlockRescue, BlockPlacement, BlockMotion, BlockWindows,
             kept=self.kept, frame_count=count, active=active)
 
     def solve_masked(self, idx: torch.Tensor, init: torch.Tensor, active: torch.Tensor,
-                     m: int | None = None) -> WindowSolution:
+                     m: int | None = None, site: str | None = None) -> WindowSolution:
         """Rows ``idx`` (R,) solved from ``init`` (R, P) where ``active`` (R,) bool, the
         others masked (:meth:`solve`'s ``active``: no read of which; their guesses, NaN or
         not, are not used and go in as 0). A caller's data-chosen rows of a fixed set, on a
-        GPU's choices (:data:`~torch_stsdic.movie.choices.MASKED_GROUPS`)."""
+        GPU's choices (:data:`~torch_stsdic.movie.choices.MASKED_GROUPS`); ``site``:
+        :meth:`solve`'s."""
         return self.solve(idx, torch.where(active.unsqueeze(1), init, 0.0), m=m,
-                          active=active)
+                          active=active, site=site)
 
     def keep(self, idx: torch.Tensor, sol: WindowSolution, only_better: bool,
              m: int | torch.Tensor | None = None, where: torch.Tensor | None = None) -> None:
@@ -523,7 +535,6 @@ def _solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry 
                  guessing: bool):
     """:func:`solve_block`, its reads guessed where ``guessing``."""
     blk = Block(run, ks, ref)
-    blk.guessing = guessing
     b, n, dev = blk.b, blk.n, run.device
     rows = b * n
     blk.window_cap = _window_cap(run, blk)
@@ -536,6 +547,10 @@ def _solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry 
     shake_vel = has = None  # see _carried_start
     if carry is not None and _only_identity(run, ref, carry):
         carry = None  # the reference frame's own row, no velocity: it predicts nothing
+    # a guess is "as in the last block": only a block started as the last one was, from
+    # a carry, takes one (the first block after the reference frame's own row starts from
+    # rest or a first guess, and loses rows where the identity row lost none)
+    blk.guessing = guessing and carry is not None
     if carry is None and run.first_guess is not None and ref.acc is None:
         # no carry (the first block): start from the measuring pass's solutions
         init = _first_guess_rows(run, blk, ref)
@@ -570,7 +585,8 @@ def _solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry 
     elif init is not None and masked_groups(dev):  # every row, those not carried masked
         every, pick = torch.arange(rows, device=dev), carried if pilot is None else \
             carried & ~pilot
-        blk.keep(every, blk.solve_masked(every, init, pick), only_better=False, where=pick)
+        blk.keep(every, blk.solve_masked(every, init, pick, site="carried"), only_better=False,
+                 where=pick)
     elif init is not None:
         idx_c = torch.nonzero(carried if pilot is None else carried & ~pilot).flatten()
         if idx_c.numel():

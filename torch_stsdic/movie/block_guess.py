@@ -23,28 +23,62 @@ from typing import Any
 
 import torch
 
-from torch_stsdic.movie.choices import guess_reads
+from torch_stsdic.movie.choices import compact_rows, guess_reads
 
-__all__ = ["GuessWrong", "ReadGuesses", "BlockGuesses", "solve_guessing"]
+__all__ = ["GuessWrong", "ReadGuesses", "BlockGuesses", "solve_guessing", "row_capacity"]
 
 #: the questions a block may guess (the keys of :attr:`ReadGuesses.quiet`)
 PLACEMENT, RESCUE = "placement", "rescue"
+#: a masked solve's rows at a site (:meth:`BlockGuesses.compact`): the question "at most
+#: this many rows" is named ``SIZE + site``
+SIZE = "rows at "
+#: the fewest rows a compacted solve takes (a power of two: few shapes)
+MIN_CAPACITY = 64
 
 
 class GuessWrong(Exception):
-    """A block's guessed answers were not "nothing to do" (:attr:`questions`)."""
+    """A block's guessed answers were not "nothing to do" (:attr:`questions`); ``whole``:
+    one of them was guessed before the block's rescue (the block is solved again from its
+    start)."""
 
-    def __init__(self, questions: list[str]) -> None:
+    def __init__(self, questions: list[str], whole: bool = False) -> None:
         super().__init__(", ".join(questions))
         self.questions = list(questions)
+        self.whole = whole
 
 
 @dataclass
 class ReadGuesses:
     """A run's answers to its blocks' questions: whether the last block that asked each one
-    found nothing to do (then the next block may guess so)."""
+    found nothing to do (then the next block may guess so), and the rows a masked solve at
+    each site asked for (:meth:`BlockGuesses.compact`): the most in the last block that read
+    them, or half what was held before, whichever is more."""
 
     quiet: dict[str, bool] = field(default_factory=dict)
+    sizes: dict[str, int] = field(default_factory=dict)
+
+
+@dataclass
+class _Deferred:
+    """A guess taken and not checked yet: it holds where every one of ``numbers`` (K,) int64
+    is at most ``limit``; ``early``: taken before the block's rescue."""
+
+    question: str
+    numbers: torch.Tensor
+    limit: int = 0
+    early: bool = False
+
+
+def row_capacity(asked: int, rows: int) -> int | None:
+    """The rows a compacted solve takes where the blocks before asked for ``asked`` of a
+    site's ``rows`` (R) (:attr:`ReadGuesses.sizes`): the power of two at or above twice
+    ``asked`` and R / 32 (at least :data:`MIN_CAPACITY`: counts vary from block to block, a
+    wrong guess costs the block's rescue and checks again); None where that is over half of
+    ``rows`` (every row solved masked: a taken half saves little)."""
+    cap = MIN_CAPACITY
+    while cap < max(2 * asked, rows / 32):
+        cap *= 2
+    return None if 2 * cap > rows else cap
 
 
 class BlockGuesses:
@@ -54,9 +88,8 @@ class BlockGuesses:
     run: Any
     #: whether this attempt may guess (False: the reading way, the attempt after a wrong guess)
     guessing: bool = False
-    #: the guesses taken and not checked yet: (question, (K,) int64 numbers that are all 0
-    #: where the guess holds)
-    deferred: list[tuple[str, torch.Tensor]]
+    #: the guesses taken and not checked yet
+    deferred: list[_Deferred]
 
     def may_guess(self, question: str) -> bool:
         """Whether ``question`` is answered "nothing to do" unread: this attempt guesses and
@@ -66,7 +99,25 @@ class BlockGuesses:
     def defer(self, question: str, zeros: torch.Tensor) -> None:
         """``question`` guessed "nothing to do": ``zeros`` (any shape, integers) are all 0
         where it holds; read with the block's next read (:meth:`read`) or at its end."""
-        self.deferred.append((question, zeros.reshape(-1).to(torch.int64)))
+        self.deferred.append(_Deferred(question, zeros.reshape(-1).to(torch.int64)))
+
+    def compact(self, site: str, active: torch.Tensor) -> torch.Tensor | None:
+        """A masked solve's rows ``active`` (R,) bool at ``site`` taken to a fixed number
+        (:data:`~torch_stsdic.movie.choices.COMPACT_ROWS`, where this attempt guesses):
+        (C,) int64 the positions of the first C true rows (-1 after the last: fixed shape, no
+        read), C from the most rows the last block asked for there (:func:`row_capacity`);
+        the guess "at most C" deferred (:meth:`read`: more is a wrong guess). None: solve
+        every row masked (no guess; the count read with the block's reads where it guesses,
+        for the next block)."""
+        if not self.guessing or not compact_rows(self.run.device):
+            return None
+        count = active.sum().reshape(1)
+        known = self.run.guesses.sizes.get(site)
+        cap = None if known is None else row_capacity(known, active.numel())
+        self.deferred.append(_Deferred(SIZE + site, count, -1 if cap is None else cap))
+        if cap is None:
+            return None
+        return torch.nonzero_static(active, size=cap, fill_value=-1).flatten()
 
     def heard(self, question: str, quiet: bool) -> None:
         """The answer to ``question`` as read (``quiet``: nothing to do), for the next block
@@ -96,7 +147,7 @@ class BlockGuesses:
             return numbers.tolist()
         k = numbers.numel()
         values = torch.cat([numbers.reshape(-1).to(torch.int64)]
-                           + [z for _, z in self.deferred]).tolist()
+                           + [d.numbers for d in self.deferred]).tolist()
         self._check(values[k:])
         return values[:k]
 
@@ -104,38 +155,59 @@ class BlockGuesses:
         """The deferred guesses read (one read; none where every guess was read already) and
         checked: :class:`GuessWrong` where one does not hold."""
         if self.deferred:
-            self._check(torch.cat([z for _, z in self.deferred]).tolist())
+            self._check(torch.cat([d.numbers for d in self.deferred]).tolist())
 
     def _check(self, values: list[int]) -> None:
-        wrong, at = [], 0
-        for question, z in self.deferred:
-            quiet = not any(values[at:at + z.numel()])
-            at += z.numel()
-            self.heard(question, quiet)
-            if not quiet:
-                wrong.append(question)
+        wrong, whole, at = [], False, 0
+        sizes = self.run.guesses.sizes
+        for d in self.deferred:
+            part = values[at:at + d.numbers.numel()]
+            at += d.numbers.numel()
+            if d.question.startswith(SIZE):  # a count: the site's most this block, or
+                site = d.question[len(SIZE):]  # half the most before it
+                before = sizes.get(site, 0) if site in self._sizes_heard else \
+                    sizes.get(site, 0) // 2
+                sizes[site] = max(part[0], before)
+                self._sizes_heard.add(site)
+                holds = d.limit < 0 or part[0] <= d.limit
+            else:
+                holds = not any(part)
+                self.heard(d.question, holds)
+            if not holds:
+                wrong.append(d.question)
+                whole |= d.early
         self.deferred = []
         if wrong:
-            raise GuessWrong(wrong)
+            raise GuessWrong(wrong, whole)
+
+    @property
+    def _sizes_heard(self) -> set[str]:
+        """The sites whose counts this block has read (the run's sizes then hold its most)."""
+        if "_heard_sites" not in vars(self):
+            self._heard_sites: set[str] = set()
+        return self._heard_sites
 
     def from_here(self, counts: dict[str, torch.Tensor], rest: Callable[[], None]) -> None:
         """``rest()``, the rest of the block (its rescues and checks), guessing; where a
         guess it checks was wrong, the block, the run's counters and the block's ``counts``
         as they were here, and ``rest()`` again, reading every answer (the block's solve
-        is not done again). A wrong guess of the placement, made before here, is raised
-        (:func:`solve_guessing` solves the whole block again)."""
+        is not done again). A wrong guess made before here (the placement's, a compacted
+        solve's of the block's solve) is raised (:func:`solve_guessing` solves the whole
+        block again)."""
         if not self.guessing:
             rest()
             return
+        for d in self.deferred:  # guessed before here: wrong, the whole block again
+            d.early = True
         # the block's tensors copied (solves change them in place), its containers anew
         state = {k: v.clone() if isinstance(v, torch.Tensor) else
-                 (type(v)(v) if isinstance(v, (dict, list)) else v)
+                 (type(v)(v) if isinstance(v, (dict, list, set)) else v)
                  for k, v in vars(self).items() if k != "run"}
         stats, held = _counters(self.run.stats), dict(counts)
         try:
             rest()
         except GuessWrong as wrong:
-            if PLACEMENT in wrong.questions:
+            if PLACEMENT in wrong.questions or wrong.whole:
                 raise
             for k in [k for k in vars(self) if k != "run" and k not in state]:
                 delattr(self, k)

@@ -125,7 +125,8 @@ class BlockWindows:
         if init is not None and run.m == 0 and masked_groups(run.device):
             # one half-width (a classical run's rows from their guesses): every row in one
             # solve, those not picked masked (no read)
-            return [(rows, None, self.solve_masked(rows, init, pick), pick)]
+            return [(rows, None, self.solve_masked(rows, init, pick, site="classical rows"),
+                     pick)]
         if init is None or run.m == 0 or not self.mixes_windows:
             for mm, sel in rows_by_half_width(m_of, pick, run.m):
                 mk = None if mm == run.m else mm
@@ -138,7 +139,9 @@ class BlockWindows:
             windows = torch.where(key == 1, m_of, run.m).to(torch.int8)
             for window, mm in enumerate((0, windows)):
                 where = key == window
-                out.append((rows, mm, self.solve(rows, init, m=mm, active=where), where))
+                out.append((rows, mm, self.solve(rows, init, m=mm, active=where,
+                                                 site=("classical", "windows")[window]),
+                            where))
             return out
         counts = torch.bincount(key, minlength=3)[:2].tolist()
         for window, sel in enumerate(grouped_rows(key, counts)):

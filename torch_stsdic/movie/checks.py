@@ -107,7 +107,8 @@ class BlockChecks:
         # (one read for both tests, only in the block whose targets hold the reference frame)
         n_own = int(own.sum()) if self.ref.frame in self.ks else 0
         if not n_own:
-            return self.solve(idx, start, m=0, solver=solver, init_step=step, active=active)
+            return self.solve(idx, start, m=0, solver=solver, init_step=step, active=active,
+                              site="check")
         ident = self.identity_solution(idx)
         if n_own == idx.numel():
             return ident
@@ -115,7 +116,7 @@ class BlockChecks:
         return with_rows(ident, other, self.solve(
             idx[other], start[other], m=0, solver=solver,
             init_step=None if step is None else step[other],
-            active=None if active is None else active[other]))
+            active=None if active is None else active[other], site="check"))
 
     def _screen(self, idx: torch.Tensor) -> tuple[torch.Tensor | None, WindowSolution | None]:
         """(R,) bool: rows ``idx`` that pass the model check from their window's free
@@ -231,7 +232,7 @@ class BlockChecks:
         def in_full(pos: torch.Tensor | None, active: torch.Tensor | None,
                     start: torch.Tensor = cls.params) -> WindowSolution:
             return self.solve(take(idx, pos), take(start, pos).nan_to_num(0.0), m=0,
-                              active=active)
+                              active=active, site="check in full")
         cls = rows.redo(cls, redo, in_full)
         not_ref = ~self._no_residual(idx, cls.zncc)
         ok_c = cls.status <= USABLE
@@ -266,7 +267,7 @@ class BlockChecks:
         loose, lpos = rows.narrow(~redo)
         if not loose.none():
             pol = self.solve(loose.idx, take(kept.params, lpos).nan_to_num(0.0), m=0,
-                             active=loose.act)
+                             active=loose.act, site="check to tol")
             self.keep(loose.idx, pol, only_better=False, m=0,
                       where=loose.on(pol.status <= USABLE))
         return shortened, rows.count()
@@ -398,7 +399,7 @@ class BlockChecks:
                 start[:, j] = torch.where(torch.isfinite(vel[:, c]), vel[:, c].to(start),
                                           start[:, j])
         sol = self.solve(idx[sel], start, m=m, for_check=False,  # judged here, now
-                         active=active)
+                         active=active, site="shorter windows")
         good = sol.status <= USABLE
         d = sol.params[:, [iu, iv]].to(run.dtype)
         good &= ~model_mismatch(d, cls_uv[sel], sol.std[:, [iu, iv]], cls_std[sel])
@@ -422,8 +423,8 @@ class BlockChecks:
             go = lost & torch.isfinite(guess).all(1)
             if masked:
                 every = torch.arange(go.numel(), device=go.device)
-                self.keep(every, self.solve_masked(every, guess, go, m=0), only_better=True,
-                          m=0, where=go)
+                sol = self.solve_masked(every, guess, go, m=0, site="classical rescue")
+                self.keep(every, sol, only_better=True, m=0, where=go)
             else:
                 r = torch.nonzero(go).flatten()
                 if r.numel():

@@ -17,8 +17,8 @@ import warnings
 import torch
 
 __all__ = ["EVERY_CANDIDATE", "UNTIL_DONE", "MASKED_GROUPS", "MASKED_CHECK", "GUESS_READS",
-           "ENV", "every_candidate", "until_done", "masked_groups", "masked_check",
-           "guess_reads", "gpu_choices", "from_environment"]
+           "COMPACT_ROWS", "ENV", "every_candidate", "until_done", "masked_groups",
+           "masked_check", "guess_reads", "compact_rows", "gpu_choices", "from_environment"]
 
 #: The model check's shorter windows (where the solver mixes window lengths): every candidate
 #: window of every failing row in one solve, each row's first that passes kept (True), or in
@@ -71,6 +71,18 @@ MASKED_CHECK: bool | None = None
 #: three times), read on the CPU (which reads for free and would pay for a block solved
 #: again).
 GUESS_READS: bool | None = None
+
+
+#: A masked solve's rows (the groups of :data:`MASKED_GROUPS`, the model check's steps of
+#: :data:`MASKED_CHECK`, the classical rescue) taken to a fixed number of rows, sized from the
+#: most the last block asked for there (:meth:`~torch_stsdic.movie.block_guess.BlockGuesses.
+#: compact`: ``torch.nonzero_static``, no read), their count read with the block's next read
+#: like a guessed answer (more than that size: a wrong guess, the block solved again reading)
+#: (True); or every row asked about solved masked (False); None: taken where the block
+#: guesses (:data:`GUESS_READS`) on a GPU. A masked row costs a solve's preparation and its
+#: first evaluation (a 500-frame movie's model check: 176,000 rows a solve where 150 are
+#: asked for); a taken one nothing. Needs the block's guesses (:data:`GUESS_READS`).
+COMPACT_ROWS: bool | None = None
 
 
 #: the environment variable that sets choices at import (``NAME=0|1`` by commas)
@@ -129,10 +141,16 @@ def guess_reads(device: torch.device) -> bool:
     return _choose(GUESS_READS, device, on_gpu=True)
 
 
+def compact_rows(device: torch.device) -> bool:
+    """Whether a guessing block takes its masked solves' rows to a size learned from the last
+    block on ``device`` (:data:`COMPACT_ROWS`)."""
+    return _choose(COMPACT_ROWS, device, on_gpu=True)
+
+
 def gpu_choices() -> dict[str, bool]:
     """Every choice as a GPU run makes it (by name), for a caller to set on the CPU."""
     return {"EVERY_CANDIDATE": True, "UNTIL_DONE": False, "MASKED_GROUPS": True,
-            "MASKED_CHECK": True, "GUESS_READS": True}
+            "MASKED_CHECK": True, "GUESS_READS": True, "COMPACT_ROWS": True}
 
 
 from_environment()
