@@ -259,3 +259,56 @@ def test_a_clean_movies_blocks_guess_rightly_the_first_after_the_reference_frame
                  "--threads", "1", "--no-progress", "--out", str(tmp_path / "r.h5"),
                  *args]) == 0
     assert wrong == []
+
+
+def test_a_block_after_one_whose_rows_lack_a_velocity_reads_its_answers(tmp_path,
+                                                                        monkeypatch):
+    """Frame 1 of a strained speckle is another speckle over a patch: at the reference
+    frame's block (frame 0 alone) the patch's points keep no velocity (their window's
+    frames 0-2 hold the patch), so the next block starts their later targets in the
+    rescue's waves where frame 0's block lost no row. That block's carry does not know the
+    velocity everywhere (``Carry.vel_known``): it reads its answers, and guesses nothing
+    wrong (the run's other blocks may, for the patch)."""
+    import numpy as np
+    import tifffile
+
+    from torch_stsdic import synth
+    from torch_stsdic.cli import main
+    from torch_stsdic.movie import block, choices
+
+    if not native.available():
+        pytest.skip("no native kernels")
+    assert main(["synth", "--out", str(tmp_path / "m"), "--size", "160", "--frames", "23",
+                 "--motion", "strain", "--exx", "0.002", "--noise", "2", "--seed", "3",
+                 "--threads", "1"]) == 0
+    movie = tmp_path / "m" / "movie.tif"
+    pages = tifffile.imread(movie)
+    other = synth.render(synth.make_speckle((160, 160), seed=11), (160, 160)).numpy()
+    pages[1, 60:100, 60:100] = np.clip(other[60:100, 60:100], 0, 255).astype(pages.dtype)
+    tifffile.imwrite(movie, pages)
+    for name, value in choices.gpu_choices().items():
+        monkeypatch.setattr(choices, name, value)
+    now: dict = {}
+    wrong: list[tuple] = []  # (the block's first target, its carry's known velocities)
+    solve_block, init = block._solve_block, GuessWrong.__init__
+
+    firsts: list[int] = []  # each block's first target
+
+    def spy(run, ks, ref, carry, guessing):
+        known = None if carry is None or carry.vel_known is None else carry.vel_known
+        now["block"] = (ks[0], run.m, None if known is None else int(known.sum()),
+                        None if known is None else known.numel())
+        firsts.append(ks[0])
+        return solve_block(run, ks, ref, carry, guessing)
+
+    def heard_wrong(self, questions, whole=False):
+        wrong.append(now["block"])
+        init(self, questions, whole)
+
+    monkeypatch.setattr(block, "_solve_block", spy)
+    monkeypatch.setattr(GuessWrong, "__init__", heard_wrong)
+    assert main(["run", str(movie), "--subset", "21", "--step", "10", "--threads", "1",
+                 "--no-progress", "--out", str(tmp_path / "r.h5"), "--m", "2",
+                 "--single-reference"]) == 0
+    assert 1 in firsts  # the block after frame 0's was solved
+    assert not [w for w in wrong if w[0] == 1], wrong

@@ -250,9 +250,11 @@ MUTATIONS: tuple[Mutation, ...] = (
         "a compacted solve of the block's own solve guessed wrong: only its rescue solved again"),
     Mutation(
         "block-after-the-reference-guesses", "block guesses", "torch_stsdic/movie/block.py",
-        "    blk.guessing = guessing and carry is not None\n", "    blk.guessing = guessing\n",
+        "    blk.guessing = guessing and carry is not None and carry.vel_known is None\n",
+        "    blk.guessing = guessing\n",
         ("test_block_guess.py",),
-        "the first block after the reference frame's own row takes its \"nothing lost\""),
+        "a block whose carry lacks a velocity somewhere (after the reference frame's own "
+        "row, after a block of one target) takes the last block's \"nothing lost\""),
     Mutation(
         "wrong-rescue-guess-keeps-its-state", "block guesses",
         "torch_stsdic/movie/block_guess.py",

@@ -547,10 +547,12 @@ def _solve_block(run: BlockContext, ks: list[int], ref: Reference, carry: Carry 
     shake_vel = has = None  # see _carried_start
     if carry is not None and _only_identity(run, ref, carry):
         carry = None  # the reference frame's own row, no velocity: it predicts nothing
-    # a guess is "as in the last block": only a block started as the last one was, from
-    # a carry, takes one (the first block after the reference frame's own row starts from
-    # rest or a first guess, and loses rows where the identity row lost none)
-    blk.guessing = guessing and carry is not None
+    # a guess is "as in the last block": only a block started as the last one was, from a
+    # carry whose velocity is known everywhere (two rows or more), takes one. The first
+    # block after the reference frame's own row starts from rest or a first guess, and
+    # one after a block of one target starts its later targets in the rescue's waves
+    # where that row measured no velocity: both lose rows where the block before lost none
+    blk.guessing = guessing and carry is not None and carry.vel_known is None
     if carry is None and run.first_guess is not None and ref.acc is None:
         # no carry (the first block): start from the measuring pass's solutions
         init = _first_guess_rows(run, blk, ref)

@@ -253,11 +253,13 @@ def make_carry(rows: Mapping[str, np.ndarray | torch.Tensor], times: np.ndarray,
         vel_u, vel_v = (vals["u"] - u_prev) / span, (vals["v"] - v_prev) / span
     else:
         vel_u, vel_v = torch.zeros_like(vals["u"]), torch.zeros_like(vals["v"])
-    known = torch.full_like(ok, span > 0)  # two rows: a finite difference
+    # two rows: a finite difference at every point (None: known everywhere, no read)
+    known = None if span > 0 else torch.zeros_like(ok)
     if "ut" in names:  # the measured velocity where the window had one (m > 0)
         vel_u = torch.where(torch.isfinite(vals["ut"]), vals["ut"], vel_u)
         vel_v = torch.where(torch.isfinite(vals["vt"]), vals["vt"], vel_v)
-        known |= torch.isfinite(vals["ut"]) & torch.isfinite(vals["vt"])
+        if known is not None:
+            known = known | (torch.isfinite(vals["ut"]) & torch.isfinite(vals["vt"]))
     fin = torch.isfinite(vel_u) & torch.isfinite(vel_v)
     vel_u = torch.where(fin, vel_u, torch.zeros_like(vel_u))
     vel_v = torch.where(fin, vel_v, torch.zeros_like(vel_v))
