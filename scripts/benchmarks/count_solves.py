@@ -16,7 +16,10 @@ when it starts, restarted from an earlier target, by FFT, and still lost after i
 the classical pass it holds, the template's rounds, the main blocks) and per caller of
 ``Block.solve``, its solves, rows, row-frames (each row's window length summed),
 row-frame iterations (a row's frames times its iterations: the kernel's work) and seconds
-(the solve's wall time, Python around the kernel included)."""
+(the solve's wall time, Python around the kernel included). With ``--masked`` (and a GPU's
+choices, ``TORCH_STSDIC_CHOICES``): each masked solve's call site, the rows asked for, the
+rows masked over and the rows prepared where ``COMPACT_ROWS`` takes them to a learned size
+(:meth:`~torch_stsdic.movie.block_guess.BlockGuesses.compact`)."""
 
 from __future__ import annotations
 
@@ -40,6 +43,9 @@ def main() -> int:
                     help="keep the run's result file there (default: a temporary one)")
     ap.add_argument("--work", action="store_true",
                     help="also the Gauss-Newton work per pass and caller")
+    ap.add_argument("--masked", action="store_true",
+                    help="also each masked solve's call site (a GPU's choices): the rows "
+                         "asked for, masked over, and prepared (COMPACT_ROWS)")
     ap.add_argument("run_args", nargs="+", help="stsdic run's arguments (after --)")
     a = ap.parse_args()
     import torch
@@ -65,7 +71,18 @@ def main() -> int:
 
     work: dict[str, list] = collections.defaultdict(lambda: [0, 0, 0, 0, 0.0])
 
+    depth = [0]  # a compacted solve calls Block.solve again: counted once, the outer call
+
     def counted_solve(self, rows, init, m=None, *args, **kwargs):
+        if depth[0]:
+            return solve(self, rows, init, m, *args, **kwargs)
+        depth[0] += 1
+        try:
+            return _counted_solve(self, rows, init, m, *args, **kwargs)
+        finally:
+            depth[0] -= 1
+
+    def _counted_solve(self, rows, init, m=None, *args, **kwargs):
         st["solves"] += 1
         st["solved rows"] += int(rows.numel())
         if not a.work:
@@ -89,8 +106,21 @@ def main() -> int:
         w[4] += seconds
         return sol
 
+    sites: dict[str, list] = collections.defaultdict(lambda: [0, 0, 0, 0])
+    compact = block_mod.Block.compact
+
+    def counted_compact(self, site, active):
+        pos = compact(self, site, active)
+        c = sites[site]
+        c[0] += 1
+        c[1] += int(active.sum())
+        c[2] += int(active.numel())
+        c[3] += int(active.numel() if pos is None else pos.numel())
+        return pos
+
     block_mod.Block.rescue = counted_rescue
     block_mod.Block.solve = counted_solve
+    block_mod.Block.compact = counted_compact
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
         with contextlib.redirect_stdout(io.StringIO()):
@@ -106,6 +136,11 @@ def main() -> int:
             share = 100 * w[3] / total
             print(f"{w[4]:8.2f} {w[0]:6d} {w[1]:8d} {w[2]:10d} {w[3]:12d} ({share:4.1f} %)"
                   f"  {key}")
+    if a.masked:
+        print("| masked solves' call site | solves | rows asked for | rows masked over | "
+              "rows prepared |\n|---|---:|---:|---:|---:|")
+        for site, (n, asked, over, prepared) in sites.items():
+            print(f"| {site} | {n} | {asked:,} | {over:,} | {prepared:,} |")
     return int(rc or 0)
 
 
