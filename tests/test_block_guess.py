@@ -52,13 +52,15 @@ def test_a_guess_is_taken_only_after_a_quiet_answer_and_checked_with_the_next_re
 def test_a_masked_solves_rows_are_taken_to_a_size_learned_from_the_blocks_before(
         monkeypatch):
     """``compact``: no size known, every row masked (the count read with the next read, for
-    the next block); known, the first C true rows (C a power of two at or above twice the
+    the next block; in a block that reads its answers too, dropped where no read follows);
+    known, the first C true rows (C a power of two at or above twice the
     count and R / 32), padded with -1; more rows than C is a wrong guess; a guess taken
     before the rescue (``from_here``) solves the whole block again. A block's most is held,
     half of it passed on where the next block asks for fewer."""
     from torch_stsdic.movie import choices
 
     monkeypatch.setattr(choices, "COMPACT_ROWS", True)
+    monkeypatch.setattr(choices, "GUESS_READS", True)
     assert block_guess.row_capacity(0, 100_000) == 4096  # R / 32 -> 3125 -> 4096
     assert block_guess.row_capacity(10, 1000) == 64
     assert block_guess.row_capacity(100, 1000) == 256
@@ -72,7 +74,13 @@ def test_a_masked_solves_rows_are_taken_to_a_size_learned_from_the_blocks_before
     pos = g.compact("check", active)
     assert pos.tolist() == [3, 50, 700] + [-1] * 61
     g.settle_guesses()  # 3 <= 64: holds
-    assert not _guesses(guessing=False).compact("check", active)  # reading: never taken
+    reading = _guesses(guessing=False)  # a block that reads: never taken, but learnt
+    assert reading.compact("check", active) is None
+    assert reading.read(torch.tensor([2])) == [2]
+    assert reading.run.guesses.sizes == {"check": 3}
+    reading.compact("classical", active)
+    reading.settle_guesses()  # dropped: no read of its own
+    assert not reading.deferred and "classical" not in reading.run.guesses.sizes
     monkeypatch.setattr(choices, "COMPACT_ROWS", False)
     assert g.compact("check", active) is None and not g.deferred  # the choice off
     monkeypatch.setattr(choices, "COMPACT_ROWS", True)

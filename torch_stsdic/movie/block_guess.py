@@ -107,11 +107,14 @@ class BlockGuesses:
         (C,) int64 the positions of the first C true rows (-1 after the last: fixed shape, no
         read), C from the most rows the last block asked for there (:func:`row_capacity`);
         the guess "at most C" deferred (:meth:`read`: more is a wrong guess). None: solve
-        every row masked (no guess; the count read with the block's reads where it guesses,
-        for the next block)."""
-        if not self.guessing or not compact_rows(self.run.device):
+        every row masked (no guess; the count read with the block's next read, for the next
+        block: in a block that reads its answers, with the next answer it reads, if any)."""
+        if not compact_rows(self.run.device) or not guess_reads(self.run.device):
             return None
         count = active.sum().reshape(1)
+        if not self.guessing:  # learnt with the next read (never a wrong guess)
+            self.deferred.append(_Deferred(SIZE + site, count, -1))
+            return None
         known = self.run.guesses.sizes.get(site)
         cap = None if known is None else row_capacity(known, active.numel())
         self.deferred.append(_Deferred(SIZE + site, count, -1 if cap is None else cap))
@@ -153,7 +156,10 @@ class BlockGuesses:
 
     def settle_guesses(self) -> None:
         """The deferred guesses read (one read; none where every guess was read already) and
-        checked: :class:`GuessWrong` where one does not hold."""
+        checked: :class:`GuessWrong` where one does not hold. A block that reads its answers
+        drops the counts it would only learn from (no read of its own for them)."""
+        if not self.guessing:
+            self.deferred = [d for d in self.deferred if d.limit >= 0]
         if self.deferred:
             self._check(torch.cat([d.numbers for d in self.deferred]).tolist())
 
