@@ -24,6 +24,27 @@ def _guesses(guessing: bool = True) -> BlockGuesses:
     return g
 
 
+def _strain_movie(tmp_path, seed: int, patch: tuple[int, int, int] | None = None):
+    """A 23-frame strained speckle (``stsdic synth``, 160 px, noise 2) whose frame
+    ``patch[0]`` shows another speckle over the square ``patch[1]:patch[2]`` (None: none)."""
+    import tifffile
+
+    from torch_stsdic import synth
+    from torch_stsdic.cli import main
+
+    assert main(["synth", "--out", str(tmp_path / "m"), "--size", "160", "--frames", "23",
+                 "--motion", "strain", "--exx", "0.002", "--noise", "2", "--seed", str(seed),
+                 "--threads", "1"]) == 0
+    movie = tmp_path / "m" / "movie.tif"
+    if patch is not None:
+        k, lo, hi = patch
+        pages = tifffile.imread(movie)
+        other = synth.render(synth.make_speckle((160, 160), seed=11), (160, 160)).numpy()
+        pages[k, lo:hi, lo:hi] = np.clip(other[lo:hi, lo:hi], 0, 255).astype(pages.dtype)
+        tifffile.imwrite(movie, pages)
+    return movie
+
+
 def test_a_guess_is_taken_only_after_a_quiet_answer_and_checked_with_the_next_read():
     g = _guesses()
     assert not g.may_guess("rescue")  # never heard: read
@@ -158,25 +179,19 @@ def test_guessed_reads_give_the_reading_runs_file_and_a_wrong_guess_is_caught(
     a GPU's choices, guessed and read give the same file to the bit; other blocks guess
     rightly."""
     import h5py
-    import tifffile
 
-    from torch_stsdic import synth
     from torch_stsdic.cli import main
     from torch_stsdic.movie import block, choices
 
     if not native.available():
         pytest.skip("no native kernels (the paths agree to the bit on the C++ kernels)")
-    motion = (["--motion", "strain", "--exx", "0.002"] if movie_kind == "patch"
-              else ["--motion", "translation", "--ut", "0.6", "--vt", "0.1"])
-    assert main(["synth", "--out", str(tmp_path / "m"), "--size", "160", "--frames", "23",
-                 *motion, "--noise", "2", "--seed", "3" if movie_kind == "patch" else "4",
-                 "--threads", "1"]) == 0
-    movie = tmp_path / "m" / "movie.tif"
     if movie_kind == "patch":
-        pages = tifffile.imread(movie)
-        other = synth.render(synth.make_speckle((160, 160), seed=11), (160, 160)).numpy()
-        pages[15, 50:110, 50:110] = np.clip(other[50:110, 50:110], 0, 255).astype(pages.dtype)
-        tifffile.imwrite(movie, pages)
+        movie = _strain_movie(tmp_path, 3, patch=(15, 50, 110))
+    else:
+        assert main(["synth", "--out", str(tmp_path / "m"), "--size", "160", "--frames", "23",
+                     "--motion", "translation", "--ut", "0.6", "--vt", "0.1", "--noise", "2",
+                     "--seed", "4", "--threads", "1"]) == 0
+        movie = tmp_path / "m" / "movie.tif"
     for name, value in choices.gpu_choices().items():
         monkeypatch.setattr(choices, name, value)
     attempts: list[bool] = []  # each attempt at a block: guessing or not
@@ -250,9 +265,7 @@ def test_a_clean_movies_blocks_guess_rightly_the_first_after_the_reference_frame
 
     if not native.available():
         pytest.skip("no native kernels")
-    assert main(["synth", "--out", str(tmp_path / "m"), "--size", "160", "--frames", "23",
-                 "--motion", "strain", "--exx", "0.002", "--noise", "2", "--seed", "4",
-                 "--threads", "1"]) == 0
+    movie = _strain_movie(tmp_path, 4)
     for name, value in choices.gpu_choices().items():
         monkeypatch.setattr(choices, name, value)
     wrong: list[list[str]] = []
@@ -263,7 +276,7 @@ def test_a_clean_movies_blocks_guess_rightly_the_first_after_the_reference_frame
         init(self, questions, whole)
 
     monkeypatch.setattr(GuessWrong, "__init__", heard_wrong)
-    assert main(["run", str(tmp_path / "m" / "movie.tif"), "--subset", "21", "--step", "10",
+    assert main(["run", str(movie), "--subset", "21", "--step", "10",
                  "--threads", "1", "--no-progress", "--out", str(tmp_path / "r.h5"),
                  *args]) == 0
     assert wrong == []
@@ -277,23 +290,13 @@ def test_a_block_after_one_whose_rows_lack_a_velocity_reads_its_answers(tmp_path
     rescue's waves where frame 0's block lost no row. That block's carry does not know the
     velocity everywhere (``Carry.vel_known``): it reads its answers, and guesses nothing
     wrong (the run's other blocks may, for the patch)."""
-    import numpy as np
-    import tifffile
 
-    from torch_stsdic import synth
     from torch_stsdic.cli import main
     from torch_stsdic.movie import block, choices
 
     if not native.available():
         pytest.skip("no native kernels")
-    assert main(["synth", "--out", str(tmp_path / "m"), "--size", "160", "--frames", "23",
-                 "--motion", "strain", "--exx", "0.002", "--noise", "2", "--seed", "3",
-                 "--threads", "1"]) == 0
-    movie = tmp_path / "m" / "movie.tif"
-    pages = tifffile.imread(movie)
-    other = synth.render(synth.make_speckle((160, 160), seed=11), (160, 160)).numpy()
-    pages[1, 60:100, 60:100] = np.clip(other[60:100, 60:100], 0, 255).astype(pages.dtype)
-    tifffile.imwrite(movie, pages)
+    movie = _strain_movie(tmp_path, 3, patch=(1, 60, 100))
     for name, value in choices.gpu_choices().items():
         monkeypatch.setattr(choices, name, value)
     now: dict = {}

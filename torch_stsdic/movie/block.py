@@ -246,7 +246,7 @@ class Block(BlockChecks, BlockRescue, BlockPlacement, BlockMotion, BlockWindows,
         masked (no read: ``SubsetSolver.solve``'s; None: all); with ``site`` (the caller's
         name) taken to a fixed number of rows where the block guesses
         (:meth:`~torch_stsdic.movie.block_guess.BlockGuesses.compact`: the same solution)."""
-        if active is not None and site is not None:
+        if active is not None and site is not None and init is not None:
             pos = self.compact(site, active)
             if pos is not None:
                 at = pos.clamp(min=0)
