@@ -6,10 +6,13 @@
 # classical baseline). `gpu_round.sh timeline` adds the device's busy share and the syncs;
 # `choices` times the hourglass with the GPU's choices against the CPU's (device_choices.py:
 # masked solves against reads, and whether the files are the same to the bit); `budget` whether
-# a run given --memory-mb keeps to it on the device (gpu_budget.py: peak allocations).
+# a run given --memory-mb keeps to it on the device (gpu_budget.py: peak allocations); `compact`
+# the 500-frame movie against frame 0 alone without and with a block's masked solves taken to a
+# learned size (TORCH_STSDIC_CHOICES=COMPACT_ROWS=0, then the GPU's own choice: the A/B of
+# docs/benchmarks.md "Masked solves taken to a learned size", about 2 x 50 s).
 #
 #   HG=.gpu/hourglass bash scripts/benchmarks/gpu_round.sh [steps]   # logs and records in $OUT
-#                                      # steps: tests,solver,movie,parts,timeline,syncs,choices,budget
+#                                      # steps: tests,solver,movie,parts,timeline,syncs,choices,budget,compact
 #
 # Needs kornia's wheels in .whl/ (README: GPU) and, for the hourglass, its images in $HG.
 set -uo pipefail
@@ -79,5 +82,14 @@ if step budget && [[ -d ${HG:-} ]]; then
     --out "$OUT/budget-hourglass-cuda.json" -- "$HG" --roi 150 20 1120 734 --subset 31 \
     --step 20 2>&1 | tee -a "$OUT/log.txt" | tail -6
   log "## budget: $((SECONDS - t0)) s"
+fi
+if step compact; then
+  for c in 0 1; do
+    TORCH_STSDIC_CHOICES="COMPACT_ROWS=$c" timeout ${MOVIE_S:-120} python3 scripts/benchmarks/benchmark.py \
+      --movie --device cuda --movie-frames 500 --no-update-doc --movie-single-reference \
+      --out "$OUT/movie-cuda-single-compact$c.json" 2>&1 \
+      | tee -a "$OUT/log.txt" | grep -E "^movie|Error|error" | cut -c1-300
+    log "## compact $c: $((SECONDS - t0)) s"
+  done
 fi
 log "## total: $((SECONDS - t0)) s"
