@@ -80,8 +80,9 @@ GUESS_READS: bool | None = None
 #: like a guessed answer (more than that size: a wrong guess, the block solved again reading)
 #: (True); or every row asked about solved masked (False); None: taken where the block
 #: guesses (:data:`GUESS_READS`) on a GPU. A masked row costs a solve's preparation and its
-#: first evaluation (a 500-frame movie's model check: 176,000 rows a solve where 150 are
-#: asked for); a taken one nothing. Needs the block's guesses (:data:`GUESS_READS`).
+#: first evaluation (the benchmark movie's 32-target blocks of 10,000 POIs: 320,000 rows a
+#: solve of the model check where a few hundred are asked for); a row not taken costs
+#: nothing. Needs the block's guesses (:data:`GUESS_READS`).
 COMPACT_ROWS: bool | None = None
 
 
