@@ -20,7 +20,7 @@ def _guesses(guessing: bool = True) -> BlockGuesses:
     g = BlockGuesses()
     g.run = SimpleNamespace(guesses=ReadGuesses(), device=torch.device("cpu"), stats={},
                             pending={})
-    g.guessing, g.deferred = guessing, []
+    g.guessing, g.deferred, g.heard_sites = guessing, [], set()
     return g
 
 
@@ -165,11 +165,12 @@ def test_a_wrong_guess_solves_the_block_again_with_the_counters_as_before(monkey
     assert block_guess.solve_guessing(run, solve) == "solved" and calls == [False]
 
 
-@pytest.mark.parametrize("movie_kind,args", [("patch", ()), ("drift", ()),
-                                             ("drift", ("--m", "0", "--single-reference"))],
-                         ids=["patch", "drift", "drift-classical"])
+@pytest.mark.parametrize("movie_kind,args,compact", [
+    ("patch", (), False), ("patch", (), True), ("drift", (), True),
+    ("drift", ("--m", "0", "--single-reference"), True)],
+    ids=["patch", "patch-compact", "drift", "drift-classical"])
 def test_guessed_reads_give_the_reading_runs_file_and_a_wrong_guess_is_caught(
-        tmp_path, monkeypatch, movie_kind, args):
+        tmp_path, monkeypatch, movie_kind, args, compact):
     """``patch``: a strained speckle whose frame 15 is another speckle over a patch: the
     blocks before it find nothing to rescue, so the block holding frame 15 guesses "no row
     lost", wrongly, and rescues and checks its rows again. ``drift``: a speckle drifting
@@ -177,7 +178,9 @@ def test_guessed_reads_give_the_reading_runs_file_and_a_wrong_guess_is_caught(
     that its points stay clear of the border, wrongly, and is solved again from its start;
     so too a classical run's (``--m 0 --single-reference``: the placement read apart). With
     a GPU's choices, guessed and read give the same file to the bit; other blocks guess
-    rightly."""
+    rightly. ``compact`` False: the masked solves not taken to a size (``COMPACT_ROWS``), so
+    the patch's block guesses only its rescue wrong and is solved again from its rescue
+    (with them, its classical group's size is wrong too: the whole block again)."""
     import h5py
 
     from torch_stsdic.cli import main
@@ -194,6 +197,7 @@ def test_guessed_reads_give_the_reading_runs_file_and_a_wrong_guess_is_caught(
         movie = tmp_path / "m" / "movie.tif"
     for name, value in choices.gpu_choices().items():
         monkeypatch.setattr(choices, name, value)
+    monkeypatch.setattr(choices, "COMPACT_ROWS", compact)
     attempts: list[bool] = []  # each attempt at a block: guessing or not
     wrong: list[list[str]] = []  # the questions of each wrong guess
     wholes: list[bool] = []  # each wrong guess: the whole block solved again
@@ -208,11 +212,11 @@ def test_guessed_reads_give_the_reading_runs_file_and_a_wrong_guess_is_caught(
         wholes.append(whole or "placement" in questions)
         init(self, questions, whole)
 
-    compact = BlockGuesses.compact
+    compact_rows = BlockGuesses.compact
     taken: list[int] = []  # the rows of each compacted solve
 
     def compacted(self, site, active):
-        pos = compact(self, site, active)
+        pos = compact_rows(self, site, active)
         if pos is not None:
             taken.append(pos.numel())
         return pos
@@ -235,10 +239,12 @@ def test_guessed_reads_give_the_reading_runs_file_and_a_wrong_guess_is_caught(
         if not guess:
             assert not any(attempts) and not wrong and not taken
             continue
-        if not args:  # the checks' masked solves taken to a size (COMPACT_ROWS)
+        if not args and compact:  # the checks' masked solves taken to a size
             assert len(taken) >= 3, taken
         if movie_kind == "patch":  # a rescue's wrong guess (solved from there again)
             assert any("rescue" in q for q in wrong), wrong
+            if not compact:  # one that solves the block again from its rescue only
+                assert any("rescue" in q and not w for q, w in zip(wrong, wholes)), wrong
         else:  # the placement's
             assert ["placement"] in wrong, wrong
         # a wrong placement (or a wrong size of a compacted solve before the rescue)

@@ -228,6 +228,7 @@ class Block(BlockChecks, BlockRescue, BlockPlacement, BlockMotion, BlockWindows,
         #: image: the solves need not find the others (made with the centres)
         self.centres_inside = True
         self.deferred = []  # the guessed answers not read yet (:class:`BlockGuesses`)
+        self.heard_sites = set()  # the masked solves' sites whose counts it read
         self._init_motion()
         # the POIs' reference subsets kept for every solve of the block (one host read)
         self.kept = ref.kept_by(run.solver, inside=all(run.point_facts(ref)))

@@ -60,8 +60,9 @@ class ReadGuesses:
 
 @dataclass
 class _Deferred:
-    """A guess taken and not checked yet: it holds where every one of ``numbers`` (K,) int64
-    is at most ``limit``; ``early``: taken before the block's rescue."""
+    """A guess taken and not checked yet: a question's where its ``numbers`` (K,) int64 are
+    all 0, a size's (``SIZE + site``: ``numbers`` its count) where the count is at most
+    ``limit`` (-1: any, a count only learnt); ``early``: taken before the block's rescue."""
 
     question: str
     numbers: torch.Tensor
@@ -90,6 +91,8 @@ class BlockGuesses:
     guessing: bool = False
     #: the guesses taken and not checked yet
     deferred: list[_Deferred]
+    #: the sites whose counts this block has read (the run's sizes then hold its most)
+    heard_sites: set[str]
 
     def may_guess(self, question: str) -> bool:
         """Whether ``question`` is answered "nothing to do" unread: this attempt guesses and
@@ -111,13 +114,11 @@ class BlockGuesses:
         block: in a block that reads its answers, with the next answer it reads, if any)."""
         if not compact_rows(self.run.device) or not guess_reads(self.run.device):
             return None
-        count = active.sum().reshape(1)
-        if not self.guessing:  # learnt with the next read (never a wrong guess)
-            self.deferred.append(_Deferred(SIZE + site, count, -1))
-            return None
-        known = self.run.guesses.sizes.get(site)
+        known = self.run.guesses.sizes.get(site) if self.guessing else None
         cap = None if known is None else row_capacity(known, active.numel())
-        self.deferred.append(_Deferred(SIZE + site, count, -1 if cap is None else cap))
+        # the count read with the next read: checked against ``cap``, or only learnt
+        self.deferred.append(_Deferred(SIZE + site, active.sum().reshape(1),
+                                       -1 if cap is None else cap))
         if cap is None:
             return None
         return torch.nonzero_static(active, size=cap, fill_value=-1).flatten()
@@ -171,10 +172,10 @@ class BlockGuesses:
             at += d.numbers.numel()
             if d.question.startswith(SIZE):  # a count: the site's most this block, or
                 site = d.question[len(SIZE):]  # half the most before it
-                before = sizes.get(site, 0) if site in self._sizes_heard else \
+                before = sizes.get(site, 0) if site in self.heard_sites else \
                     sizes.get(site, 0) // 2
                 sizes[site] = max(part[0], before)
-                self._sizes_heard.add(site)
+                self.heard_sites.add(site)
                 holds = d.limit < 0 or part[0] <= d.limit
             else:
                 holds = not any(part)
@@ -185,13 +186,6 @@ class BlockGuesses:
         self.deferred = []
         if wrong:
             raise GuessWrong(wrong, whole)
-
-    @property
-    def _sizes_heard(self) -> set[str]:
-        """The sites whose counts this block has read (the run's sizes then hold its most)."""
-        if "_heard_sites" not in vars(self):
-            self._heard_sites: set[str] = set()
-        return self._heard_sites
 
     def from_here(self, counts: dict[str, torch.Tensor], rest: Callable[[], None]) -> None:
         """``rest()``, the rest of the block (its rescues and checks), guessing; where a
