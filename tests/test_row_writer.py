@@ -128,6 +128,39 @@ def test_the_writer_holds_a_bounded_number_of_blocks():
     assert most <= 2
 
 
+def test_the_writer_tells_its_own_seconds_apart_from_the_callers_wait():
+    """``times()``: the writer thread's seconds (every write's) and the caller's wait for
+    it. A caller that hands blocks over faster than they are written waits for them; one
+    slower than the writer waits for none but the last."""
+    sink = _ListSink(delay=0.05)
+    writer = RowWriter(sink, FIELDS, None, depth=1)
+    for i in range(6):
+        writer.put([i], _block(b=1, seed=i), [i], 0)
+    writer.close()
+    t = writer.times()
+    assert t["busy_s"] >= 6 * 0.05  # (sleeps: lower bounds whatever the machine's load)
+    assert t["waited_s"] >= 3 * 0.05  # at most two blocks ahead: it waited for the rest
+
+    slow_caller = RowWriter(_ListSink(delay=0.0), FIELDS, None, depth=1)
+    for i in range(4):
+        slow_caller.put([i], _block(b=1, seed=i), [i], 0)
+        time.sleep(0.1)
+    slow_caller.close()
+    t = slow_caller.times()
+    assert t["waited_s"] < 0.1 < 4 * 0.1  # its sleeps are not the writer's
+
+
+def test_a_run_reports_the_writers_seconds():
+    import torch_stsdic as sts
+    from torch_stsdic import synth
+
+    mv = synth.synthetic_movie((64, 64), 6, synth.Translation(ut=0.1), seed=2, noise_sigma=1.0)
+    res = sts.track(mv.frames, reference=mv.ref, step=16, progress=False, batch_frames=2,
+                    config=sts.DICConfig(subset_size=15, m=1))
+    t = res.info["writer_times_s"]
+    assert set(t) == {"busy_s", "waited_s"} and t["busy_s"] > 0 and t["waited_s"] >= 0
+
+
 def test_an_error_of_the_writer_reaches_the_run_and_stops_the_writes():
     sink = _ListSink(fail_at=1)
     writer = RowWriter(sink, FIELDS, None)

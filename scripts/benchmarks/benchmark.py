@@ -43,8 +43,10 @@ Measurements
     and POI-frames/s over the whole run (planning and the final strains included), and the
     time split - read and
     prefilter (in the calling thread, and in the read-ahead thread, overlapped), waiting for
-    frames, solve (``solve_block`` minus its wait for frames), write (sink rows + finish) and
-    the rest - and "overhead" = everything but the solve, as a share of the wall time.
+    frames, solve (``solve_block`` minus its wait for frames), write (the block loop's wait
+    for the writer's thread, and the final ``finish``; the writer's own seconds beside the
+    solves in ``writer_busy_s``) and the rest - and "overhead" = everything but the solve,
+    as a share of the wall time.
     ``--movie-read-ahead 0`` switches the read-ahead thread off (the comparison case).
 
     Timing on CUDA brackets every stage with ``torch.cuda.synchronize()``.
@@ -634,7 +636,12 @@ def run_movie_case(spec: dict[str, Any]) -> dict[str, Any]:
         "wait_frames_s": ft["wait_s"], "solve_s": solve, "write_s": t_write[0] + t_finish[0],
         "write_rows_s": t_write[0], "finish_s": t_finish[0],
     }
-    # the rest: planning, the reference, carry, rows to numpy, everything else in the loop
+    wt = res.info.get("writer_times_s")
+    if wt is not None:  # the rows are written on the writer's thread, beside the solves:
+        # what writing cost the run is the loop's wait for it (and the final strains)
+        split["write_s"] = wt["waited_s"] + t_finish[0]
+        split["writer_busy_s"] = wt["busy_s"]  # (overlapped: not part of the sum)
+    # the rest: planning, the reference, carry, everything else in the loop
     split["other_s"] = wall - t_solve[0] - split["write_s"]  # the reference's read included
     # of which the run-level estimates: the template made from the series, the shared motion
     split["series_reference_s"] = float(

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import _thread
 import queue
+import time
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -87,6 +88,11 @@ class RowWriter:
         self._ended = False
         #: the rows written so far (their blocks' rows; read by the caller's thread)
         self.rows_written = 0
+        #: seconds the writer's thread spent on blocks (host copy, offsets, write, strains:
+        #: beside the caller's work) and seconds the caller waited for it (a full queue in
+        #: :meth:`put`, :meth:`wait`, :meth:`close`): :meth:`times`
+        self.busy_s = 0.0
+        self.waited_s = 0.0
         _thread.start_new_thread(self._work, ())
 
     def put(self, rows: Sequence[int], block: dict[str, torch.Tensor], frames: Sequence[int],
@@ -133,9 +139,19 @@ class RowWriter:
             raise interrupted
         self._raise()
 
+    def times(self) -> dict[str, float]:
+        """``{"busy_s", "waited_s"}``: the writer's own seconds (on its thread, beside the
+        caller's work) and the seconds the caller waited for it (what writing cost the
+        caller's wall time)."""
+        return {"busy_s": self.busy_s, "waited_s": self.waited_s}
+
     def _answer(self) -> Any:
         """The writer's next answer (waits for it): a block's, a mark or the end."""
-        got = self._answers.get()
+        t0 = time.perf_counter()
+        try:
+            got = self._answers.get()
+        finally:
+            self.waited_s += time.perf_counter() - t0
         if got == _END:
             self._ended = True
         elif got != _MARK:
@@ -155,6 +171,7 @@ class RowWriter:
                 if item is None:
                     return
                 continue
+            t0 = time.perf_counter()
             try:
                 if self._error is None:  # after a failed write the rest are not written
                     rows, fields, done, frames, ref_frame = item
@@ -168,4 +185,5 @@ class RowWriter:
             except BaseException as exc:  # noqa: BLE001 (raised in the caller)
                 self._error = exc
             finally:
+                self.busy_s += time.perf_counter() - t0  # (before the answer: read after it)
                 self._answers.put(len(item[0]))

@@ -174,7 +174,8 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
                desc="STS-DIC" if cfg.m else "DIC", dynamic_ncols=True)
     try:
         try:
-            _run_blocks(plan, sink, run, ref, updates, bar, callback, offsets, warm_up)
+            writer_times = _run_blocks(plan, sink, run, ref, updates, bar, callback, offsets,
+                                       warm_up)
         finally:
             frame_times = cache.finish()
         run.read_counts()  # the blocks' counters, kept on the device until now
@@ -187,7 +188,7 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
             "prefiltered": sum(store.prefiltered.values()),
             "pyramid_levels": sum(store.pyramid_builds.values()),
             "max_cached_frames": cache.max_cached, "reference": plan.reference_desc,
-            "frame_times_s": frame_times,
+            "frame_times_s": frame_times, "writer_times_s": writer_times,
             "reference_updates": updates, "reference_noise_ratio": run.noise_ratio,
             **run.stats,
         }
@@ -245,9 +246,11 @@ def _apply_estimates(run: BlockContext, est: RunEstimates, plan: RunPlan, ref: R
 
 def _run_blocks(plan: RunPlan, sink: MemorySink, run: BlockContext, ref: Reference,
                 updates: list, bar: tqdm, callback,
-                offsets: ReferenceOffsets | None = None, warm_up: bool = False) -> None:
+                offsets: ReferenceOffsets | None = None, warm_up: bool = False
+                ) -> dict[str, float]:
     """Solve (or replay) every block, carrying guesses and reference updates along
-    (``offsets``: the refined reference's per-point offsets, subtracted before storing)."""
+    (``offsets``: the refined reference's per-point offsets, subtracted before storing).
+    Returns the writer's seconds (:meth:`~torch_stsdic.movie.row_writer.RowWriter.times`)."""
     row_of = plan.row_of()
     done = sink.completed_rows()
     run.cache.schedule(frames_in_order(  # read ahead the frames of the blocks to solve
@@ -297,6 +300,7 @@ def _run_blocks(plan: RunPlan, sink: MemorySink, run: BlockContext, ref: Referen
                 callback(rows_done, plan.n_rows)
     finally:
         writer.close()
+    return writer.times()
 
 
 def _warm_start(seed: dict[str, torch.Tensor], lost_zncc: float) -> dict[str, torch.Tensor]:
