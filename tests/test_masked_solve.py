@@ -81,6 +81,50 @@ def test_the_active_rows_are_solved_as_alone_and_the_others_not_at_all(mode, off
     assert bool((masked.iterations[off] == 0).all())
 
 
+@pytest.mark.parametrize("mode,off_centre", [("native", False), ("torch", False),
+                                             ("triton", False), ("native", True)])
+def test_a_solve_to_a_capacity_equals_the_masked_solve_of_every_row(mode, off_centre):
+    """``capacity``: the first C active rows solved alone (``nonzero_static``, padding rows
+    into a spare row), every other row as the masked solve leaves it: with C above the
+    active rows' count every field equal to the masked solve's to the bit (the classical
+    step's columns too; row 0 active: a padding row landing on a solved one fails); with C
+    below it, the first C active rows so and the later ones NOT_COMPUTED."""
+    solver, ref_img, frames_img, pts, half, dt, fidx, init = _setup(mode)
+    n = pts.shape[0]
+    active = (torch.rand(n, generator=torch.Generator().manual_seed(5)) < 0.3).to(pts.device)
+    active[0] = True
+    kw = dict(frame_index=fidx, init=torch.where(active.unsqueeze(1), init, 0.0),
+              frame_count=2 * half + 1, has_time=True, classical_step=mode == "native")
+    if off_centre:
+        pts = pts.round()
+        kw["centres"] = pts + torch.where((torch.arange(n) % 4 == 1).unsqueeze(1),
+                                          torch.tensor([2.0, -1.0], dtype=pts.dtype), 0.0)
+        kw["on_grid"] = True
+    full = solver.solve(ref_img, frames_img, pts, dt, active=active, **kw)
+    count = int(active.sum())
+    cap = 1 << count.bit_length()  # (above the count: padding rows among them)
+    got = solver.solve(ref_img, frames_img, pts, dt, active=active, capacity=cap, **kw)
+    assert bool((full.status[active] <= int(sts.Status.MAX_ITER)).float().mean() > 0.8)
+    for name in ("params", "zncc", "status", "iterations", "std", "sigma", "points"):
+        a, b = getattr(full, name), getattr(got, name)
+        assert a.dtype == b.dtype and a.shape == b.shape, name
+        assert torch.equal(a.nan_to_num(-7.0), b.nan_to_num(-7.0)), name
+    for key, value in full.info.items():
+        if key.startswith("classical_step"):
+            assert torch.equal(value.nan_to_num(-7.0), got.info[key].nan_to_num(-7.0)), key
+    short = solver.solve(ref_img, frames_img, pts, dt, active=active, capacity=count - 3, **kw)
+    rows = torch.nonzero(active).flatten()
+    first, later = rows[: count - 3], rows[count - 3:]
+    assert torch.equal(short.params[first], full.params[first])
+    assert bool((short.status[later] == int(sts.Status.NOT_COMPUTED)).all())
+    assert bool(torch.isnan(short.params[later]).all())
+    for wrong in (0, 2.0, True):
+        with pytest.raises(ValueError, match="capacity must be a positive int"):
+            solver.solve(ref_img, frames_img, pts, dt, active=active, capacity=wrong, **kw)
+    with pytest.raises(ValueError, match="without active"):
+        solver.solve(ref_img, frames_img, pts, dt, capacity=8, **kw)
+
+
 def test_an_all_active_mask_is_no_mask_and_a_wrong_one_is_told():
     solver, ref_img, frames_img, pts, half, dt, fidx, init = _setup("native")
     kw = dict(frame_index=fidx, init=init, frame_count=2 * half + 1, has_time=True)

@@ -71,18 +71,7 @@ def main() -> int:
 
     work: dict[str, list] = collections.defaultdict(lambda: [0, 0, 0, 0, 0.0])
 
-    depth = [0]  # a compacted solve calls Block.solve again: counted once, the outer call
-
     def counted_solve(self, rows, init, m=None, *args, **kwargs):
-        if depth[0]:
-            return solve(self, rows, init, m, *args, **kwargs)
-        depth[0] += 1
-        try:
-            return _counted_solve(self, rows, init, m, *args, **kwargs)
-        finally:
-            depth[0] -= 1
-
-    def _counted_solve(self, rows, init, m=None, *args, **kwargs):
         st["solves"] += 1
         st["solved rows"] += int(rows.numel())
         if not a.work:
@@ -110,13 +99,13 @@ def main() -> int:
     compact = block_mod.Block.compact
 
     def counted_compact(self, site, active):
-        pos = compact(self, site, active)
+        cap = compact(self, site, active)
         c = sites[site]
         c[0] += 1
         c[1] += int(active.sum())
         c[2] += int(active.numel())
-        c[3] += int(active.numel() if pos is None else pos.numel())
-        return pos
+        c[3] += int(active.numel() if cap is None else cap)
+        return cap
 
     block_mod.Block.rescue = counted_rescue
     block_mod.Block.solve = counted_solve

@@ -237,10 +237,11 @@ MUTATIONS: tuple[Mutation, ...] = (
         ("test_block_guess.py",),
         "a masked solve taken to C rows where more were asked for leaves the rest unsolved"),
     Mutation(
-        "compacted-padding-on-a-solved-row", "block guesses", "torch_stsdic/movie/row_set.py",
-        "    dest = torch.where(pos >= 0, pos, n)", "    dest = pos.clamp(min=0)",
-        ("test_row_set.py",),
-        "a compacted solve's padding rows spread onto its first row (a solved one)"),
+        "compacted-padding-on-a-solved-row", "block guesses", "torch_stsdic/core/solver.py",
+        "                    dest = torch.where(dest >= 0, dest, n)",
+        "                    dest = dest.clamp(min=0)",
+        ("test_masked_solve.py",),
+        "a solve to a capacity puts its padding rows' results on its first row (a solved one)"),
     Mutation(
         "early-wrong-guess-redone-from-the-rescue", "block guesses",
         "torch_stsdic/movie/block_guess.py",

@@ -10,9 +10,11 @@ from __future__ import annotations
 
 import torch
 
+from torch_stsdic.core.shape import ShapeFunction
 from torch_stsdic.kernels.ic_step import frames_in_use
 
-__all__ = ["active_rows", "checked_centres", "frame_counts", "per_point", "per_point_motion"]
+__all__ = ["active_rows", "checked_centres", "expand_init", "frame_counts", "per_point",
+           "per_point_motion"]
 
 
 def frame_counts(count, points: torch.Tensor, init, mixed: bool, formulation: str
@@ -36,10 +38,15 @@ def frame_counts(count, points: torch.Tensor, init, mixed: bool, formulation: st
     return count.to(device=points.device, dtype=torch.int64)
 
 
-def active_rows(active, points: torch.Tensor, init) -> torch.Tensor | None:
+def active_rows(active, points: torch.Tensor, init, capacity: int | None = None
+                ) -> torch.Tensor | None:
     """A solve's ``active`` (:meth:`~torch_stsdic.core.solver.SubsetSolver.solve`) checked:
-    (N,) bool, with an ``init`` (the FFT guess chooses its own rows). Returns it on the
-    points' device (None: None)."""
+    (N,) bool, with an ``init`` (the FFT guess chooses its own rows), and its ``capacity``
+    (a positive int, with ``active``). Returns it on the points' device (None: None)."""
+    if capacity is not None and (active is None or isinstance(capacity, bool)
+                                 or not isinstance(capacity, int) or capacity < 1):
+        raise ValueError(f"capacity must be a positive int with active rows, got "
+                         f"{capacity!r}" + ("" if active is not None else " without active"))
     if active is None:
         return None
     active = torch.as_tensor(active)
@@ -102,3 +109,26 @@ def per_point_motion(motion: torch.Tensor | None, n: int, t_count: int,
         raise ValueError(f"motion must be (T, 2) or (N, T, 2) = ({n}, {t_count}, 2), got "
                          f"{tuple(motion.shape)}")
     return motion.contiguous()
+
+
+def expand_init(p0: torch.Tensor, shape: ShapeFunction, full: ShapeFunction) -> torch.Tensor:
+    """Map a short initial guess ((N,2) u,v; (N,4) u,v,ut,vt; or the full/spatial parameter
+    set of the other shape variant) onto ``shape``'s parameters."""
+    n = p0.shape[0]
+    out = torch.zeros(n, shape.n_params, dtype=p0.dtype, device=p0.device)
+    names = shape.param_names
+    if p0.shape[1] in (2, 4):
+        src = ("u", "v", "ut", "vt")[: p0.shape[1]]
+    elif p0.shape[1] == full.n_params:
+        src = full.param_names
+    elif p0.shape[1] == full.spatial().n_params:
+        src = full.spatial().param_names
+    else:
+        raise ValueError(
+            f"init must be (N, 2) (u, v), (N, 4) (u, v, ut, vt) or (N, {shape.n_params}) "
+            f"parameters {names}, got {tuple(p0.shape)}"
+        )
+    for j, nm in enumerate(src):
+        if nm in names:
+            out[:, names.index(nm)] = p0[:, j]
+    return out

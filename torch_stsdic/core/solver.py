@@ -66,6 +66,7 @@ from torch_stsdic.core.solution import (
 from torch_stsdic.core.solve_inputs import (
     active_rows,
     checked_centres,
+    expand_init,
     frame_counts,
     per_point,
     per_point_motion,
@@ -213,6 +214,7 @@ class SubsetSolver:
         kept: KeptToken | None = None,
         frame_count: torch.Tensor | None = None,
         active: torch.Tensor | None = None,
+        capacity: int | None = None,
     ) -> WindowSolution:
         """Solve many POIs, each against its own window of frames.
 
@@ -275,15 +277,21 @@ class SubsetSolver:
                 Hessian in the per-point kernels: next to no work on a GPU), NOT_COMPUTED
                 with NaN parameters, with no host read (a caller's data-chosen rows of a
                 fixed set: fixed shapes). Needs ``init``. None: every row.
+            capacity: with ``active``, at most this many rows solved: the first ``capacity``
+                active rows (``torch.nonzero_static``: a fixed shape, no host read), every
+                other as a row not active. The caller makes sure that no more are active
+                (e.g. by a count it reads later: more would be left NOT_COMPUTED). A masked
+                row costs its preparation; a row beyond the capacity costs nothing. None:
+                every row prepared.
         """
-        active = active_rows(active, points, init)
+        active = active_rows(active, points, init, capacity)
         frame_count = self._frame_counts(frame_count, points, dt, init, has_time)
         centres, moved = checked_centres(centres, points)
         if on_grid and centres is None:  # the caller's fact: no offset to test
             return self._solve_on_grid(ref, frames, points, dt, frame_index, ref_index, init,
                                        ref_pixels, frame_pixels, time, noise_ratio, motion,
                                        classical_step, init_step, pyramids, has_time,
-                                       all_inside, kept, frame_count, active)
+                                       all_inside, kept, frame_count, active, capacity)
         grid, _ = snap_points(points if centres is None else centres)
         offset = points - grid
         # off the pixel grid (known where the caller says so): solve on it, carry the result
@@ -297,7 +305,7 @@ class SubsetSolver:
                              motion=motion, classical_step=classical_step,
                              init_step=init_step, pyramids=pyramids, on_grid=True,
                              has_time=has_time, all_inside=all_inside, kept=kept,
-                             frame_count=frame_count, active=active)
+                             frame_count=frame_count, active=active, capacity=capacity)
             if classical_step:  # known at the subset centre only
                 off = (offset != 0).any(1, keepdim=True)
                 sol.info.update(classical_step_info(packed_classical_step(sol.info).masked_fill(
@@ -307,7 +315,7 @@ class SubsetSolver:
         return self._solve_on_grid(ref, frames, points, dt, frame_index, ref_index, init,
                                    ref_pixels, frame_pixels, time, noise_ratio, motion,
                                    classical_step, init_step, pyramids, has_time, all_inside,
-                                   kept, frame_count, active)
+                                   kept, frame_count, active, capacity)
 
     def _frame_counts(self, count, points, dt, init, has_time) -> torch.Tensor | None:
         """:meth:`solve`'s ``frame_count`` checked (:func:`frame_counts`; None: None)."""
@@ -323,7 +331,8 @@ class SubsetSolver:
                        pyramids=None, has_time: bool | None = None,
                        all_inside: bool = False, kept: KeptToken | None = None,
                        frame_count: torch.Tensor | None = None,
-                       active: torch.Tensor | None = None) -> WindowSolution:
+                       active: torch.Tensor | None = None,
+                       capacity: int | None = None) -> WindowSolution:
         """:meth:`solve` for POIs on the pixel grid with centred subsets."""
         n = points.shape[0]
         dt, frame_index, ref_index = per_point(points, dt, frame_index, ref_index, frame_count)
@@ -351,7 +360,7 @@ class SubsetSolver:
         return self._solve_batches(ref, frames, shape, points, dt, frame_index, ref_index,
                                    inside, p0, motion, init_step, ref_pixels, time,
                                    noise_ratio, classical_step, guess, all_inside, kept,
-                                   frame_count, active)
+                                   frame_count, active, capacity)
 
     def _initial_params(self, shape: ShapeFunction, init, inside: torch.Tensor,
                         points: torch.Tensor, dt: torch.Tensor, frame_index: torch.Tensor,
@@ -376,7 +385,7 @@ class SubsetSolver:
             raise ValueError(f"init must be (N, P) with a row for each of the {n} points, "
                              f"got {tuple(p0.shape)}")
         if p0.shape[1] != p_count:
-            p0 = _expand_init(p0, shape, self.shape)
+            p0 = expand_init(p0, shape, self.shape)
         return p0, 0.0
 
     def _solve_batches(self, ref: BSplineImage, frames: BSplineImage, shape: ShapeFunction,
@@ -386,15 +395,22 @@ class SubsetSolver:
                        classical_step: bool, guess: dict, all_inside: bool = False,
                        kept: KeptToken | None = None,
                        frame_count: torch.Tensor | None = None,
-                       active: torch.Tensor | None = None) -> WindowSolution:
-        """Gauss-Newton from ``p0`` for the POIs ``inside`` (and ``active``: :meth:`solve`),
-        in batches within the memory budget
+                       active: torch.Tensor | None = None,
+                       capacity: int | None = None) -> WindowSolution:
+        """Gauss-Newton from ``p0`` for the POIs ``inside`` (and ``active``, at most
+        ``capacity`` of them: :meth:`solve`), in batches within the memory budget
         (:func:`~torch_stsdic.core.gauss_newton.solve_batch`); the others OUTSIDE."""
         cfg = self.config
         device, dtype = points.device, points.dtype
         n, p_count, t_count = points.shape[0], shape.n_params, dt.shape[-1]
-        # every row where the caller knows all subsets inside (no host synchronisation)
-        todo = None if all_inside else torch.nonzero(inside).flatten()
+        # every row where the caller knows all subsets inside (no host synchronisation); at
+        # most ``capacity``: the first rows to solve, -1 the padding (into a spare row)
+        if capacity is None:
+            todo = None if all_inside else torch.nonzero(inside).flatten()
+        else:
+            todo = torch.nonzero_static(active if all_inside else active & inside,
+                                        size=capacity, fill_value=-1).flatten()
+        spare = int(capacity is not None)
         grey = ref_pixels if ref_pixels is not None else ref.coeffs
         geo = self._geometry(shape, dtype, device)
         ctx = BatchContext(
@@ -417,32 +433,40 @@ class SubsetSolver:
         else:
             if todo is None:
                 todo = torch.arange(n, device=device)
-            status = torch.full((n,), int(Status.NOT_COMPUTED), dtype=torch.int8,
+            rows = n + spare  # (the results of a padding row go to the spare row, dropped)
+            status = torch.full((rows,), int(Status.NOT_COMPUTED), dtype=torch.int8,
                                 device=device)
-            params = torch.full((n, p_count), float("nan"), dtype=dtype, device=device)
-            zncc = torch.full((n,), float("nan"), dtype=dtype, device=device)
-            iters = torch.zeros(n, dtype=torch.int32, device=device)
+            params = torch.full((rows, p_count), float("nan"), dtype=dtype, device=device)
+            zncc = torch.full((rows,), float("nan"), dtype=dtype, device=device)
+            iters = torch.zeros(rows, dtype=torch.int32, device=device)
             # no host sync (and the rows not to solve: none of their facts)
-            status.masked_fill_(~inside if active is None else ~inside & active,
-                                int(Status.OUTSIDE))
+            status[:n].masked_fill_(~inside if active is None else ~inside & active,
+                                    int(Status.OUTSIDE))
             first_stage = torch.full_like(params, float("nan"))
             std = torch.full_like(params, float("nan"))
             sigma = torch.full_like(zncc, float("nan"))
-            cstep = (torch.full((n, classical_step_width(geo.ks)), float("nan"), dtype=dtype,
+            cstep = (torch.full((rows, classical_step_width(geo.ks)), float("nan"), dtype=dtype,
                                 device=device) if classical_step else None)
             for s0 in range(0, todo.numel(), batch):
-                idx = todo[s0 : s0 + batch]
+                dest = todo[s0 : s0 + batch]
+                idx = dest.clamp(min=0) if spare else dest
                 pr, zr, sr, ir, p1, sd, sg, cs = solve_batch(
                     ctx, points[idx], p0[idx], dt[idx], frame_index[idx], ref_index[idx],
                     None if motion is None else motion[idx],
                     None if init_step is None else init_step[idx],
                     None if frame_count is None else frame_count[idx],
-                    None if active is None else active[idx],
+                    dest >= 0 if spare else None if active is None else active[idx],
                 )
-                params[idx], zncc[idx], status[idx], iters[idx] = pr, zr, sr, ir
-                first_stage[idx], std[idx], sigma[idx] = p1, sd, sg
+                if spare:
+                    dest = torch.where(dest >= 0, dest, n)
+                params[dest], zncc[dest], status[dest], iters[dest] = pr, zr, sr, ir
+                first_stage[dest], std[dest], sigma[dest] = p1, sd, sg
                 if cstep is not None:
-                    cstep[idx] = cs
+                    cstep[dest] = cs
+            if spare:
+                params, zncc, status, iters = params[:n], zncc[:n], status[:n], iters[:n]
+                first_stage, std, sigma = first_stage[:n], std[:n], sigma[:n]
+                cstep = None if cstep is None else cstep[:n]
 
         bad = status > int(Status.MAX_ITER)  # (out of place: the first stage's may be these)
         params = params.masked_fill(bad.unsqueeze(1), float("nan"))
@@ -468,7 +492,7 @@ class SubsetSolver:
         shape = self.shape_for(torch.as_tensor(dt), has_time)
         p0 = torch.as_tensor(init).to(offset)
         if p0.shape[1] != shape.n_params:
-            p0 = _expand_init(p0, shape, self.shape)
+            p0 = expand_init(p0, shape, self.shape)
         return carry_params(p0, shape.param_names, offset)
 
     # ---- seeded initial guess --------------------------------------------------------------
@@ -663,29 +687,6 @@ def _grey_range(img: torch.Tensor) -> float:
     lo = flat.kthvalue(k).values
     hi = flat.kthvalue(flat.numel() - k + 1).values
     return max(float(hi - lo), 1e-12)
-
-
-def _expand_init(p0: torch.Tensor, shape: ShapeFunction, full: ShapeFunction) -> torch.Tensor:
-    """Map a short initial guess ((N,2) u,v; (N,4) u,v,ut,vt; or the full/spatial parameter
-    set of the other shape variant) onto ``shape``'s parameters."""
-    n = p0.shape[0]
-    out = torch.zeros(n, shape.n_params, dtype=p0.dtype, device=p0.device)
-    names = shape.param_names
-    if p0.shape[1] in (2, 4):
-        src = ("u", "v", "ut", "vt")[: p0.shape[1]]
-    elif p0.shape[1] == full.n_params:
-        src = full.param_names
-    elif p0.shape[1] == full.spatial().n_params:
-        src = full.spatial().param_names
-    else:
-        raise ValueError(
-            f"init must be (N, 2) (u, v), (N, 4) (u, v, ut, vt) or (N, {shape.n_params}) "
-            f"parameters {names}, got {tuple(p0.shape)}"
-        )
-    for j, nm in enumerate(src):
-        if nm in names:
-            out[:, names.index(nm)] = p0[:, j]
-    return out
 
 
 def subset_inside(points: torch.Tensor, half: float, h: int, w: int) -> torch.Tensor:

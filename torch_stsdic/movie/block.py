@@ -50,7 +50,6 @@ from torch_stsdic.movie.frames import (
 )
 from torch_stsdic.movie.reference import Reference, noise_ratio, to_relative, to_total
 from torch_stsdic.movie.rescue import BlockRescue
-from torch_stsdic.movie.row_set import spread
 from torch_stsdic.movie.sample_guess import MeasuredSample
 from torch_stsdic.movie.shared_velocity import report_velocity
 from torch_stsdic.movie.template_noise import TemplateShares
@@ -245,16 +244,11 @@ class Block(BlockChecks, BlockRescue, BlockPlacement, BlockMotion, BlockWindows,
         judge these rows (a window solve then gives it its first classical step); False
         for the check's own solves. ``active`` (R,) bool: only those rows solved, the others
         masked (no read: ``SubsetSolver.solve``'s; None: all); with ``site`` (the caller's
-        name) taken to a fixed number of rows where the block guesses
+        name) at most a learned number of them solved where the block guesses
         (:meth:`~torch_stsdic.movie.block_guess.BlockGuesses.compact`: the same solution)."""
+        capacity = None
         if active is not None and site is not None and init is not None:
-            pos = self.compact(site, active)
-            if pos is not None:
-                at = pos.clamp(min=0)
-                sub = self.solve(idx[at], init[at], m=m[at] if isinstance(m, torch.Tensor)
-                                 else m, solver=solver, for_check=for_check, active=pos >= 0,
-                                 init_step=None if init_step is None else init_step[at])
-                return spread(sub, pos, idx.numel(), self.pts[idx])
+            capacity = self.compact(site, active)
         ref, run = self.ref, self.run
         count = None
         if isinstance(m, torch.Tensor):  # windows of mixed length (1 .. run.m), one call
@@ -286,7 +280,7 @@ class Block(BlockChecks, BlockRescue, BlockPlacement, BlockMotion, BlockWindows,
             # known per run: the POIs' grid (the centres are whole pixels from them) and
             # the shape (a window of 2m+1 frames at distinct times has temporal terms)
             on_grid=on_grid, has_time=m_eff > 0, all_inside=inside and self.centres_inside,
-            kept=self.kept, frame_count=count, active=active)
+            kept=self.kept, frame_count=count, active=active, capacity=capacity)
 
     def solve_masked(self, idx: torch.Tensor, init: torch.Tensor, active: torch.Tensor,
                      m: int | None = None, site: str | None = None) -> WindowSolution:

@@ -104,14 +104,15 @@ class BlockGuesses:
         where it holds; read with the block's next read (:meth:`read`) or at its end."""
         self.deferred.append(_Deferred(question, zeros.reshape(-1).to(torch.int64)))
 
-    def compact(self, site: str, active: torch.Tensor) -> torch.Tensor | None:
-        """A masked solve's rows ``active`` (R,) bool at ``site`` taken to a fixed number
-        (:data:`~torch_stsdic.movie.choices.COMPACT_ROWS`, where this attempt guesses):
-        (C,) int64 the positions of the first C true rows (-1 after the last: fixed shape, no
-        read), C from the most rows the last block asked for there (:func:`row_capacity`);
-        the guess "at most C" deferred (:meth:`read`: more is a wrong guess). None: solve
-        every row masked (no guess; the count read with the block's next read, for the next
-        block: in a block that reads its answers, with the next answer it reads, if any)."""
+    def compact(self, site: str, active: torch.Tensor) -> int | None:
+        """The capacity of a masked solve's rows ``active`` (R,) bool at ``site``
+        (:data:`~torch_stsdic.movie.choices.COMPACT_ROWS`, where this attempt guesses): C, the
+        most rows the solve takes (``SubsetSolver.solve(capacity=)``: the first C active
+        ones, a fixed shape, no read), from the most rows the last block asked for there
+        (:func:`row_capacity`); the guess "at most C" deferred (:meth:`read`: more is a wrong
+        guess). None: every row masked (no guess; the count read with the block's next read,
+        for the next block: in a block that reads its answers, with the next answer it
+        reads, if any)."""
         if not compact_rows(self.run.device) or not guess_reads(self.run.device):
             return None
         known = self.run.guesses.sizes.get(site) if self.guessing else None
@@ -119,9 +120,7 @@ class BlockGuesses:
         # the count read with the next read: checked against ``cap``, or only learnt
         self.deferred.append(_Deferred(SIZE + site, active.sum().reshape(1),
                                        -1 if cap is None else cap))
-        if cap is None:
-            return None
-        return torch.nonzero_static(active, size=cap, fill_value=-1).flatten()
+        return cap
 
     def heard(self, question: str, quiet: bool) -> None:
         """The answer to ``question`` as read (``quiet``: nothing to do), for the next block

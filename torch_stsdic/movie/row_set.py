@@ -5,7 +5,7 @@ kept masked; :data:`~torch_stsdic.movie.choices.MASKED_CHECK`). Both give the sa
 at the rows that count; the model check (:meth:`~torch_stsdic.movie.checks.BlockChecks.
 check_model`) is written once over a :class:`RowSet`. Also the row selection of a
 :class:`~torch_stsdic.core.solver.WindowSolution` (:func:`solution_rows`,
-:func:`with_rows`, :func:`blend`, :func:`spread`)."""
+:func:`with_rows`, :func:`blend`)."""
 
 from __future__ import annotations
 
@@ -15,9 +15,8 @@ from dataclasses import dataclass
 import torch
 
 from torch_stsdic.core.solver import WindowSolution
-from torch_stsdic.core.status import Status
 
-__all__ = ["RowSet", "take", "solution_rows", "with_rows", "blend", "spread"]
+__all__ = ["RowSet", "take", "solution_rows", "with_rows", "blend"]
 
 
 def take(x: torch.Tensor, pos: torch.Tensor | None) -> torch.Tensor:
@@ -137,28 +136,3 @@ class RowSet:
             return blend(sol, active, solve(None, active))
         pos = torch.nonzero(mask).flatten()
         return sol if not pos.numel() else with_rows(sol, pos, solve(pos, None))
-
-
-def spread(sol: WindowSolution, pos: torch.Tensor, n: int, points: torch.Tensor
-           ) -> WindowSolution:
-    """A masked solve of ``n`` rows (``points`` (n, 2)) from ``sol``, the solve of its rows
-    ``pos`` (C,) int64 (-1: a padding row, masked in ``sol``) alone: those rows ``sol``'s,
-    every other masked as ``SubsetSolver.solve(active=)`` leaves it (NOT_COMPUTED, 0
-    iterations, NaN values; the ``info`` tensors NaN too). No host read."""
-    dest = torch.where(pos >= 0, pos, n)  # the padding rows into a spare row, dropped
-
-    def put(a: torch.Tensor | None, fill: float | int) -> torch.Tensor | None:
-        if a is None:
-            return None
-        out = a.new_full((n + 1, *a.shape[1:]), fill)
-        out[dest] = a
-        return out[:n]
-    nan = float("nan")
-    info = {k: put(v, nan if v.is_floating_point() else 0)
-            if isinstance(v, torch.Tensor) and v.dim() and v.shape[0] == pos.numel() else v
-            for k, v in sol.info.items()}
-    return WindowSolution(
-        points=points.to(sol.points.dtype), params=put(sol.params, nan),
-        param_names=sol.param_names, zncc=put(sol.zncc, nan),
-        status=put(sol.status, int(Status.NOT_COMPUTED)), iterations=put(sol.iterations, 0),
-        time=sol.time, info=info, std=put(sol.std, nan), sigma=put(sol.sigma, nan))
