@@ -245,44 +245,38 @@ class SubsetSolver:
                 NaN where not known (another path than the native CPU kernel, no frame at
                 dt = 0, an off-grid or off-centre subset, not converged); with it
                 ``info["classical_step_size"]`` (N,) that step's size ``|dp * scale|`` px,
-                and what a classical solve would report there (ZNSSD and a 0/1 window,
-                else NaN): ``"classical_step_zncc"`` (N,), ``"classical_step_sigma"`` (N,)
-                grey levels and ``"classical_step_std"`` (N, 2 Ks)
+                and what a classical solve would report there: ``"classical_step_zncc"``,
+                ``"classical_step_sigma"`` (grey levels), ``"classical_step_std"``
                 (:func:`~torch_stsdic.core.gauss_newton.classical_step_columns`).
             init_step: (N,) the size of the Gauss-Newton step that gave ``init`` (e.g.
                 ``info["classical_step_size"]`` with ``init`` the classical step; NaN or 0:
-                none): the first step's convergence test then predicts the next increment
-                from the rate between the two, as it does between later steps, so a point
-                whose first step here shrank enough stops after it.
-            pyramids: the Gaussian pyramids of ``ref_pixels`` and ``frame_pixels``
-                (:class:`~torch_stsdic.core.pyramid.PyramidStack`) for the coarse-to-fine
-                search of weak peaks, kept by a caller that solves the same images again
-                (default: built when a search needs them).
+                none): the first step's convergence test predicts the next increment from the
+                rate between the two (a point whose first step shrank enough stops).
+            pyramids: the Gaussian pyramids (:class:`~torch_stsdic.core.pyramid.PyramidStack`)
+                of ``ref_pixels`` and ``frame_pixels`` for the search of weak peaks, kept by
+                a caller that solves the same images again (default: built when needed).
             on_grid: the caller knows that ``points`` (and ``centres``) are whole pixels
                 (a run's grid of POIs): they are not tested on the host; with ``centres``
                 every POI goes the off-centre way (a zero offset carries a solution
                 unchanged). False: tested.
-            has_time: the shape has temporal terms (:meth:`shape_for`; known to a caller
-                that knows its window's length); None: decided from ``dt``'s values.
+            has_time: the shape has temporal terms (:meth:`shape_for`), as the caller
+                knows; None: decided from ``dt``'s values.
             all_inside: the caller knows that every subset (at ``centres`` where given)
                 lies inside ``ref`` (:func:`subset_inside`): the rows are not chosen on the
                 host. False: the subsets outside are found and left OUTSIDE.
             kept: :meth:`keep_reference_subsets`'s token for these points (and
                 ``centres``): their reference subsets are read from the cache with no host
                 read of its misses. None: the misses are counted (one host read a batch).
-            frame_count: (N,) int, windows of mixed length in one call: row i's first
-                ``frame_count[i]`` columns of ``dt``, ``frame_index``, ``motion`` (the rest not
-                read). Needs ``init``, temporal terms, :meth:`mixed_windows`. None: all T.
+            frame_count: (N,) int, windows of mixed length: row i's first ``frame_count[i]``
+                columns of ``dt``, ``frame_index``, ``motion``. Needs ``init``, temporal
+                terms, :meth:`mixed_windows`. None: all T.
             active: (N,) bool, the rows to solve; the others are not iterated (a zero inverse
                 Hessian in the per-point kernels: next to no work on a GPU), NOT_COMPUTED
                 with NaN parameters, with no host read (a caller's data-chosen rows of a
                 fixed set: fixed shapes). Needs ``init``. None: every row.
-            capacity: with ``active``, at most this many rows solved: the first ``capacity``
-                active rows (``torch.nonzero_static``: a fixed shape, no host read), every
-                other as a row not active. The caller makes sure that no more are active
-                (e.g. by a count it reads later: more would be left NOT_COMPUTED). A masked
-                row costs its preparation; a row beyond the capacity costs nothing. None:
-                every row prepared.
+            capacity: with ``active``, only the first ``capacity`` active rows solved
+                (``nonzero_static``: no read; the others as rows not active: the caller
+                checks the count), the masked rows not prepared. None: all prepared.
         """
         active = active_rows(active, points, init, capacity)
         frame_count = self._frame_counts(frame_count, points, dt, init, has_time)
