@@ -231,8 +231,7 @@ class SubsetSolver:
             noise_ratio: the reference's noise variance over one frame's (1 for a single
                 frame, 1/K for a mean of K frames), for the predicted uncertainty.
             motion: (T, 2) or (N, T, 2) a known displacement (u, v) px of every frame added
-                to the warp (the specimen's shared motion, :mod:`torch_stsdic.core.shared_motion`);
-                the parameters then describe the motion *besides* it. None: none.
+                to the warp (shared motion): the parameters are the motion besides it.
             centres: (N, 2) px where each POI's subset is centred (default: the POI): an
                 off-centre subset, e.g. one kept inside the image where its point nears the
                 border. ``init`` and ``motion`` are the POI's and the centre's; the solution is
