@@ -135,6 +135,37 @@ def test_a_masked_solves_rows_are_taken_to_a_size_learned_from_the_blocks_before
     assert g3.run.guesses.sizes["check"] == 20  # 3 asked: half of the 40 held before
 
 
+def test_a_reading_block_takes_its_masked_solves_rows_at_their_count_read_on_the_spot(
+        monkeypatch):
+    """``COMPACT_READING``: a block that reads its answers reads a compacted site's count at
+    once (no deferred guess: nothing to be wrong about), takes the power of two at or above
+    it (at least 64; none over half the rows) and learns it for the next block, as a count
+    read later would be learnt; without the choice it solves every row masked."""
+    from torch_stsdic.movie import choices
+
+    monkeypatch.setattr(choices, "COMPACT_ROWS", True)
+    monkeypatch.setattr(choices, "GUESS_READS", True)
+    assert block_guess.counted_capacity(0, 1000) == 64
+    assert block_guess.counted_capacity(65, 1000) == 128
+    assert block_guess.counted_capacity(300, 1000) is None  # 512: over half the rows
+    active = torch.zeros(10_000, dtype=torch.bool)
+    active[::50] = True  # 200 rows
+    reading = _guesses(guessing=False)
+    reading.run.guesses.sizes["check"] = 900  # held before: half of it passed on
+    assert reading.compact("check", active) is None and reading.deferred  # the choice off
+    reading.deferred = []
+    monkeypatch.setattr(choices, "COMPACT_READING", True)
+    assert reading.compact("check", active) == 256
+    assert not reading.deferred and reading.run.guesses.sizes["check"] == 450
+    few = torch.zeros(10_000, dtype=torch.bool)
+    few[:500] = True
+    assert reading.compact("check", few) == 512  # this block's most: 500
+    assert reading.run.guesses.sizes["check"] == 500
+    guessing = _guesses()  # a guessing block is not read: its guess as before
+    guessing.run.guesses = reading.run.guesses
+    assert guessing.compact("check", active) == 1024 and guessing.deferred
+
+
 def test_a_wrong_guess_solves_the_block_again_with_the_counters_as_before(monkeypatch):
     from torch_stsdic.movie import choices
 

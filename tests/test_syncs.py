@@ -29,8 +29,11 @@ MAX_PER_BLOCK = 30
 #: at once, masked solves of a block's groups): 21.5 (17-72) at 02f8cdf, 17 (12-65) at
 #: 5ed4838, 3 (3-48; none but host copies after the first block) with the model check's
 #: steps masked, the rounds run to the end and no fill count read (2026-11-30), 1.5 (1-49:
-#: 49, 2, 1, 1) with the answers "nothing to do" guessed (``movie.block_guess``, 2026-11-30)
-MAX_PER_BLOCK_GPU_CHOICES = 2
+#: 49, 2, 1, 1) with the answers "nothing to do" guessed (``movie.block_guess``, 2026-11-30),
+#: 2.5 (49, 4, 1, 1) with a reading block's masked solves taken at their count, read
+#: (``choices.COMPACT_READING``: the block after the reference frame's reads twice more,
+#: its shorter windows' solves of every candidate row not masked over 4,096 rows or more)
+MAX_PER_BLOCK_GPU_CHOICES = 2.5
 #: launch-like torch operations a block (``count_syncs.LAUNCHES``: on a GPU each launches a
 #: kernel), median over the blocks on the movie below: 5043 at d3e78a5, 4520 at 5b953b0 (the
 #: carry, placement, window, solve-buffer and geometry changes of 2026-11-29), 4174 at 9a7ce19

@@ -23,9 +23,10 @@ from typing import Any
 
 import torch
 
-from torch_stsdic.movie.choices import compact_rows, guess_reads
+from torch_stsdic.movie.choices import compact_reading, compact_rows, guess_reads
 
-__all__ = ["GuessWrong", "ReadGuesses", "BlockGuesses", "solve_guessing", "row_capacity"]
+__all__ = ["GuessWrong", "ReadGuesses", "BlockGuesses", "solve_guessing", "row_capacity",
+           "counted_capacity"]
 
 #: the questions a block may guess (the keys of :attr:`ReadGuesses.quiet`)
 PLACEMENT, RESCUE = "placement", "rescue"
@@ -34,6 +35,13 @@ PLACEMENT, RESCUE = "placement", "rescue"
 SIZE = "rows at "
 #: the fewest rows a compacted solve takes (a power of two: few shapes)
 MIN_CAPACITY = 64
+#: the fewest rows of a masked solve whose count a reading block reads to compact it
+#: (:data:`~torch_stsdic.movie.choices.COMPACT_READING`): below, a masked row's preparation
+#: times the rows costs about a read. Estimated, not timed: on one H200 the masked choices
+#: cost the 500-frame movie's blocks about 60 ms a solve of 320,000 rows (0.2 us a row;
+#: the solve's seconds against frame 0, 7.4 -> 12.9 s, at b7f0068 -> 124f915), 4,096 rows
+#: about 0.8 ms, several reads' worth
+READ_ROWS = 4096
 
 
 class GuessWrong(Exception):
@@ -82,6 +90,17 @@ def row_capacity(asked: int, rows: int) -> int | None:
     return None if 2 * cap > rows else cap
 
 
+def counted_capacity(asked: int, rows: int) -> int | None:
+    """The rows a compacted solve takes where ``asked`` of its ``rows`` (R) are known to be
+    asked for (a reading block's count, read): the power of two at or above ``asked``, at
+    least :data:`MIN_CAPACITY` (a few shapes over a run); None where that is over half of
+    ``rows``, as :func:`row_capacity`."""
+    cap = MIN_CAPACITY
+    while cap < asked:
+        cap *= 2
+    return None if 2 * cap > rows else cap
+
+
 class BlockGuesses:
     """The guessed reads of a :class:`~torch_stsdic.movie.block.Block` (its ``run`` with a
     :class:`ReadGuesses` as ``run.guesses``; ``guessing`` set per attempt)."""
@@ -110,11 +129,19 @@ class BlockGuesses:
         most rows the solve takes (``SubsetSolver.solve(capacity=)``: the first C active
         ones, a fixed shape, no read), from the most rows the last block asked for there
         (:func:`row_capacity`); the guess "at most C" deferred (:meth:`read`: more is a wrong
-        guess). None: every row masked (no guess; the count read with the block's next read,
-        for the next block: in a block that reads its answers, with the next answer it
-        reads, if any)."""
-        if not compact_rows(self.run.device) or not guess_reads(self.run.device):
+        guess). A block that reads its answers reads the count here (one read,
+        :data:`~torch_stsdic.movie.choices.COMPACT_READING`, where the rows are at least
+        :data:`READ_ROWS`) and takes that many
+        (:func:`counted_capacity`). None: every row masked (no guess; the count read with
+        the block's next read, for the next block: in a block that reads its answers, with
+        the next answer it reads, if any)."""
+        dev = self.run.device
+        if not compact_rows(dev) or not guess_reads(dev):
             return None
+        if not self.guessing and compact_reading(dev) and active.numel() >= READ_ROWS:
+            asked = int(active.sum())  # (the reading way: one read, the exact count)
+            self._learn(site, asked)
+            return counted_capacity(asked, active.numel())
         known = self.run.guesses.sizes.get(site) if self.guessing else None
         cap = None if known is None else row_capacity(known, active.numel())
         # the count read with the next read: checked against ``cap``, or only learnt
@@ -165,16 +192,11 @@ class BlockGuesses:
 
     def _check(self, values: list[int]) -> None:
         wrong, whole, at = [], False, 0
-        sizes = self.run.guesses.sizes
         for d in self.deferred:
             part = values[at:at + d.numbers.numel()]
             at += d.numbers.numel()
-            if d.question.startswith(SIZE):  # a count: the site's most this block, or
-                site = d.question[len(SIZE):]  # half the most before it
-                before = sizes.get(site, 0) if site in self.heard_sites else \
-                    sizes.get(site, 0) // 2
-                sizes[site] = max(part[0], before)
-                self.heard_sites.add(site)
+            if d.question.startswith(SIZE):  # a count, learnt
+                self._learn(d.question[len(SIZE):], part[0])
                 holds = d.limit < 0 or part[0] <= d.limit
             else:
                 holds = not any(part)
@@ -185,6 +207,15 @@ class BlockGuesses:
         self.deferred = []
         if wrong:
             raise GuessWrong(wrong, whole)
+
+    def _learn(self, site: str, asked: int) -> None:
+        """The rows ``asked`` for at ``site`` read: the site's size for the next block
+        (:attr:`ReadGuesses.sizes`) the most this block asked for there, or half the most
+        before it."""
+        sizes = self.run.guesses.sizes
+        before = sizes.get(site, 0) if site in self.heard_sites else sizes.get(site, 0) // 2
+        sizes[site] = max(asked, before)
+        self.heard_sites.add(site)
 
     def from_here(self, counts: dict[str, torch.Tensor], rest: Callable[[], None]) -> None:
         """``rest()``, the rest of the block (its rescues and checks), guessing; where a

@@ -17,8 +17,9 @@ import warnings
 import torch
 
 __all__ = ["EVERY_CANDIDATE", "UNTIL_DONE", "MASKED_GROUPS", "MASKED_CHECK", "GUESS_READS",
-           "COMPACT_ROWS", "ENV", "every_candidate", "until_done", "masked_groups",
-           "masked_check", "guess_reads", "compact_rows", "gpu_choices", "from_environment"]
+           "COMPACT_ROWS", "COMPACT_READING", "ENV", "every_candidate", "until_done",
+           "masked_groups", "masked_check", "guess_reads", "compact_rows", "compact_reading",
+           "gpu_choices", "from_environment"]
 
 #: The model check's shorter windows (where the solver mixes window lengths): every candidate
 #: window of every failing row in one solve, each row's first that passes kept (True), or in
@@ -86,6 +87,16 @@ GUESS_READS: bool | None = None
 COMPACT_ROWS: bool | None = None
 
 
+#: A block that reads its answers (a run's first blocks, the reference frame's and the one
+#: after it; a block solved again after a wrong guess) takes its masked solves' rows
+#: (:data:`COMPACT_ROWS`'s call sites) to their count, read on the spot: one host read a
+#: call site, the rows asked for solved alone (True); or every row solved masked, the count
+#: learnt with the block's next read (False); None: read on a GPU (a read against the
+#: preparation of every masked row: 320,000 a solve in the benchmark movie's 32-target
+#: blocks). Needs :data:`COMPACT_ROWS`.
+COMPACT_READING: bool | None = None
+
+
 #: the environment variable that sets choices at import (``NAME=0|1`` by commas)
 ENV = "TORCH_STSDIC_CHOICES"
 
@@ -148,10 +159,17 @@ def compact_rows(device: torch.device) -> bool:
     return _choose(COMPACT_ROWS, device, on_gpu=True)
 
 
+def compact_reading(device: torch.device) -> bool:
+    """Whether a block that reads its answers takes its masked solves' rows to their count,
+    read on the spot, on ``device`` (:data:`COMPACT_READING`)."""
+    return _choose(COMPACT_READING, device, on_gpu=True)
+
+
 def gpu_choices() -> dict[str, bool]:
     """Every choice as a GPU run makes it (by name), for a caller to set on the CPU."""
     return {"EVERY_CANDIDATE": True, "UNTIL_DONE": False, "MASKED_GROUPS": True,
-            "MASKED_CHECK": True, "GUESS_READS": True, "COMPACT_ROWS": True}
+            "MASKED_CHECK": True, "GUESS_READS": True, "COMPACT_ROWS": True,
+            "COMPACT_READING": True}
 
 
 from_environment()
