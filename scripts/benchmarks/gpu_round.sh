@@ -7,9 +7,10 @@
 # `choices` times the hourglass with the GPU's choices against the CPU's (device_choices.py:
 # masked solves against reads, and whether the files are the same to the bit); `budget` whether
 # a run given --memory-mb keeps to it on the device (gpu_budget.py: peak allocations); `compact`
-# the 500-frame movie against frame 0 alone without and with a block's masked solves taken to a
-# learned size (TORCH_STSDIC_CHOICES=COMPACT_ROWS=0, then the GPU's own choice: the A/B of
-# docs/benchmarks.md "Masked solves taken to a learned size", about 2 x 50 s).
+# the 500-frame movie against frame 0 alone without a block's masked solves taken to a learned
+# size (TORCH_STSDIC_CHOICES=COMPACT_ROWS=0), without a reading block's taken at their count
+# (COMPACT_READING=0), then the GPU's own choices: the A/B of docs/benchmarks.md "Masked
+# solves taken to a learned size", about 3 x 50 s).
 #
 #   HG=.gpu/hourglass bash scripts/benchmarks/gpu_round.sh [steps]   # logs and records in $OUT
 #                                      # steps: tests,solver,movie,parts,timeline,syncs,choices,budget,compact
@@ -84,10 +85,10 @@ if step budget && [[ -d ${HG:-} ]]; then
   log "## budget: $((SECONDS - t0)) s"
 fi
 if step compact; then
-  for c in 0 1; do
-    TORCH_STSDIC_CHOICES="COMPACT_ROWS=$c" timeout ${MOVIE_S:-120} python3 scripts/benchmarks/benchmark.py \
+  for c in COMPACT_ROWS=0 COMPACT_READING=0 COMPACT_ROWS=1; do
+    TORCH_STSDIC_CHOICES="$c" timeout ${MOVIE_S:-120} python3 scripts/benchmarks/benchmark.py \
       --movie --device cuda --movie-frames 500 --no-update-doc --movie-single-reference \
-      --out "$OUT/movie-cuda-single-compact$c.json" 2>&1 \
+      --out "$OUT/movie-cuda-single-${c/=/}.json" 2>&1 \
       | tee -a "$OUT/log.txt" | grep -E "^movie|Error|error" | cut -c1-300
     log "## compact $c: $((SECONDS - t0)) s"
   done

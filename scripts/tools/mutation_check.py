@@ -243,6 +243,18 @@ MUTATIONS: tuple[Mutation, ...] = (
         ("test_masked_solve.py",),
         "a solve to a capacity puts its padding rows' results on its first row (a solved one)"),
     Mutation(
+        "reading-block-takes-fewer-than-its-count", "block guesses",
+        "torch_stsdic/movie/block_guess.py",
+        "    while cap < asked:\n", "    while cap < asked // 2:\n",
+        ("test_block_guess.py",),
+        "a reading block's masked solve taken to fewer rows than the count it read"),
+    Mutation(
+        "reading-block-count-not-learnt", "block guesses",
+        "torch_stsdic/movie/block_guess.py",
+        "            self._learn(site, asked)\n", "            pass\n",
+        ("test_block_guess.py",),
+        "a reading block's count, read on the spot, not passed on to the next block's guess"),
+    Mutation(
         "early-wrong-guess-redone-from-the-rescue", "block guesses",
         "torch_stsdic/movie/block_guess.py",
         "            if PLACEMENT in wrong.questions or wrong.whole:\n",
