@@ -251,6 +251,9 @@ def main(argv: list[str] | None = None) -> int:
            "per_block_outside_cpu_kernels_median": statistics.median(rest),
            "per_block_outside_cpu_kernels_range": [min(rest), max(rest)],
            "per_block_outside_cpu_kernels_without_copies_median": statistics.median(old),
+           # each block's, in order: the run's first two (its reference frame's and the
+           # one after it) do once-a-run work (the first guesses, learning the sizes)
+           "per_block_outside_cpu_kernels": rest,
            "run_total": dict(counter.counts), "commit": _commit()}
     passes = in_passes(counter.counts, per_block)
     rec["passes"] = passes
@@ -264,6 +267,9 @@ def main(argv: list[str] | None = None) -> int:
     print(f"  outside the CPU kernels' checks (what a GPU run's path may keep): "
           f"{statistics.median(rest):g} a block (median; range {min(rest)}-{max(rest)}); "
           f"without the host copies {statistics.median(old):.0f}")
+    print(f"    each block's, in order: {', '.join(map(str, rest))}"
+          + (f" (after the first two: median {statistics.median(rest[2:]):g})"
+             if len(rest) > 2 else ""))
     print(f"  the run's passes (outside its blocks): {rec['passes_outside_cpu_kernels']} "
           f"outside the CPU kernels' checks ({rec['passes_outside_cpu_kernels_without_copies']}"
           f" without the host copies), {passes.get(LAUNCHES, 0)} launch-like operations")
