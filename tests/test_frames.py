@@ -4,6 +4,7 @@ errors raised in the caller, the thread stopped), and track() equal with and wit
 from __future__ import annotations
 
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -103,6 +104,46 @@ def test_out_of_order_frames_are_read_on_the_spot():
     assert torch.equal(cache.read(8), torch.from_numpy(frames[8]))
     cache.close()
     cache.close()  # idempotent
+
+
+def test_frames_the_store_drops_after_the_schedule_are_still_read_ahead():
+    """A frame the store holds when the read-ahead is scheduled (an earlier pass's) but drops
+    before a block needs it (a bounded store) is read by the reader, not on the spot by the
+    blocks; one the store still holds when the reader reaches it is handed over as it is."""
+    from torch_stsdic.movie.frames import FrameStore
+
+    frames = _frames(n=12)
+    solver = SubsetSolver(sts.DICConfig(m=1))
+    blocks, m, n = [[0, 1], [2, 3, 4], [5, 6, 7], [8, 9], [10, 11]], 1, len(frames)
+    store = FrameStore(1e3, max_frames=10)
+    first = FrameCache(_Counting(frames), solver, torch.float32, "cpu", store=store)
+    want = _blocks(first, blocks, m, n)  # the earlier pass: the store holds the last ten
+    series = _Counting(frames)
+    cache = FrameCache(series, solver, torch.float32, "cpu", ahead=3, store=store)
+    cache.schedule(frames_in_order(blocks, m, n))
+    got = _blocks(cache, blocks, m, n)
+    cache.close()
+    for (i1, r1, c1), (i2, r2, c2) in zip(want, got):
+        assert i1 == i2 and torch.equal(r1, r2) and torch.equal(c1, c2)
+    assert series.threads == {"stsdic-frames"}  # none read by the blocks themselves
+    assert cache.times()["read_s"] == 0 and cache.times()["prefilter_s"] == 0
+    # a frame the store held when the reader reached it: handed over, not read again, though
+    # the store dropped it before the block asked for it
+    store = FrameStore(1e3)
+    _blocks(FrameCache(_Counting(frames), solver, torch.float32, "cpu", store=store),
+            [[0, 1]], 1, n)  # frames 0..2 in the store
+    series = _Counting(frames)
+    cache = FrameCache(series, solver, torch.float32, "cpu", ahead=4, store=store)
+    cache.schedule([0, 1, 2, 3])
+    deadline = time.monotonic() + 20.0
+    while cache._reader.queued < 4 and time.monotonic() < deadline:
+        time.sleep(0.005)
+    store._frames.clear()  # dropped (other frames put there)
+    view = cache.in_ring([0, 1, 2, 3])
+    cache.close()
+    assert series.count == {3: 1}  # only the frame the store did not hold was read
+    for j in range(4):
+        assert torch.equal(view.raw[view.planes[j]], torch.from_numpy(frames[j]))
 
 
 def test_reader_errors_reach_the_caller():

@@ -626,3 +626,40 @@ def test_carried_neighbours_and_guess_at_some_points_equal_the_whole_answer_rows
     whole = carried_neighbours(params[..., :2], ok, nb, pts, grads)
     some = carried_neighbours(params[..., :2], ok, nb, pts, grads, at=at)
     torch.testing.assert_close(some, whole[:, at], equal_nan=True, rtol=0, atol=0)
+
+
+def test_the_gradients_plane_at_every_row_equals_the_plane_where_needed(monkeypatch):
+    """``every_row`` (a GPU's rounds: no host read) fits the neighbours' gradients' plane at
+    every row, not only where a point's own gradient is unlike its neighbours': the same
+    numbers (over :data:`PLANE_EVERY_ROW` rows the other way reads which rows need it), in
+    the carried values, the neighbour guess and the median test."""
+    from torch_stsdic.analysis import quality
+    from torch_stsdic.analysis.quality import carried_neighbours, neighbours
+    from torch_stsdic.movie.carry import neighbour_guess
+
+    monkeypatch.setattr(quality, "PLANE_EVERY_ROW", 64)  # (fewer rows than the grid's)
+    g = torch.Generator().manual_seed(5)
+    ys, xs = torch.meshgrid(torch.arange(12.0) * 8, torch.arange(15.0) * 8, indexing="ij")
+    pts = torch.stack([xs.flatten(), ys.flatten()], 1)
+    n = pts.shape[0]
+    nb = neighbours(pts)
+    names = ["u", "v", "ux", "uy", "vx", "vy"]
+    params = torch.randn(2, n, len(names), generator=g, dtype=torch.float64) * 0.1
+    params[..., 0] += 1e-3 * pts[:, 0] ** 2
+    params[..., 2] = 2e-3 * pts[:, 0]
+    params[0, 7, 2:] = 5.0  # a point whose own gradient is unlike its neighbours'
+    params[0, 40, 0] += 3.0  # a wild value
+    ok = torch.rand(2, n, generator=g) > 0.2
+    ok[0, 40] = True
+    grads = params[..., 2:6].reshape(2, n, 2, 2)
+    where = carried_neighbours(params[..., :2], ok, nb, pts, grads)
+    every = carried_neighbours(params[..., :2], ok, nb, pts, grads, every_row=True)
+    torch.testing.assert_close(every, where, equal_nan=True, rtol=0, atol=0)
+    torch.testing.assert_close(neighbour_guess(params, ok, names, nb, pts, every_row=True),
+                               neighbour_guess(params, ok, names, nb, pts),
+                               equal_nan=True, rtol=0, atol=0)
+    monkeypatch.setattr(quality.dispatch, "neighbour_test", lambda *a, **k: "torch")
+    kw = dict(points=pts, gradients=grads)
+    done = median_test(params[..., :2], ok, nb, 0.05, **kw)
+    assert torch.equal(median_test(params[..., :2], ok, nb, 0.05, until_done=False, **kw), done)
+    assert bool(done[0, 40])  # (the wild value flagged: the test is not blind)

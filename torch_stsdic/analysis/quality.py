@@ -338,12 +338,14 @@ def nanmedian_rows(x: Tensor) -> Tensor:
 
 #: :func:`carried_neighbours` fits the plane of the neighbours' gradients at every row where
 #: it has at most this many (B x N: a lost point's guess), not only where it is needed (one
-#: host read fewer; a row's plane does not depend on the others)
+#: host read fewer; a row's plane does not depend on the others); beyond, where its caller
+#: asks for no read (``every_row``: a GPU's rounds)
 PLANE_EVERY_ROW = 4096
 
 
 def carried_neighbours(values: Tensor, valid: Tensor, nb: Tensor, points: Tensor | None = None,
-                       gradients: Tensor | None = None, at: Tensor | None = None) -> Tensor:
+                       gradients: Tensor | None = None, at: Tensor | None = None,
+                       every_row: bool = False) -> Tensor:
     """(B, N, k, C): the ``valid`` (B, N) neighbours ``nb`` (N, k) of every point, their
     (B, N, C) ``values`` carried to the point by ``gradients`` (B, N, C, 2) (d/dx, d/dy of
     each component; positions ``points`` (N, 2) px), NaN where there is no valid neighbour.
@@ -356,7 +358,9 @@ def carried_neighbours(values: Tensor, valid: Tensor, nb: Tensor, points: Tensor
     curvature times the squared distance, all to the same side (hourglass neck: 0.2-0.3 px,
     far above the noise). The gradient at the point is its own where that is like its
     neighbours' (the point being judged, or a lost one, may be wrong), else the plane fitted
-    to its valid neighbours' gradients (:func:`_gradient_at`)."""
+    to its valid neighbours' gradients (:func:`_gradient_at`): fitted at every row where there
+    are at most :data:`PLANE_EVERY_ROW` or with ``every_row`` (no host read; the same
+    numbers), else only at the rows that need it (one read)."""
     if at is not None:
         nb = nb[at]
     n = nb.shape[0]
@@ -382,7 +386,7 @@ def carried_neighbours(values: Tensor, valid: Tensor, nb: Tensor, points: Tensor
         own = valid.view(*valid.shape, 1, 1) & ((g - med).abs() <= 3.0 * mad + GRADIENT_TOL)
         g_at = g.clone(memory_format=torch.contiguous_format)  # the gradient at each point
         fit = ~own.flatten(-2).all(-1)  # (B, N): the plane fit of the neighbours is needed
-        if fit.numel() <= PLANE_EVERY_ROW:  # few rows: the plane at all (no host read)
+        if every_row or fit.numel() <= PLANE_EVERY_ROW:  # the plane at all (no host read)
             g_at = torch.where(own, g, _gradient_at(gn, use, d.view(1, n, -1, 2)))
             at_fit = fit.new_empty(0)
         else:
@@ -419,11 +423,13 @@ def _gradient_at(gn: Tensor, use: Tensor, d: Tensor) -> Tensor:
 
 
 def _round_torch(v: Tensor, valid: Tensor, nb: Tensor, points: Tensor | None,
-                 gradients: Tensor | None, eps: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+                 gradients: Tensor | None, eps: Tensor, every_row: bool = False
+                 ) -> tuple[Tensor, Tensor, Tensor]:
     """One round of :func:`median_test` on ``valid`` (B, N) points, eps (B, N) px: the
     normalised residual r (B, N) (NaN: no neighbour), the neighbours' scatter rm (B, N, C)
-    (median absolute residual) and the number of neighbours (B, N)."""
-    vn = carried_neighbours(v, valid, nb, points, gradients)
+    (median absolute residual) and the number of neighbours (B, N) (``every_row``: as
+    :func:`carried_neighbours`)."""
+    vn = carried_neighbours(v, valid, nb, points, gradients, every_row=every_row)
     med = nanmedian_rows(vn.transpose(-1, -2))  # (B, N, C)
     rm = nanmedian_rows((vn - med.unsqueeze(2)).abs().transpose(-1, -2))  # (B, N, C)
     r = ((v - med).abs() / (rm + eps.unsqueeze(-1))).amax(-1)
@@ -431,11 +437,13 @@ def _round_torch(v: Tensor, valid: Tensor, nb: Tensor, points: Tensor | None,
 
 
 def _round_native(v: Tensor, valid: Tensor, nb: Tensor, points: Tensor | None,
-                  gradients: Tensor | None, eps: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+                  gradients: Tensor | None, eps: Tensor, every_row: bool = False
+                  ) -> tuple[Tensor, Tensor, Tensor]:
     """:func:`_round_torch` by the native kernels (CPU): the same numbers at the ``valid``
     points (the others are never judged; their gradient is not fitted here). The
     gradient at each point is its own where the kernel finds it like its neighbours', else
-    the plane fitted by :func:`_gradient_at` here (few points: edges, corners, outliers)."""
+    the plane fitted by :func:`_gradient_at` here (few points: edges, corners, outliers;
+    the CPU's: reads, whatever ``every_row``)."""
     n = v.shape[1]
     if points is None or gradients is None:
         return native.neighbour_test(nb, valid, v, torch.zeros(n, 2, dtype=v.dtype), eps,
@@ -476,7 +484,8 @@ def median_test(values: Tensor, valid: Tensor, nb: Tensor, eps: float | Tensor,
     absolute residual) by more than ``MEDIAN_SCATTER`` times ``eps`` is an outlier too: no
     smooth field to judge it by. ``until_done``: the rounds stop at the first that flags
     no point (one host read a round); False: all ``rounds`` run, no read (a round that
-    flags none changes nothing: the same answer). Returns (B, N) bool outliers (never a
+    flags none changes nothing: the same answer; the gradients' planes fitted at every
+    point, :func:`carried_neighbours`'s ``every_row``). Returns (B, N) bool outliers (never a
     point with fewer than ``min_neighbours`` valid neighbours)."""
     b = values.shape[0]
     v = values.double()
@@ -491,7 +500,8 @@ def median_test(values: Tensor, valid: Tensor, nb: Tensor, eps: float | Tensor,
     round_ = _round_native if fast else _round_torch  # the same numbers (native ~4x faster)
     eps_bn = (eps_t if eps_t.dim() else eps_t.view(1, 1, 1)).expand(b, v.shape[1], 1)[..., 0]
     for i in range(max(1, rounds)):
-        r, rm, count = round_(v, valid & ~out, nb, points, gradients, eps_bn)
+        r, rm, count = round_(v, valid & ~out, nb, points, gradients, eps_bn,
+                              every_row=not until_done)
         judged = valid & ~out & (count >= min_neighbours)
         cand = judged & (r > MEDIAN_THRESHOLD)
         if i == rounds - 1 or (until_done and not bool(cand.any())):

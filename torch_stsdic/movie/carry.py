@@ -157,7 +157,7 @@ class Carry:
         for _ in range(rounds if missing or not stop else 0):
             guess = neighbour_guess(stack.unsqueeze(0), ok.unsqueeze(0),
                                     names + ["vel_u", "vel_v"] + [f"rate_{nm}" for nm in rated],
-                                    nb, points, at=need)[0]
+                                    nb, points, at=need, every_row=not stop)[0]
             fill = torch.isfinite(guess).all(1) & ~ok[need]
             if stop and not bool(fill.any()):
                 break
@@ -174,20 +174,21 @@ class Carry:
 
 def neighbour_guess(params: torch.Tensor, ok: torch.Tensor, names, nb: torch.Tensor,
                     points: torch.Tensor, min_count: int = 2,
-                    at: torch.Tensor | None = None) -> torch.Tensor:
+                    at: torch.Tensor | None = None, every_row: bool = False) -> torch.Tensor:
     """(B, N, P) every point's parameters from its ``ok`` (B, N) grid neighbours ``nb``
     (N, k) in ``params`` (B, N, P) (names ``names``): the median over them, u and v first
     carried to the point by each neighbour's own gradients (positions ``points`` (N, 2) px,
     :func:`~torch_stsdic.analysis.quality.carried_neighbours`); NaN where fewer than ``min_count``
     neighbours are ``ok``. Parameters NaN at every neighbour (a classical row's ut) stay
-    NaN. ``at`` (M,) long: only those points' guesses, (B, M, P)."""
+    NaN. ``at`` (M,) long: only those points' guesses, (B, M, P). ``every_row``: no host
+    read (:func:`~torch_stsdic.analysis.quality.carried_neighbours`'s)."""
     vn = carried_neighbours(params, ok, nb, at=at)  # (B, N, k, P)
     iu, iv = names.index("u"), names.index("v")
     if all(nm in names for nm in ("ux", "uy", "vx", "vy")):
         b, n = params.shape[:2]
         gi = [names.index(nm) for nm in ("ux", "uy", "vx", "vy")]
         uv = carried_neighbours(params[..., [iu, iv]], ok, nb, points,
-                                params[..., gi].reshape(b, n, 2, 2), at=at)
+                                params[..., gi].reshape(b, n, 2, 2), at=at, every_row=every_row)
         vn[..., iu], vn[..., iv] = uv[..., 0], uv[..., 1]
     out = nanmedian_rows(vn.transpose(-1, -2))  # (B, N, P)
     few = (~torch.isnan(vn[..., iu])).sum(-1) < min_count

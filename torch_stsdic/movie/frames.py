@@ -13,8 +13,10 @@ Read-ahead: given the frames a run will need in order (:meth:`FrameCache.schedul
 moves them to the device and prefilters them there while the current block is solved, at
 most ``ahead`` frames in advance (a bounded queue). On CUDA the decoded frame goes through
 pinned memory with a non-blocking copy on a side stream, the prefilter runs on that stream,
-and the consumer's stream waits on an event (no host synchronisation). A frame asked for
-out of order (a reference frame, a resumed run) is read on the spot, as without read-ahead.
+and the consumer's stream waits on an event (no host synchronisation). A frame the store
+holds when the reader reaches it is queued as it is (not read again; held by the queue). A
+frame asked for out of order (a reference frame, a resumed run) is read on the spot, as
+without read-ahead.
 """
 
 from __future__ import annotations
@@ -222,6 +224,11 @@ class _Reader(threading.Thread):
             for p, i in enumerate(self.order):
                 if self.stopped:
                     return
+                held = c.store.get(c._key(i))
+                if held is not None:  # prepared by a pass before: handed over as it is
+                    # (held from here on: the store may drop it before the block needs it)
+                    self._put((p, i, held, None, None))
+                    continue
                 t0 = time.perf_counter()
                 cpu = c.series.get(i, dtype=c.dtype)
                 t1 = time.perf_counter()
@@ -254,7 +261,8 @@ class _Reader(threading.Thread):
             time.sleep(0.002)
 
     def take(self, i: int):
-        """(raw, prepared) of frame ``i``, or None if it is not (any more) ahead in the queue."""
+        """(raw, prepared) of frame ``i`` read here, or the :class:`PreparedFrame` the store
+        held when the reader reached it; None if it is not (any more) ahead in the queue."""
         p = self.pos.get(i)
         if p is None or p < self.next_pos:
             return None
@@ -270,6 +278,8 @@ class _Reader(threading.Thread):
             pos, _, raw, prep, ev = item
             self.next_pos = pos + 1
             if pos == p:
+                if isinstance(raw, PreparedFrame):  # (the store's)
+                    return raw
                 if ev is not None:  # the consumer's stream waits for the upload/prefilter
                     cur = torch.cuda.current_stream(raw.device)
                     cur.wait_event(ev)
@@ -345,10 +355,11 @@ class FrameCache:
 
     def schedule(self, order: list[int]) -> None:
         """Read the frames ``order`` ahead in the background, in this order (no-op when
-        ``ahead`` is 0 or nothing is to be read; frames held here or in the store are not
-        read)."""
+        ``ahead`` is 0 or nothing is to be read; frames held here are not read, and a frame
+        the store holds when the reader reaches it is handed over as it is: a frame in the
+        store now may be dropped from it before a block needs it)."""
         self.close()
-        order = [i for i in order if i not in self.entries and self._key(i) not in self.store]
+        order = [i for i in order if i not in self.entries]
         if self.ahead > 0 and order:
             self._reader = _Reader(self, list(order), self.ahead)
             self._reader.start()
@@ -410,6 +421,8 @@ class FrameCache:
         if got is not None:
             return got
         ahead = self._reader.take(i) if self._reader is not None else None
+        if isinstance(ahead, PreparedFrame):  # the store held it when the reader passed
+            return ahead
         if ahead is not None:
             self._count_read(i)
             return self._prepared(i, *ahead)
