@@ -653,7 +653,9 @@ def test_the_gradients_plane_at_every_row_equals_the_plane_where_needed(monkeypa
     ok[0, 40] = True
     grads = params[..., 2:6].reshape(2, n, 2, 2)
     where = carried_neighbours(params[..., :2], ok, nb, pts, grads)
-    every = carried_neighbours(params[..., :2], ok, nb, pts, grads, every_row=True)
+    with monkeypatch.context() as mp:  # every row: no row chosen on the host
+        mp.setattr(torch, "nonzero", lambda *a, **k: pytest.fail("rows read on the host"))
+        every = carried_neighbours(params[..., :2], ok, nb, pts, grads, every_row=True)
     torch.testing.assert_close(every, where, equal_nan=True, rtol=0, atol=0)
     torch.testing.assert_close(neighbour_guess(params, ok, names, nb, pts, every_row=True),
                                neighbour_guess(params, ok, names, nb, pts),

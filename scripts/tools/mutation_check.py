@@ -255,6 +255,21 @@ MUTATIONS: tuple[Mutation, ...] = (
         ("test_block_guess.py",),
         "a reading block's count, read on the spot, not passed on to the next block's guess"),
     Mutation(
+        "read-ahead-leaves-out-stored-frames", "frames", "torch_stsdic/movie/frames.py",
+        "        order = [i for i in order if i not in self.entries]\n",
+        "        order = [i for i in order if i not in self.entries and self._key(i) not in "
+        "self.store]\n",
+        ("test_frames.py",),
+        "the read-ahead leaves out the frames the store holds when it is scheduled: those it "
+        "drops later are read by the block loop"),
+    Mutation(
+        "plane-rows-read-on-a-gpu", "neighbour test", "torch_stsdic/analysis/quality.py",
+        "        if every_row or fit.numel() <= PLANE_EVERY_ROW:",
+        "        if fit.numel() <= PLANE_EVERY_ROW:",
+        ("test_quality.py",),
+        "the gradients' plane fitted where needed, its rows read, where the caller asked for "
+        "no read"),
+    Mutation(
         "early-wrong-guess-redone-from-the-rescue", "block guesses",
         "torch_stsdic/movie/block_guess.py",
         "            if PLACEMENT in wrong.questions or wrong.whole:\n",
