@@ -15,6 +15,7 @@ from torch_stsdic.core.status import Status
 from torch_stsdic.movie.block_guess import RESCUE
 from torch_stsdic.movie.block_placement import Placement
 from torch_stsdic.movie.carry import Carry, neighbour_guess
+from torch_stsdic.movie.choices import until_done
 from torch_stsdic.movie.frames import true_rows
 from torch_stsdic.movie.reference import to_relative
 
@@ -270,7 +271,8 @@ class BlockRescue:
         sel = torch.tensor(js, device=self.run.device)
         guess = neighbour_guess(self.params.view(b, n, -1)[sel], ok.view(b, n)[sel],
                                 self.run.names, self.run.grid_neighbours(self.ref),
-                                self.ref.points)  # (J, N, P)
+                                self.ref.points,  # (J, N, P); on a GPU no read of its own
+                                every_row=not until_done(self.run.device))
         for nm in ("ut", "vt"):  # a classical neighbour has no velocity: none
             if nm in self.run.names:
                 i = self.run.names.index(nm)
