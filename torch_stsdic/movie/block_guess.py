@@ -80,21 +80,17 @@ class _Deferred:
 
 def row_capacity(asked: int, rows: int) -> int | None:
     """The rows a compacted solve takes where the blocks before asked for ``asked`` of a
-    site's ``rows`` (R) (:attr:`ReadGuesses.sizes`): the power of two at or above twice
-    ``asked`` and R / 32 (at least :data:`MIN_CAPACITY`: counts vary from block to block, a
-    wrong guess costs the block's rescue and checks again); None where that is over half of
-    ``rows`` (every row solved masked: a taken half saves little)."""
-    cap = MIN_CAPACITY
-    while cap < max(2 * asked, rows / 32):
-        cap *= 2
-    return None if 2 * cap > rows else cap
+    site's ``rows`` (R) (:attr:`ReadGuesses.sizes`): :func:`counted_capacity` of twice
+    ``asked`` and R / 32, the larger (counts vary from block to block, a wrong guess costs
+    the block's rescue and checks again)."""
+    return counted_capacity(max(2 * asked, rows / 32), rows)
 
 
-def counted_capacity(asked: int, rows: int) -> int | None:
-    """The rows a compacted solve takes where ``asked`` of its ``rows`` (R) are known to be
-    asked for (a reading block's count, read): the power of two at or above ``asked``, at
-    least :data:`MIN_CAPACITY` (a few shapes over a run); None where that is over half of
-    ``rows``, as :func:`row_capacity`."""
+def counted_capacity(asked: float, rows: int) -> int | None:
+    """The rows a compacted solve takes where ``asked`` of its ``rows`` (R) are asked for (a
+    reading block's count, read; :func:`row_capacity`'s margin): the power of two at or
+    above ``asked``, at least :data:`MIN_CAPACITY` (a few shapes over a run); None where
+    that is over half of ``rows`` (every row solved masked: a taken half saves little)."""
     cap = MIN_CAPACITY
     while cap < asked:
         cap *= 2
