@@ -262,25 +262,7 @@ def test_a_run_prepares_each_frame_once_across_its_passes():
                         None, 3)
         return run_plan(plan, progress=False, frames=store)
 
-    # every B-spline prefilter of a movie frame in the run, the template's splats included
-    from torch_stsdic.core import interpolation
-
-    frames = mv.frames.float()
-    made: list[int] = []
-    init = interpolation.BSplineImage.__init__
-
-    def counted(self, images, *a, **k):
-        if tuple(images.shape[-2:]) == tuple(frames.shape[-2:]):  # whole frames
-            for img in images.reshape(-1, *images.shape[-2:]):
-                same = (frames == img.float().cpu()).flatten(1).all(1)
-                made.extend(torch.nonzero(same).flatten().tolist())
-        init(self, images, *a, **k)
-
-    interpolation.BSplineImage.__init__ = counted
-    try:
-        res = run(None)
-    finally:
-        interpolation.BSplineImage.__init__ = init
+    made, res = _prefilters(mv.frames, lambda: run(None))
     assert res.info["shared_motion"] and res.info["series_reference"]
     read = len(range(3, n)) + 1  # the windows of 4..8 (m = 1) and the reference frame 0
     assert sorted(made) == sorted(set(made)) and len(made) == read  # each frame once
@@ -295,6 +277,97 @@ def test_a_run_prepares_each_frame_once_across_its_passes():
     # from its solutions, and the rescue no longer searches the points leaving the image)
     assert again.info["pyramid_levels"] >= res.info["pyramid_levels"]
     torch.testing.assert_close(again.u, res.u, rtol=0, atol=0, equal_nan=True)
+
+
+def _prefilters(frames: torch.Tensor, fn):
+    """The movie frames (indices into ``frames`` (F, H, W)) B-spline prefiltered while
+    ``fn()`` runs (the template's splats included), one entry per prefilter, and its
+    result."""
+    from torch_stsdic.core import interpolation
+
+    frames = frames.float()
+    made: list[int] = []
+    init = interpolation.BSplineImage.__init__
+
+    def counted(self, images, *a, **k):
+        if tuple(images.shape[-2:]) == tuple(frames.shape[-2:]):  # whole frames
+            for img in images.reshape(-1, *images.shape[-2:]):
+                same = (frames == img.float().cpu()).flatten(1).all(1)
+                made.extend(torch.nonzero(same).flatten().tolist())
+        init(self, images, *a, **k)
+
+    interpolation.BSplineImage.__init__ = counted
+    try:
+        return made, fn()
+    finally:
+        interpolation.BSplineImage.__init__ = init
+
+
+def test_a_store_keeps_the_frames_it_is_told_to_within_its_budget():
+    """``FrameStore.keeping``: the named frames kept beyond the store's budget (none here),
+    the first put first up to ``keep_mb``; an inner block's frames let go at its end, not
+    the outer block's; all let go after the outer one."""
+    from collections import namedtuple
+
+    from torch_stsdic.movie.frames import FrameStore
+
+    frame = namedtuple("frame", "nbytes")
+    store = FrameStore(0, max_frames=4, keep_mb=3 * 2**-20)  # three 1-byte frames
+    with store.keeping([1, 2, 3, 4]):
+        for i in range(6):
+            store.put((i,), frame(1))
+        assert [(i,) in store for i in range(6)] == [False, True, True, True, False, False]
+        with store.keeping([5]):  # (the keep budget is full: 5 is not kept)
+            store.put((5,), frame(1))
+            assert (5,) not in store and store.get((2,)) is not None
+        with store.keeping([2]):
+            pass
+        assert [(i,) in store for i in range(6)] == [False, True, True, True, False, False]
+    assert not any((i,) in store for i in range(6))  # a store that keeps none: dropped
+    store = FrameStore(1e3, keep_mb=1.0)  # one that keeps frames: they stay, least recent
+    with store.keeping([0]):              # first out as ever
+        store.put((0,), frame(10))
+    assert (0,) in store
+
+
+def test_a_long_movie_prepares_the_template_frames_once_in_its_passes(monkeypatch):
+    """A movie longer than the store keeps frames for (none beyond a block: the store's
+    budget is 0): the frames that the template's rounds and its shared classical pass read
+    are prepared once by the passes (kept while they run), every frame at most twice in the
+    run (the shared-motion pass's sweep and the blocks'), the same results to the bit as
+    without (every round prepared them again)."""
+    import contextlib
+
+    from torch_stsdic.movie import series as series_mod
+    from torch_stsdic.movie.frames import FrameStore
+    from torch_stsdic.movie.plan import plan_run
+    from torch_stsdic.movie.series import run_plan
+    from torch_stsdic.movie.series_reference import set_series_reference
+
+    monkeypatch.setattr(series_mod, "STORE_FRAMES", 0)  # 14 frames > 2 (3 + 2): a long movie
+    n = 14
+    mv = synth.synthetic_movie((96, 96), n, synth.Translation(ut=0.4, vt=-0.3), seed=5,
+                               noise_sigma=1.0, margin=16)
+    cfg = sts.DICConfig(subset_size=15, m=1)
+
+    def run():
+        plan = plan_run(mv.frames, 0, None, None, None, None, 12, cfg, "cpu", None, 3)
+        set_series_reference(plan, True, max_frames=6)  # (a sample of the frames)
+        return run_plan(plan, progress=False)
+
+    made, res = _prefilters(mv.frames, run)
+    assert res.info["shared_motion"] and res.info["series_reference"]
+    sampled = res.info["series_reference"]["frames"]
+    assert 3 <= len(sampled) < n
+    count = np.bincount(made, minlength=n)
+    assert count.max() <= 2 and all(count[k] <= 2 for k in sampled)
+    monkeypatch.setattr(FrameStore, "keeping", lambda self, frames: contextlib.nullcontext())
+    again, res2 = _prefilters(mv.frames, run)
+    assert len(again) > len(made) + len(sampled)  # the template's rounds prepared them again
+    for name in ("u", "v", "ut", "vt", "status"):
+        torch.testing.assert_close(getattr(res2, name) if name != "ut" else res2.field(name),
+                                   getattr(res, name) if name != "ut" else res.field(name),
+                                   rtol=0, atol=0, equal_nan=True)
 
 
 def test_a_dropped_frame_with_its_pyramid_is_freed_at_once():

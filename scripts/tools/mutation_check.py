@@ -263,6 +263,13 @@ MUTATIONS: tuple[Mutation, ...] = (
         "the read-ahead leaves out the frames the store holds when it is scheduled: those it "
         "drops later are read by the block loop"),
     Mutation(
+        "passes-keep-no-frames", "frames", "torch_stsdic/movie/frames.py",
+        "                    and kept + frame.nbytes <= self.keep_budget):",
+        "                    and kept + frame.nbytes < 0):",
+        ("test_frames.py",),
+        "the store keeps none of the frames its passes share: a long movie's template "
+        "prepares its frames again in every round"),
+    Mutation(
         "plane-rows-read-on-a-gpu", "neighbour test", "torch_stsdic/analysis/quality.py",
         "        if every_row or fit.numel() <= PLANE_EVERY_ROW:",
         "        if fit.numel() <= PLANE_EVERY_ROW:",

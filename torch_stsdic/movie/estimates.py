@@ -25,6 +25,7 @@ from __future__ import annotations
 import dataclasses
 import json
 from collections.abc import Callable
+from contextlib import nullcontext
 from dataclasses import dataclass
 from typing import Any
 
@@ -172,6 +173,18 @@ def measure_run(plan: RunPlan, ref_raw: torch.Tensor | None = None, *, run: RunF
     prepared frames (:class:`~torch_stsdic.movie.frames.FrameStore`), which the template's
     images are taken from and added to (None: its own)."""
     measured = _classical_pass(plan, run)
+    # the frames that several passes read (the template's sample, the window-length pass's)
+    # prepared once, where the store keeps nothing else (a long movie)
+    with frames.keeping(pass_frames(plan, shared=False)[1]) if frames is not None \
+            else nullcontext():
+        return _measure_passes(plan, ref_raw, run, first_noise, guess_blocks, frames, measured)
+
+
+def _measure_passes(plan: RunPlan, ref_raw: torch.Tensor | None, run: RunFunction,
+                    first_noise: bool, guess_blocks: list[list[int]] | None,
+                    frames: FrameStore | None, measured: ClassicalPass | None
+                    ) -> RunEstimates:
+    """:func:`measure_run`'s passes, given the run's shared classical pass ``measured``."""
     shared = None
     if plan.options.get("shared_motion"):
         kind = plan.options["shared_motion"]
@@ -213,15 +226,23 @@ def measure_run(plan: RunPlan, ref_raw: torch.Tensor | None = None, *, run: RunF
 def _classical_pass(plan: RunPlan, run: RunFunction) -> ClassicalPass | None:
     """The classical pass that the shared-motion pass, the template's first round, the
     window-length pass and the time-model pass share
-    (:mod:`~torch_stsdic.movie.classical_pass`), over the frames they will ask for (the
-    shared-motion pass's only where they are at most
-    ``SHARED_FRAMES_HELD``: a long movie's pass measures every frame, at a sample of the
-    points, and holds only what its fit needs); None where fewer than two of them run."""
+    (:mod:`~torch_stsdic.movie.classical_pass`), over the frames they will ask for
+    (:func:`pass_frames`); None where fewer than two of them run."""
+    users, frames = pass_frames(plan)
+    return ClassicalPass(plan, run, frames) if users >= 2 else None
+
+
+def pass_frames(plan: RunPlan, shared: bool = True) -> tuple[int, set[int]]:
+    """How many of the passes that measure frames classically run for ``plan`` (the
+    shared-motion pass, the template's, the window-length pass, the time-model pass) and
+    the frames they read: the shared-motion pass's only where they are at most
+    ``SHARED_FRAMES_HELD`` (a long movie's pass measures every frame, at a sample of the
+    points, and holds only what its fit needs) and ``shared``, the others' samples."""
     users, frames = 0, set()
     if plan.options.get("shared_motion"):
         users += 1
         own = shared_frames(plan)
-        if len(own) <= SHARED_FRAMES_HELD:
+        if len(own) <= SHARED_FRAMES_HELD and shared:
             frames |= set(own)
     if plan.options.get("series_reference"):
         users += 1
@@ -232,7 +253,7 @@ def _classical_pass(plan: RunPlan, run: RunFunction) -> ClassicalPass | None:
     elif not plan.options.get("series_reference") and wants_time_model(plan):
         users += 1  # the time model decided from its own classical pass
         frames |= set(sample_frames(plan))
-    return ClassicalPass(plan, run, frames) if users >= 2 else None
+    return users, frames
 
 
 def _first_block_noise(plan: RunPlan, ref_raw: torch.Tensor | None,

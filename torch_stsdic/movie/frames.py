@@ -21,6 +21,7 @@ without read-ahead.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
 import queue
@@ -28,7 +29,7 @@ import threading
 import time
 import warnings
 from collections import Counter, OrderedDict
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 
 import torch
@@ -154,15 +155,25 @@ class FrameStore:
     ``max_frames`` frames (0: none kept beyond a cache's own block; a count, not only bytes,
     so that a long movie of small frames holds no more than a short one). Thread-safe.
 
+    While :meth:`keeping` is open, the frames it names are kept besides, up to ``keep_mb``
+    MiB of them (counted in the budget where that is larger): the few frames that several of
+    a run's passes read (the template's sample) are prepared once even where the store keeps
+    nothing else (a long movie).
+
     ``reads``, ``prefiltered`` and ``pyramid_builds`` count per frame index how often it was
     read from the series and prepared in the run (B-spline prefilters, ``pyrdown`` calls: one
     per pyramid level), ``times`` the
     seconds of the caches that finished (:meth:`FrameCache.times`, added up)."""
 
-    def __init__(self, budget_mb: float, max_frames: int | None = None) -> None:
+    def __init__(self, budget_mb: float, max_frames: int | None = None,
+                 keep_mb: float = 0.0) -> None:
         self.budget = int(max(0.0, float(budget_mb)) * 2**20)
         self.max_frames = max_frames
+        self.keep_budget = int(max(0.0, float(keep_mb)) * 2**20)
         self._frames: OrderedDict[tuple, PreparedFrame] = OrderedDict()
+        #: the frames each open :meth:`keeping` keeps (frame indices) and those kept
+        self._keep: list[frozenset[int]] = []
+        self._kept: dict[tuple, PreparedFrame] = {}
         self._lock = threading.Lock()
         self.reads: Counter[int] = Counter()
         self.prefiltered: Counter[int] = Counter()
@@ -171,6 +182,9 @@ class FrameStore:
 
     def get(self, key: tuple) -> PreparedFrame | None:
         with self._lock:
+            got = self._kept.get(key)
+            if got is not None:
+                return got
             got = self._frames.get(key)
             if got is not None:
                 self._frames.move_to_end(key)
@@ -178,17 +192,45 @@ class FrameStore:
 
     def put(self, key: tuple, frame: PreparedFrame) -> None:
         with self._lock:
-            self._frames[key] = frame
-            self._frames.move_to_end(key)
-            held = sum(f.nbytes for f in self._frames.values())
+            kept = sum(f.nbytes for f in self._kept.values())
+            if (any(key[0] in k for k in self._keep) and key not in self._kept
+                    and kept + frame.nbytes <= self.keep_budget):
+                self._frames.pop(key, None)
+                self._kept[key] = frame
+                kept += frame.nbytes
+            else:
+                self._frames[key] = frame
+                self._frames.move_to_end(key)
+            held = kept + sum(f.nbytes for f in self._frames.values())
             most = len(self._frames) if self.max_frames is None else self.max_frames
-            while (held > self.budget or len(self._frames) > most) and self._frames:
+            while (held > max(self.budget, kept) or len(self._frames) > most) and self._frames:
                 _, old = self._frames.popitem(last=False)
                 held -= old.nbytes
 
+    @contextlib.contextmanager
+    def keeping(self, frames: Iterable[int]) -> Iterator[None]:
+        """Within the block, the prepared frames of the indices ``frames`` put here are kept
+        (the first put first, up to ``keep_mb`` MiB of them; the least recently used of the
+        others dropped first, as ever); after it they are the others' like (a store that keeps
+        none drops them at once), but where an enclosing block keeps them too."""
+        mine = frozenset(int(i) for i in frames)
+        with self._lock:
+            self._keep.append(mine)
+        try:
+            yield
+        finally:
+            with self._lock:
+                self._keep.remove(mine)
+                still = frozenset().union(*self._keep)
+                left = {k: f for k, f in self._kept.items() if k[0] not in still}
+                for key in left:
+                    del self._kept[key]
+            for key, frame in left.items():
+                self.put(key, frame)
+
     def __contains__(self, key: tuple) -> bool:
         with self._lock:
-            return key in self._frames
+            return key in self._kept or key in self._frames
 
 
 class _Reader(threading.Thread):

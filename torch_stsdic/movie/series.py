@@ -131,7 +131,8 @@ def run_plan(plan: RunPlan, sink: MemorySink | None = None, *, progress: bool = 
     # template's rounds, the time-model pass: the sub-runs given ``frames``) and its blocks
     most = 2 * (plan.batch_frames + 2 * cfg.m) + STORE_FRAMES
     store = frames if frames is not None else FrameStore(
-        STORE_BUDGETS * cfg.budget_mb if len(plan.series) <= most else 0.0, max_frames=most)
+        STORE_BUDGETS * cfg.budget_mb if len(plan.series) <= most else 0.0, max_frames=most,
+        keep_mb=STORE_BUDGETS * cfg.budget_mb)  # (the passes' samples: measure_run)
     cache = FrameCache(plan.series, solver, plan.dtype, plan.device,
                        ahead=default_ahead(plan.batch_frames, cfg.m), store=store)
     run = BlockContext(solver=solver, cache=cache,
