@@ -69,3 +69,33 @@ def test_a_frame_outside_the_template_keeps_its_prediction(m):
     fac = ts.variance_factors(torch.tensor([3]), torch.full((1, 3), m, dtype=torch.int8),
                               torch.arange(20, dtype=torch.float64), rho=1.0)
     torch.testing.assert_close(fac, torch.ones(1, 3, 2, dtype=torch.float64))
+
+
+def test_a_blocks_template_factors_copy_nothing_to_its_device():
+    """The shares made on a run's device (``device=``: "meta" stands in for a GPU here):
+    a block's factors move no tensor there (on a GPU each copy from the host waits for the
+    device; made on the host, every block copied them there, once per half-width)."""
+    share = torch.rand(3, 5, dtype=torch.float64)
+    reg = torch.rand(5, dtype=torch.float64)
+    ks = torch.tensor([1, 3], device="meta")
+    m_used = torch.zeros(2, 5, dtype=torch.int8, device="meta")
+    times = torch.arange(8, dtype=torch.float64, device="meta")
+    moves: list[tuple[torch.device, torch.device]] = []
+    to = torch.Tensor.to
+
+    def moved(self, *a, **k):
+        out = to(self, *a, **k)
+        if out.device != self.device:
+            moves.append((self.device, out.device))
+        return out
+
+    for device, want in (("meta", 0), (None, 1)):
+        ts = TemplateShares.make([0, 2, 4], share, 8, 0, reg, device=device)
+        moves.clear()
+        torch.Tensor.to = moved
+        try:
+            fac = ts.variance_factors(ks, m_used, times, rho=0.5, m_max=1)
+        finally:
+            torch.Tensor.to = to
+        assert tuple(fac.shape) == (2, 5, 2) and fac.device.type == "meta"
+        assert (len(moves) > 0) == bool(want), moves

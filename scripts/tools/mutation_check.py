@@ -270,6 +270,14 @@ MUTATIONS: tuple[Mutation, ...] = (
         "the store keeps none of the frames its passes share: a long movie's template "
         "prepares its frames again in every round"),
     Mutation(
+        "template-shares-left-on-the-host", "template noise",
+        "torch_stsdic/movie/template_noise.py",
+        "        dev = share.device if device is None else torch.device(device)\n",
+        "        dev = share.device\n",
+        ("test_template_noise.py",),
+        "the template's shares made on the host: a GPU run's every block copies them to the "
+        "device, a wait each"),
+    Mutation(
         "plane-rows-read-on-a-gpu", "neighbour test", "torch_stsdic/analysis/quality.py",
         "        if every_row or fit.numel() <= PLANE_EVERY_ROW:",
         "        if fit.numel() <= PLANE_EVERY_ROW:",

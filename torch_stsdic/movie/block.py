@@ -433,8 +433,9 @@ def _window_cap(run: BlockContext, blk: Block) -> torch.Tensor | None:
 def _first_guess_rows(run: BlockContext, blk: Block, ref: Reference) -> torch.Tensor:
     """(B*N, P) the block's rows from ``run.first_guess`` (NaN rows where it has none)."""
     guess = run.first_guess.guess(ref.points, blk.windows(run.m), blk.dt[::blk.n])
-    return blk.init_rows({nm: v.to(device=run.device, dtype=run.dtype)
-                          for nm, v in guess.items()})
+    # (made on the host: its fields in one copy to the device, not waited for)
+    fields = upload(torch.stack(list(guess.values())), run.device).to(run.dtype)
+    return blk.init_rows(dict(zip(guess, fields.unbind(0))))
 
 
 def _carried_start(run: BlockContext, blk: Block, ref: Reference, carry: Carry,

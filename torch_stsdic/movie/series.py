@@ -235,7 +235,7 @@ def _apply_estimates(run: BlockContext, est: RunEstimates, plan: RunPlan, ref: R
             sref = est.series_reference
             run.template_shares = TemplateShares.make(sref.frames, sref.shares,
                                                       len(plan.series), plan.reference_frame,
-                                                      sref.registration)
+                                                      sref.registration, device=plan.device)
     if est.model_holds is not None:  # the time model failed at the other points
         run.classical_points = ~est.model_holds.to(device=plan.device)
     if est.window_m is not None:  # each point's window as long as its motion allows

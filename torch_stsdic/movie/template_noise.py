@@ -47,15 +47,19 @@ class TemplateShares:
 
     @classmethod
     def make(cls, frames: list[int], share: torch.Tensor, n_series: int,
-             reference_frame: int = -1, registration: torch.Tensor | None = None
-             ) -> TemplateShares:
-        """From the sampled ``frames`` (F,) (series indices) and their weights (F, N)."""
+             reference_frame: int = -1, registration: torch.Tensor | None = None,
+             device: torch.device | str | None = None) -> TemplateShares:
+        """From the sampled ``frames`` (F,) (series indices) and their weights (F, N), on
+        ``device`` (default ``share``'s): a run's, where its blocks ask for them (every
+        block: a copy from the host there would wait for a GPU each time)."""
+        dev = share.device if device is None else torch.device(device)
         rows = torch.full((n_series,), -1, dtype=torch.long)
         rows[torch.as_tensor(frames, dtype=torch.long)] = torch.arange(len(frames))
-        share = share.double()
-        return cls(rows=rows, share=share, share_sq=(share * share).sum(0),
+        share = share.to(device=dev, dtype=torch.float64)
+        return cls(rows=rows.to(dev), share=share, share_sq=(share * share).sum(0),
                    reference_frame=int(reference_frame),
-                   registration=None if registration is None else registration.double())
+                   registration=None if registration is None else registration.to(
+                       device=dev, dtype=torch.float64))
 
     def of(self, win: torch.Tensor) -> torch.Tensor:
         """(B, N, T) the weights of the frames ``win`` (B, T) (series indices)."""
