@@ -1269,3 +1269,30 @@ def test_splat_finish_folds_a_frame_into_the_sums_as_torch_does():
     assert not pf_w.any() and not pf_n.any()
     with pytest.raises(ValueError, match="splat_finish"):
         native.splat_finish(sums_w, sums_n, pf_w[:-1], pf_n, weight)
+
+
+def test_the_symmetric_2x2_pseudo_inverse_is_pinvs_without_a_decomposition():
+    """``kernels.linalg.sym2_pinv`` (the velocity maps' 2 x 2 systems, element-wise: no
+    host synchronisation on a GPU) equals ``torch.linalg.pinv`` to rounding: full rank,
+    rank one (a texture along one axis), zero (flat), diagonal, negative correlations."""
+    from torch_stsdic.kernels.linalg import sym2_pinv
+
+    g = torch.Generator().manual_seed(3)
+    a = torch.randn(500, 2, 3, dtype=torch.float64, generator=g)
+    r = torch.randn(200, 2, 1, dtype=torch.float64, generator=g)
+    cases = [a @ a.mT, r @ r.mT, torch.zeros(3, 2, 2, dtype=torch.float64),
+             torch.diag_embed(torch.tensor([[2.0, 0.0], [0.0, 3.0], [5.0, 5.0], [1e-12, 1.0]],
+                                           dtype=torch.float64)),
+             torch.tensor([[[4.0, -2.0], [-2.0, 1.0]]], dtype=torch.float64)]
+    for m in cases:
+        want = torch.linalg.pinv(m, rtol=1e-9)
+        got = sym2_pinv(m, 1e-9)
+        # relative to the pseudo-inverse's size: rounding times the condition (of the
+        # eigenvalues kept)
+        size = want.abs().amax((-2, -1))
+        err = (got - want).abs().amax((-2, -1)) / size.clamp(min=1e-300)
+        ev = torch.linalg.eigvalsh(m).abs()
+        kept = torch.where(ev > 1e-9 * ev.amax(-1, keepdim=True), ev, torch.inf)
+        cond = (ev.amax(-1) / kept.amin(-1)).nan_to_num(1.0).clamp(min=1.0)
+        assert bool((err <= 1e-14 * cond).all()), (err / cond).max()
+        assert bool(((size == 0) == (got.abs().amax((-2, -1)) == 0)).all())

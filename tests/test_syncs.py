@@ -67,14 +67,19 @@ def test_the_counter_counts_what_waits_for_the_device():
         _ = x.view(2, 3).t().unsqueeze(0)  # views: no sync, no launch
         _ = torch.tensor([1.0, 2.0], device=x.device)  # host data onto a device
         _ = torch.as_tensor(x, device=x.device)  # a tensor already: none
+        m = torch.eye(2, dtype=torch.float64) * 2.0
+        torch.linalg.solve(m, m)  # its error check reads the device
+        torch.linalg.solve_ex(m, m)  # none
+    assert c.counts["_linalg_check_errors"] == 1
     assert c.counts["_local_scalar_dense"] == 1
     assert c.counts["nonzero"] == 1
     assert c.counts["index (bool mask)"] == 1
     assert c.counts[cs.HOST_COPY] == 1
     assert c.counts[cs.TO_DEVICE] == 1
-    assert cs.block_total(dict(c.counts)) == 5
-    # launch-like: sum, gt, nonzero, gt, index, mul, add (not the read, the copy, the views)
-    assert c.counts[cs.LAUNCHES] == 7
+    assert cs.block_total(dict(c.counts)) == 6
+    # launch-like: sum, gt, nonzero, gt, index, mul, add (not the read, the copy, the
+    # views), and the eye, its product, the two solves and the first one's error check
+    assert c.counts[cs.LAUNCHES] == 12
     assert x.tolist() == [0.0, 1.0, 2.0, 3.0, 4.0, 5.0]  # the patch is gone again
     # those a GPU run does not make (the CPU kernels' host work, host tensors) apart, a
     # host copy among them left out of a total without copies once

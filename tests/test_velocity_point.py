@@ -39,6 +39,27 @@ def test_maps_are_the_gradient_weighted_centroid():
     assert torch.all(velocity_maps(flat, pts, offsets, weights) == 0)
 
 
+def test_maps_wait_for_no_device():
+    """The maps' 2 x 2 systems solved element-wise (``kernels.linalg.sym2_pinv``): no
+    decomposition whose error check waits for a GPU (torch's ``pinv``), as
+    ``scripts/benchmarks/count_syncs.py`` counts them; a block maps the subsets it moved."""
+    from pathlib import Path
+
+    from repo_scripts import load_script
+
+    cs = load_script(Path("scripts/benchmarks/count_syncs.py"), "count_syncs")
+    solver = SubsetSolver(sts.DICConfig(subset_size=21))
+    g = torch.Generator().manual_seed(1)
+    img = solver.prepare(torch.rand(80, 80, generator=g, dtype=torch.float64) * 200)
+    offsets, weights = solver.window.offsets_and_weights()
+    pts = torch.tensor([[30.0, 30.0], [45.0, 41.0], [50.0, 35.0]], dtype=torch.float64)
+    with cs.SyncCounter() as c:
+        maps = velocity_maps(img, pts, offsets, weights)
+    assert torch.isfinite(maps).all()
+    linalg = {k for k, v in cs.SYNCING.items() if v == "linalg error check"}
+    assert linalg and not any(c.counts[k] for k in linalg), dict(c.counts)
+
+
 def test_refer_to_points_takes_the_gradient_times_the_map_off():
     """A velocity field linear in space with a map: each point's bias is the map times the
     field's gradient, taken off (the gradient from plane fits of the biased field itself:

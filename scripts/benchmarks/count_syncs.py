@@ -61,7 +61,14 @@ SYNCING = {"_local_scalar_dense": "host read", "equal": "host read",
            "nonzero": "data-dependent size",
            "masked_select": "data-dependent size", "unique_dim": "data-dependent size",
            "_unique2": "data-dependent size", "unique_consecutive": "data-dependent size",
-           "repeat_interleave": "data-dependent size"}
+           "repeat_interleave": "data-dependent size",
+           # linear algebra that checks its LAPACK/cuSOLVER info on the host: on CUDA a
+           # wait (torch.linalg.solve, inv, cholesky: their ``_linalg_check_errors``; eigh,
+           # svd, pinv, lstsq check inside; the ``_ex`` forms without ``check_errors`` do
+           # not)
+           "_linalg_check_errors": "linalg error check", "_linalg_eigh": "linalg error check",
+           "_linalg_svd": "linalg error check", "linalg_pinv": "linalg error check",
+           "linalg_lstsq": "linalg error check"}
 
 
 #: where the C++ CPU kernels check their arguments on the host (a GPU run takes other paths)

@@ -278,6 +278,20 @@ MUTATIONS: tuple[Mutation, ...] = (
         "the template's shares made on the host: a GPU run's every block copies them to the "
         "device, a wait each"),
     Mutation(
+        "gradient-plane-checks-its-solve", "neighbour test", "torch_stsdic/analysis/quality.py",
+        "    coef = torch.linalg.solve_ex(m, rhs).result\n",
+        "    coef = torch.linalg.solve(m, rhs)\n",
+        ("test_syncs.py",),
+        "the neighbours' gradient plane solved with torch's error check: a wait for a GPU "
+        "each round"),
+    Mutation(
+        "velocity-maps-by-a-decomposition", "velocity point",
+        "torch_stsdic/movie/velocity_point.py",
+        "sym2_pinv(m, 1e-9) @ rhs", "torch.linalg.pinv(m, rtol=1e-9) @ rhs",
+        ("test_velocity_point.py",),
+        "the velocity maps' 2 x 2 systems by torch's pinv: a decomposition that waits for a "
+        "GPU"),
+    Mutation(
         "plane-rows-read-on-a-gpu", "neighbour test", "torch_stsdic/analysis/quality.py",
         "        if every_row or fit.numel() <= PLANE_EVERY_ROW:",
         "        if fit.numel() <= PLANE_EVERY_ROW:",

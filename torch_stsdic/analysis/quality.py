@@ -418,7 +418,8 @@ def _gradient_at(gn: Tensor, use: Tensor, d: Tensor) -> Tensor:
     m = m + torch.diag_embed(1e-3 * scale.clamp(min=1e-12).unsqueeze(-1) * damp)
     m = m + torch.diag_embed((w.sum(-1) == 0).double().unsqueeze(-1) * (1.0 - damp))
     rhs = torch.einsum("bnk,bnki,bnkf->bnif", w, a, gn.flatten(-2))  # (B, N, 3, 2C)
-    coef = torch.linalg.solve(m, rhs)
+    # (regular by its damping: solved without the error check, which waits for a GPU)
+    coef = torch.linalg.solve_ex(m, rhs).result
     return coef[..., 0, :].view(gn.shape[0], gn.shape[1], *gn.shape[3:])
 
 
