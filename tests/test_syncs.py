@@ -135,3 +135,30 @@ def test_a_gpus_blocks_and_budget_counted_on_the_cpu(monkeypatch):
     assert plan.default_batch_frames(DICConfig(m=2), (256, 256), 4, "cpu") == 32
     assert gauss_newton.gpu_budget_mb("cpu") == initial.gpu_budget_mb("cpu") == 2048.0
 
+
+
+def test_the_move_counter_finds_host_tensors_copied_to_the_device():
+    """``scripts/benchmarks/count_moves.py``: on the CPU a ``.to(device)`` of a host tensor
+    is no copy, on a GPU a copy that waits; the counter tags tensors by where they were made
+    and counts those moves (made with a device, derived from one, handed over by ``upload``:
+    none), with the line that made the tensor."""
+    cm = load_script(Path(__file__).resolve().parents[1] / "scripts" / "benchmarks"
+                     / "count_moves.py", "count_moves")
+    from torch_stsdic.movie.frames import upload
+
+    dev = torch.device("cpu")  # (a run's device: named, not the literal "cpu")
+    with cm.MoveCounter() as c:
+        c.counting = True
+        on_dev = torch.arange(6, device=dev)
+        host = torch.arange(6)  # no device: the host
+        derived = on_dev * 2 + 1
+        _ = on_dev.to(dev), derived.to(dev)  # already there: none
+        moved = host.to(dev)  # a copy on a GPU
+        _ = moved.to(dev)  # there now: none
+        _ = torch.as_tensor(on_dev).to(dev)  # as_tensor of a tensor keeps its place: none
+        _ = on_dev.cpu().to(dev)  # back to the host and again: one
+        _ = upload(torch.arange(4), dev)  # pinned, not waited for: none
+        _ = torch.tensor(3.0).to(dev)  # one element: a scalar, none
+    assert sum(c.moves.values()) == 2, c.moves
+    assert all(made.endswith((" torch.arange", " .cpu()")) for _, made in c.moves)
+    assert torch.Tensor.to.__name__ == "to"  # the patches are gone again
