@@ -62,6 +62,9 @@ SYNCING = {"_local_scalar_dense": "host read", "equal": "host read",
            "masked_select": "data-dependent size", "unique_dim": "data-dependent size",
            "_unique2": "data-dependent size", "unique_consecutive": "data-dependent size",
            "repeat_interleave": "data-dependent size",
+           # sized by their input's largest value, read on the host on CUDA (bincount's
+           # max, whatever its minlength; histc's range where not given)
+           "bincount": "data-dependent size", "histc": "data-dependent size",
            # linear algebra that checks its LAPACK/cuSOLVER info on the host: on CUDA a
            # wait (torch.linalg.solve, inv, cholesky: their ``_linalg_check_errors``; eigh,
            # svd, pinv, lstsq check inside; the ``_ex`` forms without ``check_errors`` do
