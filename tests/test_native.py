@@ -1296,3 +1296,5 @@ def test_the_symmetric_2x2_pseudo_inverse_is_pinvs_without_a_decomposition():
         cond = (ev.amax(-1) / kept.amin(-1)).nan_to_num(1.0).clamp(min=1.0)
         assert bool((err <= 1e-14 * cond).all()), (err / cond).max()
         assert bool(((size == 0) == (got.abs().amax((-2, -1)) == 0)).all())
+    bad = torch.tensor([[[1.0, float("nan")], [float("nan"), 2.0]]], dtype=torch.float64)
+    assert bool(torch.isnan(sym2_pinv(bad, 1e-9)).all())  # not finite: NaN, no error

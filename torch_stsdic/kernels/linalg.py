@@ -32,9 +32,10 @@ def sym2_pinv(m: Tensor, rtol: float) -> Tensor:
     ``m`` (..., 2, 2): their eigenvalues below ``rtol`` times the largest taken as 0 (as
     ``torch.linalg.pinv(m, rtol=rtol)``, whose singular values these are, to rounding;
     0 for a zero matrix), in closed form: the eigenvectors at the angle ``atan2(2 b,
-    a - c) / 2``. Element-wise operations only: no host synchronisation on a GPU (``pinv``'s
-    decomposition checks its result on the host)."""
+    a - c) / 2``; NaN where ``m`` is not finite. Element-wise operations only: no host
+    synchronisation on a GPU (``pinv``'s decomposition checks its result on the host)."""
     a, b, c = m[..., 0, 0], m[..., 0, 1], m[..., 1, 1]
+    finite = torch.isfinite(m).all(-1).all(-1)  # (NaN where m is not finite)
     theta = 0.5 * torch.atan2(2.0 * b, a - c)
     cs, sn = torch.cos(theta), torch.sin(theta)
     l1 = a * cs * cs + 2.0 * b * sn * cs + c * sn * sn  # along (cs, sn): the larger
@@ -44,4 +45,5 @@ def sym2_pinv(m: Tensor, rtol: float) -> Tensor:
     i1 = torch.where(keep1, 1.0 / torch.where(keep1, l1, 1.0), 0.0)
     i2 = torch.where(keep2, 1.0 / torch.where(keep2, l2, 1.0), 0.0)
     v = torch.stack([torch.stack([cs, -sn], -1), torch.stack([sn, cs], -1)], -2)  # columns
-    return v @ torch.diag_embed(torch.stack([i1, i2], -1)) @ v.transpose(-1, -2)
+    out = v @ torch.diag_embed(torch.stack([i1, i2], -1)) @ v.transpose(-1, -2)
+    return torch.where(finite[..., None, None], out, float("nan"))
