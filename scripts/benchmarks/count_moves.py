@@ -43,7 +43,7 @@ from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils._pytree import tree_leaves
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from run_parts import HOURGLASS  # noqa: E402  (the documented region, one definition)
+from run_parts import split_run_args  # noqa: E402  (the hourglass by default)
 
 #: a GPU run's choices (``torch_stsdic.movie.choices``), as ``count_syncs --gpu-choices``
 GPU_CHOICES = ("EVERY_CANDIDATE=1,UNTIL_DONE=0,MASKED_GROUPS=1,MASKED_CHECK=1,GUESS_READS=1,"
@@ -233,9 +233,7 @@ def count_run(run_args: list[str]) -> tuple[int, collections.Counter]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    run_args = argv[argv.index("--") + 1:] if "--" in argv else HOURGLASS
-    own = argv[:argv.index("--")] if "--" in argv else argv
+    own, run_args = split_run_args(list(sys.argv[1:] if argv is None else argv))
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=None, help="JSON record")
     ap.add_argument("--top", type=int, default=30, help="places listed (default 30)")

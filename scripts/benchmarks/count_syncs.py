@@ -54,7 +54,7 @@ from torch.utils._python_dispatch import TorchDispatchMode
 
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from run_parts import HOURGLASS  # noqa: E402  (the documented region, one definition)
+from run_parts import split_run_args  # noqa: E402  (the hourglass by default)
 
 #: aten operations that make the host wait for the device (by their overload packet name)
 SYNCING = {"_local_scalar_dense": "host read", "equal": "host read",
@@ -209,9 +209,7 @@ class SyncCounter(TorchDispatchMode):
 
 
 def main(argv: list[str] | None = None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    run_args = argv[argv.index("--") + 1:] if "--" in argv else HOURGLASS
-    own = argv[:argv.index("--")] if "--" in argv else argv
+    own, run_args = split_run_args(list(sys.argv[1:] if argv is None else argv))
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=None, help="JSON record")
     ap.add_argument("--where", type=int, default=0, metavar="N",

@@ -33,6 +33,16 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[2]
 HOURGLASS = [str(REPO.parent / "shared/data/mudic-hourglass"), "--roi", "150", "20", "1120",
              "734", "--subset", "31", "--step", "20"]
+
+
+def split_run_args(argv: list[str]) -> tuple[list[str], list[str]]:
+    """A counting script's own arguments and ``stsdic run``'s (after ``--``; default the
+    hourglass with its documented region, :data:`HOURGLASS`)."""
+    if "--" in argv:
+        return argv[:argv.index("--")], argv[argv.index("--") + 1:]
+    return list(argv), list(HOURGLASS)
+
+
 TAG = "RUN_PARTS "
 
 #: (module, function, role): a role "pass:NAME" opens a pass, a role "kind:NAME" a kind
