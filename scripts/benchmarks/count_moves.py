@@ -18,7 +18,8 @@ the literal ``"cpu"``) makes a device tensor, one without, ``torch.from_numpy``,
 and ``.to("cpu")`` host ones; every other operation's outputs are device tensors where one of
 its tensor inputs of more than one element is (a ``TorchDispatchMode``, in the calling
 thread; the frames the read-ahead thread prepares are tagged where they are handed over).
-Counted in the command's own blocks (from a block's solve to its results), in the calling
+Counted in the command's own blocks (each from its solve to the next one's start, as
+:mod:`count_syncs` counts them), in the calling
 thread, by the line of the package that moves it: a ``.to(...)`` with a device of a host
 tensor of more than one element, but :func:`torch_stsdic.movie.frames.upload`'s (pinned
 memory, not waited for) and the CPU's C++ kernels' own (``kernels/native``: a GPU takes other
@@ -34,7 +35,6 @@ import collections
 import json
 import os
 import sys
-import tempfile
 import threading
 from pathlib import Path
 
@@ -43,6 +43,7 @@ from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils._pytree import tree_leaves
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from count_syncs import package_line, run_blocks_counted  # noqa: E402  (one of each)
 from run_parts import split_run_args  # noqa: E402  (the hourglass by default)
 
 #: a GPU run's choices (``torch_stsdic.movie.choices``), as ``count_syncs --gpu-choices``
@@ -82,17 +83,6 @@ def _names_host(args, kwargs) -> bool:
     return (bool(args) and args[0] == "cpu") or kwargs.get("device") == "cpu"
 
 
-def _place(depth: int = 2) -> str:
-    """The innermost line of the package's code on the calling stack."""
-    frame = sys._getframe(depth)
-    while frame is not None:
-        path = frame.f_code.co_filename
-        if "torch_stsdic" in path and "count_moves" not in path:
-            return f"{path[path.rindex('torch_stsdic'):]}:{frame.f_lineno} {frame.f_code.co_name}"
-        frame = frame.f_back
-    return "(outside the package)"
-
-
 class MoveCounter(TorchDispatchMode):
     """Tags every tensor made while it is entered (see the module docstring) and counts, while
     :attr:`counting` and in the entering thread, the moves of host tensors to the device by
@@ -109,7 +99,7 @@ class MoveCounter(TorchDispatchMode):
         if not (self.counting and threading.get_ident() == self._me) or on_device(t) \
                 or t.numel() <= 1:
             return
-        place, made = _place(3), getattr(t, _MADE, "(made outside the count)")
+        place, made = package_line(3), getattr(t, _MADE, "(made outside the count)")
         if "kernels/native" in place or "kernels/native" in made:
             return  # the CPU's C++ kernels' own tensors: a GPU takes other kernels
         if place.endswith(" upload"):
@@ -131,13 +121,13 @@ class MoveCounter(TorchDispatchMode):
                 _tag(out, True)
             elif _names_host(a, k):
                 out = out.view_as(out) if out is t else out
-                _tag(out, False, _place() + " .to(cpu)")
+                _tag(out, False, package_line() + " .to(cpu)")
             return out
 
         def to_host(t, *a, **k):
             out = cpu(t, *a, **k)
             out = out.view_as(out) if out is t else out
-            _tag(out, False, _place() + " .cpu()")
+            _tag(out, False, package_line() + " .cpu()")
             return out
 
         torch.Tensor.to, torch.Tensor.cpu = moved, to_host
@@ -149,7 +139,7 @@ class MoveCounter(TorchDispatchMode):
                 if a and isinstance(a[0], torch.Tensor) and "device" not in k:
                     return out  # (a tensor already: where it was)
                 dev = _names_device(a[1:] if _name == "full" else (), k)
-                _tag(out, dev, None if dev else f"{_place()} torch.{_name}")
+                _tag(out, dev, None if dev else f"{package_line()} torch.{_name}")
                 return out
 
             setattr(torch, name, made)
@@ -157,7 +147,7 @@ class MoveCounter(TorchDispatchMode):
 
         def host(a):
             out = from_numpy(a)
-            _tag(out, False, f"{_place()} torch.from_numpy")
+            _tag(out, False, f"{package_line()} torch.from_numpy")
             return out
 
         torch.from_numpy = host
@@ -194,42 +184,23 @@ class MoveCounter(TorchDispatchMode):
 
 
 def count_run(run_args: list[str]) -> tuple[int, collections.Counter]:
-    """The command's blocks and the moves in them (:class:`MoveCounter`), running ``stsdic
-    run`` with ``run_args`` into a temporary folder."""
-    from torch_stsdic.cli.app import main as stsdic
-    from torch_stsdic.movie import series as series_mod
+    """The command's own blocks and the moves in them (:class:`MoveCounter`, counting from
+    the first block's start to the end of the block loop: each block up to the next one's
+    start, as :func:`count_syncs.run_blocks_counted` delimits them), running ``stsdic run``
+    with ``run_args`` into a temporary folder."""
+    counter, blocks = MoveCounter(), [0]
 
-    counter = MoveCounter()
-    solve, run_plan = series_mod.solve_block, series_mod.run_plan
-    depth, per_depth = [0], {}
-
-    def run_counted(*a, **k):  # the passes' runs are nested in the command's
-        depth[0] += 1
-        try:
-            return run_plan(*a, **k)
-        finally:
-            depth[0] -= 1
-
-    def block_counted(*a, **k):
-        moves, blocks = per_depth.setdefault(depth[0], (collections.Counter(), [0]))
-        counter.moves, counter.counting = moves, True
+    def block_start() -> None:
+        counter.counting = True
         blocks[0] += 1
-        try:
-            return solve(*a, **k)
-        finally:
-            counter.counting = False
 
-    series_mod.run_plan, series_mod.solve_block = run_counted, block_counted
-    try:
-        with tempfile.TemporaryDirectory() as tmp, counter:
-            code = stsdic(["run", *run_args, "--out", str(Path(tmp) / "moves.h5"),
-                           "--no-progress"])
-    finally:
-        series_mod.run_plan, series_mod.solve_block = run_plan, solve
+    def loop_end() -> None:
+        counter.counting = False
+
+    code = run_blocks_counted(run_args, counter, block_start, loop_end)
     if code:
         raise SystemExit(f"stsdic run failed ({code})")
-    moves, (blocks,) = per_depth[min(per_depth)]  # the command's own: the shallowest
-    return blocks, moves
+    return blocks[0], counter.moves
 
 
 def main(argv: list[str] | None = None) -> int:

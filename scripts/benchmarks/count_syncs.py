@@ -42,11 +42,13 @@ from __future__ import annotations
 
 import argparse
 import collections
+import contextlib
 import json
 import statistics
 import sys
 import tempfile
 import threading
+from collections.abc import Callable
 from pathlib import Path
 
 import torch
@@ -108,6 +110,21 @@ NO_LAUNCH = {"view", "_unsafe_view", "reshape", "as_strided", "expand", "permute
              "expand_as", "view_as", "flatten", "_local_scalar_dense", "equal", "sym_size",
              "sym_stride", "sym_numel", "is_same_size", "empty", "empty_like", "empty_strided",
              "resize_", "set_"}
+
+
+def package_line(depth: int = 2, function: bool = False) -> str:
+    """The innermost line (``function``: function) of the package's own code on the stack
+    of the caller ``depth`` frames up (these scripts' own frames passed over)."""
+    frame = sys._getframe(depth)
+    while frame is not None:
+        path = frame.f_code.co_filename
+        if "torch_stsdic" in path and "scripts/benchmarks" not in path.replace("\\", "/"):
+            short = path[path.rindex("torch_stsdic"):]
+            if function:
+                return f"{short} {frame.f_code.co_name}"
+            return f"{short}:{frame.f_lineno} {frame.f_code.co_name}"
+        frame = frame.f_back
+    return "(outside the package)"
 
 
 class SyncCounter(TorchDispatchMode):
@@ -172,18 +189,7 @@ class SyncCounter(TorchDispatchMode):
         return super().__exit__(*exc)
 
     def _place(self, function: bool = False) -> str:
-        """The innermost line (``function``: function) of the package's own code on the
-        calling stack."""
-        frame = sys._getframe(2)
-        while frame is not None:
-            path = frame.f_code.co_filename
-            if "torch_stsdic" in path and "count_syncs" not in path:
-                short = path[path.rindex("torch_stsdic"):]
-                if function:
-                    return f"{short} {frame.f_code.co_name}"
-                return f"{short}:{frame.f_lineno} {frame.f_code.co_name}"
-            frame = frame.f_back
-        return "(outside the package)"
+        return package_line(3, function)
 
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
         name = func.overloadpacket.__name__
@@ -354,23 +360,9 @@ def count_run(run_args: list[str], where: bool = False, ops_where: bool = False
     """``stsdic run`` with ``run_args`` (the output to a temporary file) under a
     :class:`SyncCounter`: its exit code, the counts of each block of the run itself (its
     passes' blocks apart) and the counter (whole run)."""
-    import torch_stsdic.movie.block as block
-    import torch_stsdic.movie.series as series
-    from torch_stsdic.cli.app import main as cli_main
-
     counter = SyncCounter(where=where)
     ops = collections.Counter() if ops_where else None
     per_block: list[dict[str, int]] = []
-    depth = {"runs": 0}
-    run_plan, solve_block, run_blocks = series.run_plan, block.solve_block, series._run_blocks
-
-    def counted_run(plan, *a, **k):  # the run itself is the outermost run_plan
-        depth["runs"] += 1
-        try:
-            return run_plan(plan, *a, **k)
-        finally:
-            depth["runs"] -= 1
-
     open_block: list = []  # the run's block being counted: (counts, places) at its start
 
     def close_block() -> None:  # a block ends where the next starts (or the run's loop)
@@ -384,35 +376,73 @@ def count_run(run_args: list[str], where: bool = False, ops_where: bool = False
                     {p: n for p, n in here.most_common()
                      if not (p.startswith(NATIVE) or p.endswith(NATIVE_CALLERS))})
 
-    def counted_block(*a, **k):
-        if depth["runs"] == 1:  # the run's own: counted up to the next block's start (its
-            close_block()       # results handed over and the carry made from them too)
-            open_block.append((collections.Counter(counter.counts),
-                               collections.Counter(counter.where or {})))
-        counter.op_where = ops if depth["runs"] == 1 else None  # the run's blocks only
+    def open_next() -> None:
+        close_block()
+        open_block.append((collections.Counter(counter.counts),
+                           collections.Counter(counter.where or {})))
+
+    @contextlib.contextmanager
+    def solving(own: bool):  # the launch-like operations' functions: the run's blocks only
+        counter.op_where = ops if own else None
         try:
-            return solve_block(*a, **k)
+            yield
         finally:
             counter.op_where = None
+
+    rc = run_blocks_counted(run_args, counter, open_next, close_block, solving)
+    counter.op_where = ops
+    return rc, per_block, counter
+
+
+def run_blocks_counted(run_args: list[str], counter, block_start: Callable[[], None],
+                       loop_end: Callable[[], None],
+                       solving: Callable[[bool], contextlib.AbstractContextManager] | None = None
+                       ) -> int:
+    """``stsdic run`` with ``run_args`` (the output to a temporary file) under ``counter`` (a
+    context manager, entered around the whole command), telling where the run's own blocks
+    (its passes' blocks apart: those of the runs nested in it) begin and end: a block from
+    the start of its solve to the next block's start (its results handed over and the next
+    carry made from them too: what the block loop's thread does), the last one to the end of
+    the run's block loop. ``block_start()`` where each begins, ``loop_end()`` where the loop
+    ends; ``solving(own)``, where given, around every block's solve (``own``: the run's).
+    Returns the command's exit code."""
+    import torch_stsdic.movie.block as block
+    import torch_stsdic.movie.series as series
+    from torch_stsdic.cli.app import main as cli_main
+
+    depth = {"runs": 0}
+    run_plan, solve_block, run_blocks = series.run_plan, block.solve_block, series._run_blocks
+
+    def counted_run(plan, *a, **k):  # the run itself is the outermost run_plan
+        depth["runs"] += 1
+        try:
+            return run_plan(plan, *a, **k)
+        finally:
+            depth["runs"] -= 1
+
+    def counted_block(*a, **k):
+        own = depth["runs"] == 1
+        if own:
+            block_start()
+        with solving(own) if solving is not None else contextlib.nullcontext():
+            return solve_block(*a, **k)
 
     def counted_blocks(*a, **k):  # the run's block loop: its last block ends with it
         try:
             return run_blocks(*a, **k)
         finally:
             if depth["runs"] == 1:
-                close_block()
+                loop_end()
 
     series.run_plan, series.solve_block = counted_run, counted_block
     series._run_blocks = counted_blocks
     try:
         with tempfile.TemporaryDirectory() as tmp, counter:
-            rc = cli_main(["run", *run_args, "--out", str(Path(tmp) / "r.h5"), "--overwrite",
-                           "--no-progress"])
+            return cli_main(["run", *run_args, "--out", str(Path(tmp) / "r.h5"),
+                             "--overwrite", "--no-progress"])
     finally:
         series.run_plan, series.solve_block = run_plan, solve_block
         series._run_blocks = run_blocks
-    counter.op_where = ops
-    return rc, per_block, counter
 
 
 def _commit() -> str:
