@@ -140,7 +140,6 @@ def test_a_gpus_blocks_and_budget_counted_on_the_cpu(monkeypatch):
     assert gauss_newton.gpu_budget_mb("cpu") == initial.gpu_budget_mb("cpu") == 2048.0
 
 
-
 def test_the_move_counter_finds_host_tensors_copied_to_the_device():
     """``scripts/benchmarks/count_moves.py``: on the CPU a ``.to(device)`` of a host tensor
     is no copy, on a GPU a copy that waits; the counter tags tensors by where they were made
