@@ -514,6 +514,12 @@ def test_default_block_length_on_the_cpu_and_on_a_gpu():
     assert default_batch_frames(given, (2048, 2048), 4, "cuda", device_mb=80_000) == 2
     assert default_batch_frames(DICConfig(m=2, memory_mb=8000), (1024, 1024), 4, "cuda",
                                 device_mb=80_000) == 32
+    # blocks that start from an earlier round's solutions (no carry extrapolated over
+    # them): the budget alone on the CPU, a GPU's cap kept
+    assert default_batch_frames(cfg, (1024, 1024), 4, carried=False) == 10
+    assert default_batch_frames(cfg, (4096, 4096), 4, carried=False) == 1
+    assert default_batch_frames(cfg, (1024, 1024), 4, "cuda", device_mb=80_000,
+                                carried=False) == 32
 
 
 def test_a_gpu_solves_in_batches_of_its_own_budget_with_the_same_answers(monkeypatch):

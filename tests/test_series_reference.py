@@ -603,6 +603,44 @@ def test_a_later_round_starts_every_row_from_the_earlier_rounds_solution(movie, 
     assert float(res.iterations.double().mean()) < float(first[0].iterations.double().mean())
 
 
+def test_a_later_rounds_blocks_are_as_long_as_the_budget_allows(movie, monkeypatch):
+    """Every block of a later round starts from the earlier round's solutions, so none
+    extrapolates a carry: its first target is not alone and a block holds as many targets as
+    the memory budget allows (the CPU's cap of 8 guards the carry). The same rows as in
+    the first round's blocks, to the solver's tolerance."""
+    from torch_stsdic.movie import plan as plan_mod
+
+    blocks, results = [], {}
+    orig = series_reference._measure
+
+    def recording(plan, frames, image, run, guess=None, ratio=None):
+        def seen(sub, *a, **kw):
+            if guess is not None:
+                blocks.append(sub.blocks)
+            return run(sub, *a, **kw)
+        res = orig(plan, frames, image, seen, guess, ratio)
+        if guess is not None and len(frames) > 1:
+            results.setdefault(key, []).append(res)
+        return res
+
+    monkeypatch.setattr(series_reference, "_measure", recording)
+    key = "budget"
+    _run(movie, 0)
+    assert blocks and all(len(b[0]) > 1 or len(sum(b, [])) == 1 for b in blocks)
+    n = len(blocks[0][0])  # the sampled frames, in one block
+    assert len(blocks[0]) == 1 and n > plan_mod.MAX_DEFAULT_BATCH + 1
+    # the later round in the carried runs' blocks (first alone, then 8): the same rows
+    monkeypatch.setattr(series_reference, "guessed_blocks",
+                        lambda p: plan_mod.dataclasses.replace(p, batch_frames=8))
+    key, blocks[:] = "carried", []
+    _run(movie, 0)
+    assert [len(b) for b in blocks[0]] == [1, 8, n - 9]
+    a, b = results["budget"][0], results["carried"][0]
+    assert torch.equal(a.status, b.status)
+    for name in ("u", "v"):
+        assert torch.allclose(a.field(name), b.field(name), atol=1e-4, rtol=0, equal_nan=True)
+
+
 def test_the_rounds_against_the_template_take_its_known_noise_ratio(movie, monkeypatch):
     """The template's later rounds and its gauge measure against the template, whose noise
     ratio its own construction gives (``template_image``): their blocks take it, they do

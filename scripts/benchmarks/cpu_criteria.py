@@ -78,8 +78,9 @@ def _summary(rows: list[dict], key: str) -> dict:
     vals = [r[key] for r in rows if r.get(key) is not None]
     if not vals:
         return {}
-    return {"median": round(statistics.median(vals), 3), "min": round(min(vals), 3),
-            "max": round(max(vals), 3)}
+    # (4 decimals: a share's median is judged against its limit unrounded, 0.1503 > 0.15)
+    return {"median": round(statistics.median(vals), 4), "min": round(min(vals), 4),
+            "max": round(max(vals), 4)}
 
 
 def main() -> int:
@@ -132,7 +133,7 @@ def main() -> int:
     print(f"limits: ratio <= {LIMITS['ratio']}x: {ratio}x "
           f"({'met' if ratio is not None and ratio <= LIMITS['ratio'] else 'not met'}); "
           f"template <= {LIMITS['template_share']:.0%}: "
-          f"{'-' if share is None else f'{share:.1%}'} "
+          f"{'-' if share is None else f'{share:.2%}'} "
           f"({'met' if share is not None and share <= LIMITS['template_share'] else 'not met'})")
     if a.out:
         cpu = next((ln.split(":", 1)[1].strip() for ln in Path("/proc/cpuinfo").read_text(

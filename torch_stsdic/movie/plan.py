@@ -8,6 +8,7 @@ chunks. A plan holds no solver state, so it can be inspected before anything is 
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -27,7 +28,7 @@ from torch_stsdic.io.units import check_calibration
 
 __all__ = ["RunPlan", "plan_run", "reference_frames", "resolve_reference", "resolve_frames",
            "resolve_times", "default_batch_frames", "grid_margin", "set_shared_motion",
-           "MAX_DEFAULT_BATCH", "MAX_DEFAULT_BATCH_GPU"]
+           "MAX_DEFAULT_BATCH", "MAX_DEFAULT_BATCH_GPU", "guessed_blocks"]
 
 MAX_DEFAULT_BATCH = 8
 #: on a GPU a block's host work (launches, checks, carry), not its arithmetic, sets the pace:
@@ -54,6 +55,9 @@ class RunPlan:
             "array:<digest>").
         dtype, device: of the computation.
         batch_frames: target frames solved together per block.
+        first_alone: the first target in a block of its own (its rows started by FFT
+            cross-correlation, the next blocks' carried from it); False where every block
+            starts from an earlier round's solutions (:func:`guessed_blocks`).
         param_names: the shape function's parameter names for a window of 2m+1 frames.
         options: run options recorded with the results (step, roi, reference_update,
             lost_zncc, smoothing, checks, strain settings).
@@ -76,6 +80,7 @@ class RunPlan:
     param_names: tuple[str, ...]
     options: dict[str, Any] = field(default_factory=dict)
     units: dict[str, Any] = field(default_factory=lambda: {"unit": "px", "time_unit": "frame"})
+    first_alone: bool = True
 
     @property
     def n_rows(self) -> int:
@@ -113,10 +118,10 @@ class RunPlan:
 
     @property
     def blocks(self) -> list[list[int]]:
-        """Target frames per block: the first target alone (FFT start), then ``batch_frames``
-        at a time."""
-        tg, n = self.targets, self.batch_frames
-        return [b for b in [tg[:1]] + [tg[i : i + n] for i in range(1, len(tg), n)] if b]
+        """Target frames per block: the first target alone (FFT start; not where
+        ``first_alone`` is False), then ``batch_frames`` at a time."""
+        tg, n, a = self.targets, self.batch_frames, int(self.first_alone)
+        return [b for b in [tg[:a]] + [tg[i : i + n] for i in range(a, len(tg), n)] if b]
 
     def row_of(self) -> dict[int, int]:
         """Result row of every target frame."""
@@ -366,7 +371,7 @@ def resolve_times(times: Any, series: ImageSeries) -> np.ndarray:
 
 def default_batch_frames(cfg: DICConfig, shape: tuple[int, int], elem: int,
                          device: torch.device | str = "cpu",
-                         device_mb: float | None = None) -> int:
+                         device_mb: float | None = None, carried: bool = True) -> int:
     """Target frames per block: the frames its targets add (raw + padded coefficients, ~3
     copies each) within half of ``memory_mb`` (not given: 256 MiB; the other half bounds
     the solver's batches; the 2m frames of the window come on top: any block holds them),
@@ -376,19 +381,33 @@ def default_batch_frames(cfg: DICConfig, shape: tuple[int, int], elem: int,
     ``MAX_DEFAULT_BATCH_GPU`` and, where ``memory_mb`` is not given, the frames' budget at
     least :func:`~torch_stsdic.core.config.gpu_budget_mb` (2 GiB within a tenth of the
     device's memory): a block's host work sets the pace there, and 256 MiB would hold 6
-    megapixel frames. (Counting the window's
+    megapixel frames. ``carried=False``: the blocks of a run whose every block starts from
+    an earlier round's solutions (:func:`guessed_blocks`), not from the carry: no cap on the
+    CPU but the budget. (Counting the window's
     frames too left the muDIC hourglass, 1.3 megapixel frames and windows of up to 13, one
     target a block: 17 s a run against 14 s with 8, the same results within 1.1e-3 px.)"""
     frame_bytes = 3.0 * shape[0] * shape[1] * elem
     budget = cfg.budget_mb * 2**20 / 2.0
-    most = MAX_DEFAULT_BATCH
+    most = MAX_DEFAULT_BATCH if carried else None
     gpu_mb = gpu_budget_mb(device, device_mb)
     if gpu_mb is not None:
         if cfg.gpu_floor:
             budget = max(budget, gpu_mb * 2**20)
         most = MAX_DEFAULT_BATCH_GPU
     fit = int(budget / frame_bytes)
-    return max(1, min(most, fit))
+    return max(1, fit if most is None else min(most, fit))
+
+
+def guessed_blocks(plan: RunPlan) -> RunPlan:
+    """``plan`` for a run whose every block starts from an earlier round's solutions (a
+    ``first_guess`` with ``guess_every_block``: the template's later rounds): no block
+    extrapolates the carry, so the first target is not alone and a block holds as many
+    targets as the memory budget allows (:func:`default_batch_frames` with
+    ``carried=False``; never fewer than ``plan``'s): fewer blocks, each with its own fixed
+    costs (the hourglass's template: 5 blocks -> 3, 4 % of its time)."""
+    elem = torch.finfo(plan.dtype).bits // 8
+    n = default_batch_frames(plan.config, plan.series.shape, elem, plan.device, carried=False)
+    return dataclasses.replace(plan, first_alone=False, batch_frames=max(plan.batch_frames, n))
 
 
 def set_shared_motion(plan: RunPlan, kind: str | None = "auto") -> None:

@@ -42,7 +42,7 @@ from torch_stsdic.core.shared_motion import SharedMotion
 from torch_stsdic.core.solver import SubsetSolver
 from torch_stsdic.movie.classical_pass import ClassicalPass, classical_subplan
 from torch_stsdic.movie.frames import FrameCache, FrameStore
-from torch_stsdic.movie.plan import RunPlan
+from torch_stsdic.movie.plan import RunPlan, guessed_blocks
 from torch_stsdic.movie.refine import ReferenceOffsets
 from torch_stsdic.movie.sample_guess import MeasuredSample
 from torch_stsdic.movie.template_image import TemplateWindows, template_image
@@ -175,15 +175,17 @@ def _measure(plan: RunPlan, frames: list[int], image: torch.Tensor | None,
     """Classical DIC (checks off) of ``frames`` at all the plan's POIs, against the plan's
     reference or against ``image`` (a template of noise variance ``ratio`` times a
     frame's, as :func:`template_image` made it: not estimated from its pixels again);
-    its first block starts from ``guess`` (an earlier round's solutions; None: FFT
-    cross-correlation)."""
+    every block starts from ``guess`` (an earlier round's solutions, in blocks as long as
+    the memory budget allows: :func:`~torch_stsdic.movie.plan.guessed_blocks`; None: FFT
+    cross-correlation, then the carry)."""
     sub = classical_subplan(plan, frames)
     if image is not None:
         sub = dataclasses.replace(sub, reference_image=image, reference_frame=-1,
                                   reference_desc="array:series-template",
                                   options={**sub.options, "reference_noise_ratio": ratio})
-    return run(sub, progress=False, **({} if guess is None else
-                                       {"first_guess": guess, "guess_every_block": True}))
+    if guess is None:
+        return run(sub, progress=False)
+    return run(guessed_blocks(sub), progress=False, first_guess=guess, guess_every_block=True)
 
 
 def _round_guess(plan: RunPlan, res: TrackResult) -> MeasuredSample:
