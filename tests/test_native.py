@@ -510,6 +510,9 @@ def test_wrappers_pass_exactly_the_declared_parameters(monkeypatch):
                            *[torch.zeros(k, dtype=torch.float64) for k in (7, 14, 14)],
                            torch.tensor([1, 0]), torch.tensor([0, 1]),
                            torch.arange(10).view(2, 5) % 7)
+        frames = torch.ones(2, 5, 6, dtype=dtype)
+        native.sobel_counts(frames, 1, 9)
+        native.flat_sums(frames, torch.zeros(2, dtype=dtype))
     declared = native.kernels()
     assert set(seen) == set(declared)
     for name, calls in seen.items():

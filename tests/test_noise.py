@@ -240,3 +240,53 @@ def test_immerkaer_of_a_stack_is_each_frames_own_and_its_quantile_torchs():
     x = torch.randint(0, 4, (5, 13), generator=gen).float()
     for q in (0.0, 0.25, 0.5, 0.9, 1.0):
         assert torch.equal(_quantiles(x, q), torch.quantile(x, q, dim=1))
+
+
+def test_the_native_noise_estimate_equals_the_torch_code_to_the_bit(monkeypatch):
+    """Immerkaer's estimate by the C++ kernels (two passes a frame: Sobel's histogram, then
+    the flat pixels' Laplacian sum, both exact on whole-number grey levels) gives the torch
+    code's numbers to the bit: 8, 12 and 16-bit levels, float32 and float64, flat fractions,
+    a frame large enough that the cut is taken over every second magnitude, the smallest
+    frames; fractional, NaN or out-of-range levels take the torch code."""
+    from torch_stsdic.core import noise
+    from torch_stsdic.kernels import native
+
+    if not native.available():
+        pytest.skip("no C++ compiler: the native kernels are not built")
+    gen = torch.Generator().manual_seed(11)
+    cases = [(torch.rand(4, 96, 131, generator=gen) * 255).round(),
+             (torch.rand(3, 60, 47, generator=gen) * 4095).round().double(),
+             (torch.rand(2, 40, 40, generator=gen) * 65535).round(),
+             (torch.rand(1, 3, 3, generator=gen) * 9).round(),
+             (torch.rand(2, 5, 11, generator=gen) * 3).round().double() - 1.0,
+             torch.full((2, 9, 9), 7.0)]  # flat: every magnitude 0
+    big = (torch.rand(1, 2004, 2004, generator=gen) * 255).round()  # 4 M magnitudes: step 2
+    assert noise._cut_step(2002 * 2002) == 2
+    calls = []
+    native_mean = noise._native_flat_mean
+
+    def counted(frames, q):
+        out = native_mean(frames, q)
+        calls.append(out is not None)
+        return out
+
+    def torch_only(frames, q):
+        return None
+
+    for x in [*cases, big]:
+        for q in (0.5, 0.1, 0.9, 1.0):
+            monkeypatch.setattr(noise, "_native_flat_mean", counted)
+            got = noise.immerkaer_sigmas(x, q)
+            assert calls.pop() is True
+            monkeypatch.setattr(noise, "_native_flat_mean", torch_only)
+            want = noise.immerkaer_sigmas(x, q)
+            assert got.dtype == want.dtype and torch.equal(got, want), (tuple(x.shape), q)
+            if x is big:
+                break
+    monkeypatch.setattr(noise, "_native_flat_mean", native_mean)
+    # not whole numbers, NaN, beyond 20 bits: the torch code
+    for x in (cases[0] + 0.5, torch.where(cases[0] > 250, torch.nan, cases[0]),
+              cases[0] * 2.0 ** 13):
+        assert noise._native_flat_mean(x, 0.5) is None
+    with torch.no_grad():
+        assert noise._native_flat_mean(cases[0], 0.5) is not None

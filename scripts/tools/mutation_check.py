@@ -292,6 +292,22 @@ MUTATIONS: tuple[Mutation, ...] = (
         "the velocity maps' 2 x 2 systems by torch's pinv: a decomposition that waits for a "
         "GPU"),
     Mutation(
+        "later-rounds-blocked-as-carried", "reference", "torch_stsdic/movie/plan.py",
+        "    return dataclasses.replace(plan, first_alone=False, "
+        "batch_frames=max(plan.batch_frames, n))",
+        "    return plan",
+        ("test_series_reference.py",),
+        "the template's later rounds in the carried run's blocks (first target alone, then 8): "
+        "more blocks, each with its fixed costs"),
+    Mutation(
+        "native-noise-cut-excludes-its-own-level", "noise",
+        "torch_stsdic/kernels/native/dic_kernels.cpp",
+        "        const bool flat = sobel_at(p, w, i, j) <= c;",
+        "        const bool flat = sobel_at(p, w, i, j) < c;",
+        ("test_noise.py",),
+        "the C++ noise estimate's flat pixels without those at the cut: another estimate "
+        "than the torch code's"),
+    Mutation(
         "plane-rows-read-on-a-gpu", "neighbour test", "torch_stsdic/analysis/quality.py",
         "        if every_row or fit.numel() <= PLANE_EVERY_ROW:",
         "        if fit.numel() <= PLANE_EVERY_ROW:",

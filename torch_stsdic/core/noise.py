@@ -94,6 +94,8 @@ from torch_stsdic.core.interpolation import BSplineImage
 from torch_stsdic.core.shape import make_shape
 from torch_stsdic.core.signatures import signature_like
 from torch_stsdic.core.window import effective_pixels, make_window
+from torch_stsdic.kernels import dispatch
+from torch_stsdic.kernels import native as native_ops
 
 __all__ = [
     "predicted_std",
@@ -411,6 +413,18 @@ def _quantiles(x: torch.Tensor, q: float) -> torch.Tensor:
     return v_lo + (v_hi - v_lo) * (pos - lo)
 
 
+def _counted_quantiles(counts: torch.Tensor, n: int, q: float, dtype: torch.dtype
+                       ) -> torch.Tensor:
+    """(F,) :func:`_quantiles` of rows of ``n`` whole numbers given as their histograms
+    ``counts`` (F, bins) (value v counted at bin v), in ``dtype``: the same numbers."""
+    pos = q * (n - 1)
+    lo = int(math.floor(pos))
+    if lo + 1 >= n:
+        return _ranked(counts, (lo + 1,))[:, 0].to(dtype)
+    v_lo, v_hi = _ranked(counts, (lo + 1, lo + 2)).to(dtype).unbind(1)
+    return v_lo + (v_hi - v_lo) * (pos - lo)
+
+
 #: whole-number values below this are counted in histograms by :func:`_quantiles` (8 MiB a
 #: row of counts; the Sobel magnitudes of 16-bit grey levels stay below 2^19)
 _HISTOGRAM_BINS = 1 << 20
@@ -431,9 +445,16 @@ def _order_statistics(x: torch.Tensor, ranks: tuple[int, ...]) -> torch.Tensor |
     f, bins = x.shape[0], int(hi) + 1
     at = x.to(torch.int64) + torch.arange(f).view(-1, 1) * bins  # each row its own bins
     counts = torch.bincount(at.reshape(-1), minlength=f * bins).view(f, bins)
+    return _ranked(counts, ranks).to(x.dtype)
+
+
+def _ranked(counts: torch.Tensor, ranks: tuple[int, ...]) -> torch.Tensor:
+    """(F, R) int64 the ``ranks``-th smallest values (1-based) of rows of whole numbers given
+    as their histograms ``counts`` (F, bins): the first bin whose running count reaches each
+    rank."""
     below = counts.cumsum(1)  # values <= each bin
-    want = torch.tensor(ranks, dtype=below.dtype).expand(f, -1).contiguous()
-    return torch.searchsorted(below, want).to(x.dtype)  # the first bin reaching the rank
+    want = torch.tensor(ranks, dtype=below.dtype).expand(counts.shape[0], -1).contiguous()
+    return torch.searchsorted(below, want)
 
 
 def _second_difference(x: torch.Tensor, dim: int) -> torch.Tensor:
@@ -468,6 +489,10 @@ def immerkaer_sigmas(frames: torch.Tensor, flat_fraction: float | None = 0.5) ->
     gradient at most its ``flat_fraction`` quantile; None: every pixel) averaged in
     float64. (In float32 the kernels of integer grey levels up to 16 bits are exact: sums
     of at most 16 of them.)"""
+    if flat_fraction is not None:
+        mean = _native_flat_mean(frames, float(flat_fraction))
+        if mean is not None:
+            return math.sqrt(math.pi / 2.0) * mean / 6.0
     a = _second_difference(_second_difference(frames, -1), -2).abs_()  # the Laplacian
     if flat_fraction is None:
         mean = a.mean((-2, -1), dtype=torch.float64)
@@ -476,13 +501,45 @@ def immerkaer_sigmas(frames: torch.Tensor, flat_fraction: float | None = 0.5) ->
         g = _smoothing(_central_difference(frames, -1), -2).abs_().add_(
             _smoothing(_central_difference(frames, -2), -1).abs_())
         flat = g.reshape(g.shape[0], -1)
-        cut = _quantiles(flat[:, :: max(1, flat.shape[1] // 2_000_000)], float(flat_fraction))
+        cut = _quantiles(flat[:, :: _cut_step(flat.shape[1])], float(flat_fraction))
         keep = g <= cut.view(-1, 1, 1)
         # the kept pixels' mean, without gathering them
         mean = torch.where(keep, a, 0.0).sum((-2, -1), dtype=torch.float64) / keep.sum(
             (-2, -1)).clamp(min=1)
     # E|N * noise| = sigma sqrt(36) sqrt(2/pi): sum of squared weights is 36
     return math.sqrt(math.pi / 2.0) * mean / 6.0
+
+
+#: whole-number grey levels up to this magnitude take the C++ path (:func:`_native_flat_mean`)
+_WHOLE_LEVELS = float(1 << 20)
+
+
+def _cut_step(n: int) -> int:
+    """The stride of the Sobel magnitudes (n a frame) whose quantile sets the flat cut."""
+    return max(1, n // 2_000_000)
+
+
+def _native_flat_mean(frames: torch.Tensor, q: float) -> torch.Tensor | None:
+    """(F,) float64 :func:`immerkaer_sigmas`' mean of the flat pixels' Laplacian magnitudes,
+    by the C++ kernels in two passes a frame and no (F, H, W) arrays
+    (:func:`~torch_stsdic.kernels.native.sobel_counts`, ``flat_sums``), where they give the
+    torch code's numbers to the bit: on the CPU, frames of whole-number grey levels (every
+    stencil, cut and sum exact) whose Sobel magnitudes fit the histogram
+    (``_HISTOGRAM_BINS``); else None (the torch code)."""
+    if dispatch.noise(frames) != dispatch.NATIVE or frames.numel() == 0:
+        return None
+    lo, hi = (float(v) for v in torch.aminmax(frames))
+    span = hi - lo  # (grey levels of up to 20 bits: every stencil's sums below 2^24, exact)
+    if not (math.isfinite(span) and 8.0 * span < _HISTOGRAM_BINS
+            and max(-lo, hi) <= _WHOLE_LEVELS and bool(torch.equal(frames, frames.trunc()))):
+        return None
+    f, h, w = frames.shape
+    n_valid = (h - 2) * (w - 2)
+    step = _cut_step(n_valid)
+    counts = native_ops.sobel_counts(frames, step, int(8.0 * span) + 1)
+    cut = _counted_quantiles(counts, -(-n_valid // step), q, frames.dtype)
+    sums, kept = native_ops.flat_sums(frames, cut)
+    return sums / kept.clamp(min=1)
 
 
 def estimate_noise_sigma(

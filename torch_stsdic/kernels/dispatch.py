@@ -15,7 +15,7 @@ from torch import Tensor
 from torch_stsdic.kernels import fused_step, native
 
 __all__ = ["prefilter", "sample", "windows", "gram", "ic_step", "fused_ic_step", "param_std",
-           "spd_inverse", "nanmedian", "neighbour_test", "describe"]
+           "spd_inverse", "nanmedian", "neighbour_test", "noise", "describe"]
 
 NATIVE, TRITON, TORCH = "native", "triton", "torch"
 
@@ -80,6 +80,13 @@ def nanmedian(x: Tensor) -> str:
     """The NaN-ignoring median of short rows (..., n)."""
     ok = x.dim() and 1 <= x.shape[-1] <= 64 and x.numel() and native.usable(x)
     return NATIVE if ok else TORCH
+
+
+def noise(frames: Tensor) -> str:
+    """Immerkaer's noise estimate of frames (F, H, W) (``core.noise.immerkaer_sigmas``; the
+    native path takes whole-number grey levels only, which its caller checks)."""
+    ok = frames.dim() == 3 and frames.shape[-1] >= 3 and frames.shape[-2] >= 3
+    return NATIVE if ok and frames.is_floating_point() and native.usable(frames) else TORCH
 
 
 def neighbour_test(v: Tensor, eps: Tensor, n_neighbours: int, points: Tensor | None,

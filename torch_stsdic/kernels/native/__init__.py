@@ -46,7 +46,8 @@ Modules, one job each: ``builder`` (compiler, cache directory, :func:`build`),
 ``ops`` (the wrappers :func:`sample`, :func:`subsets`, :func:`ic_rhs`, :func:`gram`,
 :func:`spd_inverse`, :func:`nanmedian`, :func:`neighbour_own_gradient`,
 :func:`neighbour_test`, :func:`prefilter`, :func:`splat`, :func:`splat_add`,
-:func:`splat_fused`, :func:`splat_finish`, :func:`windows`).
+:func:`splat_fused`, :func:`splat_finish`, :func:`windows`, :func:`sobel_counts`,
+:func:`flat_sums`).
 """
 
 from __future__ import annotations
@@ -63,6 +64,7 @@ from torch_stsdic.kernels.native.loader import (
     usable_image,
 )
 from torch_stsdic.kernels.native.ops import (
+    flat_sums,
     gram,
     ic_rhs,
     ic_solve,
@@ -72,6 +74,7 @@ from torch_stsdic.kernels.native.ops import (
     param_std,
     prefilter,
     sample,
+    sobel_counts,
     spd_inverse,
     splat,
     splat_add,
@@ -85,5 +88,6 @@ __all__ = ["available", "set_native", "native_enabled", "sample", "subsets", "ic
            "ic_solve", "gram",
            "spd_inverse", "param_std", "nanmedian", "neighbour_own_gradient", "neighbour_test",
            "prefilter", "splat", "splat_add", "splat_fused", "splat_finish", "windows",
+           "sobel_counts", "flat_sums",
            "build", "kernels", "Kernel", "Param", "usable", "usable_image",
            "per_point_enabled"]

@@ -25,14 +25,14 @@ import torch
 
 __all__ = ["ABI", "KERNELS", "VARIANTS", "Param", "Kernel", "Library"]
 
-ABI = 17  # sts_abi_version() of the matching dic_kernels.cpp
+ABI = 18  # sts_abi_version() of the matching dic_kernels.cpp
 # the kernels the wrappers (ops.py) call (each as <name>_f32 and <name>_f64); their signatures
 # come from the library (see the module docstring)
 KERNELS = ("sts_sample", "sts_subsets", "sts_ic_rhs", "sts_ic_solve", "sts_prefilter",
            "sts_gram", "sts_spd_inverse", "sts_param_std", "sts_nanmedian", "sts_nb_own",
            "sts_nb_test", "sts_splat", "sts_splat_add", "sts_splat_fused",
            "sts_splat_finish",
-           "sts_windows")
+           "sts_windows", "sts_sobel_counts", "sts_flat_sums")
 VARIANTS = {torch.float32: "_f32", torch.float64: "_f64"}
 
 # parameter kinds of the library's declarations (dic_kernels.cpp, kind_of): scalars, and

@@ -1201,6 +1201,74 @@ STS_KERNEL(sts_nanmedian, (int64_t i0, int64_t i1, int64_t k, const T* x, T* out
   return 0;
 }
 
+// ---- Immerkaer's noise estimate (core/noise.py, immerkaer_sigmas) -------------------------
+// The "valid" 3x3 stencils of pixel (i, j) of a frame p (h x w, row-major) as noise.py forms
+// them from its 1-D factors, in T, each operation in its order (2 x a value is exact, so a
+// fused multiply-add rounds as the separate operations do): Sobel's |d/dx| + |d/dy| and the
+// Laplacian difference's magnitude, at output pixel (i, j) of (h - 2) x (w - 2).
+template <typename T>
+inline T sobel_at(const T* p, int64_t w, int64_t i, int64_t j) {
+  const T* r0 = p + i * w + j;
+  const T *r1 = r0 + w, *r2 = r1 + w;
+  const T sx = ((r0[2] - r0[0]) + T(2) * (r1[2] - r1[0])) + (r2[2] - r2[0]);
+  const T sy = ((r2[0] - r0[0]) + T(2) * (r2[1] - r0[1])) + (r2[2] - r0[2]);
+  return std::abs(sx) + std::abs(sy);
+}
+
+template <typename T>
+inline T laplacian_at(const T* p, int64_t w, int64_t i, int64_t j) {
+  const T* r0 = p + i * w + j;
+  const T *r1 = r0 + w, *r2 = r1 + w;
+  const T l0 = (r0[0] - T(2) * r0[1]) + r0[2];
+  const T l1 = (r1[0] - T(2) * r1[1]) + r1[2];
+  const T l2 = (r2[0] - T(2) * r2[1]) + r2[2];
+  return std::abs((l0 - T(2) * l1) + l2);
+}
+
+// Frames f in [i0, i1) of x (F, h, w) of whole-number grey levels (the caller checks, and
+// that 8 x their range stays below bins): counts[f * bins + g] += 1 for Sobel's magnitude g at
+// every step-th output pixel (row-major over the (h - 2) x (w - 2), from the first: a
+// strided row of the flattened magnitudes, as noise.py subsamples them).
+STS_KERNEL(sts_sobel_counts, (int64_t i0, int64_t i1, const T* x, int64_t h, int64_t w,
+                              int64_t step, int64_t bins, int64_t* counts)) {
+  if (h < 3 || w < 3 || step < 1) return 1;
+  const int64_t wv = w - 2, nv = (h - 2) * wv;
+  for (int64_t f = i0; f < i1; ++f) {
+    const T* p = x + f * h * w;
+    int64_t* c = counts + f * bins;
+    int64_t i = 0, j = 0;  // output pixel k = i * wv + j
+    for (int64_t k = 0; k < nv; k += step) {
+      const int64_t g = int64_t(sobel_at(p, w, i, j));
+      if (g < 0 || g >= bins) return 2;
+      ++c[g];
+      for (j += step; j >= wv; j -= wv) ++i;
+    }
+  }
+  return 0;
+}
+
+// Frames f in [i0, i1) of x (F, h, w) of whole-number grey levels: the Laplacian difference's
+// magnitudes summed (sums[f], exact in double) and counted (kept[f]) over the output pixels
+// whose Sobel magnitude is at most cut[f] (noise.py's mean of the flat pixels).
+STS_KERNEL(sts_flat_sums, (int64_t i0, int64_t i1, const T* x, int64_t h, int64_t w,
+                           const T* cut, double* sums, int64_t* kept)) {
+  if (h < 3 || w < 3) return 1;
+  for (int64_t f = i0; f < i1; ++f) {
+    const T* p = x + f * h * w;
+    const T c = cut[f];
+    int64_t s = 0, n = 0;  // whole numbers: summed exactly, in any order (branch-free)
+    for (int64_t i = 0; i < h - 2; ++i)
+      for (int64_t j = 0; j < w - 2; ++j) {
+        const bool flat = sobel_at(p, w, i, j) <= c;
+        s += flat ? int64_t(laplacian_at(p, w, i, j)) : 0;
+        n += flat;
+      }
+    sums[f] = double(s);
+    kept[f] = n;
+  }
+  return 0;
+}
+
 // ---- the neighbour test (quality.median_test) -------------------------------------------
 // One round of the normalised median test of quality.py, per point, over its k <= 64 grid
 // neighbours: the same arithmetic as the torch code (quality.carried_neighbours and
@@ -1637,7 +1705,7 @@ extern "C" {
 
 // Version of this interface (the sts_kernel_* functions and what the kernels' parameters
 // mean); native/declarations.py refuses a library of another version.
-int sts_abi_version() { return 17; }
+int sts_abi_version() { return 18; }
 
 int sts_kernel_count() { return int(declarations().size()); }
 

@@ -15,7 +15,7 @@ from torch_stsdic.kernels.native.rows import run_rows, run_shared, threads
 
 __all__ = ["sample", "subsets", "windows", "ic_rhs", "ic_solve", "gram", "spd_inverse", "param_std",
            "nanmedian", "prefilter", "neighbour_own_gradient", "neighbour_test", "splat",
-           "splat_add", "splat_fused", "splat_finish"]
+           "splat_add", "splat_fused", "splat_finish", "sobel_counts", "flat_sums"]
 
 
 def _geo(img_args: tuple, order: int) -> dict:
@@ -367,6 +367,44 @@ def nanmedian(x: torch.Tensor) -> torch.Tensor:
     n = out.numel()
     run_rows(kernel("sts_nanmedian", x.dtype), n, 4 * k, dict(k=k, x=xc, out=out))
     return out
+
+
+def _frames(fn: str, x: torch.Tensor) -> torch.Tensor:
+    """Frames (F, H, W), H, W >= 3, contiguous (the noise kernels' input)."""
+    _require(fn, x.dim() == 3 and x.shape[1] >= 3 and x.shape[2] >= 3,
+             f"frames must be (F, H >= 3, W >= 3), got {tuple(x.shape)}")
+    return x.contiguous()
+
+
+def sobel_counts(x: torch.Tensor, step: int, bins: int) -> torch.Tensor:
+    """(F, bins) int64: each frame's histogram of Sobel's ``|d/dx| + |d/dy|`` (the "valid"
+    (H - 2) x (W - 2) pixels, row-major, every ``step``-th from the first) of frames ``x``
+    (F, H, W) of whole-number grey levels, Sobel's magnitude below ``bins`` (8 x their range
+    at most; the caller checks both): ``core.noise``'s histogram of its magnitudes, one pass
+    a frame, no (F, H, W) arrays."""
+    xc = _frames("sobel_counts", x)
+    _require("sobel_counts", step >= 1 and bins >= 1, f"step, bins >= 1, got {step}, {bins}")
+    f, h, w = xc.shape
+    out = torch.zeros(f, bins, dtype=torch.int64)
+    run_rows(kernel("sts_sobel_counts", xc.dtype), f, h * w // step,
+             dict(x=xc, h=h, w=w, step=int(step), bins=int(bins), counts=out), parts=f)
+    return out
+
+
+def flat_sums(x: torch.Tensor, cut: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(F,) float64 and (F,) int64: the Laplacian difference's magnitudes of frames ``x``
+    (F, H, W) of whole-number grey levels summed, and counted, over the "valid" pixels whose
+    Sobel magnitude is at most the frame's ``cut`` (F,) (Immerkaer's flat pixels; exact)."""
+    xc = _frames("flat_sums", x)
+    f, h, w = xc.shape
+    _require("flat_sums", tuple(cut.shape) == (f,), f"cut must be ({f},), got "
+             f"{tuple(cut.shape)}")
+    sums = torch.zeros(f, dtype=torch.float64)
+    kept = torch.zeros(f, dtype=torch.int64)
+    run_rows(kernel("sts_flat_sums", xc.dtype), f, h * w,
+             dict(x=xc, h=h, w=w, cut=cut.to(xc.dtype).contiguous(), sums=sums, kept=kept),
+             parts=f)
+    return sums, kept
 
 
 def _neighbour_args(fn: str, nb: torch.Tensor, valid: torch.Tensor) -> dict:
