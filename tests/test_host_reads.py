@@ -452,3 +452,65 @@ def test_moved_subsets_keep_the_points_dtype_and_the_kept_subsets():
     assert torch.equal(centres, torch.tensor([[23.0, 30.0], [40.0, 50.0], [60.0, 8.0]]))
     assert moved.tolist() == [True, False, True] and off.tolist() == [True, False, True]
     assert [int(f) for f in facts] == [2, 1, 2]
+
+
+def test_a_gpus_fft_search_gathers_its_regions_without_a_read(monkeypatch):
+    """FFT cross-correlation's search regions, some over the image's border: gathered as a
+    GPU gathers them (``initial.SEARCH_READS`` False: index arithmetic, no host read of
+    whether every region lies inside) they give the CPU's displacements and ZNCC to the bit,
+    and the search reads nothing where the CPU's way reads twice a batch."""
+    from torch_stsdic.core import initial
+
+    ref, frames, pts, _ = _window()
+    pts = torch.cat([pts, torch.tensor([[3.0, 40.0], [N - 4.0, 50.0]], dtype=torch.float64)])
+    runs = {}
+    for by_view in (True, False):
+        monkeypatch.setattr(initial, "SEARCH_READS", by_view)
+        reads = _Dispatched(("_local_scalar_dense", "is_nonzero"))
+        with reads:
+            runs[by_view] = initial.fft_cross_correlation(ref, frames, pts, 15, 6)
+        runs[by_view] += (len(reads.seen),)
+    assert runs[True][2] >= 2 and runs[False][2] == 0
+    assert torch.equal(runs[True][0], runs[False][0])
+    assert torch.equal(runs[True][1], runs[False][1])
+
+
+def test_a_gpus_walk_over_weak_frames_searches_every_row_with_the_same_answers(monkeypatch):
+    """A window whose motion outruns the search radius: its later frames' first peaks are
+    weak, and the walk searches them again around the motion carried along the window. As
+    a GPU walks (``initial.SEARCH_READS`` False: every row searched at every frame, the
+    answers of the rows not weak dropped) it gives the CPU's displacements and ZNCC to the
+    bit, with no host read; and the walk does find the motion there."""
+    from torch_stsdic.core import initial
+
+    pattern = synth.make_speckle((N, N), seed=8)
+    times = torch.arange(0.0, 5.0, dtype=torch.float64)
+    ref, frames = synth.render_series(pattern, (N, N), synth.Translation(0.0, 0.0, ut=2.6,
+                                                                        vt=-1.1),
+                                      times, noise_sigma=1.0, seed=4, reference_time=None)
+    c = torch.arange(26.0, N - 26.0, 6.0, dtype=torch.float64)
+    yy, xx = torch.meshgrid(c, c, indexing="ij")
+    pts = torch.stack([xx.reshape(-1), yy.reshape(-1)], 1)
+    n, t = pts.shape[0], frames.shape[0]
+    fidx = torch.arange(t).expand(n, t)
+    ridx = torch.zeros(n, dtype=torch.long)
+    dt = times.expand(n, t)
+    d0, s0 = initial.fft_cross_correlation(ref, frames, pts, 15, 4)
+    assert (s0[:, -1] < 0.8).float().mean() > 0.5  # 10.4 px out of a 4 px search
+    runs = {}
+    for reads in (True, False):
+        monkeypatch.setattr(initial, "SEARCH_READS", reads)
+        seen = _Dispatched(("_local_scalar_dense", "is_nonzero", "nonzero"))
+        with seen:
+            d, s = initial.walk_weak_frames(d0, s0, dt, ref[None], frames, pts, fidx, ridx,
+                                            15, 4)
+        runs[reads] = (d, s, len(seen.seen))
+    assert runs[True][2] > 0 and runs[False][2] == 0
+    assert torch.equal(runs[True][0], runs[False][0])
+    assert torch.equal(runs[True][1], runs[False][1])
+    d = runs[False][0]
+    assert (runs[False][1][:, -1] >= 0.8).float().mean() > 0.9
+    # (FFT peaks refined by a parabola: within half a pixel of the motion, not a wrong peak,
+    # at nearly every point)
+    err = (d[:, -1] - torch.tensor([10.4, -4.4], dtype=d.dtype)).abs().amax(1)
+    assert (err < 0.5).float().mean() > 0.9

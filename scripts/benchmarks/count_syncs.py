@@ -249,6 +249,8 @@ def main(argv: list[str] | None = None) -> int:
         for name, value in choices.gpu_choices().items():
             if name not in named:
                 setattr(choices, name, value)
+        from torch_stsdic.core import initial  # (the FFT searches' reads, by the device)
+        initial.SEARCH_READS = False
     rc, per_block, counter = count_run(run_args, where=args.where > 0,
                                        ops_where=args.ops_where > 0)
     if rc:
