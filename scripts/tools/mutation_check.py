@@ -308,6 +308,14 @@ MUTATIONS: tuple[Mutation, ...] = (
         "the C++ noise estimate's flat pixels without those at the cut: another estimate "
         "than the torch code's"),
     Mutation(
+        "gpu-walk-keeps-answers-of-rows-not-asked", "initial guess",
+        "torch_stsdic/core/initial.py",
+        "            better &= weak\n",
+        "            better &= torch.ones_like(weak)\n",
+        ("test_host_reads.py",),
+        "a GPU's walk over weak frames keeps the better peaks of rows that were not weak: "
+        "other first guesses than the CPU's"),
+    Mutation(
         "plane-rows-read-on-a-gpu", "neighbour test", "torch_stsdic/analysis/quality.py",
         "        if every_row or fit.numel() <= PLANE_EVERY_ROW:",
         "        if fit.numel() <= PLANE_EVERY_ROW:",
