@@ -404,7 +404,7 @@ def guessed_blocks(plan: RunPlan) -> RunPlan:
     extrapolates the carry, so the first target is not alone and a block holds as many
     targets as the memory budget allows (:func:`default_batch_frames` with
     ``carried=False``; never fewer than ``plan``'s): fewer blocks, each with its own fixed
-    costs (the hourglass's template: 5 blocks -> 3, 4 % of its time)."""
+    costs (the hourglass's template: 5 blocks -> 3, 3 % of its time)."""
     elem = torch.finfo(plan.dtype).bits // 8
     n = default_batch_frames(plan.config, plan.series.shape, elem, plan.device, carried=False)
     return dataclasses.replace(plan, first_alone=False, batch_frames=max(plan.batch_frames, n))
