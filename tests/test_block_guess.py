@@ -78,7 +78,7 @@ def test_a_masked_solves_rows_are_taken_to_a_size_learned_from_the_blocks_before
     count and R / 32), padded with -1; more rows than C is a wrong guess; a guess taken
     before the rescue (``from_here``) solves the whole block again. A block's most is held,
     half of it passed on where the next block asks for fewer."""
-    from torch_stsdic.movie import choices
+    from torch_stsdic.core import choices
 
     monkeypatch.setattr(choices, "COMPACT_ROWS", True)
     monkeypatch.setattr(choices, "GUESS_READS", True)
@@ -141,7 +141,7 @@ def test_a_reading_block_takes_its_masked_solves_rows_at_their_count_read_on_the
     once (no deferred guess: nothing to be wrong about), takes the power of two at or above
     it (at least 64; none over half the rows) and learns it for the next block, as a count
     read later would be learnt; without the choice it solves every row masked."""
-    from torch_stsdic.movie import choices
+    from torch_stsdic.core import choices
 
     monkeypatch.setattr(choices, "COMPACT_ROWS", True)
     monkeypatch.setattr(choices, "GUESS_READS", True)
@@ -167,7 +167,7 @@ def test_a_reading_block_takes_its_masked_solves_rows_at_their_count_read_on_the
 
 
 def test_a_wrong_guess_solves_the_block_again_with_the_counters_as_before(monkeypatch):
-    from torch_stsdic.movie import choices
+    from torch_stsdic.core import choices
 
     run = SimpleNamespace(device=torch.device("cpu"), guesses=ReadGuesses(),
                           stats={"fft_rows": torch.tensor(3), "rescued_rows": 2},
@@ -297,7 +297,7 @@ def test_a_clean_movies_blocks_guess_rightly_the_first_after_the_reference_frame
     of taking the identity's "nothing" (which its rows, lost where the motion has no
     velocity yet, proved wrong); its masked solves' sizes read too."""
     from torch_stsdic.cli import main
-    from torch_stsdic.movie import choices
+    from torch_stsdic.core import choices
 
     if not native.available():
         pytest.skip("no native kernels")

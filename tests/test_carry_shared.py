@@ -114,10 +114,10 @@ def test_a_carried_window_velocity_holds_the_shake_of_the_rows_own_window(monkey
     slope over each row's window (``block_start.window_shake``), is the window velocity of a
     shaking linear motion exactly, for windows of any half-width; with the half-widths the
     rows take read first (the CPU's choice) or every half-width's slope masked (a GPU's,
-    ``movie.choices.MASKED_GROUPS``)."""
+    ``core.choices.MASKED_GROUPS``)."""
     from types import SimpleNamespace
 
-    from torch_stsdic.movie import choices
+    from torch_stsdic.core import choices
     from torch_stsdic.movie.block_start import window_shake
 
     monkeypatch.setattr(choices, "MASKED_GROUPS", masked)
@@ -254,12 +254,12 @@ def test_the_neighbour_fill_stops_at_the_first_ring_that_fills_none_with_the_sam
         monkeypatch):
     """A lost region three rings deep (a square of 6 x 6 points in a 14 x 14 grid) and a
     lost point with no valid neighbour within reach of any ring: until done (the CPU's
-    choice, ``movie.choices.UNTIL_DONE``) the fill takes the three rings that fill
+    choice, ``core.choices.UNTIL_DONE``) the fill takes the three rings that fill
     points and one that fills none, then stops; every ring (a GPU's) takes all eight. The
     carry is the same to the bit."""
     from torch_stsdic.analysis.quality import neighbours
+    from torch_stsdic.core import choices
     from torch_stsdic.movie import carry as carry_mod
-    from torch_stsdic.movie import choices
     from torch_stsdic.movie.carry import Carry
 
     ys, xs = torch.meshgrid(torch.arange(14.0) * 10, torch.arange(14.0) * 10, indexing="ij")

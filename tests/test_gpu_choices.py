@@ -1,4 +1,4 @@
-"""A run with a GPU's choices (``torch_stsdic.movie.choices``: masked solves of a block's
+"""A run with a GPU's choices (``torch_stsdic.core.choices``: masked solves of a block's
 groups of rows, every shorter window at once, every ring of the neighbour fill), taken on
 the CPU: the same result file as with the CPU's choices, to the bit."""
 
@@ -23,9 +23,9 @@ def _run(tmp_path, name: str, movie, args=()) -> dict:
 
 
 def _take_choices(monkeypatch, gpu: bool) -> None:
-    """Every choice of ``torch_stsdic.movie.choices`` as a GPU run (``gpu``) or a CPU run
+    """Every choice of ``torch_stsdic.core.choices`` as a GPU run (``gpu``) or a CPU run
     makes it."""
-    from torch_stsdic.movie import choices
+    from torch_stsdic.core import choices
 
     for name, value in choices.gpu_choices().items():
         monkeypatch.setattr(choices, name, value if gpu else not value)
@@ -172,7 +172,7 @@ def test_choices_are_named_in_the_environment_and_a_wrong_entry_is_told(monkeypa
     """``TORCH_STSDIC_CHOICES`` sets the named choices (a fresh process reads it at import:
     ``scripts/benchmarks/device_choices.py`` times them); a malformed entry or an unknown
     name is warned about and skipped, the others still set."""
-    from torch_stsdic.movie import choices
+    from torch_stsdic.core import choices
 
     for name in ("EVERY_CANDIDATE", "UNTIL_DONE", "MASKED_GROUPS", "MASKED_CHECK"):
         monkeypatch.setattr(choices, name, None)
@@ -191,11 +191,15 @@ def test_choices_are_named_in_the_environment_and_a_wrong_entry_is_told(monkeypa
     import subprocess
     import sys
 
-    env = {**os.environ, choices.ENV: "MASKED_GROUPS=1,EVERY_CANDIDATE=0"}
-    out = subprocess.run([sys.executable, "-c", "from torch_stsdic.movie import choices as c; "
-                          "print(c.MASKED_GROUPS, c.EVERY_CANDIDATE, c.UNTIL_DONE)"],
+    env = {**os.environ, choices.ENV: "MASKED_GROUPS=1,EVERY_CANDIDATE=0,SEARCH_READS=0"}
+    out = subprocess.run([sys.executable, "-c", "from torch_stsdic.core import choices as c; "
+                          "print(c.MASKED_GROUPS, c.EVERY_CANDIDATE, c.UNTIL_DONE, "
+                          "c.search_reads(__import__('torch').device('cpu')))"],
                          capture_output=True, text=True, env=env, check=True).stdout
-    assert out.split() == ["True", "False", "None"]  # read at import
+    assert out.split() == ["True", "False", "None", "False"]  # read at import
+    # the old name is the very module: a choice set there is the one the package reads
+    from torch_stsdic.movie import choices as old_name
+    assert old_name is choices
 
 
 def test_device_choices_script_times_the_variants_and_finds_the_same_file(tmp_path):

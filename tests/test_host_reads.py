@@ -456,16 +456,16 @@ def test_moved_subsets_keep_the_points_dtype_and_the_kept_subsets():
 
 def test_a_gpus_fft_search_gathers_its_regions_without_a_read(monkeypatch):
     """FFT cross-correlation's search regions, some over the image's border: gathered as a
-    GPU gathers them (``initial.SEARCH_READS`` False: index arithmetic, no host read of
+    GPU gathers them (``choices.SEARCH_READS`` False: index arithmetic, no host read of
     whether every region lies inside) they give the CPU's displacements and ZNCC to the bit,
     and the search reads nothing where the CPU's way reads twice a batch."""
-    from torch_stsdic.core import initial
+    from torch_stsdic.core import choices, initial
 
     ref, frames, pts, _ = _window()
     pts = torch.cat([pts, torch.tensor([[3.0, 40.0], [N - 4.0, 50.0]], dtype=torch.float64)])
     runs = {}
     for by_view in (True, False):
-        monkeypatch.setattr(initial, "SEARCH_READS", by_view)
+        monkeypatch.setattr(choices, "SEARCH_READS", by_view)
         reads = _Dispatched(("_local_scalar_dense", "is_nonzero"))
         with reads:
             runs[by_view] = initial.fft_cross_correlation(ref, frames, pts, 15, 6)
@@ -478,10 +478,10 @@ def test_a_gpus_fft_search_gathers_its_regions_without_a_read(monkeypatch):
 def test_a_gpus_walk_over_weak_frames_searches_every_row_with_the_same_answers(monkeypatch):
     """A window whose motion outruns the search radius: its later frames' first peaks are
     weak, and the walk searches them again around the motion carried along the window. As
-    a GPU walks (``initial.SEARCH_READS`` False: every row searched at every frame, the
+    a GPU walks (``choices.SEARCH_READS`` False: every row searched at every frame, the
     answers of the rows not weak dropped) it gives the CPU's displacements and ZNCC to the
     bit, with no host read; and the walk does find the motion there."""
-    from torch_stsdic.core import initial
+    from torch_stsdic.core import choices, initial
 
     pattern = synth.make_speckle((N, N), seed=8)
     times = torch.arange(0.0, 5.0, dtype=torch.float64)
@@ -499,7 +499,7 @@ def test_a_gpus_walk_over_weak_frames_searches_every_row_with_the_same_answers(m
     assert (s0[:, -1] < 0.8).float().mean() > 0.5  # 10.4 px out of a 4 px search
     runs = {}
     for reads in (True, False):
-        monkeypatch.setattr(initial, "SEARCH_READS", reads)
+        monkeypatch.setattr(choices, "SEARCH_READS", reads)
         seen = _Dispatched(("_local_scalar_dense", "is_nonzero", "nonzero"))
         with seen:
             d, s = initial.walk_weak_frames(d0, s0, dt, ref[None], frames, pts, fidx, ridx,

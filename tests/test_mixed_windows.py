@@ -261,7 +261,7 @@ def test_the_model_checks_shorter_windows_take_every_rows_next_one_at_once(tmp_p
 
 def test_the_model_check_tries_every_shorter_window_at_once_as_a_gpu_run_does(tmp_path,
                                                                                monkeypatch):
-    """The check's shorter windows all at once (``movie.choices.EVERY_CANDIDATE``, a GPU run's
+    """The check's shorter windows all at once (``core.choices.EVERY_CANDIDATE``, a GPU run's
     choice: one read and one solve a block) keep, at every failing row, the window the rounds
     keep (the longest that passes): the same result file to the bit, in one solve of the
     shorter windows a block where the rounds take up to four or more."""

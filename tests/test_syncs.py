@@ -25,7 +25,7 @@ SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "benchmarks" / "count
 #: facts read with its waves, 23.5 (19-73) at 5ed4838 (the CPU's neighbour fill reads until
 #: done); a little room for noise-free changes of the path
 MAX_PER_BLOCK = 30
-#: the same with a GPU run's choices (``movie.choices``: the model check's shorter windows
+#: the same with a GPU run's choices (``core.choices``: the model check's shorter windows
 #: at once, masked solves of a block's groups): 21.5 (17-72) at 02f8cdf, 17 (12-65) at
 #: 5ed4838, 3 (3-48; none but host copies after the first block) with the model check's
 #: steps masked, the rounds run to the end and no fill count read (2026-11-30), 1.5 (1-49:
@@ -99,7 +99,7 @@ def test_a_default_movie_block_syncs_at_most_the_level_reached(tmp_path, monkeyp
                                                                gpu_choices):
     cs = _counter_module()
     if gpu_choices:
-        from torch_stsdic.movie import choices
+        from torch_stsdic.core import choices
         for name, value in choices.gpu_choices().items():
             monkeypatch.setattr(choices, name, value)
     assert main(["synth", "--out", str(tmp_path), "--size", "160", "--frames", "23",

@@ -1,6 +1,6 @@
 #!/usr/bin/env python
 """Each block's host reads and the numbers read, in a ``stsdic run`` with a GPU's choices
-(``torch_stsdic.movie.choices.gpu_choices``; those named in ``TORCH_STSDIC_CHOICES`` as
+(``torch_stsdic.core.choices.gpu_choices``; those named in ``TORCH_STSDIC_CHOICES`` as
 named): what a block asks the device and why it cannot guess it (the placement's moved
 subsets and reference-cache misses, the rescue's waves and their rows).
 

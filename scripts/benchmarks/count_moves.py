@@ -46,7 +46,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from count_syncs import package_line, run_blocks_counted  # noqa: E402  (one of each)
 from run_parts import split_run_args  # noqa: E402  (the hourglass by default)
 
-#: a GPU run's choices (``torch_stsdic.movie.choices``), as ``count_syncs --gpu-choices``
+#: a GPU run's choices (``torch_stsdic.core.choices``), as ``count_syncs --gpu-choices``
 GPU_CHOICES = ("EVERY_CANDIDATE=1,UNTIL_DONE=0,MASKED_GROUPS=1,MASKED_CHECK=1,GUESS_READS=1,"
                "COMPACT_ROWS=1,COMPACT_READING=1")
 #: the factories of torch whose ``device`` says where their tensor is

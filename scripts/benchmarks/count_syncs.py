@@ -31,7 +31,7 @@ operations of a block (every dispatched operation but the views and metadata one
 GPU each launches a kernel; the C++ kernels' calls are not among them), ``--ops-where N``
 listing the N functions that make most of them. ``--where N`` lists the
 N lines of the package that sync most over the whole run. ``--gpu-choices`` takes the
-choices a GPU run makes where they differ from a CPU run's (``torch_stsdic.movie.choices``:
+choices a GPU run makes where they differ from a CPU run's (``torch_stsdic.core.choices``:
 masked rows, the model check's shorter windows all at once, every round of a loop; those
 named in ``TORCH_STSDIC_CHOICES`` as named): the same results, fewer reads. ``--gpu-config``
 takes a GPU's blocks and budget too (:func:`gpu_config`: 32 targets a block, its frames and
@@ -225,7 +225,7 @@ def main(argv: list[str] | None = None) -> int:
                          "launch-like operations in the run's blocks (slow)")
     ap.add_argument("--gpu-choices", action="store_true",
                     help="take the choices a GPU run takes where they differ from the CPU's "
-                         "(torch_stsdic.movie.choices: masked rows, the model check's "
+                         "(torch_stsdic.core.choices: masked rows, the model check's "
                          "shorter windows at once, every round of a loop), but those named "
                          "in TORCH_STSDIC_CHOICES")
     ap.add_argument("--targets", type=int, default=None, metavar="N",
@@ -244,13 +244,11 @@ def main(argv: list[str] | None = None) -> int:
         from torch_stsdic.movie import plan as plan_mod
         plan_mod.MAX_DEFAULT_BATCH = args.targets
     if args.gpu_choices:
-        from torch_stsdic.movie import choices
+        from torch_stsdic.core import choices
         named = choices.from_environment()  # (set at import already: kept as named)
         for name, value in choices.gpu_choices().items():
             if name not in named:
                 setattr(choices, name, value)
-        from torch_stsdic.core import initial  # (the FFT searches' reads, by the device)
-        initial.SEARCH_READS = False
     rc, per_block, counter = count_run(run_args, where=args.where > 0,
                                        ops_where=args.ops_where > 0)
     if rc:

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""A run's device choices (``torch_stsdic.movie.choices``) against each other: the same
+"""A run's device choices (``torch_stsdic.core.choices``) against each other: the same
 ``stsdic run`` in fresh processes with the choices as the device makes them and as named
 (``TORCH_STSDIC_CHOICES``), in interleaved rounds; each variant's wall time, the run's own
 time (its summary line) and whether its result file equals the default's to the bit.
@@ -49,7 +49,7 @@ def default_variants(device: str) -> list[str]:
     """The other device's choices, one at a time, then all of them: on a GPU the CPU's
     (``gpu_choices`` flipped), on the CPU the GPU's."""
     sys.path.insert(0, str(ROOT))
-    from torch_stsdic.movie.choices import gpu_choices
+    from torch_stsdic.core.choices import gpu_choices
 
     gpu = gpu_choices()
     other = [f"{k}={int(v if device == 'cpu' else not v)}" for k, v in gpu.items()]

@@ -13,6 +13,7 @@ from functools import partial
 
 import torch
 
+from torch_stsdic.core import choices
 from torch_stsdic.core.config import gpu_budget_mb
 from torch_stsdic.core.interpolation import window_view
 from torch_stsdic.core.pyramid import PyramidStack
@@ -25,22 +26,6 @@ FFT_MEMORY_MB = 64.0
 #: the padded search regions' bytes a POI-frame pair holds in flight, in element sizes
 _PAIR_REGIONS = 6
 
-#: The FFT searches' host reads (True: the CPU's way, which reads for free and pays for every
-#: row it computes) or none (False: a GPU's way, where every read waits for the device);
-#: None: by the images' device. :func:`_regions` gathers the search regions from a strided
-#: view of the image where every region of a batch lies inside it, after a read of whether
-#: they do, or by index arithmetic on clamped coordinates (two reads a batch of every search:
-#: the run's first guesses, the rescue of lost points); :func:`walk_weak_frames` searches a
-#: window's weak frames again at the rows taken by index, after reading whether there are any,
-#: or at every row, the others' answers dropped (five reads a frame of the window). The same
-#: numbers either way.
-SEARCH_READS: bool | None = None
-
-
-def _reads(device: torch.device) -> bool:
-    """Whether the FFT searches on ``device`` read on the host (:data:`SEARCH_READS`)."""
-    return device.type == "cpu" if SEARCH_READS is None else SEARCH_READS
-
 __all__ = ["fft_cross_correlation", "coarse_to_fine", "linear_fit_in_time", "seed_cells",
            "carry_from_seed", "retry_weak_peaks", "walk_weak_frames"]
 
@@ -52,12 +37,13 @@ def _regions(
     (N, T)), top-left at (cx, cy) ints, (N,) (the same for every frame) or (N, T), zero
     outside the image. Regions inside the image are gathered from a strided view of all
     size x size windows (no index arithmetic per pixel); the others by :func:`_regions_clamped`
-    (the same numbers); on a GPU every one by it (:data:`SEARCH_READS`: no host read)."""
+    (the same numbers); on a GPU every one by it (no host read:
+    :data:`~torch_stsdic.core.choices.SEARCH_READS`)."""
     _, h, w = img.shape
     n, t = index.shape
     x0 = cx.reshape(cx.shape[0], -1).expand(n, t)
     y0 = cy.reshape(cy.shape[0], -1).expand(n, t)
-    if h < size or w < size or not _reads(img.device):
+    if h < size or w < size or not choices.search_reads(img.device):
         return _regions_clamped(img, index, cx, cy, size)
     inside = (x0 >= 0) & (y0 >= 0) & (x0 + size <= w) & (y0 + size <= h)
     win = window_view(img, size, size)
@@ -416,11 +402,11 @@ def walk_weak_frames(d: torch.Tensor, score: torch.Tensor, dt: torch.Tensor,
     motion carried along it), in time order; the better peak is kept. ``dt`` (N, T) frame
     times; other shapes (and ``gpu_floor``) as :func:`retry_weak_peaks`. On a GPU every row
     is searched at every frame, the answers of those not weak dropped (no host read:
-    :data:`SEARCH_READS`)."""
+    :data:`~torch_stsdic.core.choices.SEARCH_READS`)."""
     order = torch.argsort(dt, dim=1)  # (N, T) frames in time order per POI
     d, score = d.clone(), score.clone()
     ar = torch.arange(d.shape[0], device=d.device)
-    reads = _reads(d.device)
+    reads = choices.search_reads(d.device)
     for j in range(1, d.shape[1]):
         cur, p1 = order[:, j], order[:, j - 1]
         weak = (score[ar, cur] < 0.8) & (score[ar, p1] >= 0.8)

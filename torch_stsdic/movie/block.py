@@ -27,6 +27,7 @@ import torch
 
 from torch_stsdic.analysis.quality import neighbours
 from torch_stsdic.analysis.result import USABLE
+from torch_stsdic.core.choices import masked_groups, until_done
 from torch_stsdic.core.shared_motion import SharedMotion
 from torch_stsdic.core.solver import (
     SubsetSolver,
@@ -42,7 +43,6 @@ from torch_stsdic.movie.block_start import pilot_shift, window_shake
 from torch_stsdic.movie.block_windows import BlockWindows
 from torch_stsdic.movie.carry import Carry
 from torch_stsdic.movie.checks import CHECK_ITER, CHECK_TOL, BlockChecks
-from torch_stsdic.movie.choices import masked_groups, until_done
 from torch_stsdic.movie.frames import (
     FrameCache,
     block_frames,
@@ -287,7 +287,7 @@ class Block(BlockChecks, BlockRescue, BlockPlacement, BlockMotion, BlockWindows,
         """Rows ``idx`` (R,) solved from ``init`` (R, P) where ``active`` (R,) bool, the
         others masked (:meth:`solve`'s ``active``: no read of which; their guesses, NaN or
         not, are not used and go in as 0). A caller's data-chosen rows of a fixed set, on a
-        GPU's choices (:data:`~torch_stsdic.movie.choices.MASKED_GROUPS`); ``site``:
+        GPU's choices (:data:`~torch_stsdic.core.choices.MASKED_GROUPS`); ``site``:
         :meth:`solve`'s."""
         return self.solve(idx, torch.where(active.unsqueeze(1), init, 0.0), m=m,
                           active=active, site=site)
@@ -454,7 +454,7 @@ def _carried_start(run: BlockContext, blk: Block, ref: Reference, carry: Carry,
     pts0 = ref.points if ref.acc is None else ref.points - torch.stack(
         [ref.acc["u"], ref.acc["v"]], 1)
     # the CPU: one read, whether any point is missing and how many; a GPU fills every
-    # point's ring by ring, no read (:data:`~torch_stsdic.movie.choices.UNTIL_DONE`)
+    # point's ring by ring, no read (:data:`~torch_stsdic.core.choices.UNTIL_DONE`)
     missing = int((~carry.valid).sum()) if until_done(dev) else None
     if missing is None or missing:
         carry, filled = carry.from_neighbours(run.grid_neighbours(ref), pts0, missing=missing)

@@ -13,7 +13,7 @@ is solved again reading every answer: from its rescue where that guess was wrong
 (:meth:`BlockGuesses.from_here`), from its start where the placement's was
 (:func:`solve_guessing`). The results
 are those of the reading way to the bit: a guess only skips work that the answer "nothing"
-skips. A GPU's choice (:data:`~torch_stsdic.movie.choices.GUESS_READS`)."""
+skips. A GPU's choice (:data:`~torch_stsdic.core.choices.GUESS_READS`)."""
 
 from __future__ import annotations
 
@@ -23,7 +23,7 @@ from typing import Any
 
 import torch
 
-from torch_stsdic.movie.choices import compact_reading, compact_rows, guess_reads
+from torch_stsdic.core.choices import compact_reading, compact_rows, guess_reads
 
 __all__ = ["GuessWrong", "ReadGuesses", "BlockGuesses", "solve_guessing", "row_capacity",
            "counted_capacity"]
@@ -36,7 +36,7 @@ SIZE = "rows at "
 #: the fewest rows a compacted solve takes (a power of two: few shapes)
 MIN_CAPACITY = 64
 #: the fewest rows of a masked solve whose count a reading block reads to compact it
-#: (:data:`~torch_stsdic.movie.choices.COMPACT_READING`): below, a masked row's preparation
+#: (:data:`~torch_stsdic.core.choices.COMPACT_READING`): below, a masked row's preparation
 #: times the rows costs about a read. Estimated, not timed: on one H200 the masked choices
 #: cost the 500-frame movie's blocks about 60 ms a solve of 320,000 rows (0.2 us a row;
 #: the solve's seconds against frame 0, 7.4 -> 12.9 s, at b7f0068 -> 124f915), 4,096 rows
@@ -121,12 +121,12 @@ class BlockGuesses:
 
     def compact(self, site: str, active: torch.Tensor) -> int | None:
         """The capacity of a masked solve's rows ``active`` (R,) bool at ``site``
-        (:data:`~torch_stsdic.movie.choices.COMPACT_ROWS`, where this attempt guesses): C, the
+        (:data:`~torch_stsdic.core.choices.COMPACT_ROWS`, where this attempt guesses): C, the
         most rows the solve takes (``SubsetSolver.solve(capacity=)``: the first C active
         ones, a fixed shape, no read), from the most rows the last block asked for there
         (:func:`row_capacity`); the guess "at most C" deferred (:meth:`read`: more is a wrong
         guess). A block that reads its answers reads the count here (one read,
-        :data:`~torch_stsdic.movie.choices.COMPACT_READING`, where the rows are at least
+        :data:`~torch_stsdic.core.choices.COMPACT_READING`, where the rows are at least
         :data:`READ_ROWS`) and takes that many
         (:func:`counted_capacity`). None: every row masked (no guess; the count read with
         the block's next read, for the next block: in a block that reads its answers, with
@@ -261,7 +261,7 @@ def _counters(stats: dict[str, Any]) -> dict[str, Any]:
 
 def solve_guessing(run: Any, solve: Callable[[bool], Any]) -> Any:
     """``solve(guessing)`` (a block) with its reads guessed where ``run``'s device guesses
-    (:func:`~torch_stsdic.movie.choices.guess_reads`); after a wrong guess, the run's
+    (:func:`~torch_stsdic.core.choices.guess_reads`); after a wrong guess, the run's
     counters as they were before it and the block solved again reading every answer
     (counted in ``run.stats["blocks_guessed_wrong"]``)."""
     if not guess_reads(run.device):

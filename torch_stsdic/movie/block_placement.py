@@ -10,10 +10,10 @@ from typing import NamedTuple
 
 import torch
 
+from torch_stsdic.core.choices import masked_groups
 from torch_stsdic.core.solver import subset_inside
 from torch_stsdic.core.status import Status
 from torch_stsdic.movie.block_guess import PLACEMENT
-from torch_stsdic.movie.choices import masked_groups
 from torch_stsdic.movie.frames import true_rows
 
 __all__ = ["BlockPlacement", "Placement", "OUTSIDE_MARGIN"]
@@ -90,7 +90,7 @@ class BlockPlacement:
     @property
     def places_at_once(self) -> bool:
         """Whether :meth:`keep_outside` places every row's shorter windows at once, masked,
-        and reads once (a GPU's choice, :data:`~torch_stsdic.movie.choices.MASKED_GROUPS`,
+        and reads once (a GPU's choice, :data:`~torch_stsdic.core.choices.MASKED_GROUPS`,
         where the block mixes window lengths): then :meth:`place_outside` makes a placement
         whose facts a caller may read with its own numbers."""
         run = self.run

@@ -11,7 +11,7 @@ from typing import Any
 import torch
 
 from torch_stsdic.analysis.result import USABLE
-from torch_stsdic.movie.choices import masked_groups
+from torch_stsdic.core.choices import masked_groups
 from torch_stsdic.movie.frames import window_half_widths
 
 #: a :class:`~torch_stsdic.movie.block.Block` (not imported: the block imports this module)

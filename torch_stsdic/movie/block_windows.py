@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import torch
 
+from torch_stsdic.core.choices import masked_groups
 from torch_stsdic.core.solver import WindowSolution
-from torch_stsdic.movie.choices import masked_groups
 from torch_stsdic.movie.frames import grouped_rows, rows_by_half_width, window_frames
 
 __all__ = ["BlockWindows"]
@@ -115,7 +115,7 @@ class BlockWindows:
         the solver takes windows of mixed length and there is a guess, the classical rows
         (m = 0) in one solve and all others in one more: each group's rows alone, their
         counts read first (one host read), or on a GPU each solve over all the ``rows``,
-        the others masked (:data:`~torch_stsdic.movie.choices.MASKED_GROUPS`: no read);
+        the others masked (:data:`~torch_stsdic.core.choices.MASKED_GROUPS`: no read);
         otherwise one solve per half-width (:func:`rows_by_half_width`, one read), but a
         classical run's rows from a guess on a GPU: one solve of every row, the others
         masked (no read)."""

@@ -14,9 +14,9 @@ import torch
 
 from torch_stsdic.analysis.quality import carried_neighbours, nanmedian_rows
 from torch_stsdic.analysis.result import USABLE
+from torch_stsdic.core.choices import until_done
 from torch_stsdic.core.shared_motion import SharedMotion, window_slope
 from torch_stsdic.core.status import Status
-from torch_stsdic.movie.choices import until_done
 from torch_stsdic.movie.frames import true_rows, upload, window_frames
 
 __all__ = ["Carry", "neighbour_guess", "rows_numpy", "make_carry", "FILL_ROUNDS"]
@@ -134,7 +134,7 @@ class Carry:
         ``rounds``), so a lost point starts near the motion again rather than from FFT
         cross-correlation (or is seen to have left the image). ``missing``: how many points
         have no valid carry, where the caller read it (else read here); on a GPU
-        (:data:`~torch_stsdic.movie.choices.UNTIL_DONE` False) not read: every point's
+        (:data:`~torch_stsdic.core.choices.UNTIL_DONE` False) not read: every point's
         guess made in every ring, the valid ones left as they are. Returns the carry and
         the points filled (a 0-d tensor: not read here)."""
         names = list(self.vals)
@@ -143,7 +143,7 @@ class Carry:
                             + [self.rates[nm] for nm in rated], 1)
         ok = self.valid.clone()
         # on the CPU until a ring fills none (then none after it would: nothing changed),
-        # on a GPU every ring, no read (:data:`~torch_stsdic.movie.choices.UNTIL_DONE`)
+        # on a GPU every ring, no read (:data:`~torch_stsdic.core.choices.UNTIL_DONE`)
         stop = until_done(ok.device)
         if stop:  # only those (~0.2 of the work when 7 % are lost), chosen once: one host
             # read for all the rounds (a round fills those of them its guess reaches; a

@@ -20,6 +20,7 @@ from torch_stsdic.analysis.quality import (
     residual_mismatch,
 )
 from torch_stsdic.analysis.result import USABLE
+from torch_stsdic.core.choices import every_candidate, masked_check, masked_groups, until_done
 from torch_stsdic.core.initial import linear_fit_in_time
 from torch_stsdic.core.solver import (
     SubsetSolver,
@@ -28,7 +29,6 @@ from torch_stsdic.core.solver import (
 )
 from torch_stsdic.core.status import Status
 from torch_stsdic.movie.carry import Carry
-from torch_stsdic.movie.choices import every_candidate, masked_check, masked_groups, until_done
 from torch_stsdic.movie.frames import true_rows
 from torch_stsdic.movie.row_set import RowSet, solution_rows, take, with_rows
 
@@ -184,7 +184,7 @@ class BlockChecks:
         ``tol`` (ut, vt NaN, ``m_used`` 0). A usable row whose classical solution fails is
         POOR_FIT. The rows of each step are taken from the last's on the CPU, masked over
         all the block's rows on a GPU (:class:`~torch_stsdic.movie.row_set.RowSet`: no
-        host read; :data:`~torch_stsdic.movie.choices.MASKED_CHECK`). Returns (rows
+        host read; :data:`~torch_stsdic.core.choices.MASKED_CHECK`). Returns (rows
         shortened, rows left classical: ints, or 0-d tensors not read here)."""
         run = self.run
         if run.m == 0:
@@ -286,7 +286,7 @@ class BlockChecks:
         Where the solver mixes window lengths, every failing row's next candidate in one
         solve (one read and one solve a round, as many rounds as the deepest row's tries,
         not one a half-width), or on a GPU every candidate at once
-        (:data:`~torch_stsdic.movie.choices.EVERY_CANDIDATE`,
+        (:data:`~torch_stsdic.core.choices.EVERY_CANDIDATE`,
         :meth:`_every_window`); else one solve a half-width. Returns the rows shortened
         (0-d tensor, not read)."""
         run = self.run
@@ -343,12 +343,12 @@ class BlockChecks:
                       cls: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
                       not_ref: torch.Tensor) -> torch.Tensor:
         """:meth:`_shorter_windows` at once
-        (:data:`~torch_stsdic.movie.choices.EVERY_CANDIDATE`): every candidate
+        (:data:`~torch_stsdic.core.choices.EVERY_CANDIDATE`): every candidate
         ``cand`` (R, M) (half-widths ``m_col`` (M,), longest first; line velocities ``vel``
         (R, M, 2)) of every failing row in one solve (rows of mixed window lengths), each
         row's first that passes kept, as the rounds keep it. One host read (how many
         candidates), or on a GPU none: every (row, candidate) pair in the solve, those not
-        to try masked (:data:`~torch_stsdic.movie.choices.MASKED_GROUPS`). Returns the rows
+        to try masked (:data:`~torch_stsdic.core.choices.MASKED_GROUPS`). Returns the rows
         shortened (0-d tensor, not read)."""
         run = self.run
         n_rows, n_cand = cand.shape
@@ -413,7 +413,7 @@ class BlockChecks:
         classically (m = 0): from their carried ``guess`` (R, P) (NaN rows: none), then as
         in :meth:`rescue`. On a GPU the guessed rows in one masked solve of every row, and
         no read of whether any row is lost
-        (:data:`~torch_stsdic.movie.choices.MASKED_GROUPS`). Returns the rows that became
+        (:data:`~torch_stsdic.core.choices.MASKED_GROUPS`). Returns the rows that became
         usable (a 0-d tensor: read with the block's counts; 0 where none was lost)."""
         lost = self.lost()
         masked = masked_groups(self.run.device)

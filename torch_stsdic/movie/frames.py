@@ -34,11 +34,11 @@ from dataclasses import dataclass, field
 
 import torch
 
+from torch_stsdic.core.choices import masked_groups
 from torch_stsdic.core.interpolation import BSplineImage
 from torch_stsdic.core.pyramid import ImagePyramid
 from torch_stsdic.core.solver import SubsetSolver
 from torch_stsdic.io import ImageSeries
-from torch_stsdic.movie.choices import masked_groups
 from torch_stsdic.movie.frame_ring import FrameRing, RingView
 
 __all__ = ["FrameCache", "FrameStore", "PreparedFrame", "window_frames", "block_frames", "upload",
@@ -538,7 +538,7 @@ def window_half_widths(m_of: torch.Tensor, rows: torch.Tensor, m_max: int) -> Se
     """The half-widths of windows (1 .. ``m_max``) a caller goes through, masking each by
     its rows: those ``m_of`` takes at the ``rows`` (:func:`half_widths`, one host read; 0
     among them where a row is classical), or on a GPU every one, no read
-    (:data:`~torch_stsdic.movie.choices.MASKED_GROUPS`)."""
+    (:data:`~torch_stsdic.core.choices.MASKED_GROUPS`)."""
     if masked_groups(m_of.device):
         return range(1, m_max + 1)
     return half_widths(m_of, rows, m_max)

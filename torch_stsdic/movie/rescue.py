@@ -11,11 +11,11 @@ from typing import Any
 import torch
 
 from torch_stsdic.analysis.result import USABLE
+from torch_stsdic.core.choices import until_done
 from torch_stsdic.core.status import Status
 from torch_stsdic.movie.block_guess import RESCUE
 from torch_stsdic.movie.block_placement import Placement
 from torch_stsdic.movie.carry import Carry, neighbour_guess
-from torch_stsdic.movie.choices import until_done
 from torch_stsdic.movie.frames import true_rows
 from torch_stsdic.movie.reference import to_relative
 

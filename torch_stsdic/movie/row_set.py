@@ -1,7 +1,7 @@
 """A block's rows being worked on, narrowed step by step (:class:`RowSet`): on the CPU by
 taking the rows a step keeps (a host read: free there, and later steps compute those rows
 only), on a GPU by a mask over a fixed set of rows (no read: every row computed, those not
-kept masked; :data:`~torch_stsdic.movie.choices.MASKED_CHECK`). Both give the same numbers
+kept masked; :data:`~torch_stsdic.core.choices.MASKED_CHECK`). Both give the same numbers
 at the rows that count; the model check (:meth:`~torch_stsdic.movie.checks.BlockChecks.
 check_model`) is written once over a :class:`RowSet`. Also the row selection of a
 :class:`~torch_stsdic.core.solver.WindowSolution` (:func:`solution_rows`,
