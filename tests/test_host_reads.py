@@ -514,3 +514,32 @@ def test_a_gpus_walk_over_weak_frames_searches_every_row_with_the_same_answers(m
     # at nearly every point)
     err = (d[:, -1] - torch.tensor([10.4, -4.4], dtype=d.dtype)).abs().amax(1)
     assert (err < 0.5).float().mean() > 0.9
+
+
+def test_a_gpus_first_guesses_search_every_row_with_the_same_answers(monkeypatch):
+    """A solve without starting parameters takes its first guesses by FFT search at the rows
+    whose subsets are inside the image (the CPU reads which, and takes them by index); as a
+    GPU does it (``choices.SEARCH_READS`` False) every row is searched and the others'
+    answers dropped: the same solutions to the bit, points over the border included."""
+    from torch_stsdic.core import choices
+    from torch_stsdic.core import solver as solver_mod
+
+    ref, frames, pts, times = _window()
+    pts = torch.cat([pts, torch.tensor([[2.0, 40.0], [N - 3.0, 50.0], [40.0, 1.0]],
+                                       dtype=torch.float64)])
+    cfg = sts.DICConfig(m=2, subset_size=15, initial_guess="fft")  # (not from seeds)
+    searched, runs = [], {}
+    guess = solver_mod.SubsetSolver.initial_guess
+
+    def counted(self, shape, ref_pixels, frame_pixels, points, *a, **kw):
+        searched.append(points.shape[0])
+        return guess(self, shape, ref_pixels, frame_pixels, points, *a, **kw)
+
+    monkeypatch.setattr(solver_mod.SubsetSolver, "initial_guess", counted)
+    for reads in (True, False):
+        monkeypatch.setattr(choices, "SEARCH_READS", reads)
+        runs[reads] = sts.solve_window(ref, frames, pts, config=cfg, times=times)
+    assert searched[0] == pts.shape[0] - 3 and searched[-1] == pts.shape[0]
+    for name in ("params", "status", "zncc"):
+        a, b = getattr(runs[True], name), getattr(runs[False], name)
+        assert torch.equal(torch.nan_to_num(a), torch.nan_to_num(b)), name

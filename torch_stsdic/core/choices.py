@@ -99,6 +99,9 @@ COMPACT_READING: bool | None = None
 
 #: The FFT searches (:mod:`torch_stsdic.core.initial`: a run's first guesses, the rescue of
 #: lost points) read on the host (True) or not (False); None: read on the CPU, not on a GPU.
+#: Reading, a solve searches the rows whose subsets are inside the image, taken by index
+#: after a read of whether there are any; not reading, every row, the others' answers
+#: dropped.
 #: Reading, the search regions are gathered from a strided view of the image where every
 #: region of a batch lies inside it (a read of whether they do; else by index arithmetic on
 #: clamped coordinates: two reads a batch), and the walk over a window's weak frames

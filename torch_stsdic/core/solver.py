@@ -34,7 +34,7 @@ import weakref
 
 import torch
 
-from torch_stsdic.core import formulations
+from torch_stsdic.core import choices, formulations
 from torch_stsdic.core.config import DICConfig
 from torch_stsdic.core.formulations import Formulation, Geometry
 from torch_stsdic.core.gauss_newton import (
@@ -360,12 +360,20 @@ class SubsetSolver:
                         ref_index: torch.Tensor, ref_pixels, frame_pixels, motion,
                         pyramids=None) -> tuple[torch.Tensor, float]:
         """The starting parameters (N, P) of a solve, and the seconds the FFT guess took:
-        ``init`` checked and expanded to ``shape``, or FFT cross-correlation (init None)."""
+        ``init`` checked and expanded to ``shape``, or FFT cross-correlation (init None) at
+        the rows ``inside`` (on a GPU at every row, the others' answers dropped: no read,
+        :data:`~torch_stsdic.core.choices.SEARCH_READS`)."""
         device, dtype = points.device, points.dtype
         n, p_count = points.shape[0], shape.n_params
         if init is None:
             p0 = torch.zeros(n, p_count, dtype=dtype, device=device)
             t_fft = _clock(device)
+            if not choices.search_reads(device):  # every row searched, no read of which
+                # are inside; the others' answers dropped (a row's answer is its own)
+                p = self.initial_guess(shape, ref_pixels, frame_pixels, points, dt,
+                                       frame_index, ref_index, motion=motion,
+                                       pyramids=pyramids)
+                return torch.where(inside.unsqueeze(1), p, p0), _clock(device) - t_fft
             if inside.any():
                 p0[inside] = self.initial_guess(
                     shape, ref_pixels, frame_pixels, points[inside], dt[inside],
