@@ -82,6 +82,7 @@ estimate is texture-dominated and over-predicts it three times).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from functools import lru_cache
 from typing import Any
 
@@ -392,36 +393,44 @@ predicted_std.__signature__ = signature_like(  # type: ignore[attr-defined]
 
 def _quantiles(x: torch.Tensor, q: float) -> torch.Tensor:
     """(F,) ``torch.quantile(x, q, dim=1)`` of ``x`` (F, n) (linear interpolation, in x's
-    dtype: ``v_lo + (v_hi - v_lo) * frac``, where torch's ``lerp`` may round the last bit
-    otherwise) from its two order statistics about ``q`` in each row: on the CPU, where every
-    value is a whole number in [0, ``_HISTOGRAM_BINS``) (the Sobel magnitudes of integer
-    grey levels), from the rows' histograms (:func:`_order_statistics`: a megapixel in
-    ~1 ms); else the lower by ``kthvalue``'s selection (O(n), where a megapixel's full sort
-    takes 0.15 s), the next as the least value above it unless the lower one repeats."""
-    n = x.shape[1]
-    pos = q * (n - 1)
-    lo = int(math.floor(pos))
-    if lo + 1 >= n:
-        return x.kthvalue(lo + 1, dim=1).values
-    both = _order_statistics(x, (lo + 1, lo + 2))
-    if both is not None:
-        v_lo, v_hi = both.unbind(1)
-    else:
-        v_lo = x.kthvalue(lo + 1, dim=1).values
+    dtype: :func:`_interpolated`) from its two order statistics about ``q`` in each row: on
+    the CPU, where every value is a whole number in [0, ``_HISTOGRAM_BINS``) (the Sobel
+    magnitudes of integer grey levels), from the rows' histograms (:func:`_histograms`: a
+    megapixel in ~1 ms); else the lower by ``kthvalue``'s selection (O(n), where a
+    megapixel's full sort takes 0.15 s), the next as the least value above it unless the
+    lower one repeats."""
+    counts = _histograms(x)
+    if counts is not None:
+        return _counted_quantiles(counts, x.shape[1], q, x.dtype)
+
+    def selected(ranks: tuple[int, ...]) -> torch.Tensor:
+        v_lo = x.kthvalue(ranks[0], dim=1).values
+        if len(ranks) == 1:
+            return v_lo.unsqueeze(1)
         above = torch.where(x > v_lo.unsqueeze(1), x, torch.inf).amin(1)
-        v_hi = torch.where((x <= v_lo.unsqueeze(1)).sum(1) >= lo + 2, v_lo, above)
-    return v_lo + (v_hi - v_lo) * (pos - lo)
+        v_hi = torch.where((x <= v_lo.unsqueeze(1)).sum(1) >= ranks[1], v_lo, above)
+        return torch.stack([v_lo, v_hi], 1)
+    return _interpolated(x.shape[1], q, selected)
 
 
 def _counted_quantiles(counts: torch.Tensor, n: int, q: float, dtype: torch.dtype
                        ) -> torch.Tensor:
     """(F,) :func:`_quantiles` of rows of ``n`` whole numbers given as their histograms
     ``counts`` (F, bins) (value v counted at bin v), in ``dtype``: the same numbers."""
+    return _interpolated(n, q, lambda ranks: _ranked(counts, ranks).to(dtype))
+
+
+def _interpolated(n: int, q: float, ranked: Callable[[tuple[int, ...]], torch.Tensor]
+                  ) -> torch.Tensor:
+    """(F,) ``torch.quantile``'s linear rule at ``q`` over rows of ``n`` values, given
+    ``ranked(ranks)`` (F, R) their ``ranks``-th smallest values (1-based; one rank or two
+    adjacent ones): ``v_lo + (v_hi - v_lo) * frac`` (torch's ``lerp`` may round the last
+    bit otherwise), the last value alone at the top."""
     pos = q * (n - 1)
     lo = int(math.floor(pos))
     if lo + 1 >= n:
-        return _ranked(counts, (lo + 1,))[:, 0].to(dtype)
-    v_lo, v_hi = _ranked(counts, (lo + 1, lo + 2)).to(dtype).unbind(1)
+        return ranked((lo + 1,))[:, 0]
+    v_lo, v_hi = ranked((lo + 1, lo + 2)).unbind(1)
     return v_lo + (v_hi - v_lo) * (pos - lo)
 
 
@@ -430,11 +439,10 @@ def _counted_quantiles(counts: torch.Tensor, n: int, q: float, dtype: torch.dtyp
 _HISTOGRAM_BINS = 1 << 20
 
 
-def _order_statistics(x: torch.Tensor, ranks: tuple[int, ...]) -> torch.Tensor | None:
-    """(F, R) the ``ranks``-th smallest values (1-based) of each row of ``x`` (F, n), in x's
-    dtype, from the rows' histograms; None where that does not apply: not on the CPU (the
-    checks below read the values on the host), or a value not a whole number in
-    [0, ``_HISTOGRAM_BINS``) (NaN included)."""
+def _histograms(x: torch.Tensor) -> torch.Tensor | None:
+    """(F, bins) int64 each row's histogram of ``x`` (F, n) (value v counted at bin v); None
+    where that does not apply: not on the CPU (the checks below read the values on the
+    host), or a value not a whole number in [0, ``_HISTOGRAM_BINS``) (NaN included)."""
     if x.device.type != "cpu" or x.numel() == 0 or x.is_complex():
         return None
     lo, hi = torch.aminmax(x)
@@ -444,8 +452,7 @@ def _order_statistics(x: torch.Tensor, ranks: tuple[int, ...]) -> torch.Tensor |
         return None
     f, bins = x.shape[0], int(hi) + 1
     at = x.to(torch.int64) + torch.arange(f).view(-1, 1) * bins  # each row its own bins
-    counts = torch.bincount(at.reshape(-1), minlength=f * bins).view(f, bins)
-    return _ranked(counts, ranks).to(x.dtype)
+    return torch.bincount(at.reshape(-1), minlength=f * bins).view(f, bins)
 
 
 def _ranked(counts: torch.Tensor, ranks: tuple[int, ...]) -> torch.Tensor:
