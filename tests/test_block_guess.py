@@ -359,3 +359,93 @@ def test_a_block_after_one_whose_rows_lack_a_velocity_reads_its_answers(tmp_path
                  "--single-reference"]) == 0
     assert 1 in firsts  # the block after frame 0's was solved
     assert not [w for w in wrong if w[0] == 1], wrong
+
+
+def _drift_movie(tmp_path, frames: int = 47):
+    """A speckle drifting right ever faster (``stsdic synth``, 160 px, noise 2, u = 0.3 t +
+    0.01 t^2, v = 0.1 t): from some block on, every block moves the subsets of the points at
+    the right border, and the run carries its shared motion (not affine in time): the moved
+    subsets' motion is taken at their centres."""
+    from torch_stsdic.cli import main
+
+    assert main(["synth", "--out", str(tmp_path / "m"), "--size", "160", "--frames",
+                 str(frames), "--motion", "quadratic", "--au", "0.3", "--bu", "0.01",
+                 "--av", "0.1", "--noise", "2", "--seed", "4", "--threads", "1"]) == 0
+    return tmp_path / "m" / "movie.tif"
+
+
+@pytest.mark.parametrize("wrong_kind", [None, "missed", "off"])
+def test_a_placement_after_one_that_moved_subsets_reads_nothing_and_gives_the_same_file(
+        tmp_path, monkeypatch, wrong_kind):
+    """With a GPU's choices, a block whose last block's placement moved subsets near the
+    border (all inside the image) places its own unread: its subsets' facts (the rows moved,
+    off their POIs, whether every subset is inside, the reference subsets the cache misses)
+    read with the block's one later read. The file is the reading run's to the bit.
+    ``missed``: the solver's cache emptied before each unread placement and its capacity
+    for missed subsets made 1, too few: that guess is wrong, the block solved again
+    reading (the subsets sampled again: the same numbers). ``off``: the first unread
+    placement's facts say a subset is off the image: the guess "inside" is wrong, that
+    block solved again reading (its facts as they are), later ones unread again; the same
+    file again."""
+    import h5py
+
+    from torch_stsdic.cli import main
+    from torch_stsdic.core import choices
+    from torch_stsdic.movie import block_placement
+
+    if not native.available():
+        pytest.skip("no native kernels (the paths agree to the bit on the C++ kernels)")
+    movie = _drift_movie(tmp_path)
+    for name, value in choices.gpu_choices().items():
+        monkeypatch.setattr(choices, name, value)
+    unread: list[int] = []  # each unread placement's capacity of missed subsets (-1: a
+    # wrong guess)
+    wrong: list[list[str]] = []
+    settle, init = block_placement.BlockPlacement.settle_unread, GuessWrong.__init__
+
+    def spy(self, placed, capacity, mark):
+        unread.append(capacity)
+        if wrong_kind == "off" and sum(c >= 0 for c in unread) == 1:  # (facts: moved,
+            # inside, off, missed)
+            placed.facts[1] = 0
+        if wrong_kind == "missed":  # the cache emptied: every subset of the block missed
+            cache = self.run.solver.reference_cache
+            cache._empty()
+            cache.slot.fill_(-1)
+        return settle(self, placed, capacity, mark)
+
+    def heard_wrong(self, questions, whole=False):
+        wrong.append(list(questions))
+        unread.append(-1)  # (in order with the placements)
+        init(self, questions, whole)
+
+    monkeypatch.setattr(block_placement.BlockPlacement, "settle_unread", spy)
+    monkeypatch.setattr(GuessWrong, "__init__", heard_wrong)
+    if wrong_kind == "missed":
+        monkeypatch.setattr(block_placement, "counted_capacity", lambda *a: 1)
+    out = {}
+    for guess in (True, False):  # (the guessing run first: it finds where "off" starts)
+        monkeypatch.setattr(choices, "GUESS_READS", guess)
+        unread.clear()
+        wrong.clear()
+        path = tmp_path / f"g{int(guess)}.h5"
+        assert main(["run", str(movie), "--subset", "21", "--step", "10", "--threads", "1",
+                     "--no-progress", "--out", str(path)]) == 0
+        with h5py.File(path) as f:
+            out[guess] = {k: f[k][()] for k in f if isinstance(f[k], h5py.Dataset)}
+        if not guess:
+            assert not unread
+            continue
+        assert any(c >= 0 for c in unread), "no block placed its subsets unread"
+        if wrong_kind == "missed":
+            assert any("rows at reference subsets missed" in q for q in wrong), (wrong, unread)
+        elif wrong_kind == "off":
+            assert ["subsets off the image"] in wrong, (wrong, unread)
+            # and later blocks place unread again (the reading attempt heard "inside")
+            assert sum(c >= 0 for c in unread) > 1, unread
+        else:  # (the blocks before the first moves guess "none moved": wrong once)
+            assert not any(set(q) & {"subsets off the image", "rows at reference subsets "
+                                     "missed"} for q in wrong), wrong
+    assert out[True].keys() == out[False].keys()
+    for k, v in out[True].items():
+        assert v.tobytes() == out[False][k].tobytes(), k

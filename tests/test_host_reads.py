@@ -319,6 +319,47 @@ def test_the_cache_keeps_new_subsets_without_a_read_given_their_count(monkeypatc
     assert a.count == count + 10
 
 
+def test_the_cache_keeps_up_to_a_capacity_of_new_subsets_unread_and_drops_the_padding():
+    """With a ``capacity`` instead of the count (a block that places its subsets unread),
+    ``keep_reference_subsets`` reads nothing of its own, keeps the first misses as the
+    counting path does (the same rows, slots and numbers) and pads to the capacity under
+    the spare key (no pixel's); ``drop_padding`` with the count read later takes the
+    padding back. Too small a capacity keeps the first misses only (the rest not kept:
+    the caller's count tells)."""
+    cfg = sts.DICConfig(m=0, subset_size=15)
+    solver, ref, ref_img, frames_img, pts, times = _solver_and_images(cfg)
+    other = SubsetSolver(cfg)
+    other.reference_cache = ReferenceCache(256.0)
+    moved = torch.cat([pts[5:20], pts[12:20], pts[:3]])  # kept, new (10), repeated
+    for s in (solver, other):
+        assert s.keep_reference_subsets(ref_img, pts[:10]) is not None
+    count = solver.reference_cache.count
+    reads = _Dispatched(READS)
+    with reads:
+        assert solver.keep_reference_subsets(ref_img, moved, capacity=16) is not None
+    assert not [r for r in reads.seen if r != "_local_scalar_dense"], reads.seen
+    assert other.keep_reference_subsets(ref_img, moved) is not None  # the counting path
+    a, b = solver.reference_cache, other.reference_cache
+    assert a.count == count + 16 and b.count == count + 10  # padded, then dropped
+    a.drop_padding(10)
+    assert a.count == count + 10
+    spare = a.pixels
+    assert a.slot.numel() == spare + 1 and int(a.slot[spare]) >= count + 10  # the padding's
+    assert torch.equal(a.slot[:spare], b.slot[:spare])
+    for k in ("ft", "gx", "gy", "gram", "fnorm", "texture"):
+        assert torch.equal(a.rows[k], b.rows[k]), k
+    a.drop_padding(3)  # (once only: nothing padded since)
+    assert a.count == count + 10
+    # too small: the first misses (ascending pixels) kept, the others still missing
+    small = SubsetSolver(cfg)
+    small.reference_cache = ReferenceCache(256.0)
+    small.keep_reference_subsets(ref_img, pts[:10])
+    small.keep_reference_subsets(ref_img, moved, capacity=4)
+    assert int(small.missing_reference_subsets(ref_img, moved)) == 6
+    small.reference_cache.drop_padding(10)  # (a count over the capacity: all 4 kept)
+    assert small.reference_cache.count == count + 4
+
+
 @pytest.mark.parametrize("window", ["square", "circular"])
 def test_subsets_known_inside_are_gathered_without_reading_the_points(window):
     """``sample_subsets(inside=True)`` (whole pixels inside the image, known to the caller)

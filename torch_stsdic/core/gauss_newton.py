@@ -62,7 +62,12 @@ class ReferenceCache:
         self.geo: tuple[torch.Tensor, ...] | None = None  # dx, dy, w, spatial
         self.geo_key: tuple | None = None  # their Geometry.key (None: compared as tensors)
         self.znssd = True
-        self.slot: torch.Tensor | None = None  # (R*H*W,) row of each pixel's subset, -1: none
+        #: (R*H*W + 1,) row of each pixel's subset, -1: none; the last entry a spare key that
+        #: no pixel has (the padding of :func:`keep_subsets`'s ``capacity``)
+        self.slot: torch.Tensor | None = None
+        self.pixels = 0  # R*H*W: the spare key
+        #: (start, end, generation) of the last padded :meth:`add` (:meth:`drop_padding`)
+        self._padded: tuple[int, int, int] | None = None
         # ft, fnorm, gx, gy, gram, texture: (capacity, ...), the first ``count`` rows kept;
         # grown by doubling (not a concatenation per solve: that copied every kept row)
         self._store: dict[str, torch.Tensor] = {}
@@ -92,8 +97,9 @@ class ReferenceCache:
         if self.coeffs is not ref.coeffs:
             self.coeffs = ref.coeffs
             self._empty()
-            self.slot = torch.full((ref.n_frames * ref.height * ref.width,), -1,
-                                   dtype=torch.long, device=ref.coeffs.device)
+            self.pixels = ref.n_frames * ref.height * ref.width
+            self.slot = torch.full((self.pixels + 1,), -1, dtype=torch.long,
+                                   device=ref.coeffs.device)
             self.geo, self.znssd = (geo.dx, geo.dy, geo.w, geo.spatial), geo.znssd
             self.geo_key = geo.key
         if self.znssd != geo.znssd:
@@ -136,6 +142,16 @@ class ReferenceCache:
                 self._store[k][start:end] = v
         self.slot[keys] = torch.arange(start, end, device=keys.device)
         self.count = end
+
+    def drop_padding(self, kept: int) -> None:
+        """The last :meth:`add` of :func:`keep_subsets` with a ``capacity``: only its first
+        ``kept`` rows (the distinct pixels that missed, read since) are subsets, the rest its
+        padding (under the spare key) is dropped where nothing was kept after it."""
+        if self._padded is not None:
+            start, end, generation = self._padded
+            if self.count == end and self.generation == generation:
+                self.count = start + min(int(kept), end - start)
+        self._padded = None
 
 
 #: :meth:`ReferenceCache.token`: the cache and its generation
@@ -419,14 +435,16 @@ def _cached_reference_data(ctx: BatchContext, pts, dt, fidx, ridx, key):
     kept = cache.rows
     data = SubsetData(px=pts, py=pts, dt=dt, fidx=fidx, ft=kept["ft"], fnorm=kept["fnorm"],
                       gx=kept["gx"], gy=kept["gy"], gram=kept["gram"], texture=kept["texture"])
-    return _rows_of(ctx, data, cache.slot[key], pts, dt, fidx)
+    # (a pixel not kept only where a caller's capacity was too small, a guess it finds
+    # wrong and solves again: its row reads the first kept subset meanwhile, not past them)
+    return _rows_of(ctx, data, cache.slot[key].clamp(min=0), pts, dt, fidx)
 
 
 def _missing_marks(cache: ReferenceCache, key: Tensor) -> tuple[Tensor, Tensor]:
     """For the rows' pixel keys ``key`` (N,): each row's key where ``cache`` misses its
     subset, else one past the last pixel (N,), and the (pixels + 1,) bool marks of the keys
     that miss (the last entry: the rows that do not). No host read."""
-    n_px = cache.slot.numel()
+    n_px = cache.pixels
     km = torch.where(cache.slot[key] < 0, key, n_px)
     mark = torch.zeros(n_px + 1, dtype=torch.bool, device=key.device)
     mark[km] = True
@@ -447,40 +465,50 @@ def missing_subsets(ctx: BatchContext, pts: torch.Tensor) -> Tensor | None:
 
 
 def _keep_missing(ctx: BatchContext, pts, dt, fidx, ridx, key,
-                  missing: int | None = None, inside: bool = False) -> bool:
+                  missing: int | None = None, inside: bool = False,
+                  capacity: int | None = None) -> bool:
     """The reference subsets of the rows ``key`` (N,) (pixel keys of ``pts``) that
     ``ctx.cache`` misses, sampled and kept (one host read: how many distinct keys miss;
     none where the caller read it, ``missing``: :func:`missing_subsets`; nor of the
     points' facts where it knows them, ``inside``: :func:`reference_subsets`'s); False
-    where they would exceed its budget (the cache is then off)."""
+    where they would exceed its budget (the cache is then off). ``capacity`` (count not
+    known): the first ``capacity`` distinct keys that miss kept, padded to that many rows
+    (:meth:`ReferenceCache.drop_padding` once the count is read; more is the caller's to
+    find)."""
     cache, geo = ctx.cache, ctx.geo
     if missing == 0:
         return True
     km, mark = _missing_marks(cache, key)
-    missing = int(mark[:-1].sum()) if missing is None else missing
-    if missing == 0:
-        return True
-    if not cache.fits(missing, int(geo.w.numel()), ctx.ref.coeffs.element_size(),
+    if capacity is None:
+        missing = int(mark[:-1].sum()) if missing is None else missing
+        if missing == 0:
+            return True
+    size = missing if capacity is None else capacity
+    if not cache.fits(size, int(geo.w.numel()), ctx.ref.coeffs.element_size(),
                       2 * (geo.ks + 1)):
         return False
     # the distinct keys that miss, ascending, and the first row of each (the rows sorted
-    # by key, stably: a search, not a scatter over every pixel of the image)
-    uniq = torch.nonzero_static(mark[:-1], size=missing).flatten()
+    # by key, stably: a search, not a scatter over every pixel of the image); padding: the
+    # spare key, sampled at a row of the points (any: its subset is not read)
+    uniq = torch.nonzero_static(mark[:-1], size=size, fill_value=cache.pixels).flatten()
     order = torch.argsort(km, stable=True)
-    first = order[torch.searchsorted(km[order], uniq)]
+    first = order[torch.searchsorted(km[order], uniq).clamp(max=key.numel() - 1)]
+    start = cache.count
     cache.add(uniq, _sampled(ctx, pts, dt, fidx, ridx, first, inside))
+    cache._padded = None if capacity is None else (start, cache.count, cache.generation)
     return True
 
 
 def keep_subsets(ctx: BatchContext, pts: torch.Tensor, missing: int | None = None,
-                 inside: bool = False) -> KeptToken | None:
+                 inside: bool = False, capacity: int | None = None) -> KeptToken | None:
     """Put the reference subsets of the points ``pts`` (N, 2) (reference 0; at the pixels a
     solve snaps them to) in ``ctx.cache`` (those it misses sampled: one host read) and
     return its token (:meth:`ReferenceCache.token`): a solve of any of these points given it
     as ``BatchContext.kept`` reads their subsets from the cache with no host read. None
     where the cache does not serve them (none, another geometry, over its budget).
     ``missing``: :func:`missing_subsets`'s count, read by the caller (then no read here);
-    ``inside``: every point a whole pixel whose subset lies inside the image (known)."""
+    ``inside``: every point a whole pixel whose subset lies inside the image (known);
+    ``capacity``: :func:`_keep_missing`'s (no read: the caller checks the count)."""
     cache = ctx.cache
     if cache is None or not cache.applies(ctx.ref, ctx.geo):
         return None
@@ -492,7 +520,8 @@ def keep_subsets(ctx: BatchContext, pts: torch.Tensor, missing: int | None = Non
     zero = torch.zeros(n, 1, dtype=pts.dtype, device=pts.device)
     ridx = torch.zeros(n, dtype=torch.long, device=pts.device)
     key = _pixel_keys(ctx.ref, pts, ridx)
-    if not _keep_missing(ctx, pts, zero, ridx.unsqueeze(1), ridx, key, missing, inside):
+    if not _keep_missing(ctx, pts, zero, ridx.unsqueeze(1), ridx, key, missing, inside,
+                         capacity):
         return None
     return cache.token()
 

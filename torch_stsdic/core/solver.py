@@ -150,17 +150,18 @@ class SubsetSolver:
         return all(isinstance(f, formulations.JointIC) for f in self.stages_for(shape))
 
     def keep_reference_subsets(self, ref: BSplineImage, points: torch.Tensor,
-                               missing: int | None = None, inside: bool = False
-                               ) -> KeptToken | None:
+                               missing: int | None = None, inside: bool = False,
+                               capacity: int | None = None) -> KeptToken | None:
         """Put the reference subsets of ``points`` (N, 2) (their dtype the solves'; at the
         whole pixels a solve snaps them to) of ``ref`` (reference 0) in
         :attr:`reference_cache` (one host read; none with ``missing``, the count of
         :meth:`missing_reference_subsets` read by the caller), and return the token that lets
         a later :meth:`solve` of any of them (``kept=``) read them there with no host read;
         None where the cache does not serve them. ``inside``: every point is a whole pixel
-        whose subset lies inside ``ref`` (known to the caller: not read)."""
+        whose subset lies inside ``ref`` (known to the caller: not read). ``capacity``: the
+        count not read, at most that many kept (``ReferenceCache.drop_padding`` after)."""
         ctx = self._cache_context(ref, points)
-        return None if ctx is None else keep_subsets(ctx, points, missing, inside)
+        return None if ctx is None else keep_subsets(ctx, points, missing, inside, capacity)
 
     def missing_reference_subsets(self, ref: BSplineImage, points: torch.Tensor
                                   ) -> torch.Tensor | None:

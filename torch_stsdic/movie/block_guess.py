@@ -26,10 +26,14 @@ import torch
 from torch_stsdic.core.choices import compact_reading, compact_rows, guess_reads
 
 __all__ = ["GuessWrong", "ReadGuesses", "BlockGuesses", "solve_guessing", "row_capacity",
-           "counted_capacity"]
+           "counted_capacity", "PLACEMENT", "RESCUE", "SUBSETS_OFF", "MISSED"]
 
 #: the questions a block may guess (the keys of :attr:`ReadGuesses.quiet`)
 PLACEMENT, RESCUE = "placement", "rescue"
+#: a placement's (:meth:`~torch_stsdic.movie.block_placement.BlockPlacement.keep_outside`)
+#: question "a subset lies off the reference image", guessed "no" where the last block's
+#: placement read so, and its site of the reference subsets the solver's cache missed
+SUBSETS_OFF, MISSED = "subsets off the image", "reference subsets missed"
 #: a masked solve's rows at a site (:meth:`BlockGuesses.compact`): the question "at most
 #: this many rows" is named ``SIZE + site``
 SIZE = "rows at "
@@ -76,6 +80,11 @@ class _Deferred:
     numbers: torch.Tensor
     limit: int = 0
     early: bool = False
+    #: called with the numbers read where the guess holds
+    then: Callable[[list[int]], None] | None = None
+    #: False: no guess, numbers only read with the block's next read (:meth:`BlockGuesses.
+    #: read_later`)
+    checked: bool = True
 
 
 def row_capacity(asked: int, rows: int) -> int | None:
@@ -145,6 +154,21 @@ class BlockGuesses:
                                        -1 if cap is None else cap))
         return cap
 
+    def defer_count(self, site: str, count: torch.Tensor, limit: int,
+                    then: Callable[[list[int]], None] | None = None) -> None:
+        """The guess "at most ``limit``" of ``count`` (a 0-d integer tensor: the rows asked for
+        at ``site``, learnt as :meth:`compact`'s), read with the next read (:meth:`read`; more
+        is a wrong guess); ``then(values)`` where it holds."""
+        self.deferred.append(_Deferred(SIZE + site, count.reshape(1).to(torch.int64), limit,
+                                       then=then))
+
+    def read_later(self, name: str, numbers: torch.Tensor,
+                   then: Callable[[list[int]], None]) -> None:
+        """``numbers`` (any shape, integers) read with the block's next read, no guess:
+        ``then(values)`` is called with them (facts a block needs only once they are read)."""
+        self.deferred.append(_Deferred(name, numbers.reshape(-1).to(torch.int64), then=then,
+                                       checked=False))
+
     def heard(self, question: str, quiet: bool) -> None:
         """The answer to ``question`` as read (``quiet``: nothing to do), for the next block
         to guess from."""
@@ -191,12 +215,16 @@ class BlockGuesses:
         for d in self.deferred:
             part = values[at:at + d.numbers.numel()]
             at += d.numbers.numel()
-            if d.question.startswith(SIZE):  # a count, learnt
+            if not d.checked:  # facts only read
+                holds = True
+            elif d.question.startswith(SIZE):  # a count, learnt
                 self._learn(d.question[len(SIZE):], part[0])
                 holds = d.limit < 0 or part[0] <= d.limit
             else:
                 holds = not any(part)
                 self.heard(d.question, holds)
+            if holds and d.then is not None:
+                d.then(part)
             if not holds:
                 wrong.append(d.question)
                 whole |= d.early

@@ -71,17 +71,14 @@ class BlockMotion:
         ``rows`` (R,) (None: all B*N), each at its subset's centre (``at_rows`` (R, F, 2):
         the shared motion there in the needed frames, where the caller has it). A row's
         numbers do not depend on which other rows are computed with it."""
-        run, n = self.run, self.n
+        n = self.n
         cols, dt = self.window_columns(m)  # (B, T) the needed frames' columns, times
         b, t = cols.shape
         if rows is not None:  # only these rows, at their subsets' centres
             g = self._motion_at(rows) if at_rows is None else at_rows  # (R, F, 2)
             g = g[torch.arange(rows.numel(), device=g.device).unsqueeze(1), cols[rows // n]]
             return window_offsets(g, dt[rows // n], return_slope=True)
-        if self._shared_g is None:  # at every frame the block reads, once
-            self._shared_g = run.shared.displacement(self.ref.points, self.needed).to(
-                run.dtype).transpose(0, 1)  # (N, F, 2)
-        g = self._shared_g[:, cols].permute(1, 0, 2, 3)  # (B, N, T, 2)
+        g = self._pois_motion()[:, cols].permute(1, 0, 2, 3)  # (B, N, T, 2)
         if self._off is not None:  # off-centre subsets: the motion at their centres
             at, off_g = self._off
             g = g.reshape(-1, t, 2)  # (a copy: g is a permuted gather)
@@ -91,6 +88,14 @@ class BlockMotion:
         # dt (B, 1, T): the same for all the target's points
         o, slope = window_offsets(g, dt.unsqueeze(1), return_slope=True)
         return o.reshape(-1, t, 2).contiguous(), slope.reshape(-1, 2)
+
+    def _pois_motion(self) -> torch.Tensor:
+        """(N, F, 2) the shared motion at the POIs in the block's needed frames (once)."""
+        if self._shared_g is None:
+            run = self.run
+            self._shared_g = run.shared.displacement(self.ref.points, self.needed).to(
+                run.dtype).transpose(0, 1)
+        return self._shared_g
 
     def _motion_at(self, rows: torch.Tensor) -> torch.Tensor:
         """(R, F, 2) the shared motion at the subset centres of ``rows`` (R,) in the block's
@@ -120,3 +125,20 @@ class BlockMotion:
             o, slope = self._window_motion(m, rows, at_rows)
             self._motion[m] = self._motion[m].index_put((rows,), o)
             self._slope[m] = self._slope[m].index_put((rows,), slope)
+
+    def _centres_moved_masked(self, off: torch.Tensor, moved: torch.Tensor) -> None:
+        """:meth:`_centres_moved` without the counts (not read yet): the motion at every
+        row's subset centre, taken at the rows ``off`` (B*N,) bool, the windows' offsets and
+        slopes computed again at every row and taken at the rows ``moved`` (B*N,) bool. The
+        same numbers (a row's do not depend on the rows computed with it); no host read."""
+        run = self.run
+        if run.shared is None:
+            return
+        every = torch.arange(off.numel(), device=off.device)
+        at_all = self._motion_at(every)  # (B*N, F, 2)
+        pois = self._pois_motion().repeat(off.numel() // self.n, 1, 1)
+        self._off = (every, torch.where(off.view(-1, 1, 1), at_all, pois))
+        for m in list(self._motion):  # new tensors: a caller may hold the old ones
+            o, slope = self._window_motion(m, every, at_all)
+            self._motion[m] = torch.where(moved.view(-1, 1, 1), o, self._motion[m])
+            self._slope[m] = torch.where(moved.view(-1, 1), slope, self._slope[m])

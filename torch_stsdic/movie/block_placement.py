@@ -13,7 +13,7 @@ import torch
 from torch_stsdic.core.choices import masked_groups
 from torch_stsdic.core.solver import subset_inside
 from torch_stsdic.core.status import Status
-from torch_stsdic.movie.block_guess import PLACEMENT
+from torch_stsdic.movie.block_guess import MISSED, PLACEMENT, SUBSETS_OFF, counted_capacity
 from torch_stsdic.movie.frames import true_rows
 
 __all__ = ["BlockPlacement", "Placement", "OUTSIDE_MARGIN"]
@@ -67,8 +67,15 @@ class BlockPlacement:
         run = self.run
         if self.places_at_once:  # one read, of the facts of the placement made at once
             pending = self.place_outside(inits, carried)
+            capacity = self._unread_capacity() if guess else None
+            if capacity is not None:  # the last block's moved some: read later
+                return self.settle_unread(pending, capacity, mark)
             # (guessed where the last block's moved none: the rows moved tell)
             facts = self.ask(PLACEMENT, pending.facts, 1, guess)
+            if facts is not None:  # for the next block's guesses
+                self.heard(SUBSETS_OFF, facts[1] == 1)
+                if len(facts) > 3:
+                    self._learn(MISSED, facts[3])
             return self.settle_outside(pending, [0, 1, 0] if facts is None else facts, mark)
         shift, left = self._run_window_fit(inits, carried)
         # one read: how many rows the run's window alone leaves (none where m = 0: no
@@ -138,6 +145,64 @@ class BlockPlacement:
             self._centres_moved(off, n_off, moved, n_moved)  # the shared motion there
             run.stats["off_centre_rows"] = run.stats.get("off_centre_rows", 0) + n_moved
         return out
+
+    def _unread_capacity(self) -> int | None:
+        """Whether this attempt places its rows without reading the facts
+        (:meth:`settle_unread`): it guesses, the last block's placement moved subsets (else
+        the guess "none moved" is taken, :meth:`keep_outside`) and found every one inside the
+        image; then the reference subsets the solver's cache may miss, at most (0: it keeps
+        none), else None (the facts read)."""
+        quiet = self.run.guesses.quiet
+        if (not self.guessing or quiet.get(PLACEMENT, True)
+                or not quiet.get(SUBSETS_OFF, False)):
+            return None
+        if self.kept is None:
+            return 0
+        known = self.run.guesses.sizes.get(MISSED)
+        return None if known is None else counted_capacity(2 * known, self.pts.shape[0])
+
+    def settle_unread(self, placed: Placement, capacity: int, mark: bool) -> torch.Tensor:
+        """:meth:`settle_outside` of a placement whose facts are not read
+        (:meth:`_unread_capacity`'s guess): every subset taken inside the image (its centre
+        clamped there: no change where that holds), the moved rows' motion over every row,
+        masked (:meth:`~torch_stsdic.movie.block_motion.BlockMotion._centres_moved_masked`),
+        at most ``capacity`` reference subsets added to the solver's cache; these guesses
+        and the facts (the rows moved and off their POIs: the counters, :attr:`off_count`)
+        read with the block's next read. Returns the (B*N,) bool mask of the OUTSIDE rows."""
+        run = self.run
+        out = placed.out
+        if mark:
+            self.status.masked_fill_(out, int(Status.OUTSIDE))
+            self.gone |= out
+        moved, centres, off = placed.placed
+        n_moved, all_in, n_off, *n_miss = placed.facts.unbind()
+        half = float(run.solver.window.half)
+        h, w = self.ref.img.height, self.ref.img.width
+        self.centres = torch.stack([centres[:, 0].clamp(half, w - 1 - half),
+                                    centres[:, 1].clamp(half, h - 1 - half)], 1)
+        self.centres_inside = True
+        self.defer(SUBSETS_OFF, 1 - all_in)
+        if self.kept is not None:
+            cache = run.solver.reference_cache
+            self.kept = run.solver.keep_reference_subsets(
+                self.ref.img, self.centres, inside=run.point_facts(self.ref)[0],
+                capacity=capacity)
+            self.defer_count(MISSED, n_miss[0], capacity,
+                             then=lambda v: cache.drop_padding(v[0]))
+        self._centres_moved_masked(off, moved)
+        self.off_count = None  # (read with the facts)
+        self.read_later(PLACEMENT, torch.stack([n_moved, n_off]), self._placed_read)
+        return out
+
+    def _placed_read(self, facts: list[int]) -> None:
+        """:meth:`settle_unread`'s facts read: the rows moved (counted; the next block's
+        guess) and those off their POIs (:attr:`off_count`, where no later placement of the
+        block set it)."""
+        n_moved, n_off = facts
+        self.heard(PLACEMENT, n_moved == 0)
+        self.run.stats["off_centre_rows"] = self.run.stats.get("off_centre_rows", 0) + n_moved
+        if self.off_count is None:
+            self.off_count = n_off
 
     def _shorter_windows_in_view(self, inits: Sequence[torch.Tensor], left: torch.Tensor,
                                  shift: torch.Tensor, idx: torch.Tensor) -> None:
