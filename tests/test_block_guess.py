@@ -374,9 +374,11 @@ def _drift_movie(tmp_path, frames: int = 47):
     return tmp_path / "m" / "movie.tif"
 
 
-@pytest.mark.parametrize("wrong_kind", [None, "missed", "off"])
+@pytest.mark.parametrize("wrong_kind,args", [
+    (None, ()), ("missed", ()), ("off", ()), (None, ("--m", "0", "--single-reference"))],
+    ids=["right", "missed", "off", "classical"])
 def test_a_placement_after_one_that_moved_subsets_reads_nothing_and_gives_the_same_file(
-        tmp_path, monkeypatch, wrong_kind):
+        tmp_path, monkeypatch, wrong_kind, args):
     """With a GPU's choices, a block whose last block's placement moved subsets near the
     border (all inside the image) places its own unread: its subsets' facts (the rows moved,
     off their POIs, whether every subset is inside, the reference subsets the cache misses)
@@ -386,7 +388,8 @@ def test_a_placement_after_one_that_moved_subsets_reads_nothing_and_gives_the_sa
     reading (the subsets sampled again: the same numbers). ``off``: the first unread
     placement's facts say a subset is off the image: the guess "inside" is wrong, that
     block solved again reading (its facts as they are), later ones unread again; the same
-    file again."""
+    file again. ``classical``: ``--m 0 --single-reference`` (no shorter windows: its
+    placement made the reading way's and taken unread alike)."""
     import h5py
 
     from torch_stsdic.cli import main
@@ -430,7 +433,7 @@ def test_a_placement_after_one_that_moved_subsets_reads_nothing_and_gives_the_sa
         wrong.clear()
         path = tmp_path / f"g{int(guess)}.h5"
         assert main(["run", str(movie), "--subset", "21", "--step", "10", "--threads", "1",
-                     "--no-progress", "--out", str(path)]) == 0
+                     "--no-progress", "--out", str(path), *args]) == 0
         with h5py.File(path) as f:
             out[guess] = {k: f[k][()] for k in f if isinstance(f[k], h5py.Dataset)}
         if not guess:

@@ -316,6 +316,21 @@ MUTATIONS: tuple[Mutation, ...] = (
         "a GPU's walk over weak frames keeps the better peaks of rows that were not weak: "
         "other first guesses than the CPU's"),
     Mutation(
+        "unread-placement-skips-the-moved-rows-motion", "guessed reads",
+        "torch_stsdic/movie/block_placement.py",
+        "        self._centres_moved_masked(off, moved)\n",
+        "        pass\n",
+        ("test_block_guess.py",),
+        "a placement taken unread keeps the shared motion at the POIs of the subsets it "
+        "moved (not at their centres): other numbers than the reading way's"),
+    Mutation(
+        "cache-padding-dropped-too-far", "solver", "torch_stsdic/core/gauss_newton.py",
+        "                self.count = start + min(int(kept), end - start)\n",
+        "                self.count = start\n",
+        ("test_host_reads.py",),
+        "the reference cache's padding taken back with the subsets before it (kept ones "
+        "sampled again, or read past the kept rows)"),
+    Mutation(
         "plane-rows-read-on-a-gpu", "neighbour test", "torch_stsdic/analysis/quality.py",
         "        if every_row or fit.numel() <= PLANE_EVERY_ROW:",
         "        if fit.numel() <= PLANE_EVERY_ROW:",

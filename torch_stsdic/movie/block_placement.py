@@ -72,10 +72,8 @@ class BlockPlacement:
                 return self.settle_unread(pending, capacity, mark)
             # (guessed where the last block's moved none: the rows moved tell)
             facts = self.ask(PLACEMENT, pending.facts, 1, guess)
-            if facts is not None:  # for the next block's guesses
-                self.heard(SUBSETS_OFF, facts[1] == 1)
-                if len(facts) > 3:
-                    self._learn(MISSED, facts[3])
+            if facts is not None:
+                self._heard_facts(facts)
             return self.settle_outside(pending, [0, 1, 0] if facts is None else facts, mark)
         shift, left = self._run_window_fit(inits, carried)
         # one read: how many rows the run's window alone leaves (none where m = 0: no
@@ -83,11 +81,16 @@ class BlockPlacement:
         # shorter windows move some)
         n_left = left.sum() if run.m > 0 else left.new_zeros((), dtype=torch.int64)
         facts, placed = self._centre_facts(shift, left)
+        capacity = self._unread_capacity() if guess and run.m == 0 else None
+        if capacity is not None:  # (classical: no shorter window, none left to place)
+            return self.settle_unread(Placement(left, torch.stack(facts), placed), capacity,
+                                      mark)
         # (guessed where the last block's left none and moved none: those two tell)
         read = self.ask(PLACEMENT, torch.stack([n_left] + facts), 2, guess)
         if read is None:
             return self.settle_outside(Placement(left, None, placed), [0, 1, 0], mark)
         n_left, *facts = read
+        self._heard_facts(facts)
         if n_left:  # every shorter window at once, the longest that stays in view
             self._shorter_windows_in_view(inits, left, shift, true_rows(left, n_left))
             facts, placed = self._centre_facts(shift, left)
@@ -145,6 +148,14 @@ class BlockPlacement:
             self._centres_moved(off, n_off, moved, n_moved)  # the shared motion there
             run.stats["off_centre_rows"] = run.stats.get("off_centre_rows", 0) + n_moved
         return out
+
+    def _heard_facts(self, facts: list[int]) -> None:
+        """A placement's facts read (:meth:`_centre_facts`'s), for the next block's guesses
+        (:meth:`_unread_capacity`): whether every subset is inside the image and the
+        reference subsets the cache missed."""
+        self.heard(SUBSETS_OFF, facts[1] == 1)
+        if len(facts) > 3:
+            self._learn(MISSED, facts[3])
 
     def _unread_capacity(self) -> int | None:
         """Whether this attempt places its rows without reading the facts
