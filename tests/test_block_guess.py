@@ -452,3 +452,78 @@ def test_a_placement_after_one_that_moved_subsets_reads_nothing_and_gives_the_sa
     assert out[True].keys() == out[False].keys()
     for k, v in out[True].items():
         assert v.tobytes() == out[False][k].tobytes(), k
+
+
+@pytest.mark.parametrize("wrong_kind", [None, "capacity"])
+def test_a_rescue_after_one_that_found_rows_in_one_wave_reads_nothing_and_gives_the_same_file(
+        tmp_path, monkeypatch, wrong_kind):
+    """With a GPU's choices, every block's rows of every fifth point after its first target
+    lost before its rescue (made so: marked DIVERGED), which one wave finds again from the
+    first target: a block after one whose rescue took that one wave and left nothing to
+    its neighbours or FFT takes its waves unread (each wave's rows masked over every row,
+    at most a learned number; its rows' placement unread too), and the guesses (the
+    wave's size, "the next wave finds nothing") read with the block's one read. The file is
+    the reading run's to the bit. ``capacity``: each wave's capacity made 1, too few: the
+    guess is wrong and the block's rescue done again reading; the same file."""
+    import h5py
+
+    from torch_stsdic.cli import main
+    from torch_stsdic.core import choices
+    from torch_stsdic.core.status import Status
+    from torch_stsdic.movie import rescue
+
+    if not native.available():
+        pytest.skip("no native kernels (the paths agree to the bit on the C++ kernels)")
+    movie = _drift_movie(tmp_path)
+    for name, value in choices.gpu_choices().items():
+        monkeypatch.setattr(choices, name, value)
+    real_rescue, real_unread = rescue.BlockRescue.rescue, rescue.BlockRescue._waves_unread
+    unread: list[int] = []  # each unread rescue: its waves
+    wrong: list[list[str]] = []
+    init = GuessWrong.__init__
+
+    def lose_then_rescue(self, carry, carried, m=None):
+        if m is None and self.b > 1:  # the block's rescue: every fifth point's later rows
+            point = torch.arange(self.b * self.n) % self.n
+            later = torch.arange(self.b * self.n) >= self.n
+            lose = (point % 5 == 0) & later & (self.status <= 1)
+            self.status.masked_fill_(lose, int(Status.DIVERGED))
+        return real_rescue(self, carry, carried, m)
+
+    def spy(self, carry, tried, fft_tried, caps):
+        unread.append(len(caps))
+        return real_unread(self, carry, tried, fft_tried, caps)
+
+    def heard_wrong(self, questions, whole=False):
+        wrong.append(list(questions))
+        init(self, questions, whole)
+
+    monkeypatch.setattr(rescue.BlockRescue, "rescue", lose_then_rescue)
+    monkeypatch.setattr(rescue.BlockRescue, "_waves_unread", spy)
+    monkeypatch.setattr(GuessWrong, "__init__", heard_wrong)
+    if wrong_kind == "capacity":
+        monkeypatch.setattr(rescue, "counted_capacity", lambda *a: 1)
+    out = {}
+    for guess in (False, True):
+        monkeypatch.setattr(choices, "GUESS_READS", guess)
+        unread.clear()
+        wrong.clear()
+        path = tmp_path / f"g{int(guess)}.h5"
+        assert main(["run", str(movie), "--subset", "21", "--step", "10", "--threads", "1",
+                     "--no-progress", "--out", str(path)]) == 0
+        with h5py.File(path) as f:
+            out[guess] = {k: f[k][()] for k in f if isinstance(f[k], h5py.Dataset)}
+        if not guess:
+            assert not unread
+            continue
+        assert unread and set(unread) == {1}, unread
+        if wrong_kind == "capacity":
+            assert any("rows at rescue wave 0" in q for q in wrong), wrong
+        else:  # right where nothing else was wrong (a wrong size of the cache's new
+            # subsets solves a wave's rows from other subsets: its rows lost again)
+            waves_wrong = [q for q in wrong if any(x.startswith("rescue wave") for x in q)]
+            assert all("rows at reference subsets missed" in q for q in waves_wrong), wrong
+            assert len(waves_wrong) < len(unread), (wrong, unread)
+    assert out[True].keys() == out[False].keys()
+    for k, v in out[True].items():
+        assert v.tobytes() == out[False][k].tobytes(), k

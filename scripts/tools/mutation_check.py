@@ -324,6 +324,13 @@ MUTATIONS: tuple[Mutation, ...] = (
         "a placement taken unread keeps the shared motion at the POIs of the subsets it "
         "moved (not at their centres): other numbers than the reading way's"),
     Mutation(
+        "unread-rescue-wave-size-unchecked", "guessed reads", "torch_stsdic/movie/rescue.py",
+        "            self.defer_count(WAVE + str(w), go.sum(), cap)\n",
+        "            pass\n",
+        ("test_block_guess.py",),
+        "a rescue wave taken unread solves at most its capacity of rows and never checks "
+        "that it found no more: rows left lost that the reading way rescues"),
+    Mutation(
         "cache-padding-dropped-too-far", "solver", "torch_stsdic/core/gauss_newton.py",
         "                self.count = start + min(int(kept), end - start)\n",
         "                self.count = start\n",

@@ -512,7 +512,10 @@ def _rescue_and_check(run: BlockContext, blk: Block, ks: list[int], carry: Carry
     solve; ``carried``: the rows started from ``carry``, ``guess`` their guesses), its
     guessed answers settled; ``count``: the block's counter."""
     from_prev, by_fft, redone = blk.rescue(carry, carried)
-    run.stats["rescued_rows"] = run.stats.get("rescued_rows", 0) + from_prev
+    if isinstance(from_prev, torch.Tensor):  # (rescue waves taken unread: not read yet)
+        count("rescued_rows", from_prev)
+    else:
+        run.stats["rescued_rows"] = run.stats.get("rescued_rows", 0) + from_prev
     run.stats["fft_rows"] += by_fft
     count("redone_rows", redone)
     # the identity cannot fail (rows are the identity only where m = 0: no read otherwise)

@@ -157,14 +157,15 @@ class BlockPlacement:
         if len(facts) > 3:
             self._learn(MISSED, facts[3])
 
-    def _unread_capacity(self) -> int | None:
+    def _unread_capacity(self, start: bool = True) -> int | None:
         """Whether this attempt places its rows without reading the facts
-        (:meth:`settle_unread`): it guesses, the last block's placement moved subsets (else
-        the guess "none moved" is taken, :meth:`keep_outside`) and found every one inside the
-        image; then the reference subsets the solver's cache may miss, at most (0: it keeps
-        none), else None (the facts read)."""
+        (:meth:`settle_unread`): it guesses, the last placement read found every subset
+        inside the image and, at the carried ``start``, the last block's placement moved
+        subsets (else the guess "none moved" is taken, :meth:`keep_outside`); then the
+        reference subsets the solver's cache may miss, at most (0: it keeps none), else
+        None (the facts read)."""
         quiet = self.run.guesses.quiet
-        if (not self.guessing or quiet.get(PLACEMENT, True)
+        if (not self.guessing or (start and quiet.get(PLACEMENT, True))
                 or not quiet.get(SUBSETS_OFF, False)):
             return None
         if self.kept is None:
@@ -172,14 +173,16 @@ class BlockPlacement:
         known = self.run.guesses.sizes.get(MISSED)
         return None if known is None else counted_capacity(2 * known, self.pts.shape[0])
 
-    def settle_unread(self, placed: Placement, capacity: int, mark: bool) -> torch.Tensor:
+    def settle_unread(self, placed: Placement, capacity: int, mark: bool, start: bool = True
+                      ) -> torch.Tensor:
         """:meth:`settle_outside` of a placement whose facts are not read
         (:meth:`_unread_capacity`'s guess): every subset taken inside the image (its centre
         clamped there: no change where that holds), the moved rows' motion over every row,
         masked (:meth:`~torch_stsdic.movie.block_motion.BlockMotion._centres_moved_masked`),
         at most ``capacity`` reference subsets added to the solver's cache; these guesses
         and the facts (the rows moved and off their POIs: the counters, :attr:`off_count`)
-        read with the block's next read. Returns the (B*N,) bool mask of the OUTSIDE rows."""
+        read with the block's next read (the rows moved the next block's guess where this is
+        the carried ``start``). Returns the (B*N,) bool mask of the OUTSIDE rows."""
         run = self.run
         out = placed.out
         if mark:
@@ -202,18 +205,20 @@ class BlockPlacement:
                              then=lambda v: cache.drop_padding(v[0]))
         self._centres_moved_masked(off, moved)
         self.off_count = None  # (read with the facts)
-        self.read_later(PLACEMENT, torch.stack([n_moved, n_off]), self._placed_read)
+        self.read_later(PLACEMENT, torch.stack([n_moved, n_off]),
+                        lambda facts: self._placed_read(facts, start))
         return out
 
-    def _placed_read(self, facts: list[int]) -> None:
-        """:meth:`settle_unread`'s facts read: the rows moved (counted; the next block's
-        guess) and those off their POIs (:attr:`off_count`, where no later placement of the
-        block set it)."""
+    def _placed_read(self, facts: list[int], start: bool) -> None:
+        """:meth:`settle_unread`'s facts read (in order with the block's other placements:
+        before those read with the same read): the rows moved (counted; the next block's
+        guess where this was the carried ``start``) and those off their POIs
+        (:attr:`off_count`)."""
         n_moved, n_off = facts
-        self.heard(PLACEMENT, n_moved == 0)
+        if start:
+            self.heard(PLACEMENT, n_moved == 0)
         self.run.stats["off_centre_rows"] = self.run.stats.get("off_centre_rows", 0) + n_moved
-        if self.off_count is None:
-            self.off_count = n_off
+        self.off_count = n_off
 
     def _shorter_windows_in_view(self, inits: Sequence[torch.Tensor], left: torch.Tensor,
                                  shift: torch.Tensor, idx: torch.Tensor) -> None:

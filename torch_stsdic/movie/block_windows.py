@@ -104,7 +104,8 @@ class BlockWindows:
         return self.planes[cols[h, b]], dts[h, b], 2 * m.long() + 1
 
     def solve_windows(self, rows: torch.Tensor, m_of: torch.Tensor,
-                      init: torch.Tensor | None, pick: torch.Tensor | None = None
+                      init: torch.Tensor | None, pick: torch.Tensor | None = None,
+                      sites: tuple[str, str] = ("classical", "windows")
                       ) -> list[tuple[torch.Tensor, int | torch.Tensor | None, WindowSolution,
                                       torch.Tensor | None]]:
         """Solve the rows ``rows`` (R,) (where ``pick`` (R,) bool, default all) from ``init``
@@ -118,7 +119,8 @@ class BlockWindows:
         the others masked (:data:`~torch_stsdic.core.choices.MASKED_GROUPS`: no read);
         otherwise one solve per half-width (:func:`rows_by_half_width`, one read), but a
         classical run's rows from a guess on a GPU: one solve of every row, the others
-        masked (no read)."""
+        masked (no read). ``sites``: the masked solves' (classical, windows) names
+        (:meth:`~torch_stsdic.movie.block_guess.BlockGuesses.compact`)."""
         run = self.run
         pick = torch.ones_like(rows, dtype=torch.bool) if pick is None else pick
         out = []
@@ -140,7 +142,7 @@ class BlockWindows:
             for window, mm in enumerate((0, windows)):
                 where = key == window
                 out.append((rows, mm, self.solve(rows, init, m=mm, active=where,
-                                                 site=("classical", "windows")[window]),
+                                                 site=sites[window]),
                             where))
             return out
         counts = torch.bincount(key, minlength=3)[:2].tolist()

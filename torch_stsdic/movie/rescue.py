@@ -13,18 +13,34 @@ import torch
 from torch_stsdic.analysis.result import USABLE
 from torch_stsdic.core.choices import until_done
 from torch_stsdic.core.status import Status
-from torch_stsdic.movie.block_guess import RESCUE
+from torch_stsdic.movie.block_guess import RESCUE, counted_capacity
 from torch_stsdic.movie.block_placement import Placement
 from torch_stsdic.movie.carry import Carry, neighbour_guess
 from torch_stsdic.movie.frames import true_rows
 from torch_stsdic.movie.reference import to_relative
 
-__all__ = ["BlockRescue"]
+__all__ = ["BlockRescue", "MAX_UNREAD_WAVES"]
+
+#: the most waves of a block's rescue taken unread (:meth:`BlockRescue._unread_waves`)
+MAX_UNREAD_WAVES = 2
+#: the guess "the waves end here" (:meth:`BlockRescue._waves_unread`), also the size
+#: (:attr:`~torch_stsdic.movie.block_guess.ReadGuesses.sizes`) holding how many waves the
+#: last reading rescue took (-1: it left rows to its neighbours or FFT), and the sites of
+#: each wave's rows (``WAVE`` + its number)
+WAVES, WAVE = "rescue waves", "rescue wave "
+#: the masked solves' sites of a rescue's rows (classical, windows)
+RESCUE_SITES = ("rescue classical", "rescue windows")
 
 
 class BlockRescue:
     """The rescue steps of a :class:`~torch_stsdic.movie.block.Block` (its rows, statuses,
     ``lost``, ``keep`` and ``solve``)."""
+
+    #: the waves the block's rescue took reading, where at most :data:`MAX_UNREAD_WAVES`
+    #: (None: more, or not read)
+    waves_read: int | None = None
+    #: (B*N,) long the target each row's last wave starts it from (:meth:`_wave`)
+    _wave_from: torch.Tensor
 
     def rescue(self, carry: Carry | None, carried: torch.Tensor, m: int | None = None
                ) -> tuple[int, int, int]:
@@ -46,6 +62,8 @@ class BlockRescue:
         # each step's facts read with the waves' last read (:meth:`_facts`), read again only
         # after a step that changed the rows: a block with no lost row reads once
         from_prev, facts = self._from_earlier(carry, m, tried, fft_tried)
+        if m is None and self.waves_read is not None:  # the pattern for the next block
+            self.run.guesses.sizes[WAVES] = -1 if facts[0] else self.waves_read
         from_nb = 0
         by_fft: Any = 0
         redone: Any = 0
@@ -136,7 +154,32 @@ class BlockRescue:
         own = torch.full((rows.numel(),), m_req, dtype=torch.int8, device=rows.device)
         if self.window_m is not None and m_req > 0:
             own = torch.minimum(own, self.window_m[rows])
-        for r, mk, sol, where in self.solve_windows(rows, own, init, pick=solved):
+        for r, mk, sol, where in self.solve_windows(rows, own, init, pick=solved,
+                                                    sites=RESCUE_SITES):
+            self.keep(r, sol, only_better=True, m=mk, where=where)
+
+    def _solve_own_masked(self, go: torch.Tensor, init: torch.Tensor, near: torch.Tensor,
+                          placed: Placement) -> None:
+        """:meth:`_solve_own` of the rows ``go`` (B*N,) bool, every row at once, the others
+        masked (no read of which): from ``init`` (B*N, P) (NaN off ``go``), ``near`` (B*N,)
+        bool as there, their placement ``placed`` taken unread
+        (:meth:`~torch_stsdic.movie.block_placement.BlockPlacement.settle_unread`, its
+        facts read with the block's next read); the run's window, no longer than the row's
+        :attr:`window_m`."""
+        run = self.run
+        every = torch.arange(go.numel(), device=go.device)
+        left = (self.gone & (self.status == int(Status.OUTSIDE))).view(self.b, self.n)
+        out = self.settle_unread(placed, self._unread_capacity(start=False), mark=False,
+                                 start=False)
+        final = _outside_runs(out.view(self.b, self.n), (go & near).view(self.b, self.n),
+                              left).reshape(-1)
+        self.status.masked_fill_(final, int(Status.OUTSIDE))
+        self.gone |= final
+        own = torch.full((go.numel(),), run.m, dtype=torch.int8, device=go.device)
+        if self.window_m is not None and run.m > 0:
+            own = torch.minimum(own, self.window_m)
+        for r, mk, sol, where in self.solve_windows(every, own, init.nan_to_num(0.0),
+                                                    pick=go & ~out, sites=RESCUE_SITES):
             self.keep(r, sol, only_better=True, m=mk, where=where)
 
     def _trusted(self, lost: torch.Tensor) -> torch.Tensor:
@@ -154,42 +197,20 @@ class BlockRescue:
         is tried again only from a nearer target. Returns the rows tried and the facts of
         the rows as the waves leave them (:meth:`_facts` with ``fft_tried``, read with the
         last wave's numbers: one read a wave)."""
-        run, n, b = self.run, self.n, self.b
+        b = self.b
+        self.waves_read = None
         # the block's rescue (m None) may be guessed: no lost row, as in the last block (the
         # classical rescue's first read, after the model check, is then the block's one
         # read, the guesses' numbers with it)
         if b < 2:
             facts = self.ask(RESCUE, self._facts(fft_tried), 1, m is None)  # one read
             return 0, [0] * (b + 2) if facts is None else facts
-        names, dev = run.names, run.device
-        iu, iv = names.index("u"), names.index("v")
-        j_of = torch.arange(b, device=dev).repeat_interleave(n)  # (B*N,) each row's target
-        i_of = torch.arange(n, device=dev).repeat(b)  # (B*N,) each row's point
-        total = 0
+        caps = self._unread_waves() if m is None else None
+        if caps is not None:  # as many waves as the last block's, read later
+            return self._waves_unread(carry, tried, fft_tried, caps), [0] * (b + 2)
+        total, waves = 0, 0
         for wave in range(b):
-            lost = self.lost()
-            good = self._trusted(lost)
-            # (B, N) the nearest trusted target strictly before each row's (-1: none)
-            at = torch.where(good, j_of, -1).view(b, n).cummax(0).values
-            p = torch.cat([at.new_full((1, n), -1), at[:-1]]).reshape(-1)
-            pr = p.clamp(min=0) * n + i_of
-            vel_u, vel_v, known = self._velocity_at(pr, carry)
-            reach = torch.where(known, b, 1)
-            cand = lost & (p >= 0) & (p > tried) & (j_of - p <= reach)
-            # every row's guess (the candidates' taken below): moved on from target p
-            init = self.params[pr]  # a copy
-            d = (run.ts[self.k[j_of]] - run.ts[self.k[p.clamp(min=0)]]).to(run.dtype)
-            init[:, iu] += vel_u * d
-            init[:, iv] += vel_v * d
-            if m == 0:
-                init = init.nan_to_num(0.0)  # a classical row has no ut, vt
-            else:
-                for nm, vel in (("ut", vel_u), ("vt", vel_v)):  # a classical row: its
-                    if nm in names:                              # velocity
-                        i = names.index(nm)
-                        init[:, i] = torch.where(torch.isfinite(init[:, i]), init[:, i], vel)
-            fin = torch.isfinite(init).all(1)
-            go = cand & fin
+            cand, fin, go, init, near = self._wave(carry, m, tried)
             numbers = [torch.stack([go.sum(), (cand & ~fin).sum()]), self._facts(fft_tried)]
             placed = None
             if self.places_at_once:  # the wave's rows placed near the border now, the
@@ -205,16 +226,100 @@ class BlockRescue:
                 return 0, [0] * (b + 2)
             n_go, n_wait, *facts = read
             facts, placed_facts = facts[:b + 2], facts[b + 2:]
+            if placed is not None:
+                self._heard_facts(placed_facts)
             if not n_go + n_wait:
                 break
-            tried.copy_(torch.where(cand, p, tried))
+            if m is None:  # (the block's rescue: the next block's capacities)
+                self._learn(WAVE + str(wave), n_go)
+            waves += 1
+            tried.copy_(torch.where(cand, self._wave_from, tried))
             if n_go:  # (a point predicted out of view from further back: tried later)
                 go = true_rows(go, n_go)
-                self._solve_own(go, init[go], m, near=j_of[go] - p[go] <= 1,
+                self._solve_own(go, init[go], m, near=near[go],
                                 placed=None if placed is None else (placed, placed_facts))
                 total += n_go
                 facts = None  # rows changed: the next wave's read tells
+        if m is None and waves <= MAX_UNREAD_WAVES:
+            self.waves_read = waves
         return total, (self.read(self._facts(fft_tried)) if facts is None else facts)
+
+    def _wave(self, carry: Carry | None, m: int | None, tried: torch.Tensor
+              ) -> tuple[torch.Tensor, ...]:
+        """One wave of :meth:`_from_earlier` on the rows as they stand: (B*N,) bool the
+        candidates (lost, a trusted target p before them not tried yet, within reach), those
+        with a finite guess, the rows to solve (both), (B*N, P) every row's guess moved on
+        from its p, and (B*N,) bool whether that p is the target just before (or the same);
+        :attr:`_wave_from` (B*N,) long the p of every row (-1: none). No host read."""
+        run, n, b = self.run, self.n, self.b
+        names, dev = run.names, run.device
+        iu, iv = names.index("u"), names.index("v")
+        j_of = torch.arange(b, device=dev).repeat_interleave(n)  # (B*N,) each row's target
+        i_of = torch.arange(n, device=dev).repeat(b)  # (B*N,) each row's point
+        lost = self.lost()
+        good = self._trusted(lost)
+        # (B, N) the nearest trusted target strictly before each row's (-1: none)
+        at = torch.where(good, j_of, -1).view(b, n).cummax(0).values
+        p = torch.cat([at.new_full((1, n), -1), at[:-1]]).reshape(-1)
+        pr = p.clamp(min=0) * n + i_of
+        vel_u, vel_v, known = self._velocity_at(pr, carry)
+        reach = torch.where(known, b, 1)
+        cand = lost & (p >= 0) & (p > tried) & (j_of - p <= reach)
+        # every row's guess (the candidates' taken below): moved on from target p
+        init = self.params[pr]  # a copy
+        d = (run.ts[self.k[j_of]] - run.ts[self.k[p.clamp(min=0)]]).to(run.dtype)
+        init[:, iu] += vel_u * d
+        init[:, iv] += vel_v * d
+        if m == 0:
+            init = init.nan_to_num(0.0)  # a classical row has no ut, vt
+        else:
+            for nm, vel in (("ut", vel_u), ("vt", vel_v)):  # a classical row: its
+                if nm in names:                              # velocity
+                    i = names.index(nm)
+                    init[:, i] = torch.where(torch.isfinite(init[:, i]), init[:, i], vel)
+        fin = torch.isfinite(init).all(1)
+        self._wave_from = p
+        return cand, fin, cand & fin, init, j_of - p <= 1
+
+    def _unread_waves(self) -> list[int] | None:
+        """The capacities of the rows of each wave of a block's rescue taken unread
+        (:meth:`_waves_unread`): where this attempt guesses, the last block's rescue was not
+        quiet but ended after as many waves as its last reading one (at most
+        :data:`MAX_UNREAD_WAVES`, no row left for its neighbours or FFT), each wave's rows
+        known, and the waves' placements may be taken unread; else None (read)."""
+        run = self.run
+        waves = run.guesses.sizes.get(WAVES, -1)
+        if (not self.guessing or run.guesses.quiet.get(RESCUE, True) or waves < 1
+                or not self.places_at_once or self._unread_capacity(start=False) is None):
+            return None
+        known = [run.guesses.sizes.get(WAVE + str(w)) for w in range(waves)]
+        if None in known:
+            return None
+        caps = [counted_capacity(2 * k, self.pts.shape[0]) for k in known]
+        return None if None in caps else caps
+
+    def _waves_unread(self, carry: Carry | None, tried: torch.Tensor,
+                      fft_tried: torch.Tensor, caps: list[int]) -> torch.Tensor:
+        """:meth:`_from_earlier`'s waves of the block's rescue without a read: ``caps``
+        (:meth:`_unread_waves`) waves, each wave's rows (at most its capacity: the guess
+        deferred) placed (:meth:`~torch_stsdic.movie.block_placement.BlockPlacement.
+        settle_unread`) and solved masked over every row; then the guess that the next wave
+        finds no row and no lost row is left untried by FFT (the numbers deferred: a wave
+        that finds none changes nothing, so fewer waves than guessed give the reading way's
+        rows). Returns the rows tried (a 0-d tensor)."""
+        total = None
+        for w, cap in enumerate(caps):
+            cand, fin, go, init, near = self._wave(carry, None, tried)
+            self.defer_count(WAVE + str(w), go.sum(), cap)
+            tried.copy_(torch.where(cand, self._wave_from, tried))
+            init = torch.where(go.unsqueeze(1), init, float("nan"))
+            placed = self.place_outside((init,), go)
+            self._solve_own_masked(go, init, near, placed)
+            total = go.sum() if total is None else total + go.sum()
+        cand, fin, go, _, _ = self._wave(carry, None, tried)
+        self.defer(WAVES, torch.stack([go.sum(), (cand & ~fin).sum(),
+                                       self._facts(fft_tried)[0]]))
+        return total
 
     def _velocity_at(self, rows: torch.Tensor, carry: Carry | None
                      ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
