@@ -454,7 +454,7 @@ def test_a_placement_after_one_that_moved_subsets_reads_nothing_and_gives_the_sa
         assert v.tobytes() == out[False][k].tobytes(), k
 
 
-@pytest.mark.parametrize("wrong_kind", [None, "capacity"])
+@pytest.mark.parametrize("wrong_kind", [None, "capacity", "choice off"])
 def test_a_rescue_after_one_that_found_rows_in_one_wave_reads_nothing_and_gives_the_same_file(
         tmp_path, monkeypatch, wrong_kind):
     """With a GPU's choices, every block's rows of every fifth point after its first target
@@ -464,7 +464,8 @@ def test_a_rescue_after_one_that_found_rows_in_one_wave_reads_nothing_and_gives_
     at most a learned number; its rows' placement unread too), and the guesses (the
     wave's size, "the next wave finds nothing") read with the block's one read. The file is
     the reading run's to the bit. ``capacity``: each wave's capacity made 1, too few: the
-    guess is wrong and the block's rescue done again reading; the same file."""
+    guess is wrong and the block's rescue done again reading; the same file. ``choice
+    off``: ``GUESS_WAVES`` False, every wave read (the other guesses taken)."""
     import h5py
 
     from torch_stsdic.cli import main
@@ -503,6 +504,8 @@ def test_a_rescue_after_one_that_found_rows_in_one_wave_reads_nothing_and_gives_
     monkeypatch.setattr(GuessWrong, "__init__", heard_wrong)
     if wrong_kind == "capacity":
         monkeypatch.setattr(rescue, "counted_capacity", lambda *a: 1)
+    if wrong_kind == "choice off":
+        monkeypatch.setattr(choices, "GUESS_WAVES", False)
     out = {}
     for guess in (False, True):
         monkeypatch.setattr(choices, "GUESS_READS", guess)
@@ -513,7 +516,7 @@ def test_a_rescue_after_one_that_found_rows_in_one_wave_reads_nothing_and_gives_
                      "--no-progress", "--out", str(path)]) == 0
         with h5py.File(path) as f:
             out[guess] = {k: f[k][()] for k in f if isinstance(f[k], h5py.Dataset)}
-        if not guess:
+        if not guess or wrong_kind == "choice off":
             assert not unread
             continue
         assert unread and set(unread) == {1}, unread

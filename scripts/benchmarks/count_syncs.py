@@ -268,6 +268,7 @@ def main(argv: list[str] | None = None) -> int:
            # each block's, in order: the run's first two (its reference frame's and the
            # one after it) do once-a-run work (the first guesses, learning the sizes)
            "per_block_outside_cpu_kernels": rest,
+           "per_block_launches": [b.get(LAUNCHES, 0) for b in per_block],
            "run_total": dict(counter.counts), "commit": _commit()}
     passes = in_passes(counter.counts, per_block)
     rec["passes"] = passes
@@ -284,6 +285,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"    each block's, in order: {', '.join(map(str, rest))}"
           + (f" (after the first two: median {statistics.median(rest[2:]):g})"
              if len(rest) > 2 else ""))
+    print(f"    each block's launch-like operations, in order: "
+          f"{', '.join(map(str, rec['per_block_launches']))}")
     print(f"  the run's passes (outside its blocks): {rec['passes_outside_cpu_kernels']} "
           f"outside the CPU kernels' checks ({rec['passes_outside_cpu_kernels_without_copies']}"
           f" without the host copies), {passes.get(LAUNCHES, 0)} launch-like operations")

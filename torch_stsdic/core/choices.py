@@ -17,9 +17,10 @@ import warnings
 import torch
 
 __all__ = ["EVERY_CANDIDATE", "UNTIL_DONE", "MASKED_GROUPS", "MASKED_CHECK", "GUESS_READS",
-           "COMPACT_ROWS", "COMPACT_READING", "SEARCH_READS", "ENV", "every_candidate",
-           "until_done", "masked_groups", "masked_check", "guess_reads", "compact_rows",
-           "compact_reading", "search_reads", "gpu_choices", "from_environment"]
+           "COMPACT_ROWS", "COMPACT_READING", "SEARCH_READS", "GUESS_WAVES", "ENV",
+           "every_candidate", "until_done", "masked_groups", "masked_check", "guess_reads",
+           "compact_rows", "compact_reading", "search_reads", "guess_waves", "gpu_choices",
+           "from_environment"]
 
 #: The model check's shorter windows (where the solver mixes window lengths): every candidate
 #: window of every failing row in one solve, each row's first that passes kept (True), or in
@@ -111,6 +112,19 @@ COMPACT_READING: bool | None = None
 SEARCH_READS: bool | None = None
 
 
+#: A block's rescue after one whose rescue found its rows in at most two waves and left
+#: none to its neighbours or FFT: that many waves taken unread, each over every row masked
+#: (at most a learned number of rows solved), the sizes and "the next wave finds nothing"
+#: read with the block's next read (:meth:`~torch_stsdic.movie.rescue.BlockRescue.
+#: _waves_unread`; True), or each wave read (False); None: unread on a GPU. A wave taken
+#: unread computes its guesses, placement and masked solves over every row of the block
+#: where a read one takes its rows alone: one read fewer a wave against more launches (the
+#: 120-frame benchmark movie's block after one that lost 31 rows: 1 read and 8,619
+#: launch-like operations against 2 and 7,310). Needs :data:`GUESS_READS` and
+#: :data:`MASKED_GROUPS`.
+GUESS_WAVES: bool | None = None
+
+
 #: the environment variable that sets choices at import (``NAME=0|1`` by commas)
 ENV = "TORCH_STSDIC_CHOICES"
 
@@ -184,11 +198,17 @@ def search_reads(device: torch.device) -> bool:
     return _choose(SEARCH_READS, device, on_gpu=False)
 
 
+def guess_waves(device: torch.device) -> bool:
+    """Whether a block's rescue takes the last block's waves unread on ``device``
+    (:data:`GUESS_WAVES`)."""
+    return _choose(GUESS_WAVES, device, on_gpu=True)
+
+
 def gpu_choices() -> dict[str, bool]:
     """Every choice as a GPU run makes it (by name), for a caller to set on the CPU."""
     return {"EVERY_CANDIDATE": True, "UNTIL_DONE": False, "MASKED_GROUPS": True,
             "MASKED_CHECK": True, "GUESS_READS": True, "COMPACT_ROWS": True,
-            "COMPACT_READING": True, "SEARCH_READS": False}
+            "COMPACT_READING": True, "SEARCH_READS": False, "GUESS_WAVES": True}
 
 
 from_environment()

@@ -11,7 +11,7 @@ from typing import Any
 import torch
 
 from torch_stsdic.analysis.result import USABLE
-from torch_stsdic.core.choices import until_done
+from torch_stsdic.core.choices import guess_waves, until_done
 from torch_stsdic.core.status import Status
 from torch_stsdic.movie.block_guess import RESCUE, counted_capacity
 from torch_stsdic.movie.block_placement import Placement
@@ -286,10 +286,12 @@ class BlockRescue:
         (:meth:`_waves_unread`): where this attempt guesses, the last block's rescue was not
         quiet but ended after as many waves as its last reading one (at most
         :data:`MAX_UNREAD_WAVES`, no row left for its neighbours or FFT), each wave's rows
-        known, and the waves' placements may be taken unread; else None (read)."""
+        known, and the waves' placements may be taken unread; else None (read). A GPU's
+        choice (:data:`~torch_stsdic.core.choices.GUESS_WAVES`)."""
         run = self.run
         waves = run.guesses.sizes.get(WAVES, -1)
-        if (not self.guessing or run.guesses.quiet.get(RESCUE, True) or waves < 1
+        if (not guess_waves(run.device) or not self.guessing
+                or run.guesses.quiet.get(RESCUE, True) or waves < 1
                 or not self.places_at_once or self._unread_capacity(start=False) is None):
             return None
         known = [run.guesses.sizes.get(WAVE + str(w)) for w in range(waves)]
@@ -306,11 +308,17 @@ class BlockRescue:
         settle_unread`) and solved masked over every row; then the guess that the next wave
         finds no row and no lost row is left untried by FFT (the numbers deferred: a wave
         that finds none changes nothing, so fewer waves than guessed give the reading way's
-        rows). Returns the rows tried (a 0-d tensor)."""
+        rows; the first wave's answer heard for the next block's guess, as a reading
+        rescue's). Returns the rows tried (a 0-d tensor)."""
         total = None
         for w, cap in enumerate(caps):
             cand, fin, go, init, near = self._wave(carry, None, tried)
             self.defer_count(WAVE + str(w), go.sum(), cap)
+            if w == 0:  # the first wave's answer heard, as a reading rescue's (nothing to
+                # do: the next block guesses so, not these waves)
+                self.read_later(RESCUE, torch.stack([go.sum(), (cand & ~fin).sum(),
+                                                     self._facts(fft_tried)[0]]),
+                                lambda values: self.heard(RESCUE, not any(values)))
             tried.copy_(torch.where(cand, self._wave_from, tried))
             init = torch.where(go.unsqueeze(1), init, float("nan"))
             placed = self.place_outside((init,), go)
