@@ -195,6 +195,19 @@ def test_a_wrong_guess_solves_the_block_again_with_the_counters_as_before(monkey
     assert block_guess.solve_guessing(run, solve) == "solved" and calls == [False]
 
 
+def _run_file(movie, path, *args) -> dict:
+    """``stsdic run`` of ``movie`` (21 px subsets every 10 px, one thread) into ``path``: its
+    datasets by name."""
+    import h5py
+
+    from torch_stsdic.cli import main
+
+    assert main(["run", str(movie), "--subset", "21", "--step", "10", "--threads", "1",
+                 "--no-progress", "--out", str(path), *args]) == 0
+    with h5py.File(path) as f:
+        return {k: f[k][()] for k in f if isinstance(f[k], h5py.Dataset)}
+
+
 @pytest.mark.parametrize("movie_kind,args,compact", [
     ("patch", (), False), ("patch", (), True), ("drift", (), True),
     ("drift", ("--m", "0", "--single-reference"), True)],
@@ -211,7 +224,6 @@ def test_guessed_reads_give_the_reading_runs_file_and_a_wrong_guess_is_caught(
     rightly. ``compact`` False: the masked solves not taken to a size (``COMPACT_ROWS``), so
     the patch's block guesses only its rescue wrong and is solved again from its rescue
     (with them, its classical group's size is wrong too: the whole block again)."""
-    import h5py
 
     from torch_stsdic.cli import main
     from torch_stsdic.movie import block, choices
@@ -261,11 +273,7 @@ def test_guessed_reads_give_the_reading_runs_file_and_a_wrong_guess_is_caught(
         wrong.clear()
         wholes.clear()
         taken.clear()
-        path = tmp_path / f"g{int(guess)}.h5"
-        assert main(["run", str(movie), "--subset", "21", "--step", "10", "--threads", "1",
-                     "--no-progress", "--out", str(path), *args]) == 0
-        with h5py.File(path) as f:
-            out[guess] = {k: f[k][()] for k in f if isinstance(f[k], h5py.Dataset)}
+        out[guess] = _run_file(movie, tmp_path / f"g{int(guess)}.h5", *args)
         if not guess:
             assert not any(attempts) and not wrong and not taken
             continue
@@ -390,9 +398,7 @@ def test_a_placement_after_one_that_moved_subsets_reads_nothing_and_gives_the_sa
     block solved again reading (its facts as they are), later ones unread again; the same
     file again. ``classical``: ``--m 0 --single-reference`` (no shorter windows: its
     placement made the reading way's and taken unread alike)."""
-    import h5py
 
-    from torch_stsdic.cli import main
     from torch_stsdic.core import choices
     from torch_stsdic.movie import block_placement
 
@@ -427,15 +433,11 @@ def test_a_placement_after_one_that_moved_subsets_reads_nothing_and_gives_the_sa
     if wrong_kind == "missed":
         monkeypatch.setattr(block_placement, "counted_capacity", lambda *a: 1)
     out = {}
-    for guess in (True, False):  # (the guessing run first: it finds where "off" starts)
+    for guess in (False, True):
         monkeypatch.setattr(choices, "GUESS_READS", guess)
         unread.clear()
         wrong.clear()
-        path = tmp_path / f"g{int(guess)}.h5"
-        assert main(["run", str(movie), "--subset", "21", "--step", "10", "--threads", "1",
-                     "--no-progress", "--out", str(path), *args]) == 0
-        with h5py.File(path) as f:
-            out[guess] = {k: f[k][()] for k in f if isinstance(f[k], h5py.Dataset)}
+        out[guess] = _run_file(movie, tmp_path / f"g{int(guess)}.h5", *args)
         if not guess:
             assert not unread
             continue
@@ -466,9 +468,7 @@ def test_a_rescue_after_one_that_found_rows_in_one_wave_reads_nothing_and_gives_
     the reading run's to the bit. ``capacity``: each wave's capacity made 1, too few: the
     guess is wrong and the block's rescue done again reading; the same file. ``choice
     off``: ``GUESS_WAVES`` False, every wave read (the other guesses taken)."""
-    import h5py
 
-    from torch_stsdic.cli import main
     from torch_stsdic.core import choices
     from torch_stsdic.core.status import Status
     from torch_stsdic.movie import rescue
@@ -511,11 +511,7 @@ def test_a_rescue_after_one_that_found_rows_in_one_wave_reads_nothing_and_gives_
         monkeypatch.setattr(choices, "GUESS_READS", guess)
         unread.clear()
         wrong.clear()
-        path = tmp_path / f"g{int(guess)}.h5"
-        assert main(["run", str(movie), "--subset", "21", "--step", "10", "--threads", "1",
-                     "--no-progress", "--out", str(path)]) == 0
-        with h5py.File(path) as f:
-            out[guess] = {k: f[k][()] for k in f if isinstance(f[k], h5py.Dataset)}
+        out[guess] = _run_file(movie, tmp_path / f"g{int(guess)}.h5")
         if not guess or wrong_kind == "choice off":
             assert not unread
             continue

@@ -132,10 +132,7 @@ class BlockPlacement:
         its ``facts`` read on the host (:meth:`_centre_facts`'s, in order). Returns the
         (B*N,) bool mask of the OUTSIDE rows."""
         run = self.run
-        out = placed.out
-        if mark:
-            self.status.masked_fill_(out, int(Status.OUTSIDE))
-            self.gone |= out
+        out = self._mark_outside(placed, mark)
         moved, centres, off = placed.placed
         n_moved, all_in, n_off, *n_miss = facts
         if n_moved:
@@ -148,6 +145,13 @@ class BlockPlacement:
             self._centres_moved(off, n_off, moved, n_moved)  # the shared motion there
             run.stats["off_centre_rows"] = run.stats.get("off_centre_rows", 0) + n_moved
         return out
+
+    def _mark_outside(self, placed: Placement, mark: bool) -> torch.Tensor:
+        """A placement's OUTSIDE rows (B*N,) bool, marked so (and gone) where ``mark``."""
+        if mark:
+            self.status.masked_fill_(placed.out, int(Status.OUTSIDE))
+            self.gone |= placed.out
+        return placed.out
 
     def _heard_facts(self, facts: list[int]) -> None:
         """A placement's facts read (:meth:`_centre_facts`'s), for the next block's guesses
@@ -184,10 +188,7 @@ class BlockPlacement:
         read with the block's next read (the rows moved the next block's guess where this is
         the carried ``start``). Returns the (B*N,) bool mask of the OUTSIDE rows."""
         run = self.run
-        out = placed.out
-        if mark:
-            self.status.masked_fill_(out, int(Status.OUTSIDE))
-            self.gone |= out
+        out = self._mark_outside(placed, mark)
         moved, centres, off = placed.placed
         n_moved, all_in, n_off, *n_miss = placed.facts.unbind()
         half = float(run.solver.window.half)
