@@ -13,7 +13,7 @@ import torch
 from torch_stsdic.analysis.result import USABLE
 from torch_stsdic.core.choices import guess_waves, until_done
 from torch_stsdic.core.status import Status
-from torch_stsdic.movie.block_guess import RESCUE, counted_capacity
+from torch_stsdic.movie.block_guess import PLACEMENT, RESCUE, counted_capacity
 from torch_stsdic.movie.block_placement import Placement
 from torch_stsdic.movie.carry import Carry, neighbour_guess
 from torch_stsdic.movie.frames import true_rows
@@ -28,6 +28,9 @@ MAX_UNREAD_WAVES = 2
 #: last reading rescue took (-1: it left rows to its neighbours or FFT), and the sites of
 #: each wave's rows (``WAVE`` + its number)
 WAVES, WAVE = "rescue waves", "rescue wave "
+#: the guess "an unread wave's placement moves no subset" (where the last block's carried
+#: start moved none: :meth:`BlockRescue._solve_own_masked`)
+WAVE_PLACEMENT = "rescue wave placement"
 #: the masked solves' sites of a rescue's rows (classical, windows)
 RESCUE_SITES = ("rescue classical", "rescue windows")
 
@@ -164,13 +167,19 @@ class BlockRescue:
         masked (no read of which): from ``init`` (B*N, P) (NaN off ``go``), ``near`` (B*N,)
         bool as there, their placement ``placed`` taken unread
         (:meth:`~torch_stsdic.movie.block_placement.BlockPlacement.settle_unread`, its
-        facts read with the block's next read); the run's window, no longer than the row's
-        :attr:`window_m`."""
+        facts read with the block's next read; where the last block's carried start moved
+        no subset, the guess "none moved" instead, no masked work); the run's window, no
+        longer than the row's :attr:`window_m`."""
         run = self.run
         every = torch.arange(go.numel(), device=go.device)
         left = (self.gone & (self.status == int(Status.OUTSIDE))).view(self.b, self.n)
-        out = self.settle_unread(placed, self._unread_capacity(start=False), mark=False,
-                                 start=False)
+        if self.may_guess(PLACEMENT):  # the last block's carried rows moved no subset:
+            # nor do the same points' rescued rows (guessed; the rows moved tell)
+            self.defer(WAVE_PLACEMENT, placed.facts[:1])
+            out = self.settle_outside(placed, [0, 1, 0], mark=False)
+        else:
+            out = self.settle_unread(placed, self._unread_capacity(start=False), mark=False,
+                                     start=False)
         final = _outside_runs(out.view(self.b, self.n), (go & near).view(self.b, self.n),
                               left).reshape(-1)
         self.status.masked_fill_(final, int(Status.OUTSIDE))
