@@ -119,7 +119,7 @@ SEARCH_READS: bool | None = None
 #: _waves_unread`; True), or each wave read (False); None: unread on a GPU. A wave taken
 #: unread computes its guesses, placement and masked solves over every row of the block
 #: where a read one takes its rows alone: one read fewer a wave against more launches (the
-#: 120-frame benchmark movie's block after one that lost 31 rows: 1 read and 8,619
+#: 120-frame benchmark movie's block after one that lost 31 rows: 1 read and 8,161
 #: launch-like operations against 2 and 7,310). Needs :data:`GUESS_READS` and
 #: :data:`MASKED_GROUPS`.
 GUESS_WAVES: bool | None = None
