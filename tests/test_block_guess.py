@@ -431,7 +431,9 @@ def test_a_placement_after_one_that_moved_subsets_reads_nothing_and_gives_the_sa
     monkeypatch.setattr(block_placement.BlockPlacement, "settle_unread", spy)
     monkeypatch.setattr(GuessWrong, "__init__", heard_wrong)
     if wrong_kind == "missed":
-        monkeypatch.setattr(block_placement, "counted_capacity", lambda *a: 1)
+        learned = BlockGuesses.learned_capacity
+        monkeypatch.setattr(BlockGuesses, "learned_capacity", lambda self, site, rows: (
+            1 if site == "reference subsets missed" else learned(self, site, rows)))
     out = {}
     for guess in (False, True):
         monkeypatch.setattr(choices, "GUESS_READS", guess)
@@ -503,7 +505,9 @@ def test_a_rescue_after_one_that_found_rows_in_one_wave_reads_nothing_and_gives_
     monkeypatch.setattr(rescue.BlockRescue, "_waves_unread", spy)
     monkeypatch.setattr(GuessWrong, "__init__", heard_wrong)
     if wrong_kind == "capacity":
-        monkeypatch.setattr(rescue, "counted_capacity", lambda *a: 1)
+        learned = BlockGuesses.learned_capacity
+        monkeypatch.setattr(BlockGuesses, "learned_capacity", lambda self, site, rows: (
+            1 if site.startswith("rescue wave ") else learned(self, site, rows)))
     if wrong_kind == "choice off":
         monkeypatch.setattr(choices, "GUESS_WAVES", False)
     out = {}

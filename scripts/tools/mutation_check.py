@@ -325,7 +325,7 @@ MUTATIONS: tuple[Mutation, ...] = (
         "moved (not at their centres): other numbers than the reading way's"),
     Mutation(
         "unread-rescue-wave-size-unchecked", "guessed reads", "torch_stsdic/movie/rescue.py",
-        "            self.defer_count(WAVE + str(w), go.sum(), cap)\n",
+        "            self.defer_count(WAVE + str(w), answer[0], cap)\n",
         "            pass\n",
         ("test_block_guess.py",),
         "a rescue wave taken unread solves at most its capacity of rows and never checks "

@@ -169,6 +169,14 @@ class BlockGuesses:
         self.deferred.append(_Deferred(name, numbers.reshape(-1).to(torch.int64), then=then,
                                        checked=False))
 
+    def learned_capacity(self, site: str, rows: int) -> int | None:
+        """The rows a guessing block takes at ``site`` without reading their count:
+        :func:`counted_capacity` of twice the most the blocks before asked for there
+        (:attr:`ReadGuesses.sizes`), of ``rows`` (R) in all; None where that is unknown or
+        over half of R (read instead)."""
+        known = self.run.guesses.sizes.get(site)
+        return None if known is None else counted_capacity(2 * known, rows)
+
     def heard(self, question: str, quiet: bool) -> None:
         """The answer to ``question`` as read (``quiet``: nothing to do), for the next block
         to guess from."""

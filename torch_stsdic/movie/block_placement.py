@@ -13,7 +13,7 @@ import torch
 from torch_stsdic.core.choices import masked_groups
 from torch_stsdic.core.solver import subset_inside
 from torch_stsdic.core.status import Status
-from torch_stsdic.movie.block_guess import MISSED, PLACEMENT, SUBSETS_OFF, counted_capacity
+from torch_stsdic.movie.block_guess import MISSED, PLACEMENT, SUBSETS_OFF
 from torch_stsdic.movie.frames import true_rows
 
 __all__ = ["BlockPlacement", "Placement", "OUTSIDE_MARGIN"]
@@ -174,8 +174,7 @@ class BlockPlacement:
             return None
         if self.kept is None:
             return 0
-        known = self.run.guesses.sizes.get(MISSED)
-        return None if known is None else counted_capacity(2 * known, self.pts.shape[0])
+        return self.learned_capacity(MISSED, self.pts.shape[0])
 
     def settle_unread(self, placed: Placement, capacity: int, mark: bool, start: bool = True
                       ) -> torch.Tensor:

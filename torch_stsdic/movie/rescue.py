@@ -13,7 +13,7 @@ import torch
 from torch_stsdic.analysis.result import USABLE
 from torch_stsdic.core.choices import guess_waves, until_done
 from torch_stsdic.core.status import Status
-from torch_stsdic.movie.block_guess import PLACEMENT, RESCUE, counted_capacity
+from torch_stsdic.movie.block_guess import PLACEMENT, RESCUE
 from torch_stsdic.movie.block_placement import Placement
 from torch_stsdic.movie.carry import Carry, neighbour_guess
 from torch_stsdic.movie.frames import true_rows
@@ -42,8 +42,6 @@ class BlockRescue:
     #: the waves the block's rescue took reading, where at most :data:`MAX_UNREAD_WAVES`
     #: (None: more, or not read)
     waves_read: int | None = None
-    #: (B*N,) long the target each row's last wave starts it from (:meth:`_wave`)
-    _wave_from: torch.Tensor
 
     def rescue(self, carry: Carry | None, carried: torch.Tensor, m: int | None = None
                ) -> tuple[int, int, int]:
@@ -133,7 +131,6 @@ class BlockRescue:
         1-target blocks solve). ``placed``: the rows' placement made already, with its
         facts read (:meth:`~torch_stsdic.movie.block_placement.BlockPlacement.
         place_outside`; None: placed here)."""
-        run = self.run
         if init is not None:
             full = torch.full((self.pts.shape[0], init.shape[1]), float("nan"),
                               dtype=init.dtype, device=init.device)
@@ -143,23 +140,13 @@ class BlockRescue:
             close = ask.clone()  # the rows whose guess is as near as a carry's
             if near is not None:
                 close[rows] = near
-            left = (self.gone & (self.status == int(Status.OUTSIDE))).view(self.b, self.n)
             out = (self.keep_outside((full,), ask, mark=False) if placed is None
                    else self.settle_outside(*placed, mark=False))
-            final = _outside_runs(out.view(self.b, self.n), close.view(self.b, self.n),
-                                  left).reshape(-1)
-            self.status.masked_fill_(final, int(Status.OUTSIDE))
-            self.gone |= final
+            self._outside_for_good(out, close)
             solved = ~out[rows]  # the rows still in view (grouped below: one read for both)
         else:
             solved = torch.ones_like(rows, dtype=torch.bool)
-        m_req = run.m if m is None else m
-        own = torch.full((rows.numel(),), m_req, dtype=torch.int8, device=rows.device)
-        if self.window_m is not None and m_req > 0:
-            own = torch.minimum(own, self.window_m[rows])
-        for r, mk, sol, where in self.solve_windows(rows, own, init, pick=solved,
-                                                    sites=RESCUE_SITES):
-            self.keep(r, sol, only_better=True, m=mk, where=where)
+        self._solve_in_own_windows(rows, init, m, solved)
 
     def _solve_own_masked(self, go: torch.Tensor, init: torch.Tensor, near: torch.Tensor,
                           placed: Placement) -> None:
@@ -170,9 +157,6 @@ class BlockRescue:
         facts read with the block's next read; where the last block's carried start moved
         no subset, the guess "none moved" instead, no masked work); the run's window, no
         longer than the row's :attr:`window_m`."""
-        run = self.run
-        every = torch.arange(go.numel(), device=go.device)
-        left = (self.gone & (self.status == int(Status.OUTSIDE))).view(self.b, self.n)
         if self.may_guess(PLACEMENT):  # the last block's carried rows moved no subset:
             # nor do the same points' rescued rows (guessed; the rows moved tell)
             self.defer(WAVE_PLACEMENT, placed.facts[:1])
@@ -180,15 +164,32 @@ class BlockRescue:
         else:
             out = self.settle_unread(placed, self._unread_capacity(start=False), mark=False,
                                      start=False)
-        final = _outside_runs(out.view(self.b, self.n), (go & near).view(self.b, self.n),
-                              left).reshape(-1)
+        self._outside_for_good(out, go & near)
+        self._solve_in_own_windows(torch.arange(go.numel(), device=go.device),
+                                   init.nan_to_num(0.0), None, go & ~out)
+
+    def _outside_for_good(self, out: torch.Tensor, close: torch.Tensor) -> None:
+        """The rows of a rescue's placement predicted out of view, ``out`` (B*N,) bool, made
+        OUTSIDE for good where :func:`_outside_runs` says so (``close`` (B*N,) bool: the
+        rows whose guess is as near as a carry's)."""
+        b, n = self.b, self.n
+        left = (self.gone & (self.status == int(Status.OUTSIDE))).view(b, n)
+        final = _outside_runs(out.view(b, n), close.view(b, n), left).reshape(-1)
         self.status.masked_fill_(final, int(Status.OUTSIDE))
         self.gone |= final
-        own = torch.full((go.numel(),), run.m, dtype=torch.int8, device=go.device)
-        if self.window_m is not None and run.m > 0:
-            own = torch.minimum(own, self.window_m)
-        for r, mk, sol, where in self.solve_windows(every, own, init.nan_to_num(0.0),
-                                                    pick=go & ~out, sites=RESCUE_SITES):
+
+    def _solve_in_own_windows(self, rows: torch.Tensor, init: torch.Tensor | None,
+                              m: int | None, pick: torch.Tensor) -> None:
+        """Rows ``rows`` (R,) where ``pick`` (R,) bool solved from ``init`` (R, P) (None:
+        FFT), each with at most half-width ``m`` (default the run's) and no longer than its
+        :attr:`window_m` (:meth:`~torch_stsdic.movie.block_windows.BlockWindows.
+        solve_windows` at the rescue's sites); the better result kept."""
+        m_req = self.run.m if m is None else m
+        own = torch.full((rows.numel(),), m_req, dtype=torch.int8, device=rows.device)
+        if self.window_m is not None and m_req > 0:
+            own = torch.minimum(own, self.window_m[rows])
+        for r, mk, sol, where in self.solve_windows(rows, own, init, pick=pick,
+                                                    sites=RESCUE_SITES):
             self.keep(r, sol, only_better=True, m=mk, where=where)
 
     def _trusted(self, lost: torch.Tensor) -> torch.Tensor:
@@ -219,7 +220,7 @@ class BlockRescue:
             return self._waves_unread(carry, tried, fft_tried, caps), [0] * (b + 2)
         total, waves = 0, 0
         for wave in range(b):
-            cand, fin, go, init, near = self._wave(carry, m, tried)
+            cand, fin, go, init, p = self._wave(carry, m, tried)
             numbers = [torch.stack([go.sum(), (cand & ~fin).sum()]), self._facts(fft_tried)]
             placed = None
             if self.places_at_once:  # the wave's rows placed near the border now, the
@@ -242,10 +243,10 @@ class BlockRescue:
             if m is None:  # (the block's rescue: the next block's capacities)
                 self._learn(WAVE + str(wave), n_go)
             waves += 1
-            tried.copy_(torch.where(cand, self._wave_from, tried))
+            tried.copy_(torch.where(cand, p, tried))
             if n_go:  # (a point predicted out of view from further back: tried later)
                 go = true_rows(go, n_go)
-                self._solve_own(go, init[go], m, near=near[go],
+                self._solve_own(go, init[go], m, near=self._near(p)[go],
                                 placed=None if placed is None else (placed, placed_facts))
                 total += n_go
                 facts = None  # rows changed: the next wave's read tells
@@ -258,8 +259,7 @@ class BlockRescue:
         """One wave of :meth:`_from_earlier` on the rows as they stand: (B*N,) bool the
         candidates (lost, a trusted target p before them not tried yet, within reach), those
         with a finite guess, the rows to solve (both), (B*N, P) every row's guess moved on
-        from its p, and (B*N,) bool whether that p is the target just before (or the same);
-        :attr:`_wave_from` (B*N,) long the p of every row (-1: none). No host read."""
+        from its p, and (B*N,) long that p (-1: none). No host read."""
         run, n, b = self.run, self.n, self.b
         names, dev = run.names, run.device
         iu, iv = names.index("u"), names.index("v")
@@ -287,8 +287,21 @@ class BlockRescue:
                     i = names.index(nm)
                     init[:, i] = torch.where(torch.isfinite(init[:, i]), init[:, i], vel)
         fin = torch.isfinite(init).all(1)
-        self._wave_from = p
-        return cand, fin, cand & fin, init, j_of - p <= 1
+        return cand, fin, cand & fin, init, p
+
+    def _near(self, p: torch.Tensor) -> torch.Tensor:
+        """(B*N,) bool: the rows whose wave starts them from the target just before theirs
+        (or their own; ``p`` (B*N,) :meth:`_wave`'s): their guess as near as a carry's."""
+        j_of = torch.arange(self.b, device=p.device).repeat_interleave(self.n)
+        return j_of - p <= 1
+
+    def _wave_answer(self, cand: torch.Tensor, fin: torch.Tensor, go: torch.Tensor,
+                     fft_tried: torch.Tensor) -> torch.Tensor:
+        """(3,) int64 a wave's answer, all 0 where it has nothing to do: its rows to solve,
+        its candidates without a guess, and the lost rows not tried by FFT (:meth:`_facts`'
+        first)."""
+        return torch.stack([go.sum(), (cand & ~fin).sum(),
+                            self._fft_rows(fft_tried, False).sum()])
 
     def _unread_waves(self) -> list[int] | None:
         """The capacities of the rows of each wave of a block's rescue taken unread
@@ -303,10 +316,8 @@ class BlockRescue:
                 or run.guesses.quiet.get(RESCUE, True) or waves < 1
                 or not self.places_at_once or self._unread_capacity(start=False) is None):
             return None
-        known = [run.guesses.sizes.get(WAVE + str(w)) for w in range(waves)]
-        if None in known:
-            return None
-        caps = [counted_capacity(2 * k, self.pts.shape[0]) for k in known]
+        caps = [self.learned_capacity(WAVE + str(w), self.pts.shape[0])
+                for w in range(waves)]
         return None if None in caps else caps
 
     def _waves_unread(self, carry: Carry | None, tried: torch.Tensor,
@@ -321,21 +332,20 @@ class BlockRescue:
         rescue's). Returns the rows tried (a 0-d tensor)."""
         total = None
         for w, cap in enumerate(caps):
-            cand, fin, go, init, near = self._wave(carry, None, tried)
-            self.defer_count(WAVE + str(w), go.sum(), cap)
+            cand, fin, go, init, p = self._wave(carry, None, tried)
+            answer = self._wave_answer(cand, fin, go, fft_tried)
+            self.defer_count(WAVE + str(w), answer[0], cap)
             if w == 0:  # the first wave's answer heard, as a reading rescue's (nothing to
                 # do: the next block guesses so, not these waves)
-                self.read_later(RESCUE, torch.stack([go.sum(), (cand & ~fin).sum(),
-                                                     self._facts(fft_tried)[0]]),
+                self.read_later(RESCUE, answer,
                                 lambda values: self.heard(RESCUE, not any(values)))
-            tried.copy_(torch.where(cand, self._wave_from, tried))
+            tried.copy_(torch.where(cand, p, tried))
             init = torch.where(go.unsqueeze(1), init, float("nan"))
             placed = self.place_outside((init,), go)
-            self._solve_own_masked(go, init, near, placed)
-            total = go.sum() if total is None else total + go.sum()
+            self._solve_own_masked(go, init, self._near(p), placed)
+            total = answer[0] if total is None else total + answer[0]
         cand, fin, go, _, _ = self._wave(carry, None, tried)
-        self.defer(WAVES, torch.stack([go.sum(), (cand & ~fin).sum(),
-                                       self._facts(fft_tried)[0]]))
+        self.defer(WAVES, self._wave_answer(cand, fin, go, fft_tried))
         return total
 
     def _velocity_at(self, rows: torch.Tensor, carry: Carry | None
